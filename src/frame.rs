@@ -1,0 +1,83 @@
+//! Frames and frame sets: what sources produce and the sync stage groups.
+
+use std::sync::Arc;
+
+/// An 8-bit grayscale image, row-major, `stride == width`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GrayImage {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// `width * height` bytes, row after row.
+    pub data: Vec<u8>,
+}
+
+impl GrayImage {
+    /// A black image.
+    pub fn new(width: u32, height: u32) -> Self {
+        Self { width, height, data: vec![0; width as usize * height as usize] }
+    }
+
+    /// Pixel at integer coordinates (no bounds check beyond the slice's).
+    #[inline]
+    pub fn get(&self, x: u32, y: u32) -> u8 {
+        self.data[y as usize * self.width as usize + x as usize]
+    }
+
+    /// Bilinear sample at OpenCV pixel coordinates (centres at integers); clamps at the border.
+    pub fn sample(&self, x: f64, y: f64) -> f64 {
+        let xm = (self.width - 1) as f64;
+        let ym = (self.height - 1) as f64;
+        let x = x.clamp(0.0, xm);
+        let y = y.clamp(0.0, ym);
+        let x0 = x.floor() as u32;
+        let y0 = y.floor() as u32;
+        let x1 = (x0 + 1).min(self.width - 1);
+        let y1 = (y0 + 1).min(self.height - 1);
+        let fx = x - x0 as f64;
+        let fy = y - y0 as f64;
+        let a = self.get(x0, y0) as f64 * (1.0 - fx) + self.get(x1, y0) as f64 * fx;
+        let b = self.get(x0, y1) as f64 * (1.0 - fx) + self.get(x1, y1) as f64 * fx;
+        a * (1.0 - fy) + b * fy
+    }
+}
+
+/// One captured frame of one camera.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Index of the camera in the config's camera list.
+    pub camera: usize,
+    /// That camera's frame counter.
+    pub seq: u64,
+    /// Capture time, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// The image (shared: recorders and the detector read the same buffer).
+    pub image: Arc<GrayImage>,
+}
+
+/// Frames of different cameras taken at (nearly) the same time; at most one per camera.
+#[derive(Debug, Clone)]
+pub struct FrameSet {
+    /// Frame-set number from 0.
+    pub seq: u64,
+    /// Mean capture time of the frames, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// The frames, at most one per camera, ordered by camera index.
+    pub frames: Vec<Frame>,
+}
+
+impl FrameSet {
+    /// Builds a set from frames of distinct cameras; `t_ns` is their mean time.
+    pub fn new(seq: u64, mut frames: Vec<Frame>) -> Self {
+        frames.sort_by_key(|f| f.camera);
+        let t_ns = if frames.is_empty() {
+            0
+        } else {
+            let base = frames[0].t_ns;
+            let sum: i128 = frames.iter().map(|f| (f.t_ns - base) as i128).sum();
+            base + (sum / frames.len() as i128) as i64
+        };
+        Self { seq, t_ns, frames }
+    }
+}

@@ -1,0 +1,404 @@
+//! Recordings (SPEC "Recording"): a folder with `tagdeflect.toml`, `frames.jsonl`, the
+//! frames as 8-bit grey PNG or binary PGM, optional `utm.jsonl` and `truth.jsonl`.
+//!
+//! Reading policy (documented decision): the index files are read whole when the
+//! recording is opened. A *truncated last line* of `frames.jsonl`, `utm.jsonl` or
+//! `truth.jsonl` (no trailing newline and not valid JSON — what a recorder killed
+//! mid-write leaves) is skipped with a warning; any other malformed line is an error
+//! naming the file and line. A frame whose file is missing, corrupt, not 8-bit grey or
+//! of another size than the camera's is an error from [`Recording::load_image`] naming
+//! the file; the replay pipeline logs it and skips that frame (the frame set is solved
+//! from the other cameras), so a single bad frame never stops a long replay and never
+//! yields a silently wrong result.
+//!
+//! Writing: [`RecordingWriter`] appends one JSON line per frame / sample and flushes it,
+//! so a recording cut short by a crash or a full disk stays readable up to the last
+//! complete line.
+
+use serde::{Deserialize, Serialize};
+use std::fs::{self, File, OpenOptions};
+use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+use crate::config::{Config, ConfigError};
+use crate::frame::GrayImage;
+use crate::utm::UtmSample;
+
+/// Name of the config file inside a recording.
+pub const CONFIG_FILE: &str = "tagdeflect.toml";
+/// Name of the frame index.
+pub const FRAMES_FILE: &str = "frames.jsonl";
+/// Name of the UTM samples file.
+pub const UTM_FILE: &str = "utm.jsonl";
+/// Name of the ground-truth file.
+pub const TRUTH_FILE: &str = "truth.jsonl";
+
+/// A problem with a recording, naming the file (and line) at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordingError {
+    /// The folder or a file cannot be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A line of an index file is malformed.
+    #[error("{path}:{line}: {message}")]
+    BadLine {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// The recording's config is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// A frame image cannot be used.
+    #[error("{path}: {message}")]
+    BadImage {
+        /// The image file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The recording is unusable as a whole (e.g. no frames).
+    #[error("{path}: {message}")]
+    Invalid {
+        /// The recording folder.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RecordingError + '_ {
+    move |source| RecordingError::Io { path: path.to_path_buf(), source }
+}
+
+/// One line of `frames.jsonl`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameEntry {
+    /// Camera name (a `[[camera]]` of the config).
+    pub camera: String,
+    /// That camera's frame counter.
+    pub seq: u64,
+    /// Capture time, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// Image file, relative to the recording.
+    pub file: String,
+}
+
+/// One specimen tag's true centre in a `truth.jsonl` line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TruthTag {
+    /// Specimen tag id.
+    pub id: u32,
+    /// Centre of the black square, world frame, mm.
+    pub center_mm: [f64; 3],
+}
+
+/// One line of `truth.jsonl`: ground truth of one frame set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TruthLine {
+    /// The frame set's nominal time, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// Every specimen tag's true centre.
+    pub tags: Vec<TruthTag>,
+}
+
+/// An opened recording: config and indexes in memory, images loaded on demand.
+#[derive(Debug, Clone)]
+pub struct Recording {
+    /// The recording folder.
+    pub dir: PathBuf,
+    /// The config in force when it was recorded (or the override given to `open_with`).
+    pub config: Config,
+    /// Frames sorted by time (then camera index).
+    pub frames: Vec<FrameEntry>,
+    /// UTM samples sorted by time (empty without `utm.jsonl`).
+    pub utm: Vec<UtmSample>,
+    /// Ground truth lines sorted by time (empty without `truth.jsonl`).
+    pub truth: Vec<TruthLine>,
+    /// Lines skipped as truncated, for reporting.
+    pub skipped_lines: Vec<String>,
+}
+
+impl Recording {
+    /// Opens a recording with its own config.
+    pub fn open(dir: &Path) -> Result<Recording, RecordingError> {
+        let config = Config::load(&dir.join(CONFIG_FILE))?;
+        Self::open_with(dir, config)
+    }
+
+    /// Opens a recording with a given config (`replay --config`). Cameras are matched by
+    /// name; frames of cameras the config does not name are an error.
+    pub fn open_with(dir: &Path, config: Config) -> Result<Recording, RecordingError> {
+        if !dir.is_dir() {
+            return Err(RecordingError::Invalid { path: dir.to_path_buf(), message: "not a recording folder (it does not exist or is not a folder)".into() });
+        }
+        let mut skipped = Vec::new();
+        let frames_path = dir.join(FRAMES_FILE);
+        if !frames_path.exists() {
+            return Err(RecordingError::Invalid { path: frames_path, message: "missing: a recording needs frames.jsonl".into() });
+        }
+        let mut frames: Vec<FrameEntry> = read_jsonl(&frames_path, &mut skipped)?;
+        for (i, f) in frames.iter().enumerate() {
+            if config.camera_index(&f.camera).is_none() {
+                return Err(RecordingError::BadLine {
+                    path: frames_path.clone(),
+                    line: i + 1,
+                    message: format!("camera \"{}\" is not a [[camera]] of the config", f.camera),
+                });
+            }
+            if Path::new(&f.file).is_absolute() || f.file.split(['/', '\\']).any(|c| c == "..") {
+                return Err(RecordingError::BadLine { path: frames_path.clone(), line: i + 1, message: format!("file \"{}\" must be relative to the recording", f.file) });
+            }
+        }
+        if frames.is_empty() {
+            return Err(RecordingError::Invalid { path: frames_path, message: "the recording holds no frames".into() });
+        }
+        frames.sort_by_key(|f| (f.t_ns, config.camera_index(&f.camera), f.seq));
+        let utm_path = dir.join(UTM_FILE);
+        let mut utm: Vec<UtmSample> = if utm_path.exists() { read_jsonl(&utm_path, &mut skipped)? } else { Vec::new() };
+        utm.sort_by_key(|s| s.t_ns);
+        let truth_path = dir.join(TRUTH_FILE);
+        let mut truth: Vec<TruthLine> = if truth_path.exists() { read_jsonl(&truth_path, &mut skipped)? } else { Vec::new() };
+        truth.sort_by_key(|s| s.t_ns);
+        Ok(Recording { dir: dir.to_path_buf(), config, frames, utm, truth, skipped_lines: skipped })
+    }
+
+    /// Loads a frame's image and checks it against its camera's size.
+    pub fn load_image(&self, entry: &FrameEntry) -> Result<GrayImage, RecordingError> {
+        let path = self.dir.join(&entry.file);
+        let mut img = GrayImage::new(0, 0);
+        read_gray_into(&path, &mut img)?;
+        if let Some(cam) = self.config.camera_index(&entry.camera).map(|i| &self.config.cameras[i]) {
+            if img.width != cam.width || img.height != cam.height {
+                return Err(RecordingError::BadImage {
+                    path,
+                    message: format!("image is {}x{} but camera \"{}\" is {}x{}", img.width, img.height, cam.name, cam.width, cam.height),
+                });
+            }
+        }
+        Ok(img)
+    }
+}
+
+/// Reads a JSON Lines file, skipping (and recording) a truncated last line.
+fn read_jsonl<T: for<'de> Deserialize<'de>>(path: &Path, skipped: &mut Vec<String>) -> Result<Vec<T>, RecordingError> {
+    let mut text = String::new();
+    File::open(path).and_then(|mut f| f.read_to_string(&mut text)).map_err(io_err(path))?;
+    let ends_with_newline = text.ends_with('\n');
+    let lines: Vec<&str> = text.lines().collect();
+    let mut out = Vec::with_capacity(lines.len());
+    for (i, line) in lines.iter().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        match serde_json::from_str::<T>(line) {
+            Ok(v) => out.push(v),
+            Err(e) => {
+                let last = i + 1 == lines.len();
+                if last && !ends_with_newline && e.is_eof() {
+                    let msg = format!("{}:{}: truncated last line skipped", path.display(), i + 1);
+                    tracing::warn!("{msg}");
+                    skipped.push(msg);
+                } else {
+                    return Err(RecordingError::BadLine { path: path.to_path_buf(), line: i + 1, message: e.to_string() });
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Reads an 8-bit grey PNG or binary PGM (P5, maxval ≤ 255) into `img`, reusing its buffer.
+pub fn read_gray_into(path: &Path, img: &mut GrayImage) -> Result<(), RecordingError> {
+    let bad = |m: String| RecordingError::BadImage { path: path.to_path_buf(), message: m };
+    let mut bytes = Vec::new();
+    File::open(path).and_then(|mut f| f.read_to_end(&mut bytes)).map_err(io_err(path))?;
+    if bytes.starts_with(b"P5") {
+        decode_pgm(&bytes, img).map_err(bad)
+    } else if bytes.starts_with(b"\x89PNG") {
+        decode_png(&bytes, img).map_err(bad)
+    } else {
+        Err(bad("not a PNG or binary PGM (P5) image".into()))
+    }
+}
+
+fn decode_png(bytes: &[u8], img: &mut GrayImage) -> Result<(), String> {
+    let decoder = png::Decoder::new(bytes);
+    let mut reader = decoder.read_info().map_err(|e| format!("corrupt PNG: {e}"))?;
+    let info = reader.info();
+    if info.color_type != png::ColorType::Grayscale || info.bit_depth != png::BitDepth::Eight {
+        return Err(format!("PNG is {:?} {:?}: frames must be 8-bit grayscale", info.color_type, info.bit_depth));
+    }
+    let (w, h) = (info.width, info.height);
+    img.width = w;
+    img.height = h;
+    img.data.resize(w as usize * h as usize, 0);
+    if reader.output_buffer_size() != img.data.len() {
+        return Err("PNG row layout is not 8-bit grey".into());
+    }
+    reader.next_frame(&mut img.data).map_err(|e| format!("corrupt PNG data: {e}"))?;
+    Ok(())
+}
+
+fn decode_pgm(bytes: &[u8], img: &mut GrayImage) -> Result<(), String> {
+    // Header: "P5" whitespace width whitespace height whitespace maxval single-whitespace data;
+    // '#' comments allowed between tokens.
+    let mut pos = 2;
+    let mut fields = [0u32; 3];
+    for field in fields.iter_mut() {
+        loop {
+            while pos < bytes.len() && bytes[pos].is_ascii_whitespace() {
+                pos += 1;
+            }
+            if pos < bytes.len() && bytes[pos] == b'#' {
+                while pos < bytes.len() && bytes[pos] != b'\n' {
+                    pos += 1;
+                }
+            } else {
+                break;
+            }
+        }
+        let start = pos;
+        while pos < bytes.len() && bytes[pos].is_ascii_digit() {
+            pos += 1;
+        }
+        let s = std::str::from_utf8(&bytes[start..pos]).unwrap_or("");
+        *field = s.parse().map_err(|_| "corrupt PGM header".to_string())?;
+    }
+    if pos >= bytes.len() || !bytes[pos].is_ascii_whitespace() {
+        return Err("corrupt PGM header".into());
+    }
+    pos += 1;
+    let [w, h, maxval] = fields;
+    if maxval == 0 || maxval > 255 {
+        return Err(format!("PGM maxval {maxval}: frames must be 8-bit grey"));
+    }
+    let n = w as usize * h as usize;
+    if bytes.len() - pos < n {
+        return Err(format!("truncated PGM: {} of {} pixel bytes", bytes.len() - pos, n));
+    }
+    img.width = w;
+    img.height = h;
+    img.data.clear();
+    img.data.extend_from_slice(&bytes[pos..pos + n]);
+    Ok(())
+}
+
+/// Encodes an image as an 8-bit grey PNG (fast compression).
+pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, String> {
+    let mut out = Vec::with_capacity(img.data.len() / 2);
+    {
+        let mut enc = png::Encoder::new(&mut out, img.width, img.height);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_compression(png::Compression::Fast);
+        let mut w = enc.write_header().map_err(|e| e.to_string())?;
+        w.write_image_data(&img.data).map_err(|e| e.to_string())?;
+    }
+    Ok(out)
+}
+
+/// Writes a recording: the config, frames as PNG, and the index lines (each flushed).
+pub struct RecordingWriter {
+    dir: PathBuf,
+    frames: BufWriter<File>,
+    utm: Option<BufWriter<File>>,
+    truth: Option<BufWriter<File>>,
+}
+
+impl RecordingWriter {
+    /// Creates the folder (it must not hold a recording already) and writes the config.
+    pub fn create(dir: &Path, config: &Config) -> Result<RecordingWriter, RecordingError> {
+        if dir.join(FRAMES_FILE).exists() {
+            return Err(RecordingError::Invalid { path: dir.to_path_buf(), message: "already holds a recording; choose a new folder".into() });
+        }
+        fs::create_dir_all(dir).map_err(io_err(dir))?;
+        for cam in &config.cameras {
+            let p = dir.join(&cam.name);
+            fs::create_dir_all(&p).map_err(io_err(&p))?;
+        }
+        let cfg_path = dir.join(CONFIG_FILE);
+        fs::write(&cfg_path, config.to_toml_string()).map_err(io_err(&cfg_path))?;
+        let frames_path = dir.join(FRAMES_FILE);
+        let frames = BufWriter::new(File::create(&frames_path).map_err(io_err(&frames_path))?);
+        Ok(RecordingWriter { dir: dir.to_path_buf(), frames, utm: None, truth: None })
+    }
+
+    /// The recording folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes a frame as `<camera>/<seq>.png` and its index line.
+    pub fn write_frame(&mut self, camera: &str, seq: u64, t_ns: i64, image: &GrayImage) -> Result<(), RecordingError> {
+        let file = format!("{camera}/{seq:06}.png");
+        let path = self.dir.join(&file);
+        let png = encode_png(image).map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
+        fs::write(&path, png).map_err(io_err(&path))?;
+        self.write_frame_entry(&FrameEntry { camera: camera.to_string(), seq, t_ns, file })
+    }
+
+    /// Writes a frame index line for an image already in place.
+    pub fn write_frame_entry(&mut self, entry: &FrameEntry) -> Result<(), RecordingError> {
+        let path = self.dir.join(FRAMES_FILE);
+        write_line(&mut self.frames, entry).map_err(io_err(&path))
+    }
+
+    /// Appends a UTM sample to `utm.jsonl`.
+    pub fn write_utm(&mut self, sample: &UtmSample) -> Result<(), RecordingError> {
+        let path = self.dir.join(UTM_FILE);
+        let w = open_append(&mut self.utm, &path)?;
+        write_line(w, sample).map_err(io_err(&path))
+    }
+
+    /// Appends a ground-truth line to `truth.jsonl`.
+    pub fn write_truth(&mut self, line: &TruthLine) -> Result<(), RecordingError> {
+        let path = self.dir.join(TRUTH_FILE);
+        let w = open_append(&mut self.truth, &path)?;
+        write_line(w, line).map_err(io_err(&path))
+    }
+
+    /// Flushes everything.
+    pub fn finish(mut self) -> Result<(), RecordingError> {
+        let dir = self.dir.clone();
+        self.frames.flush().map_err(io_err(&dir))?;
+        for w in [self.utm.as_mut(), self.truth.as_mut()].into_iter().flatten() {
+            w.flush().map_err(io_err(&dir))?;
+        }
+        Ok(())
+    }
+}
+
+fn open_append<'a>(slot: &'a mut Option<BufWriter<File>>, path: &Path) -> Result<&'a mut BufWriter<File>, RecordingError> {
+    if slot.is_none() {
+        let f = OpenOptions::new().create(true).append(true).open(path).map_err(io_err(path))?;
+        *slot = Some(BufWriter::new(f));
+    }
+    Ok(slot.as_mut().expect("just opened"))
+}
+
+fn write_line<T: Serialize>(w: &mut BufWriter<File>, value: &T) -> std::io::Result<()> {
+    serde_json::to_writer(&mut *w, value).map_err(std::io::Error::other)?;
+    w.write_all(b"\n")?;
+    w.flush()
+}
+
+/// Reads a JSON Lines file of any type (used by tests and tools), with the same
+/// truncated-last-line policy as recordings.
+pub fn read_jsonl_file<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<Vec<T>, RecordingError> {
+    let mut skipped = Vec::new();
+    read_jsonl(path, &mut skipped)
+}
+
+/// Counts the lines of a file (for progress reporting).
+pub fn count_lines(path: &Path) -> std::io::Result<usize> {
+    Ok(BufReader::new(File::open(path)?).lines().count())
+}

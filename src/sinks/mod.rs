@@ -1,0 +1,1 @@
+//! Sinks: where solutions go (the feed, recordings).

@@ -1,0 +1,1 @@
+//! Frame sources: each produces timestamped [`crate::frame::Frame`]s.

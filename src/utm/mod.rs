@@ -1,0 +1,131 @@
+//! The testing machine (UTM): samples, their interpolation, the Modbus TCP client and the
+//! simulated UTM server.
+
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+
+/// One reading of the testing machine.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct UtmSample {
+    /// Time of the reading, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// Load, kN.
+    #[serde(rename = "load_kN")]
+    pub load_kn: f64,
+    /// Stroke (crosshead travel), mm, when configured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stroke_mm: Option<f64>,
+}
+
+/// A time-ordered window of UTM samples with linear interpolation (no extrapolation).
+#[derive(Debug, Default, Clone)]
+pub struct UtmHistory {
+    samples: VecDeque<UtmSample>,
+    /// Samples older than this many ns behind the newest are dropped (0 = keep all).
+    keep_ns: i64,
+}
+
+impl UtmHistory {
+    /// Keeps every sample (replay).
+    pub fn unbounded() -> Self {
+        Self { samples: VecDeque::new(), keep_ns: 0 }
+    }
+
+    /// Keeps samples within `keep_ns` of the newest (live).
+    pub fn with_window(keep_ns: i64) -> Self {
+        Self { samples: VecDeque::new(), keep_ns }
+    }
+
+    /// Adds a sample; out-of-order samples are inserted in place, duplicates of a time replace.
+    pub fn push(&mut self, s: UtmSample) {
+        match self.samples.back() {
+            Some(last) if last.t_ns > s.t_ns => {
+                let i = self.samples.partition_point(|x| x.t_ns < s.t_ns);
+                if self.samples.get(i).is_some_and(|x| x.t_ns == s.t_ns) {
+                    self.samples[i] = s;
+                } else {
+                    self.samples.insert(i, s);
+                }
+            }
+            Some(last) if last.t_ns == s.t_ns => *self.samples.back_mut().unwrap() = s,
+            _ => self.samples.push_back(s),
+        }
+        if self.keep_ns > 0 {
+            let newest = self.samples.back().map(|x| x.t_ns).unwrap_or(0);
+            while self.samples.front().is_some_and(|x| x.t_ns < newest - self.keep_ns) {
+                self.samples.pop_front();
+            }
+        }
+    }
+
+    /// Number of samples held.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// True when no sample is held.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Newest sample time.
+    pub fn newest_t_ns(&self) -> Option<i64> {
+        self.samples.back().map(|s| s.t_ns)
+    }
+
+    /// Load and stroke linearly interpolated at `t_ns`; `None` outside the samples' span
+    /// (no extrapolation). Stroke is `None` when either neighbour lacks it.
+    pub fn interpolate(&self, t_ns: i64) -> Option<(f64, Option<f64>)> {
+        let first = self.samples.front()?;
+        let last = self.samples.back()?;
+        if t_ns < first.t_ns || t_ns > last.t_ns {
+            return None;
+        }
+        let i = self.samples.partition_point(|x| x.t_ns < t_ns);
+        let b = self.samples[i];
+        if b.t_ns == t_ns || i == 0 {
+            return Some((b.load_kn, b.stroke_mm));
+        }
+        let a = self.samples[i - 1];
+        let w = (t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
+        let lerp = |x: f64, y: f64| x + (y - x) * w;
+        let stroke = match (a.stroke_mm, b.stroke_mm) {
+            (Some(x), Some(y)) => Some(lerp(x, y)),
+            _ => None,
+        };
+        Some((lerp(a.load_kn, b.load_kn), stroke))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn s(t: i64, l: f64) -> UtmSample {
+        UtmSample { t_ns: t, load_kn: l, stroke_mm: Some(l / 10.0) }
+    }
+
+    #[test]
+    fn interpolates_linearly_and_never_extrapolates() {
+        let mut h = UtmHistory::unbounded();
+        h.push(s(100, 1.0));
+        h.push(s(300, 3.0));
+        h.push(s(200, 2.5)); // out of order
+        assert_eq!(h.interpolate(99), None);
+        assert_eq!(h.interpolate(301), None);
+        let (l, st) = h.interpolate(250).unwrap();
+        assert!((l - 2.75).abs() < 1e-12 && (st.unwrap() - 0.275).abs() < 1e-12);
+        assert_eq!(h.interpolate(100).unwrap().0, 1.0);
+        assert_eq!(h.interpolate(300).unwrap().0, 3.0);
+    }
+
+    #[test]
+    fn window_drops_old_samples() {
+        let mut h = UtmHistory::with_window(100);
+        for t in 0..10 {
+            h.push(s(t * 50, t as f64));
+        }
+        assert_eq!(h.len(), 3);
+        assert_eq!(h.newest_t_ns(), Some(450));
+    }
+}
