@@ -7,6 +7,7 @@
 pub mod camera;
 pub mod config;
 pub mod detect;
+pub mod feed;
 pub mod frame;
 pub mod pipeline;
 pub mod recording;

@@ -1,1 +1,132 @@
-//! (being written)
+//! Frames → frame sets (SPEC `sync.tolerance_ms`).
+//!
+//! A frame set is anchored at its first frame; a frame of another camera within the
+//! tolerance of the anchor joins it. A set closes when every camera has a frame in it,
+//! when a frame arrives beyond the tolerance, or when a camera's second frame arrives
+//! (a set never holds two frames of one camera: a dropped frame of one camera makes a
+//! smaller set). A frame older than the open set's anchor (a late frame whose set has
+//! already been closed) is dropped and counted.
+
+use crate::frame::{Frame, FrameSet};
+
+/// Groups frames of different cameras into frame sets.
+#[derive(Debug)]
+pub struct FrameSetAssembler {
+    cameras: usize,
+    tolerance_ns: i64,
+    open: Vec<Frame>,
+    next_seq: u64,
+    late_frames: u64,
+}
+
+impl FrameSetAssembler {
+    /// An assembler for `cameras` cameras with a tolerance in ms.
+    pub fn new(cameras: usize, tolerance_ms: f64) -> Self {
+        Self { cameras, tolerance_ns: (tolerance_ms * 1e6).round() as i64, open: Vec::new(), next_seq: 0, late_frames: 0 }
+    }
+
+    /// Frames dropped because their set had already been closed.
+    pub fn late_frames(&self) -> u64 {
+        self.late_frames
+    }
+
+    /// Adds a frame; returns the sets it completes (zero, one or two).
+    pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
+        let mut done = Vec::new();
+        if let Some(anchor) = self.open.first().map(|f| f.t_ns) {
+            if frame.t_ns < anchor - self.tolerance_ns {
+                self.late_frames += 1;
+                return done;
+            }
+            let same_camera = self.open.iter().any(|f| f.camera == frame.camera);
+            if same_camera || (frame.t_ns - anchor).abs() > self.tolerance_ns {
+                done.extend(self.close());
+            }
+        }
+        self.open.push(frame);
+        if self.open.len() >= self.cameras {
+            done.extend(self.close());
+        }
+        done
+    }
+
+    /// Closes the open set if its anchor is older than `now_ns - tolerance - grace_ns`
+    /// (live capture: a camera whose frame never comes must not hold the others back).
+    pub fn poll(&mut self, now_ns: i64, grace_ns: i64) -> Option<FrameSet> {
+        let anchor = self.open.first()?.t_ns;
+        if now_ns - anchor > self.tolerance_ns + grace_ns {
+            self.close()
+        } else {
+            None
+        }
+    }
+
+    /// Closes the open set (end of a recording or shutdown).
+    pub fn flush(&mut self) -> Option<FrameSet> {
+        self.close()
+    }
+
+    fn close(&mut self) -> Option<FrameSet> {
+        if self.open.is_empty() {
+            return None;
+        }
+        let set = FrameSet::new(self.next_seq, std::mem::take(&mut self.open));
+        self.next_seq += 1;
+        Some(set)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::GrayImage;
+    use std::sync::Arc;
+
+    fn f(camera: usize, t_ms: i64) -> Frame {
+        Frame { camera, seq: 0, t_ns: 1_700_000_000_000_000_000 + t_ms * 1_000_000, image: Arc::new(GrayImage::new(1, 1)) }
+    }
+
+    fn run(frames: Vec<Frame>) -> Vec<Vec<usize>> {
+        let mut a = FrameSetAssembler::new(3, 10.0);
+        let mut out: Vec<FrameSet> = frames.into_iter().flat_map(|fr| a.push(fr)).collect();
+        out.extend(a.flush());
+        out.iter().map(|s| s.frames.iter().map(|f| f.camera).collect()).collect()
+    }
+
+    #[test]
+    fn groups_within_tolerance_and_closes_when_complete() {
+        let sets = run(vec![f(0, 0), f(1, 3), f(2, 5), f(0, 100), f(1, 104), f(2, 98)]);
+        assert_eq!(sets, vec![vec![0, 1, 2], vec![0, 1, 2]]);
+    }
+
+    #[test]
+    fn dropped_frame_makes_a_smaller_set_never_two_of_one_camera() {
+        // camera 2 dropped its first frame; camera 0 comes twice close together.
+        let sets = run(vec![f(0, 0), f(1, 2), f(0, 100), f(1, 101), f(2, 102), f(0, 200), f(0, 205)]);
+        assert_eq!(sets, vec![vec![0, 1], vec![0, 1, 2], vec![0], vec![0]]);
+    }
+
+    #[test]
+    fn far_apart_frames_form_separate_sets_and_late_frames_are_counted() {
+        let mut a = FrameSetAssembler::new(2, 10.0);
+        assert!(a.push(f(0, 0)).is_empty());
+        let s = a.push(f(1, 50));
+        assert_eq!(s.len(), 1);
+        assert_eq!(s[0].frames.len(), 1);
+        assert!(a.push(f(0, 20)).is_empty()); // older than the open set's anchor - tolerance
+        assert_eq!(a.late_frames(), 1);
+        let set = a.flush().unwrap();
+        assert_eq!(set.seq, 1);
+        assert_eq!(set.t_ns, f(1, 50).t_ns);
+    }
+
+    #[test]
+    fn poll_closes_a_stale_set_and_mean_time_is_used() {
+        let mut a = FrameSetAssembler::new(3, 10.0);
+        a.push(f(0, 0));
+        a.push(f(1, 4));
+        assert!(a.poll(f(0, 12).t_ns, 5_000_000).is_none());
+        let set = a.poll(f(0, 16).t_ns, 5_000_000).unwrap();
+        assert_eq!(set.t_ns, f(0, 2).t_ns);
+    }
+}

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Installs what tagdeflect needs to build and test on Debian (idempotent, quiet when
+# everything is already there): the C libraries of the -sys crates, Aravis's fake GigE
+# camera, systemd-analyze, and a Python venv with pymodbus (the real Modbus peer of the
+# tests). Run as root or with sudo available.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev systemd python3 python3-venv)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+# A python3 outside Debian's packages (e.g. pyenv) is fine: only ask apt for it if none runs.
+if command -v python3 >/dev/null 2>&1 && python3 -c 'import venv, ensurepip' >/dev/null 2>&1; then
+  missing=("${missing[@]/python3}"); missing=("${missing[@]/python3-venv}")
+fi
+missing=($(printf '%s\n' "${missing[@]}" | sed '/^$/d'))
+if [ ${#missing[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+  echo "setup: installing ${missing[*]}" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+venv=target/test-venv
+if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import pymodbus' >/dev/null 2>&1; then
+  echo "setup: creating $venv with pymodbus" >&2
+  python3 -m venv "$venv"
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'pymodbus>=3.6,<4'
+fi

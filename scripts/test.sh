@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# The whole test suite: installs what it needs (scripts/setup.sh), then runs every test.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh
+export TAGDEFLECT_PYTHON="$PWD/target/test-venv/bin/python"
+cargo test --locked -- --test-threads 2

@@ -1,0 +1,95 @@
+//! The deflection feed (SPEC "Deflection feed"): one JSON line per solved frame set.
+//!
+//! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
+//! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
+//! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
+//! the live pipeline so far), `latency_ms` (frame capture → line written, live only).
+
+use serde::{Deserialize, Serialize};
+
+/// One solved specimen tag in a feed line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeedTag {
+    /// Specimen tag id.
+    pub id: u32,
+    /// Centre of the black square, world frame, mm.
+    pub pos_mm: [f64; 3],
+    /// `pos_mm` minus the tag's position in the first frame set that solved it.
+    pub disp_mm: [f64; 3],
+    /// Cameras that saw it (and were used).
+    pub views: usize,
+    /// 1-σ uncertainty of `pos_mm` along world x, y, z.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_mm: Option<[f64; 3]>,
+    /// RMS reprojection error of the tag's corners, px.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reproj_px: Option<f64>,
+}
+
+/// Health of one camera in one frame set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraHealth {
+    /// Camera name.
+    pub name: String,
+    /// True when the camera contributed a frame to this set.
+    pub frame: bool,
+    /// Background tags seen.
+    pub background_tags: usize,
+    /// Specimen tags seen.
+    pub specimen_tags: usize,
+    /// RMS reprojection error of the background corners with the pose in use, px.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_reproj_px: Option<f64>,
+    /// The camera has a pose (from background tags or the config).
+    pub posed: bool,
+    /// The camera was found moved (bumped) and re-posed in this frame set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub bumped: bool,
+}
+
+/// One line of the feed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeedLine {
+    /// Frame-set number from 0.
+    pub seq: u64,
+    /// The frame set's time (mean of its frames), ns since the Unix epoch.
+    pub t_ns: i64,
+    /// UTM load interpolated at `t_ns`, kN.
+    #[serde(rename = "load_kN", default, skip_serializing_if = "Option::is_none")]
+    pub load_kn: Option<f64>,
+    /// UTM stroke interpolated at `t_ns`, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stroke_mm: Option<f64>,
+    /// The specimen tags solved in this frame set.
+    pub tags: Vec<FeedTag>,
+    /// Mean downward displacement of midspan tags minus that of support tags, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub net_deflection_mm: Option<f64>,
+    /// RMS reprojection error over all solved specimen tags, px.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reproj_px: Option<f64>,
+    /// Per-camera health.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<CameraHealth>,
+    /// UTM link state when a UTM is configured: "ok" or "down".
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub utm: Option<String>,
+    /// Frame sets dropped by the live pipeline so far (back-pressure).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dropped_sets: Option<u64>,
+    /// Capture → feed latency of this set, ms (live only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latency_ms: Option<f64>,
+}
+
+/// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.
+pub fn round_mm(v: f64) -> f64 {
+    (v * 1e5).round() / 1e5
+}
+
+impl FeedLine {
+    /// The line as compact JSON (no trailing newline).
+    pub fn to_json(&self) -> String {
+        serde_json::to_string(self).expect("feed line serialises")
+    }
+}
