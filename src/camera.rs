@@ -33,10 +33,7 @@ impl CameraIntrinsics {
         let (x, y) = (xn.x, xn.y);
         let r2 = x * x + y * y;
         let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        Vector2::new(
-            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-        )
+        Vector2::new(x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x), y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
     }
 
     /// Jacobian of [`distort`](Self::distort) with respect to the normalised coordinates.
@@ -158,10 +155,19 @@ impl Pose {
         -(self.rotation.inverse() * self.translation)
     }
 
-    /// Rotation angle between two poses, radians.
+    /// Rotation angle between two poses, radians (accurate near zero, unlike an `acos` of
+    /// the trace).
     pub fn angle_to(&self, other: &Pose) -> f64 {
-        (self.rotation.inverse() * other.rotation).angle()
+        rotation_angle(&(self.rotation.inverse() * other.rotation))
     }
+}
+
+/// Angle of a rotation, radians, accurate at small angles: `atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2)`.
+pub fn rotation_angle(r: &Rotation3<f64>) -> f64 {
+    let m = r.matrix();
+    let s = Vector3::new(m[(2, 1)] - m[(1, 2)], m[(0, 2)] - m[(2, 0)], m[(1, 0)] - m[(0, 1)]).norm() / 2.0;
+    let c = (m.trace() - 1.0) / 2.0;
+    s.atan2(c)
 }
 
 /// Skew-symmetric matrix of a vector (`skew(a) * b = a × b`).
@@ -207,7 +213,7 @@ mod tests {
     fn pose_inverse_and_rvec_round_trip() {
         let p = Pose::from_rvec_tvec([0.1, -0.2, 0.3], [10.0, 20.0, 30.0]);
         let q = p.compose(&p.inverse());
-        assert!(q.translation.norm() < 1e-12 && q.rotation.angle() < 1e-12);
+        assert!(q.translation.norm() < 1e-12 && rotation_angle(&q.rotation) < 1e-12);
         let r = p.rvec();
         assert!((r[0] - 0.1).abs() < 1e-12 && (r[1] + 0.2).abs() < 1e-12 && (r[2] - 0.3).abs() < 1e-12);
     }

@@ -1,0 +1,337 @@
+//! A camera's pose kept across frame sets: still while the camera is static, re-posed when
+//! it is bumped.
+//!
+//! Policy (why): the feed reports displacements against each tag's first solved position,
+//! so any change of a camera's pose estimate shows up as a fake displacement. After the
+//! first posing the pose is therefore *held* (by default) — its error is a constant that
+//! cancels in the displacement — instead of being re-estimated every frame (that noise would
+//! leak into every frame) or refined by a running mean (that would drift by the first pose's
+//! error over the run). After a bump the displacement reference is broken anyway, so the new
+//! pose is refined from the running mean of the background corners over a few updates
+//! ([`TrackerOptions::average_updates_after_bump`]) to make it as good as possible, then held.
+//!
+//! Bump test: the median distance, over the corners seen, between the observed background
+//! corners and the held pose's projections; a bump when it exceeds
+//! `max(bump_floor_px, bump_noise_factor × corner noise)`, the corner noise being the pooled
+//! per-axis scatter of each corner around its running mean while static. A median is used so
+//! a partially occluded or mis-detected tag cannot fake (or hide) a bump; tags that disagree
+//! with the pose are left out of the running means.
+
+use std::collections::HashMap;
+
+use nalgebra::{Matrix6, Point2, Vector2, Vector3};
+
+use super::camera_pose::{solve_camera_pose, BackgroundTagObservation};
+use super::lm::median;
+use crate::camera::{CameraIntrinsics, Pose};
+
+/// Tuning of a [`CameraPoseTracker`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackerOptions {
+    /// Fewest background corners to pose (or test) the camera in an update (4 = one tag).
+    pub min_corners: usize,
+    /// Smallest median corner shift (px) taken as a bump.
+    pub bump_floor_px: f64,
+    /// A bump is a median shift above this many times the corner noise (px, per axis).
+    pub bump_noise_factor: f64,
+    /// Updates whose corners are averaged into the pose after the first posing (1 = hold
+    /// the first pose; see the module docs).
+    pub average_updates_initial: usize,
+    /// Updates whose corners are averaged into the pose after a bump's re-posing.
+    pub average_updates_after_bump: usize,
+}
+
+impl Default for TrackerOptions {
+    fn default() -> Self {
+        Self { min_corners: 4, bump_floor_px: 1.0, bump_noise_factor: 6.0, average_updates_initial: 1, average_updates_after_bump: 5 }
+    }
+}
+
+/// What one [`CameraPoseTracker::update`] found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackerStatus {
+    /// The pose to use for this frame set (world → camera); `None` while the camera has
+    /// never been posed, or after a bump it could not be re-posed from.
+    pub pose: Option<Pose>,
+    /// Covariance of `pose` in the step parameters `(ω, v)`; `None` for a fixed pose.
+    pub covariance: Option<Matrix6<f64>>,
+    /// The camera moved in this update (detected and, if `pose` is `Some`, re-posed).
+    pub bumped: bool,
+    /// Too few background corners this update: the pose was kept from before, unchecked.
+    pub stale: bool,
+    /// The pose is the configured one (never estimated).
+    pub fixed: bool,
+    /// True in the update that first posed the camera.
+    pub first_pose: bool,
+    /// Reprojection RMS (px, per axis) of this update's background corners against `pose`.
+    pub rms_px: Option<f64>,
+    /// Median distance (px) between this update's corners and the previous pose's
+    /// projections: the bump statistic.
+    pub shift_px: Option<f64>,
+    /// The bump threshold in force, px.
+    pub bump_threshold_px: f64,
+    /// Background corners observed in this update.
+    pub corners: usize,
+    /// Background tags left out this update (outliers against the pose).
+    pub rejected_tags: Vec<u32>,
+    /// Pooled corner noise (px, per axis) while static; `None` until measured.
+    pub noise_px: Option<f64>,
+    /// A human-readable note on anything unusual (too few tags, failed re-pose).
+    pub message: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct CornerStats {
+    world: Vector3<f64>,
+    n: f64,
+    mean: Vector2<f64>,
+    m2: f64,
+}
+
+/// Keeps one camera's pose across frame sets. See the module docs for the policy.
+#[derive(Debug, Clone)]
+pub struct CameraPoseTracker {
+    intrinsics: CameraIntrinsics,
+    options: TrackerOptions,
+    fixed: bool,
+    pose: Option<Pose>,
+    covariance: Option<Matrix6<f64>>,
+    corners: HashMap<(u32, usize), CornerStats>,
+    archived_m2: f64,
+    archived_dof: f64,
+    averaged_updates: usize,
+    average_limit: usize,
+}
+
+impl CameraPoseTracker {
+    /// A tracker for a camera; `fixed_pose` (from the config's rvec/tvec) disables estimation.
+    pub fn new(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>) -> Self {
+        Self::with_options(intrinsics, fixed_pose, TrackerOptions::default())
+    }
+
+    /// As [`new`](Self::new) with explicit tuning.
+    pub fn with_options(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>, options: TrackerOptions) -> Self {
+        Self {
+            intrinsics,
+            options,
+            fixed: fixed_pose.is_some(),
+            pose: fixed_pose,
+            covariance: None,
+            corners: HashMap::new(),
+            archived_m2: 0.0,
+            archived_dof: 0.0,
+            averaged_updates: 0,
+            average_limit: options.average_updates_initial.max(1),
+        }
+    }
+
+    /// The current pose, if any.
+    pub fn pose(&self) -> Option<Pose> {
+        self.pose
+    }
+
+    /// The current pose's covariance (step parameters `(ω, v)`), if estimated.
+    pub fn covariance(&self) -> Option<Matrix6<f64>> {
+        self.covariance
+    }
+
+    /// Pooled per-axis scatter (px) of the background corners around their running means.
+    pub fn noise_px(&self) -> Option<f64> {
+        let (m2, dof) = self.corners.values().fold((self.archived_m2, self.archived_dof), |(m, d), c| (m + c.m2, d + (c.n - 1.0).max(0.0)));
+        (dof >= 10.0).then(|| (m2 / (2.0 * dof)).sqrt())
+    }
+
+    /// The bump threshold now in force, px.
+    pub fn bump_threshold_px(&self) -> f64 {
+        let noise = self.noise_px().unwrap_or(0.0);
+        self.options.bump_floor_px.max(self.options.bump_noise_factor * noise)
+    }
+
+    /// Feeds one frame set's background tags seen by this camera (possibly none).
+    pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+        let tags: Vec<BackgroundTagObservation> = tags
+            .iter()
+            .filter(|t| {
+                t.pixels.iter().all(|p| p.x.is_finite() && p.y.is_finite()) && t.world.iter().all(|w| w.iter().all(|v| v.is_finite()))
+            })
+            .copied()
+            .collect();
+        let corners = tags.len() * 4;
+        let threshold = self.bump_threshold_px();
+        let mut status = TrackerStatus {
+            pose: self.pose,
+            covariance: self.covariance,
+            bumped: false,
+            stale: false,
+            fixed: self.fixed,
+            first_pose: false,
+            rms_px: None,
+            shift_px: None,
+            bump_threshold_px: threshold,
+            corners,
+            rejected_tags: Vec::new(),
+            noise_px: self.noise_px(),
+            message: None,
+        };
+        if self.fixed {
+            status.rms_px = self.pose.and_then(|p| self.rms(&p, &tags));
+            return status;
+        }
+        if corners < self.options.min_corners.max(4) {
+            let msg = format!("{} background corners seen, {} needed: pose kept from before", corners, self.options.min_corners.max(4));
+            tracing::debug!("{msg}");
+            status.stale = self.pose.is_some();
+            status.message = Some(msg);
+            return status;
+        }
+        let Some(pose) = self.pose else {
+            return self.first_posing(tags, status);
+        };
+
+        // Bump test against the held pose.
+        let shifts: Vec<f64> = tags
+            .iter()
+            .flat_map(|t| (0..4).map(move |k| (t, k)))
+            .map(|(t, k)| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
+            .collect();
+        let shift = median(&shifts).unwrap_or(0.0);
+        status.shift_px = Some(shift);
+        if shift > threshold {
+            tracing::warn!(
+                shift_px = shift,
+                threshold_px = threshold,
+                corners,
+                "camera bumped: background tags moved in the image; re-posing"
+            );
+            self.archive_noise();
+            self.corners.clear();
+            status.bumped = true;
+            return match solve_camera_pose(&self.intrinsics, &tags, Some(&pose)) {
+                Ok(sol) => {
+                    self.pose = Some(sol.pose);
+                    self.covariance = Some(sol.covariance);
+                    self.averaged_updates = 1;
+                    self.average_limit = self.options.average_updates_after_bump.max(1);
+                    self.accumulate(&tags, &sol.rejected_tags);
+                    status.pose = Some(sol.pose);
+                    status.covariance = Some(sol.covariance);
+                    status.rms_px = Some(sol.rms_px);
+                    status.rejected_tags = sol.rejected_tags;
+                    status
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "camera bumped and could not be re-posed");
+                    self.pose = None;
+                    self.covariance = None;
+                    status.pose = None;
+                    status.covariance = None;
+                    status.message = Some(format!("bumped, re-pose failed: {e}"));
+                    status
+                }
+            };
+        }
+
+        // Static: tags that disagree with the pose stay out of the running means.
+        let mut rejected = Vec::new();
+        for t in &tags {
+            let d: Vec<f64> = (0..4)
+                .map(|k| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
+                .collect();
+            if median(&d).unwrap_or(f64::INFINITY) > threshold {
+                tracing::debug!(tag = t.id, "background tag disagrees with the held pose; left out");
+                rejected.push(t.id);
+            }
+        }
+        self.accumulate(&tags, &rejected);
+        if self.averaged_updates < self.average_limit {
+            self.averaged_updates += 1;
+            let averaged = self.averaged_observations();
+            match solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)) {
+                Ok(sol) => {
+                    self.pose = Some(sol.pose);
+                    self.covariance = Some(sol.covariance);
+                }
+                Err(e) => tracing::debug!(error = %e, "pose refinement from averaged corners failed; pose kept"),
+            }
+        }
+        status.pose = self.pose;
+        status.covariance = self.covariance;
+        status.rms_px = self.pose.and_then(|p| self.rms(&p, &tags));
+        status.rejected_tags = rejected;
+        status.noise_px = self.noise_px();
+        status
+    }
+
+    fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: TrackerStatus) -> TrackerStatus {
+        match solve_camera_pose(&self.intrinsics, &tags, None) {
+            Ok(sol) => {
+                tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
+                self.pose = Some(sol.pose);
+                self.covariance = Some(sol.covariance);
+                self.averaged_updates = 1;
+                self.average_limit = self.options.average_updates_initial.max(1);
+                self.accumulate(&tags, &sol.rejected_tags);
+                status.pose = Some(sol.pose);
+                status.covariance = Some(sol.covariance);
+                status.first_pose = true;
+                status.rms_px = Some(sol.rms_px);
+                status.rejected_tags = sol.rejected_tags;
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "camera could not be posed from background tags");
+                status.message = Some(format!("could not be posed: {e}"));
+            }
+        }
+        status
+    }
+
+    fn rms(&self, pose: &Pose, tags: &[BackgroundTagObservation]) -> Option<f64> {
+        let mut s = 0.0;
+        let mut n = 0;
+        for t in tags {
+            for k in 0..4 {
+                let p = self.intrinsics.project(&pose.transform(&t.world[k]))?;
+                s += (p - t.pixels[k]).norm_squared();
+                n += 2;
+            }
+        }
+        (n > 0).then(|| (s / n as f64).sqrt())
+    }
+
+    fn accumulate(&mut self, tags: &[BackgroundTagObservation], skip: &[u32]) {
+        for t in tags.iter().filter(|t| !skip.contains(&t.id)) {
+            for k in 0..4 {
+                let px = Vector2::new(t.pixels[k].x, t.pixels[k].y);
+                let c = self.corners.entry((t.id, k)).or_insert(CornerStats { world: t.world[k], n: 0.0, mean: px, m2: 0.0 });
+                c.world = t.world[k];
+                c.n += 1.0;
+                let d = px - c.mean;
+                c.mean += d / c.n;
+                c.m2 += d.dot(&(px - c.mean));
+            }
+        }
+    }
+
+    fn archive_noise(&mut self) {
+        for c in self.corners.values() {
+            self.archived_m2 += c.m2;
+            self.archived_dof += (c.n - 1.0).max(0.0);
+        }
+    }
+
+    fn averaged_observations(&self) -> Vec<BackgroundTagObservation> {
+        let mut ids: Vec<u32> = self.corners.keys().map(|(id, _)| *id).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids.into_iter()
+            .filter_map(|id| {
+                let c: Vec<&CornerStats> = (0..4).map(|k| self.corners.get(&(id, k))).collect::<Option<_>>()?;
+                Some(BackgroundTagObservation {
+                    id,
+                    pixels: [0, 1, 2, 3].map(|k| Point2::new(c[k].mean.x, c[k].mean.y)),
+                    world: [0, 1, 2, 3].map(|k| c[k].world),
+                })
+            })
+            .collect()
+    }
+}
