@@ -1,6 +1,14 @@
 //! The testing machine (UTM): samples, their interpolation, the Modbus TCP client and the
 //! simulated UTM server.
 
+pub mod codec;
+pub mod modbus;
+pub mod sim_server;
+
+pub use codec::{decode, encode, DecodeError, EncodeError};
+pub use modbus::{run_poller, PollerError, UtmEvent};
+pub use sim_server::{serve_sim_utm, start_sim_utm, SimUtm, UtmModel};
+
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
