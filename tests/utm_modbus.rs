@@ -312,6 +312,51 @@ async fn silent_server_times_out_and_is_retried() {
     acceptor.join().unwrap();
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nan_from_the_device_is_a_clear_error() {
+    let port = free_port();
+    let _server = start_pymodbus(port);
+    let load = reg(10, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
+    let mut p = Poller::start(utm(format!("127.0.0.1:{port}"), load, None));
+    let (down, _) = p.wait_for(Duration::from_secs(10), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
+    let UtmEvent::Down { reason } = down else { unreachable!() };
+    println!("NaN load: {reason}");
+    assert!(reason.contains("register 10") && reason.contains("not a finite number"), "{reason}");
+    assert!(p.next(Duration::from_millis(500)).await.is_none());
+    p.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn short_reply_is_a_clear_error() {
+    // A hand-made device that answers every read with one register, whatever was asked.
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let device = tokio::spawn(async move {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        while let Ok((mut s, _)) = listener.accept().await {
+            tokio::spawn(async move {
+                let mut req = [0u8; 12]; // MBAP (7) + function, address, count (5)
+                while s.read_exact(&mut req).await.is_ok() {
+                    // Same transaction and unit, length 5 = unit + function + count + 2 bytes.
+                    let reply = [req[0], req[1], 0, 0, 0, 5, req[6], req[7], 2, 0x41, 0x48];
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
+    let mut p = Poller::start(utm(addr.to_string(), load, None));
+    let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
+    let UtmEvent::Down { reason } = down else { unreachable!() };
+    println!("short reply: {reason}");
+    assert!(reason.contains(&addr.to_string()) && reason.contains("input registers 0..1"), "{reason}");
+    assert!(reason.contains("bad reply: 1 register(s) instead of 2"), "{reason}");
+    p.stop().await;
+    device.abort();
+}
+
 // ----------------------------------------------------------------------------------------
 // Our simulated UTM.
 
@@ -333,8 +378,10 @@ async fn sim_server_read_by_our_client_follows_the_model() {
     let mut p = Poller::start(cfg);
     p.wait_for(Duration::from_secs(5), "Up", |e| *e == UtmEvent::Up).await;
     let mut worst_kn: f64 = 0.0;
+    let mut times = Vec::new();
     for _ in 0..10 {
         let s = p.sample(Duration::from_secs(5)).await;
+        times.push(s.t_ns);
         let (want_load, want_stroke) = model(s.t_ns);
         worst_kn = worst_kn.max((s.load_kn - want_load).abs());
         // The server evaluates the model during the request, whose middle is t_ns: at 1 kN/s
@@ -343,6 +390,9 @@ async fn sim_server_read_by_our_client_follows_the_model() {
         assert!(close(s.stroke_mm.unwrap(), want_stroke, 0.01 + 0.0005), "{s:?} vs model {want_stroke}");
     }
     println!("sim UTM through our client: worst |load − model(t_ns)| = {worst_kn:.6} kN at 1 kN/s");
+    let span_s = (times[times.len() - 1] - times[0]) as f64 * 1e-9;
+    println!("poll rate: {:.2} Hz measured over {} samples (configured 20 Hz)", (times.len() - 1) as f64 / span_s, times.len());
+    assert!(times.windows(2).all(|w| w[1] > w[0]), "sample times not increasing: {times:?}");
 
     sim.stop(); // closes its connections too
     let (down, _) = p.wait_for(Duration::from_secs(5), "Down after the sim stopped", |e| matches!(e, UtmEvent::Down { .. })).await;
