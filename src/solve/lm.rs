@@ -64,7 +64,7 @@ pub struct LmOptions {
 
 impl Default for LmOptions {
     fn default() -> Self {
-        Self { max_iterations: 50, step_tolerance: 1e-10, cost_tolerance: 1e-12 }
+        Self { max_iterations: 50, step_tolerance: 1e-8, cost_tolerance: 1e-10 }
     }
 }
 

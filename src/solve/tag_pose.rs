@@ -12,7 +12,7 @@
 use nalgebra::{Matrix2x6, Matrix3, Matrix6, Point2, Vector2, Vector3};
 
 use super::init::{homography, mirrored, pose_from_homography};
-use super::lm::{median, minimize, Evaluation, LmOptions, LmOutcome, PoseProblem};
+use super::lm::{minimize, Evaluation, LmOptions, LmOutcome, PoseProblem};
 use super::SolveError;
 use crate::camera::{skew, CameraIntrinsics, Pose};
 use crate::tags::tag_corners;
@@ -217,32 +217,67 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
         what: "specimen tag: no start converged (corners degenerate or behind a camera)".into(),
     })?;
 
-    // Outlier views.
+    // Outlier views. Suspicious when the joint residual is too large for the pooled noise
+    // (χ² test) — or, without a pooled noise, always with ≥ 3 views. The culprit is found by
+    // leaving each view out in turn (a bad view drags the joint fit, so its own residual in
+    // the joint fit understates it): the view whose removal leaves the most consistent
+    // remainder is dropped if its residual against that remainder is far above it.
     let mut rejected = Vec::new();
     while problem.views.len() >= 2 {
-        let Some(rms) = problem.view_rms(&best.pose) else { break };
-        let (worst, &worst_rms) = rms.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("non-empty");
-        let drop = if problem.views.len() >= 3 {
-            let others: Vec<f64> = rms.iter().enumerate().filter(|(i, _)| *i != worst).map(|(_, r)| *r).collect();
-            let m = median(&others).unwrap_or(0.0);
-            worst_rms > 3.0 * m && worst_rms > pooled.map_or(0.0, |s| 2.5 * s) && worst_rms > 1e-3
-        } else {
-            let joint = (best.evaluation.ssr / best.evaluation.residuals as f64).sqrt();
-            joint > pooled.map_or(1.0, |s| 3.0 * s)
+        let dof_now = best.evaluation.residuals.saturating_sub(6) as f64;
+        let joint_rms = (best.evaluation.ssr / best.evaluation.residuals as f64).sqrt();
+        let suspicious = match pooled {
+            Some(s) => {
+                best.evaluation.ssr / (s * s) > dof_now + 4.0 * (2.0 * dof_now).sqrt() + 4.0
+                    && (problem.views.len() >= 3 || joint_rms > 2.5 * s)
+            }
+            None => problem.views.len() >= 3 || joint_rms > 1.0,
         };
-        if !drop {
+        if !suspicious {
             break;
         }
-        let victim = if problem.views.len() >= 3 { worst } else { pick_two_view_outlier(&problem, warm, &mut iterations) };
+        let (victim, remainder) = if problem.views.len() >= 3 {
+            let mut pick: Option<(usize, LmOutcome, f64)> = None;
+            for v in 0..problem.views.len() {
+                let sub = TagProblem {
+                    views: problem.views.iter().enumerate().filter(|(i, _)| *i != v).map(|(_, x)| *x).collect(),
+                    corners: problem.corners,
+                };
+                let Some(out) = minimize(&sub, &best.pose, &LmOptions::default()) else { continue };
+                iterations += out.iterations;
+                let score = out.evaluation.ssr / out.evaluation.residuals.saturating_sub(6).max(1) as f64;
+                if pick.as_ref().map_or(true, |p| score < p.2) {
+                    pick = Some((v, out, score));
+                }
+            }
+            let Some((v, out, _)) = pick else { break };
+            let single = TagProblem { views: vec![problem.views[v]], corners: problem.corners };
+            let out_rms = single.view_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
+            let rest_rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
+            let limit = (3.0 * rest_rms).max(pooled.map_or(0.0, |s| 3.0 * s));
+            if out_rms <= limit {
+                break;
+            }
+            (v, Some(out))
+        } else {
+            (pick_two_view_outlier(&problem, warm, &mut iterations), None)
+        };
         let (index, _) = problem.views[victim];
-        tracing::warn!(view = index, rms_px = rms[victim], views = problem.views.len(), "specimen tag: view rejected as an outlier");
+        tracing::warn!(view = index, joint_rms_px = joint_rms, views = problem.views.len(), "specimen tag: view rejected as an outlier");
         rejected.push(index);
         problem.views.remove(victim);
-        let mut starts = problem.cold_starts();
-        starts.push(best.pose);
-        best = problem
-            .solve_from(&starts, 3, &mut iterations)
-            .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: re-solve after rejecting a view failed".into() })?;
+        best = match remainder {
+            Some(out) => out,
+            None => {
+                let mut starts = problem.cold_starts();
+                if let Some(w) = warm {
+                    starts.push(*w);
+                }
+                problem
+                    .solve_from(&starts, 3, &mut iterations)
+                    .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: re-solve after rejecting a view failed".into() })?
+            }
+        };
         warm_started = false;
     }
     rejected.sort_unstable();
