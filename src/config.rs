@@ -146,15 +146,7 @@ fn default_source() -> String {
 impl CameraConfig {
     /// The camera's intrinsic model.
     pub fn intrinsics(&self) -> CameraIntrinsics {
-        CameraIntrinsics {
-            width: self.width,
-            height: self.height,
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            dist: self.dist,
-        }
+        CameraIntrinsics { width: self.width, height: self.height, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy, dist: self.dist }
     }
 }
 
@@ -361,13 +353,7 @@ pub struct MeasureConfig {
 
 impl Default for MeasureConfig {
     fn default() -> Self {
-        Self {
-            quad_decimate: 1.0,
-            detector_threads: 2,
-            refine_corners: true,
-            roi_tracking: true,
-            full_search_interval_s: 1.0,
-        }
+        Self { quad_decimate: 1.0, detector_threads: 2, refine_corners: true, roi_tracking: true, full_search_interval_s: 1.0 }
     }
 }
 
@@ -468,12 +454,7 @@ impl Locator<'_> {
     }
 
     fn err(&self, span: Option<Range<usize>>, key: &str, message: impl Into<String>) -> ConfigError {
-        ConfigError {
-            file: self.file.to_path_buf(),
-            line: span.map(|s| self.line(s)),
-            key: Some(key.to_string()),
-            message: message.into(),
-        }
+        ConfigError { file: self.file.to_path_buf(), line: span.map(|s| self.line(s)), key: Some(key.to_string()), message: message.into() }
     }
 }
 
@@ -601,12 +582,7 @@ fn toml_error(loc: &Locator<'_>, e: &toml::de::Error) -> ConfigError {
     // toml's message already says what is wrong; keep its first line and our location.
     let msg = e.message().trim().to_string();
     let key = extract_key(&msg);
-    ConfigError {
-        file: loc.file.to_path_buf(),
-        line: e.span().map(|s| loc.line(s)),
-        key,
-        message: msg,
-    }
+    ConfigError { file: loc.file.to_path_buf(), line: e.span().map(|s| loc.line(s)), key, message: msg }
 }
 
 /// Pulls a key name out of serde messages like "unknown field `foo`" / "missing field `bar`".
@@ -626,7 +602,11 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
     }
     let src = &c.source;
     if !(src == "sim" || src.starts_with("v4l2:") || src.starts_with("aravis:")) {
-        return Err(loc.err(Some(span.clone()), &key("source"), format!("\"{src}\" is not a camera source: expected \"v4l2:/dev/videoN\", \"aravis:<device id>\" or \"sim\"")));
+        return Err(loc.err(
+            Some(span.clone()),
+            &key("source"),
+            format!("\"{src}\" is not a camera source: expected \"v4l2:/dev/videoN\", \"aravis:<device id>\" or \"sim\""),
+        ));
     }
     if let Some(f) = &c.fps {
         if !(*f.get_ref() > 0.0) {
@@ -657,7 +637,11 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
             i
         }
         None => {
-            let need = |v: Option<f64>, k: &str| v.ok_or_else(|| loc.err(Some(span.clone()), &key(k), "missing: give fx, fy, cx, cy (and optionally dist), or `calibration = \"file\"`"));
+            let need = |v: Option<f64>, k: &str| {
+                v.ok_or_else(|| {
+                    loc.err(Some(span.clone()), &key(k), "missing: give fx, fy, cx, cy (and optionally dist), or `calibration = \"file\"`")
+                })
+            };
             let fx = need(c.fx.as_ref().map(|v| *v.get_ref()), "fx")?;
             let fy = need(c.fy.as_ref().map(|v| *v.get_ref()), "fy")?;
             let cx = need(c.cx, "cx")?;
@@ -666,7 +650,11 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
             if let Some(d) = &c.dist {
                 let v = d.get_ref();
                 if v.len() > 5 || v.len() < 4 {
-                    return Err(loc.err(Some(d.span()), &key("dist"), format!("expected 4 or 5 coefficients [k1, k2, p1, p2, k3], got {}", v.len())));
+                    return Err(loc.err(
+                        Some(d.span()),
+                        &key("dist"),
+                        format!("expected 4 or 5 coefficients [k1, k2, p1, p2, k3], got {}", v.len()),
+                    ));
                 }
                 dist[..v.len()].copy_from_slice(v);
             }
@@ -730,12 +718,20 @@ fn resolve_background(loc: &Locator<'_>, bg: Spanned<RawTagSet<RawBackgroundTag>
             return Err(loc.err(Some(t.id.span()), &format!("{key}.id"), format!("duplicate background tag id {id}")));
         }
         if id >= family.code_count() {
-            return Err(loc.err(Some(t.id.span()), &format!("{key}.id"), format!("{family} has ids 0..{}, got {id}", family.code_count() - 1)));
+            return Err(loc.err(
+                Some(t.id.span()),
+                &format!("{key}.id"),
+                format!("{family} has ids 0..{}, got {id}", family.code_count() - 1),
+            ));
         }
         let c = t.corners_mm.get_ref();
         let cspan = Some(t.corners_mm.span());
         if c.len() != 4 || c.iter().any(|p| p.len() != 3) {
-            return Err(loc.err(cspan, &format!("{key}.corners_mm"), format!("expected 4 corners of [x, y, z] mm (bottom-left, bottom-right, top-right, top-left), got {} corners", c.len())));
+            return Err(loc.err(
+                cspan,
+                &format!("{key}.corners_mm"),
+                format!("expected 4 corners of [x, y, z] mm (bottom-left, bottom-right, top-right, top-left), got {} corners", c.len()),
+            ));
         }
         let p: Vec<[f64; 3]> = c.iter().map(|p| [p[0], p[1], p[2]]).collect();
         check_square(&p, size_mm).map_err(|m| loc.err(cspan.clone(), &format!("{key}.corners_mm"), m))?;
@@ -792,7 +788,11 @@ fn resolve_specimen(loc: &Locator<'_>, sp: Spanned<RawTagSet<SpecimenTagRaw>>) -
             return Err(loc.err(Some(t.id.span()), &format!("specimen.tag[{i}].id"), format!("duplicate specimen tag id {id}")));
         }
         if id >= family.code_count() {
-            return Err(loc.err(Some(t.id.span()), &format!("specimen.tag[{i}].id"), format!("{family} has ids 0..{}, got {id}", family.code_count() - 1)));
+            return Err(loc.err(
+                Some(t.id.span()),
+                &format!("specimen.tag[{i}].id"),
+                format!("{family} has ids 0..{}, got {id}", family.code_count() - 1),
+            ));
         }
         tags.push(SpecimenTag { id, role: t.role });
     }
@@ -814,7 +814,11 @@ fn validate_utm(loc: &Locator<'_>, u: Spanned<UtmConfig>) -> Result<UtmConfig, C
     for (name, r) in [("load", Some(&u.load)), ("stroke", u.stroke.as_ref())] {
         if let Some(r) = r {
             if !(r.scale.is_finite() && r.offset.is_finite()) || r.scale == 0.0 {
-                return Err(loc.err(span.clone(), &format!("utm.{name}.scale"), "scale must be a non-zero finite number and offset finite"));
+                return Err(loc.err(
+                    span.clone(),
+                    &format!("utm.{name}.scale"),
+                    "scale must be a non-zero finite number and offset finite",
+                ));
             }
             if r.register as u32 + r.value_type.registers() as u32 > 65536 {
                 return Err(loc.err(span.clone(), &format!("utm.{name}.register"), "register address out of range"));
@@ -908,11 +912,9 @@ fn yaml_value(y: &yaml_rust2::Yaml) -> serde_json::Value {
         Yaml::String(s) => s.parse::<f64>().map(serde_json::Value::from).unwrap_or_else(|_| serde_json::Value::from(s.clone())),
         Yaml::Boolean(b) => serde_json::Value::from(*b),
         Yaml::Array(a) => serde_json::Value::Array(a.iter().map(yaml_value).collect()),
-        Yaml::Hash(h) => serde_json::Value::Object(
-            h.iter()
-                .filter_map(|(k, v)| k.as_str().map(|k| (k.to_string(), yaml_value(v))))
-                .collect(),
-        ),
+        Yaml::Hash(h) => {
+            serde_json::Value::Object(h.iter().filter_map(|(k, v)| k.as_str().map(|k| (k.to_string(), yaml_value(v)))).collect())
+        }
         _ => serde_json::Value::Null,
     }
 }

@@ -4,6 +4,7 @@
 //! observations → [`solve`] → solutions → sinks. Live capture and replay are the same
 //! graph with different sources (see [`pipeline`]).
 
+pub mod accuracy;
 pub mod camera;
 pub mod config;
 pub mod detect;

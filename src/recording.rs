@@ -138,7 +138,10 @@ impl Recording {
     /// name; frames of cameras the config does not name are an error.
     pub fn open_with(dir: &Path, config: Config) -> Result<Recording, RecordingError> {
         if !dir.is_dir() {
-            return Err(RecordingError::Invalid { path: dir.to_path_buf(), message: "not a recording folder (it does not exist or is not a folder)".into() });
+            return Err(RecordingError::Invalid {
+                path: dir.to_path_buf(),
+                message: "not a recording folder (it does not exist or is not a folder)".into(),
+            });
         }
         let mut skipped = Vec::new();
         let frames_path = dir.join(FRAMES_FILE);
@@ -155,7 +158,11 @@ impl Recording {
                 });
             }
             if Path::new(&f.file).is_absolute() || f.file.split(['/', '\\']).any(|c| c == "..") {
-                return Err(RecordingError::BadLine { path: frames_path.clone(), line: i + 1, message: format!("file \"{}\" must be relative to the recording", f.file) });
+                return Err(RecordingError::BadLine {
+                    path: frames_path.clone(),
+                    line: i + 1,
+                    message: format!("file \"{}\" must be relative to the recording", f.file),
+                });
             }
         }
         if frames.is_empty() {
@@ -318,7 +325,10 @@ impl RecordingWriter {
     /// Creates the folder (it must not hold a recording already) and writes the config.
     pub fn create(dir: &Path, config: &Config) -> Result<RecordingWriter, RecordingError> {
         if dir.join(FRAMES_FILE).exists() {
-            return Err(RecordingError::Invalid { path: dir.to_path_buf(), message: "already holds a recording; choose a new folder".into() });
+            return Err(RecordingError::Invalid {
+                path: dir.to_path_buf(),
+                message: "already holds a recording; choose a new folder".into(),
+            });
         }
         fs::create_dir_all(dir).map_err(io_err(dir))?;
         for cam in &config.cameras {

@@ -1,0 +1,190 @@
+//! `bench`: replays a recording as fast as it can and prints throughput, per-stage times,
+//! latency and peak memory — as a table, or as JSON with `--json`. With `--full-frame`
+//! the same recording is replayed a second time with full-frame detection on every
+//! frame, and both runs are printed side by side with the speed-up.
+
+use anyhow::Result;
+use serde::Serialize;
+use std::path::PathBuf;
+
+use crate::pipeline::replay::{self, ReplayOptions};
+
+/// Options of `tagdeflect bench`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BenchOptions {
+    /// The recording folder.
+    pub dir: PathBuf,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Also run with full-frame detection on every frame, for comparison.
+    #[arg(long)]
+    pub full_frame: bool,
+    /// Replay the recording this many times in a row (a longer steady state).
+    #[arg(long, default_value_t = 1)]
+    pub repeat: u32,
+}
+
+/// Figures of one bench run.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchFigures {
+    /// "roi-tracking" or "full-frame".
+    pub mode: String,
+    /// Frame sets processed.
+    pub sets: u64,
+    /// Frame sets per second of wall time (decode runs in parallel with the rest).
+    pub sets_per_s: f64,
+    /// Mean decode time per frame set, ms (reader thread, overlapped).
+    pub decode_ms: f64,
+    /// Mean detection time per frame set, ms.
+    pub detect_ms: f64,
+    /// Mean camera-pose time per frame set, ms.
+    pub pose_ms: f64,
+    /// Mean solve time per frame set, ms.
+    pub solve_ms: f64,
+    /// Mean feed-line output time per frame set, ms.
+    pub output_ms: f64,
+    /// Latency frame set ready → feed line, median, ms.
+    pub latency_p50_ms: f64,
+    /// Latency frame set ready → feed line, 99th percentile, ms.
+    pub latency_p99_ms: f64,
+    /// Peak resident memory of the process so far, MB.
+    pub peak_rss_mb: f64,
+    /// Frame sets dropped (always 0 here: bench never drops; see `replay --realtime`).
+    pub dropped_sets: u64,
+    /// Full-frame searches run.
+    pub full_frame_searches: u64,
+    /// Window searches run.
+    pub window_searches: u64,
+    /// Accuracy against the recording's ground truth (synthetic recordings only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub accuracy: Option<crate::accuracy::Accuracy>,
+}
+
+/// Runs the bench and prints the figures.
+pub fn bench(opts: &BenchOptions) -> Result<()> {
+    let rec = replay::open(&opts.dir, None)?;
+    let mut runs = vec![run_once(&rec, false, opts.repeat)?];
+    if opts.full_frame {
+        runs.push(run_once(&rec, true, opts.repeat)?);
+    }
+    if opts.json {
+        let speedup = (runs.len() == 2).then(|| runs[0].sets_per_s / runs[1].sets_per_s);
+        println!("{}", serde_json::json!({ "recording": opts.dir, "runs": runs, "speedup_vs_full_frame": speedup }));
+    } else {
+        print_table(&opts.dir, &runs);
+    }
+    Ok(())
+}
+
+fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) -> Result<BenchFigures> {
+    let mut detect = 0.0;
+    let mut pose = 0.0;
+    let mut solve = 0.0;
+    let mut output = 0.0;
+    let mut latencies = Vec::new();
+    let mut sets = 0;
+    let mut wall = 0.0;
+    let mut decode = 0.0;
+    let mut stats = Default::default();
+    let mut sink = Vec::with_capacity(4096);
+    let mut lines = Vec::new();
+    for pass in 0..repeat.max(1) {
+        let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false }, |line, t, lat| {
+            let t0 = std::time::Instant::now();
+            sink.clear();
+            serde_json::to_writer(&mut sink, line).expect("serialise");
+            std::hint::black_box(&sink);
+            let out_s = t0.elapsed().as_secs_f64();
+            output += out_s;
+            detect += t.detect;
+            pose += t.pose;
+            solve += t.solve;
+            latencies.push(lat + out_s);
+            if pass == 0 && !rec.truth.is_empty() {
+                lines.push(line.clone());
+            }
+        })?;
+        sets += summary.sets;
+        wall += summary.wall_s;
+        decode += summary.decode_s;
+        stats = summary.stats;
+    }
+    latencies.sort_by(f64::total_cmp);
+    let pct = |p: f64| latencies.get(((latencies.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0) * 1e3;
+    let n = sets.max(1) as f64;
+    let stats: crate::pipeline::measure::MeasureStats = stats;
+    Ok(BenchFigures {
+        mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
+        sets,
+        sets_per_s: sets as f64 / wall.max(1e-9),
+        decode_ms: decode / n * 1e3,
+        detect_ms: detect / n * 1e3,
+        pose_ms: pose / n * 1e3,
+        solve_ms: solve / n * 1e3,
+        output_ms: output / n * 1e3,
+        latency_p50_ms: pct(0.5),
+        latency_p99_ms: pct(0.99),
+        peak_rss_mb: peak_rss_mb(),
+        dropped_sets: 0,
+        full_frame_searches: stats.full_frame_searches,
+        window_searches: stats.window_searches,
+        accuracy: (!rec.truth.is_empty()).then(|| crate::accuracy::evaluate(&rec.config, &rec.truth, &lines)),
+    })
+}
+
+fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
+    println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
+    let rows: [(&str, fn(&BenchFigures) -> String); 13] = [
+        ("frame sets", |f| f.sets.to_string()),
+        ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
+        ("decode ms/set (overlapped)", |f| format!("{:.2}", f.decode_ms)),
+        ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
+        ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
+        ("solve ms/set", |f| format!("{:.3}", f.solve_ms)),
+        ("output ms/set", |f| format!("{:.3}", f.output_ms)),
+        ("latency p50 ms", |f| format!("{:.1}", f.latency_p50_ms)),
+        ("latency p99 ms", |f| format!("{:.1}", f.latency_p99_ms)),
+        ("peak RSS MB", |f| format!("{:.1}", f.peak_rss_mb)),
+        ("dropped sets", |f| f.dropped_sets.to_string()),
+        ("full-frame searches", |f| f.full_frame_searches.to_string()),
+        ("window searches", |f| f.window_searches.to_string()),
+    ];
+    print!("{:<28}", "");
+    for r in runs {
+        print!("{:>16}", r.mode);
+    }
+    println!();
+    for (name, f) in rows {
+        print!("{name:<28}");
+        for r in runs {
+            print!("{:>16}", f(r));
+        }
+        println!();
+    }
+    if runs.len() == 2 {
+        println!("{:<28}{:>16.1}x", "speed-up vs full-frame", runs[0].sets_per_s / runs[1].sets_per_s);
+    }
+    for r in runs {
+        if let Some(a) = &r.accuracy {
+            println!("accuracy ({}): {a}", r.mode);
+        }
+    }
+}
+
+/// Peak resident set size of this process (VmHWM), MB; 0 where /proc is unavailable.
+pub fn peak_rss_mb() -> f64 {
+    proc_status_kb("VmHWM:") / 1024.0
+}
+
+/// Current resident set size (VmRSS), MB.
+pub fn rss_mb() -> f64 {
+    proc_status_kb("VmRSS:") / 1024.0
+}
+
+fn proc_status_kb(key: &str) -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with(key)).and_then(|l| l.split_whitespace().nth(1)).and_then(|v| v.parse::<f64>().ok()))
+        .unwrap_or(0.0)
+}

@@ -1,0 +1,337 @@
+//! The measurement of one frame set: detect → pose cameras → solve specimen tags → feed
+//! line. Owns all state carried between frame sets (detectors, camera pose trackers,
+//! region-of-interest windows, each tag's warm start and first position, UTM history).
+
+use nalgebra::{Matrix6, Vector3};
+use std::collections::{BTreeMap, HashMap};
+use std::time::Instant;
+
+use crate::camera::{CameraIntrinsics, Pose};
+use crate::config::{Config, TagRole};
+use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
+use crate::detect::refine::RefineOptions;
+use crate::detect::Detection;
+use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
+use crate::frame::FrameSet;
+use crate::pipeline::roi::RoiPlanner;
+use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagView};
+use crate::tags::TagFamily;
+use crate::utm::UtmHistory;
+
+/// Wall-clock time spent in each stage of one frame set, seconds.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StageTimes {
+    /// Tag detection (all cameras, in parallel; wall time).
+    pub detect: f64,
+    /// Camera pose tracking.
+    pub pose: f64,
+    /// Specimen tag solving.
+    pub solve: f64,
+}
+
+/// Counters over a whole run.
+#[derive(Debug, Clone, Default)]
+pub struct MeasureStats {
+    /// Frame sets processed.
+    pub sets: u64,
+    /// Full-frame detections run.
+    pub full_frame_searches: u64,
+    /// Window (region-of-interest) detections run.
+    pub window_searches: u64,
+    /// Specimen tag views rejected as outliers.
+    pub rejected_views: u64,
+    /// Camera bumps detected.
+    pub bumps: u64,
+}
+
+struct CameraState {
+    name: String,
+    intrinsics: CameraIntrinsics,
+    detector: Detector,
+    tracker: CameraPoseTracker,
+    roi: RoiPlanner,
+}
+
+struct TagTrack {
+    /// Last solution tag → world (warm start).
+    pose: Pose,
+    /// Centre in the first frame set that solved the tag.
+    first_centre: Vector3<f64>,
+}
+
+/// Per-camera result of the detection stage.
+struct CameraDetections {
+    background: Vec<Detection>,
+    specimen: Vec<Detection>,
+}
+
+/// The stateful frame-set processor shared by `replay`, `bench`, `run` and `demo`.
+pub struct Measurement {
+    config: Config,
+    up: Vector3<f64>,
+    cameras: Vec<CameraState>,
+    background_world: HashMap<u32, [Vector3<f64>; 4]>,
+    specimen_ids: HashMap<u32, Option<TagRole>>,
+    tags: BTreeMap<u32, TagTrack>,
+    utm: UtmHistory,
+    /// Pooled specimen corner noise, px (scales every tag's σ).
+    noise: PixelNoisePool,
+    stats: MeasureStats,
+}
+
+impl Measurement {
+    /// Builds the processor; `roi_tracking = false` forces full-frame detection everywhere.
+    pub fn new(config: &Config, roi_tracking: bool) -> Result<Measurement, DetectError> {
+        let families: Vec<TagFamily> = if config.background.family == config.specimen.family {
+            vec![config.background.family]
+        } else {
+            vec![config.specimen.family, config.background.family]
+        };
+        let opts = DetectorOptions {
+            quad_decimate: config.measure.quad_decimate,
+            nthreads: config.measure.detector_threads.max(1),
+            subpixel: config.measure.refine_corners.then(RefineOptions::default),
+            ..DetectorOptions::for_families(&families)
+        };
+        let mut cameras = Vec::new();
+        for cam in &config.cameras {
+            let intrinsics = cam.intrinsics();
+            let fixed = cam.rvec.zip(cam.tvec_mm).map(|(r, t)| Pose::from_rvec_tvec(r, t));
+            let mut detector = Detector::new(opts.clone())?;
+            detector.set_intrinsics(Some(intrinsics));
+            cameras.push(CameraState {
+                name: cam.name.clone(),
+                intrinsics,
+                detector,
+                tracker: CameraPoseTracker::new(intrinsics, fixed),
+                roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s),
+            });
+        }
+        let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
+        let specimen_ids = config.specimen.tags.iter().map(|t| (t.id, t.role)).collect();
+        let up = Vector3::from(config.world.up).normalize();
+        Ok(Measurement {
+            config: config.clone(),
+            up,
+            cameras,
+            background_world,
+            specimen_ids,
+            tags: BTreeMap::new(),
+            utm: UtmHistory::unbounded(),
+            noise: PixelNoisePool::default(),
+            stats: MeasureStats::default(),
+        })
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> &MeasureStats {
+        &self.stats
+    }
+
+    /// The UTM history (the pipeline pushes samples into it).
+    pub fn utm_mut(&mut self) -> &mut UtmHistory {
+        &mut self.utm
+    }
+
+    /// Current pose of each camera (world → camera), `None` until posed.
+    pub fn camera_poses(&self) -> Vec<Option<Pose>> {
+        self.cameras.iter().map(|c| c.tracker.pose()).collect()
+    }
+
+    /// Processes one frame set into a feed line.
+    pub fn process(&mut self, set: &FrameSet) -> (FeedLine, StageTimes) {
+        let mut times = StageTimes::default();
+        let t0 = Instant::now();
+        let detections = self.detect(set);
+        times.detect = t0.elapsed().as_secs_f64();
+
+        // Camera poses from the background tags.
+        let t1 = Instant::now();
+        let mut health = Vec::with_capacity(self.cameras.len());
+        for (ci, cam) in self.cameras.iter_mut().enumerate() {
+            let det = detections.iter().find(|(i, _)| *i == ci).map(|(_, d)| d);
+            let mut h = CameraHealth {
+                name: cam.name.clone(),
+                frame: det.is_some(),
+                background_tags: 0,
+                specimen_tags: 0,
+                pose_reproj_px: None,
+                posed: cam.tracker.pose().is_some(),
+                bumped: false,
+            };
+            if let Some(d) = det {
+                h.background_tags = d.background.len();
+                h.specimen_tags = d.specimen.len();
+                let obs: Vec<BackgroundTagObservation> = d
+                    .background
+                    .iter()
+                    .filter_map(|det| {
+                        self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
+                    })
+                    .collect();
+                let status = cam.tracker.update(&obs);
+                h.posed = status.pose.is_some();
+                h.pose_reproj_px = status.rms_px;
+                h.bumped = status.bumped;
+                if status.bumped {
+                    self.stats.bumps += 1;
+                    tracing::warn!(camera = %cam.name, seq = set.seq, "camera moved: background tags shifted in the image; re-posed");
+                }
+            }
+            health.push(h);
+        }
+        times.pose = t1.elapsed().as_secs_f64();
+
+        // Specimen tags over all views.
+        let t2 = Instant::now();
+        let mut views_by_tag: BTreeMap<u32, (Vec<TagView>, Vec<usize>)> = BTreeMap::new();
+        for (ci, d) in &detections {
+            let cam = &self.cameras[*ci];
+            let Some(pose) = cam.tracker.pose() else { continue };
+            let cov: Option<Matrix6<f64>> = cam.tracker.covariance();
+            for det in &d.specimen {
+                let entry = views_by_tag.entry(det.id).or_default();
+                entry.0.push(TagView { intrinsics: cam.intrinsics, camera_pose: pose, camera_pose_covariance: cov, corners: det.corners });
+                entry.1.push(*ci);
+            }
+        }
+        let pooled = self.noise.sigma_px();
+        let size = self.config.specimen.size_mm;
+        let mut tags_out = Vec::new();
+        let mut sq_sum = 0.0;
+        let mut sq_n = 0.0;
+        for (id, (views, view_cameras)) in &views_by_tag {
+            let warm = self.tags.get(id).map(|t| t.pose);
+            match solve_tag(views, size, warm.as_ref(), pooled) {
+                Ok(sol) => {
+                    self.stats.rejected_views += sol.rejected_views.len() as u64;
+                    for r in &sol.rejected_views {
+                        tracing::info!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
+                    }
+                    self.noise.add_solution(&sol);
+                    let n_res = 8.0 * sol.views as f64;
+                    sq_sum += sol.rms_px * sol.rms_px * n_res;
+                    sq_n += n_res;
+                    let track = self.tags.entry(*id).or_insert(TagTrack { pose: sol.tag_to_world, first_centre: sol.centre_mm });
+                    track.pose = sol.tag_to_world;
+                    let c = sol.centre_mm;
+                    let disp = c - track.first_centre;
+                    tags_out.push(FeedTag {
+                        id: *id,
+                        pos_mm: [round_mm(c.x), round_mm(c.y), round_mm(c.z)],
+                        disp_mm: [round_mm(disp.x), round_mm(disp.y), round_mm(disp.z)],
+                        views: sol.views,
+                        sigma_mm: Some(sol.sigma_mm.map(|s| round_mm(s.max(1e-5))).into()),
+                        reproj_px: Some((sol.rms_px * 1e3).round() / 1e3),
+                    });
+                }
+                Err(e) => tracing::debug!(tag = id, seq = set.seq, "tag not solved: {e}"),
+            }
+        }
+        times.solve = t2.elapsed().as_secs_f64();
+
+        // Region-of-interest windows for the next frame set.
+        let solved: Vec<(u32, Pose)> = self.tags.iter().map(|(id, t)| (*id, t.pose)).collect();
+        for (ci, d) in &detections {
+            let cam = &mut self.cameras[*ci];
+            cam.roi.observe(set.t_ns, cam.tracker.pose().as_ref(), &d.background, &d.specimen, &solved, size);
+        }
+
+        let net = self.net_deflection(&tags_out);
+        let (load, stroke) = match self.utm.interpolate(set.t_ns) {
+            Some((l, s)) => (Some(l), s),
+            None => (None, None),
+        };
+        let reproj = if sq_n > 0.0 { Some(((sq_sum / sq_n).sqrt() * 1e3).round() / 1e3) } else { None };
+        self.stats.sets += 1;
+        let line = FeedLine {
+            seq: set.seq,
+            t_ns: set.t_ns,
+            load_kn: load,
+            stroke_mm: stroke,
+            tags: tags_out,
+            net_deflection_mm: net,
+            reproj_px: reproj,
+            cameras: health,
+            utm: None,
+            dropped_sets: None,
+            latency_ms: None,
+        };
+        (line, times)
+    }
+
+    /// Detects tags in every frame of the set, cameras in parallel.
+    fn detect(&mut self, set: &FrameSet) -> Vec<(usize, CameraDetections)> {
+        let bg_family = self.config.background.family;
+        let sp_family = self.config.specimen.family;
+        let bg_ids = &self.background_world;
+        let sp_ids = &self.specimen_ids;
+        let same_family = bg_family == sp_family;
+        let mut jobs: Vec<(&mut CameraState, &crate::frame::Frame)> = Vec::new();
+        let mut cams: Vec<Option<&mut CameraState>> = self.cameras.iter_mut().map(Some).collect();
+        for f in &set.frames {
+            if let Some(c) = cams.get_mut(f.camera).and_then(|c| c.take()) {
+                jobs.push((c, f));
+            }
+        }
+        let run = |(cam, frame): (&mut CameraState, &crate::frame::Frame)| -> (usize, CameraDetections, bool, u64) {
+            let plan = cam.roi.plan(frame.t_ns, &frame.image);
+            let (dets, full, windows) = match plan {
+                None => (cam.detector.detect(&frame.image), true, 0),
+                Some(rects) => {
+                    let mut all = Vec::new();
+                    for r in &rects {
+                        all.extend(cam.detector.detect_window(&frame.image, *r));
+                    }
+                    dedup_detections(&mut all);
+                    (all, false, rects.len() as u64)
+                }
+            };
+            let mut out = CameraDetections { background: Vec::new(), specimen: Vec::new() };
+            for d in dets {
+                let is_sp = d.family == sp_family && sp_ids.contains_key(&d.id) && !(same_family && bg_ids.contains_key(&d.id));
+                let is_bg = d.family == bg_family && bg_ids.contains_key(&d.id);
+                if is_sp {
+                    out.specimen.push(d);
+                } else if is_bg {
+                    out.background.push(d);
+                }
+            }
+            (frame.camera, out, full, windows)
+        };
+        let results: Vec<(usize, CameraDetections, bool, u64)> = if jobs.len() <= 1 {
+            jobs.into_iter().map(run).collect()
+        } else {
+            std::thread::scope(|s| {
+                let handles: Vec<_> = jobs.into_iter().map(|j| s.spawn(move || run(j))).collect();
+                handles.into_iter().map(|h| h.join().expect("detection thread")).collect()
+            })
+        };
+        let mut out = Vec::with_capacity(results.len());
+        for (ci, d, full, windows) in results {
+            if full {
+                self.stats.full_frame_searches += 1;
+            }
+            self.stats.window_searches += windows;
+            out.push((ci, d));
+        }
+        out
+    }
+
+    /// Mean downward displacement of midspan tags minus that of support tags.
+    fn net_deflection(&self, tags: &[FeedTag]) -> Option<f64> {
+        let down = |t: &FeedTag| -Vector3::from(t.disp_mm).dot(&self.up);
+        let mean = |role: TagRole| {
+            let v: Vec<f64> = tags.iter().filter(|t| self.specimen_ids.get(&t.id).copied().flatten() == Some(role)).map(down).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        Some(round_mm(mean(TagRole::Midspan)? - mean(TagRole::Support)?))
+    }
+}
+
+/// Removes duplicate detections of one tag found in overlapping windows (keeps the one
+/// with the highest decision margin).
+fn dedup_detections(dets: &mut Vec<Detection>) {
+    dets.sort_by(|a, b| (a.family.name(), a.id).cmp(&(b.family.name(), b.id)).then(b.decision_margin.total_cmp(&a.decision_margin)));
+    dets.dedup_by(|b, a| a.family == b.family && a.id == b.id);
+}

@@ -1,0 +1,157 @@
+//! `replay`: the measurement over a recording, as fast as it goes.
+//!
+//! A reader thread decodes frames in time order (a bad frame is logged and skipped: the
+//! frame set is solved from the other cameras) and hands them through a bounded channel
+//! to the assembler and the measurement; feed lines go to a callback.
+
+use anyhow::{Context, Result};
+use std::io::IsTerminal;
+use std::path::Path;
+use std::sync::mpsc;
+use std::sync::Arc;
+use std::time::Instant;
+
+use crate::config::Config;
+use crate::feed::FeedLine;
+use crate::frame::Frame;
+use crate::pipeline::measure::{MeasureStats, Measurement, StageTimes};
+use crate::recording::Recording;
+use crate::sinks::feed::FeedWriter;
+use crate::sync::FrameSetAssembler;
+
+/// What a replay did.
+#[derive(Debug, Clone, Default)]
+pub struct ReplaySummary {
+    /// Frame sets solved (feed lines produced).
+    pub sets: u64,
+    /// Frames that could not be read and were skipped.
+    pub bad_frames: u64,
+    /// Frames dropped as late by the assembler.
+    pub late_frames: u64,
+    /// Measurement counters.
+    pub stats: MeasureStats,
+    /// Total seconds.
+    pub wall_s: f64,
+    /// Seconds spent decoding images (reader thread).
+    pub decode_s: f64,
+}
+
+/// Options of a replay.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ReplayOptions {
+    /// Force full-frame detection everywhere.
+    pub full_frame: bool,
+    /// Show a progress bar on stderr (when it is a terminal).
+    pub progress: bool,
+}
+
+/// Opens a recording, with an optional config override.
+pub fn open(dir: &Path, config: Option<Config>) -> Result<Recording> {
+    let rec = match config {
+        Some(c) => Recording::open_with(dir, c),
+        None => Recording::open(dir),
+    };
+    rec.with_context(|| format!("cannot replay {}", dir.display()))
+}
+
+/// `tagdeflect replay DIR`: the feed to stdout.
+pub fn replay_to_stdout(dir: &Path, config: Option<Config>, full_frame: bool) -> Result<ReplaySummary> {
+    let rec = open(dir, config)?;
+    let mut out = FeedWriter::stdout();
+    let mut write_err = None;
+    let progress = std::io::stderr().is_terminal();
+    let summary = replay(&rec, ReplayOptions { full_frame, progress }, |line, _, _| {
+        if write_err.is_none() {
+            if let Err(e) = out.write(line) {
+                write_err = Some(e);
+            }
+        }
+    })?;
+    if let Some(e) = write_err {
+        return Err(e.into());
+    }
+    tracing::info!(
+        sets = summary.sets,
+        bad_frames = summary.bad_frames,
+        full_frame_searches = summary.stats.full_frame_searches,
+        window_searches = summary.stats.window_searches,
+        "replay done in {:.2} s",
+        summary.wall_s
+    );
+    Ok(summary)
+}
+
+/// Replays a recording through the measurement; `on_line(line, stage_times, latency_s)`
+/// is called for every frame set in order (latency: frame set complete → line made).
+pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
+    let start = Instant::now();
+    let config = &rec.config;
+    let mut measure = Measurement::new(config, !opts.full_frame).context("cannot start the tag detector")?;
+    for s in &rec.utm {
+        measure.utm_mut().push(*s);
+    }
+    let mut assembler = FrameSetAssembler::new(config.cameras.len(), config.sync.tolerance_ms);
+    let (tx, rx) = mpsc::sync_channel::<(Frame, Instant)>(2 * config.cameras.len().max(1));
+    let mut summary = ReplaySummary::default();
+    let bar = opts.progress.then(|| {
+        let b = indicatif::ProgressBar::new(rec.frames.len() as u64);
+        b.set_style(indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  ETA {eta}").expect("template"));
+        b
+    });
+    let reader_result = std::thread::scope(|s| {
+        let reader = s.spawn(move || -> (u64, f64) {
+            let mut bad = 0;
+            let mut decode_s = 0.0;
+            for entry in &rec.frames {
+                let t = Instant::now();
+                let img = rec.load_image(entry);
+                decode_s += t.elapsed().as_secs_f64();
+                match img {
+                    Ok(image) => {
+                        let camera = config.camera_index(&entry.camera).expect("checked on open");
+                        let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image: Arc::new(image) };
+                        if tx.send((frame, Instant::now())).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => {
+                        bad += 1;
+                        tracing::warn!("frame skipped: {e}");
+                    }
+                }
+            }
+            (bad, decode_s)
+        });
+        let mut process = |set: crate::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
+            let (line, times) = measure.process(&set);
+            summary.sets += 1;
+            on_line(&line, &times, ready.elapsed().as_secs_f64());
+        };
+        let mut newest_ready = Instant::now();
+        for (frame, ready) in rx.iter() {
+            if let Some(b) = &bar {
+                b.inc(1);
+            }
+            newest_ready = ready;
+            for set in assembler.push(frame) {
+                process(set, newest_ready, &mut summary);
+            }
+        }
+        if let Some(set) = assembler.flush() {
+            process(set, newest_ready, &mut summary);
+        }
+        reader.join().expect("reader thread")
+    });
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    summary.bad_frames = reader_result.0;
+    summary.decode_s = reader_result.1;
+    summary.late_frames = assembler.late_frames();
+    summary.stats = measure.stats().clone();
+    summary.wall_s = start.elapsed().as_secs_f64();
+    if summary.sets == 0 {
+        anyhow::bail!("{}: no frame could be read, nothing was solved", rec.dir.display());
+    }
+    Ok(summary)
+}
