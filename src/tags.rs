@@ -79,3 +79,159 @@ pub fn tag_corners(size: f64) -> [Vector3<f64>; 4] {
     let h = size / 2.0;
     [Vector3::new(-h, -h, 0.0), Vector3::new(h, -h, 0.0), Vector3::new(h, h, 0.0), Vector3::new(-h, h, 0.0)]
 }
+
+/// Error of a tag-bitmap request.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum TagError {
+    /// The id is not a code of the family.
+    #[error("tag id {id} does not exist in family {family} (valid ids are 0..{count})")]
+    UnknownId {
+        /// The family asked for.
+        family: TagFamily,
+        /// The id asked for.
+        id: u32,
+        /// Number of codes of the family.
+        count: u32,
+    },
+}
+
+/// A tag as printed, one entry per cell, taken from the AprilTag library's own family table
+/// (the same layout as its `apriltag_to_image`).
+///
+/// Row 0 is the top row as printed upright, column 0 the left column. The printed tag is
+/// `total_width` cells wide: a white ring of one cell, then the black square of
+/// `width_at_border` cells (its border and the data bits). The black square's edge is the
+/// `size_mm` of the config, so one cell is `size_mm / width_at_border`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TagBitmap {
+    /// The family.
+    pub family: TagFamily,
+    /// The tag id.
+    pub id: u32,
+    /// Width of the printed tag in cells (white ring included).
+    pub total_width: u32,
+    /// Width of the black square in cells.
+    pub width_at_border: u32,
+    /// `total_width²` cells, row-major from the top-left; `true` = white.
+    pub white: Vec<bool>,
+}
+
+impl TagBitmap {
+    /// True when the cell at `col`, `row` (from the top-left, as printed) is white.
+    /// Cells outside the printed tag are reported white (paper).
+    pub fn is_white(&self, col: u32, row: u32) -> bool {
+        if col >= self.total_width || row >= self.total_width {
+            return true;
+        }
+        self.white[(row * self.total_width + col) as usize]
+    }
+
+    /// Edge of one cell, mm, for a black square of edge `size_mm`.
+    pub fn cell_mm(&self, size_mm: f64) -> f64 {
+        size_mm / self.width_at_border as f64
+    }
+
+    /// Edge of the whole printed tag (white ring included), mm.
+    pub fn printed_mm(&self, size_mm: f64) -> f64 {
+        self.cell_mm(size_mm) * self.total_width as f64
+    }
+
+    /// The cell under a point of the tag frame (x right, y up, mm, origin at the centre of
+    /// the black square of edge `size_mm`): `(col, row)` from the top-left, `None` outside
+    /// the printed tag.
+    pub fn cell_at(&self, x_mm: f64, y_mm: f64, size_mm: f64) -> Option<(u32, u32)> {
+        let c = self.cell_mm(size_mm);
+        let half = 0.5 * c * self.total_width as f64;
+        let col = ((x_mm + half) / c).floor();
+        let row = ((half - y_mm) / c).floor();
+        let n = self.total_width as f64;
+        if col >= 0.0 && row >= 0.0 && col < n && row < n {
+            Some((col as u32, row as u32))
+        } else {
+            None
+        }
+    }
+}
+
+/// The bitmap of tag `id` of `family`, read from the AprilTag library's family table.
+pub fn tag_bitmap(family: TagFamily, id: u32) -> Result<TagBitmap, TagError> {
+    let layout = crate::detect::family::family_layout(family);
+    let code = *layout.codes.get(id as usize).ok_or(TagError::UnknownId { family, id, count: layout.codes.len() as u32 })?;
+    let tw = layout.total_width;
+    let wab = layout.width_at_border;
+    let mut white = vec![false; (tw * tw) as usize];
+    // The white ring (classic layout: just outside the black square; reversed: the border itself).
+    let ring = wab + if layout.reversed_border { 0 } else { 2 };
+    let ring_start = (tw - ring.min(tw)) / 2;
+    let ring_end = ring_start + ring - 1;
+    for r in 0..tw {
+        for c in 0..tw {
+            let on_ring = (r == ring_start || r == ring_end || c == ring_start || c == ring_end)
+                && (ring_start..=ring_end).contains(&r)
+                && (ring_start..=ring_end).contains(&c);
+            if on_ring {
+                white[(r * tw + c) as usize] = true;
+            }
+        }
+    }
+    let border_start = (tw - wab) / 2;
+    let nbits = layout.bit_x.len() as u32;
+    for i in 0..nbits {
+        if code & (1u64 << (nbits - i - 1)) != 0 {
+            let (x, y) = (layout.bit_x[i as usize] + border_start, layout.bit_y[i as usize] + border_start);
+            if x < tw && y < tw {
+                white[(y * tw + x) as usize] = true;
+            }
+        }
+    }
+    Ok(TagBitmap { family, id, total_width: tw, width_at_border: wab, white })
+}
+
+#[cfg(test)]
+mod bitmap_tests {
+    use super::*;
+
+    /// Reads an apriltag-imgs PNG (RGBA) as a white/black grid.
+    fn read_png(path: &std::path::Path) -> Option<(u32, Vec<bool>)> {
+        let img = image::open(path).ok()?.to_luma8();
+        let (w, h) = img.dimensions();
+        assert_eq!(w, h);
+        Some((w, img.pixels().map(|p| p.0[0] > 127).collect()))
+    }
+
+    #[test]
+    fn bitmaps_match_apriltag_imgs() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata/apriltag-imgs");
+        let mut checked = 0;
+        for (family, dir, prefix, ids) in [
+            (TagFamily::Tag36h11, "tag36h11", "tag36_11_", vec![0u32, 1, 7, 42, 100, 311, 586]),
+            (TagFamily::Tag25h9, "tag25h9", "tag25_09_", vec![0u32, 1, 5, 17, 34]),
+        ] {
+            for id in ids {
+                let path = root.join(dir).join(format!("{prefix}{id:05}.png"));
+                let (w, px) = read_png(&path).unwrap_or_else(|| panic!("cannot read {}", path.display()));
+                let bm = tag_bitmap(family, id).unwrap();
+                assert_eq!(w, bm.total_width, "{}", path.display());
+                assert_eq!(px, bm.white, "{family} id {id} differs from {}", path.display());
+                checked += 1;
+            }
+        }
+        println!("{checked} bitmaps match apriltag-imgs pixel for pixel");
+    }
+
+    #[test]
+    fn unknown_id_is_an_error() {
+        assert!(matches!(tag_bitmap(TagFamily::Tag25h9, 35), Err(TagError::UnknownId { count: 35, .. })));
+    }
+
+    #[test]
+    fn cell_lookup_follows_the_printed_orientation() {
+        let bm = tag_bitmap(TagFamily::Tag36h11, 0).unwrap();
+        // 30 mm black square: cell 3.75 mm, printed 37.5 mm.
+        assert_eq!(bm.cell_at(-18.0, 18.0, 30.0), Some((0, 0)));
+        assert_eq!(bm.cell_at(18.0, -18.0, 30.0), Some((9, 9)));
+        assert_eq!(bm.cell_at(-14.0, -14.0, 30.0), Some((1, 8)));
+        assert_eq!(bm.cell_at(19.0, 0.0, 30.0), None);
+        assert!(!bm.is_white(1, 1) && bm.is_white(0, 0));
+    }
+}

@@ -1,6 +1,8 @@
 //! Tag detection: the AprilTag library behind a safe wrapper, converted to the product's
 //! pixel convention (OpenCV: pixel centres at integers) and SPEC corner order.
 
+pub mod family;
+
 use nalgebra::Point2;
 
 use crate::tags::TagFamily;

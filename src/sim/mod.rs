@@ -1,17 +1,377 @@
 //! The synthetic rig: scene, beam mechanics, renderer and ground truth.
+//!
+//! [`SimParams`] holds every option of the simulated rig (the `[sim]` config section and
+//! the options of `tagdeflect simulate`); [`SimRig`] builds the scene from them and renders
+//! camera images at any time; [`simulate`] writes a SPEC recording with ground truth.
+//!
+//! **World frame** of the simulated rig (mm): origin at midspan on the bottom edge of the
+//! beam's front face; `x` along the beam (to the right as the cameras see it), `y`
+//! horizontal away from the cameras (into the scene), `z` up (`world.up = [0, 0, 1]`).
+//! The beam occupies `|x| ≤ length/2`, `0 ≤ y ≤ width`, `0 ≤ z ≤ height` at rest; the
+//! supports are under its bottom edge at `x = ±span/2`; deflection is positive downward.
+
+mod beam;
+mod record;
+mod render;
+mod rig;
+mod scene;
+
+pub use beam::FourPointBeam;
+pub use record::{render_frame_set, simulate, SimSummary, SIM_TRUTH_FILE};
+pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
 
 use serde::{Deserialize, Serialize};
 
+/// Unix time of the first frame set of a simulated recording (2026-01-01T00:00:00Z), ns.
+pub const DEFAULT_START_NS: i64 = 1_767_225_600_000_000_000;
+
+/// An invalid simulation option or a failure while writing the simulated recording.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// An option is out of range.
+    #[error("simulation option `{option}`: {message}")]
+    Param {
+        /// The option (as in `[sim]` and `--<option>`).
+        option: &'static str,
+        /// What is wrong and what is expected.
+        message: String,
+    },
+    /// Writing the recording failed.
+    #[error("writing the simulated recording: {0}")]
+    Recording(#[from] crate::recording::RecordingError),
+    /// Writing an extra truth file failed.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+}
+
 /// Parameters of the simulated rig (`[sim]` in a config; the options of `simulate`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+///
+/// Every field is also a `--kebab-case` option of `tagdeflect simulate` (flatten this
+/// struct into the subcommand with `#[command(flatten)]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, clap::Args)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimParams {
-    /// Seed of every random choice.
+    /// Seed of every random choice (noise, jitter, dropped frames, texture).
+    #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Number of cameras (1 to 3): 1 = centre, 2 = left + right, 3 = left + centre + right.
+    #[arg(long, default_value_t = 3)]
+    pub cameras: u32,
+    /// Image width, pixels (the focal length scales with it: the view stays the same).
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 960)]
+    pub height: u32,
+    /// Number of frame sets to write.
+    #[arg(long, default_value_t = 40)]
+    pub frame_sets: u32,
+    /// Frame rate of every camera, Hz.
+    #[arg(long, default_value_t = 10.0)]
+    pub fps: f64,
+    /// Sensor noise, standard deviation in grey levels (added after the blur).
+    #[arg(long, default_value_t = 2.0)]
+    pub noise_sigma: f64,
+    /// Optical blur, standard deviation of a Gaussian in pixels (0 = none).
+    #[arg(long, default_value_t = 0.6)]
+    pub blur_sigma: f64,
+    /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub motion_blur_every: u32,
+    /// Length of the motion-blur streak, pixels.
+    #[arg(long, default_value_t = 3.0)]
+    pub motion_blur_px: f64,
+    /// Per-frame timing jitter of each camera, standard deviation in ms (clipped at 3 sigma).
+    #[arg(long, default_value_t = 1.0)]
+    pub jitter_ms: f64,
+    /// Probability that a camera drops a frame (the frame is simply absent).
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_prob: f64,
+    /// Camera (index from 0) bumped mid-run; none by default.
+    #[arg(long)]
+    pub bump_camera: Option<u32>,
+    /// Frame set from which the bumped camera has its new pose.
+    #[arg(long, default_value_t = 20)]
+    pub bump_at: u32,
+    /// Rotation of the bump, degrees (about an oblique axis through the camera centre).
+    #[arg(long, default_value_t = 0.3)]
+    pub bump_rot_deg: f64,
+    /// Translation of the bump, mm.
+    #[arg(long, default_value_t = 2.0)]
+    pub bump_trans_mm: f64,
+    /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
+    #[arg(long)]
+    pub hide_tag: Option<u32>,
+    /// Camera (index from 0) that loses sight of `hide_tag`.
+    #[arg(long, default_value_t = 0)]
+    pub hide_camera: u32,
+    /// First frame set in which the tag is hidden.
+    #[arg(long, default_value_t = 10)]
+    pub hide_from: u32,
+    /// Number of frame sets the tag stays hidden.
+    #[arg(long, default_value_t = 10)]
+    pub hide_count: u32,
+    /// Radial distortion k1 of every camera (mild lens; k2 = -k1/2, tiny tangential terms).
+    #[arg(long, default_value_t = -0.05, allow_hyphen_values = true)]
+    pub k1: f64,
+    /// Camera (index from 0) with a strongly distorting lens; none by default.
+    #[arg(long)]
+    pub strong_distortion_camera: Option<u32>,
+    /// k1 of the strongly distorting lens.
+    #[arg(long, default_value_t = -0.25, allow_hyphen_values = true)]
+    pub strong_k1: f64,
+    /// Midspan deflection at the end of the ramp, mm (positive downward).
+    #[arg(long, default_value_t = 6.0)]
+    pub max_deflection_mm: f64,
+    /// Frame sets at rest before the load ramp starts.
+    #[arg(long, default_value_t = 3)]
+    pub rest_frames: u32,
+    /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
+    /// after the ramp (for long live demos).
+    #[arg(long, default_value_t = false)]
+    pub cyclic: bool,
+    /// Beam length, mm.
+    #[arg(long, default_value_t = 550.0)]
+    pub beam_length_mm: f64,
+    /// Beam height, mm.
+    #[arg(long, default_value_t = 150.0)]
+    pub beam_height_mm: f64,
+    /// Beam width (depth into the scene), mm.
+    #[arg(long, default_value_t = 150.0)]
+    pub beam_width_mm: f64,
+    /// Support span, mm (supports at ±span/2).
+    #[arg(long, default_value_t = 450.0)]
+    pub span_mm: f64,
+    /// Distance between the two loads, mm (default span/3: loads at the third points).
+    #[arg(long, default_value_t = 150.0)]
+    pub load_span_mm: f64,
+    /// Number of specimen tags (1 to 15): middle row (midspan, supports), then top and bottom
+    /// rows, then the load points.
+    #[arg(long, default_value_t = 9)]
+    pub specimen_tags: u32,
+    /// Edge of a specimen tag's black square (tag36h11), mm.
+    #[arg(long, default_value_t = 30.0)]
+    pub specimen_tag_mm: f64,
+    /// Edge of a background tag's black square (tag25h9), mm.
+    #[arg(long, default_value_t = 70.0)]
+    pub background_tag_mm: f64,
+    /// UTM sampling rate, Hz.
+    #[arg(long, default_value_t = 50.0)]
+    pub utm_hz: f64,
+    /// Phase of the UTM samples against the frame clock, ms.
+    #[arg(long, default_value_t = 7.0)]
+    pub utm_phase_ms: f64,
+    /// Beam stiffness: load per mm of midspan deflection, kN/mm.
+    #[arg(long, default_value_t = 10.0)]
+    pub stiffness_kn_per_mm: f64,
+    /// Machine compliance: stroke per kN beyond the beam's own deflection, mm/kN.
+    #[arg(long, default_value_t = 0.01)]
+    pub compliance_mm_per_kn: f64,
+    /// Shuffle the lines of frames.jsonl (SPEC allows any order across cameras).
+    #[arg(long, default_value_t = false)]
+    pub shuffle: bool,
+    /// Time of the first frame set, ns since the Unix epoch.
+    #[arg(long, default_value_t = DEFAULT_START_NS)]
+    pub start_ns: i64,
+    /// Sub-samples per pixel along each axis where a pixel straddles an edge (area integration).
+    #[arg(long, default_value_t = 8)]
+    pub subsamples: u32,
 }
 
 impl Default for SimParams {
     fn default() -> Self {
-        Self { seed: 1 }
+        Self {
+            seed: 1,
+            cameras: 3,
+            width: 1280,
+            height: 960,
+            frame_sets: 40,
+            fps: 10.0,
+            noise_sigma: 2.0,
+            blur_sigma: 0.6,
+            motion_blur_every: 0,
+            motion_blur_px: 3.0,
+            jitter_ms: 1.0,
+            drop_prob: 0.0,
+            bump_camera: None,
+            bump_at: 20,
+            bump_rot_deg: 0.3,
+            bump_trans_mm: 2.0,
+            hide_tag: None,
+            hide_camera: 0,
+            hide_from: 10,
+            hide_count: 10,
+            k1: -0.05,
+            strong_distortion_camera: None,
+            strong_k1: -0.25,
+            max_deflection_mm: 6.0,
+            rest_frames: 3,
+            cyclic: false,
+            beam_length_mm: 550.0,
+            beam_height_mm: 150.0,
+            beam_width_mm: 150.0,
+            span_mm: 450.0,
+            load_span_mm: 150.0,
+            specimen_tags: 9,
+            specimen_tag_mm: 30.0,
+            background_tag_mm: 70.0,
+            utm_hz: 50.0,
+            utm_phase_ms: 7.0,
+            stiffness_kn_per_mm: 10.0,
+            compliance_mm_per_kn: 0.01,
+            shuffle: false,
+            start_ns: DEFAULT_START_NS,
+            subsamples: 8,
+        }
+    }
+}
+
+impl SimParams {
+    /// Checks every option; the error names the option and the accepted range.
+    pub fn validate(&self) -> Result<(), SimError> {
+        fn bad(option: &'static str, message: impl Into<String>) -> Result<(), SimError> {
+            Err(SimError::Param { option, message: message.into() })
+        }
+        let finite_pos = |v: f64| v.is_finite() && v > 0.0;
+        let finite_nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        if !(1..=3).contains(&self.cameras) {
+            return bad("cameras", format!("{} cameras: expected 1 to 3", self.cameras));
+        }
+        if !(64..=8192).contains(&self.width) || !(48..=8192).contains(&self.height) {
+            return bad("width", format!("{}x{}: expected 64..8192 x 48..8192 pixels", self.width, self.height));
+        }
+        if self.frame_sets == 0 {
+            return bad("frame_sets", "expected at least 1 frame set");
+        }
+        if !finite_pos(self.fps) || self.fps > 1000.0 {
+            return bad("fps", format!("{}: expected 0 < fps ≤ 1000", self.fps));
+        }
+        if !finite_nonneg(self.noise_sigma) || self.noise_sigma > 100.0 {
+            return bad("noise_sigma", format!("{}: expected 0 to 100 grey levels", self.noise_sigma));
+        }
+        if !finite_nonneg(self.blur_sigma) || self.blur_sigma > 10.0 {
+            return bad("blur_sigma", format!("{}: expected 0 to 10 pixels", self.blur_sigma));
+        }
+        if !finite_nonneg(self.motion_blur_px) || self.motion_blur_px > 50.0 {
+            return bad("motion_blur_px", format!("{}: expected 0 to 50 pixels", self.motion_blur_px));
+        }
+        if !finite_nonneg(self.jitter_ms) || self.jitter_ms * 3.0 >= 500.0 / self.fps {
+            return bad("jitter_ms", format!("{} ms: expected ≥ 0 and 3 sigma under half the frame period", self.jitter_ms));
+        }
+        if !(0.0..1.0).contains(&self.drop_prob) {
+            return bad("drop_prob", format!("{}: expected a probability in [0, 1)", self.drop_prob));
+        }
+        for (option, cam) in [
+            ("bump_camera", self.bump_camera),
+            ("strong_distortion_camera", self.strong_distortion_camera),
+            ("hide_camera", Some(self.hide_camera)),
+        ] {
+            if let Some(c) = cam {
+                if c >= self.cameras {
+                    return bad(option, format!("camera {c} does not exist: expected 0..{}", self.cameras));
+                }
+            }
+        }
+        if !self.bump_rot_deg.is_finite()
+            || self.bump_rot_deg.abs() > 10.0
+            || !self.bump_trans_mm.is_finite()
+            || self.bump_trans_mm.abs() > 100.0
+        {
+            return bad("bump_rot_deg", "expected a bump of at most 10 degrees and 100 mm");
+        }
+        if let Some(id) = self.hide_tag {
+            if id >= self.specimen_tags {
+                return bad("hide_tag", format!("specimen tag {id} does not exist: expected 0..{}", self.specimen_tags));
+            }
+        }
+        if !self.k1.is_finite() || self.k1.abs() > 0.5 || !self.strong_k1.is_finite() || self.strong_k1.abs() > 0.5 {
+            return bad("k1", "expected |k1| ≤ 0.5");
+        }
+        if !finite_nonneg(self.max_deflection_mm) || self.max_deflection_mm > 0.1 * self.span_mm {
+            return bad("max_deflection_mm", format!("{}: expected 0 to span/10", self.max_deflection_mm));
+        }
+        if !finite_pos(self.beam_height_mm) || !finite_pos(self.beam_width_mm) || self.beam_height_mm > 400.0 || self.beam_width_mm > 400.0
+        {
+            return bad("beam_height_mm", "expected beam height and width in (0, 400] mm");
+        }
+        if !finite_pos(self.span_mm)
+            || !finite_pos(self.beam_length_mm)
+            || self.span_mm > self.beam_length_mm
+            || self.beam_length_mm > 1200.0
+        {
+            return bad(
+                "span_mm",
+                format!("span {} mm, length {} mm: expected 0 < span ≤ length ≤ 1200 mm", self.span_mm, self.beam_length_mm),
+            );
+        }
+        if !finite_nonneg(self.load_span_mm) || self.load_span_mm >= self.span_mm {
+            return bad("load_span_mm", format!("{}: expected 0 ≤ load span < span", self.load_span_mm));
+        }
+        if !(1..=15).contains(&self.specimen_tags) {
+            return bad("specimen_tags", format!("{}: expected 1 to 15", self.specimen_tags));
+        }
+        if !finite_pos(self.specimen_tag_mm) || self.specimen_tag_mm * 10.0 / 8.0 > self.beam_height_mm / 3.0 {
+            return bad(
+                "specimen_tag_mm",
+                format!(
+                    "{}: expected > 0 and three printed tags (with their white ring) stacked within the beam height",
+                    self.specimen_tag_mm
+                ),
+            );
+        }
+        if !finite_pos(self.background_tag_mm) || self.background_tag_mm > 150.0 {
+            return bad("background_tag_mm", format!("{}: expected 0 < size ≤ 150 mm", self.background_tag_mm));
+        }
+        if !finite_pos(self.utm_hz) || self.utm_hz > 10_000.0 || !self.utm_phase_ms.is_finite() {
+            return bad("utm_hz", "expected 0 < utm_hz ≤ 10000 and a finite phase");
+        }
+        if !finite_nonneg(self.stiffness_kn_per_mm) || !finite_nonneg(self.compliance_mm_per_kn) {
+            return bad("stiffness_kn_per_mm", "expected non-negative stiffness and compliance");
+        }
+        if !(1..=32).contains(&self.subsamples) {
+            return bad("subsamples", format!("{}: expected 1 to 32", self.subsamples));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        params: SimParams,
+    }
+
+    #[test]
+    fn clap_defaults_equal_serde_defaults() {
+        let cli = Cli::try_parse_from(["x"]).unwrap();
+        assert_eq!(cli.params, SimParams::default());
+        let from_toml: SimParams = toml::from_str("").unwrap();
+        assert_eq!(from_toml, SimParams::default());
+        SimParams::default().validate().unwrap();
+    }
+
+    #[test]
+    fn options_parse_and_are_validated() {
+        let cli = Cli::try_parse_from(["x", "--cameras", "1", "--k1", "-0.2", "--bump-camera", "0", "--shuffle"]).unwrap();
+        assert_eq!(cli.params.cameras, 1);
+        assert_eq!(cli.params.k1, -0.2);
+        assert_eq!(cli.params.bump_camera, Some(0));
+        assert!(cli.params.shuffle);
+        cli.params.validate().unwrap();
+        let bad = SimParams { cameras: 4, ..SimParams::default() };
+        assert!(matches!(bad.validate(), Err(SimError::Param { option: "cameras", .. })));
+        let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
+        assert!(toml::from_str::<SimParams>("colour = 3").is_err());
     }
 }
