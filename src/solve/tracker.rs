@@ -6,9 +6,13 @@
 //! first posing the pose is therefore *held* (by default) — its error is a constant that
 //! cancels in the displacement — instead of being re-estimated every frame (that noise would
 //! leak into every frame) or refined by a running mean (that would drift by the first pose's
-//! error over the run). After a bump the displacement reference is broken anyway, so the new
-//! pose is refined from the running mean of the background corners over a few updates
-//! ([`TrackerOptions::average_updates_after_bump`]) to make it as good as possible, then held.
+//! error over the run). The background corners are still averaged while static, and they
+//! carry the measurement across a bump: the camera's motion is measured between the
+//! averaged corners before the bump and the running mean after it (refined over
+//! [`TrackerOptions::average_updates_after_bump`] updates, then held), and applied to the
+//! held pose. The held pose's constant error thus carries over, and displacements stay
+//! continuous across the bump to the accuracy of averaged corners rather than jumping by
+//! a fresh single-frame pose error.
 //!
 //! Bump test: the median distance, over the corners seen, between the observed background
 //! corners and the held pose's projections; a bump when it exceeds
@@ -43,7 +47,7 @@ pub struct TrackerOptions {
 
 impl Default for TrackerOptions {
     fn default() -> Self {
-        Self { min_corners: 4, bump_floor_px: 1.0, bump_noise_factor: 6.0, average_updates_initial: 1, average_updates_after_bump: 5 }
+        Self { min_corners: 4, bump_floor_px: 1.0, bump_noise_factor: 6.0, average_updates_initial: 1, average_updates_after_bump: 10 }
     }
 }
 
@@ -94,7 +98,12 @@ pub struct CameraPoseTracker {
     intrinsics: CameraIntrinsics,
     options: TrackerOptions,
     fixed: bool,
-    pose: Option<Pose>,
+    /// The pose that fits the images (held after settling); reported pose = `raw ∘ fix`.
+    raw: Option<Pose>,
+    /// World → world correction keeping the reported pose continuous across bumps.
+    fix: Pose,
+    /// Updates accumulated into the running means since the last (re-)posing.
+    period_updates: usize,
     covariance: Option<Matrix6<f64>>,
     corners: HashMap<(u32, usize), CornerStats>,
     archived_m2: f64,
@@ -115,7 +124,9 @@ impl CameraPoseTracker {
             intrinsics,
             options,
             fixed: fixed_pose.is_some(),
-            pose: fixed_pose,
+            raw: fixed_pose,
+            fix: Pose::identity(),
+            period_updates: 0,
             covariance: None,
             corners: HashMap::new(),
             archived_m2: 0.0,
@@ -125,9 +136,9 @@ impl CameraPoseTracker {
         }
     }
 
-    /// The current pose, if any.
+    /// The current pose (world → camera) to measure with, if any.
     pub fn pose(&self) -> Option<Pose> {
-        self.pose
+        self.raw.map(|r| r.compose(&self.fix))
     }
 
     /// The current pose's covariance (step parameters `(ω, v)`), if estimated.
@@ -159,7 +170,7 @@ impl CameraPoseTracker {
         let corners = tags.len() * 4;
         let threshold = self.bump_threshold_px();
         let mut status = TrackerStatus {
-            pose: self.pose,
+            pose: self.pose(),
             covariance: self.covariance,
             bumped: false,
             stale: false,
@@ -174,17 +185,17 @@ impl CameraPoseTracker {
             message: None,
         };
         if self.fixed {
-            status.rms_px = self.pose.and_then(|p| self.rms(&p, &tags));
+            status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
             return status;
         }
         if corners < self.options.min_corners.max(4) {
             let msg = format!("{} background corners seen, {} needed: pose kept from before", corners, self.options.min_corners.max(4));
             tracing::debug!("{msg}");
-            status.stale = self.pose.is_some();
+            status.stale = self.raw.is_some();
             status.message = Some(msg);
             return status;
         }
-        let Some(pose) = self.pose else {
+        let Some(pose) = self.raw else {
             return self.first_posing(tags, status);
         };
 
@@ -203,17 +214,26 @@ impl CameraPoseTracker {
                 corners,
                 "camera bumped: background tags moved in the image; re-posing"
             );
+            // Keep the reported pose continuous: the camera's motion is measured between the
+            // averaged corners before the bump and those after it, so the held pose's own
+            // error carries over instead of a new single-frame error replacing it.
+            if self.period_updates >= 2 {
+                if let Ok(before) = solve_camera_pose(&self.intrinsics, &self.averaged_observations(), Some(&pose)) {
+                    self.fix = before.pose.inverse().compose(&pose).compose(&self.fix);
+                }
+            }
             self.archive_noise();
             self.corners.clear();
+            self.period_updates = 0;
             status.bumped = true;
             return match solve_camera_pose(&self.intrinsics, &tags, Some(&pose)) {
                 Ok(sol) => {
-                    self.pose = Some(sol.pose);
+                    self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
                     self.averaged_updates = 1;
                     self.average_limit = self.options.average_updates_after_bump.max(1);
                     self.accumulate(&tags, &sol.rejected_tags);
-                    status.pose = Some(sol.pose);
+                    status.pose = self.pose();
                     status.covariance = Some(sol.covariance);
                     status.rms_px = Some(sol.rms_px);
                     status.rejected_tags = sol.rejected_tags;
@@ -221,7 +241,7 @@ impl CameraPoseTracker {
                 }
                 Err(e) => {
                     tracing::warn!(error = %e, "camera bumped and could not be re-posed");
-                    self.pose = None;
+                    self.raw = None;
                     self.covariance = None;
                     status.pose = None;
                     status.covariance = None;
@@ -248,15 +268,15 @@ impl CameraPoseTracker {
             let averaged = self.averaged_observations();
             match solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)) {
                 Ok(sol) => {
-                    self.pose = Some(sol.pose);
+                    self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
                 }
                 Err(e) => tracing::debug!(error = %e, "pose refinement from averaged corners failed; pose kept"),
             }
         }
-        status.pose = self.pose;
+        status.pose = self.pose();
         status.covariance = self.covariance;
-        status.rms_px = self.pose.and_then(|p| self.rms(&p, &tags));
+        status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
         status.rejected_tags = rejected;
         status.noise_px = self.noise_px();
         status
@@ -266,12 +286,13 @@ impl CameraPoseTracker {
         match solve_camera_pose(&self.intrinsics, &tags, None) {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
-                self.pose = Some(sol.pose);
+                self.raw = Some(sol.pose);
+                self.fix = Pose::identity();
                 self.covariance = Some(sol.covariance);
                 self.averaged_updates = 1;
                 self.average_limit = self.options.average_updates_initial.max(1);
                 self.accumulate(&tags, &sol.rejected_tags);
-                status.pose = Some(sol.pose);
+                status.pose = self.pose();
                 status.covariance = Some(sol.covariance);
                 status.first_pose = true;
                 status.rms_px = Some(sol.rms_px);
@@ -299,6 +320,7 @@ impl CameraPoseTracker {
     }
 
     fn accumulate(&mut self, tags: &[BackgroundTagObservation], skip: &[u32]) {
+        self.period_updates += 1;
         for t in tags.iter().filter(|t| !skip.contains(&t.id)) {
             for k in 0..4 {
                 let px = Vector2::new(t.pixels[k].x, t.pixels[k].y);
