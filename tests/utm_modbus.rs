@@ -246,6 +246,22 @@ async fn server_killed_is_down_and_restarted_is_up_again() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn poller_started_before_the_server_by_host_name_comes_up() {
+    // The daemon may start before the UTM is switched on; the address may be a host name.
+    let port = free_port();
+    let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Cdab, 1.0, 0.0);
+    let mut p = Poller::start(utm(format!("localhost:{port}"), load, None));
+    let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
+    println!("nothing listening: {down:?}");
+    let UtmEvent::Down { reason } = down else { unreachable!() };
+    assert!(reason.contains(&format!("localhost:{port}")) && reason.contains("cannot connect"), "{reason}");
+    let _server = start_pymodbus(port);
+    p.wait_for(Duration::from_secs(15), "Up once the server listens", |e| *e == UtmEvent::Up).await;
+    assert_eq!(p.sample(Duration::from_secs(5)).await.load_kn, 12.5);
+    p.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exception_reply_is_a_clear_error() {
     let port = free_port();
     let _server = start_pymodbus(port);
