@@ -66,9 +66,16 @@ pub fn truth_at(truth: &[TruthLine], t_ns: i64) -> HashMap<u32, Vector3<f64>> {
 
 /// Compares feed lines with ground truth.
 pub fn evaluate(config: &Config, truth: &[TruthLine], feed: &[FeedLine]) -> Accuracy {
+    evaluate_from(config, truth, feed, 0)
+}
+
+/// Like [`evaluate`], but counts only the lines with `seq >= from_seq` (displacements keep
+/// their reference in the first line that solved each tag), e.g. the sets after a bump.
+pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], from_seq: u64) -> Accuracy {
     let up = Vector3::from(config.world.up).normalize();
     let mut first_truth: HashMap<u32, Vector3<f64>> = HashMap::new();
-    let mut acc = Accuracy { lines: feed.len(), tag_slots: feed.len() * config.specimen.tags.len(), ..Accuracy::default() };
+    let counted = feed.iter().filter(|l| l.seq >= from_seq).count();
+    let mut acc = Accuracy { lines: counted, tag_slots: counted * config.specimen.tags.len(), ..Accuracy::default() };
     let (mut sq, mut sq_v, mut n) = (0.0, 0.0, 0usize);
     let (mut net_sq, mut net_n) = (0.0, 0usize);
     let (mut in2, mut n_sigma) = (0usize, 0usize);
@@ -80,6 +87,9 @@ pub fn evaluate(config: &Config, truth: &[TruthLine], feed: &[FeedLine]) -> Accu
             let p0 = *first_truth.entry(tag.id).or_insert(*p);
             let td = p - p0;
             true_disp.insert(tag.id, td);
+            if line.seq < from_seq {
+                continue;
+            }
             let err = Vector3::from(tag.disp_mm) - td;
             sq += err.norm_squared();
             sq_v += err.dot(&up).powi(2);
@@ -93,6 +103,9 @@ pub fn evaluate(config: &Config, truth: &[TruthLine], feed: &[FeedLine]) -> Accu
                     }
                 }
             }
+        }
+        if line.seq < from_seq {
+            continue;
         }
         if let Some(net) = line.net_deflection_mm {
             let mean = |role: TagRole| {

@@ -4,8 +4,13 @@
 //! tolerance of the anchor joins it. A set closes when every camera has a frame in it,
 //! when a frame arrives beyond the tolerance, or when a camera's second frame arrives
 //! (a set never holds two frames of one camera: a dropped frame of one camera makes a
-//! smaller set). A frame older than the open set's anchor (a late frame whose set has
-//! already been closed) is dropped and counted.
+//! smaller set). A late frame — one not newer than every frame of a set already closed —
+//! is dropped and counted, so frame sets come out in time order, each later than the one
+//! before.
+//!
+//! Live capture closes a set that waited too long for its missing cameras with
+//! [`FrameSetAssembler::poll`], measured from when the set was opened on the wall clock —
+//! not from the frames' timestamps, because transfer latency varies between cameras.
 
 use crate::frame::{Frame, FrameSet};
 
@@ -15,6 +20,9 @@ pub struct FrameSetAssembler {
     cameras: usize,
     tolerance_ns: i64,
     open: Vec<Frame>,
+    opened_at: Option<std::time::Instant>,
+    /// Frames at or before this time belong to sets already closed.
+    closed_until: Option<i64>,
     next_seq: u64,
     late_frames: u64,
 }
@@ -22,7 +30,15 @@ pub struct FrameSetAssembler {
 impl FrameSetAssembler {
     /// An assembler for `cameras` cameras with a tolerance in ms.
     pub fn new(cameras: usize, tolerance_ms: f64) -> Self {
-        Self { cameras, tolerance_ns: (tolerance_ms * 1e6).round() as i64, open: Vec::new(), next_seq: 0, late_frames: 0 }
+        Self {
+            cameras,
+            tolerance_ns: (tolerance_ms * 1e6).round() as i64,
+            open: Vec::new(),
+            opened_at: None,
+            closed_until: None,
+            next_seq: 0,
+            late_frames: 0,
+        }
     }
 
     /// Frames dropped because their set had already been closed.
@@ -33,6 +49,10 @@ impl FrameSetAssembler {
     /// Adds a frame; returns the sets it completes (zero, one or two).
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
+        if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
+            self.late_frames += 1;
+            return done;
+        }
         if let Some(anchor) = self.open.first().map(|f| f.t_ns) {
             if frame.t_ns < anchor - self.tolerance_ns {
                 self.late_frames += 1;
@@ -43,6 +63,9 @@ impl FrameSetAssembler {
                 done.extend(self.close());
             }
         }
+        if self.open.is_empty() {
+            self.opened_at = Some(std::time::Instant::now());
+        }
         self.open.push(frame);
         if self.open.len() >= self.cameras {
             done.extend(self.close());
@@ -50,11 +73,11 @@ impl FrameSetAssembler {
         done
     }
 
-    /// Closes the open set if its anchor is older than `now_ns - tolerance - grace_ns`
-    /// (live capture: a camera whose frame never comes must not hold the others back).
-    pub fn poll(&mut self, now_ns: i64, grace_ns: i64) -> Option<FrameSet> {
-        let anchor = self.open.first()?.t_ns;
-        if now_ns - anchor > self.tolerance_ns + grace_ns {
+    /// Closes the open set if it has waited longer than `wait` (wall clock) for its
+    /// missing cameras (live capture: a camera whose frame never comes must not hold the
+    /// others back).
+    pub fn poll(&mut self, wait: std::time::Duration) -> Option<FrameSet> {
+        if self.opened_at?.elapsed() > wait {
             self.close()
         } else {
             None
@@ -70,6 +93,10 @@ impl FrameSetAssembler {
         if self.open.is_empty() {
             return None;
         }
+        // Later sets hold only frames newer than every frame of this one, so set times
+        // (means) strictly increase.
+        self.closed_until = self.open.iter().map(|f| f.t_ns).max();
+        self.opened_at = None;
         let set = FrameSet::new(self.next_seq, std::mem::take(&mut self.open));
         self.next_seq += 1;
         Some(set)
@@ -114,7 +141,8 @@ mod tests {
         assert_eq!(s.len(), 1);
         assert_eq!(s[0].frames.len(), 1);
         assert!(a.push(f(0, 20)).is_empty()); // older than the open set's anchor - tolerance
-        assert_eq!(a.late_frames(), 1);
+        assert!(a.push(f(1, 0)).is_empty()); // not newer than the closed first set
+        assert_eq!(a.late_frames(), 2);
         let set = a.flush().unwrap();
         assert_eq!(set.seq, 1);
         assert_eq!(set.t_ns, f(1, 50).t_ns);
@@ -125,8 +153,32 @@ mod tests {
         let mut a = FrameSetAssembler::new(3, 10.0);
         a.push(f(0, 0));
         a.push(f(1, 4));
-        assert!(a.poll(f(0, 12).t_ns, 5_000_000).is_none());
-        let set = a.poll(f(0, 16).t_ns, 5_000_000).unwrap();
+        assert!(a.poll(std::time::Duration::from_secs(60)).is_none());
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        let set = a.poll(std::time::Duration::from_millis(1)).unwrap();
         assert_eq!(set.t_ns, f(0, 2).t_ns);
+        // A late frame of camera 2 does not start an earlier set.
+        assert!(a.push(f(2, 3)).is_empty());
+        assert_eq!(a.late_frames(), 1);
+        // A frame just after the closed set's newest frame starts the next set.
+        assert!(a.push(f(2, 5)).is_empty());
+        assert_eq!(a.flush().unwrap().frames.len(), 1);
+    }
+
+    #[test]
+    fn frame_set_times_never_go_back() {
+        let mut a = FrameSetAssembler::new(3, 10.0);
+        let mut times = Vec::new();
+        // Cameras arrive out of order and late, some sets closed early.
+        for (i, (c, t)) in [(0, 0), (2, 8), (1, 30), (0, 35), (2, 9), (1, 2), (2, 40), (0, 70), (1, 69), (2, 75)].into_iter().enumerate() {
+            for s in a.push(f(c, t)) {
+                times.push(s.t_ns);
+            }
+            if i == 3 {
+                times.extend(a.flush().map(|s| s.t_ns));
+            }
+        }
+        times.extend(a.flush().map(|s| s.t_ns));
+        assert!(times.windows(2).all(|w| w[1] > w[0]), "{times:?}");
     }
 }

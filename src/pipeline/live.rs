@@ -267,7 +267,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
 
     // Assembler: until the sources end or a stop is asked for.
     let mut assembler = FrameSetAssembler::new(ncam, config.sync.tolerance_ms);
-    let grace_ns = 50_000_000;
+    // A set waits for its missing cameras at most a frame period (and at least 50 ms).
+    let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
+    let set_wait = Duration::from_secs_f64(if max_fps > 0.0 { (1.0 / max_fps).max(0.05) } else { 0.1 });
     let mut tick = tokio::time::interval(Duration::from_millis(((config.sync.tolerance_ms as u64) / 2).max(5)));
     let deadline = opts.duration_s.map(|s| tokio::time::Instant::now() + Duration::from_secs_f64(s));
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
@@ -301,7 +303,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             },
             _ = tick.tick() => {
                 if recording.is_none() {
-                    if let Some(set) = assembler.poll(clock::now_epoch_ns(), grace_ns) {
+                    if let Some(set) = assembler.poll(set_wait) {
                         queue.push(set);
                     }
                 }

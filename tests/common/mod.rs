@@ -1,0 +1,78 @@
+//! Helpers shared by the integration tests: simulate a recording, replay it, compare with
+//! truth, check a feed with the SPEC checker.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use tagdeflect::accuracy::{evaluate, Accuracy};
+use tagdeflect::feed::FeedLine;
+use tagdeflect::pipeline::replay::{self, ReplayOptions, ReplaySummary};
+use tagdeflect::recording::Recording;
+use tagdeflect::sim::SimParams;
+
+/// The project's root folder.
+pub fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// `../shared` beside the project (the SPEC checker and the real data); fails loudly if absent.
+pub fn shared() -> PathBuf {
+    let p = root().join("../shared");
+    assert!(p.join("tools/feedcheck.py").is_file(), "../shared (SPEC tools and real data) is missing at {}", p.display());
+    p
+}
+
+/// Simulates `params` into a new folder under `dir`.
+pub fn simulate(dir: &Path, name: &str, params: &SimParams) -> PathBuf {
+    let out = dir.join(name);
+    tagdeflect::sim::simulate(params, &out).unwrap_or_else(|e| panic!("simulate {name}: {e}"));
+    out
+}
+
+/// Replays a recording and returns its feed lines and summary.
+pub fn replay_lines(dir: &Path, full_frame: bool) -> (Recording, Vec<FeedLine>, ReplaySummary) {
+    let rec = Recording::open(dir).unwrap_or_else(|e| panic!("{e}"));
+    let mut lines = Vec::new();
+    let summary = replay::replay(&rec, ReplayOptions { full_frame, progress: false }, |l, _, _| lines.push(l.clone())).unwrap();
+    (rec, lines, summary)
+}
+
+/// Replays and evaluates against the recording's truth; prints the figures.
+pub fn accuracy_of(label: &str, dir: &Path, full_frame: bool) -> (Accuracy, Vec<FeedLine>, Recording) {
+    let (rec, lines, _) = replay_lines(dir, full_frame);
+    let acc = evaluate(&rec.config, &rec.truth, &lines);
+    println!("ACCURACY {label}{}: {acc}", if full_frame { " (full-frame)" } else { "" });
+    (acc, lines, rec)
+}
+
+/// Runs the SPEC feed checker on feed lines; panics with its report on any problem.
+pub fn feedcheck(lines: &[FeedLine], config_toml: &Path) {
+    let mut text = String::new();
+    for l in lines {
+        text.push_str(&l.to_json());
+        text.push('\n');
+    }
+    feedcheck_text(&text, config_toml);
+}
+
+/// Runs the SPEC feed checker on feed text.
+pub fn feedcheck_text(text: &str, config_toml: &Path) {
+    use std::io::Write;
+    let checker = shared().join("tools/feedcheck.py");
+    let mut child = Command::new("python3")
+        .arg(&checker)
+        .arg("-")
+        .arg("--roles")
+        .arg(config_toml)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3 is needed to run ../shared/tools/feedcheck.py (run scripts/setup.sh)");
+    child.stdin.take().unwrap().write_all(text.as_bytes()).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let report = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "feedcheck found problems:\n{report}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(report.contains(" 0 problems"), "{report}");
+}
