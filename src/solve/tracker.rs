@@ -84,6 +84,9 @@ pub struct TrackerStatus {
     pub message: Option<String>,
 }
 
+/// Static updates after which a held pose is checked once against the averaged corners.
+const SANITY_CHECK_UPDATES: usize = 10;
+
 #[derive(Debug, Clone, Copy)]
 struct CornerStats {
     world: Vector3<f64>,
@@ -199,12 +202,10 @@ impl CameraPoseTracker {
             return self.first_posing(tags, status);
         };
 
-        // Bump test against the held pose.
-        let shifts: Vec<f64> = tags
-            .iter()
-            .flat_map(|t| (0..4).map(move |k| (t, k)))
-            .map(|(t, k)| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
-            .collect();
+        // Bump test: each corner against its running mean while static (immune to model
+        // errors such as an imperfect calibration), or the held pose's projection for a
+        // corner not yet averaged.
+        let shifts: Vec<f64> = tags.iter().flat_map(|t| (0..4).map(move |k| (t, k))).map(|(t, k)| self.corner_shift(&pose, t, k)).collect();
         let shift = median(&shifts).unwrap_or(0.0);
         status.shift_px = Some(shift);
         if shift > threshold {
@@ -254,9 +255,7 @@ impl CameraPoseTracker {
         // Static: tags that disagree with the pose stay out of the running means.
         let mut rejected = Vec::new();
         for t in &tags {
-            let d: Vec<f64> = (0..4)
-                .map(|k| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
-                .collect();
+            let d: Vec<f64> = (0..4).map(|k| self.corner_shift(&pose, t, k)).collect();
             if median(&d).unwrap_or(f64::INFINITY) > threshold {
                 tracing::debug!(tag = t.id, "background tag disagrees with the held pose; left out");
                 rejected.push(t.id);
@@ -272,6 +271,38 @@ impl CameraPoseTracker {
                     self.covariance = Some(sol.covariance);
                 }
                 Err(e) => tracing::debug!(error = %e, "pose refinement from averaged corners failed; pose kept"),
+            }
+        } else if self.period_updates == SANITY_CHECK_UPDATES {
+            // Safety net: a held pose from a poor first frame (blur) that does not fit the
+            // averaged corners is re-fitted to them once.
+            let averaged = self.averaged_observations();
+            let misfit: Vec<f64> = averaged
+                .iter()
+                .flat_map(|t| (0..4).map(move |k| (t, k)))
+                .map(|(t, k)| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
+                .collect();
+            let misfit = median(&misfit).unwrap_or(0.0);
+            if misfit > threshold {
+                let refit = solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)).ok().filter(|sol| {
+                    let d: Vec<f64> = averaged
+                        .iter()
+                        .flat_map(|t| (0..4).map(move |k| (t, k)))
+                        .map(|(t, k)| {
+                            self.intrinsics.project(&sol.pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm())
+                        })
+                        .collect();
+                    // Only when the re-fit really explains the corners better (a calibration
+                    // error would misfit any pose alike).
+                    median(&d).unwrap_or(f64::INFINITY) < 0.5 * misfit
+                });
+                if let Some(sol) = refit {
+                    let msg = format!("held pose misfit the averaged background corners by {misfit:.2} px; re-fitted");
+                    tracing::warn!("{msg}");
+                    self.raw = Some(sol.pose);
+                    self.covariance = Some(sol.covariance);
+                    status.bumped = true;
+                    status.message = Some(msg);
+                }
             }
         }
         status.pose = self.pose();
@@ -304,6 +335,16 @@ impl CameraPoseTracker {
             }
         }
         status
+    }
+
+    /// Distance (px) of an observed corner from its running mean (when averaged over ≥ 3
+    /// updates) or else from the pose's projection.
+    fn corner_shift(&self, pose: &Pose, tag: &BackgroundTagObservation, k: usize) -> f64 {
+        let px = tag.pixels[k];
+        match self.corners.get(&(tag.id, k)) {
+            Some(c) if c.n >= 3.0 && (c.world - tag.world[k]).norm() < 1e-9 => (Vector2::new(px.x, px.y) - c.mean).norm(),
+            _ => self.intrinsics.project(&pose.transform(&tag.world[k])).map_or(f64::INFINITY, |p| (p - px).norm()),
+        }
     }
 
     fn rms(&self, pose: &Pose, tags: &[BackgroundTagObservation]) -> Option<f64> {
