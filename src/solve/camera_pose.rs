@@ -171,7 +171,7 @@ pub fn solve_camera_pose(
     for (_, start) in ranked.iter().take(3) {
         if let Some(out) = minimize(&problem, start, &options) {
             iterations += out.iterations;
-            if best.as_ref().map_or(true, |b| out.evaluation.ssr < b.evaluation.ssr) {
+            if best.as_ref().is_none_or(|b| out.evaluation.ssr < b.evaluation.ssr) {
                 best = Some(out);
             }
         }
@@ -210,7 +210,7 @@ pub fn solve_camera_pose(
         for (_, start) in ranked.iter().take(2) {
             if let Some(out) = minimize(&problem, start, &options) {
                 iterations += out.iterations;
-                if next.as_ref().map_or(true, |b| out.evaluation.ssr < b.evaluation.ssr) {
+                if next.as_ref().is_none_or(|b| out.evaluation.ssr < b.evaluation.ssr) {
                     next = Some(out);
                 }
             }

@@ -46,7 +46,7 @@ fn normaliser(pts: &[Vector2<f64>]) -> Option<(Matrix3<f64>, Matrix3<f64>)> {
     let n = pts.len() as f64;
     let c = pts.iter().fold(Vector2::zeros(), |a, p| a + p) / n;
     let d = pts.iter().map(|p| (p - c).norm()).sum::<f64>() / n;
-    if !(d > 1e-15) || !d.is_finite() {
+    if !d.is_finite() || d <= 1e-15 {
         return None;
     }
     let s = std::f64::consts::SQRT_2 / d;
@@ -63,7 +63,7 @@ pub fn pose_from_homography(h: &Matrix3<f64>) -> Option<(Rotation3<f64>, Vector3
     let h2 = h.column(1).into_owned();
     let h3 = h.column(2).into_owned();
     let scale = 0.5 * (h1.norm() + h2.norm());
-    if !(scale > 1e-300) {
+    if !scale.is_finite() || scale <= 1e-300 {
         return None;
     }
     let mut lambda = 1.0 / scale;

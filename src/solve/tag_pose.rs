@@ -158,7 +158,7 @@ impl TagProblem<'_> {
         for (_, start) in ranked.into_iter().take(n) {
             if let Some(out) = minimize(self, start, &LmOptions::default()) {
                 *iterations += out.iterations;
-                if best.as_ref().map_or(true, |b| out.evaluation.ssr < b.evaluation.ssr) {
+                if best.as_ref().is_none_or(|b| out.evaluation.ssr < b.evaluation.ssr) {
                     best = Some(out);
                 }
             }
@@ -178,7 +178,7 @@ impl TagProblem<'_> {
 ///   [`PixelNoisePool`]); used for σ and for outlier tests. `None` falls back to this tag's
 ///   own residual (noisy with few views).
 pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_sigma_px: Option<f64>) -> Result<TagSolution, SolveError> {
-    if !(size_mm > 0.0) || !size_mm.is_finite() {
+    if !size_mm.is_finite() || size_mm <= 0.0 {
         return Err(SolveError::InvalidInput { what: format!("tag size {size_mm} mm must be a positive number") });
     }
     let pooled = pooled_sigma_px.filter(|s| s.is_finite() && *s > 0.0);
@@ -206,7 +206,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
     if !warm_started {
         let starts = problem.cold_starts();
         if let Some(cold) = problem.solve_from(&starts, 4, &mut iterations) {
-            if best.as_ref().map_or(true, |b| cold.evaluation.ssr < b.evaluation.ssr) {
+            if best.as_ref().is_none_or(|b| cold.evaluation.ssr < b.evaluation.ssr) {
                 best = Some(cold);
             } else {
                 warm_started = true;
@@ -246,7 +246,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
                 let Some(out) = minimize(&sub, &best.pose, &LmOptions::default()) else { continue };
                 iterations += out.iterations;
                 let score = out.evaluation.ssr / out.evaluation.residuals.saturating_sub(6).max(1) as f64;
-                if pick.as_ref().map_or(true, |p| score < p.2) {
+                if pick.as_ref().is_none_or(|p| score < p.2) {
                     pick = Some((v, out, score));
                 }
             }
