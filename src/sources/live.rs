@@ -1,0 +1,404 @@
+//! Live cameras: one OS thread per camera pushing [`SourceEvent`]s into a bounded tokio
+//! channel, the shared capture machinery (drop counting, reconnect backoff, statistics) and
+//! [`spawn_camera`], which dispatches on the config's `source` prefix.
+//!
+//! Capture APIs (V4L2 `DQBUF`, Aravis `timeout_pop_buffer`) block, so each camera owns a
+//! thread. The thread only ever `try_send`s: when the channel is full the frame is dropped
+//! and counted ([`DropReason::ChannelFull`]) — capture never waits for a slow consumer. Drop
+//! counts and connection events that could not be delivered are kept and delivered before
+//! the next frame. A shared `stop` flag ends every camera thread within about half a second;
+//! a closed channel (receiver dropped) ends it too.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use tokio::sync::mpsc::error::TrySendError;
+use tokio::sync::mpsc::Sender;
+
+use crate::config::CameraConfig;
+use crate::frame::Frame;
+
+/// What a live camera reports to the pipeline.
+#[derive(Debug, Clone)]
+pub enum SourceEvent {
+    /// A captured, complete, converted frame, stamped in ns since the Unix epoch.
+    Frame(Frame),
+    /// The camera stopped delivering (unplugged, read error, stalled); reopening with backoff.
+    Lost {
+        /// Index of the camera in the config.
+        camera: usize,
+        /// What went wrong, for the log and the feed's camera health.
+        reason: String,
+    },
+    /// The camera is streaming again after [`SourceEvent::Lost`].
+    Reopened {
+        /// Index of the camera in the config.
+        camera: usize,
+    },
+    /// Frames that were captured (or half-captured) but not delivered, since the last report.
+    Dropped {
+        /// Index of the camera in the config.
+        camera: usize,
+        /// Frames dropped for this reason since the last report.
+        count: u64,
+        /// Why they were dropped.
+        why: DropReason,
+    },
+}
+
+/// Why a frame was not delivered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum DropReason {
+    /// The pipeline's channel was full (the consumer is behind).
+    ChannelFull,
+    /// The driver/transport delivered an incomplete or failed buffer (missing packets,
+    /// timeout, size mismatch, aborted); never fed to the detector.
+    Incomplete,
+    /// The buffer was complete but could not be converted (truncated, undecodable, wrong size).
+    BadBuffer,
+}
+
+/// Errors opening a live source (the thread's later failures are [`SourceEvent::Lost`]).
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// The `source` string has no known prefix.
+    #[error("camera {camera} ({name}): unknown source {spec:?}: expected \"v4l2:/dev/videoN\", \"aravis:<device id>\" or \"sim\"")]
+    UnknownSource {
+        /// Camera index.
+        camera: usize,
+        /// Camera name.
+        name: String,
+        /// The offending source string.
+        spec: String,
+    },
+    /// Simulated cameras are not live devices.
+    #[error("camera {camera} ({name}): sim cameras are started by the pipeline, not by sources::spawn_camera")]
+    Sim {
+        /// Camera index.
+        camera: usize,
+        /// Camera name.
+        name: String,
+    },
+    /// The device could not be opened or configured.
+    #[error("camera {camera} ({name}) at {spec:?}: {message}")]
+    Open {
+        /// Camera index.
+        camera: usize,
+        /// Camera name.
+        name: String,
+        /// The source string.
+        spec: String,
+        /// What failed.
+        message: String,
+    },
+    /// The capture thread could not be started.
+    #[error("camera {camera} ({name}): cannot start the capture thread: {message}")]
+    Thread {
+        /// Camera index.
+        camera: usize,
+        /// Camera name.
+        name: String,
+        /// What failed.
+        message: String,
+    },
+}
+
+/// Counters of one live camera, readable from any thread while it runs.
+#[derive(Debug, Default)]
+pub struct CaptureStats {
+    /// Frames delivered to the channel.
+    pub delivered: AtomicU64,
+    /// Frames dropped because the channel was full.
+    pub dropped_full: AtomicU64,
+    /// Buffers that arrived incomplete or failed (never delivered).
+    pub incomplete: AtomicU64,
+    /// Complete buffers that failed conversion.
+    pub bad_buffers: AtomicU64,
+    /// Times the camera was lost.
+    pub lost: AtomicU64,
+    /// Times the camera was reopened after being lost.
+    pub reopened: AtomicU64,
+}
+
+impl CaptureStats {
+    /// A snapshot `(delivered, dropped_full, incomplete, bad_buffers, lost, reopened)`.
+    pub fn snapshot(&self) -> StatsSnapshot {
+        StatsSnapshot {
+            delivered: self.delivered.load(Ordering::Relaxed),
+            dropped_full: self.dropped_full.load(Ordering::Relaxed),
+            incomplete: self.incomplete.load(Ordering::Relaxed),
+            bad_buffers: self.bad_buffers.load(Ordering::Relaxed),
+            lost: self.lost.load(Ordering::Relaxed),
+            reopened: self.reopened.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// A plain copy of [`CaptureStats`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StatsSnapshot {
+    /// Frames delivered to the channel.
+    pub delivered: u64,
+    /// Frames dropped because the channel was full.
+    pub dropped_full: u64,
+    /// Buffers that arrived incomplete or failed.
+    pub incomplete: u64,
+    /// Complete buffers that failed conversion.
+    pub bad_buffers: u64,
+    /// Times the camera was lost.
+    pub lost: u64,
+    /// Times the camera was reopened.
+    pub reopened: u64,
+}
+
+/// A running live camera: its thread and its counters.
+#[derive(Debug)]
+pub struct LiveCamera {
+    /// The capture thread; it ends when the stop flag is set or the channel closes.
+    pub thread: JoinHandle<()>,
+    /// Its counters.
+    pub stats: Arc<CaptureStats>,
+}
+
+impl LiveCamera {
+    /// Waits for the capture thread to end (set the stop flag first).
+    pub fn join(self) {
+        if self.thread.join().is_err() {
+            tracing::error!("a camera capture thread panicked");
+        }
+    }
+}
+
+/// Starts a live camera in its own thread and returns once the device is open and
+/// configured (so the caller can report readiness), or with the error that prevented it.
+///
+/// Dispatches on `cfg.source`: `v4l2:<path>` ([`crate::sources::v4l2`]), `aravis:<device id>`
+/// ([`crate::sources::aravis`]); `sim` returns [`SourceError::Sim`] — the pipeline starts
+/// simulated cameras itself.
+pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<LiveCamera, SourceError> {
+    let source = cfg.source.trim();
+    if let Some(path) = source.strip_prefix("v4l2:") {
+        crate::sources::v4l2::spawn(index, cfg, path.trim(), tx, stop)
+    } else if let Some(id) = source.strip_prefix("aravis:") {
+        crate::sources::aravis::spawn(index, cfg, id.trim(), crate::sources::aravis::AravisOptions::default(), tx, stop)
+    } else if source == "sim" {
+        Err(SourceError::Sim { camera: index, name: cfg.name.clone() })
+    } else {
+        Err(SourceError::UnknownSource { camera: index, name: cfg.name.clone(), spec: cfg.source.clone() })
+    }
+}
+
+/// Reconnect delays: 0.5 s doubling to 10 s, reset after a successful reopen.
+#[derive(Debug, Clone)]
+pub struct Backoff {
+    next: Duration,
+    first: Duration,
+    max: Duration,
+}
+
+impl Default for Backoff {
+    fn default() -> Self {
+        Self::new(Duration::from_millis(500), Duration::from_secs(10))
+    }
+}
+
+impl Backoff {
+    /// Delays from `first` doubling up to `max`.
+    pub fn new(first: Duration, max: Duration) -> Self {
+        Self { next: first, first, max: max.max(first) }
+    }
+
+    /// The delay before the next attempt (and doubles the one after).
+    pub fn next_delay(&mut self) -> Duration {
+        let d = self.next;
+        self.next = (self.next * 2).min(self.max);
+        d
+    }
+
+    /// Back to the first delay (after a success).
+    pub fn reset(&mut self) {
+        self.next = self.first;
+    }
+}
+
+/// Sleeps up to `d` in short steps; returns `false` if `stop` was set meanwhile.
+pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
+    let step = Duration::from_millis(50);
+    let mut left = d;
+    while !left.is_zero() {
+        if stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        let s = left.min(step);
+        std::thread::sleep(s);
+        left -= s;
+    }
+    !stop.load(Ordering::Relaxed)
+}
+
+/// The sending side of one camera thread: never blocks, counts what it cannot deliver.
+#[derive(Debug)]
+pub struct Emitter {
+    camera: usize,
+    tx: Sender<SourceEvent>,
+    stats: Arc<CaptureStats>,
+    /// Connection events not yet delivered (channel was full), oldest first.
+    pending: VecDeque<SourceEvent>,
+    /// Undelivered drop counts per reason.
+    unreported: [u64; 3],
+    closed: bool,
+}
+
+fn reason_index(r: DropReason) -> usize {
+    match r {
+        DropReason::ChannelFull => 0,
+        DropReason::Incomplete => 1,
+        DropReason::BadBuffer => 2,
+    }
+}
+
+const REASONS: [DropReason; 3] = [DropReason::ChannelFull, DropReason::Incomplete, DropReason::BadBuffer];
+
+impl Emitter {
+    /// An emitter for camera `camera` with its counters.
+    pub fn new(camera: usize, tx: Sender<SourceEvent>, stats: Arc<CaptureStats>) -> Self {
+        Self { camera, tx, stats, pending: VecDeque::new(), unreported: [0; 3], closed: false }
+    }
+
+    /// The camera index.
+    pub fn camera(&self) -> usize {
+        self.camera
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &Arc<CaptureStats> {
+        &self.stats
+    }
+
+    /// Whether the receiver is gone (the thread should end).
+    pub fn is_closed(&self) -> bool {
+        self.closed || self.tx.is_closed()
+    }
+
+    /// Delivers a frame, or drops and counts it if the channel is full.
+    pub fn frame(&mut self, frame: Frame) {
+        self.flush();
+        if !self.pending.is_empty() {
+            // Control events still waiting: keep their order, drop the frame.
+            self.dropped(DropReason::ChannelFull, 1);
+            return;
+        }
+        match self.tx.try_send(SourceEvent::Frame(frame)) {
+            Ok(()) => {
+                self.stats.delivered.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(TrySendError::Full(_)) => self.dropped(DropReason::ChannelFull, 1),
+            Err(TrySendError::Closed(_)) => self.closed = true,
+        }
+    }
+
+    /// Counts `count` dropped frames; they are reported with the next delivery.
+    pub fn dropped(&mut self, why: DropReason, count: u64) {
+        let counter = match why {
+            DropReason::ChannelFull => &self.stats.dropped_full,
+            DropReason::Incomplete => &self.stats.incomplete,
+            DropReason::BadBuffer => &self.stats.bad_buffers,
+        };
+        counter.fetch_add(count, Ordering::Relaxed);
+        self.unreported[reason_index(why)] += count;
+    }
+
+    /// Reports the camera lost.
+    pub fn lost(&mut self, reason: String) {
+        tracing::warn!(camera = self.camera, %reason, "camera lost");
+        self.stats.lost.fetch_add(1, Ordering::Relaxed);
+        self.pending.push_back(SourceEvent::Lost { camera: self.camera, reason });
+        self.flush();
+    }
+
+    /// Reports the camera streaming again.
+    pub fn reopened(&mut self) {
+        tracing::info!(camera = self.camera, "camera reopened");
+        self.stats.reopened.fetch_add(1, Ordering::Relaxed);
+        self.pending.push_back(SourceEvent::Reopened { camera: self.camera });
+        self.flush();
+    }
+
+    /// Tries to deliver pending connection events and drop counts, in order.
+    pub fn flush(&mut self) {
+        while let Some(ev) = self.pending.pop_front() {
+            match self.tx.try_send(ev) {
+                Ok(()) => {}
+                Err(TrySendError::Full(ev)) => {
+                    self.pending.push_front(ev);
+                    return;
+                }
+                Err(TrySendError::Closed(_)) => {
+                    self.closed = true;
+                    return;
+                }
+            }
+        }
+        for why in REASONS {
+            let i = reason_index(why);
+            let count = self.unreported[i];
+            if count == 0 {
+                continue;
+            }
+            match self.tx.try_send(SourceEvent::Dropped { camera: self.camera, count, why }) {
+                Ok(()) => self.unreported[i] = 0,
+                Err(TrySendError::Full(_)) => return,
+                Err(TrySendError::Closed(_)) => {
+                    self.closed = true;
+                    return;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::GrayImage;
+
+    fn frame(seq: u64) -> Frame {
+        Frame { camera: 0, seq, t_ns: 0, image: Arc::new(GrayImage::new(2, 2)) }
+    }
+
+    #[test]
+    fn full_channel_drops_and_reports_later() {
+        let (tx, mut rx) = tokio::sync::mpsc::channel(2);
+        let mut em = Emitter::new(0, tx, Arc::new(CaptureStats::default()));
+        for s in 0..5 {
+            em.frame(frame(s));
+        }
+        let snap = em.stats().snapshot();
+        assert_eq!((snap.delivered, snap.dropped_full), (2, 3));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Frame(f)) if f.seq == 0));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Frame(f)) if f.seq == 1));
+        em.lost("unplugged".into());
+        em.frame(frame(5));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Lost { camera: 0, .. })));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Dropped { count: 3, why: DropReason::ChannelFull, .. })));
+        // Frame 5 was dropped (channel full again): reported before the next delivered frame.
+        em.frame(frame(6));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Dropped { count: 1, why: DropReason::ChannelFull, .. })));
+        assert!(matches!(rx.try_recv(), Ok(SourceEvent::Frame(f)) if f.seq == 6));
+        drop(rx);
+        em.frame(frame(7));
+        assert!(em.is_closed());
+    }
+
+    #[test]
+    fn backoff_doubles_to_ten_seconds() {
+        let mut b = Backoff::default();
+        let d: Vec<u64> = (0..7).map(|_| b.next_delay().as_millis() as u64).collect();
+        assert_eq!(d, vec![500, 1000, 2000, 4000, 8000, 10000, 10000]);
+        b.reset();
+        assert_eq!(b.next_delay(), Duration::from_millis(500));
+    }
+}
