@@ -104,7 +104,8 @@ fn main() -> ExitCode {
 
 fn init_logging() {
     use tracing_subscriber::{fmt, EnvFilter};
-    let filter = EnvFilter::try_from_env("TAGDEFLECT_LOG").unwrap_or_else(|_| EnvFilter::new("info"));
+    // TAGDEFLECT_LOG, else RUST_LOG, else "info" (e.g. TAGDEFLECT_LOG=debug).
+    let filter = EnvFilter::try_from_env("TAGDEFLECT_LOG").or_else(|_| EnvFilter::try_from_default_env()).unwrap_or_else(|_| EnvFilter::new("info"));
     // Under systemd the journal adds its own timestamps.
     let under_systemd = std::env::var_os("JOURNAL_STREAM").is_some();
     let builder = fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false);
