@@ -398,3 +398,76 @@ impl CameraPoseTracker {
             .collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn setup() -> (CameraIntrinsics, Pose, Vec<[Vector3<f64>; 4]>) {
+        let intr =
+            CameraIntrinsics { width: 1280, height: 960, fx: 1400.0, fy: 1400.0, cx: 639.5, cy: 479.5, dist: [-0.2, 0.05, 0.0, 0.0, 0.0] };
+        let pose = Pose::from_rvec_tvec([0.05, -0.1, 0.02], [0.0, 0.0, 2000.0]);
+        let tags = [(-400.0, -250.0, 0.0), (400.0, -250.0, 0.0), (0.0, 250.0, 150.0)]
+            .iter()
+            .map(|&(x, y, z)| {
+                let c = Vector3::new(x, y, z);
+                [
+                    c + Vector3::new(-100.0, -100.0, 0.0),
+                    c + Vector3::new(100.0, -100.0, 0.0),
+                    c + Vector3::new(100.0, 100.0, 0.0),
+                    c + Vector3::new(-100.0, 100.0, 0.0),
+                ]
+            })
+            .collect();
+        (intr, pose, tags)
+    }
+
+    /// Observations with a deterministic ±`d` px jitter pattern that flips every update.
+    fn observe(intr: &CameraIntrinsics, pose: &Pose, tags: &[[Vector3<f64>; 4]], d: f64, step: usize) -> Vec<BackgroundTagObservation> {
+        let sign = if step % 2 == 0 { 1.0 } else { -1.0 };
+        tags.iter()
+            .enumerate()
+            .map(|(i, w)| BackgroundTagObservation {
+                id: i as u32,
+                pixels: [0, 1, 2, 3].map(|k| {
+                    let p = intr.project(&pose.transform(&w[k])).unwrap();
+                    let s = if (i + k) % 2 == 0 { sign } else { -sign };
+                    Point2::new(p.x + s * d, p.y - s * d)
+                }),
+                world: *w,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn holds_the_pose_and_measures_the_corner_noise() {
+        let (intr, pose, tags) = setup();
+        let mut t = CameraPoseTracker::new(intr, None);
+        let first = t.update(&observe(&intr, &pose, &tags, 0.2, 0));
+        assert!(first.first_pose && !first.bumped);
+        for step in 1..40 {
+            let st = t.update(&observe(&intr, &pose, &tags, 0.2, step));
+            assert!(!st.bumped && st.pose == first.pose, "held while static (update {step})");
+        }
+        // Each corner alternates ±0.2 px per axis around its mean: per-axis scatter 0.2 px.
+        let noise = t.noise_px().expect("measured");
+        assert!((noise - 0.2).abs() < 0.01, "noise {noise}");
+        assert!((t.bump_threshold_px() - 1.2).abs() < 0.06, "6 × noise above the 1 px floor");
+    }
+
+    #[test]
+    fn one_moved_tag_is_not_a_bump() {
+        let (intr, pose, tags) = setup();
+        let mut t = CameraPoseTracker::new(intr, None);
+        for step in 0..5 {
+            t.update(&observe(&intr, &pose, &tags, 0.05, step));
+        }
+        let mut obs = observe(&intr, &pose, &tags, 0.05, 5);
+        for p in obs[0].pixels.iter_mut() {
+            p.x += 5.0;
+        }
+        let st = t.update(&obs);
+        assert!(!st.bumped, "the median ignores one displaced tag");
+        assert_eq!(st.rejected_tags, vec![0], "and that tag is kept out of the running means");
+    }
+}
