@@ -424,7 +424,7 @@ mod tests {
 
     /// Observations with a deterministic ±`d` px jitter pattern that flips every update.
     fn observe(intr: &CameraIntrinsics, pose: &Pose, tags: &[[Vector3<f64>; 4]], d: f64, step: usize) -> Vec<BackgroundTagObservation> {
-        let sign = if step % 2 == 0 { 1.0 } else { -1.0 };
+        let sign = if step.is_multiple_of(2) { 1.0 } else { -1.0 };
         tags.iter()
             .enumerate()
             .map(|(i, w)| BackgroundTagObservation {
