@@ -56,7 +56,7 @@ pub struct RefineOptions {
 
 impl Default for RefineOptions {
     fn default() -> Self {
-        Self { max_shift_px: 1.5, inner_band_bits: 1.5, outer_band_bits: 0.8, margin_px: 2.0, min_bit_px: 2.0, max_band_px: 8.0, passes: 2 }
+        Self { max_shift_px: 1.5, inner_band_bits: 1.5, outer_band_bits: 0.8, margin_px: 2.0, min_bit_px: 2.0, max_band_px: 6.0, passes: 2 }
     }
 }
 
@@ -163,6 +163,7 @@ pub fn refine_corners_with(
     // Corners in ideal coordinates.
     let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.to_ideal(&c.coords, None));
     let mut ok_edges = [false; 4];
+    let mut levels: [Option<[f64; 3]>; 4] = [None; 4];
     for _ in 0..opts.passes {
         let Some(h) = homography_from_corners(&ideal, nb) else {
             return keep_all;
@@ -172,8 +173,9 @@ pub fn refine_corners_with(
         };
         let mut lines: [Option<Line>; 4] = [None; 4];
         for (e, line) in lines.iter_mut().enumerate() {
-            *line = fit_edge(image, &lens, &ideal, &h, &hinv, nb, e, opts);
+            *line = fit_edge(image, &lens, &ideal, &h, &hinv, nb, e, opts, levels[e]);
         }
+        levels = lines.map(|l| l.map(|l| l.levels));
         ok_edges = lines.map(|l| l.is_some());
         let mut next = ideal;
         for (i, c) in next.iter_mut().enumerate() {
@@ -210,6 +212,8 @@ pub fn refine_corners_with(
 struct Line {
     normal: Vector2<f64>,
     rho: f64,
+    /// Fitted black level, contrast and blur (warm start of the next pass).
+    levels: [f64; 3],
 }
 
 impl Line {
@@ -336,29 +340,17 @@ fn taper(x: f64, lo: f64, hi: f64) -> f64 {
     ((x - lo).min(hi - x)).clamp(0.0, 1.0)
 }
 
-/// Standard normal CDF (Numerical Recipes `erfcc`, relative error < 1.2e-7).
-fn phi(x: f64) -> f64 {
-    let z = (x * std::f64::consts::FRAC_1_SQRT_2).abs();
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let r = t
-        * (-z * z - 1.265_512_23
-            + t * (1.000_023_68
-                + t * (0.374_091_96
-                    + t * (0.096_784_18
-                        + t * (-0.186_288_06
-                            + t * (0.278_868_07 + t * (-1.135_203_98 + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77)))))))))
-            .exp();
-    // erfc(z) = r; Φ(x) = erfc(-x/√2)/2.
-    if x >= 0.0 {
-        1.0 - 0.5 * r
-    } else {
-        0.5 * r
-    }
-}
-
-/// Standard normal density.
-fn pdf(x: f64) -> f64 {
-    0.398_942_280_401_432_7 * (-0.5 * x * x).exp()
+/// Standard normal CDF and density at `x`, sharing one `exp` (Abramowitz–Stegun 7.1.26 for
+/// erf, absolute error < 1.5e-7, exactly antisymmetric about 0 so it adds no bias).
+#[inline]
+fn phi_pdf(x: f64) -> (f64, f64) {
+    let e = (-0.5 * x * x).exp();
+    let z = x.abs() * std::f64::consts::FRAC_1_SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * z);
+    let poly = t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let erf = 1.0 - poly * e;
+    let cdf = if x >= 0.0 { 0.5 * (1.0 + erf) } else { 0.5 * (1.0 - erf) };
+    (cdf, 0.398_942_280_401_432_7 * e)
 }
 
 /// Fits edge `e` (from corner `e` to corner `e+1`); `None` when the fit is not trustworthy.
@@ -372,6 +364,7 @@ fn fit_edge(
     nb: f64,
     e: usize,
     opts: &RefineOptions,
+    warm: Option<[f64; 3]>,
 ) -> Option<Line> {
     let a = ideal[e];
     let b = ideal[(e + 1) % 4];
@@ -510,21 +503,26 @@ fn fit_edge(
     }
 
     // Levenberg–Marquardt over (angle, offset, B, C, sigma).
-    let mut x = Vector5::new(0.0, 0.0, black_ref, contrast0, 0.8);
+    let mut x = match warm {
+        Some([bl, c, sg]) => Vector5::new(0.0, 0.0, bl, c, sg),
+        None => Vector5::new(0.0, 0.0, black_ref, contrast0, 0.8),
+    };
     let model = |x: &Vector5<f64>, s: &Sample| -> (f64, Vector5<f64>) {
         let (ang, off, bl, c, sg) = (x[0], x[1], x[2], x[3], x[4]);
         let (sn, cs) = ang.sin_cos();
         let n = s.n * cs + s.t * sn - off;
         let dn_dang = -s.n * sn + s.t * cs;
         let z1 = n / sg;
-        let mut val = phi(z1);
-        let mut dval_dn = pdf(z1) / sg;
-        let mut dval_ds = -z1 * pdf(z1) / sg;
+        let (cdf1, pdf1) = phi_pdf(z1);
+        let mut val = cdf1;
+        let mut dval_dn = pdf1 / sg;
+        let mut dval_ds = -z1 * pdf1 / sg;
         if s.white {
             let z2 = (-n - s.gap) / sg;
-            val += phi(z2);
-            dval_dn -= pdf(z2) / sg;
-            dval_ds -= z2 * pdf(z2) / sg;
+            let (cdf2, pdf2) = phi_pdf(z2);
+            val += cdf2;
+            dval_dn -= pdf2 / sg;
+            dval_ds -= z2 * pdf2 / sg;
         }
         let i = bl + c * val;
         (i, Vector5::new(c * dval_dn * dn_dang, -c * dval_dn, 1.0, val, c * dval_ds))
@@ -609,7 +607,7 @@ fn finish(
     let (sn, cs) = ang.sin_cos();
     // n = (p − a)·(cs·normal + sn·dir) − off = 0.
     let nrm = normal * cs + dir * sn;
-    Some(Line { normal: nrm, rho: nrm.dot(&a) + off })
+    Some(Line { normal: nrm, rho: nrm.dot(&a) + off, levels: [x[2], c, sg] })
 }
 
 #[cfg(test)]
@@ -618,10 +616,15 @@ mod tests {
 
     #[test]
     fn phi_matches_known_values() {
+        let phi = |x| phi_pdf(x).0;
         assert!((phi(0.0) - 0.5).abs() < 1e-7);
-        assert!((phi(1.0) - 0.841_344_746).abs() < 1e-7);
-        assert!((phi(-1.96) - 0.024_997_895).abs() < 1e-7);
-        assert!((phi(3.0) - 0.998_650_102).abs() < 1e-7);
+        assert!((phi(1.0) - 0.841_344_746).abs() < 2e-7);
+        assert!((phi(-1.96) - 0.024_997_895).abs() < 2e-7);
+        assert!((phi(3.0) - 0.998_650_102).abs() < 2e-7);
+        assert!((phi_pdf(1.0).1 - 0.241_970_725).abs() < 1e-9);
+        for x in [0.3, 1.7, 4.0] {
+            assert!((phi(x) + phi(-x) - 1.0).abs() < 1e-15, "antisymmetry at {x}");
+        }
     }
 
     #[test]
