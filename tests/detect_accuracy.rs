@@ -313,3 +313,24 @@ fn print_detect_timings() {
         assert_eq!(full.len(), 9);
     }
 }
+
+#[test]
+fn intrinsics_without_distortion_change_nothing() {
+    use tagdeflect::camera::CameraIntrinsics;
+    use tagdeflect::detect::refine_corners;
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let scene = Scene { width: 300, height: 300, blur_sigma: 0.9, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
+    let truth = random_corners(&mut rng, 150.0, 150.0, 80.0, 0.04);
+    let img = render(&scene, &[(TagFamily::Tag36h11, 5, truth)], &mut rng);
+    let mut det = Detector::new(DetectorOptions { subpixel: None, ..DetectorOptions::for_families(&[TagFamily::Tag36h11]) }).unwrap();
+    let raw = det.detect(&img);
+    assert_eq!(raw.len(), 1);
+    let k = CameraIntrinsics { width: 300, height: 300, fx: 700.0, fy: 690.0, cx: 151.0, cy: 148.0, dist: [0.0; 5] };
+    let (mut a, mut b) = (raw[0].clone(), raw[0].clone());
+    let ra = refine_corners(&img, &mut a, None);
+    let rb = refine_corners(&img, &mut b, Some(&k));
+    assert_eq!((ra.refined, rb.refined), (4, 4));
+    let worst = (0..4).map(|i| (a.corners[i] - b.corners[i]).norm()).fold(0.0, f64::max);
+    println!("refinement with distortion-free intrinsics vs without: {worst:.2e} px");
+    assert!(worst < 1e-6, "{worst}");
+}

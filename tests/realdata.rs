@@ -128,10 +128,12 @@ fn apriltag_test_images_match_expected_corners() {
     println!(
         "apriltag-test: {total} expected tags, {found} found, {within_01} within 0.1 px, {within_03} within 0.3 px, worst matched {worst_matched:.3} px"
     );
-    // MANIFEST: with a different JPEG decoder, ~43/47 within 0.1 px, the rest within ~0.3, one missed.
+    // MANIFEST: with a different JPEG decoder, ~43/47 within 0.1 px, the rest within ~0.3.
+    // Measured here (image crate, BT.601 luma): 47 found, 43 within 0.1 px, 46 within 0.3 px.
     assert_eq!(total, 47);
-    assert!(within_03 >= 44, "only {within_03}/47 expected tags within 0.3 px");
-    assert!(within_01 >= 36, "only {within_01}/47 expected tags within 0.1 px");
+    assert!(found >= 46, "only {found}/47 expected tags found");
+    assert!(within_03 >= 45, "only {within_03}/47 expected tags within 0.3 px");
+    assert!(within_01 >= 40, "only {within_01}/47 expected tags within 0.1 px");
 }
 
 #[test]
