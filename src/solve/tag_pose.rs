@@ -5,9 +5,10 @@
 //! candidates (homography + mirror solution per view), ranked over all views. Outlier views
 //! (a wrong decode, a corner pulled by blur) are dropped and reported, not averaged in.
 //!
-//! Covariance: `s² (JᵀJ)⁻¹`, with `s` the pooled pixel noise when given (a per-tag estimate
-//! from 8 residuals per view is too noisy to be trusted), plus the camera poses' uncertainty
-//! propagated through the solve: `Σ += A_v Σ_v A_vᵀ`, `A_v = (JᵀJ)⁻¹ J_vᵀ J_cam,v`.
+//! Covariance: `s² (JᵀJ)⁻¹`, with `s²` the pooled pixel noise (a per-tag estimate from 8
+//! residuals per view alone is too noisy to be trusted) combined with the tag's own residual
+//! as `(12 s_pooled² + SSR) / (12 + dof)`, plus the camera poses' uncertainty propagated
+//! through the solve: `Σ += A_v Σ_v A_vᵀ`, `A_v = (JᵀJ)⁻¹ J_vᵀ J_cam,v`.
 
 use nalgebra::{Matrix2x6, Matrix3, Matrix6, Point2, Vector2, Vector3};
 
@@ -167,6 +168,13 @@ impl TagProblem<'_> {
     }
 }
 
+/// Weight (in residual degrees of freedom) of the pooled pixel noise against a tag's own
+/// residual when estimating its residual variance.
+const POOLED_PRIOR_DOF: f64 = 12.0;
+
+/// Without a pooled noise estimate, a view is rejected only above this residual (px).
+const NO_NOISE_REJECT_FLOOR_PX: f64 = 0.25;
+
 /// Solves one specimen tag from its views.
 ///
 /// * `views`: one per camera that saw the tag (≥ 1; a single view is solved monocularly from
@@ -175,8 +183,8 @@ impl TagProblem<'_> {
 /// * `warm`: the tag's previous solution (tag → world), tried first; closed-form starts are
 ///   used when it is absent or fits badly.
 /// * `pooled_sigma_px`: the pixel noise pooled over many tags/frames (see
-///   [`PixelNoisePool`]); used for σ and for outlier tests. `None` falls back to this tag's
-///   own residual (noisy with few views).
+///   [`PixelNoisePool`]); used for outlier tests, and for σ as a prior combined with this
+///   tag's own residual. `None` uses the tag's own residual alone (noisy with few views).
 pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_sigma_px: Option<f64>) -> Result<TagSolution, SolveError> {
     if !size_mm.is_finite() || size_mm <= 0.0 {
         return Err(SolveError::InvalidInput { what: format!("tag size {size_mm} mm must be a positive number") });
@@ -254,7 +262,12 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
             let single = TagProblem { views: vec![problem.views[v]], corners: problem.corners };
             let out_rms = single.view_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
             let rest_rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
-            let limit = (3.0 * rest_rms).max(pooled.map_or(0.0, |s| 3.0 * s));
+            // Without a noise estimate only the ratio is known, and a ratio of small numbers is
+            // noisy: demand more, and an absolute floor.
+            let limit = match pooled {
+                Some(s) => (3.0 * rest_rms).max(3.0 * s),
+                None => (4.0 * rest_rms).max(NO_NOISE_REJECT_FLOOR_PX),
+            };
             if out_rms <= limit {
                 break;
             }
@@ -285,8 +298,11 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
     let n = best.evaluation.residuals;
     let ssr = best.evaluation.ssr;
     let dof = n.saturating_sub(6);
+    // Residual variance: the pooled noise as a prior worth POOLED_PRIOR_DOF degrees of
+    // freedom, combined with this tag's own residual (so a view set that is noisier than
+    // usual — blur — gets a larger σ, while a 2-dof monocular residual barely moves it).
     let s2 = match pooled {
-        Some(s) => s * s,
+        Some(s) => (POOLED_PRIOR_DOF * s * s + ssr) / (POOLED_PRIOR_DOF + dof as f64),
         None => ssr / dof.max(1) as f64,
     };
     let h_inv = best
@@ -377,7 +393,13 @@ impl PixelNoisePool {
         if dof == 0 || !ssr_px2.is_finite() || ssr_px2 < 0.0 {
             return;
         }
-        self.ssr = self.ssr * self.keep + ssr_px2;
+        // Winsorised at 2.5 σ RMS so a few blurred or outlying views do not inflate the
+        // noise of all the others (under Gaussian noise this trims < 0.3 %).
+        let ssr = match self.sigma_px() {
+            Some(s) => ssr_px2.min(dof as f64 * 6.25 * s * s),
+            None => ssr_px2,
+        };
+        self.ssr = self.ssr * self.keep + ssr;
         self.dof = self.dof * self.keep + dof as f64;
     }
 
