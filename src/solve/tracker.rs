@@ -317,8 +317,8 @@ impl CameraPoseTracker {
         match solve_camera_pose(&self.intrinsics, &tags, None) {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
+                // `fix` is kept: identity at start, the last correction after a failed re-pose.
                 self.raw = Some(sol.pose);
-                self.fix = Pose::identity();
                 self.covariance = Some(sol.covariance);
                 self.averaged_updates = 1;
                 self.average_limit = self.options.average_updates_initial.max(1);
