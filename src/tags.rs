@@ -142,9 +142,10 @@ impl TagBitmap {
     pub fn cell_at(&self, x_mm: f64, y_mm: f64, size_mm: f64) -> Option<(u32, u32)> {
         let c = self.cell_mm(size_mm);
         let half = 0.5 * c * self.total_width as f64;
-        let col = ((x_mm + half) / c).floor();
-        let row = ((half - y_mm) / c).floor();
+        let col = (x_mm + half) / c;
+        let row = (half - y_mm) / c;
         let n = self.total_width as f64;
+        // Truncation is the floor here: both are checked non-negative first.
         if col >= 0.0 && row >= 0.0 && col < n && row < n {
             Some((col as u32, row as u32))
         } else {

@@ -16,7 +16,7 @@ mod render;
 mod rig;
 mod scene;
 
-pub use beam::FourPointBeam;
+pub use beam::{DeformedBeam, FourPointBeam};
 pub use record::{render_frame_set, simulate, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
 

@@ -3,8 +3,10 @@
 //!
 //! Each camera's undistorted ray through every pixel *corner* (OpenCV convention: pixel
 //! centres at integers, so corners at half-integers) is computed once from the intrinsics.
-//! A pixel whose four corners hit the same uniform region (one tag cell, one surface) is
-//! shaded at its centre; any other pixel is integrated with `n × n` sub-samples in an
+//! A pixel whose four corners hit the same uniform region (one colour of one tag, one
+//! surface) takes the mean of its corner values (exact for flat regions; tag cells are
+//! larger than a pixel, so a pixel whose corners all see one colour lies wholly in it);
+//! any other pixel is integrated with `n × n` sub-samples in an
 //! n-rooks pattern (every sub-sample has its own row and column, so an edge parallel to the
 //! pixel grid is resolved to `1/n²` of a pixel), whose rays are interpolated bilinearly
 //! between the four corner rays (the distortion is smooth at the pixel scale).
@@ -87,19 +89,24 @@ impl CornerRays {
 pub(crate) type Hit = (u32, f32);
 
 /// Renders pixels of `rect` into `out` (row-major, `rect.width()` wide) by area
-/// integration of `trace(world direction)`. `rot_cw` maps camera to world directions.
-/// When `keep` is given, pixels whose four corners all satisfy `keep(label)` are taken
-/// from it instead (`keep` = (predicate, full-image buffer)).
-pub(crate) fn render_rect<T>(
+/// integration. `corner` is traced at the pixel corners; a pixel whose four corner labels
+/// agree is uniform: it takes `keep`'s buffer value when `keep`'s predicate accepts the
+/// label (`keep` = (predicate, full-image buffer)), else the mean of its corner values.
+/// Any other pixel is integrated with `n × n` sub-samples of `sample`. `rot_cw` maps camera
+/// to world directions.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn render_rect<C, S>(
     rays: &CornerRays,
     rot_cw: &Rotation3<f64>,
     rect: PixelRect,
     n: usize,
-    trace: &T,
+    corner: &C,
+    sample: &S,
     keep: Option<(&(dyn Fn(u32) -> bool + Sync), &[f32])>,
     out: &mut [f32],
 ) where
-    T: Fn(&Vector3<f64>) -> Hit + Sync,
+    C: Fn(&Vector3<f64>) -> Hit + Sync,
+    S: Fn(&Vector3<f64>) -> Hit + Sync,
 {
     if rect.is_empty() {
         return;
@@ -107,12 +114,12 @@ pub(crate) fn render_rect<T>(
     let (rw, rh) = (rect.width(), rect.height());
     let m = rot_cw.matrix();
     let dir = |xn: f64, yn: f64| -> Vector3<f64> { m * Vector3::new(xn, yn, 1.0) };
-    // Labels at the corners of the rect's pixels.
-    let mut labels = vec![0u32; (rw + 1) * (rh + 1)];
-    labels.par_chunks_mut(rw + 1).enumerate().for_each(|(j, row)| {
+    // Labels and values at the corners of the rect's pixels.
+    let mut hits: Vec<Hit> = vec![(0, 0.0); (rw + 1) * (rh + 1)];
+    hits.par_chunks_mut(rw + 1).enumerate().for_each(|(j, row)| {
         for (i, l) in row.iter_mut().enumerate() {
             let r = rays.at(rect.x0 + i, rect.y0 + j);
-            *l = trace(&dir(r[0], r[1])).0;
+            *l = corner(&dir(r[0], r[1]));
         }
     });
     let inv = 1.0 / (n * n) as f32;
@@ -120,41 +127,35 @@ pub(crate) fn render_rect<T>(
         let y = rect.y0 + j;
         for (i, px) in row.iter_mut().enumerate() {
             let x = rect.x0 + i;
-            let l00 = labels[j * (rw + 1) + i];
-            let l10 = labels[j * (rw + 1) + i + 1];
-            let l01 = labels[(j + 1) * (rw + 1) + i];
-            let l11 = labels[(j + 1) * (rw + 1) + i + 1];
-            if let Some((pred, buf)) = keep {
-                if pred(l00) && pred(l10) && pred(l01) && pred(l11) {
-                    *px = buf[y * rays.w + x];
-                    continue;
+            let h00 = hits[j * (rw + 1) + i];
+            let h10 = hits[j * (rw + 1) + i + 1];
+            let h01 = hits[(j + 1) * (rw + 1) + i];
+            let h11 = hits[(j + 1) * (rw + 1) + i + 1];
+            if h00.0 == h10.0 && h00.0 == h01.0 && h00.0 == h11.0 {
+                match keep {
+                    Some((pred, buf)) if pred(h00.0) => *px = buf[y * rays.w + x],
+                    _ => *px = 0.25 * (h00.1 + h10.1 + h01.1 + h11.1),
                 }
+                continue;
             }
             let r00 = rays.at(x, y);
             let r10 = rays.at(x + 1, y);
             let r01 = rays.at(x, y + 1);
             let r11 = rays.at(x + 1, y + 1);
-            let interp = |fx: f64, fy: f64| -> Vector3<f64> {
-                let a = (1.0 - fx) * (1.0 - fy);
-                let b = fx * (1.0 - fy);
-                let c = (1.0 - fx) * fy;
-                let d = fx * fy;
-                dir(a * r00[0] + b * r10[0] + c * r01[0] + d * r11[0], a * r00[1] + b * r10[1] + c * r01[1] + d * r11[1])
-            };
-            if l00 == l10 && l00 == l01 && l00 == l11 {
-                *px = trace(&interp(0.5, 0.5)).1;
-            } else {
-                let nf = n as f64;
-                let mut sum = 0.0f32;
-                for a in 0..n {
-                    for b in 0..n {
-                        let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
-                        let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
-                        sum += trace(&interp(fx, fy)).1;
-                    }
+            let nf = n as f64;
+            let mut sum = 0.0f32;
+            for a in 0..n {
+                for b in 0..n {
+                    // n-rooks pattern: every sub-sample in its own row and column.
+                    let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
+                    let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
+                    let (wa, wb, wc, wd) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+                    let d =
+                        dir(wa * r00[0] + wb * r10[0] + wc * r01[0] + wd * r11[0], wa * r00[1] + wb * r10[1] + wc * r01[1] + wd * r11[1]);
+                    sum += sample(&d).1;
                 }
-                *px = sum * inv;
             }
+            *px = sum * inv;
         }
     });
 }
@@ -286,7 +287,7 @@ mod tests {
         };
         let rect = PixelRect { x0: 0, y0: 0, x1: 16, y1: 8 };
         let mut out = vec![0.0; 16 * 8];
-        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, None, &mut out);
+        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, &trace, None, &mut out);
         // Pixel 7 spans cx-0.5..cx+0.5: covered by the bright side from 0.37 to 0.5 → 13 %.
         let v = out[3 * 16 + 7];
         assert!((v - 13.0).abs() < 100.0 / 64.0, "{v}");

@@ -19,7 +19,7 @@ use crate::frame::GrayImage;
 use crate::tags::{tag_corners, TagFamily};
 use crate::utm::UtmSample;
 
-use super::beam::FourPointBeam;
+use super::beam::{DeformedBeam, FourPointBeam};
 use super::render::{blur, gaussian_kernel, motion_blur, quantize, render_rect, CornerRays, Hit, PixelRect};
 use super::scene::{shade, Layout};
 use super::{SimError, SimParams};
@@ -121,6 +121,8 @@ struct CameraState {
 /// The deformed beam at one instant, ready for tracing.
 struct BeamState {
     delta: f64,
+    /// The deformed geometry, tabulated.
+    shape: DeformedBeam,
     /// Per specimen tag: deformed centre (x, z) and (cos, sin) of its in-plane rotation.
     tags: Vec<(f64, f64, f64, f64)>,
     hidden: Option<usize>,
@@ -468,7 +470,7 @@ impl SimRig {
             (Vector3::new(x, 0.0, zc + dz), Vector3::new(a.sin(), 0.0, a.cos()), Vector3::new(a.cos(), 0.0, -a.sin()))
         });
         let hidden = hidden.and_then(|id| self.layout.specimen.iter().position(|s| s.id == id));
-        BeamState { delta: d, tags, hidden, ends }
+        BeamState { delta: d, shape: DeformedBeam::new(&self.beam, d, hl), tags, hidden, ends }
     }
 
     /// The fixed scene (panels with background tags), without the beam.
@@ -495,8 +497,11 @@ impl SimRig {
             hit = base;
             for (k, tag) in p.tags.iter().enumerate() {
                 if let Some((col, row)) = tag.bitmap.cell_at(u - tag.centre.0, v - tag.centre.1, size) {
-                    let label = base.0 | ((k as u32 + 1) << 8) | (row * tag.bitmap.total_width + col);
-                    hit = (label, if tag.bitmap.is_white(col, row) { shade::WHITE } else { shade::BLACK });
+                    // One label per colour of a tag (not per cell): a pixel smaller than a cell
+                    // whose corners all see one colour lies wholly in that colour.
+                    let white = tag.bitmap.is_white(col, row);
+                    let label = base.0 | ((k as u32 + 1) << 8) | white as u32;
+                    hit = (label, if white { shade::WHITE } else { shade::BLACK });
                     break;
                 }
             }
@@ -514,45 +519,47 @@ impl SimRig {
             let t = -c.y / d.y;
             let (x, z) = (c.x + t * d.x, c.z + t * d.z);
             if x.abs() <= hl + 10.0 && (z - zc).abs() <= hh + 10.0 + p.max_deflection_mm {
-                let (mx, mz) = self.beam.material_point(x, z - zc, st.delta);
-                if mx.abs() <= hl && mz.abs() <= hh {
-                    let size = p.specimen_tag_mm;
-                    for (k, (s, &(cx, cz, ca, sa))) in self.layout.specimen.iter().zip(&st.tags).enumerate() {
-                        let (dx, dz) = (x - cx, z - cz);
-                        let half = 0.5 * s.bitmap.printed_mm(size) + 3.0;
-                        if dx.abs() > 1.5 * half || dz.abs() > 1.5 * half {
-                            continue;
-                        }
-                        let lx = ca * dx + sa * dz;
-                        let ly = -sa * dx + ca * dz;
-                        if st.hidden == Some(k) {
-                            if lx.abs() <= half && ly.abs() <= half {
-                                return Some((FRONT | ((k as u32 + 1) << 8) | CARD_CELL, shade::CARD));
-                            }
-                            continue;
-                        }
-                        if let Some((col, row)) = s.bitmap.cell_at(lx, ly, size) {
-                            let label = FRONT | ((k as u32 + 1) << 8) | (row * s.bitmap.total_width + col);
-                            return Some((label, if s.bitmap.is_white(col, row) { shade::WHITE } else { shade::BLACK }));
-                        }
+                // Tags first: they lie well inside the face, and most sub-samples are on them.
+                let size = p.specimen_tag_mm;
+                for (k, (s, &(cx, cz, ca, sa))) in self.layout.specimen.iter().zip(&st.tags).enumerate() {
+                    let (dx, dz) = (x - cx, z - cz);
+                    let half = 0.5 * s.bitmap.printed_mm(size) + 3.0;
+                    if dx.abs() > 1.5 * half || dz.abs() > 1.5 * half {
+                        continue;
                     }
+                    let lx = ca * dx + sa * dz;
+                    let ly = -sa * dx + ca * dz;
+                    if st.hidden == Some(k) {
+                        if lx.abs() <= half && ly.abs() <= half {
+                            return Some((FRONT | ((k as u32 + 1) << 8) | CARD_CELL, shade::CARD));
+                        }
+                        continue;
+                    }
+                    if let Some((col, row)) = s.bitmap.cell_at(lx, ly, size) {
+                        let white = s.bitmap.is_white(col, row);
+                        return Some((FRONT | ((k as u32 + 1) << 8) | white as u32, if white { shade::WHITE } else { shade::BLACK }));
+                    }
+                }
+                let (mx, mz) = st.shape.material_point(x, z - zc);
+                if mx.abs() <= hl && mz.abs() <= hh {
                     return Some((FRONT, shade::FACE + self.layout.face_texture.at(mx, mz)));
                 }
             }
         }
         // Top face: z = top of the deformed section, found by fixed-point iteration.
         if d.z < -1e-12 && c.z > 2.0 * hh {
-            let mut zt = 2.0 * hh;
-            let mut hitp = None;
-            for _ in 0..3 {
-                let t = (zt - c.z) / d.z;
-                let q = c + d * t;
-                let (mx, _) = self.beam.material_point(q.x, hh, st.delta);
-                let (_, dz, _) = self.beam.displace(mx, hh, st.delta);
-                zt = zc + hh + dz;
-                hitp = Some((q, mx));
-            }
-            if let Some((q, mx)) = hitp {
+            let t0 = (2.0 * hh - c.z) / d.z;
+            let q0 = c + d * t0;
+            let m = 5.0 + p.max_deflection_mm;
+            if q0.x.abs() <= hl + m && q0.y >= -m && q0.y <= bw + m {
+                let mut q = q0;
+                let mut mx = q0.x;
+                for _ in 0..2 {
+                    let (x, dz) = st.shape.fibre_point(q.x, hh);
+                    mx = x;
+                    let t = (zc + hh + dz - c.z) / d.z;
+                    q = c + d * t;
+                }
                 if mx.abs() <= hl && q.y >= 0.0 && q.y <= bw {
                     return Some((TOP, shade::TOP + self.layout.top_texture.at(mx, q.y)));
                 }
@@ -636,7 +643,16 @@ impl SimRig {
         let centre = pose.centre();
         let mut raw = vec![0.0f32; w * h];
         let trace = |d: &Vector3<f64>| self.trace_static(&centre, d);
-        render_rect(rays, &rot_cw, PixelRect { x0: 0, y0: 0, x1: w, y1: h }, self.params.subsamples as usize, &trace, None, &mut raw);
+        render_rect(
+            rays,
+            &rot_cw,
+            PixelRect { x0: 0, y0: 0, x1: w, y1: h },
+            self.params.subsamples as usize,
+            &trace,
+            &trace,
+            None,
+            &mut raw,
+        );
         let blurred = blur(&raw, w, h, &self.kernel);
         let bg = Arc::new(Background { epoch, raw, blurred });
         *slot = Some(bg.clone());
@@ -670,17 +686,13 @@ impl SimRig {
             }
             let mut beam_px = vec![0.0f32; rect.width() * rect.height()];
             let centre = pose.centre();
-            let trace = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or_else(|| self.trace_static(&centre, d));
+            // Corners: the beam only (label 0 = not the beam: a pixel whose four corners all
+            // miss keeps the cached background); sub-samples: the whole scene.
+            let corner = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or((0, 0.0));
+            let sample = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or_else(|| self.trace_static(&centre, d));
             let not_beam = |l: u32| l & BEAM_BIT == 0;
-            render_rect(
-                rays,
-                &pose.rotation.inverse(),
-                rect,
-                self.params.subsamples as usize,
-                &trace,
-                Some((&not_beam, &bg.raw)),
-                &mut beam_px,
-            );
+            let n = self.params.subsamples as usize;
+            render_rect(rays, &pose.rotation.inverse(), rect, n, &corner, &sample, Some((&not_beam, &bg.raw)), &mut beam_px);
             for (j, row) in beam_px.chunks(rect.width()).enumerate() {
                 let y = rect.y0 + j - outer.y0;
                 let x = rect.x0 - outer.x0;

@@ -11,31 +11,89 @@ use crate::tags::{tag_bitmap, TagBitmap, TagFamily};
 
 use super::SimParams;
 
-/// A smooth, mild surface texture: a sum of a few plane waves (grey levels).
+/// A smooth, mild surface texture: two octaves of value noise (random grey values on a
+/// square lattice, interpolated bilinearly), in grey levels around zero.
 #[derive(Debug, Clone)]
 pub(crate) struct Texture {
-    waves: Vec<(f64, f64, f64, f64)>,
+    seed: u64,
+    amp: f64,
+    /// Lattice pitches of the two octaves, mm.
+    pitch: (f64, f64),
+}
+
+#[inline]
+fn lattice(seed: u64, i: i64, j: i64) -> f64 {
+    let mut z = seed ^ (i as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ (j as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f);
+    z = (z ^ (z >> 31)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 29)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 32;
+    (z & 0xffff) as f64 / 65535.0 * 2.0 - 1.0
+}
+
+#[inline]
+fn value_noise(seed: u64, u: f64, v: f64) -> f64 {
+    // Floor without a libm call: truncate, then step down for negative fractions.
+    let (mut i, mut j) = (u as i64, v as i64);
+    if (i as f64) > u {
+        i -= 1;
+    }
+    if (j as f64) > v {
+        j -= 1;
+    }
+    let (fu, fv) = (i as f64, j as f64);
+    let (tu, tv) = (u - fu, v - fv);
+    let a = lattice(seed, i, j) * (1.0 - tu) + lattice(seed, i + 1, j) * tu;
+    let b = lattice(seed, i, j + 1) * (1.0 - tu) + lattice(seed, i + 1, j + 1) * tu;
+    a * (1.0 - tv) + b * tv
 }
 
 impl Texture {
-    /// A texture with wavelengths between `lmin` and `lmax` mm and total amplitude `amp`.
+    /// A texture of amplitude about `amp` grey levels with features from `lmin` to `lmax` mm.
     pub fn new(rng: &mut ChaCha8Rng, amp: f64, lmin: f64, lmax: f64) -> Self {
-        let n = 5;
-        let waves = (0..n)
-            .map(|_| {
-                let l: f64 = rng.gen_range(lmin..lmax);
-                let ang: f64 = rng.gen_range(0.0..std::f64::consts::PI);
-                let k = std::f64::consts::TAU / l;
-                (k * ang.cos(), k * ang.sin(), rng.gen_range(0.0..std::f64::consts::TAU), amp / n as f64 * rng.gen_range(0.5..1.5))
-            })
-            .collect();
-        Self { waves }
+        Self { seed: rng.gen(), amp, pitch: (lmin, lmax) }
     }
 
     /// The texture at surface coordinates `(u, v)`, mm.
     #[inline]
     pub fn at(&self, u: f64, v: f64) -> f32 {
-        self.waves.iter().map(|&(a, b, p, amp)| amp * (a * u + b * v + p).sin()).sum::<f64>() as f32
+        let fine = value_noise(self.seed, u / self.pitch.0, v / self.pitch.0);
+        let coarse = value_noise(self.seed ^ 0xabcd, u / self.pitch.1, v / self.pitch.1);
+        (self.amp * (0.35 * fine + 0.65 * coarse)) as f32
+    }
+}
+
+/// A [`Texture`] sampled on a 1 mm grid over a rectangle, read back bilinearly (for the
+/// beam's surfaces, which are traced every frame).
+#[derive(Debug, Clone)]
+pub(crate) struct TextureTable {
+    u0: f64,
+    v0: f64,
+    nu: usize,
+    nv: usize,
+    data: Vec<f32>,
+}
+
+impl TextureTable {
+    /// Samples `tex` over `u0..u1` × `v0..v1` (mm) with a margin of 10 mm.
+    pub fn new(tex: &Texture, (u0, u1): (f64, f64), (v0, v1): (f64, f64)) -> Self {
+        let (u0, v0) = (u0 - 10.0, v0 - 10.0);
+        let nu = (u1 - u0 + 10.0).ceil() as usize + 2;
+        let nv = (v1 - v0 + 10.0).ceil() as usize + 2;
+        let data = (0..nv).flat_map(|j| (0..nu).map(move |i| (i, j))).map(|(i, j)| tex.at(u0 + i as f64, v0 + j as f64)).collect();
+        Self { u0, v0, nu, nv, data }
+    }
+
+    /// The texture at `(u, v)`, mm (clamped to the table).
+    #[inline]
+    pub fn at(&self, u: f64, v: f64) -> f32 {
+        let fu = (u - self.u0).clamp(0.0, (self.nu - 2) as f64);
+        let fv = (v - self.v0).clamp(0.0, (self.nv - 2) as f64);
+        let (i, j) = (fu as usize, fv as usize);
+        let (tu, tv) = ((fu - i as f64) as f32, (fv - j as f64) as f32);
+        let k = j * self.nu + i;
+        let a = self.data[k] * (1.0 - tu) + self.data[k + 1] * tu;
+        let b = self.data[k + self.nu] * (1.0 - tu) + self.data[k + self.nu + 1] * tu;
+        a * (1.0 - tv) + b * tv
     }
 }
 
@@ -133,10 +191,10 @@ pub(crate) struct Layout {
     pub background_ids: Vec<Vec<u32>>,
     /// Specimen tags.
     pub specimen: Vec<SpecimenPlacement>,
-    /// Texture of the beam face (material coordinates).
-    pub face_texture: Texture,
-    /// Texture of the beam top.
-    pub top_texture: Texture,
+    /// Texture of the beam face (material coordinates `x`, `zeta`).
+    pub face_texture: TextureTable,
+    /// Texture of the beam top (material `x`, world `y`).
+    pub top_texture: TextureTable,
 }
 
 /// A camera at `centre` looking at `target` with world `z` up, rolled by `roll` rad.
@@ -283,8 +341,8 @@ impl Layout {
             })
             .collect();
 
-        let face_texture = Texture::new(&mut rng, 9.0, 8.0, 60.0);
-        let top_texture = Texture::new(&mut rng, 6.0, 10.0, 60.0);
+        let face_texture = TextureTable::new(&Texture::new(&mut rng, 9.0, 8.0, 60.0), (-0.5 * bl, 0.5 * bl), (-0.5 * bh, 0.5 * bh));
+        let top_texture = TextureTable::new(&Texture::new(&mut rng, 6.0, 10.0, 60.0), (-0.5 * bl, 0.5 * bl), (0.0, bw));
         Layout {
             names,
             intrinsics,
