@@ -51,23 +51,40 @@ impl FakeGvCamera {
         let rc = unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX) };
         assert_eq!(rc, 0, "cannot lock {FAKE_GV_LOCK}");
         let address = "127.0.0.1";
-        let deadline = Instant::now() + Duration::from_secs(10);
-        loop {
-            let mut cmd = Command::new(FAKE_GV);
-            cmd.args(["-i", address, "-s", serial]).stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
-            if let Some(r) = lost_per_thousand {
-                cmd.args(["-r", &r.to_string()]);
-            }
-            let mut child = cmd.spawn().unwrap_or_else(|e| {
-                panic!("cannot run {FAKE_GV} ({e}): install Debian's aravis-tools (run the project's setup script: .ci/setup)")
-            });
-            std::thread::sleep(Duration::from_millis(300));
-            match child.try_wait() {
-                Ok(None) => return Self { child, address: address.to_string(), _lock: lock },
-                // "Failed to start camera": the port is still taken (a camera not using the lock).
-                _ if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(500)),
-                other => panic!("{FAKE_GV} -i {address} exits at once ({other:?}): is UDP port 3956 on 127.0.0.1 taken?"),
-            }
+        let child = spawn_fake_gv(address, serial, lost_per_thousand);
+        Self { child, address: address.to_string(), _lock: lock }
+    }
+
+    /// Kills the camera process (as if its cable were pulled), keeping the lock.
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Starts the camera process again (as if plugged back in).
+    fn restart(&mut self, serial: &str) {
+        self.kill();
+        self.child = spawn_fake_gv(&self.address, serial, None);
+    }
+}
+
+fn spawn_fake_gv(address: &str, serial: &str, lost_per_thousand: Option<u32>) -> Child {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let mut cmd = Command::new(FAKE_GV);
+        cmd.args(["-i", address, "-s", serial]).stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::null());
+        if let Some(r) = lost_per_thousand {
+            cmd.args(["-r", &r.to_string()]);
+        }
+        let mut child = cmd.spawn().unwrap_or_else(|e| {
+            panic!("cannot run {FAKE_GV} ({e}): install Debian's aravis-tools (run the project's setup script: .ci/setup)")
+        });
+        std::thread::sleep(Duration::from_millis(300));
+        match child.try_wait() {
+            Ok(None) => return child,
+            // "Failed to start camera": the port is still taken (a camera not using the lock).
+            _ if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(500)),
+            other => panic!("{FAKE_GV} -i {address} exits at once ({other:?}): is UDP port 3956 on 127.0.0.1 taken?"),
         }
     }
 }
@@ -198,7 +215,7 @@ fn a_full_channel_drops_frames_and_counts_them() {
     let reported: u64 = c.dropped.iter().filter(|(_, w)| *w == DropReason::ChannelFull).map(|(n, _)| n).sum();
     assert!(reported >= before.dropped_full, "drops reported {reported} < counted {}", before.dropped_full);
     // seq gaps show the dropped frames.
-    assert!(c.frames.windows(2).any(|w| w[1].seq > w[0].seq + 1) || c.frames.first().map_or(false, |f| f.seq > 1));
+    assert!(c.frames.windows(2).any(|w| w[1].seq > w[0].seq + 1) || c.frames.first().is_some_and(|f| f.seq > 1));
 }
 
 #[test]
@@ -298,4 +315,56 @@ fn gige_packet_loss_with_resend_delivers_only_complete_frames() {
     println!("GigE fake with 3 % packet loss and resend: {} frames delivered, stats {stats:?}", c.frames.len());
     assert!(c.frames.iter().all(is_diagonal_ramp), "a frame with missing packets was delivered");
     assert!(!c.frames.is_empty(), "no frame delivered with packet resend on");
+}
+
+#[test]
+fn gige_camera_unplugged_is_reported_and_reopened() {
+    let mut fake = FakeGvCamera::start("TDGV05", None);
+    let cfg = camera_cfg(&format!("aravis:{}", fake.address), 128, 96, 25.0);
+    let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+    let stop = Arc::new(AtomicBool::new(false));
+    let opts = AravisOptions { stall_timeout: Some(Duration::from_secs(1)), ..AravisOptions::default() };
+    let cam = open_with_retry(&cfg, &fake.address, opts, tx, &stop);
+    let before = collect(&mut rx, 3, Duration::from_secs(5));
+    assert!(before.frames.len() >= 3, "no frames before the unplug");
+    fake.kill();
+    // Lost within the stall timeout (plus a pop timeout), no frames meanwhile.
+    let t_kill = Instant::now();
+    let mut lost_after = None;
+    while lost_after.is_none() && t_kill.elapsed() < Duration::from_secs(5) {
+        match rx.try_recv() {
+            Ok(SourceEvent::Lost { reason, .. }) => {
+                println!("lost after {:?}: {reason}", t_kill.elapsed());
+                lost_after = Some(t_kill.elapsed());
+            }
+            Ok(_) => {}
+            Err(_) => std::thread::sleep(Duration::from_millis(10)),
+        }
+    }
+    assert!(lost_after.is_some(), "the unplugged camera was not reported lost");
+    fake.restart("TDGV05");
+    let t_back = Instant::now();
+    let mut reopened = false;
+    let mut frames_after = 0;
+    while frames_after < 3 && t_back.elapsed() < Duration::from_secs(15) {
+        match rx.try_recv() {
+            Ok(SourceEvent::Reopened { .. }) => {
+                println!("reopened {:?} after the restart", t_back.elapsed());
+                reopened = true;
+            }
+            Ok(SourceEvent::Frame(f)) => {
+                assert!(reopened, "a frame arrived before Reopened");
+                assert!(f.seq >= before.frames.last().map_or(0, |l| l.seq + 1), "seq went back after reopening");
+                frames_after += 1;
+            }
+            Ok(_) => {}
+            Err(_) => std::thread::sleep(Duration::from_millis(10)),
+        }
+    }
+    let stats = cam.stats.snapshot();
+    stop_and_join(cam, &stop);
+    drop(fake);
+    println!("unplug/replug: stats {stats:?}");
+    assert!(reopened && frames_after >= 3, "camera not back: reopened {reopened}, {frames_after} frames");
+    assert_eq!((stats.lost, stats.reopened), (1, 1));
 }

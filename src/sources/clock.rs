@@ -19,6 +19,8 @@ pub fn now_epoch_ns() -> i64 {
 }
 
 /// Nanoseconds on CLOCK_MONOTONIC (the clock V4L2 drivers stamp buffers with).
+// `time_t`/`c_long` are i64 on 64-bit Linux, i32 on some 32-bit targets.
+#[allow(clippy::useless_conversion)]
 pub fn monotonic_ns() -> i64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: clock_gettime only writes the timespec we pass by valid mutable reference;
@@ -27,7 +29,7 @@ pub fn monotonic_ns() -> i64 {
     if rc != 0 {
         return 0;
     }
-    ts.tv_sec as i64 * 1_000_000_000 + ts.tv_nsec as i64
+    i64::from(ts.tv_sec) * 1_000_000_000 + i64::from(ts.tv_nsec)
 }
 
 /// The offset between CLOCK_MONOTONIC and the Unix epoch: `epoch = monotonic + offset_ns`.
@@ -52,7 +54,7 @@ impl MonotonicToEpoch {
             let m1 = monotonic_ns();
             let width = m1 - m0;
             let offset = r - (m0 + width / 2);
-            if best.map_or(true, |(w, _)| width < w) {
+            if best.is_none_or(|(w, _)| width < w) {
                 best = Some((width, offset));
             }
         }
@@ -65,7 +67,7 @@ impl MonotonicToEpoch {
     }
 
     /// Maps a CLOCK_MONOTONIC time in ns to ns since the epoch.
-    pub fn to_epoch(&self, monotonic_ns: i64) -> i64 {
+    pub fn to_epoch(self, monotonic_ns: i64) -> i64 {
         monotonic_ns.saturating_add(self.offset_ns)
     }
 }

@@ -208,12 +208,14 @@ impl Session {
     }
 
     /// Dequeues one buffer (the `v4l` stream requeues the previous one first).
+    // `time_t` is i64 on 64-bit Linux, i32 on some 32-bit targets.
+    #[allow(clippy::useless_conversion)]
     fn next(&mut self) -> io::Result<(BufferOutcome, i64)> {
         let stream = self.stream.as_mut().ok_or_else(|| io::Error::new(io::ErrorKind::NotConnected, "stream closed"))?;
         let (buf, meta) = CaptureStream::next(stream)?;
         let receive = now_epoch_ns();
         let flags = meta.flags.bits();
-        let (t_ns, _) = map_buffer_timestamp(flags, meta.timestamp.sec as i64, meta.timestamp.usec as i64, self.clock, receive);
+        let (t_ns, _) = map_buffer_timestamp(flags, i64::from(meta.timestamp.sec), i64::from(meta.timestamp.usec), self.clock, receive);
         let out = convert_buffer(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags);
         Ok((out, t_ns))
     }
@@ -363,19 +365,7 @@ mod tests {
     }
 
     fn test_cfg() -> CameraConfig {
-        CameraConfig {
-            name: "t".into(),
-            source: "v4l2:/dev/video-does-not-exist".into(),
-            fps: None,
-            width: 64,
-            height: 48,
-            fx: 100.0,
-            fy: 100.0,
-            cx: 31.5,
-            cy: 23.5,
-            dist: [0.0; 5],
-            rvec: None,
-            tvec_mm: None,
-        }
+        toml::from_str("name = \"t\"\nsource = \"v4l2:/dev/video-does-not-exist\"\nwidth = 64\nheight = 48\nfx = 100.0\nfy = 100.0\ncx = 31.5\ncy = 23.5\n")
+            .expect("test camera config")
     }
 }
