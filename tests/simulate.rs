@@ -277,3 +277,59 @@ fn bump_moves_the_camera_and_hide_covers_the_tag() {
     assert!(hi - lo <= 2 && (110..=126).contains(&lo), "the card is flat grey: {lo}..{hi}");
     assert!(mean_abs_diff(&hidden, &seen, c.x, c.y, 8.0) > 30.0);
 }
+
+#[test]
+fn every_tag_is_in_view_for_common_rigs() {
+    for cameras in 1..=3 {
+        for (w, h) in [(640, 480), (800, 600), (1280, 960), (1920, 1080)] {
+            for strong in [None, Some(0)] {
+                let p = SimParams { strong_distortion_camera: strong, bump_camera: Some(0), bump_at: 2, ..small(cameras, w, h, 4) };
+                let rig = SimRig::new(&p).unwrap();
+                for (c, cam) in rig.cameras().iter().enumerate() {
+                    for k in [0, 3] {
+                        let t = rig.set_time_ns(k);
+                        let pose = rig.camera_pose(c, t);
+                        let mut pts: Vec<Vector3<f64>> = rig.tag_corners_world(t).into_iter().flat_map(|(_, q)| q).collect();
+                        pts.extend(rig.background_tags().iter().flat_map(|b| b.corners_mm.map(Vector3::from)));
+                        for q in pts {
+                            let px = project(&cam.intrinsics, &pose, &q);
+                            assert!(
+                                cam.intrinsics.in_image(&px, 8.0),
+                                "{cameras} cameras {w}x{h}, strong distortion {strong:?}: camera {} set {k} sees {q} at {px}",
+                                cam.name
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn hard_case_frames_still_decode() {
+    let p = SimParams {
+        noise_sigma: 5.0,
+        blur_sigma: 1.0,
+        motion_blur_every: 2,
+        motion_blur_px: 3.0,
+        strong_distortion_camera: Some(0),
+        ..small(2, 1280, 960, 4)
+    };
+    let rig = SimRig::new(&p).unwrap();
+    assert_eq!(rig.cameras()[0].intrinsics.dist[0], -0.25);
+    // Set 1 carries motion blur in camera 0 (every 2nd set, cameras in turn).
+    assert!(rig.has_motion_blur(0, 1) && !rig.has_motion_blur(1, 1) && !rig.has_motion_blur(0, 2));
+    let mut det = Detector::new(DetectorOptions::for_families(&[TagFamily::Tag36h11, TagFamily::Tag25h9])).unwrap();
+    for (cam, k) in [(0usize, 1u64), (0, 2), (1, 1)] {
+        let t = rig.frame_time_ns(cam, k).unwrap();
+        let found = det.detect(&rig.render(cam, t));
+        let n36 = found.iter().filter(|d| d.family == TagFamily::Tag36h11).count();
+        let n25 = found.iter().filter(|d| d.family == TagFamily::Tag25h9).count();
+        println!(
+            "camera {cam} set {k} (motion blur {}): {n36} specimen + {n25} background tags decoded",
+            rig.has_motion_blur(cam, k as i64)
+        );
+        assert_eq!((n36, n25), (9, rig.background_tags().len()), "camera {cam} set {k}");
+    }
+}

@@ -225,7 +225,9 @@ impl Layout {
             2 => vec![0, 2],
             _ => vec![0, 1, 2],
         };
-        let f = 1.2 * p.width as f64;
+        // The same view at any size: the focal length follows the width of a 4:3 frame
+        // (wider frames see more to the sides).
+        let f = 1.2 * (p.width as f64).min(p.height as f64 * 4.0 / 3.0);
         let mut names = Vec::new();
         let mut intrinsics = Vec::new();
         let mut poses = Vec::new();
