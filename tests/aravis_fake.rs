@@ -368,3 +368,24 @@ fn gige_camera_unplugged_is_reported_and_reopened() {
     assert!(reopened && frames_after >= 3, "camera not back: reopened {reopened}, {frames_after} frames");
     assert_eq!((stats.lost, stats.reopened), (1, 1));
 }
+
+#[test]
+fn two_in_process_fake_cameras_stream_side_by_side() {
+    // What an end-to-end run with several `aravis:Fake_1` cameras relies on.
+    let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+    let stop = Arc::new(AtomicBool::new(false));
+    let a = spawn_camera(0, &camera_cfg("aravis:Fake_1", 160, 120, 20.0), tx.clone(), stop.clone()).expect("first fake camera");
+    let b = spawn_camera(1, &camera_cfg("aravis:Fake_1", 200, 100, 20.0), tx, stop.clone()).expect("second fake camera");
+    let c = collect(&mut rx, 12, Duration::from_secs(5));
+    stop.store(true, Ordering::Relaxed);
+    a.join();
+    b.join();
+    let n0 = c.frames.iter().filter(|f| f.camera == 0).count();
+    let n1 = c.frames.iter().filter(|f| f.camera == 1).count();
+    println!("two fake cameras: {n0} + {n1} frames");
+    assert!(n0 >= 3 && n1 >= 3, "frames per camera: {n0}, {n1}");
+    for f in &c.frames {
+        let want = if f.camera == 0 { (160, 120) } else { (200, 100) };
+        assert_eq!((f.image.width, f.image.height), want);
+    }
+}
