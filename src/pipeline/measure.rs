@@ -14,7 +14,7 @@ use crate::detect::Detection;
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
 use crate::pipeline::roi::RoiPlanner;
-use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagView};
+use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
 
@@ -57,6 +57,8 @@ struct TagTrack {
     pose: Pose,
     /// Centre in the first frame set that solved the tag.
     first_centre: Vector3<f64>,
+    /// Recent multi-view solutions: the depth of a monocular view (see `solve::motion`).
+    motion: TagMotion,
 }
 
 /// Per-camera result of the detection stage.
@@ -212,16 +214,28 @@ impl Measurement {
                     let n_res = 8.0 * sol.views as f64;
                     sq_sum += sol.rms_px * sol.rms_px * n_res;
                     sq_n += n_res;
-                    let track = self.tags.entry(*id).or_insert(TagTrack { pose: sol.tag_to_world, first_centre: sol.centre_mm });
-                    track.pose = sol.tag_to_world;
-                    let c = sol.centre_mm;
+                    let track = self.tags.entry(*id).or_insert(TagTrack {
+                        pose: sol.tag_to_world,
+                        first_centre: sol.centre_mm,
+                        motion: TagMotion::default(),
+                    });
+                    let (mut c, mut sigma) = (sol.centre_mm, sol.sigma_mm);
+                    let mut pose = sol.tag_to_world;
+                    if sol.views >= 2 {
+                        track.motion.observe(set.t_ns, c, sol.centre_covariance);
+                    } else if let Some((fc, fcov)) = track.motion.fuse(set.t_ns, c, sol.centre_covariance) {
+                        c = fc;
+                        sigma = Vector3::new(fcov[(0, 0)].sqrt(), fcov[(1, 1)].sqrt(), fcov[(2, 2)].sqrt());
+                        pose.translation = fc;
+                    }
+                    track.pose = pose;
                     let disp = c - track.first_centre;
                     tags_out.push(FeedTag {
                         id: *id,
                         pos_mm: [round_mm(c.x), round_mm(c.y), round_mm(c.z)],
                         disp_mm: [round_mm(disp.x), round_mm(disp.y), round_mm(disp.z)],
                         views: sol.views,
-                        sigma_mm: Some(sol.sigma_mm.map(|s| round_mm(s.max(1e-5))).into()),
+                        sigma_mm: Some(sigma.map(|s| round_mm(s.max(1e-5))).into()),
                         reproj_px: Some((sol.rms_px * 1e3).round() / 1e3),
                     });
                 }

@@ -276,7 +276,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
             (pick_two_view_outlier(&problem, warm, &mut iterations), None)
         };
         let (index, _) = problem.views[victim];
-        tracing::warn!(view = index, joint_rms_px = joint_rms, views = problem.views.len(), "specimen tag: view rejected as an outlier");
+        tracing::debug!(view = index, joint_rms_px = joint_rms, views = problem.views.len(), "specimen tag: view rejected as an outlier");
         rejected.push(index);
         problem.views.remove(victim);
         best = match remainder {
