@@ -341,7 +341,8 @@ pub struct OutputConfig {
 pub struct MeasureConfig {
     /// AprilTag `quad_decimate` for full-frame searches (1 = full resolution).
     pub quad_decimate: f32,
-    /// Detector worker threads.
+    /// The AprilTag library's worker threads per camera (cameras are already detected in
+    /// parallel, one thread each; more helps a one-camera rig's full-frame searches).
     pub detector_threads: u32,
     /// Refine detector corners against the image gradient (see `detect`).
     pub refine_corners: bool,

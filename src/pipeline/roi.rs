@@ -199,19 +199,23 @@ fn centre(c: &[Point2<f64>; 4]) -> nalgebra::Vector2<f64> {
     (c[0].coords + c[1].coords + c[2].coords + c[3].coords) / 4.0
 }
 
-/// Merges overlapping rectangles until none overlap (a tag cut by two windows would be
-/// missed by both).
+/// Merges overlapping rectangles where the merged one costs no more pixels than the two
+/// apart (overlapping windows are otherwise searched as they are: each tag lies wholly
+/// inside its own window, and detections found twice are de-duplicated).
 pub fn merge_rects(mut rects: Vec<Rect>) -> Vec<Rect> {
+    let area = |r: &Rect| r.width as u64 * r.height as u64;
     loop {
         let mut merged = false;
         'outer: for i in 0..rects.len() {
             for j in (i + 1)..rects.len() {
                 if overlaps(&rects[i], &rects[j]) {
                     let u = union(&rects[i], &rects[j]);
-                    rects[i] = u;
-                    rects.swap_remove(j);
-                    merged = true;
-                    break 'outer;
+                    if area(&u) <= area(&rects[i]) + area(&rects[j]) {
+                        rects[i] = u;
+                        rects.swap_remove(j);
+                        merged = true;
+                        break 'outer;
+                    }
                 }
             }
         }
@@ -290,8 +294,11 @@ mod tests {
     #[test]
     fn overlapping_rects_merge() {
         let r = |x, y, w, h| Rect { x, y, width: w, height: h };
-        let m = merge_rects(vec![r(0, 0, 10, 10), r(5, 5, 15, 15), r(50, 50, 10, 10)]);
+        let m = merge_rects(vec![r(0, 0, 10, 10), r(2, 2, 10, 10), r(50, 50, 10, 10)]);
         assert_eq!(m.len(), 2);
-        assert!(m.contains(&r(0, 0, 20, 20)));
+        assert!(m.contains(&r(0, 0, 12, 12)));
+        // A full-width strip does not swallow a window that only touches it.
+        let m = merge_rects(vec![r(0, 100, 1000, 50), r(400, 140, 40, 40)]);
+        assert_eq!(m.len(), 2);
     }
 }
