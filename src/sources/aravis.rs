@@ -30,9 +30,9 @@
 //! with and without packet loss (tests/aravis_fake.rs).
 
 use std::ffi::CString;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, Once};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use aravis::glib::prelude::Cast;
 use aravis::prelude::*;
@@ -40,10 +40,12 @@ use aravis::{AcquisitionMode, Buffer, BufferPayloadType, BufferStatus, Camera, G
 use tokio::sync::mpsc::Sender;
 
 use crate::config::CameraConfig;
-use crate::frame::{Frame, GrayImage};
+use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, DeviceClockMap};
 use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
-use crate::sources::live::{sleep_unless_stopped, Backoff, CaptureStats, DropReason, Emitter, LiveCamera, SourceError, SourceEvent};
+use crate::sources::live::{
+    run_capture_loop, CaptureSession, CaptureStats, Captured, Emitter, LiveCamera, LoopTiming, SourceError, SourceEvent,
+};
 
 /// Tuning of an Aravis stream (defaults suit the product; tests change them).
 #[derive(Debug, Clone)]
@@ -137,6 +139,7 @@ struct Session {
     height: u32,
     device_map: DeviceClockMap,
     underruns: u64,
+    pop_timeout: Duration,
 }
 
 fn glib_err(what: &str, id: &str, e: impl std::fmt::Display) -> String {
@@ -214,16 +217,8 @@ impl Session {
             height: cfg.height,
             device_map: DeviceClockMap::new(1_000_000_000),
             underruns: 0,
+            pop_timeout: opts.pop_timeout,
         })
-    }
-
-    /// Pops one buffer (or `None` after the timeout), checks it, requeues it.
-    fn pop(&mut self, timeout: Duration) -> Option<Popped> {
-        let buffer = self.stream.timeout_pop_buffer(timeout.as_micros() as u64)?;
-        let receive = now_epoch_ns();
-        let out = self.check(&buffer, receive);
-        self.stream.push_buffer(buffer);
-        Some(out)
     }
 
     fn check(&mut self, buffer: &Buffer, receive: i64) -> Popped {
@@ -247,9 +242,26 @@ impl Session {
             Err(e) => Popped::Bad(e),
         }
     }
+}
+
+impl CaptureSession for Session {
+    /// Pops one buffer (or times out), checks it, requeues it.
+    fn next(&mut self) -> Captured {
+        let Some(buffer) = self.stream.timeout_pop_buffer(self.pop_timeout.as_micros() as u64) else {
+            return Captured::Timeout;
+        };
+        let receive = now_epoch_ns();
+        let out = self.check(&buffer, receive);
+        self.stream.push_buffer(buffer);
+        match out {
+            Popped::Image(img, t) => Captured::Image(img, t),
+            Popped::Incomplete(status) => Captured::Incomplete(format!("buffer status {status:?}")),
+            Popped::Bad(e) => Captured::Bad(e.to_string()),
+        }
+    }
 
     /// Frames the stream dropped for lack of a free buffer since the last call.
-    fn new_underruns(&mut self) -> u64 {
+    fn take_missed(&mut self) -> u64 {
         let (_, _, underruns) = self.stream.statistics();
         let new = underruns.saturating_sub(self.underruns);
         self.underruns = underruns;
@@ -300,7 +312,13 @@ pub fn spawn(
                     return;
                 }
             };
-            run(index, &cfg, &id, &opts, session, Emitter::new(index, tx, thread_stats), &stop);
+            let mut em = Emitter::new(index, tx, thread_stats);
+            let label = format!("aravis:{id}");
+            let mut timing = LoopTiming::for_fps(cfg.fps);
+            if let Some(stall) = opts.stall_timeout {
+                timing.stall = stall;
+            }
+            run_capture_loop(&mut em, &label, session, || Session::open(&id, &cfg, &opts), timing, &stop);
         })
         .map_err(|e| SourceError::Thread { camera: index, name: name.clone(), message: e.to_string() })?;
     match ready_rx.recv() {
@@ -314,59 +332,6 @@ pub fn spawn(
             Err(SourceError::Thread { camera: index, name, message: "capture thread ended while opening".into() })
         }
     }
-}
-
-fn run(index: usize, cfg: &CameraConfig, id: &str, opts: &AravisOptions, session: Session, mut em: Emitter, stop: &AtomicBool) {
-    let period = cfg.fps.filter(|f| *f > 0.0).map_or(Duration::from_millis(100), |f| Duration::from_secs_f64(1.0 / f));
-    let stall = opts.stall_timeout.unwrap_or_else(|| (period * 10).max(Duration::from_secs(2)));
-    let mut session = Some(session);
-    let mut backoff = Backoff::default();
-    let mut seq: u64 = 0;
-    let mut last_frame = Instant::now();
-    while !stop.load(Ordering::Relaxed) && !em.is_closed() {
-        let Some(s) = session.as_mut() else {
-            if !sleep_unless_stopped(backoff.next_delay(), stop) {
-                break;
-            }
-            match Session::open(id, cfg, opts) {
-                Ok(s) => {
-                    session = Some(s);
-                    backoff.reset();
-                    last_frame = Instant::now();
-                    em.reopened();
-                }
-                Err(e) => tracing::debug!(camera = index, error = %e, "reopen failed"),
-            }
-            continue;
-        };
-        let popped = s.pop(opts.pop_timeout);
-        let underruns = s.new_underruns();
-        if underruns > 0 {
-            em.dropped(DropReason::Incomplete, underruns);
-        }
-        match popped {
-            Some(Popped::Image(img, t_ns)) => {
-                last_frame = Instant::now();
-                em.frame(Frame { camera: index, seq, t_ns, image: Arc::new(img) });
-                seq += 1;
-            }
-            Some(Popped::Incomplete(status)) => {
-                tracing::debug!(camera = index, ?status, "incomplete aravis buffer");
-                em.dropped(DropReason::Incomplete, 1);
-            }
-            Some(Popped::Bad(e)) => {
-                tracing::debug!(camera = index, error = %e, "bad aravis buffer");
-                em.dropped(DropReason::BadBuffer, 1);
-            }
-            None => em.flush(),
-        }
-        if session.is_some() && last_frame.elapsed() > stall {
-            em.lost(format!("aravis:{id}: no complete frame for {:.1} s", last_frame.elapsed().as_secs_f64()));
-            session = None;
-        }
-    }
-    drop(session);
-    em.flush();
 }
 
 #[cfg(test)]

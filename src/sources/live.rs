@@ -239,6 +239,115 @@ pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
     !stop.load(Ordering::Relaxed)
 }
 
+/// What one wait on an open device produced.
+#[derive(Debug)]
+pub enum Captured {
+    /// A complete, converted image and its time (ns since the epoch).
+    Image(crate::frame::GrayImage, i64),
+    /// A buffer the driver/transport marked incomplete or failed (why, for the debug log).
+    Incomplete(String),
+    /// A complete buffer that could not be converted (why).
+    Bad(String),
+    /// Nothing arrived within the device's wait time.
+    Timeout,
+    /// The device failed (unplugged, I/O error): it is closed and reopened.
+    Failed(String),
+}
+
+/// An open, streaming device as the capture loop sees it.
+pub trait CaptureSession {
+    /// Waits (boundedly, so the stop flag is seen) for the next buffer.
+    fn next(&mut self) -> Captured;
+    /// Frames the transport lost entirely since the last call (no buffer was free).
+    fn take_missed(&mut self) -> u64 {
+        0
+    }
+}
+
+/// The capture loop's timing.
+#[derive(Debug, Clone)]
+pub struct LoopTiming {
+    /// No complete frame for this long: the camera is reported lost and reopened.
+    pub stall: Duration,
+    /// Delays between reopen attempts.
+    pub backoff: Backoff,
+}
+
+impl LoopTiming {
+    /// `max(2 s, 10 frame periods)` stall time (100 ms period without `fps`), default backoff.
+    pub fn for_fps(fps: Option<f64>) -> Self {
+        let period = fps.filter(|f| *f > 0.0 && f.is_finite()).map_or(Duration::from_millis(100), |f| Duration::from_secs_f64(1.0 / f));
+        Self { stall: (period * 10).max(Duration::from_secs(2)), backoff: Backoff::default() }
+    }
+}
+
+/// The body of every live camera thread: delivers frames from `session`, counts incomplete
+/// and bad buffers, reports the device lost on failure or stall, reopens it with `open`
+/// after backoff delays, and ends when `stop` is set or the channel closes. `label` names the
+/// device in messages. `seq` counts complete frames across reopenings.
+pub fn run_capture_loop<S: CaptureSession>(
+    em: &mut Emitter,
+    label: &str,
+    session: S,
+    mut open: impl FnMut() -> Result<S, String>,
+    mut timing: LoopTiming,
+    stop: &AtomicBool,
+) {
+    let camera = em.camera();
+    let mut session = Some(session);
+    let mut seq: u64 = 0;
+    let mut last_frame = std::time::Instant::now();
+    while !stop.load(Ordering::Relaxed) && !em.is_closed() {
+        let Some(s) = session.as_mut() else {
+            if !sleep_unless_stopped(timing.backoff.next_delay(), stop) {
+                break;
+            }
+            match open() {
+                Ok(s) => {
+                    session = Some(s);
+                    timing.backoff.reset();
+                    last_frame = std::time::Instant::now();
+                    em.reopened();
+                }
+                Err(e) => tracing::debug!(camera, error = %e, "reopen failed"),
+            }
+            continue;
+        };
+        let got = s.next();
+        let missed = s.take_missed();
+        if missed > 0 {
+            em.dropped(DropReason::Incomplete, missed);
+        }
+        match got {
+            Captured::Image(img, t_ns) => {
+                last_frame = std::time::Instant::now();
+                em.frame(Frame { camera, seq, t_ns, image: Arc::new(img) });
+                seq += 1;
+            }
+            Captured::Incomplete(why) => {
+                tracing::debug!(camera, %why, "incomplete buffer");
+                em.dropped(DropReason::Incomplete, 1);
+            }
+            Captured::Bad(why) => {
+                tracing::debug!(camera, %why, "bad buffer");
+                em.dropped(DropReason::BadBuffer, 1);
+            }
+            Captured::Timeout => em.flush(),
+            Captured::Failed(why) => {
+                em.lost(format!("{label}: {why}"));
+                session = None;
+                continue;
+            }
+        }
+        if last_frame.elapsed() > timing.stall {
+            em.lost(format!("{label}: no complete frame for {:.1} s", last_frame.elapsed().as_secs_f64()));
+            session = None;
+        }
+    }
+    drop(session);
+    em.flush();
+}
+
 /// The sending side of one camera thread: never blocks, counts what it cannot deliver.
 #[derive(Debug)]
 pub struct Emitter {
@@ -391,6 +500,88 @@ mod tests {
         drop(rx);
         em.frame(frame(7));
         assert!(em.is_closed());
+    }
+
+    /// A scripted device: plays its script, then times out.
+    struct Scripted(std::collections::VecDeque<Captured>);
+
+    impl CaptureSession for Scripted {
+        fn next(&mut self) -> Captured {
+            self.0.pop_front().unwrap_or_else(|| {
+                std::thread::sleep(Duration::from_millis(5));
+                Captured::Timeout
+            })
+        }
+    }
+
+    fn img(t: i64) -> Captured {
+        Captured::Image(GrayImage::new(2, 2), t)
+    }
+
+    #[test]
+    fn capture_loop_reports_failure_reopens_and_keeps_counting() {
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        let stats = Arc::new(CaptureStats::default());
+        let mut em = Emitter::new(4, tx, stats.clone());
+        let stop = Arc::new(AtomicBool::new(false));
+        let first = Scripted(
+            vec![
+                img(1),
+                Captured::Incomplete("missing packets".into()),
+                img(2),
+                Captured::Bad("short".into()),
+                Captured::Failed("ENODEV".into()),
+            ]
+            .into(),
+        );
+        // The device stays away for two attempts, then comes back with two frames and stalls.
+        let mut attempts = 0;
+        let stop2 = stop.clone();
+        let open = move || {
+            attempts += 1;
+            match attempts {
+                1 | 2 => Err(format!("attempt {attempts}: no such device")),
+                3 => Ok(Scripted(vec![img(10), img(11)].into())),
+                _ => {
+                    stop2.store(true, Ordering::Relaxed);
+                    Err("stop here".into())
+                }
+            }
+        };
+        let timing =
+            LoopTiming { stall: Duration::from_millis(100), backoff: Backoff::new(Duration::from_millis(10), Duration::from_millis(40)) };
+        run_capture_loop(&mut em, "test:cam", first, open, timing, &stop);
+        let mut events = Vec::new();
+        while let Ok(ev) = rx.try_recv() {
+            events.push(ev);
+        }
+        let summary: Vec<String> = events
+            .iter()
+            .map(|e| match e {
+                SourceEvent::Frame(f) => format!("frame{}@{}", f.seq, f.t_ns),
+                SourceEvent::Lost { camera, reason } => format!("lost{camera}:{reason}"),
+                SourceEvent::Reopened { camera } => format!("reopened{camera}"),
+                SourceEvent::Dropped { count, why, .. } => format!("dropped{count}:{why:?}"),
+            })
+            .collect();
+        println!("{summary:?}");
+        assert_eq!(
+            vec![
+                "frame0@1",
+                "dropped1:Incomplete",
+                "frame1@2",
+                "lost4:test:cam: ENODEV",
+                "dropped1:BadBuffer",
+                "reopened4",
+                "frame2@10",
+                "frame3@11",
+            ],
+            summary[..summary.len().min(8)]
+        );
+        assert_eq!(summary.len(), 9, "{summary:?}");
+        assert!(summary[8].starts_with("lost4:test:cam: no complete frame for"), "{}", summary[8]);
+        let s = stats.snapshot();
+        assert_eq!((s.delivered, s.incomplete, s.bad_buffers, s.lost, s.reopened), (4, 1, 1, 2, 1));
     }
 
     #[test]

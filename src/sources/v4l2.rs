@@ -27,9 +27,9 @@
 
 use std::io;
 use std::panic::AssertUnwindSafe;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use tokio::sync::mpsc::Sender;
 use v4l::buffer::Type;
@@ -39,10 +39,12 @@ use v4l::video::Capture;
 use v4l::{Format, FourCC, Fraction};
 
 use crate::config::CameraConfig;
-use crate::frame::{Frame, GrayImage};
+use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, MonotonicToEpoch};
 use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
-use crate::sources::live::{sleep_unless_stopped, Backoff, CaptureStats, DropReason, Emitter, LiveCamera, SourceError, SourceEvent};
+use crate::sources::live::{
+    run_capture_loop, CaptureSession, CaptureStats, Captured, Emitter, LiveCamera, LoopTiming, SourceError, SourceEvent,
+};
 
 /// Pixel formats requested from the device, most preferred first.
 pub const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
@@ -206,18 +208,29 @@ impl Session {
             clock: MonotonicToEpoch::measure(),
         })
     }
+}
 
+impl CaptureSession for Session {
     /// Dequeues one buffer (the `v4l` stream requeues the previous one first).
     // `time_t` is i64 on 64-bit Linux, i32 on some 32-bit targets.
     #[allow(clippy::useless_conversion)]
-    fn next(&mut self) -> io::Result<(BufferOutcome, i64)> {
-        let stream = self.stream.as_mut().ok_or_else(|| io::Error::new(io::ErrorKind::NotConnected, "stream closed"))?;
-        let (buf, meta) = CaptureStream::next(stream)?;
+    fn next(&mut self) -> Captured {
+        let Some(stream) = self.stream.as_mut() else {
+            return Captured::Failed("stream closed".into());
+        };
+        let (buf, meta) = match CaptureStream::next(stream) {
+            Ok(x) => x,
+            Err(e) if e.kind() == io::ErrorKind::TimedOut => return Captured::Timeout,
+            Err(e) => return Captured::Failed(e.to_string()),
+        };
         let receive = now_epoch_ns();
         let flags = meta.flags.bits();
         let (t_ns, _) = map_buffer_timestamp(flags, i64::from(meta.timestamp.sec), i64::from(meta.timestamp.usec), self.clock, receive);
-        let out = convert_buffer(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags);
-        Ok((out, t_ns))
+        match convert_buffer(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags) {
+            BufferOutcome::Image(img) => Captured::Image(img, t_ns),
+            BufferOutcome::Corrupted => Captured::Incomplete("buffer flagged V4L2_BUF_FLAG_ERROR".into()),
+            BufferOutcome::Bad(e) => Captured::Bad(e.to_string()),
+        }
     }
 }
 
@@ -273,7 +286,9 @@ pub(crate) fn spawn(
                     return;
                 }
             };
-            run(index, &cfg, &path, session, Emitter::new(index, tx, thread_stats), &stop);
+            let mut em = Emitter::new(index, tx, thread_stats);
+            let label = format!("v4l2:{path}");
+            run_capture_loop(&mut em, &label, session, || Session::open(&path, &cfg), LoopTiming::for_fps(cfg.fps), &stop);
         })
         .map_err(|e| SourceError::Thread { camera: index, name: name.clone(), message: e.to_string() })?;
     match ready_rx.recv() {
@@ -287,61 +302,6 @@ pub(crate) fn spawn(
             Err(SourceError::Thread { camera: index, name, message: "capture thread ended while opening".into() })
         }
     }
-}
-
-fn run(index: usize, cfg: &CameraConfig, path: &str, session: Session, mut em: Emitter, stop: &AtomicBool) {
-    let period = cfg.fps.filter(|f| *f > 0.0).map_or(Duration::from_millis(100), |f| Duration::from_secs_f64(1.0 / f));
-    let stall = (period * 10).max(Duration::from_secs(2));
-    let mut session = Some(session);
-    let mut backoff = Backoff::default();
-    let mut seq: u64 = 0;
-    let mut last_frame = Instant::now();
-    while !stop.load(Ordering::Relaxed) && !em.is_closed() {
-        let Some(s) = session.as_mut() else {
-            if !sleep_unless_stopped(backoff.next_delay(), stop) {
-                break;
-            }
-            match Session::open(path, cfg) {
-                Ok(s) => {
-                    session = Some(s);
-                    backoff.reset();
-                    last_frame = Instant::now();
-                    em.reopened();
-                }
-                Err(e) => tracing::debug!(camera = index, error = %e, "reopen failed"),
-            }
-            continue;
-        };
-        match s.next() {
-            Ok((BufferOutcome::Image(img), t_ns)) => {
-                last_frame = Instant::now();
-                em.frame(Frame { camera: index, seq, t_ns, image: Arc::new(img) });
-                seq += 1;
-            }
-            Ok((BufferOutcome::Corrupted, _)) => {
-                last_frame = Instant::now();
-                em.dropped(DropReason::Incomplete, 1);
-            }
-            Ok((BufferOutcome::Bad(e), _)) => {
-                last_frame = Instant::now();
-                tracing::debug!(camera = index, error = %e, "bad v4l2 buffer");
-                em.dropped(DropReason::BadBuffer, 1);
-            }
-            Err(e) if e.kind() == io::ErrorKind::TimedOut => {
-                em.flush();
-                if last_frame.elapsed() > stall {
-                    em.lost(format!("{path}: no frame for {:.1} s", last_frame.elapsed().as_secs_f64()));
-                    session = None;
-                }
-            }
-            Err(e) => {
-                em.lost(format!("{path}: {e}"));
-                session = None;
-            }
-        }
-    }
-    drop(session);
-    em.flush();
 }
 
 #[cfg(test)]
