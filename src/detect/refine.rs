@@ -50,13 +50,24 @@ pub struct RefineOptions {
     /// The band never reaches further than this from the edge (pixels), inwards or outwards:
     /// enough for the blur, and it bounds the cost on large tags.
     pub max_band_px: f64,
+    /// Edges longer than this (pixels) use every other pixel (checkerboard) to bound the cost.
+    pub checker_above_px: f64,
     /// Refinement passes (each re-selects the pixels around the previous pass's edges).
     pub passes: u32,
 }
 
 impl Default for RefineOptions {
     fn default() -> Self {
-        Self { max_shift_px: 1.5, inner_band_bits: 1.5, outer_band_bits: 0.8, margin_px: 2.0, min_bit_px: 2.0, max_band_px: 6.0, passes: 2 }
+        Self {
+            max_shift_px: 1.5,
+            inner_band_bits: 1.5,
+            outer_band_bits: 0.8,
+            margin_px: 2.0,
+            min_bit_px: 2.0,
+            max_band_px: 6.0,
+            checker_above_px: 120.0,
+            passes: 2,
+        }
     }
 }
 
@@ -81,6 +92,9 @@ impl RefineOptions {
         }
         if !(self.max_band_px >= 2.0 && self.max_band_px <= 100.0) {
             return bad("subpixel.max_band_px", self.max_band_px, "expected 2 to 100 pixels");
+        }
+        if !(self.checker_above_px >= 0.0) {
+            return bad("subpixel.checker_above_px", self.checker_above_px, "expected a length in pixels (0 = always)");
         }
         if self.passes == 0 || self.passes > 10 {
             return bad("subpixel.passes", self.passes as f64, "expected 1 to 10");
@@ -463,9 +477,14 @@ fn fit_edge(
 
     let mut samples: Vec<Sample> = Vec::new();
     let stride = image.width as usize;
+    let checker = len > opts.checker_above_px;
     for y in y0..=y1 {
         let mut guess: Option<Vector2<f64>> = None;
         for x in x0..=x1 {
+            // Long edges have pixels to spare: a checkerboard half keeps the fit unbiased.
+            if checker && (x + y) % 2 == 1 {
+                continue;
+            }
             let p = Vector2::new(x as f64, y as f64);
             if poly_edges.iter().any(|(n, r)| orient * (n.dot(&p) - r) > pad) {
                 continue;
@@ -507,9 +526,8 @@ fn fit_edge(
         Some([bl, c, sg]) => Vector5::new(0.0, 0.0, bl, c, sg),
         None => Vector5::new(0.0, 0.0, black_ref, contrast0, 0.8),
     };
-    let model = |x: &Vector5<f64>, s: &Sample| -> (f64, Vector5<f64>) {
-        let (ang, off, bl, c, sg) = (x[0], x[1], x[2], x[3], x[4]);
-        let (sn, cs) = ang.sin_cos();
+    let model = |x: &Vector5<f64>, (sn, cs): (f64, f64), s: &Sample| -> (f64, Vector5<f64>) {
+        let (off, bl, c, sg) = (x[1], x[2], x[3], x[4]);
         let n = s.n * cs + s.t * sn - off;
         let dn_dang = -s.n * sn + s.t * cs;
         let z1 = n / sg;
@@ -532,8 +550,9 @@ fn fit_edge(
         let mut jtj = Matrix5::<f64>::zeros();
         let mut jtr = Vector5::<f64>::zeros();
         let mut cost = 0.0;
+        let sc = x[0].sin_cos();
         for s in &samples {
-            let (i, j) = model(x, s);
+            let (i, j) = model(x, sc, s);
             let r = i - s.value;
             cost += s.weight * r * r;
             jtj.ger(s.weight, &j, &j, 1.0);
@@ -542,7 +561,7 @@ fn fit_edge(
         (cost, jtj, jtr)
     };
     let (mut current, mut jtj, mut jtr) = normal_eq(&x);
-    let mut lambda = 1e-4;
+    let mut lambda = 1e-6;
     for _ in 0..40 {
         let mut damped = jtj;
         for d in 0..5 {
@@ -555,24 +574,25 @@ fn fit_edge(
             }
             continue;
         };
+        let moved = step[0].abs() * len + step[1].abs();
         let mut cand = x + step;
         cand[4] = cand[4].clamp(0.05, 3.0 * bit_px + 5.0);
         let (c, j2, r2) = normal_eq(&cand);
         if c.is_finite() && c <= current {
-            let moved = step[0].abs() * len + step[1].abs();
             x = cand;
             current = c;
             jtj = j2;
             jtr = r2;
-            lambda = (lambda * 0.3).max(1e-9);
-            if moved < 1e-7 {
-                break;
-            }
+            lambda = (lambda * 0.1).max(1e-9);
         } else {
             lambda *= 10.0;
             if lambda > 1e8 {
                 break;
             }
+        }
+        // Converged when the edge no longer moves (1e-5 px) and the blur has settled.
+        if moved < 1e-5 && step[4].abs() < 1e-3 {
+            break;
         }
     }
     finish(&x, &samples, current, contrast0, bit_px, a, dir, normal)
