@@ -92,8 +92,8 @@ pub(crate) type Hit = (u32, f32);
 /// integration. `corner` is traced at the pixel corners; a pixel whose four corner labels
 /// agree is uniform: it takes `keep`'s buffer value when `keep`'s predicate accepts the
 /// label (`keep` = (predicate, full-image buffer)), else the mean of its corner values.
-/// Any other pixel is integrated with `n × n` sub-samples of `sample`. `rot_cw` maps camera
-/// to world directions.
+/// Any other pixel is integrated with `n × n` sub-samples of `sample(direction, x, y)`
+/// (`x`, `y`: the pixel). `rot_cw` maps camera to world directions.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn render_rect<C, S>(
     rays: &CornerRays,
@@ -106,7 +106,7 @@ pub(crate) fn render_rect<C, S>(
     out: &mut [f32],
 ) where
     C: Fn(&Vector3<f64>) -> Hit + Sync,
-    S: Fn(&Vector3<f64>) -> Hit + Sync,
+    S: Fn(&Vector3<f64>, usize, usize) -> f32 + Sync,
 {
     if rect.is_empty() {
         return;
@@ -152,7 +152,7 @@ pub(crate) fn render_rect<C, S>(
                     let (wa, wb, wc, wd) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
                     let d =
                         dir(wa * r00[0] + wb * r10[0] + wc * r01[0] + wd * r11[0], wa * r00[1] + wb * r10[1] + wc * r01[1] + wd * r11[1]);
-                    sum += sample(&d).1;
+                    sum += sample(&d, x, y);
                 }
             }
             *px = sum * inv;
@@ -287,7 +287,7 @@ mod tests {
         };
         let rect = PixelRect { x0: 0, y0: 0, x1: 16, y1: 8 };
         let mut out = vec![0.0; 16 * 8];
-        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, &trace, None, &mut out);
+        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, &|d: &Vector3<f64>, _, _| trace(d).1, None, &mut out);
         // Pixel 7 spans cx-0.5..cx+0.5: covered by the bright side from 0.37 to 0.5 → 13 %.
         let v = out[3 * 16 + 7];
         assert!((v - 13.0).abs() < 100.0 / 64.0, "{v}");

@@ -643,16 +643,9 @@ impl SimRig {
         let centre = pose.centre();
         let mut raw = vec![0.0f32; w * h];
         let trace = |d: &Vector3<f64>| self.trace_static(&centre, d);
-        render_rect(
-            rays,
-            &rot_cw,
-            PixelRect { x0: 0, y0: 0, x1: w, y1: h },
-            self.params.subsamples as usize,
-            &trace,
-            &trace,
-            None,
-            &mut raw,
-        );
+        let sample = |d: &Vector3<f64>, _: usize, _: usize| self.trace_static(&centre, d).1;
+        let all = PixelRect { x0: 0, y0: 0, x1: w, y1: h };
+        render_rect(rays, &rot_cw, all, self.params.subsamples as usize, &trace, &sample, None, &mut raw);
         let blurred = blur(&raw, w, h, &self.kernel);
         let bg = Arc::new(Background { epoch, raw, blurred });
         *slot = Some(bg.clone());
@@ -687,9 +680,14 @@ impl SimRig {
             let mut beam_px = vec![0.0f32; rect.width() * rect.height()];
             let centre = pose.centre();
             // Corners: the beam only (label 0 = not the beam: a pixel whose four corners all
-            // miss keeps the cached background); sub-samples: the whole scene.
+            // miss keeps the cached background). Sub-samples that miss the beam take the
+            // cached background pixel (its area mean: the background is uniform at the scale
+            // of a pixel wherever the beam's outline crosses it).
             let corner = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or((0, 0.0));
-            let sample = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or_else(|| self.trace_static(&centre, d));
+            let sample = |d: &Vector3<f64>, x: usize, y: usize| match self.trace_beam(&st, &centre, d) {
+                Some(hit) => hit.1,
+                None => bg.raw[y * w + x],
+            };
             let not_beam = |l: u32| l & BEAM_BIT == 0;
             let n = self.params.subsamples as usize;
             render_rect(rays, &pose.rotation.inverse(), rect, n, &corner, &sample, Some((&not_beam, &bg.raw)), &mut beam_px);
