@@ -218,3 +218,38 @@ fn measured_clock_offset_maps_the_current_monotonic_time_to_now() {
     assert_eq!(src, TimeSource::Driver);
     assert!((t - now).abs() < 5_000_000, "mapped {t}, now {now}");
 }
+
+#[test]
+fn full_hd_conversions_are_correct_and_timed() {
+    // The capture thread converts every frame: print what that costs at 1920x1080.
+    let (w, h) = (1920u32, 1080u32);
+    let truth = smooth_picture(w, h);
+    let yuyv: Vec<u8> = truth.as_raw().iter().enumerate().flat_map(|(i, y)| [*y, if i % 2 == 0 { 0x70 } else { 0x90 }]).collect();
+    // Best of a few runs (the machine is shared).
+    let timed = |f: &dyn Fn() -> BufferOutcome| {
+        let mut best = f64::INFINITY;
+        let mut out = None;
+        for _ in 0..5 {
+            let t = std::time::Instant::now();
+            let o = f();
+            best = best.min(t.elapsed().as_secs_f64() * 1e3);
+            out = Some(o);
+        }
+        (out.expect("ran"), best)
+    };
+    let (out, yuyv_ms) = timed(&|| convert_buffer(PixelLayout::Yuyv, w, h, 0, &yuyv, yuyv.len() as u32, 0));
+    match out {
+        BufferOutcome::Image(img) => assert_eq!(&img.data, truth.as_raw()),
+        other => panic!("{other:?}"),
+    }
+    let jpeg = jpeg_of(image::DynamicImage::ImageLuma8(truth.clone()));
+    let (out, mjpeg_ms) = timed(&|| convert_buffer(PixelLayout::Mjpeg, w, h, 0, &jpeg, jpeg.len() as u32, 0));
+    match out {
+        BufferOutcome::Image(img) => {
+            let err = mean_abs_diff(&img.data, truth.as_raw());
+            assert!(err < 2.0, "1080p MJPEG decoded {err} grey levels off");
+        }
+        other => panic!("{other:?}"),
+    }
+    println!("1920x1080 conversion: YUYV {yuyv_ms:.2} ms, MJPEG ({} kB) {mjpeg_ms:.2} ms", jpeg.len() / 1024);
+}

@@ -113,14 +113,15 @@ pub fn to_gray8(layout: PixelLayout, width: u32, height: u32, stride: usize, dat
         PixelLayout::Gray16Le { bits } => return Err(ConvertError::BitDepth(bits)),
         _ => 0,
     };
-    let mut out = Vec::with_capacity(width as usize * height as usize);
-    for row in data.chunks(stride).take(height as usize) {
+    let w = width as usize;
+    let mut out = vec![0u8; w * height as usize];
+    for (dst, row) in out.chunks_exact_mut(w).zip(data.chunks(stride)) {
         let row = &row[..row_bytes];
         match layout {
-            PixelLayout::Gray8 => out.extend_from_slice(row),
-            PixelLayout::Yuyv => out.extend(row.iter().step_by(2).copied()),
+            PixelLayout::Gray8 => dst.copy_from_slice(row),
+            PixelLayout::Yuyv => dst.iter_mut().zip(row.chunks_exact(2)).for_each(|(d, p)| *d = p[0]),
             PixelLayout::Gray16Le { .. } => {
-                out.extend(row.chunks_exact(2).map(|p| (u16::from_le_bytes([p[0], p[1]]) >> shift).min(255) as u8));
+                dst.iter_mut().zip(row.chunks_exact(2)).for_each(|(d, p)| *d = (u16::from_le_bytes([p[0], p[1]]) >> shift).min(255) as u8)
             }
             PixelLayout::Mjpeg => {}
         }

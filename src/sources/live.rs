@@ -8,6 +8,10 @@
 //! counts and connection events that could not be delivered are kept and delivered before
 //! the next frame. A shared `stop` flag ends every camera thread within about half a second;
 //! a closed channel (receiver dropped) ends it too.
+//!
+//! Devices plug in through [`CaptureSession`] (one bounded wait → one [`Captured`]); the
+//! common [`run_capture_loop`] does the rest: delivery, counting, loss detection (a failure,
+//! or no complete frame for [`LoopTiming::stall`]) and reopening with [`Backoff`].
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
