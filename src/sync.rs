@@ -12,15 +12,31 @@
 //! [`FrameSetAssembler::poll`], measured from when the set was opened on the wall clock —
 //! not from the frames' timestamps, because transfer latency varies between cameras.
 
+use std::time::{Duration, Instant};
+
 use crate::frame::{Frame, FrameSet};
+
+/// A frame set still waiting for cameras.
+#[derive(Debug)]
+struct OpenSet {
+    frames: Vec<Frame>,
+    opened_at: Instant,
+}
+
+impl OpenSet {
+    fn anchor(&self) -> i64 {
+        self.frames[0].t_ns
+    }
+}
 
 /// Groups frames of different cameras into frame sets.
 #[derive(Debug)]
 pub struct FrameSetAssembler {
     cameras: usize,
     tolerance_ns: i64,
-    open: Vec<Frame>,
-    opened_at: Option<std::time::Instant>,
+    max_open: usize,
+    /// Open sets, oldest anchor first.
+    open: Vec<OpenSet>,
     /// Frames at or before this time belong to sets already closed.
     closed_until: Option<i64>,
     next_seq: u64,
@@ -28,13 +44,20 @@ pub struct FrameSetAssembler {
 }
 
 impl FrameSetAssembler {
-    /// An assembler for `cameras` cameras with a tolerance in ms.
+    /// An assembler for `cameras` cameras with a tolerance in ms, for frames that arrive in
+    /// time order (a recording): one set is open at a time.
     pub fn new(cameras: usize, tolerance_ms: f64) -> Self {
+        Self::with_open_sets(cameras, tolerance_ms, 1)
+    }
+
+    /// An assembler that keeps up to `max_open` sets open at once (live capture: a camera
+    /// whose frames arrive late — slow transfer, busy CPU — still joins its set).
+    pub fn with_open_sets(cameras: usize, tolerance_ms: f64, max_open: usize) -> Self {
         Self {
             cameras,
             tolerance_ns: (tolerance_ms * 1e6).round() as i64,
+            max_open: max_open.max(1),
             open: Vec::new(),
-            opened_at: None,
             closed_until: None,
             next_seq: 0,
             late_frames: 0,
@@ -46,60 +69,85 @@ impl FrameSetAssembler {
         self.late_frames
     }
 
-    /// Adds a frame; returns the sets it completes (zero, one or two).
+    /// Adds a frame; returns the sets it completes, in time order.
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
         if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
             self.late_frames += 1;
             return done;
         }
-        if let Some(anchor) = self.open.first().map(|f| f.t_ns) {
-            if frame.t_ns < anchor - self.tolerance_ns {
-                self.late_frames += 1;
-                return done;
+        let tol = self.tolerance_ns;
+        let joins =
+            self.open.iter().position(|s| (frame.t_ns - s.anchor()).abs() <= tol && !s.frames.iter().any(|f| f.camera == frame.camera));
+        let index = match joins {
+            Some(i) => {
+                self.open[i].frames.push(frame);
+                i
             }
-            let same_camera = self.open.iter().any(|f| f.camera == frame.camera);
-            if same_camera || (frame.t_ns - anchor).abs() > self.tolerance_ns {
-                done.extend(self.close());
+            None => {
+                if self.open.first().is_some_and(|s| frame.t_ns < s.anchor() - tol) && self.open.len() >= self.max_open {
+                    // Older than every open set and no room: it can only be late.
+                    self.late_frames += 1;
+                    return done;
+                }
+                let i = self.open.partition_point(|s| s.anchor() <= frame.t_ns);
+                self.open.insert(i, OpenSet { frames: vec![frame], opened_at: Instant::now() });
+                i
             }
+        };
+        if self.open[index].frames.len() >= self.cameras {
+            // Complete: close it, and every older set with it (sets leave in time order).
+            done.extend(self.close_through(index));
         }
-        if self.open.is_empty() {
-            self.opened_at = Some(std::time::Instant::now());
-        }
-        self.open.push(frame);
-        if self.open.len() >= self.cameras {
-            done.extend(self.close());
+        while self.open.len() > self.max_open {
+            done.extend(self.close_through(0));
         }
         done
     }
 
-    /// Closes the open set if it has waited longer than `wait` (wall clock) for its
-    /// missing cameras (live capture: a camera whose frame never comes must not hold the
-    /// others back).
-    pub fn poll(&mut self, wait: std::time::Duration) -> Option<FrameSet> {
-        if self.opened_at?.elapsed() > wait {
-            self.close()
-        } else {
-            None
+    /// Closes the sets that have waited longer than `wait` (wall clock) for their missing
+    /// cameras, with every older set (live capture: a camera whose frame never comes must
+    /// not hold the others back).
+    pub fn poll(&mut self, wait: Duration) -> Vec<FrameSet> {
+        match self.open.iter().rposition(|s| s.opened_at.elapsed() > wait) {
+            Some(i) => self.close_through(i),
+            None => Vec::new(),
         }
     }
 
-    /// Closes the open set (end of a recording or shutdown).
-    pub fn flush(&mut self) -> Option<FrameSet> {
-        self.close()
+    /// Closes every open set (end of a recording or shutdown).
+    pub fn flush(&mut self) -> Vec<FrameSet> {
+        match self.open.len() {
+            0 => Vec::new(),
+            n => self.close_through(n - 1),
+        }
     }
 
-    fn close(&mut self) -> Option<FrameSet> {
-        if self.open.is_empty() {
-            return None;
+    /// Closes the open sets `0..=index`, oldest first.
+    fn close_through(&mut self, index: usize) -> Vec<FrameSet> {
+        let closing: Vec<OpenSet> = self.open.drain(..=index).collect();
+        let mut out = Vec::with_capacity(closing.len());
+        for set in closing {
+            // Later sets hold only frames newer than every frame of this one, so set times
+            // (means) strictly increase.
+            let newest = set.frames.iter().map(|f| f.t_ns).max().expect("open sets hold a frame");
+            self.closed_until = Some(self.closed_until.map_or(newest, |c| c.max(newest)));
+            out.push(FrameSet::new(self.next_seq, set.frames));
+            self.next_seq += 1;
         }
-        // Later sets hold only frames newer than every frame of this one, so set times
-        // (means) strictly increase.
-        self.closed_until = self.open.iter().map(|f| f.t_ns).max();
-        self.opened_at = None;
-        let set = FrameSet::new(self.next_seq, std::mem::take(&mut self.open));
-        self.next_seq += 1;
-        Some(set)
+        // A remaining open set whose anchor is not newer than what was closed would break
+        // the time order: its frames that are too old are dropped as late.
+        let until = self.closed_until.unwrap_or(i64::MIN);
+        let mut late = 0;
+        for s in &mut self.open {
+            let before = s.frames.len();
+            s.frames.retain(|f| f.t_ns > until);
+            late += (before - s.frames.len()) as u64;
+        }
+        self.open.retain(|s| !s.frames.is_empty());
+        self.open.sort_by_key(|s| s.anchor());
+        self.late_frames += late;
+        out
     }
 }
 
@@ -143,7 +191,7 @@ mod tests {
         assert!(a.push(f(0, 20)).is_empty()); // older than the open set's anchor - tolerance
         assert!(a.push(f(1, 0)).is_empty()); // not newer than the closed first set
         assert_eq!(a.late_frames(), 2);
-        let set = a.flush().unwrap();
+        let set = a.flush().pop().unwrap();
         assert_eq!(set.seq, 1);
         assert_eq!(set.t_ns, f(1, 50).t_ns);
     }
@@ -153,16 +201,29 @@ mod tests {
         let mut a = FrameSetAssembler::new(3, 10.0);
         a.push(f(0, 0));
         a.push(f(1, 4));
-        assert!(a.poll(std::time::Duration::from_secs(60)).is_none());
+        assert!(a.poll(std::time::Duration::from_secs(60)).is_empty());
         std::thread::sleep(std::time::Duration::from_millis(5));
-        let set = a.poll(std::time::Duration::from_millis(1)).unwrap();
+        let set = a.poll(std::time::Duration::from_millis(1)).pop().unwrap();
         assert_eq!(set.t_ns, f(0, 2).t_ns);
         // A late frame of camera 2 does not start an earlier set.
         assert!(a.push(f(2, 3)).is_empty());
         assert_eq!(a.late_frames(), 1);
         // A frame just after the closed set's newest frame starts the next set.
         assert!(a.push(f(2, 5)).is_empty());
-        assert_eq!(a.flush().unwrap().frames.len(), 1);
+        assert_eq!(a.flush().pop().unwrap().frames.len(), 1);
+    }
+
+    #[test]
+    fn live_assembler_lets_a_lagging_camera_join_its_set() {
+        let mut a = FrameSetAssembler::with_open_sets(3, 10.0, 3);
+        let mut sets = Vec::new();
+        // Camera 2 lags by more than a frame period behind cameras 0 and 1.
+        for (c, t) in [(0, 0), (1, 1), (0, 100), (1, 101), (2, 2), (0, 200), (2, 99), (1, 199), (2, 201)] {
+            sets.extend(a.push(f(c, t)));
+        }
+        let cams: Vec<Vec<usize>> = sets.iter().map(|s| s.frames.iter().map(|f| f.camera).collect()).collect();
+        assert_eq!(cams, vec![vec![0, 1, 2], vec![0, 1, 2], vec![0, 1, 2]]);
+        assert_eq!(a.late_frames(), 0);
     }
 
     #[test]
@@ -175,10 +236,10 @@ mod tests {
                 times.push(s.t_ns);
             }
             if i == 3 {
-                times.extend(a.flush().map(|s| s.t_ns));
+                times.extend(a.flush().iter().map(|s| s.t_ns));
             }
         }
-        times.extend(a.flush().map(|s| s.t_ns));
+        times.extend(a.flush().iter().map(|s| s.t_ns));
         assert!(times.windows(2).all(|w| w[1] > w[0]), "{times:?}");
     }
 }

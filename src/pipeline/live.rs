@@ -266,7 +266,8 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     };
 
     // Assembler: until the sources end or a stop is asked for.
-    let mut assembler = FrameSetAssembler::new(ncam, config.sync.tolerance_ms);
+    // Live frames of different cameras may arrive out of order by a frame or two.
+    let mut assembler = FrameSetAssembler::with_open_sets(ncam, config.sync.tolerance_ms, 3);
     // A set waits for its missing cameras at most a frame period (and at least 50 ms).
     let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
     let set_wait = Duration::from_secs_f64(if max_fps > 0.0 { (1.0 / max_fps).max(0.05) } else { 0.1 });
@@ -303,7 +304,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             },
             _ = tick.tick() => {
                 if recording.is_none() {
-                    if let Some(set) = assembler.poll(set_wait) {
+                    for set in assembler.poll(set_wait) {
                         queue.push(set);
                     }
                 }
@@ -325,7 +326,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             }
         }
     }
-    if let Some(set) = assembler.flush() {
+    for set in assembler.flush() {
         queue.push(set);
     }
     queue.close();

@@ -137,7 +137,7 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
                 process(set, newest_ready, &mut summary);
             }
         }
-        if let Some(set) = assembler.flush() {
+        for set in assembler.flush() {
             process(set, newest_ready, &mut summary);
         }
         reader.join().expect("reader thread")

@@ -111,11 +111,11 @@ pub fn spawn_live_camera(
         .expect("sim camera thread")
 }
 
-/// The built-in demo rig: three simulated 640x480 cameras at 10 fps and a simulated UTM
+/// The built-in demo rig: three simulated 640x480 cameras at 5 fps and a simulated UTM
 /// served over Modbus TCP on loopback (f32 load at input register 0, f32 stroke at 2).
 /// Sized to keep up on a 2-core machine (rendering and measuring share the cores).
 pub fn demo_config() -> Config {
-    let params = SimParams { cameras: 3, width: 640, height: 480, fps: 10.0, frame_sets: 100, rest_frames: 10, ..SimParams::default() };
+    let params = SimParams { cameras: 3, width: 640, height: 480, fps: 5.0, frame_sets: 60, rest_frames: 5, ..SimParams::default() };
     let rig = SimRig::new(&params).expect("demo parameters are valid");
     let mut config = rig.config();
     config.utm = Some(UtmConfig {
