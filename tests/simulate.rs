@@ -96,6 +96,17 @@ fn same_seed_same_images_and_deflection_reaches_the_maximum() {
     let top_support = 4; // slots: middle row (0..3), then top row: midspan, left, right
     let d = c1[top_support].1 - c0[top_support].1;
     assert!(d.x > 0.5 && d.z.abs() < 0.1, "top tag over the left support moved {d}");
+    // Truth of the net deflection (feed sense): zero at rest, ≈ δ at the end (supports ≈ 0).
+    assert_eq!(a.truth_line(0).net_deflection_mm, Some(0.0));
+    let net = a.truth_line(4).net_deflection_mm.unwrap();
+    assert!((net - 6.0).abs() < 0.01, "net deflection {net}");
+    // Cyclic history (live demo): up, down, and again; the truth's rest state stays at δ = 0.
+    let c = SimRig::new(&SimParams { cyclic: true, ..p.clone() }).unwrap();
+    let period = c.set_time_ns(1) - c.set_time_ns(0);
+    assert!((c.midspan_deflection(c.set_time_ns(4)) - 6.0).abs() < 1e-9);
+    assert!((c.midspan_deflection(c.set_time_ns(7)) - 0.0).abs() < 1e-9);
+    assert!((c.midspan_deflection(c.set_time_ns(7) + period * 4) - 6.0).abs() < 1e-6);
+    assert!(c.truth_line(6).net_deflection_mm.unwrap() > 1.0);
     // The UTM: load ∝ deflection; stroke = load-point deflection + compliance × load.
     let s = a.utm_sample(last);
     assert!((s.load_kn - p.stiffness_kn_per_mm * 6.0).abs() < 1e-9);

@@ -60,30 +60,23 @@ pub fn simulate(params: &SimParams, out: &Path) -> Result<SimSummary, SimError> 
     let mut seqs = vec![0u64; names.len()];
     let mut dropped = 0;
     for k in 0..params.frame_sets as u64 {
-        // The cameras of one set render one after another, each on both cores.
-        let frames: Vec<(usize, Option<i64>)> = (0..names.len()).map(|c| (c, rig.frame_time_ns(c, k))).collect();
-        let rendered: Vec<Result<Option<(usize, i64, Vec<u8>)>, SimError>> = frames
-            .into_iter()
-            .map(|(c, t)| match t {
-                None => Ok(None),
-                Some(t) => {
-                    let img = rig.render(c, t);
-                    let png = encode_png(&img).map_err(|m| RecordingError::BadImage { path: out.join(&names[c]), message: m })?;
-                    Ok(Some((c, t, png)))
-                }
-            })
-            .collect();
-        for r in rendered {
-            match r? {
+        // The cameras of one set render one after another (each on both cores); their PNGs
+        // are then encoded in parallel.
+        let mut images = Vec::new();
+        for (c, name) in names.iter().enumerate() {
+            match rig.frame_time_ns(c, k) {
                 None => dropped += 1,
-                Some((c, t, png)) => {
-                    let file = format!("{}/{:06}.png", names[c], seqs[c]);
-                    let path = out.join(&file);
-                    std::fs::write(&path, png).map_err(io_err(&path))?;
-                    entries.push(FrameEntry { camera: names[c].clone(), seq: seqs[c], t_ns: t, file });
-                    seqs[c] += 1;
-                }
+                Some(t) => images.push((c, name, t, rig.render(c, t))),
             }
+        }
+        let encoded: Vec<_> = images.par_iter().map(|(c, name, t, img)| (*c, *name, *t, encode_png(img))).collect();
+        for (c, name, t, png) in encoded {
+            let file = format!("{name}/{:06}.png", seqs[c]);
+            let path = out.join(&file);
+            let png = png.map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
+            std::fs::write(&path, png).map_err(io_err(&path))?;
+            entries.push(FrameEntry { camera: name.clone(), seq: seqs[c], t_ns: t, file });
+            seqs[c] += 1;
         }
         let line = rig.truth_line(k);
         writer.write_truth(&TruthLine {

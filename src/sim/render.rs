@@ -88,6 +88,9 @@ impl CornerRays {
 /// and the grey level there.
 pub(crate) type Hit = (u32, f32);
 
+/// Which uniform pixels to copy from a buffer instead: (label predicate, full-image buffer).
+pub(crate) type Keep<'a> = Option<(&'a (dyn Fn(u32) -> bool + Sync), &'a [f32])>;
+
 /// Renders pixels of `rect` into `out` (row-major, `rect.width()` wide) by area
 /// integration. `corner` is traced at the pixel corners; a pixel whose four corner labels
 /// agree is uniform: it takes `keep`'s buffer value when `keep`'s predicate accepts the
@@ -102,7 +105,7 @@ pub(crate) fn render_rect<C, S>(
     n: usize,
     corner: &C,
     sample: &S,
-    keep: Option<(&(dyn Fn(u32) -> bool + Sync), &[f32])>,
+    keep: Keep<'_>,
     out: &mut [f32],
 ) where
     C: Fn(&Vector3<f64>) -> Hit + Sync,

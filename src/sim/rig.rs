@@ -283,7 +283,11 @@ impl SimRig {
 
     /// Pose (tag frame → world) of every specimen tag at `t_ns`, with its id.
     pub fn tag_poses(&self, t_ns: i64) -> Vec<(u32, Pose)> {
-        let d = self.midspan_deflection(t_ns);
+        self.tag_poses_at(self.midspan_deflection(t_ns))
+    }
+
+    /// Pose (tag frame → world) of every specimen tag at midspan deflection `d` (mm).
+    pub fn tag_poses_at(&self, d: f64) -> Vec<(u32, Pose)> {
         let zc = 0.5 * self.params.beam_height_mm;
         // Tag axes at rest: x → world x, y → world z, z (out of the face) → world -y.
         let r0 = Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0));
@@ -392,7 +396,7 @@ impl SimRig {
         let d = self.midspan_deflection(t);
         let utm = self.utm_sample(t);
         let size = self.params.specimen_tag_mm;
-        let rest = self.tag_centres(self.params.start_ns - 1_000_000_000);
+        let rest: Vec<(u32, Vector3<f64>)> = self.tag_poses_at(0.0).into_iter().map(|(id, p)| (id, p.translation)).collect();
         let poses = self.tag_poses(t);
         let mut mid = Vec::new();
         let mut sup = Vec::new();
