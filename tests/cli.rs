@@ -1,0 +1,130 @@
+//! The command line as users see it (SPEC "Command line"): help, exit codes, one clear
+//! error naming the file for bad input, feed on stdout and logs on stderr.
+
+mod common;
+
+use std::fs;
+use std::process::{Command, Output};
+
+fn tagdeflect(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).env("TAGDEFLECT_LOG", "warn").output().expect("run tagdeflect")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+#[test]
+fn every_command_has_help() {
+    for cmd in ["run", "replay", "record", "simulate", "check", "bench", "demo"] {
+        let o = tagdeflect(&[cmd, "--help"]);
+        assert!(o.status.success(), "{cmd} --help: {}", stderr(&o));
+        assert!(String::from_utf8_lossy(&o.stdout).contains("Usage: tagdeflect"), "{cmd}");
+    }
+}
+
+#[test]
+fn bad_config_exits_2_naming_file_line_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("rig.toml");
+    let good = fs::read_to_string(common::root().join("config/one-camera.toml")).unwrap();
+    fs::write(&cfg, good.replacen("tolerance_ms = 10.0", "tolerance_ms = -1.0", 1)).unwrap();
+    let o = tagdeflect(&["check", "--config", cfg.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    let e = stderr(&o);
+    let line = good.lines().position(|l| l.starts_with("tolerance_ms")).unwrap() + 1;
+    assert!(e.contains(&format!("rig.toml:{line}: `sync.tolerance_ms`")), "{e}");
+    assert_eq!(e.trim().lines().count(), 1, "one clear line: {e}");
+    for cmd in [["run", "--config"], ["record", "--config"]] {
+        let mut args: Vec<&str> = cmd.to_vec();
+        args.push(cfg.to_str().unwrap());
+        if cmd[0] == "record" {
+            args.extend(["--out", "/nonexistent-out"]);
+        }
+        let o = tagdeflect(&args);
+        assert_eq!(o.status.code(), Some(2), "{args:?}");
+        assert!(stderr(&o).contains("sync.tolerance_ms"), "{args:?}: {}", stderr(&o));
+    }
+}
+
+#[test]
+fn missing_and_empty_recordings_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = tagdeflect(&["replay", dir.path().join("nope").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("nope"), "{}", stderr(&o));
+    let rec = common::simulate(
+        dir.path(),
+        "rec",
+        &tagdeflect::sim::SimParams { cameras: 1, width: 320, height: 240, frame_sets: 2, ..Default::default() },
+    );
+    fs::write(rec.join("frames.jsonl"), "").unwrap();
+    let o = tagdeflect(&["replay", rec.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("frames.jsonl") && stderr(&o).contains("no frames"), "{}", stderr(&o));
+    assert!(o.stdout.is_empty());
+}
+
+#[test]
+fn simulate_then_replay_gives_a_spec_feed_and_check_reports_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sim");
+    let o = tagdeflect(&[
+        "simulate",
+        "--out",
+        out.to_str().unwrap(),
+        "--cameras",
+        "2",
+        "--width",
+        "480",
+        "--height",
+        "360",
+        "--frame-sets",
+        "4",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = tagdeflect(&["replay", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let feed = String::from_utf8(o.stdout).unwrap();
+    assert_eq!(feed.lines().count(), 4);
+    common::feedcheck_text(&feed, &out.join("tagdeflect.toml"));
+    let o = tagdeflect(&["check", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("background reprojection RMS") && text.contains("camera left:") && text.contains("specimen tags solved: 9 of 9"),
+        "{text}"
+    );
+    // simulating into a folder that already holds a recording is refused, exit 2
+    let o = tagdeflect(&["simulate", "--out", out.to_str().unwrap(), "--frame-sets", "1"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+}
+
+#[test]
+fn check_warns_when_a_camera_sees_no_background_tag() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = common::simulate(
+        dir.path(),
+        "rec",
+        &tagdeflect::sim::SimParams { cameras: 2, width: 480, height: 360, frame_sets: 1, ..Default::default() },
+    );
+    // Background ids that no camera sees: no camera can be posed → exit 2 with advice.
+    let cfg_path = rec.join("tagdeflect.toml");
+    let text = fs::read_to_string(&cfg_path).unwrap();
+    let mut cfg = tagdeflect::config::Config::from_toml_str(&text, &cfg_path).unwrap();
+    for (i, t) in cfg.background.tags.iter_mut().enumerate() {
+        t.id = 20 + i as u32;
+    }
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let o = tagdeflect(&["check", rec.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("cannot be posed"), "{out}");
+    assert!(stderr(&o).contains("no camera could be posed"), "{}", stderr(&o));
+    // replay still runs: a line per frame set, with no tag solved (nothing is invented)
+    let o = tagdeflect(&["replay", rec.to_str().unwrap()]);
+    assert!(o.status.success());
+    let feed = String::from_utf8(o.stdout).unwrap();
+    assert_eq!(feed.lines().count(), 1);
+    assert!(feed.contains("\"tags\":[]"), "{feed}");
+}
