@@ -62,7 +62,7 @@ pub struct SimParams {
     /// Number of cameras (1 to 3): 1 = centre, 2 = left + right, 3 = left + centre + right.
     #[arg(long, default_value_t = 3)]
     pub cameras: u32,
-    /// Image width, pixels (the focal length scales with it: the view stays the same).
+    /// Image width, pixels (the focal length follows the width of a 4:3 frame: the view stays the same).
     #[arg(long, default_value_t = 1280)]
     pub width: u32,
     /// Image height, pixels.
