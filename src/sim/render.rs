@@ -84,9 +84,20 @@ impl CornerRays {
     }
 }
 
-/// What a traced ray hits: a region label (equal labels = one uniformly shaded region)
-/// and the grey level there.
-pub(crate) type Hit = (u32, f32);
+/// What a traced ray hits: a region label (equal labels = one uniformly shaded region),
+/// the grey level there, and, on a tag, the point in the tag's frame (mm; else zeros).
+pub(crate) type Hit = (u32, f32, [f64; 2]);
+
+/// Labels of tag pixels: bits 8.. name the tag (non-zero), bit 0 its colour. A pixel whose
+/// four corners lie on one tag is integrated in the tag's own frame, the sub-samples
+/// interpolated bilinearly between the corners' tag coordinates (the pixel-to-plane map is
+/// smooth at the pixel scale), then shaded by `flat(label, x, y)` without tracing.
+pub(crate) type Flat<'a> = Option<&'a (dyn Fn(u32, f64, f64) -> f32 + Sync)>;
+
+#[inline]
+fn tag_key(label: u32) -> Option<u32> {
+    (label & 0xff00 != 0 && label & 0xff <= 1).then_some(label & !0xff)
+}
 
 /// Which uniform pixels to copy from a buffer instead: (label predicate, full-image buffer).
 pub(crate) type Keep<'a> = Option<(&'a (dyn Fn(u32) -> bool + Sync), &'a [f32])>;
@@ -106,6 +117,7 @@ pub(crate) fn render_rect<C, S>(
     corner: &C,
     sample: &S,
     keep: Keep<'_>,
+    flat: Flat<'_>,
     out: &mut [f32],
 ) where
     C: Fn(&Vector3<f64>) -> Hit + Sync,
@@ -118,7 +130,7 @@ pub(crate) fn render_rect<C, S>(
     let m = rot_cw.matrix();
     let dir = |xn: f64, yn: f64| -> Vector3<f64> { m * Vector3::new(xn, yn, 1.0) };
     // Labels and values at the corners of the rect's pixels.
-    let mut hits: Vec<Hit> = vec![(0, 0.0); (rw + 1) * (rh + 1)];
+    let mut hits: Vec<Hit> = vec![(0, 0.0, [0.0; 2]); (rw + 1) * (rh + 1)];
     hits.par_chunks_mut(rw + 1).enumerate().for_each(|(j, row)| {
         for (i, l) in row.iter_mut().enumerate() {
             let r = rays.at(rect.x0 + i, rect.y0 + j);
@@ -141,11 +153,29 @@ pub(crate) fn render_rect<C, S>(
                 }
                 continue;
             }
+            let nf = n as f64;
+            if let (Some(f), Some(key)) = (flat, tag_key(h00.0)) {
+                if [h10.0, h01.0, h11.0].iter().all(|&l| tag_key(l) == Some(key)) {
+                    let (a0, a1, a2, a3) = (h00.2, h10.2, h01.2, h11.2);
+                    let mut sum = 0.0f32;
+                    for a in 0..n {
+                        for b in 0..n {
+                            let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
+                            let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
+                            let (wa, wb, wc, wd) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+                            let u = wa * a0[0] + wb * a1[0] + wc * a2[0] + wd * a3[0];
+                            let v = wa * a0[1] + wb * a1[1] + wc * a2[1] + wd * a3[1];
+                            sum += f(key, u, v);
+                        }
+                    }
+                    *px = sum * inv;
+                    continue;
+                }
+            }
             let r00 = rays.at(x, y);
             let r10 = rays.at(x + 1, y);
             let r01 = rays.at(x, y + 1);
             let r11 = rays.at(x + 1, y + 1);
-            let nf = n as f64;
             let mut sum = 0.0f32;
             for a in 0..n {
                 for b in 0..n {
@@ -283,14 +313,14 @@ mod tests {
         let trace = |d: &Vector3<f64>| -> Hit {
             let x = d.x / d.z * 1000.0; // pixels from cx
             if x < edge {
-                (1, 0.0)
+                (1, 0.0, [0.0; 2])
             } else {
-                (2, 100.0)
+                (2, 100.0, [0.0; 2])
             }
         };
         let rect = PixelRect { x0: 0, y0: 0, x1: 16, y1: 8 };
         let mut out = vec![0.0; 16 * 8];
-        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, &|d: &Vector3<f64>, _, _| trace(d).1, None, &mut out);
+        render_rect(&rays, &Rotation3::identity(), rect, 8, &trace, &|d: &Vector3<f64>, _, _| trace(d).1, None, None, &mut out);
         // Pixel 7 spans cx-0.5..cx+0.5: covered by the bright side from 0.37 to 0.5 → 13 %.
         let v = out[3 * 16 + 7];
         assert!((v - 13.0).abs() < 100.0 / 64.0, "{v}");

@@ -477,10 +477,19 @@ impl SimRig {
         BeamState { delta: d, shape: DeformedBeam::new(&self.beam, d, hl), tags, hidden, ends }
     }
 
+    /// Grey level of a printed tag at `(x, y)` of its frame (paper white outside the print).
+    #[inline]
+    fn tag_shade(bitmap: &crate::tags::TagBitmap, x: f64, y: f64, size: f64) -> f32 {
+        match bitmap.cell_at(x, y, size) {
+            Some((col, row)) if !bitmap.is_white(col, row) => shade::BLACK,
+            _ => shade::WHITE,
+        }
+    }
+
     /// The fixed scene (panels with background tags), without the beam.
     fn trace_static(&self, c: &Vector3<f64>, d: &Vector3<f64>) -> Hit {
         let mut best_t = f64::INFINITY;
-        let mut hit = (0u32, shade::FAR);
+        let mut hit = (0u32, shade::FAR, [0.0; 2]);
         let size = self.params.background_tag_mm;
         for (pi, p) in self.layout.panels.iter().enumerate() {
             let denom = d.dot(&p.n);
@@ -497,15 +506,16 @@ impl SimRig {
                 continue;
             }
             best_t = t;
-            let base = ((pi as u32 + 1) << 16, p.base + p.texture.at(u, v));
+            let base = ((pi as u32 + 1) << 16, p.base + p.texture.at(u, v), [0.0; 2]);
             hit = base;
             for (k, tag) in p.tags.iter().enumerate() {
-                if let Some((col, row)) = tag.bitmap.cell_at(u - tag.centre.0, v - tag.centre.1, size) {
+                let (tx, ty) = (u - tag.centre.0, v - tag.centre.1);
+                if let Some((col, row)) = tag.bitmap.cell_at(tx, ty, size) {
                     // One label per colour of a tag (not per cell): a pixel smaller than a cell
                     // whose corners all see one colour lies wholly in that colour.
                     let white = tag.bitmap.is_white(col, row);
                     let label = base.0 | ((k as u32 + 1) << 8) | white as u32;
-                    hit = (label, if white { shade::WHITE } else { shade::BLACK });
+                    hit = (label, if white { shade::WHITE } else { shade::BLACK }, [tx, ty]);
                     break;
                 }
             }
@@ -535,18 +545,19 @@ impl SimRig {
                     let ly = -sa * dx + ca * dz;
                     if st.hidden == Some(k) {
                         if lx.abs() <= half && ly.abs() <= half {
-                            return Some((FRONT | ((k as u32 + 1) << 8) | CARD_CELL, shade::CARD));
+                            return Some((FRONT | ((k as u32 + 1) << 8) | CARD_CELL, shade::CARD, [lx, ly]));
                         }
                         continue;
                     }
                     if let Some((col, row)) = s.bitmap.cell_at(lx, ly, size) {
                         let white = s.bitmap.is_white(col, row);
-                        return Some((FRONT | ((k as u32 + 1) << 8) | white as u32, if white { shade::WHITE } else { shade::BLACK }));
+                        let v = if white { shade::WHITE } else { shade::BLACK };
+                        return Some((FRONT | ((k as u32 + 1) << 8) | white as u32, v, [lx, ly]));
                     }
                 }
                 let (mx, mz) = st.shape.material_point(x, z - zc);
                 if mx.abs() <= hl && mz.abs() <= hh {
-                    return Some((FRONT, shade::FACE + self.layout.face_texture.at(mx, mz)));
+                    return Some((FRONT, shade::FACE + self.layout.face_texture.at(mx, mz), [0.0; 2]));
                 }
             }
         }
@@ -565,7 +576,7 @@ impl SimRig {
                     q = c + d * t;
                 }
                 if mx.abs() <= hl && q.y >= 0.0 && q.y <= bw {
-                    return Some((TOP, shade::TOP + self.layout.top_texture.at(mx, q.y)));
+                    return Some((TOP, shade::TOP + self.layout.top_texture.at(mx, q.y), [0.0; 2]));
                 }
             }
         }
@@ -586,7 +597,7 @@ impl SimRig {
             let q = c + d * t;
             let zeta = (q - p0).dot(e);
             if zeta.abs() <= hh && q.y >= 0.0 && q.y <= bw {
-                return Some((END | side as u32, shade::END));
+                return Some((END | side as u32, shade::END, [0.0; 2]));
             }
         }
         None
@@ -649,7 +660,13 @@ impl SimRig {
         let trace = |d: &Vector3<f64>| self.trace_static(&centre, d);
         let sample = |d: &Vector3<f64>, _: usize, _: usize| self.trace_static(&centre, d).1;
         let all = PixelRect { x0: 0, y0: 0, x1: w, y1: h };
-        render_rect(rays, &rot_cw, all, self.params.subsamples as usize, &trace, &sample, None, &mut raw);
+        let bg_size = self.params.background_tag_mm;
+        let flat = |key: u32, x: f64, y: f64| -> f32 {
+            let panel = &self.layout.panels[((key >> 16) & 0xff) as usize - 1];
+            let tag = &panel.tags[((key >> 8) & 0xff) as usize - 1];
+            Self::tag_shade(&tag.bitmap, x, y, bg_size)
+        };
+        render_rect(rays, &rot_cw, all, self.params.subsamples as usize, &trace, &sample, None, Some(&flat), &mut raw);
         let blurred = blur(&raw, w, h, &self.kernel);
         let bg = Arc::new(Background { epoch, raw, blurred });
         *slot = Some(bg.clone());
@@ -687,14 +704,20 @@ impl SimRig {
             // miss keeps the cached background). Sub-samples that miss the beam take the
             // cached background pixel (its area mean: the background is uniform at the scale
             // of a pixel wherever the beam's outline crosses it).
-            let corner = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or((0, 0.0));
+            let corner = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or((0, 0.0, [0.0; 2]));
             let sample = |d: &Vector3<f64>, x: usize, y: usize| match self.trace_beam(&st, &centre, d) {
                 Some(hit) => hit.1,
                 None => bg.raw[y * w + x],
             };
             let not_beam = |l: u32| l & BEAM_BIT == 0;
             let n = self.params.subsamples as usize;
-            render_rect(rays, &pose.rotation.inverse(), rect, n, &corner, &sample, Some((&not_beam, &bg.raw)), &mut beam_px);
+            let size = self.params.specimen_tag_mm;
+            let flat = |key: u32, x: f64, y: f64| -> f32 {
+                let s = &self.layout.specimen[((key >> 8) & 0xff) as usize - 1];
+                Self::tag_shade(&s.bitmap, x, y, size)
+            };
+            let rot = pose.rotation.inverse();
+            render_rect(rays, &rot, rect, n, &corner, &sample, Some((&not_beam, &bg.raw)), Some(&flat), &mut beam_px);
             for (j, row) in beam_px.chunks(rect.width()).enumerate() {
                 let y = rect.y0 + j - outer.y0;
                 let x = rect.x0 - outer.x0;
