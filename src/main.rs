@@ -105,7 +105,8 @@ fn main() -> ExitCode {
 fn init_logging() {
     use tracing_subscriber::{fmt, EnvFilter};
     // TAGDEFLECT_LOG, else RUST_LOG, else "info" (e.g. TAGDEFLECT_LOG=debug).
-    let filter = EnvFilter::try_from_env("TAGDEFLECT_LOG").or_else(|_| EnvFilter::try_from_default_env()).unwrap_or_else(|_| EnvFilter::new("info"));
+    let filter =
+        EnvFilter::try_from_env("TAGDEFLECT_LOG").or_else(|_| EnvFilter::try_from_default_env()).unwrap_or_else(|_| EnvFilter::new("info"));
     // Under systemd the journal adds its own timestamps.
     let under_systemd = std::env::var_os("JOURNAL_STREAM").is_some();
     let builder = fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false);
@@ -124,7 +125,10 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Run { config, record, duration_s } => {
             let cfg = load_config(&config)?;
-            pipeline::live::run(cfg, LiveOptions { record, duration_s, ..LiveOptions::default() })
+            // Without `[output] feed` the feed goes to stdout (SPEC leaves it open; a feed
+            // nobody sees helps no one).
+            let feed_to_stdout = cfg.output.feed.is_none();
+            pipeline::live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
         }
         Command::Replay { dir, config, realtime, full_frame } => {
             let cfg = config.as_ref().map(load_config).transpose()?;

@@ -4,14 +4,15 @@
 //! Needs python3 with pymodbus: `scripts/setup.sh` makes target/test-venv and
 //! `scripts/test.sh` points TAGDEFLECT_PYTHON at it. Without it these tests fail (never skip).
 
-use std::io::Read as _;
 use std::net::{SocketAddr, TcpListener as StdListener, TcpStream as StdStream};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tagdeflect::config::{RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
+mod common;
+
 use tagdeflect::utm::{decode, run_poller, start_sim_utm, UtmEvent, UtmSample};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -19,71 +20,7 @@ use tokio::task::JoinHandle;
 // ----------------------------------------------------------------------------------------
 // Python and the pymodbus server.
 
-/// The Python with pymodbus: $TAGDEFLECT_PYTHON, else target/test-venv, else python3.
-fn python() -> PathBuf {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("TAGDEFLECT_PYTHON")
-        .map(PathBuf::from)
-        .into_iter()
-        .chain([root.join("target/test-venv/bin/python"), PathBuf::from("python3")])
-        .collect();
-    for p in &candidates {
-        let ok =
-            Command::new(p).args(["-c", "import pymodbus"]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success());
-        if ok {
-            return p.clone();
-        }
-    }
-    panic!("no python3 with pymodbus found (tried {candidates:?}): run scripts/setup.sh (it makes target/test-venv with pymodbus)");
-}
-
-fn fixture() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/modbus_server.py")
-}
-
-fn free_port() -> u16 {
-    StdListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("no free loopback port")
-}
-
-/// A child process killed (and reaped) on drop.
-struct ChildGuard(Child);
-
-impl Drop for ChildGuard {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// The pymodbus server of tests/fixtures/modbus_server.py on 127.0.0.1:`port`, accepting
-/// connections when this returns.
-fn start_pymodbus(port: u16) -> ChildGuard {
-    let child = Command::new(python())
-        .arg(fixture())
-        .arg(port.to_string())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("cannot start python");
-    let mut guard = ChildGuard(child);
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let addr = SocketAddr::from(([127, 0, 0, 1], port));
-    loop {
-        if StdStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {
-            return guard;
-        }
-        if let Ok(Some(status)) = guard.0.try_wait() {
-            let mut err = String::new();
-            if let Some(mut e) = guard.0.stderr.take() {
-                let _ = e.read_to_string(&mut err);
-            }
-            panic!("the pymodbus server exited ({status}) before listening on {addr}: {err}");
-        }
-        assert!(Instant::now() < deadline, "the pymodbus server did not listen on {addr} within 30 s");
-        std::thread::sleep(Duration::from_millis(100));
-    }
-}
+use common::{free_port, python, start_pymodbus};
 
 // ----------------------------------------------------------------------------------------
 // The poller.

@@ -119,7 +119,8 @@ impl Measurement {
             background_world,
             specimen_ids,
             tags: BTreeMap::new(),
-            utm: UtmHistory::unbounded(),
+            // No load across a UTM outage: at most five missed polls (and 0.5 s) are bridged.
+            utm: UtmHistory::unbounded().with_max_gap(config.utm.as_ref().map_or(0, |u| ((5.0 / u.poll_hz).max(0.5) * 1e9) as i64)),
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
         })

@@ -31,17 +31,26 @@ pub struct UtmHistory {
     samples: VecDeque<UtmSample>,
     /// Samples older than this many ns behind the newest are dropped (0 = keep all).
     keep_ns: i64,
+    /// Two samples further apart than this are not interpolated between (an outage of the
+    /// UTM link: nothing is invented across it); 0 = no limit.
+    max_gap_ns: i64,
 }
 
 impl UtmHistory {
     /// Keeps every sample (replay).
     pub fn unbounded() -> Self {
-        Self { samples: VecDeque::new(), keep_ns: 0 }
+        Self { samples: VecDeque::new(), keep_ns: 0, max_gap_ns: 0 }
     }
 
     /// Keeps samples within `keep_ns` of the newest (live).
     pub fn with_window(keep_ns: i64) -> Self {
-        Self { samples: VecDeque::new(), keep_ns }
+        Self { samples: VecDeque::new(), keep_ns, max_gap_ns: 0 }
+    }
+
+    /// Refuses to interpolate between samples more than `max_gap_ns` apart.
+    pub fn with_max_gap(mut self, max_gap_ns: i64) -> Self {
+        self.max_gap_ns = max_gap_ns;
+        self
     }
 
     /// Adds a sample; out-of-order samples are inserted in place, duplicates of a time replace.
@@ -82,7 +91,8 @@ impl UtmHistory {
     }
 
     /// Load and stroke linearly interpolated at `t_ns`; `None` outside the samples' span
-    /// (no extrapolation). Stroke is `None` when either neighbour lacks it.
+    /// (no extrapolation) and inside a gap longer than the maximum. Stroke is `None` when
+    /// either neighbour lacks it.
     pub fn interpolate(&self, t_ns: i64) -> Option<(f64, Option<f64>)> {
         let first = self.samples.front()?;
         let last = self.samples.back()?;
@@ -95,6 +105,9 @@ impl UtmHistory {
             return Some((b.load_kn, b.stroke_mm));
         }
         let a = self.samples[i - 1];
+        if self.max_gap_ns > 0 && b.t_ns - a.t_ns > self.max_gap_ns {
+            return None;
+        }
         let w = (t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
         let lerp = |x: f64, y: f64| x + (y - x) * w;
         let stroke = match (a.stroke_mm, b.stroke_mm) {
@@ -125,6 +138,17 @@ mod tests {
         assert!((l - 2.75).abs() < 1e-12 && (st.unwrap() - 0.275).abs() < 1e-12);
         assert_eq!(h.interpolate(100).unwrap().0, 1.0);
         assert_eq!(h.interpolate(300).unwrap().0, 3.0);
+    }
+
+    #[test]
+    fn no_interpolation_across_an_outage() {
+        let mut h = UtmHistory::unbounded().with_max_gap(100);
+        h.push(s(0, 1.0));
+        h.push(s(50, 2.0));
+        h.push(s(500, 9.0));
+        assert!(h.interpolate(25).is_some());
+        assert_eq!(h.interpolate(300), None);
+        assert_eq!(h.interpolate(500).unwrap().0, 9.0);
     }
 
     #[test]

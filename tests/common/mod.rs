@@ -2,8 +2,11 @@
 //! truth, check a feed with the SPEC checker.
 #![allow(dead_code)]
 
+use std::io::Read;
+use std::net::{SocketAddr, TcpListener as StdListener, TcpStream as StdStream};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
 
 use tagdeflect::accuracy::{evaluate, Accuracy};
 use tagdeflect::feed::FeedLine;
@@ -75,4 +78,73 @@ pub fn feedcheck_text(text: &str, config_toml: &Path) {
     let report = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "feedcheck found problems:\n{report}{}", String::from_utf8_lossy(&out.stderr));
     assert!(report.contains(" 0 problems"), "{report}");
+}
+
+// ----------------------------------------------------------------------------------------
+// Python and the pymodbus server (a real Modbus peer that is not our code).
+
+/// The Python with pymodbus: $TAGDEFLECT_PYTHON, else target/test-venv, else python3.
+pub fn python() -> PathBuf {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let candidates: Vec<PathBuf> = std::env::var_os("TAGDEFLECT_PYTHON")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([root.join("target/test-venv/bin/python"), PathBuf::from("python3")])
+        .collect();
+    for p in &candidates {
+        let ok =
+            Command::new(p).args(["-c", "import pymodbus"]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success());
+        if ok {
+            return p.clone();
+        }
+    }
+    panic!("no python3 with pymodbus found (tried {candidates:?}): run scripts/setup.sh (it makes target/test-venv with pymodbus)");
+}
+
+pub fn fixture() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/modbus_server.py")
+}
+
+pub fn free_port() -> u16 {
+    StdListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("no free loopback port")
+}
+
+/// A child process killed (and reaped) on drop.
+pub struct ChildGuard(pub Child);
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The pymodbus server of tests/fixtures/modbus_server.py on 127.0.0.1:`port`, accepting
+/// connections when this returns.
+pub fn start_pymodbus(port: u16) -> ChildGuard {
+    let child = Command::new(python())
+        .arg(fixture())
+        .arg(port.to_string())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot start python");
+    let mut guard = ChildGuard(child);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let addr = SocketAddr::from(([127, 0, 0, 1], port));
+    loop {
+        if StdStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {
+            return guard;
+        }
+        if let Ok(Some(status)) = guard.0.try_wait() {
+            let mut err = String::new();
+            if let Some(mut e) = guard.0.stderr.take() {
+                let _ = e.read_to_string(&mut err);
+            }
+            panic!("the pymodbus server exited ({status}) before listening on {addr}: {err}");
+        }
+        assert!(Instant::now() < deadline, "the pymodbus server did not listen on {addr} within 30 s");
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
