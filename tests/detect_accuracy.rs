@@ -189,6 +189,13 @@ fn measure(scene: &Scene, trials: usize, edge_range: (f64, f64), seed: u64) -> F
 fn refinement_beats_library_corners_on_analytic_renderings() {
     let cases = [
         (
+            "noise-free (blur 0.6)",
+            Scene { width: 300, height: 300, blur_sigma: 0.6, noise_sigma: 0.0, black: 30.0, white: 220.0, background: 120.0 },
+            (30.0, 120.0),
+            0.5,
+            0.01,
+        ),
+        (
             "clean (blur 0.8, noise 1)",
             Scene { width: 300, height: 300, blur_sigma: 0.8, noise_sigma: 1.0, black: 30.0, white: 220.0, background: 120.0 },
             (40.0, 140.0),
