@@ -4,8 +4,7 @@
 //! Needs python3 with pymodbus: `scripts/setup.sh` makes target/test-venv and
 //! `scripts/test.sh` points TAGDEFLECT_PYTHON at it. Without it these tests fail (never skip).
 
-use std::net::{SocketAddr, TcpListener as StdListener, TcpStream as StdStream};
-use std::path::PathBuf;
+use std::net::TcpListener as StdListener;
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
