@@ -14,9 +14,10 @@ fn unit_text() -> String {
 }
 
 fn systemd_analyze(args: &[&str]) -> std::process::Output {
-    Command::new("systemd-analyze").args(args).output().unwrap_or_else(|e| {
-        panic!("cannot run systemd-analyze ({e}): install systemd (run the project's setup script: .ci/setup)")
-    })
+    Command::new("systemd-analyze")
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run systemd-analyze ({e}): install systemd (run the project's setup script: .ci/setup)"))
 }
 
 /// A copy of the unit whose ExecStart runs the freshly built binary (verify needs it to exist).
