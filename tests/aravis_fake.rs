@@ -76,9 +76,8 @@ fn spawn_fake_gv(address: &str, serial: &str, lost_per_thousand: Option<u32>) ->
         if let Some(r) = lost_per_thousand {
             cmd.args(["-r", &r.to_string()]);
         }
-        let mut child = cmd.spawn().unwrap_or_else(|e| {
-            panic!("cannot run {FAKE_GV} ({e}): install Debian's aravis-tools (run the project's setup script: .ci/setup)")
-        });
+        let mut child =
+            cmd.spawn().unwrap_or_else(|e| panic!("cannot run {FAKE_GV} ({e}): install Debian's aravis-tools (run scripts/setup.sh)"));
         std::thread::sleep(Duration::from_millis(300));
         match child.try_wait() {
             Ok(None) => return child,

@@ -17,7 +17,7 @@ fn systemd_analyze(args: &[&str]) -> std::process::Output {
     Command::new("systemd-analyze")
         .args(args)
         .output()
-        .unwrap_or_else(|e| panic!("cannot run systemd-analyze ({e}): install systemd (run the project's setup script: .ci/setup)"))
+        .unwrap_or_else(|e| panic!("cannot run systemd-analyze ({e}): install systemd (run scripts/setup.sh)"))
 }
 
 /// A copy of the unit whose ExecStart runs the freshly built binary (verify needs it to exist).
