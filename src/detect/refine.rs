@@ -93,7 +93,7 @@ impl RefineOptions {
         if !(self.max_band_px >= 2.0 && self.max_band_px <= 100.0) {
             return bad("subpixel.max_band_px", self.max_band_px, "expected 2 to 100 pixels");
         }
-        if !(self.checker_above_px >= 0.0) {
+        if self.checker_above_px.is_nan() || self.checker_above_px < 0.0 {
             return bad("subpixel.checker_above_px", self.checker_above_px, "expected a length in pixels (0 = always)");
         }
         if self.passes == 0 || self.passes > 10 {
@@ -175,7 +175,7 @@ pub fn refine_corners_with(
     let nb = border_width_bits(det.family) as f64;
     let original = det.corners;
     // Corners in ideal coordinates.
-    let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.to_ideal(&c.coords, None));
+    let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.pixel_to_ideal(&c.coords, None));
     let mut ok_edges = [false; 4];
     let mut levels: [Option<[f64; 3]>; 4] = [None; 4];
     for _ in 0..opts.passes {
@@ -205,7 +205,7 @@ pub fn refine_corners_with(
     let mut report = RefineReport::default();
     for i in 0..4 {
         let edges_ok = ok_edges[(i + 3) % 4] && ok_edges[i];
-        let p = lens.from_ideal(&ideal[i]);
+        let p = lens.ideal_to_pixel(&ideal[i]);
         let shift = (p - original[i].coords).norm();
         if !(edges_ok && p.x.is_finite() && p.y.is_finite()) {
             report.kept += 1;
@@ -249,7 +249,7 @@ struct Lens<'a> {
 
 impl Lens<'_> {
     /// Distorted pixel → ideal pixel (`fx·xn + cx`), warm-started from `guess` (ideal).
-    fn to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
+    fn pixel_to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
         let Some(k) = self.intr else {
             return *p;
         };
@@ -272,7 +272,7 @@ impl Lens<'_> {
     }
 
     /// Ideal pixel → distorted pixel.
-    fn from_ideal(&self, u: &Vector2<f64>) -> Vector2<f64> {
+    fn ideal_to_pixel(&self, u: &Vector2<f64>) -> Vector2<f64> {
         let Some(k) = self.intr else {
             return *u;
         };
@@ -409,7 +409,7 @@ fn fit_edge(
         let p1 = to_px(along, 1.0)?;
         gap[k] = (p1 - p0).dot(&-normal).abs().max(0.5);
         let sample = |u: Vector2<f64>| {
-            let p = lens.from_ideal(&u);
+            let p = lens.ideal_to_pixel(&u);
             image.sample(p.x, p.y)
         };
         inner_val[k] = sample(to_px(along, 1.5)?);
@@ -442,7 +442,7 @@ fn fit_edge(
     // Candidate pixels: the band's bounding box in distorted pixels.
     let mut poly = Vec::with_capacity(4);
     for (al, de) in [(along_min, depth_min), (along_max, depth_min), (along_max, depth_max), (along_min, depth_max)] {
-        poly.push(lens.from_ideal(&to_px(al, de)?));
+        poly.push(lens.ideal_to_pixel(&to_px(al, de)?));
     }
     let pad = 1.5;
     let xmin = poly.iter().map(|p| p.x).fold(f64::MAX, f64::min) - pad;
@@ -489,11 +489,12 @@ fn fit_edge(
             if poly_edges.iter().any(|(n, r)| orient * (n.dot(&p) - r) > pad) {
                 continue;
             }
-            let u = lens.to_ideal(&p, guess.as_ref());
+            let u = lens.pixel_to_ideal(&p, guess.as_ref());
             guess = Some(u);
             let Some(tag) = apply_h(hinv, &u) else { continue };
             let (along, depth) = tag_to_edge(e, &tag, nb);
-            if along < along_min || along > along_max || depth < depth_min || depth > depth_max {
+            if !(along.is_finite() && depth.is_finite()) || along < along_min || along > along_max || depth < depth_min || depth > depth_max
+            {
                 continue;
             }
             let k = (along.floor() as usize).min(nbits - 1);
