@@ -210,3 +210,33 @@ fn demo_gives_a_clean_feed_with_load_from_the_simulated_modbus_utm() {
         "load read over Modbus from the simulated UTM"
     );
 }
+
+#[test]
+fn a_full_disk_under_the_feed_does_not_stop_the_run_or_the_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let _server = start_pymodbus(port);
+    let cfg_path = live_config(dir.path(), port);
+    // The feed goes to a device that is always full; the recording to a good folder.
+    let text = fs::read_to_string(&cfg_path).unwrap();
+    let mut cfg = Config::from_toml_str(&text, &cfg_path).unwrap();
+    cfg.output.feed = Some("/dev/full".into());
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let rec = dir.path().join("rec");
+    let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()]);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while fs::read_to_string(rec.join("frames.jsonl")).unwrap_or_default().lines().count() < 10 {
+        assert!(Instant::now() < deadline, "recording did not grow");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (code, _, stderr) = daemon.terminate();
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stderr.contains("/dev/full") && stderr.contains("disabled"), "one clear error about the feed output: {stderr}");
+    assert_eq!(stderr.matches("this output is disabled").count(), 1, "reported once: {stderr}");
+    // The recording is complete and replays.
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["replay", rec.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let feed = String::from_utf8(out.stdout).unwrap();
+    assert!(feed.lines().count() >= 4, "{feed}");
+    common::feedcheck_text(&feed, &rec.join("tagdeflect.toml"));
+}
