@@ -127,7 +127,11 @@ fn wrong_type_names_the_line() {
 
 #[test]
 fn duplicate_camera_name() {
-    let text = GOOD.replacen("[background]", "[[camera]]\nname = \"left\"\nwidth = 10\nheight = 10\nfx = 1.0\nfy = 1.0\ncx = 0.0\ncy = 0.0\n\n[background]", 1);
+    let text = GOOD.replacen(
+        "[background]",
+        "[[camera]]\nname = \"left\"\nwidth = 10\nheight = 10\nfx = 1.0\nfy = 1.0\ncx = 0.0\ncy = 0.0\n\n[background]",
+        1,
+    );
     let e = parse(&text).unwrap_err();
     assert_eq!(e.key.as_deref(), Some("camera[1].name"));
     assert!(e.message.contains("duplicate camera name"), "{e}");
@@ -139,7 +143,11 @@ fn duplicate_tag_ids_within_a_family() {
     let e = bad("id = 8", "id = 7");
     assert_eq!(e.key.as_deref(), Some("specimen.tag[2].id"), "{e}");
     assert!(e.message.contains("duplicate specimen tag id 7"), "{e}");
-    let text = GOOD.replacen("\n[specimen]", "\n[[background.tag]]\nid = 3\ncorners_mm = [[0.0, 0.0, 0.0], [60.0, 0.0, 0.0], [60.0, 0.0, 60.0], [0.0, 0.0, 60.0]]\n\n[specimen]", 1);
+    let text = GOOD.replacen(
+        "\n[specimen]",
+        "\n[[background.tag]]\nid = 3\ncorners_mm = [[0.0, 0.0, 0.0], [60.0, 0.0, 0.0], [60.0, 0.0, 60.0], [0.0, 0.0, 60.0]]\n\n[specimen]",
+        1,
+    );
     let e = parse(&text).unwrap_err();
     assert_eq!(e.key.as_deref(), Some("background.tag[1].id"), "{e}");
 }
@@ -200,7 +208,8 @@ fn other_checks_name_their_key() {
 fn missing_sections_are_named() {
     let e = parse(&GOOD.replace("[[camera]]", "[[kamera]]")).unwrap_err();
     assert!(e.to_string().contains("kamera"), "{e}");
-    let no_bg = GOOD.split("[background]").next().unwrap().to_string() + "[specimen]\nfamily = \"tag36h11\"\nsize_mm = 30.0\n[[specimen.tag]]\nid = 0\n";
+    let no_bg = GOOD.split("[background]").next().unwrap().to_string()
+        + "[specimen]\nfamily = \"tag36h11\"\nsize_mm = 30.0\n[[specimen.tag]]\nid = 0\n";
     let e = parse(&no_bg).unwrap_err();
     assert_eq!(e.key.as_deref(), Some("background"), "{e}");
 }
@@ -227,7 +236,11 @@ fn json_calibration_and_config_reference() {
             "distortion_coefficients": {"rows": 1, "cols": 5, "data": [-0.2, 0.05, 0.001, 0.002, 0.0]}}"#,
     )
     .unwrap();
-    let text = GOOD.replacen("width = 640\nheight = 480\nfx = 500.0\nfy = 500.0\ncx = 319.5\ncy = 239.5\ndist = [-0.1, 0.01, 0.0, 0.0]", "calibration = \"cam.json\"", 1);
+    let text = GOOD.replacen(
+        "width = 640\nheight = 480\nfx = 500.0\nfy = 500.0\ncx = 319.5\ncy = 239.5\ndist = [-0.1, 0.01, 0.0, 0.0]",
+        "calibration = \"cam.json\"",
+        1,
+    );
     let cfg_path = dir.path().join("rig.toml");
     std::fs::write(&cfg_path, &text).unwrap();
     let c = Config::load(&cfg_path).unwrap_or_else(|e| panic!("{e}"));
