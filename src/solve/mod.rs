@@ -21,8 +21,8 @@ pub mod motion;
 pub mod tag_pose;
 pub mod tracker;
 
-pub use motion::TagMotion;
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
+pub use motion::TagMotion;
 pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};
 pub use tracker::{CameraPoseTracker, TrackerOptions, TrackerStatus};
 
