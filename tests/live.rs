@@ -240,3 +240,26 @@ fn a_full_disk_under_the_feed_does_not_stop_the_run_or_the_recording() {
     assert!(feed.lines().count() >= 4, "{feed}");
     common::feedcheck_text(&feed, &rec.join("tagdeflect.toml"));
 }
+
+#[test]
+fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
+    let mut cfg: Config = SimRig::new(&params).unwrap().config();
+    cfg.utm = None;
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let rec = dir.path().join("rec");
+    let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()]);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while fs::read_to_string(rec.join("frames.jsonl")).unwrap_or_default().lines().count() < 5 {
+        assert!(Instant::now() < deadline, "recording did not grow");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (code, stdout, stderr) = daemon.terminate();
+    assert_eq!(code, Some(0), "{stderr}");
+    // No [output] feed: the feed went to stdout; no UTM: no load fields.
+    let lines: Vec<FeedLine> = stdout.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(lines.len() >= 4 && lines.iter().all(|l| l.load_kn.is_none() && l.utm.is_none()));
+    common::feedcheck_text(&stdout, &cfg_path);
+}

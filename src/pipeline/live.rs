@@ -211,6 +211,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         for s in &rec.utm {
             let _ = utm_tx.try_send(UtmEvent::Sample(*s));
         }
+        drop(utm_tx);
     } else if let Some(ucfg) = &config.utm {
         let ucfg = if ucfg.address == "sim" {
             let rig = rig.clone().expect("sim rig built");
@@ -227,13 +228,15 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 tracing::error!("UTM: {e}");
             }
         });
+    } else {
+        drop(utm_tx);
     }
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     tracing::info!(cameras = ncam, "sources open; measuring");
 
     // UTM events to the solver (std channel: the solver is a plain thread) and the recorder.
     let (solver_utm_tx, solver_utm_rx) = std_mpsc::channel::<UtmEvent>();
-    {
+    let forwarder = {
         let rec_tx = rec_tx.clone();
         let drops = recorder_drops.clone();
         tokio::spawn(async move {
@@ -247,8 +250,8 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                     break;
                 }
             }
-        });
-    }
+        })
+    };
 
     // Solver thread.
     let queue = Arc::new(SetQueue::new());
@@ -342,6 +345,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let Some(s) = solver {
         tokio::task::spawn_blocking(move || s.join()).await.ok();
     }
+    // The forwarder holds a sender of the recorder: end it before waiting for the recorder.
+    forwarder.abort();
+    let _ = forwarder.await;
     drop(rec_tx);
     if let Some(r) = recorder {
         tokio::task::spawn_blocking(move || r.join()).await.ok();
