@@ -128,3 +128,32 @@ fn check_warns_when_a_camera_sees_no_background_tag() {
     assert_eq!(feed.lines().count(), 1);
     assert!(feed.contains("\"tags\":[]"), "{feed}");
 }
+
+#[test]
+fn bundled_recordings_replay_to_clean_accurate_feeds() {
+    let mut seen = 0;
+    for entry in fs::read_dir(common::root().join("replay")).unwrap() {
+        let dir = entry.unwrap().path();
+        if !dir.join("frames.jsonl").is_file() {
+            continue;
+        }
+        seen += 1;
+        let o = tagdeflect(&["replay", dir.to_str().unwrap()]);
+        assert!(o.status.success(), "{}: {}", dir.display(), stderr(&o));
+        let text = String::from_utf8(o.stdout).unwrap();
+        common::feedcheck_text(&text, &dir.join("tagdeflect.toml"));
+        let rec = tagdeflect::recording::Recording::open(&dir).unwrap();
+        let lines: Vec<tagdeflect::feed::FeedLine> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        let acc = tagdeflect::accuracy::evaluate(&rec.config, &rec.truth, &lines);
+        println!("{}: {acc}", dir.display());
+        assert_eq!(acc.coverage(), 1.0, "{}", dir.display());
+        if rec.config.cameras.len() > 1 {
+            assert!(acc.disp_rms_mm <= 0.05, "{}: {acc}", dir.display());
+        } else {
+            // One small camera: depth along the line of sight comes from the tag's size
+            // alone; the vertical displacement is what it can deliver.
+            assert!(acc.vertical_rms_mm <= 0.5, "{}: {acc}", dir.display());
+        }
+    }
+    assert!(seen >= 2, "replay/ must hold the bundled recordings");
+}
