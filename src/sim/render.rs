@@ -3,6 +3,8 @@
 //!
 //! Each camera's undistorted ray through every pixel *corner* (OpenCV convention: pixel
 //! centres at integers, so corners at half-integers) is computed once from the intrinsics.
+//! Pixels inside one tag take `n × n` sub-samples in the tag's own frame; other mixed
+//! pixels (paper edges, surface edges, silhouettes) take `n/2 × n/2` traced sub-samples.
 //! A pixel whose four corners hit the same uniform region (one colour of one tag, one
 //! surface) takes the mean of its corner values (exact for flat regions; tag cells are
 //! larger than a pixel, so a pixel whose corners all see one colour lies wholly in it);
@@ -172,6 +174,11 @@ pub(crate) fn render_rect<C, S>(
                     continue;
                 }
             }
+            // Other edges (paper, surfaces, silhouettes) are not what tags are measured on:
+            // half the sub-samples per axis there.
+            let n = (n / 2).max(2);
+            let nf = n as f64;
+            let inv = 1.0 / (n * n) as f32;
             let r00 = rays.at(x, y);
             let r10 = rays.at(x + 1, y);
             let r01 = rays.at(x, y + 1);
