@@ -148,7 +148,8 @@ fn bundled_recordings_replay_to_clean_accurate_feeds() {
         println!("{}: {acc}", dir.display());
         assert_eq!(acc.coverage(), 1.0, "{}", dir.display());
         if rec.config.cameras.len() > 1 {
-            assert!(acc.disp_rms_mm <= 0.05, "{}: {acc}", dir.display());
+            // 640x480: the 30 mm tags are only ~14 px wide (1280x960 gives 0.01 mm).
+            assert!(acc.disp_rms_mm <= 0.1, "{}: {acc}", dir.display());
         } else {
             // One small camera: depth along the line of sight comes from the tag's size
             // alone; the vertical displacement is what it can deliver.
