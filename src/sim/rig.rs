@@ -267,6 +267,7 @@ impl SimRig {
     }
 
     /// Pose of camera `cam` at `t_ns` (after the bump from frame set `bump_at` on).
+    /// Panics if `cam >= camera_count()`.
     pub fn camera_pose(&self, cam: usize, t_ns: i64) -> Pose {
         match self.layout.bumped {
             Some((c, pose)) if c == cam && self.set_index_at(t_ns) >= self.params.bump_at as i64 => pose,
@@ -679,6 +680,8 @@ impl SimRig {
     /// only the beam's image region, blurs around it, then adds fresh noise (seeded by
     /// the rig's seed, the camera and `t_ns`, so the same call gives the same image).
     /// Motion blur and a hidden tag apply per the frame set nearest to `t_ns`.
+    ///
+    /// Panics if `cam >= camera_count()`.
     pub fn render(&self, cam: usize, t_ns: i64) -> GrayImage {
         let k = self.set_index_at(t_ns);
         let bg = self.background(cam, t_ns);
