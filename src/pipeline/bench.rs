@@ -34,6 +34,13 @@ pub struct BenchFigures {
     pub sets: u64,
     /// Frame sets per second of wall time (decode runs in parallel with the rest).
     pub sets_per_s: f64,
+    /// Frame sets per second in steady state: wall time from the end of the warm-up (the
+    /// first 10 % of each pass, at least one set: the first full-frame searches) to the last
+    /// feed line.
+    pub steady_sets_per_s: f64,
+    /// Frame sets per second the measurement alone sustains (1 / mean of detect + pose +
+    /// solve + output time): the rate if decoding cost nothing (it shares the cores).
+    pub measure_sets_per_s: f64,
     /// Mean decode time per frame set, ms (reader thread, overlapped).
     pub decode_ms: f64,
     /// Mean detection time per frame set, ms.
@@ -69,8 +76,17 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
         runs.push(run_once(&rec, true, opts.repeat)?);
     }
     if opts.json {
-        let speedup = (runs.len() == 2).then(|| runs[0].sets_per_s / runs[1].sets_per_s);
-        println!("{}", serde_json::json!({ "recording": opts.dir, "runs": runs, "speedup_vs_full_frame": speedup }));
+        let ratio = |f: fn(&BenchFigures) -> f64| (runs.len() == 2).then(|| f(&runs[0]) / f(&runs[1]));
+        println!(
+            "{}",
+            serde_json::json!({
+                "recording": opts.dir,
+                "runs": runs,
+                "speedup_vs_full_frame": ratio(|f| f.sets_per_s),
+                "steady_speedup_vs_full_frame": ratio(|f| f.steady_sets_per_s),
+                "measure_speedup_vs_full_frame": ratio(|f| f.measure_sets_per_s),
+            })
+        );
     } else {
         print_table(&opts.dir, &runs);
     }
@@ -89,9 +105,12 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
     let mut stats = Default::default();
     let mut sink = Vec::with_capacity(4096);
     let mut lines = Vec::new();
+    let (mut steady_sets, mut steady_s) = (0u64, 0.0);
     for pass in 0..repeat.max(1) {
+        let mut stamps = Vec::new();
         let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false }, |line, t, lat| {
             let t0 = std::time::Instant::now();
+            stamps.push(t0);
             sink.clear();
             serde_json::to_writer(&mut sink, line).expect("serialise");
             std::hint::black_box(&sink);
@@ -105,6 +124,11 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
                 lines.push(line.clone());
             }
         })?;
+        let warm = (stamps.len() / 10).max(1);
+        if stamps.len() > warm + 1 {
+            steady_sets += (stamps.len() - 1 - warm) as u64;
+            steady_s += stamps[stamps.len() - 1].duration_since(stamps[warm]).as_secs_f64();
+        }
         sets += summary.sets;
         wall += summary.wall_s;
         decode += summary.decode_s;
@@ -118,6 +142,8 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         sets,
         sets_per_s: sets as f64 / wall.max(1e-9),
+        steady_sets_per_s: if steady_s > 0.0 { steady_sets as f64 / steady_s } else { 0.0 },
+        measure_sets_per_s: n / (detect + pose + solve + output).max(1e-9),
         decode_ms: decode / n * 1e3,
         detect_ms: detect / n * 1e3,
         pose_ms: pose / n * 1e3,
@@ -135,9 +161,11 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [(&str, fn(&BenchFigures) -> String); 13] = [
+    let rows: [(&str, fn(&BenchFigures) -> String); 15] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
+        ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
+        ("measure-only frame sets/s", |f| format!("{:.1}", f.measure_sets_per_s)),
         ("decode ms/set (overlapped)", |f| format!("{:.2}", f.decode_ms)),
         ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
         ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
@@ -164,6 +192,8 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     }
     if runs.len() == 2 {
         println!("{:<28}{:>16.1}x", "speed-up vs full-frame", runs[0].sets_per_s / runs[1].sets_per_s);
+        println!("{:<28}{:>16.1}x", "speed-up, steady state", runs[0].steady_sets_per_s / runs[1].steady_sets_per_s);
+        println!("{:<28}{:>16.1}x", "speed-up, measure only", runs[0].measure_sets_per_s / runs[1].measure_sets_per_s);
     }
     for r in runs {
         if let Some(a) = &r.accuracy {

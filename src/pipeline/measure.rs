@@ -10,10 +10,10 @@ use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::Detection;
+use crate::detect::{refine_corners_with, Detection, Rect};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::RoiPlanner;
+use crate::pipeline::roi::{Plan, RoiPlanner, SWEEP_DECIMATE};
 use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
@@ -91,7 +91,9 @@ impl Measurement {
         };
         let opts = DetectorOptions {
             quad_decimate: config.measure.quad_decimate,
-            nthreads: config.measure.detector_threads.max(1),
+            // Tracking runs many small searches per frame and the cameras in parallel: the
+            // library's per-call worker pool would only add thread start-up and contention.
+            nthreads: if roi_tracking && config.measure.roi_tracking { 1 } else { config.measure.detector_threads.max(1) },
             subpixel: config.measure.refine_corners.then(RefineOptions::default),
             ..DetectorOptions::for_families(&families)
         };
@@ -106,7 +108,8 @@ impl Measurement {
                 intrinsics,
                 detector,
                 tracker: CameraPoseTracker::new(intrinsics, fixed),
-                roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s),
+                roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
+                    .with_phase(cameras.len() as u32),
             });
         }
         let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
@@ -292,14 +295,17 @@ impl Measurement {
         let run = |(cam, frame): (&mut CameraState, &crate::frame::Frame)| -> (usize, CameraDetections, bool, u64) {
             let plan = cam.roi.plan(frame.t_ns, &frame.image);
             let (dets, full, windows) = match plan {
-                None => (cam.detector.detect(&frame.image), true, 0),
-                Some(rects) => {
+                Plan::FullFrame => (cam.detector.detect(&frame.image), true, 0),
+                Plan::Track { windows, sweep } => {
                     let mut all = Vec::new();
-                    for r in &rects {
+                    for r in &windows {
                         all.extend(cam.detector.detect_window(&frame.image, *r));
                     }
+                    if !sweep.is_empty() {
+                        all.extend(sweep_search(cam, &frame.image, &sweep, &all));
+                    }
                     dedup_detections(&mut all);
-                    (all, false, rects.len() as u64)
+                    (all, false, (windows.len() + sweep.len()) as u64)
                 }
             };
             let mut out = CameraDetections { background: Vec::new(), specimen: Vec::new() };
@@ -342,6 +348,36 @@ impl Measurement {
         };
         Some(round_mm(mean(TagRole::Midspan)? - mean(TagRole::Support)?))
     }
+}
+
+/// Searches the sweep tiles of a frame with quad decimation [`SWEEP_DECIMATE`] and without
+/// sub-pixel refinement, keeps the tags not already found in the windows (`found`) and
+/// refines those with the detector's own refinement: corners as good as a full-frame
+/// search's, without refining every tracked tag twice. The detector's options are restored.
+fn sweep_search(cam: &mut CameraState, image: &crate::frame::GrayImage, tiles: &[Rect], found: &[Detection]) -> Vec<Detection> {
+    let decimate = cam.detector.options().quad_decimate;
+    let subpixel = cam.detector.options().subpixel.clone();
+    let decimated = cam.detector.set_quad_decimate(decimate.max(SWEEP_DECIMATE)).is_ok();
+    let _ = cam.detector.set_subpixel(None);
+    let mut new: Vec<Detection> = Vec::new();
+    for r in tiles {
+        for d in cam.detector.detect_window(image, *r) {
+            let known = found.iter().chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
+            if !known {
+                new.push(d);
+            }
+        }
+    }
+    if decimated {
+        let _ = cam.detector.set_quad_decimate(decimate);
+    }
+    if let Some(opts) = subpixel {
+        for d in &mut new {
+            refine_corners_with(image, d, Some(&cam.intrinsics), &opts);
+        }
+        let _ = cam.detector.set_subpixel(Some(opts));
+    }
+    new
 }
 
 /// Removes duplicate detections of one tag found in overlapping windows (keeps the one

@@ -2,25 +2,48 @@
 //!
 //! Once tags have been found, the next frame is searched only in windows around where
 //! each tag is expected: its last detected corners moved by its image velocity, grown by
-//! a margin that scales with the tag's size in the image and its motion. A full-frame
-//! search runs
-//! - at the start and whenever no tag is tracked;
-//! - at once when a tracked tag is lost (once; if it stays lost it is left to the sweep);
-//! - as a *sweep*: every frame also searches one horizontal strip of the image, the
-//!   strips (with an overlap larger than the biggest tag) covering the whole frame once
-//!   per `full_search_interval_s`, so new or re-appearing tags are picked up without a
-//!   frame that stalls on a full-frame search.
+//! a margin that scales with the tag's size in the image and its motion.
+//!
+//! - **Specimen tags** get a window every frame.
+//! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
+//!   is held, see `solve::tracker`), so after a settling period only a rotating subset of
+//!   [`BACKGROUND_TAGS_PER_FRAME`] of them is searched per frame; the tracker's bump
+//!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
+//!   the same frame set. When the background tags seen have shifted in the image (a bump),
+//!   all of them are searched again for [`SETTLE_FRAMES`] frames so the re-posing averages
+//!   every tag.
+//! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
+//!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
+//!   is larger than the biggest tag, so each tag lies wholly inside some tile). Tiles are
+//!   searched with quad decimation [`SWEEP_DECIMATE`] (the library still fits the quads on
+//!   the full image and corners are refined at full resolution), and the cameras'
+//!   tiles are staggered (`with_phase`) so no frame set stalls.
+//! - **Full frame** (full resolution) at the start, when the image size changes and
+//!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
+//!   frame at once (decimated), then the tag is left to the periodic sweep.
 //!
 //! Window corners are identical in quality to full-frame ones: the detector runs on a
-//! view into the same frame and maps corners back (see `detect::apriltag`).
+//! view into the same frame and maps corners back (see `detect::apriltag`), and sweep
+//! detections are refined with the same sub-pixel refinement (see `pipeline::measure`).
 
-use nalgebra::Point2;
+use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
 
 use crate::camera::{CameraIntrinsics, Pose};
 use crate::detect::{Detection, Rect};
 use crate::frame::GrayImage;
 use crate::tags::TagFamily;
+
+/// Background tags searched per frame once the camera has settled (a rotating subset).
+pub const BACKGROUND_TAGS_PER_FRAME: usize = 3;
+/// Frames during which every background tag is searched after the first full-frame search
+/// or a suspected bump (covers the pose tracker's averaging of the corners).
+pub const SETTLE_FRAMES: u32 = 12;
+/// Quad decimation of the sweep's tiles.
+pub const SWEEP_DECIMATE: f32 = 2.0;
+/// Median shift (px) of the background tags seen, against their last positions, taken as
+/// a possible bump (the pose tracker's default bump floor).
+const BACKGROUND_SHIFT_PX: f64 = 1.0;
 
 fn x1(r: &Rect) -> u32 {
     r.x + r.width
@@ -39,10 +62,29 @@ fn union(a: &Rect, b: &Rect) -> Rect {
 #[derive(Debug, Clone)]
 struct Track {
     corners: [Point2<f64>; 4],
-    velocity: nalgebra::Vector2<f64>,
+    velocity: Vector2<f64>,
     t_ns: i64,
-    /// Frames since last seen.
+    /// Searched frames since last seen.
     missed: u32,
+    /// A background tag (searched in rotation once settled).
+    background: bool,
+    /// Its window was searched in the current frame.
+    searched: bool,
+}
+
+/// What to search in one frame of one camera.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Plan {
+    /// The whole frame, at the detector's configured resolution.
+    FullFrame,
+    /// Windows around tracked tags (configured resolution) plus sweep tiles, searched with
+    /// quad decimation [`SWEEP_DECIMATE`] (possibly none this frame).
+    Track {
+        /// Windows around tracked tags.
+        windows: Vec<Rect>,
+        /// Tiles of the periodic sweep (or the whole frame after a lost tag).
+        sweep: Vec<Rect>,
+    },
 }
 
 /// Plans the searches of one camera.
@@ -53,11 +95,18 @@ pub struct RoiPlanner {
     height: u32,
     interval_ns: i64,
     tracks: HashMap<(TagFamily, u32), Track>,
-    last_full_ns: Option<i64>,
     full_requested: bool,
+    sweep_all_requested: bool,
     frame_dt_ns: i64,
     last_t_ns: Option<i64>,
-    sweep_index: u32,
+    /// Frames planned since the last full-frame search.
+    frame_index: u64,
+    /// Offset of this camera's sweep schedule (frames).
+    phase: u64,
+    /// Frames left during which every background tag is searched.
+    settle: u32,
+    /// Round-robin position among the background tags.
+    bg_cursor: usize,
 }
 
 impl RoiPlanner {
@@ -67,18 +116,28 @@ impl RoiPlanner {
             enabled,
             width: intrinsics.width,
             height: intrinsics.height,
-            interval_ns: (full_search_interval_s * 1e9) as i64,
+            interval_ns: (full_search_interval_s.max(0.0) * 1e9) as i64,
             tracks: HashMap::new(),
-            last_full_ns: None,
             full_requested: true,
+            sweep_all_requested: false,
             frame_dt_ns: 0,
             last_t_ns: None,
-            sweep_index: 0,
+            frame_index: 0,
+            phase: 0,
+            settle: SETTLE_FRAMES,
+            bg_cursor: 0,
         }
     }
 
-    /// The windows to search in the frame at `t_ns`, or `None` for a full-frame search.
-    pub fn plan(&mut self, t_ns: i64, image: &GrayImage) -> Option<Vec<Rect>> {
+    /// Offsets this camera's sweep schedule by `phase` frames (e.g. the camera's index), so
+    /// the cameras of a rig do not search their sweep tiles in the same frame set.
+    pub fn with_phase(mut self, phase: u32) -> Self {
+        self.phase = phase as u64;
+        self
+    }
+
+    /// The searches to run in the frame at `t_ns`.
+    pub fn plan(&mut self, t_ns: i64, image: &GrayImage) -> Plan {
         if let Some(last) = self.last_t_ns {
             let dt = t_ns - last;
             if dt > 0 {
@@ -91,52 +150,82 @@ impl RoiPlanner {
             self.height = image.height;
             self.full_requested = true;
         }
-        if !self.enabled || self.full_requested || self.tracks.is_empty() {
-            self.last_full_ns = Some(t_ns);
-            self.full_requested = false;
-            self.sweep_index = 0;
-            return None;
+        for tr in self.tracks.values_mut() {
+            tr.searched = false;
         }
-        let mut rects: Vec<Rect> = Vec::new();
+        if !self.enabled || self.full_requested || self.tracks.is_empty() {
+            self.full_requested = false;
+            self.sweep_all_requested = false;
+            self.frame_index = 0;
+            self.settle = SETTLE_FRAMES;
+            for tr in self.tracks.values_mut() {
+                tr.searched = true;
+            }
+            return Plan::FullFrame;
+        }
+        self.frame_index += 1;
+
+        // Which tracks get a window: every specimen tag, and the background tags in rotation.
+        let mut bg_keys: Vec<(TagFamily, u32)> = self.tracks.iter().filter(|(_, t)| t.background).map(|(k, _)| *k).collect();
+        bg_keys.sort_by_key(|(f, id)| (f.name(), *id));
+        let all_bg = self.settle > 0 || bg_keys.len() <= BACKGROUND_TAGS_PER_FRAME;
+        self.settle = self.settle.saturating_sub(1);
+        let mut chosen: Vec<(TagFamily, u32)> = Vec::new();
+        if all_bg {
+            chosen.extend(&bg_keys);
+        } else {
+            for i in 0..BACKGROUND_TAGS_PER_FRAME {
+                chosen.push(bg_keys[(self.bg_cursor + i) % bg_keys.len()]);
+            }
+            self.bg_cursor = (self.bg_cursor + BACKGROUND_TAGS_PER_FRAME) % bg_keys.len();
+            // A background tag missing from its last search is searched again at once.
+            chosen.extend(bg_keys.iter().filter(|k| self.tracks[*k].missed > 0));
+        }
+        let mut windows: Vec<Rect> = Vec::new();
         let mut max_extent: f64 = 0.0;
-        for tr in self.tracks.values() {
+        let (w, h) = (self.width, self.height);
+        for (key, tr) in self.tracks.iter_mut() {
+            let (lo, hi) = bounds(&tr.corners);
+            max_extent = max_extent.max((hi - lo).max());
+            if tr.background && !chosen.contains(key) {
+                continue;
+            }
+            tr.searched = true;
             let dt = (t_ns - tr.t_ns) as f64 * 1e-9;
             let shift = tr.velocity * dt;
-            let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-            for c in &tr.corners {
-                x0 = x0.min(c.x + shift.x);
-                y0 = y0.min(c.y + shift.y);
-                x1 = x1.max(c.x + shift.x);
-                y1 = y1.max(c.y + shift.y);
-            }
-            let extent = (x1 - x0).max(y1 - y0);
-            max_extent = max_extent.max(extent);
-            // Room for the white border and quiet zone, the motion and a tag missed a while.
-            let margin = 0.45 * extent + 8.0 + 2.0 * shift.norm() + 0.25 * extent * tr.missed as f64;
-            if let Some(r) = self.clip(x0 - margin, y0 - margin, x1 + margin, y1 + margin) {
-                rects.push(r);
+            let (lo, hi) = (lo + shift, hi + shift);
+            let extent = (hi - lo).max();
+            // Room for the white border and quiet zone (the detector thresholds in 4 px
+            // tiles), the motion, and a tag missed a while.
+            let margin = 0.3 * extent + 10.0 + 2.0 * shift.norm() + 0.25 * extent * tr.missed as f64;
+            if let Some(r) = clip(w, h, lo.x - margin, lo.y - margin, hi.x + margin, hi.y + margin) {
+                windows.push(r);
             }
         }
-        // The sweep: one strip per frame, the whole frame once per interval.
-        let frames_per_sweep = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).max(1) as u32 } else { 8 };
-        let overlap = (max_extent * 1.6 + 16.0).min(self.height as f64);
-        let strip_h = self.height as f64 / frames_per_sweep as f64;
-        let k = self.sweep_index % frames_per_sweep;
-        let y0 = k as f64 * strip_h - overlap / 2.0;
-        let y1 = (k + 1) as f64 * strip_h + overlap / 2.0;
-        if let Some(r) = self.clip(0.0, y0, self.width as f64, y1) {
-            rects.push(r);
-        }
-        self.sweep_index = (k + 1) % frames_per_sweep;
-        if self.sweep_index == 0 {
-            self.last_full_ns = Some(t_ns);
-        }
-        Some(merge_rects(rects))
+
+        // The sweep: the tiles of the whole frame once per interval, staggered by phase.
+        let overlap = 1.3 * max_extent + 16.0;
+        let tiles = sweep_tiles(w, h, overlap);
+        let sweep = if self.sweep_all_requested {
+            self.sweep_all_requested = false;
+            clip(w, h, 0.0, 0.0, w as f64, h as f64).into_iter().collect()
+        } else {
+            let frames_per_sweep = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).max(1) as u64 } else { 8 };
+            let n = tiles.len() as u64;
+            // This frame's share of the cycle: tiles i·n/F .. (i+1)·n/F.
+            let i = (self.frame_index + self.phase) % frames_per_sweep;
+            let (first, end) = ((i * n / frames_per_sweep) as usize, ((i + 1) * n / frames_per_sweep) as usize);
+            let out: Vec<Rect> = tiles.get(first..end).map(|t| t.to_vec()).unwrap_or_default();
+            out
+        };
+        Plan::Track { windows: merge_rects(windows), sweep }
     }
 
-    /// Records what the frame at `t_ns` showed, for the next plan. Tags expected but not
-    /// seen trigger one full-frame search; a tag missing for a second of frames is dropped
-    /// from tracking (the sweep picks it up again).
+    /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but
+    /// not seen triggers one decimated sweep of the whole frame in the next frame; a tag
+    /// missing for a second of frames is dropped from tracking (the sweep picks it up
+    /// again). Background tags whose positions shifted (a bump) are all searched again for
+    /// a while.
     pub fn observe(
         &mut self,
         t_ns: i64,
@@ -147,13 +236,17 @@ impl RoiPlanner {
         _size_mm: f64,
     ) {
         let mut seen = std::collections::HashSet::new();
-        for d in background.iter().chain(specimen) {
+        let mut bg_shifts = Vec::new();
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
             let key = (d.family, d.id);
             seen.insert(key);
             let c_new = centre(&d.corners);
             match self.tracks.get_mut(&key) {
                 Some(tr) => {
                     let dt = (t_ns - tr.t_ns) as f64 * 1e-9;
+                    if is_bg {
+                        bg_shifts.push((c_new - (centre(&tr.corners) + tr.velocity * dt.max(0.0))).norm());
+                    }
                     if dt > 0.0 {
                         let v = (c_new - centre(&tr.corners)) / dt;
                         tr.velocity = if tr.missed == 0 { tr.velocity * 0.5 + v * 0.5 } else { v };
@@ -161,16 +254,26 @@ impl RoiPlanner {
                     tr.corners = d.corners;
                     tr.t_ns = t_ns;
                     tr.missed = 0;
+                    tr.background = is_bg;
                 }
                 None => {
-                    self.tracks.insert(key, Track { corners: d.corners, velocity: nalgebra::Vector2::zeros(), t_ns, missed: 0 });
+                    self.tracks.insert(
+                        key,
+                        Track { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+                    );
                 }
+            }
+        }
+        if !bg_shifts.is_empty() {
+            bg_shifts.sort_by(f64::total_cmp);
+            if bg_shifts[bg_shifts.len() / 2] > BACKGROUND_SHIFT_PX {
+                self.settle = SETTLE_FRAMES;
             }
         }
         let max_missed = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).clamp(2, 60) as u32 } else { 10 };
         let mut lost_now = false;
         self.tracks.retain(|k, tr| {
-            if seen.contains(k) {
+            if seen.contains(k) || !tr.searched {
                 return true;
             }
             tr.missed += 1;
@@ -180,25 +283,56 @@ impl RoiPlanner {
             tr.missed <= max_missed
         });
         if lost_now {
-            self.full_requested = true;
+            self.sweep_all_requested = true;
         }
     }
 }
 
-impl RoiPlanner {
-    fn clip(&self, x0: f64, y0: f64, x1: f64, y1: f64) -> Option<Rect> {
-        let cx0 = x0.floor().max(0.0) as u32;
-        let cy0 = y0.floor().max(0.0) as u32;
-        let cx1 = (x1.ceil().max(0.0) as u32).min(self.width);
-        let cy1 = (y1.ceil().max(0.0) as u32).min(self.height);
-        (cx1 > cx0 + 8 && cy1 > cy0 + 8).then_some(Rect { x: cx0, y: cy0, width: cx1 - cx0, height: cy1 - cy0 })
+/// The sweep's tiles of a `width` × `height` frame: a grid whose cells are about three
+/// times `overlap` wide, each grown by `overlap` (so any tag smaller than the overlap lies
+/// wholly inside some tile), in row-major order.
+pub fn sweep_tiles(width: u32, height: u32, overlap: f64) -> Vec<Rect> {
+    let overlap = overlap.max(8.0);
+    let cell = 3.0 * overlap;
+    let nx = ((width as f64 / cell).ceil() as u32).max(1);
+    let ny = ((height as f64 / cell).ceil() as u32).max(1);
+    let (cw, ch) = (width as f64 / nx as f64, height as f64 / ny as f64);
+    let mut out = Vec::with_capacity((nx * ny) as usize);
+    for j in 0..ny {
+        for i in 0..nx {
+            let (x0, y0) = (i as f64 * cw - overlap / 2.0, j as f64 * ch - overlap / 2.0);
+            if let Some(r) = clip(width, height, x0, y0, x0 + cw + overlap, y0 + ch + overlap) {
+                out.push(r);
+            }
+        }
     }
+    out
 }
 
-fn centre(c: &[Point2<f64>; 4]) -> nalgebra::Vector2<f64> {
+fn clip(width: u32, height: u32, x0: f64, y0: f64, x1: f64, y1: f64) -> Option<Rect> {
+    if !(x0.is_finite() && y0.is_finite() && x1.is_finite() && y1.is_finite()) {
+        return None;
+    }
+    let cx0 = x0.floor().max(0.0) as u32;
+    let cy0 = y0.floor().max(0.0) as u32;
+    let cx1 = (x1.ceil().max(0.0) as u32).min(width);
+    let cy1 = (y1.ceil().max(0.0) as u32).min(height);
+    (cx1 > cx0 + 8 && cy1 > cy0 + 8).then_some(Rect { x: cx0, y: cy0, width: cx1 - cx0, height: cy1 - cy0 })
+}
+
+fn bounds(c: &[Point2<f64>; 4]) -> (Vector2<f64>, Vector2<f64>) {
+    let mut lo = Vector2::new(f64::MAX, f64::MAX);
+    let mut hi = Vector2::new(f64::MIN, f64::MIN);
+    for p in c {
+        lo = lo.inf(&p.coords);
+        hi = hi.sup(&p.coords);
+    }
+    (lo, hi)
+}
+
+fn centre(c: &[Point2<f64>; 4]) -> Vector2<f64> {
     (c[0].coords + c[1].coords + c[2].coords + c[3].coords) / 4.0
 }
-
 /// Merges overlapping rectangles where the merged one costs no more pixels than the two
 /// apart (overlapping windows are otherwise searched as they are: each tag lies wholly
 /// inside its own window, and detections found twice are de-duplicated).
@@ -239,56 +373,136 @@ mod tests {
         }
     }
 
+    fn bg(id: u32, x: f64, y: f64, s: f64) -> Detection {
+        Detection { family: TagFamily::Tag25h9, ..det(id, x, y, s) }
+    }
+
     fn intr() -> CameraIntrinsics {
         CameraIntrinsics { width: 1000, height: 800, fx: 1000.0, fy: 1000.0, cx: 499.5, cy: 399.5, dist: [0.0; 5] }
     }
 
-    #[test]
-    fn first_frame_is_full_then_windows_with_a_sweep_strip() {
-        let img = GrayImage::new(1000, 800);
-        let mut p = RoiPlanner::new(intr(), true, 1.0);
-        assert!(p.plan(0, &img).is_none());
-        p.observe(0, None, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)], &[], 30.0);
-        let rects = p.plan(33_000_000, &img).expect("windows");
-        // Both tags are inside some window.
-        for (x, y) in [(120.0, 120.0), (620.0, 520.0)] {
-            assert!(rects
-                .iter()
-                .any(|r| (r.x as f64) < x - 30.0 && (x1(r) as f64) > x + 30.0 && (r.y as f64) < y - 30.0 && (y1(r) as f64) > y + 30.0));
+    fn inside(rects: &[Rect], x: f64, y: f64, half: f64) -> bool {
+        rects.iter().any(|r| (r.x as f64) < x - half && (x1(r) as f64) > x + half && (r.y as f64) < y - half && (y1(r) as f64) > y + half)
+    }
+
+    fn track(plan: Plan) -> (Vec<Rect>, Vec<Rect>) {
+        match plan {
+            Plan::Track { windows, sweep } => (windows, sweep),
+            Plan::FullFrame => panic!("expected windows, got a full-frame search"),
         }
-        let area: u64 = rects.iter().map(|r| r.width as u64 * r.height as u64).sum();
-        assert!(area < 1000 * 800 / 2, "windows cover {area} px");
     }
 
     #[test]
-    fn a_lost_tag_triggers_one_full_frame_search() {
+    fn first_frame_is_full_then_small_windows() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        assert_eq!(p.plan(0, &img), Plan::FullFrame);
+        p.observe(0, None, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)], &[], 30.0);
+        let (windows, _) = track(p.plan(33_000_000, &img));
+        assert!(inside(&windows, 120.0, 120.0, 28.0) && inside(&windows, 620.0, 520.0, 28.0), "{windows:?}");
+        let area: u64 = windows.iter().map(Rect::area).sum();
+        assert!(area < 2 * 100 * 100, "windows cover {area} px");
+    }
+
+    #[test]
+    fn a_lost_tag_triggers_one_sweep_of_the_whole_frame() {
         let img = GrayImage::new(1000, 800);
         let mut p = RoiPlanner::new(intr(), true, 1.0);
         p.plan(0, &img);
         p.observe(0, None, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)], &[], 30.0);
-        assert!(p.plan(33_000_000, &img).is_some());
+        p.plan(33_000_000, &img);
         p.observe(33_000_000, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
-        assert!(p.plan(66_000_000, &img).is_none(), "lost tag → full frame");
+        let (_, sweep) = track(p.plan(66_000_000, &img));
+        assert_eq!(sweep, vec![Rect { x: 0, y: 0, width: 1000, height: 800 }], "lost tag → whole frame swept");
         p.observe(66_000_000, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
-        assert!(p.plan(99_000_000, &img).is_some(), "still lost → back to windows + sweep");
+        let (_, sweep) = track(p.plan(99_000_000, &img));
+        assert!(sweep.iter().map(Rect::area).sum::<u64>() < 1000 * 800 / 4, "still lost → back to the periodic sweep");
     }
 
     #[test]
-    fn sweep_covers_the_whole_frame_within_the_interval() {
+    fn sweep_tiles_cover_the_whole_frame_within_the_interval_and_spread() {
         let img = GrayImage::new(1000, 800);
-        let mut p = RoiPlanner::new(intr(), true, 0.3);
+        let mut p = RoiPlanner::new(intr(), true, 0.5).with_phase(1);
         p.plan(0, &img);
-        let mut covered = vec![false; 800];
-        for k in 1..=12 {
-            let t = k * 33_000_000;
-            p.observe(t - 33_000_000, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
-            for r in p.plan(t, &img).unwrap() {
-                if r.x == 0 && r.width == 1000 {
-                    covered[r.y as usize..y1(&r) as usize].iter_mut().for_each(|c| *c = true);
+        let mut covered = vec![false; 1000 * 800];
+        let mut worst = 0u64;
+        let frames = 16; // 0.5 s at 30 fps: one sweep cycle
+        for k in 1..=frames {
+            let t = k * 33_333_333;
+            p.observe(t - 33_333_333, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
+            let (_, sweep) = track(p.plan(t, &img));
+            worst = worst.max(sweep.iter().map(Rect::area).sum());
+            for r in &sweep {
+                for y in r.y..y1(r) {
+                    covered[(y * 1000 + r.x) as usize..(y * 1000 + x1(r)) as usize].iter_mut().for_each(|c| *c = true);
                 }
             }
         }
-        assert!(covered.iter().all(|&c| c), "every row swept");
+        assert!(covered.iter().all(|&c| c), "every pixel swept");
+        assert!(worst < 1000 * 800 / 3, "at most a fraction of the frame per frame: {worst} px");
+    }
+
+    #[test]
+    fn tiles_overlap_by_more_than_a_tag() {
+        let tiles = sweep_tiles(1920, 1080, 120.0);
+        assert!(tiles.len() > 4);
+        // Any 120 px square lies wholly inside some tile.
+        for y in (0..=960).step_by(37) {
+            for x in (0..=1800).step_by(41) {
+                let t = Rect { x, y, width: 120, height: 120 };
+                assert!(tiles.iter().any(|r| r.x <= t.x && r.y <= t.y && x1(r) >= x1(&t) && y1(r) >= y1(&t)), "{t:?} in no tile");
+            }
+        }
+    }
+
+    #[test]
+    fn background_tags_rotate_once_settled_and_all_return_after_a_shift() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
+        let sp = [det(1, 400.0, 300.0, 40.0)];
+        let mut t = 0;
+        p.observe(t, None, &bgs, &sp, &[], 30.0);
+        let windows_with_bg = |p: &mut RoiPlanner, t: i64| {
+            let (w, _) = track(p.plan(t, &img));
+            (0..8).filter(|&i| inside(&w, 70.0 + 110.0 * i as f64, 720.0, 21.0)).count()
+        };
+        let mut counts = Vec::new();
+        for _ in 0..(SETTLE_FRAMES + 8) {
+            t += 33_000_000;
+            counts.push(windows_with_bg(&mut p, t));
+            // Only the searched tags are reported (the others were not searched).
+            p.observe(t, None, &bgs, &sp, &[], 30.0);
+        }
+        assert!(counts[..SETTLE_FRAMES as usize].iter().all(|&c| c == 8), "all while settling: {counts:?}");
+        assert!(counts[SETTLE_FRAMES as usize + 1..].iter().all(|&c| c < 8), "a subset once settled: {counts:?}");
+        // A bump: the background tags seen move by 3 px → all searched again.
+        let bumped: Vec<Detection> = (0..8).map(|i| bg(i, 53.0 + 110.0 * i as f64, 702.0, 40.0)).collect();
+        t += 33_000_000;
+        p.plan(t, &img);
+        p.observe(t, None, &bumped[..3], &sp, &[], 30.0);
+        t += 33_000_000;
+        assert_eq!(windows_with_bg(&mut p, t), 8);
+    }
+
+    #[test]
+    fn unsearched_background_tags_are_not_lost() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
+        p.observe(0, None, &bgs, &[], &[], 30.0);
+        for k in 1..=(SETTLE_FRAMES as i64 + 40) {
+            let t = k * 33_000_000;
+            let (w, sweep) = track(p.plan(t, &img));
+            assert!(k <= 2 || sweep.iter().all(|r| r.area() < 1000 * 800 / 2), "frame {k}: no whole-frame sweep");
+            // Report exactly the tags whose windows were searched.
+            let seen: Vec<Detection> =
+                bgs.iter().filter(|d| inside(&w, d.corners[0].x + 20.0, d.corners[0].y - 20.0, 21.0)).cloned().collect();
+            p.observe(t, None, &seen, &[], &[], 30.0);
+        }
+        assert_eq!(p.tracks.len(), 8);
     }
 
     #[test]
