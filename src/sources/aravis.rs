@@ -321,17 +321,7 @@ pub fn spawn(
             run_capture_loop(&mut em, &label, session, || Session::open(&id, &cfg, &opts), timing, &stop);
         })
         .map_err(|e| SourceError::Thread { camera: index, name: name.clone(), message: e.to_string() })?;
-    match ready_rx.recv() {
-        Ok(Ok(())) => Ok(LiveCamera { thread, stats }),
-        Ok(Err(message)) => {
-            let _ = thread.join();
-            Err(SourceError::Open { camera: index, name, spec: source, message })
-        }
-        Err(_) => {
-            let _ = thread.join();
-            Err(SourceError::Thread { camera: index, name, message: "capture thread ended while opening".into() })
-        }
-    }
+    crate::sources::live::await_open(index, name, source, thread, stats, ready_rx)
 }
 
 #[cfg(test)]

@@ -195,6 +195,29 @@ pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, s
     }
 }
 
+/// Waits for a capture thread to report that its device is open (`Ok`) or why it could
+/// not be opened (`Err(message)`), and turns that into the running camera or the error.
+pub fn await_open(
+    index: usize,
+    name: String,
+    source: String,
+    thread: JoinHandle<()>,
+    stats: Arc<CaptureStats>,
+    ready: std::sync::mpsc::Receiver<Result<(), String>>,
+) -> Result<LiveCamera, SourceError> {
+    match ready.recv() {
+        Ok(Ok(())) => Ok(LiveCamera { thread, stats }),
+        Ok(Err(message)) => {
+            let _ = thread.join();
+            Err(SourceError::Open { camera: index, name, spec: source, message })
+        }
+        Err(_) => {
+            let _ = thread.join();
+            Err(SourceError::Thread { camera: index, name, message: "capture thread ended while opening".into() })
+        }
+    }
+}
+
 /// Reconnect delays: 0.5 s doubling to 10 s, reset after a successful reopen.
 #[derive(Debug, Clone)]
 pub struct Backoff {

@@ -115,7 +115,8 @@ pub fn spawn_live_camera(
 /// served over Modbus TCP on loopback (f32 load at input register 0, f32 stroke at 2).
 /// Sized to keep up on a 2-core machine (rendering and measuring share the cores).
 pub fn demo_config() -> Config {
-    let params = SimParams { cameras: 3, width: 640, height: 480, fps: 5.0, frame_sets: 60, rest_frames: 5, ..SimParams::default() };
+    let params =
+        SimParams { cameras: 3, width: 640, height: 480, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
     let rig = SimRig::new(&params).expect("demo parameters are valid");
     let mut config = rig.config();
     config.utm = Some(UtmConfig {
