@@ -73,12 +73,7 @@ impl PoseProblem for CameraProblem<'_> {
         for tag in &self.tags {
             for k in 0..4 {
                 let (r, j) = camera_point_terms(self.intrinsics, pose, &tag.world[k], &tag.pixels[k])?;
-                e.ssr += r.norm_squared();
-                e.residuals += 2;
-                if with_jacobian {
-                    e.jtj += j.transpose() * j;
-                    e.jtr += j.transpose() * r;
-                }
+                e.add(&r, &j, with_jacobian);
             }
         }
         Some(e)

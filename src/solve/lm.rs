@@ -33,6 +33,16 @@ impl Evaluation {
     pub fn zero() -> Self {
         Self { jtj: Matrix6::zeros(), jtr: Vector6::zeros(), ssr: 0.0, residuals: 0 }
     }
+
+    /// Accumulates one 2-D residual `r` (and, when `with_jacobian`, its Jacobian `j`).
+    pub fn add(&mut self, r: &nalgebra::Vector2<f64>, j: &nalgebra::Matrix2x6<f64>, with_jacobian: bool) {
+        self.ssr += r.norm_squared();
+        self.residuals += 2;
+        if with_jacobian {
+            self.jtj += j.transpose() * j;
+            self.jtr += j.transpose() * r;
+        }
+    }
 }
 
 /// A least-squares problem over one rigid pose.

@@ -95,12 +95,7 @@ impl PoseProblem for TagProblem<'_> {
         for (_, view) in &self.views {
             for k in 0..4 {
                 let (r, j, _) = tag_corner_terms(view, pose, &self.corners[k], &view.corners[k])?;
-                e.ssr += r.norm_squared();
-                e.residuals += 2;
-                if with_jacobian {
-                    e.jtj += j.transpose() * j;
-                    e.jtr += j.transpose() * r;
-                }
+                e.add(&r, &j, with_jacobian);
             }
         }
         Some(e)
