@@ -13,7 +13,7 @@ use crate::detect::refine::RefineOptions;
 use crate::detect::{refine_corners_with, Detection, Rect};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::{Plan, RoiPlanner, SWEEP_DECIMATE};
+use crate::pipeline::roi::{Plan, RoiPlanner, SWEEP_DECIMATE, WINDOW_DECIMATE};
 use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
@@ -298,8 +298,13 @@ impl Measurement {
                 Plan::FullFrame => (cam.detector.detect(&frame.image), true, 0),
                 Plan::Track { windows, sweep } => {
                     let mut all = Vec::new();
+                    let decimate = cam.detector.options().quad_decimate;
+                    let decimated = WINDOW_DECIMATE > decimate && cam.detector.set_quad_decimate(WINDOW_DECIMATE).is_ok();
                     for r in &windows {
                         all.extend(cam.detector.detect_window(&frame.image, *r));
+                    }
+                    if decimated {
+                        let _ = cam.detector.set_quad_decimate(decimate);
                     }
                     if !sweep.is_empty() {
                         all.extend(sweep_search(cam, &frame.image, &sweep, &all));

@@ -41,6 +41,10 @@ pub const BACKGROUND_TAGS_PER_FRAME: usize = 3;
 pub const SETTLE_FRAMES: u32 = 12;
 /// Quad decimation of the sweep's tiles.
 pub const SWEEP_DECIMATE: f32 = 2.0;
+/// Quad decimation of the windows around tracked tags: the library fits the quads on the
+/// full image and the corners are refined at full resolution, so only the quad search (the
+/// costliest part on a textured specimen) runs on fewer pixels.
+pub const WINDOW_DECIMATE: f32 = 2.0;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
