@@ -13,7 +13,7 @@ use crate::detect::refine::RefineOptions;
 use crate::detect::{refine_corners_with, Detection, Rect};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::{Plan, RoiPlanner, SWEEP_DECIMATE, WINDOW_DECIMATE};
+use crate::pipeline::roi::{Plan, RoiPlanner};
 use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
@@ -296,10 +296,10 @@ impl Measurement {
             let plan = cam.roi.plan(frame.t_ns, &frame.image);
             let (dets, full, windows) = match plan {
                 Plan::FullFrame => (cam.detector.detect(&frame.image), true, 0),
-                Plan::Track { windows, sweep } => {
+                Plan::Track { decimate: search_decimate, windows, sweep } => {
                     let mut all = Vec::new();
                     let decimate = cam.detector.options().quad_decimate;
-                    let decimated = WINDOW_DECIMATE > decimate && cam.detector.set_quad_decimate(WINDOW_DECIMATE).is_ok();
+                    let decimated = search_decimate > decimate && cam.detector.set_quad_decimate(search_decimate).is_ok();
                     for r in &windows {
                         all.extend(cam.detector.detect_window(&frame.image, *r));
                     }
@@ -307,7 +307,7 @@ impl Measurement {
                         let _ = cam.detector.set_quad_decimate(decimate);
                     }
                     if !sweep.is_empty() {
-                        all.extend(sweep_search(cam, &frame.image, &sweep, &all));
+                        all.extend(sweep_search(cam, &frame.image, &sweep, &all, search_decimate));
                     }
                     dedup_detections(&mut all);
                     (all, false, (windows.len() + sweep.len()) as u64)
@@ -355,14 +355,21 @@ impl Measurement {
     }
 }
 
-/// Searches the sweep tiles of a frame with quad decimation [`SWEEP_DECIMATE`] and without
+/// Searches the sweep tiles of a frame with quad decimation `search_decimate` (at least the
+/// configured one) and without
 /// sub-pixel refinement, keeps the tags not already found in the windows (`found`) and
 /// refines those with the detector's own refinement: corners as good as a full-frame
 /// search's, without refining every tracked tag twice. The detector's options are restored.
-fn sweep_search(cam: &mut CameraState, image: &crate::frame::GrayImage, tiles: &[Rect], found: &[Detection]) -> Vec<Detection> {
+fn sweep_search(
+    cam: &mut CameraState,
+    image: &crate::frame::GrayImage,
+    tiles: &[Rect],
+    found: &[Detection],
+    search_decimate: f32,
+) -> Vec<Detection> {
     let decimate = cam.detector.options().quad_decimate;
     let subpixel = cam.detector.options().subpixel.clone();
-    let decimated = cam.detector.set_quad_decimate(decimate.max(SWEEP_DECIMATE)).is_ok();
+    let decimated = cam.detector.set_quad_decimate(decimate.max(search_decimate)).is_ok();
     let _ = cam.detector.set_subpixel(None);
     let mut new: Vec<Detection> = Vec::new();
     for r in tiles {

@@ -15,7 +15,7 @@
 //! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
 //!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
 //!   is larger than the biggest tag, so each tag lies wholly inside some tile). Tiles are
-//!   searched with quad decimation [`SWEEP_DECIMATE`] (the library still fits the quads on
+//!   searched with quad decimation [`SEARCH_DECIMATE`] when the tags are big enough (the library still fits the quads on
 //!   the full image and corners are refined at full resolution), and the cameras'
 //!   tiles are staggered (`with_phase`) so no frame set stalls.
 //! - **Full frame** (full resolution) at the start, when the image size changes and
@@ -39,12 +39,14 @@ pub const BACKGROUND_TAGS_PER_FRAME: usize = 3;
 /// Frames during which every background tag is searched after the first full-frame search
 /// or a suspected bump (covers the pose tracker's averaging of the corners).
 pub const SETTLE_FRAMES: u32 = 12;
-/// Quad decimation of the sweep's tiles.
-pub const SWEEP_DECIMATE: f32 = 2.0;
-/// Quad decimation of the windows around tracked tags: the library fits the quads on the
-/// full image and the corners are refined at full resolution, so only the quad search (the
-/// costliest part on a textured specimen) runs on fewer pixels.
-pub const WINDOW_DECIMATE: f32 = 2.0;
+/// Quad decimation of the windows and the sweep's tiles when every tracked tag is at least
+/// [`MIN_EXTENT_TO_DECIMATE`] px across: the library fits the quads on the full image and
+/// the corners are refined at full resolution, so only the quad search (the costliest part
+/// on a textured specimen) runs on fewer pixels.
+pub const SEARCH_DECIMATE: f32 = 2.0;
+/// Smallest tag extent (px, bounding box) for which searches are decimated; smaller tags
+/// would be lost at half resolution, so such cameras search at the configured resolution.
+pub const MIN_EXTENT_TO_DECIMATE: f64 = 48.0;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
@@ -81,9 +83,11 @@ struct Track {
 pub enum Plan {
     /// The whole frame, at the detector's configured resolution.
     FullFrame,
-    /// Windows around tracked tags (configured resolution) plus sweep tiles, searched with
-    /// quad decimation [`SWEEP_DECIMATE`] (possibly none this frame).
+    /// Windows around tracked tags plus sweep tiles (possibly none this frame).
     Track {
+        /// Quad decimation to search them with ([`SEARCH_DECIMATE`] for tags big enough,
+        /// else 1: the configured resolution).
+        decimate: f32,
         /// Windows around tracked tags.
         windows: Vec<Rect>,
         /// Tiles of the periodic sweep (or the whole frame after a lost tag).
@@ -187,10 +191,12 @@ impl RoiPlanner {
         }
         let mut windows: Vec<Rect> = Vec::new();
         let mut max_extent: f64 = 0.0;
+        let mut min_extent: f64 = f64::INFINITY;
         let (w, h) = (self.width, self.height);
         for (key, tr) in self.tracks.iter_mut() {
             let (lo, hi) = bounds(&tr.corners);
             max_extent = max_extent.max((hi - lo).max());
+            min_extent = min_extent.min((hi - lo).max());
             if tr.background && !chosen.contains(key) {
                 continue;
             }
@@ -222,7 +228,8 @@ impl RoiPlanner {
             let out: Vec<Rect> = tiles.get(first..end).map(|t| t.to_vec()).unwrap_or_default();
             out
         };
-        Plan::Track { windows: merge_rects(windows), sweep }
+        let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
+        Plan::Track { decimate, windows: merge_rects(windows), sweep }
     }
 
     /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but
@@ -391,7 +398,7 @@ mod tests {
 
     fn track(plan: Plan) -> (Vec<Rect>, Vec<Rect>) {
         match plan {
-            Plan::Track { windows, sweep } => (windows, sweep),
+            Plan::Track { windows, sweep, .. } => (windows, sweep),
             Plan::FullFrame => panic!("expected windows, got a full-frame search"),
         }
     }
