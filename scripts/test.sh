@@ -4,4 +4,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 export TAGDEFLECT_PYTHON="$PWD/target/test-venv/bin/python"
-cargo test --locked -- --test-threads 2
+cargo test --locked --no-fail-fast -- --test-threads 2

@@ -580,17 +580,26 @@ impl Config {
 }
 
 fn toml_error(loc: &Locator<'_>, e: &toml::de::Error) -> ConfigError {
-    // toml's message already says what is wrong; keep its first line and our location.
+    // toml's message already says what is wrong; add the location and the key.
     let msg = e.message().trim().to_string();
-    let key = extract_key(&msg);
+    let key = field_in_message(&msg).or_else(|| e.span().and_then(|s| key_on_line(loc.text, s.start)));
     ConfigError { file: loc.file.to_path_buf(), line: e.span().map(|s| loc.line(s)), key, message: msg }
 }
 
-/// Pulls a key name out of serde messages like "unknown field `foo`" / "missing field `bar`".
-fn extract_key(msg: &str) -> Option<String> {
-    let start = msg.find('`')? + 1;
-    let len = msg[start..].find('`')?;
-    Some(msg[start..start + len].to_string())
+/// The field named by serde's "unknown field `x`" / "missing field `x`" / "duplicate field `x`".
+fn field_in_message(msg: &str) -> Option<String> {
+    let rest = ["unknown field `", "missing field `", "duplicate field `"].iter().find_map(|p| msg.find(p).map(|i| &msg[i + p.len()..]))?;
+    Some(rest[..rest.find('`')?].to_string())
+}
+
+/// The `key` of a `key = value` line holding byte offset `at`.
+fn key_on_line(text: &str, at: usize) -> Option<String> {
+    let at = at.min(text.len());
+    let start = text[..at].rfind('\n').map_or(0, |i| i + 1);
+    let line = text[start..].lines().next()?;
+    let (k, _) = line.split_once('=')?;
+    let k = k.trim().trim_matches('"');
+    (!k.is_empty() && k.chars().all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c))).then(|| k.to_string())
 }
 
 fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCamera>) -> Result<CameraConfig, ConfigError> {
