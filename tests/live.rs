@@ -263,3 +263,30 @@ fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
     assert!(lines.len() >= 4 && lines.iter().all(|l| l.load_kn.is_none() && l.utm.is_none()));
     common::feedcheck_text(&stdout, &cfg_path);
 }
+
+#[test]
+fn record_then_replay_and_check_a_live_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 2, width: 400, height: 300, fps: 5.0, ..SimParams::default() };
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, SimRig::new(&params).unwrap().config().to_toml_string()).unwrap();
+    let rec = dir.path().join("rec");
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["record", "--config", cfg_path.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--duration-s", "2"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.stdout.is_empty(), "record writes no feed");
+    let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap().lines().count();
+    assert!(frames >= 10, "{frames} frames recorded in 2 s at 5 fps x 2 cameras");
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["replay", rec.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.lines().count() * 2 >= frames - 2, "about one line per two frames");
+    common::feedcheck_text(&text, &rec.join("tagdeflect.toml"));
+    // check --config opens the (simulated) sources and poses every camera.
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["check", "--config", cfg_path.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(report.matches("background reprojection RMS").count(), 2, "{report}");
+}
