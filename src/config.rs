@@ -526,7 +526,20 @@ impl Config {
         let bg = raw.background.ok_or_else(|| loc.err(None, "background", "a [background] section is required"))?;
         let background = resolve_background(&loc, bg)?;
         let sp = raw.specimen.ok_or_else(|| loc.err(None, "specimen", "a [specimen] section is required"))?;
+        let sp_span = sp.span();
         let specimen = resolve_specimen(&loc, sp)?;
+        if specimen.family == background.family {
+            if let Some(t) = specimen.tags.iter().find(|t| background.tags.iter().any(|b| b.id == t.id)) {
+                return Err(loc.err(
+                    Some(sp_span),
+                    "specimen.tag.id",
+                    format!(
+                        "id {} is both a background and a specimen tag of {}: with one family for both, ids must differ",
+                        t.id, specimen.family
+                    ),
+                ));
+            }
+        }
 
         let utm = match raw.utm {
             None => None,

@@ -168,6 +168,17 @@ fn background_corners_must_be_four_and_a_square_of_the_configured_size() {
 }
 
 #[test]
+fn one_family_for_both_sets_needs_distinct_ids() {
+    let text = GOOD.replacen("family = \"tag25h9\"", "family = \"tag36h11\"", 1).replacen("id = 3\ncorners_mm", "id = 7\ncorners_mm", 1);
+    let e = parse(&text).unwrap_err();
+    assert!(e.message.contains("id 7 is both a background and a specimen tag of tag36h11"), "{e}");
+    assert!(e.line.is_some());
+    // Distinct ids in one family are fine.
+    let ok = GOOD.replacen("family = \"tag25h9\"", "family = \"tag36h11\"", 1);
+    parse(&ok).unwrap();
+}
+
+#[test]
 fn role_must_be_support_or_midspan() {
     let e = bad("role = \"midspan\"", "role = \"centre\"");
     assert!(e.message.contains("unknown variant"), "{e}");
