@@ -550,13 +550,13 @@ impl Config {
             Some(m) => {
                 let span = m.span();
                 let m = m.into_inner();
-                if !(m.quad_decimate >= 1.0) {
+                if !(m.quad_decimate.is_finite() && m.quad_decimate >= 1.0) {
                     return Err(loc.err(Some(span), "measure.quad_decimate", "must be >= 1.0 (1 = full resolution)"));
                 }
                 if m.detector_threads == 0 {
                     return Err(loc.err(Some(span), "measure.detector_threads", "must be >= 1"));
                 }
-                if !(m.full_search_interval_s > 0.0) {
+                if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0) {
                     return Err(loc.err(Some(span), "measure.full_search_interval_s", "must be > 0 seconds"));
                 }
                 m
@@ -632,7 +632,7 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
         ));
     }
     if let Some(f) = &c.fps {
-        if !(*f.get_ref() > 0.0) {
+        if !(f.get_ref().is_finite() && *f.get_ref() > 0.0) {
             return Err(loc.err(Some(f.span()), &key("fps"), "must be a positive frame rate"));
         }
     }

@@ -18,6 +18,8 @@ struct Cli {
     command: Command,
 }
 
+// Parsed once per process: the size of the largest variant does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     /// The live daemon: cameras + UTM, feed to the configured outputs, until SIGTERM/SIGINT.
@@ -117,7 +119,7 @@ fn init_logging() {
     }
 }
 
-fn load_config(path: &PathBuf) -> Result<Config> {
+fn load_config(path: &std::path::Path) -> Result<Config> {
     Ok(Config::load(path)?)
 }
 
@@ -131,7 +133,7 @@ fn run(cli: Cli) -> Result<()> {
             pipeline::live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
         }
         Command::Replay { dir, config, realtime, full_frame } => {
-            let cfg = config.as_ref().map(load_config).transpose()?;
+            let cfg = config.as_deref().map(load_config).transpose()?;
             if realtime {
                 pipeline::live::replay_realtime(&dir, cfg, full_frame)
             } else {

@@ -159,9 +159,12 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
     })
 }
 
+/// One row of the bench table: its label and how to format a run's value.
+type Row = (&'static str, fn(&BenchFigures) -> String);
+
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [(&str, fn(&BenchFigures) -> String); 15] = [
+    let rows: [Row; 15] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),

@@ -192,10 +192,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                     let rig = rig.clone().expect("sim rig built");
                     threads.push(crate::sources::sim::spawn_live_camera(rig, i, src_tx.clone(), stop.clone()));
                 } else {
-                    let c = spawn_camera(i, cam, src_tx.clone(), stop.clone()).map_err(|e| {
-                        stop.store(true, Ordering::SeqCst);
-                        e
-                    })?;
+                    let c = spawn_camera(i, cam, src_tx.clone(), stop.clone()).inspect_err(|_| stop.store(true, Ordering::SeqCst))?;
                     live_cams.push(c);
                 }
             }
