@@ -43,9 +43,7 @@ use crate::config::CameraConfig;
 use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, DeviceClockMap};
 use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
-use crate::sources::live::{
-    run_capture_loop, CaptureSession, CaptureStats, Captured, Emitter, LiveCamera, LoopTiming, SourceError, SourceEvent,
-};
+use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Tuning of an Aravis stream (defaults suit the product; tests change them).
 #[derive(Debug, Clone)]
@@ -292,36 +290,14 @@ pub fn spawn(
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
-    let stats = Arc::new(CaptureStats::default());
-    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<Result<(), String>>(1);
-    let cfg = cfg.clone();
-    let source = format!("aravis:{id}");
-    let id = id.to_string();
     let name = cfg.name.clone();
-    let thread_stats = stats.clone();
-    let thread = std::thread::Builder::new()
-        .name(format!("aravis-{}", cfg.name))
-        .spawn(move || {
-            let session = match Session::open(&id, &cfg, &opts) {
-                Ok(s) => {
-                    let _ = ready_tx.send(Ok(()));
-                    s
-                }
-                Err(e) => {
-                    let _ = ready_tx.send(Err(e));
-                    return;
-                }
-            };
-            let mut em = Emitter::new(index, tx, thread_stats);
-            let label = format!("aravis:{id}");
-            let mut timing = LoopTiming::for_fps(cfg.fps);
-            if let Some(stall) = opts.stall_timeout {
-                timing.stall = stall;
-            }
-            run_capture_loop(&mut em, &label, session, || Session::open(&id, &cfg, &opts), timing, &stop);
-        })
-        .map_err(|e| SourceError::Thread { camera: index, name: name.clone(), message: e.to_string() })?;
-    crate::sources::live::await_open(index, name, source, thread, stats, ready_rx)
+    let mut timing = LoopTiming::for_fps(cfg.fps);
+    if let Some(stall) = opts.stall_timeout {
+        timing.stall = stall;
+    }
+    let source = format!("aravis:{id}");
+    let (cfg, id) = (cfg.clone(), id.to_string());
+    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&id, &cfg, &opts), timing, tx, stop)
 }
 
 #[cfg(test)]

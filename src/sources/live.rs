@@ -195,17 +195,47 @@ pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, s
     }
 }
 
-/// Waits for a capture thread to report that its device is open (`Ok`) or why it could
-/// not be opened (`Err(message)`), and turns that into the running camera or the error.
-pub fn await_open(
+/// Starts the capture thread of camera `index`: the device is opened inside the thread
+/// with `open` (capture handles stay on the thread that made them), readiness is reported
+/// back, then [`run_capture_loop`] runs (reopening with `open` after a loss). Returns once
+/// the device is open, or with the error that prevented it.
+pub fn spawn_capture<S, F>(
     index: usize,
-    name: String,
+    name: &str,
     source: String,
-    thread: JoinHandle<()>,
-    stats: Arc<CaptureStats>,
-    ready: std::sync::mpsc::Receiver<Result<(), String>>,
-) -> Result<LiveCamera, SourceError> {
-    match ready.recv() {
+    mut open: F,
+    timing: LoopTiming,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<LiveCamera, SourceError>
+where
+    S: CaptureSession,
+    F: FnMut() -> Result<S, String> + Send + 'static,
+{
+    let stats = Arc::new(CaptureStats::default());
+    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<Result<(), String>>(1);
+    let thread_stats = stats.clone();
+    let label = source.clone();
+    let prefix = source.split(':').next().unwrap_or("camera").to_string();
+    let thread = std::thread::Builder::new()
+        .name(format!("{prefix}-{name}"))
+        .spawn(move || {
+            let session = match open() {
+                Ok(s) => {
+                    let _ = ready_tx.send(Ok(()));
+                    s
+                }
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e));
+                    return;
+                }
+            };
+            let mut em = Emitter::new(index, tx, thread_stats);
+            run_capture_loop(&mut em, &label, session, open, timing, &stop);
+        })
+        .map_err(|e| SourceError::Thread { camera: index, name: name.to_string(), message: e.to_string() })?;
+    let name = name.to_string();
+    match ready_rx.recv() {
         Ok(Ok(())) => Ok(LiveCamera { thread, stats }),
         Ok(Err(message)) => {
             let _ = thread.join();

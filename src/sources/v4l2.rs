@@ -42,9 +42,7 @@ use crate::config::CameraConfig;
 use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, MonotonicToEpoch};
 use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
-use crate::sources::live::{
-    run_capture_loop, CaptureSession, CaptureStats, Captured, Emitter, LiveCamera, LoopTiming, SourceError, SourceEvent,
-};
+use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Pixel formats requested from the device, most preferred first.
 pub const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
@@ -266,32 +264,11 @@ pub(crate) fn spawn(
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
-    let stats = Arc::new(CaptureStats::default());
-    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<Result<(), String>>(1);
-    let cfg = cfg.clone();
-    let source = format!("v4l2:{path}");
-    let path = path.to_string();
-    let thread_stats = stats.clone();
     let name = cfg.name.clone();
-    let thread = std::thread::Builder::new()
-        .name(format!("v4l2-{}", cfg.name))
-        .spawn(move || {
-            let session = match Session::open(&path, &cfg) {
-                Ok(s) => {
-                    let _ = ready_tx.send(Ok(()));
-                    s
-                }
-                Err(e) => {
-                    let _ = ready_tx.send(Err(e));
-                    return;
-                }
-            };
-            let mut em = Emitter::new(index, tx, thread_stats);
-            let label = format!("v4l2:{path}");
-            run_capture_loop(&mut em, &label, session, || Session::open(&path, &cfg), LoopTiming::for_fps(cfg.fps), &stop);
-        })
-        .map_err(|e| SourceError::Thread { camera: index, name: name.clone(), message: e.to_string() })?;
-    crate::sources::live::await_open(index, name, source, thread, stats, ready_rx)
+    let timing = LoopTiming::for_fps(cfg.fps);
+    let source = format!("v4l2:{path}");
+    let (cfg, path) = (cfg.clone(), path.to_string());
+    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, tx, stop)
 }
 
 #[cfg(test)]
