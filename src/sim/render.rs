@@ -162,9 +162,7 @@ pub(crate) fn render_rect<C, S>(
                     let mut sum = 0.0f32;
                     for a in 0..n {
                         for b in 0..n {
-                            let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
-                            let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
-                            let (wa, wb, wc, wd) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+                            let (wa, wb, wc, wd) = rook_weights(a, b, nf);
                             let u = wa * a0[0] + wb * a1[0] + wc * a2[0] + wd * a3[0];
                             let v = wa * a0[1] + wb * a1[1] + wc * a2[1] + wd * a3[1];
                             sum += f(key, u, v);
@@ -186,10 +184,7 @@ pub(crate) fn render_rect<C, S>(
             let mut sum = 0.0f32;
             for a in 0..n {
                 for b in 0..n {
-                    // n-rooks pattern: every sub-sample in its own row and column.
-                    let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
-                    let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
-                    let (wa, wb, wc, wd) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+                    let (wa, wb, wc, wd) = rook_weights(a, b, nf);
                     let d =
                         dir(wa * r00[0] + wb * r10[0] + wc * r01[0] + wd * r11[0], wa * r00[1] + wb * r10[1] + wc * r01[1] + wd * r11[1]);
                     sum += sample(&d, x, y);
@@ -291,6 +286,15 @@ pub(crate) fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -
         }
     });
     GrayImage { width: w as u32, height: h as u32, data }
+}
+
+/// Bilinear weights of the four pixel-corner rays for sub-sample (`a`, `b`) of an `nf`×`nf`
+/// n-rooks pattern (every sub-sample in its own row and column of the pixel).
+#[inline]
+fn rook_weights(a: usize, b: usize, nf: f64) -> (f64, f64, f64, f64) {
+    let fx = (a as f64 + (b as f64 + 0.5) / nf) / nf;
+    let fy = (b as f64 + (a as f64 + 0.5) / nf) / nf;
+    ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy)
 }
 
 #[cfg(test)]
