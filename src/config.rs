@@ -17,6 +17,7 @@ use toml::Spanned;
 
 use crate::camera::CameraIntrinsics;
 use crate::tags::TagFamily;
+use crate::recording::FrameFormat;
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -333,6 +334,14 @@ pub struct OutputConfig {
     /// Save a recording of the run in a new timestamped sub-folder of this folder.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub record: Option<PathBuf>,
+    /// (extension) How recorded frames are written: `"png"` (default; half the disk) or
+    /// `"pgm"` (raw; no CPU spent encoding — for high frame rates on a small box).
+    #[serde(default, skip_serializing_if = "is_default_format")]
+    pub record_format: FrameFormat,
+}
+
+fn is_default_format(f: &FrameFormat) -> bool {
+    *f == FrameFormat::default()
 }
 
 /// `[measure]` (extension): options of the measurement pipeline.

@@ -81,3 +81,66 @@ impl FrameSet {
         Self { seq, t_ns, frames }
     }
 }
+
+/// Recycles frame buffers: a source fills the first buffer nobody else holds any more
+/// (the pipeline dropped its last `Arc`), so a steady stream allocates no new frames. The
+/// pool grows to the number of frames in flight (bounded by the pipeline's queues).
+#[derive(Debug, Default)]
+pub struct ImagePool {
+    slots: Vec<Arc<GrayImage>>,
+}
+
+impl ImagePool {
+    /// Fills a free buffer with `fill` and returns it shared; on error the buffer stays
+    /// in the pool.
+    pub fn fill<E>(&mut self, fill: impl FnOnce(&mut GrayImage) -> Result<(), E>) -> Result<Arc<GrayImage>, E> {
+        let i = match self.slots.iter_mut().position(|a| Arc::get_mut(a).is_some()) {
+            Some(i) => i,
+            None => {
+                self.slots.push(Arc::new(GrayImage::new(0, 0)));
+                self.slots.len() - 1
+            }
+        };
+        fill(Arc::get_mut(&mut self.slots[i]).expect("no other holder"))?;
+        Ok(self.slots[i].clone())
+    }
+
+    /// Buffers in the pool (free or in flight).
+    pub fn len(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Whether the pool has no buffer yet.
+    pub fn is_empty(&self) -> bool {
+        self.slots.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pool_reuses_buffers_once_released() {
+        let mut pool = ImagePool::default();
+        let fill = |v: u8| {
+            move |img: &mut GrayImage| -> Result<(), ()> {
+                img.width = 4;
+                img.height = 1;
+                img.data.resize(4, 0);
+                img.data.fill(v);
+                Ok(())
+            }
+        };
+        let a = pool.fill(fill(1)).unwrap();
+        let b = pool.fill(fill(2)).unwrap();
+        assert_eq!((a.data[0], b.data[0], pool.len()), (1, 2, 2), "held buffers are not overwritten");
+        let ptr = a.data.as_ptr();
+        drop(a);
+        let c = pool.fill(fill(3)).unwrap();
+        assert_eq!((c.data[0], b.data[0], pool.len()), (3, 2, 2));
+        assert_eq!(c.data.as_ptr(), ptr, "the released buffer is reused");
+        assert!(pool.fill(|_| Err::<(), _>("bad")).is_err());
+        assert_eq!(pool.len(), 3);
+    }
+}

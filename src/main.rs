@@ -8,6 +8,7 @@ use std::process::ExitCode;
 
 use tagdeflect::config::Config;
 use tagdeflect::pipeline::{self, bench::BenchOptions, live::LiveOptions};
+use tagdeflect::recording::FrameFormat;
 use tagdeflect::sim::SimParams;
 
 /// Non-contact deflection measurement of beams in bending with AprilTags.
@@ -65,6 +66,9 @@ enum Command {
         /// The new recording folder.
         #[arg(long)]
         out: PathBuf,
+        /// How the frames are written (PGM: raw pixels, no decoding cost on replay).
+        #[arg(long, value_enum, default_value_t = FrameFormat::Png)]
+        frame_format: FrameFormat,
         #[command(flatten)]
         params: SimParams,
     },
@@ -144,8 +148,8 @@ fn run(cli: Cli) -> Result<()> {
             let cfg = load_config(&config)?;
             pipeline::live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
-        Command::Simulate { out, params } => {
-            let summary = tagdeflect::sim::simulate(&params, &out).with_context(|| format!("simulating into {}", out.display()))?;
+        Command::Simulate { out, frame_format, params } => {
+            let summary = tagdeflect::sim::simulate_as(&params, &out, frame_format).with_context(|| format!("simulating into {}", out.display()))?;
             eprintln!(
                 "simulated {} frame sets ({} frames, {} dropped, {} UTM samples) into {}; final midspan deflection {:.3} mm",
                 summary.frame_sets,

@@ -54,13 +54,13 @@ fn binary_pgm_frames_are_read() {
     let p = dir.path().join("f.pgm");
     fs::write(&p, &bytes).unwrap();
     let mut out = GrayImage::new(0, 0);
-    read_gray_into(&p, &mut out).unwrap();
+    read_gray_into(&p, &mut out, &mut Vec::new()).unwrap();
     assert_eq!(out, img);
     fs::write(&p, &bytes[..bytes.len() - 4]).unwrap();
-    let e = read_gray_into(&p, &mut out).unwrap_err().to_string();
+    let e = read_gray_into(&p, &mut out, &mut Vec::new()).unwrap_err().to_string();
     assert!(e.contains("f.pgm") && e.contains("truncated PGM"), "{e}");
     fs::write(&p, b"P5\n5 3\n65535\n").unwrap();
-    let e = read_gray_into(&p, &mut out).unwrap_err().to_string();
+    let e = read_gray_into(&p, &mut out, &mut Vec::new()).unwrap_err().to_string();
     assert!(e.contains("8-bit"), "{e}");
 }
 

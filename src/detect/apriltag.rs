@@ -89,6 +89,11 @@ pub struct DetectorOptions {
     pub nthreads: u32,
     /// Bit errors the decoder corrects (library default 2; at most 3).
     pub max_bits_corrected: u8,
+    /// Image regions (12 px around each 4 px tile) whose brightest and darkest pixels differ
+    /// by less than this (grey levels) are not searched for tag edges (library default 5).
+    /// Raising it towards the tags' own contrast skips low-contrast texture — the costliest
+    /// part of a search on a textured specimen — at no risk to tags of that contrast.
+    pub min_white_black_diff: u8,
     /// Sub-pixel corner refinement against the image (see [`super::refine`]); `None` = off.
     pub subpixel: Option<RefineOptions>,
 }
@@ -103,6 +108,7 @@ impl Default for DetectorOptions {
             decode_sharpening: 0.25,
             nthreads: 1,
             max_bits_corrected: 2,
+            min_white_black_diff: 5,
             subpixel: Some(RefineOptions::default()),
         }
     }
@@ -243,6 +249,7 @@ impl Detector {
             td.decode_sharpening = self.options.decode_sharpening;
             td.nthreads = self.options.nthreads as i32;
             td.debug = false;
+            td.qtp.min_white_black_diff = self.options.min_white_black_diff as i32;
         }
     }
 
@@ -251,22 +258,19 @@ impl Detector {
         &self.options
     }
 
-    /// Changes `quad_decimate` (e.g. decimated full-frame searches, full-resolution windows).
-    pub fn set_quad_decimate(&mut self, quad_decimate: f32) -> Result<(), DetectError> {
-        let mut o = self.options.clone();
-        o.quad_decimate = quad_decimate;
-        o.validate()?;
-        self.options = o;
-        self.apply_options();
-        Ok(())
-    }
-
-    /// Turns sub-pixel refinement on (with these options) or off.
-    pub fn set_subpixel(&mut self, subpixel: Option<RefineOptions>) -> Result<(), DetectError> {
-        if let Some(r) = &subpixel {
-            r.validate()?;
+    /// Changes the options (e.g. a decimated, unrefined search, then back); the families
+    /// cannot change (they are fixed when the detector is built).
+    pub fn set_options(&mut self, options: DetectorOptions) -> Result<(), DetectError> {
+        options.validate()?;
+        if options.families != self.options.families {
+            return Err(DetectError::BadOption {
+                name: "families",
+                value: format!("{:?}", options.families),
+                expected: "the detector's own families (build a new detector for others)",
+            });
         }
-        self.options.subpixel = subpixel;
+        self.options = options;
+        self.apply_options();
         Ok(())
     }
 

@@ -33,9 +33,11 @@ impl Detection {
 
 pub mod apriltag;
 pub mod refine;
+pub mod track;
 
 pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection};
 pub use self::refine::{refine_corners, refine_corners_with, RefineOptions, RefineReport, RefineStats};
+pub use self::track::{TagTracker, TrackMiss, TrackOptions, TrackedTag};
 
 /// A rectangle of pixels: columns `x..x+width`, rows `y..y+height` (a detection window).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -25,7 +25,7 @@
 //! [`RefineOptions::max_shift_px`] keeps the library's value; both are counted in the
 //! [`RefineReport`].
 
-use nalgebra::{Matrix3, Matrix5, Point2, SMatrix, SVector, Vector2, Vector3, Vector5};
+use nalgebra::{Matrix2, Matrix3, Matrix5, Point2, SMatrix, SVector, Vector2, Vector3, Vector5};
 
 use super::apriltag::DetectError;
 use super::Detection;
@@ -171,7 +171,7 @@ pub fn refine_corners_with(
     if det.corners.iter().any(|c| !(c.x.is_finite() && c.y.is_finite())) {
         return keep_all;
     }
-    let lens = Lens { intr: intrinsics.filter(|k| k.fx > 0.0 && k.fy > 0.0 && k.fx.is_finite() && k.fy.is_finite()) };
+    let lens = Lens::new(intrinsics);
     let nb = border_width_bits(det.family) as f64;
     let original = det.corners;
     // Corners in ideal coordinates.
@@ -242,14 +242,56 @@ impl Line {
     }
 }
 
+/// The last solution of [`Lens::pixel_to_ideal_run`] (normalised coordinates).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Undistorted {
+    target: Vector2<f64>,
+    x: Vector2<f64>,
+    jinv: Matrix2<f64>,
+}
+
 /// Pixel ↔ ideal (undistorted) pixel coordinates; the identity without intrinsics.
-struct Lens<'a> {
+pub(crate) struct Lens<'a> {
     intr: Option<&'a CameraIntrinsics>,
 }
 
-impl Lens<'_> {
+impl<'a> Lens<'a> {
+    /// The lens of `intrinsics` (the identity for `None` or unusable intrinsics).
+    pub(crate) fn new(intrinsics: Option<&'a CameraIntrinsics>) -> Self {
+        // Without distortion ideal pixels are the pixels themselves.
+        Lens { intr: intrinsics.filter(|k| k.fx > 0.0 && k.fy > 0.0 && k.fx.is_finite() && k.fy.is_finite() && k.dist != [0.0; 5]) }
+    }
+
+    /// [`Lens::pixel_to_ideal`] for a run of nearby pixels (a row): the previous pixel's
+    /// solution in `prev`, moved by its inverse Jacobian, predicts this one to a few 1e-4 px,
+    /// so one Newton step usually finishes it (it iterates on until the step is below
+    /// ~3e-7 in normalised coordinates, i.e. a remaining error below 1e-12).
+    pub(crate) fn pixel_to_ideal_run(&self, p: &Vector2<f64>, prev: &mut Option<Undistorted>) -> Vector2<f64> {
+        let Some(k) = self.intr else {
+            return *p;
+        };
+        let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
+        let mut x = match prev {
+            Some(u) => u.x + u.jinv * (target - u.target),
+            None => target,
+        };
+        let mut jinv = Matrix2::identity();
+        for _ in 0..20 {
+            let r = k.distort(x) - target;
+            let Some(ji) = k.distort_jacobian(x).try_inverse() else { break };
+            jinv = ji;
+            let step = ji * r;
+            x -= step;
+            if step.norm_squared() < 1e-13 {
+                break;
+            }
+        }
+        *prev = Some(Undistorted { target, x, jinv });
+        Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
+    }
+
     /// Distorted pixel → ideal pixel (`fx·xn + cx`), warm-started from `guess` (ideal).
-    fn pixel_to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
+    pub(crate) fn pixel_to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
         let Some(k) = self.intr else {
             return *p;
         };
@@ -272,7 +314,7 @@ impl Lens<'_> {
     }
 
     /// Ideal pixel → distorted pixel.
-    fn ideal_to_pixel(&self, u: &Vector2<f64>) -> Vector2<f64> {
+    pub(crate) fn ideal_to_pixel(&self, u: &Vector2<f64>) -> Vector2<f64> {
         let Some(k) = self.intr else {
             return *u;
         };
@@ -283,7 +325,7 @@ impl Lens<'_> {
 
 /// Homography from tag bit coordinates (x right, y down as printed, origin at the black
 /// square's top-left, `nb` bits across) to ideal pixels, from the corners in SPEC order.
-fn homography_from_corners(corners: &[Vector2<f64>; 4], nb: f64) -> Option<Matrix3<f64>> {
+pub(crate) fn homography_from_corners(corners: &[Vector2<f64>; 4], nb: f64) -> Option<Matrix3<f64>> {
     let tag = [Vector2::new(0.0, nb), Vector2::new(nb, nb), Vector2::new(nb, 0.0), Vector2::new(0.0, 0.0)];
     let mut a = SMatrix::<f64, 8, 8>::zeros();
     let mut b = SVector::<f64, 8>::zeros();
@@ -303,7 +345,7 @@ fn homography_from_corners(corners: &[Vector2<f64>; 4], nb: f64) -> Option<Matri
     Some(Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0))
 }
 
-fn apply_h(h: &Matrix3<f64>, p: &Vector2<f64>) -> Option<Vector2<f64>> {
+pub(crate) fn apply_h(h: &Matrix3<f64>, p: &Vector2<f64>) -> Option<Vector2<f64>> {
     let q = h * Vector3::new(p.x, p.y, 1.0);
     if q.z.abs() < 1e-12 {
         return None;
@@ -479,7 +521,7 @@ fn fit_edge(
     let stride = image.width as usize;
     let checker = len > opts.checker_above_px;
     for y in y0..=y1 {
-        let mut guess: Option<Vector2<f64>> = None;
+        let mut prev: Option<Undistorted> = None;
         for x in x0..=x1 {
             // Long edges have pixels to spare: a checkerboard half keeps the fit unbiased.
             if checker && (x + y) % 2 == 1 {
@@ -489,8 +531,7 @@ fn fit_edge(
             if poly_edges.iter().any(|(n, r)| orient * (n.dot(&p) - r) > pad) {
                 continue;
             }
-            let u = lens.pixel_to_ideal(&p, guess.as_ref());
-            guess = Some(u);
+            let u = lens.pixel_to_ideal_run(&p, &mut prev);
             let Some(tag) = apply_h(hinv, &u) else { continue };
             let (along, depth) = tag_to_edge(e, &tag, nb);
             if !(along.is_finite() && depth.is_finite()) || along < along_min || along > along_max || depth < depth_min || depth > depth_max

@@ -45,6 +45,13 @@ pub struct BenchFigures {
     pub decode_ms: f64,
     /// Mean detection time per frame set, ms.
     pub detect_ms: f64,
+    /// CPU per frame set (all cameras) confirming tracked tags at their predicted place, ms.
+    pub tracking_cpu_ms: f64,
+    /// CPU per frame set (all cameras) in window searches and sweep tiles, ms.
+    pub search_cpu_ms: f64,
+    /// CPU per frame set (all cameras) in full-frame searches, ms (detector worker threads
+    /// of a full-frame-only run not included).
+    pub full_frame_cpu_ms: f64,
     /// Mean camera-pose time per frame set, ms.
     pub pose_ms: f64,
     /// Mean solve time per frame set, ms.
@@ -63,6 +70,8 @@ pub struct BenchFigures {
     pub full_frame_searches: u64,
     /// Window searches run.
     pub window_searches: u64,
+    /// Tag views confirmed at their predicted place without a search.
+    pub tracked_tags: u64,
     /// Accuracy against the recording's ground truth (synthetic recordings only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub accuracy: Option<crate::accuracy::Accuracy>,
@@ -95,6 +104,7 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
 
 fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) -> Result<BenchFigures> {
     let mut detect = 0.0;
+    let mut detect_cpu = crate::pipeline::measure::DetectCpu::default();
     let mut pose = 0.0;
     let mut solve = 0.0;
     let mut output = 0.0;
@@ -117,6 +127,9 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
             let out_s = t0.elapsed().as_secs_f64();
             output += out_s;
             detect += t.detect;
+            detect_cpu.tracking += t.detect_cpu.tracking;
+            detect_cpu.search += t.detect_cpu.search;
+            detect_cpu.full_frame += t.detect_cpu.full_frame;
             pose += t.pose;
             solve += t.solve;
             latencies.push(lat + out_s);
@@ -146,6 +159,9 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         measure_sets_per_s: n / (detect + pose + solve + output).max(1e-9),
         decode_ms: decode / n * 1e3,
         detect_ms: detect / n * 1e3,
+        tracking_cpu_ms: detect_cpu.tracking / n * 1e3,
+        search_cpu_ms: detect_cpu.search / n * 1e3,
+        full_frame_cpu_ms: detect_cpu.full_frame / n * 1e3,
         pose_ms: pose / n * 1e3,
         solve_ms: solve / n * 1e3,
         output_ms: output / n * 1e3,
@@ -155,6 +171,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         dropped_sets: 0,
         full_frame_searches: stats.full_frame_searches,
         window_searches: stats.window_searches,
+        tracked_tags: stats.tracked_tags,
         accuracy: (!rec.truth.is_empty()).then(|| crate::accuracy::evaluate(&rec.config, &rec.truth, &lines)),
     })
 }
@@ -164,13 +181,16 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 15] = [
+    let rows: [Row; 19] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
         ("measure-only frame sets/s", |f| format!("{:.1}", f.measure_sets_per_s)),
         ("decode ms/set (overlapped)", |f| format!("{:.2}", f.decode_ms)),
         ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
+        ("  CPU: tracked tags ms/set", |f| format!("{:.2}", f.tracking_cpu_ms)),
+        ("  CPU: windows+sweep ms/set", |f| format!("{:.2}", f.search_cpu_ms)),
+        ("  CPU: full-frame ms/set", |f| format!("{:.2}", f.full_frame_cpu_ms)),
         ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
         ("solve ms/set", |f| format!("{:.3}", f.solve_ms)),
         ("output ms/set", |f| format!("{:.3}", f.output_ms)),
@@ -180,6 +200,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("dropped sets", |f| f.dropped_sets.to_string()),
         ("full-frame searches", |f| f.full_frame_searches.to_string()),
         ("window searches", |f| f.window_searches.to_string()),
+        ("tags tracked without search", |f| f.tracked_tags.to_string()),
     ];
     print!("{:<28}", "");
     for r in runs {

@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
 use crate::config::Config;
-use crate::frame::{Frame, FrameSet};
+use crate::frame::{Frame, FrameSet, ImagePool};
 use crate::pipeline::measure::Measurement;
 use crate::recording::{Recording, RecordingWriter};
 use crate::sinks::feed::FeedWriter;
@@ -143,7 +143,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     });
     let (rec_tx, recorder) = match &record_dir {
         Some(dir) => {
-            let mut writer = RecordingWriter::create(dir, &config).with_context(|| format!("cannot record into {}", dir.display()))?;
+            let mut writer = RecordingWriter::create(dir, &config)
+                .with_context(|| format!("cannot record into {}", dir.display()))?
+                .with_format(config.output.record_format);
             tracing::info!("recording into {}", dir.display());
             let (tx, rx) = std_mpsc::sync_channel::<RecorderMsg>(8 * ncam.max(1));
             let names: Vec<String> = config.cameras.iter().map(|c| c.name.clone()).collect();
@@ -431,6 +433,7 @@ fn spawn_player(rec: Recording, tx: mpsc::Sender<SourceEvent>, stop: Arc<AtomicB
             let Some(first) = rec.frames.first().map(|f| f.t_ns) else { return };
             let t0 = Instant::now();
             let mut dropped = 0u64;
+            let (mut pool, mut scratch) = (ImagePool::default(), Vec::new());
             for entry in &rec.frames {
                 if stop.load(Ordering::Relaxed) {
                     break;
@@ -439,7 +442,7 @@ fn spawn_player(rec: Recording, tx: mpsc::Sender<SourceEvent>, stop: Arc<AtomicB
                 if let Some(wait) = due.checked_sub(t0.elapsed()) {
                     std::thread::sleep(wait);
                 }
-                let image = match rec.load_image(entry) {
+                let image = match pool.fill(|img| rec.load_image_into(entry, img, &mut scratch)) {
                     Ok(i) => i,
                     Err(e) => {
                         tracing::warn!("frame skipped: {e}");
@@ -447,7 +450,7 @@ fn spawn_player(rec: Recording, tx: mpsc::Sender<SourceEvent>, stop: Arc<AtomicB
                     }
                 };
                 let camera = rec.config.camera_index(&entry.camera).expect("checked on open");
-                let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image: Arc::new(image) };
+                let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image };
                 match tx.try_send(SourceEvent::Frame(frame)) {
                     Ok(()) => {}
                     Err(mpsc::error::TrySendError::Full(_)) => dropped += 1,

@@ -10,10 +10,10 @@ use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::{refine_corners_with, Detection, Rect};
+use crate::detect::{refine_corners_with, Detection, Rect, TagTracker, TrackMiss};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::{Plan, RoiPlanner};
+use crate::pipeline::roi::{merge_rects, Plan, RoiPlanner};
 use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
@@ -23,10 +23,39 @@ use crate::utm::UtmHistory;
 pub struct StageTimes {
     /// Tag detection (all cameras, in parallel; wall time).
     pub detect: f64,
+    /// CPU time of detection by kind of work, summed over the cameras.
+    pub detect_cpu: DetectCpu,
     /// Camera pose tracking.
     pub pose: f64,
     /// Specimen tag solving.
     pub solve: f64,
+}
+
+/// CPU time of one frame set's detection by kind of work (seconds, all cameras).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DetectCpu {
+    /// Confirming tracked tags at their predicted place (refinement and read-back).
+    pub tracking: f64,
+    /// Window searches of tags not confirmed, and the sweep's tiles.
+    pub search: f64,
+    /// Full-frame searches.
+    pub full_frame: f64,
+}
+
+impl DetectCpu {
+    fn add(&mut self, o: &DetectCpu) {
+        self.tracking += o.tracking;
+        self.search += o.search;
+        self.full_frame += o.full_frame;
+    }
+}
+
+/// CPU time of the calling thread, seconds.
+fn thread_cpu_s() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes the timespec it is given; CLOCK_THREAD_CPUTIME_ID exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
 /// Counters over a whole run.
@@ -36,8 +65,10 @@ pub struct MeasureStats {
     pub sets: u64,
     /// Full-frame detections run.
     pub full_frame_searches: u64,
-    /// Window (region-of-interest) detections run.
+    /// Window (region-of-interest) and sweep-tile detections run.
     pub window_searches: u64,
+    /// Tag views confirmed at their predicted place (no search needed).
+    pub tracked_tags: u64,
     /// Specimen tag views rejected as outliers.
     pub rejected_views: u64,
     /// Camera bumps detected.
@@ -50,7 +81,18 @@ struct CameraState {
     detector: Detector,
     tracker: CameraPoseTracker,
     roi: RoiPlanner,
+    tag_tracker: TagTracker,
+    /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
+    tag_contrast: Option<f64>,
 }
+
+/// Searches in tracking mode skip image regions whose contrast is below this fraction of
+/// the weakest tracked tag's (a new tag printed and lit like the others has about their
+/// contrast; a third of it leaves room for shadows) — the beam's low-contrast texture is
+/// then not searched at all, which is most of a search's cost on a textured specimen.
+pub const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
+/// Cap of the contrast filter of tracking-mode searches, grey levels.
+pub const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
 
 struct TagTrack {
     /// Last solution tag → world (warm start).
@@ -110,6 +152,8 @@ impl Measurement {
                 tracker: CameraPoseTracker::new(intrinsics, fixed),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
+                tag_tracker: TagTracker::default(),
+                tag_contrast: None,
             });
         }
         let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
@@ -148,8 +192,9 @@ impl Measurement {
     pub fn process(&mut self, set: &FrameSet) -> (FeedLine, StageTimes) {
         let mut times = StageTimes::default();
         let t0 = Instant::now();
-        let detections = self.detect(set);
+        let (detections, cpu) = self.detect(set);
         times.detect = t0.elapsed().as_secs_f64();
+        times.detect_cpu = cpu;
 
         // Camera poses from the background tags.
         let t1 = Instant::now();
@@ -279,7 +324,7 @@ impl Measurement {
     }
 
     /// Detects tags in every frame of the set, cameras in parallel.
-    fn detect(&mut self, set: &FrameSet) -> Vec<(usize, CameraDetections)> {
+    fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectCpu) {
         let bg_family = self.config.background.family;
         let sp_family = self.config.specimen.family;
         let bg_ids = &self.background_world;
@@ -292,24 +337,46 @@ impl Measurement {
                 jobs.push((c, f));
             }
         }
-        let run = |(cam, frame): (&mut CameraState, &crate::frame::Frame)| -> (usize, CameraDetections, bool, u64) {
+        let run = |(cam, frame): (&mut CameraState, &crate::frame::Frame)| -> (usize, CameraDetections, bool, u64, u64, DetectCpu) {
             let plan = cam.roi.plan(frame.t_ns, &frame.image);
+            let mut tracked_n = 0u64;
+            let mut cpu = DetectCpu::default();
+            let c0 = thread_cpu_s();
             let (dets, full, windows) = match plan {
-                Plan::FullFrame => (cam.detector.detect(&frame.image), true, 0),
-                Plan::Track { decimate: search_decimate, windows, sweep } => {
+                Plan::FullFrame => {
+                    let d = cam.detector.detect(&frame.image);
+                    cpu.full_frame = thread_cpu_s() - c0;
+                    (d, true, 0)
+                }
+                Plan::Track { decimate: search_decimate, tags, sweep } => {
+                    // Each tracked tag confirmed where it is predicted; the others searched in windows.
                     let mut all = Vec::new();
-                    let decimate = cam.detector.options().quad_decimate;
-                    let decimated = search_decimate > decimate && cam.detector.set_quad_decimate(search_decimate).is_ok();
-                    for r in &windows {
-                        all.extend(cam.detector.detect_window(&frame.image, *r));
+                    let mut windows = Vec::new();
+                    let refine = cam.detector.options().subpixel.clone();
+                    let mut weakest: Option<f64> = None;
+                    for t in &tags {
+                        let tracked = match &refine {
+                            Some(opts) => cam.tag_tracker.track(&frame.image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts),
+                            None => Err(TrackMiss::Unsupported),
+                        };
+                        match tracked {
+                            Ok(tag) => {
+                                tracked_n += 1;
+                                weakest = Some(weakest.map_or(tag.contrast, |w| w.min(tag.contrast)));
+                                all.push(tag.detection);
+                            }
+                            Err(_) => windows.push(t.window),
+                        }
                     }
-                    if decimated {
-                        let _ = cam.detector.set_quad_decimate(decimate);
+                    if weakest.is_some() {
+                        cam.tag_contrast = weakest;
                     }
-                    if !sweep.is_empty() {
-                        all.extend(sweep_search(cam, &frame.image, &sweep, &all, search_decimate));
-                    }
+                    let c1 = thread_cpu_s();
+                    cpu.tracking = c1 - c0;
+                    let windows = merge_rects(windows);
+                    all.extend(search(cam, &frame.image, &windows, &sweep, &all, search_decimate));
                     dedup_detections(&mut all);
+                    cpu.search = thread_cpu_s() - c1;
                     (all, false, (windows.len() + sweep.len()) as u64)
                 }
             };
@@ -323,9 +390,9 @@ impl Measurement {
                     out.background.push(d);
                 }
             }
-            (frame.camera, out, full, windows)
+            (frame.camera, out, full, windows, tracked_n, cpu)
         };
-        let results: Vec<(usize, CameraDetections, bool, u64)> = if jobs.len() <= 1 {
+        let results: Vec<(usize, CameraDetections, bool, u64, u64, DetectCpu)> = if jobs.len() <= 1 {
             jobs.into_iter().map(run).collect()
         } else {
             std::thread::scope(|s| {
@@ -334,14 +401,17 @@ impl Measurement {
             })
         };
         let mut out = Vec::with_capacity(results.len());
-        for (ci, d, full, windows) in results {
+        let mut cpu = DetectCpu::default();
+        for (ci, d, full, windows, tracked, c) in results {
+            cpu.add(&c);
             if full {
                 self.stats.full_frame_searches += 1;
             }
             self.stats.window_searches += windows;
+            self.stats.tracked_tags += tracked;
             out.push((ci, d));
         }
-        out
+        (out, cpu)
     }
 
     /// Mean downward displacement of midspan tags minus that of support tags.
@@ -355,41 +425,58 @@ impl Measurement {
     }
 }
 
-/// Searches the sweep tiles of a frame with quad decimation `search_decimate` (at least the
-/// configured one) and without
-/// sub-pixel refinement, keeps the tags not already found in the windows (`found`) and
-/// refines those with the detector's own refinement: corners as good as a full-frame
-/// search's, without refining every tracked tag twice. The detector's options are restored.
-fn sweep_search(
+/// Searches windows around tracked tags that could not be confirmed, and the sweep's
+/// tiles, with quad decimation `search_decimate` (at least the configured one) and with
+/// low-contrast regions skipped (see [`SEARCH_CONTRAST_FRACTION`]). Window detections are
+/// refined as usual. Tiles are searched without refinement; only the tags not already
+/// found (`found`, or in the windows) are then refined — corners as good as a full-frame
+/// search's without refining every tracked tag twice. The detector's options are restored.
+fn search(
     cam: &mut CameraState,
     image: &crate::frame::GrayImage,
+    windows: &[Rect],
     tiles: &[Rect],
     found: &[Detection],
     search_decimate: f32,
 ) -> Vec<Detection> {
-    let decimate = cam.detector.options().quad_decimate;
-    let subpixel = cam.detector.options().subpixel.clone();
-    let decimated = cam.detector.set_quad_decimate(decimate.max(search_decimate)).is_ok();
-    let _ = cam.detector.set_subpixel(None);
-    let mut new: Vec<Detection> = Vec::new();
-    for r in tiles {
-        for d in cam.detector.detect_window(image, *r) {
-            let known = found.iter().chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
-            if !known {
-                new.push(d);
+    let mut out: Vec<Detection> = Vec::new();
+    if windows.is_empty() && tiles.is_empty() {
+        return out;
+    }
+    let configured = cam.detector.options().clone();
+    let min_diff = configured.min_white_black_diff as f64;
+    let white_black_diff =
+        cam.tag_contrast.map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
+    let options = DetectorOptions {
+        quad_decimate: configured.quad_decimate.max(search_decimate),
+        min_white_black_diff: white_black_diff as u8,
+        ..configured.clone()
+    };
+    if !windows.is_empty() && cam.detector.set_options(options.clone()).is_ok() {
+        for r in windows {
+            out.extend(cam.detector.detect_window(image, *r));
+        }
+    }
+    if !tiles.is_empty() && cam.detector.set_options(DetectorOptions { subpixel: None, ..options }).is_ok() {
+        let mut new: Vec<Detection> = Vec::new();
+        for r in tiles {
+            for d in cam.detector.detect_window(image, *r) {
+                let known = found.iter().chain(out.iter()).chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
+                if !known {
+                    new.push(d);
+                }
             }
         }
-    }
-    if decimated {
-        let _ = cam.detector.set_quad_decimate(decimate);
-    }
-    if let Some(opts) = subpixel {
-        for d in &mut new {
-            refine_corners_with(image, d, Some(&cam.intrinsics), &opts);
+        if let Some(opts) = &configured.subpixel {
+            for d in &mut new {
+                refine_corners_with(image, d, Some(&cam.intrinsics), opts);
+            }
         }
-        let _ = cam.detector.set_subpixel(Some(opts));
+        out.extend(new);
     }
-    new
+    // The configured options were valid when the detector was built.
+    let _ = cam.detector.set_options(configured);
+    out
 }
 
 /// Removes duplicate detections of one tag found in overlapping windows (keeps the one

@@ -8,12 +8,11 @@ use anyhow::{Context, Result};
 use std::io::IsTerminal;
 use std::path::Path;
 use std::sync::mpsc;
-use std::sync::Arc;
 use std::time::Instant;
 
 use crate::config::Config;
 use crate::feed::FeedLine;
-use crate::frame::Frame;
+use crate::frame::{Frame, ImagePool};
 use crate::pipeline::measure::{MeasureStats, Measurement, StageTimes};
 use crate::recording::Recording;
 use crate::sinks::feed::FeedWriter;
@@ -75,6 +74,7 @@ pub fn replay_to_stdout(dir: &Path, config: Option<Config>, full_frame: bool) ->
         bad_frames = summary.bad_frames,
         full_frame_searches = summary.stats.full_frame_searches,
         window_searches = summary.stats.window_searches,
+        tracked_tags = summary.stats.tracked_tags,
         "replay done in {:.2} s",
         summary.wall_s
     );
@@ -102,14 +102,16 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
         let reader = s.spawn(move || -> (u64, f64) {
             let mut bad = 0;
             let mut decode_s = 0.0;
+            let mut pool = ImagePool::default();
+            let mut scratch = Vec::new();
             for entry in &rec.frames {
                 let t = Instant::now();
-                let img = rec.load_image(entry);
+                let img = pool.fill(|img| rec.load_image_into(entry, img, &mut scratch));
                 decode_s += t.elapsed().as_secs_f64();
                 match img {
                     Ok(image) => {
                         let camera = config.camera_index(&entry.camera).expect("checked on open");
-                        let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image: Arc::new(image) };
+                        let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image };
                         if tx.send((frame, Instant::now())).is_err() {
                             break;
                         }

@@ -78,18 +78,32 @@ struct Track {
     searched: bool,
 }
 
+/// A tracked tag expected in the next frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlannedTag {
+    /// Its family.
+    pub family: TagFamily,
+    /// Its id.
+    pub id: u32,
+    /// Its corners as predicted (last corners moved by the tag's image velocity), SPEC order.
+    pub predicted: [Point2<f64>; 4],
+    /// The window to search with the detector if the prediction cannot be confirmed.
+    pub window: Rect,
+}
+
 /// What to search in one frame of one camera.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Plan {
     /// The whole frame, at the detector's configured resolution.
     FullFrame,
-    /// Windows around tracked tags plus sweep tiles (possibly none this frame).
+    /// Tracked tags (each confirmed at its predicted place, else searched in its window)
+    /// plus sweep tiles (possibly none this frame).
     Track {
-        /// Quad decimation to search them with ([`SEARCH_DECIMATE`] for tags big enough,
-        /// else 1: the configured resolution).
+        /// Quad decimation to search windows and tiles with ([`SEARCH_DECIMATE`] for tags
+        /// big enough, else 1: the configured resolution).
         decimate: f32,
-        /// Windows around tracked tags.
-        windows: Vec<Rect>,
+        /// The tracked tags to look for.
+        tags: Vec<PlannedTag>,
         /// Tiles of the periodic sweep (or the whole frame after a lost tag).
         sweep: Vec<Rect>,
     },
@@ -189,7 +203,7 @@ impl RoiPlanner {
             // A background tag missing from its last search is searched again at once.
             chosen.extend(bg_keys.iter().filter(|k| self.tracks[*k].missed > 0));
         }
-        let mut windows: Vec<Rect> = Vec::new();
+        let mut tags: Vec<PlannedTag> = Vec::new();
         let mut max_extent: f64 = 0.0;
         let mut min_extent: f64 = f64::INFINITY;
         let (w, h) = (self.width, self.height);
@@ -208,8 +222,9 @@ impl RoiPlanner {
             // Room for the white border and quiet zone (the detector thresholds in 4 px
             // tiles), the motion, and a tag missed a while.
             let margin = 0.3 * extent + 10.0 + 2.0 * shift.norm() + 0.25 * extent * tr.missed as f64;
-            if let Some(r) = clip(w, h, lo.x - margin, lo.y - margin, hi.x + margin, hi.y + margin) {
-                windows.push(r);
+            if let Some(window) = clip(w, h, lo.x - margin, lo.y - margin, hi.x + margin, hi.y + margin) {
+                let predicted = tr.corners.map(|c| c + shift);
+                tags.push(PlannedTag { family: key.0, id: key.1, predicted, window });
             }
         }
 
@@ -229,7 +244,8 @@ impl RoiPlanner {
             out
         };
         let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
-        Plan::Track { decimate, windows: merge_rects(windows), sweep }
+        tags.sort_by_key(|t| (t.family.name(), t.id));
+        Plan::Track { decimate, tags, sweep }
     }
 
     /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but
@@ -398,7 +414,7 @@ mod tests {
 
     fn track(plan: Plan) -> (Vec<Rect>, Vec<Rect>) {
         match plan {
-            Plan::Track { windows, sweep, .. } => (windows, sweep),
+            Plan::Track { tags, sweep, .. } => (merge_rects(tags.iter().map(|t| t.window).collect()), sweep),
             Plan::FullFrame => panic!("expected windows, got a full-frame search"),
         }
     }

@@ -17,7 +17,7 @@ mod rig;
 mod scene;
 
 pub use beam::{DeformedBeam, FourPointBeam};
-pub use record::{render_frame_set, simulate, SimSummary, SIM_TRUTH_FILE};
+pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
 
 use serde::{Deserialize, Serialize};

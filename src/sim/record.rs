@@ -17,7 +17,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::recording::{encode_png, FrameEntry, RecordingError, RecordingWriter, TruthLine, TruthTag};
+use crate::recording::{FrameEntry, FrameFormat, RecordingError, RecordingWriter, TruthLine, TruthTag};
 
 use super::{SimError, SimParams, SimRig};
 
@@ -45,11 +45,17 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SimError + '_ {
     move |source| SimError::Io { path: path.to_path_buf(), source }
 }
 
-/// Writes a simulated recording of `params` into `out` (which must not hold a recording).
+/// Writes a simulated recording of `params` into `out` (which must not hold a recording),
+/// frames as PNG.
 ///
 /// Frames are rendered at their own (jittered) capture times; `truth.jsonl` holds one
 /// line per frame set at the set's nominal time; dropped frames are simply absent.
 pub fn simulate(params: &SimParams, out: &Path) -> Result<SimSummary, SimError> {
+    simulate_as(params, out, FrameFormat::Png)
+}
+
+/// [`simulate`] with the frames written in `format`.
+pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat) -> Result<SimSummary, SimError> {
     let rig = SimRig::new(params)?;
     let config = rig.config();
     let mut writer = RecordingWriter::create(out, &config)?;
@@ -60,8 +66,8 @@ pub fn simulate(params: &SimParams, out: &Path) -> Result<SimSummary, SimError> 
     let mut seqs = vec![0u64; names.len()];
     let mut dropped = 0;
     for k in 0..params.frame_sets as u64 {
-        // The cameras of one set render one after another (each on both cores); their PNGs
-        // are then encoded in parallel.
+        // The cameras of one set render one after another (each on both cores); their
+        // frames are then encoded in parallel.
         let mut images = Vec::new();
         for (c, name) in names.iter().enumerate() {
             match rig.frame_time_ns(c, k) {
@@ -69,12 +75,12 @@ pub fn simulate(params: &SimParams, out: &Path) -> Result<SimSummary, SimError> 
                 Some(t) => images.push((c, name, t, rig.render(c, t))),
             }
         }
-        let encoded: Vec<_> = images.par_iter().map(|(c, name, t, img)| (*c, *name, *t, encode_png(img))).collect();
-        for (c, name, t, png) in encoded {
-            let file = format!("{name}/{:06}.png", seqs[c]);
+        let encoded: Vec<_> = images.par_iter().map(|(c, name, t, img)| (*c, *name, *t, format.encode(img))).collect();
+        for (c, name, t, bytes) in encoded {
+            let file = format!("{name}/{:06}.{}", seqs[c], format.extension());
             let path = out.join(&file);
-            let png = png.map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
-            std::fs::write(&path, png).map_err(io_err(&path))?;
+            let bytes = bytes.map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
+            std::fs::write(&path, bytes).map_err(io_err(&path))?;
             entries.push(FrameEntry { camera: name.clone(), seq: seqs[c], t_ns: t, file });
             seqs[c] += 1;
         }
