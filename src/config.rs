@@ -16,8 +16,8 @@ use std::path::{Path, PathBuf};
 use toml::Spanned;
 
 use crate::camera::CameraIntrinsics;
-use crate::tags::TagFamily;
 use crate::recording::FrameFormat;
+use crate::tags::TagFamily;
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -350,8 +350,8 @@ fn is_default_format(f: &FrameFormat) -> bool {
 pub struct MeasureConfig {
     /// AprilTag `quad_decimate` for full-frame searches (1 = full resolution).
     pub quad_decimate: f32,
-    /// The AprilTag library's worker threads per camera (cameras are already detected in
-    /// parallel, one thread each; more helps a one-camera rig's full-frame searches).
+    /// The AprilTag library's worker threads: searches (full frames, windows, sweep tiles)
+    /// run one camera at a time on one shared detector, each on this many threads.
     pub detector_threads: u32,
     /// Refine detector corners against the image gradient (see `detect`).
     pub refine_corners: bool,

@@ -149,7 +149,8 @@ fn run(cli: Cli) -> Result<()> {
             pipeline::live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
         Command::Simulate { out, frame_format, params } => {
-            let summary = tagdeflect::sim::simulate_as(&params, &out, frame_format).with_context(|| format!("simulating into {}", out.display()))?;
+            let summary =
+                tagdeflect::sim::simulate_as(&params, &out, frame_format).with_context(|| format!("simulating into {}", out.display()))?;
             eprintln!(
                 "simulated {} frame sets ({} frames, {} dropped, {} UTM samples) into {}; final midspan deflection {:.3} mm",
                 summary.frame_sets,

@@ -273,8 +273,9 @@ fn window_detection_equals_full_frame() {
         println!("window vs full frame (subpixel={subpixel}): worst corner difference {worst:.2e} px");
         // The library's quad fit uses float32 internally, so its corners depend on the window
         // origin at the 1e-4 px level; the refinement starts from them and converges to the
-        // same edges, with a smooth dependence on the start.
-        let tol = if subpixel { 1e-6 } else { 1e-3 };
+        // same edges (it stops once a step moves an edge by less than 1e-4 px, so the
+        // start still shows at the 1e-5 px level — a thousandth of the corner noise).
+        let tol = if subpixel { 1e-4 } else { 1e-3 };
         assert!(worst < tol, "subpixel={subpixel}: window corners differ by {worst} px");
     }
 }
@@ -352,4 +353,50 @@ fn intrinsics_without_distortion_change_nothing() {
     let worst = (0..4).map(|i| (a.corners[i] - b.corners[i]).norm()).fold(0.0, f64::max);
     println!("refinement with distortion-free intrinsics vs without: {worst:.2e} px");
     assert!(worst < 1e-6, "{worst}");
+}
+
+/// A tracked tag confirmed from predicted corners (up to ±0.6 px off, as between frames)
+/// is as accurate as a refined library detection of the same image, and predictions of
+/// the wrong tag, the wrong rotation, a place a bit off, or an empty place are refused.
+#[test]
+fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_tags() {
+    use tagdeflect::detect::{RefineOptions, TagTracker, TrackMiss};
+    let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let fams = [TagFamily::Tag36h11, TagFamily::Tag25h9];
+    let mut det = Detector::new(DetectorOptions::for_families(&fams)).unwrap();
+    let tracker = TagTracker::default();
+    let refine = RefineOptions::default();
+    let (mut se_tracked, mut se_detected, mut n) = (0.0, 0.0, 0);
+    for t in 0..30 {
+        let family = fams[t % 2];
+        let id = rng.gen_range(0..family.code_count() - 1);
+        let edge = rng.gen_range(50.0..130.0);
+        let truth = random_corners(&mut rng, 150.0, 150.0, edge, 0.04);
+        let img = render(&scene, &[(family, id, truth)], &mut rng);
+        let Some(found) = det.detect(&img).into_iter().find(|d| d.family == family && d.id == id) else { continue };
+        let shift = nalgebra::Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5));
+        let predicted = truth.map(|c| c + shift + nalgebra::Vector2::new(rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1)));
+        let tracked = tracker.track(&img, family, id, &predicted, None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
+        assert!(tracked.contrast > 120.0, "contrast {}", tracked.contrast);
+        assert_eq!(tracked.detection.hamming, 0);
+        se_tracked += errors(&tracked.detection, &truth).iter().sum::<f64>();
+        se_detected += errors(&found, &truth).iter().sum::<f64>();
+        n += 4;
+
+        // The wrong id, the wrong rotation (corner order), a whole cell off, nothing there.
+        assert_eq!(tracker.track(&img, family, id + 1, &predicted, None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: wrong id");
+        let rotated = [predicted[1], predicted[2], predicted[3], predicted[0]];
+        assert_eq!(tracker.track(&img, family, id, &rotated, None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: rotated");
+        let cell = (truth[1] - truth[0]) / f64::from(tagdeflect::detect::refine::border_width_bits(family));
+        let off = predicted.map(|c| c + cell);
+        assert!(tracker.track(&img, family, id, &off, None, &refine).is_err(), "tag {t}: a cell off");
+        let empty = predicted.map(|c| c + nalgebra::Vector2::new(400.0, 0.0));
+        assert!(tracker.track(&img, family, id, &empty, None, &refine).is_err(), "tag {t}: outside the image");
+    }
+    assert!(n >= 4 * 27, "{} of 30 tags detected", n / 4);
+    let (tracked_rms, detected_rms) = ((se_tracked / n as f64).sqrt(), (se_detected / n as f64).sqrt());
+    println!("tracked corners RMS {tracked_rms:.4} px, refined library detections {detected_rms:.4} px");
+    assert!(tracked_rms < 0.025, "tracked corner RMS {tracked_rms:.4} px");
+    assert!(tracked_rms < 1.15 * detected_rms + 0.002, "tracked {tracked_rms:.4} vs detected {detected_rms:.4} px");
 }

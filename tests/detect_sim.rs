@@ -85,10 +85,10 @@ fn run(params: &SimParams, sets: &[u64]) -> Figures {
                 }
                 f.tags += 1;
                 let centre = (t[0].coords + t[1].coords + t[2].coords + t[3].coords) / 4.0;
-                for i in 0..4 {
-                    let outward = (t[i].coords - centre).normalize();
-                    f.raw.add(r.corners[i] - t[i], outward);
-                    f.refined.add(q.corners[i] - t[i], outward);
+                for (i, ti) in t.iter().enumerate() {
+                    let outward = (ti.coords - centre).normalize();
+                    f.raw.add(r.corners[i] - ti, outward);
+                    f.refined.add(q.corners[i] - ti, outward);
                 }
             }
         }

@@ -159,9 +159,8 @@ fn upright_tag_gives_spec_corner_order_and_opencv_pixels() {
             assert_eq!(dets.len(), 1, "{file}: {dets:?}");
             let d = &dets[0];
             let mut worst: f64 = 0.0;
-            for i in 0..4 {
-                let e = ((d.corners[i].x - truth[i][0]).powi(2) + (d.corners[i].y - truth[i][1]).powi(2)).sqrt();
-                worst = worst.max(e);
+            for (c, t) in d.corners.iter().zip(&truth) {
+                worst = worst.max(((c.x - t[0]).powi(2) + (c.y - t[1]).powi(2)).sqrt());
             }
             println!("{file}: subpixel={subpixel} worst corner error {worst:.4} px vs the exact square");
             assert!(worst < 0.15, "{file}: corners {:?} vs truth {truth:?}", d.corners);
@@ -239,5 +238,8 @@ fn window_detection_matches_full_frame_on_a_photo() {
     }
     println!("window vs full frame on a photo: {compared} tags, worst corner difference {worst:.2e} px");
     assert!(compared >= 10);
-    assert!(worst < 1e-6, "window corners differ from full-frame ones by {worst} px");
+    // The refinement stops once a step moves an edge by less than 1e-4 px, so its start
+    // (the library's quad, which depends on the window origin at the 1e-4 px level) still
+    // shows at the 1e-5 px level: a thousandth of the corner noise.
+    assert!(worst < 1e-4, "window corners differ from full-frame ones by {worst} px");
 }

@@ -151,3 +151,38 @@ fn empty_recording_and_missing_folder_are_errors() {
     let e = Recording::open(&dir.path().join("nope")).unwrap_err().to_string();
     assert!(e.contains("nope"), "{e}");
 }
+
+/// A PGM recording (what a recorder writes for high frame rates) holds the same pixels
+/// as a PNG one and replays to the same feed; the writer names its frames `.pgm`.
+#[test]
+fn pgm_recordings_replay_like_png_ones() {
+    use tagdeflect::recording::FrameFormat;
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 2, width: 320, height: 240, frame_sets: 3, ..SimParams::default() };
+    let png = common::simulate(dir.path(), "png", &params);
+    let pgm = dir.path().join("pgm");
+    tagdeflect::sim::simulate_as(&params, &pgm, FrameFormat::Pgm).unwrap();
+    let (rec_png, lines_png, _) = common::replay_lines(&png, false);
+    let (rec_pgm, lines_pgm, _) = common::replay_lines(&pgm, false);
+    assert!(rec_pgm.frames.iter().all(|f| f.file.ends_with(".pgm")), "{:?}", rec_pgm.frames[0]);
+    for (a, b) in rec_png.frames.iter().zip(&rec_pgm.frames) {
+        assert_eq!(rec_png.load_image(a).unwrap(), rec_pgm.load_image(b).unwrap(), "{}", b.file);
+    }
+    assert_eq!(lines_png.len(), 3);
+    assert_eq!(lines_png, lines_pgm);
+
+    // The writer: `with_format(Pgm)` and `[output] record_format = "pgm"` in a config.
+    let cfg = tiny_config();
+    let out = dir.path().join("written");
+    let mut w = RecordingWriter::create(&out, &cfg).unwrap().with_format(FrameFormat::Pgm);
+    w.write_frame(&cfg.cameras[0].name, 7, 1_000, &gradient(64, 48)).unwrap();
+    w.finish().unwrap();
+    let rec = Recording::open(&out).unwrap();
+    assert_eq!(rec.frames[0].file, format!("{}/000007.pgm", cfg.cameras[0].name));
+    assert!(fs::read(out.join(&rec.frames[0].file)).unwrap().starts_with(b"P5\n64 48\n255\n"));
+    assert_eq!(rec.load_image(&rec.frames[0]).unwrap(), gradient(64, 48));
+    let mut cfg2 = cfg.clone();
+    cfg2.output.record_format = FrameFormat::Pgm;
+    let text = cfg2.to_toml_string();
+    assert!(text.contains("record_format = \"pgm\""), "{text}");
+}

@@ -23,6 +23,103 @@ pub struct BenchOptions {
     /// Replay the recording this many times in a row (a longer steady state).
     #[arg(long, default_value_t = 1)]
     pub repeat: u32,
+    /// Instead, play the frames at their recorded pace through the live pipeline (as from
+    /// cameras: drop-oldest queue, assembler, solver thread) and report frame sets solved
+    /// per second, dropped, and latency frame set complete → feed line.
+    #[arg(long)]
+    pub realtime: bool,
+}
+
+/// Figures of a paced run of a recording through the live pipeline (`bench --realtime`).
+#[derive(Debug, Clone, Serialize)]
+pub struct RealtimeFigures {
+    /// "roi-tracking" or "full-frame".
+    pub mode: String,
+    /// Frame sets in the recording (frames of its busiest camera).
+    pub recorded_sets: u64,
+    /// Length of the recording, s.
+    pub recorded_s: f64,
+    /// Feed lines made (frame sets solved).
+    pub solved_sets: u64,
+    /// Frame sets solved per second of recording in steady state (after the first tenth).
+    pub steady_solved_per_s: f64,
+    /// Frame sets the drop-oldest queue in front of the solver dropped.
+    pub dropped_sets: u64,
+    /// Latency frame set complete → feed line in steady state, median, ms.
+    pub latency_p50_ms: f64,
+    /// The same, 99th percentile, ms.
+    pub latency_p99_ms: f64,
+    /// The same, worst, ms.
+    pub latency_max_ms: f64,
+    /// Peak resident memory, MB.
+    pub peak_rss_mb: f64,
+}
+
+/// An in-memory feed sink shared with the bench.
+#[derive(Clone, Default)]
+struct SharedBuf(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+impl std::io::Write for SharedBuf {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().expect("feed buffer").extend_from_slice(b);
+        Ok(b.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<RealtimeFigures> {
+    let buf = SharedBuf::default();
+    let sink = crate::sinks::feed::FeedWriter::from_writer("bench", Box::new(buf.clone()));
+    crate::pipeline::live::replay_paced(rec.clone(), full_frame, vec![sink])?;
+    let text = String::from_utf8(std::mem::take(&mut *buf.0.lock().expect("feed buffer")))?;
+    let lines: Vec<crate::feed::FeedLine> = text.lines().map(serde_json::from_str).collect::<Result<_, _>>()?;
+    let mut per_camera = std::collections::HashMap::new();
+    for f in &rec.frames {
+        *per_camera.entry(&f.camera).or_insert(0u64) += 1;
+    }
+    let (t0, t1) = (rec.frames.iter().map(|f| f.t_ns).min().unwrap_or(0), rec.frames.iter().map(|f| f.t_ns).max().unwrap_or(0));
+    let warm = lines.len() / 10;
+    let steady = &lines[warm.min(lines.len())..];
+    let steady_solved_per_s = match (steady.first(), steady.last()) {
+        (Some(a), Some(b)) if b.t_ns > a.t_ns => (steady.len() - 1) as f64 / ((b.t_ns - a.t_ns) as f64 * 1e-9),
+        _ => 0.0,
+    };
+    let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
+    lat.sort_by(f64::total_cmp);
+    let pct = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0);
+    Ok(RealtimeFigures {
+        mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
+        recorded_sets: per_camera.values().copied().max().unwrap_or(0),
+        recorded_s: (t1 - t0) as f64 * 1e-9,
+        solved_sets: lines.len() as u64,
+        steady_solved_per_s,
+        dropped_sets: lines.last().and_then(|l| l.dropped_sets).unwrap_or(0),
+        latency_p50_ms: pct(0.5),
+        latency_p99_ms: pct(0.99),
+        latency_max_ms: lat.last().copied().unwrap_or(0.0),
+        peak_rss_mb: peak_rss_mb(),
+    })
+}
+
+fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
+    println!(
+        "bench --realtime {} ({} cores, {})",
+        dir.display(),
+        std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        r.mode
+    );
+    println!("{:<36}{:>12}", "frame sets recorded", r.recorded_sets);
+    println!("{:<36}{:>12.1}", "recording length s", r.recorded_s);
+    println!("{:<36}{:>12.1}", "recorded frame sets/s", r.recorded_sets as f64 / r.recorded_s.max(1e-9));
+    println!("{:<36}{:>12}", "frame sets solved", r.solved_sets);
+    println!("{:<36}{:>12.1}", "solved frame sets/s (steady)", r.steady_solved_per_s);
+    println!("{:<36}{:>12}", "dropped sets (solver queue)", r.dropped_sets);
+    println!("{:<36}{:>12.1}", "latency p50 ms (steady)", r.latency_p50_ms);
+    println!("{:<36}{:>12.1}", "latency p99 ms (steady)", r.latency_p99_ms);
+    println!("{:<36}{:>12.1}", "latency max ms (steady)", r.latency_max_ms);
+    println!("{:<36}{:>12.1}", "peak RSS MB", r.peak_rss_mb);
 }
 
 /// Figures of one bench run.
@@ -47,10 +144,10 @@ pub struct BenchFigures {
     pub detect_ms: f64,
     /// CPU per frame set (all cameras) confirming tracked tags at their predicted place, ms.
     pub tracking_cpu_ms: f64,
-    /// CPU per frame set (all cameras) in window searches and sweep tiles, ms.
+    /// Wall time per frame set of window searches and sweep tiles (on the library's
+    /// worker threads), ms.
     pub search_cpu_ms: f64,
-    /// CPU per frame set (all cameras) in full-frame searches, ms (detector worker threads
-    /// of a full-frame-only run not included).
+    /// Wall time per frame set of full-frame searches (likewise), ms.
     pub full_frame_cpu_ms: f64,
     /// Mean camera-pose time per frame set, ms.
     pub pose_ms: f64,
@@ -58,13 +155,20 @@ pub struct BenchFigures {
     pub solve_ms: f64,
     /// Mean feed-line output time per frame set, ms.
     pub output_ms: f64,
-    /// Latency frame set ready → feed line, median, ms.
+    /// Processing latency (frame set taken by the solver → feed line made) in steady state
+    /// (after the first tenth of the sets), median, ms.
     pub latency_p50_ms: f64,
-    /// Latency frame set ready → feed line, 99th percentile, ms.
+    /// The same, 99th percentile, ms.
     pub latency_p99_ms: f64,
+    /// Processing time of the first frame set (full-frame searches of every camera), ms.
+    pub first_set_ms: f64,
     /// Peak resident memory of the process so far, MB.
     pub peak_rss_mb: f64,
-    /// Frame sets dropped (always 0 here: bench never drops; see `replay --realtime`).
+    /// Resident memory after the first frame set, MB.
+    pub rss_first_set_mb: f64,
+    /// Resident memory at the end, MB (equal to the above when memory stays flat).
+    pub rss_end_mb: f64,
+    /// Frame sets dropped (always 0 here: bench never drops; see `--realtime`).
     pub dropped_sets: u64,
     /// Full-frame searches run.
     pub full_frame_searches: u64,
@@ -80,6 +184,15 @@ pub struct BenchFigures {
 /// Runs the bench and prints the figures.
 pub fn bench(opts: &BenchOptions) -> Result<()> {
     let rec = replay::open(&opts.dir, None)?;
+    if opts.realtime {
+        let r = run_realtime(&rec, opts.full_frame)?;
+        if opts.json {
+            println!("{}", serde_json::to_string(&r)?);
+        } else {
+            print_realtime(&opts.dir, &r);
+        }
+        return Ok(());
+    }
     let mut runs = vec![run_once(&rec, false, opts.repeat)?];
     if opts.full_frame {
         runs.push(run_once(&rec, true, opts.repeat)?);
@@ -109,6 +222,8 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
     let mut solve = 0.0;
     let mut output = 0.0;
     let mut latencies = Vec::new();
+    let mut first_set_s = 0.0;
+    let mut rss_first_mb = 0.0;
     let mut sets = 0;
     let mut wall = 0.0;
     let mut decode = 0.0;
@@ -118,7 +233,9 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
     let (mut steady_sets, mut steady_s) = (0u64, 0.0);
     for pass in 0..repeat.max(1) {
         let mut stamps = Vec::new();
-        let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false }, |line, t, lat| {
+        let mut k = 0usize;
+        let warm_sets = (rec.frames.len() / rec.config.cameras.len().max(1) / 10).max(1);
+        let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false }, |line, t, _queued| {
             let t0 = std::time::Instant::now();
             stamps.push(t0);
             sink.clear();
@@ -132,7 +249,20 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
             detect_cpu.full_frame += t.detect_cpu.full_frame;
             pose += t.pose;
             solve += t.solve;
-            latencies.push(lat + out_s);
+            // Processing latency (set taken by the solver → line made) in steady state; in
+            // an as-fast-as-possible replay the time a set waits behind the reader says
+            // nothing about a live run (see `--realtime` for that).
+            let processing = t.detect + t.pose + t.solve + out_s;
+            if k == 0 && pass == 0 {
+                first_set_s = processing;
+            }
+            if k >= warm_sets {
+                latencies.push(processing);
+            }
+            if k == 0 && pass == 0 {
+                rss_first_mb = rss_mb();
+            }
+            k += 1;
             if pass == 0 && !rec.truth.is_empty() {
                 lines.push(line.clone());
             }
@@ -167,7 +297,10 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         output_ms: output / n * 1e3,
         latency_p50_ms: pct(0.5),
         latency_p99_ms: pct(0.99),
+        first_set_ms: first_set_s * 1e3,
         peak_rss_mb: peak_rss_mb(),
+        rss_first_set_mb: rss_first_mb,
+        rss_end_mb: rss_mb(),
         dropped_sets: 0,
         full_frame_searches: stats.full_frame_searches,
         window_searches: stats.window_searches,
@@ -181,22 +314,25 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 19] = [
+    let rows: [Row; 22] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
         ("measure-only frame sets/s", |f| format!("{:.1}", f.measure_sets_per_s)),
         ("decode ms/set (overlapped)", |f| format!("{:.2}", f.decode_ms)),
         ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
-        ("  CPU: tracked tags ms/set", |f| format!("{:.2}", f.tracking_cpu_ms)),
-        ("  CPU: windows+sweep ms/set", |f| format!("{:.2}", f.search_cpu_ms)),
-        ("  CPU: full-frame ms/set", |f| format!("{:.2}", f.full_frame_cpu_ms)),
+        ("  tracked tags CPU ms/set", |f| format!("{:.2}", f.tracking_cpu_ms)),
+        ("  windows+sweep ms/set", |f| format!("{:.2}", f.search_cpu_ms)),
+        ("  full-frame ms/set", |f| format!("{:.2}", f.full_frame_cpu_ms)),
         ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
         ("solve ms/set", |f| format!("{:.3}", f.solve_ms)),
         ("output ms/set", |f| format!("{:.3}", f.output_ms)),
-        ("latency p50 ms", |f| format!("{:.1}", f.latency_p50_ms)),
-        ("latency p99 ms", |f| format!("{:.1}", f.latency_p99_ms)),
+        ("latency p50 ms (steady)", |f| format!("{:.1}", f.latency_p50_ms)),
+        ("latency p99 ms (steady)", |f| format!("{:.1}", f.latency_p99_ms)),
+        ("first frame set ms", |f| format!("{:.1}", f.first_set_ms)),
         ("peak RSS MB", |f| format!("{:.1}", f.peak_rss_mb)),
+        ("RSS MB after first set", |f| format!("{:.1}", f.rss_first_set_mb)),
+        ("RSS MB at the end", |f| format!("{:.1}", f.rss_end_mb)),
         ("dropped sets", |f| f.dropped_sets.to_string()),
         ("full-frame searches", |f| f.full_frame_searches.to_string()),
         ("window searches", |f| f.window_searches.to_string()),

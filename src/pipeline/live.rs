@@ -55,16 +55,24 @@ pub struct LiveOptions {
 
 /// `run`, `record` and `demo`: live sources from the config.
 pub fn run(config: Config, opts: LiveOptions) -> Result<()> {
-    runtime()?.block_on(run_async(config, opts, None))
+    runtime()?.block_on(run_async(config, opts, None, Vec::new()))
 }
 
 /// `replay --realtime`: the recording's frames at their recorded pace through the live
 /// pipeline (same drop policy as `run`, drops counted); the feed goes to stdout.
 pub fn replay_realtime(dir: &std::path::Path, config: Option<Config>, full_frame: bool) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
-    let cfg = rec.config.clone();
-    let opts = LiveOptions { feed_to_stdout: true, full_frame, ..LiveOptions::default() };
-    runtime()?.block_on(run_async(cfg, opts, Some(rec)))
+    replay_paced(rec, full_frame, vec![FeedWriter::stdout()])
+}
+
+/// A recording's frames at their recorded pace through the live pipeline, the feed to
+/// `feeds` (`replay --realtime`, `bench --realtime`).
+pub fn replay_paced(rec: Recording, full_frame: bool, feeds: Vec<FeedWriter>) -> Result<()> {
+    let mut cfg = rec.config.clone();
+    // A replay's feed goes to `feeds` only, never to the recorded run's feed file.
+    cfg.output.feed = None;
+    let opts = LiveOptions { full_frame, ..LiveOptions::default() };
+    runtime()?.block_on(run_async(cfg, opts, Some(rec), feeds))
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -116,14 +124,13 @@ enum RecorderMsg {
     Utm(UtmSample),
 }
 
-async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>) -> Result<()> {
+async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>, mut feeds: Vec<FeedWriter>) -> Result<()> {
     let ncam = config.cameras.len();
     let stop = Arc::new(AtomicBool::new(false));
     let (src_tx, mut src_rx) = mpsc::channel::<SourceEvent>(4 * ncam.max(1));
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
 
     // Sinks first: an unwritable output is reported before any camera starts.
-    let mut feeds: Vec<FeedWriter> = Vec::new();
     if opts.feed_to_stdout {
         feeds.push(FeedWriter::stdout());
     }

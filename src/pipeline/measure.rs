@@ -10,13 +10,14 @@ use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::{refine_corners_with, Detection, Rect, TagTracker, TrackMiss};
+use crate::detect::{refine_corners_with, Detection, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::{merge_rects, Plan, RoiPlanner};
+use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
 use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
+use rayon::prelude::*;
 
 /// Wall-clock time spent in each stage of one frame set, seconds.
 #[derive(Debug, Clone, Copy, Default)]
@@ -31,23 +32,17 @@ pub struct StageTimes {
     pub solve: f64,
 }
 
-/// CPU time of one frame set's detection by kind of work (seconds, all cameras).
+/// Time of one frame set's detection by kind of work, seconds.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct DetectCpu {
-    /// Confirming tracked tags at their predicted place (refinement and read-back).
+    /// CPU time confirming tracked tags at their predicted place (refinement and
+    /// read-back), summed over the cameras (which run in parallel).
     pub tracking: f64,
-    /// Window searches of tags not confirmed, and the sweep's tiles.
+    /// Wall time of the window searches of tags not confirmed and of the sweep's tiles
+    /// (one camera after another, each on the library's worker threads).
     pub search: f64,
-    /// Full-frame searches.
+    /// Wall time of full-frame searches (likewise).
     pub full_frame: f64,
-}
-
-impl DetectCpu {
-    fn add(&mut self, o: &DetectCpu) {
-        self.tracking += o.tracking;
-        self.search += o.search;
-        self.full_frame += o.full_frame;
-    }
 }
 
 /// CPU time of the calling thread, seconds.
@@ -78,10 +73,8 @@ pub struct MeasureStats {
 struct CameraState {
     name: String,
     intrinsics: CameraIntrinsics,
-    detector: Detector,
     tracker: CameraPoseTracker,
     roi: RoiPlanner,
-    tag_tracker: TagTracker,
     /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
     tag_contrast: Option<f64>,
 }
@@ -103,6 +96,21 @@ struct TagTrack {
     motion: TagMotion,
 }
 
+/// What phase 1 of the detection leaves to phase 2 for one camera.
+struct SearchJob {
+    camera: usize,
+    /// Tags confirmed (then everything found).
+    found: Vec<Detection>,
+    /// Search the whole frame.
+    full: bool,
+    /// Windows of tracked tags not confirmed.
+    windows: Vec<Rect>,
+    /// Sweep tiles.
+    sweep: Vec<Rect>,
+    /// Quad decimation of windows and tiles.
+    decimate: f32,
+}
+
 /// Per-camera result of the detection stage.
 struct CameraDetections {
     background: Vec<Detection>,
@@ -114,6 +122,14 @@ pub struct Measurement {
     config: Config,
     up: Vector3<f64>,
     cameras: Vec<CameraState>,
+    /// The AprilTag library, shared by the cameras: searches run one at a time on the
+    /// library's worker threads (its decoding tables take ~37 MB for tag36h11 per
+    /// detector, so one detector instead of one per camera).
+    detector: Detector,
+    /// Confirms tracked tags at their predicted places (shared by the cameras' threads).
+    tag_tracker: TagTracker,
+    /// The sweep's masked copy of a tile (reused).
+    tile: crate::frame::GrayImage,
     background_world: HashMap<u32, [Vector3<f64>; 4]>,
     specimen_ids: HashMap<u32, Option<TagRole>>,
     tags: BTreeMap<u32, TagTrack>,
@@ -133,29 +149,27 @@ impl Measurement {
         };
         let opts = DetectorOptions {
             quad_decimate: config.measure.quad_decimate,
-            // Tracking runs many small searches per frame and the cameras in parallel: the
-            // library's per-call worker pool would only add thread start-up and contention.
-            nthreads: if roi_tracking && config.measure.roi_tracking { 1 } else { config.measure.detector_threads.max(1) },
+            nthreads: config.measure.detector_threads.max(1),
             subpixel: config.measure.refine_corners.then(RefineOptions::default),
             ..DetectorOptions::for_families(&families)
         };
+        let detector = Detector::new(opts)?;
         let mut cameras = Vec::new();
         for cam in &config.cameras {
             let intrinsics = cam.intrinsics();
             let fixed = cam.rvec.zip(cam.tvec_mm).map(|(r, t)| Pose::from_rvec_tvec(r, t));
-            let mut detector = Detector::new(opts.clone())?;
-            detector.set_intrinsics(Some(intrinsics));
             cameras.push(CameraState {
                 name: cam.name.clone(),
                 intrinsics,
-                detector,
                 tracker: CameraPoseTracker::new(intrinsics, fixed),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
-                tag_tracker: TagTracker::default(),
                 tag_contrast: None,
             });
         }
+        let known_tags = config.background.tags.iter().map(|t| (config.background.family, t.id));
+        let tag_tracker =
+            TagTracker::new(TrackOptions::default(), known_tags.chain(config.specimen.tags.iter().map(|t| (config.specimen.family, t.id))));
         let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
         let specimen_ids = config.specimen.tags.iter().map(|t| (t.id, t.role)).collect();
         let up = Vector3::from(config.world.up).normalize();
@@ -163,6 +177,9 @@ impl Measurement {
             config: config.clone(),
             up,
             cameras,
+            detector,
+            tag_tracker,
+            tile: crate::frame::GrayImage::new(0, 0),
             background_world,
             specimen_ids,
             tags: BTreeMap::new(),
@@ -323,95 +340,107 @@ impl Measurement {
         (line, times)
     }
 
-    /// Detects tags in every frame of the set, cameras in parallel.
+    /// Detects tags in every frame of the set: first the tracked tags of every camera are
+    /// confirmed at their predicted places (no search; the tags of all cameras spread over
+    /// the cores, so three cameras on two cores still balance), then the searches still
+    /// needed — full frames, windows of tags not confirmed, sweep tiles — run one camera
+    /// after another on the shared detector, each on the library's worker threads.
     fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectCpu) {
-        let bg_family = self.config.background.family;
-        let sp_family = self.config.specimen.family;
-        let bg_ids = &self.background_world;
-        let sp_ids = &self.specimen_ids;
-        let same_family = bg_family == sp_family;
-        let mut jobs: Vec<(&mut CameraState, &crate::frame::Frame)> = Vec::new();
-        let mut cams: Vec<Option<&mut CameraState>> = self.cameras.iter_mut().map(Some).collect();
+        let refine = self.detector.options().subpixel.clone();
+        let mut jobs: Vec<SearchJob> = Vec::new();
+        let mut planned: Vec<(usize, PlannedTag)> = Vec::new();
         for f in &set.frames {
-            if let Some(c) = cams.get_mut(f.camera).and_then(|c| c.take()) {
-                jobs.push((c, f));
+            let Some(cam) = self.cameras.get_mut(f.camera) else { continue };
+            if jobs.iter().any(|j| j.camera == f.camera) {
+                continue;
+            }
+            let mut job =
+                SearchJob { camera: f.camera, found: Vec::new(), full: false, windows: Vec::new(), sweep: Vec::new(), decimate: 1.0 };
+            match cam.roi.plan(f.t_ns, &f.image) {
+                Plan::FullFrame => job.full = true,
+                Plan::Track { decimate, tags, sweep } => {
+                    job.sweep = sweep;
+                    job.decimate = decimate;
+                    planned.extend(tags.into_iter().map(|t| (jobs.len(), t)));
+                }
+            }
+            jobs.push(job);
+        }
+
+        // Phase 1: tracked tags confirmed where they are predicted, in parallel.
+        let frame_of = |job: &SearchJob| set.frames.iter().find(|f| f.camera == job.camera).expect("the job's frame");
+        let (cameras, tracker) = (&self.cameras, &self.tag_tracker);
+        let confirm = |(j, t): &(usize, PlannedTag)| {
+            let c0 = thread_cpu_s();
+            let cam = &cameras[jobs[*j].camera];
+            let result = match &refine {
+                Some(opts) => tracker.track(&frame_of(&jobs[*j]).image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts),
+                None => Err(TrackMiss::Unsupported),
+            };
+            (result, thread_cpu_s() - c0)
+        };
+        let results: Vec<(Result<TrackedTag, TrackMiss>, f64)> =
+            if planned.len() > 1 { planned.par_iter().map(confirm).collect() } else { planned.iter().map(confirm).collect() };
+        let mut cpu = DetectCpu::default();
+        let mut weakest: Vec<Option<f64>> = vec![None; jobs.len()];
+        for ((j, t), (result, cpu_s)) in planned.into_iter().zip(results) {
+            cpu.tracking += cpu_s;
+            match result {
+                Ok(tag) => {
+                    weakest[j] = Some(weakest[j].map_or(tag.contrast, |w: f64| w.min(tag.contrast)));
+                    jobs[j].found.push(tag.detection);
+                }
+                Err(_) => jobs[j].windows.push(t.window),
             }
         }
-        let run = |(cam, frame): (&mut CameraState, &crate::frame::Frame)| -> (usize, CameraDetections, bool, u64, u64, DetectCpu) {
-            let plan = cam.roi.plan(frame.t_ns, &frame.image);
-            let mut tracked_n = 0u64;
-            let mut cpu = DetectCpu::default();
-            let c0 = thread_cpu_s();
-            let (dets, full, windows) = match plan {
-                Plan::FullFrame => {
-                    let d = cam.detector.detect(&frame.image);
-                    cpu.full_frame = thread_cpu_s() - c0;
-                    (d, true, 0)
-                }
-                Plan::Track { decimate: search_decimate, tags, sweep } => {
-                    // Each tracked tag confirmed where it is predicted; the others searched in windows.
-                    let mut all = Vec::new();
-                    let mut windows = Vec::new();
-                    let refine = cam.detector.options().subpixel.clone();
-                    let mut weakest: Option<f64> = None;
-                    for t in &tags {
-                        let tracked = match &refine {
-                            Some(opts) => cam.tag_tracker.track(&frame.image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts),
-                            None => Err(TrackMiss::Unsupported),
-                        };
-                        match tracked {
-                            Ok(tag) => {
-                                tracked_n += 1;
-                                weakest = Some(weakest.map_or(tag.contrast, |w| w.min(tag.contrast)));
-                                all.push(tag.detection);
-                            }
-                            Err(_) => windows.push(t.window),
-                        }
-                    }
-                    if weakest.is_some() {
-                        cam.tag_contrast = weakest;
-                    }
-                    let c1 = thread_cpu_s();
-                    cpu.tracking = c1 - c0;
-                    let windows = merge_rects(windows);
-                    all.extend(search(cam, &frame.image, &windows, &sweep, &all, search_decimate));
-                    dedup_detections(&mut all);
-                    cpu.search = thread_cpu_s() - c1;
-                    (all, false, (windows.len() + sweep.len()) as u64)
-                }
-            };
-            let mut out = CameraDetections { background: Vec::new(), specimen: Vec::new() };
-            for d in dets {
-                let is_sp = d.family == sp_family && sp_ids.contains_key(&d.id) && !(same_family && bg_ids.contains_key(&d.id));
-                let is_bg = d.family == bg_family && bg_ids.contains_key(&d.id);
-                if is_sp {
-                    out.specimen.push(d);
-                } else if is_bg {
-                    out.background.push(d);
-                }
+        for (job, weakest) in jobs.iter_mut().zip(weakest) {
+            if weakest.is_some() {
+                self.cameras[job.camera].tag_contrast = weakest;
             }
-            (frame.camera, out, full, windows, tracked_n, cpu)
-        };
-        let results: Vec<(usize, CameraDetections, bool, u64, u64, DetectCpu)> = if jobs.len() <= 1 {
-            jobs.into_iter().map(run).collect()
-        } else {
-            std::thread::scope(|s| {
-                let handles: Vec<_> = jobs.into_iter().map(|j| s.spawn(move || run(j))).collect();
-                handles.into_iter().map(|h| h.join().expect("detection thread")).collect()
-            })
-        };
-        let mut out = Vec::with_capacity(results.len());
-        let mut cpu = DetectCpu::default();
-        for (ci, d, full, windows, tracked, c) in results {
-            cpu.add(&c);
-            if full {
+            job.windows = merge_rects(std::mem::take(&mut job.windows));
+        }
+
+        // Phase 2: the searches, one camera at a time on the shared detector.
+        let mut out = Vec::with_capacity(jobs.len());
+        for mut job in jobs {
+            self.stats.tracked_tags += job.found.len() as u64;
+            let cam = &self.cameras[job.camera];
+            let frame = set.frames.iter().find(|f| f.camera == job.camera).expect("the job's frame");
+            let c0 = Instant::now();
+            self.detector.set_intrinsics(Some(cam.intrinsics));
+            if job.full {
+                job.found = self.detector.detect(&frame.image);
                 self.stats.full_frame_searches += 1;
+                cpu.full_frame += c0.elapsed().as_secs_f64();
+            } else {
+                let found = search(&mut self.detector, cam, &frame.image, &job, &mut self.tile);
+                job.found.extend(found);
+                dedup_detections(&mut job.found);
+                self.stats.window_searches += (job.windows.len() + job.sweep.len()) as u64;
+                cpu.search += c0.elapsed().as_secs_f64();
             }
-            self.stats.window_searches += windows;
-            self.stats.tracked_tags += tracked;
-            out.push((ci, d));
+            out.push((job.camera, self.classify(job.found)));
         }
         (out, cpu)
+    }
+
+    /// Sorts detections into background and specimen tags (others are ignored).
+    fn classify(&self, dets: Vec<Detection>) -> CameraDetections {
+        let (bg_family, sp_family) = (self.config.background.family, self.config.specimen.family);
+        let same_family = bg_family == sp_family;
+        let mut out = CameraDetections { background: Vec::new(), specimen: Vec::new() };
+        for d in dets {
+            let is_sp = d.family == sp_family
+                && self.specimen_ids.contains_key(&d.id)
+                && !(same_family && self.background_world.contains_key(&d.id));
+            let is_bg = d.family == bg_family && self.background_world.contains_key(&d.id);
+            if is_sp {
+                out.specimen.push(d);
+            } else if is_bg {
+                out.background.push(d);
+            }
+        }
+        out
     }
 
     /// Mean downward displacement of midspan tags minus that of support tags.
@@ -425,25 +454,25 @@ impl Measurement {
     }
 }
 
-/// Searches windows around tracked tags that could not be confirmed, and the sweep's
-/// tiles, with quad decimation `search_decimate` (at least the configured one) and with
+/// Searches a camera's windows around tracked tags that could not be confirmed, and its
+/// sweep tiles, with the job's quad decimation (at least the configured one) and with
 /// low-contrast regions skipped (see [`SEARCH_CONTRAST_FRACTION`]). Window detections are
 /// refined as usual. Tiles are searched without refinement; only the tags not already
-/// found (`found`, or in the windows) are then refined — corners as good as a full-frame
+/// found (confirmed, or in the windows) are then refined — corners as good as a full-frame
 /// search's without refining every tracked tag twice. The detector's options are restored.
 fn search(
-    cam: &mut CameraState,
+    detector: &mut Detector,
+    cam: &CameraState,
     image: &crate::frame::GrayImage,
-    windows: &[Rect],
-    tiles: &[Rect],
-    found: &[Detection],
-    search_decimate: f32,
+    job: &SearchJob,
+    scratch: &mut crate::frame::GrayImage,
 ) -> Vec<Detection> {
+    let (windows, tiles, found, search_decimate) = (&job.windows, &job.sweep, &job.found, job.decimate);
     let mut out: Vec<Detection> = Vec::new();
     if windows.is_empty() && tiles.is_empty() {
         return out;
     }
-    let configured = cam.detector.options().clone();
+    let configured = detector.options().clone();
     let min_diff = configured.min_white_black_diff as f64;
     let white_black_diff =
         cam.tag_contrast.map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
@@ -452,16 +481,23 @@ fn search(
         min_white_black_diff: white_black_diff as u8,
         ..configured.clone()
     };
-    if !windows.is_empty() && cam.detector.set_options(options.clone()).is_ok() {
+    if !windows.is_empty() && detector.set_options(options.clone()).is_ok() {
         for r in windows {
-            out.extend(cam.detector.detect_window(image, *r));
+            out.extend(detector.detect_window(image, *r));
         }
     }
-    if !tiles.is_empty() && cam.detector.set_options(DetectorOptions { subpixel: None, ..options }).is_ok() {
+    if !tiles.is_empty() && detector.set_options(DetectorOptions { subpixel: None, ..options }).is_ok() {
         let mut new: Vec<Detection> = Vec::new();
+        let known: Vec<Detection> = found.iter().chain(out.iter()).cloned().collect();
         for r in tiles {
-            for d in cam.detector.detect_window(image, *r) {
-                let known = found.iter().chain(out.iter()).chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
+            // The tile with the tags already found blanked out (see `roi::masked_tile`).
+            masked_tile(image, *r, &known, scratch);
+            let whole = Rect { x: 0, y: 0, width: r.width, height: r.height };
+            for mut d in detector.detect_window(scratch, whole) {
+                for c in d.corners.iter_mut() {
+                    *c += nalgebra::Vector2::new(r.x as f64, r.y as f64);
+                }
+                let known = known.iter().chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
                 if !known {
                     new.push(d);
                 }
@@ -475,7 +511,7 @@ fn search(
         out.extend(new);
     }
     // The configured options were valid when the detector was built.
-    let _ = cam.detector.set_options(configured);
+    let _ = detector.set_options(configured);
     out
 }
 

@@ -1,30 +1,35 @@
-//! Region-of-interest planning: which parts of the next frame of one camera to search.
+//! Region-of-interest planning: what to look for in the next frame of one camera.
 //!
-//! Once tags have been found, the next frame is searched only in windows around where
-//! each tag is expected: its last detected corners moved by its image velocity, grown by
-//! a margin that scales with the tag's size in the image and its motion.
+//! Once tags have been found, each is expected where its last refined corners, moved by
+//! its image velocity, put it ([`PlannedTag::predicted`]). The measurement first tries to
+//! *confirm* it there without any search (sub-pixel refinement from the prediction, then
+//! the tag's code read back: see `detect::track`); only a tag that cannot be confirmed is
+//! searched for with the AprilTag library in its *window*, the predicted box grown by a
+//! margin that scales with the tag's size in the image and its motion.
 //!
-//! - **Specimen tags** get a window every frame.
+//! - **Specimen tags** are looked for every frame.
 //! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
 //!   is held, see `solve::tracker`), so after a settling period only a rotating subset of
-//!   [`BACKGROUND_TAGS_PER_FRAME`] of them is searched per frame; the tracker's bump
+//!   [`BACKGROUND_TAGS_PER_FRAME`] of them is looked for per frame; the tracker's bump
 //!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
 //!   the same frame set. When the background tags seen have shifted in the image (a bump),
-//!   all of them are searched again for [`SETTLE_FRAMES`] frames so the re-posing averages
-//!   every tag.
+//!   all of them are looked for again for [`SETTLE_FRAMES`] frames so the re-posing
+//!   averages every tag.
 //! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
 //!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
-//!   is larger than the biggest tag, so each tag lies wholly inside some tile). Tiles are
-//!   searched with quad decimation [`SEARCH_DECIMATE`] when the tags are big enough (the library still fits the quads on
-//!   the full image and corners are refined at full resolution), and the cameras'
-//!   tiles are staggered (`with_phase`) so no frame set stalls.
+//!   is larger than the biggest tag, so each tag lies wholly inside some tile), with the
+//!   tags already found blanked out ([`masked_tile`]). Tiles are searched with quad
+//!   decimation [`SEARCH_DECIMATE`] when the tags are big enough (corners are refined at
+//!   full resolution), and the cameras' tiles are staggered (`with_phase`) so no frame
+//!   set stalls.
 //! - **Full frame** (full resolution) at the start, when the image size changes and
 //!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
 //!   frame at once (decimated), then the tag is left to the periodic sweep.
 //!
-//! Window corners are identical in quality to full-frame ones: the detector runs on a
-//! view into the same frame and maps corners back (see `detect::apriltag`), and sweep
-//! detections are refined with the same sub-pixel refinement (see `pipeline::measure`).
+//! Corners are identical in quality whichever way a tag was found: windows are searched on
+//! a view into the same frame with corners mapped back (see `detect::apriltag`), and every
+//! tag — confirmed, found in a window or in a tile — gets the same sub-pixel refinement on
+//! the full frame (see `pipeline::measure`).
 
 use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
@@ -360,6 +365,73 @@ fn bounds(c: &[Point2<f64>; 4]) -> (Vector2<f64>, Vector2<f64>) {
 fn centre(c: &[Point2<f64>; 4]) -> Vector2<f64> {
     (c[0].coords + c[1].coords + c[2].coords + c[3].coords) / 4.0
 }
+/// Copies `tile` of `image` into `out` (resized to the tile) with the printed area of every
+/// tag in `known` — its black square, the white ring and one more cell — filled with the
+/// mean grey just outside it. A sweep searches this copy: tags already found are flat
+/// patches there, which the contrast filter skips, so the sweep spends its time only on
+/// the rest of the tile (a tag's own bits are otherwise most of what a filtered search
+/// still fits quads to). Tags never overlap, so no new tag is hidden.
+pub fn masked_tile(image: &GrayImage, tile: Rect, known: &[Detection], out: &mut GrayImage) {
+    let (tw, th) = (tile.width as usize, tile.height as usize);
+    out.width = tile.width;
+    out.height = tile.height;
+    out.data.resize(tw * th, 0);
+    let stride = image.width as usize;
+    for row in 0..th {
+        let start = (tile.y as usize + row) * stride + tile.x as usize;
+        out.data[row * tw..(row + 1) * tw].copy_from_slice(&image.data[start..start + tw]);
+    }
+    let (ox, oy) = (tile.x as f64, tile.y as f64);
+    for d in known {
+        let nb = crate::detect::refine::border_width_bits(d.family) as f64;
+        let c = centre(&d.corners);
+        let grow = (nb + 4.0) / nb;
+        let poly = d.corners.map(|p| c + (p.coords - c) * grow);
+        let (lo, hi) = (
+            poly.iter().fold(Vector2::new(f64::MAX, f64::MAX), |a, p| a.inf(p)),
+            poly.iter().fold(Vector2::new(f64::MIN, f64::MIN), |a, p| a.sup(p)),
+        );
+        if hi.x < ox || hi.y < oy || lo.x >= ox + tw as f64 || lo.y >= oy + th as f64 {
+            continue;
+        }
+        // Mean grey along the grown outline (in the frame, clamped to it).
+        let mut sum = 0.0;
+        let n = 64;
+        for k in 0..n {
+            let (i, f) = (k * 4 / n, (k % (n / 4)) as f64 / (n / 4) as f64);
+            let p = poly[i] + (poly[(i + 1) % 4] - poly[i]) * f;
+            sum += image.sample(p.x, p.y);
+        }
+        let fill = (sum / n as f64).round().clamp(0.0, 255.0) as u8;
+        // Orientation-free convex test: the point is on the same side of all four edges.
+        let inside = |x: f64, y: f64| {
+            let mut sign = 0.0;
+            for i in 0..4 {
+                let (a, b) = (poly[i], poly[(i + 1) % 4]);
+                let cross = (b.x - a.x) * (y - a.y) - (b.y - a.y) * (x - a.x);
+                if cross * sign < 0.0 {
+                    return false;
+                }
+                if cross != 0.0 {
+                    sign = cross;
+                }
+            }
+            true
+        };
+        let y0 = (lo.y.floor() - oy).max(0.0) as usize;
+        let y1 = ((hi.y.ceil() - oy).max(0.0) as usize).min(th.saturating_sub(1));
+        let x0 = (lo.x.floor() - ox).max(0.0) as usize;
+        let x1 = ((hi.x.ceil() - ox).max(0.0) as usize).min(tw.saturating_sub(1));
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                if inside(x as f64 + ox, y as f64 + oy) {
+                    out.data[y * tw + x] = fill;
+                }
+            }
+        }
+    }
+}
+
 /// Merges overlapping rectangles where the merged one costs no more pixels than the two
 /// apart (overlapping windows are otherwise searched as they are: each tag lies wholly
 /// inside its own window, and detections found twice are de-duplicated).
