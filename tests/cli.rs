@@ -158,3 +158,36 @@ fn bundled_recordings_replay_to_clean_accurate_feeds() {
     }
     assert!(seen >= 2, "replay/ must hold the bundled recordings");
 }
+
+/// `bench` prints its figures as JSON (both runs with `--full-frame`), and `bench
+/// --realtime` plays the recording at its pace through the live pipeline and accounts for
+/// every frame set (solved or dropped). Figures are printed, never asserted against time.
+#[test]
+fn bench_prints_figures_as_json_fast_and_paced() {
+    let rec = common::root().join("replay/three-cam");
+    let o = tagdeflect(&["bench", "--json", "--full-frame", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
+    let runs = v["runs"].as_array().expect("runs");
+    assert_eq!(runs.len(), 2);
+    assert_eq!((runs[0]["mode"].as_str(), runs[1]["mode"].as_str()), (Some("roi-tracking"), Some("full-frame")));
+    for r in runs {
+        assert_eq!(r["sets"], 8, "{r}");
+        for key in ["sets_per_s", "detect_ms", "latency_p50_ms", "latency_p99_ms", "peak_rss_mb", "rss_end_mb"] {
+            assert!(r[key].as_f64().is_some_and(|x| x > 0.0), "{key} in {r}");
+        }
+        assert_eq!(r["accuracy"]["lines"], 8, "{r}");
+    }
+    assert!(runs[0]["tracked_tags"].as_u64().unwrap() > 0, "tracking confirms tags: {}", runs[0]);
+    assert_eq!(runs[1]["tracked_tags"], 0);
+    assert!(v["speedup_vs_full_frame"].as_f64().is_some());
+
+    let o = tagdeflect(&["bench", "--realtime", "--json", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).expect("bench --realtime --json prints JSON");
+    assert_eq!(r["recorded_sets"], 8, "{r}");
+    let (solved, dropped) = (r["solved_sets"].as_u64().unwrap(), r["dropped_sets"].as_u64().unwrap());
+    assert!(solved >= 1 && solved + dropped <= 8, "{r}");
+    assert!(r["latency_p50_ms"].as_f64().is_some_and(|x| x > 0.0), "{r}");
+    assert!(r["recorded_s"].as_f64().is_some_and(|x| x > 0.5), "{r}");
+}

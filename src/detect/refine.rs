@@ -164,6 +164,22 @@ pub fn refine_corners_with(
     intrinsics: Option<&CameraIntrinsics>,
     opts: &RefineOptions,
 ) -> RefineReport {
+    refine_corners_warm(image, det, intrinsics, opts, &mut [None; 4])
+}
+
+/// Each edge's fitted black level, contrast and blur width (`None`: not fitted), edges in
+/// SPEC order from the bottom edge; the warm start of the next fit of the same tag.
+pub type EdgeLevels = [Option<[f64; 3]>; 4];
+
+/// [`refine_corners_with`] started from `levels` (e.g. the same tag's fit in the previous
+/// frame: the fit then needs fewer iterations), which are replaced by this fit's.
+pub fn refine_corners_warm(
+    image: &GrayImage,
+    det: &mut Detection,
+    intrinsics: Option<&CameraIntrinsics>,
+    opts: &RefineOptions,
+    levels: &mut EdgeLevels,
+) -> RefineReport {
     let keep_all = RefineReport { refined: 0, kept: 4, failed_fit: 4, too_far: 0 };
     if image.width < 4 || image.height < 4 || image.data.len() < image.width as usize * image.height as usize {
         return keep_all;
@@ -177,7 +193,6 @@ pub fn refine_corners_with(
     // Corners in ideal coordinates.
     let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.pixel_to_ideal(&c.coords, None));
     let mut ok_edges = [false; 4];
-    let mut levels: [Option<[f64; 3]>; 4] = [None; 4];
     for _ in 0..opts.passes {
         let Some(h) = homography_from_corners(&ideal, nb) else {
             return keep_all;
@@ -189,7 +204,7 @@ pub fn refine_corners_with(
         for (e, line) in lines.iter_mut().enumerate() {
             *line = fit_edge(image, &lens, &ideal, &h, &hinv, nb, e, opts, levels[e]);
         }
-        levels = lines.map(|l| l.map(|l| l.levels));
+        *levels = lines.map(|l| l.map(|l| l.levels));
         ok_edges = lines.map(|l| l.is_some());
         let mut next = ideal;
         for (i, c) in next.iter_mut().enumerate() {
@@ -271,21 +286,32 @@ impl<'a> Lens<'a> {
             return *p;
         };
         let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
-        let mut x = match prev {
-            Some(u) => u.x + u.jinv * (target - u.target),
-            None => target,
+        // Along a run the previous pixel's inverse Jacobian serves for the step too (it
+        // changes by ~1e-4 per pixel, so the step's error is ~1e-4 of an already tiny
+        // one); a fresh Jacobian is taken at the start of a run and whenever the step is
+        // not yet small.
+        let (mut x, mut jinv) = match prev {
+            Some(u) => (u.x + u.jinv * (target - u.target), Some(u.jinv)),
+            None => (target, None),
         };
-        let mut jinv = Matrix2::identity();
         for _ in 0..20 {
             let r = k.distort(x) - target;
-            let Some(ji) = k.distort_jacobian(x).try_inverse() else { break };
-            jinv = ji;
+            let ji = match jinv {
+                Some(ji) => ji,
+                None => match k.distort_jacobian(x).try_inverse() {
+                    Some(ji) => ji,
+                    None => break,
+                },
+            };
             let step = ji * r;
             x -= step;
             if step.norm_squared() < 1e-13 {
+                jinv = Some(ji);
                 break;
             }
+            jinv = None;
         }
+        let jinv = jinv.or_else(|| k.distort_jacobian(x).try_inverse()).unwrap_or_else(Matrix2::identity);
         *prev = Some(Undistorted { target, x, jinv });
         Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
     }
@@ -546,7 +572,8 @@ fn fit_edge(
             {
                 continue;
             }
-            let k = (along.floor() as usize).min(nbits - 1);
+            // `along` ≥ `along_min` > 0 here: truncation is the floor.
+            let k = (along as usize).min(nbits - 1);
             let depth_px = depth * gap[k];
             let mut weight = taper(depth_px, -outer_px, inner_px) * taper(along * bit_px, along_min_px, len - along_min_px);
             // Deep pixels near a colour change between inner cells see an unmodelled edge.

@@ -18,7 +18,7 @@
 use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
 
-use super::refine::{apply_h, border_width_bits, homography_from_corners, refine_corners_with, Lens, RefineOptions};
+use super::refine::{apply_h, border_width_bits, homography_from_corners, refine_corners_warm, EdgeLevels, Lens, RefineOptions};
 use super::Detection;
 use crate::camera::CameraIntrinsics;
 use crate::frame::GrayImage;
@@ -65,6 +65,8 @@ pub struct TrackedTag {
     pub detection: Detection,
     /// Mean white cell minus mean black cell, grey levels.
     pub contrast: f64,
+    /// The edge fits' levels (the warm start of the tag's next fit).
+    pub levels: EdgeLevels,
 }
 
 /// Tracks known tags in frames. Immutable while tracking, so one tracker serves every
@@ -94,6 +96,22 @@ impl TagTracker {
         intrinsics: Option<&CameraIntrinsics>,
         refine: &RefineOptions,
     ) -> Result<TrackedTag, TrackMiss> {
+        self.track_warm(image, family, id, predicted, intrinsics, refine, [None; 4])
+    }
+
+    /// [`TagTracker::track`] with the edge fits started from `levels` (the tag's last fit
+    /// in this camera: one iteration or so less per edge).
+    #[allow(clippy::too_many_arguments)]
+    pub fn track_warm(
+        &self,
+        image: &GrayImage,
+        family: TagFamily,
+        id: u32,
+        predicted: &[Point2<f64>; 4],
+        intrinsics: Option<&CameraIntrinsics>,
+        refine: &RefineOptions,
+        mut levels: EdgeLevels,
+    ) -> Result<TrackedTag, TrackMiss> {
         let read;
         let bitmap = match self.bitmaps.get(&(family, id)) {
             Some(b) => b,
@@ -104,7 +122,7 @@ impl TagTracker {
         };
         let mut det = Detection { family, id, corners: *predicted, decision_margin: 0.0, hamming: 0 };
         let refine = &RefineOptions { passes: self.options.refine_passes.min(refine.passes).max(1), ..refine.clone() };
-        let report = refine_corners_with(image, &mut det, intrinsics, refine);
+        let report = refine_corners_warm(image, &mut det, intrinsics, refine, &mut levels);
         if report.refined != 4 {
             return Err(if report.failed_fit == 4 && edge_bits_px(predicted, family) < refine.min_bit_px {
                 TrackMiss::Unsupported
@@ -118,7 +136,7 @@ impl TagTracker {
         }
         det.decision_margin = read.margin as f32;
         det.hamming = read.wrong.min(u8::MAX as u32) as u8;
-        Ok(TrackedTag { detection: det, contrast: read.contrast })
+        Ok(TrackedTag { detection: det, contrast: read.contrast, levels })
     }
 }
 

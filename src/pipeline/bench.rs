@@ -17,7 +17,8 @@ pub struct BenchOptions {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// Also run with full-frame detection on every frame, for comparison.
+    /// Also run with full-frame detection on every frame, for comparison (with
+    /// `--realtime`: run full-frame instead).
     #[arg(long)]
     pub full_frame: bool,
     /// Replay the recording this many times in a row (a longer steady state).
@@ -45,6 +46,9 @@ pub struct RealtimeFigures {
     pub steady_solved_per_s: f64,
     /// Frame sets the drop-oldest queue in front of the solver dropped.
     pub dropped_sets: u64,
+    /// Of those, dropped in steady state (after the first tenth of the lines; the first
+    /// frame set's full-frame searches take most of a second).
+    pub steady_dropped_sets: u64,
     /// Latency frame set complete → feed line in steady state, median, ms.
     pub latency_p50_ms: f64,
     /// The same, 99th percentile, ms.
@@ -96,6 +100,10 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
         solved_sets: lines.len() as u64,
         steady_solved_per_s,
         dropped_sets: lines.last().and_then(|l| l.dropped_sets).unwrap_or(0),
+        steady_dropped_sets: match (steady.first(), steady.last()) {
+            (Some(a), Some(b)) => b.dropped_sets.unwrap_or(0) - a.dropped_sets.unwrap_or(0),
+            _ => 0,
+        },
         latency_p50_ms: pct(0.5),
         latency_p99_ms: pct(0.99),
         latency_max_ms: lat.last().copied().unwrap_or(0.0),
@@ -116,6 +124,7 @@ fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
     println!("{:<36}{:>12}", "frame sets solved", r.solved_sets);
     println!("{:<36}{:>12.1}", "solved frame sets/s (steady)", r.steady_solved_per_s);
     println!("{:<36}{:>12}", "dropped sets (solver queue)", r.dropped_sets);
+    println!("{:<36}{:>12}", "  of which in steady state", r.steady_dropped_sets);
     println!("{:<36}{:>12.1}", "latency p50 ms (steady)", r.latency_p50_ms);
     println!("{:<36}{:>12.1}", "latency p99 ms (steady)", r.latency_p99_ms);
     println!("{:<36}{:>12.1}", "latency max ms (steady)", r.latency_max_ms);

@@ -10,7 +10,7 @@ use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::{refine_corners_with, Detection, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
+use crate::detect::{refine_corners_with, Detection, EdgeLevels, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
 use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
@@ -75,6 +75,8 @@ struct CameraState {
     intrinsics: CameraIntrinsics,
     tracker: CameraPoseTracker,
     roi: RoiPlanner,
+    /// Each tracked tag's last edge-fit levels in this camera (warm start of its next fit).
+    edge_levels: HashMap<(TagFamily, u32), EdgeLevels>,
     /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
     tag_contrast: Option<f64>,
 }
@@ -164,6 +166,7 @@ impl Measurement {
                 tracker: CameraPoseTracker::new(intrinsics, fixed),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
+                edge_levels: HashMap::new(),
                 tag_contrast: None,
             });
         }
@@ -373,8 +376,11 @@ impl Measurement {
         let confirm = |(j, t): &(usize, PlannedTag)| {
             let c0 = thread_cpu_s();
             let cam = &cameras[jobs[*j].camera];
+            let levels = cam.edge_levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
             let result = match &refine {
-                Some(opts) => tracker.track(&frame_of(&jobs[*j]).image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts),
+                Some(opts) => {
+                    tracker.track_warm(&frame_of(&jobs[*j]).image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts, levels)
+                }
                 None => Err(TrackMiss::Unsupported),
             };
             (result, thread_cpu_s() - c0)
@@ -388,9 +394,13 @@ impl Measurement {
             match result {
                 Ok(tag) => {
                     weakest[j] = Some(weakest[j].map_or(tag.contrast, |w: f64| w.min(tag.contrast)));
+                    self.cameras[jobs[j].camera].edge_levels.insert((t.family, t.id), tag.levels);
                     jobs[j].found.push(tag.detection);
                 }
-                Err(_) => jobs[j].windows.push(t.window),
+                Err(_) => {
+                    self.cameras[jobs[j].camera].edge_levels.remove(&(t.family, t.id));
+                    jobs[j].windows.push(t.window);
+                }
             }
         }
         for (job, weakest) in jobs.iter_mut().zip(weakest) {

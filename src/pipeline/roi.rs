@@ -51,7 +51,7 @@ pub const SETTLE_FRAMES: u32 = 12;
 pub const SEARCH_DECIMATE: f32 = 2.0;
 /// Smallest tag extent (px, bounding box) for which searches are decimated; smaller tags
 /// would be lost at half resolution, so such cameras search at the configured resolution.
-pub const MIN_EXTENT_TO_DECIMATE: f64 = 48.0;
+pub const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
