@@ -101,6 +101,8 @@ struct TagTrack {
 /// What phase 1 of the detection leaves to phase 2 for one camera.
 struct SearchJob {
     camera: usize,
+    /// Index of the camera's frame in the frame set.
+    frame: usize,
     /// Tags confirmed (then everything found).
     found: Vec<Detection>,
     /// Search the whole frame.
@@ -352,13 +354,20 @@ impl Measurement {
         let refine = self.detector.options().subpixel.clone();
         let mut jobs: Vec<SearchJob> = Vec::new();
         let mut planned: Vec<(usize, PlannedTag)> = Vec::new();
-        for f in &set.frames {
+        for (fi, f) in set.frames.iter().enumerate() {
             let Some(cam) = self.cameras.get_mut(f.camera) else { continue };
             if jobs.iter().any(|j| j.camera == f.camera) {
                 continue;
             }
-            let mut job =
-                SearchJob { camera: f.camera, found: Vec::new(), full: false, windows: Vec::new(), sweep: Vec::new(), decimate: 1.0 };
+            let mut job = SearchJob {
+                camera: f.camera,
+                frame: fi,
+                found: Vec::new(),
+                full: false,
+                windows: Vec::new(),
+                sweep: Vec::new(),
+                decimate: 1.0,
+            };
             match cam.roi.plan(f.t_ns, &f.image) {
                 Plan::FullFrame => job.full = true,
                 Plan::Track { decimate, tags, sweep } => {
@@ -371,7 +380,6 @@ impl Measurement {
         }
 
         // Phase 1: tracked tags confirmed where they are predicted, in parallel.
-        let frame_of = |job: &SearchJob| set.frames.iter().find(|f| f.camera == job.camera).expect("the job's frame");
         let (cameras, tracker) = (&self.cameras, &self.tag_tracker);
         let confirm = |(j, t): &(usize, PlannedTag)| {
             let c0 = thread_cpu_s();
@@ -379,7 +387,7 @@ impl Measurement {
             let levels = cam.edge_levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
             let result = match &refine {
                 Some(opts) => {
-                    tracker.track_warm(&frame_of(&jobs[*j]).image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts, levels)
+                    tracker.track_warm(&set.frames[jobs[*j].frame].image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts, levels)
                 }
                 None => Err(TrackMiss::Unsupported),
             };
@@ -415,7 +423,7 @@ impl Measurement {
         for mut job in jobs {
             self.stats.tracked_tags += job.found.len() as u64;
             let cam = &self.cameras[job.camera];
-            let frame = set.frames.iter().find(|f| f.camera == job.camera).expect("the job's frame");
+            let frame = &set.frames[job.frame];
             let c0 = Instant::now();
             self.detector.set_intrinsics(Some(cam.intrinsics));
             if job.full {

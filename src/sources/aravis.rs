@@ -42,7 +42,7 @@ use tokio::sync::mpsc::Sender;
 use crate::config::CameraConfig;
 use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, DeviceClockMap};
-use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
+use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Tuning of an Aravis stream (defaults suit the product; tests change them).
@@ -123,7 +123,7 @@ pub fn frame_time(system_ns: u64, device_ns: u64, receive_epoch_ns: i64, device_
 /// What one popped buffer turned out to be.
 #[derive(Debug)]
 enum Popped {
-    Image(GrayImage, i64),
+    Image(i64),
     Incomplete(BufferStatus),
     Bad(ConvertError),
 }
@@ -219,7 +219,7 @@ impl Session {
         })
     }
 
-    fn check(&mut self, buffer: &Buffer, receive: i64) -> Popped {
+    fn check(&mut self, buffer: &Buffer, receive: i64, into: &mut GrayImage) -> Popped {
         let status = buffer.status();
         if status != BufferStatus::Success {
             return Popped::Incomplete(status);
@@ -235,8 +235,8 @@ impl Session {
         let (pad_x, _) = buffer.image_padding();
         let stride = self.width as usize * bpp + pad_x.max(0) as usize;
         let data = buffer.image_data();
-        match to_gray8(self.layout, self.width, self.height, stride, &data) {
-            Ok(img) => Popped::Image(img, frame_time(buffer.system_timestamp(), buffer.timestamp(), receive, &mut self.device_map)),
+        match to_gray8_into(self.layout, self.width, self.height, stride, &data, into) {
+            Ok(()) => Popped::Image(frame_time(buffer.system_timestamp(), buffer.timestamp(), receive, &mut self.device_map)),
             Err(e) => Popped::Bad(e),
         }
     }
@@ -244,15 +244,15 @@ impl Session {
 
 impl CaptureSession for Session {
     /// Pops one buffer (or times out), checks it, requeues it.
-    fn next(&mut self) -> Captured {
+    fn next(&mut self, into: &mut GrayImage) -> Captured {
         let Some(buffer) = self.stream.timeout_pop_buffer(self.pop_timeout.as_micros() as u64) else {
             return Captured::Timeout;
         };
         let receive = now_epoch_ns();
-        let out = self.check(&buffer, receive);
+        let out = self.check(&buffer, receive, into);
         self.stream.push_buffer(buffer);
         match out {
-            Popped::Image(img, t) => Captured::Image(img, t),
+            Popped::Image(t) => Captured::Image(t),
             Popped::Incomplete(status) => Captured::Incomplete(format!("buffer status {status:?}")),
             Popped::Bad(e) => Captured::Bad(e.to_string()),
         }

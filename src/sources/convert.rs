@@ -94,9 +94,26 @@ pub enum ConvertError {
 /// bytes after the last row are ignored. For MJPEG `stride` is ignored and the decoded size
 /// must equal `width` × `height`.
 pub fn to_gray8(layout: PixelLayout, width: u32, height: u32, stride: usize, data: &[u8]) -> Result<GrayImage, ConvertError> {
+    let mut out = GrayImage::new(0, 0);
+    to_gray8_into(layout, width, height, stride, data, &mut out)?;
+    Ok(out)
+}
+
+/// [`to_gray8`] into `out`, reusing its buffer (a capture loop's recycled frame).
+pub fn to_gray8_into(
+    layout: PixelLayout,
+    width: u32,
+    height: u32,
+    stride: usize,
+    data: &[u8],
+    out: &mut GrayImage,
+) -> Result<(), ConvertError> {
     let bpp = match layout.bytes_per_pixel() {
         Some(b) => b,
-        None => return decode_mjpeg(width, height, data),
+        None => {
+            *out = decode_mjpeg(width, height, data)?;
+            return Ok(());
+        }
     };
     let row_bytes = width as usize * bpp;
     let stride = if stride == 0 { row_bytes } else { stride };
@@ -114,8 +131,10 @@ pub fn to_gray8(layout: PixelLayout, width: u32, height: u32, stride: usize, dat
         _ => 0,
     };
     let w = width as usize;
-    let mut out = vec![0u8; w * height as usize];
-    for (dst, row) in out.chunks_exact_mut(w).zip(data.chunks(stride)) {
+    out.width = width;
+    out.height = height;
+    out.data.resize(w * height as usize, 0);
+    for (dst, row) in out.data.chunks_exact_mut(w).zip(data.chunks(stride)) {
         let row = &row[..row_bytes];
         match layout {
             PixelLayout::Gray8 => dst.copy_from_slice(row),
@@ -126,7 +145,7 @@ pub fn to_gray8(layout: PixelLayout, width: u32, height: u32, stride: usize, dat
             PixelLayout::Mjpeg => {}
         }
     }
-    Ok(GrayImage { width, height, data: out })
+    Ok(())
 }
 
 /// Decodes one MJPEG frame. A frame must start with the start-of-image marker and end

@@ -299,8 +299,9 @@ pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
 /// What one wait on an open device produced.
 #[derive(Debug)]
 pub enum Captured {
-    /// A complete, converted image and its time (ns since the epoch).
-    Image(crate::frame::GrayImage, i64),
+    /// A complete image, converted into the buffer given to [`CaptureSession::next`], and
+    /// its time (ns since the epoch).
+    Image(i64),
     /// A buffer the driver/transport marked incomplete or failed (why, for the debug log).
     Incomplete(String),
     /// A complete buffer that could not be converted (why).
@@ -313,8 +314,9 @@ pub enum Captured {
 
 /// An open, streaming device as the capture loop sees it.
 pub trait CaptureSession {
-    /// Waits (boundedly, so the stop flag is seen) for the next buffer.
-    fn next(&mut self) -> Captured;
+    /// Waits (boundedly, so the stop flag is seen) for the next buffer; a complete image is
+    /// converted into `into` (a recycled frame buffer: see [`crate::frame::ImagePool`]).
+    fn next(&mut self, into: &mut crate::frame::GrayImage) -> Captured;
     /// Frames the transport lost entirely since the last call (no buffer was free).
     fn take_missed(&mut self) -> u64 {
         0
@@ -354,6 +356,7 @@ pub fn run_capture_loop<S: CaptureSession>(
     let mut session = Some(session);
     let mut seq: u64 = 0;
     let mut last_frame = std::time::Instant::now();
+    let mut pool = crate::frame::ImagePool::default();
     while !stop.load(Ordering::Relaxed) && !em.is_closed() {
         let Some(s) = session.as_mut() else {
             if !sleep_unless_stopped(timing.backoff.next_delay(), stop) {
@@ -370,27 +373,37 @@ pub fn run_capture_loop<S: CaptureSession>(
             }
             continue;
         };
-        let got = s.next();
+        // The image lands in a recycled buffer: a steady stream allocates no frames.
+        let mut t_ns = 0;
+        let got = pool.fill(|img| match s.next(img) {
+            Captured::Image(t) => {
+                t_ns = t;
+                Ok(())
+            }
+            other => Err(other),
+        });
         let missed = s.take_missed();
         if missed > 0 {
             em.dropped(DropReason::Incomplete, missed);
         }
         match got {
-            Captured::Image(img, t_ns) => {
+            Ok(image) => {
                 last_frame = std::time::Instant::now();
-                em.frame(Frame { camera, seq, t_ns, image: Arc::new(img) });
+                em.frame(Frame { camera, seq, t_ns, image });
                 seq += 1;
             }
-            Captured::Incomplete(why) => {
+            // Images are the `Ok` above.
+            Err(Captured::Image(_)) => {}
+            Err(Captured::Incomplete(why)) => {
                 tracing::debug!(camera, %why, "incomplete buffer");
                 em.dropped(DropReason::Incomplete, 1);
             }
-            Captured::Bad(why) => {
+            Err(Captured::Bad(why)) => {
                 tracing::debug!(camera, %why, "bad buffer");
                 em.dropped(DropReason::BadBuffer, 1);
             }
-            Captured::Timeout => em.flush(),
-            Captured::Failed(why) => {
+            Err(Captured::Timeout) => em.flush(),
+            Err(Captured::Failed(why)) => {
                 em.lost(format!("{label}: {why}"));
                 session = None;
                 continue;
@@ -563,7 +576,10 @@ mod tests {
     struct Scripted(std::collections::VecDeque<Captured>);
 
     impl CaptureSession for Scripted {
-        fn next(&mut self) -> Captured {
+        fn next(&mut self, into: &mut GrayImage) -> Captured {
+            if into.data.is_empty() {
+                *into = GrayImage::new(2, 2);
+            }
             self.0.pop_front().unwrap_or_else(|| {
                 std::thread::sleep(Duration::from_millis(5));
                 Captured::Timeout
@@ -572,7 +588,7 @@ mod tests {
     }
 
     fn img(t: i64) -> Captured {
-        Captured::Image(GrayImage::new(2, 2), t)
+        Captured::Image(t)
     }
 
     #[test]

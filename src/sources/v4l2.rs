@@ -41,7 +41,7 @@ use v4l::{Format, FourCC, Fraction};
 use crate::config::CameraConfig;
 use crate::frame::GrayImage;
 use crate::sources::clock::{now_epoch_ns, MonotonicToEpoch};
-use crate::sources::convert::{to_gray8, ConvertError, PixelLayout};
+use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Pixel formats requested from the device, most preferred first.
@@ -122,14 +122,40 @@ pub fn convert_buffer(
     bytesused: u32,
     flags: u32,
 ) -> BufferOutcome {
+    let mut img = GrayImage::new(0, 0);
+    match convert_buffer_into(layout, width, height, stride, mapped, bytesused, flags, &mut img) {
+        Ok(()) => BufferOutcome::Image(img),
+        Err(BufferRejected::Corrupted) => BufferOutcome::Corrupted,
+        Err(BufferRejected::Bad(e)) => BufferOutcome::Bad(e),
+    }
+}
+
+/// Why a dequeued buffer gave no image.
+#[derive(Debug)]
+pub enum BufferRejected {
+    /// The driver flagged the buffer as corrupted.
+    Corrupted,
+    /// The bytes could not be converted.
+    Bad(ConvertError),
+}
+
+/// [`convert_buffer`] into `out` (a recycled frame buffer).
+#[allow(clippy::too_many_arguments)]
+pub fn convert_buffer_into(
+    layout: PixelLayout,
+    width: u32,
+    height: u32,
+    stride: u32,
+    mapped: &[u8],
+    bytesused: u32,
+    flags: u32,
+    out: &mut GrayImage,
+) -> Result<(), BufferRejected> {
     if flags & BUF_FLAG_ERROR != 0 {
-        return BufferOutcome::Corrupted;
+        return Err(BufferRejected::Corrupted);
     }
     let valid = &mapped[..(bytesused as usize).min(mapped.len())];
-    match to_gray8(layout, width, height, stride as usize, valid) {
-        Ok(img) => BufferOutcome::Image(img),
-        Err(e) => BufferOutcome::Bad(e),
-    }
+    to_gray8_into(layout, width, height, stride as usize, valid, out).map_err(BufferRejected::Bad)
 }
 
 /// An open, configured, streaming device.
@@ -212,7 +238,7 @@ impl CaptureSession for Session {
     /// Dequeues one buffer (the `v4l` stream requeues the previous one first).
     // `time_t` is i64 on 64-bit Linux, i32 on some 32-bit targets.
     #[allow(clippy::useless_conversion)]
-    fn next(&mut self) -> Captured {
+    fn next(&mut self, into: &mut GrayImage) -> Captured {
         let Some(stream) = self.stream.as_mut() else {
             return Captured::Failed("stream closed".into());
         };
@@ -224,10 +250,10 @@ impl CaptureSession for Session {
         let receive = now_epoch_ns();
         let flags = meta.flags.bits();
         let (t_ns, _) = map_buffer_timestamp(flags, i64::from(meta.timestamp.sec), i64::from(meta.timestamp.usec), self.clock, receive);
-        match convert_buffer(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags) {
-            BufferOutcome::Image(img) => Captured::Image(img, t_ns),
-            BufferOutcome::Corrupted => Captured::Incomplete("buffer flagged V4L2_BUF_FLAG_ERROR".into()),
-            BufferOutcome::Bad(e) => Captured::Bad(e.to_string()),
+        match convert_buffer_into(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags, into) {
+            Ok(()) => Captured::Image(t_ns),
+            Err(BufferRejected::Corrupted) => Captured::Incomplete("buffer flagged V4L2_BUF_FLAG_ERROR".into()),
+            Err(BufferRejected::Bad(e)) => Captured::Bad(e.to_string()),
         }
     }
 }
