@@ -360,7 +360,7 @@ fn intrinsics_without_distortion_change_nothing() {
 /// the wrong tag, the wrong rotation, a place a bit off, or an empty place are refused.
 #[test]
 fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_tags() {
-    use tagdeflect::detect::{RefineOptions, TagTracker, TrackMiss};
+    use tagdeflect::detect::{Prediction, RefineOptions, TagTracker, TrackMiss};
     let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let fams = [TagFamily::Tag36h11, TagFamily::Tag25h9];
@@ -377,22 +377,27 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
         let Some(found) = det.detect(&img).into_iter().find(|d| d.family == family && d.id == id) else { continue };
         let shift = nalgebra::Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5));
         let predicted = truth.map(|c| c + shift + nalgebra::Vector2::new(rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1)));
-        let tracked = tracker.track(&img, family, id, &predicted, None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
+        let at = |family, id, corners| Prediction { family, id, corners, levels: [None; 4] };
+        let tracked = tracker.track(&img, &at(family, id, predicted), None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
         assert!(tracked.contrast > 120.0, "contrast {}", tracked.contrast);
+        // Warm-started from its own fit (as in the next frame), the fit lands on the same corners.
+        let warm = tracker.track(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, None, &refine).unwrap();
+        let moved = (0..4).map(|i| (warm.detection.corners[i] - tracked.detection.corners[i]).norm()).fold(0.0, f64::max);
+        assert!(moved < 1e-3, "tag {t}: warm start moved a corner by {moved} px");
         assert_eq!(tracked.detection.hamming, 0);
         se_tracked += errors(&tracked.detection, &truth).iter().sum::<f64>();
         se_detected += errors(&found, &truth).iter().sum::<f64>();
         n += 4;
 
         // The wrong id, the wrong rotation (corner order), a whole cell off, nothing there.
-        assert_eq!(tracker.track(&img, family, id + 1, &predicted, None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: wrong id");
+        assert_eq!(tracker.track(&img, &at(family, id + 1, predicted), None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: wrong id");
         let rotated = [predicted[1], predicted[2], predicted[3], predicted[0]];
-        assert_eq!(tracker.track(&img, family, id, &rotated, None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: rotated");
+        assert_eq!(tracker.track(&img, &at(family, id, rotated), None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: rotated");
         let cell = (truth[1] - truth[0]) / f64::from(tagdeflect::detect::refine::border_width_bits(family));
         let off = predicted.map(|c| c + cell);
-        assert!(tracker.track(&img, family, id, &off, None, &refine).is_err(), "tag {t}: a cell off");
+        assert!(tracker.track(&img, &at(family, id, off), None, &refine).is_err(), "tag {t}: a cell off");
         let empty = predicted.map(|c| c + nalgebra::Vector2::new(400.0, 0.0));
-        assert!(tracker.track(&img, family, id, &empty, None, &refine).is_err(), "tag {t}: outside the image");
+        assert!(tracker.track(&img, &at(family, id, empty), None, &refine).is_err(), "tag {t}: outside the image");
     }
     assert!(n >= 4 * 27, "{} of 30 tags detected", n / 4);
     let (tracked_rms, detected_rms) = ((se_tracked / n as f64).sqrt(), (se_detected / n as f64).sqrt());

@@ -37,7 +37,7 @@ pub mod track;
 
 pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection};
 pub use self::refine::{refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, RefineOptions, RefineReport, RefineStats};
-pub use self::track::{TagTracker, TrackMiss, TrackOptions, TrackedTag};
+pub use self::track::{Prediction, TagTracker, TrackMiss, TrackOptions, TrackedTag};
 
 /// A rectangle of pixels: columns `x..x+width`, rows `y..y+height` (a detection window).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

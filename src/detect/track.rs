@@ -57,6 +57,20 @@ pub enum TrackMiss {
     Code,
 }
 
+/// Where a tracked tag is expected in a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prediction {
+    /// Its family.
+    pub family: TagFamily,
+    /// Its id.
+    pub id: u32,
+    /// Its predicted corners, pixels, SPEC order.
+    pub corners: [Point2<f64>; 4],
+    /// Its last edge fits in this camera (warm start: about one iteration less per edge),
+    /// or `[None; 4]`.
+    pub levels: EdgeLevels,
+}
+
 /// A tag confirmed at its predicted place.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrackedTag {
@@ -85,33 +99,16 @@ impl TagTracker {
         Self { bitmaps, options }
     }
 
-    /// Fits tag `id` of `family` from its `predicted` corners (pixels, SPEC order) and
-    /// verifies it; see the module docs.
+    /// Fits the predicted tag at its predicted corners and verifies it; see the module docs.
     pub fn track(
         &self,
         image: &GrayImage,
-        family: TagFamily,
-        id: u32,
-        predicted: &[Point2<f64>; 4],
+        prediction: &Prediction,
         intrinsics: Option<&CameraIntrinsics>,
         refine: &RefineOptions,
     ) -> Result<TrackedTag, TrackMiss> {
-        self.track_warm(image, family, id, predicted, intrinsics, refine, [None; 4])
-    }
-
-    /// [`TagTracker::track`] with the edge fits started from `levels` (the tag's last fit
-    /// in this camera: one iteration or so less per edge).
-    #[allow(clippy::too_many_arguments)]
-    pub fn track_warm(
-        &self,
-        image: &GrayImage,
-        family: TagFamily,
-        id: u32,
-        predicted: &[Point2<f64>; 4],
-        intrinsics: Option<&CameraIntrinsics>,
-        refine: &RefineOptions,
-        mut levels: EdgeLevels,
-    ) -> Result<TrackedTag, TrackMiss> {
+        let Prediction { family, id, corners: predicted, mut levels } = *prediction;
+        let predicted = &predicted;
         let read;
         let bitmap = match self.bitmaps.get(&(family, id)) {
             Some(b) => b,

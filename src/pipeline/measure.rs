@@ -10,7 +10,7 @@ use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::{refine_corners_with, Detection, EdgeLevels, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
+use crate::detect::{refine_corners_with, Detection, EdgeLevels, Prediction, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
 use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
@@ -385,10 +385,9 @@ impl Measurement {
             let c0 = thread_cpu_s();
             let cam = &cameras[jobs[*j].camera];
             let levels = cam.edge_levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
+            let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
             let result = match &refine {
-                Some(opts) => {
-                    tracker.track_warm(&set.frames[jobs[*j].frame].image, t.family, t.id, &t.predicted, Some(&cam.intrinsics), opts, levels)
-                }
+                Some(opts) => tracker.track(&set.frames[jobs[*j].frame].image, &prediction, Some(&cam.intrinsics), opts),
                 None => Err(TrackMiss::Unsupported),
             };
             (result, thread_cpu_s() - c0)
