@@ -405,3 +405,38 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
     assert!(tracked_rms < 0.025, "tracked corner RMS {tracked_rms:.4} px");
     assert!(tracked_rms < 1.15 * detected_rms + 0.002, "tracked {tracked_rms:.4} vs detected {detected_rms:.4} px");
 }
+
+/// The sweep searches a copy of each tile with the tags already found blanked out: the
+/// known tag vanishes from the copy (its patch is flat, mean grey of its surroundings), the
+/// other tag in the tile is still found, and its corners map back to the frame.
+#[test]
+fn masked_sweep_tiles_hide_known_tags_only() {
+    use tagdeflect::pipeline::roi::masked_tile;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let scene = Scene { width: 400, height: 300, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
+    let a = (TagFamily::Tag36h11, 5, random_corners(&mut rng, 110.0, 150.0, 60.0, 0.02));
+    let b = (TagFamily::Tag25h9, 9, random_corners(&mut rng, 290.0, 150.0, 60.0, 0.02));
+    let img = render(&scene, &[a, b], &mut rng);
+    let mut det = Detector::new(DetectorOptions::for_families(&[TagFamily::Tag36h11, TagFamily::Tag25h9])).unwrap();
+    let full = det.detect(&img);
+    assert_eq!(full.len(), 2, "{full:?}");
+    let known: Vec<Detection> = full.iter().filter(|d| d.id == 5).cloned().collect();
+    let tile = Rect { x: 20, y: 40, width: 360, height: 220 };
+    let mut copy = GrayImage::new(0, 0);
+    masked_tile(&img, tile, &known, &mut copy);
+    assert_eq!((copy.width, copy.height), (360, 220));
+    let found = det.detect(&copy);
+    assert_eq!(found.len(), 1, "only the unknown tag is left: {found:?}");
+    assert_eq!((found[0].family, found[0].id), (TagFamily::Tag25h9, 9));
+    let in_frame = full.iter().find(|d| d.id == 9).unwrap();
+    for i in 0..4 {
+        let back = found[0].corners[i] + nalgebra::Vector2::new(tile.x as f64, tile.y as f64);
+        assert!((back - in_frame.corners[i]).norm() < 1e-3, "corner {i}: {back} vs {}", in_frame.corners[i]);
+    }
+    // The blanked patch is flat where the known tag was.
+    let c = known[0].centre();
+    let (cx, cy) = ((c.x - tile.x as f64) as u32, (c.y - tile.y as f64) as u32);
+    let patch: Vec<u8> = (cy - 20..cy + 20).flat_map(|y| (cx - 20..cx + 20).map(move |x| (x, y))).map(|(x, y)| copy.get(x, y)).collect();
+    assert!(patch.iter().all(|&v| v == patch[0]), "flat patch");
+    assert!((patch[0] as f64 - scene.background).abs() < 30.0, "filled with the surrounding grey: {}", patch[0]);
+}
