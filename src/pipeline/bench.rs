@@ -92,7 +92,6 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
     };
     let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
     lat.sort_by(f64::total_cmp);
-    let pct = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0);
     Ok(RealtimeFigures {
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         recorded_sets: per_camera.values().copied().max().unwrap_or(0),
@@ -104,8 +103,8 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
             (Some(a), Some(b)) => b.dropped_sets.unwrap_or(0) - a.dropped_sets.unwrap_or(0),
             _ => 0,
         },
-        latency_p50_ms: pct(0.5),
-        latency_p99_ms: pct(0.99),
+        latency_p50_ms: percentile(&lat, 0.5),
+        latency_p99_ms: percentile(&lat, 0.99),
         latency_max_ms: lat.last().copied().unwrap_or(0.0),
         peak_rss_mb: peak_rss_mb(),
     })
@@ -155,9 +154,9 @@ pub struct BenchFigures {
     pub tracking_cpu_ms: f64,
     /// Wall time per frame set of window searches and sweep tiles (on the library's
     /// worker threads), ms.
-    pub search_cpu_ms: f64,
+    pub search_ms: f64,
     /// Wall time per frame set of full-frame searches (likewise), ms.
-    pub full_frame_cpu_ms: f64,
+    pub full_frame_ms: f64,
     /// Mean camera-pose time per frame set, ms.
     pub pose_ms: f64,
     /// Mean solve time per frame set, ms.
@@ -227,7 +226,7 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
 
 fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) -> Result<BenchFigures> {
     let mut detect = 0.0;
-    let mut detect_cpu = crate::pipeline::measure::DetectCpu::default();
+    let mut parts = crate::pipeline::measure::DetectParts::default();
     let mut pose = 0.0;
     let mut solve = 0.0;
     let mut output = 0.0;
@@ -254,9 +253,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
             let out_s = t0.elapsed().as_secs_f64();
             output += out_s;
             detect += t.detect;
-            detect_cpu.tracking += t.detect_cpu.tracking;
-            detect_cpu.search += t.detect_cpu.search;
-            detect_cpu.full_frame += t.detect_cpu.full_frame;
+            parts.add(&t.detect_parts);
             pose += t.pose;
             solve += t.solve;
             // Processing latency (set taken by the solver → line made) in steady state; in
@@ -265,12 +262,10 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
             let processing = t.detect + t.pose + t.solve + out_s;
             if k == 0 && pass == 0 {
                 first_set_s = processing;
+                rss_first_mb = rss_mb();
             }
             if k >= warm_sets {
                 latencies.push(processing);
-            }
-            if k == 0 && pass == 0 {
-                rss_first_mb = rss_mb();
             }
             k += 1;
             if pass == 0 && !rec.truth.is_empty() {
@@ -288,7 +283,6 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         stats = summary.stats;
     }
     latencies.sort_by(f64::total_cmp);
-    let pct = |p: f64| latencies.get(((latencies.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0) * 1e3;
     let n = sets.max(1) as f64;
     let stats: crate::pipeline::measure::MeasureStats = stats;
     Ok(BenchFigures {
@@ -299,14 +293,14 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         measure_sets_per_s: n / (detect + pose + solve + output).max(1e-9),
         decode_ms: decode / n * 1e3,
         detect_ms: detect / n * 1e3,
-        tracking_cpu_ms: detect_cpu.tracking / n * 1e3,
-        search_cpu_ms: detect_cpu.search / n * 1e3,
-        full_frame_cpu_ms: detect_cpu.full_frame / n * 1e3,
+        tracking_cpu_ms: parts.tracking / n * 1e3,
+        search_ms: parts.search / n * 1e3,
+        full_frame_ms: parts.full_frame / n * 1e3,
         pose_ms: pose / n * 1e3,
         solve_ms: solve / n * 1e3,
         output_ms: output / n * 1e3,
-        latency_p50_ms: pct(0.5),
-        latency_p99_ms: pct(0.99),
+        latency_p50_ms: percentile(&latencies, 0.5) * 1e3,
+        latency_p99_ms: percentile(&latencies, 0.99) * 1e3,
         first_set_ms: first_set_s * 1e3,
         peak_rss_mb: peak_rss_mb(),
         rss_first_set_mb: rss_first_mb,
@@ -342,6 +336,11 @@ fn preload(rec: &crate::recording::Recording) {
     );
 }
 
+/// The `p` quantile (0..1, nearest rank) of sorted values; 0 for none.
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    sorted.get(((sorted.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0)
+}
+
 /// One row of the bench table: its label and how to format a run's value.
 type Row = (&'static str, fn(&BenchFigures) -> String);
 
@@ -355,8 +354,8 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("decode ms/set (overlapped)", |f| format!("{:.2}", f.decode_ms)),
         ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
         ("  tracked tags CPU ms/set", |f| format!("{:.2}", f.tracking_cpu_ms)),
-        ("  windows+sweep ms/set", |f| format!("{:.2}", f.search_cpu_ms)),
-        ("  full-frame ms/set", |f| format!("{:.2}", f.full_frame_cpu_ms)),
+        ("  windows+sweep ms/set", |f| format!("{:.2}", f.search_ms)),
+        ("  full-frame ms/set", |f| format!("{:.2}", f.full_frame_ms)),
         ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
         ("solve ms/set", |f| format!("{:.3}", f.solve_ms)),
         ("output ms/set", |f| format!("{:.3}", f.output_ms)),

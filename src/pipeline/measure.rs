@@ -24,8 +24,8 @@ use rayon::prelude::*;
 pub struct StageTimes {
     /// Tag detection (all cameras, in parallel; wall time).
     pub detect: f64,
-    /// CPU time of detection by kind of work, summed over the cameras.
-    pub detect_cpu: DetectCpu,
+    /// Detection time by kind of work.
+    pub detect_parts: DetectParts,
     /// Camera pose tracking.
     pub pose: f64,
     /// Specimen tag solving.
@@ -34,7 +34,7 @@ pub struct StageTimes {
 
 /// Time of one frame set's detection by kind of work, seconds.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct DetectCpu {
+pub struct DetectParts {
     /// CPU time confirming tracked tags at their predicted place (refinement and
     /// read-back), summed over the cameras (which run in parallel).
     pub tracking: f64,
@@ -43,6 +43,15 @@ pub struct DetectCpu {
     pub search: f64,
     /// Wall time of full-frame searches (likewise).
     pub full_frame: f64,
+}
+
+impl DetectParts {
+    /// Adds another frame set's times (totals over a run).
+    pub fn add(&mut self, other: &DetectParts) {
+        self.tracking += other.tracking;
+        self.search += other.search;
+        self.full_frame += other.full_frame;
+    }
 }
 
 /// CPU time of the calling thread, seconds.
@@ -216,7 +225,7 @@ impl Measurement {
         let t0 = Instant::now();
         let (detections, cpu) = self.detect(set);
         times.detect = t0.elapsed().as_secs_f64();
-        times.detect_cpu = cpu;
+        times.detect_parts = cpu;
 
         // Camera poses from the background tags.
         let t1 = Instant::now();
@@ -350,7 +359,7 @@ impl Measurement {
     /// the cores, so three cameras on two cores still balance), then the searches still
     /// needed — full frames, windows of tags not confirmed, sweep tiles — run one camera
     /// after another on the shared detector, each on the library's worker threads.
-    fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectCpu) {
+    fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectParts) {
         let refine = self.detector.options().subpixel.clone();
         let mut jobs: Vec<SearchJob> = Vec::new();
         let mut planned: Vec<(usize, PlannedTag)> = Vec::new();
@@ -394,7 +403,7 @@ impl Measurement {
         };
         let results: Vec<(Result<TrackedTag, TrackMiss>, f64)> =
             if planned.len() > 1 { planned.par_iter().map(confirm).collect() } else { planned.iter().map(confirm).collect() };
-        let mut cpu = DetectCpu::default();
+        let mut cpu = DetectParts::default();
         let mut weakest: Vec<Option<f64>> = vec![None; jobs.len()];
         for ((j, t), (result, cpu_s)) in planned.into_iter().zip(results) {
             cpu.tracking += cpu_s;
