@@ -27,7 +27,7 @@
 //! pulled, camera power-cycled) is reported [`SourceEvent::Lost`] and reopened with backoff
 //! (0.5 s doubling to 10 s); [`SourceEvent::Reopened`] follows when it streams again.
 //! Tested against Aravis's in-process fake camera and `arv-fake-gv-camera-0.8` on loopback,
-//! with and without packet loss (tests/aravis_fake.rs).
+//! with and without packet loss (tests/it/aravis_fake.rs).
 
 use std::ffi::CString;
 use std::sync::atomic::AtomicBool;

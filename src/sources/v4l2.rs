@@ -20,7 +20,7 @@
 //! of being dropped, and the drop itself runs under `catch_unwind` as a last guard.
 //!
 //! What is tested where: format conversion, `bytesused` handling and timestamp mapping are
-//! pure functions tested on captured-buffer fixtures (tests/v4l2_convert.rs). Opening a real
+//! pure functions tested on captured-buffer fixtures (tests/it/v4l2_convert.rs). Opening a real
 //! device, format negotiation, frame-rate setting, the driver's timestamp flags, unplugging
 //! and reopening can only be checked on real hardware (no V4L2 device exists on the test
 //! machine); the README says which cameras they have been checked with.

@@ -3,7 +3,7 @@
 //! killed and restarted mid-run; the recording made by `run` replays to the same feed;
 //! `replay --realtime` and `demo` give clean feeds.
 
-mod common;
+
 
 use std::collections::HashMap;
 use std::fs;
@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{free_port, start_pymodbus};
+use crate::common::{self, free_port, start_pymodbus};
 use tagdeflect::config::{Config, RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
 use tagdeflect::feed::FeedLine;
 use tagdeflect::sim::{SimParams, SimRig};

@@ -3,9 +3,9 @@
 //! with truth. Thresholds are the product's floors; the measured figures are printed
 //! (`cargo test --test accuracy -- --nocapture`) and reported in the README.
 
-mod common;
 
-use common::*;
+
+use crate::common::*;
 use tagdeflect::sim::SimParams;
 
 /// Three cameras, 1280x960, moderate noise.

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tagdeflect::config::{RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
-mod common;
+
 
 use tagdeflect::utm::{decode, run_poller, start_sim_utm, UtmEvent, UtmSample};
 use tokio::sync::{mpsc, watch};
@@ -19,7 +19,7 @@ use tokio::task::JoinHandle;
 // ----------------------------------------------------------------------------------------
 // Python and the pymodbus server.
 
-use common::{free_port, python, start_pymodbus};
+use crate::common::{free_port, python, start_pymodbus};
 
 // ----------------------------------------------------------------------------------------
 // The poller.
