@@ -6,6 +6,7 @@
 
 pub mod accuracy;
 pub mod camera;
+pub mod clock;
 pub mod config;
 pub mod detect;
 pub mod feed;

@@ -8,6 +8,13 @@
 //! is dropped and counted, so frame sets come out in time order, each later than the one
 //! before.
 //!
+//! Clock steps: every frame is stamped on the process clock ([`crate::clock`]), which is
+//! re-mapped once when the wall clock is stepped. A frame older than the last closed set by
+//! more than [`crate::clock::STEP_THRESHOLD_NS`] cannot be a late frame (live frames are
+//! late by a few frame periods at most): the assembler takes it as a backwards step of the
+//! clock, closes what is open, counts the step ([`FrameSetAssembler::clock_steps`]) and goes
+//! on from the new time. A forwards step needs nothing: later frames are simply newer.
+//!
 //! Live capture closes a set that waited too long for its missing cameras with
 //! [`FrameSetAssembler::poll`], measured from when the set was opened on the wall clock —
 //! not from the frames' timestamps, because transfer latency varies between cameras.
@@ -41,6 +48,7 @@ pub struct FrameSetAssembler {
     closed_until: Option<i64>,
     next_seq: u64,
     late_frames: u64,
+    clock_steps: u64,
 }
 
 impl FrameSetAssembler {
@@ -61,6 +69,7 @@ impl FrameSetAssembler {
             closed_until: None,
             next_seq: 0,
             late_frames: 0,
+            clock_steps: 0,
         }
     }
 
@@ -69,23 +78,39 @@ impl FrameSetAssembler {
         self.late_frames
     }
 
-    /// Adds a frame; returns the sets it completes, in time order.
+    /// Backwards clock steps seen (see the module doc).
+    pub fn clock_steps(&self) -> u64 {
+        self.clock_steps
+    }
+
+    /// Adds a frame; returns the sets it completes, in time order (but across a backwards
+    /// clock step, see the module doc).
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
-        if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
-            self.late_frames += 1;
-            return done;
+        if let Some(c) = self.closed_until.filter(|&c| frame.t_ns <= c) {
+            if c.saturating_sub(frame.t_ns) <= crate::clock::STEP_THRESHOLD_NS {
+                self.late_frames += 1;
+                return done;
+            }
+            tracing::warn!(
+                back_ms = c.saturating_sub(frame.t_ns) as f64 / 1e6,
+                "frame times stepped back: clock step; frame sets go on from the new time"
+            );
+            done.extend(self.flush());
+            self.closed_until = None;
+            self.clock_steps += 1;
         }
         let tol = self.tolerance_ns;
-        let joins =
-            self.open.iter().position(|s| (frame.t_ns - s.anchor()).abs() <= tol && !s.frames.iter().any(|f| f.camera == frame.camera));
+        let joins = self.open.iter().position(|s| {
+            frame.t_ns.saturating_sub(s.anchor()).saturating_abs() <= tol && !s.frames.iter().any(|f| f.camera == frame.camera)
+        });
         let index = match joins {
             Some(i) => {
                 self.open[i].frames.push(frame);
                 i
             }
             None => {
-                if self.open.first().is_some_and(|s| frame.t_ns < s.anchor() - tol) && self.open.len() >= self.max_open {
+                if self.open.first().is_some_and(|s| frame.t_ns < s.anchor().saturating_sub(tol)) && self.open.len() >= self.max_open {
                     // Older than every open set and no room: it can only be late.
                     self.late_frames += 1;
                     return done;
@@ -241,5 +266,41 @@ mod tests {
         }
         times.extend(a.flush().iter().map(|s| s.t_ns));
         assert!(times.windows(2).all(|w| w[1] > w[0]), "{times:?}");
+    }
+
+    #[test]
+    fn a_backwards_clock_step_is_not_a_stream_of_late_frames() {
+        // The wall clock is stepped back by 5 s at 100 ms: the process clock is re-mapped and
+        // frames from then on carry times 5 s earlier. Before this, every frame for 5 s was
+        // dropped as late; now the sets go on from the new time.
+        let mut a = FrameSetAssembler::with_open_sets(2, 10.0, 3);
+        let mut sets = Vec::new();
+        for t in [0, 33, 66, 100] {
+            sets.extend(a.push(f(0, t)));
+            sets.extend(a.push(f(1, t + 1)));
+        }
+        for t in [133 - 5000, 166 - 5000, 200 - 5000] {
+            sets.extend(a.push(f(0, t)));
+            sets.extend(a.push(f(1, t + 1)));
+        }
+        sets.extend(a.flush());
+        assert_eq!(sets.len(), 7, "every frame set survives the step");
+        assert!(sets.iter().all(|s| s.frames.len() == 2));
+        assert_eq!(a.late_frames(), 0);
+        assert_eq!(a.clock_steps(), 1);
+        // A frame late by a few frame periods is still only late.
+        assert!(a.push(f(0, 100 - 5000)).is_empty());
+        assert_eq!(a.late_frames(), 1);
+        assert_eq!(a.clock_steps(), 1);
+    }
+
+    #[test]
+    fn extreme_times_do_not_overflow() {
+        let mut a = FrameSetAssembler::with_open_sets(2, 10.0, 3);
+        for t in [i64::MAX, i64::MIN, 0, i64::MAX - 1, i64::MIN + 1] {
+            let fr = Frame { camera: 0, seq: 0, t_ns: t, image: Arc::new(GrayImage::new(1, 1)) };
+            let _ = a.push(fr);
+        }
+        let _ = a.flush();
     }
 }

@@ -54,14 +54,6 @@ impl DetectParts {
     }
 }
 
-/// CPU time of the calling thread, seconds.
-fn thread_cpu_s() -> f64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: clock_gettime writes the timespec it is given; CLOCK_THREAD_CPUTIME_ID exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
-}
-
 /// Counters over a whole run.
 #[derive(Debug, Clone, Default)]
 pub struct MeasureStats {
@@ -391,7 +383,7 @@ impl Measurement {
         // Phase 1: tracked tags confirmed where they are predicted, in parallel.
         let (cameras, tracker) = (&self.cameras, &self.tag_tracker);
         let confirm = |(j, t): &(usize, PlannedTag)| {
-            let c0 = thread_cpu_s();
+            let c0 = crate::clock::thread_cpu_s();
             let cam = &cameras[jobs[*j].camera];
             let levels = cam.edge_levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
             let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
@@ -399,7 +391,7 @@ impl Measurement {
                 Some(opts) => tracker.track(&set.frames[jobs[*j].frame].image, &prediction, Some(&cam.intrinsics), opts),
                 None => Err(TrackMiss::Unsupported),
             };
-            (result, thread_cpu_s() - c0)
+            (result, crate::clock::thread_cpu_s() - c0)
         };
         let results: Vec<(Result<TrackedTag, TrackMiss>, f64)> =
             if planned.len() > 1 { planned.par_iter().map(confirm).collect() } else { planned.iter().map(confirm).collect() };

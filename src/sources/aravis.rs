@@ -39,9 +39,9 @@ use aravis::prelude::*;
 use aravis::{AcquisitionMode, Buffer, BufferPayloadType, BufferStatus, Camera, GvStream, GvStreamPacketResend, PixelFormat, Stream};
 use tokio::sync::mpsc::Sender;
 
+use crate::clock::{now_epoch_ns, DeviceClockMap};
 use crate::config::CameraConfig;
 use crate::frame::GrayImage;
-use crate::sources::clock::{now_epoch_ns, DeviceClockMap};
 use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 

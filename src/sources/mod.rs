@@ -14,7 +14,7 @@
 //! Every frame is stamped in ns since the Unix epoch ([`clock`]).
 
 pub mod aravis;
-pub mod clock;
+pub use crate::clock;
 pub mod convert;
 pub mod live;
 pub mod sim;

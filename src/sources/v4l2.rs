@@ -38,9 +38,9 @@ use v4l::io::traits::{CaptureStream, Stream as _};
 use v4l::video::Capture;
 use v4l::{Format, FourCC, Fraction};
 
+use crate::clock::{now_epoch_ns, MonotonicToEpoch};
 use crate::config::CameraConfig;
 use crate::frame::GrayImage;
-use crate::sources::clock::{now_epoch_ns, MonotonicToEpoch};
 use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
@@ -167,7 +167,6 @@ struct Session {
     width: u32,
     height: u32,
     stride: u32,
-    clock: MonotonicToEpoch,
 }
 
 impl Session {
@@ -222,15 +221,7 @@ impl Session {
             MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS).map_err(|e| format!("{path}: cannot map buffers: {e}"))?;
         stream.set_timeout(DEQUEUE_TIMEOUT);
         tracing::info!(path, fourcc = %String::from_utf8_lossy(&fmt.fourcc.repr), width = fmt.width, height = fmt.height, stride = fmt.stride, "v4l2 camera open");
-        Ok(Session {
-            stream: Some(stream),
-            _dev: dev,
-            layout,
-            width: fmt.width,
-            height: fmt.height,
-            stride: fmt.stride,
-            clock: MonotonicToEpoch::measure(),
-        })
+        Ok(Session { stream: Some(stream), _dev: dev, layout, width: fmt.width, height: fmt.height, stride: fmt.stride })
     }
 }
 
@@ -249,7 +240,9 @@ impl CaptureSession for Session {
         };
         let receive = now_epoch_ns();
         let flags = meta.flags.bits();
-        let (t_ns, _) = map_buffer_timestamp(flags, i64::from(meta.timestamp.sec), i64::from(meta.timestamp.usec), self.clock, receive);
+        // The process clock's current mapping: a wall-clock step re-maps every source at once.
+        let clock = MonotonicToEpoch::current();
+        let (t_ns, _) = map_buffer_timestamp(flags, i64::from(meta.timestamp.sec), i64::from(meta.timestamp.usec), clock, receive);
         match convert_buffer_into(self.layout, self.width, self.height, self.stride, buf, meta.bytesused, flags, into) {
             Ok(()) => Captured::Image(t_ns),
             Err(BufferRejected::Corrupted) => Captured::Incomplete("buffer flagged V4L2_BUF_FLAG_ERROR".into()),
@@ -266,17 +259,48 @@ impl Drop for Session {
     }
 }
 
+/// What to do with a stream whose `STREAMOFF` returned `errno` (`None`: it succeeded).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CloseAction {
+    /// Drop it: its `Drop` unmaps the buffers and closes the fd without panicking — after a
+    /// successful STREAMOFF, or on `ENODEV` (the device was unplugged), which the `v4l` crate's
+    /// `Drop` impls ignore after unmapping.
+    Release,
+    /// Any other error: the crate's `Drop` would panic, and its buffer arena would panic again
+    /// while unwinding (an abort), so the stream is kept alive (leaked, logged). A device that
+    /// refuses STREAMOFF for another reason is still open and usable by nobody else anyway.
+    Leak,
+}
+
+/// The decision of [`close_stream`], apart for testing.
+pub fn close_action(streamoff_errno: Option<i32>) -> CloseAction {
+    match streamoff_errno {
+        None => CloseAction::Release,
+        Some(libc::ENODEV) => CloseAction::Release,
+        Some(_) => CloseAction::Leak,
+    }
+}
+
 /// Stops and releases a stream without letting the `v4l` crate's `Drop` panic on a device
-/// that is gone: stopped by hand first, leaked if that fails, dropped under `catch_unwind`.
+/// that is gone: stopped by hand first, then released ([`close_action`]): an unplugged camera
+/// (`ENODEV`) gives back its fd and mappings, so unplugging and replugging a camera for hours
+/// leaks nothing.
 fn close_stream(mut stream: MmapStream<'static>) {
-    match stream.stop() {
-        Ok(()) => {
+    let errno = match stream.stop() {
+        Ok(()) => None,
+        Err(e) => Some(e.raw_os_error().unwrap_or(libc::EIO)),
+    };
+    match close_action(errno) {
+        CloseAction::Release => {
+            if errno.is_some() {
+                tracing::info!("v4l2 STREAMOFF: device gone; releasing its buffers and file descriptor");
+            }
             if std::panic::catch_unwind(AssertUnwindSafe(move || drop(stream))).is_err() {
                 tracing::warn!("v4l2 stream panicked while closing; ignored");
             }
         }
-        Err(e) => {
-            tracing::warn!(error = %e, "v4l2 STREAMOFF failed (device gone?): leaking the stream's buffers rather than panicking");
+        CloseAction::Leak => {
+            tracing::error!(errno, "v4l2 STREAMOFF failed: keeping the stream's buffers rather than risking an abort");
             std::mem::forget(stream);
         }
     }
@@ -307,6 +331,13 @@ mod tests {
             assert!(fourcc_layout(f).is_some(), "{}", String::from_utf8_lossy(&f));
         }
         assert_eq!(fourcc_layout(*b"RGB3"), None);
+    }
+
+    #[test]
+    fn an_unplugged_device_is_released_not_leaked() {
+        assert_eq!(close_action(None), CloseAction::Release);
+        assert_eq!(close_action(Some(libc::ENODEV)), CloseAction::Release);
+        assert_eq!(close_action(Some(libc::EBUSY)), CloseAction::Leak);
     }
 
     #[test]

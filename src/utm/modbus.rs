@@ -11,7 +11,7 @@ use super::UtmSample;
 use crate::config::{RegisterConfig, RegisterKind, UtmConfig};
 use std::fmt;
 use std::net::SocketAddr;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 use tokio::time::{timeout, Instant, MissedTickBehavior};
 use tokio_modbus::client::{tcp, Client, Context};
@@ -196,14 +196,6 @@ pub enum PollFault {
     },
 }
 
-/// Nanoseconds since the Unix epoch on the host's realtime clock (the product's one clock).
-fn now_ns() -> i64 {
-    match SystemTime::now().duration_since(UNIX_EPOCH) {
-        Ok(d) => d.as_nanos() as i64,
-        Err(e) => -(e.duration().as_nanos() as i64),
-    }
-}
-
 /// The poller's connection to the UTM.
 struct Link {
     cfg: UtmConfig,
@@ -245,7 +237,7 @@ impl Link {
             self.connect().await?;
         }
         let address = self.cfg.address.clone();
-        let t0 = now_ns();
+        let t0 = crate::clock::now_epoch_ns();
         let mut replies = Vec::with_capacity(self.plan.reads.len());
         for &request in &self.plan.reads {
             let ctx = self.ctx.as_mut().ok_or_else(|| PollFault::Connect { address: address.clone(), detail: "not connected".into() })?;
@@ -275,7 +267,7 @@ impl Link {
             }
             replies.push(words);
         }
-        let t1 = now_ns();
+        let t1 = crate::clock::now_epoch_ns();
         let (load_kn, stroke_mm) = self.plan.decode(&replies).map_err(|source| PollFault::Decode { address, source })?;
         Ok(UtmSample { t_ns: t0 + (t1 - t0) / 2, load_kn, stroke_mm })
     }

@@ -17,7 +17,6 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
-use std::time::{SystemTime, UNIX_EPOCH};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::task::JoinHandle;
@@ -118,7 +117,7 @@ impl SimService {
         if start as u32 + count as u32 > 65536 {
             return Err(ExceptionCode::IllegalDataAddress);
         }
-        let (load, stroke) = (self.model)(now_ns());
+        let (load, stroke) = (self.model)(crate::clock::now_epoch_ns());
         let mut words = vec![0u16; count as usize];
         let channels = [(Some(&self.load), load), (self.stroke.as_ref(), stroke)];
         for (reg, value) in channels {
@@ -149,13 +148,6 @@ impl tokio_modbus::server::Service for SimService {
 
     fn call(&self, req: Self::Request) -> Self::Future {
         ready(self.answer(&req))
-    }
-}
-
-fn now_ns() -> i64 {
-    match SystemTime::now().duration_since(UNIX_EPOCH) {
-        Ok(d) => d.as_nanos() as i64,
-        Err(e) => -(e.duration().as_nanos() as i64),
     }
 }
 

@@ -210,7 +210,7 @@ fn driver_timestamps_map_from_monotonic_to_epoch() {
 
 #[test]
 fn measured_clock_offset_maps_the_current_monotonic_time_to_now() {
-    let clock = MonotonicToEpoch::measure();
+    let clock = MonotonicToEpoch::current();
     let mono = tagdeflect::sources::clock::monotonic_ns();
     let now = tagdeflect::sources::clock::now_epoch_ns();
     let (t, src) = map_buffer_timestamp(0x2000, mono / 1_000_000_000, (mono % 1_000_000_000) / 1_000, clock, now);
