@@ -103,8 +103,19 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("tagdeflect: error: {e:#}");
-            ExitCode::from(2)
+            ExitCode::from(exit_code(&e))
         }
+    }
+}
+
+/// Exit codes: 0 done; 2 bad input (config, recording, command line — a restart cannot help,
+/// so the unit says `RestartPreventExitStatus=2`); 1 a failure of the running daemon that a
+/// restart may cure ([`tagdeflect::RuntimeFailure`]).
+fn exit_code(e: &anyhow::Error) -> u8 {
+    if e.chain().any(|c| c.is::<tagdeflect::RuntimeFailure>()) {
+        1
+    } else {
+        2
     }
 }
 

@@ -114,9 +114,10 @@ impl Default for SyncConfig {
 pub struct CameraConfig {
     /// Camera name; also the recording's sub-folder name.
     pub name: String,
-    /// `v4l2:/dev/videoN`, `aravis:<device id>` or `sim`.
-    #[serde(default = "default_source")]
-    pub source: String,
+    /// Where the frames come from (`v4l2:/dev/videoN`, `aravis:<device id>`, `sim`,
+    /// `recording:<folder>`).
+    #[serde(default)]
+    pub source: CameraSource,
     /// Requested frame rate of live sources.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fps: Option<f64>,
@@ -145,6 +146,88 @@ pub struct CameraConfig {
 
 fn default_source() -> String {
     "sim".to_string()
+}
+
+/// Where a camera's frames come from (`[[camera]] source`). Written back as the same string.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub enum CameraSource {
+    /// A V4L2 device, e.g. `v4l2:/dev/v4l/by-id/usb-...-video-index0` (by-id paths survive
+    /// replugging; `/dev/videoN` numbers may change).
+    V4l2 {
+        /// Device path.
+        path: String,
+    },
+    /// A GigE Vision / USB3 Vision camera through Aravis, `aravis:<device id>`.
+    Aravis {
+        /// Aravis device id (as `arv-tool-0.8` lists it).
+        device: String,
+    },
+    /// The built-in simulated rig (`[sim]`).
+    #[default]
+    Sim,
+    /// The frames of this camera (same name) in a recording folder, played at their recorded
+    /// pace as if captured live: `recording:<folder>` (relative to the config's folder).
+    /// `replay --realtime` plays every camera this way.
+    Recording {
+        /// The recording folder.
+        dir: PathBuf,
+    },
+}
+
+impl CameraSource {
+    /// Parses a `source` string; the error says what is expected.
+    pub fn parse(text: &str) -> Result<CameraSource, String> {
+        let t = text.trim();
+        let expected = "expected \"v4l2:/dev/videoN\", \"aravis:<device id>\", \"sim\" or \"recording:<folder>\"";
+        let nonempty = |rest: &str, what: &str| {
+            let r = rest.trim();
+            if r.is_empty() {
+                Err(format!("\"{t}\" names no {what}: {expected}"))
+            } else {
+                Ok(r.to_string())
+            }
+        };
+        if let Some(p) = t.strip_prefix("v4l2:") {
+            Ok(CameraSource::V4l2 { path: nonempty(p, "device path")? })
+        } else if let Some(d) = t.strip_prefix("aravis:") {
+            Ok(CameraSource::Aravis { device: nonempty(d, "device id")? })
+        } else if t == "sim" {
+            Ok(CameraSource::Sim)
+        } else if let Some(d) = t.strip_prefix("recording:") {
+            Ok(CameraSource::Recording { dir: PathBuf::from(nonempty(d, "folder")?) })
+        } else {
+            Err(format!("\"{t}\" is not a camera source: {expected}"))
+        }
+    }
+
+    /// True for the simulated rig.
+    pub fn is_sim(&self) -> bool {
+        matches!(self, CameraSource::Sim)
+    }
+}
+
+impl fmt::Display for CameraSource {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            CameraSource::V4l2 { path } => write!(f, "v4l2:{path}"),
+            CameraSource::Aravis { device } => write!(f, "aravis:{device}"),
+            CameraSource::Sim => write!(f, "sim"),
+            CameraSource::Recording { dir } => write!(f, "recording:{}", dir.display()),
+        }
+    }
+}
+
+impl Serialize for CameraSource {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&self.to_string())
+    }
+}
+
+impl<'de> Deserialize<'de> for CameraSource {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        CameraSource::parse(&text).map_err(serde::de::Error::custom)
+    }
 }
 
 impl CameraConfig {
@@ -568,6 +651,20 @@ impl Config {
                 if m.detector_threads == 0 {
                     return Err(loc.err(Some(span), "measure.detector_threads", "must be >= 1"));
                 }
+                // The detector's own limits, checked here so nothing fails after `check`.
+                let opts = crate::detect::DetectorOptions {
+                    quad_decimate: m.quad_decimate,
+                    nthreads: m.detector_threads,
+                    ..crate::detect::DetectorOptions::default()
+                };
+                if let Err(crate::detect::DetectError::BadOption { name, value, expected }) = opts.validate() {
+                    let key = match name {
+                        "nthreads" => "measure.detector_threads",
+                        "quad_decimate" => "measure.quad_decimate",
+                        _ => "measure",
+                    };
+                    return Err(loc.err(Some(span), key, format!("{value} is out of range: {expected}")));
+                }
                 if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0) {
                     return Err(loc.err(Some(span), "measure.full_search_interval_s", "must be > 0 seconds"));
                 }
@@ -583,6 +680,33 @@ impl Config {
         if let Some(f) = &output.feed {
             if f != "-" && Path::new(f).is_relative() {
                 output.feed = Some(base.join(f).to_string_lossy().into_owned());
+            }
+        }
+        if let Some(sim) = &raw.sim {
+            sim.validate().map_err(|e| {
+                let option = match &e {
+                    crate::sim::SimError::Param { option, .. } => format!("sim.{}", option.replace('-', "_")),
+                    _ => "sim".to_string(),
+                };
+                loc.err(key_line(text, "sim"), &option, e.to_string())
+            })?;
+        }
+        // Simulated cameras are the rig's cameras, by name and in order.
+        if cameras.iter().any(|c| c.source.is_sim()) {
+            let params = raw.sim.clone().unwrap_or_default();
+            let names = crate::sim::camera_names(params.cameras as usize);
+            for (i, (cam, raw_cam)) in cameras.iter().zip(&raw.camera).enumerate() {
+                if cam.source.is_sim() && names.get(i) != Some(&cam.name) {
+                    return Err(loc.err(
+                        Some(raw_cam.get_ref().name.span()),
+                        &format!("camera[{i}].name"),
+                        format!(
+                            "sim camera {i} is named \"{}\" but the simulated rig's camera {i} is {}: a config with sim cameras lists the rig's cameras ({names:?}) in order",
+                            cam.name,
+                            names.get(i).map_or("missing (see `[sim] cameras`)".to_string(), |n| format!("\"{n}\""))
+                        ),
+                    ));
+                }
             }
         }
         Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
@@ -602,6 +726,19 @@ impl Config {
     pub fn role_of(&self, id: u32) -> Option<TagRole> {
         self.specimen.tags.iter().find(|t| t.id == id).and_then(|t| t.role)
     }
+}
+
+/// The span of a top-level table header `[name]`, for errors about the table as a whole.
+fn key_line(text: &str, table: &str) -> Option<Range<usize>> {
+    let header = format!("[{table}]");
+    let mut at = 0;
+    for line in text.split_inclusive('\n') {
+        if line.trim() == header {
+            return Some(at..at + line.len());
+        }
+        at += line.len();
+    }
+    None
 }
 
 fn toml_error(loc: &Locator<'_>, e: &toml::de::Error) -> ConfigError {
@@ -635,13 +772,11 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
     if name.is_empty() || name.contains(['/', '\\']) || name == "." || name == ".." {
         return Err(loc.err(Some(c.name.span()), &key("name"), "must be a non-empty name usable as a folder name (no slashes)"));
     }
-    let src = &c.source;
-    if !(src == "sim" || src.starts_with("v4l2:") || src.starts_with("aravis:")) {
-        return Err(loc.err(
-            Some(span.clone()),
-            &key("source"),
-            format!("\"{src}\" is not a camera source: expected \"v4l2:/dev/videoN\", \"aravis:<device id>\" or \"sim\""),
-        ));
+    let mut source = CameraSource::parse(&c.source).map_err(|m| loc.err(Some(span.clone()), &key("source"), m))?;
+    if let CameraSource::Recording { dir } = &mut source {
+        if dir.is_relative() {
+            *dir = base.join(&*dir);
+        }
     }
     if let Some(f) = &c.fps {
         if !(f.get_ref().is_finite() && *f.get_ref() > 0.0) {
@@ -709,7 +844,7 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
     }
     Ok(CameraConfig {
         name,
-        source: c.source.clone(),
+        source,
         fps: c.fps.as_ref().map(|f| *f.get_ref()),
         width,
         height,

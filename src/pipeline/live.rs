@@ -26,11 +26,11 @@ use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
 use crate::config::Config;
-use crate::frame::{Frame, FrameSet, ImagePool};
+use crate::frame::{Frame, FrameSet};
 use crate::pipeline::measure::Measurement;
 use crate::recording::{Recording, RecordingWriter};
 use crate::sinks::feed::FeedWriter;
-use crate::sources::{clock, spawn_camera, SourceEvent};
+use crate::sources::{OpenPolicy, SourceEvent};
 use crate::sync::FrameSetAssembler;
 use crate::utm::modbus::{run_poller, UtmEvent};
 use crate::utm::UtmSample;
@@ -71,6 +71,10 @@ pub fn replay_paced(rec: Recording, full_frame: bool, feeds: Vec<FeedWriter>) ->
     let mut cfg = rec.config.clone();
     // A replay's feed goes to `feeds` only, never to the recorded run's feed file.
     cfg.output.feed = None;
+    // Every camera plays its recorded frames: the recording is the source.
+    for cam in &mut cfg.cameras {
+        cam.source = crate::config::CameraSource::Recording { dir: rec.dir.clone() };
+    }
     let opts = LiveOptions { full_frame, ..LiveOptions::default() };
     runtime()?.block_on(run_async(cfg, opts, Some(rec), feeds))
 }
@@ -103,17 +107,24 @@ impl SetQueue {
         self.inner.lock().expect("queue lock").1 = true;
         self.ready.notify_all();
     }
-    /// Next set, or `None` once closed and empty.
-    fn pop(&self) -> Option<(FrameSet, Instant)> {
+    /// Next set (`Some(Some)`), nothing within `wait` (`Some(None)`), or `None` once closed
+    /// and empty.
+    #[allow(clippy::option_option)]
+    fn pop_timeout(&self, wait: Duration) -> Option<Option<(FrameSet, Instant)>> {
+        let deadline = Instant::now() + wait;
         let mut g = self.inner.lock().expect("queue lock");
         loop {
             if let Some(x) = g.0.pop_front() {
-                return Some(x);
+                return Some(Some(x));
             }
             if g.1 {
                 return None;
             }
-            g = self.ready.wait(g).expect("queue lock");
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Some(None);
+            }
+            g = self.ready.wait_timeout(g, left).expect("queue lock").0;
         }
     }
 }
@@ -181,32 +192,19 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     };
     let recorder_drops = Arc::new(AtomicU64::new(0));
 
-    // The simulated rig, when any part of the config asks for it.
-    let wants_sim = config.cameras.iter().any(|c| c.source == "sim") || config.utm.as_ref().is_some_and(|u| u.address == "sim");
-    let start_ns = clock::now_epoch_ns();
-    let rig = if wants_sim && recording.is_none() {
-        Some(Arc::new(crate::sources::sim::LiveRig::new(&config, start_ns).context("cannot build the simulated rig")?))
-    } else {
+    // The measurement is built before any source starts: a detector option it cannot take
+    // is a config error (exit 2), never a daemon that captures without measuring.
+    let measure = if opts.record_only {
         None
+    } else {
+        Some(Measurement::new(&config, !opts.full_frame).map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?)
     };
 
-    // Cameras.
-    let mut threads: Vec<std::thread::JoinHandle<()>> = Vec::new();
-    let mut live_cams = Vec::new();
-    match &recording {
-        Some(rec) => threads.push(spawn_player(rec.clone(), src_tx.clone(), stop.clone())),
-        None => {
-            for (i, cam) in config.cameras.iter().enumerate() {
-                if cam.source == "sim" {
-                    let rig = rig.clone().expect("sim rig built");
-                    threads.push(crate::sources::sim::spawn_live_camera(rig, i, src_tx.clone(), stop.clone()));
-                } else {
-                    let c = spawn_camera(i, cam, src_tx.clone(), stop.clone()).inspect_err(|_| stop.store(true, Ordering::SeqCst))?;
-                    live_cams.push(c);
-                }
-            }
-        }
-    }
+    // Cameras (a recording's frames too: `replay --realtime` sets every camera's source to it).
+    // `run` keeps retrying a camera that is not there yet; a replay's recording must open.
+    let policy = if recording.is_some() { OpenPolicy::Require } else { OpenPolicy::Retry };
+    let sources = crate::sources::start(&config, policy, src_tx.clone(), stop.clone())?;
+    let rig = sources.rig.clone();
     drop(src_tx);
 
     // UTM.
@@ -238,7 +236,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         drop(utm_tx);
     }
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
-    tracing::info!(cameras = ncam, "sources open; measuring");
+    tracing::info!(cameras = ncam, "sources started; measuring");
 
     // UTM events to the solver (std channel: the solver is a plain thread) and the recorder.
     let (solver_utm_tx, solver_utm_rx) = std_mpsc::channel::<UtmEvent>();
@@ -259,20 +257,33 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         })
     };
 
-    // Solver thread.
+    // Solver thread. It beats `heartbeat` at least once a second while it runs (idle or
+    // solving); the watchdog is pinged from the assembler loop while the beat is fresh.
     let queue = Arc::new(SetQueue::new());
-    let solver = if opts.record_only {
-        None
-    } else {
-        let queue = queue.clone();
-        let config = config.clone();
-        let full_frame = opts.full_frame;
-        Some(
-            std::thread::Builder::new()
-                .name("solver".into())
-                .spawn(move || solver_loop(config, full_frame, queue, solver_utm_rx, feeds, utm_configured))?,
-        )
+    let heartbeat = Arc::new(AtomicU64::new(0));
+    let solver = match measure {
+        None => None,
+        Some(measure) => {
+            let queue = queue.clone();
+            let config = config.clone();
+            let heartbeat = heartbeat.clone();
+            Some(
+                std::thread::Builder::new()
+                    .name("solver".into())
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, feeds, utm_configured, heartbeat))?,
+            )
+        }
     };
+    let started = Instant::now();
+    let beat_now = move || started.elapsed().as_millis() as u64 + 1;
+    heartbeat.store(beat_now(), Ordering::Relaxed);
+    // Pinged at a third of systemd's watchdog interval, at most once a second.
+    let watchdog_every = std::env::var("WATCHDOG_USEC")
+        .ok()
+        .and_then(|v| v.parse::<u64>().ok())
+        .map(|us| Duration::from_micros(us / 3).min(Duration::from_secs(1)));
+    let mut last_ping: Option<Instant> = None;
+    let mut last_clock_check = Instant::now();
 
     // Assembler: until the sources end or a stop is asked for.
     // Live frames of different cameras may arrive out of order by a frame or two.
@@ -317,6 +328,21 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                         queue.push(set);
                     }
                 }
+                if last_clock_check.elapsed() >= Duration::from_secs(1) {
+                    last_clock_check = Instant::now();
+                    // A stepped wall clock re-maps the one process clock (logged there).
+                    let _ = crate::clock::process().check_step();
+                }
+                // Liveness, not solved sets: the loop runs, sources are read or retried, and
+                // the solver is not stuck (a camera unplugged for a minute is not a reason to
+                // be killed; a hung solver is).
+                let solver_alive = opts.record_only || beat_now().saturating_sub(heartbeat.load(Ordering::Relaxed)) < WATCHDOG_STALE_MS;
+                if let Some(every) = watchdog_every {
+                    if solver_alive && last_ping.is_none_or(|t| t.elapsed() >= every) {
+                        last_ping = Some(Instant::now());
+                        let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
+                    }
+                }
             }
             _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: stopping"); break; }
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
@@ -339,17 +365,11 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         queue.push(set);
     }
     queue.close();
-    let threads_done = tokio::task::spawn_blocking(move || {
-        for t in threads {
-            let _ = t.join();
-        }
-        for c in live_cams {
-            c.join();
-        }
-    });
+    let threads_done = tokio::task::spawn_blocking(move || sources.join());
     let _ = tokio::time::timeout(Duration::from_secs(5), threads_done).await;
+    let mut solver_panicked = false;
     if let Some(s) = solver {
-        tokio::task::spawn_blocking(move || s.join()).await.ok();
+        solver_panicked = matches!(tokio::task::spawn_blocking(move || s.join()).await, Ok(Err(_)));
     }
     // The forwarder holds a sender of the recorder: end it before waiting for the recorder.
     forwarder.abort();
@@ -361,27 +381,31 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = recorder_drops.load(Ordering::Relaxed);
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
+    if solver_panicked {
+        return Err(anyhow::Error::new(crate::RuntimeFailure::new(
+            "the solver thread failed (see the log); frame sets after the failure were not measured",
+        )));
+    }
     Ok(())
 }
 
+/// A solver heartbeat older than this stops the watchdog pings (systemd then restarts the
+/// daemon after `WatchdogSec`).
+const WATCHDOG_STALE_MS: u64 = 10_000;
+
 fn solver_loop(
     config: Config,
-    full_frame: bool,
+    mut measure: Measurement,
     queue: Arc<SetQueue>,
     utm_rx: std_mpsc::Receiver<UtmEvent>,
     mut feeds: Vec<FeedWriter>,
     utm_configured: bool,
+    heartbeat: Arc<AtomicU64>,
 ) {
-    let mut measure = match Measurement::new(&config, !full_frame) {
-        Ok(m) => m,
-        Err(e) => {
-            tracing::error!("cannot start the tag detector: {e}");
-            return;
-        }
-    };
+    let started = Instant::now();
+    let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
     let mut utm_up = false;
     let utm_wait = config.utm.as_ref().map(|u| Duration::from_secs_f64(2.5 / u.poll_hz)).unwrap_or_default();
-    let watchdog = std::env::var_os("WATCHDOG_USEC").is_some();
     let handle = |ev: UtmEvent, m: &mut Measurement, up: &mut bool| match ev {
         UtmEvent::Sample(s) => {
             *up = true;
@@ -396,7 +420,10 @@ fn solver_loop(
             tracing::info!("UTM up");
         }
     };
-    while let Some((set, arrived)) = queue.pop() {
+    loop {
+        beat();
+        let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else { break };
+        let Some((set, arrived)) = popped else { continue };
         while let Ok(ev) = utm_rx.try_recv() {
             handle(ev, &mut measure, &mut utm_up);
         }
@@ -426,49 +453,7 @@ fn solver_loop(
                 tracing::error!("{e}");
             }
         }
-        if watchdog {
-            let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Watchdog]);
-        }
     }
-}
-
-/// Plays a recording's frames at their recorded pace (same timestamps) as a live source.
-fn spawn_player(rec: Recording, tx: mpsc::Sender<SourceEvent>, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<()> {
-    std::thread::Builder::new()
-        .name("player".into())
-        .spawn(move || {
-            let Some(first) = rec.frames.first().map(|f| f.t_ns) else { return };
-            let t0 = Instant::now();
-            let mut dropped = 0u64;
-            let (mut pool, mut scratch) = (ImagePool::default(), Vec::new());
-            for entry in &rec.frames {
-                if stop.load(Ordering::Relaxed) {
-                    break;
-                }
-                let due = Duration::from_nanos((entry.t_ns - first).max(0) as u64);
-                if let Some(wait) = due.checked_sub(t0.elapsed()) {
-                    std::thread::sleep(wait);
-                }
-                let image = match pool.fill(|img| rec.load_image_into(entry, img, &mut scratch)) {
-                    Ok(i) => i,
-                    Err(e) => {
-                        tracing::warn!("frame skipped: {e}");
-                        continue;
-                    }
-                };
-                let camera = rec.config.camera_index(&entry.camera).expect("checked on open");
-                let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image };
-                match tx.try_send(SourceEvent::Frame(frame)) {
-                    Ok(()) => {}
-                    Err(mpsc::error::TrySendError::Full(_)) => dropped += 1,
-                    Err(mpsc::error::TrySendError::Closed(_)) => break,
-                }
-            }
-            if dropped > 0 {
-                tracing::warn!(dropped, "player: frames dropped (the pipeline was behind)");
-            }
-        })
-        .expect("player thread")
 }
 
 /// Opens every source of the config and returns the first frame set (one frame of each
@@ -477,23 +462,7 @@ pub fn grab_frame_set(config: &Config, timeout: Duration) -> Result<FrameSet> {
     runtime()?.block_on(async {
         let stop = Arc::new(AtomicBool::new(false));
         let (tx, mut rx) = mpsc::channel::<SourceEvent>(4 * config.cameras.len().max(1));
-        let mut threads = Vec::new();
-        let mut live = Vec::new();
-        let wants_sim = config.cameras.iter().any(|c| c.source == "sim");
-        let rig = if wants_sim { Some(Arc::new(crate::sources::sim::LiveRig::new(config, clock::now_epoch_ns())?)) } else { None };
-        for (i, cam) in config.cameras.iter().enumerate() {
-            if cam.source == "sim" {
-                threads.push(crate::sources::sim::spawn_live_camera(rig.clone().expect("sim rig"), i, tx.clone(), stop.clone()));
-            } else {
-                match spawn_camera(i, cam, tx.clone(), stop.clone()) {
-                    Ok(c) => live.push(c),
-                    Err(e) => {
-                        stop.store(true, Ordering::SeqCst);
-                        return Err(anyhow::Error::new(e));
-                    }
-                }
-            }
-        }
+        let sources = crate::sources::start(config, OpenPolicy::Require, tx.clone(), stop.clone())?;
         drop(tx);
         let mut frames: Vec<Option<Frame>> = vec![None; config.cameras.len()];
         let deadline = tokio::time::Instant::now() + timeout;
@@ -512,14 +481,7 @@ pub fn grab_frame_set(config: &Config, timeout: Duration) -> Result<FrameSet> {
         }
         stop.store(true, Ordering::SeqCst);
         rx.close();
-        tokio::task::spawn_blocking(move || {
-            threads.into_iter().for_each(|t| {
-                let _ = t.join();
-            });
-            live.into_iter().for_each(|c| c.join());
-        })
-        .await
-        .ok();
+        tokio::task::spawn_blocking(move || sources.join()).await.ok();
         let frames: Vec<Frame> = frames.into_iter().flatten().collect();
         if frames.is_empty() {
             anyhow::bail!("no camera delivered a frame within {:.0} s", timeout.as_secs_f64());

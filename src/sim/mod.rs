@@ -19,6 +19,7 @@ mod scene;
 pub use beam::{DeformedBeam, FourPointBeam};
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
+pub use scene::camera_names;
 
 use serde::{Deserialize, Serialize};
 

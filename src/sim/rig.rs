@@ -342,7 +342,7 @@ impl SimRig {
                 let k = self.layout.intrinsics[i];
                 CameraConfig {
                     name: self.layout.names[i].clone(),
-                    source: "sim".into(),
+                    source: crate::config::CameraSource::Sim,
                     fps: Some(p.fps),
                     width: k.width,
                     height: k.height,

@@ -290,6 +290,19 @@ pub fn spawn(
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
+    spawn_with(index, cfg, id, opts, crate::sources::live::OpenPolicy::Require, tx, stop)
+}
+
+/// [`spawn`] with a policy for a camera that is not there yet.
+pub(crate) fn spawn_with(
+    index: usize,
+    cfg: &CameraConfig,
+    id: &str,
+    opts: AravisOptions,
+    policy: crate::sources::live::OpenPolicy,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<LiveCamera, SourceError> {
     let name = cfg.name.clone();
     let mut timing = LoopTiming::for_fps(cfg.fps);
     if let Some(stall) = opts.stall_timeout {
@@ -297,7 +310,7 @@ pub fn spawn(
     }
     let source = format!("aravis:{id}");
     let (cfg, id) = (cfg.clone(), id.to_string());
-    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&id, &cfg, &opts), timing, tx, stop)
+    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&id, &cfg, &opts), timing, policy, tx, stop)
 }
 
 #[cfg(test)]

@@ -22,7 +22,7 @@ use std::time::Duration;
 use tokio::sync::mpsc::error::TrySendError;
 use tokio::sync::mpsc::Sender;
 
-use crate::config::CameraConfig;
+use crate::config::{CameraConfig, CameraSource};
 use crate::frame::Frame;
 
 /// What a live camera reports to the pipeline.
@@ -68,18 +68,8 @@ pub enum DropReason {
 /// Errors opening a live source (the thread's later failures are [`SourceEvent::Lost`]).
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
-    /// The `source` string has no known prefix.
-    #[error("camera {camera} ({name}): unknown source {spec:?}: expected \"v4l2:/dev/videoN\", \"aravis:<device id>\" or \"sim\"")]
-    UnknownSource {
-        /// Camera index.
-        camera: usize,
-        /// Camera name.
-        name: String,
-        /// The offending source string.
-        spec: String,
-    },
-    /// Simulated cameras are not live devices.
-    #[error("camera {camera} ({name}): sim cameras are started by the pipeline, not by sources::spawn_camera")]
+    /// Simulated and recorded cameras are not devices.
+    #[error("camera {camera} ({name}): sim and recording cameras are started by sources::start, not by sources::spawn_camera")]
     Sim {
         /// Camera index.
         camera: usize,
@@ -176,22 +166,41 @@ impl LiveCamera {
     }
 }
 
-/// Starts a live camera in its own thread and returns once the device is open and
-/// configured (so the caller can report readiness), or with the error that prevented it.
+/// Starts a live device camera in its own thread and returns once the device is open and
+/// configured, or with the error that prevented it ([`OpenPolicy::Require`]: `check`,
+/// tests). The pipeline starts every kind of source with [`crate::sources::start`].
 ///
-/// Dispatches on `cfg.source`: `v4l2:<path>` ([`crate::sources::v4l2`]), `aravis:<device id>`
-/// ([`crate::sources::aravis`]); `sim` returns [`SourceError::Sim`] — the pipeline starts
-/// simulated cameras itself.
+/// `v4l2:` ([`crate::sources::v4l2`]) and `aravis:` ([`crate::sources::aravis`]) sources;
+/// `sim` and `recording:` sources need the rig or the recording that
+/// [`crate::sources::start`] holds, and give [`SourceError::Sim`].
 pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<LiveCamera, SourceError> {
-    let source = cfg.source.trim();
-    if let Some(path) = source.strip_prefix("v4l2:") {
-        crate::sources::v4l2::spawn(index, cfg, path.trim(), tx, stop)
-    } else if let Some(id) = source.strip_prefix("aravis:") {
-        crate::sources::aravis::spawn(index, cfg, id.trim(), crate::sources::aravis::AravisOptions::default(), tx, stop)
-    } else if source == "sim" {
-        Err(SourceError::Sim { camera: index, name: cfg.name.clone() })
-    } else {
-        Err(SourceError::UnknownSource { camera: index, name: cfg.name.clone(), spec: cfg.source.clone() })
+    spawn_device(index, cfg, OpenPolicy::Require, tx, stop)
+}
+
+/// What to do when a device cannot be opened at start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpenPolicy {
+    /// Fail with the error (`check --config`: the operator is told at once).
+    Require,
+    /// Report the camera lost and keep trying to open it with backoff in its capture thread
+    /// (`run`: a camera switched on or plugged in after the daemon started joins then).
+    Retry,
+}
+
+/// [`spawn_camera`] with a policy for a device that is not there yet.
+pub fn spawn_device(
+    index: usize,
+    cfg: &CameraConfig,
+    policy: OpenPolicy,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<LiveCamera, SourceError> {
+    match &cfg.source {
+        CameraSource::V4l2 { path } => crate::sources::v4l2::spawn(index, cfg, path, policy, tx, stop),
+        CameraSource::Aravis { device } => {
+            crate::sources::aravis::spawn_with(index, cfg, device, crate::sources::aravis::AravisOptions::default(), policy, tx, stop)
+        }
+        CameraSource::Sim | CameraSource::Recording { .. } => Err(SourceError::Sim { camera: index, name: cfg.name.clone() }),
     }
 }
 
@@ -199,12 +208,14 @@ pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, s
 /// with `open` (capture handles stay on the thread that made them), readiness is reported
 /// back, then [`run_capture_loop`] runs (reopening with `open` after a loss). Returns once
 /// the device is open, or with the error that prevented it.
+#[allow(clippy::too_many_arguments)]
 pub fn spawn_capture<S, F>(
     index: usize,
     name: &str,
     source: String,
     mut open: F,
     timing: LoopTiming,
+    policy: OpenPolicy,
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError>
@@ -220,17 +231,23 @@ where
     let thread = std::thread::Builder::new()
         .name(format!("{prefix}-{name}"))
         .spawn(move || {
+            let mut em = Emitter::new(index, tx, thread_stats);
             let session = match open() {
                 Ok(s) => {
                     let _ = ready_tx.send(Ok(()));
-                    s
+                    Some(s)
+                }
+                Err(e) if policy == OpenPolicy::Retry => {
+                    // Not there yet: reported, and opened by the loop as soon as it appears.
+                    let _ = ready_tx.send(Ok(()));
+                    em.lost(format!("{label}: cannot open: {e}; retrying"));
+                    None
                 }
                 Err(e) => {
                     let _ = ready_tx.send(Err(e));
                     return;
                 }
             };
-            let mut em = Emitter::new(index, tx, thread_stats);
             run_capture_loop(&mut em, &label, session, open, timing, &stop);
         })
         .map_err(|e| SourceError::Thread { camera: index, name: name.to_string(), message: e.to_string() })?;
@@ -310,6 +327,8 @@ pub enum Captured {
     Timeout,
     /// The device failed (unplugged, I/O error): it is closed and reopened.
     Failed(String),
+    /// The source has no more frames (a recording played out): the capture thread ends.
+    End,
 }
 
 /// An open, streaming device as the capture loop sees it.
@@ -347,13 +366,13 @@ impl LoopTiming {
 pub fn run_capture_loop<S: CaptureSession>(
     em: &mut Emitter,
     label: &str,
-    session: S,
+    session: Option<S>,
     mut open: impl FnMut() -> Result<S, String>,
     mut timing: LoopTiming,
     stop: &AtomicBool,
 ) {
     let camera = em.camera();
-    let mut session = Some(session);
+    let mut session = session;
     let mut seq: u64 = 0;
     let mut last_frame = std::time::Instant::now();
     let mut pool = crate::frame::ImagePool::default();
@@ -408,6 +427,7 @@ pub fn run_capture_loop<S: CaptureSession>(
                 session = None;
                 continue;
             }
+            Err(Captured::End) => break,
         }
         if last_frame.elapsed() > timing.stall {
             em.lost(format!("{label}: no complete frame for {:.1} s", last_frame.elapsed().as_secs_f64()));
@@ -623,7 +643,7 @@ mod tests {
         };
         let timing =
             LoopTiming { stall: Duration::from_millis(100), backoff: Backoff::new(Duration::from_millis(10), Duration::from_millis(40)) };
-        run_capture_loop(&mut em, "test:cam", first, open, timing, &stop);
+        run_capture_loop(&mut em, "test:cam", Some(first), open, timing, &stop);
         let mut events = Vec::new();
         while let Ok(ev) = rx.try_recv() {
             events.push(ev);

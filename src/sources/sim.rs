@@ -4,19 +4,18 @@
 //! clock starts at the moment the pipeline starts and the load cycles (up, down, up …) so a
 //! demo can run for hours. Each simulated camera is a thread that renders its frame of
 //! frame set `k` at the nominal time `start + k / fps` (with the rig's jitter and simulated
-//! dropped frames) and sends it like a real camera: `try_send` only, a full channel drops
-//! the frame. If rendering falls behind the frame clock, frames are skipped (counted), never
-//! queued up, so the demo reflects a real camera's behaviour.
+//! dropped frames) through the capture loop every camera uses ([`SimSession`]): `try_send`
+//! only, a full channel drops the frame. If rendering falls behind the frame clock, frames
+//! are skipped (counted), never queued up, so the demo reflects a real camera's behaviour.
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::mpsc;
 
+use crate::clock;
 use crate::config::{Config, UtmConfig};
-use crate::frame::Frame;
+use crate::frame::GrayImage;
 use crate::sim::{SimError, SimParams, SimRig};
-use crate::sources::{clock, SourceEvent};
+use crate::sources::live::{CaptureSession, Captured};
 use crate::utm::sim_server::UtmModel;
 
 /// The simulated rig of a live run.
@@ -36,7 +35,7 @@ impl LiveRig {
         let rig = SimRig::new(&params)?;
         let names: Vec<String> = rig.cameras().into_iter().map(|c| c.name).collect();
         for (i, cam) in config.cameras.iter().enumerate() {
-            if cam.source == "sim" && names.get(i) != Some(&cam.name) {
+            if cam.source.is_sim() && names.get(i) != Some(&cam.name) {
                 return Err(SimError::Param {
                     option: "camera",
                     message: format!(
@@ -65,50 +64,61 @@ impl LiveRig {
     }
 }
 
-/// Starts simulated camera `camera` of the rig as a live source.
-pub fn spawn_live_camera(
+/// Simulated camera `camera` of the rig as a capture session: each frame of set `k` is
+/// rendered at its nominal time `start + k / fps` (with the rig's jitter and dropped frames)
+/// and handed to the same capture loop as a real camera's buffers ([`crate::sources::live`]:
+/// same emitter, frame pool and drop counting). If rendering falls behind the frame clock,
+/// frames are skipped and counted as missed, never queued up, as a real camera's would be.
+#[derive(Debug)]
+pub struct SimSession {
     rig: Arc<LiveRig>,
     camera: usize,
-    tx: mpsc::Sender<SourceEvent>,
-    stop: Arc<AtomicBool>,
-) -> std::thread::JoinHandle<()> {
-    std::thread::Builder::new()
-        .name(format!("sim-camera-{camera}"))
-        .spawn(move || {
-            let r = &rig.rig;
-            let mut skipped = 0u64;
-            let mut full = 0u64;
-            let mut k: u64 = 0;
-            while !stop.load(Ordering::Relaxed) {
-                let due = r.set_time_ns(k);
-                let now = clock::now_epoch_ns();
-                if due > now {
-                    std::thread::sleep(Duration::from_nanos((due - now) as u64).min(Duration::from_millis(200)));
-                    continue;
-                }
-                // Behind the frame clock by more than a frame: skip to the current frame.
-                let current = r.set_index_at(now).max(k as i64) as u64;
-                if current > k + 1 {
-                    skipped += current - k - 1;
-                    k = current;
-                    continue;
-                }
-                if let Some(t_ns) = r.frame_time_ns(camera, k) {
-                    let image = r.render(camera, t_ns);
-                    let frame = Frame { camera, seq: k, t_ns, image: Arc::new(image) };
-                    match tx.try_send(SourceEvent::Frame(frame)) {
-                        Ok(()) => {}
-                        Err(mpsc::error::TrySendError::Full(_)) => full += 1,
-                        Err(mpsc::error::TrySendError::Closed(_)) => break,
-                    }
-                }
-                k += 1;
+    k: u64,
+    missed: u64,
+}
+
+impl SimSession {
+    /// Camera `camera` of `rig`, from its first frame set.
+    pub fn new(rig: Arc<LiveRig>, camera: usize) -> Self {
+        Self { rig, camera, k: 0, missed: 0 }
+    }
+}
+
+impl CaptureSession for SimSession {
+    fn next(&mut self, into: &mut GrayImage) -> Captured {
+        let r = &self.rig.rig;
+        let due = r.set_time_ns(self.k);
+        let now = clock::now_epoch_ns();
+        if due > now {
+            // Bounded wait, so the capture loop sees its stop flag.
+            std::thread::sleep(Duration::from_nanos(due.saturating_sub(now).unsigned_abs()).min(Duration::from_millis(100)));
+            return Captured::Timeout;
+        }
+        // Behind the frame clock by more than a frame: skip to the current frame.
+        let current = u64::try_from(r.set_index_at(now)).unwrap_or(0).max(self.k);
+        if current > self.k + 1 {
+            self.missed += current - self.k - 1;
+            self.k = current;
+            return Captured::Timeout;
+        }
+        let k = self.k;
+        self.k += 1;
+        match r.frame_time_ns(self.camera, k) {
+            Some(t_ns) => {
+                *into = r.render(self.camera, t_ns);
+                Captured::Image(t_ns)
             }
-            if skipped + full > 0 {
-                tracing::info!(camera, skipped, channel_full = full, "simulated camera: frames not delivered");
+            // The rig drops this frame (`drop_prob`): as a camera losing a frame.
+            None => {
+                self.missed += 1;
+                Captured::Timeout
             }
-        })
-        .expect("sim camera thread")
+        }
+    }
+
+    fn take_missed(&mut self) -> u64 {
+        std::mem::take(&mut self.missed)
+    }
 }
 
 /// The built-in demo rig: three simulated 640x480 cameras at 5 fps and a simulated UTM

@@ -311,6 +311,7 @@ pub(crate) fn spawn(
     index: usize,
     cfg: &CameraConfig,
     path: &str,
+    policy: crate::sources::live::OpenPolicy,
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
@@ -318,7 +319,7 @@ pub(crate) fn spawn(
     let timing = LoopTiming::for_fps(cfg.fps);
     let source = format!("v4l2:{path}");
     let (cfg, path) = (cfg.clone(), path.to_string());
-    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, tx, stop)
+    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, policy, tx, stop)
 }
 
 #[cfg(test)]

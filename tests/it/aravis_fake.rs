@@ -223,8 +223,11 @@ fn dispatcher_errors_name_the_camera_and_source() {
     let stop = Arc::new(AtomicBool::new(false));
     let err = spawn_camera(3, &camera_cfg("sim", 64, 48, 10.0), tx.clone(), stop.clone()).err();
     assert!(matches!(err, Some(SourceError::Sim { camera: 3, .. })), "{err:?}");
-    let err = spawn_camera(1, &camera_cfg("usb:/dev/foo", 64, 48, 10.0), tx.clone(), stop.clone()).err();
-    assert!(matches!(err, Some(SourceError::UnknownSource { camera: 1, .. })), "{err:?}");
+    // An unknown source is a config error now (caught when the config is read, before any
+    // source starts): see tests/it/config.rs.
+    let text = "name = \"cam\"\nsource = \"usb:/dev/foo\"\nwidth = 64\nheight = 48\nfx = 500.0\nfy = 500.0\ncx = 31.5\ncy = 23.5\n";
+    let err = toml::from_str::<CameraConfig>(text).err().map(|e| e.to_string()).unwrap_or_default();
+    assert!(err.contains("usb:/dev/foo") && err.contains("not a camera source"), "{err}");
     let err = spawn_camera(2, &camera_cfg("aravis:No-Such-Camera-42", 64, 48, 10.0), tx.clone(), stop.clone()).err();
     let msg = err.map(|e| e.to_string()).unwrap_or_default();
     println!("{msg}");

@@ -288,3 +288,92 @@ fn record_then_replay_and_check_a_live_config() {
     let report = String::from_utf8_lossy(&out.stdout);
     assert_eq!(report.matches("background reprojection RMS").count(), 2, "{report}");
 }
+
+/// A stand-in for systemd's notification socket: what the daemon sends with sd_notify.
+struct NotifySocket {
+    sock: std::os::unix::net::UnixDatagram,
+    path: PathBuf,
+}
+
+impl NotifySocket {
+    fn new(dir: &Path) -> NotifySocket {
+        let path = dir.join("notify.sock");
+        let sock = std::os::unix::net::UnixDatagram::bind(&path).expect("bind notify socket");
+        sock.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+        NotifySocket { sock, path }
+    }
+
+    /// Every message received within `wait`.
+    fn messages(&self, wait: Duration) -> Vec<String> {
+        let deadline = Instant::now() + wait;
+        let mut out = Vec::new();
+        let mut buf = [0u8; 4096];
+        while Instant::now() < deadline {
+            if let Ok(n) = self.sock.recv(&mut buf) {
+                out.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+            }
+        }
+        out
+    }
+}
+
+fn daemon_with_notify(args: &[&str], notify: &NotifySocket, watchdog_usec: Option<u64>) -> Daemon {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_tagdeflect"));
+    cmd.args(args).env("TAGDEFLECT_LOG", "info").env("NOTIFY_SOCKET", &notify.path).stdout(Stdio::piped()).stderr(Stdio::piped());
+    if let Some(us) = watchdog_usec {
+        cmd.env("WATCHDOG_USEC", us.to_string());
+    }
+    Daemon(cmd.spawn().expect("start tagdeflect"))
+}
+
+#[test]
+fn run_with_an_invalid_detector_option_exits_2_before_ready() {
+    // `[measure] quad_decimate = 20` is beyond the detector's range (1–16). It used to pass the
+    // config check, send READY=1 and capture for ever without writing one feed line.
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
+    let mut cfg: Config = SimRig::new(&params).unwrap().config();
+    cfg.measure.quad_decimate = 20.0;
+    cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
+    let path = dir.path().join("rig.toml");
+    fs::write(&path, cfg.to_toml_string()).unwrap();
+    let notify = NotifySocket::new(dir.path());
+    let mut daemon = daemon_with_notify(&["run", "--config", path.to_str().unwrap(), "--duration-s", "20"], &notify, None);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let status = loop {
+        if let Some(s) = daemon.0.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "run with an invalid detector option is still running after 20 s");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(daemon.0.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    assert_eq!(status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("measure.quad_decimate") && stderr.contains("rig.toml"), "{stderr}");
+    let sent = notify.messages(Duration::from_millis(300));
+    assert!(!sent.iter().any(|m| m.contains("READY=1")), "READY=1 was sent: {sent:?}");
+}
+
+#[test]
+fn a_missing_camera_is_retried_and_the_watchdog_is_fed_meanwhile() {
+    // A one-camera rig whose camera is not plugged in: `run` used to exit 2 at start (and
+    // systemd's start limit then left the service dead); the watchdog was fed per solved
+    // frame set only. Now the camera is retried with backoff, READY=1 is sent, and WATCHDOG=1
+    // keeps coming while the pipeline loop runs.
+    let dir = tempfile::tempdir().unwrap();
+    let text = fs::read_to_string(common::root().join("config/one-camera.toml"))
+        .unwrap()
+        .replace("v4l2:/dev/video0", "v4l2:/dev/v4l/by-id/no-such-camera-video-index0");
+    let path = dir.path().join("rig.toml");
+    fs::write(&path, text).unwrap();
+    let notify = NotifySocket::new(dir.path());
+    let daemon = daemon_with_notify(&["run", "--config", path.to_str().unwrap()], &notify, Some(2_000_000));
+    let sent = notify.messages(Duration::from_secs(5));
+    let (code, _stdout, stderr) = daemon.terminate();
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(sent.iter().any(|m| m.contains("READY=1")), "no READY=1: {sent:?}\n{stderr}");
+    let pings = sent.iter().filter(|m| m.contains("WATCHDOG=1")).count();
+    assert!(pings >= 3, "{pings} watchdog pings in 5 s without a camera: {sent:?}");
+    assert!(stderr.contains("no-such-camera") && stderr.contains("retrying"), "the missing camera is not reported: {stderr}");
+}

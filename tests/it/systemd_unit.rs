@@ -112,6 +112,8 @@ fn unit_has_the_directives_the_daemon_relies_on() {
         "ConfigurationDirectory=tagdeflect",
         "CapabilityBoundingSet=",
         "KillSignal=SIGTERM",
+        "RestartPreventExitStatus=2",
+        "After=network-online.target time-sync.target",
         "ExecStart=/usr/local/bin/tagdeflect run --config /etc/tagdeflect/tagdeflect.toml",
     ] {
         assert!(lines.contains(&want), "the unit lacks `{want}`");
