@@ -3,6 +3,7 @@
 //! fixed scene is cached, as a live simulated camera pays it).
 //!
 //! `cargo run --release --example make_replays -- [--bench] [OUT_DIR]` (default `replay/`).
+#![allow(unsafe_code)] // getrusage for the peak-memory figure
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -12,7 +13,9 @@ use tagdeflect::sim::{render_frame_set, simulate, SimParams, SimRig};
 /// CPU time of this process so far (all threads), seconds.
 fn cpu_s() -> f64 {
     // SAFETY: getrusage only writes into the struct we pass.
+    // SAFETY: rusage is plain data (all-zero is valid); getrusage writes into it.
     let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: getrusage writes the struct it is given by valid mutable reference.
     unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
     let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
     tv(u.ru_utime) + tv(u.ru_stime)

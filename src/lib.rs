@@ -5,6 +5,7 @@
 //! graph with different sources (see [`pipeline`]).
 
 pub mod accuracy;
+pub mod backoff;
 pub mod camera;
 pub mod clock;
 pub mod config;

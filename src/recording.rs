@@ -24,6 +24,10 @@ use crate::config::{Config, ConfigError};
 use crate::frame::GrayImage;
 use crate::utm::UtmSample;
 
+mod frames;
+pub use crate::frame::{encode_png, FrameFormat};
+pub use frames::{FrameReader, ReadFrame};
+
 /// Name of the config file inside a recording.
 pub const CONFIG_FILE: &str = "tagdeflect.toml";
 /// Name of the frame index.
@@ -326,57 +330,6 @@ fn parse_pgm_header(bytes: &[u8]) -> Result<(u32, u32, usize), String> {
         return Err(format!("PGM maxval {maxval}: frames must be 8-bit grey"));
     }
     Ok((w, h, pos + 1))
-}
-
-/// How a recorder writes frames (SPEC allows both; the reader takes either).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum FrameFormat {
-    /// 8-bit grey PNG, fast compression: about half the disk, but ~10 ms of CPU per
-    /// 1080p frame to write and ~15 ms to read.
-    #[default]
-    Png,
-    /// Binary PGM (P5): raw pixels behind a short header; costs no CPU, takes
-    /// width × height bytes per frame (≈ 187 MB/s for three 1080p cameras at 30 fps).
-    Pgm,
-}
-
-impl FrameFormat {
-    /// The file extension (without the dot).
-    pub fn extension(self) -> &'static str {
-        match self {
-            FrameFormat::Png => "png",
-            FrameFormat::Pgm => "pgm",
-        }
-    }
-
-    /// Encodes an image in this format.
-    pub fn encode(self, img: &GrayImage) -> Result<Vec<u8>, String> {
-        match self {
-            FrameFormat::Png => encode_png(img),
-            FrameFormat::Pgm => {
-                let header = format!("P5\n{} {}\n255\n", img.width, img.height);
-                let mut out = Vec::with_capacity(header.len() + img.data.len());
-                out.extend_from_slice(header.as_bytes());
-                out.extend_from_slice(&img.data);
-                Ok(out)
-            }
-        }
-    }
-}
-
-/// Encodes an image as an 8-bit grey PNG (fast compression).
-pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, String> {
-    let mut out = Vec::with_capacity(img.data.len() / 2);
-    {
-        let mut enc = png::Encoder::new(&mut out, img.width, img.height);
-        enc.set_color(png::ColorType::Grayscale);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_compression(png::Compression::Fast);
-        let mut w = enc.write_header().map_err(|e| e.to_string())?;
-        w.write_image_data(&img.data).map_err(|e| e.to_string())?;
-    }
-    Ok(out)
 }
 
 /// Writes a recording: the config, frames (PNG unless [`RecordingWriter::with_format`]

@@ -18,7 +18,7 @@ use toml::Spanned;
 use crate::camera::CameraIntrinsics;
 
 pub mod calibration;
-use crate::recording::FrameFormat;
+use crate::frame::FrameFormat;
 use crate::tags::TagFamily;
 pub use calibration::{load_calibration, CalibrationError};
 

@@ -22,6 +22,7 @@
 //! offset with `stride` = frame width. The window's origin is aligned down to the library's
 //! 4-pixel threshold tiles so that, inside the window, the binarisation (and so the quads and
 //! corners) is the same as on the full frame.
+#![allow(unsafe_code)] // FFI module: every `unsafe` block carries its SAFETY comment.
 
 use std::ptr::NonNull;
 

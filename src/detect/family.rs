@@ -6,6 +6,7 @@
 //! *before* dropping the table (the detector keeps a pointer to it and writes into its
 //! `impl` field). Everything else (tag bitmaps for rendering) reads the table through the
 //! safe accessors or a [`FamilyLayout`] copy.
+#![allow(unsafe_code)] // FFI module: every `unsafe` block carries its SAFETY comment.
 
 use apriltag_sys as sys;
 

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use crate::config::Config;
 use crate::feed::FeedLine;
-use crate::frame::{Frame, FrameSet};
+use crate::frame::FrameSet;
 use crate::pipeline::measure::Measurement;
 use crate::recording::Recording;
 use crate::sync::FrameSetAssembler;
@@ -34,15 +34,12 @@ pub fn check_recording(dir: &Path) -> Result<()> {
     }
     let mut assembler = FrameSetAssembler::new(rec.config.cameras.len(), rec.config.sync.tolerance_ms);
     let mut sets = Vec::new();
-    for entry in &rec.frames {
+    for read in rec.frames() {
         if sets.len() >= CHECK_SETS {
             break;
         }
-        match rec.load_image(entry) {
-            Ok(img) => {
-                let camera = rec.config.camera_index(&entry.camera).expect("checked on open");
-                sets.extend(assembler.push(Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image: std::sync::Arc::new(img) }));
-            }
+        match read.frame {
+            Ok(frame) => sets.extend(assembler.push(frame)),
             Err(e) => writeln!(out, "  warning: {e}")?,
         }
     }

@@ -1,18 +1,16 @@
 //! `replay`: the measurement over a recording, as fast as it goes.
 //!
-//! A reader thread decodes frames in time order (a bad frame is logged and skipped: the
-//! frame set is solved from the other cameras) and hands them through a bounded channel
-//! to the assembler and the measurement; feed lines go to a callback.
+//! [`Recording::frames`] decodes frames ahead on worker threads, in time order (a bad frame is
+//! logged and skipped: the frame set is solved from the other cameras); the assembler and the
+//! measurement take them in turn; feed lines go to a callback.
 
 use anyhow::{Context, Result};
 use std::io::IsTerminal;
 use std::path::Path;
-use std::sync::mpsc;
 use std::time::Instant;
 
 use crate::config::Config;
 use crate::feed::FeedLine;
-use crate::frame::{Frame, ImagePool};
 use crate::pipeline::measure::{MeasureStats, Measurement, StageTimes};
 use crate::recording::Recording;
 use crate::sinks::feed::FeedWriter;
@@ -91,59 +89,43 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
         measure.utm_mut().push(*s);
     }
     let mut assembler = FrameSetAssembler::new(config.cameras.len(), config.sync.tolerance_ms);
-    let (tx, rx) = mpsc::sync_channel::<(Frame, Instant)>(2 * config.cameras.len().max(1));
     let mut summary = ReplaySummary::default();
     let bar = opts.progress.then(|| {
         let b = indicatif::ProgressBar::new(rec.frames.len() as u64);
         b.set_style(indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  ETA {eta}").expect("template"));
         b
     });
-    let reader_result = std::thread::scope(|s| {
-        let reader = s.spawn(move || -> (u64, f64) {
-            let mut bad = 0;
-            let mut decode_s = 0.0;
-            let mut pool = ImagePool::default();
-            let mut scratch = Vec::new();
-            for entry in &rec.frames {
-                let t = Instant::now();
-                let img = pool.fill(|img| rec.load_image_into(entry, img, &mut scratch));
-                decode_s += t.elapsed().as_secs_f64();
-                match img {
-                    Ok(image) => {
-                        let camera = config.camera_index(&entry.camera).expect("checked on open");
-                        let frame = Frame { camera, seq: entry.seq, t_ns: entry.t_ns, image };
-                        if tx.send((frame, Instant::now())).is_err() {
-                            break;
-                        }
-                    }
-                    Err(e) => {
-                        bad += 1;
-                        tracing::warn!("frame skipped: {e}");
-                    }
+    let mut process = |set: crate::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
+        let (line, times) = measure.process(&set);
+        summary.sets += 1;
+        on_line(&line, &times, ready.elapsed().as_secs_f64());
+    };
+    let (mut bad, mut decode_s) = (0u64, 0.0);
+    let mut newest_ready = Instant::now();
+    // Frames decoded ahead on worker threads, in time order (a bad frame is logged and
+    // skipped: its set is solved from the other cameras).
+    for read in rec.frames() {
+        if let Some(b) = &bar {
+            b.inc(1);
+        }
+        decode_s += read.decode_s;
+        match read.frame {
+            Ok(frame) => {
+                newest_ready = Instant::now();
+                for set in assembler.push(frame) {
+                    process(set, newest_ready, &mut summary);
                 }
             }
-            (bad, decode_s)
-        });
-        let mut process = |set: crate::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
-            let (line, times) = measure.process(&set);
-            summary.sets += 1;
-            on_line(&line, &times, ready.elapsed().as_secs_f64());
-        };
-        let mut newest_ready = Instant::now();
-        for (frame, ready) in rx.iter() {
-            if let Some(b) = &bar {
-                b.inc(1);
-            }
-            newest_ready = ready;
-            for set in assembler.push(frame) {
-                process(set, newest_ready, &mut summary);
+            Err(e) => {
+                bad += 1;
+                tracing::warn!("frame skipped: {e}");
             }
         }
-        for set in assembler.flush() {
-            process(set, newest_ready, &mut summary);
-        }
-        reader.join().expect("reader thread")
-    });
+    }
+    for set in assembler.flush() {
+        process(set, newest_ready, &mut summary);
+    }
+    let reader_result = (bad, decode_s);
     if let Some(b) = bar {
         b.finish_and_clear();
     }

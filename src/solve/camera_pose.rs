@@ -8,7 +8,7 @@
 use nalgebra::{Matrix2x6, Matrix6, Point2, Vector2, Vector3};
 
 use super::init::{homography, mirrored, pose_from_homography};
-use super::lm::{median, minimize, Evaluation, LmOptions, PoseProblem};
+use super::lm::{median, minimize, CornerGroups, Evaluation, LmOptions, PoseProblem};
 use super::SolveError;
 use crate::camera::{skew, CameraIntrinsics, Pose};
 
@@ -80,35 +80,14 @@ impl PoseProblem for CameraProblem<'_> {
     }
 }
 
-impl CameraProblem<'_> {
-    /// RMS per tag (per axis), `None` if a corner is behind the camera.
-    fn tag_rms(&self, pose: &Pose) -> Option<Vec<f64>> {
-        self.tags
-            .iter()
-            .map(|tag| {
-                let mut s = 0.0;
-                for k in 0..4 {
-                    let p = self.intrinsics.project(&pose.transform(&tag.world[k]))?;
-                    s += (p - tag.pixels[k]).norm_squared();
-                }
-                Some((s / 8.0).sqrt())
-            })
-            .collect()
+impl CornerGroups for CameraProblem<'_> {
+    fn groups(&self) -> usize {
+        self.tags.len()
     }
-
-    /// Reprojection cost with each corner's squared error capped at (10 px)², for ranking
-    /// starts without letting one wrong tag dominate.
-    fn robust_cost(&self, pose: &Pose) -> f64 {
-        let mut s = 0.0;
-        for tag in &self.tags {
-            for k in 0..4 {
-                s += match self.intrinsics.project(&pose.transform(&tag.world[k])) {
-                    Some(p) => (p - tag.pixels[k]).norm_squared().min(100.0),
-                    None => 100.0,
-                };
-            }
-        }
-        s
+    fn corner_sq_error(&self, pose: &Pose, g: usize, k: usize) -> Option<f64> {
+        let tag = self.tags[g];
+        let p = self.intrinsics.project(&pose.transform(&tag.world[k]))?;
+        Some((p - tag.pixels[k]).norm_squared())
     }
 }
 
@@ -180,7 +159,7 @@ pub fn solve_camera_pose(
         if problem.tags.len() < 2 {
             break;
         }
-        let Some(rms) = problem.tag_rms(&best.pose) else { break };
+        let Some(rms) = problem.group_rms(&best.pose) else { break };
         let med = median(&rms).unwrap_or(0.0);
         let (worst, &worst_rms) = rms.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("non-empty");
         let limit = (3.0 * med).max(2.0);
@@ -221,7 +200,7 @@ pub fn solve_camera_pose(
         .jtj
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "camera pose: singular normal equations".into() })?;
-    let tag_rms = problem.tag_rms(&best.pose).unwrap_or_default();
+    let tag_rms = problem.group_rms(&best.pose).unwrap_or_default();
     Ok(CameraPoseSolution {
         pose: best.pose,
         rms_px: (ssr / n as f64).sqrt(),

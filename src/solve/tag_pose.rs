@@ -13,7 +13,7 @@
 use nalgebra::{Matrix2x6, Matrix3, Matrix6, Point2, Vector2, Vector3};
 
 use super::init::{homography, mirrored, pose_from_homography};
-use super::lm::{minimize, Evaluation, LmOptions, LmOutcome, PoseProblem};
+use super::lm::{minimize, CornerGroups, Evaluation, LmOptions, LmOutcome, PoseProblem};
 use super::SolveError;
 use crate::camera::{skew, CameraIntrinsics, Pose};
 use crate::tags::tag_corners;
@@ -102,34 +102,18 @@ impl PoseProblem for TagProblem<'_> {
     }
 }
 
+impl CornerGroups for TagProblem<'_> {
+    fn groups(&self) -> usize {
+        self.views.len()
+    }
+    fn corner_sq_error(&self, pose: &Pose, g: usize, k: usize) -> Option<f64> {
+        let v = self.views[g].1;
+        let p = v.intrinsics.project(&v.camera_pose.transform(&pose.transform(&self.corners[k])))?;
+        Some((p - v.corners[k]).norm_squared())
+    }
+}
+
 impl TagProblem<'_> {
-    fn view_rms(&self, pose: &Pose) -> Option<Vec<f64>> {
-        self.views
-            .iter()
-            .map(|(_, v)| {
-                let mut s = 0.0;
-                for k in 0..4 {
-                    let p = v.intrinsics.project(&v.camera_pose.transform(&pose.transform(&self.corners[k])))?;
-                    s += (p - v.corners[k]).norm_squared();
-                }
-                Some((s / 8.0).sqrt())
-            })
-            .collect()
-    }
-
-    fn robust_cost(&self, pose: &Pose) -> f64 {
-        let mut s = 0.0;
-        for (_, v) in &self.views {
-            for k in 0..4 {
-                s += match v.intrinsics.project(&v.camera_pose.transform(&pose.transform(&self.corners[k]))) {
-                    Some(p) => (p - v.corners[k]).norm_squared().min(100.0),
-                    None => 100.0,
-                };
-            }
-        }
-        s
-    }
-
     /// Closed-form starts: per view, the homography pose and its mirror, in world.
     fn cold_starts(&self) -> Vec<Pose> {
         let plane: Vec<Vector2<f64>> = self.corners.iter().map(|c| Vector2::new(c.x, c.y)).collect();
@@ -255,7 +239,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
             }
             let Some((v, out, _)) = pick else { break };
             let single = TagProblem { views: vec![problem.views[v]], corners: problem.corners };
-            let out_rms = single.view_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
+            let out_rms = single.group_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
             let rest_rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
             // Without a noise estimate only the ratio is known, and a ratio of small numbers is
             // noisy: demand more, and an absolute floor.

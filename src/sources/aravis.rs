@@ -28,6 +28,7 @@
 //! (0.5 s doubling to 10 s); [`SourceEvent::Reopened`] follows when it streams again.
 //! Tested against Aravis's in-process fake camera and `arv-fake-gv-camera-0.8` on loopback,
 //! with and without packet loss (tests/it/aravis_fake.rs).
+#![allow(unsafe_code)] // FFI module: every `unsafe` block carries its SAFETY comment.
 
 use std::ffi::CString;
 use std::sync::atomic::AtomicBool;
@@ -69,11 +70,6 @@ impl Default for AravisOptions {
 static OPEN_LOCK: Mutex<()> = Mutex::new(());
 static FAKE_ENABLED: Once = Once::new();
 
-extern "C" {
-    // From libaravis-0.8 (linked by the aravis-sys crate); not wrapped by the aravis crate.
-    fn arv_enable_interface(interface_id: *const std::os::raw::c_char);
-}
-
 /// Enables Aravis's in-process "Fake" interface (device id `Fake_1`), once per process.
 pub fn enable_fake_interface() {
     FAKE_ENABLED.call_once(|| {
@@ -82,7 +78,7 @@ pub fn enable_fake_interface() {
         // SAFETY: `name` is a valid NUL-terminated string alive for the call; the function
         // only looks the name up in Aravis's static interface table, and OPEN_LOCK keeps
         // other threads out of that table meanwhile.
-        unsafe { arv_enable_interface(name.as_ptr()) };
+        unsafe { aravis_sys::arv_enable_interface(name.as_ptr()) };
     });
 }
 

@@ -1,6 +1,6 @@
 //! Live cameras: one OS thread per camera pushing [`SourceEvent`]s into a bounded tokio
 //! channel, the shared capture machinery (drop counting, reconnect backoff, statistics) and
-//! [`spawn_camera`], which dispatches on the config's `source` prefix.
+//! the capture seam every camera uses ([`CaptureSession`], [`spawn_capture`], [`run_capture_loop`]).
 //!
 //! Capture APIs (V4L2 `DQBUF`, Aravis `timeout_pop_buffer`) block, so each camera owns a
 //! thread. The thread only ever `try_send`s: when the channel is full the frame is dropped
@@ -22,7 +22,7 @@ use std::time::Duration;
 use tokio::sync::mpsc::error::TrySendError;
 use tokio::sync::mpsc::Sender;
 
-use crate::config::{CameraConfig, CameraSource};
+pub use crate::backoff::Backoff;
 use crate::frame::Frame;
 
 /// What a live camera reports to the pipeline.
@@ -166,17 +166,6 @@ impl LiveCamera {
     }
 }
 
-/// Starts a live device camera in its own thread and returns once the device is open and
-/// configured, or with the error that prevented it ([`OpenPolicy::Require`]: `check`,
-/// tests). The pipeline starts every kind of source with [`crate::sources::start`].
-///
-/// `v4l2:` ([`crate::sources::v4l2`]) and `aravis:` ([`crate::sources::aravis`]) sources;
-/// `sim` and `recording:` sources need the rig or the recording that
-/// [`crate::sources::start`] holds, and give [`SourceError::Sim`].
-pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<LiveCamera, SourceError> {
-    spawn_device(index, cfg, OpenPolicy::Require, tx, stop)
-}
-
 /// What to do when a device cannot be opened at start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum OpenPolicy {
@@ -185,23 +174,6 @@ pub enum OpenPolicy {
     /// Report the camera lost and keep trying to open it with backoff in its capture thread
     /// (`run`: a camera switched on or plugged in after the daemon started joins then).
     Retry,
-}
-
-/// [`spawn_camera`] with a policy for a device that is not there yet.
-pub fn spawn_device(
-    index: usize,
-    cfg: &CameraConfig,
-    policy: OpenPolicy,
-    tx: Sender<SourceEvent>,
-    stop: Arc<AtomicBool>,
-) -> Result<LiveCamera, SourceError> {
-    match &cfg.source {
-        CameraSource::V4l2 { path } => crate::sources::v4l2::spawn(index, cfg, path, policy, tx, stop),
-        CameraSource::Aravis { device } => {
-            crate::sources::aravis::spawn_with(index, cfg, device, crate::sources::aravis::AravisOptions::default(), policy, tx, stop)
-        }
-        CameraSource::Sim | CameraSource::Recording { .. } => Err(SourceError::Sim { camera: index, name: cfg.name.clone() }),
-    }
 }
 
 /// Starts the capture thread of camera `index`: the device is opened inside the thread
@@ -262,39 +234,6 @@ where
             let _ = thread.join();
             Err(SourceError::Thread { camera: index, name, message: "capture thread ended while opening".into() })
         }
-    }
-}
-
-/// Reconnect delays: 0.5 s doubling to 10 s, reset after a successful reopen.
-#[derive(Debug, Clone)]
-pub struct Backoff {
-    next: Duration,
-    first: Duration,
-    max: Duration,
-}
-
-impl Default for Backoff {
-    fn default() -> Self {
-        Self::new(Duration::from_millis(500), Duration::from_secs(10))
-    }
-}
-
-impl Backoff {
-    /// Delays from `first` doubling up to `max`.
-    pub fn new(first: Duration, max: Duration) -> Self {
-        Self { next: first, first, max: max.max(first) }
-    }
-
-    /// The delay before the next attempt (and doubles the one after).
-    pub fn next_delay(&mut self) -> Duration {
-        let d = self.next;
-        self.next = (self.next * 2).min(self.max);
-        d
-    }
-
-    /// Back to the first delay (after a success).
-    pub fn reset(&mut self) {
-        self.next = self.first;
     }
 }
 

@@ -36,9 +36,9 @@ use std::time::Duration;
 
 use tokio::sync::mpsc::Sender;
 
-pub use live::{spawn_camera, CaptureStats, DropReason, LiveCamera, OpenPolicy, SourceError, SourceEvent, StatsSnapshot};
+pub use live::{CaptureStats, DropReason, LiveCamera, OpenPolicy, SourceError, SourceEvent, StatsSnapshot};
 
-use crate::config::{CameraSource, Config};
+use crate::config::{CameraConfig, CameraSource, Config};
 use crate::recording::Recording;
 use live::{spawn_capture, Backoff, LoopTiming};
 
@@ -94,7 +94,7 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
     };
     for (i, cam) in config.cameras.iter().enumerate() {
         let started = match &cam.source {
-            CameraSource::V4l2 { .. } | CameraSource::Aravis { .. } => live::spawn_device(i, cam, policy, tx.clone(), stop.clone()),
+            CameraSource::V4l2 { .. } | CameraSource::Aravis { .. } => spawn_device(i, cam, policy, tx.clone(), stop.clone()),
             CameraSource::Sim => {
                 let rig = rig.clone().expect("the rig is built when a camera is simulated");
                 let mut session = Some(sim::SimSession::new(rig.clone(), i));
@@ -133,4 +133,30 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
         }
     }
     Ok(Sources { cameras, rig })
+}
+
+/// Starts a live device camera in its own thread and returns once the device is open and
+/// configured, or with the error that prevented it ([`OpenPolicy::Require`]: `check`,
+/// tests). The pipeline starts every kind of source with [`crate::sources::start`].
+///
+/// `v4l2:` ([`crate::sources::v4l2`]) and `aravis:` ([`crate::sources::aravis`]) sources;
+/// `sim` and `recording:` sources need the rig or the recording that
+/// [`crate::sources::start`] holds, and give [`SourceError::Sim`].
+pub fn spawn_camera(index: usize, cfg: &CameraConfig, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<LiveCamera, SourceError> {
+    spawn_device(index, cfg, OpenPolicy::Require, tx, stop)
+}
+
+/// [`spawn_camera`] with a policy for a device that is not there yet.
+pub fn spawn_device(
+    index: usize,
+    cfg: &CameraConfig,
+    policy: OpenPolicy,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<LiveCamera, SourceError> {
+    match &cfg.source {
+        CameraSource::V4l2 { path } => v4l2::spawn(index, cfg, path, policy, tx, stop),
+        CameraSource::Aravis { device } => aravis::spawn_with(index, cfg, device, aravis::AravisOptions::default(), policy, tx, stop),
+        CameraSource::Sim | CameraSource::Recording { .. } => Err(SourceError::Sim { camera: index, name: cfg.name.clone() }),
+    }
 }

@@ -336,7 +336,7 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
     let address = link.cfg.address.clone();
     let mut reported = Reported::Nothing;
     let mut last_reason = String::new();
-    let mut backoff = BACKOFF_MIN;
+    let mut backoff = crate::backoff::Backoff::new(BACKOFF_MIN, BACKOFF_MAX);
     let mut dropped: u64 = 0;
     let mut ticks = tokio::time::interval(period);
     ticks.set_missed_tick_behavior(MissedTickBehavior::Delay);
@@ -359,7 +359,7 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
         };
         match result {
             Ok(sample) => {
-                backoff = BACKOFF_MIN;
+                backoff.reset();
                 if reported != Reported::Up {
                     tracing::info!(address = %address, "UTM up");
                     reported = Reported::Up;
@@ -382,10 +382,11 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
             Err(fault) => {
                 link.drop_connection();
                 let reason = fault.to_string();
+                let delay = backoff.next_delay();
                 if reason != last_reason {
-                    tracing::error!(retry_in_ms = backoff.as_millis() as u64, "{reason}");
+                    tracing::error!(retry_in_ms = delay.as_millis() as u64, "{reason}");
                 } else {
-                    tracing::debug!(retry_in_ms = backoff.as_millis() as u64, "{reason}");
+                    tracing::debug!(retry_in_ms = delay.as_millis() as u64, "{reason}");
                 }
                 last_reason = reason.clone();
                 if reported != Reported::Down {
@@ -394,8 +395,7 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
                         break;
                     }
                 }
-                let wake = Instant::now() + backoff;
-                backoff = (backoff * 2).min(BACKOFF_MAX);
+                let wake = Instant::now() + delay;
                 tokio::select! {
                     _ = tokio::time::sleep_until(wake) => {}
                     r = shutdown.changed() => if r.is_err() || *shutdown.borrow() { break },

@@ -1,4 +1,5 @@
 //! The integration tests: one binary, one module per area (the heavy C libraries link once).
+#![allow(unsafe_code)] // signals and locks for the processes the tests start (libc::kill, flock)
 
 mod common;
 
