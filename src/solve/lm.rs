@@ -152,6 +152,42 @@ pub fn median(values: &[f64]) -> Option<f64> {
     Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
 }
 
+/// Corner-reprojection figures shared by the pose problems: their corners come in groups of
+/// four (a tag seen by one camera), and both the camera-pose and the tag-pose solvers rank
+/// starts by a capped cost and judge groups by their RMS.
+pub trait CornerGroups {
+    /// Number of groups.
+    fn groups(&self) -> usize;
+    /// Squared reprojection error (px²) of corner `k` (0..4) of group `g` at `pose`; `None`
+    /// when the corner is behind the camera.
+    fn corner_sq_error(&self, pose: &Pose, g: usize, k: usize) -> Option<f64>;
+
+    /// RMS per group (per axis), `None` if a corner is behind the camera.
+    fn group_rms(&self, pose: &Pose) -> Option<Vec<f64>> {
+        (0..self.groups())
+            .map(|g| {
+                let mut s = 0.0;
+                for k in 0..4 {
+                    s += self.corner_sq_error(pose, g, k)?;
+                }
+                Some((s / 8.0).sqrt())
+            })
+            .collect()
+    }
+
+    /// Reprojection cost with each corner's squared error capped at (10 px)², for ranking
+    /// starts without letting one wrong group dominate.
+    fn robust_cost(&self, pose: &Pose) -> f64 {
+        let mut s = 0.0;
+        for g in 0..self.groups() {
+            for k in 0..4 {
+                s += self.corner_sq_error(pose, g, k).map_or(100.0, |e| e.min(100.0));
+            }
+        }
+        s
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -197,41 +233,5 @@ mod tests {
         assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
         assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
         assert_eq!(median(&[]), None);
-    }
-}
-
-/// Corner-reprojection figures shared by the pose problems: their corners come in groups of
-/// four (a tag seen by one camera), and both the camera-pose and the tag-pose solvers rank
-/// starts by a capped cost and judge groups by their RMS.
-pub trait CornerGroups {
-    /// Number of groups.
-    fn groups(&self) -> usize;
-    /// Squared reprojection error (px²) of corner `k` (0..4) of group `g` at `pose`; `None`
-    /// when the corner is behind the camera.
-    fn corner_sq_error(&self, pose: &Pose, g: usize, k: usize) -> Option<f64>;
-
-    /// RMS per group (per axis), `None` if a corner is behind the camera.
-    fn group_rms(&self, pose: &Pose) -> Option<Vec<f64>> {
-        (0..self.groups())
-            .map(|g| {
-                let mut s = 0.0;
-                for k in 0..4 {
-                    s += self.corner_sq_error(pose, g, k)?;
-                }
-                Some((s / 8.0).sqrt())
-            })
-            .collect()
-    }
-
-    /// Reprojection cost with each corner's squared error capped at (10 px)², for ranking
-    /// starts without letting one wrong group dominate.
-    fn robust_cost(&self, pose: &Pose) -> f64 {
-        let mut s = 0.0;
-        for g in 0..self.groups() {
-            for k in 0..4 {
-                s += self.corner_sq_error(pose, g, k).map_or(100.0, |e| e.min(100.0));
-            }
-        }
-        s
     }
 }

@@ -270,3 +270,50 @@ fn unreadable_file_is_named() {
     let e = Config::load(Path::new("/nonexistent/rig.toml")).unwrap_err();
     assert!(e.to_string().contains("/nonexistent/rig.toml") && e.message.contains("cannot read"), "{e}");
 }
+
+#[test]
+fn every_limit_a_component_has_is_checked_when_the_config_is_read() {
+    // The detector's own range (it used to pass here and fail only when `run` built the
+    // detector, after READY=1).
+    let text = format!("{GOOD}\n[measure]\nquad_decimate = 20.0\n");
+    let e = parse(&text).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("measure.quad_decimate"), "{e}");
+    assert!(e.message.contains("16"), "{e}");
+    assert!(e.line.is_some(), "{e}");
+    let e = parse(&format!("{GOOD}\n[measure]\ndetector_threads = 1000\n")).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("measure.detector_threads"), "{e}");
+    // `[sim]` is validated like every other table.
+    let e = parse(&format!("{GOOD}\n[sim]\ncameras = 7\n")).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("sim.cameras"), "{e}");
+    assert!(e.line.is_some(), "{e}");
+    // Simulated cameras are the rig's cameras, by name and in order.
+    let e = bad("name = \"left\"", "name = \"front\"");
+    assert_eq!(e.key.as_deref(), Some("camera[0].name"), "{e}");
+    assert!(e.message.contains("simulated rig") && e.message.contains("left"), "{e}");
+    assert_eq!(e.line, Some(line_of(GOOD, "name = \"left\"") + 1), "{e}");
+}
+
+#[test]
+fn camera_sources_are_parsed_once_and_written_back_as_given() {
+    use tagdeflect::config::CameraSource;
+    for (text, want) in [
+        ("v4l2:/dev/v4l/by-id/usb-cam-video-index0", CameraSource::V4l2 { path: "/dev/v4l/by-id/usb-cam-video-index0".into() }),
+        ("aravis:Basler-1234", CameraSource::Aravis { device: "Basler-1234".into() }),
+        ("sim", CameraSource::Sim),
+        ("recording:/data/rec", CameraSource::Recording { dir: "/data/rec".into() }),
+    ] {
+        let got = CameraSource::parse(text).unwrap();
+        assert_eq!(got, want);
+        assert_eq!(got.to_string(), text);
+    }
+    for bad_source in ["v4l2:", "aravis:  ", "usb0", "recording:"] {
+        let e = CameraSource::parse(bad_source).unwrap_err();
+        assert!(e.contains("expected"), "{bad_source}: {e}");
+    }
+    // A recording folder is relative to the config's folder.
+    let c = parse(&GOOD.replacen("source = \"sim\"", "source = \"recording:runs/r1\"", 1)).unwrap();
+    assert_eq!(c.cameras[0].source, CameraSource::Recording { dir: "/lab/runs/r1".into() });
+    // A config written back (recordings carry it) reads the same.
+    let again = Config::from_toml_str(&c.to_toml_string(), Path::new("/lab/rig.toml")).unwrap();
+    assert_eq!(again.cameras[0].source, c.cameras[0].source);
+}

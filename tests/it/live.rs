@@ -64,6 +64,7 @@ impl Daemon {
 
     /// SIGTERM, then wait (at most 20 s) for the exit status and the output.
     fn terminate(mut self) -> (Option<i32>, String, String) {
+        // SAFETY: kill(2) on the pid of a child this test started and still owns.
         unsafe { libc::kill(self.0.id() as i32, libc::SIGTERM) };
         let deadline = Instant::now() + Duration::from_secs(20);
         while self.0.try_wait().unwrap().is_none() {
