@@ -10,10 +10,12 @@
 //!
 //! The wall clock may still be stepped (NTP correcting a badly set clock, a manual change).
 //! [`ProcessClock::check_step`] compares the two (the live pipeline calls it about once a
-//! second): when they disagree by more than [`STEP_THRESHOLD_NS`] the offset is re-measured,
-//! the step is logged, and from then on stamps carry the corrected epoch time. Everything
-//! stamped on this clock moves together, so pairing is unaffected; frame-set assembly
-//! ([`crate::sync`]) tolerates the jump of its input times.
+//! second): when they disagree by more than [`STEP_THRESHOLD_NS`] the step is logged and the
+//! mapping follows the wall clock — at once for a step forwards; for a step backwards by
+//! slewing at [`SLEW_PPM`] (the process clock runs 0.5 % slow until it has caught up), so
+//! times never go back and the feed stays in `t_ns` order (SPEC). Everything stamped on this
+//! clock moves together, so pairing load with frames is unaffected. Frame-set assembly
+//! ([`crate::sync`]) also tolerates a backwards jump of its input times (a device clock).
 //!
 //! Device clocks are mapped onto the process clock: V4L2 drivers stamp buffers on
 //! CLOCK_MONOTONIC ([`ProcessClock::monotonic_to_epoch`]), GigE Vision cameras on their own
@@ -24,8 +26,7 @@
 //! This module and the FFI modules are the only places with `unsafe` (`clock_gettime`).
 #![allow(unsafe_code)]
 
-use std::sync::atomic::{AtomicI64, Ordering};
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Wall-clock disagreements above this (1 s) are treated as a step of the wall clock and
@@ -34,6 +35,11 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// moves CLOCK_MONOTONIC's rate along with the wall clock's. Frame-set assembly treats a
 /// frame older than the last closed set by more than this as a step, not as a late frame.
 pub const STEP_THRESHOLD_NS: i64 = 1_000_000_000;
+
+/// How fast the process clock absorbs a backwards step of the wall clock: 5000 ppm (5 ms per
+/// second; a 5 s step is absorbed in 1000 s). Intervals measured meanwhile are 0.5 % short —
+/// far below what matters for pairing load and frames, which share this clock.
+pub const SLEW_PPM: i64 = 5_000;
 
 /// Nanoseconds since the Unix epoch on the host's realtime (wall) clock. Can step; stamp
 /// nothing with it — use [`now_epoch_ns`].
@@ -97,16 +103,40 @@ pub struct ClockStep {
     pub step_ns: i64,
 }
 
-/// A monotonic clock mapped to epoch time: `epoch = monotonic + offset`, the offset measured
-/// once and re-measured only when the wall clock is found stepped.
+/// The mapping `epoch = monotonic + offset(monotonic)`: `offset` at `since`, slewing down
+/// towards `target` at [`SLEW_PPM`] (never up: forward steps are taken at once).
+#[derive(Debug, Clone, Copy)]
+struct Mapping {
+    offset: i64,
+    target: i64,
+    since: i64,
+}
+
+impl Mapping {
+    fn fixed(offset: i64, since: i64) -> Self {
+        Self { offset, target: offset, since }
+    }
+
+    fn offset_at(&self, mono: i64) -> i64 {
+        if self.target >= self.offset {
+            return self.offset;
+        }
+        let slewed = i128::from(mono.saturating_sub(self.since).max(0)) * i128::from(SLEW_PPM) / 1_000_000;
+        let slewed = i64::try_from(slewed).unwrap_or(i64::MAX);
+        self.offset.saturating_sub(slewed).max(self.target)
+    }
+}
+
+/// A monotonic clock mapped to epoch time (see the module doc): the offset is measured once
+/// and follows the wall clock only when it is found stepped.
 pub struct ProcessClock {
     source: Box<dyn ClockSource>,
-    offset_ns: AtomicI64,
+    mapping: Mutex<Mapping>,
 }
 
 impl std::fmt::Debug for ProcessClock {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ProcessClock").field("offset_ns", &self.offset_ns.load(Ordering::Relaxed)).finish()
+        f.debug_struct("ProcessClock").field("mapping", &*self.lock()).finish()
     }
 }
 
@@ -114,34 +144,56 @@ impl ProcessClock {
     /// A clock over `source`, its offset measured now.
     pub fn new(source: Box<dyn ClockSource>) -> Self {
         let offset = measure_offset(source.as_ref());
-        Self { source, offset_ns: AtomicI64::new(offset) }
+        let mono = source.monotonic_ns();
+        Self { source, mapping: Mutex::new(Mapping::fixed(offset, mono)) }
     }
 
-    /// Now, ns since the epoch.
+    fn lock(&self) -> std::sync::MutexGuard<'_, Mapping> {
+        self.mapping.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Now, ns since the epoch; never goes back.
     pub fn now_ns(&self) -> i64 {
-        self.source.monotonic_ns().saturating_add(self.offset_ns.load(Ordering::Relaxed))
+        let mono = self.source.monotonic_ns();
+        mono.saturating_add(self.lock().offset_at(mono))
     }
 
     /// The current mapping of the monotonic clock (V4L2 buffer stamps) to epoch time.
     pub fn monotonic_to_epoch(&self) -> MonotonicToEpoch {
-        MonotonicToEpoch { offset_ns: self.offset_ns.load(Ordering::Relaxed) }
+        let mono = self.source.monotonic_ns();
+        MonotonicToEpoch { offset_ns: self.lock().offset_at(mono) }
     }
 
-    /// Compares the wall clock with the process clock; beyond [`STEP_THRESHOLD_NS`] the
-    /// offset is re-measured (logged as a warning) and the step returned.
+    /// Compares the wall clock with the process clock; beyond [`STEP_THRESHOLD_NS`] the step
+    /// is logged and returned, and the mapping follows it (forwards at once, backwards by
+    /// slewing). A step found while an earlier one is still being slewed replaces its target.
     pub fn check_step(&self) -> Option<ClockStep> {
-        let offset = measure_offset(self.source.as_ref());
-        let old = self.offset_ns.load(Ordering::Relaxed);
-        let step = offset.saturating_sub(old);
-        if step.abs() <= STEP_THRESHOLD_NS {
+        let wall_offset = measure_offset(self.source.as_ref());
+        let mono = self.source.monotonic_ns();
+        let mut m = self.lock();
+        let now_offset = m.offset_at(mono);
+        let step = wall_offset.saturating_sub(now_offset);
+        let pending = wall_offset.saturating_sub(m.target);
+        if pending.abs() <= STEP_THRESHOLD_NS {
             return None;
         }
-        self.offset_ns.store(offset, Ordering::Relaxed);
-        tracing::warn!(
-            step_ms = step as f64 / 1e6,
-            "the wall clock stepped by {:.1} ms: the process clock is re-mapped (stamps stay on one clock; times jump once)",
-            step as f64 / 1e6
-        );
+        if step > 0 {
+            *m = Mapping::fixed(wall_offset, mono);
+            tracing::warn!(
+                step_ms = step as f64 / 1e6,
+                "the wall clock stepped forwards by {:.1} ms: the process clock follows at once",
+                step as f64 / 1e6
+            );
+        } else {
+            *m = Mapping { offset: now_offset, target: wall_offset, since: mono };
+            tracing::warn!(
+                step_ms = step as f64 / 1e6,
+                "the wall clock stepped back by {:.1} ms: the process clock slews to it at {} ppm (about {:.0} s), so times never go back",
+                -step as f64 / 1e6,
+                SLEW_PPM,
+                (-step as f64 / 1e9) / (SLEW_PPM as f64 * 1e-6)
+            );
+        }
         Some(ClockStep { step_ns: step })
     }
 }
@@ -254,6 +306,8 @@ mod tests {
         }
     }
 
+    use std::sync::atomic::{AtomicI64, Ordering};
+
     #[test]
     fn process_clock_follows_monotonic_and_remaps_on_a_wall_step_only() {
         let s = Arc::new(Scripted::default());
@@ -266,14 +320,32 @@ mod tests {
         s.wall_minus_mono.fetch_add(300_000_000, Ordering::Relaxed);
         assert_eq!(clock.check_step(), None);
         assert_eq!(clock.now_ns(), 1_700_000_000_040_001_000);
-        // The wall clock steps back by 5 s: stamps stay monotonic until the step is checked...
-        s.wall_minus_mono.fetch_sub(5_000_000_000, Ordering::Relaxed);
-        assert_eq!(clock.now_ns(), 1_700_000_000_040_001_000);
-        // ...then the mapping follows the wall clock once.
+        // The wall clock steps forwards by 5 s: followed at once.
+        s.wall_minus_mono.fetch_add(5_000_000_000, Ordering::Relaxed);
+        assert_eq!(clock.now_ns(), 1_700_000_000_040_001_000, "no change before the check");
         let step = clock.check_step().expect("a 5 s step is found");
-        assert_eq!(step.step_ns, -4_700_000_000);
-        assert_eq!(clock.now_ns(), 1_699_999_995_340_001_000);
+        assert_eq!(step.step_ns, 5_300_000_000);
+        assert_eq!(clock.now_ns(), 1_700_000_005_340_001_000);
         assert_eq!(clock.monotonic_to_epoch().to_epoch(s.mono.load(Ordering::Relaxed)), clock.now_ns());
+        assert_eq!(clock.check_step(), None);
+        // The wall clock steps back by 5 s: the process clock slews, never goes back, and has
+        // caught up after 5 s / 5000 ppm = 1000 s.
+        s.wall_minus_mono.fetch_sub(5_000_000_000, Ordering::Relaxed);
+        let before = clock.now_ns();
+        let step = clock.check_step().expect("a 5 s step back is found");
+        assert_eq!(step.step_ns, -5_000_000_000);
+        let mut last = before;
+        for _ in 0..2100 {
+            s.mono.fetch_add(500_000_000, Ordering::Relaxed);
+            let _ = clock.check_step();
+            let now = clock.now_ns();
+            assert!(now > last, "time went back: {last} -> {now}");
+            // Half a second of monotonic time is at least 0.4975 s of process time.
+            assert!(now - last >= 497_500_000, "{}", now - last);
+            last = now;
+        }
+        let wall = s.mono.load(Ordering::Relaxed) + s.wall_minus_mono.load(Ordering::Relaxed);
+        assert!((clock.now_ns() - wall).abs() < 1_000, "not caught up: {} ns", clock.now_ns() - wall);
         assert_eq!(clock.check_step(), None);
     }
 
