@@ -30,7 +30,7 @@ const $ = (id) => document.getElementById(id);
 const fmt = (v, d) => (v === null || v === undefined || Number.isNaN(v)) ? "–" : v.toFixed(d);
 
 function axis(label) {
-  return { label, stroke: "#c8ccd2", labelSize: 22, size: 56, grid: { stroke: "#2c323b" }, ticks: { stroke: "#2c323b" },
+  return { label, stroke: "#c8ccd2", labelSize: 22, size: 64, grid: { stroke: "#2c323b" }, ticks: { stroke: "#2c323b" },
     font: "14px system-ui, sans-serif", labelFont: "bold 15px system-ui, sans-serif" };
 }
 
