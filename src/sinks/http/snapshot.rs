@@ -56,6 +56,8 @@ pub struct Snapshot {
     pub height: u32,
     /// The JPEG file.
     pub jpeg: Arc<Vec<u8>>,
+    /// When it was made.
+    pub made: std::time::Instant,
 }
 
 /// Downscales, annotates and encodes one frame.
@@ -91,7 +93,7 @@ pub fn render(image: &GrayImage, tags: &[SeenTag]) -> Snapshot {
     let mut jpeg = Vec::with_capacity((w * h / 4) as usize);
     let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, JPEG_QUALITY);
     enc.encode_image(&rgb).expect("encoding into memory cannot fail");
-    Snapshot { seq: 0, t_ns: 0, width: w, height: h, jpeg: Arc::new(jpeg) }
+    Snapshot { seq: 0, t_ns: 0, width: w, height: h, jpeg: Arc::new(jpeg), made: std::time::Instant::now() }
 }
 
 /// Starts the encoder thread: it renders every job it receives and hands the result to

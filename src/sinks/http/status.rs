@@ -115,7 +115,7 @@ pub struct SnapshotStatus {
     pub seq: u64,
     /// Frame time, ns since the Unix epoch.
     pub t_ns: i64,
-    /// Seconds since it was taken (by the frame's clock).
+    /// Seconds since it was made.
     pub age_s: f64,
 }
 
@@ -207,7 +207,6 @@ fn age(t: Option<Instant>, now: Instant) -> Option<f64> {
 /// The status now.
 pub fn status(view: &LiveView) -> Status {
     let now = Instant::now();
-    let now_ns = crate::sources::clock::now_epoch_ns();
     let cfg = &view.config;
     let max_fps = cfg.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
     let frame_interval_s = (max_fps > 0.0).then(|| 1.0 / max_fps);
@@ -267,7 +266,7 @@ pub fn status(view: &LiveView) -> Status {
                 url: format!("/camera/{}.jpg?seq={}", c.name, sn.seq),
                 seq: sn.seq,
                 t_ns: sn.t_ns,
-                age_s: ((now_ns - sn.t_ns) as f64 * 1e-6).round() / 1e3,
+                age_s: age(Some(sn.made), now).unwrap_or(0.0),
             }),
         });
     }

@@ -80,7 +80,7 @@ function rebuildTagChart() {
   const el = $("tags");
   if (S.charts.tags) S.charts.tags.destroy();
   const ids = S.tagIds.filter((id) => S.selected.has(id));
-  S.charts.tags = makeTimeChart(el, "downward displacement [mm]",
+  S.charts.tags = makeTimeChart(el, "displacement [mm]",
     ids.map((id) => ({ label: `tag ${id} [mm]`, stroke: COLOURS[S.tagIds.indexOf(id) % COLOURS.length], width: 2, value: (u, v) => fmt(v, 3) })));
   S.tagChartIds = ids;
   S.dirty = true;
