@@ -403,7 +403,16 @@ fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error
         Some(a) => assert_eq!(a, SocketAddr::from(([127, 0, 0, 1], 8080)), "{said}"),
         None => assert!(said.contains("cannot serve the live page on 127.0.0.1:8080"), "{said}"),
     }
-    assert_eq!(d.stop(), Some(0));
+    // The 3 s run ends by itself (a SIGTERM this early would come before its handler).
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let code = loop {
+        if let Some(s) = d.child.try_wait().unwrap() {
+            break s.code();
+        }
+        assert!(Instant::now() < deadline, "demo --duration-s 3 did not end");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(code, Some(0));
 
     // A bad address in the config: the file, the line and the key.
     let dir = tempfile::tempdir().unwrap();
