@@ -414,6 +414,19 @@ fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error
     };
     assert_eq!(code, Some(0));
 
+    // `[output] http` in the config: served there (port 0: any free one), the address printed.
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = Config::load(&rig_config(dir.path(), None)).unwrap();
+    c.output.http = Some("127.0.0.1:0".into());
+    let path = dir.path().join("with-http.toml");
+    std::fs::write(&path, c.to_toml_string()).unwrap();
+    let mut d = Daemon::start(&["demo", "--config", path.to_str().unwrap(), "--duration-s", "60"]);
+    let addr = d.addr();
+    assert!(addr.ip().is_loopback() && addr.port() != 0, "{addr}");
+    d.wait_lines(1, Duration::from_secs(60));
+    assert_eq!(status(addr)["mode"], "live");
+    assert_eq!(d.stop(), Some(0));
+
     // A bad address in the config: the file, the line and the key.
     let dir = tempfile::tempdir().unwrap();
     let base = Config::load(&rig_config(dir.path(), None)).unwrap();
