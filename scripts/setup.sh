@@ -7,6 +7,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev systemd python3 python3-venv)
+# The live page's browser test: Debian's Chromium and its WebDriver (driven by selenium).
+pkgs+=(chromium chromium-driver)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -28,4 +30,10 @@ if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import pymodbus' >/de
   echo "setup: creating $venv with pymodbus" >&2
   python3 -m venv "$venv"
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'pymodbus>=3.6,<4'
+fi
+# The live page's tests: selenium (drives Debian's chromium-driver) and the Prometheus
+# text parser of the official Python client.
+if ! "$venv/bin/python" -c 'import selenium, prometheus_client' >/dev/null 2>&1; then
+  echo "setup: adding selenium and prometheus_client to $venv" >&2
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'selenium>=4.10,<5' 'prometheus_client>=0.17'
 fi

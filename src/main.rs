@@ -10,6 +10,7 @@ use tagdeflect::config::Config;
 use tagdeflect::pipeline::{self, bench::BenchOptions, live::LiveOptions};
 use tagdeflect::recording::FrameFormat;
 use tagdeflect::sim::SimParams;
+use tagdeflect::sinks::http::HttpOptions;
 
 /// Non-contact deflection measurement of beams in bending with AprilTags.
 #[derive(Parser)]
@@ -48,6 +49,10 @@ enum Command {
         /// Force full-frame detection on every frame (no region-of-interest tracking).
         #[arg(long)]
         full_frame: bool,
+        /// Serve the live page on ADDR (IP:PORT, port 0 = any free port) while replaying; it
+        /// stays up after the recording is consumed until SIGINT/SIGTERM.
+        #[arg(long, value_name = "ADDR", value_parser = parse_http_addr)]
+        http: Option<std::net::SocketAddr>,
     },
     /// Save raw frames, UTM samples and the config in force as a recording.
     Record {
@@ -93,7 +98,18 @@ enum Command {
         /// Use this config instead of the built-in demo rig.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Serve the live page on ADDR (IP:PORT, port 0 = any free port) instead of
+        /// 127.0.0.1:8080; the bound address is printed on stderr as http://ADDR/.
+        #[arg(long, value_name = "ADDR", value_parser = parse_http_addr, conflicts_with = "no_http")]
+        http: Option<std::net::SocketAddr>,
+        /// Do not serve the live page.
+        #[arg(long)]
+        no_http: bool,
     },
+}
+
+fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
+    tagdeflect::sinks::http::parse_addr(s)
 }
 
 fn main() -> ExitCode {
@@ -147,10 +163,13 @@ fn run(cli: Cli) -> Result<()> {
             let feed_to_stdout = cfg.output.feed.is_none();
             pipeline::live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
         }
-        Command::Replay { dir, config, realtime, full_frame } => {
+        Command::Replay { dir, config, realtime, full_frame, http } => {
             let cfg = config.as_deref().map(load_config).transpose()?;
+            let http = http.map(|addr| HttpOptions { addr, required: true });
             if realtime {
-                pipeline::live::replay_realtime(&dir, cfg, full_frame)
+                pipeline::live::replay_realtime_http(&dir, cfg, full_frame, http)
+            } else if let Some(h) = http {
+                tagdeflect::sinks::http::replay_with_page(&dir, cfg, full_frame, h)
             } else {
                 pipeline::replay::replay_to_stdout(&dir, cfg, full_frame).map(|_| ())
             }
@@ -179,12 +198,23 @@ fn run(cli: Cli) -> Result<()> {
             _ => anyhow::bail!("check takes either a recording folder or --config FILE"),
         },
         Command::Bench(opts) => pipeline::bench::bench(&opts),
-        Command::Demo { duration_s, config } => {
+        Command::Demo { duration_s, config, http, no_http } => {
             let cfg = match config {
                 Some(p) => load_config(&p)?,
                 None => tagdeflect::sources::sim::demo_config(),
             };
-            pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, ..LiveOptions::default() })
+            // The page by default on loopback; a taken default port only costs the page.
+            let mut cfg = cfg;
+            if no_http {
+                cfg.output.http = None;
+            }
+            let http = match (http, no_http) {
+                (_, true) => None,
+                (Some(addr), false) => Some(HttpOptions { addr, required: true }),
+                (None, false) if cfg.output.http.is_some() => None,
+                (None, false) => Some(HttpOptions { addr: tagdeflect::sinks::http::DEFAULT_ADDR.parse()?, required: false }),
+            };
+            pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
     }
 }

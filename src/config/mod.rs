@@ -424,6 +424,9 @@ pub struct OutputConfig {
     /// `"pgm"` (raw; no CPU spent encoding — for high frame rates on a small box).
     #[serde(default, skip_serializing_if = "is_default_format")]
     pub record_format: FrameFormat,
+    /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub http: Option<String>,
 }
 
 fn is_default_format(f: &FrameFormat) -> bool {
@@ -672,6 +675,10 @@ impl Config {
             }
         };
         let mut output = raw.output.unwrap_or_default();
+        if let Some(h) = &output.http {
+            crate::sinks::http::parse_addr(h)
+                .map_err(|m| loc.err(crate::sinks::http::key_span(text, "output", "http"), "output.http", m))?;
+        }
         if let Some(r) = &output.record {
             if r.is_relative() {
                 output.record = Some(base.join(r));

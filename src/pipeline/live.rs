@@ -51,6 +51,8 @@ pub struct LiveOptions {
     pub feed_to_stdout: bool,
     /// Force full-frame detection.
     pub full_frame: bool,
+    /// Serve the live page (`demo`, `replay --http`); else `[output] http` decides.
+    pub http: Option<crate::sinks::http::HttpOptions>,
 }
 
 /// `run`, `record` and `demo`: live sources from the config.
@@ -61,13 +63,28 @@ pub fn run(config: Config, opts: LiveOptions) -> Result<()> {
 /// `replay --realtime`: the recording's frames at their recorded pace through the live
 /// pipeline (same drop policy as `run`, drops counted); the feed goes to stdout.
 pub fn replay_realtime(dir: &std::path::Path, config: Option<Config>, full_frame: bool) -> Result<()> {
+    replay_realtime_http(dir, config, full_frame, None)
+}
+
+/// `replay --realtime [--http ADDR]`: as [`replay_realtime`], serving the live page; with
+/// the page, it stays up after the recording is consumed until SIGINT/SIGTERM.
+pub fn replay_realtime_http(
+    dir: &std::path::Path,
+    config: Option<Config>,
+    full_frame: bool,
+    http: Option<crate::sinks::http::HttpOptions>,
+) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
-    replay_paced(rec, full_frame, vec![FeedWriter::stdout()])
+    replay_paced_with(rec, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
 }
 
 /// A recording's frames at their recorded pace through the live pipeline, the feed to
 /// `feeds` (`replay --realtime`, `bench --realtime`).
 pub fn replay_paced(rec: Recording, full_frame: bool, feeds: Vec<FeedWriter>) -> Result<()> {
+    replay_paced_with(rec, LiveOptions { full_frame, ..LiveOptions::default() }, feeds)
+}
+
+fn replay_paced_with(rec: Recording, opts: LiveOptions, feeds: Vec<FeedWriter>) -> Result<()> {
     let mut cfg = rec.config.clone();
     // A replay's feed goes to `feeds` only, never to the recorded run's feed file.
     cfg.output.feed = None;
@@ -75,7 +92,8 @@ pub fn replay_paced(rec: Recording, full_frame: bool, feeds: Vec<FeedWriter>) ->
     for cam in &mut cfg.cameras {
         cam.source = crate::config::CameraSource::Recording { dir: rec.dir.clone() };
     }
-    let opts = LiveOptions { full_frame, ..LiveOptions::default() };
+    // Nor is the recorded run's page served: only `--http` does.
+    cfg.output.http = None;
     runtime()?.block_on(run_async(cfg, opts, Some(rec), feeds))
 }
 
@@ -154,6 +172,13 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             feeds.push(FeedWriter::append(std::path::Path::new(spec)).with_context(|| format!("cannot open the feed output {spec}"))?);
         }
     }
+    // The live page (sinks::http): before the cameras, so a taken address stops the run first.
+    let view = crate::sinks::http::wanted(&config, opts.http)
+        .map(|_| crate::sinks::http::LiveView::new(&config, if recording.is_some() { "realtime" } else { "live" }));
+    let _http = match (crate::sinks::http::wanted(&config, opts.http), &view) {
+        (Some(o), Some(v)) => crate::sinks::http::serve(o, v.clone()).await?,
+        _ => None,
+    };
     let record_dir = opts.record.clone().or_else(|| {
         (recording.is_none())
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
@@ -167,6 +192,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             tracing::info!("recording into {}", dir.display());
             let (tx, rx) = std_mpsc::sync_channel::<RecorderMsg>(8 * ncam.max(1));
             let names: Vec<String> = config.cameras.iter().map(|c| c.name.clone()).collect();
+            let rec_view = view.clone();
             let handle = std::thread::Builder::new().name("recorder".into()).spawn(move || {
                 let mut failed = false;
                 for msg in rx {
@@ -179,6 +205,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                     };
                     if let Err(e) = res {
                         tracing::error!("recording stopped: {e}; the feed goes on, everything recorded so far is kept");
+                        if let Some(v) = &rec_view {
+                            v.on_recording_failed(&e.to_string());
+                        }
                         failed = true;
                     }
                 }
@@ -191,6 +220,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         None => (None, None),
     };
     let recorder_drops = Arc::new(AtomicU64::new(0));
+    if let (Some(v), Some(dir)) = (&view, &record_dir) {
+        v.on_recording(dir, recorder_drops.clone());
+    }
 
     // The measurement is built before any source starts: a detector option it cannot take
     // is a config error (exit 2), never a daemon that captures without measuring.
@@ -219,8 +251,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     } else if let Some(ucfg) = &config.utm {
         let ucfg = if ucfg.address == "sim" {
             let rig = rig.clone().expect("sim rig built");
-            let (polled, server) =
-                crate::utm::sim_server::start_sim_utm(ucfg, rig.utm_model()).await.context("cannot start the simulated UTM")?;
+            let (polled, server) = crate::utm::sim_server::start_sim_utm_with_outage(ucfg, rig.utm_model(), rig.utm_outage())
+                .await
+                .context("cannot start the simulated UTM")?;
             _sim_utm = Some(server);
             polled
         } else {
@@ -243,8 +276,12 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let forwarder = {
         let rec_tx = rec_tx.clone();
         let drops = recorder_drops.clone();
+        let fwd_view = view.clone();
         tokio::spawn(async move {
             while let Some(ev) = utm_rx.recv().await {
+                if let Some(v) = &fwd_view {
+                    v.on_utm(&ev);
+                }
                 if let (UtmEvent::Sample(s), Some(tx)) = (&ev, &rec_tx) {
                     if tx.try_send(RecorderMsg::Utm(*s)).is_err() {
                         drops.fetch_add(1, Ordering::Relaxed);
@@ -267,10 +304,11 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             let queue = queue.clone();
             let config = config.clone();
             let heartbeat = heartbeat.clone();
+            let tap = view.as_ref().map(|v| v.tap()).transpose()?;
             Some(
                 std::thread::Builder::new()
                     .name("solver".into())
-                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, feeds, utm_configured, heartbeat))?,
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, feeds, utm_configured, heartbeat, tap))?,
             )
         }
     };
@@ -303,7 +341,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             }
         };
         tokio::select! {
-            ev = src_rx.recv() => match ev {
+            ev = src_rx.recv() => match crate::sinks::http::observe(view.as_deref(), ev) {
                 None => break, // every source ended (a recording was played out)
                 Some(SourceEvent::Frame(f)) => {
                     frames_seen += 1;
@@ -381,6 +419,10 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = recorder_drops.load(Ordering::Relaxed);
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
+    if let (Some(v), Some(_), Some(_)) = (&view, &recording, &_http) {
+        v.on_finished();
+        crate::sinks::http::linger().await?;
+    }
     if solver_panicked {
         return Err(anyhow::Error::new(crate::RuntimeFailure::new(
             "the solver thread failed (see the log); frame sets after the failure were not measured",
@@ -393,6 +435,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
 /// daemon after `WatchdogSec`).
 const WATCHDOG_STALE_MS: u64 = 10_000;
 
+#[allow(clippy::too_many_arguments)]
 fn solver_loop(
     config: Config,
     mut measure: Measurement,
@@ -401,6 +444,7 @@ fn solver_loop(
     mut feeds: Vec<FeedWriter>,
     utm_configured: bool,
     heartbeat: Arc<AtomicU64>,
+    mut tap: Option<crate::sinks::http::SolverTap>,
 ) {
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
@@ -452,6 +496,9 @@ fn solver_loop(
             if let Err(e) = f.write(&line) {
                 tracing::error!("{e}");
             }
+        }
+        if let Some(t) = tap.as_mut() {
+            t.publish(&line, &set, &measure);
         }
     }
 }

@@ -122,6 +122,20 @@ struct CameraDetections {
     specimen: Vec<Detection>,
 }
 
+/// A tag detected in one camera's frame of the last frame set (what the live page outlines
+/// on the camera thumbnails; see [`Measurement::last_seen`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SeenTag {
+    /// Tag family.
+    pub family: TagFamily,
+    /// Tag id within the family.
+    pub id: u32,
+    /// A specimen tag (else a background tag).
+    pub specimen: bool,
+    /// Corners in the frame, pixels (OpenCV convention), the detector's order.
+    pub corners: [nalgebra::Point2<f64>; 4],
+}
+
 /// The stateful frame-set processor shared by `replay`, `bench`, `run` and `demo`.
 pub struct Measurement {
     config: Config,
@@ -142,6 +156,8 @@ pub struct Measurement {
     /// Pooled specimen corner noise, px (scales every tag's σ).
     noise: PixelNoisePool,
     stats: MeasureStats,
+    /// Tags detected per camera in the last frame set (the live page's thumbnails).
+    last_seen: Vec<(usize, Vec<SeenTag>)>,
 }
 
 impl Measurement {
@@ -193,6 +209,7 @@ impl Measurement {
             utm: UtmHistory::unbounded().with_max_gap(config.utm.as_ref().map_or(0, |u| ((5.0 / u.poll_hz).max(0.5) * 1e9) as i64)),
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
+            last_seen: Vec::new(),
         })
     }
 
@@ -211,11 +228,18 @@ impl Measurement {
         self.cameras.iter().map(|c| c.tracker.pose()).collect()
     }
 
+    /// The tags detected in each camera's frame of the last frame set processed, as
+    /// (camera index, tags); cameras without a frame in that set are absent.
+    pub fn last_seen(&self) -> &[(usize, Vec<SeenTag>)] {
+        &self.last_seen
+    }
+
     /// Processes one frame set into a feed line.
     pub fn process(&mut self, set: &FrameSet) -> (FeedLine, StageTimes) {
         let mut times = StageTimes::default();
         let t0 = Instant::now();
         let (detections, cpu) = self.detect(set);
+        self.last_seen = detections.iter().map(|(ci, d)| (*ci, seen_tags(d))).collect();
         times.detect = t0.elapsed().as_secs_f64();
         times.detect_parts = cpu;
 
@@ -470,6 +494,12 @@ impl Measurement {
         };
         Some(round_mm(mean(TagRole::Midspan)? - mean(TagRole::Support)?))
     }
+}
+
+/// The live page's view of one camera's detections (see [`SeenTag`]).
+fn seen_tags(d: &CameraDetections) -> Vec<SeenTag> {
+    let tag = |t: &Detection, specimen: bool| SeenTag { family: t.family, id: t.id, specimen, corners: t.corners };
+    d.specimen.iter().map(|t| tag(t, true)).chain(d.background.iter().map(|t| tag(t, false))).collect()
 }
 
 /// Searches a camera's windows around tracked tags that could not be confirmed, and its

@@ -182,6 +182,14 @@ pub struct SimParams {
     /// Sub-samples per pixel along each axis where a pixel straddles an edge (area integration).
     #[arg(long, default_value_t = 8)]
     pub subsamples: u32,
+    /// Fault injection: the UTM goes silent this many seconds after the first frame set
+    /// (live: the simulated Modbus server stops answering; `simulate`: no UTM samples in the
+    /// window); never by default.
+    #[arg(long)]
+    pub utm_outage_at_s: Option<f64>,
+    /// Length of the UTM outage, seconds.
+    #[arg(long, default_value_t = 5.0)]
+    pub utm_outage_s: f64,
 }
 
 impl Default for SimParams {
@@ -228,6 +236,8 @@ impl Default for SimParams {
             shuffle: false,
             start_ns: DEFAULT_START_NS,
             subsamples: 8,
+            utm_outage_at_s: None,
+            utm_outage_s: 5.0,
         }
     }
 }
@@ -336,6 +346,10 @@ impl SimParams {
         }
         if !(1..=32).contains(&self.subsamples) {
             return bad("subsamples", format!("{}: expected 1 to 32", self.subsamples));
+        }
+        if self.utm_outage_at_s.is_some_and(|a| !(a.is_finite() && a >= 0.0)) || !(self.utm_outage_s.is_finite() && self.utm_outage_s > 0.0)
+        {
+            return bad("utm_outage_at_s", "expected an outage start ≥ 0 s and a positive utm_outage_s");
         }
         Ok(())
     }

@@ -263,7 +263,22 @@ impl SimRig {
         let phase = p.utm_phase_ms * 1e6;
         let j0 = ((t_first - p.start_ns) as f64 - phase) / dt;
         let j1 = ((t_last - p.start_ns) as f64 - phase) / dt;
-        (j0.ceil() as i64..=j1.floor() as i64).map(|j| self.utm_sample(p.start_ns + (phase + j as f64 * dt).round() as i64)).collect()
+        let outage = self.utm_outage();
+        (j0.ceil() as i64..=j1.floor() as i64)
+            .map(|j| p.start_ns + (phase + j as f64 * dt).round() as i64)
+            .filter(|t| outage.is_none_or(|(a, b)| *t < a || *t >= b))
+            .map(|t| self.utm_sample(t))
+            .collect()
+    }
+
+    /// The simulated UTM outage (`utm_outage_at_s`, `utm_outage_s`) as [start, end) in ns
+    /// since the Unix epoch, when one is set.
+    pub fn utm_outage(&self) -> Option<(i64, i64)> {
+        let p = &self.params;
+        p.utm_outage_at_s.map(|a| {
+            let start = p.start_ns + (a * 1e9) as i64;
+            (start, start + (p.utm_outage_s * 1e9) as i64)
+        })
     }
 
     /// Pose of camera `cam` at `t_ns` (after the bump from frame set `bump_at` on).

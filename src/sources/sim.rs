@@ -41,6 +41,11 @@ impl LiveRig {
         &self.rig
     }
 
+    /// The simulated UTM's outage window (ns since the Unix epoch), if `[sim]` sets one.
+    pub fn utm_outage(&self) -> Option<(i64, i64)> {
+        self.rig.utm_outage()
+    }
+
     /// The UTM's load and stroke as functions of time, for the simulated Modbus server.
     pub fn utm_model(self: &Arc<Self>) -> UtmModel {
         let me = self.clone();

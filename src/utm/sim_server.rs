@@ -10,7 +10,7 @@
 use super::codec::encode;
 use crate::config::{RegisterConfig, RegisterKind, UtmConfig};
 use std::collections::HashMap;
-use std::future::{ready, Ready};
+use std::future::ready;
 use std::io;
 use std::net::{Shutdown, SocketAddr};
 use std::pin::Pin;
@@ -32,9 +32,21 @@ const MAX_READ: u16 = 125;
 /// Serves the simulated UTM on `bind` (use port 0 for a free port) until the returned task is
 /// aborted (which also closes every open connection). Returns the bound address.
 pub async fn serve_sim_utm(bind: SocketAddr, layout: &UtmConfig, model: UtmModel) -> io::Result<(SocketAddr, JoinHandle<()>)> {
+    serve_sim_utm_with_outage(bind, layout, model, None).await
+}
+
+/// As [`serve_sim_utm`], silent during `outage` ([start, end) in ns since the Unix epoch):
+/// requests then get no reply at all, as from a machine whose cable was pulled (fault
+/// injection, `[sim] utm_outage_at_s`).
+pub async fn serve_sim_utm_with_outage(
+    bind: SocketAddr,
+    layout: &UtmConfig,
+    model: UtmModel,
+    outage: Option<(i64, i64)>,
+) -> io::Result<(SocketAddr, JoinHandle<()>)> {
     let listener = TcpListener::bind(bind).await?;
     let local = listener.local_addr()?;
-    let service = Arc::new(SimService { load: layout.load.clone(), stroke: layout.stroke.clone(), model });
+    let service = Arc::new(SimService { load: layout.load.clone(), stroke: layout.stroke.clone(), model, outage });
     let conns = Connections::default();
     let server = Server::new(listener);
     let tracker = conns.clone();
@@ -80,7 +92,19 @@ impl Drop for SimUtm {
 /// Starts the simulated UTM for `cfg` (whose address is `"sim"`, or anything: it is ignored)
 /// on 127.0.0.1 with a free port, and returns the config to poll it with.
 pub async fn start_sim_utm(cfg: &UtmConfig, model: UtmModel) -> io::Result<(UtmConfig, SimUtm)> {
-    let (addr, handle) = serve_sim_utm(SocketAddr::from(([127, 0, 0, 1], 0)), cfg, model).await?;
+    start_sim_utm_with_outage(cfg, model, None).await
+}
+
+/// As [`start_sim_utm`], silent during `outage` (see [`serve_sim_utm_with_outage`]).
+pub async fn start_sim_utm_with_outage(cfg: &UtmConfig, model: UtmModel, outage: Option<(i64, i64)>) -> io::Result<(UtmConfig, SimUtm)> {
+    let (addr, handle) = serve_sim_utm_with_outage(SocketAddr::from(([127, 0, 0, 1], 0)), cfg, model, outage).await?;
+    if let Some((a, b)) = outage {
+        tracing::info!(
+            in_s = (a - crate::clock::now_epoch_ns()) as f64 * 1e-9,
+            for_s = (b - a) as f64 * 1e-9,
+            "simulated UTM: an outage is scheduled"
+        );
+    }
     Ok((with_address(cfg, addr), SimUtm { addr, handle }))
 }
 
@@ -99,6 +123,8 @@ struct SimService {
     load: RegisterConfig,
     stroke: Option<RegisterConfig>,
     model: UtmModel,
+    /// Silent in [start, end) ns since the Unix epoch.
+    outage: Option<(i64, i64)>,
 }
 
 impl SimService {
@@ -144,10 +170,21 @@ impl tokio_modbus::server::Service for SimService {
     type Request = Request<'static>;
     type Response = Response;
     type Exception = ExceptionCode;
-    type Future = Ready<Result<Response, ExceptionCode>>;
+    type Future = Pin<Box<dyn std::future::Future<Output = Result<Response, ExceptionCode>> + Send>>;
 
     fn call(&self, req: Self::Request) -> Self::Future {
-        ready(self.answer(&req))
+        let now = crate::clock::now_epoch_ns();
+        match self.outage {
+            Some((a, b)) if now >= a && now < b => {
+                // Silent: the reply comes only after the outage, long after the client gave up.
+                let answer = self.answer(&req);
+                Box::pin(async move {
+                    tokio::time::sleep(std::time::Duration::from_nanos((b - now) as u64)).await;
+                    answer
+                })
+            }
+            _ => Box::pin(ready(self.answer(&req))),
+        }
     }
 }
 
@@ -257,7 +294,7 @@ mod tests {
 
     fn service() -> SimService {
         let l = layout();
-        SimService { load: l.load, stroke: l.stroke, model: Arc::new(|_| (12.5, -1.234)) }
+        SimService { load: l.load, stroke: l.stroke, model: Arc::new(|_| (12.5, -1.234)), outage: None }
     }
 
     #[test]
@@ -290,7 +327,7 @@ mod tests {
     #[test]
     fn values_the_layout_cannot_hold_are_a_device_failure() {
         let l = layout();
-        let s = SimService { load: l.load, stroke: l.stroke, model: Arc::new(|_| (1.0, 1e9)) };
+        let s = SimService { load: l.load, stroke: l.stroke, model: Arc::new(|_| (1.0, 1e9)), outage: None };
         assert_eq!(s.answer(&Request::ReadInputRegisters(0, 6)).unwrap_err(), ExceptionCode::ServerDeviceFailure);
     }
 

@@ -9,6 +9,7 @@ mod cli;
 mod config;
 mod detect_accuracy;
 mod detect_sim;
+mod http;
 mod live;
 mod realdata;
 mod recording;

@@ -1,0 +1,85 @@
+//! The endpoints (axum handlers) and the embedded page.
+
+use axum::extract::{Path, State};
+use axum::http::{header, StatusCode};
+use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::{Json, Router};
+use futures_util::stream::{self, Stream, StreamExt};
+use std::convert::Infallible;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use tokio::sync::broadcast::error::RecvError;
+
+use super::{ClientGuard, Event, LiveView};
+
+const INDEX_HTML: &str = include_str!("assets/index.html");
+const APP_JS: &str = include_str!("assets/app.js");
+const APP_CSS: &str = include_str!("assets/app.css");
+const UPLOT_JS: &str = include_str!("assets/vendor/uplot/uPlot.iife.min.js");
+const UPLOT_CSS: &str = include_str!("assets/vendor/uplot/uPlot.min.css");
+const UPLOT_LICENSE: &str = include_str!("assets/vendor/uplot/LICENSE");
+
+/// Every route of the live page.
+pub fn router(view: Arc<LiveView>) -> Router {
+    Router::new()
+        .route("/", get(|| async { asset("text/html; charset=utf-8", INDEX_HTML) }))
+        .route("/assets/app.js", get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }))
+        .route("/assets/app.css", get(|| async { asset("text/css; charset=utf-8", APP_CSS) }))
+        .route("/assets/uPlot.iife.min.js", get(|| async { asset("text/javascript; charset=utf-8", UPLOT_JS) }))
+        .route("/assets/uPlot.min.css", get(|| async { asset("text/css; charset=utf-8", UPLOT_CSS) }))
+        .route("/assets/uPlot.LICENSE.txt", get(|| async { asset("text/plain; charset=utf-8", UPLOT_LICENSE) }))
+        .route("/events", get(events))
+        .route("/api/status", get(status))
+        .route("/camera/{file}", get(camera))
+        .route("/metrics", get(metrics))
+        .with_state(view)
+}
+
+fn asset(content_type: &'static str, body: &'static str) -> Response {
+    ([(header::CONTENT_TYPE, content_type), (header::CACHE_CONTROL, "no-cache")], body).into_response()
+}
+
+async fn status(State(view): State<Arc<LiveView>>) -> Json<super::status::Status> {
+    Json(super::status::status(&view))
+}
+
+async fn metrics(State(view): State<Arc<LiveView>>) -> Response {
+    if let Some(d) = view.lock().recording.drops.as_ref() {
+        view.metrics.recorder_dropped.set(d.load(Ordering::Relaxed) as i64);
+    }
+    ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], view.metrics.encode()).into_response()
+}
+
+async fn camera(State(view): State<Arc<LiveView>>, Path(file): Path<String>) -> Response {
+    let Some(name) = file.strip_suffix(".jpg") else { return (StatusCode::NOT_FOUND, "expected /camera/NAME.jpg").into_response() };
+    let Some(i) = view.config.camera_index(name) else {
+        return (StatusCode::NOT_FOUND, format!("no camera named \"{name}\"")).into_response();
+    };
+    match view.snapshot(i) {
+        Some(s) => ([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "no-store")], s.jpeg.as_ref().clone()).into_response(),
+        None => (StatusCode::SERVICE_UNAVAILABLE, format!("no snapshot of camera \"{name}\" yet")).into_response(),
+    }
+}
+
+/// `/events`: the backlog of feed lines, then every new line and snapshot notice. A client
+/// that falls more than the broadcast's capacity behind skips ahead (counted).
+async fn events(State(view): State<Arc<LiveView>>) -> Sse<impl Stream<Item = Result<SseEvent, Infallible>>> {
+    let (backlog, rx) = view.subscribe();
+    let guard = ClientGuard::new(view);
+    let first = stream::iter(backlog.into_iter().map(|l| Ok(SseEvent::default().data(&*l))));
+    let live = stream::unfold((rx, guard), |(mut rx, guard)| async move {
+        loop {
+            match rx.recv().await {
+                Ok(Event::Line(l)) => return Some((Ok(SseEvent::default().data(&*l)), (rx, guard))),
+                Ok(Event::Snapshot(s)) => return Some((Ok(SseEvent::default().event("snapshot").data(&*s)), (rx, guard))),
+                Err(RecvError::Lagged(n)) => {
+                    guard.0.metrics.http_events_lagged.inc_by(n);
+                }
+                Err(RecvError::Closed) => return None,
+            }
+        }
+    });
+    Sse::new(first.chain(live)).keep_alive(KeepAlive::default())
+}
