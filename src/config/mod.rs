@@ -18,9 +18,9 @@ use toml::Spanned;
 use crate::camera::CameraIntrinsics;
 
 pub mod calibration;
-pub use calibration::{load_calibration, CalibrationError};
 use crate::recording::FrameFormat;
 use crate::tags::TagFamily;
+pub use calibration::{load_calibration, CalibrationError};
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -362,11 +362,20 @@ pub struct MeasureConfig {
     pub roi_tracking: bool,
     /// Seconds between periodic full-frame searches when tracking.
     pub full_search_interval_s: f64,
+    /// `[measure.drift]`: slow camera drift tracked while poses are held.
+    pub drift: crate::solve::DriftConfig,
 }
 
 impl Default for MeasureConfig {
     fn default() -> Self {
-        Self { quad_decimate: 1.0, detector_threads: 2, refine_corners: true, roi_tracking: true, full_search_interval_s: 1.0 }
+        Self {
+            quad_decimate: 1.0,
+            detector_threads: 2,
+            refine_corners: true,
+            roi_tracking: true,
+            full_search_interval_s: 1.0,
+            drift: Default::default(),
+        }
     }
 }
 
@@ -570,6 +579,9 @@ impl Config {
                 }
                 if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0) {
                     return Err(loc.err(Some(span), "measure.full_search_interval_s", "must be > 0 seconds"));
+                }
+                if let Err((key, msg)) = m.drift.validate() {
+                    return Err(loc.err(Some(span), &format!("measure.drift.{key}"), msg));
                 }
                 m
             }

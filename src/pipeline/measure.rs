@@ -14,7 +14,7 @@ use crate::detect::{refine_corners_with, Detection, EdgeLevels, Prediction, Rect
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
 use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
-use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
+use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView, TrackerOptions};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
 use rayon::prelude::*;
@@ -174,7 +174,11 @@ impl Measurement {
             cameras.push(CameraState {
                 name: cam.name.clone(),
                 intrinsics,
-                tracker: CameraPoseTracker::new(intrinsics, fixed),
+                tracker: CameraPoseTracker::with_options(
+                    intrinsics,
+                    fixed,
+                    TrackerOptions { drift: config.measure.drift, ..Default::default() },
+                ),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
                 edge_levels: HashMap::new(),
@@ -240,6 +244,8 @@ impl Measurement {
                 pose_reproj_px: None,
                 posed: cam.tracker.pose().is_some(),
                 bumped: false,
+                drift_deg: None,
+                drift_mm: None,
             };
             if let Some(d) = det {
                 h.background_tags = d.background.len();
@@ -251,7 +257,11 @@ impl Measurement {
                         self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
                     })
                     .collect();
-                let status = cam.tracker.update(&obs);
+                let status = cam.tracker.update_at(set.t_ns, &obs);
+                if let Some(d) = status.drift {
+                    h.drift_deg = Some((d.angle_deg() * 1e6).round() / 1e6);
+                    h.drift_mm = Some(round_mm(d.shift_mm()));
+                }
                 h.posed = status.pose.is_some();
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;

@@ -8,6 +8,7 @@ mod cli;
 mod config;
 mod detect_accuracy;
 mod detect_sim;
+mod drift;
 mod live;
 mod realdata;
 mod recording;
