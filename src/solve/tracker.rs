@@ -312,10 +312,12 @@ impl CameraPoseTracker {
                     status.covariance = Some(sol.covariance);
                     status.rms_px = Some(sol.rms_px);
                     status.rejected_tags = sol.rejected_tags;
+                    status.drift = self.drift();
                     status
                 }
                 Err(e) => {
                     tracing::warn!(error = %e, "camera bumped and could not be re-posed");
+                    status.drift = None;
                     self.raw = None;
                     self.covariance = None;
                     self.drift = None;
