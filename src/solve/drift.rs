@@ -32,14 +32,12 @@
 //! innovation far outside its covariance (a mis-detected frame) is down-weighted, not
 //! dropped, so the filter can never lock itself out; a real jump is the bump test's job.
 
-use nalgebra::{Matrix3, Matrix6, SMatrix, SVector, Vector3, Vector6};
-use serde::{Deserialize, Serialize};
-
 use crate::camera::{skew, Pose};
+use nalgebra::{Matrix3, Matrix6, SMatrix, SVector, Vector3, Vector6};
 
-/// `[measure.drift]` (extension): tracking of slow camera drift while a pose is held.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+/// Tracking of slow camera drift while a pose is held (`[measure]` keys `drift_tracking`,
+/// `drift_rate_deg_per_h`, `drift_rate_mm_per_h`, `drift_rate_change_h`).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DriftConfig {
     /// Estimate and correct slow drift (false = hold the pose exactly, as without drift).
     pub enabled: bool,
@@ -58,7 +56,17 @@ impl Default for DriftConfig {
 }
 
 impl DriftConfig {
-    /// Checks the values; the error is `(key under [measure.drift], message)`.
+    /// The drift options of a `[measure]` section.
+    pub fn from_measure(m: &crate::config::MeasureConfig) -> Self {
+        Self {
+            enabled: m.drift_tracking,
+            rate_deg_per_h: m.drift_rate_deg_per_h,
+            rate_mm_per_h: m.drift_rate_mm_per_h,
+            rate_change_h: m.drift_rate_change_h,
+        }
+    }
+
+    /// Checks the values; the error is `(key after "drift_", message)`.
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
         for (key, v) in
             [("rate_deg_per_h", self.rate_deg_per_h), ("rate_mm_per_h", self.rate_mm_per_h), ("rate_change_h", self.rate_change_h)]

@@ -23,7 +23,7 @@ use tagdeflect::solve::{BackgroundTagObservation, CameraPoseTracker, DriftConfig
 /// Replays `dir` with drift tracking on or off; prints and returns the figures.
 fn replay_with(label: &str, dir: &std::path::Path, drift: bool) -> (Accuracy, Vec<FeedLine>, Recording) {
     let mut rec = Recording::open(dir).unwrap_or_else(|e| panic!("{e}"));
-    rec.config.measure.drift.enabled = drift;
+    rec.config.measure.drift_tracking = drift;
     let mut lines = Vec::new();
     replay::replay(&rec, ReplayOptions { full_frame: false, progress: false }, |l, _, _| lines.push(l.clone())).unwrap();
     let acc = evaluate(&rec.config, &rec.truth, &lines);
@@ -274,4 +274,21 @@ fn tracker_follows_drift_and_still_catches_a_bump() {
             assert!(worst_px > 1.0 || false_bumps > 0, "without tracking the drift is not followed");
         }
     }
+}
+
+/// The `[measure]` drift keys are validated when the config is loaded: file, line and key named.
+#[test]
+fn drift_options_are_validated_with_the_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = std::fs::read_to_string(root().join("config/one-camera.toml")).unwrap();
+    let path = dir.path().join("c.toml");
+    std::fs::write(&path, format!("{good}\n[measure]\ndrift_tracking = true\ndrift_rate_deg_per_h = 0.05\n")).unwrap();
+    let cfg = tagdeflect::config::Config::load(&path).unwrap();
+    assert_eq!(DriftConfig::from_measure(&cfg.measure), DriftConfig { rate_deg_per_h: 0.05, ..DriftConfig::default() });
+    std::fs::write(&path, format!("{good}\n[measure]\ndrift_rate_mm_per_h = -1.0\n")).unwrap();
+    let e = tagdeflect::config::Config::load(&path).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("measure.drift_rate_mm_per_h"), "{e}");
+    assert!(e.line.is_some() && e.message.contains("positive"), "{e}");
+    std::fs::write(&path, format!("{good}\n[measure]\ndrift_rate = 1.0\n")).unwrap();
+    assert!(tagdeflect::config::Config::load(&path).unwrap_err().to_string().contains("drift_rate"), "unknown key refused");
 }
