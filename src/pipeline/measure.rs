@@ -14,7 +14,7 @@ use crate::detect::{refine_corners_with, Detection, EdgeLevels, Prediction, Rect
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
 use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
-use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView, TrackerOptions, DriftConfig};
+use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
 use rayon::prelude::*;
@@ -177,7 +177,7 @@ impl Measurement {
                 tracker: CameraPoseTracker::with_options(
                     intrinsics,
                     fixed,
-                    TrackerOptions { drift: DriftConfig::from_measure(&config.measure), ..Default::default() },
+                    crate::solve::TrackerOptions { drift: crate::solve::DriftConfig::from_measure(&config.measure), ..Default::default() },
                 ),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
