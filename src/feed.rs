@@ -3,7 +3,8 @@
 //! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
 //! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
-//! the live pipeline so far), `latency_ms` (frame capture → line written, live only).
+//! the live pipeline so far), `latency_ms` (frame capture → line written, live only);
+//! per camera `drift_deg` / `drift_mm` (estimated slow drift since the pose was fixed).
 
 use serde::{Deserialize, Serialize};
 
@@ -45,6 +46,13 @@ pub struct CameraHealth {
     /// The camera was found moved (bumped) and re-posed in this frame set.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub bumped: bool,
+    /// Estimated slow drift of the camera since its pose was last fixed (first posing or
+    /// re-posing after a bump): rotation, degrees (see `solve::drift`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drift_deg: Option<f64>,
+    /// Estimated shift of the camera centre since its pose was last fixed, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drift_mm: Option<f64>,
 }
 
 /// One line of the feed.

@@ -448,11 +448,29 @@ pub struct MeasureConfig {
     pub roi_tracking: bool,
     /// Seconds between periodic full-frame searches when tracking.
     pub full_search_interval_s: f64,
+    /// Track slow camera drift while poses are held (see `solve::drift`).
+    pub drift_tracking: bool,
+    /// Expected size (1 σ) of a camera's turning rate, degrees per hour.
+    pub drift_rate_deg_per_h: f64,
+    /// Expected size (1 σ) of the creep rate of a camera's centre, mm per hour.
+    pub drift_rate_mm_per_h: f64,
+    /// Time over which the drift rate may change by about its σ, hours.
+    pub drift_rate_change_h: f64,
 }
 
 impl Default for MeasureConfig {
     fn default() -> Self {
-        Self { quad_decimate: 1.0, detector_threads: 2, refine_corners: true, roi_tracking: true, full_search_interval_s: 1.0 }
+        Self {
+            quad_decimate: 1.0,
+            detector_threads: 2,
+            refine_corners: true,
+            roi_tracking: true,
+            full_search_interval_s: 1.0,
+            drift_tracking: true,
+            drift_rate_deg_per_h: 0.1,
+            drift_rate_mm_per_h: 1.0,
+            drift_rate_change_h: 1.0,
+        }
     }
 }
 
@@ -670,6 +688,9 @@ impl Config {
                 }
                 if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0) {
                     return Err(loc.err(Some(span), "measure.full_search_interval_s", "must be > 0 seconds"));
+                }
+                if let Err((key, msg)) = crate::solve::DriftConfig::from_measure(&m).validate() {
+                    return Err(loc.err(Some(span), &format!("measure.drift_{key}"), msg));
                 }
                 m
             }

@@ -182,7 +182,11 @@ impl Measurement {
             cameras.push(CameraState {
                 name: cam.name.clone(),
                 intrinsics,
-                tracker: CameraPoseTracker::new(intrinsics, fixed),
+                tracker: CameraPoseTracker::with_options(
+                    intrinsics,
+                    fixed,
+                    crate::solve::TrackerOptions { drift: crate::solve::DriftConfig::from_measure(&config.measure), ..Default::default() },
+                ),
                 roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
                     .with_phase(cameras.len() as u32),
                 edge_levels: HashMap::new(),
@@ -256,6 +260,8 @@ impl Measurement {
                 pose_reproj_px: None,
                 posed: cam.tracker.pose().is_some(),
                 bumped: false,
+                drift_deg: None,
+                drift_mm: None,
             };
             if let Some(d) = det {
                 h.background_tags = d.background.len();
@@ -267,7 +273,11 @@ impl Measurement {
                         self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
                     })
                     .collect();
-                let status = cam.tracker.update(&obs);
+                let status = cam.tracker.update_at(set.t_ns, &obs);
+                if let Some(d) = status.drift {
+                    h.drift_deg = Some((d.angle_deg() * 1e6).round() / 1e6);
+                    h.drift_mm = Some(round_mm(d.shift_mm()));
+                }
                 h.posed = status.pose.is_some();
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;

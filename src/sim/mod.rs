@@ -105,6 +105,17 @@ pub struct SimParams {
     /// Translation of the bump, mm.
     #[arg(long, default_value_t = 2.0)]
     pub bump_trans_mm: f64,
+    /// Camera (index from 0) that drifts slowly (thermal, creep) over the recording; none by
+    /// default. Its pose turns and shifts linearly from the first frame set to the last.
+    #[arg(long)]
+    pub drift_camera: Option<u32>,
+    /// Total rotation of the drift over the recording, degrees (about an oblique, mostly
+    /// horizontal axis through the camera centre).
+    #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
+    pub drift_rot_deg: f64,
+    /// Total shift of the drifting camera's centre over the recording, mm (mostly downward).
+    #[arg(long, default_value_t = 0.3, allow_hyphen_values = true)]
+    pub drift_trans_mm: f64,
     /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
     #[arg(long)]
     pub hide_tag: Option<u32>,
@@ -211,6 +222,9 @@ impl Default for SimParams {
             bump_at: 20,
             bump_rot_deg: 0.3,
             bump_trans_mm: 2.0,
+            drift_camera: None,
+            drift_rot_deg: 0.05,
+            drift_trans_mm: 0.3,
             hide_tag: None,
             hide_camera: 0,
             hide_from: 10,
@@ -279,6 +293,7 @@ impl SimParams {
         }
         for (option, cam) in [
             ("bump_camera", self.bump_camera),
+            ("drift_camera", self.drift_camera),
             ("strong_distortion_camera", self.strong_distortion_camera),
             ("hide_camera", Some(self.hide_camera)),
         ] {
@@ -294,6 +309,12 @@ impl SimParams {
             || self.bump_trans_mm.abs() > 100.0
         {
             return bad("bump_rot_deg", "expected a bump of at most 10 degrees and 100 mm");
+        }
+        if !self.drift_rot_deg.is_finite() || self.drift_rot_deg.abs() > 10.0 {
+            return bad("drift_rot_deg", format!("{}: expected at most 10 degrees", self.drift_rot_deg));
+        }
+        if !self.drift_trans_mm.is_finite() || self.drift_trans_mm.abs() > 100.0 {
+            return bad("drift_trans_mm", format!("{}: expected at most 100 mm", self.drift_trans_mm));
         }
         if let Some(id) = self.hide_tag {
             if id >= self.specimen_tags {
@@ -385,6 +406,11 @@ mod tests {
         cli.params.validate().unwrap();
         let bad = SimParams { cameras: 4, ..SimParams::default() };
         assert!(matches!(bad.validate(), Err(SimError::Param { option: "cameras", .. })));
+        let cli = Cli::try_parse_from(["x", "--drift-camera", "1", "--drift-rot-deg", "-0.05", "--drift-trans-mm", "0.3"]).unwrap();
+        assert_eq!((cli.params.drift_camera, cli.params.drift_rot_deg, cli.params.drift_trans_mm), (Some(1), -0.05, 0.3));
+        cli.params.validate().unwrap();
+        let bad = SimParams { drift_camera: Some(3), ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("drift_camera"));
         let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
         assert!(toml::from_str::<SimParams>("colour = 3").is_err());

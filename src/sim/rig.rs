@@ -107,7 +107,8 @@ pub struct SimTruthLine {
 
 /// The static image of one camera pose (no beam), before and after optical blur.
 struct Background {
-    epoch: u8,
+    /// The pose's cache key (see `pose_key`).
+    epoch: u64,
     raw: Vec<f32>,
     blurred: Vec<f32>,
 }
@@ -281,13 +282,44 @@ impl SimRig {
         })
     }
 
-    /// Pose of camera `cam` at `t_ns` (after the bump from frame set `bump_at` on).
+    /// Pose of camera `cam` at `t_ns` (after the bump from frame set `bump_at` on; moved by
+    /// the drift of the frame set nearest to `t_ns` for the drifting camera).
     /// Panics if `cam >= camera_count()`.
     pub fn camera_pose(&self, cam: usize, t_ns: i64) -> Pose {
-        match self.layout.bumped {
+        let base = match self.layout.bumped {
             Some((c, pose)) if c == cam && self.set_index_at(t_ns) >= self.params.bump_at as i64 => pose,
             _ => self.layout.poses[cam],
+        };
+        match self.drift_step(cam, t_ns) {
+            Some(k) => self.drifted(&base, k),
+            None => base,
         }
+    }
+
+    /// For the drifting camera: the frame set (clamped to the recording) whose drift applies at `t_ns`.
+    fn drift_step(&self, cam: usize, t_ns: i64) -> Option<i64> {
+        (self.params.drift_camera == Some(cam as u32))
+            .then(|| self.set_index_at(t_ns).clamp(0, self.params.frame_sets.saturating_sub(1) as i64))
+    }
+
+    /// `base` after the drift of frame set `k`: a linear share `k / (frame_sets − 1)` of
+    /// `drift_rot_deg` (about an oblique, mostly horizontal axis through the camera centre —
+    /// a tripod head tilting) and of `drift_trans_mm` (the centre moving mostly down — the
+    /// floor settling).
+    fn drifted(&self, base: &Pose, k: i64) -> Pose {
+        let p = &self.params;
+        let u = if p.frame_sets > 1 { k as f64 / (p.frame_sets - 1) as f64 } else { 0.0 };
+        let axis = Unit::new_normalize(Vector3::new(1.0, 0.3, 0.2));
+        let dr = Rotation3::from_axis_angle(&axis, u * p.drift_rot_deg.to_radians());
+        let dt = Vector3::new(0.3, 0.2, -1.0).normalize() * (u * p.drift_trans_mm);
+        let centre = base.centre() + dt;
+        let rotation = dr * base.rotation;
+        Pose { rotation, translation: -(rotation * centre) }
+    }
+
+    /// Cache key of camera `cam`'s pose at `t_ns` (bump epoch and drift step).
+    fn pose_key(&self, cam: usize, t_ns: i64) -> u64 {
+        self.pose_epoch(cam, t_ns) as u64 | self.drift_step(cam, t_ns).map_or(0, |k| (k as u64 + 1) << 8)
     }
 
     fn pose_epoch(&self, cam: usize, t_ns: i64) -> u8 {
@@ -660,7 +692,7 @@ impl SimRig {
     }
 
     fn background(&self, cam: usize, t_ns: i64) -> Arc<Background> {
-        let epoch = self.pose_epoch(cam, t_ns);
+        let epoch = self.pose_key(cam, t_ns);
         let mut slot = self.cams[cam].background.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(bg) = slot.as_ref() {
             if bg.epoch == epoch {

@@ -7,6 +7,8 @@
 //! * [`tracker`]: a camera's pose kept across frame sets ([`CameraPoseTracker`]): held still
 //!   while the camera is static so per-frame noise does not leak into the measurement,
 //!   re-posed when the camera is bumped.
+//! * [`drift`]: slow drift of a held camera estimated from the background tags
+//!   ([`DriftFilter`], a Kalman filter on the pose since it was fixed).
 //! * [`tag_pose`]: a specimen tag's 6-DOF pose over all views at once ([`solve_tag`]),
 //!   warm-started, outlier views rejected, σ from the covariance.
 //! * [`lm`]: the small Levenberg–Marquardt both use; [`init`]: closed-form starts.
@@ -15,6 +17,7 @@
 //! updates a pose `(R, t)` to `(exp(ω) R, t + v)`; ω in radians, v in mm.
 
 pub mod camera_pose;
+pub mod drift;
 pub mod init;
 pub mod lm;
 pub mod motion;
@@ -22,6 +25,7 @@ pub mod tag_pose;
 pub mod tracker;
 
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
+pub use drift::{DriftConfig, DriftEstimate, DriftFilter};
 pub use motion::TagMotion;
 pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};
 pub use tracker::{CameraPoseTracker, TrackerOptions, TrackerStatus};

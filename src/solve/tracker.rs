@@ -20,12 +20,23 @@
 //! per-axis scatter of each corner around its running mean while static. A median is used so
 //! a partially occluded or mis-detected tag cannot fake (or hide) a bump; tags that disagree
 //! with the pose are left out of the running means.
+//!
+//! Slow drift (see [`super::drift`]): when updates carry their time
+//! ([`CameraPoseTracker::update_at`]) and [`TrackerOptions::drift`] is enabled, each static
+//! update also solves the camera from its own background corners and feeds that to a
+//! Kalman filter of the camera's motion since the pose was fixed; the pose in use is the
+//! held pose moved by the filtered drift. The running means are kept de-drifted (each
+//! corner minus the image motion the estimated drift gives it), so they stay the corners of
+//! the held pose's moment, and the bump test compares each corner with its mean moved by
+//! the predicted drift: slow drift never adds up to a bump, a jump is still caught in the
+//! update it happens.
 
 use std::collections::HashMap;
 
 use nalgebra::{Matrix6, Point2, Vector2, Vector3};
 
 use super::camera_pose::{solve_camera_pose, BackgroundTagObservation};
+use super::drift::{DriftConfig, DriftEstimate, DriftFilter};
 use super::lm::median;
 use crate::camera::{CameraIntrinsics, Pose};
 
@@ -43,11 +54,20 @@ pub struct TrackerOptions {
     pub average_updates_initial: usize,
     /// Updates whose corners are averaged into the pose after a bump's re-posing.
     pub average_updates_after_bump: usize,
+    /// Slow-drift tracking while the pose is held (only in [`CameraPoseTracker::update_at`]).
+    pub drift: DriftConfig,
 }
 
 impl Default for TrackerOptions {
     fn default() -> Self {
-        Self { min_corners: 4, bump_floor_px: 1.0, bump_noise_factor: 6.0, average_updates_initial: 1, average_updates_after_bump: 10 }
+        Self {
+            min_corners: 4,
+            bump_floor_px: 1.0,
+            bump_noise_factor: 6.0,
+            average_updates_initial: 1,
+            average_updates_after_bump: 10,
+            drift: DriftConfig::default(),
+        }
     }
 }
 
@@ -82,6 +102,9 @@ pub struct TrackerStatus {
     pub noise_px: Option<f64>,
     /// A human-readable note on anything unusual (too few tags, failed re-pose).
     pub message: Option<String>,
+    /// The camera's estimated slow drift since its pose was last fixed (first posing or
+    /// re-posing after a bump); `None` while not tracked (configured pose, no times, disabled).
+    pub drift: Option<DriftEstimate>,
 }
 
 /// Static updates after which a held pose is checked once against the averaged corners.
@@ -113,6 +136,10 @@ pub struct CameraPoseTracker {
     archived_dof: f64,
     averaged_updates: usize,
     average_limit: usize,
+    /// The drift filter of the held `raw` pose (see the module docs).
+    drift: Option<DriftFilter>,
+    /// Time of the update in progress (from [`CameraPoseTracker::update_at`]).
+    now_ns: Option<i64>,
 }
 
 impl CameraPoseTracker {
@@ -136,12 +163,37 @@ impl CameraPoseTracker {
             archived_dof: 0.0,
             averaged_updates: 0,
             average_limit: options.average_updates_initial.max(1),
+            drift: None,
+            now_ns: None,
         }
     }
 
     /// The current pose (world → camera) to measure with, if any.
     pub fn pose(&self) -> Option<Pose> {
-        self.raw.map(|r| r.compose(&self.fix))
+        self.current_raw().map(|r| r.compose(&self.fix))
+    }
+
+    /// The image-fitted pose now: `raw` moved by the estimated drift.
+    fn current_raw(&self) -> Option<Pose> {
+        match &self.drift {
+            Some(f) if self.raw.is_some() => Some(f.pose()),
+            _ => self.raw,
+        }
+    }
+
+    /// The estimated drift since the pose was last fixed, if tracked.
+    pub fn drift(&self) -> Option<DriftEstimate> {
+        self.drift.as_ref().filter(|_| self.raw.is_some()).map(|f| f.estimate())
+    }
+
+    /// (Re)starts the drift filter on the current `raw` pose (called whenever `raw` is set).
+    fn hold(&mut self) {
+        self.drift = match (self.raw, self.now_ns) {
+            (Some(raw), Some(t)) if self.options.drift.enabled && !self.fixed => {
+                Some(DriftFilter::new(self.options.drift, raw, self.covariance.as_ref(), t))
+            }
+            _ => None,
+        };
     }
 
     /// The current pose's covariance (step parameters `(ω, v)`), if estimated.
@@ -161,8 +213,22 @@ impl CameraPoseTracker {
         self.options.bump_floor_px.max(self.options.bump_noise_factor * noise)
     }
 
-    /// Feeds one frame set's background tags seen by this camera (possibly none).
+    /// Feeds one frame set's background tags seen by this camera (possibly none). Without
+    /// a time no drift is tracked: the pose is held exactly while static.
     pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+        self.now_ns = None;
+        self.drift = None;
+        self.update_inner(tags)
+    }
+
+    /// As [`update`](Self::update) for a frame set taken at `t_ns` (ns): with
+    /// [`TrackerOptions::drift`] enabled the held pose follows slow drift.
+    pub fn update_at(&mut self, t_ns: i64, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+        self.now_ns = Some(t_ns);
+        self.update_inner(tags)
+    }
+
+    fn update_inner(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
         let tags: Vec<BackgroundTagObservation> = tags
             .iter()
             .filter(|t| {
@@ -186,6 +252,7 @@ impl CameraPoseTracker {
             rejected_tags: Vec::new(),
             noise_px: self.noise_px(),
             message: None,
+            drift: self.drift(),
         };
         if self.fixed {
             status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
@@ -201,11 +268,17 @@ impl CameraPoseTracker {
         let Some(pose) = self.raw else {
             return self.first_posing(tags, status);
         };
+        // The held pose moved by the drift predicted for now (= `pose` when not tracked).
+        let predicted = match (&self.drift, self.now_ns) {
+            (Some(f), Some(t)) => f.predicted_pose(t),
+            _ => pose,
+        };
 
         // Bump test: each corner against its running mean while static (immune to model
         // errors such as an imperfect calibration), or the held pose's projection for a
         // corner not yet averaged.
-        let shifts: Vec<f64> = tags.iter().flat_map(|t| (0..4).map(move |k| (t, k))).map(|(t, k)| self.corner_shift(&pose, t, k)).collect();
+        let shifts: Vec<f64> =
+            tags.iter().flat_map(|t| (0..4).map(move |k| (t, k))).map(|(t, k)| self.corner_shift(&pose, &predicted, t, k)).collect();
         let shift = median(&shifts).unwrap_or(0.0);
         status.shift_px = Some(shift);
         if shift > threshold {
@@ -231,6 +304,7 @@ impl CameraPoseTracker {
                 Ok(sol) => {
                     self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
+                    self.hold();
                     self.averaged_updates = 1;
                     self.average_limit = self.options.average_updates_after_bump.max(1);
                     self.accumulate(&tags, &sol.rejected_tags);
@@ -238,12 +312,15 @@ impl CameraPoseTracker {
                     status.covariance = Some(sol.covariance);
                     status.rms_px = Some(sol.rms_px);
                     status.rejected_tags = sol.rejected_tags;
+                    status.drift = self.drift();
                     status
                 }
                 Err(e) => {
                     tracing::warn!(error = %e, "camera bumped and could not be re-posed");
+                    status.drift = None;
                     self.raw = None;
                     self.covariance = None;
+                    self.drift = None;
                     status.pose = None;
                     status.covariance = None;
                     status.message = Some(format!("bumped, re-pose failed: {e}"));
@@ -255,20 +332,25 @@ impl CameraPoseTracker {
         // Static: tags that disagree with the pose stay out of the running means.
         let mut rejected = Vec::new();
         for t in &tags {
-            let d: Vec<f64> = (0..4).map(|k| self.corner_shift(&pose, t, k)).collect();
+            let d: Vec<f64> = (0..4).map(|k| self.corner_shift(&pose, &predicted, t, k)).collect();
             if median(&d).unwrap_or(f64::INFINITY) > threshold {
                 tracing::debug!(tag = t.id, "background tag disagrees with the held pose; left out");
                 rejected.push(t.id);
             }
         }
+        let averaging = self.averaged_updates < self.average_limit;
+        if !averaging {
+            self.measure_drift(&tags, &rejected, &predicted);
+        }
         self.accumulate(&tags, &rejected);
-        if self.averaged_updates < self.average_limit {
+        if averaging {
             self.averaged_updates += 1;
             let averaged = self.averaged_observations();
             match solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)) {
                 Ok(sol) => {
                     self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
+                    self.hold();
                 }
                 Err(e) => tracing::debug!(error = %e, "pose refinement from averaged corners failed; pose kept"),
             }
@@ -300,6 +382,11 @@ impl CameraPoseTracker {
                     tracing::warn!("{msg}");
                     self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
+                    // The re-fit is of the held pose's moment (de-drifted means): the drift
+                    // so far stays, only the held pose's own error is new.
+                    if let Some(f) = self.drift.as_mut() {
+                        f.rebase(sol.pose, Some(&sol.covariance));
+                    }
                     status.bumped = true;
                     status.message = Some(msg);
                 }
@@ -310,6 +397,7 @@ impl CameraPoseTracker {
         status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
         status.rejected_tags = rejected;
         status.noise_px = self.noise_px();
+        status.drift = self.drift();
         status
     }
 
@@ -320,6 +408,7 @@ impl CameraPoseTracker {
                 // `fix` is kept: identity at start, the last correction after a failed re-pose.
                 self.raw = Some(sol.pose);
                 self.covariance = Some(sol.covariance);
+                self.hold();
                 self.averaged_updates = 1;
                 self.average_limit = self.options.average_updates_initial.max(1);
                 self.accumulate(&tags, &sol.rejected_tags);
@@ -328,6 +417,7 @@ impl CameraPoseTracker {
                 status.first_pose = true;
                 status.rms_px = Some(sol.rms_px);
                 status.rejected_tags = sol.rejected_tags;
+                status.drift = self.drift();
             }
             Err(e) => {
                 tracing::warn!(error = %e, "camera could not be posed from background tags");
@@ -337,13 +427,46 @@ impl CameraPoseTracker {
         status
     }
 
-    /// Distance (px) of an observed corner from its running mean (when averaged over ≥ 3
-    /// updates) or else from the pose's projection.
-    fn corner_shift(&self, pose: &Pose, tag: &BackgroundTagObservation, k: usize) -> f64 {
+    /// Distance (px) of an observed corner from its running mean moved by the drift
+    /// (`held` → `now`; when averaged over ≥ 3 updates) or else from `now`'s projection.
+    fn corner_shift(&self, held: &Pose, now: &Pose, tag: &BackgroundTagObservation, k: usize) -> f64 {
         let px = tag.pixels[k];
         match self.corners.get(&(tag.id, k)) {
-            Some(c) if c.n >= 3.0 && (c.world - tag.world[k]).norm() < 1e-9 => (Vector2::new(px.x, px.y) - c.mean).norm(),
-            _ => self.intrinsics.project(&pose.transform(&tag.world[k])).map_or(f64::INFINITY, |p| (p - px).norm()),
+            Some(c) if c.n >= 3.0 && (c.world - tag.world[k]).norm() < 1e-9 => {
+                (Vector2::new(px.x, px.y) - c.mean - self.drift_motion(held, now, &tag.world[k])).norm()
+            }
+            _ => self.intrinsics.project(&now.transform(&tag.world[k])).map_or(f64::INFINITY, |p| (p - px).norm()),
+        }
+    }
+
+    /// Image motion (px) of a world point between poses `held` and `now` (zero when equal).
+    fn drift_motion(&self, held: &Pose, now: &Pose, world: &Vector3<f64>) -> Vector2<f64> {
+        if held == now {
+            return Vector2::zeros();
+        }
+        match (self.intrinsics.project(&now.transform(world)), self.intrinsics.project(&held.transform(world))) {
+            (Some(a), Some(b)) => a - b,
+            _ => Vector2::zeros(),
+        }
+    }
+
+    /// Solves this update's pose from its own corners (warm-started at the predicted
+    /// pose) and feeds it to the drift filter.
+    fn measure_drift(&mut self, tags: &[BackgroundTagObservation], skip: &[u32], predicted: &Pose) {
+        let (Some(t), Some(_)) = (self.now_ns, self.drift.as_ref()) else { return };
+        let used: Vec<BackgroundTagObservation> = tags.iter().filter(|t| !skip.contains(&t.id)).copied().collect();
+        if used.len() * 4 < self.options.min_corners.max(4) {
+            return;
+        }
+        match solve_camera_pose(&self.intrinsics, &used, Some(predicted)) {
+            Ok(sol) => {
+                if let Some(f) = self.drift.as_mut() {
+                    if let Some(m2) = f.update(t, &sol.pose, &sol.covariance) {
+                        tracing::trace!(m2, "drift filter updated");
+                    }
+                }
+            }
+            Err(e) => tracing::debug!(error = %e, "drift measurement failed; drift predicted only"),
         }
     }
 
@@ -362,9 +485,14 @@ impl CameraPoseTracker {
 
     fn accumulate(&mut self, tags: &[BackgroundTagObservation], skip: &[u32]) {
         self.period_updates += 1;
+        // De-drifted: each corner as it would be seen from the held pose.
+        let (held, now) = match (self.raw, self.current_raw()) {
+            (Some(h), Some(n)) => (h, n),
+            _ => (Pose::identity(), Pose::identity()),
+        };
         for t in tags.iter().filter(|t| !skip.contains(&t.id)) {
             for k in 0..4 {
-                let px = Vector2::new(t.pixels[k].x, t.pixels[k].y);
+                let px = Vector2::new(t.pixels[k].x, t.pixels[k].y) - self.drift_motion(&held, &now, &t.world[k]);
                 let c = self.corners.entry((t.id, k)).or_insert(CornerStats { world: t.world[k], n: 0.0, mean: px, m2: 0.0 });
                 c.world = t.world[k];
                 c.n += 1.0;

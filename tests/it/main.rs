@@ -9,6 +9,7 @@ mod cli;
 mod config;
 mod detect_accuracy;
 mod detect_sim;
+mod drift;
 mod http;
 mod live;
 mod realdata;
