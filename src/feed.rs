@@ -80,6 +80,10 @@ pub struct FeedLine {
     /// Capture → feed latency of this set, ms (live only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub latency_ms: Option<f64>,
+    /// Feed lines dropped so far by the MQTT publisher's buffer (broker unreachable too
+    /// long); present when `[output.mqtt]` is configured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mqtt_dropped: Option<u64>,
 }
 
 /// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.

@@ -94,6 +94,10 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
+    Archive(tagdeflect::archive::ArchiveOptions),
+    /// Measure how many feed lines per second one archive ingests (simulated rigs).
+    ArchiveBench(tagdeflect::archive::bench::ArchiveBenchOptions),
 }
 
 fn main() -> ExitCode {
@@ -175,5 +179,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, ..LiveOptions::default() })
         }
+        Command::Archive(opts) => tagdeflect::archive::run(opts),
+        Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts),
     }
 }

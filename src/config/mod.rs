@@ -18,9 +18,9 @@ use toml::Spanned;
 use crate::camera::CameraIntrinsics;
 
 pub mod calibration;
-pub use calibration::{load_calibration, CalibrationError};
 use crate::recording::FrameFormat;
 use crate::tags::TagFamily;
+pub use calibration::{load_calibration, CalibrationError};
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -341,6 +341,10 @@ pub struct OutputConfig {
     /// `"pgm"` (raw; no CPU spent encoding — for high frame rates on a small box).
     #[serde(default, skip_serializing_if = "is_default_format")]
     pub record_format: FrameFormat,
+    /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
+    /// recording carries no broker address or credentials).
+    #[serde(default, skip_serializing)]
+    pub mqtt: Option<crate::sinks::mqtt::MqttConfig>,
 }
 
 fn is_default_format(f: &FrameFormat) -> bool {
@@ -584,6 +588,12 @@ impl Config {
             if f != "-" && Path::new(f).is_relative() {
                 output.feed = Some(base.join(f).to_string_lossy().into_owned());
             }
+        }
+        if let Some(m) = output.mqtt.as_mut() {
+            m.validate(base).map_err(|(k, msg)| {
+                let at = crate::sinks::mqtt::key_offset(text, k);
+                loc.err(at.map(|a| a..a), &format!("output.mqtt.{k}"), msg)
+            })?;
         }
         Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
     }

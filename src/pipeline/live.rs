@@ -180,6 +180,13 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         None => (None, None),
     };
     let recorder_drops = Arc::new(AtomicU64::new(0));
+    // MQTT publisher (live runs only; never on a replay).
+    let mqtt = match (&config.output.mqtt, &recording) {
+        (Some(m), None) => {
+            Some(Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config, record_dir.as_deref()).map_err(anyhow::Error::msg)?))
+        }
+        _ => None,
+    };
 
     // The simulated rig, when any part of the config asks for it.
     let wants_sim = config.cameras.iter().any(|c| c.source == "sim") || config.utm.as_ref().is_some_and(|u| u.address == "sim");
@@ -267,11 +274,10 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         let queue = queue.clone();
         let config = config.clone();
         let full_frame = opts.full_frame;
-        Some(
-            std::thread::Builder::new()
-                .name("solver".into())
-                .spawn(move || solver_loop(config, full_frame, queue, solver_utm_rx, feeds, utm_configured))?,
-        )
+        Some(std::thread::Builder::new().name("solver".into()).spawn({
+            let mqtt = mqtt.clone();
+            move || solver_loop(config, full_frame, queue, solver_utm_rx, feeds, utm_configured, mqtt)
+        })?)
     };
 
     // Assembler: until the sources end or a stop is asked for.
@@ -358,6 +364,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let Some(r) = recorder {
         tokio::task::spawn_blocking(move || r.join()).await.ok();
     }
+    if let Some(m) = &mqtt {
+        m.finish(Duration::from_secs(5)).await;
+    }
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = recorder_drops.load(Ordering::Relaxed);
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
@@ -371,6 +380,7 @@ fn solver_loop(
     utm_rx: std_mpsc::Receiver<UtmEvent>,
     mut feeds: Vec<FeedWriter>,
     utm_configured: bool,
+    mqtt: Option<Arc<crate::sinks::mqtt::MqttPublisher>>,
 ) {
     let mut measure = match Measurement::new(&config, !full_frame) {
         Ok(m) => m,
@@ -421,6 +431,9 @@ fn solver_loop(
         }
         line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
         line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
+        if let Some(m) = &mqtt {
+            m.publish(&mut line); // non-blocking hand-off; sets `mqtt_dropped`
+        }
         for f in feeds.iter_mut() {
             if let Err(e) = f.write(&line) {
                 tracing::error!("{e}");

@@ -2,3 +2,4 @@
 //! reported once and disabled while the others go on.
 
 pub mod feed;
+pub mod mqtt;
