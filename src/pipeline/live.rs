@@ -274,10 +274,12 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         let queue = queue.clone();
         let config = config.clone();
         let full_frame = opts.full_frame;
-        Some(std::thread::Builder::new().name("solver".into()).spawn({
-            let mqtt = mqtt.clone();
-            move || solver_loop(config, full_frame, queue, solver_utm_rx, feeds, utm_configured, mqtt)
-        })?)
+        let mqtt = mqtt.clone();
+        Some(
+            std::thread::Builder::new()
+                .name("solver".into())
+                .spawn(move || solver_loop(config, full_frame, queue, solver_utm_rx, feeds, utm_configured, mqtt))?,
+        )
     };
 
     // Assembler: until the sources end or a stop is asked for.
