@@ -274,7 +274,7 @@ async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<Str
                 tracing::info!(session_present = c.session_present, "archive: connected to the broker");
                 if !c.session_present {
                     for s in &subs {
-                        if let Err(e) = client.subscribe(s.clone(), QoS::AtLeastOnce).await {
+                        if let Err(e) = client.try_subscribe(s.clone(), QoS::AtLeastOnce) {
                             tracing::error!("archive: cannot subscribe to {s}: {e}");
                         }
                     }
