@@ -2,7 +2,7 @@
 //! feeds that rigs publish (`[output.mqtt]`) and keeps every line in PostgreSQL.
 //!
 //! ```text
-//! broker ──$share/<group>/<topic>/feed──▶ MQTT task ──▶ writer: batch ─▶ one transaction ─▶ PUBACKs
+//! broker ──<topic>/feed──▶ MQTT task ──▶ writer: batch ─▶ one transaction ─▶ PUBACKs
 //! ```
 //!
 //! - **At least once, never twice.** The session is persistent (`clean_session = false`,
@@ -13,9 +13,12 @@
 //!   duplicate.
 //! - **Batches** form by themselves: while one transaction commits, the next messages
 //!   queue up and go into the next one (up to `--batch` lines).
-//! - **Several archives** can share the load: they subscribe to the same MQTT shared
-//!   subscription `$share/<group>/...` (each with its own `--client-id`), so the broker
-//!   hands each message to one of them.
+//! - **Several archives** can share the load (`--group NAME`): they subscribe to the same
+//!   MQTT shared subscription `$share/<group>/...` (each with its own `--client-id`), so
+//!   the broker hands each message to one of them. One archive alone uses a plain
+//!   persistent subscription: Mosquitto 2.0 restores those after its own restart, not
+//!   shared ones (lines published between the broker's restart and the archives'
+//!   reconnection would be lost to a shared group).
 //! - **Bad messages** (not JSON, not a feed line, a topic that does not fit the template)
 //!   are logged, acknowledged and skipped; the database refusing a row as bad data skips
 //!   that row only.
@@ -49,12 +52,12 @@ pub struct ArchiveOptions {
     /// The rigs' topic template (as in `[output.mqtt] topic`).
     #[arg(long, default_value = "tagdeflect/{rig}/{test}")]
     pub topic: String,
-    /// The MQTT shared-subscription group; archives in one group split the messages.
-    #[arg(long, default_value = "tagdeflect-archive")]
-    pub group: String,
-    /// Subscribe without a shared subscription (brokers that lack them).
+    /// Share the load with other archives: subscribe through the MQTT shared subscription
+    /// `$share/<GROUP>/...`, so the broker hands each message to one archive of the group.
+    /// Without it, a plain persistent subscription (what one archive needs; Mosquitto 2.0
+    /// does not restore shared subscriptions after its own restart, plain ones it does).
     #[arg(long)]
-    pub no_share: bool,
+    pub group: Option<String>,
     /// The MQTT client id; keep it fixed across restarts (the broker keeps the session),
     /// and different for each archive (default: tagdeflect-archive-<host>).
     #[arg(long)]
@@ -150,7 +153,9 @@ pub fn check_options(opts: &ArchiveOptions) -> anyhow::Result<(TopicLayout, toki
     crate::sinks::mqtt::BrokerUrl::parse(&opts.mqtt).map_err(|m| anyhow::anyhow!("--mqtt: {m}"))?;
     let pg: tokio_postgres::Config = opts.postgres.parse().map_err(|e| anyhow::anyhow!("--postgres \"{}\": {e}", opts.postgres))?;
     let layout = TopicLayout::new(&opts.topic).map_err(|m| anyhow::anyhow!("--topic: {m}"))?;
-    crate::sinks::mqtt::check_level_name("--group", &opts.group).map_err(anyhow::Error::msg)?;
+    if let Some(g) = &opts.group {
+        crate::sinks::mqtt::check_level_name("--group", g).map_err(anyhow::Error::msg)?;
+    }
     if opts.batch == 0 {
         anyhow::bail!("--batch must be at least 1");
     }
@@ -191,7 +196,10 @@ pub async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop:
     let (client, eventloop) = AsyncClient::new(mo, 4 * opts.batch.max(64));
     let subs: Vec<String> = [Kind::Feed, Kind::Status]
         .iter()
-        .map(|k| if opts.no_share { layout.filter(*k) } else { format!("$share/{}/{}", opts.group, layout.filter(*k)) })
+        .map(|k| match &opts.group {
+            Some(g) => format!("$share/{g}/{}", layout.filter(*k)),
+            None => layout.filter(*k),
+        })
         .collect();
     tracing::info!(client_id = %client_id, subscriptions = ?subs, "archive: {} -> PostgreSQL", opts.mqtt);
 
@@ -262,7 +270,7 @@ async fn connect_db(url: &str, stats: &ArchiveStats, stop: &mut watch::Receiver<
     }
 }
 
-/// Drives the MQTT connection; (re)subscribes whenever the broker has no session for us.
+/// Drives the MQTT connection; subscribes on every connection (idempotent).
 async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<String>, tx: mpsc::Sender<Publish>) {
     let mut backoff = Duration::from_millis(200);
     let mut last_error = String::new();
@@ -272,7 +280,9 @@ async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<Str
                 backoff = Duration::from_millis(200);
                 last_error.clear();
                 tracing::info!(session_present = c.session_present, "archive: connected to the broker");
-                if !c.session_present {
+                // Subscribe on every connection: a broker restored from its persistence
+                // may present the session without its shared subscriptions (Mosquitto 2.0).
+                {
                     for s in &subs {
                         if let Err(e) = client.try_subscribe(s.clone(), QoS::AtLeastOnce) {
                             tracing::error!("archive: cannot subscribe to {s}: {e}");
