@@ -3,7 +3,8 @@
 //! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
 //! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
-//! the live pipeline so far), `latency_ms` (frame capture → line written, live only).
+//! the live pipeline so far), `latency_ms` (frame capture → line written, live only),
+//! `mqtt_dropped` (lines dropped by the MQTT publisher's buffer so far, with `[output.mqtt]`).
 
 use serde::{Deserialize, Serialize};
 
