@@ -762,30 +762,3 @@ pub fn key_offset(text: &str, key: &str) -> Option<usize> {
     }
     header
 }
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn broker_urls() {
-        let u = BrokerUrl::parse("mqtt://127.0.0.1:1884").unwrap();
-        assert_eq!((u.tls, u.host.as_str(), u.port), (false, "127.0.0.1", 1884));
-        let u = BrokerUrl::parse("mqtts://user:pw@broker.lab").unwrap();
-        assert_eq!((u.tls, u.port, u.username.as_deref(), u.password.as_deref()), (true, 8883, Some("user"), Some("pw")));
-        assert!(BrokerUrl::parse("http://x").is_err());
-        assert!(BrokerUrl::parse("mqtt://x:port").is_err());
-        assert!(BrokerUrl::parse("mqtt://x/a").is_err());
-    }
-
-    #[test]
-    fn topic_templates() {
-        assert!(check_topic_template("tagdeflect/{rig}/{test}").is_ok());
-        assert!(check_topic_template("lab/{test}/x/{rig}").is_ok());
-        assert!(check_topic_template("tagdeflect/{rig}").is_err());
-        assert!(check_topic_template("tagdeflect/{rig}-{test}").is_err());
-        assert!(check_topic_template("tagdeflect/+/{rig}/{test}").is_err());
-        assert_eq!(topic_for("t/{rig}/{test}", "a", "b"), "t/a/b");
-        assert!(check_level_name("rig", "frame/1").is_err());
-    }
-}

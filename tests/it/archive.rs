@@ -338,3 +338,52 @@ fn postgres_down_for_10_s_the_archive_retries_and_loses_nothing() {
     assert!(log.contains("database unreachable") || log.contains("cannot commit"), "{log}");
     assert!(archive.alive(), "{log}");
 }
+
+#[test]
+fn broker_urls_topic_templates_and_config_errors() {
+    use tagdeflect::archive::{Kind, TopicLayout};
+    use tagdeflect::sinks::mqtt::{check_level_name, check_topic_template, topic_for, BrokerUrl};
+    let u = BrokerUrl::parse("mqtt://127.0.0.1:1884").unwrap();
+    assert_eq!((u.tls, u.host.as_str(), u.port), (false, "127.0.0.1", 1884));
+    let u = BrokerUrl::parse("mqtts://user:pw@broker.lab").unwrap();
+    assert_eq!((u.tls, u.port, u.username.as_deref(), u.password.as_deref()), (true, 8883, Some("user"), Some("pw")));
+    assert!(BrokerUrl::parse("http://x").is_err());
+    assert!(BrokerUrl::parse("mqtt://x:port").is_err());
+    assert!(check_topic_template("lab/{test}/x/{rig}").is_ok());
+    assert!(check_topic_template("tagdeflect/{rig}").is_err());
+    assert!(check_topic_template("tagdeflect/{rig}-{test}").is_err());
+    assert!(check_topic_template("tagdeflect/+/{rig}/{test}").is_err());
+    assert!(check_level_name("rig", "frame/1").is_err());
+    assert_eq!(topic_for("t/{rig}/{test}", "a", "b"), "t/a/b");
+
+    let l = TopicLayout::new("lab/{test}/x/{rig}").unwrap();
+    assert_eq!(l.filter(Kind::Feed), "lab/+/x/+/feed");
+    assert_eq!(l.parse("lab/t1/x/r1/status"), Some(("r1".into(), "t1".into(), Kind::Status)));
+    assert_eq!(l.parse("lab/t1/y/r1/feed"), None);
+    assert_eq!(l.parse("lab/t1/x/r1/other"), None);
+
+    // Config errors name the file, the line and the key.
+    let dir = tempfile::tempdir().unwrap();
+    let base = tagdeflect::sources::sim::demo_config().to_toml_string();
+    for (extra, key, line_has) in [
+        ("qos = 3", "output.mqtt.qos", "qos = 3"),
+        ("topic = \"x/{rig}\"", "output.mqtt.topic", "topic ="),
+        ("buffer_lines = 0", "output.mqtt.buffer_lines", "buffer_lines"),
+        ("ca_file = \"missing.pem\"", "output.mqtt.url", "url ="),
+    ] {
+        let text = format!("{base}\n[output.mqtt]\nurl = \"mqtt://127.0.0.1:1883\"\nrig = \"r\"\n{extra}\n");
+        let path = dir.path().join("c.toml");
+        fs::write(&path, &text).unwrap();
+        let e = tagdeflect::config::Config::load(&path).unwrap_err();
+        assert_eq!(e.key.as_deref(), Some(key), "{e}");
+        let line = text.lines().nth(e.line.unwrap() - 1).unwrap();
+        assert!(line.contains(line_has), "{e}: line {line:?}");
+    }
+    // Accepted: every line published carries the same fields; the password is never written back.
+    let text = format!("{base}\n[output.mqtt]\nurl = \"mqtt://u@127.0.0.1\"\nrig = \"r\"\npassword = \"secret\"\n");
+    let path = dir.path().join("ok.toml");
+    fs::write(&path, &text).unwrap();
+    let c = tagdeflect::config::Config::load(&path).unwrap();
+    assert_eq!(c.output.mqtt.as_ref().unwrap().password.as_deref(), Some("secret"));
+    assert!(!c.to_toml_string().contains("secret"));
+}
