@@ -6,7 +6,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev systemd python3 python3-venv)
+pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev systemd python3 python3-venv
+  mosquitto postgresql)  # the MQTT broker and the database of the archive tests (started by the tests)
 # The live page's browser test: Debian's Chromium and its WebDriver (driven by selenium).
 pkgs+=(chromium chromium-driver)
 missing=()

@@ -3,7 +3,8 @@
 //! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
 //! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
-//! the live pipeline so far), `latency_ms` (frame capture → line written, live only);
+//! the live pipeline so far), `latency_ms` (frame capture → line written, live only),
+//! `mqtt_dropped` (lines dropped by the MQTT publisher's buffer so far, with `[output.mqtt]`);
 //! per camera `drift_deg` / `drift_mm` (estimated slow drift since the pose was fixed).
 
 use serde::{Deserialize, Serialize};
@@ -28,7 +29,7 @@ pub struct FeedTag {
 }
 
 /// Health of one camera in one frame set.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct CameraHealth {
     /// Camera name.
     pub name: String,
@@ -88,6 +89,10 @@ pub struct FeedLine {
     /// Capture → feed latency of this set, ms (live only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub latency_ms: Option<f64>,
+    /// Feed lines dropped so far by the MQTT publisher's buffer (broker unreachable too
+    /// long); present when `[output.mqtt]` is configured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mqtt_dropped: Option<u64>,
 }
 
 /// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.

@@ -106,6 +106,10 @@ enum Command {
         #[arg(long)]
         no_http: bool,
     },
+    /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
+    Archive(tagdeflect::archive::ArchiveOptions),
+    /// Measure how many feed lines per second one archive ingests (simulated rigs).
+    ArchiveBench(tagdeflect::archive::bench::ArchiveBenchOptions),
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -216,5 +220,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
+        Command::Archive(opts) => tagdeflect::archive::run(opts),
+        Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts),
     }
 }

@@ -427,6 +427,10 @@ pub struct OutputConfig {
     /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http: Option<String>,
+    /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
+    /// recording carries no broker address or credentials).
+    #[serde(default, skip_serializing)]
+    pub mqtt: Option<crate::sinks::mqtt::MqttConfig>,
 }
 
 fn is_default_format(f: &FrameFormat) -> bool {
@@ -736,6 +740,12 @@ impl Config {
                     ));
                 }
             }
+        }
+        if let Some(m) = output.mqtt.as_mut() {
+            m.validate(base).map_err(|(k, msg)| {
+                let at = crate::sinks::mqtt::key_offset(text, k);
+                loc.err(at.map(|a| a..a), &format!("output.mqtt.{k}"), msg)
+            })?;
         }
         Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
     }

@@ -223,6 +223,13 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let (Some(v), Some(dir)) = (&view, &record_dir) {
         v.on_recording(dir, recorder_drops.clone());
     }
+    // MQTT publisher (live runs only; never on a replay).
+    let mqtt = match (&config.output.mqtt, &recording) {
+        (Some(m), None) => {
+            Some(Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config, record_dir.as_deref()).map_err(anyhow::Error::msg)?))
+        }
+        _ => None,
+    };
 
     // The measurement is built before any source starts: a detector option it cannot take
     // is a config error (exit 2), never a daemon that captures without measuring.
@@ -305,10 +312,12 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             let config = config.clone();
             let heartbeat = heartbeat.clone();
             let tap = view.as_ref().map(|v| v.tap()).transpose()?;
+            let mqtt = mqtt.clone();
+            let sinks = SolverSinks { feeds, tap, mqtt };
             Some(
                 std::thread::Builder::new()
                     .name("solver".into())
-                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, feeds, utm_configured, heartbeat, tap))?,
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, sinks, utm_configured, heartbeat))?,
             )
         }
     };
@@ -416,6 +425,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let Some(r) = recorder {
         tokio::task::spawn_blocking(move || r.join()).await.ok();
     }
+    if let Some(m) = &mqtt {
+        m.finish(Duration::from_secs(5)).await;
+    }
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = recorder_drops.load(Ordering::Relaxed);
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
@@ -431,21 +443,28 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     Ok(())
 }
 
+/// Where the solver hands each feed line: the feed files (written, flushed per line), the
+/// live page (a non-blocking tap) and the MQTT publisher (a non-blocking hand-off).
+struct SolverSinks {
+    feeds: Vec<FeedWriter>,
+    tap: Option<crate::sinks::http::SolverTap>,
+    mqtt: Option<Arc<crate::sinks::mqtt::MqttPublisher>>,
+}
+
 /// A solver heartbeat older than this stops the watchdog pings (systemd then restarts the
 /// daemon after `WatchdogSec`).
 const WATCHDOG_STALE_MS: u64 = 10_000;
 
-#[allow(clippy::too_many_arguments)]
 fn solver_loop(
     config: Config,
     mut measure: Measurement,
     queue: Arc<SetQueue>,
     utm_rx: std_mpsc::Receiver<UtmEvent>,
-    mut feeds: Vec<FeedWriter>,
+    sinks: SolverSinks,
     utm_configured: bool,
     heartbeat: Arc<AtomicU64>,
-    mut tap: Option<crate::sinks::http::SolverTap>,
 ) {
+    let SolverSinks { mut feeds, mut tap, mqtt } = sinks;
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
     let mut utm_up = false;
@@ -492,6 +511,9 @@ fn solver_loop(
         }
         line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
         line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
+        if let Some(m) = &mqtt {
+            m.publish(&mut line); // non-blocking hand-off; sets `mqtt_dropped`
+        }
         for f in feeds.iter_mut() {
             if let Err(e) = f.write(&line) {
                 tracing::error!("{e}");

@@ -376,6 +376,7 @@ impl Measurement {
             utm: None,
             dropped_sets: None,
             latency_ms: None,
+            mqtt_dropped: None,
         };
         (line, times)
     }

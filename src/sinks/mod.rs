@@ -3,3 +3,4 @@
 
 pub mod feed;
 pub mod http;
+pub mod mqtt;

@@ -5,6 +5,7 @@ mod common;
 
 mod accuracy;
 mod aravis_fake;
+mod archive;
 mod cli;
 mod config;
 mod detect_accuracy;
