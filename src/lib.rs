@@ -5,6 +5,7 @@
 //! graph with different sources (see [`pipeline`]).
 
 pub mod accuracy;
+pub mod calibrate;
 pub mod camera;
 pub mod config;
 pub mod detect;

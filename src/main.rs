@@ -94,6 +94,9 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
+    /// FileStorage YAML and reports uncertainties, coverage and outliers.
+    Calibrate(tagdeflect::calibrate::CalibrateOptions),
 }
 
 fn main() -> ExitCode {
@@ -175,5 +178,6 @@ fn run(cli: Cli) -> Result<()> {
             };
             pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, ..LiveOptions::default() })
         }
+        Command::Calibrate(opts) => tagdeflect::calibrate::run(&opts),
     }
 }

@@ -3,6 +3,7 @@
 mod common;
 
 mod accuracy;
+mod calibrate;
 mod aravis_fake;
 mod cli;
 mod config;
