@@ -76,7 +76,13 @@ impl CoverageTracker {
 /// Grabs views of `spec` from camera `camera` of the config at `config_path`: at most `views`
 /// frames that add coverage, within `duration_s`. Returns the views, the image size and the
 /// frames not used (with the reason) — the last only summarised, frames arrive continuously.
-pub fn grab_views(config_path: &Path, camera: &str, spec: &TargetSpec, views: usize, duration_s: f64) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
+pub fn grab_views(
+    config_path: &Path,
+    camera: &str,
+    spec: &TargetSpec,
+    views: usize,
+    duration_s: f64,
+) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
     let mut cfg = Config::load(config_path)?;
     let Some(i) = cfg.cameras.iter().position(|c| c.name == camera) else {
         let names: Vec<&str> = cfg.cameras.iter().map(|c| c.name.as_str()).collect();
@@ -103,7 +109,13 @@ pub fn grab_views(config_path: &Path, camera: &str, spec: &TargetSpec, views: us
                 let gain = tr.new_cells(&v);
                 if kept.is_empty() || gain >= MIN_NEW_CELLS {
                     tr.add(&v);
-                    tracing::info!(camera, views = kept.len() + 1, points = v.object.len(), coverage = format!("{:.0} %", 100.0 * tr.fraction()), "view kept");
+                    tracing::info!(
+                        camera,
+                        views = kept.len() + 1,
+                        points = v.object.len(),
+                        coverage = format!("{:.0} %", 100.0 * tr.fraction()),
+                        "view kept"
+                    );
                     kept.push(v);
                 } else {
                     no_gain += 1;
@@ -117,7 +129,8 @@ pub fn grab_views(config_path: &Path, camera: &str, spec: &TargetSpec, views: us
     }
     let mut skipped = Vec::new();
     if no_target > 0 {
-        skipped.push(Rejected { name: format!("{no_target} of {frames} frames"), reason: format!("target not found (last: {last_reason})") });
+        skipped
+            .push(Rejected { name: format!("{no_target} of {frames} frames"), reason: format!("target not found (last: {last_reason})") });
     }
     if no_gain > 0 {
         skipped.push(Rejected { name: format!("{no_gain} of {frames} frames"), reason: "added no coverage".into() });

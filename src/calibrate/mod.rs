@@ -169,13 +169,16 @@ pub fn calibrate_views(views: Vec<View>, width: u32, height: u32, options: &Solv
         }
         let med = crate::solve::lm::median(&cal.view_rms_px).unwrap_or(0.0);
         let view_limit = (3.0 * med).max(0.5);
-        let worst = cal.view_rms_px.iter().enumerate().filter(|(_, r)| **r > view_limit).max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, r)| (i, *r));
+        let worst =
+            cal.view_rms_px.iter().enumerate().filter(|(_, r)| **r > view_limit).max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, r)| (i, *r));
         match worst {
             Some((i, rms)) if views.len() > 3 => {
                 let v = views.remove(i);
                 rejected.push(Rejected {
                     name: v.name,
-                    reason: format!("reprojection RMS {rms:.3} px > {view_limit:.3} px (3 × the median view's {med:.3} px, at least 0.5 px)"),
+                    reason: format!(
+                        "reprojection RMS {rms:.3} px > {view_limit:.3} px (3 × the median view's {med:.3} px, at least 0.5 px)"
+                    ),
                 });
             }
             _ => return Ok(CalibrationRun { calibration: cal, views, rejected, dropped_points }),
@@ -200,7 +203,8 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
         .with_context(|| format!("cannot read the image folder {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
-            p.is_file() && p.extension().and_then(|e| e.to_str()).is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
+            p.is_file()
+                && p.extension().and_then(|e| e.to_str()).is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
         })
         .collect();
     files.sort();
@@ -256,7 +260,13 @@ pub fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Cove
         let fixed = if s[i] == 0.0 { "  (fixed)" } else { "" };
         let _ = writeln!(out, "  {:<3} = {:>12.6}{unit} ± {:.6}{unit} (1σ){fixed}", PARAM_NAMES[i], vals[i], s[i]);
     }
-    let _ = writeln!(out, "reprojection RMS {:.4} px over {} points (residual scatter {:.4} px per axis)", c.rms_px, run.views.iter().map(|v| v.object.len()).sum::<usize>(), c.sigma_px);
+    let _ = writeln!(
+        out,
+        "reprojection RMS {:.4} px over {} points (residual scatter {:.4} px per axis)",
+        c.rms_px,
+        run.views.iter().map(|v| v.object.len()).sum::<usize>(),
+        c.sigma_px
+    );
     let _ = writeln!(out, "per view:");
     for (v, r) in run.views.iter().zip(&c.view_rms_px) {
         let _ = writeln!(out, "  {:<28} {:>3} points  RMS {:.4} px", v.name, v.object.len(), r);
@@ -293,11 +303,7 @@ pub fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Cove
             1000.0 * u.displacement_error_mm
         );
     }
-    let _ = writeln!(
-        out,
-        "  focal length ±{:.0} ppm: distances from tag size and displacements scale by that much",
-        1e6 * s[1] / k.fy
-    );
+    let _ = writeln!(out, "  focal length ±{:.0} ppm: distances from tag size and displacements scale by that much", 1e6 * s[1] / k.fy);
     out
 }
 

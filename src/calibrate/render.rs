@@ -71,7 +71,10 @@ pub fn render_target(spec: &TargetSpec, k: &CameraIntrinsics, pose: &Pose, o: &R
                 let c = (x / pitch_mm).round();
                 let r = (-y / pitch_mm).round();
                 let margin = pitch_mm;
-                let inside_paper = x > -margin && x < (cols as f64 - 1.0) * pitch_mm + margin && -y > -margin && -y < (rows as f64 - 1.0) * pitch_mm + margin;
+                let inside_paper = x > -margin
+                    && x < (cols as f64 - 1.0) * pitch_mm + margin
+                    && -y > -margin
+                    && -y < (rows as f64 - 1.0) * pitch_mm + margin;
                 if !inside_paper {
                     return (2, bg);
                 }

@@ -44,9 +44,11 @@ impl Coverage {
                 counts[r as usize * cols + c as usize] += 1;
             }
         }
-        let corner_cells = [("top-left", 0), ("top-right", cols - 1), ("bottom-left", (rows - 1) * cols), ("bottom-right", rows * cols - 1)];
+        let corner_cells =
+            [("top-left", 0), ("top-right", cols - 1), ("bottom-left", (rows - 1) * cols), ("bottom-right", rows * cols - 1)];
         let empty_corners = corner_cells.iter().filter(|(_, i)| counts[*i] == 0).map(|(n, _)| *n).collect();
-        let border: Vec<usize> = (0..rows * cols).filter(|i| i / cols == 0 || i / cols == rows - 1 || i % cols == 0 || i % cols == cols - 1).collect();
+        let border: Vec<usize> =
+            (0..rows * cols).filter(|i| i / cols == 0 || i / cols == rows - 1 || i % cols == 0 || i % cols == cols - 1).collect();
         let empty_border_cells = border.iter().filter(|&&i| counts[i] == 0).count();
         let covered = counts.iter().filter(|&&c| c > 0).count();
         Coverage {

@@ -397,11 +397,8 @@ pub fn calibrate(views: &[View], width: u32, height: u32, options: &SolveOptions
         let dtheta = &b * dq;
         let theta = to_vector(k) + SMatrix::<f64, 9, 1>::from_iterator(dtheta.iter().copied());
         let k2 = from_vector(&theta, width, height);
-        let p2 = poses
-            .iter()
-            .enumerate()
-            .map(|(i, p)| retract(p, &Vector6::from_iterator(delta.rows(m + 6 * i, 6).iter().copied())))
-            .collect();
+        let p2 =
+            poses.iter().enumerate().map(|(i, p)| retract(p, &Vector6::from_iterator(delta.rows(m + 6 * i, 6).iter().copied()))).collect();
         (k2, p2)
     };
     let mut ssr = cost(&k, &poses, views).ok_or(SolveError::NoStart)?;
@@ -472,7 +469,8 @@ fn finish(
         .iter()
         .zip(views)
         .map(|(p, v)| {
-            let s: f64 = v.object.iter().zip(&v.image).map(|(x, u)| k.project(&p.transform(x)).map_or(f64::NAN, |q| (q - u).norm_squared())).sum();
+            let s: f64 =
+                v.object.iter().zip(&v.image).map(|(x, u)| k.project(&p.transform(x)).map_or(f64::NAN, |q| (q - u).norm_squared())).sum();
             (s / v.object.len() as f64).sqrt()
         })
         .collect();
@@ -512,7 +510,8 @@ mod tests {
         use rand_distr::{Distribution, Normal};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let nd = Normal::new(0.0, noise.max(1e-12)).unwrap();
-        let object: Vec<Vector3<f64>> = (0..6).flat_map(|j| (0..9).map(move |i| Vector3::new(i as f64 * 30.0, j as f64 * 30.0, 0.0))).collect();
+        let object: Vec<Vector3<f64>> =
+            (0..6).flat_map(|j| (0..9).map(move |i| Vector3::new(i as f64 * 30.0, j as f64 * 30.0, 0.0))).collect();
         let mut views = Vec::new();
         for (n, (rx, ry, rz, tx, ty, tz)) in [
             (0.3, -0.2, 0.1, -150.0, -80.0, 500.0),
@@ -610,8 +609,11 @@ mod tests {
                 let dtheta = &b * d.rows(0, m).into_owned();
                 let th = to_vector(&k0) + SMatrix::<f64, 9, 1>::from_iterator(dtheta.iter().copied());
                 let k2 = from_vector(&th, 800, 600);
-                let p2: Vec<Pose> =
-                    poses.iter().enumerate().map(|(j, p)| retract(p, &Vector6::from_iterator(d.rows(m + 6 * j, 6).iter().copied()))).collect();
+                let p2: Vec<Pose> = poses
+                    .iter()
+                    .enumerate()
+                    .map(|(j, p)| retract(p, &Vector6::from_iterator(d.rows(m + 6 * j, 6).iter().copied())))
+                    .collect();
                 cost(&k2, &p2, &views).unwrap()
             };
             let fd = (plus(&d) - plus(&(-d.clone()))) / (2.0 * h) * 0.5;

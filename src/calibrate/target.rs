@@ -97,7 +97,8 @@ impl std::str::FromStr for TargetSpec {
                 if parts.len() != 3 {
                     return Err(err("expected checkerboard:COLSxROWS:SQUARE_MM (inner corners, e.g. checkerboard:9x6:25)"));
                 }
-                let (cols, rows) = parse_dims(parts[1]).ok_or_else(|| err("COLSxROWS must be two positive numbers of inner corners, e.g. 9x6"))?;
+                let (cols, rows) =
+                    parse_dims(parts[1]).ok_or_else(|| err("COLSxROWS must be two positive numbers of inner corners, e.g. 9x6"))?;
                 if cols < 2 || rows < 2 {
                     return Err(err("a checkerboard needs at least 2x2 inner corners"));
                 }
@@ -125,11 +126,13 @@ impl std::str::FromStr for TargetSpec {
                 }
                 Ok(TargetSpec::TagBoard { family, cols, rows, size_mm, pitch_mm, first_id })
             }
-            "aprilgrid" => Err(err(
-                "Kalibr AprilGrid targets are not supported: use a tag board (tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM) \
-                 or a checkerboard; an existing Kalibr calibration can be imported with `calibration = \"camchain.yaml\"`",
+            "aprilgrid" => {
+                Err(err("Kalibr AprilGrid targets are not supported: use a tag board (tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM) \
+                 or a checkerboard; an existing Kalibr calibration can be imported with `calibration = \"camchain.yaml\"`"))
+            }
+            _ => Err(err(
+                "unknown target: expected checkerboard:COLSxROWS:SQUARE_MM or tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]",
             )),
-            _ => Err(err("unknown target: expected checkerboard:COLSxROWS:SQUARE_MM or tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]")),
         }
     }
 }
@@ -160,7 +163,9 @@ impl TargetSpec {
     /// A short text for reports (`checkerboard 9x6, 25 mm squares`).
     pub fn describe(&self) -> String {
         match self {
-            TargetSpec::Checkerboard { cols, rows, square_mm } => format!("checkerboard {cols}x{rows} inner corners, {square_mm} mm squares"),
+            TargetSpec::Checkerboard { cols, rows, square_mm } => {
+                format!("checkerboard {cols}x{rows} inner corners, {square_mm} mm squares")
+            }
             TargetSpec::TagBoard { family, cols, rows, size_mm, pitch_mm, first_id } => {
                 format!("{family} board {cols}x{rows}, {size_mm} mm tags at {pitch_mm} mm pitch, ids from {first_id}")
             }

@@ -93,7 +93,10 @@ fn kalibr_or_ros(value: &serde_json::Value, selector: Option<&str>) -> Result<Op
             let names: Vec<&str> = cams.iter().map(|(n, _)| n.as_str()).collect();
             match selector {
                 Some(sel) => {
-                    let c = cams.iter().find(|(n, _)| n.as_str() == sel).ok_or_else(|| format!("no camera `{sel}` in this camchain (it has {})", names.join(", ")))?;
+                    let c = cams
+                        .iter()
+                        .find(|(n, _)| n.as_str() == sel)
+                        .ok_or_else(|| format!("no camera `{sel}` in this camchain (it has {})", names.join(", ")))?;
                     (c.0.as_str(), c.1)
                 }
                 None if cams.len() == 1 => (cams[0].0.as_str(), cams[0].1),
@@ -150,13 +153,12 @@ fn kalibr_camera(name: &str, cam: &serde_json::Value) -> Result<CameraIntrinsics
 
 fn ros_camera_info(v: &serde_json::Value, model: &str) -> Result<CameraIntrinsics, String> {
     if model != "plumb_bob" && model != "rational_polynomial" {
-        return Err(format!(
-            "ROS camera_info distortion_model `{model}` is not supported: tagdeflect uses plumb_bob (k1 k2 p1 p2 k3)"
-        ));
+        return Err(format!("ROS camera_info distortion_model `{model}` is not supported: tagdeflect uses plumb_bob (k1 k2 p1 p2 k3)"));
     }
     // The calibration-file form (camera_matrix, distortion_coefficients) or the message
     // form (K, D; ROS 2: k, d).
-    let get = |keys: &[&'static str]| -> Option<(&'static str, &serde_json::Value)> { keys.iter().find_map(|k| v.get(*k).map(|x| (*k, x))) };
+    let get =
+        |keys: &[&'static str]| -> Option<(&'static str, &serde_json::Value)> { keys.iter().find_map(|k| v.get(*k).map(|x| (*k, x))) };
     let (kk, kv) = get(&["camera_matrix", "K", "k"]).ok_or("no `camera_matrix` (or `K`)")?;
     let k = numbers(kv, kk)?;
     if k.len() != 9 {

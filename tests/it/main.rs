@@ -3,8 +3,8 @@
 mod common;
 
 mod accuracy;
-mod calibrate;
 mod aravis_fake;
+mod calibrate;
 mod cli;
 mod config;
 mod detect_accuracy;
