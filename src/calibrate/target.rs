@@ -378,7 +378,10 @@ mod tests {
         }
         let blurred = blur(&area, w as usize, h as usize, &gaussian_kernel(0.8));
         let img = GrayImage { width: w, height: h, data: blurred.iter().map(|v| v.round() as u8).collect() };
-        let q = refine_saddle(&img, Point2::new(19.0, 19.0), 6).unwrap();
-        assert!((q.x - x0).abs() < 0.02 && (q.y - y0).abs() < 0.02, "{q}");
+        // From where the ChESS detector leaves a corner (within half a pixel).
+        for start in [Point2::new(20.0, 18.0), Point2::new(20.6, 17.4)] {
+            let q = refine_saddle(&img, start, 6).unwrap();
+            assert!((q.x - x0).abs() < 0.05 && (q.y - y0).abs() < 0.05, "{start} → {q}");
+        }
     }
 }
