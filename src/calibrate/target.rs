@@ -365,15 +365,11 @@ mod tests {
         let mut area = vec![0.0f32; (w * h) as usize];
         for y in 0..h {
             for x in 0..w {
-                let mut s = 0.0f64;
-                for a in 0..8 {
-                    for b in 0..8 {
-                        let px = x as f64 - 0.5 + (a as f64 + 0.5) / 8.0 - x0;
-                        let py = y as f64 - 0.5 + (b as f64 + 0.5) / 8.0 - y0;
-                        s += if (px > 0.0) == (py > 0.0) { 220.0 } else { 30.0 };
-                    }
-                }
-                area[(y * w + x) as usize] = (s / 64.0) as f32;
+                // Exact area fractions of the pixel right of and below the corner.
+                let fx = (x as f64 + 0.5 - x0).clamp(0.0, 1.0);
+                let fy = (y as f64 + 0.5 - y0).clamp(0.0, 1.0);
+                let bright = fx * fy + (1.0 - fx) * (1.0 - fy);
+                area[(y * w + x) as usize] = (30.0 + 190.0 * bright) as f32;
             }
         }
         let blurred = blur(&area, w as usize, h as usize, &gaussian_kernel(0.8));
