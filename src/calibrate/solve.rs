@@ -248,7 +248,7 @@ fn centred(hs: &[Matrix3<f64>], width: u32, height: u32, aspect: Option<f64>) ->
             let c = Vector2::new(1.0 / (a * a), 1.0);
             let den = c.dot(&(ata * c));
             let u = c.dot(&atb) / den;
-            if !(u > 0.0) {
+            if u.is_nan() || u <= 0.0 {
                 return None;
             }
             let fy = 1.0 / u.sqrt();

@@ -258,23 +258,22 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
             (rows as i32, cols as i32)
         }
     };
+    // Outer lines: (is a u line, index). Drop the sparsest until the grid fits the board.
     loop {
         let (umin, umax, vmin, vmax) = extent(&pts);
         if umax - umin < cu && vmax - vmin < cv {
             break;
         }
-        let count = |f: &dyn Fn(&(i32, i32, Point2<f64>)) -> bool| pts.iter().filter(|p| f(p)).count();
-        let mut lines: Vec<(usize, Box<dyn Fn(&(i32, i32, Point2<f64>)) -> bool>)> = Vec::new();
+        let mut lines: Vec<(bool, i32)> = Vec::new();
         if umax - umin >= cu {
-            lines.push((count(&|p| p.0 == umin), Box::new(move |p| p.0 == umin)));
-            lines.push((count(&|p| p.0 == umax), Box::new(move |p| p.0 == umax)));
+            lines.extend([(true, umin), (true, umax)]);
         }
         if vmax - vmin >= cv {
-            lines.push((count(&|p| p.1 == vmin), Box::new(move |p| p.1 == vmin)));
-            lines.push((count(&|p| p.1 == vmax), Box::new(move |p| p.1 == vmax)));
+            lines.extend([(false, vmin), (false, vmax)]);
         }
-        let (_, drop) = lines.into_iter().min_by_key(|l| l.0).expect("a line to drop");
-        pts.retain(|p| !drop(p));
+        let on = |p: &(i32, i32, Point2<f64>), (is_u, k): (bool, i32)| if is_u { p.0 == k } else { p.1 == k };
+        let drop = lines.into_iter().min_by_key(|&l| pts.iter().filter(|p| on(p, l)).count()).expect("a line to drop");
+        pts.retain(|p| !on(p, drop));
     }
     let min_points = ((cols * rows) as usize / 3).max(6);
     if pts.len() < min_points {
@@ -321,7 +320,7 @@ pub fn refine_saddle(image: &GrayImage, start: Point2<f64>, half: i32) -> Option
             }
         }
         let det = a * c - b * b;
-        if !(det.abs() > 1e-9 * (a * c).abs().max(1e-300)) {
+        if det.is_nan() || det.abs() <= 1e-9 * (a * c).abs().max(1e-300) {
             return None;
         }
         let step = nalgebra::Vector2::new(c * bb1 - b * bb2, a * bb2 - b * bb1) / det;
