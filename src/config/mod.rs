@@ -18,9 +18,9 @@ use toml::Spanned;
 use crate::camera::CameraIntrinsics;
 
 pub mod calibration;
+pub use calibration::{load_calibration, CalibrationError};
 use crate::recording::FrameFormat;
 use crate::tags::TagFamily;
-pub use calibration::{load_calibration, CalibrationError};
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
