@@ -74,6 +74,34 @@ impl CameraIntrinsics {
         Some((Point2::new(self.fx * d.x + self.cx, self.fy * d.y + self.cy), jf * jd * jn))
     }
 
+    /// Jacobian of [`project`](Self::project) with respect to the intrinsics, columns in the
+    /// order fx, fy, cx, cy, k1, k2, p1, p2, k3 (for calibration). `None` behind the camera.
+    pub fn project_intrinsics_jacobian(&self, p: &Vector3<f64>) -> Option<nalgebra::SMatrix<f64, 2, 9>> {
+        if p.z <= 1e-9 {
+            return None;
+        }
+        let (x, y) = (p.x / p.z, p.y / p.z);
+        let d = self.distort(Vector2::new(x, y));
+        let r2 = x * x + y * y;
+        let (fx, fy) = (self.fx, self.fy);
+        let mut j = nalgebra::SMatrix::<f64, 2, 9>::zeros();
+        j[(0, 0)] = d.x;
+        j[(1, 1)] = d.y;
+        j[(0, 2)] = 1.0;
+        j[(1, 3)] = 1.0;
+        // Radial terms: d/dk = (x, y) * r2^n.
+        for (col, pow) in [(4, r2), (5, r2 * r2), (8, r2 * r2 * r2)] {
+            j[(0, col)] = fx * x * pow;
+            j[(1, col)] = fy * y * pow;
+        }
+        // Tangential: dx/dp1 = 2xy, dy/dp1 = r2 + 2y²; dx/dp2 = r2 + 2x², dy/dp2 = 2xy.
+        j[(0, 6)] = fx * 2.0 * x * y;
+        j[(1, 6)] = fy * (r2 + 2.0 * y * y);
+        j[(0, 7)] = fx * (r2 + 2.0 * x * x);
+        j[(1, 7)] = fy * 2.0 * x * y;
+        Some(j)
+    }
+
     /// Removes distortion: pixel → normalised coordinates, by Gauss–Newton on
     /// [`distort`](Self::distort) (exact to ~1e-12 inside the calibrated field).
     pub fn undistort(&self, px: &Point2<f64>) -> Vector2<f64> {
@@ -195,6 +223,36 @@ mod tests {
             let b = c.project(&(p - dp)).unwrap();
             let fd = (a - b) / 2e-4;
             assert!((fd.x - j[(0, k)]).abs() < 1e-5 && (fd.y - j[(1, k)]).abs() < 1e-5, "column {k}: {fd} vs {j}");
+        }
+    }
+
+    #[test]
+    fn intrinsics_jacobian_matches_finite_differences() {
+        let c = cam();
+        let p = Vector3::new(-60.0, 45.0, 300.0);
+        let j = c.project_intrinsics_jacobian(&p).unwrap();
+        let get = |k: &CameraIntrinsics, i: usize| match i {
+            0 => k.fx,
+            1 => k.fy,
+            2 => k.cx,
+            3 => k.cy,
+            _ => k.dist[i - 4],
+        };
+        let set = |k: &mut CameraIntrinsics, i: usize, v: f64| match i {
+            0 => k.fx = v,
+            1 => k.fy = v,
+            2 => k.cx = v,
+            3 => k.cy = v,
+            _ => k.dist[i - 4] = v,
+        };
+        for i in 0..9 {
+            let h = 1e-6 * get(&c, i).abs().max(1e-3);
+            let (mut a, mut b) = (c, c);
+            set(&mut a, i, get(&c, i) + h);
+            set(&mut b, i, get(&c, i) - h);
+            let fd = (a.project(&p).unwrap() - b.project(&p).unwrap()) / (2.0 * h);
+            let tol = 1e-5 * (1.0 + j[(0, i)].abs().max(j[(1, i)].abs()));
+            assert!((fd.x - j[(0, i)]).abs() < tol && (fd.y - j[(1, i)]).abs() < tol, "column {i}: {fd} vs {}, {}", j[(0, i)], j[(1, i)]);
         }
     }
 

@@ -7,6 +7,7 @@
 pub mod accuracy;
 pub mod backoff;
 pub mod archive;
+pub mod calibrate;
 pub mod camera;
 pub mod clock;
 pub mod config;

@@ -110,6 +110,9 @@ enum Command {
     Archive(tagdeflect::archive::ArchiveOptions),
     /// Measure how many feed lines per second one archive ingests (simulated rigs).
     ArchiveBench(tagdeflect::archive::bench::ArchiveBenchOptions),
+    /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
+    /// FileStorage YAML and reports uncertainties, coverage and outliers.
+    Calibrate(tagdeflect::calibrate::CalibrateOptions),
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -222,5 +225,6 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Archive(opts) => tagdeflect::archive::run(opts),
         Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts),
+        Command::Calibrate(opts) => tagdeflect::calibrate::run(&opts),
     }
 }

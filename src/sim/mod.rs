@@ -12,7 +12,7 @@
 
 mod beam;
 mod record;
-mod render;
+pub(crate) mod render;
 mod rig;
 mod scene;
 

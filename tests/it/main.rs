@@ -6,6 +6,7 @@ mod common;
 mod accuracy;
 mod aravis_fake;
 mod archive;
+mod calibrate;
 mod cli;
 mod config;
 mod detect_accuracy;
