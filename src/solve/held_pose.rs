@@ -9,7 +9,7 @@
 //! error over the run). The background corners are still averaged while static, and they
 //! carry the measurement across a bump: the camera's motion is measured between the
 //! averaged corners before the bump and the running mean after it (refined over
-//! [`TrackerOptions::average_updates_after_bump`] updates, then held), and applied to the
+//! [`HeldPoseOptions::average_updates_after_bump`] updates, then held), and applied to the
 //! held pose. The held pose's constant error thus carries over, and displacements stay
 //! continuous across the bump to the accuracy of averaged corners rather than jumping by
 //! a fresh single-frame pose error.
@@ -29,9 +29,9 @@ use super::camera_pose::{solve_camera_pose, BackgroundTagObservation};
 use super::lm::median;
 use crate::camera::{CameraIntrinsics, Pose};
 
-/// Tuning of a [`CameraPoseTracker`].
+/// Tuning of a [`HeldCameraPose`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrackerOptions {
+pub struct HeldPoseOptions {
     /// Fewest background corners to pose (or test) the camera in an update (4 = one tag).
     pub min_corners: usize,
     /// Smallest median corner shift (px) taken as a bump.
@@ -45,15 +45,15 @@ pub struct TrackerOptions {
     pub average_updates_after_bump: usize,
 }
 
-impl Default for TrackerOptions {
+impl Default for HeldPoseOptions {
     fn default() -> Self {
         Self { min_corners: 4, bump_floor_px: 1.0, bump_noise_factor: 6.0, average_updates_initial: 1, average_updates_after_bump: 10 }
     }
 }
 
-/// What one [`CameraPoseTracker::update`] found.
+/// What one [`HeldCameraPose::update`] found.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TrackerStatus {
+pub struct HeldPoseStatus {
     /// The pose to use for this frame set (world → camera); `None` while the camera has
     /// never been posed, or after a bump it could not be re-posed from.
     pub pose: Option<Pose>,
@@ -97,9 +97,9 @@ struct CornerStats {
 
 /// Keeps one camera's pose across frame sets. See the module docs for the policy.
 #[derive(Debug, Clone)]
-pub struct CameraPoseTracker {
+pub struct HeldCameraPose {
     intrinsics: CameraIntrinsics,
-    options: TrackerOptions,
+    options: HeldPoseOptions,
     fixed: bool,
     /// The pose that fits the images (held after settling); reported pose = `raw ∘ fix`.
     raw: Option<Pose>,
@@ -115,14 +115,14 @@ pub struct CameraPoseTracker {
     average_limit: usize,
 }
 
-impl CameraPoseTracker {
+impl HeldCameraPose {
     /// A tracker for a camera; `fixed_pose` (from the config's rvec/tvec) disables estimation.
     pub fn new(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>) -> Self {
-        Self::with_options(intrinsics, fixed_pose, TrackerOptions::default())
+        Self::with_options(intrinsics, fixed_pose, HeldPoseOptions::default())
     }
 
     /// As [`new`](Self::new) with explicit tuning.
-    pub fn with_options(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>, options: TrackerOptions) -> Self {
+    pub fn with_options(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>, options: HeldPoseOptions) -> Self {
         Self {
             intrinsics,
             options,
@@ -162,7 +162,7 @@ impl CameraPoseTracker {
     }
 
     /// Feeds one frame set's background tags seen by this camera (possibly none).
-    pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+    pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
         let tags: Vec<BackgroundTagObservation> = tags
             .iter()
             .filter(|t| {
@@ -172,7 +172,7 @@ impl CameraPoseTracker {
             .collect();
         let corners = tags.len() * 4;
         let threshold = self.bump_threshold_px();
-        let mut status = TrackerStatus {
+        let mut status = HeldPoseStatus {
             pose: self.pose(),
             covariance: self.covariance,
             bumped: false,
@@ -313,7 +313,7 @@ impl CameraPoseTracker {
         status
     }
 
-    fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: TrackerStatus) -> TrackerStatus {
+    fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: HeldPoseStatus) -> HeldPoseStatus {
         match solve_camera_pose(&self.intrinsics, &tags, None) {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
@@ -442,7 +442,7 @@ mod tests {
     #[test]
     fn holds_the_pose_and_measures_the_corner_noise() {
         let (intr, pose, tags) = setup();
-        let mut t = CameraPoseTracker::new(intr, None);
+        let mut t = HeldCameraPose::new(intr, None);
         let first = t.update(&observe(&intr, &pose, &tags, 0.2, 0));
         assert!(first.first_pose && !first.bumped);
         for step in 1..40 {
@@ -458,7 +458,7 @@ mod tests {
     #[test]
     fn one_moved_tag_is_not_a_bump() {
         let (intr, pose, tags) = setup();
-        let mut t = CameraPoseTracker::new(intr, None);
+        let mut t = HeldCameraPose::new(intr, None);
         for step in 0..5 {
             t.update(&observe(&intr, &pose, &tags, 0.05, step));
         }
