@@ -10,8 +10,17 @@
 //! options per call and run on several C workers at once), the [`TagConfirmer`] with the
 //! known tags' bitmaps and the rig's [`TagRoles`]. Cameras are independent, so the
 //! measurement detects all of a frame set's cameras in parallel.
+//!
+//! **Background searches** (live pipeline, [`CameraDetector::set_background_searches`]):
+//! a whole-frame search after the first frame — the sweep after a tag was lost, or the
+//! search of a camera that follows no tag — runs on a thread of its own on a copy of the
+//! frame, so it stalls no frame set; the tags it finds are followed from the first frame
+//! after it finished (confirmed there, where they were found). Replays keep every search
+//! in its frame, so they stay reproducible.
 
 use std::collections::{HashMap, HashSet};
+use std::sync::mpsc;
+use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -139,6 +148,12 @@ pub struct CameraDetector {
     tag_contrast: Option<f64>,
     /// The sweep's masked copy of a tile (reused).
     tile: GrayImage,
+    /// Whole-frame searches after the first frame run in the background.
+    background: bool,
+    /// A frame has been searched (the first search is never in the background).
+    searched_once: bool,
+    /// The result of the background search under way: the frame's time and its tags.
+    pending: Option<mpsc::Receiver<(i64, Vec<Detection>)>>,
 }
 
 impl CameraDetector {
@@ -151,6 +166,46 @@ impl CameraDetector {
             edge_levels: HashMap::new(),
             tag_contrast: None,
             tile: GrayImage::new(0, 0),
+            background: false,
+            searched_once: false,
+            pending: None,
+        }
+    }
+
+    /// Runs whole-frame searches after the first frame in the background (see the module
+    /// docs; for live capture, where a stalled frame set is a lost one).
+    pub fn set_background_searches(&mut self, on: bool) {
+        self.background = on;
+    }
+
+    /// Takes the tags of a finished background search into the plan.
+    fn take_background_result(&mut self, rig: &RigDetectors) {
+        let Some(rx) = &self.pending else { return };
+        match rx.try_recv() {
+            Ok((t_ns, dets)) => {
+                self.pending = None;
+                let dets = rig.roles.classify(dets);
+                self.planner.add_found(t_ns, &dets.background, &dets.specimen);
+            }
+            Err(mpsc::TryRecvError::Empty) => {}
+            Err(mpsc::TryRecvError::Disconnected) => self.pending = None,
+        }
+    }
+
+    /// Starts a search of the whole `image` in the background unless one is under way.
+    fn start_background_search(&mut self, t_ns: i64, image: &GrayImage, options: SearchOptions, rig: &Arc<RigDetectors>) {
+        if self.pending.is_some() {
+            return;
+        }
+        let (tx, rx) = mpsc::channel();
+        let (image, rig, intrinsics) = (image.clone(), Arc::clone(rig), self.intrinsics);
+        let spawned = std::thread::Builder::new().name("background-search".into()).spawn(move || {
+            let found = rig.library.search(&image, None, &options, Some(&intrinsics));
+            let _ = tx.send((t_ns, found));
+        });
+        match spawned {
+            Ok(_) => self.pending = Some(rx),
+            Err(e) => tracing::warn!("cannot start a background search: {e}"),
         }
     }
 
@@ -158,9 +213,16 @@ impl CameraDetector {
     /// are predicted (in parallel), then the searches still needed — the full frame, windows
     /// of tags not confirmed, sweep tiles — run on the rig's shared detector; what was found
     /// is remembered for the next frame.
-    pub fn detect(&mut self, t_ns: i64, image: &GrayImage, rig: &RigDetectors) -> (CameraDetections, DetectReport) {
+    pub fn detect(&mut self, t_ns: i64, image: &GrayImage, rig: &Arc<RigDetectors>) -> (CameraDetections, DetectReport) {
         let mut report = DetectReport::default();
+        self.take_background_result(rig);
+        let background = self.background && self.searched_once;
+        self.searched_once = true;
         let found = match self.planner.plan(t_ns, image) {
+            Plan::FullFrame if background && self.planner.is_empty() => {
+                self.start_background_search(t_ns, image, SearchOptions::of(rig.library.options()), rig);
+                Vec::new()
+            }
             Plan::FullFrame => {
                 let c0 = Instant::now();
                 let found = rig.library.search(image, None, &SearchOptions::of(rig.library.options()), Some(&self.intrinsics));
@@ -168,7 +230,12 @@ impl CameraDetector {
                 report.parts.full_frame = c0.elapsed().as_secs_f64();
                 found
             }
-            Plan::Windows { decimate, tags, sweep } => {
+            Plan::Windows { decimate, tags, mut sweep, whole_frame } => {
+                if background && whole_frame {
+                    let options = self.search_options(rig, decimate);
+                    self.start_background_search(t_ns, image, options, rig);
+                    sweep.clear();
+                }
                 let (confirmed, windows, cpu) = self.confirm(image, tags, rig);
                 report.parts.tracking = cpu;
                 report.confirmed_tags = confirmed.len() as u64;
@@ -224,6 +291,21 @@ impl CameraDetector {
             self.tag_contrast = weakest;
         }
         (confirmed, merge_rects(windows), cpu)
+    }
+
+    /// The options of window and sweep searches: decimation `search_decimate` (at least the
+    /// configured one), the contrast filter at a fraction of the weakest followed tag's.
+    fn search_options(&self, rig: &RigDetectors, search_decimate: f32) -> SearchOptions {
+        let configured = rig.library.options();
+        let min_diff = configured.min_white_black_diff as f64;
+        let white_black_diff = self
+            .tag_contrast
+            .map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
+        SearchOptions {
+            quad_decimate: configured.quad_decimate.max(search_decimate),
+            min_white_black_diff: white_black_diff as u8,
+            refine: configured.subpixel.is_some(),
+        }
     }
 
     /// Searches the windows around tags that could not be confirmed, and the sweep tiles,

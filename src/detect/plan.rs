@@ -112,6 +112,8 @@ pub enum Plan {
         tags: Vec<PlannedTag>,
         /// Tiles of the periodic sweep (or the whole frame after a lost tag).
         sweep: Vec<Rect>,
+        /// `sweep` is the whole frame at once (after a lost tag), not the periodic tiles.
+        whole_frame: bool,
     },
 }
 
@@ -237,6 +239,7 @@ impl RoiPlanner {
         // The sweep: the tiles of the whole frame once per interval, staggered by phase.
         let overlap = 1.3 * max_extent + 16.0;
         let tiles = sweep_tiles(w, h, overlap);
+        let whole_frame = self.sweep_all_requested;
         let sweep = if self.sweep_all_requested {
             self.sweep_all_requested = false;
             clip(w, h, 0.0, 0.0, w as f64, h as f64).into_iter().collect()
@@ -251,7 +254,28 @@ impl RoiPlanner {
         };
         let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
         tags.sort_by_key(|t| (t.family.name(), t.id));
-        Plan::Windows { decimate, tags, sweep }
+        Plan::Windows { decimate, tags, sweep, whole_frame }
+    }
+
+    /// Starts following tags found by a search of an earlier frame (at `t_ns`) that ran
+    /// while later frames were planned: tags already followed are left as they are, the
+    /// others are looked for from the next plan on, where they were found.
+    pub fn add_found(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
+            self.sightings.entry((d.family, d.id)).or_insert(Sighting {
+                corners: d.corners,
+                velocity: Vector2::zeros(),
+                t_ns,
+                missed: 0,
+                background: is_bg,
+                searched: false,
+            });
+        }
+    }
+
+    /// True when no tag is followed.
+    pub fn is_empty(&self) -> bool {
+        self.sightings.is_empty()
     }
 
     /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but

@@ -5,6 +5,7 @@
 
 use nalgebra::{Matrix6, Vector3};
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::camera::{CameraIntrinsics, Pose};
@@ -77,7 +78,7 @@ pub struct Measurement {
     cameras: Vec<CameraState>,
     /// What the cameras' detectors share: the one AprilTag library (its tag36h11
     /// decoding table takes ~37 MB), the confirmer, the tags' roles.
-    rig: RigDetectors,
+    rig: Arc<RigDetectors>,
     background_world: HashMap<u32, [Vector3<f64>; 4]>,
     specimen_ids: HashMap<u32, Option<TagRole>>,
     tags: BTreeMap<u32, TagHistory>,
@@ -97,11 +98,16 @@ impl Measurement {
         };
         let opts = DetectorOptions {
             quad_decimate: config.measure.quad_decimate,
-            nthreads: config.measure.detector_threads.max(1),
+            // One thread per search: searches run side by side on several C workers (cameras
+            // in parallel) instead of on the library's own pool, whose every phase waits for
+            // its slowest thread — on a busy machine, for a thread the scheduler put aside.
+            nthreads: 1,
             subpixel: config.measure.refine_corners.then(RefineOptions::default),
             ..DetectorOptions::for_families(&families)
         };
-        let library = Detector::new(opts)?;
+        // A worker per thread of the pool and one per camera for its background search.
+        let workers = (config.measure.detector_threads as usize).max(rayon::current_num_threads()) + config.cameras.len();
+        let library = Detector::with_workers(opts, workers)?;
         let mut cameras = Vec::new();
         for cam in &config.cameras {
             let intrinsics = cam.intrinsics();
@@ -126,7 +132,7 @@ impl Measurement {
             specimen: config.specimen.tags.iter().map(|t| t.id).collect(),
         };
         let confirmer = TagConfirmer::new(ConfirmOptions::default(), roles.known());
-        let rig = RigDetectors { library, confirmer, roles };
+        let rig = Arc::new(RigDetectors { library, confirmer, roles });
         let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
         let specimen_ids = config.specimen.tags.iter().map(|t| (t.id, t.role)).collect();
         let up = Vector3::from(config.world.up).normalize();
@@ -143,6 +149,15 @@ impl Measurement {
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
         })
+    }
+
+    /// Runs whole-frame searches after the first frame set in the background, so none
+    /// stalls a frame set (the live pipeline; see `detect::camera_detector`).
+    pub fn with_background_searches(mut self) -> Self {
+        for cam in &mut self.cameras {
+            cam.detector.set_background_searches(true);
+        }
+        self
     }
 
     /// Counters so far.

@@ -433,3 +433,34 @@ fn masked_sweep_tiles_hide_known_tags_only() {
     assert!(patch.iter().all(|&v| v == patch[0]), "flat patch");
     assert!((patch[0] as f64 - scene.background).abs() < 30.0, "filled with the surrounding grey: {}", patch[0]);
 }
+
+#[test]
+fn parallel_searches_on_shared_family_tables_equal_one_detector() {
+    use tagdeflect::detect::SearchOptions;
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let scene = Scene { width: 480, height: 320, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
+    let tags: Vec<_> =
+        (0..4).map(|i| (TagFamily::Tag36h11, 3 + i, random_corners(&mut rng, 70.0 + 110.0 * i as f64, 160.0, 60.0, 0.02))).collect();
+    let img = render(&scene, &tags, &mut rng);
+    let opts = DetectorOptions::for_families(&[TagFamily::Tag36h11, TagFamily::Tag25h9]);
+    let mut one = Detector::new(opts.clone()).unwrap();
+    let expected = one.detect(&img);
+    assert_eq!(expected.len(), 4, "{expected:?}");
+    // Three C detectors sharing the families' decoding tables, searched from six threads.
+    let shared = Detector::with_workers(opts.clone(), 3).unwrap();
+    assert_eq!(shared.workers(), 3);
+    let search = SearchOptions::of(&opts);
+    std::thread::scope(|s| {
+        let handles: Vec<_> =
+            (0..6).map(|_| s.spawn(|| (0..5).map(|_| shared.search(&img, None, &search, None)).collect::<Vec<_>>())).collect();
+        for h in handles {
+            for found in h.join().unwrap() {
+                assert_eq!(found, expected, "a parallel search differs from the single detector's");
+            }
+        }
+    });
+    // Per-call options: an unrefined decimated search leaves the detector's own as they were.
+    let coarse = shared.search(&img, None, &SearchOptions { quad_decimate: 2.0, refine: false, ..search }, None);
+    assert_eq!(coarse.len(), 4);
+    assert_eq!(shared.search(&img, None, &search, None), expected);
+}
