@@ -373,7 +373,7 @@ fn solver_loop(
     utm_configured: bool,
 ) {
     let mut measure = match Measurement::new(&config, !full_frame) {
-        Ok(m) => m.with_background_searches(),
+        Ok(m) => m,
         Err(e) => {
             tracing::error!("cannot start the tag detector: {e}");
             return;
