@@ -1,10 +1,11 @@
 //! The camera model: OpenCV pinhole with radial-tangential distortion (k1, k2, p1, p2, k3),
-//! its analytic Jacobians, undistortion, and rigid poses.
+//! its analytic Jacobians, undistortion (one Newton solver; [`Lens`] for the fast pixel-run
+//! path of refinement), plane homographies, and rigid poses.
 //!
 //! Pixel convention (OpenCV): pixel centres at integer coordinates, (0, 0) is the centre of
 //! the top-left pixel. Poses map world to camera: `x_cam = R x_world + t` (mm).
 
-use nalgebra::{Matrix2, Matrix2x3, Matrix3, Point2, Rotation3, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix2x3, Matrix3, Point2, Rotation3, SMatrix, SVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Intrinsic parameters of one camera.
@@ -102,23 +103,32 @@ impl CameraIntrinsics {
         Some(j)
     }
 
-    /// Removes distortion: pixel → normalised coordinates, by Gauss–Newton on
+    /// Removes distortion: pixel → normalised coordinates, by Newton's method on
     /// [`distort`](Self::distort) (exact to ~1e-12 inside the calibrated field).
     pub fn undistort(&self, px: &Point2<f64>) -> Vector2<f64> {
         let target = Vector2::new((px.x - self.cx) / self.fx, (px.y - self.cy) / self.fy);
-        let mut x = target;
+        self.undistort_normalised(target, target, 1e-24)
+    }
+
+    /// Newton's method for `distort(x) = target` from `x`, until the residual's square is
+    /// below `tol`: the one undistortion of the model (see also [`Lens`]).
+    fn undistort_normalised(&self, target: Vector2<f64>, mut x: Vector2<f64>, tol: f64) -> Vector2<f64> {
         for _ in 0..20 {
             let r = self.distort(x) - target;
-            if r.norm_squared() < 1e-24 {
+            if r.norm_squared() < tol {
                 break;
             }
-            let j = self.distort_jacobian(x);
-            match j.try_inverse() {
+            match self.distort_jacobian(x).try_inverse() {
                 Some(ji) => x -= ji * r,
                 None => break,
             }
         }
         x
+    }
+
+    /// The lens of this camera in pixel units (see [`Lens`]).
+    pub fn lens(&self) -> Lens<'_> {
+        Lens::new(Some(self))
     }
 
     /// True when a pixel lies inside the image with `margin` pixels to spare.
@@ -128,6 +138,170 @@ impl CameraIntrinsics {
             && px.x <= self.width as f64 - 0.5 - margin
             && px.y <= self.height as f64 - 0.5 - margin
     }
+}
+
+/// The last solution of [`Lens::pixel_to_ideal_run`] (normalised coordinates): the start
+/// of the next pixel of the run.
+#[derive(Debug, Clone, Copy)]
+pub struct Undistorted {
+    target: Vector2<f64>,
+    x: Vector2<f64>,
+    jinv: Matrix2<f64>,
+}
+
+/// Pixel ↔ ideal (undistorted) pixel coordinates (`fx·xn + cx`, `fy·yn + cy`) of a camera;
+/// the identity without intrinsics or without distortion. The fast paths of sub-pixel
+/// refinement and tag confirmation: a run of neighbouring pixels is undistorted by chord
+/// steps from the previous pixel's solution ([`Lens::pixel_to_ideal_run`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Lens<'a> {
+    intr: Option<&'a CameraIntrinsics>,
+}
+
+impl<'a> Lens<'a> {
+    /// The lens of `intrinsics` (the identity for `None`, unusable or distortion-free intrinsics).
+    pub fn new(intrinsics: Option<&'a CameraIntrinsics>) -> Self {
+        // Without distortion ideal pixels are the pixels themselves.
+        Lens { intr: intrinsics.filter(|k| k.fx > 0.0 && k.fy > 0.0 && k.fx.is_finite() && k.fy.is_finite() && k.dist != [0.0; 5]) }
+    }
+
+    /// [`Lens::pixel_to_ideal`] for a run of nearby pixels (a row): the previous pixel's
+    /// solution in `prev`, moved by its inverse Jacobian, predicts this one to a few 1e-4 px,
+    /// so one Newton step usually finishes it (it iterates on until the step is below
+    /// ~3e-7 in normalised coordinates, i.e. a remaining error below 1e-12).
+    pub fn pixel_to_ideal_run(&self, p: &Vector2<f64>, prev: &mut Option<Undistorted>) -> Vector2<f64> {
+        let Some(k) = self.intr else {
+            return *p;
+        };
+        let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
+        // Along a run the previous pixel's inverse Jacobian serves for the step too (it
+        // changes by ~1e-4 per pixel, so the step's error is ~1e-4 of an already tiny
+        // one); a fresh Jacobian is taken at the start of a run and whenever the step is
+        // not yet small.
+        let (mut x, mut jinv) = match prev {
+            Some(u) => (u.x + u.jinv * (target - u.target), Some(u.jinv)),
+            None => (target, None),
+        };
+        for _ in 0..20 {
+            let r = k.distort(x) - target;
+            let ji = match jinv {
+                Some(ji) => ji,
+                None => match k.distort_jacobian(x).try_inverse() {
+                    Some(ji) => ji,
+                    None => break,
+                },
+            };
+            let step = ji * r;
+            x -= step;
+            if step.norm_squared() < 1e-13 {
+                jinv = Some(ji);
+                break;
+            }
+            jinv = None;
+        }
+        let jinv = jinv.or_else(|| k.distort_jacobian(x).try_inverse()).unwrap_or_else(Matrix2::identity);
+        *prev = Some(Undistorted { target, x, jinv });
+        Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
+    }
+
+    /// Distorted pixel → ideal pixel, warm-started from `guess` (ideal).
+    pub fn pixel_to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
+        let Some(k) = self.intr else {
+            return *p;
+        };
+        let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
+        let start = match guess {
+            Some(g) => Vector2::new((g.x - k.cx) / k.fx, (g.y - k.cy) / k.fy),
+            None => target,
+        };
+        let x = k.undistort_normalised(target, start, 1e-26);
+        Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
+    }
+
+    /// Ideal pixel → distorted pixel.
+    pub fn ideal_to_pixel(&self, u: &Vector2<f64>) -> Vector2<f64> {
+        let Some(k) = self.intr else {
+            return *u;
+        };
+        let d = k.distort(Vector2::new((u.x - k.cx) / k.fx, (u.y - k.cy) / k.fy));
+        Vector2::new(k.fx * d.x + k.cx, k.fy * d.y + k.cy)
+    }
+}
+
+/// Homography `H` with `[x, y, 1]ᵀ ~ H [u, v, 1]ᵀ` from point pairs `from` (u, v) → `to`
+/// (x, y): exact from four pairs (8 × 8 linear solve, `H₃₃ = 1`), the normalised DLT from
+/// more. `None` for degenerate input.
+pub fn homography(from: &[Vector2<f64>], to: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
+    if from.len() < 4 || from.len() != to.len() {
+        return None;
+    }
+    let h = if from.len() == 4 { homography_4(from, to)? } else { homography_dlt(from, to)? };
+    (h.iter().all(|v| v.is_finite()) && h.norm() > 0.0).then_some(h)
+}
+
+/// The exact homography of four point pairs.
+fn homography_4(from: &[Vector2<f64>], to: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
+    let mut a = SMatrix::<f64, 8, 8>::zeros();
+    let mut b = SVector::<f64, 8>::zeros();
+    for i in 0..4 {
+        let (x, y) = (from[i].x, from[i].y);
+        let (u, v) = (to[i].x, to[i].y);
+        let r = 2 * i;
+        a.row_mut(r).copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
+        a.row_mut(r + 1).copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
+        b[r] = u;
+        b[r + 1] = v;
+    }
+    let h = a.lu().solve(&b)?;
+    Some(Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0))
+}
+
+/// The normalised DLT of five or more point pairs.
+fn homography_dlt(plane: &[Vector2<f64>], image: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
+    let (tp, _) = normaliser(plane)?;
+    let (ti, ti_inv) = normaliser(image)?;
+    let mut ata = SMatrix::<f64, 9, 9>::zeros();
+    for (p, q) in plane.iter().zip(image) {
+        let p = tp * Vector3::new(p.x, p.y, 1.0);
+        let q = ti * Vector3::new(q.x, q.y, 1.0);
+        let (u, v) = (p.x / p.z, p.y / p.z);
+        let (x, y) = (q.x / q.z, q.y / q.z);
+        let rows = [
+            SMatrix::<f64, 1, 9>::from_row_slice(&[u, v, 1.0, 0.0, 0.0, 0.0, -x * u, -x * v, -x]),
+            SMatrix::<f64, 1, 9>::from_row_slice(&[0.0, 0.0, 0.0, u, v, 1.0, -y * u, -y * v, -y]),
+        ];
+        for r in rows {
+            ata += r.transpose() * r;
+        }
+    }
+    let eig = ata.symmetric_eigen();
+    let (imin, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let h = eig.eigenvectors.column(imin);
+    let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
+    Some(ti_inv * hn * tp)
+}
+
+/// Similarity moving points to zero mean and mean distance √2, and its inverse.
+fn normaliser(pts: &[Vector2<f64>]) -> Option<(Matrix3<f64>, Matrix3<f64>)> {
+    let n = pts.len() as f64;
+    let c = pts.iter().fold(Vector2::zeros(), |a, p| a + p) / n;
+    let d = pts.iter().map(|p| (p - c).norm()).sum::<f64>() / n;
+    if !d.is_finite() || d <= 1e-15 {
+        return None;
+    }
+    let s = std::f64::consts::SQRT_2 / d;
+    let t = Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0);
+    let ti = Matrix3::new(1.0 / s, 0.0, c.x, 0.0, 1.0 / s, c.y, 0.0, 0.0, 1.0);
+    Some((t, ti))
+}
+
+/// Applies a homography to a point; `None` at infinity.
+pub fn apply_homography(h: &Matrix3<f64>, p: &Vector2<f64>) -> Option<Vector2<f64>> {
+    let q = h * Vector3::new(p.x, p.y, 1.0);
+    if q.z.abs() < 1e-12 {
+        return None;
+    }
+    Some(Vector2::new(q.x / q.z, q.y / q.z))
 }
 
 /// A rigid transform from world to camera: `x_cam = rotation * x_world + translation` (mm).

@@ -1,4 +1,5 @@
-//! Tag families and tag geometry: family names, corner order, tag-frame corners.
+//! Tag families and tag geometry: the families' facts (one table), corner order, tag-frame
+//! corners, bitmaps from a family's layout, the cell homography.
 //!
 //! Corner order everywhere (SPEC): bottom-left, bottom-right, top-right, top-left of the
 //! black square as the tag is printed upright. The tag frame has its origin at the centre
@@ -22,26 +23,54 @@ pub enum TagFamily {
     Tag16h5,
 }
 
+/// What the product needs to know of a family, one row per family (the AprilTag library's
+/// own tables hold the codes and bit layout: see `detect::family`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FamilyFacts {
+    /// The family's name as the AprilTag library spells it.
+    pub name: &'static str,
+    /// Number of codes (valid ids are `0..code_count`).
+    pub code_count: u32,
+    /// Width of the black square in cells (the library's `width_at_border`).
+    pub width_at_border: u32,
+    /// Width of the printed tag in cells, white ring included (`total_width`).
+    pub total_width: u32,
+}
+
+/// The facts of every family, in the order of [`TagFamily::ALL`].
+const FAMILY_FACTS: [FamilyFacts; 3] = [
+    FamilyFacts { name: "tag36h11", code_count: 587, width_at_border: 8, total_width: 10 },
+    FamilyFacts { name: "tag25h9", code_count: 35, width_at_border: 7, total_width: 9 },
+    FamilyFacts { name: "tag16h5", code_count: 30, width_at_border: 6, total_width: 8 },
+];
+
 impl TagFamily {
     /// All supported families.
     pub const ALL: [TagFamily; 3] = [TagFamily::Tag36h11, TagFamily::Tag25h9, TagFamily::Tag16h5];
 
+    /// Position of the family in [`TagFamily::ALL`] (an index into per-family tables).
+    pub fn index(self) -> usize {
+        self as usize
+    }
+
+    /// The family's row of facts.
+    pub fn facts(self) -> &'static FamilyFacts {
+        &FAMILY_FACTS[self.index()]
+    }
+
     /// The family's name as the AprilTag library spells it.
     pub fn name(self) -> &'static str {
-        match self {
-            TagFamily::Tag36h11 => "tag36h11",
-            TagFamily::Tag25h9 => "tag25h9",
-            TagFamily::Tag16h5 => "tag16h5",
-        }
+        self.facts().name
     }
 
     /// Number of codes (valid ids are `0..code_count()`).
     pub fn code_count(self) -> u32 {
-        match self {
-            TagFamily::Tag36h11 => 587,
-            TagFamily::Tag25h9 => 35,
-            TagFamily::Tag16h5 => 30,
-        }
+        self.facts().code_count
+    }
+
+    /// Width of the black square in bits (cells).
+    pub fn width_at_border(self) -> u32 {
+        self.facts().width_at_border
     }
 }
 
@@ -154,85 +183,70 @@ impl TagBitmap {
     }
 }
 
-/// The bitmap of tag `id` of `family`, read from the AprilTag library's family table.
-pub fn tag_bitmap(family: TagFamily, id: u32) -> Result<TagBitmap, TagError> {
-    let layout = crate::detect::family::family_layout(family);
-    let code = *layout.codes.get(id as usize).ok_or(TagError::UnknownId { family, id, count: layout.codes.len() as u32 })?;
-    let tw = layout.total_width;
-    let wab = layout.width_at_border;
-    let mut white = vec![false; (tw * tw) as usize];
-    // The white ring (classic layout: just outside the black square; reversed: the border itself).
-    let ring = wab + if layout.reversed_border { 0 } else { 2 };
-    let ring_start = (tw - ring.min(tw)) / 2;
-    let ring_end = ring_start + ring - 1;
-    for r in 0..tw {
-        for c in 0..tw {
-            let on_ring = (r == ring_start || r == ring_end || c == ring_start || c == ring_end)
-                && (ring_start..=ring_end).contains(&r)
-                && (ring_start..=ring_end).contains(&c);
-            if on_ring {
-                white[(r * tw + c) as usize] = true;
-            }
-        }
-    }
-    let border_start = (tw - wab) / 2;
-    let nbits = layout.bit_x.len() as u32;
-    for i in 0..nbits {
-        if code & (1u64 << (nbits - i - 1)) != 0 {
-            let (x, y) = (layout.bit_x[i as usize] + border_start, layout.bit_y[i as usize] + border_start);
-            if x < tw && y < tw {
-                white[(y * tw + x) as usize] = true;
-            }
-        }
-    }
-    Ok(TagBitmap { family, id, total_width: tw, width_at_border: wab, white })
+/// The layout and codes of a family, copied out of the AprilTag library's table (plain
+/// data; `detect::family::family_layout` reads it).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FamilyLayout {
+    /// The family.
+    pub family: TagFamily,
+    /// One code per id; bit `nbits - 1 - i` is data bit `i`.
+    pub codes: Vec<u64>,
+    /// Data-bit x positions (cells, from the left edge of the black square).
+    pub bit_x: Vec<u32>,
+    /// Data-bit y positions (cells, from the top edge of the black square).
+    pub bit_y: Vec<u32>,
+    /// Width of the black square in cells.
+    pub width_at_border: u32,
+    /// Width of the whole printed tag in cells (white ring included).
+    pub total_width: u32,
+    /// True for families whose border is white inside black (not the classic families).
+    pub reversed_border: bool,
+    /// Minimum Hamming distance between codes.
+    pub min_hamming: u32,
 }
 
-#[cfg(test)]
-mod bitmap_tests {
-    use super::*;
-
-    /// Reads an apriltag-imgs PNG (RGBA) as a white/black grid.
-    fn read_png(path: &std::path::Path) -> Option<(u32, Vec<bool>)> {
-        let img = image::open(path).ok()?.to_luma8();
-        let (w, h) = img.dimensions();
-        assert_eq!(w, h);
-        Some((w, img.pixels().map(|p| p.0[0] > 127).collect()))
-    }
-
-    #[test]
-    fn bitmaps_match_apriltag_imgs() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata/apriltag-imgs");
-        let mut checked = 0;
-        for (family, dir, prefix, ids) in [
-            (TagFamily::Tag36h11, "tag36h11", "tag36_11_", vec![0u32, 1, 7, 42, 100, 311, 586]),
-            (TagFamily::Tag25h9, "tag25h9", "tag25_09_", vec![0u32, 1, 5, 17, 34]),
-        ] {
-            for id in ids {
-                let path = root.join(dir).join(format!("{prefix}{id:05}.png"));
-                let (w, px) = read_png(&path).unwrap_or_else(|| panic!("cannot read {}", path.display()));
-                let bm = tag_bitmap(family, id).unwrap();
-                assert_eq!(w, bm.total_width, "{}", path.display());
-                assert_eq!(px, bm.white, "{family} id {id} differs from {}", path.display());
-                checked += 1;
+impl TagBitmap {
+    /// The bitmap of tag `id` of the family whose table is `layout`.
+    pub fn from_layout(layout: &FamilyLayout, id: u32) -> Result<TagBitmap, TagError> {
+        let family = layout.family;
+        let code = *layout.codes.get(id as usize).ok_or(TagError::UnknownId { family, id, count: layout.codes.len() as u32 })?;
+        let tw = layout.total_width;
+        let wab = layout.width_at_border;
+        let mut white = vec![false; (tw * tw) as usize];
+        // The white ring (classic layout: just outside the black square; reversed: the border itself).
+        let ring = wab + if layout.reversed_border { 0 } else { 2 };
+        let ring_start = (tw - ring.min(tw)) / 2;
+        let ring_end = ring_start + ring - 1;
+        for r in 0..tw {
+            for c in 0..tw {
+                let on_ring = (r == ring_start || r == ring_end || c == ring_start || c == ring_end)
+                    && (ring_start..=ring_end).contains(&r)
+                    && (ring_start..=ring_end).contains(&c);
+                if on_ring {
+                    white[(r * tw + c) as usize] = true;
+                }
             }
         }
-        println!("{checked} bitmaps match apriltag-imgs pixel for pixel");
+        let border_start = (tw - wab) / 2;
+        let nbits = layout.bit_x.len() as u32;
+        for i in 0..nbits {
+            if code & (1u64 << (nbits - i - 1)) != 0 {
+                let (x, y) = (layout.bit_x[i as usize] + border_start, layout.bit_y[i as usize] + border_start);
+                if x < tw && y < tw {
+                    white[(y * tw + x) as usize] = true;
+                }
+            }
+        }
+        Ok(TagBitmap { family, id, total_width: tw, width_at_border: wab, white })
     }
+}
 
-    #[test]
-    fn unknown_id_is_an_error() {
-        assert!(matches!(tag_bitmap(TagFamily::Tag25h9, 35), Err(TagError::UnknownId { count: 35, .. })));
-    }
-
-    #[test]
-    fn cell_lookup_follows_the_printed_orientation() {
-        let bm = tag_bitmap(TagFamily::Tag36h11, 0).unwrap();
-        // 30 mm black square: cell 3.75 mm, printed 37.5 mm.
-        assert_eq!(bm.cell_at(-18.0, 18.0, 30.0), Some((0, 0)));
-        assert_eq!(bm.cell_at(18.0, -18.0, 30.0), Some((9, 9)));
-        assert_eq!(bm.cell_at(-14.0, -14.0, 30.0), Some((1, 8)));
-        assert_eq!(bm.cell_at(19.0, 0.0, 30.0), None);
-        assert!(!bm.is_white(1, 1) && bm.is_white(0, 0));
-    }
+/// Homography from tag cell coordinates (x right, y down as printed, origin at the black
+/// square's top-left, `width_at_border` cells across) to image coordinates, from the black
+/// square's corners there in SPEC order.
+pub fn cell_homography(corners: &[nalgebra::Vector2<f64>; 4], width_at_border: f64) -> Option<nalgebra::Matrix3<f64>> {
+    use nalgebra::Vector2;
+    let nb = width_at_border;
+    let tag = [Vector2::new(0.0, nb), Vector2::new(nb, nb), Vector2::new(nb, 0.0), Vector2::new(0.0, 0.0)];
+    crate::camera::homography(&tag, corners)
 }

@@ -9,7 +9,8 @@ use super::target::{tag_centre, TargetSpec};
 use crate::camera::{CameraIntrinsics, Pose};
 use crate::frame::GrayImage;
 use crate::sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
-use crate::tags::{tag_bitmap, TagBitmap};
+use crate::detect::tag_bitmap;
+use crate::tags::TagBitmap;
 
 /// How a target image is rendered.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -25,6 +25,7 @@
 #![allow(unsafe_code)] // FFI module: every `unsafe` block carries its SAFETY comment.
 
 use std::ptr::NonNull;
+use std::sync::{Mutex, TryLockError};
 
 use apriltag_sys as sys;
 use nalgebra::Point2;
@@ -86,7 +87,8 @@ pub struct DetectorOptions {
     pub refine_edges: bool,
     /// Sharpening of the decoded bit samples (library default 0.25).
     pub decode_sharpening: f64,
-    /// Worker threads of the library (1 = single-threaded; use one detector per worker).
+    /// Worker threads of the library per search (1 = single-threaded: parallel searches
+    /// then run on several workers, see [`Detector::with_workers`]).
     pub nthreads: u32,
     /// Bit errors the decoder corrects (library default 2; at most 3).
     pub max_bits_corrected: u8,
@@ -196,61 +198,120 @@ impl RawDetection {
     }
 }
 
-/// An AprilTag detector for one or several families (one per worker thread).
-pub struct Detector {
-    /// The C detector; destroyed in `Drop` before `families`.
+/// What may change from one search to the next on the same [`Detector`] (the other
+/// options are fixed when it is built): passed with each call, so searches of different
+/// purposes (a full frame, windows, unrefined sweep tiles) share the detector without
+/// switching its options.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SearchOptions {
+    /// Quad decimation of this search (at least 1).
+    pub quad_decimate: f32,
+    /// The contrast filter of this search (see [`DetectorOptions::min_white_black_diff`]).
+    pub min_white_black_diff: u8,
+    /// Refine the corners (with the detector's [`DetectorOptions::subpixel`] options).
+    pub refine: bool,
+}
+
+impl SearchOptions {
+    /// The search the detector's own options describe.
+    pub fn of(options: &DetectorOptions) -> Self {
+        Self {
+            quad_decimate: options.quad_decimate,
+            min_white_black_diff: options.min_white_black_diff,
+            refine: options.subpixel.is_some(),
+        }
+    }
+}
+
+/// One C detector of a [`Detector`]: its own worker state and scratch, the families
+/// (and their decoding tables) shared with the detector's other workers.
+struct Worker {
     td: NonNull<sys::apriltag_detector_t>,
-    /// Families registered with `td`; dropped after it.
-    families: Vec<FamilyTable>,
-    options: DetectorOptions,
-    intrinsics: Option<CameraIntrinsics>,
-    stats: RefineStats,
     /// Copy of the input when the library would blur it in place (`quad_sigma != 0`).
     scratch: Vec<u8>,
 }
 
-// SAFETY: the detector and its families are plain heap objects owned exclusively by this
-// value; the library keeps no thread-local state, and the worker pool it spawns is joined
-// inside each `apriltag_detector_detect` call. `Detector` is not `Sync`: `&mut self` is needed
-// to detect, so it is never used from two threads at once.
+// SAFETY: a C detector is a plain heap object owned by this value alone; the library keeps
+// no thread-local state, and the worker pool it spawns is joined inside each
+// `apriltag_detector_detect` call.
+unsafe impl Send for Worker {}
+
+/// An AprilTag detector for one or several families.
+///
+/// It holds the families' tables once (tag36h11's decoding table is 37 MB) and one or
+/// more C detectors ("workers", [`Detector::with_workers`]) that share them: the library
+/// builds a family's decoding table only when the family has none yet, and only reads it
+/// while detecting. [`Detector::search`] takes `&self`, so several threads search at once,
+/// each on a free worker; the `&mut self` methods use the detector's own options.
+pub struct Detector {
+    /// The C detectors; destroyed in `Drop` before `families`.
+    workers: Vec<Mutex<Worker>>,
+    /// Families registered with every worker; dropped after them.
+    families: Vec<FamilyTable>,
+    options: DetectorOptions,
+    intrinsics: Option<CameraIntrinsics>,
+    stats: RefineStats,
+}
+
+// SAFETY: see `Worker`; `Detector` is also `Sync`: each C detector is used under its
+// mutex only, and the family tables (with their decoding tables) are written only while
+// the detector is built (`apriltag_detector_add_family_bits`) and read afterwards.
 unsafe impl Send for Detector {}
+// SAFETY: as above.
+unsafe impl Sync for Detector {}
 
 impl std::fmt::Debug for Detector {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Detector").field("options", &self.options).field("intrinsics", &self.intrinsics).finish()
+        f.debug_struct("Detector")
+            .field("options", &self.options)
+            .field("workers", &self.workers.len())
+            .field("intrinsics", &self.intrinsics)
+            .finish()
     }
 }
 
 impl Detector {
-    /// Creates a detector; the options are validated first.
+    /// Creates a detector with one worker; the options are validated first.
     pub fn new(options: DetectorOptions) -> Result<Self, DetectError> {
+        Self::with_workers(options, 1)
+    }
+
+    /// Creates a detector whose [`search`](Self::search) runs up to `workers` searches at
+    /// once (each on the library's `nthreads` threads; the families' tables are shared).
+    pub fn with_workers(options: DetectorOptions, workers: usize) -> Result<Self, DetectError> {
         options.validate()?;
         let mut families = Vec::with_capacity(options.families.len());
         for &f in &options.families {
             families.push(FamilyTable::new(f).ok_or(DetectError::Create("a tag family table"))?);
         }
-        // SAFETY: no preconditions; returns a heap object or null.
-        let td = NonNull::new(unsafe { sys::apriltag_detector_create() }).ok_or(DetectError::Create("the detector"))?;
-        let mut det = Self { td, families, options, intrinsics: None, stats: RefineStats::default(), scratch: Vec::new() };
-        det.apply_options();
-        for fam in &det.families {
-            // SAFETY: both pointers are valid; the family outlives the detector (Drop order).
-            unsafe { sys::apriltag_detector_add_family_bits(det.td.as_ptr(), fam.as_ptr(), det.options.max_bits_corrected as i32) };
+        let mut det = Self { workers: Vec::new(), families, options, intrinsics: None, stats: RefineStats::default() };
+        for _ in 0..workers.max(1) {
+            // SAFETY: no preconditions; returns a heap object or null.
+            let td = NonNull::new(unsafe { sys::apriltag_detector_create() }).ok_or(DetectError::Create("the detector"))?;
+            let worker = Worker { td, scratch: Vec::new() };
+            for fam in &det.families {
+                // SAFETY: both pointers are valid; the family outlives the worker (Drop
+                // order). The first worker builds the family's decoding table, the others
+                // find it built and share it.
+                unsafe { sys::apriltag_detector_add_family_bits(td.as_ptr(), fam.as_ptr(), det.options.max_bits_corrected as i32) };
+            }
+            det.workers.push(Mutex::new(worker));
         }
         Ok(det)
     }
 
-    fn apply_options(&mut self) {
-        // SAFETY: `td` is valid and exclusively ours; plain field writes.
+    /// Writes the options of one search into a worker's C detector.
+    fn apply_options(td: NonNull<sys::apriltag_detector_t>, options: &DetectorOptions, search: &SearchOptions) {
+        // SAFETY: `td` is valid and held under its worker's mutex; plain field writes.
         unsafe {
-            let td = &mut *self.td.as_ptr();
-            td.quad_decimate = self.options.quad_decimate;
-            td.quad_sigma = self.options.quad_sigma;
-            td.refine_edges = self.options.refine_edges;
-            td.decode_sharpening = self.options.decode_sharpening;
-            td.nthreads = self.options.nthreads as i32;
+            let td = &mut *td.as_ptr();
+            td.quad_decimate = search.quad_decimate.max(1.0);
+            td.quad_sigma = options.quad_sigma;
+            td.refine_edges = options.refine_edges;
+            td.decode_sharpening = options.decode_sharpening;
+            td.nthreads = options.nthreads as i32;
             td.debug = false;
-            td.qtp.min_white_black_diff = self.options.min_white_black_diff as i32;
+            td.qtp.min_white_black_diff = search.min_white_black_diff as i32;
         }
     }
 
@@ -259,23 +320,28 @@ impl Detector {
         &self.options
     }
 
-    /// Changes the options (e.g. a decimated, unrefined search, then back); the families
-    /// cannot change (they are fixed when the detector is built).
+    /// Number of C detectors (searches that can run at once).
+    pub fn workers(&self) -> usize {
+        self.workers.len()
+    }
+
+    /// Changes the options used by the `&mut self` methods; the families cannot change
+    /// (they are fixed when the detector is built).
     pub fn set_options(&mut self, options: DetectorOptions) -> Result<(), DetectError> {
         options.validate()?;
-        if options.families != self.options.families {
+        if options.families != self.options.families || options.max_bits_corrected != self.options.max_bits_corrected {
             return Err(DetectError::BadOption {
                 name: "families",
                 value: format!("{:?}", options.families),
-                expected: "the detector's own families (build a new detector for others)",
+                expected: "the detector's own families and max_bits_corrected (build a new detector for others)",
             });
         }
         self.options = options;
-        self.apply_options();
         Ok(())
     }
 
-    /// The camera's intrinsics, used by sub-pixel refinement to straighten distorted edges.
+    /// The camera's intrinsics, used by sub-pixel refinement to straighten distorted edges
+    /// (for the `&mut self` methods; [`search`](Self::search) takes them per call).
     pub fn set_intrinsics(&mut self, intrinsics: Option<CameraIntrinsics>) {
         self.intrinsics = intrinsics;
     }
@@ -301,7 +367,7 @@ impl Detector {
     /// identical in quality to [`detect`](Self::detect)'s (same library run, same refinement
     /// on the full image). An empty window gives no detections.
     pub fn detect_window(&mut self, image: &GrayImage, rect: Rect) -> Vec<Detection> {
-        let raws = self.detect_raw(image, Some(rect));
+        let raws = self.raw(image, Some(rect), &SearchOptions { refine: false, ..SearchOptions::of(&self.options) });
         let mut out: Vec<Detection> = raws.iter().map(RawDetection::to_detection).collect();
         if let Some(opts) = self.options.subpixel.clone() {
             for d in &mut out {
@@ -312,10 +378,47 @@ impl Detector {
         out
     }
 
+    /// Detects tags in `rect` of `image` (the whole image for `None`) with the options of
+    /// this search, on a free worker (thread-safe); corners refined when `search.refine`
+    /// and the detector has refinement options, straightened by `intrinsics`.
+    pub fn search(
+        &self,
+        image: &GrayImage,
+        rect: Option<Rect>,
+        search: &SearchOptions,
+        intrinsics: Option<&CameraIntrinsics>,
+    ) -> Vec<Detection> {
+        let raws = self.raw(image, rect, search);
+        let mut out: Vec<Detection> = raws.iter().map(RawDetection::to_detection).collect();
+        if let (true, Some(opts)) = (search.refine, &self.options.subpixel) {
+            for d in &mut out {
+                refine_corners_with(image, d, intrinsics, opts);
+            }
+        }
+        out
+    }
+
     /// Runs the library alone on `image` or on a window of it and returns its detections in
     /// the library's convention and order (no conversion, no sub-pixel refinement), with
     /// window coordinates already offset to the full frame.
     pub fn detect_raw(&mut self, image: &GrayImage, rect: Option<Rect>) -> Vec<RawDetection> {
+        self.raw(image, rect, &SearchOptions::of(&self.options))
+    }
+
+    /// A free worker, or (all busy) the one of this thread's index.
+    fn worker(&self) -> std::sync::MutexGuard<'_, Worker> {
+        for w in &self.workers {
+            match w.try_lock() {
+                Ok(g) => return g,
+                Err(TryLockError::Poisoned(p)) => return p.into_inner(),
+                Err(TryLockError::WouldBlock) => {}
+            }
+        }
+        let i = rayon::current_thread_index().unwrap_or(0) % self.workers.len();
+        self.workers[i].lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn raw(&self, image: &GrayImage, rect: Option<Rect>, search: &SearchOptions) -> Vec<RawDetection> {
         let full = Rect { x: 0, y: 0, width: image.width, height: image.height };
         let Some(win) = rect.unwrap_or(full).aligned(THRESHOLD_TILE).clamp_to(image.width, image.height) else {
             return Vec::new();
@@ -325,19 +428,22 @@ impl Detector {
         if image.data.len() < expected_len || win.width < 8 || win.height < 8 || win.width >= 32768 || win.height >= 32768 {
             return Vec::new();
         }
+        let mut worker = self.worker();
+        let worker = &mut *worker;
+        Self::apply_options(worker.td, &self.options, search);
         let stride = image.width as usize;
         let offset = win.y as usize * stride + win.x as usize;
-        let in_place_blur = self.options.quad_sigma != 0.0 && self.options.quad_decimate <= 1.0;
+        let in_place_blur = self.options.quad_sigma != 0.0 && search.quad_decimate <= 1.0;
         let (buf, stride_used): (*mut u8, usize) = if in_place_blur {
             // The library would blur its input in place: give it a private copy of the window.
             let (w, h) = (win.width as usize, win.height as usize);
-            self.scratch.clear();
-            self.scratch.reserve(w * h);
+            worker.scratch.clear();
+            worker.scratch.reserve(w * h);
             for row in 0..h {
                 let start = offset + row * stride;
-                self.scratch.extend_from_slice(&image.data[start..start + w]);
+                worker.scratch.extend_from_slice(&image.data[start..start + w]);
             }
-            (self.scratch.as_mut_ptr(), w)
+            (worker.scratch.as_mut_ptr(), w)
         } else {
             // SAFETY (of the later read-only use): `offset` is inside `data`, and every row of
             // the window lies inside `data` because the window is clamped to the image. The
@@ -345,9 +451,10 @@ impl Detector {
             (image.data[offset..].as_ptr() as *mut u8, stride)
         };
         let mut im = sys::image_u8_t { width: win.width as i32, height: win.height as i32, stride: stride_used as i32, buf };
-        // SAFETY: `td` is valid; `im` describes `height` rows of `width` bytes at `stride`
-        // inside a live buffer that outlives the call; the result is an owned zarray.
-        let zarr = unsafe { sys::apriltag_detector_detect(self.td.as_ptr(), &mut im) };
+        // SAFETY: `td` is valid and ours under the mutex; `im` describes `height` rows of
+        // `width` bytes at `stride` inside a live buffer that outlives the call; the result
+        // is an owned zarray.
+        let zarr = unsafe { sys::apriltag_detector_detect(worker.td.as_ptr(), &mut im) };
         let Some(zarr) = NonNull::new(zarr) else {
             return Vec::new();
         };
@@ -389,10 +496,12 @@ impl Detector {
     }
 }
 
-impl Drop for Detector {
+impl Drop for Worker {
     fn drop(&mut self) {
-        // SAFETY: the detector is destroyed exactly once, BEFORE the families it references
-        // (its destructor frees their quick-decode tables); `families` drops after this body.
+        // SAFETY: each C detector is destroyed exactly once, BEFORE the families it
+        // references (`Detector` drops its workers first). The first one destroyed frees
+        // the shared decoding tables and clears the families' pointers to them, so the
+        // others find nothing left to free.
         unsafe { sys::apriltag_detector_destroy(self.td.as_ptr()) };
     }
 }

@@ -10,28 +10,17 @@
 
 use apriltag_sys as sys;
 
-use crate::tags::TagFamily;
+use crate::tags::{TagBitmap, TagError, TagFamily};
 
-/// The layout and codes of a family, copied out of the library's table (plain data).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct FamilyLayout {
-    /// The family.
-    pub family: TagFamily,
-    /// One code per id; bit `nbits - 1 - i` is data bit `i`.
-    pub codes: Vec<u64>,
-    /// Data-bit x positions (cells, from the left edge of the black square).
-    pub bit_x: Vec<u32>,
-    /// Data-bit y positions (cells, from the top edge of the black square).
-    pub bit_y: Vec<u32>,
-    /// Width of the black square in cells.
-    pub width_at_border: u32,
-    /// Width of the whole printed tag in cells (white ring included).
-    pub total_width: u32,
-    /// True for families whose border is white inside black (not the classic families).
-    pub reversed_border: bool,
-    /// Minimum Hamming distance between codes.
-    pub min_hamming: u32,
-}
+pub use crate::tags::FamilyLayout;
+
+/// The library's constructor and destructor of each family's table, in the order of
+/// [`TagFamily::ALL`] (the family's other facts are in `tags`).
+const CONSTRUCTORS: [(unsafe extern "C" fn() -> *mut sys::apriltag_family_t, unsafe extern "C" fn(*mut sys::apriltag_family_t)); 3] = [
+    (sys::tag36h11_create, sys::tag36h11_destroy),
+    (sys::tag25h9_create, sys::tag25h9_destroy),
+    (sys::tag16h5_create, sys::tag16h5_destroy),
+];
 
 /// Owner of one family table created by the AprilTag library.
 #[derive(Debug)]
@@ -49,13 +38,7 @@ impl FamilyTable {
     /// Creates the library's table for `family`. `None` only if the library's allocation failed.
     pub fn new(family: TagFamily) -> Option<Self> {
         // SAFETY: the constructors take no input and return a freshly allocated table (or null).
-        let ptr = unsafe {
-            match family {
-                TagFamily::Tag36h11 => sys::tag36h11_create(),
-                TagFamily::Tag25h9 => sys::tag25h9_create(),
-                TagFamily::Tag16h5 => sys::tag16h5_create(),
-            }
-        };
+        let ptr = unsafe { (CONSTRUCTORS[family.index()].0)() };
         if ptr.is_null() {
             None
         } else {
@@ -145,13 +128,7 @@ impl FamilyTable {
 impl Drop for FamilyTable {
     fn drop(&mut self) {
         // SAFETY: `ptr` came from the matching constructor and is destroyed exactly once.
-        unsafe {
-            match self.family {
-                TagFamily::Tag36h11 => sys::tag36h11_destroy(self.ptr),
-                TagFamily::Tag25h9 => sys::tag25h9_destroy(self.ptr),
-                TagFamily::Tag16h5 => sys::tag16h5_destroy(self.ptr),
-            }
-        }
+        unsafe { (CONSTRUCTORS[self.family.index()].1)(self.ptr) }
     }
 }
 
@@ -159,12 +136,7 @@ impl Drop for FamilyTable {
 pub fn family_layout(family: TagFamily) -> &'static FamilyLayout {
     use std::sync::OnceLock;
     static LAYOUTS: [OnceLock<FamilyLayout>; 3] = [OnceLock::new(), OnceLock::new(), OnceLock::new()];
-    let idx = match family {
-        TagFamily::Tag36h11 => 0,
-        TagFamily::Tag25h9 => 1,
-        TagFamily::Tag16h5 => 2,
-    };
-    LAYOUTS[idx].get_or_init(|| match FamilyTable::new(family) {
+    LAYOUTS[family.index()].get_or_init(|| match FamilyTable::new(family) {
         Some(t) => t.layout(),
         // The library only returns null when calloc fails; an empty layout makes every
         // bitmap request fail cleanly instead of panicking.
@@ -181,6 +153,11 @@ pub fn family_layout(family: TagFamily) -> &'static FamilyLayout {
     })
 }
 
+/// The bitmap of tag `id` of `family`, read from the AprilTag library's family table.
+pub fn tag_bitmap(family: TagFamily, id: u32) -> Result<TagBitmap, TagError> {
+    TagBitmap::from_layout(family_layout(family), id)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -193,10 +170,61 @@ mod tests {
             assert_eq!(t.code(t.ncodes()), None);
             assert_eq!(t.bit_positions().len() as u32, t.nbits());
             assert_eq!(t.total_width(), t.width_at_border() + 2, "{f}: classic layout has a one-cell white ring");
+            assert_eq!((t.width_at_border(), t.total_width()), (f.facts().width_at_border, f.facts().total_width), "{f}: facts table");
         }
         let t = FamilyTable::new(TagFamily::Tag36h11).unwrap();
         assert_eq!(t.nbits(), 36);
         assert_eq!((t.width_at_border(), t.total_width()), (8, 10));
         assert_eq!(t.code(0), Some(0x0000_000d_7e00_984b));
+    }
+}
+
+#[cfg(test)]
+mod bitmap_tests {
+    use super::tag_bitmap;
+    use crate::tags::{TagError, TagFamily};
+
+    /// Reads an apriltag-imgs PNG (RGBA) as a white/black grid.
+    fn read_png(path: &std::path::Path) -> Option<(u32, Vec<bool>)> {
+        let img = image::open(path).ok()?.to_luma8();
+        let (w, h) = img.dimensions();
+        assert_eq!(w, h);
+        Some((w, img.pixels().map(|p| p.0[0] > 127).collect()))
+    }
+
+    #[test]
+    fn bitmaps_match_apriltag_imgs() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata/apriltag-imgs");
+        let mut checked = 0;
+        for (family, dir, prefix, ids) in [
+            (TagFamily::Tag36h11, "tag36h11", "tag36_11_", vec![0u32, 1, 7, 42, 100, 311, 586]),
+            (TagFamily::Tag25h9, "tag25h9", "tag25_09_", vec![0u32, 1, 5, 17, 34]),
+        ] {
+            for id in ids {
+                let path = root.join(dir).join(format!("{prefix}{id:05}.png"));
+                let (w, px) = read_png(&path).unwrap_or_else(|| panic!("cannot read {}", path.display()));
+                let bm = tag_bitmap(family, id).unwrap();
+                assert_eq!(w, bm.total_width, "{}", path.display());
+                assert_eq!(px, bm.white, "{family} id {id} differs from {}", path.display());
+                checked += 1;
+            }
+        }
+        println!("{checked} bitmaps match apriltag-imgs pixel for pixel");
+    }
+
+    #[test]
+    fn unknown_id_is_an_error() {
+        assert!(matches!(tag_bitmap(TagFamily::Tag25h9, 35), Err(TagError::UnknownId { count: 35, .. })));
+    }
+
+    #[test]
+    fn cell_lookup_follows_the_printed_orientation() {
+        let bm = tag_bitmap(TagFamily::Tag36h11, 0).unwrap();
+        // 30 mm black square: cell 3.75 mm, printed 37.5 mm.
+        assert_eq!(bm.cell_at(-18.0, 18.0, 30.0), Some((0, 0)));
+        assert_eq!(bm.cell_at(18.0, -18.0, 30.0), Some((9, 9)));
+        assert_eq!(bm.cell_at(-14.0, -14.0, 30.0), Some((1, 8)));
+        assert_eq!(bm.cell_at(19.0, 0.0, 30.0), None);
+        assert!(!bm.is_white(1, 1) && bm.is_white(0, 0));
     }
 }

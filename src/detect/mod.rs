@@ -1,5 +1,7 @@
 //! Tag detection: the AprilTag library behind a safe wrapper, converted to the product's
-//! pixel convention (OpenCV: pixel centres at integers) and SPEC corner order.
+//! pixel convention (OpenCV: pixel centres at integers) and SPEC corner order; sub-pixel
+//! refinement; and one camera's detection from frame to frame ([`CameraDetector`]: what to
+//! look for, confirming followed tags, window and sweep searches).
 
 pub mod family;
 
@@ -32,12 +34,16 @@ impl Detection {
 }
 
 pub mod apriltag;
+pub mod camera_detector;
+pub mod confirm;
+pub mod plan;
 pub mod refine;
-pub mod track;
 
-pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection};
+pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection, SearchOptions};
+pub use self::camera_detector::{CameraDetections, CameraDetector, DetectParts, DetectReport, RigDetectors, TagRoles};
+pub use self::confirm::{ConfirmMiss, ConfirmOptions, ConfirmedTag, Prediction, TagConfirmer};
+pub use self::family::tag_bitmap;
 pub use self::refine::{refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, RefineOptions, RefineReport, RefineStats};
-pub use self::track::{Prediction, TagTracker, TrackMiss, TrackOptions, TrackedTag};
 
 /// A rectangle of pixels: columns `x..x+width`, rows `y..y+height` (a detection window).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

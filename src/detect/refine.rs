@@ -25,13 +25,13 @@
 //! [`RefineOptions::max_shift_px`] keeps the library's value; both are counted in the
 //! [`RefineReport`].
 
-use nalgebra::{Matrix2, Matrix3, Matrix5, Point2, SMatrix, SVector, Vector2, Vector3, Vector5};
+use nalgebra::{Matrix3, Matrix5, Point2, Vector2, Vector5};
 
 use super::apriltag::DetectError;
 use super::Detection;
-use crate::camera::CameraIntrinsics;
+use crate::camera::{apply_homography, CameraIntrinsics, Lens, Undistorted};
 use crate::frame::GrayImage;
-use crate::tags::TagFamily;
+use crate::tags::cell_homography;
 
 /// Options of the sub-pixel refinement.
 #[derive(Debug, Clone, PartialEq)]
@@ -142,15 +142,6 @@ impl RefineStats {
     }
 }
 
-/// Black-square width in bits of a family (the library's `width_at_border`).
-pub fn border_width_bits(family: TagFamily) -> u32 {
-    match family {
-        TagFamily::Tag36h11 => 8,
-        TagFamily::Tag25h9 => 7,
-        TagFamily::Tag16h5 => 6,
-    }
-}
-
 /// Refines a detection's corners with the default options (see the module docs).
 pub fn refine_corners(image: &GrayImage, det: &mut Detection, intrinsics: Option<&CameraIntrinsics>) -> RefineReport {
     refine_corners_with(image, det, intrinsics, &RefineOptions::default())
@@ -188,13 +179,13 @@ pub fn refine_corners_warm(
         return keep_all;
     }
     let lens = Lens::new(intrinsics);
-    let nb = border_width_bits(det.family) as f64;
+    let nb = det.family.width_at_border() as f64;
     let original = det.corners;
     // Corners in ideal coordinates.
     let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.pixel_to_ideal(&c.coords, None));
     let mut ok_edges = [false; 4];
     for _ in 0..opts.passes {
-        let Some(h) = homography_from_corners(&ideal, nb) else {
+        let Some(h) = cell_homography(&ideal, nb) else {
             return keep_all;
         };
         let Some(hinv) = h.try_inverse() else {
@@ -255,128 +246,6 @@ impl Line {
         let y = (self.normal.x * other.rho - other.normal.x * self.rho) / det;
         Some(Vector2::new(x, y))
     }
-}
-
-/// The last solution of [`Lens::pixel_to_ideal_run`] (normalised coordinates).
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Undistorted {
-    target: Vector2<f64>,
-    x: Vector2<f64>,
-    jinv: Matrix2<f64>,
-}
-
-/// Pixel ↔ ideal (undistorted) pixel coordinates; the identity without intrinsics.
-pub(crate) struct Lens<'a> {
-    intr: Option<&'a CameraIntrinsics>,
-}
-
-impl<'a> Lens<'a> {
-    /// The lens of `intrinsics` (the identity for `None` or unusable intrinsics).
-    pub(crate) fn new(intrinsics: Option<&'a CameraIntrinsics>) -> Self {
-        // Without distortion ideal pixels are the pixels themselves.
-        Lens { intr: intrinsics.filter(|k| k.fx > 0.0 && k.fy > 0.0 && k.fx.is_finite() && k.fy.is_finite() && k.dist != [0.0; 5]) }
-    }
-
-    /// [`Lens::pixel_to_ideal`] for a run of nearby pixels (a row): the previous pixel's
-    /// solution in `prev`, moved by its inverse Jacobian, predicts this one to a few 1e-4 px,
-    /// so one Newton step usually finishes it (it iterates on until the step is below
-    /// ~3e-7 in normalised coordinates, i.e. a remaining error below 1e-12).
-    pub(crate) fn pixel_to_ideal_run(&self, p: &Vector2<f64>, prev: &mut Option<Undistorted>) -> Vector2<f64> {
-        let Some(k) = self.intr else {
-            return *p;
-        };
-        let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
-        // Along a run the previous pixel's inverse Jacobian serves for the step too (it
-        // changes by ~1e-4 per pixel, so the step's error is ~1e-4 of an already tiny
-        // one); a fresh Jacobian is taken at the start of a run and whenever the step is
-        // not yet small.
-        let (mut x, mut jinv) = match prev {
-            Some(u) => (u.x + u.jinv * (target - u.target), Some(u.jinv)),
-            None => (target, None),
-        };
-        for _ in 0..20 {
-            let r = k.distort(x) - target;
-            let ji = match jinv {
-                Some(ji) => ji,
-                None => match k.distort_jacobian(x).try_inverse() {
-                    Some(ji) => ji,
-                    None => break,
-                },
-            };
-            let step = ji * r;
-            x -= step;
-            if step.norm_squared() < 1e-13 {
-                jinv = Some(ji);
-                break;
-            }
-            jinv = None;
-        }
-        let jinv = jinv.or_else(|| k.distort_jacobian(x).try_inverse()).unwrap_or_else(Matrix2::identity);
-        *prev = Some(Undistorted { target, x, jinv });
-        Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
-    }
-
-    /// Distorted pixel → ideal pixel (`fx·xn + cx`), warm-started from `guess` (ideal).
-    pub(crate) fn pixel_to_ideal(&self, p: &Vector2<f64>, guess: Option<&Vector2<f64>>) -> Vector2<f64> {
-        let Some(k) = self.intr else {
-            return *p;
-        };
-        let target = Vector2::new((p.x - k.cx) / k.fx, (p.y - k.cy) / k.fy);
-        let mut x = match guess {
-            Some(g) => Vector2::new((g.x - k.cx) / k.fx, (g.y - k.cy) / k.fy),
-            None => target,
-        };
-        for _ in 0..20 {
-            let r = k.distort(x) - target;
-            if r.norm_squared() < 1e-26 {
-                break;
-            }
-            match k.distort_jacobian(x).try_inverse() {
-                Some(ji) => x -= ji * r,
-                None => break,
-            }
-        }
-        Vector2::new(k.fx * x.x + k.cx, k.fy * x.y + k.cy)
-    }
-
-    /// Ideal pixel → distorted pixel.
-    pub(crate) fn ideal_to_pixel(&self, u: &Vector2<f64>) -> Vector2<f64> {
-        let Some(k) = self.intr else {
-            return *u;
-        };
-        let d = k.distort(Vector2::new((u.x - k.cx) / k.fx, (u.y - k.cy) / k.fy));
-        Vector2::new(k.fx * d.x + k.cx, k.fy * d.y + k.cy)
-    }
-}
-
-/// Homography from tag bit coordinates (x right, y down as printed, origin at the black
-/// square's top-left, `nb` bits across) to ideal pixels, from the corners in SPEC order.
-pub(crate) fn homography_from_corners(corners: &[Vector2<f64>; 4], nb: f64) -> Option<Matrix3<f64>> {
-    let tag = [Vector2::new(0.0, nb), Vector2::new(nb, nb), Vector2::new(nb, 0.0), Vector2::new(0.0, 0.0)];
-    let mut a = SMatrix::<f64, 8, 8>::zeros();
-    let mut b = SVector::<f64, 8>::zeros();
-    for i in 0..4 {
-        let (x, y) = (tag[i].x, tag[i].y);
-        let (u, v) = (corners[i].x, corners[i].y);
-        let r = 2 * i;
-        a.row_mut(r).copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
-        a.row_mut(r + 1).copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
-        b[r] = u;
-        b[r + 1] = v;
-    }
-    let h = a.lu().solve(&b)?;
-    if h.iter().any(|v| !v.is_finite()) {
-        return None;
-    }
-    Some(Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0))
-}
-
-pub(crate) fn apply_h(h: &Matrix3<f64>, p: &Vector2<f64>) -> Option<Vector2<f64>> {
-    let q = h * Vector3::new(p.x, p.y, 1.0);
-    if q.z.abs() < 1e-12 {
-        return None;
-    }
-    Some(Vector2::new(q.x / q.z, q.y / q.z))
 }
 
 /// Tag coordinates of edge `e` (SPEC order: bottom, right, top, left edge): maps
@@ -475,7 +344,7 @@ fn fit_edge(
     let nbits = nb as usize;
 
     // Local bit width (px) and colour of the data bit inside the border, per cell along the edge.
-    let to_px = |along: f64, depth: f64| -> Option<Vector2<f64>> { apply_h(h, &edge_to_tag(e, along, depth, nb)) };
+    let to_px = |along: f64, depth: f64| -> Option<Vector2<f64>> { apply_homography(h, &edge_to_tag(e, along, depth, nb)) };
     let mut gap = vec![bit_px; nbits];
     let mut inner_val = vec![0.0; nbits];
     let (mut white_ref, mut black_ref, mut nref) = (0.0, 0.0, 0.0);
@@ -566,7 +435,7 @@ fn fit_edge(
                 continue;
             }
             let u = lens.pixel_to_ideal_run(&p, &mut prev);
-            let Some(tag) = apply_h(hinv, &u) else { continue };
+            let Some(tag) = apply_homography(hinv, &u) else { continue };
             let (along, depth) = tag_to_edge(e, &tag, nb);
             if !(along.is_finite() && depth.is_finite()) || along < along_min || along > along_max || depth < depth_min || depth > depth_max
             {
@@ -729,6 +598,7 @@ fn finish(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tags::TagFamily;
 
     #[test]
     fn phi_matches_known_values() {

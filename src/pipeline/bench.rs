@@ -57,6 +57,13 @@ pub struct RealtimeFigures {
     pub latency_max_ms: f64,
     /// Peak resident memory, MB.
     pub peak_rss_mb: f64,
+    /// From the first frame played (sources open) to the first feed line with a solved
+    /// tag, s (that set's time in the recording plus its latency).
+    pub first_solved_s: f64,
+    /// Frame sets dropped after the first solved one.
+    pub dropped_after_first_solved: u64,
+    /// Frame sets dropped after the first second of the recording.
+    pub dropped_after_1s: u64,
 }
 
 /// An in-memory feed sink shared with the bench.
@@ -90,6 +97,9 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
         (Some(a), Some(b)) if b.t_ns > a.t_ns => (steady.len() - 1) as f64 / ((b.t_ns - a.t_ns) as f64 * 1e-9),
         _ => 0.0,
     };
+    let first_solved = lines.iter().find(|l| !l.tags.is_empty());
+    let total_dropped = lines.last().and_then(|l| l.dropped_sets).unwrap_or(0);
+    let dropped_since = |l: Option<&crate::feed::FeedLine>| l.map_or(0, |l| total_dropped - l.dropped_sets.unwrap_or(0));
     let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
     lat.sort_by(f64::total_cmp);
     Ok(RealtimeFigures {
@@ -107,6 +117,9 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
         latency_p99_ms: percentile(&lat, 0.99),
         latency_max_ms: lat.last().copied().unwrap_or(0.0),
         peak_rss_mb: peak_rss_mb(),
+        first_solved_s: first_solved.map_or(f64::NAN, |l| (l.t_ns - t0) as f64 * 1e-9 + l.latency_ms.unwrap_or(0.0) * 1e-3),
+        dropped_after_first_solved: dropped_since(first_solved),
+        dropped_after_1s: dropped_since(lines.iter().find(|l| l.t_ns >= t0 + 1_000_000_000)),
     })
 }
 
@@ -128,6 +141,9 @@ fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
     println!("{:<36}{:>12.1}", "latency p99 ms (steady)", r.latency_p99_ms);
     println!("{:<36}{:>12.1}", "latency max ms (steady)", r.latency_max_ms);
     println!("{:<36}{:>12.1}", "peak RSS MB", r.peak_rss_mb);
+    println!("{:<36}{:>12.3}", "first solved set after s", r.first_solved_s);
+    println!("{:<36}{:>12}", "dropped after the first solved set", r.dropped_after_first_solved);
+    println!("{:<36}{:>12}", "dropped after the first second", r.dropped_after_1s);
 }
 
 /// Figures of one bench run.

@@ -1,23 +1,26 @@
 //! The measurement of one frame set: detect → pose cameras → solve specimen tags → feed
-//! line. Owns all state carried between frame sets (detectors, camera pose trackers,
-//! region-of-interest windows, each tag's warm start and first position, UTM history).
+//! line. Only orchestrates: each camera's detection is its `detect::CameraDetector`
+//! (cameras in parallel); it holds the cameras' poses, each tag's warm start and first
+//! position, and the UTM history.
 
 use nalgebra::{Matrix6, Vector3};
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 use std::time::Instant;
 
 use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{Config, TagRole};
 use crate::detect::apriltag::{DetectError, Detector, DetectorOptions};
 use crate::detect::refine::RefineOptions;
-use crate::detect::{refine_corners_with, Detection, EdgeLevels, Prediction, Rect, TagTracker, TrackMiss, TrackOptions, TrackedTag};
+use crate::detect::{CameraDetections, CameraDetector, ConfirmOptions, DetectReport, RigDetectors, TagConfirmer, TagRoles};
 use crate::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
 use crate::frame::FrameSet;
-use crate::pipeline::roi::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
-use crate::solve::{solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagMotion, TagView};
+use crate::solve::{solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagMotion, TagView};
 use crate::tags::TagFamily;
 use crate::utm::UtmHistory;
 use rayon::prelude::*;
+
+pub use crate::detect::DetectParts;
 
 /// Wall-clock time spent in each stage of one frame set, seconds.
 #[derive(Debug, Clone, Copy, Default)]
@@ -30,28 +33,6 @@ pub struct StageTimes {
     pub pose: f64,
     /// Specimen tag solving.
     pub solve: f64,
-}
-
-/// Time of one frame set's detection by kind of work, seconds.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct DetectParts {
-    /// CPU time confirming tracked tags at their predicted place (refinement and
-    /// read-back), summed over the cameras (which run in parallel).
-    pub tracking: f64,
-    /// Wall time of the window searches of tags not confirmed and of the sweep's tiles
-    /// (one camera after another, each on the library's worker threads).
-    pub search: f64,
-    /// Wall time of full-frame searches (likewise).
-    pub full_frame: f64,
-}
-
-impl DetectParts {
-    /// Adds another frame set's times (totals over a run).
-    pub fn add(&mut self, other: &DetectParts) {
-        self.tracking += other.tracking;
-        self.search += other.search;
-        self.full_frame += other.full_frame;
-    }
 }
 
 /// Counters over a whole run.
@@ -74,52 +55,20 @@ pub struct MeasureStats {
 struct CameraState {
     name: String,
     intrinsics: CameraIntrinsics,
-    tracker: CameraPoseTracker,
-    roi: RoiPlanner,
-    /// Each tracked tag's last edge-fit levels in this camera (warm start of its next fit).
-    edge_levels: HashMap<(TagFamily, u32), EdgeLevels>,
-    /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
-    tag_contrast: Option<f64>,
+    /// The camera's pose, held while static, re-posed after a bump.
+    pose: HeldCameraPose,
+    /// The camera's detection (plan, confirmation, searches, per-tag state).
+    detector: CameraDetector,
 }
 
-/// Searches in tracking mode skip image regions whose contrast is below this fraction of
-/// the weakest tracked tag's (a new tag printed and lit like the others has about their
-/// contrast; a third of it leaves room for shadows) — the beam's low-contrast texture is
-/// then not searched at all, which is most of a search's cost on a textured specimen.
-pub const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
-/// Cap of the contrast filter of tracking-mode searches, grey levels.
-pub const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
-
-struct TagTrack {
+/// What the feed needs of each specimen tag from one frame set to the next.
+struct TagHistory {
     /// Last solution tag → world (warm start).
     pose: Pose,
     /// Centre in the first frame set that solved the tag.
     first_centre: Vector3<f64>,
     /// Recent multi-view solutions: the depth of a monocular view (see `solve::motion`).
     motion: TagMotion,
-}
-
-/// What phase 1 of the detection leaves to phase 2 for one camera.
-struct SearchJob {
-    camera: usize,
-    /// Index of the camera's frame in the frame set.
-    frame: usize,
-    /// Tags confirmed (then everything found).
-    found: Vec<Detection>,
-    /// Search the whole frame.
-    full: bool,
-    /// Windows of tracked tags not confirmed.
-    windows: Vec<Rect>,
-    /// Sweep tiles.
-    sweep: Vec<Rect>,
-    /// Quad decimation of windows and tiles.
-    decimate: f32,
-}
-
-/// Per-camera result of the detection stage.
-struct CameraDetections {
-    background: Vec<Detection>,
-    specimen: Vec<Detection>,
 }
 
 /// A tag detected in one camera's frame of the last frame set (what the live page outlines
@@ -136,22 +85,23 @@ pub struct SeenTag {
     pub corners: [nalgebra::Point2<f64>; 4],
 }
 
+/// The live page's view of one camera's detections (see [`SeenTag`]).
+fn seen_tags(d: &CameraDetections) -> Vec<SeenTag> {
+    let tag = |t: &crate::detect::Detection, specimen: bool| SeenTag { family: t.family, id: t.id, specimen, corners: t.corners };
+    d.specimen.iter().map(|t| tag(t, true)).chain(d.background.iter().map(|t| tag(t, false))).collect()
+}
+
 /// The stateful frame-set processor shared by `replay`, `bench`, `run` and `demo`.
 pub struct Measurement {
     config: Config,
     up: Vector3<f64>,
     cameras: Vec<CameraState>,
-    /// The AprilTag library, shared by the cameras: searches run one at a time on the
-    /// library's worker threads (its decoding tables take ~37 MB for tag36h11 per
-    /// detector, so one detector instead of one per camera).
-    detector: Detector,
-    /// Confirms tracked tags at their predicted places (shared by the cameras' threads).
-    tag_tracker: TagTracker,
-    /// The sweep's masked copy of a tile (reused).
-    tile: crate::frame::GrayImage,
+    /// What the cameras' detectors share: the one AprilTag library (its tag36h11
+    /// decoding table takes ~37 MB), the confirmer, the tags' roles.
+    rig: Arc<RigDetectors>,
     background_world: HashMap<u32, [Vector3<f64>; 4]>,
     specimen_ids: HashMap<u32, Option<TagRole>>,
-    tags: BTreeMap<u32, TagTrack>,
+    tags: BTreeMap<u32, TagHistory>,
     utm: UtmHistory,
     /// Pooled specimen corner noise, px (scales every tag's σ).
     noise: PixelNoisePool,
@@ -170,32 +120,45 @@ impl Measurement {
         };
         let opts = DetectorOptions {
             quad_decimate: config.measure.quad_decimate,
-            nthreads: config.measure.detector_threads.max(1),
+            // One thread per search: searches run side by side on several C workers (cameras
+            // in parallel) instead of on the library's own pool, whose every phase waits for
+            // its slowest thread — on a busy machine, for a thread the scheduler put aside.
+            nthreads: 1,
             subpixel: config.measure.refine_corners.then(RefineOptions::default),
             ..DetectorOptions::for_families(&families)
         };
-        let detector = Detector::new(opts)?;
+        // A worker per thread of the pool and one per camera for its background search.
+        let workers = (config.measure.detector_threads as usize).max(rayon::current_num_threads()) + config.cameras.len();
+        let library = Detector::with_workers(opts, workers)?;
         let mut cameras = Vec::new();
         for cam in &config.cameras {
             let intrinsics = cam.intrinsics();
             let fixed = cam.rvec.zip(cam.tvec_mm).map(|(r, t)| Pose::from_rvec_tvec(r, t));
+            let phase = cameras.len() as u32;
             cameras.push(CameraState {
                 name: cam.name.clone(),
                 intrinsics,
-                tracker: CameraPoseTracker::with_options(
+                pose: HeldCameraPose::with_options(
                     intrinsics,
                     fixed,
-                    crate::solve::TrackerOptions { drift: crate::solve::DriftConfig::from_measure(&config.measure), ..Default::default() },
+                    crate::solve::HeldPoseOptions { drift: crate::solve::DriftConfig::from_measure(&config.measure), ..Default::default() },
                 ),
-                roi: RoiPlanner::new(intrinsics, roi_tracking && config.measure.roi_tracking, config.measure.full_search_interval_s)
-                    .with_phase(cameras.len() as u32),
-                edge_levels: HashMap::new(),
-                tag_contrast: None,
+                detector: CameraDetector::new(
+                    intrinsics,
+                    roi_tracking && config.measure.roi_tracking,
+                    config.measure.full_search_interval_s,
+                    phase,
+                ),
             });
         }
-        let known_tags = config.background.tags.iter().map(|t| (config.background.family, t.id));
-        let tag_tracker =
-            TagTracker::new(TrackOptions::default(), known_tags.chain(config.specimen.tags.iter().map(|t| (config.specimen.family, t.id))));
+        let roles = TagRoles {
+            background_family: config.background.family,
+            background: config.background.tags.iter().map(|t| t.id).collect(),
+            specimen_family: config.specimen.family,
+            specimen: config.specimen.tags.iter().map(|t| t.id).collect(),
+        };
+        let confirmer = TagConfirmer::new(ConfirmOptions::default(), roles.known());
+        let rig = Arc::new(RigDetectors { library, confirmer, roles });
         let background_world = config.background.tags.iter().map(|t| (t.id, t.corners_mm.map(Vector3::from))).collect();
         let specimen_ids = config.specimen.tags.iter().map(|t| (t.id, t.role)).collect();
         let up = Vector3::from(config.world.up).normalize();
@@ -203,9 +166,7 @@ impl Measurement {
             config: config.clone(),
             up,
             cameras,
-            detector,
-            tag_tracker,
-            tile: crate::frame::GrayImage::new(0, 0),
+            rig,
             background_world,
             specimen_ids,
             tags: BTreeMap::new(),
@@ -215,6 +176,15 @@ impl Measurement {
             stats: MeasureStats::default(),
             last_seen: Vec::new(),
         })
+    }
+
+    /// Runs whole-frame searches after the first frame set in the background, so none
+    /// stalls a frame set (the live pipeline; see `detect::camera_detector`).
+    pub fn with_background_searches(mut self) -> Self {
+        for cam in &mut self.cameras {
+            cam.detector.set_background_searches(true);
+        }
+        self
     }
 
     /// Counters so far.
@@ -229,7 +199,7 @@ impl Measurement {
 
     /// Current pose of each camera (world → camera), `None` until posed.
     pub fn camera_poses(&self) -> Vec<Option<Pose>> {
-        self.cameras.iter().map(|c| c.tracker.pose()).collect()
+        self.cameras.iter().map(|c| c.pose.pose()).collect()
     }
 
     /// The tags detected in each camera's frame of the last frame set processed, as
@@ -258,10 +228,8 @@ impl Measurement {
                 background_tags: 0,
                 specimen_tags: 0,
                 pose_reproj_px: None,
-                posed: cam.tracker.pose().is_some(),
-                bumped: false,
-                drift_deg: None,
-                drift_mm: None,
+                posed: cam.pose.pose().is_some(),
+                ..CameraHealth::default()
             };
             if let Some(d) = det {
                 h.background_tags = d.background.len();
@@ -273,7 +241,7 @@ impl Measurement {
                         self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
                     })
                     .collect();
-                let status = cam.tracker.update_at(set.t_ns, &obs);
+                let status = cam.pose.update_at(set.t_ns, &obs);
                 if let Some(d) = status.drift {
                     h.drift_deg = Some((d.angle_deg() * 1e6).round() / 1e6);
                     h.drift_mm = Some(round_mm(d.shift_mm()));
@@ -295,8 +263,8 @@ impl Measurement {
         let mut views_by_tag: BTreeMap<u32, (Vec<TagView>, Vec<usize>)> = BTreeMap::new();
         for (ci, d) in &detections {
             let cam = &self.cameras[*ci];
-            let Some(pose) = cam.tracker.pose() else { continue };
-            let cov: Option<Matrix6<f64>> = cam.tracker.covariance();
+            let Some(pose) = cam.pose.pose() else { continue };
+            let cov: Option<Matrix6<f64>> = cam.pose.covariance();
             for det in &d.specimen {
                 let entry = views_by_tag.entry(det.id).or_default();
                 entry.0.push(TagView { intrinsics: cam.intrinsics, camera_pose: pose, camera_pose_covariance: cov, corners: det.corners });
@@ -320,7 +288,7 @@ impl Measurement {
                     let n_res = 8.0 * sol.views as f64;
                     sq_sum += sol.rms_px * sol.rms_px * n_res;
                     sq_n += n_res;
-                    let track = self.tags.entry(*id).or_insert(TagTrack {
+                    let history = self.tags.entry(*id).or_insert(TagHistory {
                         pose: sol.tag_to_world,
                         first_centre: sol.centre_mm,
                         motion: TagMotion::default(),
@@ -328,14 +296,14 @@ impl Measurement {
                     let (mut c, mut sigma) = (sol.centre_mm, sol.sigma_mm);
                     let mut pose = sol.tag_to_world;
                     if sol.views >= 2 {
-                        track.motion.observe(set.t_ns, c, sol.centre_covariance);
-                    } else if let Some((fc, fcov)) = track.motion.fuse(set.t_ns, c, sol.centre_covariance) {
+                        history.motion.observe(set.t_ns, c, sol.centre_covariance);
+                    } else if let Some((fc, fcov)) = history.motion.fuse(set.t_ns, c, sol.centre_covariance) {
                         c = fc;
                         sigma = Vector3::new(fcov[(0, 0)].sqrt(), fcov[(1, 1)].sqrt(), fcov[(2, 2)].sqrt());
                         pose.translation = fc;
                     }
-                    track.pose = pose;
-                    let disp = c - track.first_centre;
+                    history.pose = pose;
+                    let disp = c - history.first_centre;
                     tags_out.push(FeedTag {
                         id: *id,
                         pos_mm: [round_mm(c.x), round_mm(c.y), round_mm(c.z)],
@@ -349,13 +317,6 @@ impl Measurement {
             }
         }
         times.solve = t2.elapsed().as_secs_f64();
-
-        // Region-of-interest windows for the next frame set.
-        let solved: Vec<(u32, Pose)> = self.tags.iter().map(|(id, t)| (*id, t.pose)).collect();
-        for (ci, d) in &detections {
-            let cam = &mut self.cameras[*ci];
-            cam.roi.observe(set.t_ns, cam.tracker.pose().as_ref(), &d.background, &d.specimen, &solved, size);
-        }
 
         let net = self.net_deflection(&tags_out);
         let (load, stroke) = match self.utm.interpolate(set.t_ns) {
@@ -381,119 +342,37 @@ impl Measurement {
         (line, times)
     }
 
-    /// Detects tags in every frame of the set: first the tracked tags of every camera are
-    /// confirmed at their predicted places (no search; the tags of all cameras spread over
-    /// the cores, so three cameras on two cores still balance), then the searches still
-    /// needed — full frames, windows of tags not confirmed, sweep tiles — run one camera
-    /// after another on the shared detector, each on the library's worker threads.
+    /// Detects tags in every frame of the set, the cameras in parallel (each camera's
+    /// [`CameraDetector`]; the first frame of a camera in the set counts).
     fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectParts) {
-        let refine = self.detector.options().subpixel.clone();
-        let mut jobs: Vec<SearchJob> = Vec::new();
-        let mut planned: Vec<(usize, PlannedTag)> = Vec::new();
+        let mut frame_of: Vec<Option<usize>> = vec![None; self.cameras.len()];
+        let mut order = Vec::new();
         for (fi, f) in set.frames.iter().enumerate() {
-            let Some(cam) = self.cameras.get_mut(f.camera) else { continue };
-            if jobs.iter().any(|j| j.camera == f.camera) {
-                continue;
-            }
-            let mut job = SearchJob {
-                camera: f.camera,
-                frame: fi,
-                found: Vec::new(),
-                full: false,
-                windows: Vec::new(),
-                sweep: Vec::new(),
-                decimate: 1.0,
-            };
-            match cam.roi.plan(f.t_ns, &f.image) {
-                Plan::FullFrame => job.full = true,
-                Plan::Track { decimate, tags, sweep } => {
-                    job.sweep = sweep;
-                    job.decimate = decimate;
-                    planned.extend(tags.into_iter().map(|t| (jobs.len(), t)));
-                }
-            }
-            jobs.push(job);
-        }
-
-        // Phase 1: tracked tags confirmed where they are predicted, in parallel.
-        let (cameras, tracker) = (&self.cameras, &self.tag_tracker);
-        let confirm = |(j, t): &(usize, PlannedTag)| {
-            let c0 = crate::clock::thread_cpu_s();
-            let cam = &cameras[jobs[*j].camera];
-            let levels = cam.edge_levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
-            let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
-            let result = match &refine {
-                Some(opts) => tracker.track(&set.frames[jobs[*j].frame].image, &prediction, Some(&cam.intrinsics), opts),
-                None => Err(TrackMiss::Unsupported),
-            };
-            (result, crate::clock::thread_cpu_s() - c0)
-        };
-        let results: Vec<(Result<TrackedTag, TrackMiss>, f64)> =
-            if planned.len() > 1 { planned.par_iter().map(confirm).collect() } else { planned.iter().map(confirm).collect() };
-        let mut cpu = DetectParts::default();
-        let mut weakest: Vec<Option<f64>> = vec![None; jobs.len()];
-        for ((j, t), (result, cpu_s)) in planned.into_iter().zip(results) {
-            cpu.tracking += cpu_s;
-            match result {
-                Ok(tag) => {
-                    weakest[j] = Some(weakest[j].map_or(tag.contrast, |w: f64| w.min(tag.contrast)));
-                    self.cameras[jobs[j].camera].edge_levels.insert((t.family, t.id), tag.levels);
-                    jobs[j].found.push(tag.detection);
-                }
-                Err(_) => {
-                    self.cameras[jobs[j].camera].edge_levels.remove(&(t.family, t.id));
-                    jobs[j].windows.push(t.window);
+            if let Some(slot) = frame_of.get_mut(f.camera) {
+                if slot.is_none() {
+                    *slot = Some(fi);
+                    order.push(f.camera);
                 }
             }
         }
-        for (job, weakest) in jobs.iter_mut().zip(weakest) {
-            if weakest.is_some() {
-                self.cameras[job.camera].tag_contrast = weakest;
-            }
-            job.windows = merge_rects(std::mem::take(&mut job.windows));
+        let rig = &self.rig;
+        let mut results: Vec<Option<(CameraDetections, DetectReport)>> = self
+            .cameras
+            .par_iter_mut()
+            .zip(frame_of.par_iter())
+            .map(|(cam, fi)| fi.map(|fi| cam.detector.detect(set.frames[fi].t_ns, &set.frames[fi].image, rig)))
+            .collect();
+        let mut parts = DetectParts::default();
+        let mut out = Vec::with_capacity(order.len());
+        for ci in order {
+            let Some((dets, report)) = results[ci].take() else { continue };
+            parts.add(&report.parts);
+            self.stats.full_frame_searches += report.full_frame_searches;
+            self.stats.window_searches += report.window_searches;
+            self.stats.tracked_tags += report.confirmed_tags;
+            out.push((ci, dets));
         }
-
-        // Phase 2: the searches, one camera at a time on the shared detector.
-        let mut out = Vec::with_capacity(jobs.len());
-        for mut job in jobs {
-            self.stats.tracked_tags += job.found.len() as u64;
-            let cam = &self.cameras[job.camera];
-            let frame = &set.frames[job.frame];
-            let c0 = Instant::now();
-            self.detector.set_intrinsics(Some(cam.intrinsics));
-            if job.full {
-                job.found = self.detector.detect(&frame.image);
-                self.stats.full_frame_searches += 1;
-                cpu.full_frame += c0.elapsed().as_secs_f64();
-            } else {
-                let found = search(&mut self.detector, cam, &frame.image, &job, &mut self.tile);
-                job.found.extend(found);
-                dedup_detections(&mut job.found);
-                self.stats.window_searches += (job.windows.len() + job.sweep.len()) as u64;
-                cpu.search += c0.elapsed().as_secs_f64();
-            }
-            out.push((job.camera, self.classify(job.found)));
-        }
-        (out, cpu)
-    }
-
-    /// Sorts detections into background and specimen tags (others are ignored).
-    fn classify(&self, dets: Vec<Detection>) -> CameraDetections {
-        let (bg_family, sp_family) = (self.config.background.family, self.config.specimen.family);
-        let same_family = bg_family == sp_family;
-        let mut out = CameraDetections { background: Vec::new(), specimen: Vec::new() };
-        for d in dets {
-            let is_sp = d.family == sp_family
-                && self.specimen_ids.contains_key(&d.id)
-                && !(same_family && self.background_world.contains_key(&d.id));
-            let is_bg = d.family == bg_family && self.background_world.contains_key(&d.id);
-            if is_sp {
-                out.specimen.push(d);
-            } else if is_bg {
-                out.background.push(d);
-            }
-        }
-        out
+        (out, parts)
     }
 
     /// Mean downward displacement of midspan tags minus that of support tags.
@@ -505,78 +384,4 @@ impl Measurement {
         };
         Some(round_mm(mean(TagRole::Midspan)? - mean(TagRole::Support)?))
     }
-}
-
-/// The live page's view of one camera's detections (see [`SeenTag`]).
-fn seen_tags(d: &CameraDetections) -> Vec<SeenTag> {
-    let tag = |t: &Detection, specimen: bool| SeenTag { family: t.family, id: t.id, specimen, corners: t.corners };
-    d.specimen.iter().map(|t| tag(t, true)).chain(d.background.iter().map(|t| tag(t, false))).collect()
-}
-
-/// Searches a camera's windows around tracked tags that could not be confirmed, and its
-/// sweep tiles, with the job's quad decimation (at least the configured one) and with
-/// low-contrast regions skipped (see [`SEARCH_CONTRAST_FRACTION`]). Window detections are
-/// refined as usual. Tiles are searched without refinement; only the tags not already
-/// found (confirmed, or in the windows) are then refined — corners as good as a full-frame
-/// search's without refining every tracked tag twice. The detector's options are restored.
-fn search(
-    detector: &mut Detector,
-    cam: &CameraState,
-    image: &crate::frame::GrayImage,
-    job: &SearchJob,
-    scratch: &mut crate::frame::GrayImage,
-) -> Vec<Detection> {
-    let (windows, tiles, found, search_decimate) = (&job.windows, &job.sweep, &job.found, job.decimate);
-    let mut out: Vec<Detection> = Vec::new();
-    if windows.is_empty() && tiles.is_empty() {
-        return out;
-    }
-    let configured = detector.options().clone();
-    let min_diff = configured.min_white_black_diff as f64;
-    let white_black_diff =
-        cam.tag_contrast.map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
-    let options = DetectorOptions {
-        quad_decimate: configured.quad_decimate.max(search_decimate),
-        min_white_black_diff: white_black_diff as u8,
-        ..configured.clone()
-    };
-    if !windows.is_empty() && detector.set_options(options.clone()).is_ok() {
-        for r in windows {
-            out.extend(detector.detect_window(image, *r));
-        }
-    }
-    if !tiles.is_empty() && detector.set_options(DetectorOptions { subpixel: None, ..options }).is_ok() {
-        let mut new: Vec<Detection> = Vec::new();
-        let known: Vec<Detection> = found.iter().chain(out.iter()).cloned().collect();
-        for r in tiles {
-            // The tile with the tags already found blanked out (see `roi::masked_tile`).
-            masked_tile(image, *r, &known, scratch);
-            let whole = Rect { x: 0, y: 0, width: r.width, height: r.height };
-            for mut d in detector.detect_window(scratch, whole) {
-                for c in d.corners.iter_mut() {
-                    *c += nalgebra::Vector2::new(r.x as f64, r.y as f64);
-                }
-                let known = known.iter().chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
-                if !known {
-                    new.push(d);
-                }
-            }
-        }
-        if let Some(opts) = &configured.subpixel {
-            for d in &mut new {
-                refine_corners_with(image, d, Some(&cam.intrinsics), opts);
-            }
-        }
-        out.extend(new);
-    }
-    // The configured options were valid when the detector was built.
-    let _ = detector.set_options(configured);
-    out
-}
-
-/// Removes duplicate detections of one tag found in overlapping windows (keeps the one
-/// with the highest decision margin).
-fn dedup_detections(dets: &mut Vec<Detection>) {
-    dets.sort_by(|a, b| (a.family.name(), a.id).cmp(&(b.family.name(), b.id)).then(b.decision_margin.total_cmp(&a.decision_margin)));
-    dets.dedup_by(|b, a| a.family == b.family && a.id == b.id);
 }

@@ -6,4 +6,3 @@ pub mod check;
 pub mod live;
 pub mod measure;
 pub mod replay;
-pub mod roi;

@@ -7,7 +7,8 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::TagRole;
-use crate::tags::{tag_bitmap, TagBitmap, TagFamily};
+use crate::detect::tag_bitmap;
+use crate::tags::{TagBitmap, TagFamily};
 
 use super::SimParams;
 

@@ -4,56 +4,9 @@
 //! These only seed the least-squares problems; accuracy comes from the LM refinement with
 //! the full distortion model. Image points are first undistorted to normalised coordinates.
 
-use nalgebra::{Matrix3, Rotation3, SMatrix, Unit, Vector2, Vector3};
+use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
 
-/// Homography `H` with `[x, y, 1]ᵀ ~ H [u, v, 1]ᵀ` from ≥ 4 point pairs (`plane` → `image`),
-/// by the normalised DLT. `None` for degenerate input.
-pub fn homography(plane: &[Vector2<f64>], image: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
-    if plane.len() < 4 || plane.len() != image.len() {
-        return None;
-    }
-    let (tp, tp_inv) = normaliser(plane)?;
-    let (ti, ti_inv) = normaliser(image)?;
-    let _ = tp_inv;
-    let mut ata = SMatrix::<f64, 9, 9>::zeros();
-    for (p, q) in plane.iter().zip(image) {
-        let p = tp * Vector3::new(p.x, p.y, 1.0);
-        let q = ti * Vector3::new(q.x, q.y, 1.0);
-        let (u, v) = (p.x / p.z, p.y / p.z);
-        let (x, y) = (q.x / q.z, q.y / q.z);
-        let rows = [
-            SMatrix::<f64, 1, 9>::from_row_slice(&[u, v, 1.0, 0.0, 0.0, 0.0, -x * u, -x * v, -x]),
-            SMatrix::<f64, 1, 9>::from_row_slice(&[0.0, 0.0, 0.0, u, v, 1.0, -y * u, -y * v, -y]),
-        ];
-        for r in rows {
-            ata += r.transpose() * r;
-        }
-    }
-    let eig = ata.symmetric_eigen();
-    let (imin, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
-    let h = eig.eigenvectors.column(imin);
-    let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
-    let hm = ti_inv * hn * tp;
-    if hm.iter().all(|v| v.is_finite()) && hm.norm() > 0.0 {
-        Some(hm)
-    } else {
-        None
-    }
-}
-
-/// Similarity moving points to zero mean and mean distance √2, and its inverse.
-fn normaliser(pts: &[Vector2<f64>]) -> Option<(Matrix3<f64>, Matrix3<f64>)> {
-    let n = pts.len() as f64;
-    let c = pts.iter().fold(Vector2::zeros(), |a, p| a + p) / n;
-    let d = pts.iter().map(|p| (p - c).norm()).sum::<f64>() / n;
-    if !d.is_finite() || d <= 1e-15 {
-        return None;
-    }
-    let s = std::f64::consts::SQRT_2 / d;
-    let t = Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0);
-    let ti = Matrix3::new(1.0 / s, 0.0, c.x, 0.0, 1.0 / s, c.y, 0.0, 0.0, 1.0);
-    Some((t, ti))
-}
+pub use crate::camera::homography;
 
 /// Decomposes a plane → normalised-image homography into the pose of the plane frame
 /// (plane points `(u, v, 0)`) in the camera: `x_cam = R [u v 0]ᵀ + t`, with the plane in
@@ -109,6 +62,7 @@ pub fn mirrored(rotation: &Rotation3<f64>, t: &Vector3<f64>) -> Rotation3<f64> {
 mod tests {
     use super::*;
     use crate::camera::rotation_angle;
+    use nalgebra::Vector2;
 
     #[test]
     fn homography_pose_round_trip() {

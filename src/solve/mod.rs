@@ -4,7 +4,7 @@
 //!
 //! * [`camera_pose`]: one camera's pose from background tags (closed-form start + LM with
 //!   the distortion model in the residual, outlier tags rejected, 6×6 covariance).
-//! * [`tracker`]: a camera's pose kept across frame sets ([`CameraPoseTracker`]): held still
+//! * [`held_pose`]: a camera's pose kept across frame sets ([`HeldCameraPose`]): held still
 //!   while the camera is static so per-frame noise does not leak into the measurement,
 //!   re-posed when the camera is bumped.
 //! * [`drift`]: slow drift of a held camera estimated from the background tags
@@ -18,17 +18,17 @@
 
 pub mod camera_pose;
 pub mod drift;
+pub mod held_pose;
 pub mod init;
 pub mod lm;
 pub mod motion;
 pub mod tag_pose;
-pub mod tracker;
 
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 pub use drift::{DriftConfig, DriftEstimate, DriftFilter};
+pub use held_pose::{HeldCameraPose, HeldPoseOptions, HeldPoseStatus};
 pub use motion::TagMotion;
 pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};
-pub use tracker::{CameraPoseTracker, TrackerOptions, TrackerStatus};
 
 /// Why a solve failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

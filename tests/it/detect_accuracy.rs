@@ -7,30 +7,19 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Point2, SMatrix, SVector, Vector3};
+use nalgebra::{Matrix3, Point2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
+use tagdeflect::detect::tag_bitmap;
 use tagdeflect::detect::{Detection, Detector, DetectorOptions, Rect};
 use tagdeflect::frame::GrayImage;
-use tagdeflect::tags::{tag_bitmap, TagFamily};
+use tagdeflect::tags::TagFamily;
 
 /// Homography from tag cells (origin top-left of the black square, `nb` cells across, y down)
 /// to image pixels, given the image corners in SPEC order (BL, BR, TR, TL).
 fn homography(corners: &[Point2<f64>; 4], nb: f64) -> Matrix3<f64> {
-    let tag = [(0.0, nb), (nb, nb), (nb, 0.0), (0.0, 0.0)];
-    let mut a = SMatrix::<f64, 8, 8>::zeros();
-    let mut b = SVector::<f64, 8>::zeros();
-    for i in 0..4 {
-        let (x, y) = tag[i];
-        let (u, v) = (corners[i].x, corners[i].y);
-        a.row_mut(2 * i).copy_from_slice(&[x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]);
-        a.row_mut(2 * i + 1).copy_from_slice(&[0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]);
-        b[2 * i] = u;
-        b[2 * i + 1] = v;
-    }
-    let h = a.lu().solve(&b).expect("homography");
-    Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], 1.0)
+    tagdeflect::tags::cell_homography(&corners.map(|c| c.coords), nb).expect("homography")
 }
 
 struct Scene {
@@ -360,12 +349,12 @@ fn intrinsics_without_distortion_change_nothing() {
 /// the wrong tag, the wrong rotation, a place a bit off, or an empty place are refused.
 #[test]
 fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_tags() {
-    use tagdeflect::detect::{Prediction, RefineOptions, TagTracker, TrackMiss};
+    use tagdeflect::detect::{ConfirmMiss, Prediction, RefineOptions, TagConfirmer};
     let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let fams = [TagFamily::Tag36h11, TagFamily::Tag25h9];
     let mut det = Detector::new(DetectorOptions::for_families(&fams)).unwrap();
-    let tracker = TagTracker::default();
+    let tracker = TagConfirmer::default();
     let refine = RefineOptions::default();
     let (mut se_tracked, mut se_detected, mut n) = (0.0, 0.0, 0);
     for t in 0..30 {
@@ -378,10 +367,10 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
         let shift = nalgebra::Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5));
         let predicted = truth.map(|c| c + shift + nalgebra::Vector2::new(rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1)));
         let at = |family, id, corners| Prediction { family, id, corners, levels: [None; 4] };
-        let tracked = tracker.track(&img, &at(family, id, predicted), None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
+        let tracked = tracker.confirm(&img, &at(family, id, predicted), None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
         assert!(tracked.contrast > 120.0, "contrast {}", tracked.contrast);
         // Warm-started from its own fit (as in the next frame), the fit lands on the same corners.
-        let warm = tracker.track(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, None, &refine).unwrap();
+        let warm = tracker.confirm(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, None, &refine).unwrap();
         let moved = (0..4).map(|i| (warm.detection.corners[i] - tracked.detection.corners[i]).norm()).fold(0.0, f64::max);
         assert!(moved < 1e-3, "tag {t}: warm start moved a corner by {moved} px");
         assert_eq!(tracked.detection.hamming, 0);
@@ -390,14 +379,18 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
         n += 4;
 
         // The wrong id, the wrong rotation (corner order), a whole cell off, nothing there.
-        assert_eq!(tracker.track(&img, &at(family, id + 1, predicted), None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: wrong id");
+        assert_eq!(
+            tracker.confirm(&img, &at(family, id + 1, predicted), None, &refine).unwrap_err(),
+            ConfirmMiss::Code,
+            "tag {t}: wrong id"
+        );
         let rotated = [predicted[1], predicted[2], predicted[3], predicted[0]];
-        assert_eq!(tracker.track(&img, &at(family, id, rotated), None, &refine).unwrap_err(), TrackMiss::Code, "tag {t}: rotated");
-        let cell = (truth[1] - truth[0]) / f64::from(tagdeflect::detect::refine::border_width_bits(family));
+        assert_eq!(tracker.confirm(&img, &at(family, id, rotated), None, &refine).unwrap_err(), ConfirmMiss::Code, "tag {t}: rotated");
+        let cell = (truth[1] - truth[0]) / f64::from(family.width_at_border());
         let off = predicted.map(|c| c + cell);
-        assert!(tracker.track(&img, &at(family, id, off), None, &refine).is_err(), "tag {t}: a cell off");
+        assert!(tracker.confirm(&img, &at(family, id, off), None, &refine).is_err(), "tag {t}: a cell off");
         let empty = predicted.map(|c| c + nalgebra::Vector2::new(400.0, 0.0));
-        assert!(tracker.track(&img, &at(family, id, empty), None, &refine).is_err(), "tag {t}: outside the image");
+        assert!(tracker.confirm(&img, &at(family, id, empty), None, &refine).is_err(), "tag {t}: outside the image");
     }
     assert!(n >= 4 * 27, "{} of 30 tags detected", n / 4);
     let (tracked_rms, detected_rms) = ((se_tracked / n as f64).sqrt(), (se_detected / n as f64).sqrt());
@@ -411,7 +404,7 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
 /// other tag in the tile is still found, and its corners map back to the frame.
 #[test]
 fn masked_sweep_tiles_hide_known_tags_only() {
-    use tagdeflect::pipeline::roi::masked_tile;
+    use tagdeflect::detect::plan::masked_tile;
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let scene = Scene { width: 400, height: 300, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
     let a = (TagFamily::Tag36h11, 5, random_corners(&mut rng, 110.0, 150.0, 60.0, 0.02));
@@ -439,4 +432,35 @@ fn masked_sweep_tiles_hide_known_tags_only() {
     let patch: Vec<u8> = (cy - 20..cy + 20).flat_map(|y| (cx - 20..cx + 20).map(move |x| (x, y))).map(|(x, y)| copy.get(x, y)).collect();
     assert!(patch.iter().all(|&v| v == patch[0]), "flat patch");
     assert!((patch[0] as f64 - scene.background).abs() < 30.0, "filled with the surrounding grey: {}", patch[0]);
+}
+
+#[test]
+fn parallel_searches_on_shared_family_tables_equal_one_detector() {
+    use tagdeflect::detect::SearchOptions;
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let scene = Scene { width: 480, height: 320, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
+    let tags: Vec<_> =
+        (0..4).map(|i| (TagFamily::Tag36h11, 3 + i, random_corners(&mut rng, 70.0 + 110.0 * i as f64, 160.0, 60.0, 0.02))).collect();
+    let img = render(&scene, &tags, &mut rng);
+    let opts = DetectorOptions::for_families(&[TagFamily::Tag36h11, TagFamily::Tag25h9]);
+    let mut one = Detector::new(opts.clone()).unwrap();
+    let expected = one.detect(&img);
+    assert_eq!(expected.len(), 4, "{expected:?}");
+    // Three C detectors sharing the families' decoding tables, searched from six threads.
+    let shared = Detector::with_workers(opts.clone(), 3).unwrap();
+    assert_eq!(shared.workers(), 3);
+    let search = SearchOptions::of(&opts);
+    std::thread::scope(|s| {
+        let handles: Vec<_> =
+            (0..6).map(|_| s.spawn(|| (0..5).map(|_| shared.search(&img, None, &search, None)).collect::<Vec<_>>())).collect();
+        for h in handles {
+            for found in h.join().unwrap() {
+                assert_eq!(found, expected, "a parallel search differs from the single detector's");
+            }
+        }
+    });
+    // Per-call options: an unrefined decimated search leaves the detector's own as they were.
+    let coarse = shared.search(&img, None, &SearchOptions { quad_decimate: 2.0, refine: false, ..search }, None);
+    assert_eq!(coarse.len(), 4);
+    assert_eq!(shared.search(&img, None, &search, None), expected);
 }

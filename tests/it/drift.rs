@@ -18,7 +18,7 @@ use tagdeflect::feed::FeedLine;
 use tagdeflect::pipeline::replay::{self, ReplayOptions};
 use tagdeflect::recording::Recording;
 use tagdeflect::sim::{SimParams, SimTruthLine, SIM_TRUTH_FILE};
-use tagdeflect::solve::{BackgroundTagObservation, CameraPoseTracker, DriftConfig, TrackerOptions};
+use tagdeflect::solve::{BackgroundTagObservation, HeldCameraPose, DriftConfig, HeldPoseOptions};
 
 /// Replays `dir` with drift tracking on or off; prints and returns the figures.
 fn replay_with(label: &str, dir: &std::path::Path, drift: bool) -> (Accuracy, Vec<FeedLine>, Recording) {
@@ -229,8 +229,8 @@ fn tracker_follows_drift_and_still_catches_a_bump() {
     };
     let bump = |p: &Pose| moved(p, Vector3::new(0.4, 1.0, 0.3), 0.3, Vector3::new(1.5, 0.0, 0.5));
     for tracking in [true, false] {
-        let options = TrackerOptions { drift: DriftConfig { enabled: tracking, ..DriftConfig::default() }, ..TrackerOptions::default() };
-        let mut tracker = CameraPoseTracker::with_options(k, None, options);
+        let options = HeldPoseOptions { drift: DriftConfig { enabled: tracking, ..DriftConfig::default() }, ..HeldPoseOptions::default() };
+        let mut tracker = HeldCameraPose::with_options(k, None, options);
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         let first = tracker.update_at(0, &observe(&k, &rest, &tags, sigma, &mut rng));
         assert!(first.first_pose);

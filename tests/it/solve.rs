@@ -10,7 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
 use tagdeflect::camera::{CameraIntrinsics, Pose};
-use tagdeflect::solve::{solve_camera_pose, solve_tag, BackgroundTagObservation, CameraPoseTracker, PixelNoisePool, TagSolution, TagView};
+use tagdeflect::solve::{solve_camera_pose, solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagSolution, TagView};
 use tagdeflect::tags::tag_corners;
 
 const TAG_MM: f64 = 30.0;
@@ -215,7 +215,7 @@ fn bump_detected_and_no_false_bumps() {
     let sigma = 0.3;
     for cam in 0..3 {
         let (intr, truth) = rig.cameras[cam];
-        let mut tracker = CameraPoseTracker::new(intr, None);
+        let mut tracker = HeldCameraPose::new(intr, None);
         let first = tracker.update(&observe_background(&rig, cam, &truth, sigma, &mut rng));
         assert!(first.first_pose && first.pose.is_some());
         let held = first.pose.unwrap();
@@ -280,7 +280,7 @@ fn bump_keeps_displacements_continuous() {
         let cam = trial % 3;
         let (intr, truth) = rig.cameras[cam];
         let moved = bumped(&truth);
-        let mut tracker = CameraPoseTracker::new(intr, None);
+        let mut tracker = HeldCameraPose::new(intr, None);
         for _ in 0..60 {
             tracker.update(&observe_background(&rig, cam, &truth, sigma, &mut rng));
         }
@@ -324,7 +324,7 @@ fn no_false_bumps_with_an_imperfect_calibration() {
     let mut model = true_intr;
     model.dist[0] = -0.20;
     model.fx *= 1.002;
-    let mut tracker = CameraPoseTracker::new(model, None);
+    let mut tracker = HeldCameraPose::new(model, None);
     let (mut bumps, mut worst_rms): (usize, f64) = (0, 0.0);
     for _ in 0..200 {
         let st = tracker.update(&observe_background(&rig, 0, &truth, 0.1, &mut rng));
@@ -340,7 +340,7 @@ fn tracker_flags_blind_frames_and_respects_a_fixed_pose() {
     let rig = rig();
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let (intr, truth) = rig.cameras[2];
-    let mut tracker = CameraPoseTracker::new(intr, None);
+    let mut tracker = HeldCameraPose::new(intr, None);
     let st = tracker.update(&[]);
     assert!(st.pose.is_none() && !st.stale && st.message.is_some(), "never posed: no pose, a message");
     tracker.update(&observe_background(&rig, 2, &truth, 0.2, &mut rng));
@@ -348,7 +348,7 @@ fn tracker_flags_blind_frames_and_respects_a_fixed_pose() {
     assert!(st.stale && st.pose.is_some() && !st.bumped, "blind frame: last pose kept and flagged");
 
     let fixed = Pose::from_rvec_tvec([1.0, 0.0, 0.0], [0.0, 0.0, 1000.0]);
-    let mut tracker = CameraPoseTracker::new(intr, Some(fixed));
+    let mut tracker = HeldCameraPose::new(intr, Some(fixed));
     let st = tracker.update(&observe_background(&rig, 2, &truth, 0.2, &mut rng));
     assert!(st.fixed && !st.bumped && st.pose == Some(fixed), "a configured pose is never estimated");
 }

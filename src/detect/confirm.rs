@@ -1,8 +1,8 @@
-//! Tracking a known tag from predicted corners, without searching for it.
+//! Confirming a known tag at its predicted corners, without searching for it.
 //!
 //! Between frames a tag moves by a fraction of a pixel to a few pixels, and its corners
 //! are predicted well by the last refined corners moved by the tag's image velocity (see
-//! `pipeline::roi`). Instead of running the AprilTag library's quad search over a window
+//! `detect::plan`). Instead of running the AprilTag library's quad search over a window
 //! around the tag (whose cost grows with the texture inside the window), the tracked tag's
 //! corners are fitted by the same sub-pixel edge refinement as every detection (see
 //! [`super::refine`]), started from the prediction. The result is then **verified** by
@@ -10,7 +10,7 @@
 //! through the homography of the refined corners and compared with the tag's own bitmap.
 //! A tag is accepted only when all four corners were refined (none kept, none moved more
 //! than the refinement's `max_shift_px` from the prediction), the contrast is clear and
-//! at most [`TrackOptions::max_wrong_cells`] cells disagree — otherwise the caller falls
+//! at most [`ConfirmOptions::max_wrong_cells`] cells disagree — otherwise the caller falls
 //! back to a window search with the library. Accepted corners are therefore of exactly the
 //! quality of refined library detections: the same fit on the same pixels, only started
 //! from a different (and closer) guess.
@@ -18,15 +18,16 @@
 use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
 
-use super::refine::{apply_h, border_width_bits, homography_from_corners, refine_corners_warm, EdgeLevels, Lens, RefineOptions};
+use super::family::tag_bitmap;
+use super::refine::{refine_corners_warm, EdgeLevels, RefineOptions};
 use super::Detection;
-use crate::camera::CameraIntrinsics;
+use crate::camera::{apply_homography, CameraIntrinsics, Lens};
 use crate::frame::GrayImage;
-use crate::tags::{tag_bitmap, TagBitmap, TagFamily};
+use crate::tags::{cell_homography, TagBitmap, TagFamily};
 
-/// Acceptance limits of a tracked tag.
+/// Acceptance limits of a confirmed tag.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TrackOptions {
+pub struct ConfirmOptions {
     /// Cells (black square and white ring) allowed to read the wrong colour (the library
     /// corrects up to 2 data bits by default).
     pub max_wrong_cells: u32,
@@ -40,15 +41,15 @@ pub struct TrackOptions {
     pub refine_passes: u32,
 }
 
-impl Default for TrackOptions {
+impl Default for ConfirmOptions {
     fn default() -> Self {
         Self { max_wrong_cells: 2, min_contrast: 10.0, refine_passes: 1 }
     }
 }
 
-/// Why a tracked tag was not accepted (the caller searches a window instead).
+/// Why a tag was not confirmed (the caller searches a window instead).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum TrackMiss {
+pub enum ConfirmMiss {
     /// Tags of this size cannot be refined (bits too narrow) or the id is unknown.
     Unsupported,
     /// A corner could not be refined or moved too far from the prediction.
@@ -73,7 +74,7 @@ pub struct Prediction {
 
 /// A tag confirmed at its predicted place.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TrackedTag {
+pub struct ConfirmedTag {
     /// The tag with its refined corners (`decision_margin`: mean distance of its cells
     /// from the mid-grey threshold; `hamming`: cells read wrong).
     pub detection: Detection,
@@ -83,37 +84,37 @@ pub struct TrackedTag {
     pub levels: EdgeLevels,
 }
 
-/// Tracks known tags in frames. Immutable while tracking, so one tracker serves every
+/// Confirms known tags in frames. Immutable while confirming, so one confirmer serves every
 /// camera and thread; the bitmaps of the tags given at construction are read once.
 #[derive(Debug, Default)]
-pub struct TagTracker {
+pub struct TagConfirmer {
     bitmaps: HashMap<(TagFamily, u32), TagBitmap>,
-    options: TrackOptions,
+    options: ConfirmOptions,
 }
 
-impl TagTracker {
-    /// A tracker with the given acceptance limits, holding the bitmaps of `tags` (others
-    /// are read from the family table when tracked).
-    pub fn new(options: TrackOptions, tags: impl IntoIterator<Item = (TagFamily, u32)>) -> Self {
+impl TagConfirmer {
+    /// A confirmer with the given acceptance limits, holding the bitmaps of `tags` (others
+    /// are read from the family table when confirmed).
+    pub fn new(options: ConfirmOptions, tags: impl IntoIterator<Item = (TagFamily, u32)>) -> Self {
         let bitmaps = tags.into_iter().filter_map(|(f, id)| tag_bitmap(f, id).ok().map(|b| ((f, id), b))).collect();
         Self { bitmaps, options }
     }
 
     /// Fits the predicted tag at its predicted corners and verifies it; see the module docs.
-    pub fn track(
+    pub fn confirm(
         &self,
         image: &GrayImage,
         prediction: &Prediction,
         intrinsics: Option<&CameraIntrinsics>,
         refine: &RefineOptions,
-    ) -> Result<TrackedTag, TrackMiss> {
+    ) -> Result<ConfirmedTag, ConfirmMiss> {
         let Prediction { family, id, corners: predicted, mut levels } = *prediction;
         let predicted = &predicted;
         let read;
         let bitmap = match self.bitmaps.get(&(family, id)) {
             Some(b) => b,
             None => {
-                read = tag_bitmap(family, id).map_err(|_| TrackMiss::Unsupported)?;
+                read = tag_bitmap(family, id).map_err(|_| ConfirmMiss::Unsupported)?;
                 &read
             }
         };
@@ -122,25 +123,25 @@ impl TagTracker {
         let report = refine_corners_warm(image, &mut det, intrinsics, refine, &mut levels);
         if report.refined != 4 {
             return Err(if report.failed_fit == 4 && edge_bits_px(predicted, family) < refine.min_bit_px {
-                TrackMiss::Unsupported
+                ConfirmMiss::Unsupported
             } else {
-                TrackMiss::Refinement
+                ConfirmMiss::Refinement
             });
         }
-        let read = read_cells(image, &det.corners, bitmap, intrinsics).ok_or(TrackMiss::Code)?;
+        let read = read_cells(image, &det.corners, bitmap, intrinsics).ok_or(ConfirmMiss::Code)?;
         if read.contrast < self.options.min_contrast || read.wrong > self.options.max_wrong_cells {
-            return Err(TrackMiss::Code);
+            return Err(ConfirmMiss::Code);
         }
         det.decision_margin = read.margin as f32;
         det.hamming = read.wrong.min(u8::MAX as u32) as u8;
-        Ok(TrackedTag { detection: det, contrast: read.contrast, levels })
+        Ok(ConfirmedTag { detection: det, contrast: read.contrast, levels })
     }
 }
 
 /// Mean length of the four edges, in bits of the family.
 fn edge_bits_px(c: &[Point2<f64>; 4], family: TagFamily) -> f64 {
     let len: f64 = (0..4).map(|i| (c[(i + 1) % 4] - c[i]).norm()).sum::<f64>() / 4.0;
-    len / border_width_bits(family) as f64
+    len / family.width_at_border() as f64
 }
 
 /// What reading a tag's cells back gave.
@@ -165,7 +166,7 @@ fn read_cells(
     let lens = Lens::new(intrinsics);
     let nb = bitmap.width_at_border as f64;
     let ideal = corners.map(|c| lens.pixel_to_ideal(&c.coords, None));
-    let h = homography_from_corners(&ideal, nb)?;
+    let h = cell_homography(&ideal, nb)?;
     let tw = bitmap.total_width;
     // Offset of the black square inside the printed tag, cells.
     let ring = ((tw - bitmap.width_at_border) / 2) as f64;
@@ -180,7 +181,7 @@ fn read_cells(
             let (cx, cy) = (col as f64 + 0.5 - ring, row as f64 + 0.5 - ring);
             let mut v = 0.0;
             for (dx, dy) in [(0.0, 0.0), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)] {
-                let u = apply_h(&h, &Vector2::new(cx + dx, cy + dy))?;
+                let u = apply_homography(&h, &Vector2::new(cx + dx, cy + dy))?;
                 let p = lens.ideal_to_pixel(&u);
                 if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= w - 1.0 && p.y <= hgt - 1.0) {
                     return None;

@@ -9,7 +9,7 @@
 //! error over the run). The background corners are still averaged while static, and they
 //! carry the measurement across a bump: the camera's motion is measured between the
 //! averaged corners before the bump and the running mean after it (refined over
-//! [`TrackerOptions::average_updates_after_bump`] updates, then held), and applied to the
+//! [`HeldPoseOptions::average_updates_after_bump`] updates, then held), and applied to the
 //! held pose. The held pose's constant error thus carries over, and displacements stay
 //! continuous across the bump to the accuracy of averaged corners rather than jumping by
 //! a fresh single-frame pose error.
@@ -22,7 +22,7 @@
 //! with the pose are left out of the running means.
 //!
 //! Slow drift (see [`super::drift`]): when updates carry their time
-//! ([`CameraPoseTracker::update_at`]) and [`TrackerOptions::drift`] is enabled, each static
+//! ([`HeldCameraPose::update_at`]) and [`HeldPoseOptions::drift`] is enabled, each static
 //! update also solves the camera from its own background corners and feeds that to a
 //! Kalman filter of the camera's motion since the pose was fixed; the pose in use is the
 //! held pose moved by the filtered drift. The running means are kept de-drifted (each
@@ -40,9 +40,9 @@ use super::drift::{DriftConfig, DriftEstimate, DriftFilter};
 use super::lm::median;
 use crate::camera::{CameraIntrinsics, Pose};
 
-/// Tuning of a [`CameraPoseTracker`].
+/// Tuning of a [`HeldCameraPose`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrackerOptions {
+pub struct HeldPoseOptions {
     /// Fewest background corners to pose (or test) the camera in an update (4 = one tag).
     pub min_corners: usize,
     /// Smallest median corner shift (px) taken as a bump.
@@ -54,11 +54,11 @@ pub struct TrackerOptions {
     pub average_updates_initial: usize,
     /// Updates whose corners are averaged into the pose after a bump's re-posing.
     pub average_updates_after_bump: usize,
-    /// Slow-drift tracking while the pose is held (only in [`CameraPoseTracker::update_at`]).
+    /// Slow-drift tracking while the pose is held (only in [`HeldCameraPose::update_at`]).
     pub drift: DriftConfig,
 }
 
-impl Default for TrackerOptions {
+impl Default for HeldPoseOptions {
     fn default() -> Self {
         Self {
             min_corners: 4,
@@ -71,9 +71,9 @@ impl Default for TrackerOptions {
     }
 }
 
-/// What one [`CameraPoseTracker::update`] found.
+/// What one [`HeldCameraPose::update`] found.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TrackerStatus {
+pub struct HeldPoseStatus {
     /// The pose to use for this frame set (world → camera); `None` while the camera has
     /// never been posed, or after a bump it could not be re-posed from.
     pub pose: Option<Pose>,
@@ -120,9 +120,9 @@ struct CornerStats {
 
 /// Keeps one camera's pose across frame sets. See the module docs for the policy.
 #[derive(Debug, Clone)]
-pub struct CameraPoseTracker {
+pub struct HeldCameraPose {
     intrinsics: CameraIntrinsics,
-    options: TrackerOptions,
+    options: HeldPoseOptions,
     fixed: bool,
     /// The pose that fits the images (held after settling); reported pose = `raw ∘ fix`.
     raw: Option<Pose>,
@@ -138,18 +138,18 @@ pub struct CameraPoseTracker {
     average_limit: usize,
     /// The drift filter of the held `raw` pose (see the module docs).
     drift: Option<DriftFilter>,
-    /// Time of the update in progress (from [`CameraPoseTracker::update_at`]).
+    /// Time of the update in progress (from [`HeldCameraPose::update_at`]).
     now_ns: Option<i64>,
 }
 
-impl CameraPoseTracker {
+impl HeldCameraPose {
     /// A tracker for a camera; `fixed_pose` (from the config's rvec/tvec) disables estimation.
     pub fn new(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>) -> Self {
-        Self::with_options(intrinsics, fixed_pose, TrackerOptions::default())
+        Self::with_options(intrinsics, fixed_pose, HeldPoseOptions::default())
     }
 
     /// As [`new`](Self::new) with explicit tuning.
-    pub fn with_options(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>, options: TrackerOptions) -> Self {
+    pub fn with_options(intrinsics: CameraIntrinsics, fixed_pose: Option<Pose>, options: HeldPoseOptions) -> Self {
         Self {
             intrinsics,
             options,
@@ -215,20 +215,20 @@ impl CameraPoseTracker {
 
     /// Feeds one frame set's background tags seen by this camera (possibly none). Without
     /// a time no drift is tracked: the pose is held exactly while static.
-    pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+    pub fn update(&mut self, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
         self.now_ns = None;
         self.drift = None;
         self.update_inner(tags)
     }
 
     /// As [`update`](Self::update) for a frame set taken at `t_ns` (ns): with
-    /// [`TrackerOptions::drift`] enabled the held pose follows slow drift.
-    pub fn update_at(&mut self, t_ns: i64, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+    /// [`HeldPoseOptions::drift`] enabled the held pose follows slow drift.
+    pub fn update_at(&mut self, t_ns: i64, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
         self.now_ns = Some(t_ns);
         self.update_inner(tags)
     }
 
-    fn update_inner(&mut self, tags: &[BackgroundTagObservation]) -> TrackerStatus {
+    fn update_inner(&mut self, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
         let tags: Vec<BackgroundTagObservation> = tags
             .iter()
             .filter(|t| {
@@ -238,7 +238,7 @@ impl CameraPoseTracker {
             .collect();
         let corners = tags.len() * 4;
         let threshold = self.bump_threshold_px();
-        let mut status = TrackerStatus {
+        let mut status = HeldPoseStatus {
             pose: self.pose(),
             covariance: self.covariance,
             bumped: false,
@@ -401,7 +401,7 @@ impl CameraPoseTracker {
         status
     }
 
-    fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: TrackerStatus) -> TrackerStatus {
+    fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: HeldPoseStatus) -> HeldPoseStatus {
         match solve_camera_pose(&self.intrinsics, &tags, None) {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
@@ -570,7 +570,7 @@ mod tests {
     #[test]
     fn holds_the_pose_and_measures_the_corner_noise() {
         let (intr, pose, tags) = setup();
-        let mut t = CameraPoseTracker::new(intr, None);
+        let mut t = HeldCameraPose::new(intr, None);
         let first = t.update(&observe(&intr, &pose, &tags, 0.2, 0));
         assert!(first.first_pose && !first.bumped);
         for step in 1..40 {
@@ -586,7 +586,7 @@ mod tests {
     #[test]
     fn one_moved_tag_is_not_a_bump() {
         let (intr, pose, tags) = setup();
-        let mut t = CameraPoseTracker::new(intr, None);
+        let mut t = HeldCameraPose::new(intr, None);
         for step in 0..5 {
             t.update(&observe(&intr, &pose, &tags, 0.05, step));
         }

@@ -3,13 +3,13 @@
 //! Once tags have been found, each is expected where its last refined corners, moved by
 //! its image velocity, put it ([`PlannedTag::predicted`]). The measurement first tries to
 //! *confirm* it there without any search (sub-pixel refinement from the prediction, then
-//! the tag's code read back: see `detect::track`); only a tag that cannot be confirmed is
+//! the tag's code read back: see `detect::confirm`); only a tag that cannot be confirmed is
 //! searched for with the AprilTag library in its *window*, the predicted box grown by a
 //! margin that scales with the tag's size in the image and its motion.
 //!
 //! - **Specimen tags** are looked for every frame.
 //! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
-//!   is held, see `solve::tracker`), so after a settling period only a rotating subset of
+//!   is held, see `solve::held_pose`), so after a settling period only a rotating subset of
 //!   [`BACKGROUND_TAGS_PER_FRAME`] of them is looked for per frame; the tracker's bump
 //!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
 //!   the same frame set. When the background tags seen have shifted in the image (a bump),
@@ -29,13 +29,13 @@
 //! Corners are identical in quality whichever way a tag was found: windows are searched on
 //! a view into the same frame with corners mapped back (see `detect::apriltag`), and every
 //! tag — confirmed, found in a window or in a tile — gets the same sub-pixel refinement on
-//! the full frame (see `pipeline::measure`).
+//! the full frame (see `detect::camera_detector`).
 
 use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
 
-use crate::camera::{CameraIntrinsics, Pose};
-use crate::detect::{Detection, Rect};
+use super::{Detection, Rect};
+use crate::camera::CameraIntrinsics;
 use crate::frame::GrayImage;
 use crate::tags::TagFamily;
 
@@ -70,8 +70,9 @@ fn union(a: &Rect, b: &Rect) -> Rect {
     Rect { x, y, width: x1(a).max(x1(b)) - x, height: y1(a).max(y1(b)) - y }
 }
 
+/// Where a tag was last seen in this camera and how it moved.
 #[derive(Debug, Clone)]
-struct Track {
+struct Sighting {
     corners: [Point2<f64>; 4],
     velocity: Vector2<f64>,
     t_ns: i64,
@@ -103,7 +104,7 @@ pub enum Plan {
     FullFrame,
     /// Tracked tags (each confirmed at its predicted place, else searched in its window)
     /// plus sweep tiles (possibly none this frame).
-    Track {
+    Windows {
         /// Quad decimation to search windows and tiles with ([`SEARCH_DECIMATE`] for tags
         /// big enough, else 1: the configured resolution).
         decimate: f32,
@@ -111,6 +112,8 @@ pub enum Plan {
         tags: Vec<PlannedTag>,
         /// Tiles of the periodic sweep (or the whole frame after a lost tag).
         sweep: Vec<Rect>,
+        /// `sweep` is the whole frame at once (after a lost tag), not the periodic tiles.
+        whole_frame: bool,
     },
 }
 
@@ -121,7 +124,7 @@ pub struct RoiPlanner {
     width: u32,
     height: u32,
     interval_ns: i64,
-    tracks: HashMap<(TagFamily, u32), Track>,
+    sightings: HashMap<(TagFamily, u32), Sighting>,
     full_requested: bool,
     sweep_all_requested: bool,
     frame_dt_ns: i64,
@@ -144,7 +147,7 @@ impl RoiPlanner {
             width: intrinsics.width,
             height: intrinsics.height,
             interval_ns: (full_search_interval_s.max(0.0) * 1e9) as i64,
-            tracks: HashMap::new(),
+            sightings: HashMap::new(),
             full_requested: true,
             sweep_all_requested: false,
             frame_dt_ns: 0,
@@ -177,23 +180,23 @@ impl RoiPlanner {
             self.height = image.height;
             self.full_requested = true;
         }
-        for tr in self.tracks.values_mut() {
+        for tr in self.sightings.values_mut() {
             tr.searched = false;
         }
-        if !self.enabled || self.full_requested || self.tracks.is_empty() {
+        if !self.enabled || self.full_requested || self.sightings.is_empty() {
             self.full_requested = false;
             self.sweep_all_requested = false;
             self.frame_index = 0;
             self.settle = SETTLE_FRAMES;
-            for tr in self.tracks.values_mut() {
+            for tr in self.sightings.values_mut() {
                 tr.searched = true;
             }
             return Plan::FullFrame;
         }
         self.frame_index += 1;
 
-        // Which tracks get a window: every specimen tag, and the background tags in rotation.
-        let mut bg_keys: Vec<(TagFamily, u32)> = self.tracks.iter().filter(|(_, t)| t.background).map(|(k, _)| *k).collect();
+        // Which sightings get a window: every specimen tag, and the background tags in rotation.
+        let mut bg_keys: Vec<(TagFamily, u32)> = self.sightings.iter().filter(|(_, t)| t.background).map(|(k, _)| *k).collect();
         bg_keys.sort_by_key(|(f, id)| (f.name(), *id));
         let all_bg = self.settle > 0 || bg_keys.len() <= BACKGROUND_TAGS_PER_FRAME;
         self.settle = self.settle.saturating_sub(1);
@@ -206,13 +209,13 @@ impl RoiPlanner {
             }
             self.bg_cursor = (self.bg_cursor + BACKGROUND_TAGS_PER_FRAME) % bg_keys.len();
             // A background tag missing from its last search is searched again at once.
-            chosen.extend(bg_keys.iter().filter(|k| self.tracks[*k].missed > 0));
+            chosen.extend(bg_keys.iter().filter(|k| self.sightings[*k].missed > 0));
         }
         let mut tags: Vec<PlannedTag> = Vec::new();
         let mut max_extent: f64 = 0.0;
         let mut min_extent: f64 = f64::INFINITY;
         let (w, h) = (self.width, self.height);
-        for (key, tr) in self.tracks.iter_mut() {
+        for (key, tr) in self.sightings.iter_mut() {
             let (lo, hi) = bounds(&tr.corners);
             max_extent = max_extent.max((hi - lo).max());
             min_extent = min_extent.min((hi - lo).max());
@@ -236,6 +239,7 @@ impl RoiPlanner {
         // The sweep: the tiles of the whole frame once per interval, staggered by phase.
         let overlap = 1.3 * max_extent + 16.0;
         let tiles = sweep_tiles(w, h, overlap);
+        let whole_frame = self.sweep_all_requested;
         let sweep = if self.sweep_all_requested {
             self.sweep_all_requested = false;
             clip(w, h, 0.0, 0.0, w as f64, h as f64).into_iter().collect()
@@ -250,7 +254,28 @@ impl RoiPlanner {
         };
         let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
         tags.sort_by_key(|t| (t.family.name(), t.id));
-        Plan::Track { decimate, tags, sweep }
+        Plan::Windows { decimate, tags, sweep, whole_frame }
+    }
+
+    /// Starts following tags found by a search of an earlier frame (at `t_ns`) that ran
+    /// while later frames were planned: tags already followed are left as they are, the
+    /// others are looked for from the next plan on, where they were found.
+    pub fn add_found(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
+            self.sightings.entry((d.family, d.id)).or_insert(Sighting {
+                corners: d.corners,
+                velocity: Vector2::zeros(),
+                t_ns,
+                missed: 0,
+                background: is_bg,
+                searched: false,
+            });
+        }
+    }
+
+    /// True when no tag is followed.
+    pub fn is_empty(&self) -> bool {
+        self.sightings.is_empty()
     }
 
     /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but
@@ -258,22 +283,14 @@ impl RoiPlanner {
     /// missing for a second of frames is dropped from tracking (the sweep picks it up
     /// again). Background tags whose positions shifted (a bump) are all searched again for
     /// a while.
-    pub fn observe(
-        &mut self,
-        t_ns: i64,
-        _pose: Option<&Pose>,
-        background: &[Detection],
-        specimen: &[Detection],
-        _solved: &[(u32, Pose)],
-        _size_mm: f64,
-    ) {
+    pub fn observe(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
         let mut seen = std::collections::HashSet::new();
         let mut bg_shifts = Vec::new();
         for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
             let key = (d.family, d.id);
             seen.insert(key);
             let c_new = centre(&d.corners);
-            match self.tracks.get_mut(&key) {
+            match self.sightings.get_mut(&key) {
                 Some(tr) => {
                     let dt = (t_ns - tr.t_ns) as f64 * 1e-9;
                     if is_bg {
@@ -289,9 +306,9 @@ impl RoiPlanner {
                     tr.background = is_bg;
                 }
                 None => {
-                    self.tracks.insert(
+                    self.sightings.insert(
                         key,
-                        Track { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+                        Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
                     );
                 }
             }
@@ -304,7 +321,7 @@ impl RoiPlanner {
         }
         let max_missed = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).clamp(2, 60) as u32 } else { 10 };
         let mut lost_now = false;
-        self.tracks.retain(|k, tr| {
+        self.sightings.retain(|k, tr| {
             if seen.contains(k) || !tr.searched {
                 return true;
             }
@@ -383,7 +400,7 @@ pub fn masked_tile(image: &GrayImage, tile: Rect, known: &[Detection], out: &mut
     }
     let (ox, oy) = (tile.x as f64, tile.y as f64);
     for d in known {
-        let nb = crate::detect::refine::border_width_bits(d.family) as f64;
+        let nb = d.family.width_at_border() as f64;
         let c = centre(&d.corners);
         let grow = (nb + 4.0) / nb;
         let poly = d.corners.map(|p| c + (p.coords - c) * grow);
@@ -486,7 +503,7 @@ mod tests {
 
     fn track(plan: Plan) -> (Vec<Rect>, Vec<Rect>) {
         match plan {
-            Plan::Track { tags, sweep, .. } => (merge_rects(tags.iter().map(|t| t.window).collect()), sweep),
+            Plan::Windows { tags, sweep, .. } => (merge_rects(tags.iter().map(|t| t.window).collect()), sweep),
             Plan::FullFrame => panic!("expected windows, got a full-frame search"),
         }
     }
@@ -496,7 +513,7 @@ mod tests {
         let img = GrayImage::new(1000, 800);
         let mut p = RoiPlanner::new(intr(), true, 1.0);
         assert_eq!(p.plan(0, &img), Plan::FullFrame);
-        p.observe(0, None, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)], &[], 30.0);
+        p.observe(0, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)]);
         let (windows, _) = track(p.plan(33_000_000, &img));
         assert!(inside(&windows, 120.0, 120.0, 28.0) && inside(&windows, 620.0, 520.0, 28.0), "{windows:?}");
         let area: u64 = windows.iter().map(Rect::area).sum();
@@ -508,12 +525,12 @@ mod tests {
         let img = GrayImage::new(1000, 800);
         let mut p = RoiPlanner::new(intr(), true, 1.0);
         p.plan(0, &img);
-        p.observe(0, None, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)], &[], 30.0);
+        p.observe(0, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)]);
         p.plan(33_000_000, &img);
-        p.observe(33_000_000, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
+        p.observe(33_000_000, &[], &[det(1, 100.0, 100.0, 40.0)]);
         let (_, sweep) = track(p.plan(66_000_000, &img));
         assert_eq!(sweep, vec![Rect { x: 0, y: 0, width: 1000, height: 800 }], "lost tag → whole frame swept");
-        p.observe(66_000_000, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
+        p.observe(66_000_000, &[], &[det(1, 100.0, 100.0, 40.0)]);
         let (_, sweep) = track(p.plan(99_000_000, &img));
         assert!(sweep.iter().map(Rect::area).sum::<u64>() < 1000 * 800 / 4, "still lost → back to the periodic sweep");
     }
@@ -528,7 +545,7 @@ mod tests {
         let frames = 16; // 0.5 s at 30 fps: one sweep cycle
         for k in 1..=frames {
             let t = k * 33_333_333;
-            p.observe(t - 33_333_333, None, &[], &[det(1, 100.0, 100.0, 40.0)], &[], 30.0);
+            p.observe(t - 33_333_333, &[], &[det(1, 100.0, 100.0, 40.0)]);
             let (_, sweep) = track(p.plan(t, &img));
             worst = worst.max(sweep.iter().map(Rect::area).sum());
             for r in &sweep {
@@ -562,7 +579,7 @@ mod tests {
         let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
         let sp = [det(1, 400.0, 300.0, 40.0)];
         let mut t = 0;
-        p.observe(t, None, &bgs, &sp, &[], 30.0);
+        p.observe(t, &bgs, &sp);
         let windows_with_bg = |p: &mut RoiPlanner, t: i64| {
             let (w, _) = track(p.plan(t, &img));
             (0..8).filter(|&i| inside(&w, 70.0 + 110.0 * i as f64, 720.0, 21.0)).count()
@@ -572,7 +589,7 @@ mod tests {
             t += 33_000_000;
             counts.push(windows_with_bg(&mut p, t));
             // Only the searched tags are reported (the others were not searched).
-            p.observe(t, None, &bgs, &sp, &[], 30.0);
+            p.observe(t, &bgs, &sp);
         }
         assert!(counts[..SETTLE_FRAMES as usize].iter().all(|&c| c == 8), "all while settling: {counts:?}");
         assert!(counts[SETTLE_FRAMES as usize + 1..].iter().all(|&c| c < 8), "a subset once settled: {counts:?}");
@@ -580,7 +597,7 @@ mod tests {
         let bumped: Vec<Detection> = (0..8).map(|i| bg(i, 53.0 + 110.0 * i as f64, 702.0, 40.0)).collect();
         t += 33_000_000;
         p.plan(t, &img);
-        p.observe(t, None, &bumped[..3], &sp, &[], 30.0);
+        p.observe(t, &bumped[..3], &sp);
         t += 33_000_000;
         assert_eq!(windows_with_bg(&mut p, t), 8);
     }
@@ -591,7 +608,7 @@ mod tests {
         let mut p = RoiPlanner::new(intr(), true, 1.0);
         p.plan(0, &img);
         let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
-        p.observe(0, None, &bgs, &[], &[], 30.0);
+        p.observe(0, &bgs, &[]);
         for k in 1..=(SETTLE_FRAMES as i64 + 40) {
             let t = k * 33_000_000;
             let (w, sweep) = track(p.plan(t, &img));
@@ -599,9 +616,9 @@ mod tests {
             // Report exactly the tags whose windows were searched.
             let seen: Vec<Detection> =
                 bgs.iter().filter(|d| inside(&w, d.corners[0].x + 20.0, d.corners[0].y - 20.0, 21.0)).cloned().collect();
-            p.observe(t, None, &seen, &[], &[], 30.0);
+            p.observe(t, &seen, &[]);
         }
-        assert_eq!(p.tracks.len(), 8);
+        assert_eq!(p.sightings.len(), 8);
     }
 
     #[test]

@@ -1,0 +1,378 @@
+//! One camera's detection as one component: [`CameraDetector`] plans what to look for in
+//! each frame ([`super::plan`]), confirms the tags it follows at their predicted places
+//! ([`super::confirm`]), searches windows of the tags it could not confirm and the sweep's
+//! tiles with the AprilTag library, sorts what it found into background and specimen tags
+//! and remembers, per tag, what the next frame needs (where it was, its edge fits' levels,
+//! the contrast of the tags it follows).
+//!
+//! What the cameras of a rig share is in [`RigDetectors`]: the one AprilTag [`Detector`]
+//! (its tag36h11 decoding table is 37 MB, so one for all cameras; its searches take their
+//! options per call and run on several C workers at once), the [`TagConfirmer`] with the
+//! known tags' bitmaps and the rig's [`TagRoles`]. Cameras are independent, so the
+//! measurement detects all of a frame set's cameras in parallel.
+//!
+//! **Background searches** (live pipeline, [`CameraDetector::set_background_searches`]):
+//! a whole-frame search after the first frame — the sweep after a tag was lost, or the
+//! search of a camera that follows no tag — runs on a thread of its own on a copy of the
+//! frame, so it stalls no frame set; the tags it finds are followed from the first frame
+//! after it finished (confirmed there, where they were found). Replays keep every search
+//! in its frame, so they stay reproducible.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::mpsc;
+use std::sync::Arc;
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::apriltag::{Detector, SearchOptions};
+use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
+use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
+use super::refine::{refine_corners_with, EdgeLevels};
+use super::{Detection, Rect};
+use crate::camera::CameraIntrinsics;
+use crate::frame::GrayImage;
+use crate::tags::TagFamily;
+
+/// Searches in tracking mode skip image regions whose contrast is below this fraction of
+/// the weakest tracked tag's (a new tag printed and lit like the others has about their
+/// contrast; a third of it leaves room for shadows) — the beam's low-contrast texture is
+/// then not searched at all, which is most of a search's cost on a textured specimen.
+pub const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
+/// Cap of the contrast filter of tracking-mode searches, grey levels.
+pub const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
+
+/// Time of one frame set's detection by kind of work, seconds.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DetectParts {
+    /// CPU time confirming tracked tags at their predicted place (refinement and
+    /// read-back), summed over the cameras (which run in parallel).
+    pub tracking: f64,
+    /// Wall time of the window searches of tags not confirmed and of the sweep's tiles,
+    /// summed over the cameras (which run in parallel).
+    pub search: f64,
+    /// Wall time of full-frame searches (likewise).
+    pub full_frame: f64,
+}
+
+impl DetectParts {
+    /// Adds another frame set's (or camera's) times.
+    pub fn add(&mut self, other: &DetectParts) {
+        self.tracking += other.tracking;
+        self.search += other.search;
+        self.full_frame += other.full_frame;
+    }
+}
+
+/// What one camera's detection of one frame did.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DetectReport {
+    /// Time by kind of work.
+    pub parts: DetectParts,
+    /// Full-frame searches run (0 or 1).
+    pub full_frame_searches: u64,
+    /// Window and sweep-tile searches run.
+    pub window_searches: u64,
+    /// Tags confirmed at their predicted place (no search needed).
+    pub confirmed_tags: u64,
+}
+
+/// The tags of one camera's frame, sorted by role (others are ignored).
+#[derive(Debug, Clone, Default)]
+pub struct CameraDetections {
+    /// Background tags (known world positions).
+    pub background: Vec<Detection>,
+    /// Specimen tags.
+    pub specimen: Vec<Detection>,
+}
+
+/// Which detected tags are background and which specimen tags.
+#[derive(Debug, Clone)]
+pub struct TagRoles {
+    /// Family of the background tags.
+    pub background_family: TagFamily,
+    /// Their ids.
+    pub background: HashSet<u32>,
+    /// Family of the specimen tags.
+    pub specimen_family: TagFamily,
+    /// Their ids.
+    pub specimen: HashSet<u32>,
+}
+
+impl TagRoles {
+    /// Sorts detections into background and specimen tags; when both share a family, an id
+    /// of both lists is a background tag.
+    pub fn classify(&self, dets: Vec<Detection>) -> CameraDetections {
+        let same_family = self.background_family == self.specimen_family;
+        let mut out = CameraDetections::default();
+        for d in dets {
+            let is_sp =
+                d.family == self.specimen_family && self.specimen.contains(&d.id) && !(same_family && self.background.contains(&d.id));
+            let is_bg = d.family == self.background_family && self.background.contains(&d.id);
+            if is_sp {
+                out.specimen.push(d);
+            } else if is_bg {
+                out.background.push(d);
+            }
+        }
+        out
+    }
+
+    /// Every known tag (family, id).
+    pub fn known(&self) -> impl Iterator<Item = (TagFamily, u32)> + '_ {
+        let bg = self.background.iter().map(|id| (self.background_family, *id));
+        bg.chain(self.specimen.iter().map(|id| (self.specimen_family, *id)))
+    }
+}
+
+/// What the cameras of a rig share (see the module docs).
+#[derive(Debug)]
+pub struct RigDetectors {
+    /// The AprilTag library.
+    pub library: Detector,
+    /// Confirms tags at their predicted places.
+    pub confirmer: TagConfirmer,
+    /// Which tags are which.
+    pub roles: TagRoles,
+}
+
+/// One camera's detection: plan, confirmation, searches and every per-tag state (see the
+/// module docs).
+#[derive(Debug)]
+pub struct CameraDetector {
+    intrinsics: CameraIntrinsics,
+    planner: RoiPlanner,
+    /// Each followed tag's last edge-fit levels (the warm start of its next fit).
+    edge_levels: HashMap<(TagFamily, u32), EdgeLevels>,
+    /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
+    tag_contrast: Option<f64>,
+    /// The sweep's masked copy of a tile (reused).
+    tile: GrayImage,
+    /// Whole-frame searches after the first frame run in the background.
+    background: bool,
+    /// A frame has been searched (the first search is never in the background).
+    searched_once: bool,
+    /// The result of the background search under way: the frame's time and its tags.
+    pending: Option<mpsc::Receiver<(i64, Vec<Detection>)>>,
+}
+
+impl CameraDetector {
+    /// The detector of a camera with these intrinsics; `roi_tracking = false` searches
+    /// every frame whole. `phase` (e.g. the camera's index) staggers the cameras' sweeps.
+    pub fn new(intrinsics: CameraIntrinsics, roi_tracking: bool, full_search_interval_s: f64, phase: u32) -> Self {
+        Self {
+            intrinsics,
+            planner: RoiPlanner::new(intrinsics, roi_tracking, full_search_interval_s).with_phase(phase),
+            edge_levels: HashMap::new(),
+            tag_contrast: None,
+            tile: GrayImage::new(0, 0),
+            background: false,
+            searched_once: false,
+            pending: None,
+        }
+    }
+
+    /// Runs whole-frame searches after the first frame in the background (see the module
+    /// docs; for live capture, where a stalled frame set is a lost one).
+    pub fn set_background_searches(&mut self, on: bool) {
+        self.background = on;
+    }
+
+    /// Takes the tags of a finished background search into the plan.
+    fn take_background_result(&mut self, rig: &RigDetectors) {
+        let Some(rx) = &self.pending else { return };
+        match rx.try_recv() {
+            Ok((t_ns, dets)) => {
+                self.pending = None;
+                let dets = rig.roles.classify(dets);
+                self.planner.add_found(t_ns, &dets.background, &dets.specimen);
+            }
+            Err(mpsc::TryRecvError::Empty) => {}
+            Err(mpsc::TryRecvError::Disconnected) => self.pending = None,
+        }
+    }
+
+    /// Starts a search of the whole `image` in the background unless one is under way.
+    fn start_background_search(&mut self, t_ns: i64, image: &GrayImage, options: SearchOptions, rig: &Arc<RigDetectors>) {
+        if self.pending.is_some() {
+            return;
+        }
+        let (tx, rx) = mpsc::channel();
+        let (image, rig, intrinsics) = (image.clone(), Arc::clone(rig), self.intrinsics);
+        let spawned = std::thread::Builder::new().name("background-search".into()).spawn(move || {
+            let found = rig.library.search(&image, None, &options, Some(&intrinsics));
+            let _ = tx.send((t_ns, found));
+        });
+        match spawned {
+            Ok(_) => self.pending = Some(rx),
+            Err(e) => tracing::warn!("cannot start a background search: {e}"),
+        }
+    }
+
+    /// Detects the tags of the frame at `t_ns`: the tags followed are confirmed where they
+    /// are predicted (in parallel), then the searches still needed — the full frame, windows
+    /// of tags not confirmed, sweep tiles — run on the rig's shared detector; what was found
+    /// is remembered for the next frame.
+    pub fn detect(&mut self, t_ns: i64, image: &GrayImage, rig: &Arc<RigDetectors>) -> (CameraDetections, DetectReport) {
+        let mut report = DetectReport::default();
+        self.take_background_result(rig);
+        let background = self.background && self.searched_once;
+        self.searched_once = true;
+        let found = match self.planner.plan(t_ns, image) {
+            Plan::FullFrame if background && self.planner.is_empty() => {
+                self.start_background_search(t_ns, image, SearchOptions::of(rig.library.options()), rig);
+                Vec::new()
+            }
+            Plan::FullFrame => {
+                let c0 = Instant::now();
+                let found = rig.library.search(image, None, &SearchOptions::of(rig.library.options()), Some(&self.intrinsics));
+                report.full_frame_searches = 1;
+                report.parts.full_frame = c0.elapsed().as_secs_f64();
+                found
+            }
+            Plan::Windows { decimate, tags, mut sweep, whole_frame } => {
+                if background && whole_frame {
+                    let options = self.search_options(rig, decimate);
+                    self.start_background_search(t_ns, image, options, rig);
+                    sweep.clear();
+                }
+                let (confirmed, windows, cpu) = self.confirm(image, tags, rig);
+                report.parts.tracking = cpu;
+                report.confirmed_tags = confirmed.len() as u64;
+                let mut found = confirmed;
+                let c0 = Instant::now();
+                let more = self.search(rig, image, &windows, &sweep, &found, decimate);
+                found.extend(more);
+                dedup_detections(&mut found);
+                report.window_searches = (windows.len() + sweep.len()) as u64;
+                report.parts.search = c0.elapsed().as_secs_f64();
+                found
+            }
+        };
+        let dets = rig.roles.classify(found);
+        self.planner.observe(t_ns, &dets.background, &dets.specimen);
+        (dets, report)
+    }
+
+    /// Confirms the planned tags at their predicted places; returns the confirmed tags, the
+    /// (merged) windows of the others and the CPU time spent.
+    fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Vec<Detection>, Vec<Rect>, f64) {
+        let refine = rig.library.options().subpixel.as_ref();
+        let (levels, intrinsics) = (&self.edge_levels, &self.intrinsics);
+        let one = |t: &PlannedTag| {
+            let c0 = crate::clock::thread_cpu_s();
+            let levels = levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
+            let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
+            let result = match refine {
+                Some(opts) => rig.confirmer.confirm(image, &prediction, Some(intrinsics), opts),
+                None => Err(ConfirmMiss::Unsupported),
+            };
+            (result, crate::clock::thread_cpu_s() - c0)
+        };
+        let results: Vec<(Result<ConfirmedTag, ConfirmMiss>, f64)> =
+            if tags.len() > 1 { tags.par_iter().map(one).collect() } else { tags.iter().map(one).collect() };
+        let (mut confirmed, mut windows, mut cpu) = (Vec::new(), Vec::new(), 0.0);
+        let mut weakest: Option<f64> = None;
+        for (t, (result, cpu_s)) in tags.into_iter().zip(results) {
+            cpu += cpu_s;
+            match result {
+                Ok(tag) => {
+                    weakest = Some(weakest.map_or(tag.contrast, |w: f64| w.min(tag.contrast)));
+                    self.edge_levels.insert((t.family, t.id), tag.levels);
+                    confirmed.push(tag.detection);
+                }
+                Err(_) => {
+                    self.edge_levels.remove(&(t.family, t.id));
+                    windows.push(t.window);
+                }
+            }
+        }
+        if weakest.is_some() {
+            self.tag_contrast = weakest;
+        }
+        (confirmed, merge_rects(windows), cpu)
+    }
+
+    /// The options of window and sweep searches: decimation `search_decimate` (at least the
+    /// configured one), the contrast filter at a fraction of the weakest followed tag's.
+    fn search_options(&self, rig: &RigDetectors, search_decimate: f32) -> SearchOptions {
+        let configured = rig.library.options();
+        let min_diff = configured.min_white_black_diff as f64;
+        let white_black_diff = self
+            .tag_contrast
+            .map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
+        SearchOptions {
+            quad_decimate: configured.quad_decimate.max(search_decimate),
+            min_white_black_diff: white_black_diff as u8,
+            refine: configured.subpixel.is_some(),
+        }
+    }
+
+    /// Searches the windows around tags that could not be confirmed, and the sweep tiles,
+    /// with quad decimation `search_decimate` (at least the configured one) and with
+    /// low-contrast regions skipped (see [`SEARCH_CONTRAST_FRACTION`]). Window detections
+    /// are refined as usual. Tiles are searched without refinement; only the tags not
+    /// already found (confirmed, or in the windows) are then refined — corners as good as a
+    /// full-frame search's without refining every confirmed tag twice.
+    fn search(
+        &mut self,
+        rig: &RigDetectors,
+        image: &GrayImage,
+        windows: &[Rect],
+        tiles: &[Rect],
+        found: &[Detection],
+        search_decimate: f32,
+    ) -> Vec<Detection> {
+        let mut out: Vec<Detection> = Vec::new();
+        if windows.is_empty() && tiles.is_empty() {
+            return out;
+        }
+        let configured = rig.library.options();
+        let min_diff = configured.min_white_black_diff as f64;
+        let white_black_diff = self
+            .tag_contrast
+            .map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
+        let options = SearchOptions {
+            quad_decimate: configured.quad_decimate.max(search_decimate),
+            min_white_black_diff: white_black_diff as u8,
+            refine: configured.subpixel.is_some(),
+        };
+        for r in windows {
+            out.extend(rig.library.search(image, Some(*r), &options, Some(&self.intrinsics)));
+        }
+        if !tiles.is_empty() {
+            let tile_options = SearchOptions { refine: false, ..options };
+            let mut new: Vec<Detection> = Vec::new();
+            let known: Vec<Detection> = found.iter().chain(out.iter()).cloned().collect();
+            for r in tiles {
+                // The tile with the tags already found blanked out (see `plan::masked_tile`).
+                masked_tile(image, *r, &known, &mut self.tile);
+                let whole = Rect { x: 0, y: 0, width: r.width, height: r.height };
+                for mut d in rig.library.search(&self.tile, Some(whole), &tile_options, None) {
+                    for c in d.corners.iter_mut() {
+                        *c += nalgebra::Vector2::new(r.x as f64, r.y as f64);
+                    }
+                    let known = known.iter().chain(new.iter()).any(|f| f.family == d.family && f.id == d.id);
+                    if !known {
+                        new.push(d);
+                    }
+                }
+            }
+            if let Some(opts) = &configured.subpixel {
+                for d in &mut new {
+                    refine_corners_with(image, d, Some(&self.intrinsics), opts);
+                }
+            }
+            out.extend(new);
+        }
+        out
+    }
+}
+
+/// Removes duplicate detections of one tag found in overlapping windows (keeps the one
+/// with the highest decision margin).
+fn dedup_detections(dets: &mut Vec<Detection>) {
+    dets.sort_by(|a, b| (a.family.name(), a.id).cmp(&(b.family.name(), b.id)).then(b.decision_margin.total_cmp(&a.decision_margin)));
+    dets.dedup_by(|b, a| a.family == b.family && a.id == b.id);
+}
+
