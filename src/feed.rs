@@ -3,7 +3,10 @@
 //! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
 //! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
-//! the live pipeline so far), `latency_ms` (frame capture → line written, live only).
+//! the live pipeline so far), `latency_ms` (frame capture → line written, live only),
+//! `recording` / `recorder_dropped` (recorder state and frames it dropped, live runs that
+//! record), per camera `stale_pose` / `pose_age_sets` (pose held unchecked) and
+//! `dropped_frames` (live).
 
 use serde::{Deserialize, Serialize};
 
@@ -45,6 +48,17 @@ pub struct CameraHealth {
     /// The camera was found moved (bumped) and re-posed in this frame set.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub bumped: bool,
+    /// The pose in use was not checked against background tags in this frame set (too few
+    /// seen): it is held from an earlier set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stale_pose: bool,
+    /// Frame sets since the pose was last checked against background tags (with `stale_pose`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_age_sets: Option<u64>,
+    /// This camera's frames dropped so far in a live run (capture queue full, incomplete
+    /// buffers, arrived too late for their frame set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dropped_frames: Option<u64>,
 }
 
 /// One line of the feed.
@@ -80,6 +94,13 @@ pub struct FeedLine {
     /// Capture → feed latency of this set, ms (live only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub latency_ms: Option<f64>,
+    /// State of the recorder when the live run records: "ok", "failing" (write errors,
+    /// retried) or "off" (stopped).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
+    /// Frames the recorder did not record so far (queue full or writes failing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recorder_dropped: Option<u64>,
 }
 
 /// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.

@@ -74,9 +74,10 @@ impl FrameSet {
         let t_ns = if frames.is_empty() {
             0
         } else {
-            let base = frames[0].t_ns;
-            let sum: i128 = frames.iter().map(|f| (f.t_ns - base) as i128).sum();
-            base + (sum / frames.len() as i128) as i64
+            // i128: any frame times (a corrupt recording) without overflow.
+            let base = frames[0].t_ns as i128;
+            let sum: i128 = frames.iter().map(|f| f.t_ns as i128 - base).sum();
+            (base + sum / frames.len() as i128) as i64
         };
         Self { seq, t_ns, frames }
     }

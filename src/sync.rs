@@ -41,6 +41,8 @@ pub struct FrameSetAssembler {
     closed_until: Option<i64>,
     next_seq: u64,
     late_frames: u64,
+    /// Late frames per camera.
+    late_by_camera: Vec<u64>,
 }
 
 impl FrameSetAssembler {
@@ -61,6 +63,7 @@ impl FrameSetAssembler {
             closed_until: None,
             next_seq: 0,
             late_frames: 0,
+            late_by_camera: vec![0; cameras],
         }
     }
 
@@ -69,25 +72,38 @@ impl FrameSetAssembler {
         self.late_frames
     }
 
+    /// Late frames of each camera so far.
+    pub fn late_by_camera(&self) -> &[u64] {
+        &self.late_by_camera
+    }
+
+    fn count_late(&mut self, camera: usize) {
+        self.late_frames += 1;
+        if let Some(c) = self.late_by_camera.get_mut(camera) {
+            *c += 1;
+        }
+    }
+
     /// Adds a frame; returns the sets it completes, in time order.
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
         if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
-            self.late_frames += 1;
+            self.count_late(frame.camera);
             return done;
         }
         let tol = self.tolerance_ns;
-        let joins =
-            self.open.iter().position(|s| (frame.t_ns - s.anchor()).abs() <= tol && !s.frames.iter().any(|f| f.camera == frame.camera));
+        let joins = self.open.iter().position(|s| {
+            (frame.t_ns as i128 - s.anchor() as i128).abs() <= tol as i128 && !s.frames.iter().any(|f| f.camera == frame.camera)
+        });
         let index = match joins {
             Some(i) => {
                 self.open[i].frames.push(frame);
                 i
             }
             None => {
-                if self.open.first().is_some_and(|s| frame.t_ns < s.anchor() - tol) && self.open.len() >= self.max_open {
+                if self.open.first().is_some_and(|s| frame.t_ns < s.anchor().saturating_sub(tol)) && self.open.len() >= self.max_open {
                     // Older than every open set and no room: it can only be late.
-                    self.late_frames += 1;
+                    self.count_late(frame.camera);
                     return done;
                 }
                 let i = self.open.partition_point(|s| s.anchor() <= frame.t_ns);
@@ -138,15 +154,21 @@ impl FrameSetAssembler {
         // A remaining open set whose anchor is not newer than what was closed would break
         // the time order: its frames that are too old are dropped as late.
         let until = self.closed_until.unwrap_or(i64::MIN);
-        let mut late = 0;
+        let mut late_cams = Vec::new();
         for s in &mut self.open {
-            let before = s.frames.len();
-            s.frames.retain(|f| f.t_ns > until);
-            late += (before - s.frames.len()) as u64;
+            s.frames.retain(|f| {
+                let keep = f.t_ns > until;
+                if !keep {
+                    late_cams.push(f.camera);
+                }
+                keep
+            });
         }
         self.open.retain(|s| !s.frames.is_empty());
         self.open.sort_by_key(|s| s.anchor());
-        self.late_frames += late;
+        for c in late_cams {
+            self.count_late(c);
+        }
         out
     }
 }

@@ -18,12 +18,18 @@ pub struct CalibrationError {
 /// when present; 0 otherwise).
 pub fn load_calibration(path: &Path) -> Result<CameraIntrinsics, CalibrationError> {
     let err = |m: String| CalibrationError { path: path.to_path_buf(), message: m };
-    let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let text = super::read_text_limited(path).map_err(|e| err(format!("cannot read: {e}")))?;
     let is_json = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) || text.trim_start().starts_with('{');
+    parse_calibration(&text, is_json, path)
+}
+
+/// Parses calibration text (JSON when `is_json`, else OpenCV YAML); `path` names it in errors.
+pub fn parse_calibration(text: &str, is_json: bool, path: &Path) -> Result<CameraIntrinsics, CalibrationError> {
+    let err = |m: String| CalibrationError { path: path.to_path_buf(), message: m };
     let value: serde_json::Value = if is_json {
-        serde_json::from_str(&text).map_err(|e| err(format!("not valid JSON: {e}")))?
+        serde_json::from_str(text).map_err(|e| err(format!("not valid JSON: {e}")))?
     } else {
-        yaml_to_json(&text).map_err(err)?
+        yaml_to_json(text).map_err(err)?
     };
     let matrix = |key: &str| -> Result<Vec<f64>, String> {
         let m = value.get(key).ok_or_else(|| format!("no `{key}`"))?;

@@ -150,6 +150,10 @@ pub struct Measurement {
     /// Pooled specimen corner noise, px (scales every tag's σ).
     noise: PixelNoisePool,
     stats: MeasureStats,
+    /// Per camera: frame sets since its pose was last checked against background tags, and
+    /// specimen views rejected as outliers (cumulative; logged as a summary by live runs).
+    pose_age_sets: Vec<u64>,
+    rejected_by_camera: Vec<u64>,
 }
 
 impl Measurement {
@@ -201,6 +205,8 @@ impl Measurement {
             utm: UtmHistory::unbounded().with_max_gap(config.utm.as_ref().map_or(0, |u| ((5.0 / u.poll_hz).max(0.5) * 1e9) as i64)),
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
+            pose_age_sets: vec![0; config.cameras.len()],
+            rejected_by_camera: vec![0; config.cameras.len()],
         })
     }
 
@@ -212,6 +218,11 @@ impl Measurement {
     /// The UTM history (the pipeline pushes samples into it).
     pub fn utm_mut(&mut self) -> &mut UtmHistory {
         &mut self.utm
+    }
+
+    /// Specimen tag views rejected as outliers so far, per camera.
+    pub fn rejected_views_by_camera(&self) -> &[u64] {
+        &self.rejected_by_camera
     }
 
     /// Current pose of each camera (world → camera), `None` until posed.
@@ -240,7 +251,11 @@ impl Measurement {
                 pose_reproj_px: None,
                 posed: cam.tracker.pose().is_some(),
                 bumped: false,
+                stale_pose: false,
+                pose_age_sets: None,
+                dropped_frames: None,
             };
+            let mut checked = false;
             if let Some(d) = det {
                 h.background_tags = d.background.len();
                 h.specimen_tags = d.specimen.len();
@@ -255,10 +270,16 @@ impl Measurement {
                 h.posed = status.pose.is_some();
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;
+                checked = status.fixed || !status.stale;
                 if status.bumped {
                     self.stats.bumps += 1;
                     tracing::warn!(camera = %cam.name, seq = set.seq, "camera moved: background tags shifted in the image; re-posed");
                 }
+            }
+            // A held pose that no background tag confirmed in this set is reported as stale.
+            self.pose_age_sets[ci] = if checked { 0 } else { self.pose_age_sets[ci] + 1 };
+            if h.posed && h.frame && !checked {
+                (h.stale_pose, h.pose_age_sets) = (true, Some(self.pose_age_sets[ci]));
             }
             health.push(h);
         }
@@ -288,7 +309,8 @@ impl Measurement {
                 Ok(sol) => {
                     self.stats.rejected_views += sol.rejected_views.len() as u64;
                     for r in &sol.rejected_views {
-                        tracing::info!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
+                        self.rejected_by_camera[view_cameras[*r]] += 1;
+                        tracing::debug!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
                     }
                     self.noise.add_solution(&sol);
                     let n_res = 8.0 * sol.views as f64;
@@ -350,6 +372,8 @@ impl Measurement {
             utm: None,
             dropped_sets: None,
             latency_ms: None,
+            recording: None,
+            recorder_dropped: None,
         };
         (line, times)
     }

@@ -11,6 +11,7 @@ mod detect_sim;
 mod live;
 mod realdata;
 mod recording;
+mod robustness;
 mod simulate;
 mod solve;
 mod systemd_unit;
