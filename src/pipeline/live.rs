@@ -371,7 +371,7 @@ fn solver_loop(
         }
         UtmEvent::Up => {
             *up = true;
-            tracing::info!("UTM up");
+            tracing::debug!("UTM up"); // the poller logs it at INFO
         }
     };
     while let Some((set, arrived)) = queue.pop() {

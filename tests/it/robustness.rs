@@ -51,18 +51,19 @@ fn line_of(path: &Path, needle: &str) -> usize {
 fn absurd_rates_and_durations_are_refused_naming_file_line_and_key() {
     let dir = tempfile::tempdir().unwrap();
     // Camera frame rate.
-    let cfg = one_camera_config(dir.path(), |t| t.replacen("width = ", "fps = 1e-20\nwidth = ", 1));
+    let cfg = one_camera_config(dir.path(), |t| t.replacen("fps = 30.0", "fps = 1e-20", 1));
     let o = tagdeflect(&["check", "--config", cfg.to_str().unwrap()]);
     assert_clear_error(&o, &[&format!("rig.toml:{}", line_of(&cfg, "fps")), "camera[0].fps"]);
     // UTM polling rate and timeout.
-    let utm = "\n[utm]\naddress = \"127.0.0.1:1502\"\npoll_hz = 1e-20\n[utm.load]\nregister = 0\n";
-    let cfg = one_camera_config(dir.path(), |t| format!("{t}{utm}"));
+    let cfg = one_camera_config(dir.path(), |t| t.replacen("poll_hz = 50.0", "poll_hz = 1e-20", 1));
     let o = tagdeflect(&["check", "--config", cfg.to_str().unwrap()]);
     assert_clear_error(&o, &[&format!("rig.toml:{}", line_of(&cfg, "poll_hz")), "utm.poll_hz"]);
-    let utm = "\n[utm]\naddress = \"127.0.0.1:1502\"\ntimeout_ms = 1e23\n[utm.load]\nregister = 0\n";
-    let cfg = one_camera_config(dir.path(), |t| format!("{t}{utm}"));
+    let cfg = one_camera_config(dir.path(), |t| t.replacen("poll_hz = 50.0", "poll_hz = 50.0\ntimeout_ms = 1e23", 1));
     let o = tagdeflect(&["run", "--config", cfg.to_str().unwrap()]);
     assert_clear_error(&o, &[&format!("rig.toml:{}", line_of(&cfg, "timeout_ms")), "utm.timeout_ms"]);
+    let cfg = one_camera_config(dir.path(), |t| t.replacen("tolerance_ms = 10.0", "tolerance_ms = 1e300", 1));
+    let o = tagdeflect(&["check", "--config", cfg.to_str().unwrap()]);
+    assert_clear_error(&o, &[&format!("rig.toml:{}", line_of(&cfg, "tolerance_ms")), "sync.tolerance_ms"]);
     // Command-line durations (clap's own usage error, exit 2).
     for cmd in ["run", "record", "demo"] {
         let mut args = vec![cmd, "--duration-s", "1e20"];
@@ -147,7 +148,7 @@ fn image_headers_claiming_huge_images_are_refused_before_allocating() {
     assert!(o.status.success(), "the bad frame is skipped, the replay goes on: {e}");
     assert!(!e.contains("panicked"), "{e}");
     assert!(e.contains(first["file"].as_str().unwrap()) && e.contains("header says 4000000000x4000000000"), "{e}");
-    assert_eq!(String::from_utf8_lossy(&o.stdout).lines().count(), 3, "every frame set still has a line");
+    assert_eq!(String::from_utf8_lossy(&o.stdout).lines().count(), 2, "the other frame sets are solved");
     // A PNG whose IHDR claims 60000 x 60000 (3.6 GB) while the camera is 320x240.
     let mut png = b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR".to_vec();
     png.extend_from_slice(&60000u32.to_be_bytes());
@@ -244,7 +245,9 @@ fn feed_writer_survives_writes_that_fail_mid_line() {
     let path = dir.path().join("feed.jsonl");
     let file = fs::OpenOptions::new().create(true).append(true).open(&path).unwrap();
     use Fault::*;
-    let script = Arc::new(Mutex::new(vec![Ok, Ok, Half, Enospc, PartThenEnospc, Ok, Ok, PartThenEnospc, Ok]));
+    // Two outages: lines 2..4 (a short write, then ENOSPC twice, once after part of the
+    // line), and line 8 (part of the line, then ENOSPC).
+    let script = Arc::new(Mutex::new(vec![Ok, Ok, Half, Enospc, PartThenEnospc, Ok, Ok, Ok, Ok, Ok, Ok, PartThenEnospc]));
     let mut w = FeedWriter::from_target("feed.jsonl", Box::new(FlakyFile { file, script: script.clone() }), 0)
         .with_backoff(Duration::from_millis(1), Duration::from_millis(4));
     let mut errors = 0;
@@ -349,8 +352,8 @@ fn recorder_retries_after_its_folder_vanishes_and_counts_what_it_dropped() {
     }
     wait_until("failing", &|| status.state() == SinkState::Failing);
     wait_until("drops counted", &|| status.dropped_frames() >= 5);
-    // It comes back: the recorder picks up again on its own.
-    fs::create_dir(&cam_dir).unwrap();
+    // It comes back (remounted): the recorder picks up again on its own.
+    fs::rename(&moved, &cam_dir).unwrap();
     for seq in 8..40 {
         send(seq);
         std::thread::sleep(Duration::from_millis(10));
@@ -394,9 +397,17 @@ fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
     assert!(o.status.success(), "{log}");
     // Finding 8: no colour codes in a file; few INFO lines, none per frame.
     assert!(!log.contains("\x1b["), "ANSI escape codes in a log file:\n{log}");
-    let info = log.lines().filter(|l| l.contains(" INFO ")).count();
-    println!("INFO lines in a 4 s run: {info}\n{log}");
-    assert!(info <= 12, "{info} INFO lines in 4 s:\n{log}");
+    let info: Vec<&str> = log.lines().filter(|l| l.contains(" INFO ")).collect();
+    println!("INFO lines in a 4 s run: {}\n{log}", info.len());
+    // Start, stop and once-per-camera events only: no message more often than once per camera.
+    let mut counts = std::collections::HashMap::new();
+    for l in &info {
+        let msg = l.split(" INFO ").nth(1).unwrap_or("");
+        let key: String = msg.split(|c: char| c == '=' || c.is_ascii_digit()).next().unwrap_or("").to_string();
+        *counts.entry(key).or_insert(0) += 1;
+    }
+    assert!(counts.values().all(|&n| n <= 3), "an INFO message repeats: {counts:?}\n{log}");
+    assert!(info.len() <= 20, "{} INFO lines in 4 s:\n{log}", info.len());
     assert!(!log.lines().any(|l| l.contains(" INFO ") && l.contains("rejected as an outlier")), "{log}");
     // Findings 6 and 7: every line says the recorder's state and the cameras' drops.
     let lines: Vec<FeedLine> = String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
