@@ -301,7 +301,7 @@ pub fn read_gray_into_checked(
     }
     let check_size = |w: u32, h: u32| -> Result<(), RecordingError> {
         match expect {
-            Some((ew, eh)) if (w, h) != (ew, eh) => Err(bad(format!("header says {w}x{h} but the camera is {ew}x{eh}"))),
+            Some((ew, eh)) if (w, h) != (ew, eh) => Err(bad(format!("image is {w}x{h} but camera is {ew}x{eh} (from its header; nothing read)"))),
             None if w as u64 * h as u64 > MAX_IMAGE_PIXELS => Err(bad(format!("header says {w}x{h}: more than {MAX_IMAGE_PIXELS} pixels"))),
             _ if w == 0 || h == 0 => Err(bad(format!("header says {w}x{h}: an empty image"))),
             _ => Ok(()),
@@ -354,7 +354,7 @@ pub fn read_gray_into_checked(
 /// from a file), with the same size checks; used by the fuzz targets.
 pub fn decode_gray_bytes(bytes: &[u8], img: &mut GrayImage, expect: Option<(u32, u32)>) -> Result<(), String> {
     let check = |w: u32, h: u32| match expect {
-        Some(e) if (w, h) != e => Err(format!("header says {w}x{h} but the camera is {}x{}", e.0, e.1)),
+        Some(e) if (w, h) != e => Err(format!("image is {w}x{h} but camera is {}x{} (from its header)", e.0, e.1)),
         _ if w as u64 * h as u64 > MAX_IMAGE_PIXELS || w == 0 || h == 0 => Err(format!("header says {w}x{h}")),
         _ => Ok(()),
     };
