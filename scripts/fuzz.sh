@@ -22,20 +22,23 @@ else
     export RUSTC_BOOTSTRAP=1
 fi
 san=${FUZZ_SANITIZER:-address}
+# FUZZ_TARGET_DIR: where the fuzz build goes (default fuzz/target).
+td=()
+[ -n "${FUZZ_TARGET_DIR:-}" ] && td=(--target-dir "$FUZZ_TARGET_DIR")
 cd fuzz
 targets=("$@")
 [ ${#targets[@]} -gt 0 ] || mapfile -t targets < <(cargo "${tc[@]}" fuzz list)
 mkdir -p logs
 # Integer overflow checks and debug assertions on (-a); memory limits catch allocations
 # driven by input sizes.
-cargo "${tc[@]}" fuzz build -a -s "$san"
+cargo "${tc[@]}" fuzz build "${td[@]}" -a -s "$san"
 status=0
 printf '%-14s %12s %10s  %s\n' target execs exec/s result
 for t in "${targets[@]}"; do
     mkdir -p "corpus/$t"
     seeds=()
     [ -d "../tests/fixtures/fuzz-regressions/$t" ] && seeds=("../tests/fixtures/fuzz-regressions/$t")
-    if cargo "${tc[@]}" fuzz run -a -s "$san" "$t" "corpus/$t" "${seeds[@]}" -- \
+    if cargo "${tc[@]}" fuzz run "${td[@]}" -a -s "$san" "$t" "corpus/$t" "${seeds[@]}" -- \
         -max_total_time="$secs" -rss_limit_mb=2048 -malloc_limit_mb=1024 -timeout=10 -print_final_stats=1 \
         >"logs/$t.log" 2>&1; then
         result=ok

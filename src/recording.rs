@@ -301,7 +301,9 @@ pub fn read_gray_into_checked(
     }
     let check_size = |w: u32, h: u32| -> Result<(), RecordingError> {
         match expect {
-            Some((ew, eh)) if (w, h) != (ew, eh) => Err(bad(format!("image is {w}x{h} but camera is {ew}x{eh} (from its header; nothing read)"))),
+            Some((ew, eh)) if (w, h) != (ew, eh) => {
+                Err(bad(format!("image is {w}x{h} but camera is {ew}x{eh} (from its header; nothing read)")))
+            }
             None if w as u64 * h as u64 > MAX_IMAGE_PIXELS => Err(bad(format!("header says {w}x{h}: more than {MAX_IMAGE_PIXELS} pixels"))),
             _ if w == 0 || h == 0 => Err(bad(format!("header says {w}x{h}: an empty image"))),
             _ => Ok(()),
