@@ -143,9 +143,20 @@ impl FrameSetAssembler {
     fn close_through(&mut self, index: usize) -> Vec<FrameSet> {
         let closing: Vec<OpenSet> = self.open.drain(..=index).collect();
         let mut out = Vec::with_capacity(closing.len());
-        for set in closing {
+        for mut set in closing {
             // Later sets hold only frames newer than every frame of this one, so set times
-            // (means) strictly increase.
+            // (means) strictly increase. Sets closed together are checked too: a frame not
+            // newer than what was just closed (a repeated timestamp) is late.
+            if let Some(until) = self.closed_until {
+                let before: Vec<usize> = set.frames.iter().filter(|f| f.t_ns <= until).map(|f| f.camera).collect();
+                set.frames.retain(|f| f.t_ns > until);
+                for c in before {
+                    self.count_late(c);
+                }
+                if set.frames.is_empty() {
+                    continue;
+                }
+            }
             let newest = set.frames.iter().map(|f| f.t_ns).max().expect("open sets hold a frame");
             self.closed_until = Some(self.closed_until.map_or(newest, |c| c.max(newest)));
             out.push(FrameSet::new(self.next_seq, set.frames));

@@ -549,3 +549,128 @@ fn fuzz_regressions_replay_without_a_crash() {
         }
     }
 }
+
+/// A mutation fuzzer over the same entry points as `fuzz/` (for machines where the
+/// cargo-fuzz build is too heavy): valid seeds, mutated at random (bit flips, byte edits,
+/// insertions, truncations, splices, interesting integers), each input run under
+/// `catch_unwind`; a panicking input is saved to `tests/fixtures/fuzz-regressions/<target>/`.
+/// `TAGDEFLECT_FUZZ_SECS` seconds per target (default 10). Run with
+/// `cargo test --test it robustness::mutation_fuzz -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn mutation_fuzz() {
+    use rand::{Rng, SeedableRng};
+    let secs: f64 = std::env::var("TAGDEFLECT_FUZZ_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10.0);
+    let root = common::root();
+    let cfg_text = fs::read(root.join("config/one-camera.toml")).unwrap();
+    let mut pgm = b"P5\n16 12\n255\n".to_vec();
+    pgm.extend((0..192).map(|i| (i * 7) as u8));
+    let png = tagdeflect::recording::encode_png(&tagdeflect::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec() }).unwrap();
+    let frames = fs::read(root.join("replay/three-cam/frames.jsonl")).unwrap()[..600].to_vec();
+    let utm = fs::read(root.join("replay/three-cam/utm.jsonl")).unwrap()[..600].to_vec();
+    let yaml = b"%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1000., 0., 320., 0., 1000., 240., 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0.1, -0.2, 0., 0., 0. ]\nimage_width: 640\nimage_height: 480\n".to_vec();
+    let json = br#"{"camera_matrix": [[1000, 0, 320], [0, 1000, 240], [0, 0, 1]], "distortion_coefficients": [0.1, 0, 0, 0, 0], "image_width": 640}"#.to_vec();
+    let mut jpeg = Vec::new();
+    image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 16 + y) as u8]))
+        .write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg)
+        .unwrap();
+    let mut conv = vec![3u8, 0, 16, 0, 8, 0, 0, 0];
+    conv.extend(&jpeg);
+    let seeds: Vec<(&str, Vec<Vec<u8>>)> = vec![
+        ("image", vec![pgm.clone(), png.clone()]),
+        ("jsonl", vec![frames, utm]),
+        ("config", vec![cfg_text]),
+        ("calibration", vec![yaml, json]),
+        (
+            "convert",
+            vec![
+                conv,
+                [vec![0u8, 0, 16, 0, 8, 0, 16, 0], vec![9; 128]].concat(),
+                [vec![1u8, 4, 8, 0, 8, 0, 0, 0], vec![200; 128]].concat(),
+            ],
+        ),
+        (
+            "modbus",
+            vec![vec![0, 0, 0, 0, 0, 0, 0, 0, 0, 0xf0, 0x3f, 0, 0, 0, 0, 0, 0, 0, 0, 0x41, 0x48], vec![3, 1, 1, 0xff, 0xff, 0xff, 0x7f]],
+        ),
+        ("assembly", vec![(0..200u8).collect(), vec![2, 1, 0, 0, 0, 0, 0, 0, 0, 0x80, 0, 255, 255, 255, 255, 255, 255, 255, 127, 1]]),
+        ("roi", vec![(0..200u8).map(|b| b.wrapping_mul(37)).collect()]),
+        ("window_detect", vec![png.iter().chain(pgm.iter()).copied().collect()]),
+    ];
+    let interesting: [u64; 8] = [0, 1, 0x7f, 0xff, 0xffff, 0x7fff_ffff, 0xffff_ffff, u64::MAX];
+    let mut rng =
+        rand_chacha::ChaCha8Rng::seed_from_u64(std::env::var("TAGDEFLECT_FUZZ_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(1));
+    std::panic::set_hook(Box::new(|_| {}));
+    let mut crashes = Vec::new();
+    for (target, seeds) in &seeds {
+        let start = std::time::Instant::now();
+        let mut execs = 0u64;
+        let mut corpus = seeds.clone();
+        while start.elapsed().as_secs_f64() < secs {
+            let mut d = corpus[rng.gen_range(0..corpus.len())].clone();
+            for _ in 0..rng.gen_range(1..6) {
+                let n = d.len();
+                match rng.gen_range(0..7) {
+                    0 if n > 0 => {
+                        let i = rng.gen_range(0..n);
+                        d[i] ^= 1 << rng.gen_range(0..8);
+                    }
+                    1 if n > 0 => {
+                        let i = rng.gen_range(0..n);
+                        d[i] = rng.gen();
+                    }
+                    2 => {
+                        let i = rng.gen_range(0..=n);
+                        let k = rng.gen_range(1..16);
+                        let b: u8 = rng.gen();
+                        d.splice(i..i, std::iter::repeat_n(b, k));
+                    }
+                    3 if n > 1 => d.truncate(rng.gen_range(0..n)),
+                    4 if n > 0 => {
+                        let i = rng.gen_range(0..n);
+                        let v = interesting[rng.gen_range(0..interesting.len())].to_le_bytes();
+                        let k = rng.gen_range(1..=8).min(n - i);
+                        d[i..i + k].copy_from_slice(&v[..k]);
+                    }
+                    5 if n > 0 => {
+                        // ASCII digits: numbers in text formats.
+                        let i = rng.gen_range(0..n);
+                        let s = ["9999999999", "-1", "1e308", "nan", "0", "4294967296", "-9223372036854775809"][rng.gen_range(0..7)];
+                        d.splice(i..i, s.bytes());
+                    }
+                    _ => {
+                        let other = &corpus[rng.gen_range(0..corpus.len())];
+                        if !other.is_empty() {
+                            let a = rng.gen_range(0..other.len());
+                            let i = rng.gen_range(0..=d.len());
+                            d.splice(i..i, other[a..].iter().copied().take(64));
+                        }
+                    }
+                }
+            }
+            let input = d.clone();
+            let ok = std::panic::catch_unwind(|| tagdeflect::fuzzing::run(target, &input)).is_ok();
+            execs += 1;
+            if !ok {
+                let dir = root.join("tests/fixtures/fuzz-regressions").join(target);
+                fs::create_dir_all(&dir).unwrap();
+                let name =
+                    format!("crash-{:016x}", input.iter().fold(0xcbf29ce484222325u64, |h, b| (h ^ *b as u64).wrapping_mul(0x100000001b3)));
+                fs::write(dir.join(&name), &input).unwrap();
+                crashes.push(format!("{target}/{name}"));
+                if crashes.len() > 20 {
+                    break;
+                }
+            } else if corpus.len() < 256 && rng.gen_ratio(1, 50) {
+                corpus.push(d);
+            }
+        }
+        println!(
+            "FUZZ {target}: {execs} inputs in {:.0} s ({:.0}/s)",
+            start.elapsed().as_secs_f64(),
+            execs as f64 / start.elapsed().as_secs_f64()
+        );
+    }
+    let _ = std::panic::take_hook();
+    assert!(crashes.is_empty(), "crashing inputs saved: {crashes:?}");
+}
