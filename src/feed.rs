@@ -4,8 +4,10 @@
 //! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
 //! the live pipeline so far), `latency_ms` (frame capture → line written, live only),
-//! `mqtt_dropped` (lines dropped by the MQTT publisher's buffer so far, with `[output.mqtt]`);
-//! per camera `drift_deg` / `drift_mm` (estimated slow drift since the pose was fixed).
+//! `mqtt_dropped` (lines dropped by the MQTT publisher's buffer so far, with `[output.mqtt]`),
+//! `recording` / `recorder_dropped` (recorder state and frames it dropped, live runs that
+//! record); per camera `drift_deg` / `drift_mm` (estimated slow drift since the pose was
+//! fixed), `stale_pose` / `pose_age_sets` (pose held unchecked) and `dropped_frames` (live).
 
 use serde::{Deserialize, Serialize};
 
@@ -54,10 +56,21 @@ pub struct CameraHealth {
     /// Estimated shift of the camera centre since its pose was last fixed, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub drift_mm: Option<f64>,
+    /// The pose in use was not checked against background tags in this frame set (too few
+    /// seen): it is held from an earlier set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stale_pose: bool,
+    /// Frame sets since the pose was last checked against background tags (with `stale_pose`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_age_sets: Option<u64>,
+    /// This camera's frames dropped so far in a live run (capture queue full, incomplete
+    /// buffers, arrived too late for their frame set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dropped_frames: Option<u64>,
 }
 
 /// One line of the feed.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct FeedLine {
     /// Frame-set number from 0.
     pub seq: u64,
@@ -93,6 +106,13 @@ pub struct FeedLine {
     /// long); present when `[output.mqtt]` is configured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mqtt_dropped: Option<u64>,
+    /// State of the recorder when the live run records: "ok", "failing" (write errors,
+    /// retried) or "off" (stopped).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
+    /// Frames the recorder did not record so far (queue full or writes failing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recorder_dropped: Option<u64>,
 }
 
 /// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.

@@ -14,6 +14,7 @@ pub mod config;
 pub mod detect;
 pub mod feed;
 pub mod frame;
+pub mod fuzzing;
 pub mod pipeline;
 pub mod recording;
 pub mod sim;

@@ -33,7 +33,7 @@ enum Command {
         #[arg(long)]
         record: Option<PathBuf>,
         /// Stop after this many seconds (default: run until SIGTERM/SIGINT).
-        #[arg(long)]
+        #[arg(long, value_parser = parse_duration_s)]
         duration_s: Option<f64>,
     },
     /// The same pipeline over a recording: feed to stdout, logs to stderr.
@@ -63,7 +63,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Stop after this many seconds (default: until SIGTERM/SIGINT).
-        #[arg(long)]
+        #[arg(long, value_parser = parse_duration_s)]
         duration_s: Option<f64>,
     },
     /// Write a synthetic recording with ground truth (`truth.jsonl`).
@@ -93,7 +93,7 @@ enum Command {
     /// over real Modbus TCP on loopback); the feed goes to stdout.
     Demo {
         /// Stop after this many seconds (default: until SIGTERM/SIGINT).
-        #[arg(long)]
+        #[arg(long, value_parser = parse_duration_s)]
         duration_s: Option<f64>,
         /// Use this config instead of the built-in demo rig.
         #[arg(long)]
@@ -149,11 +149,26 @@ fn init_logging() {
         EnvFilter::try_from_env("TAGDEFLECT_LOG").or_else(|_| EnvFilter::try_from_default_env()).unwrap_or_else(|_| EnvFilter::new("info"));
     // Under systemd the journal adds its own timestamps.
     let under_systemd = std::env::var_os("JOURNAL_STREAM").is_some();
-    let builder = fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false);
+    // Colour only on a terminal: files and the journal get plain text.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
+    let builder = fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).with_ansi(ansi);
     if under_systemd {
-        builder.without_time().with_ansi(false).init();
+        builder.without_time().init();
     } else {
         builder.init();
+    }
+}
+
+/// Longest `--duration-s` accepted (about 115 days).
+const MAX_DURATION_S: f64 = 1e7;
+
+/// `--duration-s`: a finite number of seconds in (0, 1e7].
+fn parse_duration_s(s: &str) -> Result<f64, String> {
+    let v: f64 = s.trim().parse().map_err(|_| format!("\"{s}\" is not a number of seconds"))?;
+    if v.is_finite() && v > 0.0 && v <= MAX_DURATION_S {
+        Ok(v)
+    } else {
+        Err(format!("{s}: expected more than 0 and at most {MAX_DURATION_S} seconds (about 115 days)"))
     }
 }
 

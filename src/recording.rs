@@ -16,12 +16,13 @@
 //! complete line.
 
 use serde::{Deserialize, Serialize};
-use std::fs::{self, File, OpenOptions};
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::fs::{self, File};
+use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use crate::config::{Config, ConfigError};
 use crate::frame::GrayImage;
+use crate::sinks::linefile::LineFile;
 use crate::utm::UtmSample;
 
 mod frames;
@@ -193,7 +194,8 @@ impl Recording {
     /// (both reused between frames by a reader).
     pub fn load_image_into(&self, entry: &FrameEntry, img: &mut GrayImage, scratch: &mut Vec<u8>) -> Result<(), RecordingError> {
         let path = self.dir.join(&entry.file);
-        read_gray_into(&path, img, scratch)?;
+        let expect = self.config.camera_index(&entry.camera).map(|i| (self.config.cameras[i].width, self.config.cameras[i].height));
+        read_gray_into_checked(&path, img, scratch, expect)?;
         if let Some(cam) = self.config.camera_index(&entry.camera).map(|i| &self.config.cameras[i]) {
             if img.width != cam.width || img.height != cam.height {
                 return Err(RecordingError::BadImage {
@@ -206,27 +208,62 @@ impl Recording {
     }
 }
 
-/// Reads a JSON Lines file, skipping (and recording) a truncated last line.
+/// Longest line accepted in an index file (`frames.jsonl`, `utm.jsonl`, `truth.jsonl`):
+/// real lines are a few hundred bytes; a longer one is corrupt.
+pub const MAX_JSONL_LINE: usize = 1 << 20;
+
+/// Reads a JSON Lines file line by line (never the whole file at once; each line at most
+/// [`MAX_JSONL_LINE`] bytes), skipping (and recording) a truncated last line.
 fn read_jsonl<T: for<'de> Deserialize<'de>>(path: &Path, skipped: &mut Vec<String>) -> Result<Vec<T>, RecordingError> {
-    let mut text = String::new();
-    File::open(path).and_then(|mut f| f.read_to_string(&mut text)).map_err(io_err(path))?;
-    let ends_with_newline = text.ends_with('\n');
-    let lines: Vec<&str> = text.lines().collect();
-    let mut out = Vec::with_capacity(lines.len());
-    for (i, line) in lines.iter().enumerate() {
+    let file = File::open(path).map_err(io_err(path))?;
+    read_jsonl_from(BufReader::new(file), path, skipped)
+}
+
+/// [`read_jsonl`] over any reader (`path` names it in errors); used by the fuzz targets.
+pub fn read_jsonl_from<T: for<'de> Deserialize<'de>, R: BufRead>(
+    mut reader: R,
+    path: &Path,
+    skipped: &mut Vec<String>,
+) -> Result<Vec<T>, RecordingError> {
+    let mut out = Vec::new();
+    let mut buf = Vec::new();
+    let mut lineno = 0;
+    loop {
+        buf.clear();
+        let n = (&mut reader).take(MAX_JSONL_LINE as u64 + 1).read_until(b'\n', &mut buf).map_err(io_err(path))?;
+        if n == 0 {
+            break;
+        }
+        lineno += 1;
+        let ends_with_newline = buf.last() == Some(&b'\n');
+        if !ends_with_newline && buf.len() > MAX_JSONL_LINE {
+            return Err(RecordingError::BadLine {
+                path: path.to_path_buf(),
+                line: lineno,
+                message: format!("line longer than {MAX_JSONL_LINE} bytes: not a recording index line"),
+            });
+        }
+        let text = match std::str::from_utf8(&buf) {
+            Ok(t) => t,
+            Err(e) => {
+                return Err(RecordingError::BadLine { path: path.to_path_buf(), line: lineno, message: format!("not UTF-8 text: {e}") })
+            }
+        };
+        let line = text.trim_end_matches(['\n', '\r']);
         if line.trim().is_empty() {
             continue;
         }
         match serde_json::from_str::<T>(line) {
             Ok(v) => out.push(v),
             Err(e) => {
-                let last = i + 1 == lines.len();
-                if last && !ends_with_newline && e.is_eof() {
-                    let msg = format!("{}:{}: truncated last line skipped", path.display(), i + 1);
+                // The last line of the file (nothing follows) without its newline.
+                let last = !ends_with_newline && reader.fill_buf().map_err(io_err(path))?.is_empty();
+                if last && e.is_eof() {
+                    let msg = format!("{}:{}: truncated last line skipped", path.display(), lineno);
                     tracing::warn!("{msg}");
                     skipped.push(msg);
                 } else {
-                    return Err(RecordingError::BadLine { path: path.to_path_buf(), line: i + 1, message: e.to_string() });
+                    return Err(RecordingError::BadLine { path: path.to_path_buf(), line: lineno, message: e.to_string() });
                 }
             }
         }
@@ -234,14 +271,48 @@ fn read_jsonl<T: for<'de> Deserialize<'de>>(path: &Path, skipped: &mut Vec<Strin
     Ok(out)
 }
 
-/// Reads an 8-bit grey PNG or binary PGM (P5, maxval ≤ 255) into `img`, reusing its buffer.
+/// Largest image accepted without a known camera size (pixels): 256 Mpx.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 28;
+/// Largest image file read (bytes): 512 MiB.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 29;
+
+/// Reads an 8-bit grey PNG or binary PGM (P5, maxval ≤ 255) into `img`, reusing its buffer;
+/// at most [`MAX_IMAGE_PIXELS`] pixels and [`MAX_IMAGE_FILE_BYTES`] bytes.
+pub fn read_gray_into(path: &Path, img: &mut GrayImage, scratch: &mut Vec<u8>) -> Result<(), RecordingError> {
+    read_gray_into_checked(path, img, scratch, None)
+}
+
+/// [`read_gray_into`], checking the size in the header against `expect` (the camera's
+/// width and height) *before* anything is allocated: a corrupt header that claims a huge
+/// image is an error naming the file, never an allocation.
 ///
 /// A PGM's pixels are read from the file straight into `img` (no intermediate copy); a
 /// PNG is read whole into `scratch` (kept by the caller between frames) and decoded into
 /// `img`, so a steady replay allocates nothing per frame.
-pub fn read_gray_into(path: &Path, img: &mut GrayImage, scratch: &mut Vec<u8>) -> Result<(), RecordingError> {
+pub fn read_gray_into_checked(
+    path: &Path,
+    img: &mut GrayImage,
+    scratch: &mut Vec<u8>,
+    expect: Option<(u32, u32)>,
+) -> Result<(), RecordingError> {
     let bad = |m: String| RecordingError::BadImage { path: path.to_path_buf(), message: m };
     let mut file = File::open(path).map_err(io_err(path))?;
+    let file_len = file.metadata().map_err(io_err(path))?.len();
+    // A frame file is at most its pixels plus headers (PNG: plus incompressible overhead).
+    let max_file = expect.map_or(MAX_IMAGE_FILE_BYTES, |(w, h)| (w as u64 * h as u64 * 2 + (1 << 20)).min(MAX_IMAGE_FILE_BYTES));
+    if file_len > max_file {
+        return Err(bad(format!("file is {file_len} bytes, more than any frame of this size can be (at most {max_file})")));
+    }
+    let check_size = |w: u32, h: u32| -> Result<(), RecordingError> {
+        match expect {
+            Some((ew, eh)) if (w, h) != (ew, eh) => {
+                Err(bad(format!("image is {w}x{h} but camera is {ew}x{eh} (from its header; nothing read)")))
+            }
+            None if w as u64 * h as u64 > MAX_IMAGE_PIXELS => Err(bad(format!("header says {w}x{h}: more than {MAX_IMAGE_PIXELS} pixels"))),
+            _ if w == 0 || h == 0 => Err(bad(format!("header says {w}x{h}: an empty image"))),
+            _ => Ok(()),
+        }
+    };
     // Enough for any PGM header and the PNG signature.
     let mut head = [0u8; 512];
     let mut got = 0;
@@ -254,6 +325,7 @@ pub fn read_gray_into(path: &Path, img: &mut GrayImage, scratch: &mut Vec<u8>) -
     let head = &head[..got];
     if head.starts_with(b"P5") {
         let (w, h, data_start) = parse_pgm_header(head).map_err(bad)?;
+        check_size(w, h)?;
         let n = w as usize * h as usize;
         img.width = w;
         img.height = h;
@@ -269,23 +341,66 @@ pub fn read_gray_into(path: &Path, img: &mut GrayImage, scratch: &mut Vec<u8>) -
         }
         Ok(())
     } else if head.starts_with(b"\x89PNG") {
+        // The size is in the IHDR chunk at bytes 16..24: checked before the file is read.
+        if head.len() >= 24 && &head[12..16] == b"IHDR" {
+            let be = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+            check_size(be(&head[16..20]), be(&head[20..24]))?;
+        }
         scratch.clear();
         scratch.extend_from_slice(head);
-        file.read_to_end(scratch).map_err(io_err(path))?;
-        decode_png(scratch, img).map_err(bad)
+        (&mut file).take(max_file).read_to_end(scratch).map_err(io_err(path))?;
+        decode_png(scratch, img).map_err(bad)?;
+        check_size(img.width, img.height)
     } else {
         Err(bad("not a PNG or binary PGM (P5) image".into()))
     }
 }
 
+/// Decodes an in-memory 8-bit grey PNG or binary PGM (what [`read_gray_into_checked`] reads
+/// from a file), with the same size checks; used by the fuzz targets.
+pub fn decode_gray_bytes(bytes: &[u8], img: &mut GrayImage, expect: Option<(u32, u32)>) -> Result<(), String> {
+    let check = |w: u32, h: u32| match expect {
+        Some(e) if (w, h) != e => Err(format!("image is {w}x{h} but camera is {}x{} (from its header)", e.0, e.1)),
+        _ if w as u64 * h as u64 > MAX_IMAGE_PIXELS || w == 0 || h == 0 => Err(format!("header says {w}x{h}")),
+        _ => Ok(()),
+    };
+    if bytes.starts_with(b"P5") {
+        let head = &bytes[..bytes.len().min(512)];
+        let (w, h, start) = parse_pgm_header(head)?;
+        check(w, h)?;
+        let n = w as usize * h as usize;
+        let data = bytes
+            .get(start..start + n)
+            .ok_or_else(|| format!("truncated PGM: {} of {n} pixel bytes", bytes.len() - start.min(bytes.len())))?;
+        img.width = w;
+        img.height = h;
+        img.data.clear();
+        img.data.extend_from_slice(data);
+        Ok(())
+    } else if bytes.starts_with(b"\x89PNG") {
+        if bytes.len() >= 24 && &bytes[12..16] == b"IHDR" {
+            let be = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+            check(be(&bytes[16..20]), be(&bytes[20..24]))?;
+        }
+        decode_png(bytes, img)?;
+        check(img.width, img.height)
+    } else {
+        Err("not a PNG or binary PGM (P5) image".into())
+    }
+}
+
 fn decode_png(bytes: &[u8], img: &mut GrayImage) -> Result<(), String> {
-    let decoder = png::Decoder::new(bytes);
+    // The decoder's own memory limit: the image itself plus slack.
+    let decoder = png::Decoder::new_with_limits(bytes, png::Limits { bytes: (MAX_IMAGE_PIXELS as usize) + (1 << 20) });
     let mut reader = decoder.read_info().map_err(|e| format!("corrupt PNG: {e}"))?;
     let info = reader.info();
     if info.color_type != png::ColorType::Grayscale || info.bit_depth != png::BitDepth::Eight {
         return Err(format!("PNG is {:?} {:?}: frames must be 8-bit grayscale", info.color_type, info.bit_depth));
     }
     let (w, h) = (info.width, info.height);
+    if w as u64 * h as u64 > MAX_IMAGE_PIXELS {
+        return Err(format!("PNG header says {w}x{h}: more than {MAX_IMAGE_PIXELS} pixels"));
+    }
     img.width = w;
     img.height = h;
     img.data.resize(w as usize * h as usize, 0);
@@ -337,9 +452,9 @@ fn parse_pgm_header(bytes: &[u8]) -> Result<(u32, u32, usize), String> {
 pub struct RecordingWriter {
     dir: PathBuf,
     format: FrameFormat,
-    frames: BufWriter<File>,
-    utm: Option<BufWriter<File>>,
-    truth: Option<BufWriter<File>>,
+    frames: LineFile,
+    utm: Option<LineFile>,
+    truth: Option<LineFile>,
 }
 
 impl RecordingWriter {
@@ -359,7 +474,7 @@ impl RecordingWriter {
         let cfg_path = dir.join(CONFIG_FILE);
         fs::write(&cfg_path, config.to_toml_string()).map_err(io_err(&cfg_path))?;
         let frames_path = dir.join(FRAMES_FILE);
-        let frames = BufWriter::new(File::create(&frames_path).map_err(io_err(&frames_path))?);
+        let (frames, _) = LineFile::open_append(&frames_path).map_err(io_err(&frames_path))?;
         Ok(RecordingWriter { dir: dir.to_path_buf(), format: FrameFormat::Png, frames, utm: None, truth: None })
     }
 
@@ -374,12 +489,18 @@ impl RecordingWriter {
         &self.dir
     }
 
-    /// Writes a frame as `<camera>/<seq>.<png|pgm>` and its index line.
+    /// Writes a frame as `<camera>/<seq>.<png|pgm>` and its index line. The image is written
+    /// under a temporary name (`.<seq>.<ext>.part`) and renamed once complete, so an image
+    /// named in `frames.jsonl` is never a fragment; a failed write leaves no file behind.
     pub fn write_frame(&mut self, camera: &str, seq: u64, t_ns: i64, image: &GrayImage) -> Result<(), RecordingError> {
         let file = format!("{camera}/{seq:06}.{}", self.format.extension());
         let path = self.dir.join(&file);
         let bytes = self.format.encode(image).map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
-        fs::write(&path, bytes).map_err(io_err(&path))?;
+        let tmp = self.dir.join(format!("{camera}/.{seq:06}.{}.part", self.format.extension()));
+        if let Err(e) = fs::write(&tmp, bytes).and_then(|_| fs::rename(&tmp, &path)) {
+            let _ = fs::remove_file(&tmp);
+            return Err(RecordingError::Io { path, source: e });
+        }
         self.write_frame_entry(&FrameEntry { camera: camera.to_string(), seq, t_ns, file })
     }
 
@@ -403,29 +524,39 @@ impl RecordingWriter {
         write_line(w, line).map_err(io_err(&path))
     }
 
-    /// Flushes everything.
+    /// `fdatasync` of the index files when the last one is a second old (see
+    /// [`crate::sinks::linefile`]).
+    pub fn sync_if_due(&mut self) -> Result<(), RecordingError> {
+        let dir = self.dir.clone();
+        for w in [Some(&mut self.frames), self.utm.as_mut(), self.truth.as_mut()].into_iter().flatten() {
+            w.sync_if_due().map_err(io_err(&dir))?;
+        }
+        Ok(())
+    }
+
+    /// Syncs everything.
     pub fn finish(mut self) -> Result<(), RecordingError> {
         let dir = self.dir.clone();
-        self.frames.flush().map_err(io_err(&dir))?;
-        for w in [self.utm.as_mut(), self.truth.as_mut()].into_iter().flatten() {
-            w.flush().map_err(io_err(&dir))?;
+        for w in [Some(&mut self.frames), self.utm.as_mut(), self.truth.as_mut()].into_iter().flatten() {
+            w.sync().map_err(io_err(&dir))?;
         }
         Ok(())
     }
 }
 
-fn open_append<'a>(slot: &'a mut Option<BufWriter<File>>, path: &Path) -> Result<&'a mut BufWriter<File>, RecordingError> {
+fn open_append<'a>(slot: &'a mut Option<LineFile>, path: &Path) -> Result<&'a mut LineFile, RecordingError> {
     if slot.is_none() {
-        let f = OpenOptions::new().create(true).append(true).open(path).map_err(io_err(path))?;
-        *slot = Some(BufWriter::new(f));
+        let (f, _) = LineFile::open_append(path).map_err(io_err(path))?;
+        *slot = Some(f);
     }
     Ok(slot.as_mut().expect("just opened"))
 }
 
-fn write_line<T: Serialize>(w: &mut BufWriter<File>, value: &T) -> std::io::Result<()> {
-    serde_json::to_writer(&mut *w, value).map_err(std::io::Error::other)?;
-    w.write_all(b"\n")?;
-    w.flush()
+/// One JSON line, written whole or not at all (a failed write is cut back).
+fn write_line<T: Serialize>(w: &mut LineFile, value: &T) -> std::io::Result<()> {
+    let mut text = serde_json::to_vec(value).map_err(std::io::Error::other)?;
+    text.push(b'\n');
+    w.write_line(&text)
 }
 
 /// Reads a JSON Lines file of any type (used by tests and tools), with the same

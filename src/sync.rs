@@ -49,6 +49,8 @@ pub struct FrameSetAssembler {
     next_seq: u64,
     late_frames: u64,
     clock_steps: u64,
+    /// Late frames per camera.
+    late_by_camera: Vec<u64>,
 }
 
 impl FrameSetAssembler {
@@ -70,6 +72,7 @@ impl FrameSetAssembler {
             next_seq: 0,
             late_frames: 0,
             clock_steps: 0,
+            late_by_camera: vec![0; cameras],
         }
     }
 
@@ -83,13 +86,25 @@ impl FrameSetAssembler {
         self.clock_steps
     }
 
+    /// Late frames of each camera so far.
+    pub fn late_by_camera(&self) -> &[u64] {
+        &self.late_by_camera
+    }
+
+    fn count_late(&mut self, camera: usize) {
+        self.late_frames += 1;
+        if let Some(c) = self.late_by_camera.get_mut(camera) {
+            *c += 1;
+        }
+    }
+
     /// Adds a frame; returns the sets it completes, in time order (but across a backwards
     /// clock step, see the module doc).
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
         if let Some(c) = self.closed_until.filter(|&c| frame.t_ns <= c) {
             if c.saturating_sub(frame.t_ns) <= crate::clock::STEP_THRESHOLD_NS {
-                self.late_frames += 1;
+                self.count_late(frame.camera);
                 return done;
             }
             tracing::warn!(
@@ -102,7 +117,7 @@ impl FrameSetAssembler {
         }
         let tol = self.tolerance_ns;
         let joins = self.open.iter().position(|s| {
-            frame.t_ns.saturating_sub(s.anchor()).saturating_abs() <= tol && !s.frames.iter().any(|f| f.camera == frame.camera)
+            (frame.t_ns as i128 - s.anchor() as i128).abs() <= tol as i128 && !s.frames.iter().any(|f| f.camera == frame.camera)
         });
         let index = match joins {
             Some(i) => {
@@ -112,7 +127,7 @@ impl FrameSetAssembler {
             None => {
                 if self.open.first().is_some_and(|s| frame.t_ns < s.anchor().saturating_sub(tol)) && self.open.len() >= self.max_open {
                     // Older than every open set and no room: it can only be late.
-                    self.late_frames += 1;
+                    self.count_late(frame.camera);
                     return done;
                 }
                 let i = self.open.partition_point(|s| s.anchor() <= frame.t_ns);
@@ -152,9 +167,20 @@ impl FrameSetAssembler {
     fn close_through(&mut self, index: usize) -> Vec<FrameSet> {
         let closing: Vec<OpenSet> = self.open.drain(..=index).collect();
         let mut out = Vec::with_capacity(closing.len());
-        for set in closing {
+        for mut set in closing {
             // Later sets hold only frames newer than every frame of this one, so set times
-            // (means) strictly increase.
+            // (means) strictly increase. Sets closed together are checked too: a frame not
+            // newer than what was just closed (a repeated timestamp) is late.
+            if let Some(until) = self.closed_until {
+                let before: Vec<usize> = set.frames.iter().filter(|f| f.t_ns <= until).map(|f| f.camera).collect();
+                set.frames.retain(|f| f.t_ns > until);
+                for c in before {
+                    self.count_late(c);
+                }
+                if set.frames.is_empty() {
+                    continue;
+                }
+            }
             let newest = set.frames.iter().map(|f| f.t_ns).max().expect("open sets hold a frame");
             self.closed_until = Some(self.closed_until.map_or(newest, |c| c.max(newest)));
             out.push(FrameSet::new(self.next_seq, set.frames));
@@ -163,15 +189,21 @@ impl FrameSetAssembler {
         // A remaining open set whose anchor is not newer than what was closed would break
         // the time order: its frames that are too old are dropped as late.
         let until = self.closed_until.unwrap_or(i64::MIN);
-        let mut late = 0;
+        let mut late_cams = Vec::new();
         for s in &mut self.open {
-            let before = s.frames.len();
-            s.frames.retain(|f| f.t_ns > until);
-            late += (before - s.frames.len()) as u64;
+            s.frames.retain(|f| {
+                let keep = f.t_ns > until;
+                if !keep {
+                    late_cams.push(f.camera);
+                }
+                keep
+            });
         }
         self.open.retain(|s| !s.frames.is_empty());
         self.open.sort_by_key(|s| s.anchor());
-        self.late_frames += late;
+        for c in late_cams {
+            self.count_late(c);
+        }
         out
     }
 }

@@ -79,6 +79,7 @@ pub fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
         dropped_sets: Some(0),
         latency_ms: Some(21.4),
         mqtt_dropped: Some(0),
+        ..FeedLine::default()
     };
     let mut v = serde_json::to_value(&line).expect("line serialises");
     v["gauges"] = serde_json::json!({

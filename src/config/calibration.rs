@@ -23,14 +23,26 @@ pub fn load_calibration(path: &Path) -> Result<CameraIntrinsics, CalibrationErro
     let (path, selector) = split_selector(path);
     let path = path.as_path();
     let err = |m: String| CalibrationError { path: path.to_path_buf(), message: m };
-    let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let text = super::read_text_limited(path).map_err(|e| err(format!("cannot read: {e}")))?;
     let is_json = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) || text.trim_start().starts_with('{');
+    parse_selected(&text, is_json, path, selector.as_deref())
+}
+
+/// Parses calibration text (JSON when `is_json`, else OpenCV YAML, Kalibr camchain or ROS
+/// camera_info); `path` names it in errors.
+pub fn parse_calibration(text: &str, is_json: bool, path: &Path) -> Result<CameraIntrinsics, CalibrationError> {
+    parse_selected(text, is_json, path, None)
+}
+
+/// [`parse_calibration`] with a `#camN` selector for a Kalibr camchain.
+fn parse_selected(text: &str, is_json: bool, path: &Path, selector: Option<&str>) -> Result<CameraIntrinsics, CalibrationError> {
+    let err = |m: String| CalibrationError { path: path.to_path_buf(), message: m };
     let value: serde_json::Value = if is_json {
-        serde_json::from_str(&text).map_err(|e| err(format!("not valid JSON: {e}")))?
+        serde_json::from_str(text).map_err(|e| err(format!("not valid JSON: {e}")))?
     } else {
-        yaml_to_json(&text).map_err(err)?
+        yaml_to_json(text).map_err(err)?
     };
-    if let Some(k) = kalibr_or_ros(&value, selector.as_deref()).map_err(err)? {
+    if let Some(k) = kalibr_or_ros(&value, selector).map_err(err)? {
         return Ok(k);
     }
     if selector.is_some() {

@@ -20,7 +20,39 @@ use crate::camera::CameraIntrinsics;
 pub mod calibration;
 use crate::frame::FrameFormat;
 use crate::tags::TagFamily;
-pub use calibration::{load_calibration, CalibrationError};
+pub use calibration::{load_calibration, parse_calibration, CalibrationError};
+
+// Sane ranges of rates and durations: values outside them are typos (1e-20 Hz would make
+// a thread wait for 10^12 years; 1e23 ms overflows every timer), refused when loading.
+/// Lowest camera frame rate accepted, Hz.
+pub const MIN_FPS: f64 = 0.01;
+/// Highest camera frame rate accepted, Hz.
+pub const MAX_FPS: f64 = 1000.0;
+/// Lowest UTM polling rate accepted, Hz.
+pub const MIN_POLL_HZ: f64 = 0.01;
+/// Highest UTM polling rate accepted, Hz.
+pub const MAX_POLL_HZ: f64 = 1000.0;
+/// Longest Modbus request timeout accepted, ms.
+pub const MAX_TIMEOUT_MS: f64 = 60_000.0;
+/// Largest frame-set tolerance accepted, ms.
+pub const MAX_TOLERANCE_MS: f64 = 10_000.0;
+/// Camera names that would collide with a recording's own files.
+pub const RESERVED_NAMES: &[&str] = &["frames.jsonl", "utm.jsonl", "truth.jsonl", "sim_truth.jsonl", "tagdeflect.toml", "feed.jsonl"];
+
+/// Largest config or calibration file read, bytes (real ones are a few kB).
+pub const MAX_CONFIG_BYTES: u64 = 16 << 20;
+
+/// Reads a text file of at most [`MAX_CONFIG_BYTES`].
+pub(crate) fn read_text_limited(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let f = std::fs::File::open(path)?;
+    let mut text = String::new();
+    f.take(MAX_CONFIG_BYTES + 1).read_to_string(&mut text)?;
+    if text.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(std::io::Error::other(format!("larger than {MAX_CONFIG_BYTES} bytes: not a config file")));
+    }
+    Ok(text)
+}
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -574,6 +606,21 @@ impl Locator<'_> {
         self.text[..end].bytes().filter(|&b| b == b'\n').count() + 1
     }
 
+    /// The span of the line `key = ...` inside a table's span (the value's own line), else the table's.
+    fn key_span(&self, table: Range<usize>, key: &str) -> Range<usize> {
+        let end = table.end.min(self.text.len());
+        let start = table.start.min(end);
+        let mut at = start;
+        for line in self.text[start..end].split_inclusive('\n') {
+            let t = line.trim_start();
+            if t.strip_prefix(key).is_some_and(|r| r.trim_start().starts_with('=')) {
+                return at..at + line.len();
+            }
+            at += line.len();
+        }
+        table
+    }
+
     fn err(&self, span: Option<Range<usize>>, key: &str, message: impl Into<String>) -> ConfigError {
         ConfigError { file: self.file.to_path_buf(), line: span.map(|s| self.line(s)), key: Some(key.to_string()), message: message.into() }
     }
@@ -582,7 +629,7 @@ impl Locator<'_> {
 impl Config {
     /// Reads and validates a config file; relative paths are relative to its folder.
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|e| ConfigError {
+        let text = read_text_limited(path).map_err(|e| ConfigError {
             file: path.to_path_buf(),
             line: None,
             key: None,
@@ -615,11 +662,11 @@ impl Config {
             None => SyncConfig::default(),
             Some(s) => {
                 let t = *s.tolerance_ms.get_ref();
-                if !(t.is_finite() && t > 0.0) {
+                if !(t.is_finite() && t > 0.0 && t <= MAX_TOLERANCE_MS) {
                     return Err(loc.err(
                         Some(s.tolerance_ms.span()),
                         "sync.tolerance_ms",
-                        format!("must be a positive number of milliseconds, got {t}"),
+                        format!("must be a positive number of milliseconds up to {MAX_TOLERANCE_MS}, got {t}"),
                     ));
                 }
                 SyncConfig { tolerance_ms: t }
@@ -690,8 +737,13 @@ impl Config {
                     };
                     return Err(loc.err(Some(span), key, format!("{value} is out of range: {expected}")));
                 }
-                if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0) {
-                    return Err(loc.err(Some(span), "measure.full_search_interval_s", "must be > 0 seconds"));
+                if !(m.full_search_interval_s.is_finite() && m.full_search_interval_s > 0.0 && m.full_search_interval_s <= 3600.0) {
+                    let span = loc.key_span(span, "full_search_interval_s");
+                    return Err(loc.err(
+                        Some(span),
+                        "measure.full_search_interval_s",
+                        format!("must be in (0, 3600] seconds, got {}", m.full_search_interval_s),
+                    ));
                 }
                 if let Err((key, msg)) = crate::solve::DriftConfig::from_measure(&m).validate() {
                     return Err(loc.err(Some(span), &format!("measure.drift_{key}"), msg));
@@ -715,13 +767,10 @@ impl Config {
             }
         }
         if let Some(sim) = &raw.sim {
-            sim.validate().map_err(|e| {
-                let option = match &e {
-                    crate::sim::SimError::Param { option, .. } => format!("sim.{}", option.replace('-', "_")),
-                    _ => "sim".to_string(),
-                };
-                loc.err(key_line(text, "sim"), &option, e.to_string())
-            })?;
+            if let Err(crate::sim::SimError::Param { option, message }) = sim.validate() {
+                let table = text.find("[sim]").map_or(0..0, |i| i..text.len());
+                return Err(loc.err(Some(loc.key_span(table, option)), &format!("sim.{option}"), message));
+            }
         }
         // Simulated cameras are the rig's cameras, by name and in order.
         if cameras.iter().any(|c| c.source.is_sim()) {
@@ -766,19 +815,6 @@ impl Config {
     }
 }
 
-/// The span of a top-level table header `[name]`, for errors about the table as a whole.
-fn key_line(text: &str, table: &str) -> Option<Range<usize>> {
-    let header = format!("[{table}]");
-    let mut at = 0;
-    for line in text.split_inclusive('\n') {
-        if line.trim() == header {
-            return Some(at..at + line.len());
-        }
-        at += line.len();
-    }
-    None
-}
-
 fn toml_error(loc: &Locator<'_>, e: &toml::de::Error) -> ConfigError {
     // toml's message already says what is wrong; add the location and the key.
     let msg = e.message().trim().to_string();
@@ -807,8 +843,17 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
     let c = cam.get_ref();
     let key = |k: &str| format!("camera[{i}].{k}");
     let name = c.name.get_ref().trim().to_string();
-    if name.is_empty() || name.contains(['/', '\\']) || name == "." || name == ".." {
+    if name.is_empty() || name.contains(['/', '\\']) || name == "." || name == ".." || name.chars().any(|ch| ch.is_control()) {
         return Err(loc.err(Some(c.name.span()), &key("name"), "must be a non-empty name usable as a folder name (no slashes)"));
+    }
+    if let Some(f) = RESERVED_NAMES.iter().find(|f| f.eq_ignore_ascii_case(&name)) {
+        return Err(loc.err(
+            Some(c.name.span()),
+            &key("name"),
+            format!(
+                "\"{name}\" is the name of a recording's own file ({f}): the camera's folder would collide with it; choose another name"
+            ),
+        ));
     }
     let mut source = CameraSource::parse(&c.source).map_err(|m| loc.err(Some(span.clone()), &key("source"), m))?;
     if let CameraSource::Recording { dir } = &mut source {
@@ -817,8 +862,12 @@ fn resolve_camera(loc: &Locator<'_>, base: &Path, i: usize, cam: &Spanned<RawCam
         }
     }
     if let Some(f) = &c.fps {
-        if !(f.get_ref().is_finite() && *f.get_ref() > 0.0) {
-            return Err(loc.err(Some(f.span()), &key("fps"), "must be a positive frame rate"));
+        if !(f.get_ref().is_finite() && (MIN_FPS..=MAX_FPS).contains(f.get_ref())) {
+            return Err(loc.err(
+                Some(f.span()),
+                &key("fps"),
+                format!("must be a frame rate from {MIN_FPS} to {MAX_FPS} Hz, got {}", f.get_ref()),
+            ));
         }
     }
     let mut intr: Option<CameraIntrinsics> = None;
@@ -1013,11 +1062,20 @@ fn validate_utm(loc: &Locator<'_>, u: Spanned<UtmConfig>) -> Result<UtmConfig, C
     if u.address != "sim" && u.address.parse::<std::net::SocketAddr>().is_err() && !u.address.contains(':') {
         return Err(loc.err(span, "utm.address", format!("\"{}\" is not host:port (e.g. \"192.0.2.10:502\") or \"sim\"", u.address)));
     }
-    if !(u.poll_hz.is_finite() && u.poll_hz > 0.0 && u.poll_hz <= 1000.0) {
-        return Err(loc.err(span, "utm.poll_hz", format!("must be in (0, 1000] Hz, got {}", u.poll_hz)));
+    let table = span.clone().unwrap_or(0..0);
+    if !(u.poll_hz.is_finite() && (MIN_POLL_HZ..=MAX_POLL_HZ).contains(&u.poll_hz)) {
+        return Err(loc.err(
+            Some(loc.key_span(table.clone(), "poll_hz")),
+            "utm.poll_hz",
+            format!("must be from {MIN_POLL_HZ} to {MAX_POLL_HZ} Hz, got {}", u.poll_hz),
+        ));
     }
-    if !(u.timeout_ms.is_finite() && u.timeout_ms > 0.0) {
-        return Err(loc.err(span, "utm.timeout_ms", "must be a positive number of milliseconds"));
+    if !(u.timeout_ms.is_finite() && u.timeout_ms >= 1.0 && u.timeout_ms <= MAX_TIMEOUT_MS) {
+        return Err(loc.err(
+            Some(loc.key_span(table, "timeout_ms")),
+            "utm.timeout_ms",
+            format!("must be from 1 to {MAX_TIMEOUT_MS} milliseconds, got {}", u.timeout_ms),
+        ));
     }
     for (name, r) in [("load", Some(&u.load)), ("stroke", u.stroke.as_ref())] {
         if let Some(r) = r {

@@ -21,19 +21,21 @@ use anyhow::{Context, Result};
 use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{mpsc as std_mpsc, Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
 use crate::config::Config;
 use crate::frame::{Frame, FrameSet};
+use crate::pipeline::journal::{FrameDrops, JournalSummary, SUMMARY_INTERVAL};
 use crate::pipeline::measure::Measurement;
-use crate::recording::{Recording, RecordingWriter};
+use crate::recording::Recording;
 use crate::sinks::feed::FeedWriter;
+use crate::sinks::recorder::{Recorder, RecorderStatus};
 use crate::sources::{OpenPolicy, SourceEvent};
 use crate::sync::FrameSetAssembler;
 use crate::utm::modbus::{run_poller, UtmEvent};
-use crate::utm::UtmSample;
+use crate::utm::relay::{relay, RelayReceiver};
 
 /// Frame sets waiting for the solver at most; older ones are dropped first.
 pub const QUEUE_SETS: usize = 2;
@@ -147,12 +149,6 @@ impl SetQueue {
     }
 }
 
-/// What the recorder thread is given.
-enum RecorderMsg {
-    Frame(Frame),
-    Utm(UtmSample),
-}
-
 async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>, mut feeds: Vec<FeedWriter>) -> Result<()> {
     let ncam = config.cameras.len();
     let stop = Arc::new(AtomicBool::new(false));
@@ -184,44 +180,19 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
             .flatten()
     });
-    let (rec_tx, recorder) = match &record_dir {
-        Some(dir) => {
-            let mut writer = RecordingWriter::create(dir, &config)
-                .with_context(|| format!("cannot record into {}", dir.display()))?
-                .with_format(config.output.record_format);
-            tracing::info!("recording into {}", dir.display());
-            let (tx, rx) = std_mpsc::sync_channel::<RecorderMsg>(8 * ncam.max(1));
-            let names: Vec<String> = config.cameras.iter().map(|c| c.name.clone()).collect();
-            let rec_view = view.clone();
-            let handle = std::thread::Builder::new().name("recorder".into()).spawn(move || {
-                let mut failed = false;
-                for msg in rx {
-                    if failed {
-                        continue;
-                    }
-                    let res = match msg {
-                        RecorderMsg::Frame(f) => writer.write_frame(&names[f.camera], f.seq, f.t_ns, &f.image),
-                        RecorderMsg::Utm(s) => writer.write_utm(&s),
-                    };
-                    if let Err(e) = res {
-                        tracing::error!("recording stopped: {e}; the feed goes on, everything recorded so far is kept");
-                        if let Some(v) = &rec_view {
-                            v.on_recording_failed(&e.to_string());
-                        }
-                        failed = true;
-                    }
-                }
-                if let Err(e) = writer.finish() {
-                    tracing::error!("recording: {e}");
-                }
-            })?;
-            (Some(tx), Some(handle))
-        }
-        None => (None, None),
+    // The recorder (sinks::recorder): retries after write errors; state in every feed line.
+    let recorder = match &record_dir {
+        Some(dir) => Some(Recorder::start(dir, &config, 8 * ncam.max(1)).with_context(|| format!("cannot record into {}", dir.display()))?),
+        None => None,
     };
-    let recorder_drops = Arc::new(AtomicU64::new(0));
-    if let (Some(v), Some(dir)) = (&view, &record_dir) {
-        v.on_recording(dir, recorder_drops.clone());
+    if let Some(dir) = &record_dir {
+        tracing::info!("recording into {}", dir.display());
+    }
+    let rec_tx = recorder.as_ref().map(Recorder::sender);
+    let rec_status = recorder.as_ref().map(Recorder::status);
+    let frame_drops = Arc::new(FrameDrops::new(ncam));
+    if let (Some(v), Some(dir), Some(st)) = (&view, &record_dir, &rec_status) {
+        v.on_recording(dir, st.clone());
     }
     // MQTT publisher (live runs only; never on a replay).
     let mqtt = match (&config.output.mqtt, &recording) {
@@ -247,14 +218,11 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     drop(src_tx);
 
     // UTM.
-    let (utm_tx, mut utm_rx) = mpsc::channel::<UtmEvent>(256 + recording.as_ref().map_or(0, |r| r.utm.len()));
+    let (utm_tx, mut utm_rx) = mpsc::channel::<UtmEvent>(256);
     let mut _sim_utm = None;
     let utm_configured = config.utm.is_some();
     if let Some(rec) = &recording {
-        for s in &rec.utm {
-            let _ = utm_tx.try_send(UtmEvent::Sample(*s));
-        }
-        drop(utm_tx);
+        tokio::spawn(play_utm(rec.clone(), utm_tx));
     } else if let Some(ucfg) = &config.utm {
         let ucfg = if ucfg.address == "sim" {
             let rig = rig.clone().expect("sim rig built");
@@ -279,10 +247,11 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     tracing::info!(cameras = ncam, "sources started; measuring");
 
     // UTM events to the solver (std channel: the solver is a plain thread) and the recorder.
-    let (solver_utm_tx, solver_utm_rx) = std_mpsc::channel::<UtmEvent>();
+    // Bounded (drop-oldest): memory stays flat while the solver waits, and in `record`
+    // (no solver) nothing accumulates.
+    let (solver_utm_tx, solver_utm_rx) = relay(UTM_RELAY_SAMPLES);
     let forwarder = {
         let rec_tx = rec_tx.clone();
-        let drops = recorder_drops.clone();
         let fwd_view = view.clone();
         tokio::spawn(async move {
             while let Some(ev) = utm_rx.recv().await {
@@ -290,13 +259,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                     v.on_utm(&ev);
                 }
                 if let (UtmEvent::Sample(s), Some(tx)) = (&ev, &rec_tx) {
-                    if tx.try_send(RecorderMsg::Utm(*s)).is_err() {
-                        drops.fetch_add(1, Ordering::Relaxed);
-                    }
+                    tx.utm(*s);
                 }
-                if solver_utm_tx.send(ev).is_err() {
-                    break;
-                }
+                solver_utm_tx.send(ev);
             }
         })
     };
@@ -306,14 +271,18 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let queue = Arc::new(SetQueue::new());
     let heartbeat = Arc::new(AtomicU64::new(0));
     let solver = match measure {
-        None => None,
+        None => {
+            drop(solver_utm_rx);
+            None
+        }
         Some(measure) => {
             let queue = queue.clone();
             let config = config.clone();
             let heartbeat = heartbeat.clone();
             let tap = view.as_ref().map(|v| v.tap()).transpose()?;
             let mqtt = mqtt.clone();
-            let sinks = SolverSinks { feeds, tap, mqtt };
+            let status = LineStatus { recorder: rec_status.clone(), frame_drops: frame_drops.clone() };
+            let sinks = SolverSinks { feeds, tap, mqtt, status };
             Some(
                 std::thread::Builder::new()
                     .name("solver".into())
@@ -339,7 +308,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
     let set_wait = Duration::from_secs_f64(if max_fps > 0.0 { (1.0 / max_fps).max(0.05) } else { 0.1 });
     let mut tick = tokio::time::interval(Duration::from_millis(((config.sync.tolerance_ms as u64) / 2).max(5)));
-    let deadline = opts.duration_s.map(|s| tokio::time::Instant::now() + Duration::from_secs_f64(s));
+    // An absurd duration (from the library API) means no deadline rather than a panic.
+    let deadline =
+        opts.duration_s.and_then(|s| Duration::try_from_secs_f64(s).ok()).and_then(|d| tokio::time::Instant::now().checked_add(d));
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
     let mut frames_seen = 0u64;
     loop {
@@ -355,19 +326,21 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 Some(SourceEvent::Frame(f)) => {
                     frames_seen += 1;
                     if let Some(tx) = &rec_tx {
-                        if tx.try_send(RecorderMsg::Frame(f.clone())).is_err() {
-                            recorder_drops.fetch_add(1, Ordering::Relaxed);
-                        }
+                        tx.frame(f.clone());
                     }
                     if !opts.record_only {
                         for set in assembler.push(f) {
                             queue.push(set);
                         }
+                        frame_drops.set_late(assembler.late_by_camera());
                     }
                 }
                 Some(SourceEvent::Lost { camera, reason }) => tracing::error!(camera = %config.cameras[camera].name, "camera lost: {reason}; reopening"),
                 Some(SourceEvent::Reopened { camera }) => tracing::info!(camera = %config.cameras[camera].name, "camera back"),
-                Some(SourceEvent::Dropped { camera, count, why }) => tracing::warn!(camera = %config.cameras[camera].name, count, "frames dropped: {why:?}"),
+                Some(SourceEvent::Dropped { camera, count, why }) => {
+                    frame_drops.add_source(camera, count);
+                    tracing::debug!(camera = %config.cameras[camera].name, count, "frames dropped: {why:?}");
+                }
             },
             _ = tick.tick() => {
                 if recording.is_none() {
@@ -423,13 +396,13 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let _ = forwarder.await;
     drop(rec_tx);
     if let Some(r) = recorder {
-        tokio::task::spawn_blocking(move || r.join()).await.ok();
+        tokio::task::spawn_blocking(move || r.finish()).await.ok();
     }
     if let Some(m) = &mqtt {
         m.finish(Duration::from_secs(5)).await;
     }
     let dropped = queue.dropped.load(Ordering::Relaxed);
-    let rec_dropped = recorder_drops.load(Ordering::Relaxed);
+    let rec_dropped = rec_status.as_ref().map_or(0, |s| s.dropped_frames());
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
     if let (Some(v), Some(_), Some(_)) = (&view, &recording, &_http) {
         v.on_finished();
@@ -449,6 +422,8 @@ struct SolverSinks {
     feeds: Vec<FeedWriter>,
     tap: Option<crate::sinks::http::SolverTap>,
     mqtt: Option<Arc<crate::sinks::mqtt::MqttPublisher>>,
+    /// Recorder state and per-camera drops, written into every line.
+    status: LineStatus,
 }
 
 /// A solver heartbeat older than this stops the watchdog pings (systemd then restarts the
@@ -459,14 +434,16 @@ fn solver_loop(
     config: Config,
     mut measure: Measurement,
     queue: Arc<SetQueue>,
-    utm_rx: std_mpsc::Receiver<UtmEvent>,
+    utm_rx: RelayReceiver,
     sinks: SolverSinks,
     utm_configured: bool,
     heartbeat: Arc<AtomicU64>,
 ) {
-    let SolverSinks { mut feeds, mut tap, mqtt } = sinks;
+    let SolverSinks { mut feeds, mut tap, mqtt, status } = sinks;
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
+    measure.utm_mut().set_window(LIVE_UTM_WINDOW_NS);
+    let mut journal = JournalSummary::new(config.cameras.iter().map(|c| c.name.clone()).collect(), SUMMARY_INTERVAL);
     let mut utm_up = false;
     let utm_wait = config.utm.as_ref().map(|u| Duration::from_secs_f64(2.5 / u.poll_hz)).unwrap_or_default();
     let handle = |ev: UtmEvent, m: &mut Measurement, up: &mut bool| match ev {
@@ -480,14 +457,14 @@ fn solver_loop(
         }
         UtmEvent::Up => {
             *up = true;
-            tracing::info!("UTM up");
+            tracing::debug!("UTM up"); // the poller logs it at INFO
         }
     };
     loop {
         beat();
         let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else { break };
         let Some((set, arrived)) = popped else { continue };
-        while let Ok(ev) = utm_rx.try_recv() {
+        while let Some(ev) = utm_rx.try_recv() {
             handle(ev, &mut measure, &mut utm_up);
         }
         // Wait briefly for a UTM sample after the set's time, so load is interpolated, not
@@ -500,8 +477,8 @@ fn solver_loop(
                     break;
                 }
                 match utm_rx.recv_timeout(left) {
-                    Ok(ev) => handle(ev, &mut measure, &mut utm_up),
-                    Err(_) => break,
+                    Some(ev) => handle(ev, &mut measure, &mut utm_up),
+                    None => break,
                 }
             }
         }
@@ -511,6 +488,7 @@ fn solver_loop(
         }
         line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
         line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
+        status.apply(&mut line);
         if let Some(m) = &mqtt {
             m.publish(&mut line); // non-blocking hand-off; sets `mqtt_dropped`
         }
@@ -519,8 +497,44 @@ fn solver_loop(
                 tracing::error!("{e}");
             }
         }
+        journal.observe(&line, measure.rejected_views_by_camera());
         if let Some(t) = tap.as_mut() {
             t.publish(&line, &set, &measure);
+        }
+    }
+}
+
+/// UTM events live runs hold for the solver at most (drop-oldest; ~80 s at 50 Hz).
+const UTM_RELAY_SAMPLES: usize = 4096;
+/// UTM samples kept for interpolation in live runs: this far behind the newest.
+const LIVE_UTM_WINDOW_NS: i64 = 60_000_000_000;
+
+/// What the solver adds to every feed line of a live run besides the measurement.
+struct LineStatus {
+    recorder: Option<Arc<RecorderStatus>>,
+    frame_drops: Arc<FrameDrops>,
+}
+
+impl LineStatus {
+    fn apply(&self, line: &mut crate::feed::FeedLine) {
+        self.frame_drops.apply(line);
+        if let Some(r) = &self.recorder {
+            line.recording = Some(r.state().as_str().to_string());
+            line.recorder_dropped = Some(r.dropped_frames());
+        }
+    }
+}
+
+/// Sends a recording's UTM samples at their recorded pace (relative to its first frame),
+/// as a live UTM would (`replay --realtime`).
+async fn play_utm(rec: Recording, tx: mpsc::Sender<UtmEvent>) {
+    let Some(first) = rec.frames.first().map(|f| f.t_ns) else { return };
+    let t0 = tokio::time::Instant::now();
+    for s in &rec.utm {
+        let due = Duration::from_nanos((s.t_ns as i128 - first as i128).clamp(0, u64::MAX as i128) as u64);
+        tokio::time::sleep_until(t0 + due).await;
+        if tx.send(UtmEvent::Sample(*s)).await.is_err() {
+            break;
         }
     }
 }

@@ -108,6 +108,10 @@ pub struct Measurement {
     stats: MeasureStats,
     /// Tags detected per camera in the last frame set (the live page's thumbnails).
     last_seen: Vec<(usize, Vec<SeenTag>)>,
+    /// Per camera: frame sets since its pose was last checked against background tags, and
+    /// specimen views rejected as outliers (cumulative; logged as a summary by live runs).
+    pose_age_sets: Vec<u64>,
+    rejected_by_camera: Vec<u64>,
 }
 
 impl Measurement {
@@ -175,6 +179,8 @@ impl Measurement {
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
             last_seen: Vec::new(),
+            pose_age_sets: vec![0; config.cameras.len()],
+            rejected_by_camera: vec![0; config.cameras.len()],
         })
     }
 
@@ -195,6 +201,11 @@ impl Measurement {
     /// The UTM history (the pipeline pushes samples into it).
     pub fn utm_mut(&mut self) -> &mut UtmHistory {
         &mut self.utm
+    }
+
+    /// Specimen tag views rejected as outliers so far, per camera.
+    pub fn rejected_views_by_camera(&self) -> &[u64] {
+        &self.rejected_by_camera
     }
 
     /// Current pose of each camera (world → camera), `None` until posed.
@@ -231,6 +242,7 @@ impl Measurement {
                 posed: cam.pose.pose().is_some(),
                 ..CameraHealth::default()
             };
+            let mut checked = false;
             if let Some(d) = det {
                 h.background_tags = d.background.len();
                 h.specimen_tags = d.specimen.len();
@@ -249,10 +261,16 @@ impl Measurement {
                 h.posed = status.pose.is_some();
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;
+                checked = status.fixed || !status.stale;
                 if status.bumped {
                     self.stats.bumps += 1;
                     tracing::warn!(camera = %cam.name, seq = set.seq, "camera moved: background tags shifted in the image; re-posed");
                 }
+            }
+            // A held pose that no background tag confirmed in this set is reported as stale.
+            self.pose_age_sets[ci] = if checked { 0 } else { self.pose_age_sets[ci] + 1 };
+            if h.posed && h.frame && !checked {
+                (h.stale_pose, h.pose_age_sets) = (true, Some(self.pose_age_sets[ci]));
             }
             health.push(h);
         }
@@ -282,7 +300,8 @@ impl Measurement {
                 Ok(sol) => {
                     self.stats.rejected_views += sol.rejected_views.len() as u64;
                     for r in &sol.rejected_views {
-                        tracing::info!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
+                        self.rejected_by_camera[view_cameras[*r]] += 1;
+                        tracing::debug!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
                     }
                     self.noise.add_solution(&sol);
                     let n_res = 8.0 * sol.views as f64;
@@ -338,6 +357,8 @@ impl Measurement {
             dropped_sets: None,
             latency_ms: None,
             mqtt_dropped: None,
+            recording: None,
+            recorder_dropped: None,
         };
         (line, times)
     }

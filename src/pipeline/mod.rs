@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod check;
+pub mod journal;
 pub mod live;
 pub mod measure;
 pub mod replay;

@@ -57,8 +57,9 @@ pub enum SimError {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, clap::Args)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimParams {
-    /// Seed of every random choice (noise, jitter, dropped frames, texture).
-    #[arg(long, default_value_t = 1)]
+    /// Seed of every random choice (noise, jitter, dropped frames, texture); 0 to 2^63 - 1
+    /// (it is written into the recording's TOML config, whose integers are signed 64-bit).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(..=i64::MAX as u64))]
     pub seed: u64,
     /// Number of cameras (1 to 3): 1 = centre, 2 = left + right, 3 = left + centre + right.
     #[arg(long, default_value_t = 3)]
@@ -273,8 +274,15 @@ impl SimParams {
         if self.frame_sets == 0 {
             return bad("frame_sets", "expected at least 1 frame set");
         }
-        if !finite_pos(self.fps) || self.fps > 1000.0 {
-            return bad("fps", format!("{}: expected 0 < fps ≤ 1000", self.fps));
+        if self.seed > i64::MAX as u64 {
+            return bad("seed", format!("{}: expected 0 to {} (TOML integers are signed 64-bit)", self.seed, i64::MAX));
+        }
+        if !(self.fps.is_finite() && (0.01..=1000.0).contains(&self.fps)) {
+            return bad("fps", format!("{}: expected 0.01 ≤ fps ≤ 1000", self.fps));
+        }
+        // Every frame time must fit in i64 nanoseconds (with a day to spare).
+        if self.frame_sets as f64 / self.fps * 1e9 + self.start_ns as f64 > i64::MAX as f64 - 8.64e13 || self.start_ns < 0 {
+            return bad("start_ns", format!("{}: the recording's times must lie between 1970 and 2262", self.start_ns));
         }
         if !finite_nonneg(self.noise_sigma) || self.noise_sigma > 100.0 {
             return bad("noise_sigma", format!("{}: expected 0 to 100 grey levels", self.noise_sigma));
@@ -359,8 +367,8 @@ impl SimParams {
         if !finite_pos(self.background_tag_mm) || self.background_tag_mm > 150.0 {
             return bad("background_tag_mm", format!("{}: expected 0 < size ≤ 150 mm", self.background_tag_mm));
         }
-        if !finite_pos(self.utm_hz) || self.utm_hz > 10_000.0 || !self.utm_phase_ms.is_finite() {
-            return bad("utm_hz", "expected 0 < utm_hz ≤ 10000 and a finite phase");
+        if !((0.01..=10_000.0).contains(&self.utm_hz) && self.utm_phase_ms.abs() <= 1e6) {
+            return bad("utm_hz", "expected 0.01 ≤ utm_hz ≤ 10000 and a phase within ±1000 s");
         }
         if !finite_nonneg(self.stiffness_kn_per_mm) || !finite_nonneg(self.compliance_mm_per_kn) {
             return bad("stiffness_kn_per_mm", "expected non-negative stiffness and compliance");

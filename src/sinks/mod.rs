@@ -1,6 +1,8 @@
-//! Sinks: where feed lines go. Each sink fails on its own: an unwritable output is
-//! reported once and disabled while the others go on.
+//! Sinks: where feed lines go. Each sink fails on its own: an output that cannot be
+//! written is reported, retried with backoff and never holds the measurement back.
 
 pub mod feed;
 pub mod http;
 pub mod mqtt;
+pub mod linefile;
+pub mod recorder;

@@ -160,7 +160,14 @@ fn decode_mjpeg(width: u32, height: u32, data: &[u8]) -> Result<GrayImage, Conve
     if data[data.len() - 2..] != [0xFF, 0xD9] {
         return Err(ConvertError::Jpeg(format!("no end-of-image marker: frame cut short ({} bytes)", data.len())));
     }
-    let img = image::load_from_memory_with_format(data, image::ImageFormat::Jpeg).map_err(|e| ConvertError::Jpeg(e.to_string()))?;
+    // The size from the header first: a corrupt frame that claims a huge image is refused
+    // before anything is decoded or allocated.
+    let reader = || image::ImageReader::with_format(std::io::Cursor::new(data), image::ImageFormat::Jpeg);
+    let (got_w, got_h) = reader().into_dimensions().map_err(|e| ConvertError::Jpeg(e.to_string()))?;
+    if (got_w, got_h) != (width, height) {
+        return Err(ConvertError::JpegSize { width, height, got_w, got_h });
+    }
+    let img = reader().decode().map_err(|e| ConvertError::Jpeg(e.to_string()))?;
     let luma = img.to_luma8();
     if luma.width() != width || luma.height() != height {
         return Err(ConvertError::JpegSize { width, height, got_w: luma.width(), got_h: luma.height() });

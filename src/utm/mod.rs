@@ -3,6 +3,7 @@
 
 pub mod codec;
 pub mod modbus;
+pub mod relay;
 pub mod sim_server;
 
 pub use codec::{decode, encode, DecodeError, EncodeError};
@@ -47,6 +48,14 @@ impl UtmHistory {
         Self { samples: VecDeque::new(), keep_ns, max_gap_ns: 0 }
     }
 
+    /// From now on keeps only samples within `keep_ns` of the newest (live runs: memory stays
+    /// flat over hours; 0 = keep all). Interpolation at a time older than the window gives
+    /// `None`, never a wrong value.
+    pub fn set_window(&mut self, keep_ns: i64) {
+        self.keep_ns = keep_ns.max(0);
+        self.prune();
+    }
+
     /// Refuses to interpolate between samples more than `max_gap_ns` apart.
     pub fn with_max_gap(mut self, max_gap_ns: i64) -> Self {
         self.max_gap_ns = max_gap_ns;
@@ -67,9 +76,15 @@ impl UtmHistory {
             Some(last) if last.t_ns == s.t_ns => *self.samples.back_mut().unwrap() = s,
             _ => self.samples.push_back(s),
         }
+        self.prune();
+    }
+
+    fn prune(&mut self) {
         if self.keep_ns > 0 {
             let newest = self.samples.back().map(|x| x.t_ns).unwrap_or(0);
-            while self.samples.front().is_some_and(|x| x.t_ns < newest - self.keep_ns) {
+            // Keep the last sample before the window too: a time inside the window but
+            // before its first sample still interpolates (within the gap limit).
+            while self.samples.len() > 2 && self.samples[1].t_ns < newest.saturating_sub(self.keep_ns) {
                 self.samples.pop_front();
             }
         }
@@ -105,10 +120,12 @@ impl UtmHistory {
             return Some((b.load_kn, b.stroke_mm));
         }
         let a = self.samples[i - 1];
-        if self.max_gap_ns > 0 && b.t_ns - a.t_ns > self.max_gap_ns {
+        // i128: arbitrary times (a corrupt recording) must not overflow.
+        let span = b.t_ns as i128 - a.t_ns as i128;
+        if self.max_gap_ns > 0 && span > self.max_gap_ns as i128 {
             return None;
         }
-        let w = (t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
+        let w = (t_ns as i128 - a.t_ns as i128) as f64 / span as f64;
         let lerp = |x: f64, y: f64| x + (y - x) * w;
         let stroke = match (a.stroke_mm, b.stroke_mm) {
             (Some(x), Some(y)) => Some(lerp(x, y)),
@@ -157,7 +174,38 @@ mod tests {
         for t in 0..10 {
             h.push(s(t * 50, t as f64));
         }
-        assert_eq!(h.len(), 3);
+        // The window's samples and the one before it.
+        assert_eq!(h.len(), 4);
         assert_eq!(h.newest_t_ns(), Some(450));
+        assert!(h.interpolate(340).is_some(), "inside the window, before its first sample");
+        assert_eq!(h.interpolate(250), None, "older than the window");
+    }
+
+    #[test]
+    fn live_window_keeps_memory_flat_over_hours() {
+        // 50 Hz for 3 simulated hours; a 60 s window holds ~3000 samples, whatever the length.
+        let mut h = UtmHistory::unbounded().with_max_gap(500_000_000);
+        h.set_window(60_000_000_000);
+        let mut max_len = 0;
+        for k in 0..(3 * 3600 * 50) {
+            h.push(s(k * 20_000_000, k as f64));
+            max_len = max_len.max(h.len());
+        }
+        assert!(max_len <= 3002, "{max_len}");
+        let newest = h.newest_t_ns().unwrap();
+        assert!(h.interpolate(newest - 30_000_000_000).is_some(), "30 s back still interpolates");
+    }
+
+    #[test]
+    fn extreme_times_do_not_overflow() {
+        let mut h = UtmHistory::unbounded().with_max_gap(100);
+        h.push(s(i64::MIN, 1.0));
+        h.push(s(i64::MAX, 2.0));
+        assert_eq!(h.interpolate(0), None);
+        let mut h = UtmHistory::with_window(i64::MAX);
+        h.push(s(i64::MIN, 1.0));
+        h.push(s(i64::MAX, 2.0));
+        h.push(s(0, 2.0));
+        assert!(h.interpolate(1).is_some());
     }
 }

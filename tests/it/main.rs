@@ -16,6 +16,7 @@ mod http;
 mod live;
 mod realdata;
 mod recording;
+mod robustness;
 mod simulate;
 mod solve;
 mod systemd_unit;

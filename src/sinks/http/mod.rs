@@ -142,7 +142,7 @@ pub(crate) struct UtmState {
 pub(crate) struct RecordingState {
     pub dir: Option<String>,
     pub failed: Option<String>,
-    pub drops: Option<Arc<AtomicU64>>,
+    pub drops: Option<Arc<crate::sinks::recorder::RecorderStatus>>,
 }
 
 /// The feed as the page shows it.
@@ -359,8 +359,9 @@ impl LiveView {
         }
     }
 
-    /// Hook: a recording is written into `dir`; `drops` counts what it could not keep up with.
-    pub fn on_recording(&self, dir: &Path, drops: Arc<AtomicU64>) {
+    /// Hook: a recording is written into `dir`; `drops` is the recorder's state and what it
+    /// could not keep up with (`sinks::recorder`).
+    pub fn on_recording(&self, dir: &Path, drops: Arc<crate::sinks::recorder::RecorderStatus>) {
         self.metrics.recorder_active.set(1);
         let mut st = self.lock();
         st.recording.dir = Some(dir.display().to_string());

@@ -8,7 +8,6 @@ use axum::routing::get;
 use axum::{Json, Router};
 use futures_util::stream::{self, Stream, StreamExt};
 use std::convert::Infallible;
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use tokio::sync::broadcast::error::RecvError;
 
@@ -47,7 +46,7 @@ async fn status(State(view): State<Arc<LiveView>>) -> Json<super::status::Status
 
 async fn metrics(State(view): State<Arc<LiveView>>) -> Response {
     if let Some(d) = view.lock().recording.drops.as_ref() {
-        view.metrics.recorder_dropped.set(d.load(Ordering::Relaxed) as i64);
+        view.metrics.recorder_dropped.set(d.dropped_frames() as i64);
     }
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], view.metrics.encode()).into_response()
 }

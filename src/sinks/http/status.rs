@@ -294,12 +294,15 @@ pub fn status(view: &LiveView) -> Status {
         stroke_mm: st.utm.last_sample.and_then(|s| s.stroke_mm),
     };
 
-    let dropped_rec = st.recording.drops.as_ref().map_or(0, |d| d.load(Ordering::Relaxed));
+    let dropped_rec = st.recording.drops.as_ref().map_or(0, |d| d.dropped_frames());
+    let failing = st.recording.drops.as_ref().is_some_and(|d| d.state() != crate::sinks::feed::SinkState::Ok);
     if let Some(e) = &st.recording.failed {
         problems.push(format!("recording failed: {e}"));
+    } else if failing && !st.finished {
+        problems.push("recording failing: writes fail, retrying (frames dropped meanwhile are counted)".to_string());
     }
     let recording = RecordingStatus {
-        active: st.recording.dir.is_some() && st.recording.failed.is_none() && !st.finished,
+        active: st.recording.dir.is_some() && st.recording.failed.is_none() && !failing && !st.finished,
         dir: st.recording.dir.clone(),
         failed: st.recording.failed.clone(),
         dropped: dropped_rec,

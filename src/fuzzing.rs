@@ -1,0 +1,252 @@
+//! Entry points of the fuzz targets (`fuzz/`, `scripts/fuzz.sh`), kept in the library so
+//! the normal test suite replays every input that once crashed one of them
+//! (`tests/fixtures/fuzz-regressions/<target>/`). Each takes arbitrary bytes and must
+//! return without a panic, an abort or an allocation beyond the documented limits; the
+//! results are checked for the invariants stated at each function.
+
+use std::path::Path;
+
+use crate::config::{Config, RegisterConfig, RegisterKind, ValueType, WordOrder};
+use crate::frame::{Frame, GrayImage};
+use crate::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine};
+use crate::utm::{UtmHistory, UtmSample};
+
+/// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
+pub const TARGETS: &[&str] = &["image", "jsonl", "config", "calibration", "convert", "modbus", "assembly", "roi", "window_detect"];
+
+/// Runs target `name` on `data` (regression tests); `false` for an unknown name.
+pub fn run(name: &str, data: &[u8]) -> bool {
+    match name {
+        "image" => image(data),
+        "jsonl" => jsonl(data),
+        "config" => config(data),
+        "calibration" => calibration(data),
+        "convert" => convert(data),
+        "modbus" => modbus(data),
+        "assembly" => assembly(data),
+        "roi" => roi(data),
+        "window_detect" => window_detect(data),
+        _ => return false,
+    }
+    true
+}
+
+fn u32_at(d: &[u8], i: usize) -> u32 {
+    let mut b = [0u8; 4];
+    for (k, x) in b.iter_mut().enumerate() {
+        *x = d.get(i + k).copied().unwrap_or(0);
+    }
+    u32::from_le_bytes(b)
+}
+
+fn i64_at(d: &[u8], i: usize) -> i64 {
+    let mut b = [0u8; 8];
+    for (k, x) in b.iter_mut().enumerate() {
+        *x = d.get(i + k).copied().unwrap_or(0);
+    }
+    i64::from_le_bytes(b)
+}
+
+/// PNG and PGM frames: decoded with and without an expected size; a decoded image always
+/// has `width × height` bytes, and with an expected size it has that size.
+pub fn image(data: &[u8]) {
+    let mut img = GrayImage::new(0, 0);
+    if decode_gray_bytes(data, &mut img, None).is_ok() {
+        assert_eq!(img.data.len(), img.width as usize * img.height as usize);
+    }
+    let expect = (u32_at(data, 16).clamp(1, 4096), u32_at(data, 20).clamp(1, 4096));
+    let mut img = GrayImage::new(0, 0);
+    if decode_gray_bytes(data, &mut img, Some(expect)).is_ok() {
+        assert_eq!((img.width, img.height), expect);
+        assert_eq!(img.data.len(), img.width as usize * img.height as usize);
+    }
+}
+
+/// `frames.jsonl`, `utm.jsonl` and `truth.jsonl` lines.
+pub fn jsonl(data: &[u8]) {
+    let p = Path::new("fuzz.jsonl");
+    let mut skipped = Vec::new();
+    let _ = read_jsonl_from::<FrameEntry, _>(data, p, &mut skipped);
+    let _ = read_jsonl_from::<UtmSample, _>(data, p, &mut skipped);
+    let _ = read_jsonl_from::<TruthLine, _>(data, p, &mut skipped);
+}
+
+/// A config file; a config that loads also writes back and loads again.
+pub fn config(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else { return };
+    // Relative calibration paths resolve inside a folder that does not exist.
+    let path = Path::new("/nonexistent-fuzz/rig.toml");
+    if let Ok(cfg) = Config::from_toml_str(text, path) {
+        let back = cfg.to_toml_string();
+        Config::from_toml_str(&back, path).expect("a loaded config writes back loadable");
+    }
+}
+
+/// A calibration file (OpenCV YAML and JSON).
+pub fn calibration(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else { return };
+    let p = Path::new("fuzz.yaml");
+    let _ = crate::config::parse_calibration(text, false, p);
+    let _ = crate::config::parse_calibration(text, true, p);
+}
+
+/// V4L2 / Aravis buffer conversion (GREY, Y10..Y16, YUYV, MJPEG) with arbitrary sizes,
+/// strides and buffers; a converted image always has `width × height` bytes.
+pub fn convert(data: &[u8]) {
+    use crate::sources::convert::{to_gray8, PixelLayout};
+    if data.len() < 9 {
+        return;
+    }
+    let layout = match data[0] % 4 {
+        0 => PixelLayout::Gray8,
+        1 => PixelLayout::Gray16Le { bits: 9 + data[1] % 8 },
+        2 => PixelLayout::Yuyv,
+        _ => PixelLayout::Mjpeg,
+    };
+    let width = u32::from(u16::from_le_bytes([data[2], data[3]]));
+    let height = u32::from(u16::from_le_bytes([data[4], data[5]]));
+    let stride = usize::from(u16::from_le_bytes([data[6], data[7]]));
+    if let Ok(img) = to_gray8(layout, width, height, stride, &data[8..]) {
+        assert_eq!(img.data.len(), img.width as usize * img.height as usize);
+    }
+}
+
+/// Modbus register decoding: every type, word order, scale and offset.
+pub fn modbus(data: &[u8]) {
+    if data.len() < 3 {
+        return;
+    }
+    let value_type = [ValueType::F32, ValueType::I16, ValueType::U16, ValueType::I32, ValueType::U32][data[0] as usize % 5];
+    let word_order = [WordOrder::Abcd, WordOrder::Cdab, WordOrder::Badc, WordOrder::Dcba][data[1] as usize % 4];
+    let scale = f64::from_bits(i64_at(data, 3) as u64);
+    let offset = f64::from_bits(i64_at(data, 11) as u64);
+    let reg = RegisterConfig { register: 0, kind: RegisterKind::Input, value_type, word_order, scale, offset };
+    let words: Vec<u16> =
+        data[(data[2] as usize % 4).min(data.len())..].chunks(2).map(|c| u16::from_le_bytes([c[0], *c.get(1).unwrap_or(&0)])).collect();
+    if let Ok(v) = crate::utm::decode(&reg, &words) {
+        if scale.is_finite() && offset.is_finite() && scale != 0.0 {
+            // What the daemon would put in the feed: never NaN from valid integer registers.
+            if !matches!(value_type, ValueType::F32) {
+                assert!(!v.is_nan(), "integer register decoded to NaN");
+            }
+        }
+    }
+    let _ = crate::utm::encode(&reg, scale);
+}
+
+/// Frame-set assembly and the UTM history with arbitrary times (overflow checks on):
+/// sets come out strictly in time order, each holding at most one frame per camera.
+pub fn assembly(data: &[u8]) {
+    use crate::sync::FrameSetAssembler;
+    if data.len() < 2 {
+        return;
+    }
+    let cameras = 1 + data[0] as usize % 3;
+    let tolerance_ms = [0.001, 1.0, 10.0, 10_000.0][data[1] as usize % 4];
+    let mut a = FrameSetAssembler::with_open_sets(cameras, tolerance_ms, 1 + data[1] as usize % 3);
+    let img = std::sync::Arc::new(GrayImage::new(1, 1));
+    let mut sets = Vec::new();
+    let mut hist = UtmHistory::with_window(i64_at(data, 2).unsigned_abs() as i64).with_max_gap(i64_at(data, 10).max(0));
+    for (k, chunk) in data[2..].chunks(9).enumerate() {
+        let t = i64_at(chunk, 0);
+        let camera = *chunk.get(8).unwrap_or(&0) as usize % cameras;
+        sets.extend(a.push(Frame { camera, seq: k as u64, t_ns: t, image: img.clone() }));
+        hist.push(UtmSample { t_ns: t, load_kn: (k as f64).sin(), stroke_mm: (k % 2 == 0).then_some(1.0) });
+        let _ = hist.interpolate(t.wrapping_add(k as i64));
+        let _ = hist.interpolate(i64_at(chunk, 1));
+    }
+    sets.extend(a.flush());
+    for w in sets.windows(2) {
+        assert!(w[0].t_ns < w[1].t_ns, "frame sets out of time order");
+    }
+    for s in &sets {
+        let mut cams: Vec<usize> = s.frames.iter().map(|f| f.camera).collect();
+        cams.dedup();
+        assert_eq!(cams.len(), s.frames.len(), "two frames of one camera in a set");
+    }
+}
+
+/// The ROI rectangle helpers: windows around points, bounding boxes, alignment, clamping,
+/// merging and sweep tiles always give rectangles inside the image.
+pub fn roi(data: &[u8]) {
+    use crate::detect::Rect;
+    use crate::detect::plan::{merge_rects, sweep_tiles};
+    use nalgebra::Point2;
+    if data.len() < 8 {
+        return;
+    }
+    let width = u32_at(data, 0) % 10_000 + 1;
+    let height = u32_at(data, 4) % 10_000 + 1;
+    let f = |i: usize| f64::from_bits(i64_at(data, i) as u64);
+    let inside = |r: &Rect| {
+        r.x as u64 + r.width as u64 <= width as u64 && r.y as u64 + r.height as u64 <= height as u64 && r.width > 0 && r.height > 0
+    };
+    let mut rects = Vec::new();
+    for k in 0..(data.len() / 24).min(64) {
+        let o = 8 + 24 * k;
+        if let Some(r) = Rect::around(Point2::new(f(o), f(o + 8)), f(o + 16), width, height) {
+            assert!(inside(&r), "around: {r:?} outside {width}x{height}");
+            rects.push(r);
+        }
+        let pts = [Point2::new(f(o), f(o + 8)), Point2::new(f(o + 8), f(o + 16))];
+        if let Some(r) = Rect::bounding(&pts, f(o + 16).abs().min(1e6), width, height) {
+            assert!(inside(&r), "bounding: {r:?} outside {width}x{height}");
+            let a = r.aligned(1 + data[o % data.len()] as u32 % 16);
+            if let Some(c) = a.clamp_to(width, height) {
+                assert!(inside(&c), "clamp_to: {c:?}");
+            }
+            let _ = r.contains(&pts[0]);
+            let _ = r.area();
+        }
+        let raw = Rect { x: u32_at(data, o), y: u32_at(data, o + 4), width: u32_at(data, o + 8), height: u32_at(data, o + 12) };
+        let _ = raw.aligned(u32_at(data, o + 16));
+        if let Some(c) = raw.clamp_to(width, height) {
+            assert!(inside(&c), "clamp_to: {c:?}");
+        }
+    }
+    for r in merge_rects(rects) {
+        assert!(inside(&r), "merge_rects: {r:?}");
+    }
+    if width <= 4096 && height <= 4096 {
+        for r in sweep_tiles(width, height, f(0).abs().min(1.0)) {
+            assert!(inside(&r), "sweep tile {r:?}");
+        }
+    }
+}
+
+/// Tag detection (the AprilTag library through our wrapper, with sub-pixel refinement) on a
+/// small random image and a random window: no crash, corners finite.
+pub fn window_detect(data: &[u8]) {
+    use crate::detect::apriltag::{Detector, DetectorOptions};
+    use crate::detect::refine::RefineOptions;
+    use crate::detect::Rect;
+    use crate::tags::TagFamily;
+    thread_local! {
+        static DET: std::cell::RefCell<Option<Detector>> = const { std::cell::RefCell::new(None) };
+    }
+    if data.len() < 10 {
+        return;
+    }
+    let width = 8 + u32::from(data[0]) % 120;
+    let height = 8 + u32::from(data[1]) % 120;
+    let rect = Rect { x: u32::from(data[2]), y: u32::from(data[3]), width: u32::from(data[4]) + 1, height: u32::from(data[5]) + 1 };
+    let pixels = &data[6..];
+    let mut img = GrayImage::new(width, height);
+    for (i, p) in img.data.iter_mut().enumerate() {
+        *p = pixels[i % pixels.len()];
+    }
+    DET.with(|d| {
+        let mut d = d.borrow_mut();
+        let det = d.get_or_insert_with(|| {
+            let opts = DetectorOptions {
+                nthreads: 1,
+                subpixel: Some(RefineOptions::default()),
+                ..DetectorOptions::for_families(&[TagFamily::Tag36h11, TagFamily::Tag25h9])
+            };
+            Detector::new(opts).expect("detector")
+        });
+        for det in det.detect_window(&img, rect).iter().chain(det.detect(&img).iter()) {
+            assert!(det.corners.iter().all(|c| c.x.is_finite() && c.y.is_finite()), "non-finite corner");
+        }
+    });
+}
