@@ -7,6 +7,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev systemd python3 python3-venv)
+# The test report: a TrueType font for the plots' text (PNG), Chromium to render the HTML in tests.
+pkgs+=(fonts-dejavu-core chromium)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

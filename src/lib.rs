@@ -12,6 +12,7 @@ pub mod feed;
 pub mod frame;
 pub mod pipeline;
 pub mod recording;
+pub mod report;
 pub mod sim;
 pub mod sinks;
 pub mod solve;

@@ -94,6 +94,10 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// The test report from a feed: report.html, report.json, curve.csv and plots.
+    Report(tagdeflect::report::ReportArgs),
+    /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
+    Export(tagdeflect::report::ExportArgs),
 }
 
 fn main() -> ExitCode {
@@ -175,5 +179,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, ..LiveOptions::default() })
         }
+        Command::Report(args) => tagdeflect::report::run_cli(&args).map(|_| ()),
+        Command::Export(args) => tagdeflect::report::export_cli(&args),
     }
 }

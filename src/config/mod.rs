@@ -71,6 +71,9 @@ pub struct Config {
     /// Where `run` and `demo` send what they make.
     #[serde(default)]
     pub output: OutputConfig,
+    /// The test report `run` writes at its end (optional; see `report`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<crate::report::ReportConfig>,
     /// Measurement options (extension of SPEC; all optional).
     #[serde(default)]
     pub measure: MeasureConfig,
@@ -189,6 +192,9 @@ pub struct SpecimenConfig {
     /// The tags to measure.
     #[serde(rename = "tag")]
     pub tags: Vec<SpecimenTag>,
+    /// The beam's geometry for the report (`[specimen.beam]`, optional).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beam: Option<crate::report::BeamConfig>,
 }
 
 /// One specimen tag.
@@ -389,6 +395,8 @@ struct RawConfig {
     #[serde(default)]
     output: Option<OutputConfig>,
     #[serde(default)]
+    report: Option<Spanned<crate::report::ReportConfig>>,
+    #[serde(default)]
     measure: Option<Spanned<MeasureConfig>>,
     #[serde(default)]
     sim: Option<crate::sim::SimParams>,
@@ -437,6 +445,8 @@ struct RawTagSet<T> {
     size_mm: Spanned<f64>,
     #[serde(default = "Vec::new")]
     tag: Vec<Spanned<T>>,
+    #[serde(default)]
+    beam: Option<Spanned<crate::report::config::RawBeam>>,
 }
 
 #[derive(Deserialize)]
@@ -574,6 +584,20 @@ impl Config {
                 m
             }
         };
+        // [report] (the report's own checks live in report::config).
+        let report = match raw.report {
+            None => None,
+            Some(r) => {
+                let span = r.span();
+                let mut r = r.into_inner();
+                crate::report::config::validate_report(&r, specimen.beam.as_ref())
+                    .map_err(|(key, msg)| loc.err(Some(span), &format!("report.{key}"), msg))?;
+                if r.out.is_relative() {
+                    r.out = base.join(&r.out);
+                }
+                Some(r)
+            }
+        };
         let mut output = raw.output.unwrap_or_default();
         if let Some(r) = &output.record {
             if r.is_relative() {
@@ -585,7 +609,7 @@ impl Config {
                 output.feed = Some(base.join(f).to_string_lossy().into_owned());
             }
         }
-        Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
+        Ok(Config { world, sync, cameras, background, specimen, utm, output, report, measure, sim: raw.sim })
     }
 
     /// Writes the config as TOML (resolved intrinsics inline).
@@ -738,6 +762,9 @@ fn check_size(loc: &Locator<'_>, section: &str, s: &Spanned<f64>) -> Result<f64,
 fn resolve_background(loc: &Locator<'_>, bg: Spanned<RawTagSet<RawBackgroundTag>>) -> Result<BackgroundConfig, ConfigError> {
     let span = bg.span();
     let bg = bg.into_inner();
+    if let Some(b) = &bg.beam {
+        return Err(loc.err(Some(b.span()), "background.beam", "the beam's geometry belongs in [specimen.beam]"));
+    }
     let family = parse_family(loc, "background", &bg.family)?;
     let size_mm = check_size(loc, "background", &bg.size_mm)?;
     if bg.tag.is_empty() {
@@ -831,7 +858,11 @@ fn resolve_specimen(loc: &Locator<'_>, sp: Spanned<RawTagSet<SpecimenTagRaw>>) -
         }
         tags.push(SpecimenTag { id, role: t.role });
     }
-    Ok(SpecimenConfig { family, size_mm, tags })
+    let beam = match &sp.beam {
+        None => None,
+        Some(b) => Some(b.get_ref().resolve().map_err(|(span, key, msg)| loc.err(Some(span), &format!("specimen.beam.{key}"), msg))?),
+    };
+    Ok(SpecimenConfig { family, size_mm, tags, beam })
 }
 
 fn validate_utm(loc: &Locator<'_>, u: Spanned<UtmConfig>) -> Result<UtmConfig, ConfigError> {

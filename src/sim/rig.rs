@@ -366,9 +366,16 @@ impl SimRig {
                 family: TagFamily::Tag36h11,
                 size_mm: p.specimen_tag_mm,
                 tags: self.layout.specimen.iter().map(|s| SpecimenTag { id: s.id, role: s.role }).collect(),
+                beam: Some(crate::report::BeamConfig {
+                    width_mm: p.beam_width_mm,
+                    depth_mm: p.beam_height_mm,
+                    span_mm: p.span_mm,
+                    notch_mm: None,
+                }),
             },
             utm: None,
             output: OutputConfig::default(),
+            report: None,
             measure: MeasureConfig::default(),
             sim: Some(p.clone()),
         }

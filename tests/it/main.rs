@@ -11,6 +11,7 @@ mod detect_sim;
 mod live;
 mod realdata;
 mod recording;
+mod report;
 mod simulate;
 mod solve;
 mod systemd_unit;
