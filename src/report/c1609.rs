@@ -99,13 +99,12 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     });
 
     // Residual loads.
-    let max_x = curve.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let residual = |div: f64| -> Result<Quantity, String> {
         let target = l / div;
         curve
             .load_at(target)
             .map(|(p, s, _)| Quantity::new(p, s, "kN"))
-            .ok_or_else(|| format!("the net deflection never reached L/{div} = {target:.3} mm (largest: {max_x:.3} mm)"))
+            .ok_or_else(|| curve.not_reached(&format!("L/{div} = {target:.3} mm"), target))
     };
     let p600 = residual(600.0);
     let p150 = residual(150.0);
@@ -151,7 +150,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     let t150 = curve
         .area_to(l / 150.0)
         .map(|(a, s)| Quantity::new(a, s, "J"))
-        .ok_or_else(|| format!("the net deflection never reached L/150 = {:.3} mm (largest: {max_x:.3} mm)", l / 150.0));
+        .ok_or_else(|| curve.not_reached(&format!("L/150 = {:.3} mm", l / 150.0), l / 150.0));
     out.push(Entry {
         key: "T150",
         symbol: "T_150",

@@ -131,15 +131,30 @@ impl Curve {
 
     /// The first point where smoothed `x` reaches `target`: `(i, f)` with the crossing
     /// between points `i - 1` and `i` at fraction `f` (`(0, 0.0)` when the first point is
-    /// already there). `None` when `x` never gets there.
+    /// there). `None` when `x` never gets there, or when the curve starts beyond it (the
+    /// crossing was not measured).
     pub fn crossing(&self, target: f64) -> Option<(usize, f64)> {
-        if self.xs[0] >= target {
+        if self.xs[0] == target {
             return Some((0, 0.0));
+        }
+        if self.xs[0] > target {
+            return None;
         }
         (1..self.len()).find(|&i| self.xs[i] >= target).map(|i| {
             let (a, b) = (self.xs[i - 1], self.xs[i]);
             (i, if b > a { ((target - a) / (b - a)).clamp(0.0, 1.0) } else { 1.0 })
         })
+    }
+
+    /// Why `target` (called `what`) has no crossing: the curve starts beyond it, or never
+    /// gets there.
+    pub fn not_reached(&self, what: &str, target: f64) -> String {
+        let max = self.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        if self.xs[0] > target {
+            format!("the curve starts at {:.3} mm, beyond {what}: that point was not measured", self.xs[0])
+        } else {
+            format!("the curve never reached {what} (largest: {max:.3} mm)")
+        }
     }
 
     /// A column's value at a crossing, interpolated linearly.

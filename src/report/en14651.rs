@@ -42,7 +42,6 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     let (b, l, h) = (beam.width_mm, beam.span_mm, beam.h_sp_mm());
     let stress = |f: f64| 1500.0 * f * l / (b * h * h);
     let mut out = Vec::new();
-    let max_x = curve.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let fl = max_load_within(curve, LOP_CMOD_MM)
         .map(|(p, s, _)| Quantity::new(p, s, "kN"))
         .ok_or_else(|| "no point with CMOD in 0 to 0.05 mm".to_string());
@@ -76,7 +75,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         let r = curve
             .load_at(cmod)
             .map(|(p, s, _)| Quantity::new(stress(p), stress(s), "MPa"))
-            .ok_or_else(|| format!("the CMOD never reached {cmod} mm (largest: {max_x:.3} mm)"));
+            .ok_or_else(|| curve.not_reached(&format!("CMOD {cmod} mm"), cmod));
         out.push(Entry {
             key: KEYS[j],
             symbol: SYMS[j],

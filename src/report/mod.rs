@@ -253,7 +253,7 @@ pub struct Report {
 /// The statement every report carries about the clauses cited.
 pub const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow the standards as the authors of this \
      software know them; the text of the standards was not at hand when this was written, so \
-     neither the clause numbers nor the definitions have been checked against it. Check them \
+     the clause numbers and the definitions have not been checked against it. Check them \
      against your copy before relying on this report.";
 
 /// Builds the report of a feed.

@@ -183,7 +183,15 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
         chart.draw_series(std::iter::once(Text::new(name.clone(), (*v, y1 * 1.06), (FONT, 14).into_font().color(&grey)))).map_err(err)?;
     }
     let red = RGBColor(190, 30, 30);
-    for m in &d.marks {
+    // Marks on the same point share one label ("P1 = Pp").
+    let mut merged: Vec<Mark> = Vec::new();
+    for m in d.marks {
+        match merged.iter_mut().find(|o| (o.x - m.x).abs() < 1e-9 && (o.load - m.load).abs() < 1e-9) {
+            Some(o) => o.label = format!("{} = {}", o.label, m.label),
+            None => merged.push(m),
+        }
+    }
+    for m in &merged {
         chart
             .draw_series(std::iter::once(
                 EmptyElement::at((m.x, m.load))
@@ -251,7 +259,7 @@ fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report,
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], red.stroke_width(2)));
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(SeriesLabelPosition::UpperMiddle)
         .label_font((FONT, 14))
         .background_style(WHITE.mix(0.85))
         .border_style(RGBColor(180, 180, 180))

@@ -261,6 +261,18 @@ impl Qc {
                 warnings.push(format!("{} tag {} solved in only {:.1} % of the lines", t.role.unwrap_or(""), t.id, t.coverage_pct));
             }
         }
+        if curve.xs[0].abs() > 0.01 {
+            warnings.push(format!(
+                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
+                curve.xs[0]
+            ));
+        }
+        if curve.xs[0].abs() > 0.01 {
+            warnings.push(format!(
+                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
+                curve.xs[0]
+            ));
+        }
         if x_feed_sigma_median_mm > 0.0 && curve.x_noise > 3.0 * x_feed_sigma_median_mm {
             warnings.push(format!(
                 "the scatter of {x_name} ({:.4} mm) is more than 3× the feed's σ ({:.4} mm): the σ reported may be too small",

@@ -264,7 +264,7 @@ fn report_cli_writes_html_json_csv_and_plots_for_c1609() {
     assert_eq!(j["qc"]["tags"].as_array().unwrap().len(), 3);
     let html = fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("<svg") && !html.contains("<script") && !html.contains("src=\"http"), "self-contained, plots inline");
-    assert!(html.contains("not been checked against"), "the report says the clauses are unchecked");
+    assert!(html.contains("have not been checked against"), "the report says the clauses are unchecked");
     let png = fs::read(out.join("load_deflection.png")).unwrap();
     assert!(png.starts_with(b"\x89PNG"));
 
@@ -327,7 +327,9 @@ fn report_cli_en14651_from_a_cmod_gauge() {
     assert_eq!(j["specimen"]["h_sp_mm"], 125.0);
     for (key, want) in notched_truth() {
         close(key, j[key]["value"].as_f64().unwrap(), want, 1e-6 * want.abs().max(1.0));
-        assert!(j[key]["sigma"].as_f64().unwrap() > 0.0, "{key}: σ from the gauge's σ");
+        if key.starts_with("fR") {
+            assert!(j[key]["sigma"].as_f64().unwrap() > 0.0, "{key}: σ from the gauge's σ");
+        }
     }
     for key in SPEC_EN14651_KEYS {
         assert!(j[key]["unit"].is_string(), "{key}");
@@ -467,10 +469,11 @@ fn beam_and_report_tables_are_validated_with_file_line_and_key() {
 #[test]
 fn run_writes_the_report_at_its_end() {
     let dir = tempfile::tempdir().unwrap();
+    // One simulated 640x480 camera at 5 fps and the simulated UTM (Modbus TCP on loopback).
     let params = tagdeflect::sim::SimParams {
         cameras: 1,
-        width: 320,
-        height: 240,
+        width: 640,
+        height: 480,
         fps: 5.0,
         frame_sets: 15,
         rest_frames: 2,
@@ -478,10 +481,18 @@ fn run_writes_the_report_at_its_end() {
         ..Default::default()
     };
     let mut cfg = tagdeflect::sim::SimRig::new(&params).unwrap().config();
+    cfg.utm = tagdeflect::sources::sim::demo_config().utm;
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
-    let text = format!("{}\n[report]\nstandard = \"astm-c1609\"\nout = \"reports\"\n", cfg.to_toml_string());
+    cfg.report = Some(tagdeflect::report::ReportConfig {
+        standard: tagdeflect::report::Standard::AstmC1609,
+        out: dir.path().join("reports"),
+        deflection_gauge: None,
+        cmod_gauge: None,
+        smooth_points: 5,
+        load_resolution_kn: None,
+    });
     let path = dir.path().join("rig.toml");
-    fs::write(&path, text).unwrap();
+    fs::write(&path, cfg.to_toml_string()).unwrap();
     let o = tagdeflect(&["run", "--config", path.to_str().unwrap(), "--duration-s", "4"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let runs: Vec<PathBuf> = fs::read_dir(dir.path().join("reports")).unwrap().map(|e| e.unwrap().path()).collect();
@@ -489,6 +500,7 @@ fn run_writes_the_report_at_its_end() {
     let j = read_json(&runs[0].join("report.json"));
     assert_eq!(j["standard"], "astm-c1609");
     assert!(j["qc"]["lines"].as_u64().unwrap() >= 5, "{}", j["qc"]);
+    assert!(j["Pp"]["value"].as_f64().unwrap() > 1.0, "a load from the simulated UTM: {}", j["Pp"]);
     assert!(runs[0].join("report.html").is_file() && runs[0].join("feed.jsonl").is_file() && runs[0].join("tagdeflect.toml").is_file());
     // The copy of the feed is this run's feed, line for line.
     assert_eq!(fs::read_to_string(runs[0].join("feed.jsonl")).unwrap(), fs::read_to_string(dir.path().join("feed.jsonl")).unwrap());
