@@ -17,10 +17,12 @@ use toml::Spanned;
 
 use crate::camera::CameraIntrinsics;
 
+pub mod beam;
 pub mod calibration;
-pub use calibration::{load_calibration, CalibrationError};
 use crate::recording::FrameFormat;
 use crate::tags::TagFamily;
+pub use beam::BeamConfig;
+pub use calibration::{load_calibration, CalibrationError};
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -78,6 +80,12 @@ pub struct Config {
     /// `source = "sim"` cameras, `utm.address = "sim"` and `simulate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sim: Option<crate::sim::SimParams>,
+    /// Virtual gauges (`[[gauge]]`, see `solve::gauges`).
+    #[serde(rename = "gauge", default, skip_serializing_if = "Vec::is_empty")]
+    pub gauges: Vec<crate::solve::gauges::GaugeConfig>,
+    /// The live clock check (`[clock_check]`, extension; see `solve::clock_offset`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock_check: Option<crate::solve::clock_offset::ClockCheckConfig>,
 }
 
 /// `[world]`.
@@ -189,6 +197,9 @@ pub struct SpecimenConfig {
     /// The tags to measure.
     #[serde(rename = "tag")]
     pub tags: Vec<SpecimenTag>,
+    /// `[specimen.beam]`: the specimen's geometry (for the report).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beam: Option<beam::BeamConfig>,
 }
 
 /// One specimen tag.
@@ -392,6 +403,10 @@ struct RawConfig {
     measure: Option<Spanned<MeasureConfig>>,
     #[serde(default)]
     sim: Option<crate::sim::SimParams>,
+    #[serde(default)]
+    gauge: Vec<Spanned<crate::solve::gauges::RawGauge>>,
+    #[serde(default)]
+    clock_check: Option<Spanned<crate::solve::clock_offset::ClockCheckConfig>>,
 }
 
 #[derive(Deserialize)]
@@ -437,6 +452,8 @@ struct RawTagSet<T> {
     size_mm: Spanned<f64>,
     #[serde(default = "Vec::new")]
     tag: Vec<Spanned<T>>,
+    #[serde(default)]
+    beam: Option<Spanned<BeamConfig>>,
 }
 
 #[derive(Deserialize)]
@@ -585,7 +602,17 @@ impl Config {
                 output.feed = Some(base.join(f).to_string_lossy().into_owned());
             }
         }
-        Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
+        let gauges = crate::solve::gauges::validate_gauges(&raw.gauge, &specimen).map_err(|e| loc.err(e.span, &e.key, e.message))?;
+        let clock_check = match raw.clock_check {
+            None => None,
+            Some(c) => {
+                let span = c.span();
+                let c = c.into_inner();
+                c.validate().map_err(|(k, m)| loc.err(Some(span), &format!("clock_check.{k}"), m))?;
+                Some(c)
+            }
+        };
+        Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim, gauges, clock_check })
     }
 
     /// Writes the config as TOML (resolved intrinsics inline).
@@ -738,6 +765,9 @@ fn check_size(loc: &Locator<'_>, section: &str, s: &Spanned<f64>) -> Result<f64,
 fn resolve_background(loc: &Locator<'_>, bg: Spanned<RawTagSet<RawBackgroundTag>>) -> Result<BackgroundConfig, ConfigError> {
     let span = bg.span();
     let bg = bg.into_inner();
+    if let Some(b) = &bg.beam {
+        return Err(loc.err(Some(b.span()), "background.beam", "the beam's geometry belongs in [specimen.beam]"));
+    }
     let family = parse_family(loc, "background", &bg.family)?;
     let size_mm = check_size(loc, "background", &bg.size_mm)?;
     if bg.tag.is_empty() {
@@ -831,7 +861,16 @@ fn resolve_specimen(loc: &Locator<'_>, sp: Spanned<RawTagSet<SpecimenTagRaw>>) -
         }
         tags.push(SpecimenTag { id, role: t.role });
     }
-    Ok(SpecimenConfig { family, size_mm, tags })
+    let beam = match sp.beam {
+        None => None,
+        Some(b) => {
+            let span = b.span();
+            let b = b.into_inner();
+            b.validate().map_err(|(k, m)| loc.err(Some(span), &format!("specimen.beam.{k}"), m))?;
+            Some(b)
+        }
+    };
+    Ok(SpecimenConfig { family, size_mm, tags, beam })
 }
 
 fn validate_utm(loc: &Locator<'_>, u: Spanned<UtmConfig>) -> Result<UtmConfig, ConfigError> {
