@@ -17,10 +17,12 @@ use toml::Spanned;
 
 use crate::camera::CameraIntrinsics;
 
+pub mod beam;
 pub mod calibration;
-pub use calibration::{load_calibration, CalibrationError};
 use crate::recording::FrameFormat;
 use crate::tags::TagFamily;
+pub use beam::BeamConfig;
+pub use calibration::{load_calibration, CalibrationError};
 
 /// A configuration problem, located in its file.
 #[derive(Debug, thiserror::Error)]
@@ -81,6 +83,12 @@ pub struct Config {
     /// `source = "sim"` cameras, `utm.address = "sim"` and `simulate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sim: Option<crate::sim::SimParams>,
+    /// Virtual gauges (`[[gauge]]`, see `solve::gauges`).
+    #[serde(rename = "gauge", default, skip_serializing_if = "Vec::is_empty")]
+    pub gauges: Vec<crate::solve::gauges::GaugeConfig>,
+    /// The live clock check (`[clock_check]`, extension; see `solve::clock_offset`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock_check: Option<crate::solve::clock_offset::ClockCheckConfig>,
 }
 
 /// `[world]`.
@@ -192,9 +200,9 @@ pub struct SpecimenConfig {
     /// The tags to measure.
     #[serde(rename = "tag")]
     pub tags: Vec<SpecimenTag>,
-    /// The beam's geometry for the report (`[specimen.beam]`, optional).
+    /// `[specimen.beam]`: the specimen's geometry (for the report).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub beam: Option<crate::report::BeamConfig>,
+    pub beam: Option<beam::BeamConfig>,
 }
 
 /// One specimen tag.
@@ -400,6 +408,10 @@ struct RawConfig {
     measure: Option<Spanned<MeasureConfig>>,
     #[serde(default)]
     sim: Option<crate::sim::SimParams>,
+    #[serde(default)]
+    gauge: Vec<Spanned<crate::solve::gauges::RawGauge>>,
+    #[serde(default)]
+    clock_check: Option<Spanned<crate::solve::clock_offset::ClockCheckConfig>>,
 }
 
 #[derive(Deserialize)]
@@ -609,7 +621,17 @@ impl Config {
                 output.feed = Some(base.join(f).to_string_lossy().into_owned());
             }
         }
-        Ok(Config { world, sync, cameras, background, specimen, utm, output, report, measure, sim: raw.sim })
+        let gauges = crate::solve::gauges::validate_gauges(&raw.gauge, &specimen).map_err(|e| loc.err(e.span, &e.key, e.message))?;
+        let clock_check = match raw.clock_check {
+            None => None,
+            Some(c) => {
+                let span = c.span();
+                let c = c.into_inner();
+                c.validate().map_err(|(k, m)| loc.err(Some(span), &format!("clock_check.{k}"), m))?;
+                Some(c)
+            }
+        };
+        Ok(Config { world, sync, cameras, background, specimen, utm, output, report, measure, sim: raw.sim, gauges, clock_check })
     }
 
     /// Writes the config as TOML (resolved intrinsics inline).

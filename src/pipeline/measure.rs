@@ -150,6 +150,8 @@ pub struct Measurement {
     /// Pooled specimen corner noise, px (scales every tag's σ).
     noise: PixelNoisePool,
     stats: MeasureStats,
+    /// Virtual gauges and the clock check (`solve::gauges`, `solve::clock_offset`).
+    gauges: crate::solve::gauges::LineGauges,
 }
 
 impl Measurement {
@@ -201,6 +203,7 @@ impl Measurement {
             utm: UtmHistory::unbounded().with_max_gap(config.utm.as_ref().map_or(0, |u| ((5.0 / u.poll_hz).max(0.5) * 1e9) as i64)),
             noise: PixelNoisePool::default(),
             stats: MeasureStats::default(),
+            gauges: crate::solve::gauges::LineGauges::new(config),
         })
     }
 
@@ -301,13 +304,16 @@ impl Measurement {
                     });
                     let (mut c, mut sigma) = (sol.centre_mm, sol.sigma_mm);
                     let mut pose = sol.tag_to_world;
+                    let mut fused_cov = None;
                     if sol.views >= 2 {
                         track.motion.observe(set.t_ns, c, sol.centre_covariance);
                     } else if let Some((fc, fcov)) = track.motion.fuse(set.t_ns, c, sol.centre_covariance) {
                         c = fc;
                         sigma = Vector3::new(fcov[(0, 0)].sqrt(), fcov[(1, 1)].sqrt(), fcov[(2, 2)].sqrt());
                         pose.translation = fc;
+                        fused_cov = Some(fcov);
                     }
+                    self.gauges.add_tag(*id, &pose, &sol, fused_cov);
                     track.pose = pose;
                     let disp = c - track.first_centre;
                     tags_out.push(FeedTag {
@@ -350,7 +356,10 @@ impl Measurement {
             utm: None,
             dropped_sets: None,
             latency_ms: None,
+            gauges: Default::default(),
+            clock_offset_ms: None,
         };
+        let line = self.gauges.finish_line(line, &self.utm);
         (line, times)
     }
 

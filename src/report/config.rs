@@ -1,34 +1,14 @@
-//! The report's part of the config: `[specimen.beam]` (the specimen's geometry) and
+//! The report's part of the config: `[specimen.beam]` (the specimen's geometry; the type is
+//! `config::BeamConfig`, read here with the span of every value for located errors) and
 //! `[report]` (what `run` writes at its end). Validated when the config is loaded
-//! (`config::Config::from_toml_str` calls [`validate_beam`] and [`validate_report`]).
+//! (`config::Config::from_toml_str` calls `RawBeam::resolve` and [`validate_report`]).
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 use super::Standard;
 
-/// `[specimen.beam]`: what the report needs to turn loads into stresses.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct BeamConfig {
-    /// Width `b` of the beam, mm.
-    pub width_mm: f64,
-    /// Depth `d` (height `h`) of the beam, mm; for a notched beam the height above the notch
-    /// tip is `depth_mm - notch_mm`.
-    pub depth_mm: f64,
-    /// Support span `L` (EN 14651: `l`), mm.
-    pub span_mm: f64,
-    /// Notch depth at midspan, mm (notched three-point tests, EN 14651).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub notch_mm: Option<f64>,
-}
-
-impl BeamConfig {
-    /// Height of the ligament above the notch tip, `h_sp = depth - notch` (EN 14651), mm.
-    pub fn h_sp_mm(&self) -> f64 {
-        self.depth_mm - self.notch_mm.unwrap_or(0.0)
-    }
-}
+pub use crate::config::BeamConfig;
 
 /// `[report]`: `run` writes the test report at its end (SPEC "Report").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -100,18 +80,10 @@ impl RawBeam {
     }
 }
 
-/// Checks `[specimen.beam]`.
+/// Checks `[specimen.beam]` (the value checks of `BeamConfig::validate`, and a span that is
+/// longer than the depth).
 pub fn validate_beam(b: &BeamConfig) -> Result<(), Problem> {
-    for (key, v) in [("width_mm", b.width_mm), ("depth_mm", b.depth_mm), ("span_mm", b.span_mm)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err((key, format!("must be a positive length in mm, got {v}")));
-        }
-    }
-    if let Some(n) = b.notch_mm {
-        if !(n.is_finite() && n > 0.0 && n < b.depth_mm) {
-            return Err(("notch_mm", format!("must be a positive depth in mm below depth_mm = {}, got {n}", b.depth_mm)));
-        }
-    }
+    b.validate()?;
     if b.span_mm < b.depth_mm {
         return Err(("span_mm", format!("span {} mm is shorter than the depth {} mm: not a beam in bending", b.span_mm, b.depth_mm)));
     }

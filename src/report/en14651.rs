@@ -39,7 +39,7 @@ pub fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Option<us
 
 /// The EN 14651 quantities: F_L, f_L, fR1..fR4.
 pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
-    let (b, l, h) = (beam.width_mm, beam.span_mm, beam.h_sp_mm());
+    let (b, l, h) = (beam.width_mm, beam.span_mm, beam.ligament_mm());
     let stress = |f: f64| 1500.0 * f * l / (b * h * h);
     let mut out = Vec::new();
     let fl = max_load_within(curve, LOP_CMOD_MM)

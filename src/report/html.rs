@@ -100,7 +100,7 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
     row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm);
     if let Some(n) = b.notch_mm {
         row("notch depth", "a₀", n);
-        row("height above the notch tip", "h_sp", b.h_sp_mm());
+        row("height above the notch tip", "h_sp", b.ligament_mm());
     }
     h.push_str("</table>");
     for n in &report.notes {

@@ -258,7 +258,7 @@ pub const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited fo
 
 /// Builds the report of a feed.
 pub fn build(feed: &Feed, config: &Config, config_path: &Path, opts: &ReportOptions) -> Result<Report, ReportError> {
-    let beam = config.specimen.beam.ok_or_else(|| ReportError::Config {
+    let beam = config.specimen.beam.clone().ok_or_else(|| ReportError::Config {
         path: config_path.to_path_buf(),
         message:
             "the report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm (and notch_mm for EN 14651)"
@@ -274,7 +274,7 @@ pub fn build(feed: &Feed, config: &Config, config_path: &Path, opts: &ReportOpti
                     message: "EN 14651 tests notched beams: give [specimen.beam] notch_mm".into(),
                 });
             }
-            cmod_curve(feed, opts).map_err(data_err)?
+            cmod_curve(feed, config, opts).map_err(data_err)?
         }
     };
     let entries = match opts.standard {
@@ -296,7 +296,7 @@ pub fn build(feed: &Feed, config: &Config, config_path: &Path, opts: &ReportOpti
             beam.width_mm,
             beam.depth_mm,
             beam.notch_mm.unwrap_or(0.0),
-            beam.h_sp_mm(),
+            beam.ligament_mm(),
             beam.span_mm
         )),
     }
@@ -345,7 +345,14 @@ fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportOptions, what: &'static str
 /// Load against net deflection: a gauge when asked for, else the feed's `net_deflection_mm`
 /// with σ propagated from the role tags' `sigma_mm` along `world.up`.
 fn deflection_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Curve, String, String, String), String> {
-    if let Some(g) = &opts.deflection_gauge {
+    // Asked for, else the config's `net_deflection` gauge when the feed carries it (its σ
+    // comes from the tags' covariance), else the feed's net_deflection_mm.
+    let configured = config
+        .gauges
+        .iter()
+        .find(|g| g.kind == crate::solve::gauges::GaugeKind::NetDeflection && feed.gauge_names().contains(&g.name))
+        .map(|g| g.name.clone());
+    if let Some(g) = opts.deflection_gauge.as_ref().or(configured.as_ref()) {
         if !feed.gauge_names().contains(g) {
             return Err(format!("no line carries the gauge `{g}` (gauges in the feed: {:?})", feed.gauge_names()));
         }
@@ -409,9 +416,19 @@ fn role_sigma(l: &feed::FeedRecord, config: &Config, down_sigma: &dyn Fn([f64; 3
     Some((var(&mid) + var(&sup)).sqrt())
 }
 
-/// The CMOD gauge: the one asked for, else `cmod`, else the only gauge named like an opening.
-pub fn cmod_gauge_name(feed: &Feed, asked: Option<&str>) -> Result<String, String> {
+/// The CMOD gauge: the one asked for, else the config's only `opening` gauge in the feed,
+/// else `cmod`, else the only gauge named like an opening.
+pub fn cmod_gauge_name(feed: &Feed, config: &Config, asked: Option<&str>) -> Result<String, String> {
     let names = feed.gauge_names();
+    let openings: Vec<&str> = config
+        .gauges
+        .iter()
+        .filter(|g| g.kind == crate::solve::gauges::GaugeKind::Opening && names.contains(&g.name))
+        .map(|g| g.name.as_str())
+        .collect();
+    if let (None, [one]) = (asked, openings.as_slice()) {
+        return Ok(one.to_string());
+    }
     if let Some(a) = asked {
         return if names.iter().any(|n| n == a) {
             Ok(a.to_string())
@@ -432,8 +449,8 @@ pub fn cmod_gauge_name(feed: &Feed, asked: Option<&str>) -> Result<String, Strin
     }
 }
 
-fn cmod_curve(feed: &Feed, opts: &ReportOptions) -> Result<(Curve, String, String, String), String> {
-    let name = cmod_gauge_name(feed, opts.cmod_gauge.as_deref())?;
+fn cmod_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Curve, String, String, String), String> {
+    let name = cmod_gauge_name(feed, config, opts.cmod_gauge.as_deref())?;
     let curve = curve_of(gauge_columns(feed, &name), 0.0, opts, "CMOD")?;
     Ok((
         curve,
@@ -540,7 +557,7 @@ pub fn to_json(report: &Report) -> serde_json::Value {
     });
     if let Some(n) = b.notch_mm {
         spec["notch_mm"] = json!(n);
-        spec["h_sp_mm"] = json!(b.h_sp_mm());
+        spec["h_sp_mm"] = json!(b.ligament_mm());
     }
     root.insert("specimen".into(), spec);
     let mut undetermined = Map::new();

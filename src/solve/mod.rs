@@ -15,6 +15,8 @@
 //! updates a pose `(R, t)` to `(exp(ω) R, t + v)`; ω in radians, v in mm.
 
 pub mod camera_pose;
+pub mod clock_offset;
+pub mod gauges;
 pub mod init;
 pub mod lm;
 pub mod motion;

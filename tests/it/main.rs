@@ -8,6 +8,7 @@ mod cli;
 mod config;
 mod detect_accuracy;
 mod detect_sim;
+mod gauges;
 mod live;
 mod realdata;
 mod recording;

@@ -460,7 +460,7 @@ fn beam_and_report_tables_are_validated_with_file_line_and_key() {
         "width_mm = 100.0\ndepth_mm = 100.0\nspan_mm = 300.0\n[report]\nstandard = \"astm-c1856\"\nout = \"reports\"",
     );
     let c = tagdeflect::config::Config::load(&cfg).unwrap();
-    assert_eq!(c.specimen.beam.unwrap().span_mm, 300.0);
+    assert_eq!(c.specimen.beam.as_ref().unwrap().span_mm, 300.0);
     assert_eq!(c.report.as_ref().unwrap().out, dir.path().join("reports"));
     let again = tagdeflect::config::Config::from_toml_str(&c.to_toml_string(), &cfg).unwrap();
     assert_eq!(again.specimen.beam, c.specimen.beam);
@@ -482,6 +482,7 @@ fn run_writes_the_report_at_its_end() {
     };
     let mut cfg = tagdeflect::sim::SimRig::new(&params).unwrap().config();
     cfg.utm = tagdeflect::sources::sim::demo_config().utm;
+    cfg.specimen.beam = Some(BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, notch_mm: None });
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
     cfg.report = Some(tagdeflect::report::ReportConfig {
         standard: tagdeflect::report::Standard::AstmC1609,
