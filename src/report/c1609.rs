@@ -110,7 +110,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     let p150 = residual(150.0);
     let residual_method = |div: &str| {
         format!(
-            "load where the smoothed net deflection first reaches {div}, interpolated linearly; σ² = (dP/dδ·σ_δ)² + σ_load², dP/dδ the local slope"
+            "load where the smoothed net deflection first reaches {div}, interpolated linearly; σ from the σ of the two bracketing deflections through the slope there, and the load σ"
         )
     };
     out.push(Entry {

@@ -185,15 +185,26 @@ impl Curve {
         }
     }
 
-    /// The load where smoothed `x` first reaches `target`, with its σ:
-    /// `σ² = (dP/dx · σ(x̃))² + σ_load²` (the σ of `x̃` at the crossing moves the point along
-    /// the curve's local slope). Also returns the crossing.
+    /// The load where smoothed `x` first reaches `target`, with its σ, and the crossing.
+    /// Interpolating between the bracketing points `i-1`, `i` at fraction `f`, first-order
+    /// propagation gives `σ² = s²·((1−f)²σ²(x̃ᵢ₋₁) + f²σ²(x̃ᵢ)) + ((1−f)² + f²)·σ_load²`, with
+    /// `s` the slope dP/dx there: the secant of the two points when they are more than 3σ
+    /// apart in `x` (sparse points: the interpolation's own slope), else the local
+    /// least-squares slope (dense, noisy points, where a secant would be noise).
     pub fn load_at(&self, target: f64) -> Option<(f64, f64, (usize, f64))> {
         let c = self.crossing(target)?;
         let p = Self::at(&self.load, c);
-        let sx = Self::at(&self.sxs, c);
-        let slope = self.local_slope(c.0);
-        Some((p, ((slope * sx).powi(2) + self.load_sigma.powi(2)).sqrt(), c))
+        let (i, f) = c;
+        if i == 0 {
+            let s = self.local_slope(0) * self.sxs[0];
+            return Some((p, (s * s + self.load_sigma.powi(2)).sqrt(), c));
+        }
+        let (s0, s1) = (self.sxs[i - 1], self.sxs[i]);
+        let dx = self.xs[i] - self.xs[i - 1];
+        let slope = if dx > 3.0 * s0.max(s1) { (self.load[i] - self.load[i - 1]) / dx } else { self.local_slope(i) };
+        let var_x = (1.0 - f).powi(2) * s0 * s0 + f * f * s1 * s1;
+        let var_p = ((1.0 - f).powi(2) + f * f) * self.load_sigma.powi(2);
+        Some((p, (slope * slope * var_x + var_p).sqrt(), c))
     }
 
     /// Area under load against smoothed `x` from the first point to where `x` first reaches

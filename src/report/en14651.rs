@@ -51,7 +51,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         name: "load at the limit of proportionality",
         result: fl.clone(),
         method: "largest load while the smoothed CMOD is within 0 to 0.05 mm (the interpolated load at 0.05 mm included); σ = σ of one \
-                 load reading, or (dF/dCMOD·σ_CMOD)² + σ_load² when the largest is at 0.05 mm"
+                 load reading, or, when the largest is the one interpolated at 0.05 mm, the σ of that interpolation"
             .into(),
         clause: "EN 14651 §9.1 (limit of proportionality, F_L)",
     });
@@ -82,7 +82,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
             name: NAMES[j],
             result: r,
             method: format!(
-                "F_R,{} = load where the smoothed CMOD first reaches {cmod} mm, interpolated; f = 3·F·l/(2·b·h_sp²); σ² of F = (dF/dCMOD·σ_CMOD)² + σ_load²",
+                "F_R,{} = load where the smoothed CMOD first reaches {cmod} mm, interpolated; f = 3·F·l/(2·b·h_sp²); σ of F from the σ of the two bracketing CMODs through the slope there, and the load σ",
                 j + 1
             ),
             clause: "EN 14651 §9.2, Eq. 2 (residual flexural tensile strength)",

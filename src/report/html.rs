@@ -29,6 +29,19 @@ fn time_utc(t_ns: i64) -> String {
     chrono::DateTime::from_timestamp_nanos(t_ns).format("%Y-%m-%d %H:%M:%S%.3f UTC").to_string()
 }
 
+/// `{"field": "clock_offset_ms", "value": {"value": v, "sigma": s}}` as `v ± s ms (field)`.
+fn clock_text(v: &serde_json::Value) -> String {
+    let field = v["field"].as_str().unwrap_or("");
+    let unit = if field.ends_with("_ms") { " ms" } else { "" };
+    match (&v["value"]["value"], &v["value"]["sigma"], &v["value"]) {
+        (serde_json::Value::Number(x), serde_json::Value::Number(s), _) => {
+            format!("{:.1} ± {:.1}{unit} ({field})", x.as_f64().unwrap_or(f64::NAN), s.as_f64().unwrap_or(f64::NAN))
+        }
+        (_, _, serde_json::Value::Number(x)) => format!("{x}{unit} ({field})"),
+        (_, _, other) => format!("{other} ({field})"),
+    }
+}
+
 const STYLE: &str = r#"
 :root { --ink: #1b1f24; --muted: #5b6470; --rule: #d5dae0; --accent: #14469f; --warn: #a0521b; }
 * { box-sizing: border-box; }
@@ -178,7 +191,7 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
         "<li><b>Load σ:</b> {:.4} kN per reading = √(scatter² + resolution²/12), scatter {:.4} kN (robust: 1.4826·MAD of each point's deviation from the line through its neighbours), resolution {} kN.</li>",
         c.load_sigma, c.load_noise, report.options.load_resolution_kn
     );
-    h.push_str("<li><b>Values at a deflection/CMOD:</b> the first point where the smoothed curve reaches it, loads interpolated linearly; σ² = (local slope · σ of the smoothed deflection)² + σ_load².</li>");
+    h.push_str("<li><b>Values at a deflection/CMOD:</b> the first point where the smoothed curve reaches it, loads interpolated linearly between the two bracketing points; σ² = s²·((1−f)²σ²(x̃ᵢ₋₁) + f²σ²(x̃ᵢ)) + ((1−f)² + f²)·σ_load², f the fraction between them, s the slope there (their secant when they are more than 3σ apart, else the local least-squares slope over the smoothing window).</li>");
     if report.standard != Standard::En14651 {
         h.push_str("<li><b>First peak:</b> C1609 defines it as the first point where the slope of the curve is zero. Here: the first local maximum of the load (smoothed like the deflection) above 10 % of the maximum load after which the smoothed load falls by max(3·σ_load, 0.5 % of the maximum load) before exceeding it; P1 is the largest measured load within the smoothing window there. A flat stretch without such a fall is not taken as the first peak.</li>");
     }
@@ -214,7 +227,7 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
     kv(&format!("{} scatter (robust)", report.x_axis), format!("{:.4} mm", qc.x_scatter_mm));
     kv(&format!("{} σ from the feed (median)", report.x_axis), format!("{:.4} mm", qc.x_feed_sigma_median_mm));
     kv("load scatter (robust)", format!("{:.4} kN", qc.load_noise_kn));
-    kv("clock offset camera − UTM", qc.clock_offset.as_ref().map_or("not in the feed".into(), |v| v.to_string()));
+    kv("clock offset (as the feed reports it)", qc.clock_offset.as_ref().map_or("not in the feed".into(), clock_text));
     h.push_str("</table>");
     if !qc.utm_outages.is_empty() {
         h.push_str("<h3>UTM outages</h3><table><tr><th>from</th><th>to</th><th class=\"num\">duration</th></tr>");

@@ -556,3 +556,157 @@ pub fn screenshot(html: &Path, png: &Path, (w, h): (u32, u32)) {
     }
     assert!(png.is_file(), "chromium wrote no screenshot");
 }
+
+// ----------------------------------------------------------------------------------------
+// End to end: `simulate` (a real test) → `replay` → `report`, against the truth.
+
+/// A simulated real test: two 960x720 cameras, the law's load from a 50 Hz UTM.
+fn sim_test(
+    test: tagdeflect::sim::SimTest,
+    law: tagdeflect::sim::LoadLaw,
+    frame_sets: u32,
+    max_deflection_mm: f64,
+    seed: u64,
+) -> tagdeflect::sim::SimParams {
+    tagdeflect::sim::SimParams {
+        cameras: 2,
+        width: 960,
+        height: 720,
+        frame_sets,
+        rest_frames: 3,
+        subsamples: 4,
+        test,
+        load_law: law,
+        span_mm: if test == tagdeflect::sim::SimTest::ThreePointNotched { 500.0 } else { 450.0 },
+        stiffness_kn_per_mm: 100.0,
+        max_deflection_mm,
+        seed,
+        ..tagdeflect::sim::SimParams::default()
+    }
+}
+
+/// Simulates, replays into `feed.jsonl` and runs `tagdeflect report` with the recording's
+/// config; returns the report, the truth lines and the feed lines.
+fn simulate_replay_report(
+    dir: &Path,
+    p: &tagdeflect::sim::SimParams,
+    standard: &str,
+) -> (serde_json::Value, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::feed::FeedLine>) {
+    let rec = common::simulate(dir, "rec", p);
+    let (_, lines, _) = common::replay_lines(&rec, false);
+    let feed = dir.join("feed.jsonl");
+    fs::write(&feed, lines.iter().map(|l| l.to_json() + "\n").collect::<String>()).unwrap();
+    let out = dir.join("report");
+    let cfg = rec.join("tagdeflect.toml");
+    let o = tagdeflect(&[
+        "report",
+        feed.to_str().unwrap(),
+        "--config",
+        cfg.to_str().unwrap(),
+        "--standard",
+        standard,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let truth: Vec<tagdeflect::sim::SimTruthLine> =
+        tagdeflect::recording::read_jsonl_file(&rec.join(tagdeflect::sim::SIM_TRUTH_FILE)).unwrap();
+    (read_json(&out.join("report.json")), truth, lines)
+}
+
+/// The truth's curve: true load against the true gauge `x`, at the frame sets' times.
+fn truth_curve(truth: &[tagdeflect::sim::SimTruthLine], x: &str) -> Curve {
+    let t: Vec<i64> = truth.iter().map(|l| l.t_ns).collect();
+    let p: Vec<f64> = truth.iter().map(|l| l.load_kn).collect();
+    let xs: Vec<f64> = truth.iter().map(|l| l.gauges[x]).collect();
+    let n = t.len();
+    Curve::new(t, p, xs, vec![Some(0.0); n], 0.0, 5, 0.0, "truth").unwrap()
+}
+
+/// Each key of the report within `k·σ + floor` of the same quantity computed on the truth.
+fn against_truth(label: &str, j: &serde_json::Value, truth: &[Entry], checks: &[(&str, f64)]) {
+    for &(key, floor) in checks {
+        let t = get(truth, key).value;
+        let v = j[key]["value"].as_f64().unwrap_or_else(|| panic!("{label}: {key} missing: {}", j["undetermined"]));
+        let s = j[key]["sigma"].as_f64().unwrap();
+        println!("REPORT {label} {key}: {v:.4} ± {s:.4} {} (truth {t:.4}; error {:+.4})", j[key]["unit"].as_str().unwrap(), v - t);
+        assert!((v - t).abs() <= 3.0 * s + floor, "{label} {key}: {v} ± {s} vs truth {t} (floor {floor})");
+    }
+}
+
+#[test]
+fn simulated_softening_test_end_to_end_matches_the_truth() {
+    use tagdeflect::sim::{LoadLaw, SimTest};
+    let dir = tempfile::tempdir().unwrap();
+    let p = sim_test(SimTest::FourPoint, LoadLaw::Softening, 28, 4.0, 71);
+    let (j, truth, lines) = simulate_replay_report(dir.path(), &p, "astm-c1609");
+    assert!(lines.iter().all(|l| l.gauges.contains_key("net")), "the net deflection gauge in every line");
+    assert!(j["curve"]["x"].as_str().unwrap().contains("gauge net"), "the config's net_deflection gauge is used: {}", j["curve"]);
+    let t = c1609::compute(&truth_curve(&truth, "net"), &ASTM_BEAM);
+    // Floors: loads 1 % of the first-crack load (the UTM is sampled at 50 Hz and interpolated
+    // at the frame set's time while the law drops at the crack), deflections 10 µm.
+    let pc = 100.0 * 0.3;
+    let fk = |kn: f64| 1000.0 * kn * 450.0 / 150.0f64.powi(3);
+    against_truth(
+        "softening",
+        &j,
+        &t,
+        &[
+            ("P1", 0.01 * pc),
+            ("delta1", 0.01),
+            ("f1", fk(0.01 * pc)),
+            ("Pp", 0.01 * pc),
+            ("deltap", 0.01),
+            ("P600", 0.01 * pc),
+            ("P150", 0.01 * pc),
+            ("f600", fk(0.01 * pc)),
+            ("f150", fk(0.01 * pc)),
+            ("T150", 0.01 * pc * 3.0),
+            ("RT150", 1.0),
+        ],
+    );
+    // And the law itself: the first peak is the last sample before the crack (k·δ ≤ 30 kN).
+    let p1 = j["P1"]["value"].as_f64().unwrap();
+    assert!(p1 <= pc + 0.5 && p1 > 0.8 * pc, "P1 {p1} vs the first-crack load {pc}");
+    assert!(j["qc"]["clock_offset"].is_object() || j["qc"]["clock_offset"].is_null());
+}
+
+#[test]
+fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
+    use tagdeflect::sim::{LoadLaw, SimTest};
+    let dir = tempfile::tempdir().unwrap();
+    let p = sim_test(SimTest::ThreePointNotched, LoadLaw::Softening, 30, 5.5, 73);
+    let (j, truth, lines) = simulate_replay_report(dir.path(), &p, "en-14651");
+    // The CMOD gauge against the truth's, line by line (two 960x720 cameras).
+    let err: Vec<f64> = lines.iter().zip(&truth).map(|(l, t)| l.gauges["cmod"].value - t.gauges["cmod"]).collect();
+    let rms = (err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt();
+    let worst = err.iter().map(|e| e.abs()).fold(0.0, f64::max);
+    println!("REPORT notched: CMOD gauge vs truth, RMS {rms:.4} mm, max {worst:.4} mm over {} lines", lines.len());
+    // With two 960x720 cameras the gauge's σ is about 0.02 mm: every error within 3σ.
+    assert!(rms <= 0.03, "CMOD RMS {rms} mm");
+    for (l, e) in lines.iter().zip(&err) {
+        assert!(
+            e.abs() <= 3.0 * l.gauges["cmod"].sigma + 1e-4,
+            "CMOD {} off by {e} (σ {})",
+            l.gauges["cmod"].value,
+            l.gauges["cmod"].sigma
+        );
+    }
+    assert_eq!(j["specimen"]["notch_mm"], 25.0);
+    let t = en14651::compute(&truth_curve(&truth, "cmod"), &EN_BEAM);
+    let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
+    let pc = 100.0 * 0.3;
+    against_truth(
+        "notched",
+        &j,
+        &t,
+        &[
+            ("FL", 0.01 * pc),
+            ("fL", mpa(0.01 * pc)),
+            ("fR1", mpa(0.01 * pc)),
+            ("fR2", mpa(0.01 * pc)),
+            ("fR3", mpa(0.01 * pc)),
+            ("fR4", mpa(0.01 * pc)),
+        ],
+    );
+}
