@@ -1,16 +1,17 @@
 //! Clock check: the offset between the UTM's clock and the cameras' clock, found by
 //! aligning the measured net deflection with the UTM's stroke over the loading ramp.
 //!
-//! Model: `δ(tᵢ) = a + b s(tᵢ + τ) + c s(tᵢ + τ)²` — the net deflection measured at camera
-//! time `tᵢ` is a smooth function of the stroke the UTM stamped at `tᵢ + τ` (quadratic: the
-//! machine's compliance × a load that is not proportional to deflection bends the relation).
+//! Model: `δ(tᵢ) = f(s(tᵢ + τ))` — the net deflection measured at camera time `tᵢ` is a
+//! function of the stroke the UTM stamped at `tᵢ + τ`; `f` is piecewise linear on knots at
+//! quantiles of the stroke (up to 10; the machine's compliance × a load that is not
+//! proportional to deflection bends the relation).
 //! The offset `τ` = UTM time − camera time of one instant (positive: the UTM clock is
 //! ahead; subtract it from UTM stamps to put them on the cameras' clock). It is identified by
 //! the changes of rate of the test (the start of the ramp from rest, pop-ins, holds): over a
 //! ramp of constant rate a shift looks like an offset of the stroke. Least squares: a scan of
 //! `τ` over `±max_offset_ms` (mean squared residual of the points the stroke covers), then
 //! golden-section refinement on a fixed set of points; σ from the Gauss–Newton covariance
-//! `s² (JᵀJ)⁻¹` with `J = [1, s, s², ∂δ̂/∂τ]` and `s²` the residual variance (the
+//! `s² (JᵀJ)⁻¹` with `J = [hat functions of s, ∂δ̂/∂τ]` and `s²` the residual variance (the
 //! deflection's noise; the stroke is taken as exact). Points: the loading ramp, from the
 //! first line up to the largest deflection (later points after the deflection has fallen
 //! by more than 5 % of its range are left out: unloading).
@@ -96,29 +97,94 @@ fn ramp(points: &[(i64, f64)]) -> &[(i64, f64)] {
     }
 }
 
-/// Least-squares fit of `δ = a + b s + c s²` (s centred and scaled for conditioning):
-/// the sum of squared residuals, or `None` when singular.
-fn fit_ssr(pairs: &[(f64, f64)]) -> Option<(f64, [f64; 3], f64, f64)> {
-    let n = pairs.len() as f64;
-    let mean = pairs.iter().map(|p| p.0).sum::<f64>() / n;
-    let scale = pairs.iter().map(|p| (p.0 - mean).abs()).fold(0.0, f64::max).max(1e-9);
-    let mut a = nalgebra::Matrix3::<f64>::zeros();
-    let mut r = nalgebra::Vector3::<f64>::zeros();
-    for &(s, d) in pairs {
-        let x = (s - mean) / scale;
-        let v = nalgebra::Vector3::new(1.0, x, x * x);
-        a += v * v.transpose();
-        r += v * d;
+/// The deflection as a piecewise-linear function of the stroke (hat functions on knots at
+/// quantiles of the stroke): flexible enough for the machine's compliance × a load that is
+/// not proportional to deflection, too stiff to follow a shift of time at a change of rate.
+struct Relation {
+    knots: Vec<f64>,
+    coef: nalgebra::DVector<f64>,
+    ssr: f64,
+}
+
+/// Knots at quantiles of the strokes (`count` at most; closer ones merged).
+fn knots_for(pairs: &[(f64, f64)], count: usize) -> Vec<f64> {
+    let mut s: Vec<f64> = pairs.iter().map(|p| p.0).collect();
+    s.sort_by(f64::total_cmp);
+    let (lo, hi) = (s[0], s[s.len() - 1]);
+    let min_gap = (hi - lo) / 50.0;
+    let mut knots: Vec<f64> = Vec::new();
+    for k in 0..count {
+        let q = s[((s.len() - 1) * k) / (count - 1).max(1)];
+        if knots.last().is_none_or(|l| q - l > min_gap) {
+            knots.push(q);
+        }
     }
-    let coef = a.try_inverse()? * r;
-    let ssr = pairs
-        .iter()
-        .map(|&(s, d)| {
-            let x = (s - mean) / scale;
-            (d - coef[0] - coef[1] * x - coef[2] * x * x).powi(2)
-        })
-        .sum();
-    Some((ssr, [coef[0], coef[1], coef[2]], mean, scale))
+    if knots.len() >= 2 {
+        *knots.last_mut().unwrap() = hi;
+    }
+    knots
+}
+
+/// Hat-function weights of stroke `s` (clamped to the knots' span).
+fn hats(knots: &[f64], s: f64) -> [(usize, f64); 2] {
+    let n = knots.len();
+    if s <= knots[0] {
+        return [(0, 1.0), (0, 0.0)];
+    }
+    if s >= knots[n - 1] {
+        return [(n - 1, 1.0), (n - 1, 0.0)];
+    }
+    let i = knots.partition_point(|k| *k <= s) - 1;
+    let w = (s - knots[i]) / (knots[i + 1] - knots[i]);
+    [(i, 1.0 - w), (i + 1, w)]
+}
+
+impl Relation {
+    fn fit(pairs: &[(f64, f64)], knots: &[f64]) -> Option<Relation> {
+        let k = knots.len();
+        if k < 2 || pairs.len() < k + 2 {
+            return None;
+        }
+        let mut a = nalgebra::DMatrix::<f64>::zeros(k, k);
+        let mut r = nalgebra::DVector::<f64>::zeros(k);
+        for &(s, d) in pairs {
+            let h = hats(knots, s);
+            for &(i, wi) in &h {
+                r[i] += wi * d;
+                for &(j, wj) in &h {
+                    a[(i, j)] += wi * wj;
+                }
+            }
+        }
+        let coef = a.try_inverse()? * r;
+        let mut rel = Relation { knots: knots.to_vec(), coef, ssr: 0.0 };
+        rel.ssr = pairs.iter().map(|&(s, d)| (d - rel.at(s)).powi(2)).sum();
+        Some(rel)
+    }
+
+    fn at(&self, s: f64) -> f64 {
+        hats(&self.knots, s).iter().map(|&(i, w)| w * self.coef[i]).sum()
+    }
+
+    /// Slope dδ/ds of the segment holding `s` (0 outside the knots' span).
+    fn slope(&self, s: f64) -> f64 {
+        let n = self.knots.len();
+        if s <= self.knots[0] || s >= self.knots[n - 1] {
+            return 0.0;
+        }
+        let i = self.knots.partition_point(|k| *k <= s) - 1;
+        (self.coef[i + 1] - self.coef[i]) / (self.knots[i + 1] - self.knots[i])
+    }
+}
+
+/// Number of knots for `n` points.
+fn knot_count(n: usize) -> usize {
+    (n / 5).clamp(2, 10)
+}
+
+/// Sum of squared residuals of the relation fitted to `pairs` (knots from the pairs).
+fn fit_ssr(pairs: &[(f64, f64)]) -> Option<f64> {
+    Relation::fit(pairs, &knots_for(pairs, knot_count(pairs.len()))).map(|r| r.ssr)
 }
 
 /// Estimates the clock offset from `(camera t_ns, net deflection mm)` points and the UTM
@@ -148,7 +214,7 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     while tau <= hi_ms + 1e-9 {
         let pairs = pairs_at(tau, pts);
         if pairs.len() * 10 >= pts.len() * 6 && pairs.len() >= 8 {
-            if let Some((ssr, ..)) = fit_ssr(&pairs) {
+            if let Some(ssr) = fit_ssr(&pairs) {
                 let msr = ssr / pairs.len() as f64;
                 if best.is_none_or(|b| msr < b.1) {
                     best = Some((tau, msr));
@@ -165,7 +231,9 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     if fixed.len() < 8 {
         return None;
     }
-    let cost = |tau: f64| fit_ssr(&pairs_at(tau, &fixed)).map_or(f64::INFINITY, |f| f.0);
+    // Knots fixed for the refinement (from the coarse optimum).
+    let knots = knots_for(&pairs_at(coarse, &fixed), knot_count(fixed.len()));
+    let cost = |tau: f64| Relation::fit(&pairs_at(tau, &fixed), &knots).map_or(f64::INFINITY, |f| f.ssr);
     let (mut a, mut b) = (lo, hi);
     let g = 0.5 * (5f64.sqrt() - 1.0);
     let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
@@ -187,24 +255,27 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     }
     let tau = 0.5 * (a + b);
     let pairs = pairs_at(tau, &fixed);
-    let (ssr, coef, mean, scale) = fit_ssr(&pairs)?;
+    let rel = Relation::fit(&pairs, &knots)?;
+    let ssr = rel.ssr;
     let n = pairs.len();
-    let s2 = ssr / (n as f64 - 4.0).max(1.0);
+    let k = knots.len();
+    let s2 = ssr / (n as f64 - k as f64 - 1.0).max(1.0);
     // Gauss–Newton covariance with the stroke's local slope (per ms) from ±5 ms.
-    let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+    let mut jtj = nalgebra::DMatrix::<f64>::zeros(k + 1, k + 1);
     let shift = (tau * ms).round() as i64;
     for &(t, _) in &fixed {
         let (Some(s), Some(sp), Some(sm)) = (stroke(t + shift), stroke(t + shift + 5_000_000), stroke(t + shift - 5_000_000)) else {
             continue;
         };
-        let x = (s - mean) / scale;
-        let dsdt = (sp - sm) / 10.0; // mm per ms
-        let dd = (coef[1] + 2.0 * coef[2] * x) / scale * dsdt;
-        let j = nalgebra::Vector4::new(1.0, x, x * x, dd);
-        jtj += j * j.transpose();
+        let mut j = nalgebra::DVector::<f64>::zeros(k + 1);
+        for (i, w) in hats(&knots, s) {
+            j[i] += w;
+        }
+        j[k] = rel.slope(s) * (sp - sm) / 10.0;
+        jtj += &j * j.transpose();
     }
     let cov = jtj.try_inverse()?;
-    let sigma = (s2 * cov[(3, 3)]).sqrt();
+    let sigma = (s2 * cov[(k, k)]).sqrt();
     let range = fixed.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max) - fixed.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
     let rms = (ssr / n as f64).sqrt();
     if !(sigma.is_finite() && sigma > 0.0) || range < 10.0 * rms.max(1e-4) {

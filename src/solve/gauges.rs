@@ -459,7 +459,7 @@ impl Gauges {
                     return Vec::new();
                 }
                 let k = 2.0 * ((yc - yb) / (sc - sb) - (yb - ya) / (sb - sa)) / (sc - sa);
-                vec![(None, k * 1e9, unit)]
+                vec![(None, k * 1e6, unit)]
             }
             GaugeKind::NetDeflection => {
                 // Faces: tags whose reference normals agree within ~30°.

@@ -241,8 +241,9 @@ fn each_gauge_kind_gives_the_known_answer() {
     assert_eq!(out["rot"].unit, "mrad");
     assert!((v("rot") - 10.0).abs() < 1e-4, "{}", v("rot"));
     // Curvature through s = −200, 0, 250 with upward displacements −0.1, −2.3, −0.55.
-    let (ya, yb, yc) = (-0.1, -2.3, -0.55);
-    let k = 2.0 * ((yc - yb) / 250.0 - (yb - ya) / 200.0) / 450.0 * 1e9;
+    let up = |k: u32| now[&k].translation.z - rest[&k].translation.z;
+    let (ya, yb, yc) = (up(1), up(0), up(2));
+    let k = 2.0 * ((yc - yb) / 250.0 - (yb - ya) / 200.0) / 450.0 * 1e6;
     assert_eq!(out["curv"].unit, "1/km");
     assert!((v("curv") - k).abs() < 1e-3, "{} vs {k}", v("curv"));
 
@@ -355,6 +356,11 @@ impl Compared {
     fn max(&self, name: &str) -> f64 {
         self.errors[name].iter().map(|(x, _)| x.abs()).fold(0.0, f64::max)
     }
+    /// RMS of error / σ (1 when σ is exactly right).
+    fn z_rms(&self) -> f64 {
+        let all: Vec<&(f64, f64)> = self.errors.values().flatten().collect();
+        (all.iter().map(|(e, s)| (e / s).powi(2)).sum::<f64>() / all.len() as f64).sqrt()
+    }
     fn within_2sigma(&self) -> (usize, usize) {
         let all: Vec<&(f64, f64)> = self.errors.values().flatten().collect();
         (all.iter().filter(|(e, s)| e.abs() <= 2.0 * s).count(), all.len())
@@ -407,7 +413,8 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     let truth: Vec<SimTruthLine> = read_jsonl_file(&rec.join(SIM_TRUTH_FILE)).unwrap();
     let peak = recording.utm.iter().map(|s| s.load_kn).fold(0.0, f64::max);
     let last = truth.last().unwrap();
-    assert!((peak - 100.0 * 0.3).abs() < 1.0, "first-crack load ≈ k δc = 30 kN (50 Hz UTM samples): {peak}");
+    // First-crack load k δc = 30 kN; the 50 Hz samples step by 3.3 mm/s × 20 ms × 100 kN/mm.
+    assert!(peak <= 30.0 + 1e-9 && peak > 30.0 - 6.7, "first-crack load ≈ k δc = 30 kN (50 Hz UTM samples): {peak}");
     assert!(
         last.load_kn < 0.6 * peak && last.midspan_deflection_mm > 3.9,
         "softened: {} kN at {} mm",
@@ -431,7 +438,8 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     assert!(c.rms("rot1") <= 0.5, "end rotation RMS {} mrad", c.rms("rot1"));
     assert!(c.rms("curv") <= 0.5, "curvature RMS {} 1/km", c.rms("curv"));
     let (ok, n) = c.within_2sigma();
-    println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ");
+    println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
 
     // Clock: the UTM is stamped 80 ms ahead.
     let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0).expect("determined from utm.jsonl");
@@ -478,12 +486,34 @@ fn notched_three_point_test_replays_with_cmod() {
     let worst =
         lines.iter().map(|l| (l.gauges["cmod"].value - rig.cmod_at(rig.midspan_deflection(l.t_ns)).unwrap()).abs()).fold(0.0, f64::max);
     println!("GAUGES notched 3-point: CMOD vs the true mouth opening, max error {worst:.4} mm");
-    assert!(worst <= 0.04, "{worst}");
+    assert!(worst <= 0.06, "{worst}");
     let (ok, n) = c.within_2sigma();
-    println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ");
+    println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
     // No clock offset here: the estimate agrees with zero.
     if let Some(est) = estimate_from_utm(&lines, &recording.utm, 1000.0) {
         println!("CLOCK 0 ms (notched): {est:?}");
         assert!(est.offset_ms.abs() <= 3.0 * est.sigma_ms + 1.0, "{est:?}");
     }
+}
+
+/// The default rig is untouched by the real tests: `replay/one-cam` (made by `simulate`
+/// before they existed) is reproduced byte for byte.
+#[test]
+fn default_rig_output_is_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = SimParams { cameras: 1, width: 800, height: 600, frame_sets: 8, rest_frames: 2, ..SimParams::default() };
+    let out = simulate(dir.path(), "one-cam", &p);
+    let committed = root().join("replay/one-cam");
+    let mut files =
+        vec!["tagdeflect.toml".to_string(), "frames.jsonl".into(), "truth.jsonl".into(), "utm.jsonl".into(), SIM_TRUTH_FILE.into()];
+    for e in std::fs::read_dir(committed.join("centre")).unwrap() {
+        files.push(format!("centre/{}", e.unwrap().file_name().to_string_lossy()));
+    }
+    for f in &files {
+        let a = std::fs::read(committed.join(f)).unwrap();
+        let b = std::fs::read(out.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+        assert!(a == b, "{f} differs from the committed recording");
+    }
+    assert!(files.len() >= 13);
 }
