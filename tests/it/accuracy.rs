@@ -3,6 +3,8 @@
 //! with truth. Thresholds are the product's floors; the measured figures are printed
 //! (`cargo test --test accuracy -- --nocapture`) and reported in the README.
 
+
+
 use crate::common::*;
 use tagdeflect::sim::SimParams;
 

@@ -1,6 +1,8 @@
 //! The command line as users see it (SPEC "Command line"): help, exit codes, one clear
 //! error naming the file for bad input, feed on stdout and logs on stderr.
 
+
+
 use crate::common;
 use std::fs;
 use std::process::{Command, Output};

@@ -3,6 +3,8 @@
 //! killed and restarted mid-run; the recording made by `run` replays to the same feed;
 //! `replay --realtime` and `demo` give clean feeds.
 
+
+
 use std::collections::HashMap;
 use std::fs;
 use std::path::{Path, PathBuf};

@@ -1,6 +1,8 @@
 //! The recording format: writer and reader round trip, PNG and PGM frames, and every kind
 //! of broken recording (truncated line, bad line, missing/corrupt/wrong-size frame).
 
+
+
 use crate::common;
 use std::fs;
 use std::path::Path;

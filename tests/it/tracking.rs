@@ -2,6 +2,8 @@
 //! or that re-appear after an occlusion, are picked up again by the periodic sweep; the
 //! figures are compared with full-frame detection of the same recording.
 
+
+
 use crate::common::*;
 use tagdeflect::feed::FeedLine;
 use tagdeflect::sim::SimParams;

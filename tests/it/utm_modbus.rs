@@ -11,6 +11,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tagdeflect::config::{RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
 
+
 use tagdeflect::utm::{decode, run_poller, start_sim_utm, UtmEvent, UtmSample};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
