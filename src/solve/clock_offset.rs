@@ -12,7 +12,9 @@
 //! `τ` over `±max_offset_ms` (mean squared residual of the points the stroke covers), then
 //! golden-section refinement on a fixed set of points; σ from the Gauss–Newton covariance
 //! `s² (JᵀJ)⁻¹` with `J = [hat functions of s, ∂δ̂/∂τ]` and `s²` the residual variance (the
-//! deflection's noise; the stroke is taken as exact). Points: the loading ramp, from the
+//! deflection's noise; the stroke is taken as exact), inflated by `(1 + ρ)/(1 − ρ)` for a
+//! positive lag-1 autocorrelation `ρ` of the residuals (a relation that does not quite fit
+//! leaves runs of residuals, which are not independent). Points: the loading ramp, from the
 //! first line up to the largest deflection (later points after the deflection has fallen
 //! by more than 5 % of its range are left out: unloading).
 //!
@@ -179,7 +181,7 @@ impl Relation {
 
 /// Number of knots for `n` points.
 fn knot_count(n: usize) -> usize {
-    (n / 5).clamp(2, 10)
+    (n / 3).clamp(2, 12)
 }
 
 /// Sum of squared residuals of the relation fitted to `pairs` (knots from the pairs).
@@ -275,7 +277,13 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
         jtj += &j * j.transpose();
     }
     let cov = jtj.try_inverse()?;
-    let sigma = (s2 * cov[(k, k)]).sqrt();
+    // Residuals that follow each other in time (the relation does not quite fit) carry less
+    // information than independent noise: the variance is inflated by (1 + ρ) / (1 − ρ),
+    // ρ = their lag-1 autocorrelation (when positive).
+    let residuals: Vec<f64> = fixed.iter().filter_map(|&(t, d)| stroke(t + shift).map(|s| d - rel.at(s))).collect();
+    let (num, den) = residuals.windows(2).fold((0.0, 0.0), |(n, d), w| (n + w[0] * w[1], d + w[0] * w[0]));
+    let rho = if den > 0.0 { (num / den).clamp(0.0, 0.9) } else { 0.0 };
+    let sigma = (s2 * cov[(k, k)] * (1.0 + rho) / (1.0 - rho)).sqrt();
     let range = fixed.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max) - fixed.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
     let rms = (ssr / n as f64).sqrt();
     if !(sigma.is_finite() && sigma > 0.0) || range < 10.0 * rms.max(1e-4) {

@@ -403,6 +403,10 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     let dir = tempfile::tempdir().unwrap();
     let p = real_test(SimTest::FourPoint, LoadLaw::Softening, 80.0, 61);
     let rec = simulate(dir.path(), "soft", &p);
+    // The live check's first estimate after 8 lines, then every 4 (defaults: 20, 10).
+    let toml = rec.join("tagdeflect.toml");
+    let text = std::fs::read_to_string(&toml).unwrap() + "\n[clock_check]\nmin_points = 8\nevery_lines = 4\n";
+    std::fs::write(&toml, text).unwrap();
     let rig = SimRig::new(&p).unwrap();
     let (recording, lines, _) = replay_lines(&rec, false);
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
@@ -442,10 +446,11 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
 
     // Clock: the UTM is stamped 80 ms ahead.
-    let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0).expect("determined from utm.jsonl");
-    let from_feed = estimate_from_feed(&lines, 1000.0).expect("determined from the feed");
-    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last().expect("the live check reported");
+    let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
+    let from_feed = estimate_from_feed(&lines, 1000.0);
+    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last();
     println!("CLOCK 80 ms: from utm.jsonl {from_utm:?}; from the feed {from_feed:?}; live {live:?}");
+    let (from_utm, from_feed, live) = (from_utm.expect("from utm.jsonl"), from_feed.expect("from the feed"), live.expect("live"));
     assert!((from_utm.offset_ms - 80.0).abs() <= 3.0 * from_utm.sigma_ms, "{from_utm:?}");
     assert!((live.value - 80.0).abs() <= 3.0 * live.sigma, "{live:?}");
     assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 5.0, "{from_feed:?}");
