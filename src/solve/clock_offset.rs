@@ -1,22 +1,22 @@
 //! Clock check: the offset between the UTM's clock and the cameras' clock, found by
 //! aligning the measured net deflection with the UTM's stroke over the loading ramp.
 //!
-//! Model: `δ(tᵢ) = f(s(tᵢ + τ))` — the net deflection measured at camera time `tᵢ` is a
-//! function of the stroke the UTM stamped at `tᵢ + τ`; `f` is piecewise linear on knots at
-//! quantiles of the stroke (up to 10; the machine's compliance × a load that is not
-//! proportional to deflection bends the relation).
+//! Model: `δ(tᵢ) = a + b s(tᵢ + τ)` over the loading ramp before the first peak — the net
+//! deflection measured at camera time `tᵢ` against the stroke the UTM stamped at `tᵢ + τ`
+//! (while the beam is elastic the load is proportional to the deflection, so the stroke —
+//! deflection under the loads + compliance × load — is linear in it).
 //! The offset `τ` = UTM time − camera time of one instant (positive: the UTM clock is
 //! ahead; subtract it from UTM stamps to put them on the cameras' clock). It is identified by
 //! the changes of rate of the test (the start of the ramp from rest, pop-ins, holds): over a
 //! ramp of constant rate a shift looks like an offset of the stroke. Least squares: a scan of
 //! `τ` over `±max_offset_ms` (mean squared residual of the points the stroke covers), then
 //! golden-section refinement on a fixed set of points; σ from the Gauss–Newton covariance
-//! `s² (JᵀJ)⁻¹` with `J = [hat functions of s, ∂δ̂/∂τ]` and `s²` the residual variance (the
+//! `s² (JᵀJ)⁻¹` with `J = [1, s, ∂δ̂/∂τ]` and `s²` the residual variance (the
 //! deflection's noise; the stroke is taken as exact), inflated by `(1 + ρ)/(1 − ρ)` for a
 //! positive lag-1 autocorrelation `ρ` of the residuals (a relation that does not quite fit
 //! leaves runs of residuals, which are not independent). Points: the loading ramp, from the
-//! first line up to the largest deflection (later points after the deflection has fallen
-//! by more than 5 % of its range are left out: unloading).
+//! first line until the load falls below 97 % of its maximum so far (the first peak: after
+//! it, cracking makes the relation non-linear) and up to the largest deflection.
 //!
 //! [`ClockCheck`] is the live, incremental estimator (every `every_lines` lines once enough
 //! points are in); [`estimate_from_feed`] the batch function over a whole feed.
@@ -180,8 +180,43 @@ impl Relation {
 }
 
 /// Number of knots for `n` points.
-fn knot_count(n: usize) -> usize {
-    (n / 3).clamp(2, 12)
+///
+/// Two: the relation is a straight line. Over the elastic ramp before the first peak the
+/// load is proportional to the deflection, so the stroke (deflection under the loads +
+/// compliance × load) is linear in it; a more flexible relation would also absorb a shift
+/// of time next to the start of the ramp (a steeper first segment), which is where the
+/// offset is measured.
+fn knot_count(_n: usize) -> usize {
+    2
+}
+
+/// Follows the load along a test: true while the test is still on its loading ramp before
+/// the first peak (the load has not fallen below 97 % of its maximum so far).
+#[derive(Debug, Clone, Copy, Default)]
+struct PrePeak {
+    max: f64,
+    ended: bool,
+}
+
+impl PrePeak {
+    fn on_ramp(&mut self, load_kn: Option<f64>) -> bool {
+        if let Some(l) = load_kn {
+            if l > self.max {
+                self.max = l;
+            } else if self.max > 0.0 && l < 0.97 * self.max && self.max - l > 1e-3 {
+                self.ended = true;
+            }
+        }
+        !self.ended
+    }
+}
+
+/// The lines of the loading ramp before the first peak (by their load), time-sorted.
+fn pre_peak(lines: &[FeedLine]) -> Vec<&FeedLine> {
+    let mut sorted: Vec<&FeedLine> = lines.iter().collect();
+    sorted.sort_by_key(|l| l.t_ns);
+    let mut ramp = PrePeak::default();
+    sorted.into_iter().take_while(|l| ramp.on_ramp(l.load_kn)).collect()
 }
 
 /// Sum of squared residuals of the relation fitted to `pairs` (knots from the pairs).
@@ -313,7 +348,7 @@ fn interpolate(series: &[(i64, f64)], t: i64) -> Option<f64> {
 /// line's `net_deflection_mm`, or a `net_deflection` gauge).
 pub fn estimate_from_feed(lines: &[FeedLine], max_offset_ms: f64) -> Option<ClockOffset> {
     let net = |l: &FeedLine| l.net_deflection_mm.or_else(|| l.gauges.values().find(|g| g.unit == "mm").map(|g| g.value));
-    let mut points: Vec<(i64, f64)> = lines.iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
+    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
     let mut stroke: Vec<(i64, f64)> = lines.iter().filter_map(|l| l.stroke_mm.map(|s| (l.t_ns, s))).collect();
     points.sort_by_key(|p| p.0);
     stroke.sort_by_key(|p| p.0);
@@ -322,7 +357,7 @@ pub fn estimate_from_feed(lines: &[FeedLine], max_offset_ms: f64) -> Option<Cloc
 
 /// The batch clock check against the UTM's own samples (e.g. a recording's `utm.jsonl`).
 pub fn estimate_from_utm(lines: &[FeedLine], utm: &[crate::utm::UtmSample], max_offset_ms: f64) -> Option<ClockOffset> {
-    let mut points: Vec<(i64, f64)> = lines.iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
+    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
     points.sort_by_key(|p| p.0);
     let mut stroke: Vec<(i64, f64)> = utm.iter().filter_map(|s| s.stroke_mm.map(|v| (s.t_ns, v))).collect();
     stroke.sort_by_key(|p| p.0);
@@ -338,6 +373,7 @@ pub struct ClockCheck {
     lines: u64,
     last: Option<ClockOffset>,
     warned_at: Option<f64>,
+    ramp: PrePeak,
 }
 
 /// Points kept by the live estimator (older ones are thinned out beyond this).
@@ -346,7 +382,7 @@ const MAX_POINTS: usize = 4000;
 impl ClockCheck {
     /// A clock check with `config`.
     pub fn new(config: ClockCheckConfig) -> ClockCheck {
-        ClockCheck { config, points: Vec::new(), lines: 0, last: None, warned_at: None }
+        ClockCheck { config, points: Vec::new(), lines: 0, last: None, warned_at: None, ramp: PrePeak::default() }
     }
 
     /// The latest estimate.
@@ -354,11 +390,17 @@ impl ClockCheck {
         self.last
     }
 
-    /// Adds one feed line's net deflection (when it has one); every `every_lines` lines,
-    /// re-estimates against `utm` and returns the estimate for the feed (once determined).
-    pub fn update(&mut self, t_ns: i64, net_deflection_mm: Option<f64>, utm: &UtmHistory) -> Option<ValueSigma> {
+    /// Adds one feed line's net deflection (when it has one, and the test is still on its
+    /// loading ramp before the first peak, by `load_kn`); every `every_lines` lines,
+    /// re-estimates against `utm` and returns the estimate for the feed (once determined;
+    /// after the first peak the last estimate is repeated).
+    pub fn update(&mut self, t_ns: i64, net_deflection_mm: Option<f64>, load_kn: Option<f64>, utm: &UtmHistory) -> Option<ValueSigma> {
         self.lines += 1;
-        if let Some(d) = net_deflection_mm {
+        let on_ramp = self.ramp.on_ramp(load_kn);
+        if self.lines % self.config.every_lines as u64 == 0 && !on_ramp {
+            return self.last.map(|l| l.to_feed());
+        }
+        if let Some(d) = net_deflection_mm.filter(|_| on_ramp) {
             self.points.push((t_ns, d));
             if self.points.len() > MAX_POINTS {
                 // Thin out every other point of the older half: the ramp's start is kept.

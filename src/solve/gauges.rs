@@ -558,7 +558,7 @@ impl LineGauges {
         let net = line.net_deflection_mm.or_else(|| {
             self.gauges.gauges.iter().find(|g| g.kind == GaugeKind::NetDeflection).and_then(|g| line.gauges.get(&g.name)).map(|r| r.value)
         });
-        line.clock_offset_ms = self.clock.update(line.t_ns, net, utm);
+        line.clock_offset_ms = self.clock.update(line.t_ns, net, line.load_kn, utm);
         line
     }
 
