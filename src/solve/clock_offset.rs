@@ -1,19 +1,22 @@
 //! Clock check: the offset between the UTM's clock and the cameras' clock, found by
 //! aligning the measured net deflection with the UTM's stroke over the loading ramp.
 //!
-//! Model: `δ(tᵢ) = a + b s(tᵢ + τ) + c s(tᵢ + τ)²` — the net deflection measured at camera
-//! time `tᵢ` is a smooth function of the stroke the UTM stamped at `tᵢ + τ` (quadratic: the
-//! machine's compliance × a load that is not proportional to deflection bends the relation).
+//! Model: `δ(tᵢ) = a + b s(tᵢ + τ)` over the loading ramp before the first peak — the net
+//! deflection measured at camera time `tᵢ` against the stroke the UTM stamped at `tᵢ + τ`
+//! (while the beam is elastic the load is proportional to the deflection, so the stroke —
+//! deflection under the loads + compliance × load — is linear in it).
 //! The offset `τ` = UTM time − camera time of one instant (positive: the UTM clock is
 //! ahead; subtract it from UTM stamps to put them on the cameras' clock). It is identified by
 //! the changes of rate of the test (the start of the ramp from rest, pop-ins, holds): over a
 //! ramp of constant rate a shift looks like an offset of the stroke. Least squares: a scan of
 //! `τ` over `±max_offset_ms` (mean squared residual of the points the stroke covers), then
 //! golden-section refinement on a fixed set of points; σ from the Gauss–Newton covariance
-//! `s² (JᵀJ)⁻¹` with `J = [1, s, s², ∂δ̂/∂τ]` and `s²` the residual variance (the
-//! deflection's noise; the stroke is taken as exact). Points: the loading ramp, from the
-//! first line up to the largest deflection (later points after the deflection has fallen
-//! by more than 5 % of its range are left out: unloading).
+//! `s² (JᵀJ)⁻¹` with `J = [1, s, ∂δ̂/∂τ]` and `s²` the residual variance (the
+//! deflection's noise; the stroke is taken as exact), inflated by `(1 + ρ)/(1 − ρ)` for a
+//! positive lag-1 autocorrelation `ρ` of the residuals (a relation that does not quite fit
+//! leaves runs of residuals, which are not independent). Points: the loading ramp, from the
+//! first line until the load falls below 97 % of its maximum so far (the first peak: after
+//! it, cracking makes the relation non-linear) and up to the largest deflection.
 //!
 //! [`ClockCheck`] is the live, incremental estimator (every `every_lines` lines once enough
 //! points are in); [`estimate_from_feed`] the batch function over a whole feed.
@@ -96,29 +99,129 @@ fn ramp(points: &[(i64, f64)]) -> &[(i64, f64)] {
     }
 }
 
-/// Least-squares fit of `δ = a + b s + c s²` (s centred and scaled for conditioning):
-/// the sum of squared residuals, or `None` when singular.
-fn fit_ssr(pairs: &[(f64, f64)]) -> Option<(f64, [f64; 3], f64, f64)> {
-    let n = pairs.len() as f64;
-    let mean = pairs.iter().map(|p| p.0).sum::<f64>() / n;
-    let scale = pairs.iter().map(|p| (p.0 - mean).abs()).fold(0.0, f64::max).max(1e-9);
-    let mut a = nalgebra::Matrix3::<f64>::zeros();
-    let mut r = nalgebra::Vector3::<f64>::zeros();
-    for &(s, d) in pairs {
-        let x = (s - mean) / scale;
-        let v = nalgebra::Vector3::new(1.0, x, x * x);
-        a += v * v.transpose();
-        r += v * d;
+/// The deflection as a piecewise-linear function of the stroke (hat functions on knots at
+/// quantiles of the stroke): flexible enough for the machine's compliance × a load that is
+/// not proportional to deflection, too stiff to follow a shift of time at a change of rate.
+struct Relation {
+    knots: Vec<f64>,
+    coef: nalgebra::DVector<f64>,
+    ssr: f64,
+}
+
+/// Knots at quantiles of the strokes (`count` at most; closer ones merged).
+fn knots_for(pairs: &[(f64, f64)], count: usize) -> Vec<f64> {
+    let mut s: Vec<f64> = pairs.iter().map(|p| p.0).collect();
+    s.sort_by(f64::total_cmp);
+    let (lo, hi) = (s[0], s[s.len() - 1]);
+    let min_gap = (hi - lo) / 50.0;
+    let mut knots: Vec<f64> = Vec::new();
+    for k in 0..count {
+        let q = s[((s.len() - 1) * k) / (count - 1).max(1)];
+        if knots.last().is_none_or(|l| q - l > min_gap) {
+            knots.push(q);
+        }
     }
-    let coef = a.try_inverse()? * r;
-    let ssr = pairs
-        .iter()
-        .map(|&(s, d)| {
-            let x = (s - mean) / scale;
-            (d - coef[0] - coef[1] * x - coef[2] * x * x).powi(2)
-        })
-        .sum();
-    Some((ssr, [coef[0], coef[1], coef[2]], mean, scale))
+    if knots.len() >= 2 {
+        *knots.last_mut().unwrap() = hi;
+    }
+    knots
+}
+
+/// Hat-function weights of stroke `s` (clamped to the knots' span).
+fn hats(knots: &[f64], s: f64) -> [(usize, f64); 2] {
+    let n = knots.len();
+    if s <= knots[0] {
+        return [(0, 1.0), (0, 0.0)];
+    }
+    if s >= knots[n - 1] {
+        return [(n - 1, 1.0), (n - 1, 0.0)];
+    }
+    let i = knots.partition_point(|k| *k <= s) - 1;
+    let w = (s - knots[i]) / (knots[i + 1] - knots[i]);
+    [(i, 1.0 - w), (i + 1, w)]
+}
+
+impl Relation {
+    fn fit(pairs: &[(f64, f64)], knots: &[f64]) -> Option<Relation> {
+        let k = knots.len();
+        if k < 2 || pairs.len() < k + 2 {
+            return None;
+        }
+        let mut a = nalgebra::DMatrix::<f64>::zeros(k, k);
+        let mut r = nalgebra::DVector::<f64>::zeros(k);
+        for &(s, d) in pairs {
+            let h = hats(knots, s);
+            for &(i, wi) in &h {
+                r[i] += wi * d;
+                for &(j, wj) in &h {
+                    a[(i, j)] += wi * wj;
+                }
+            }
+        }
+        let coef = a.try_inverse()? * r;
+        let mut rel = Relation { knots: knots.to_vec(), coef, ssr: 0.0 };
+        rel.ssr = pairs.iter().map(|&(s, d)| (d - rel.at(s)).powi(2)).sum();
+        Some(rel)
+    }
+
+    fn at(&self, s: f64) -> f64 {
+        hats(&self.knots, s).iter().map(|&(i, w)| w * self.coef[i]).sum()
+    }
+
+    /// Slope dδ/ds of the segment holding `s` (0 outside the knots' span).
+    fn slope(&self, s: f64) -> f64 {
+        let n = self.knots.len();
+        if s <= self.knots[0] || s >= self.knots[n - 1] {
+            return 0.0;
+        }
+        let i = self.knots.partition_point(|k| *k <= s) - 1;
+        (self.coef[i + 1] - self.coef[i]) / (self.knots[i + 1] - self.knots[i])
+    }
+}
+
+/// Number of knots for `n` points.
+///
+/// Two: the relation is a straight line. Over the elastic ramp before the first peak the
+/// load is proportional to the deflection, so the stroke (deflection under the loads +
+/// compliance × load) is linear in it; a more flexible relation would also absorb a shift
+/// of time next to the start of the ramp (a steeper first segment), which is where the
+/// offset is measured.
+fn knot_count(_n: usize) -> usize {
+    2
+}
+
+/// Follows the load along a test: true while the test is still on its loading ramp before
+/// the first peak (the load has not fallen below 97 % of its maximum so far).
+#[derive(Debug, Clone, Copy, Default)]
+struct PrePeak {
+    max: f64,
+    ended: bool,
+}
+
+impl PrePeak {
+    fn on_ramp(&mut self, load_kn: Option<f64>) -> bool {
+        if let Some(l) = load_kn {
+            if l > self.max {
+                self.max = l;
+            } else if self.max > 0.0 && l < 0.97 * self.max && self.max - l > 1e-3 {
+                self.ended = true;
+            }
+        }
+        !self.ended
+    }
+}
+
+/// The lines of the loading ramp before the first peak (by their load), time-sorted.
+fn pre_peak(lines: &[FeedLine]) -> Vec<&FeedLine> {
+    let mut sorted: Vec<&FeedLine> = lines.iter().collect();
+    sorted.sort_by_key(|l| l.t_ns);
+    let mut ramp = PrePeak::default();
+    sorted.into_iter().take_while(|l| ramp.on_ramp(l.load_kn)).collect()
+}
+
+/// Sum of squared residuals of the relation fitted to `pairs` (knots from the pairs).
+fn fit_ssr(pairs: &[(f64, f64)]) -> Option<f64> {
+    Relation::fit(pairs, &knots_for(pairs, knot_count(pairs.len()))).map(|r| r.ssr)
 }
 
 /// Estimates the clock offset from `(camera t_ns, net deflection mm)` points and the UTM
@@ -148,7 +251,7 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     while tau <= hi_ms + 1e-9 {
         let pairs = pairs_at(tau, pts);
         if pairs.len() * 10 >= pts.len() * 6 && pairs.len() >= 8 {
-            if let Some((ssr, ..)) = fit_ssr(&pairs) {
+            if let Some(ssr) = fit_ssr(&pairs) {
                 let msr = ssr / pairs.len() as f64;
                 if best.is_none_or(|b| msr < b.1) {
                     best = Some((tau, msr));
@@ -165,7 +268,9 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     if fixed.len() < 8 {
         return None;
     }
-    let cost = |tau: f64| fit_ssr(&pairs_at(tau, &fixed)).map_or(f64::INFINITY, |f| f.0);
+    // Knots fixed for the refinement (from the coarse optimum).
+    let knots = knots_for(&pairs_at(coarse, &fixed), knot_count(fixed.len()));
+    let cost = |tau: f64| Relation::fit(&pairs_at(tau, &fixed), &knots).map_or(f64::INFINITY, |f| f.ssr);
     let (mut a, mut b) = (lo, hi);
     let g = 0.5 * (5f64.sqrt() - 1.0);
     let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
@@ -187,24 +292,33 @@ pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64
     }
     let tau = 0.5 * (a + b);
     let pairs = pairs_at(tau, &fixed);
-    let (ssr, coef, mean, scale) = fit_ssr(&pairs)?;
+    let rel = Relation::fit(&pairs, &knots)?;
+    let ssr = rel.ssr;
     let n = pairs.len();
-    let s2 = ssr / (n as f64 - 4.0).max(1.0);
+    let k = knots.len();
+    let s2 = ssr / (n as f64 - k as f64 - 1.0).max(1.0);
     // Gauss–Newton covariance with the stroke's local slope (per ms) from ±5 ms.
-    let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+    let mut jtj = nalgebra::DMatrix::<f64>::zeros(k + 1, k + 1);
     let shift = (tau * ms).round() as i64;
     for &(t, _) in &fixed {
         let (Some(s), Some(sp), Some(sm)) = (stroke(t + shift), stroke(t + shift + 5_000_000), stroke(t + shift - 5_000_000)) else {
             continue;
         };
-        let x = (s - mean) / scale;
-        let dsdt = (sp - sm) / 10.0; // mm per ms
-        let dd = (coef[1] + 2.0 * coef[2] * x) / scale * dsdt;
-        let j = nalgebra::Vector4::new(1.0, x, x * x, dd);
-        jtj += j * j.transpose();
+        let mut j = nalgebra::DVector::<f64>::zeros(k + 1);
+        for (i, w) in hats(&knots, s) {
+            j[i] += w;
+        }
+        j[k] = rel.slope(s) * (sp - sm) / 10.0;
+        jtj += &j * j.transpose();
     }
     let cov = jtj.try_inverse()?;
-    let sigma = (s2 * cov[(3, 3)]).sqrt();
+    // Residuals that follow each other in time (the relation does not quite fit) carry less
+    // information than independent noise: the variance is inflated by (1 + ρ) / (1 − ρ),
+    // ρ = their lag-1 autocorrelation (when positive).
+    let residuals: Vec<f64> = fixed.iter().filter_map(|&(t, d)| stroke(t + shift).map(|s| d - rel.at(s))).collect();
+    let (num, den) = residuals.windows(2).fold((0.0, 0.0), |(n, d), w| (n + w[0] * w[1], d + w[0] * w[0]));
+    let rho = if den > 0.0 { (num / den).clamp(0.0, 0.9) } else { 0.0 };
+    let sigma = (s2 * cov[(k, k)] * (1.0 + rho) / (1.0 - rho)).sqrt();
     let range = fixed.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max) - fixed.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
     let rms = (ssr / n as f64).sqrt();
     if !(sigma.is_finite() && sigma > 0.0) || range < 10.0 * rms.max(1e-4) {
@@ -234,7 +348,7 @@ fn interpolate(series: &[(i64, f64)], t: i64) -> Option<f64> {
 /// line's `net_deflection_mm`, or a `net_deflection` gauge).
 pub fn estimate_from_feed(lines: &[FeedLine], max_offset_ms: f64) -> Option<ClockOffset> {
     let net = |l: &FeedLine| l.net_deflection_mm.or_else(|| l.gauges.values().find(|g| g.unit == "mm").map(|g| g.value));
-    let mut points: Vec<(i64, f64)> = lines.iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
+    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
     let mut stroke: Vec<(i64, f64)> = lines.iter().filter_map(|l| l.stroke_mm.map(|s| (l.t_ns, s))).collect();
     points.sort_by_key(|p| p.0);
     stroke.sort_by_key(|p| p.0);
@@ -243,7 +357,7 @@ pub fn estimate_from_feed(lines: &[FeedLine], max_offset_ms: f64) -> Option<Cloc
 
 /// The batch clock check against the UTM's own samples (e.g. a recording's `utm.jsonl`).
 pub fn estimate_from_utm(lines: &[FeedLine], utm: &[crate::utm::UtmSample], max_offset_ms: f64) -> Option<ClockOffset> {
-    let mut points: Vec<(i64, f64)> = lines.iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
+    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
     points.sort_by_key(|p| p.0);
     let mut stroke: Vec<(i64, f64)> = utm.iter().filter_map(|s| s.stroke_mm.map(|v| (s.t_ns, v))).collect();
     stroke.sort_by_key(|p| p.0);
@@ -259,6 +373,7 @@ pub struct ClockCheck {
     lines: u64,
     last: Option<ClockOffset>,
     warned_at: Option<f64>,
+    ramp: PrePeak,
 }
 
 /// Points kept by the live estimator (older ones are thinned out beyond this).
@@ -267,7 +382,7 @@ const MAX_POINTS: usize = 4000;
 impl ClockCheck {
     /// A clock check with `config`.
     pub fn new(config: ClockCheckConfig) -> ClockCheck {
-        ClockCheck { config, points: Vec::new(), lines: 0, last: None, warned_at: None }
+        ClockCheck { config, points: Vec::new(), lines: 0, last: None, warned_at: None, ramp: PrePeak::default() }
     }
 
     /// The latest estimate.
@@ -275,11 +390,17 @@ impl ClockCheck {
         self.last
     }
 
-    /// Adds one feed line's net deflection (when it has one); every `every_lines` lines,
-    /// re-estimates against `utm` and returns the estimate for the feed (once determined).
-    pub fn update(&mut self, t_ns: i64, net_deflection_mm: Option<f64>, utm: &UtmHistory) -> Option<ValueSigma> {
+    /// Adds one feed line's net deflection (when it has one, and the test is still on its
+    /// loading ramp before the first peak, by `load_kn`); every `every_lines` lines,
+    /// re-estimates against `utm` and returns the estimate for the feed (once determined;
+    /// after the first peak the last estimate is repeated).
+    pub fn update(&mut self, t_ns: i64, net_deflection_mm: Option<f64>, load_kn: Option<f64>, utm: &UtmHistory) -> Option<ValueSigma> {
         self.lines += 1;
-        if let Some(d) = net_deflection_mm {
+        let on_ramp = self.ramp.on_ramp(load_kn);
+        if self.lines % self.config.every_lines as u64 == 0 && !on_ramp {
+            return self.last.map(|l| l.to_feed());
+        }
+        if let Some(d) = net_deflection_mm.filter(|_| on_ramp) {
             self.points.push((t_ns, d));
             if self.points.len() > MAX_POINTS {
                 // Thin out every other point of the older half: the ramp's start is kept.

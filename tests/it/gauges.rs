@@ -241,17 +241,18 @@ fn each_gauge_kind_gives_the_known_answer() {
     assert_eq!(out["rot"].unit, "mrad");
     assert!((v("rot") - 10.0).abs() < 1e-4, "{}", v("rot"));
     // Curvature through s = −200, 0, 250 with upward displacements −0.1, −2.3, −0.55.
-    let (ya, yb, yc) = (-0.1, -2.3, -0.55);
-    let k = 2.0 * ((yc - yb) / 250.0 - (yb - ya) / 200.0) / 450.0 * 1e9;
+    let up = |k: u32| now[&k].translation.z - rest[&k].translation.z;
+    let (ya, yb, yc) = (up(1), up(0), up(2));
+    let k = 2.0 * ((yc - yb) / 250.0 - (yb - ya) / 200.0) / 450.0 * 1e6;
     assert_eq!(out["curv"].unit, "1/km");
     assert!((v("curv") - k).abs() < 1e-3, "{} vs {k}", v("curv"));
 
     // σ: net_front = mid − (w₁ s₁ + w₂ s₂) with line weights at x = 0 of 250/450 and 200/450;
-    // each tag's vertical σ now and at the reference.
+    // each tag's vertical σ now (the reference counts as exact).
     let (w1, w2): (f64, f64) = (250.0 / 450.0, 200.0 / 450.0);
-    let expect = sigma * (2.0 * (1.0 + w1 * w1 + w2 * w2)).sqrt();
+    let expect = sigma * (1.0 + w1 * w1 + w2 * w2).sqrt();
     assert!((out["net_front"].sigma - expect).abs() < 2e-5, "{} vs {expect}", out["net_front"].sigma);
-    assert!((out["rot"].sigma - 1e-4 * 2f64.sqrt() * 1e3).abs() < 1e-4, "{}", out["rot"].sigma);
+    assert!((out["rot"].sigma - 1e-4 * 1e3).abs() < 1e-4, "{}", out["rot"].sigma);
 
     // A gauge whose tag is not solved is absent (never interpolated).
     let without: Vec<GaugeTag> = as_tags(&now).into_iter().filter(|t| t.id != 4 && t.id != 2).collect();
@@ -321,8 +322,9 @@ fn gauge_sigma_matches_monte_carlo() {
     };
     let mut within: BTreeMap<String, (usize, usize)> = BTreeMap::new();
     for _ in 0..400 {
+        // The reference is taken as exact (see `solve::gauges`): the noise is in the present poses.
         let mut g = Gauges::new(&configs, [0.0, 0.0, 1.0], &sp);
-        g.evaluate(&noisy(&rest));
+        g.evaluate(&exact(&rest));
         for (name, r) in g.evaluate(&noisy(&now)) {
             let e = within.entry(name.clone()).or_default();
             e.1 += 1;
@@ -354,6 +356,11 @@ impl Compared {
     }
     fn max(&self, name: &str) -> f64 {
         self.errors[name].iter().map(|(x, _)| x.abs()).fold(0.0, f64::max)
+    }
+    /// RMS of error / σ (1 when σ is exactly right).
+    fn z_rms(&self) -> f64 {
+        let all: Vec<&(f64, f64)> = self.errors.values().flatten().collect();
+        (all.iter().map(|(e, s)| (e / s).powi(2)).sum::<f64>() / all.len() as f64).sqrt()
     }
     fn within_2sigma(&self) -> (usize, usize) {
         let all: Vec<&(f64, f64)> = self.errors.values().flatten().collect();
@@ -395,19 +402,30 @@ fn real_test(test: SimTest, law: LoadLaw, offset_ms: f64, seed: u64) -> SimParam
 #[test]
 fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     let dir = tempfile::tempdir().unwrap();
-    let p = real_test(SimTest::FourPoint, LoadLaw::Softening, 80.0, 61);
+    // The clock is read on the elastic ramp before the first crack: crack at 1.6 of 4 mm.
+    let p = SimParams {
+        frame_sets: 24,
+        rest_frames: 5,
+        crack_deflection_mm: 1.6,
+        ..real_test(SimTest::FourPoint, LoadLaw::Softening, 80.0, 61)
+    };
     let rec = simulate(dir.path(), "soft", &p);
+    // The live check's first estimate after 8 lines, then every 4 (defaults: 20, 10).
+    let toml = rec.join("tagdeflect.toml");
+    let text = std::fs::read_to_string(&toml).unwrap() + "\n[clock_check]\nmin_points = 8\nevery_lines = 4\n";
+    std::fs::write(&toml, text).unwrap();
     let rig = SimRig::new(&p).unwrap();
     let (recording, lines, _) = replay_lines(&rec, false);
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
-    assert_eq!(lines.len(), 16);
+    assert_eq!(lines.len(), 24);
     assert!(recording.config.specimen.beam.is_some(), "[specimen.beam] written");
 
     // The load follows the law, not the deflection: up to the crack, drop, softening.
     let truth: Vec<SimTruthLine> = read_jsonl_file(&rec.join(SIM_TRUTH_FILE)).unwrap();
     let peak = recording.utm.iter().map(|s| s.load_kn).fold(0.0, f64::max);
     let last = truth.last().unwrap();
-    assert!((peak - 100.0 * 0.3).abs() < 1.0, "first-crack load ≈ k δc = 30 kN (50 Hz UTM samples): {peak}");
+    // First-crack load k δc = 160 kN; the 50 Hz samples step by 2.2 mm/s × 20 ms × 100 kN/mm.
+    assert!(peak <= 160.0 + 1e-9 && peak > 160.0 - 4.5, "first-crack load ≈ k δc = 160 kN (50 Hz UTM samples): {peak}");
     assert!(
         last.load_kn < 0.6 * peak && last.midspan_deflection_mm > 3.9,
         "softened: {} kN at {} mm",
@@ -425,19 +443,21 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
             lines[5].gauges[name].unit,
             c.errors[name].len()
         );
-        assert_eq!(c.errors[name].len(), 16, "{name} in every line");
+        assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
     assert!(c.rms("net") <= 0.01, "net deflection RMS {} mm", c.rms("net"));
     assert!(c.rms("rot1") <= 0.5, "end rotation RMS {} mrad", c.rms("rot1"));
     assert!(c.rms("curv") <= 0.5, "curvature RMS {} 1/km", c.rms("curv"));
     let (ok, n) = c.within_2sigma();
-    println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ");
+    println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
 
     // Clock: the UTM is stamped 80 ms ahead.
-    let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0).expect("determined from utm.jsonl");
-    let from_feed = estimate_from_feed(&lines, 1000.0).expect("determined from the feed");
-    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last().expect("the live check reported");
+    let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
+    let from_feed = estimate_from_feed(&lines, 1000.0);
+    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last();
     println!("CLOCK 80 ms: from utm.jsonl {from_utm:?}; from the feed {from_feed:?}; live {live:?}");
+    let (from_utm, from_feed, live) = (from_utm.expect("from utm.jsonl"), from_feed.expect("from the feed"), live.expect("live"));
     assert!((from_utm.offset_ms - 80.0).abs() <= 3.0 * from_utm.sigma_ms, "{from_utm:?}");
     assert!((live.value - 80.0).abs() <= 3.0 * live.sigma, "{live:?}");
     assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 5.0, "{from_feed:?}");
@@ -470,7 +490,7 @@ fn notched_three_point_test_replays_with_cmod() {
     let c = compare(&rig, &lines);
     for name in ["net", "cmod", "rot1"] {
         println!("GAUGES notched 3-point {name}: RMS {:.5}, max {:.5} over {} lines", c.rms(name), c.max(name), c.errors[name].len());
-        assert_eq!(c.errors[name].len(), 16, "{name} in every line");
+        assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
     assert!(c.rms("net") <= 0.01, "net deflection RMS {} mm", c.rms("net"));
     assert!(c.rms("cmod") <= 0.01, "CMOD RMS {} mm", c.rms("cmod"));
@@ -478,12 +498,34 @@ fn notched_three_point_test_replays_with_cmod() {
     let worst =
         lines.iter().map(|l| (l.gauges["cmod"].value - rig.cmod_at(rig.midspan_deflection(l.t_ns)).unwrap()).abs()).fold(0.0, f64::max);
     println!("GAUGES notched 3-point: CMOD vs the true mouth opening, max error {worst:.4} mm");
-    assert!(worst <= 0.04, "{worst}");
+    assert!(worst <= 0.06, "{worst}");
     let (ok, n) = c.within_2sigma();
-    println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ");
+    println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
     // No clock offset here: the estimate agrees with zero.
     if let Some(est) = estimate_from_utm(&lines, &recording.utm, 1000.0) {
         println!("CLOCK 0 ms (notched): {est:?}");
         assert!(est.offset_ms.abs() <= 3.0 * est.sigma_ms + 1.0, "{est:?}");
     }
+}
+
+/// The default rig is untouched by the real tests: `replay/one-cam` (made by `simulate`
+/// before they existed) is reproduced byte for byte.
+#[test]
+fn default_rig_output_is_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = SimParams { cameras: 1, width: 800, height: 600, frame_sets: 8, rest_frames: 2, ..SimParams::default() };
+    let out = simulate(dir.path(), "one-cam", &p);
+    let committed = root().join("replay/one-cam");
+    let mut files =
+        vec!["tagdeflect.toml".to_string(), "frames.jsonl".into(), "truth.jsonl".into(), "utm.jsonl".into(), SIM_TRUTH_FILE.into()];
+    for e in std::fs::read_dir(committed.join("centre")).unwrap() {
+        files.push(format!("centre/{}", e.unwrap().file_name().to_string_lossy()));
+    }
+    for f in &files {
+        let a = std::fs::read(committed.join(f)).unwrap();
+        let b = std::fs::read(out.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+        assert!(a == b, "{f} differs from the committed recording");
+    }
+    assert!(files.len() >= 13);
 }
