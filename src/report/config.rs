@@ -101,7 +101,7 @@ pub fn validate_report(r: &ReportConfig, beam: Option<&BeamConfig>) -> Result<()
     if r.out.as_os_str().is_empty() {
         return Err(("out", "must name a folder".into()));
     }
-    if r.smooth_points == 0 || r.smooth_points % 2 == 0 || r.smooth_points > 101 {
+    if r.smooth_points == 0 || r.smooth_points.is_multiple_of(2) || r.smooth_points > 101 {
         return Err(("smooth_points", format!("must be an odd number of points from 1 to 101, got {}", r.smooth_points)));
     }
     if let Some(q) = r.load_resolution_kn {

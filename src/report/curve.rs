@@ -57,6 +57,7 @@ pub enum CurveError {
 impl Curve {
     /// Builds a curve from points in time order. `sx[i] = None` means the feed gave no σ
     /// for that point: the robust scatter of `x` is used instead.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         t_ns: Vec<i64>,
         load: Vec<f64>,

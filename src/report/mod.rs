@@ -463,7 +463,7 @@ fn cmod_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Cur
 /// Reads the config and feed of `report` and writes the report; returns the files written.
 pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
     use anyhow::Context;
-    if args.smooth_points == 0 || args.smooth_points % 2 == 0 {
+    if args.smooth_points == 0 || args.smooth_points.is_multiple_of(2) {
         anyhow::bail!("--smooth-points must be odd and at least 1, got {}", args.smooth_points);
     }
     if !(args.load_resolution_kn.is_finite() && args.load_resolution_kn >= 0.0) {
