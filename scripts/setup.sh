@@ -10,6 +10,8 @@ pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev 
   mosquitto postgresql)  # the MQTT broker and the database of the archive tests (started by the tests)
 # The live page's browser test: Debian's Chromium and its WebDriver (driven by selenium).
 pkgs+=(chromium chromium-driver)
+# The test report: a TrueType font for the plots' text (PNG).
+pkgs+=(fonts-dejavu-core)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -102,6 +102,14 @@ pub struct FeedLine {
     /// Capture → feed latency of this set, ms (live only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub latency_ms: Option<f64>,
+    /// Virtual gauges (`[[gauge]]`) whose tags were solved in this frame set, by name
+    /// (a `distance` gauge adds `<name>.strain`); see `solve::gauges`.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub gauges: std::collections::BTreeMap<String, GaugeReading>,
+    /// Estimated offset of the UTM clock against the cameras' (UTM time − camera time for
+    /// one instant), ms; every few lines once determined (see `solve::clock_offset`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock_offset_ms: Option<ValueSigma>,
     /// Feed lines dropped so far by the MQTT publisher's buffer (broker unreachable too
     /// long); present when `[output.mqtt]` is configured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -113,6 +121,39 @@ pub struct FeedLine {
     /// Frames the recorder did not record so far (queue full or writes failing).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recorder_dropped: Option<u64>,
+}
+
+/// One gauge's reading in a feed line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GaugeReading {
+    /// The value.
+    pub value: f64,
+    /// Its 1-σ uncertainty, propagated from the tags' covariance.
+    pub sigma: f64,
+    /// Unit of both: `mm`, `µε`, `mrad`, `1/km`.
+    pub unit: String,
+}
+
+impl GaugeReading {
+    /// A reading rounded to the resolution of its unit (no false digits).
+    pub fn new(value: f64, sigma: f64, unit: &str) -> GaugeReading {
+        let step = match unit {
+            "mm" | "mrad" => 1e-5,
+            "1/km" => 1e-4,
+            _ => 1e-3,
+        };
+        let r = |v: f64| (v / step).round() * step;
+        GaugeReading { value: r(value), sigma: r(sigma).max(step), unit: unit.to_string() }
+    }
+}
+
+/// A value with its 1-σ uncertainty (unit in the field's name).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ValueSigma {
+    /// The value.
+    pub value: f64,
+    /// Its 1-σ uncertainty.
+    pub sigma: f64,
 }
 
 /// Rounds to 0.01 µm: the feed carries no false digits and lines stay short.

@@ -169,8 +169,8 @@ pub fn assembly(data: &[u8]) {
 /// The ROI rectangle helpers: windows around points, bounding boxes, alignment, clamping,
 /// merging and sweep tiles always give rectangles inside the image.
 pub fn roi(data: &[u8]) {
-    use crate::detect::Rect;
     use crate::detect::plan::{merge_rects, sweep_tiles};
+    use crate::detect::Rect;
     use nalgebra::Point2;
     if data.len() < 8 {
         return;

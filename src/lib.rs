@@ -5,8 +5,8 @@
 //! graph with different sources (see [`pipeline`]).
 
 pub mod accuracy;
-pub mod backoff;
 pub mod archive;
+pub mod backoff;
 pub mod calibrate;
 pub mod camera;
 pub mod clock;
@@ -17,6 +17,7 @@ pub mod frame;
 pub mod fuzzing;
 pub mod pipeline;
 pub mod recording;
+pub mod report;
 pub mod sim;
 pub mod sinks;
 pub mod solve;

@@ -113,6 +113,10 @@ enum Command {
     /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
     /// FileStorage YAML and reports uncertainties, coverage and outliers.
     Calibrate(tagdeflect::calibrate::CalibrateOptions),
+    /// The test report from a feed: report.html, report.json, curve.csv and plots.
+    Report(tagdeflect::report::ReportArgs),
+    /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
+    Export(tagdeflect::report::ExportArgs),
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -241,5 +245,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Archive(opts) => tagdeflect::archive::run(opts),
         Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts),
         Command::Calibrate(opts) => tagdeflect::calibrate::run(&opts),
+        Command::Report(args) => tagdeflect::report::run_cli(&args).map(|_| ()),
+        Command::Export(args) => tagdeflect::report::export_cli(&args),
     }
 }

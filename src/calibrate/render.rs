@@ -7,9 +7,9 @@ use nalgebra::Vector3;
 
 use super::target::{tag_centre, TargetSpec};
 use crate::camera::{CameraIntrinsics, Pose};
+use crate::detect::tag_bitmap;
 use crate::frame::GrayImage;
 use crate::sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
-use crate::detect::tag_bitmap;
 use crate::tags::TagBitmap;
 
 /// How a target image is rendered.

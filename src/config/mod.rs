@@ -17,9 +17,11 @@ use toml::Spanned;
 
 use crate::camera::CameraIntrinsics;
 
+pub mod beam;
 pub mod calibration;
 use crate::frame::FrameFormat;
 use crate::tags::TagFamily;
+pub use beam::BeamConfig;
 pub use calibration::{load_calibration, parse_calibration, CalibrationError};
 
 // Sane ranges of rates and durations: values outside them are typos (1e-20 Hz would make
@@ -103,6 +105,9 @@ pub struct Config {
     /// Where `run` and `demo` send what they make.
     #[serde(default)]
     pub output: OutputConfig,
+    /// The test report `run` writes at its end (optional; see `report`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<crate::report::ReportConfig>,
     /// Measurement options (extension of SPEC; all optional).
     #[serde(default)]
     pub measure: MeasureConfig,
@@ -110,6 +115,12 @@ pub struct Config {
     /// `source = "sim"` cameras, `utm.address = "sim"` and `simulate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sim: Option<crate::sim::SimParams>,
+    /// Virtual gauges (`[[gauge]]`, see `solve::gauges`).
+    #[serde(rename = "gauge", default, skip_serializing_if = "Vec::is_empty")]
+    pub gauges: Vec<crate::solve::gauges::GaugeConfig>,
+    /// The live clock check (`[clock_check]`, extension; see `solve::clock_offset`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock_check: Option<crate::solve::clock_offset::ClockCheckConfig>,
 }
 
 /// `[world]`.
@@ -304,6 +315,9 @@ pub struct SpecimenConfig {
     /// The tags to measure.
     #[serde(rename = "tag")]
     pub tags: Vec<SpecimenTag>,
+    /// `[specimen.beam]`: the specimen's geometry (for the report).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beam: Option<beam::BeamConfig>,
 }
 
 /// One specimen tag.
@@ -529,9 +543,15 @@ struct RawConfig {
     #[serde(default)]
     output: Option<OutputConfig>,
     #[serde(default)]
+    report: Option<Spanned<crate::report::ReportConfig>>,
+    #[serde(default)]
     measure: Option<Spanned<MeasureConfig>>,
     #[serde(default)]
     sim: Option<crate::sim::SimParams>,
+    #[serde(default)]
+    gauge: Vec<Spanned<crate::solve::gauges::RawGauge>>,
+    #[serde(default)]
+    clock_check: Option<Spanned<crate::solve::clock_offset::ClockCheckConfig>>,
 }
 
 #[derive(Deserialize)]
@@ -577,6 +597,8 @@ struct RawTagSet<T> {
     size_mm: Spanned<f64>,
     #[serde(default = "Vec::new")]
     tag: Vec<Spanned<T>>,
+    #[serde(default)]
+    beam: Option<Spanned<crate::report::config::RawBeam>>,
 }
 
 #[derive(Deserialize)]
@@ -751,6 +773,20 @@ impl Config {
                 m
             }
         };
+        // [report] (the report's own checks live in report::config).
+        let report = match raw.report {
+            None => None,
+            Some(r) => {
+                let span = r.span();
+                let mut r = r.into_inner();
+                crate::report::config::validate_report(&r, specimen.beam.as_ref())
+                    .map_err(|(key, msg)| loc.err(Some(span), &format!("report.{key}"), msg))?;
+                if r.out.is_relative() {
+                    r.out = base.join(&r.out);
+                }
+                Some(r)
+            }
+        };
         let mut output = raw.output.unwrap_or_default();
         if let Some(h) = &output.http {
             crate::sinks::http::parse_addr(h)
@@ -796,7 +832,17 @@ impl Config {
                 loc.err(at.map(|a| a..a), &format!("output.mqtt.{k}"), msg)
             })?;
         }
-        Ok(Config { world, sync, cameras, background, specimen, utm, output, measure, sim: raw.sim })
+        let gauges = crate::solve::gauges::validate_gauges(&raw.gauge, &specimen).map_err(|e| loc.err(e.span, &e.key, e.message))?;
+        let clock_check = match raw.clock_check {
+            None => None,
+            Some(c) => {
+                let span = c.span();
+                let c = c.into_inner();
+                c.validate().map_err(|(k, m)| loc.err(Some(span), &format!("clock_check.{k}"), m))?;
+                Some(c)
+            }
+        };
+        Ok(Config { world, sync, cameras, background, specimen, utm, output, report, measure, sim: raw.sim, gauges, clock_check })
     }
 
     /// Writes the config as TOML (resolved intrinsics inline).
@@ -960,6 +1006,9 @@ fn check_size(loc: &Locator<'_>, section: &str, s: &Spanned<f64>) -> Result<f64,
 fn resolve_background(loc: &Locator<'_>, bg: Spanned<RawTagSet<RawBackgroundTag>>) -> Result<BackgroundConfig, ConfigError> {
     let span = bg.span();
     let bg = bg.into_inner();
+    if let Some(b) = &bg.beam {
+        return Err(loc.err(Some(b.span()), "background.beam", "the beam's geometry belongs in [specimen.beam]"));
+    }
     let family = parse_family(loc, "background", &bg.family)?;
     let size_mm = check_size(loc, "background", &bg.size_mm)?;
     if bg.tag.is_empty() {
@@ -1053,7 +1102,11 @@ fn resolve_specimen(loc: &Locator<'_>, sp: Spanned<RawTagSet<SpecimenTagRaw>>) -
         }
         tags.push(SpecimenTag { id, role: t.role });
     }
-    Ok(SpecimenConfig { family, size_mm, tags })
+    let beam = match &sp.beam {
+        None => None,
+        Some(b) => Some(b.get_ref().resolve().map_err(|(span, key, msg)| loc.err(Some(span), &format!("specimen.beam.{key}"), msg))?),
+    };
+    Ok(SpecimenConfig { family, size_mm, tags, beam })
 }
 
 fn validate_utm(loc: &Locator<'_>, u: Spanned<UtmConfig>) -> Result<UtmConfig, ConfigError> {

@@ -375,4 +375,3 @@ fn dedup_detections(dets: &mut Vec<Detection>) {
     dets.sort_by(|a, b| (a.family.name(), a.id).cmp(&(b.family.name(), b.id)).then(b.decision_margin.total_cmp(&a.decision_margin)));
     dets.dedup_by(|b, a| a.family == b.family && a.id == b.id);
 }
-

@@ -175,6 +175,14 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         (Some(o), Some(v)) => crate::sinks::http::serve(o, v.clone()).await?,
         _ => None,
     };
+    // `[report]`: this run's feed copied into the report folder, the report written at the end.
+    let run_report = match recording.is_none() && !opts.record_only {
+        true => crate::report::live::RunReport::start(&config)?.map(|(r, w)| {
+            feeds.push(w);
+            r
+        }),
+        false => None,
+    };
     let record_dir = opts.record.clone().or_else(|| {
         (recording.is_none())
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
@@ -404,6 +412,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = rec_status.as_ref().map_or(0, |s| s.dropped_frames());
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
+    if let Some(r) = run_report {
+        tokio::task::spawn_blocking(move || r.finish()).await.ok();
+    }
     if let (Some(v), Some(_), Some(_)) = (&view, &recording, &_http) {
         v.on_finished();
         crate::sinks::http::linger().await?;

@@ -112,6 +112,8 @@ pub struct Measurement {
     /// specimen views rejected as outliers (cumulative; logged as a summary by live runs).
     pose_age_sets: Vec<u64>,
     rejected_by_camera: Vec<u64>,
+    /// Virtual gauges and the clock check (`solve::gauges`, `solve::clock_offset`).
+    gauges: crate::solve::gauges::LineGauges,
 }
 
 impl Measurement {
@@ -181,6 +183,7 @@ impl Measurement {
             last_seen: Vec::new(),
             pose_age_sets: vec![0; config.cameras.len()],
             rejected_by_camera: vec![0; config.cameras.len()],
+            gauges: crate::solve::gauges::LineGauges::new(config),
         })
     }
 
@@ -314,13 +317,16 @@ impl Measurement {
                     });
                     let (mut c, mut sigma) = (sol.centre_mm, sol.sigma_mm);
                     let mut pose = sol.tag_to_world;
+                    let mut fused_cov = None;
                     if sol.views >= 2 {
                         history.motion.observe(set.t_ns, c, sol.centre_covariance);
                     } else if let Some((fc, fcov)) = history.motion.fuse(set.t_ns, c, sol.centre_covariance) {
                         c = fc;
                         sigma = Vector3::new(fcov[(0, 0)].sqrt(), fcov[(1, 1)].sqrt(), fcov[(2, 2)].sqrt());
                         pose.translation = fc;
+                        fused_cov = Some(fcov);
                     }
+                    self.gauges.add_tag(*id, &pose, &sol, fused_cov);
                     history.pose = pose;
                     let disp = c - history.first_centre;
                     tags_out.push(FeedTag {
@@ -359,7 +365,10 @@ impl Measurement {
             mqtt_dropped: None,
             recording: None,
             recorder_dropped: None,
+            gauges: Default::default(),
+            clock_offset_ms: None,
         };
+        let line = self.gauges.finish_line(line, &self.utm);
         (line, times)
     }
 

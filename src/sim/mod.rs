@@ -11,12 +11,14 @@
 //! supports are under its bottom edge at `x = ±span/2`; deflection is positive downward.
 
 mod beam;
+pub mod law;
 mod record;
 pub(crate) mod render;
 mod rig;
 mod scene;
 
 pub use beam::{DeformedBeam, FourPointBeam};
+pub use law::{LoadLaw, SimTest};
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
 pub use scene::camera_names;
@@ -202,6 +204,72 @@ pub struct SimParams {
     /// Length of the UTM outage, seconds.
     #[arg(long, default_value_t = 5.0)]
     pub utm_outage_s: f64,
+
+    // Real tests (see `sim::law`). Written to a config only when not at their defaults, so
+    // recordings of the default rig are unchanged.
+    /// The test: `four-point` (loads at `±load_span/2`) or `three-point-notched` (centre
+    /// load, notch at midspan, tags straddling it; `load_span_mm` is then ignored).
+    #[arg(long, value_enum, default_value_t = SimTest::FourPoint)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub test: SimTest,
+    /// The load law: `elastic` (load = stiffness × deflection), `softening` or `hardening`
+    /// (elastic to the first crack, then to `residual_ratio` × the first-crack load).
+    #[arg(long, value_enum, default_value_t = LoadLaw::Elastic)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub load_law: LoadLaw,
+    /// Midspan deflection at the first crack, mm (first-crack load = stiffness × this).
+    #[arg(long, default_value_t = 0.3)]
+    #[serde(skip_serializing_if = "is_default_crack")]
+    pub crack_deflection_mm: f64,
+    /// Sudden drop of the load at the first crack, fraction of the first-crack load.
+    #[arg(long, default_value_t = 0.1)]
+    #[serde(skip_serializing_if = "is_default_drop")]
+    pub crack_drop: f64,
+    /// Residual load / first-crack load that the law tends to (default 0.5 softening, 1.5 hardening).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual_ratio: Option<f64>,
+    /// Deflection scale of the approach to the residual level after the crack, mm.
+    #[arg(long, default_value_t = 0.5)]
+    #[serde(skip_serializing_if = "is_default_softening")]
+    pub softening_mm: f64,
+    /// Notch depth (three-point-notched), mm.
+    #[arg(long, default_value_t = 25.0)]
+    #[serde(skip_serializing_if = "is_default_notch")]
+    pub notch_mm: f64,
+    /// Notch width (three-point-notched), mm.
+    #[arg(long, default_value_t = 3.0)]
+    #[serde(skip_serializing_if = "is_default_notch_width")]
+    pub notch_width_mm: f64,
+    /// Height of the crack tip (the halves' hinge) above the bottom face after cracking, mm
+    /// (default: notch + 0.6 × (height − notch)).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub crack_tip_mm: Option<f64>,
+    /// Offset of the UTM's clock against the cameras' clock, ms: a UTM sample taken at true
+    /// time t is stamped t + offset.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub utm_clock_offset_ms: f64,
+}
+
+fn is_default<T: Default + PartialEq>(v: &T) -> bool {
+    *v == T::default()
+}
+fn is_default_crack(v: &f64) -> bool {
+    *v == 0.3
+}
+fn is_default_drop(v: &f64) -> bool {
+    *v == 0.1
+}
+fn is_default_softening(v: &f64) -> bool {
+    *v == 0.5
+}
+fn is_default_notch(v: &f64) -> bool {
+    *v == 25.0
+}
+fn is_default_notch_width(v: &f64) -> bool {
+    *v == 3.0
 }
 
 impl Default for SimParams {
@@ -253,6 +321,16 @@ impl Default for SimParams {
             subsamples: 8,
             utm_outage_at_s: None,
             utm_outage_s: 5.0,
+            test: SimTest::FourPoint,
+            load_law: LoadLaw::Elastic,
+            crack_deflection_mm: 0.3,
+            crack_drop: 0.1,
+            residual_ratio: None,
+            softening_mm: 0.5,
+            notch_mm: 25.0,
+            notch_width_mm: 3.0,
+            crack_tip_mm: None,
+            utm_clock_offset_ms: 0.0,
         }
     }
 }
@@ -379,6 +457,46 @@ impl SimParams {
         if self.utm_outage_at_s.is_some_and(|a| !(a.is_finite() && a >= 0.0)) || !(self.utm_outage_s.is_finite() && self.utm_outage_s > 0.0)
         {
             return bad("utm_outage_at_s", "expected an outage start ≥ 0 s and a positive utm_outage_s");
+        }
+        self.validate_test()
+    }
+
+    /// Checks the options of real tests (load law, notched beam, UTM clock).
+    fn validate_test(&self) -> Result<(), SimError> {
+        fn bad(option: &'static str, message: impl Into<String>) -> Result<(), SimError> {
+            Err(SimError::Param { option, message: message.into() })
+        }
+        if !(self.crack_deflection_mm.is_finite() && self.crack_deflection_mm > 0.0) {
+            return bad("crack_deflection_mm", format!("{}: expected a positive deflection", self.crack_deflection_mm));
+        }
+        if !(0.0..1.0).contains(&self.crack_drop) {
+            return bad("crack_drop", format!("{}: expected a fraction in [0, 1)", self.crack_drop));
+        }
+        if let Some(r) = self.residual_ratio {
+            if !(r.is_finite() && (0.0..=5.0).contains(&r)) {
+                return bad("residual_ratio", format!("{r}: expected 0 to 5"));
+            }
+        }
+        if !(self.softening_mm.is_finite() && self.softening_mm > 0.0) {
+            return bad("softening_mm", format!("{}: expected a positive deflection scale", self.softening_mm));
+        }
+        if !(self.utm_clock_offset_ms.is_finite() && self.utm_clock_offset_ms.abs() <= 10_000.0) {
+            return bad("utm_clock_offset_ms", format!("{}: expected at most 10 s either way", self.utm_clock_offset_ms));
+        }
+        if self.test == SimTest::ThreePointNotched {
+            if !(self.notch_mm.is_finite() && self.notch_mm > 0.0 && self.notch_mm <= 0.5 * self.beam_height_mm) {
+                return bad("notch_mm", format!("{}: expected 0 < notch ≤ half the beam height", self.notch_mm));
+            }
+            if !(self.notch_width_mm.is_finite() && self.notch_width_mm > 0.0 && self.notch_width_mm <= 10.0) {
+                return bad("notch_width_mm", format!("{}: expected 0 to 10 mm", self.notch_width_mm));
+            }
+            let tip = law::crack_tip_height(self);
+            if !(tip.is_finite() && tip > self.notch_mm && tip < self.beam_height_mm) {
+                return bad("crack_tip_mm", format!("{tip}: expected above the notch and below the top face"));
+            }
+            if !(5..=9).contains(&self.specimen_tags) {
+                return bad("specimen_tags", "the notched test has 5 to 9 tags (midspan, two supports, two across the notch, then more)");
+            }
         }
         Ok(())
     }

@@ -12,14 +12,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{CameraIntrinsics, Pose};
 use crate::config::{
-    BackgroundConfig, BackgroundTag, CameraConfig, Config, MeasureConfig, OutputConfig, SpecimenConfig, SpecimenTag, SyncConfig, TagRole,
-    WorldConfig,
+    BackgroundConfig, BackgroundTag, BeamConfig, CameraConfig, Config, MeasureConfig, OutputConfig, SpecimenConfig, SpecimenTag,
+    SyncConfig, TagRole, WorldConfig,
 };
 use crate::frame::GrayImage;
+use crate::solve::gauges::{GaugeConfig, GaugeKind, GaugeTag, Gauges};
 use crate::tags::{tag_corners, TagFamily};
 use crate::utm::UtmSample;
 
-use super::beam::{DeformedBeam, FourPointBeam};
+use super::beam::FourPointBeam;
+use super::law::{self, BeamMotion, DeformedShape, SimTest};
 use super::render::{blur, gaussian_kernel, motion_blur, quantize, render_rect, CornerRays, Hit, PixelRect};
 use super::scene::{shade, Layout};
 use super::{SimError, SimParams};
@@ -103,6 +105,13 @@ pub struct SimTruthLine {
     pub cameras: Vec<SimTruthCamera>,
     /// Every specimen tag's pose.
     pub tags: Vec<SimTruthTag>,
+    /// Crack mouth opening at the bottom face (notched test), mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cmod_mm: Option<f64>,
+    /// True values of the config's gauges (same names and units as the feed's `gauges`),
+    /// from the true tag poses with the tags at rest as reference.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub gauges: std::collections::BTreeMap<String, f64>,
 }
 
 /// The static image of one camera pose (no beam), before and after optical blur.
@@ -121,9 +130,10 @@ struct CameraState {
 
 /// The deformed beam at one instant, ready for tracing.
 struct BeamState {
-    delta: f64,
+    /// The deformation (elastic curve, hinge of a cracked notched beam).
+    motion: BeamMotion,
     /// The deformed geometry, tabulated.
-    shape: DeformedBeam,
+    shape: DeformedShape,
     /// Per specimen tag: deformed centre (x, z) and (cos, sin) of its in-plane rotation.
     tags: Vec<(f64, f64, f64, f64)>,
     hidden: Option<usize>,
@@ -162,7 +172,10 @@ impl SimRig {
         let cams = layout.names.iter().map(|_| CameraState { rays: OnceLock::new(), background: Mutex::new(None) }).collect();
         Ok(SimRig {
             params: params.clone(),
-            beam: FourPointBeam { span: params.span_mm, load_span: params.load_span_mm },
+            beam: FourPointBeam {
+                span: params.span_mm,
+                load_span: if params.test == SimTest::ThreePointNotched { 0.0 } else { params.load_span_mm },
+            },
             layout,
             cams,
             kernel: gaussian_kernel(params.blur_sigma),
@@ -245,30 +258,35 @@ impl SimRig {
         }
     }
 
-    /// The UTM's reading at `t_ns`: load = stiffness × midspan deflection; stroke = the
-    /// deflection under the loading points + machine compliance × load.
+    /// The UTM's reading at true time `t_ns`: load = the load law at the midspan deflection
+    /// (elastic: stiffness × deflection, see [`law`]); stroke = the deflection under the
+    /// loading points + machine compliance × load.
     pub fn utm_sample(&self, t_ns: i64) -> UtmSample {
         let d = self.midspan_deflection(t_ns);
-        let load = self.params.stiffness_kn_per_mm * d;
-        let under_load = self.beam.deflection(0.5 * self.params.load_span_mm, d);
+        let load = law::load_at(&self.params, d);
+        let under_load = self.beam.deflection(0.5 * self.beam.load_span, d);
         UtmSample { t_ns, load_kn: load, stroke_mm: Some(under_load + self.params.compliance_mm_per_kn * load) }
     }
 
     /// UTM samples at `utm_hz` (with `utm_phase_ms` against the frame clock) covering the
-    /// recording from 0.25 s before the first frame set to 0.25 s after the last.
+    /// recording from 0.25 s (+ the clock offset) before the first frame set to 0.25 s (+ the
+    /// offset) after the last, stamped on the UTM's clock (`utm_clock_offset_ms` ahead).
     pub fn utm_samples(&self) -> Vec<UtmSample> {
         let p = &self.params;
         let dt = 1e9 / p.utm_hz;
-        let t_first = p.start_ns - 250_000_000;
-        let t_last = self.set_time_ns(p.frame_sets as u64 - 1) + 250_000_000;
+        let margin = 250_000_000 + (p.utm_clock_offset_ms.abs() * 1e6).round() as i64;
+        let t_first = p.start_ns - margin;
+        let t_last = self.set_time_ns(p.frame_sets as u64 - 1) + margin;
         let phase = p.utm_phase_ms * 1e6;
         let j0 = ((t_first - p.start_ns) as f64 - phase) / dt;
         let j1 = ((t_last - p.start_ns) as f64 - phase) / dt;
         let outage = self.utm_outage();
+        let offset_ns = (p.utm_clock_offset_ms * 1e6).round() as i64;
         (j0.ceil() as i64..=j1.floor() as i64)
             .map(|j| p.start_ns + (phase + j as f64 * dt).round() as i64)
             .filter(|t| outage.is_none_or(|(a, b)| *t < a || *t >= b))
-            .map(|t| self.utm_sample(t))
+            // Stamped on the UTM's clock: taken at true time `stamp - offset`.
+            .map(|stamp| UtmSample { t_ns: stamp, ..self.utm_sample(stamp - offset_ns) })
             .collect()
     }
 
@@ -337,6 +355,7 @@ impl SimRig {
     /// Pose (tag frame → world) of every specimen tag at midspan deflection `d` (mm).
     pub fn tag_poses_at(&self, d: f64) -> Vec<(u32, Pose)> {
         let zc = 0.5 * self.params.beam_height_mm;
+        let motion = self.motion_at(d);
         // Tag axes at rest: x → world x, y → world z, z (out of the face) → world -y.
         let r0 = Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0));
         let toward_viewer = Unit::new_normalize(-Vector3::y());
@@ -344,7 +363,7 @@ impl SimRig {
             .specimen
             .iter()
             .map(|s| {
-                let (dx, dz, rot) = self.beam.displace(s.x, s.zeta, d);
+                let (dx, dz, rot) = motion.displace(s.x, s.zeta);
                 let r = Rotation3::from_axis_angle(&toward_viewer, rot) * r0;
                 (s.id, Pose { rotation: r, translation: Vector3::new(s.x + dx, 0.0, zc + s.zeta + dz) })
             })
@@ -413,12 +432,79 @@ impl SimRig {
                 family: TagFamily::Tag36h11,
                 size_mm: p.specimen_tag_mm,
                 tags: self.layout.specimen.iter().map(|s| SpecimenTag { id: s.id, role: s.role }).collect(),
+                beam: self.real_test().then(|| BeamConfig {
+                    width_mm: p.beam_width_mm,
+                    depth_mm: p.beam_height_mm,
+                    span_mm: p.span_mm,
+                    notch_mm: (p.test == SimTest::ThreePointNotched).then_some(p.notch_mm),
+                }),
             },
             utm: None,
             output: OutputConfig::default(),
+            report: None,
             measure: MeasureConfig::default(),
             sim: Some(p.clone()),
+            gauges: if self.real_test() { self.gauges() } else { Vec::new() },
+            clock_check: None,
         }
+    }
+
+    /// True when the rig simulates more than the default elastic four-point test (a load
+    /// law, the notched test or a UTM clock offset): its config then carries
+    /// `[specimen.beam]` and gauges (the default rig's config is left as it was).
+    pub fn real_test(&self) -> bool {
+        let p = &self.params;
+        p.test != SimTest::FourPoint || p.load_law != law::LoadLaw::Elastic || p.utm_clock_offset_ms != 0.0
+    }
+
+    /// The gauges of a real test's config: `net` (net deflection), `rot1` (rotation of the
+    /// left support tag about world y, the beam's end slope), and `cmod` (opening of the
+    /// notch mouth from the two tags across it; notched test) or `curv` (curvature through
+    /// the supports and midspan; four-point).
+    pub fn gauges(&self) -> Vec<GaugeConfig> {
+        let g = |name: &str, kind: GaugeKind, tags: Vec<u32>| GaugeConfig {
+            name: name.into(),
+            kind,
+            tags,
+            direction: None,
+            axis: None,
+            gauge_length_mm: None,
+            at_mm: None,
+        };
+        let mut out = vec![g("net", GaugeKind::NetDeflection, Vec::new())];
+        out.push(GaugeConfig { axis: Some([0.0, 1.0, 0.0]), ..g("rot1", GaugeKind::Rotation, vec![1]) });
+        if self.params.test == SimTest::ThreePointNotched {
+            out.push(GaugeConfig {
+                direction: Some([1.0, 0.0, 0.0]),
+                at_mm: Some([0.0, 0.0, 0.0]),
+                ..g("cmod", GaugeKind::Opening, vec![3, 4])
+            });
+        } else {
+            out.push(g("curv", GaugeKind::Curvature, vec![1, 0, 2]));
+        }
+        out
+    }
+
+    /// Crack mouth opening (notched test): the change of the distance between the notch's
+    /// two edges at the bottom face, mm.
+    pub fn cmod_at(&self, d: f64) -> Option<f64> {
+        if self.params.test != SimTest::ThreePointNotched {
+            return None;
+        }
+        let m = self.motion_at(d);
+        let (w, hh) = (0.5 * self.params.notch_width_mm, 0.5 * self.params.beam_height_mm);
+        let (dl, ..) = m.displace(-w, -hh);
+        let (dr, ..) = m.displace(w, -hh);
+        Some(dr - dl)
+    }
+
+    /// True values of the config's gauges at midspan deflection `d` (tags referenced to rest).
+    pub fn gauge_truth(&self, d: f64) -> std::collections::BTreeMap<String, f64> {
+        let config = self.config();
+        let mut gauges = Gauges::new(&config.gauges, config.world.up, &config.specimen);
+        let exact = |poses: Vec<(u32, Pose)>| poses.into_iter().map(|(id, p)| GaugeTag::exact(id, p)).collect::<Vec<_>>();
+        gauges.evaluate(&exact(self.tag_poses_at(0.0)));
+        gauges.evaluate(&exact(self.tag_poses_at(d))).into_iter().map(|(k, v)| (k, v.value)).collect()
     }
 
     /// True when camera `cam`'s frame of set `k` carries motion blur.
@@ -497,32 +583,40 @@ impl SimRig {
             stroke_mm: utm.stroke_mm.unwrap_or(0.0),
             cameras,
             tags,
+            cmod_mm: self.cmod_at(d),
+            gauges: if self.real_test() { self.gauge_truth(d) } else { Default::default() },
         }
     }
 
     // ----------------------------------------------------------------------------------
     // Tracing.
 
+    /// The beam's deformation at midspan deflection `d` (mm).
+    pub fn motion_at(&self, d: f64) -> BeamMotion {
+        BeamMotion::new(&self.params, &self.beam, d)
+    }
+
     fn beam_state(&self, t_ns: i64, hidden: Option<u32>) -> BeamState {
         let d = self.midspan_deflection(t_ns);
+        let motion = self.motion_at(d);
         let zc = 0.5 * self.params.beam_height_mm;
         let tags = self
             .layout
             .specimen
             .iter()
             .map(|s| {
-                let (dx, dz, rot) = self.beam.displace(s.x, s.zeta, d);
+                let (dx, dz, rot) = motion.displace(s.x, s.zeta);
                 (s.x + dx, zc + s.zeta + dz, rot.cos(), rot.sin())
             })
             .collect();
         let hl = 0.5 * self.params.beam_length_mm;
         let ends = [-hl, hl].map(|x| {
-            let (_, dz, _) = self.beam.displace(x, 0.0, d);
-            let a = self.beam.slope(x, d).atan();
-            (Vector3::new(x, 0.0, zc + dz), Vector3::new(a.sin(), 0.0, a.cos()), Vector3::new(a.cos(), 0.0, -a.sin()))
+            let (dx, dz, rot) = motion.displace(x, 0.0);
+            let a = -rot;
+            (Vector3::new(x + dx, 0.0, zc + dz), Vector3::new(a.sin(), 0.0, a.cos()), Vector3::new(a.cos(), 0.0, -a.sin()))
         });
         let hidden = hidden.and_then(|id| self.layout.specimen.iter().position(|s| s.id == id));
-        BeamState { delta: d, shape: DeformedBeam::new(&self.beam, d, hl), tags, hidden, ends }
+        BeamState { motion, shape: DeformedShape::new(&motion, hl), tags, hidden, ends }
     }
 
     /// Grey level of a printed tag at `(x, y)` of its frame (paper white outside the print).
@@ -661,7 +755,7 @@ impl SimRig {
         for i in 0..=n {
             let x = -hl + 2.0 * hl * i as f64 / n as f64;
             for zeta in [-hh, 0.0, hh] {
-                let (dx, dz, _) = self.beam.displace(x, zeta, st.delta);
+                let (dx, dz, _) = st.motion.displace(x, zeta);
                 for y in [0.0, bw] {
                     let w = Vector3::new(x + dx, y, hh + zeta + dz);
                     if let Some(px) = k.project(&pose.transform(&w)) {

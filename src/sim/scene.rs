@@ -198,6 +198,33 @@ pub(crate) struct Layout {
     pub top_texture: TextureTable,
 }
 
+/// Tag places of the notched three-point test: the midspan tag near the top (above the
+/// crack tip: a tag must not straddle the crack), the supports, two tags just above the
+/// bottom face straddling the notch (ids 3 and 4: the crack mouth opening), the supports'
+/// top row, the quarter points.
+pub(crate) fn notched_slots(p: &SimParams) -> Vec<(f64, f64)> {
+    let (half_span, hh) = (0.5 * p.span_mm, 0.5 * p.beam_height_mm);
+    let printed = p.specimen_tag_mm * 10.0 / 8.0;
+    let top = hh - 0.5 * printed - 3.0;
+    let bottom = -hh + 0.5 * printed + 2.0;
+    let across = 0.5 * p.notch_width_mm + 2.0 + 0.5 * printed;
+    vec![
+        (0.0, top),
+        (-half_span, 0.0),
+        (half_span, 0.0),
+        (-across, bottom),
+        (across, bottom),
+        (-half_span, bh_third(p)),
+        (half_span, bh_third(p)),
+        (-0.5 * half_span, 0.0),
+        (0.5 * half_span, 0.0),
+    ]
+}
+
+fn bh_third(p: &SimParams) -> f64 {
+    p.beam_height_mm / 3.0
+}
+
 /// A camera at `centre` looking at `target` with world `z` up, rolled by `roll` rad.
 pub(crate) fn look_at(centre: Vector3<f64>, target: Vector3<f64>, roll: f64) -> Pose {
     let f = (target - centre).normalize();
@@ -325,14 +352,18 @@ impl Layout {
         let half_span = 0.5 * p.span_mm;
         let row_off = bh / 3.0;
         let mut slots = Vec::new();
-        for zeta in [0.0, row_off, -row_off] {
-            for x in [0.0, -half_span, half_span] {
-                slots.push((x, zeta));
+        if p.test == super::SimTest::ThreePointNotched {
+            slots = notched_slots(p);
+        } else {
+            for zeta in [0.0, row_off, -row_off] {
+                for x in [0.0, -half_span, half_span] {
+                    slots.push((x, zeta));
+                }
             }
-        }
-        for zeta in [0.0, row_off, -row_off] {
-            for x in [-0.5 * p.load_span_mm, 0.5 * p.load_span_mm] {
-                slots.push((x, zeta));
+            for zeta in [0.0, row_off, -row_off] {
+                for x in [-0.5 * p.load_span_mm, 0.5 * p.load_span_mm] {
+                    slots.push((x, zeta));
+                }
             }
         }
         let specimen = slots

@@ -3,6 +3,6 @@
 
 pub mod feed;
 pub mod http;
-pub mod mqtt;
 pub mod linefile;
+pub mod mqtt;
 pub mod recorder;

@@ -451,7 +451,11 @@ impl MqttPublisher {
             test: test.clone(),
             version: env!("CARGO_PKG_VERSION"),
             started_ns,
-            cameras: config.cameras.iter().map(|c| CameraStatus { name: c.name.clone(), source: c.source.to_string(), frame: None }).collect(),
+            cameras: config
+                .cameras
+                .iter()
+                .map(|c| CameraStatus { name: c.name.clone(), source: c.source.to_string(), frame: None })
+                .collect(),
             utm: config.utm.as_ref().map(|u| UtmStatus { address: u.address.clone(), state: None }),
             recording: recording.map(|p| p.display().to_string()),
             last_seq: None,

@@ -17,7 +17,9 @@
 //! updates a pose `(R, t)` to `(exp(ω) R, t + v)`; ω in radians, v in mm.
 
 pub mod camera_pose;
+pub mod clock_offset;
 pub mod drift;
+pub mod gauges;
 pub mod held_pose;
 pub mod init;
 pub mod lm;

@@ -44,6 +44,13 @@ pub struct TagSolution {
     pub sigma_mm: Vector3<f64>,
     /// 3×3 covariance of `centre_mm`, mm².
     pub centre_covariance: Matrix3<f64>,
+    /// Full 6×6 covariance of the pose step `(ω, v)` (rad, mm; see [`retract`](super::lm::retract)),
+    /// camera poses' uncertainty included (`centre_covariance` is its `v` block).
+    pub covariance: Matrix6<f64>,
+    /// The part of `covariance` from the corners' pixel noise alone (without the camera
+    /// poses' uncertainty, which is common to every frame set while a camera is held still
+    /// and so cancels from displacements).
+    pub noise_covariance: Matrix6<f64>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
     /// Views used.
@@ -290,6 +297,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: singular normal equations".into() })?;
     let mut cov = h_inv * s2;
+    let noise_cov = cov;
     for (_, view) in &problem.views {
         let Some(cam_cov) = view.camera_pose_covariance else { continue };
         let mut b = Matrix6::zeros();
@@ -308,6 +316,8 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
         centre_mm: best.pose.translation,
         sigma_mm: sigma,
         centre_covariance: centre_cov,
+        covariance: cov,
+        noise_covariance: noise_cov,
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,

@@ -18,7 +18,7 @@ use tagdeflect::feed::FeedLine;
 use tagdeflect::pipeline::replay::{self, ReplayOptions};
 use tagdeflect::recording::Recording;
 use tagdeflect::sim::{SimParams, SimTruthLine, SIM_TRUTH_FILE};
-use tagdeflect::solve::{BackgroundTagObservation, HeldCameraPose, DriftConfig, HeldPoseOptions};
+use tagdeflect::solve::{BackgroundTagObservation, DriftConfig, HeldCameraPose, HeldPoseOptions};
 
 /// Replays `dir` with drift tracking on or off; prints and returns the figures.
 fn replay_with(label: &str, dir: &std::path::Path, drift: bool) -> (Accuracy, Vec<FeedLine>, Recording) {

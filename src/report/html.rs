@@ -1,0 +1,295 @@
+//! `report.html`: one self-contained page (inline CSS, plots inline as SVG, no scripts, no
+//! external resources) laid out for the screen and for A4 print.
+
+use std::fmt::Write;
+
+use super::plots::Plot;
+use super::{Quantity, Report, Standard};
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+}
+
+/// Decimals that show σ with two significant digits (value and σ alike).
+pub fn decimals(q: &Quantity) -> usize {
+    let s = q.sigma.abs();
+    if s > 0.0 && s.is_finite() {
+        (1 - s.log10().floor() as i64).clamp(0, 6) as usize
+    } else {
+        let v = q.value.abs();
+        if v > 0.0 && v.is_finite() {
+            (3 - v.log10().floor() as i64).clamp(0, 6) as usize
+        } else {
+            1
+        }
+    }
+}
+
+fn time_utc(t_ns: i64) -> String {
+    chrono::DateTime::from_timestamp_nanos(t_ns).format("%Y-%m-%d %H:%M:%S%.3f UTC").to_string()
+}
+
+/// `{"field": "clock_offset_ms", "value": {"value": v, "sigma": s}}` as `v ± s ms (field)`.
+fn clock_text(v: &serde_json::Value) -> String {
+    let field = v["field"].as_str().unwrap_or("");
+    let unit = if field.ends_with("_ms") { " ms" } else { "" };
+    match (&v["value"]["value"], &v["value"]["sigma"], &v["value"]) {
+        (serde_json::Value::Number(x), serde_json::Value::Number(s), _) => {
+            format!("{:.1} ± {:.1}{unit} ({field})", x.as_f64().unwrap_or(f64::NAN), s.as_f64().unwrap_or(f64::NAN))
+        }
+        (_, _, serde_json::Value::Number(x)) => format!("{x}{unit} ({field})"),
+        (_, _, other) => format!("{other} ({field})"),
+    }
+}
+
+const STYLE: &str = r#"
+:root { --ink: #1b1f24; --muted: #5b6470; --rule: #d5dae0; --accent: #14469f; --warn: #a0521b; }
+* { box-sizing: border-box; }
+body { font-family: "DejaVu Sans", "Liberation Sans", Arial, sans-serif; color: var(--ink); margin: 0 auto; max-width: 1000px; padding: 24px 28px; line-height: 1.4; font-size: 14px; }
+h1 { font-size: 24px; margin: 0 0 4px; }
+h2 { font-size: 18px; margin: 28px 0 8px; padding-bottom: 3px; border-bottom: 2px solid var(--accent); color: var(--accent); }
+h3 { font-size: 15px; margin: 16px 0 6px; }
+.sub { color: var(--muted); margin: 2px 0; }
+table { border-collapse: collapse; width: 100%; margin: 6px 0 10px; }
+th, td { text-align: left; padding: 4px 8px; border-bottom: 1px solid var(--rule); vertical-align: top; }
+th { background: #f1f4f8; font-weight: 600; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.key { font-family: "DejaVu Sans Mono", monospace; font-size: 12px; color: var(--muted); }
+td.clause { font-size: 12px; color: var(--muted); }
+tr.undetermined td { color: var(--warn); }
+.note { background: #f7f4ea; border-left: 4px solid #d2b24c; padding: 6px 10px; margin: 8px 0; font-size: 13px; }
+.warn { color: var(--warn); }
+figure { margin: 10px 0 18px; }
+figure svg { width: 100%; height: auto; display: block; border: 1px solid var(--rule); }
+figcaption { color: var(--muted); font-size: 12px; margin-top: 4px; }
+ul { margin: 4px 0 8px 18px; padding: 0; }
+footer { margin-top: 30px; color: var(--muted); font-size: 12px; border-top: 1px solid var(--rule); padding-top: 6px; }
+@page { size: A4; margin: 14mm; }
+@media print {
+  body { max-width: none; padding: 0; font-size: 11px; }
+  h2 { break-after: avoid; }
+  table, figure, .note { break-inside: avoid; }
+  figure svg { border: none; }
+  a { color: inherit; text-decoration: none; }
+}
+"#;
+
+/// The HTML page of a report.
+pub fn render(report: &Report, plots: &[Plot]) -> String {
+    let mut h = String::with_capacity(64 * 1024);
+    let std_short = match report.standard {
+        Standard::AstmC1609 => "ASTM C1609",
+        Standard::AstmC1856 => "ASTM C1856 (flexure per ASTM C1609)",
+        Standard::En14651 => "EN 14651",
+    };
+    let qc = &report.qc;
+    let _ = write!(
+        h,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
+         <title>Flexural test report — {}</title><style>{STYLE}</style></head><body>\n",
+        esc(std_short)
+    );
+    let _ = write!(
+        h,
+        "<header><h1>Flexural test report — {}</h1><p class=\"sub\">{}</p><p class=\"sub\">Feed <code>{}</code>: {} lines, {} to {} ({:.1} s). Measured without contact by tagdeflect {}.</p></header>",
+        esc(std_short),
+        esc(report.standard.title()),
+        esc(&report.feed_path.display().to_string()),
+        qc.lines,
+        time_utc(qc.first_t_ns),
+        time_utc(qc.last_t_ns),
+        qc.duration_s,
+        env!("CARGO_PKG_VERSION")
+    );
+
+    // Specimen.
+    let b = &report.beam;
+    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
+    let mut row = |name: &str, sym: &str, v: f64| {
+        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v} mm</td></tr>");
+    };
+    row("width", "b", b.width_mm);
+    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm);
+    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm);
+    if let Some(n) = b.notch_mm {
+        row("notch depth", "a₀", n);
+        row("height above the notch tip", "h_sp", b.ligament_mm());
+    }
+    h.push_str("</table>");
+    for n in &report.notes {
+        let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
+    }
+
+    // Results.
+    h.push_str("<h2>Results</h2><table><tr><th>Quantity</th><th>Symbol</th><th class=\"num\">Value</th><th class=\"num\">± σ</th><th>Unit</th><th>Key</th><th>Definition</th></tr>");
+    for e in &report.entries {
+        match &e.result {
+            Ok(q) => {
+                let d = decimals(q);
+                let _ = write!(
+                    h,
+                    "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.d$}</td><td class=\"num\">{:.d$}</td><td>{}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                    esc(e.name),
+                    esc(e.symbol),
+                    q.value,
+                    q.sigma,
+                    esc(&q.unit),
+                    e.key,
+                    esc(e.clause)
+                );
+            }
+            Err(why) => {
+                let _ = write!(
+                    h,
+                    "<tr class=\"undetermined\"><td>{}</td><td>{}</td><td colspan=\"3\">not determined: {}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                    esc(e.name),
+                    esc(e.symbol),
+                    esc(why),
+                    e.key,
+                    esc(e.clause)
+                );
+            }
+        }
+    }
+    h.push_str("</table><p class=\"sub\">σ: one standard uncertainty from the feed's σ of the deflection/CMOD and the load's scatter and resolution (see Method). The specimen's dimensions are taken as exact.</p>");
+
+    // Plots.
+    h.push_str("<h2>Curves</h2>");
+    for p in plots {
+        let svg = p.svg.trim_start_matches(|c| c != '<');
+        let svg = svg.strip_prefix("<?xml version=\"1.0\" encoding=\"UTF-8\"?>").unwrap_or(svg);
+        let _ = write!(
+            h,
+            "<figure>{}<figcaption>{} (also <code>{}.png</code>, <code>{}.svg</code>)</figcaption></figure>",
+            svg,
+            esc(&p.title),
+            p.name,
+            p.name
+        );
+    }
+
+    // Method.
+    let c = &report.curve;
+    h.push_str("<h2>Method</h2><ul>");
+    let _ = write!(
+        h,
+        "<li><b>Curve:</b> load against {}, {} points in time order. {}: {}.</li>",
+        esc(&report.x_name),
+        c.len(),
+        esc(&report.x_axis),
+        esc(&report.x_source)
+    );
+    let _ = write!(
+        h,
+        "<li><b>Smoothing:</b> the {} is smoothed over time by a moving local-linear least-squares fit of {} points (a straight ramp passes unchanged); its σ is propagated through the fit's weights, the σ of the zero reference ({:.4} mm) added in full. The load is not smoothed.</li>",
+        esc(&report.x_axis),
+        c.smooth_points,
+        c.x_ref_sigma
+    );
+    let _ = write!(
+        h,
+        "<li><b>Load σ:</b> {:.4} kN per reading = √(scatter² + resolution²/12), scatter {:.4} kN (robust: 1.4826·MAD of each point's deviation from the line through its neighbours), resolution {} kN.</li>",
+        c.load_sigma, c.load_noise, report.options.load_resolution_kn
+    );
+    h.push_str("<li><b>Values at a deflection/CMOD:</b> the first point where the smoothed curve reaches it, loads interpolated linearly between the two bracketing points; σ² = s²·((1−f)²σ²(x̃ᵢ₋₁) + f²σ²(x̃ᵢ)) + ((1−f)² + f²)·σ_load², f the fraction between them, s the slope there (their secant when they are more than 3σ apart, else the local least-squares slope over the smoothing window).</li>");
+    if report.standard != Standard::En14651 {
+        h.push_str("<li><b>First peak:</b> C1609 defines it as the first point where the slope of the curve is zero. Here: the first local maximum of the load (smoothed like the deflection) above 10 % of the maximum load after which the smoothed load falls by max(3·σ_load, 0.5 % of the maximum load) before exceeding it; P1 is the largest measured load within the smoothing window there. A flat stretch without such a fall is not taken as the first peak.</li>");
+    }
+    h.push_str("</ul><table><tr><th>Key</th><th>How it is determined</th></tr>");
+    for e in &report.entries {
+        let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
+    }
+    h.push_str("</table>");
+
+    // QC.
+    h.push_str("<h2>Quality control</h2>");
+    if qc.warnings.is_empty() {
+        h.push_str("<p>No warnings.</p>");
+    } else {
+        h.push_str("<ul>");
+        for w in &qc.warnings {
+            let _ = write!(h, "<li class=\"warn\">{}</li>", esc(w));
+        }
+        h.push_str("</ul>");
+    }
+    h.push_str("<table><tr><th>Check</th><th class=\"num\">Value</th></tr>");
+    let mut kv = |k: &str, v: String| {
+        let _ = write!(h, "<tr><td>{}</td><td class=\"num\">{}</td></tr>", esc(k), esc(&v));
+    };
+    kv("feed lines", qc.lines.to_string());
+    kv("curve points (load and deflection/CMOD)", qc.curve_points.to_string());
+    kv("frame sets without a line (gaps in seq)", qc.frame_sets_without_line.to_string());
+    kv("lines without load", qc.lines_without_load.to_string());
+    kv(&format!("lines with load but without {}", report.x_axis), qc.lines_with_load_without_x.to_string());
+    kv("frame sets dropped (live pipeline)", qc.dropped_sets.map_or("not reported".into(), |d| d.to_string()));
+    kv("lines with the UTM down", qc.utm_down_lines.to_string());
+    kv("UTM outages", qc.utm_outages.len().to_string());
+    kv(&format!("{} scatter (robust)", report.x_axis), format!("{:.4} mm", qc.x_scatter_mm));
+    kv(&format!("{} σ from the feed (median)", report.x_axis), format!("{:.4} mm", qc.x_feed_sigma_median_mm));
+    kv("load scatter (robust)", format!("{:.4} kN", qc.load_noise_kn));
+    kv("clock offset (as the feed reports it)", qc.clock_offset.as_ref().map_or("not in the feed".into(), clock_text));
+    h.push_str("</table>");
+    if !qc.utm_outages.is_empty() {
+        h.push_str("<h3>UTM outages</h3><table><tr><th>from</th><th>to</th><th class=\"num\">duration</th></tr>");
+        for o in &qc.utm_outages {
+            let _ = write!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.2} s</td></tr>",
+                time_utc(o.from_t_ns),
+                time_utc(o.to_t_ns),
+                o.duration_s
+            );
+        }
+        h.push_str("</table>");
+    }
+    if !qc.cameras.is_empty() {
+        h.push_str("<h3>Cameras</h3><table><tr><th>camera</th><th class=\"num\">bumps</th><th class=\"num\">lines without frame</th><th class=\"num\">lines without pose</th></tr>");
+        for c in &qc.cameras {
+            let _ = write!(
+                h,
+                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                esc(&c.camera),
+                c.bumps,
+                c.lines_without_frame,
+                c.lines_unposed
+            );
+        }
+        h.push_str("</table>");
+    }
+    if !qc.drift_and_stale.is_empty() {
+        h.push_str(
+            "<h3>Drift and stale poses</h3><table><tr><th>field</th><th class=\"num\">lines</th><th class=\"num\">largest</th></tr>",
+        );
+        for f in &qc.drift_and_stale {
+            let _ = write!(
+                h,
+                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                esc(&f.field),
+                f.lines,
+                f.max_abs.map_or(String::new(), |m| format!("{m:.4}"))
+            );
+        }
+        h.push_str("</table>");
+    }
+    h.push_str("<h3>Coverage per tag</h3><table><tr><th>tag</th><th>role</th><th class=\"num\">lines</th><th class=\"num\">coverage</th><th class=\"num\">mean views</th><th class=\"num\">median σ (up)</th></tr>");
+    for t in &qc.tags {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{:.1} %</td><td class=\"num\">{:.2}</td><td class=\"num\">{}</td></tr>",
+            t.id,
+            t.role.unwrap_or(""),
+            t.lines,
+            t.coverage_pct,
+            t.mean_views,
+            t.median_sigma_up_mm.map_or(String::new(), |s| format!("{s:.4} mm"))
+        );
+    }
+    h.push_str("</table>");
+    let _ = write!(
+        h,
+        "<footer>Files beside this page: <code>report.json</code> (every value with σ and unit), <code>curve.csv</code> (the feed as a table), the plots as PNG and SVG. Generated by tagdeflect {} on {}.</footer></body></html>",
+        env!("CARGO_PKG_VERSION"),
+        chrono::Utc::now().format("%Y-%m-%d %H:%M UTC")
+    );
+    h
+}

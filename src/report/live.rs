@@ -1,0 +1,51 @@
+//! The report at the end of `run` (`[report]` in the config): the run's feed is copied into
+//! a new timestamped folder under `[report] out` while it runs (`feed.jsonl`, so the report
+//! can be made again with `tagdeflect report`), and the report is written there at shutdown.
+
+use std::path::PathBuf;
+
+use super::{Feed, ReportOptions};
+use crate::config::Config;
+use crate::sinks::feed::FeedWriter;
+
+/// A report to be written when the run ends.
+pub struct RunReport {
+    dir: PathBuf,
+    feed: PathBuf,
+    config: Config,
+}
+
+impl RunReport {
+    /// With `[report]` configured: creates the run's report folder and returns the hook and
+    /// the feed writer (a sink of the run) that copies the feed into it.
+    pub fn start(config: &Config) -> anyhow::Result<Option<(RunReport, FeedWriter)>> {
+        use anyhow::Context;
+        let Some(r) = &config.report else { return Ok(None) };
+        let dir = r.out.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string());
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create the report folder {}", dir.display()))?;
+        let feed = dir.join("feed.jsonl");
+        let writer = FeedWriter::append(&feed).with_context(|| format!("cannot write {}", feed.display()))?;
+        // The config in force beside the feed: `tagdeflect report feed.jsonl --config tagdeflect.toml` redoes the report.
+        let cfg = dir.join("tagdeflect.toml");
+        std::fs::write(&cfg, config.to_toml_string()).with_context(|| format!("cannot write {}", cfg.display()))?;
+        tracing::info!("the report of this run goes into {}", dir.display());
+        Ok(Some((RunReport { dir, feed, config: config.clone() }, writer)))
+    }
+
+    /// Writes the report (after every sink is flushed). A failure is logged, never fatal:
+    /// the feed is already safe on disk and `tagdeflect report` can try again.
+    pub fn finish(self) {
+        let Some(r) = &self.config.report else { return };
+        let opts = ReportOptions::from_config(r);
+        let cfg_path = self.dir.join("tagdeflect.toml");
+        let result = Feed::read(&self.feed)
+            .and_then(|feed| super::build(&feed, &self.config, &cfg_path, &opts).and_then(|rep| super::write(&rep, &feed, &self.dir)));
+        match result {
+            Ok(files) => tracing::info!("report written into {} ({} files)", self.dir.display(), files.len()),
+            Err(e) => tracing::error!(
+                "the report could not be written: {e}; the run's feed is kept in {} (try `tagdeflect report` on it)",
+                self.feed.display()
+            ),
+        }
+    }
+}
