@@ -14,8 +14,8 @@
 //! mapping follows the wall clock — at once for a step forwards; for a step backwards by
 //! slewing at [`SLEW_PPM`] (the process clock runs 0.5 % slow until it has caught up), so
 //! times never go back and the feed stays in `t_ns` order (SPEC). Everything stamped on this
-//! clock moves together, so pairing load with frames is unaffected. Frame-set assembly
-//! ([`crate::sync`]) also tolerates a backwards jump of its input times (a device clock).
+//! clock moves together, so pairing load with frames is unaffected, and frame-set assembly
+//! ([`crate::sync`]) never sees its input times step back.
 //!
 //! Device clocks are mapped onto the process clock: V4L2 drivers stamp buffers on
 //! CLOCK_MONOTONIC ([`ProcessClock::monotonic_to_epoch`]), GigE Vision cameras on their own
@@ -32,8 +32,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// Wall-clock disagreements above this (1 s) are treated as a step of the wall clock and
 /// re-map the process clock. Smaller differences are left alone: every stamp is on the
 /// process clock, so they cannot pair load with the wrong frame, and NTP's gradual slewing
-/// moves CLOCK_MONOTONIC's rate along with the wall clock's. Frame-set assembly treats a
-/// frame older than the last closed set by more than this as a step, not as a late frame.
+/// moves CLOCK_MONOTONIC's rate along with the wall clock's.
 pub const STEP_THRESHOLD_NS: i64 = 1_000_000_000;
 
 /// How fast the process clock absorbs a backwards step of the wall clock: 5000 ppm (5 ms per

@@ -8,12 +8,11 @@
 //! is dropped and counted, so frame sets come out in time order, each later than the one
 //! before.
 //!
-//! Clock steps: every frame is stamped on the process clock ([`crate::clock`]), which is
-//! re-mapped once when the wall clock is stepped. A frame older than the last closed set by
-//! more than [`crate::clock::STEP_THRESHOLD_NS`] cannot be a late frame (live frames are
-//! late by a few frame periods at most): the assembler takes it as a backwards step of the
-//! clock, closes what is open, counts the step ([`FrameSetAssembler::clock_steps`]) and goes
-//! on from the new time. A forwards step needs nothing: later frames are simply newer.
+//! Clock steps: every frame is stamped on the process clock ([`crate::clock`]), which never
+//! goes back (a backwards step of the wall clock is slewed there), so set times keep their
+//! order whatever the wall clock does. A frame older than the last closed set — however much
+//! older — is a late frame: dropped and counted, never a set out of time order (the feed is in
+//! `t_ns` order, SPEC).
 //!
 //! Live capture closes a set that waited too long for its missing cameras with
 //! [`FrameSetAssembler::poll`], measured from when the set was opened on the wall clock —
@@ -48,7 +47,6 @@ pub struct FrameSetAssembler {
     closed_until: Option<i64>,
     next_seq: u64,
     late_frames: u64,
-    clock_steps: u64,
     /// Late frames per camera.
     late_by_camera: Vec<u64>,
 }
@@ -71,7 +69,6 @@ impl FrameSetAssembler {
             closed_until: None,
             next_seq: 0,
             late_frames: 0,
-            clock_steps: 0,
             late_by_camera: vec![0; cameras],
         }
     }
@@ -79,11 +76,6 @@ impl FrameSetAssembler {
     /// Frames dropped because their set had already been closed.
     pub fn late_frames(&self) -> u64 {
         self.late_frames
-    }
-
-    /// Backwards clock steps seen (see the module doc).
-    pub fn clock_steps(&self) -> u64 {
-        self.clock_steps
     }
 
     /// Late frames of each camera so far.
@@ -98,22 +90,12 @@ impl FrameSetAssembler {
         }
     }
 
-    /// Adds a frame; returns the sets it completes, in time order (but across a backwards
-    /// clock step, see the module doc).
+    /// Adds a frame; returns the sets it completes, in time order.
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
-        if let Some(c) = self.closed_until.filter(|&c| frame.t_ns <= c) {
-            if c.saturating_sub(frame.t_ns) <= crate::clock::STEP_THRESHOLD_NS {
-                self.count_late(frame.camera);
-                return done;
-            }
-            tracing::warn!(
-                back_ms = c.saturating_sub(frame.t_ns) as f64 / 1e6,
-                "frame times stepped back: clock step; frame sets go on from the new time"
-            );
-            done.extend(self.flush());
-            self.closed_until = None;
-            self.clock_steps += 1;
+        if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
+            self.count_late(frame.camera);
+            return done;
         }
         let tol = self.tolerance_ns;
         let joins = self.open.iter().position(|s| {
@@ -301,29 +283,19 @@ mod tests {
     }
 
     #[test]
-    fn a_backwards_clock_step_is_not_a_stream_of_late_frames() {
-        // The wall clock is stepped back by 5 s at 100 ms: the process clock is re-mapped and
-        // frames from then on carry times 5 s earlier. Before this, every frame for 5 s was
-        // dropped as late; now the sets go on from the new time.
+    fn frames_far_older_than_the_last_set_never_make_a_set_out_of_order() {
+        // Times that jump back by 5 s (a device clock's glitch): late frames, never a set
+        // older than one already closed (the process clock itself never goes back).
         let mut a = FrameSetAssembler::with_open_sets(2, 10.0, 3);
         let mut sets = Vec::new();
-        for t in [0, 33, 66, 100] {
-            sets.extend(a.push(f(0, t)));
-            sets.extend(a.push(f(1, t + 1)));
-        }
-        for t in [133 - 5000, 166 - 5000, 200 - 5000] {
+        for t in [0, 33, 66, 100, 133 - 5000, 166 - 5000, 200, 233] {
             sets.extend(a.push(f(0, t)));
             sets.extend(a.push(f(1, t + 1)));
         }
         sets.extend(a.flush());
-        assert_eq!(sets.len(), 7, "every frame set survives the step");
-        assert!(sets.iter().all(|s| s.frames.len() == 2));
-        assert_eq!(a.late_frames(), 0);
-        assert_eq!(a.clock_steps(), 1);
-        // A frame late by a few frame periods is still only late.
-        assert!(a.push(f(0, 100 - 5000)).is_empty());
-        assert_eq!(a.late_frames(), 1);
-        assert_eq!(a.clock_steps(), 1);
+        assert!(sets.windows(2).all(|w| w[1].t_ns > w[0].t_ns));
+        assert_eq!(sets.len(), 6);
+        assert_eq!(a.late_frames(), 4);
     }
 
     #[test]

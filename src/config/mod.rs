@@ -499,13 +499,28 @@ pub struct MeasureConfig {
     /// Seconds between periodic full-frame searches when tracking.
     pub full_search_interval_s: f64,
     /// Track slow camera drift while poses are held (see `solve::drift`).
+    #[serde(skip_serializing_if = "is_true")]
     pub drift_tracking: bool,
     /// Expected size (1 σ) of a camera's turning rate, degrees per hour.
+    #[serde(skip_serializing_if = "is_0_1")]
     pub drift_rate_deg_per_h: f64,
     /// Expected size (1 σ) of the creep rate of a camera's centre, mm per hour.
+    #[serde(skip_serializing_if = "is_1")]
     pub drift_rate_mm_per_h: f64,
     /// Time over which the drift rate may change by about its σ, hours.
+    #[serde(skip_serializing_if = "is_1")]
     pub drift_rate_change_h: f64,
+}
+
+// Defaults are not written back, so a recording's config reads as before these options.
+fn is_true(v: &bool) -> bool {
+    *v
+}
+fn is_0_1(v: &f64) -> bool {
+    *v == 0.1
+}
+fn is_1(v: &f64) -> bool {
+    *v == 1.0
 }
 
 impl Default for MeasureConfig {

@@ -115,9 +115,11 @@ pub struct SimParams {
     /// Total rotation of the drift over the recording, degrees (about an oblique, mostly
     /// horizontal axis through the camera centre).
     #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default_drift_rot")]
     pub drift_rot_deg: f64,
     /// Total shift of the drifting camera's centre over the recording, mm (mostly downward).
     #[arg(long, default_value_t = 0.3, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default_drift_trans")]
     pub drift_trans_mm: f64,
     /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
     #[arg(long)]
@@ -203,6 +205,7 @@ pub struct SimParams {
     pub utm_outage_at_s: Option<f64>,
     /// Length of the UTM outage, seconds.
     #[arg(long, default_value_t = 5.0)]
+    #[serde(skip_serializing_if = "is_default_outage")]
     pub utm_outage_s: f64,
 
     // Real tests (see `sim::law`). Written to a config only when not at their defaults, so
@@ -255,6 +258,17 @@ pub struct SimParams {
 
 fn is_default<T: Default + PartialEq>(v: &T) -> bool {
     *v == T::default()
+}
+// Options added later are not written when at their defaults: a recording of the default rig
+// reads as it always did.
+fn is_default_drift_rot(v: &f64) -> bool {
+    *v == 0.05
+}
+fn is_default_drift_trans(v: &f64) -> bool {
+    *v == 0.3
+}
+fn is_default_outage(v: &f64) -> bool {
+    *v == 5.0
 }
 fn is_default_crack(v: &f64) -> bool {
     *v == 0.3
