@@ -435,7 +435,7 @@ impl ClockCheck {
             }
         }
         if !on_ramp {
-            return (self.lines % self.config.every_lines as u64 == 0).then_some(self.last?.to_feed());
+            return self.lines.is_multiple_of(self.config.every_lines as u64).then_some(self.last?.to_feed());
         }
         if let Some(d) = net_deflection_mm.filter(|_| on_ramp) {
             self.points.push((t_ns, d));
@@ -449,7 +449,10 @@ impl ClockCheck {
                 });
             }
         }
-        if self.lines % self.config.every_lines as u64 != 0 || self.points.len() < self.config.min_points as usize || utm.is_empty() {
+        if !self.lines.is_multiple_of(self.config.every_lines as u64)
+            || self.points.len() < self.config.min_points as usize
+            || utm.is_empty()
+        {
             return None;
         }
         let stroke = |t: i64| utm.interpolate(t).and_then(|(_, s)| s);

@@ -455,7 +455,7 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     // Clock: the UTM is stamped 80 ms ahead.
     let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
     let from_feed = estimate_from_feed(&lines, 1000.0);
-    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last();
+    let live = lines.iter().rev().find_map(|l| l.clock_offset_ms);
     println!("CLOCK 80 ms: from utm.jsonl {from_utm:?}; from the feed {from_feed:?}; live {live:?}");
     let (from_utm, from_feed, live) = (from_utm.expect("from utm.jsonl"), from_feed.expect("from the feed"), live.expect("live"));
     // σ covers the deflection's noise; the stroke between UTM samples is interpolated
