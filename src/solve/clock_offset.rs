@@ -195,14 +195,17 @@ fn knot_count(_n: usize) -> usize {
 #[derive(Debug, Clone, Copy, Default)]
 struct PrePeak {
     max: f64,
+    /// Time of the line with the largest load so far.
+    t_max: i64,
     ended: bool,
 }
 
 impl PrePeak {
-    fn on_ramp(&mut self, load_kn: Option<f64>) -> bool {
+    fn on_ramp(&mut self, t_ns: i64, load_kn: Option<f64>) -> bool {
         if let Some(l) = load_kn {
             if l > self.max {
                 self.max = l;
+                self.t_max = t_ns;
             } else if self.max > 0.0 && l < 0.97 * self.max && self.max - l > 1e-3 {
                 self.ended = true;
             }
@@ -211,12 +214,37 @@ impl PrePeak {
     }
 }
 
-/// The lines of the loading ramp before the first peak (by their load), time-sorted.
-fn pre_peak(lines: &[FeedLine]) -> Vec<&FeedLine> {
+/// Once the ramp has ended, the points to keep: before the line of the largest load less
+/// `margin_ns` (the loads of the lines are read on the UTM's clock, so the peak's line may
+/// already be past the crack in camera time by the offset).
+fn before_peak(points: &mut Vec<(i64, f64)>, t_max: i64, margin_ns: i64) {
+    points.retain(|p| p.0 < t_max - margin_ns);
+}
+
+/// The lines of the loading ramp before the first peak (by their load), time-sorted, and
+/// the time of the largest load when the ramp ended.
+fn pre_peak(lines: &[FeedLine]) -> (Vec<&FeedLine>, Option<i64>) {
     let mut sorted: Vec<&FeedLine> = lines.iter().collect();
     sorted.sort_by_key(|l| l.t_ns);
     let mut ramp = PrePeak::default();
-    sorted.into_iter().take_while(|l| ramp.on_ramp(l.load_kn)).collect()
+    let kept: Vec<&FeedLine> = sorted.into_iter().take_while(|l| ramp.on_ramp(l.t_ns, l.load_kn)).collect();
+    (kept, ramp.ended.then_some(ramp.t_max))
+}
+
+/// [`estimate`] on the pre-peak points: a first pass without the peak's line, a second
+/// with the points within the first estimate's offset (+ 3σ) of the peak left out too.
+fn estimate_pre_peak(
+    mut points: Vec<(i64, f64)>,
+    t_max: Option<i64>,
+    stroke: impl Fn(i64) -> Option<f64>,
+    max_offset_ms: f64,
+) -> Option<ClockOffset> {
+    points.sort_by_key(|p| p.0);
+    let Some(t_max) = t_max else { return estimate(&points, stroke, max_offset_ms) };
+    before_peak(&mut points, t_max, 0);
+    let first = estimate(&points, &stroke, max_offset_ms)?;
+    before_peak(&mut points, t_max, ((first.offset_ms.abs() + 3.0 * first.sigma_ms) * 1e6) as i64);
+    estimate(&points, &stroke, max_offset_ms).or(Some(first))
 }
 
 /// Sum of squared residuals of the relation fitted to `pairs` (knots from the pairs).
@@ -348,20 +376,20 @@ fn interpolate(series: &[(i64, f64)], t: i64) -> Option<f64> {
 /// line's `net_deflection_mm`, or a `net_deflection` gauge).
 pub fn estimate_from_feed(lines: &[FeedLine], max_offset_ms: f64) -> Option<ClockOffset> {
     let net = |l: &FeedLine| l.net_deflection_mm.or_else(|| l.gauges.values().find(|g| g.unit == "mm").map(|g| g.value));
-    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
+    let (ramp, t_max) = pre_peak(lines);
+    let points: Vec<(i64, f64)> = ramp.into_iter().filter_map(|l| net(l).map(|d| (l.t_ns, d))).collect();
     let mut stroke: Vec<(i64, f64)> = lines.iter().filter_map(|l| l.stroke_mm.map(|s| (l.t_ns, s))).collect();
-    points.sort_by_key(|p| p.0);
     stroke.sort_by_key(|p| p.0);
-    estimate(&points, |t| interpolate(&stroke, t), max_offset_ms)
+    estimate_pre_peak(points, t_max, |t| interpolate(&stroke, t), max_offset_ms)
 }
 
 /// The batch clock check against the UTM's own samples (e.g. a recording's `utm.jsonl`).
 pub fn estimate_from_utm(lines: &[FeedLine], utm: &[crate::utm::UtmSample], max_offset_ms: f64) -> Option<ClockOffset> {
-    let mut points: Vec<(i64, f64)> = pre_peak(lines).into_iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
-    points.sort_by_key(|p| p.0);
+    let (ramp, t_max) = pre_peak(lines);
+    let points: Vec<(i64, f64)> = ramp.into_iter().filter_map(|l| l.net_deflection_mm.map(|d| (l.t_ns, d))).collect();
     let mut stroke: Vec<(i64, f64)> = utm.iter().filter_map(|s| s.stroke_mm.map(|v| (s.t_ns, v))).collect();
     stroke.sort_by_key(|p| p.0);
-    estimate(&points, |t| interpolate(&stroke, t), max_offset_ms)
+    estimate_pre_peak(points, t_max, |t| interpolate(&stroke, t), max_offset_ms)
 }
 
 /// The live clock check: collects `(t, net deflection)` and estimates against the
@@ -396,9 +424,18 @@ impl ClockCheck {
     /// after the first peak the last estimate is repeated).
     pub fn update(&mut self, t_ns: i64, net_deflection_mm: Option<f64>, load_kn: Option<f64>, utm: &UtmHistory) -> Option<ValueSigma> {
         self.lines += 1;
-        let on_ramp = self.ramp.on_ramp(load_kn);
-        if self.lines % self.config.every_lines as u64 == 0 && !on_ramp {
-            return self.last.map(|l| l.to_feed());
+        let was_on_ramp = !self.ramp.ended;
+        let on_ramp = self.ramp.on_ramp(t_ns, load_kn);
+        if was_on_ramp && !on_ramp {
+            // The first peak: a last estimate from the points before it, then frozen.
+            let stroke = |t: i64| utm.interpolate(t).and_then(|(_, s)| s);
+            let points = std::mem::take(&mut self.points);
+            if let Some(e) = estimate_pre_peak(points, Some(self.ramp.t_max), stroke, self.config.max_offset_ms) {
+                self.last = Some(e);
+            }
+        }
+        if !on_ramp {
+            return self.lines.is_multiple_of(self.config.every_lines as u64).then_some(self.last?.to_feed());
         }
         if let Some(d) = net_deflection_mm.filter(|_| on_ramp) {
             self.points.push((t_ns, d));
@@ -412,7 +449,10 @@ impl ClockCheck {
                 });
             }
         }
-        if self.lines % self.config.every_lines as u64 != 0 || self.points.len() < self.config.min_points as usize || utm.is_empty() {
+        if !self.lines.is_multiple_of(self.config.every_lines as u64)
+            || self.points.len() < self.config.min_points as usize
+            || utm.is_empty()
+        {
             return None;
         }
         let stroke = |t: i64| utm.interpolate(t).and_then(|(_, s)| s);

@@ -204,7 +204,7 @@ pub fn validate_gauges(raw: &[Spanned<RawGauge>], specimen: &SpecimenConfig) -> 
         if kind == GaugeKind::NetDeflection {
             let used: Vec<Option<TagRole>> =
                 if tags.is_empty() { roles.values().copied().collect() } else { tags.iter().map(|id| roles[id]).collect() };
-            let has = |r: TagRole| used.iter().any(|x| *x == Some(r));
+            let has = |r: TagRole| used.contains(&Some(r));
             if !has(TagRole::Support) || !has(TagRole::Midspan) {
                 return Err(err(
                     tags_span,
@@ -336,8 +336,8 @@ impl Gauges {
         }
         let mut fresh = HashSet::new();
         for t in tags {
-            if !self.refs.contains_key(&t.id) {
-                self.refs.insert(t.id, *t);
+            if let std::collections::hash_map::Entry::Vacant(e) = self.refs.entry(t.id) {
+                e.insert(*t);
                 fresh.insert(t.id);
             }
         }

@@ -455,12 +455,15 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     // Clock: the UTM is stamped 80 ms ahead.
     let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
     let from_feed = estimate_from_feed(&lines, 1000.0);
-    let live = lines.iter().filter_map(|l| l.clock_offset_ms).last();
+    let live = lines.iter().rev().find_map(|l| l.clock_offset_ms);
     println!("CLOCK 80 ms: from utm.jsonl {from_utm:?}; from the feed {from_feed:?}; live {live:?}");
     let (from_utm, from_feed, live) = (from_utm.expect("from utm.jsonl"), from_feed.expect("from the feed"), live.expect("live"));
-    assert!((from_utm.offset_ms - 80.0).abs() <= 3.0 * from_utm.sigma_ms, "{from_utm:?}");
-    assert!((live.value - 80.0).abs() <= 3.0 * live.sigma, "{live:?}");
-    assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 5.0, "{from_feed:?}");
+    // σ covers the deflection's noise; the stroke between UTM samples is interpolated
+    // linearly, which rounds the kink at the ramp's start: up to a quarter of the sampling
+    // period (5 ms at 50 Hz; 25 ms between the feed's lines at 10 Hz) on top.
+    assert!((from_utm.offset_ms - 80.0).abs() <= 3.0 * from_utm.sigma_ms + 5.0, "{from_utm:?}");
+    assert!((live.value - 80.0).abs() <= 3.0 * live.sigma + 5.0, "{live:?}");
+    assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 25.0, "{from_feed:?}");
     assert!(from_utm.sigma_ms < 10.0, "{from_utm:?}");
 }
 
