@@ -489,8 +489,8 @@ fn is_default_format(f: &FrameFormat) -> bool {
 pub struct MeasureConfig {
     /// AprilTag `quad_decimate` for full-frame searches (1 = full resolution).
     pub quad_decimate: f32,
-    /// The AprilTag library's worker threads: searches (full frames, windows, sweep tiles)
-    /// run one camera at a time on one shared detector, each on this many threads.
+    /// AprilTag searches (full frames, windows, sweep tiles) that may run side by side, each
+    /// single-threaded, on C workers sharing one set of family tables.
     pub detector_threads: u32,
     /// Refine detector corners against the image gradient (see `detect`).
     pub refine_corners: bool,
