@@ -180,6 +180,20 @@ fn tagdeflect(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).env("TAGDEFLECT_LOG", "warn").output().expect("run tagdeflect")
 }
 
+/// `tagdeflect report FEED --config CFG --standard STANDARD --out OUT`.
+fn report(feed: &Path, cfg: &Path, standard: &str, out: &Path) -> Output {
+    tagdeflect(&[
+        "report",
+        feed.to_str().unwrap(),
+        "--config",
+        cfg.to_str().unwrap(),
+        "--standard",
+        standard,
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
 /// The one-camera config with the given `[specimen.beam]` appended.
 fn config_with_beam(dir: &Path, beam: &str) -> PathBuf {
     let base = fs::read_to_string(common::root().join("config/one-camera.toml")).unwrap();
@@ -230,16 +244,7 @@ fn report_cli_writes_html_json_csv_and_plots_for_c1609() {
     let feed = dir.path().join("feed.jsonl");
     fs::write(&feed, synthetic_feed(&SOFTENING, 0.01, 5.0, false)).unwrap();
     let out = dir.path().join("report");
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        "astm-c1609",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &cfg, "astm-c1609", &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for f in ["report.html", "report.json", "curve.csv", "load_deflection.png", "load_deflection.svg", "time.png", "time.svg"] {
         assert!(out.join(f).is_file(), "{f} missing");
@@ -311,16 +316,7 @@ fn report_cli_en14651_from_a_cmod_gauge() {
     let feed = dir.path().join("feed.jsonl");
     fs::write(&feed, synthetic_feed(&NOTCHED, 0.005, 4.0, true)).unwrap();
     let out = dir.path().join("en");
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        "en-14651",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &cfg, "en-14651", &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let j = read_json(&out.join("report.json"));
     assert_eq!(j["standard"], "en-14651");
@@ -339,31 +335,13 @@ fn report_cli_en14651_from_a_cmod_gauge() {
     assert!(csv.lines().next().unwrap().contains("cmod [mm],cmod_sigma [mm]"), "{}", csv.lines().next().unwrap());
     // EN 14651 without a notch in the config, or without a CMOD gauge in the feed: exit 2.
     let plain = config_with_beam(dir.path(), "width_mm = 150.0\ndepth_mm = 150.0\nspan_mm = 500.0");
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        plain.to_str().unwrap(),
-        "--standard",
-        "en-14651",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &plain, "en-14651", &out);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("notch_mm"), "{}", String::from_utf8_lossy(&o.stderr));
     let cfg = config_with_beam(dir.path(), "width_mm = 150.0\ndepth_mm = 150.0\nspan_mm = 500.0\nnotch_mm = 25.0");
     let no_gauge = dir.path().join("plain.jsonl");
     fs::write(&no_gauge, synthetic_feed(&NOTCHED, 0.005, 1.0, false)).unwrap();
-    let o = tagdeflect(&[
-        "report",
-        no_gauge.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        "en-14651",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&no_gauge, &cfg, "en-14651", &out);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("cmod"), "{}", String::from_utf8_lossy(&o.stderr));
 }
@@ -395,16 +373,7 @@ fn a_corrupt_feed_line_is_one_error_naming_file_and_line() {
     let feed = dir.path().join("bad.jsonl");
     fs::write(&feed, lines.join("\n") + "\n").unwrap();
     let out = dir.path().join("r");
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        "astm-c1609",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &cfg, "astm-c1609", &out);
     assert_eq!(o.status.code(), Some(2));
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("bad.jsonl:8:"), "{e}");
@@ -417,16 +386,7 @@ fn a_corrupt_feed_line_is_one_error_naming_file_and_line() {
     // A truncated last line (a writer killed mid-line) is skipped with a warning.
     let cut = &good[..good.len() - 40];
     fs::write(&feed, cut).unwrap();
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        "astm-c1609",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &cfg, "astm-c1609", &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("truncated last line skipped"), "{e}");
@@ -598,16 +558,7 @@ fn simulate_replay_report(
     fs::write(&feed, lines.iter().map(|l| l.to_json() + "\n").collect::<String>()).unwrap();
     let out = dir.join("report");
     let cfg = rec.join("tagdeflect.toml");
-    let o = tagdeflect(&[
-        "report",
-        feed.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--standard",
-        standard,
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = report(&feed, &cfg, standard, &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let truth: Vec<tagdeflect::sim::SimTruthLine> =
         tagdeflect::recording::read_jsonl_file(&rec.join(tagdeflect::sim::SIM_TRUTH_FILE)).unwrap();
