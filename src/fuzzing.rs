@@ -12,7 +12,7 @@ use crate::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine
 use crate::utm::{UtmHistory, UtmSample};
 
 /// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
-pub const TARGETS: &[&str] = &["image", "jsonl", "config", "calibration", "convert", "modbus", "assembly", "roi", "window_detect"];
+pub const TARGETS: &[&str] = &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect"];
 
 /// Runs target `name` on `data` (regression tests); `false` for an unknown name.
 pub fn run(name: &str, data: &[u8]) -> bool {
@@ -23,6 +23,7 @@ pub fn run(name: &str, data: &[u8]) -> bool {
         "calibration" => calibration(data),
         "convert" => convert(data),
         "modbus" => modbus(data),
+        "modbus_peer" => modbus_peer(data),
         "assembly" => assembly(data),
         "roi" => roi(data),
         "window_detect" => window_detect(data),
@@ -132,6 +133,83 @@ pub fn modbus(data: &[u8]) {
         }
     }
     let _ = crate::utm::encode(&reg, scale);
+}
+
+/// A raw-byte Modbus TCP peer driving the real poller ([`crate::utm::run_poller`]) over
+/// loopback. The input is a script of replies: each chunk is a length byte followed by that
+/// many bytes, written (possibly as a partial or oversized frame) in answer to one request
+/// read from the poller; when the script ends the peer closes the connection and stops
+/// listening. The poller must never panic, must report the broken link as `Down` (never a
+/// sample that did not come from a well-formed reply of the right size), and must stop
+/// when told to.
+pub fn modbus_peer(data: &[u8]) {
+    use std::sync::OnceLock;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    static RT: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
+    let rt = RT.get_or_init(|| tokio::runtime::Builder::new_current_thread().enable_all().build().expect("a tokio runtime"));
+    let script = data.to_vec();
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind a loopback port");
+        let addr = listener.local_addr().expect("local address");
+        let peer = tokio::spawn(async move {
+            let Ok((mut sock, _)) = listener.accept().await else { return };
+            drop(listener);
+            let mut rest: &[u8] = &script;
+            let mut request = [0u8; 260];
+            while let Some((&n, tail)) = rest.split_first() {
+                if sock.read(&mut request).await.unwrap_or(0) == 0 {
+                    return;
+                }
+                let take = (n as usize).min(tail.len());
+                if sock.write_all(&tail[..take]).await.is_err() {
+                    return;
+                }
+                rest = &tail[take..];
+            }
+            // Script done: the connection closes here.
+        });
+        let reg = |register, value_type| RegisterConfig {
+            register,
+            kind: RegisterKind::Input,
+            value_type,
+            word_order: WordOrder::Abcd,
+            scale: 1.0,
+            offset: 0.0,
+        };
+        let cfg = crate::config::UtmConfig {
+            address: addr.to_string(),
+            unit: 1,
+            poll_hz: 1000.0,
+            timeout_ms: 20.0,
+            load: reg(0, ValueType::F32),
+            stroke: Some(reg(2, ValueType::I32)),
+        };
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let poller = tokio::spawn(crate::utm::run_poller(cfg, tx, stop_rx));
+        // Until the poller says the link is down (the script ends with a closed connection,
+        // so that always comes).
+        let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(5);
+        loop {
+            let ev = tokio::select! {
+                ev = rx.recv() => ev,
+                _ = tokio::time::sleep_until(deadline) => panic!("the poller did not report the link down within 5 s"),
+            };
+            match ev {
+                Some(crate::utm::UtmEvent::Sample(s)) => assert!(s.t_ns > 0, "sample without a time"),
+                Some(crate::utm::UtmEvent::Down { reason }) => {
+                    assert!(reason.contains(&addr.to_string()), "a fault that does not name the address: {reason}");
+                    break;
+                }
+                Some(crate::utm::UtmEvent::Up) => {}
+                None => panic!("the poller stopped on its own"),
+            }
+        }
+        let _ = stop_tx.send(true);
+        let r = tokio::time::timeout(std::time::Duration::from_secs(5), poller).await.expect("the poller stops when told");
+        assert!(r.expect("the poller task does not panic").is_ok());
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(5), peer).await;
+    });
 }
 
 /// Frame-set assembly and the UTM history with arbitrary times (overflow checks on):

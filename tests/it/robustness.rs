@@ -593,6 +593,17 @@ fn mutation_fuzz() {
             "modbus",
             vec![vec![0, 0, 0, 0, 0, 0, 0, 0, 0, 0xf0, 0x3f, 0, 0, 0, 0, 0, 0, 0, 0, 0x41, 0x48], vec![3, 1, 1, 0xff, 0xff, 0xff, 0x7f]],
         ),
+        (
+            "modbus_peer",
+            // Two well-formed replies (transaction ids 0 and 1) to the poller's one read of
+            // four input registers, then a reply cut short.
+            vec![[
+                &[17u8, 0, 0, 0, 0, 0, 11, 1, 4, 8, 0x41, 0x20, 0, 0, 0, 0, 0, 5][..],
+                &[17u8, 0, 1, 0, 0, 0, 11, 1, 4, 8, 0x41, 0x28, 0, 0, 0, 0, 0, 6][..],
+                &[9u8, 0, 2, 0, 0, 0, 11, 1, 4, 8][..],
+            ]
+            .concat()],
+        ),
         ("assembly", vec![(0..200u8).collect(), vec![2, 1, 0, 0, 0, 0, 0, 0, 0, 0x80, 0, 255, 255, 255, 255, 255, 255, 255, 127, 1]]),
         ("roi", vec![(0..200u8).map(|b| b.wrapping_mul(37)).collect()]),
         ("window_detect", vec![png.iter().chain(pgm.iter()).copied().collect()]),
