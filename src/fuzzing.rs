@@ -12,7 +12,8 @@ use crate::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine
 use crate::utm::{UtmHistory, UtmSample};
 
 /// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
-pub const TARGETS: &[&str] = &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect"];
+pub const TARGETS: &[&str] =
+    &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect"];
 
 /// Runs target `name` on `data` (regression tests); `false` for an unknown name.
 pub fn run(name: &str, data: &[u8]) -> bool {

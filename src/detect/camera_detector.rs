@@ -11,12 +11,22 @@
 //! known tags' bitmaps and the rig's [`TagRoles`]. Cameras are independent, so the
 //! measurement detects all of a frame set's cameras in parallel.
 //!
-//! **Background searches** (live pipeline, [`CameraDetector::set_background_searches`]):
-//! a whole-frame search after the first frame — the sweep after a tag was lost, or the
+//! **Background searches** (on by default in tracking mode, live and replay alike): a
+//! whole-frame search after the first frame — the sweep after a tag was lost, or the
 //! search of a camera that follows no tag — runs on a thread of its own on a copy of the
-//! frame, so it stalls no frame set; the tags it finds are followed from the first frame
-//! after it finished (confirmed there, where they were found). Replays keep every search
-//! in its frame, so they stay reproducible.
+//! frame, so it stalls no frame set. Its tags are taken in at the first frame at least
+//! [`BACKGROUND_SEARCH_LAG_NS`] after the searched frame (the detector waits for the
+//! search there if it has not finished, which on an idle PC it has long done), and are
+//! confirmed there, where they were found. The moment a result is taken in depends only on
+//! the frames' times, never on how fast the search ran, so a live run and the replay of its
+//! recording give the same feed.
+//!
+//! **Start-up search**: the first search of a camera in tracking mode (no tag followed yet)
+//! runs at quad decimation [`STARTUP_DECIMATE`] (the library fits quads on half the pixels;
+//! corners are refined at full resolution, so they are as good as a full-resolution
+//! search's); when it did not find every specimen tag of the rig, the same frame is searched
+//! again at the configured resolution, so a camera that sees every specimen tag is ready in
+//! a quarter of the time and no tag is lost to the decimation.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc;
@@ -30,7 +40,7 @@ use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
 use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
 use super::refine::{refine_corners_with, EdgeLevels};
 use super::{Detection, Rect};
-use crate::camera::CameraIntrinsics;
+use crate::camera::{CameraIntrinsics, IdealPixelMap, Lens};
 use crate::frame::GrayImage;
 use crate::tags::TagFamily;
 
@@ -41,6 +51,14 @@ use crate::tags::TagFamily;
 pub const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
 /// Cap of the contrast filter of tracking-mode searches, grey levels.
 pub const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
+
+/// Time (frame time, ns) after a background search's frame at which its tags are taken in
+/// (see the module docs): 0.5 s — a full-resolution search of a 1920x1080 frame takes
+/// ~0.3 s of one core, and a tag lost for half a second more costs nothing a lost tag has
+/// not already cost.
+pub const BACKGROUND_SEARCH_LAG_NS: i64 = 500_000_000;
+/// Quad decimation of a camera's start-up search in tracking mode (see the module docs).
+pub const STARTUP_DECIMATE: f32 = 2.0;
 
 /// Time of one frame set's detection by kind of work, seconds.
 #[derive(Debug, Clone, Copy, Default)]
@@ -53,6 +71,9 @@ pub struct DetectParts {
     pub search: f64,
     /// Wall time of full-frame searches (likewise).
     pub full_frame: f64,
+    /// Wall time spent waiting for a background search that had not finished when its
+    /// result was due (likewise; 0 when the searches keep up).
+    pub background_wait: f64,
 }
 
 impl DetectParts {
@@ -61,6 +82,7 @@ impl DetectParts {
         self.tracking += other.tracking;
         self.search += other.search;
         self.full_frame += other.full_frame;
+        self.background_wait += other.background_wait;
     }
 }
 
@@ -69,8 +91,11 @@ impl DetectParts {
 pub struct DetectReport {
     /// Time by kind of work.
     pub parts: DetectParts,
-    /// Full-frame searches run (0 or 1).
+    /// Full-frame searches run in the frame (0, 1, or 2 when the decimated start-up search
+    /// was repeated at full resolution).
     pub full_frame_searches: u64,
+    /// Whole-frame searches started in the background.
+    pub background_searches: u64,
     /// Window and sweep-tile searches run.
     pub window_searches: u64,
     /// Tags confirmed at their predicted place (no search needed).
@@ -148,12 +173,17 @@ pub struct CameraDetector {
     tag_contrast: Option<f64>,
     /// The sweep's masked copy of a tile (reused).
     tile: GrayImage,
+    /// The ideal coordinates of the pixels the followed tags' edge fits use (kept: the
+    /// tags stay in the same few blocks of the image).
+    pixel_map: Option<IdealPixelMap>,
     /// Whole-frame searches after the first frame run in the background.
     background: bool,
+    /// Tracking mode (the start-up search is decimated).
+    tracking: bool,
     /// A frame has been searched (the first search is never in the background).
     searched_once: bool,
-    /// The result of the background search under way: the frame's time and its tags.
-    pending: Option<mpsc::Receiver<(i64, Vec<Detection>)>>,
+    /// The background search under way: its frame's time and where its tags will come.
+    pending: Option<(i64, mpsc::Receiver<Vec<Detection>>)>,
 }
 
 impl CameraDetector {
@@ -166,47 +196,87 @@ impl CameraDetector {
             edge_levels: HashMap::new(),
             tag_contrast: None,
             tile: GrayImage::new(0, 0),
-            background: false,
+            pixel_map: None,
+            background: roi_tracking,
+            tracking: roi_tracking,
             searched_once: false,
             pending: None,
         }
     }
 
-    /// Runs whole-frame searches after the first frame in the background (see the module
-    /// docs; for live capture, where a stalled frame set is a lost one).
+    /// Runs whole-frame searches after the first frame in the background (the default in
+    /// tracking mode; see the module docs) or, with `false`, each in its own frame.
     pub fn set_background_searches(&mut self, on: bool) {
         self.background = on;
     }
 
-    /// Takes the tags of a finished background search into the plan.
-    fn take_background_result(&mut self, rig: &RigDetectors) {
-        let Some(rx) = &self.pending else { return };
-        match rx.try_recv() {
-            Ok((t_ns, dets)) => {
-                self.pending = None;
-                let dets = rig.roles.classify(dets);
-                self.planner.add_found(t_ns, &dets.background, &dets.specimen);
-            }
-            Err(mpsc::TryRecvError::Empty) => {}
-            Err(mpsc::TryRecvError::Disconnected) => self.pending = None,
+    /// Takes the tags of the background search under way into the plan when they are due
+    /// at the frame at `t_ns` (waiting for the search if it has not finished); returns the
+    /// time waited, seconds.
+    fn take_background_result(&mut self, t_ns: i64, rig: &RigDetectors) -> f64 {
+        let Some((t_search, _)) = &self.pending else { return 0.0 };
+        let t_search = *t_search;
+        if t_ns.saturating_sub(t_search) < BACKGROUND_SEARCH_LAG_NS {
+            return 0.0;
         }
+        let Some((_, rx)) = self.pending.take() else { return 0.0 };
+        let c0 = Instant::now();
+        let result = rx.recv();
+        let waited = c0.elapsed().as_secs_f64();
+        match result {
+            Ok(dets) => {
+                let dets = rig.roles.classify(dets);
+                self.planner.add_found(t_search, &dets.background, &dets.specimen);
+            }
+            Err(_) => tracing::warn!("a background search ended without a result"),
+        }
+        waited
     }
 
-    /// Starts a search of the whole `image` in the background unless one is under way.
-    fn start_background_search(&mut self, t_ns: i64, image: &GrayImage, options: SearchOptions, rig: &Arc<RigDetectors>) {
+    /// Starts a search of the whole `image` in the background unless one is under way;
+    /// true when one was started.
+    fn start_background_search(&mut self, t_ns: i64, image: &GrayImage, options: SearchOptions, rig: &Arc<RigDetectors>) -> bool {
         if self.pending.is_some() {
-            return;
+            return false;
         }
         let (tx, rx) = mpsc::channel();
         let (image, rig, intrinsics) = (image.clone(), Arc::clone(rig), self.intrinsics);
         let spawned = std::thread::Builder::new().name("background-search".into()).spawn(move || {
             let found = rig.library.search(&image, None, &options, Some(&intrinsics));
-            let _ = tx.send((t_ns, found));
+            let _ = tx.send(found);
         });
         match spawned {
-            Ok(_) => self.pending = Some(rx),
-            Err(e) => tracing::warn!("cannot start a background search: {e}"),
+            Ok(_) => {
+                self.pending = Some((t_ns, rx));
+                true
+            }
+            Err(e) => {
+                tracing::warn!("cannot start a background search: {e}");
+                false
+            }
         }
+    }
+
+    /// The in-frame search of the whole `image` (see the module docs for the decimated
+    /// start-up search); returns the tags and the number of searches run.
+    fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64) {
+        let configured = SearchOptions::of(rig.library.options());
+        let startup = self.tracking && !self.searched_once && configured.quad_decimate < STARTUP_DECIMATE;
+        if startup {
+            let options = SearchOptions { quad_decimate: STARTUP_DECIMATE, ..configured };
+            let found = rig.library.search(image, None, &options, Some(&self.intrinsics));
+            let seen: HashSet<u32> = found.iter().filter(|d| d.family == rig.roles.specimen_family).map(|d| d.id).collect();
+            if rig.roles.specimen.iter().all(|id| seen.contains(id)) {
+                return (found, 1);
+            }
+            tracing::debug!(
+                found = seen.len(),
+                specimen_tags = rig.roles.specimen.len(),
+                "decimated start-up search missed specimen tags: searching at full resolution"
+            );
+            return (rig.library.search(image, None, &configured, Some(&self.intrinsics)), 2);
+        }
+        (rig.library.search(image, None, &configured, Some(&self.intrinsics)), 1)
     }
 
     /// Detects the tags of the frame at `t_ns`: the tags followed are confirmed where they
@@ -215,25 +285,28 @@ impl CameraDetector {
     /// is remembered for the next frame.
     pub fn detect(&mut self, t_ns: i64, image: &GrayImage, rig: &Arc<RigDetectors>) -> (CameraDetections, DetectReport) {
         let mut report = DetectReport::default();
-        self.take_background_result(rig);
+        report.parts.background_wait = self.take_background_result(t_ns, rig);
         let background = self.background && self.searched_once;
-        self.searched_once = true;
         let found = match self.planner.plan(t_ns, image) {
             Plan::FullFrame if background && self.planner.is_empty() => {
-                self.start_background_search(t_ns, image, SearchOptions::of(rig.library.options()), rig);
+                if self.start_background_search(t_ns, image, SearchOptions::of(rig.library.options()), rig) {
+                    report.background_searches = 1;
+                }
                 Vec::new()
             }
             Plan::FullFrame => {
                 let c0 = Instant::now();
-                let found = rig.library.search(image, None, &SearchOptions::of(rig.library.options()), Some(&self.intrinsics));
-                report.full_frame_searches = 1;
+                let (found, searches) = self.search_whole_frame(image, rig);
+                report.full_frame_searches = searches;
                 report.parts.full_frame = c0.elapsed().as_secs_f64();
                 found
             }
             Plan::Windows { decimate, tags, mut sweep, whole_frame } => {
                 if background && whole_frame {
                     let options = self.search_options(rig, decimate);
-                    self.start_background_search(t_ns, image, options, rig);
+                    if self.start_background_search(t_ns, image, options, rig) {
+                        report.background_searches = 1;
+                    }
                     sweep.clear();
                 }
                 let (confirmed, windows, cpu) = self.confirm(image, tags, rig);
@@ -249,6 +322,7 @@ impl CameraDetector {
                 found
             }
         };
+        self.searched_once = true;
         let dets = rig.roles.classify(found);
         self.planner.observe(t_ns, &dets.background, &dets.specimen);
         (dets, report)
@@ -258,13 +332,17 @@ impl CameraDetector {
     /// (merged) windows of the others and the CPU time spent.
     fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Vec<Detection>, Vec<Rect>, f64) {
         let refine = rig.library.options().subpixel.as_ref();
-        let (levels, intrinsics) = (&self.edge_levels, &self.intrinsics);
+        if self.pixel_map.as_ref().map(|m| m.size()) != Some((image.width, image.height)) {
+            self.pixel_map = Some(IdealPixelMap::new(self.intrinsics, image.width, image.height));
+        }
+        let levels = &self.edge_levels;
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let one = |t: &PlannedTag| {
             let c0 = crate::clock::thread_cpu_s();
             let levels = levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
             let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
             let result = match refine {
-                Some(opts) => rig.confirmer.confirm(image, &prediction, Some(intrinsics), opts),
+                Some(opts) => rig.confirmer.confirm(image, &prediction, lens, opts),
                 None => Err(ConfirmMiss::Unsupported),
             };
             (result, crate::clock::thread_cpu_s() - c0)
@@ -328,15 +406,7 @@ impl CameraDetector {
             return out;
         }
         let configured = rig.library.options();
-        let min_diff = configured.min_white_black_diff as f64;
-        let white_black_diff = self
-            .tag_contrast
-            .map_or(min_diff, |c| (SEARCH_CONTRAST_FRACTION * c).clamp(min_diff, MAX_SEARCH_WHITE_BLACK_DIFF.max(min_diff)));
-        let options = SearchOptions {
-            quad_decimate: configured.quad_decimate.max(search_decimate),
-            min_white_black_diff: white_black_diff as u8,
-            refine: configured.subpixel.is_some(),
-        };
+        let options = self.search_options(rig, search_decimate);
         for r in windows {
             out.extend(rig.library.search(image, Some(*r), &options, Some(&self.intrinsics)));
         }

@@ -21,7 +21,7 @@ use std::collections::HashMap;
 use super::family::tag_bitmap;
 use super::refine::{refine_corners_warm, EdgeLevels, RefineOptions};
 use super::Detection;
-use crate::camera::{apply_homography, CameraIntrinsics, Lens};
+use crate::camera::{apply_homography, Lens};
 use crate::frame::GrayImage;
 use crate::tags::{cell_homography, TagBitmap, TagFamily};
 
@@ -105,7 +105,7 @@ impl TagConfirmer {
         &self,
         image: &GrayImage,
         prediction: &Prediction,
-        intrinsics: Option<&CameraIntrinsics>,
+        lens: Lens<'_>,
         refine: &RefineOptions,
     ) -> Result<ConfirmedTag, ConfirmMiss> {
         let Prediction { family, id, corners: predicted, mut levels } = *prediction;
@@ -120,7 +120,7 @@ impl TagConfirmer {
         };
         let mut det = Detection { family, id, corners: *predicted, decision_margin: 0.0, hamming: 0 };
         let refine = &RefineOptions { passes: self.options.refine_passes.min(refine.passes).max(1), ..refine.clone() };
-        let report = refine_corners_warm(image, &mut det, intrinsics, refine, &mut levels);
+        let report = refine_corners_warm(image, &mut det, lens, refine, &mut levels);
         if report.refined != 4 {
             return Err(if report.failed_fit == 4 && edge_bits_px(predicted, family) < refine.min_bit_px {
                 ConfirmMiss::Unsupported
@@ -128,7 +128,7 @@ impl TagConfirmer {
                 ConfirmMiss::Refinement
             });
         }
-        let read = read_cells(image, &det.corners, bitmap, intrinsics).ok_or(ConfirmMiss::Code)?;
+        let read = read_cells(image, &det.corners, bitmap, lens).ok_or(ConfirmMiss::Code)?;
         if read.contrast < self.options.min_contrast || read.wrong > self.options.max_wrong_cells {
             return Err(ConfirmMiss::Code);
         }
@@ -157,13 +157,7 @@ struct CellRead {
 
 /// Samples every cell of the printed tag (black square and white ring) at its centre and
 /// four points around it, through the homography of `corners`.
-fn read_cells(
-    image: &GrayImage,
-    corners: &[Point2<f64>; 4],
-    bitmap: &TagBitmap,
-    intrinsics: Option<&CameraIntrinsics>,
-) -> Option<CellRead> {
-    let lens = Lens::new(intrinsics);
+fn read_cells(image: &GrayImage, corners: &[Point2<f64>; 4], bitmap: &TagBitmap, lens: Lens<'_>) -> Option<CellRead> {
     let nb = bitmap.width_at_border as f64;
     let ideal = corners.map(|c| lens.pixel_to_ideal(&c.coords, None));
     let h = cell_homography(&ideal, nb)?;

@@ -198,6 +198,10 @@ pub struct BenchFigures {
     pub full_frame_searches: u64,
     /// Window searches run.
     pub window_searches: u64,
+    /// Whole-frame searches run in the background.
+    pub background_searches: u64,
+    /// Time the solver waited for background searches, ms per frame set.
+    pub background_wait_ms: f64,
     /// Tag views confirmed at their predicted place without a search.
     pub tracked_tags: u64,
     /// Accuracy against the recording's ground truth (synthetic recordings only).
@@ -324,6 +328,8 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         dropped_sets: 0,
         full_frame_searches: stats.full_frame_searches,
         window_searches: stats.window_searches,
+        background_searches: stats.background_searches,
+        background_wait_ms: parts.background_wait / n * 1e3,
         tracked_tags: stats.tracked_tags,
         accuracy: (!rec.truth.is_empty()).then(|| crate::accuracy::evaluate(&rec.config, &rec.truth, &lines)),
     })
@@ -362,7 +368,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 22] = [
+    let rows: [Row; 24] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -384,6 +390,8 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("dropped sets", |f| f.dropped_sets.to_string()),
         ("full-frame searches", |f| f.full_frame_searches.to_string()),
         ("window searches", |f| f.window_searches.to_string()),
+        ("background searches", |f| f.background_searches.to_string()),
+        ("  waited for, ms/set", |f| format!("{:.2}", f.background_wait_ms)),
         ("tags tracked without search", |f| f.tracked_tags.to_string()),
     ];
     print!("{:<28}", "");

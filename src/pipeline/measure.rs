@@ -44,6 +44,8 @@ pub struct MeasureStats {
     pub full_frame_searches: u64,
     /// Window (region-of-interest) and sweep-tile detections run.
     pub window_searches: u64,
+    /// Whole-frame searches run in the background (see `detect::camera_detector`).
+    pub background_searches: u64,
     /// Tag views confirmed at their predicted place (no search needed).
     pub tracked_tags: u64,
     /// Specimen tag views rejected as outliers.
@@ -187,11 +189,11 @@ impl Measurement {
         })
     }
 
-    /// Runs whole-frame searches after the first frame set in the background, so none
-    /// stalls a frame set (the live pipeline; see `detect::camera_detector`).
-    pub fn with_background_searches(mut self) -> Self {
+    /// Runs every whole-frame search in its own frame set instead of in the background
+    /// (the default in tracking mode; see `detect::camera_detector`).
+    pub fn without_background_searches(mut self) -> Self {
         for cam in &mut self.cameras {
-            cam.detector.set_background_searches(true);
+            cam.detector.set_background_searches(false);
         }
         self
     }
@@ -399,6 +401,7 @@ impl Measurement {
             parts.add(&report.parts);
             self.stats.full_frame_searches += report.full_frame_searches;
             self.stats.window_searches += report.window_searches;
+            self.stats.background_searches += report.background_searches;
             self.stats.tracked_tags += report.confirmed_tags;
             out.push((ci, dets));
         }

@@ -11,6 +11,7 @@ use nalgebra::{Matrix3, Point2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
+use tagdeflect::camera::Lens;
 use tagdeflect::detect::tag_bitmap;
 use tagdeflect::detect::{Detection, Detector, DetectorOptions, Rect};
 use tagdeflect::frame::GrayImage;
@@ -367,10 +368,12 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
         let shift = nalgebra::Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5));
         let predicted = truth.map(|c| c + shift + nalgebra::Vector2::new(rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1)));
         let at = |family, id, corners| Prediction { family, id, corners, levels: [None; 4] };
-        let tracked = tracker.confirm(&img, &at(family, id, predicted), None, &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
+        let tracked =
+            tracker.confirm(&img, &at(family, id, predicted), Lens::new(None), &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
         assert!(tracked.contrast > 120.0, "contrast {}", tracked.contrast);
         // Warm-started from its own fit (as in the next frame), the fit lands on the same corners.
-        let warm = tracker.confirm(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, None, &refine).unwrap();
+        let warm =
+            tracker.confirm(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, Lens::new(None), &refine).unwrap();
         let moved = (0..4).map(|i| (warm.detection.corners[i] - tracked.detection.corners[i]).norm()).fold(0.0, f64::max);
         assert!(moved < 1e-3, "tag {t}: warm start moved a corner by {moved} px");
         assert_eq!(tracked.detection.hamming, 0);
@@ -380,17 +383,21 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
 
         // The wrong id, the wrong rotation (corner order), a whole cell off, nothing there.
         assert_eq!(
-            tracker.confirm(&img, &at(family, id + 1, predicted), None, &refine).unwrap_err(),
+            tracker.confirm(&img, &at(family, id + 1, predicted), Lens::new(None), &refine).unwrap_err(),
             ConfirmMiss::Code,
             "tag {t}: wrong id"
         );
         let rotated = [predicted[1], predicted[2], predicted[3], predicted[0]];
-        assert_eq!(tracker.confirm(&img, &at(family, id, rotated), None, &refine).unwrap_err(), ConfirmMiss::Code, "tag {t}: rotated");
+        assert_eq!(
+            tracker.confirm(&img, &at(family, id, rotated), Lens::new(None), &refine).unwrap_err(),
+            ConfirmMiss::Code,
+            "tag {t}: rotated"
+        );
         let cell = (truth[1] - truth[0]) / f64::from(family.width_at_border());
         let off = predicted.map(|c| c + cell);
-        assert!(tracker.confirm(&img, &at(family, id, off), None, &refine).is_err(), "tag {t}: a cell off");
+        assert!(tracker.confirm(&img, &at(family, id, off), Lens::new(None), &refine).is_err(), "tag {t}: a cell off");
         let empty = predicted.map(|c| c + nalgebra::Vector2::new(400.0, 0.0));
-        assert!(tracker.confirm(&img, &at(family, id, empty), None, &refine).is_err(), "tag {t}: outside the image");
+        assert!(tracker.confirm(&img, &at(family, id, empty), Lens::new(None), &refine).is_err(), "tag {t}: outside the image");
     }
     assert!(n >= 4 * 27, "{} of 30 tags detected", n / 4);
     let (tracked_rms, detected_rms) = ((se_tracked / n as f64).sqrt(), (se_detected / n as f64).sqrt());

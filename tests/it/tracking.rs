@@ -75,3 +75,40 @@ fn a_tag_appearing_mid_recording_is_picked_up_by_the_sweep() {
     assert!(picked - back <= 11, "picked up {} frame sets after appearing: {tracked:?}", picked - back);
     assert!(tracked[picked..].iter().all(|&v| v == all), "kept once picked up: {tracked:?}");
 }
+
+/// A tag lost mid-run (occluded) makes the next frame look for it in the whole frame. That
+/// search runs in the background — the only searches run inside a frame set are the
+/// cameras' start-up searches — and its tags are taken in at a fixed frame time after the
+/// searched frame, so replaying the recording again gives the same feed, line for line.
+#[test]
+fn a_lost_tag_is_searched_for_in_the_background_and_replays_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = SimParams {
+        cameras: 2,
+        width: 1280,
+        height: 960,
+        frame_sets: 24,
+        hide_tag: Some(4),
+        hide_camera: 1,
+        hide_from: 6,
+        hide_count: 8,
+        seed: 53,
+        ..SimParams::default()
+    };
+    let rec = simulate(dir.path(), "lost", &p);
+    let (_, first, summary) = replay_lines(&rec, false);
+    let (_, second, _) = replay_lines(&rec, false);
+    println!("TRACKING lost: {:?}", summary.stats);
+    assert_eq!(summary.stats.full_frame_searches, 2, "only the cameras' start-up searches run inside a frame set");
+    assert!(summary.stats.background_searches >= 1, "the lost tag started a background search: {:?}", summary.stats);
+    assert_eq!(first.len(), 24);
+    assert_eq!(first.len(), second.len());
+    for (a, b) in first.iter().zip(&second) {
+        assert_eq!(a.t_ns, b.t_ns);
+        let key = |l: &FeedLine| l.tags.iter().map(|t| (t.id, t.views, t.pos_mm)).collect::<Vec<_>>();
+        assert_eq!(key(a), key(b), "set at {}", a.t_ns);
+    }
+    // The occlusion is in the feed: tag 4 loses the centre camera's view while hidden.
+    let views = views_of(&first, 4);
+    assert!(views[0] >= 2 && views[6..14].iter().all(|&v| v == views[0] - 1), "views of tag 4: {views:?}");
+}
