@@ -301,9 +301,9 @@ impl CameraDetector {
                 report.parts.full_frame = c0.elapsed().as_secs_f64();
                 found
             }
-            Plan::Windows { decimate, tags, mut sweep, whole_frame } => {
+            Plan::Windows { decimate, sweep_decimate, tags, mut sweep, whole_frame } => {
                 if background && whole_frame {
-                    let options = self.search_options(rig, decimate);
+                    let options = self.search_options(rig, sweep_decimate);
                     if self.start_background_search(t_ns, image, options, rig) {
                         report.background_searches = 1;
                     }
@@ -314,7 +314,7 @@ impl CameraDetector {
                 report.confirmed_tags = confirmed.len() as u64;
                 let mut found = confirmed;
                 let c0 = Instant::now();
-                let more = self.search(rig, image, &windows, &sweep, &found, decimate);
+                let more = self.search(rig, image, &windows, &sweep, &found, decimate, sweep_decimate);
                 found.extend(more);
                 dedup_detections(&mut found);
                 report.window_searches = (windows.len() + sweep.len()) as u64;
@@ -386,8 +386,9 @@ impl CameraDetector {
         }
     }
 
-    /// Searches the windows around tags that could not be confirmed, and the sweep tiles,
-    /// with quad decimation `search_decimate` (at least the configured one) and with
+    /// Searches the windows around tags that could not be confirmed with quad decimation
+    /// `search_decimate`, and the sweep tiles with `sweep_decimate` (each at least the
+    /// configured one), with
     /// low-contrast regions skipped (see [`SEARCH_CONTRAST_FRACTION`]). Window detections
     /// are refined as usual. Tiles are searched without refinement; only the tags not
     /// already found (confirmed, or in the windows) are then refined — corners as good as a
@@ -400,6 +401,7 @@ impl CameraDetector {
         tiles: &[Rect],
         found: &[Detection],
         search_decimate: f32,
+        sweep_decimate: f32,
     ) -> Vec<Detection> {
         let mut out: Vec<Detection> = Vec::new();
         if windows.is_empty() && tiles.is_empty() {
@@ -411,7 +413,7 @@ impl CameraDetector {
             out.extend(rig.library.search(image, Some(*r), &options, Some(&self.intrinsics)));
         }
         if !tiles.is_empty() {
-            let tile_options = SearchOptions { refine: false, ..options };
+            let tile_options = SearchOptions { refine: false, ..self.search_options(rig, sweep_decimate) };
             let mut new: Vec<Detection> = Vec::new();
             let known: Vec<Detection> = found.iter().chain(out.iter()).cloned().collect();
             for r in tiles {

@@ -19,9 +19,9 @@
 //!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
 //!   is larger than the biggest tag, so each tag lies wholly inside some tile), with the
 //!   tags already found blanked out ([`masked_tile`]). Tiles are searched with quad
-//!   decimation [`SEARCH_DECIMATE`] when the tags are big enough (corners are refined at
-//!   full resolution), and the cameras' tiles are staggered (`with_phase`) so no frame
-//!   set stalls.
+//!   decimation [`SEARCH_DECIMATE`] when the tags are big enough
+//!   ([`MIN_EXTENT_TO_DECIMATE_SWEEP`]; corners are refined at full resolution), and the
+//!   cameras' tiles are staggered (`with_phase`) so no frame set stalls.
 //! - **Full frame** (full resolution) at the start, when the image size changes and
 //!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
 //!   frame at once (decimated), then the tag is left to the periodic sweep.
@@ -49,9 +49,17 @@ pub const SETTLE_FRAMES: u32 = 12;
 /// the corners are refined at full resolution, so only the quad search (the costliest part
 /// on a textured specimen) runs on fewer pixels.
 pub const SEARCH_DECIMATE: f32 = 2.0;
-/// Smallest tag extent (px, bounding box) for which searches are decimated; smaller tags
-/// would be lost at half resolution, so such cameras search at the configured resolution.
+/// Smallest tag extent (px, bounding box) for which window searches are decimated: a tag
+/// that could not be confirmed is often blurred or partly hidden, and the window search is
+/// small, so it keeps full resolution for tags below this.
 pub const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
+/// Smallest tag extent (px) for which the sweep (tiles, and the whole frame after a lost
+/// tag) is decimated. The sweep only looks for tags not followed yet, it is most of the
+/// searching cost in steady state, and the decimated start-up search finds 28-px tags as
+/// the full-resolution one does (`bench` on clean and noisy 3 × 1080p scenes: the same tags
+/// and the same accuracy); below 24 px (12 px at half resolution, 1.5-px border bits) the
+/// sweep keeps full resolution.
+pub const MIN_EXTENT_TO_DECIMATE_SWEEP: f64 = 24.0;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
@@ -105,9 +113,12 @@ pub enum Plan {
     /// Tracked tags (each confirmed at its predicted place, else searched in its window)
     /// plus sweep tiles (possibly none this frame).
     Windows {
-        /// Quad decimation to search windows and tiles with ([`SEARCH_DECIMATE`] for tags
-        /// big enough, else 1: the configured resolution).
+        /// Quad decimation to search windows with ([`SEARCH_DECIMATE`] for tags of at
+        /// least [`MIN_EXTENT_TO_DECIMATE`] px, else 1: the configured resolution).
         decimate: f32,
+        /// Quad decimation of the sweep's tiles and of the whole-frame sweep
+        /// ([`SEARCH_DECIMATE`] for tags of at least [`MIN_EXTENT_TO_DECIMATE_SWEEP`] px).
+        sweep_decimate: f32,
         /// The tracked tags to look for.
         tags: Vec<PlannedTag>,
         /// Tiles of the periodic sweep (or the whole frame after a lost tag).
@@ -253,8 +264,9 @@ impl RoiPlanner {
             out
         };
         let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
+        let sweep_decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE_SWEEP { SEARCH_DECIMATE } else { 1.0 };
         tags.sort_by_key(|t| (t.family.name(), t.id));
-        Plan::Windows { decimate, tags, sweep, whole_frame }
+        Plan::Windows { decimate, sweep_decimate, tags, sweep, whole_frame }
     }
 
     /// Starts following tags found by a search of an earlier frame (at `t_ns`) that ran

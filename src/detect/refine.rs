@@ -469,7 +469,8 @@ fn fit_edge(
         }
     };
 
-    let mut samples: Vec<Sample> = Vec::new();
+    // About half of the bounding box lies in the band.
+    let mut samples: Vec<Sample> = Vec::with_capacity(((x1 - x0 + 1) * (y1 - y0 + 1) / 2) as usize);
     let stride = image.width as usize;
     let checker = len > opts.checker_above_px;
     for y in y0..=y1 {
