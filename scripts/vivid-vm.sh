@@ -18,6 +18,8 @@
 #                $CARGO_TARGET_DIR/{release,debug}/tagdeflect and target/{release,debug}/,
 #                else `cargo build --release`)
 #   --cycles N   unplug/replug cycles (default 3)
+#   --fps F      the camera's frame rate (default 5; below 2 fps every frame outlasts one
+#                500 ms wait for a buffer)
 #   --tcg        software emulation even when /dev/kvm is usable
 #   --keep       keep the VM's output folder (default: kept anyway under the work dir)
 #
@@ -25,7 +27,7 @@
 # debootstrap with apt if missing; the kernel (linux-image-amd64's current package) and
 # busybox-static are downloaded with `apt-get download` and unpacked into the work dir, never
 # installed on the host. Everything is cached under $VIVID_VM_DIR (default target/vivid-vm):
-# the first run takes a few minutes (debootstrap), later runs about a minute.
+# the first run takes a few minutes (debootstrap), later runs about 3 minutes (emulated).
 # Prints one PASS/FAIL line per check with its figures; exits 1 when a check fails. CI does
 # not run it.
 set -euo pipefail
@@ -35,18 +37,21 @@ work=${VIVID_VM_DIR:-$repo/target/vivid-vm}
 mirror=${VIVID_VM_MIRROR:-http://deb.debian.org/debian}
 bin=${TAGDEFLECT_BIN:-}
 cycles=3
+fps=5
 accel=auto
 while [ $# -gt 0 ]; do
   case "$1" in
     --bin) bin=$2; shift 2 ;;
     --cycles) cycles=$2; shift 2 ;;
+    --fps) fps=$2; shift 2 ;;
     --tcg) accel=tcg; shift ;;
     --keep) shift ;;
-    -h|--help) sed -n '2,31p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,33p' "$0"; exit 0 ;;
     *) echo "vivid-vm: unknown argument $1" >&2; exit 2 ;;
   esac
 done
 case "$cycles" in ''|*[!0-9]*) echo "vivid-vm: --cycles wants a number" >&2; exit 2 ;; esac
+case "$fps" in ''|*[!0-9.]*) echo "vivid-vm: --fps wants a number" >&2; exit 2 ;; esac
 [ "$(id -u)" = 0 ] || { echo "vivid-vm: run as root (debootstrap and chroot need it)" >&2; exit 2; }
 
 say() { echo "vivid-vm: $*" >&2; }
@@ -201,7 +206,7 @@ write_test() {
   mkdir -p "$t/out"
   strip -o "$t/tagdeflect" "$bin" 2>/dev/null || cp "$bin" "$t/tagdeflect"
   cat >"$t/config.toml" <<'EOF'
-# One camera: vivid's capture node at 640x480, 5 fps. vivid shows a test pattern, so no tag
+# One camera: vivid's capture node at 640x480. vivid shows a test pattern, so no tag
 # is expected: the feed still gets one line per frame set (with "tags": []).
 [world]
 up = [0.0, 0.0, 1.0]
@@ -212,7 +217,7 @@ tolerance_ms = 20.0
 [[camera]]
 name = "vivid"
 source = "v4l2:/dev/video0"
-fps = 5.0
+fps = FPS
 width = 640
 height = 480
 fx = 600.0
@@ -250,6 +255,7 @@ role = "support"
 feed = "/vivid-test/out/feed.jsonl"
 record_format = "pgm"
 EOF
+  sed -i "s/^fps = FPS\$/fps = $fps/" "$t/config.toml"
   cat >"$t/init.sh" <<EOF
 #!/bin/sh
 CYCLES=$cycles
