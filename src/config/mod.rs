@@ -19,6 +19,7 @@ use crate::camera::CameraIntrinsics;
 
 pub mod beam;
 pub mod calibration;
+pub mod sim;
 use crate::frame::FrameFormat;
 use crate::tags::TagFamily;
 pub use beam::BeamConfig;
@@ -114,7 +115,7 @@ pub struct Config {
     /// Parameters of the built-in simulated rig (extension of SPEC; used by
     /// `source = "sim"` cameras, `utm.address = "sim"` and `simulate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sim: Option<crate::sim::SimParams>,
+    pub sim: Option<sim::SimParams>,
     /// Virtual gauges (`[[gauge]]`, see `solve::gauges`).
     #[serde(rename = "gauge", default, skip_serializing_if = "Vec::is_empty")]
     pub gauges: Vec<crate::solve::gauges::GaugeConfig>,
@@ -562,7 +563,7 @@ struct RawConfig {
     #[serde(default)]
     measure: Option<Spanned<MeasureConfig>>,
     #[serde(default)]
-    sim: Option<crate::sim::SimParams>,
+    sim: Option<sim::SimParams>,
     #[serde(default)]
     gauge: Vec<Spanned<crate::solve::gauges::RawGauge>>,
     #[serde(default)]
@@ -818,7 +819,7 @@ impl Config {
             }
         }
         if let Some(sim) = &raw.sim {
-            if let Err(crate::sim::SimError::Param { option, message }) = sim.validate() {
+            if let Err(sim::SimParamError { option, message }) = sim.validate() {
                 let table = text.find("[sim]").map_or(0..0, |i| i..text.len());
                 return Err(loc.err(Some(loc.key_span(table, option)), &format!("sim.{option}"), message));
             }
@@ -826,7 +827,7 @@ impl Config {
         // Simulated cameras are the rig's cameras, by name and in order.
         if cameras.iter().any(|c| c.source.is_sim()) {
             let params = raw.sim.clone().unwrap_or_default();
-            let names = crate::sim::camera_names(params.cameras as usize);
+            let names = sim::camera_names(params.cameras as usize);
             for (i, (cam, raw_cam)) in cameras.iter().zip(&raw.camera).enumerate() {
                 if cam.source.is_sim() && names.get(i) != Some(&cam.name) {
                     return Err(loc.err(
