@@ -23,34 +23,10 @@
 //! `δh = (L/2) sin φ + h_tip (1 − cos φ)`. The crack mouth (at the bottom face) opens by
 //! about `2 h_tip sin φ`.
 
-use serde::{Deserialize, Serialize};
-
 use super::beam::{DeformedBeam, FourPointBeam};
 use super::SimParams;
-
-/// The load law of the simulated specimen (`simulate --load-law`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum LoadLaw {
-    /// Load proportional to deflection throughout.
-    #[default]
-    Elastic,
-    /// Elastic to the first crack, then a drop and softening to the residual level.
-    Softening,
-    /// Elastic to the first crack, then a small drop and hardening to the residual level.
-    Hardening,
-}
-
-/// The kind of test simulated (`simulate --test`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum SimTest {
-    /// Unnotched beam, two loads at `±load_span/2` (ASTM C1609 with `load_span = span/3`).
-    #[default]
-    FourPoint,
-    /// Notched beam, one centre load, notch at midspan (EN 14651).
-    ThreePointNotched,
-}
+/// The load law and the kind of test are `[sim]` options (`config::sim`).
+pub use crate::config::sim::{LoadLaw, SimTest};
 
 /// The residual ratio in force (the option, or the law's default).
 pub fn residual_ratio(p: &SimParams) -> f64 {
@@ -73,7 +49,7 @@ pub fn load_at(p: &SimParams, d: f64) -> f64 {
 
 /// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
 pub fn crack_tip_height(p: &SimParams) -> f64 {
-    p.crack_tip_mm.unwrap_or(p.notch_mm + 0.6 * (p.beam_height_mm - p.notch_mm))
+    p.crack_tip_height()
 }
 
 /// The rigid turn of the two halves of a cracked notched beam.

@@ -6,6 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::camera::{CameraIntrinsics, Pose};
+use crate::config::sim::{camera_places, SIM_CAMERA_NAMES};
 use crate::config::TagRole;
 use crate::detect::tag_bitmap;
 use crate::tags::{TagBitmap, TagFamily};
@@ -235,23 +236,6 @@ pub(crate) fn look_at(centre: Vector3<f64>, target: Vector3<f64>, roll: f64) -> 
     Pose { rotation: rot, translation: -(rot * centre) }
 }
 
-/// The cameras of the rig: names in order, from `left`, `centre`, `right`.
-const CAMERA_NAMES: [&str; 3] = ["left", "centre", "right"];
-
-/// Which of the three camera places a rig of `count` cameras uses.
-fn camera_choice(count: usize) -> Vec<usize> {
-    match count {
-        1 => vec![1],
-        2 => vec![0, 2],
-        _ => vec![0, 1, 2],
-    }
-}
-
-/// The names of a rig's cameras, in order (what a config with `sim` cameras must list).
-pub fn camera_names(count: usize) -> Vec<String> {
-    camera_choice(count).into_iter().map(|k| CAMERA_NAMES[k].to_string()).collect()
-}
-
 impl Layout {
     /// Builds the layout; `params` must be valid.
     pub fn new(p: &SimParams) -> Layout {
@@ -260,12 +244,13 @@ impl Layout {
         let zc = 0.5 * bh;
 
         // Cameras: ~1 m in front, slightly above, each from its own angle.
+        // One place per name of `SIM_CAMERA_NAMES`: centre, target, roll.
         let all = [
-            ("left", Vector3::new(-0.78 * bl, -1000.0, zc + 260.0), Vector3::new(-0.06 * bl, bw, zc + 20.0), 0.012),
-            ("centre", Vector3::new(0.02 * bl, -1080.0, zc + 340.0), Vector3::new(0.0, bw, zc + 25.0), -0.008),
-            ("right", Vector3::new(0.8 * bl, -990.0, zc + 190.0), Vector3::new(0.06 * bl, bw, zc + 20.0), 0.005),
+            (Vector3::new(-0.78 * bl, -1000.0, zc + 260.0), Vector3::new(-0.06 * bl, bw, zc + 20.0), 0.012),
+            (Vector3::new(0.02 * bl, -1080.0, zc + 340.0), Vector3::new(0.0, bw, zc + 25.0), -0.008),
+            (Vector3::new(0.8 * bl, -990.0, zc + 190.0), Vector3::new(0.06 * bl, bw, zc + 20.0), 0.005),
         ];
-        let chosen = camera_choice(p.cameras as usize);
+        let chosen = camera_places(p.cameras as usize);
         // The same view at any size: the focal length follows the width of a 4:3 frame
         // (wider frames see more to the sides).
         let f = 1.2 * (p.width as f64).min(p.height as f64 * 4.0 / 3.0);
@@ -273,8 +258,8 @@ impl Layout {
         let mut intrinsics = Vec::new();
         let mut poses = Vec::new();
         for (i, &k) in chosen.iter().enumerate() {
-            let (name, c, t, roll) = all[k];
-            names.push(name.to_string());
+            let (c, t, roll) = all[k];
+            names.push(SIM_CAMERA_NAMES[k].to_string());
             let k1 = if p.strong_distortion_camera == Some(i as u32) { p.strong_k1 } else { p.k1 };
             intrinsics.push(CameraIntrinsics {
                 width: p.width,

@@ -1,0 +1,571 @@
+//! `[sim]`: the parameters of the built-in simulated rig ([`SimParams`]), their defaults and
+//! their checks, and the names of the rig's cameras. They are config: a config's `[sim]`
+//! table, the options of `tagdeflect simulate`, what `source = "sim"` cameras and
+//! `utm.address = "sim"` run. The simulator (the top-level `sim` module) is built from them
+//! and imports them from here; the config never imports the simulator.
+
+use serde::{Deserialize, Serialize};
+
+/// Unix time of the first frame set of a simulated recording (2026-01-01T00:00:00Z), ns.
+pub const DEFAULT_START_NS: i64 = 1_767_225_600_000_000_000;
+
+/// The load law of the simulated specimen (`simulate --load-law`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum LoadLaw {
+    /// Load proportional to deflection throughout.
+    #[default]
+    Elastic,
+    /// Elastic to the first crack, then a drop and softening to the residual level.
+    Softening,
+    /// Elastic to the first crack, then a small drop and hardening to the residual level.
+    Hardening,
+}
+
+/// The kind of test simulated (`simulate --test`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum SimTest {
+    /// Unnotched beam, two loads at `±load_span/2` (ASTM C1609 with `load_span = span/3`).
+    #[default]
+    FourPoint,
+    /// Notched beam, one centre load, notch at midspan (EN 14651).
+    ThreePointNotched,
+}
+
+/// An invalid simulation option: which one, and what is expected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("simulation option `{option}`: {message}")]
+pub struct SimParamError {
+    /// The option (as in `[sim]` and `--<option>`).
+    pub option: &'static str,
+    /// What is wrong and what is expected.
+    pub message: String,
+}
+
+/// The simulated rig's three camera places, left to right.
+pub const SIM_CAMERA_NAMES: [&str; 3] = ["left", "centre", "right"];
+
+/// Which of the three camera places ([`SIM_CAMERA_NAMES`]) a rig of `count` cameras uses.
+pub fn camera_places(count: usize) -> Vec<usize> {
+    match count {
+        1 => vec![1],
+        2 => vec![0, 2],
+        _ => vec![0, 1, 2],
+    }
+}
+
+/// The names of a rig's cameras, in order (what a config with `sim` cameras must list).
+pub fn camera_names(count: usize) -> Vec<String> {
+    camera_places(count).into_iter().map(|k| SIM_CAMERA_NAMES[k].to_string()).collect()
+}
+
+/// Parameters of the simulated rig (`[sim]` in a config; the options of `simulate`).
+///
+/// Every field is also a `--kebab-case` option of `tagdeflect simulate` (flatten this
+/// struct into the subcommand with `#[command(flatten)]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, clap::Args)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimParams {
+    /// Seed of every random choice (noise, jitter, dropped frames, texture); 0 to 2^63 - 1
+    /// (it is written into the recording's TOML config, whose integers are signed 64-bit).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(..=i64::MAX as u64))]
+    pub seed: u64,
+    /// Number of cameras (1 to 3): 1 = centre, 2 = left + right, 3 = left + centre + right.
+    #[arg(long, default_value_t = 3)]
+    pub cameras: u32,
+    /// Image width, pixels (the focal length follows the width of a 4:3 frame: the view stays the same).
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 960)]
+    pub height: u32,
+    /// Number of frame sets to write.
+    #[arg(long, default_value_t = 40)]
+    pub frame_sets: u32,
+    /// Frame rate of every camera, Hz.
+    #[arg(long, default_value_t = 10.0)]
+    pub fps: f64,
+    /// Sensor noise, standard deviation in grey levels (added after the blur).
+    #[arg(long, default_value_t = 2.0)]
+    pub noise_sigma: f64,
+    /// Optical blur, standard deviation of a Gaussian in pixels (0 = none).
+    #[arg(long, default_value_t = 0.6)]
+    pub blur_sigma: f64,
+    /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub motion_blur_every: u32,
+    /// Length of the motion-blur streak, pixels.
+    #[arg(long, default_value_t = 3.0)]
+    pub motion_blur_px: f64,
+    /// Per-frame timing jitter of each camera, standard deviation in ms (clipped at 3 sigma).
+    #[arg(long, default_value_t = 1.0)]
+    pub jitter_ms: f64,
+    /// Probability that a camera drops a frame (the frame is simply absent).
+    #[arg(long, default_value_t = 0.0)]
+    pub drop_prob: f64,
+    /// Camera (index from 0) bumped mid-run; none by default.
+    #[arg(long)]
+    pub bump_camera: Option<u32>,
+    /// Frame set from which the bumped camera has its new pose.
+    #[arg(long, default_value_t = 20)]
+    pub bump_at: u32,
+    /// Rotation of the bump, degrees (about an oblique axis through the camera centre).
+    #[arg(long, default_value_t = 0.3)]
+    pub bump_rot_deg: f64,
+    /// Translation of the bump, mm.
+    #[arg(long, default_value_t = 2.0)]
+    pub bump_trans_mm: f64,
+    /// Camera (index from 0) that drifts slowly (thermal, creep) over the recording; none by
+    /// default. Its pose turns and shifts linearly from the first frame set to the last.
+    #[arg(long)]
+    pub drift_camera: Option<u32>,
+    /// Total rotation of the drift over the recording, degrees (about an oblique, mostly
+    /// horizontal axis through the camera centre).
+    #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default_drift_rot")]
+    pub drift_rot_deg: f64,
+    /// Total shift of the drifting camera's centre over the recording, mm (mostly downward).
+    #[arg(long, default_value_t = 0.3, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default_drift_trans")]
+    pub drift_trans_mm: f64,
+    /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
+    #[arg(long)]
+    pub hide_tag: Option<u32>,
+    /// Camera (index from 0) that loses sight of `hide_tag`.
+    #[arg(long, default_value_t = 0)]
+    pub hide_camera: u32,
+    /// First frame set in which the tag is hidden.
+    #[arg(long, default_value_t = 10)]
+    pub hide_from: u32,
+    /// Number of frame sets the tag stays hidden.
+    #[arg(long, default_value_t = 10)]
+    pub hide_count: u32,
+    /// Radial distortion k1 of every camera (mild lens; k2 = -k1/2, tiny tangential terms).
+    #[arg(long, default_value_t = -0.05, allow_hyphen_values = true)]
+    pub k1: f64,
+    /// Camera (index from 0) with a strongly distorting lens; none by default.
+    #[arg(long)]
+    pub strong_distortion_camera: Option<u32>,
+    /// k1 of the strongly distorting lens.
+    #[arg(long, default_value_t = -0.25, allow_hyphen_values = true)]
+    pub strong_k1: f64,
+    /// Midspan deflection at the end of the ramp, mm (positive downward).
+    #[arg(long, default_value_t = 6.0)]
+    pub max_deflection_mm: f64,
+    /// Frame sets at rest before the load ramp starts.
+    #[arg(long, default_value_t = 3)]
+    pub rest_frames: u32,
+    /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
+    /// after the ramp (for long live demos).
+    #[arg(long, default_value_t = false)]
+    pub cyclic: bool,
+    /// Beam length, mm.
+    #[arg(long, default_value_t = 550.0)]
+    pub beam_length_mm: f64,
+    /// Beam height, mm.
+    #[arg(long, default_value_t = 150.0)]
+    pub beam_height_mm: f64,
+    /// Beam width (depth into the scene), mm.
+    #[arg(long, default_value_t = 150.0)]
+    pub beam_width_mm: f64,
+    /// Support span, mm (supports at ±span/2).
+    #[arg(long, default_value_t = 450.0)]
+    pub span_mm: f64,
+    /// Distance between the two loads, mm (default span/3: loads at the third points).
+    #[arg(long, default_value_t = 150.0)]
+    pub load_span_mm: f64,
+    /// Number of specimen tags (1 to 15): middle row (midspan, supports), then top and bottom
+    /// rows, then the load points.
+    #[arg(long, default_value_t = 9)]
+    pub specimen_tags: u32,
+    /// Edge of a specimen tag's black square (tag36h11), mm.
+    #[arg(long, default_value_t = 30.0)]
+    pub specimen_tag_mm: f64,
+    /// Edge of a background tag's black square (tag25h9), mm.
+    #[arg(long, default_value_t = 70.0)]
+    pub background_tag_mm: f64,
+    /// UTM sampling rate, Hz.
+    #[arg(long, default_value_t = 50.0)]
+    pub utm_hz: f64,
+    /// Phase of the UTM samples against the frame clock, ms.
+    #[arg(long, default_value_t = 7.0)]
+    pub utm_phase_ms: f64,
+    /// Beam stiffness: load per mm of midspan deflection, kN/mm.
+    #[arg(long, default_value_t = 10.0)]
+    pub stiffness_kn_per_mm: f64,
+    /// Machine compliance: stroke per kN beyond the beam's own deflection, mm/kN.
+    #[arg(long, default_value_t = 0.01)]
+    pub compliance_mm_per_kn: f64,
+    /// Shuffle the lines of frames.jsonl (SPEC allows any order across cameras).
+    #[arg(long, default_value_t = false)]
+    pub shuffle: bool,
+    /// Time of the first frame set, ns since the Unix epoch.
+    #[arg(long, default_value_t = DEFAULT_START_NS)]
+    pub start_ns: i64,
+    /// Sub-samples per pixel along each axis where a pixel straddles an edge (area integration).
+    #[arg(long, default_value_t = 8)]
+    pub subsamples: u32,
+    /// Fault injection: the UTM goes silent this many seconds after the first frame set
+    /// (live: the simulated Modbus server stops answering; `simulate`: no UTM samples in the
+    /// window); never by default.
+    #[arg(long)]
+    pub utm_outage_at_s: Option<f64>,
+    /// Length of the UTM outage, seconds.
+    #[arg(long, default_value_t = 5.0)]
+    #[serde(skip_serializing_if = "is_default_outage")]
+    pub utm_outage_s: f64,
+
+    // Real tests (see `sim::law`). Written to a config only when not at their defaults, so
+    // recordings of the default rig are unchanged.
+    /// The test: `four-point` (loads at `±load_span/2`) or `three-point-notched` (centre
+    /// load, notch at midspan, tags straddling it; `load_span_mm` is then ignored).
+    #[arg(long, value_enum, default_value_t = SimTest::FourPoint)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub test: SimTest,
+    /// The load law: `elastic` (load = stiffness × deflection), `softening` or `hardening`
+    /// (elastic to the first crack, then to `residual_ratio` × the first-crack load).
+    #[arg(long, value_enum, default_value_t = LoadLaw::Elastic)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub load_law: LoadLaw,
+    /// Midspan deflection at the first crack, mm (first-crack load = stiffness × this).
+    #[arg(long, default_value_t = 0.3)]
+    #[serde(skip_serializing_if = "is_default_crack")]
+    pub crack_deflection_mm: f64,
+    /// Sudden drop of the load at the first crack, fraction of the first-crack load.
+    #[arg(long, default_value_t = 0.1)]
+    #[serde(skip_serializing_if = "is_default_drop")]
+    pub crack_drop: f64,
+    /// Residual load / first-crack load that the law tends to (default 0.5 softening, 1.5 hardening).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual_ratio: Option<f64>,
+    /// Deflection scale of the approach to the residual level after the crack, mm.
+    #[arg(long, default_value_t = 0.5)]
+    #[serde(skip_serializing_if = "is_default_softening")]
+    pub softening_mm: f64,
+    /// Notch depth (three-point-notched), mm.
+    #[arg(long, default_value_t = 25.0)]
+    #[serde(skip_serializing_if = "is_default_notch")]
+    pub notch_mm: f64,
+    /// Notch width (three-point-notched), mm.
+    #[arg(long, default_value_t = 3.0)]
+    #[serde(skip_serializing_if = "is_default_notch_width")]
+    pub notch_width_mm: f64,
+    /// Height of the crack tip (the halves' hinge) above the bottom face after cracking, mm
+    /// (default: notch + 0.6 × (height − notch)).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub crack_tip_mm: Option<f64>,
+    /// Offset of the UTM's clock against the cameras' clock, ms: a UTM sample taken at true
+    /// time t is stamped t + offset.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[serde(skip_serializing_if = "is_default")]
+    pub utm_clock_offset_ms: f64,
+}
+
+fn is_default<T: Default + PartialEq>(v: &T) -> bool {
+    *v == T::default()
+}
+// Options added later are not written when at their defaults: a recording of the default rig
+// reads as it always did.
+fn is_default_drift_rot(v: &f64) -> bool {
+    *v == 0.05
+}
+fn is_default_drift_trans(v: &f64) -> bool {
+    *v == 0.3
+}
+fn is_default_outage(v: &f64) -> bool {
+    *v == 5.0
+}
+fn is_default_crack(v: &f64) -> bool {
+    *v == 0.3
+}
+fn is_default_drop(v: &f64) -> bool {
+    *v == 0.1
+}
+fn is_default_softening(v: &f64) -> bool {
+    *v == 0.5
+}
+fn is_default_notch(v: &f64) -> bool {
+    *v == 25.0
+}
+fn is_default_notch_width(v: &f64) -> bool {
+    *v == 3.0
+}
+
+impl Default for SimParams {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            cameras: 3,
+            width: 1280,
+            height: 960,
+            frame_sets: 40,
+            fps: 10.0,
+            noise_sigma: 2.0,
+            blur_sigma: 0.6,
+            motion_blur_every: 0,
+            motion_blur_px: 3.0,
+            jitter_ms: 1.0,
+            drop_prob: 0.0,
+            bump_camera: None,
+            bump_at: 20,
+            bump_rot_deg: 0.3,
+            bump_trans_mm: 2.0,
+            drift_camera: None,
+            drift_rot_deg: 0.05,
+            drift_trans_mm: 0.3,
+            hide_tag: None,
+            hide_camera: 0,
+            hide_from: 10,
+            hide_count: 10,
+            k1: -0.05,
+            strong_distortion_camera: None,
+            strong_k1: -0.25,
+            max_deflection_mm: 6.0,
+            rest_frames: 3,
+            cyclic: false,
+            beam_length_mm: 550.0,
+            beam_height_mm: 150.0,
+            beam_width_mm: 150.0,
+            span_mm: 450.0,
+            load_span_mm: 150.0,
+            specimen_tags: 9,
+            specimen_tag_mm: 30.0,
+            background_tag_mm: 70.0,
+            utm_hz: 50.0,
+            utm_phase_ms: 7.0,
+            stiffness_kn_per_mm: 10.0,
+            compliance_mm_per_kn: 0.01,
+            shuffle: false,
+            start_ns: DEFAULT_START_NS,
+            subsamples: 8,
+            utm_outage_at_s: None,
+            utm_outage_s: 5.0,
+            test: SimTest::FourPoint,
+            load_law: LoadLaw::Elastic,
+            crack_deflection_mm: 0.3,
+            crack_drop: 0.1,
+            residual_ratio: None,
+            softening_mm: 0.5,
+            notch_mm: 25.0,
+            notch_width_mm: 3.0,
+            crack_tip_mm: None,
+            utm_clock_offset_ms: 0.0,
+        }
+    }
+}
+
+impl SimParams {
+    /// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
+    pub fn crack_tip_height(&self) -> f64 {
+        self.crack_tip_mm.unwrap_or(self.notch_mm + 0.6 * (self.beam_height_mm - self.notch_mm))
+    }
+
+    /// Checks every option; the error names the option and the accepted range.
+    pub fn validate(&self) -> Result<(), SimParamError> {
+        fn bad(option: &'static str, message: impl Into<String>) -> Result<(), SimParamError> {
+            Err(SimParamError { option, message: message.into() })
+        }
+        let finite_pos = |v: f64| v.is_finite() && v > 0.0;
+        let finite_nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        if !(1..=3).contains(&self.cameras) {
+            return bad("cameras", format!("{} cameras: expected 1 to 3", self.cameras));
+        }
+        if !(64..=8192).contains(&self.width) || !(48..=8192).contains(&self.height) {
+            return bad("width", format!("{}x{}: expected 64..8192 x 48..8192 pixels", self.width, self.height));
+        }
+        if self.frame_sets == 0 {
+            return bad("frame_sets", "expected at least 1 frame set");
+        }
+        if self.seed > i64::MAX as u64 {
+            return bad("seed", format!("{}: expected 0 to {} (TOML integers are signed 64-bit)", self.seed, i64::MAX));
+        }
+        if !(self.fps.is_finite() && (0.01..=1000.0).contains(&self.fps)) {
+            return bad("fps", format!("{}: expected 0.01 ≤ fps ≤ 1000", self.fps));
+        }
+        // Every frame time must fit in i64 nanoseconds (with a day to spare).
+        if self.frame_sets as f64 / self.fps * 1e9 + self.start_ns as f64 > i64::MAX as f64 - 8.64e13 || self.start_ns < 0 {
+            return bad("start_ns", format!("{}: the recording's times must lie between 1970 and 2262", self.start_ns));
+        }
+        if !finite_nonneg(self.noise_sigma) || self.noise_sigma > 100.0 {
+            return bad("noise_sigma", format!("{}: expected 0 to 100 grey levels", self.noise_sigma));
+        }
+        if !finite_nonneg(self.blur_sigma) || self.blur_sigma > 10.0 {
+            return bad("blur_sigma", format!("{}: expected 0 to 10 pixels", self.blur_sigma));
+        }
+        if !finite_nonneg(self.motion_blur_px) || self.motion_blur_px > 50.0 {
+            return bad("motion_blur_px", format!("{}: expected 0 to 50 pixels", self.motion_blur_px));
+        }
+        if !finite_nonneg(self.jitter_ms) || self.jitter_ms * 3.0 >= 500.0 / self.fps {
+            return bad("jitter_ms", format!("{} ms: expected ≥ 0 and 3 sigma under half the frame period", self.jitter_ms));
+        }
+        if !(0.0..1.0).contains(&self.drop_prob) {
+            return bad("drop_prob", format!("{}: expected a probability in [0, 1)", self.drop_prob));
+        }
+        for (option, cam) in [
+            ("bump_camera", self.bump_camera),
+            ("drift_camera", self.drift_camera),
+            ("strong_distortion_camera", self.strong_distortion_camera),
+            ("hide_camera", Some(self.hide_camera)),
+        ] {
+            if let Some(c) = cam {
+                if c >= self.cameras {
+                    return bad(option, format!("camera {c} does not exist: expected 0..{}", self.cameras));
+                }
+            }
+        }
+        if !self.bump_rot_deg.is_finite()
+            || self.bump_rot_deg.abs() > 10.0
+            || !self.bump_trans_mm.is_finite()
+            || self.bump_trans_mm.abs() > 100.0
+        {
+            return bad("bump_rot_deg", "expected a bump of at most 10 degrees and 100 mm");
+        }
+        if !self.drift_rot_deg.is_finite() || self.drift_rot_deg.abs() > 10.0 {
+            return bad("drift_rot_deg", format!("{}: expected at most 10 degrees", self.drift_rot_deg));
+        }
+        if !self.drift_trans_mm.is_finite() || self.drift_trans_mm.abs() > 100.0 {
+            return bad("drift_trans_mm", format!("{}: expected at most 100 mm", self.drift_trans_mm));
+        }
+        if let Some(id) = self.hide_tag {
+            if id >= self.specimen_tags {
+                return bad("hide_tag", format!("specimen tag {id} does not exist: expected 0..{}", self.specimen_tags));
+            }
+        }
+        if !self.k1.is_finite() || self.k1.abs() > 0.5 || !self.strong_k1.is_finite() || self.strong_k1.abs() > 0.5 {
+            return bad("k1", "expected |k1| ≤ 0.5");
+        }
+        if !finite_nonneg(self.max_deflection_mm) || self.max_deflection_mm > 0.1 * self.span_mm {
+            return bad("max_deflection_mm", format!("{}: expected 0 to span/10", self.max_deflection_mm));
+        }
+        if !finite_pos(self.beam_height_mm) || !finite_pos(self.beam_width_mm) || self.beam_height_mm > 400.0 || self.beam_width_mm > 400.0
+        {
+            return bad("beam_height_mm", "expected beam height and width in (0, 400] mm");
+        }
+        if !finite_pos(self.span_mm)
+            || !finite_pos(self.beam_length_mm)
+            || self.span_mm > self.beam_length_mm
+            || self.beam_length_mm > 1200.0
+        {
+            return bad(
+                "span_mm",
+                format!("span {} mm, length {} mm: expected 0 < span ≤ length ≤ 1200 mm", self.span_mm, self.beam_length_mm),
+            );
+        }
+        if !finite_nonneg(self.load_span_mm) || self.load_span_mm >= self.span_mm {
+            return bad("load_span_mm", format!("{}: expected 0 ≤ load span < span", self.load_span_mm));
+        }
+        if !(1..=15).contains(&self.specimen_tags) {
+            return bad("specimen_tags", format!("{}: expected 1 to 15", self.specimen_tags));
+        }
+        if !finite_pos(self.specimen_tag_mm) || self.specimen_tag_mm * 10.0 / 8.0 > self.beam_height_mm / 3.0 {
+            return bad(
+                "specimen_tag_mm",
+                format!(
+                    "{}: expected > 0 and three printed tags (with their white ring) stacked within the beam height",
+                    self.specimen_tag_mm
+                ),
+            );
+        }
+        if !finite_pos(self.background_tag_mm) || self.background_tag_mm > 150.0 {
+            return bad("background_tag_mm", format!("{}: expected 0 < size ≤ 150 mm", self.background_tag_mm));
+        }
+        if !((0.01..=10_000.0).contains(&self.utm_hz) && self.utm_phase_ms.abs() <= 1e6) {
+            return bad("utm_hz", "expected 0.01 ≤ utm_hz ≤ 10000 and a phase within ±1000 s");
+        }
+        if !finite_nonneg(self.stiffness_kn_per_mm) || !finite_nonneg(self.compliance_mm_per_kn) {
+            return bad("stiffness_kn_per_mm", "expected non-negative stiffness and compliance");
+        }
+        if !(1..=32).contains(&self.subsamples) {
+            return bad("subsamples", format!("{}: expected 1 to 32", self.subsamples));
+        }
+        if self.utm_outage_at_s.is_some_and(|a| !(a.is_finite() && a >= 0.0)) || !(self.utm_outage_s.is_finite() && self.utm_outage_s > 0.0)
+        {
+            return bad("utm_outage_at_s", "expected an outage start ≥ 0 s and a positive utm_outage_s");
+        }
+        self.validate_test()
+    }
+
+    /// Checks the options of real tests (load law, notched beam, UTM clock).
+    fn validate_test(&self) -> Result<(), SimParamError> {
+        fn bad(option: &'static str, message: impl Into<String>) -> Result<(), SimParamError> {
+            Err(SimParamError { option, message: message.into() })
+        }
+        if !(self.crack_deflection_mm.is_finite() && self.crack_deflection_mm > 0.0) {
+            return bad("crack_deflection_mm", format!("{}: expected a positive deflection", self.crack_deflection_mm));
+        }
+        if !(0.0..1.0).contains(&self.crack_drop) {
+            return bad("crack_drop", format!("{}: expected a fraction in [0, 1)", self.crack_drop));
+        }
+        if let Some(r) = self.residual_ratio {
+            if !(r.is_finite() && (0.0..=5.0).contains(&r)) {
+                return bad("residual_ratio", format!("{r}: expected 0 to 5"));
+            }
+        }
+        if !(self.softening_mm.is_finite() && self.softening_mm > 0.0) {
+            return bad("softening_mm", format!("{}: expected a positive deflection scale", self.softening_mm));
+        }
+        if !(self.utm_clock_offset_ms.is_finite() && self.utm_clock_offset_ms.abs() <= 10_000.0) {
+            return bad("utm_clock_offset_ms", format!("{}: expected at most 10 s either way", self.utm_clock_offset_ms));
+        }
+        if self.test == SimTest::ThreePointNotched {
+            if !(self.notch_mm.is_finite() && self.notch_mm > 0.0 && self.notch_mm <= 0.5 * self.beam_height_mm) {
+                return bad("notch_mm", format!("{}: expected 0 < notch ≤ half the beam height", self.notch_mm));
+            }
+            if !(self.notch_width_mm.is_finite() && self.notch_width_mm > 0.0 && self.notch_width_mm <= 10.0) {
+                return bad("notch_width_mm", format!("{}: expected 0 to 10 mm", self.notch_width_mm));
+            }
+            let tip = self.crack_tip_height();
+            if !(tip.is_finite() && tip > self.notch_mm && tip < self.beam_height_mm) {
+                return bad("crack_tip_mm", format!("{tip}: expected above the notch and below the top face"));
+            }
+            if !(5..=9).contains(&self.specimen_tags) {
+                return bad("specimen_tags", "the notched test has 5 to 9 tags (midspan, two supports, two across the notch, then more)");
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        params: SimParams,
+    }
+
+    #[test]
+    fn clap_defaults_equal_serde_defaults() {
+        let cli = Cli::try_parse_from(["x"]).unwrap();
+        assert_eq!(cli.params, SimParams::default());
+        let from_toml: SimParams = toml::from_str("").unwrap();
+        assert_eq!(from_toml, SimParams::default());
+        SimParams::default().validate().unwrap();
+    }
+
+    #[test]
+    fn options_parse_and_are_validated() {
+        let cli = Cli::try_parse_from(["x", "--cameras", "1", "--k1", "-0.2", "--bump-camera", "0", "--shuffle"]).unwrap();
+        assert_eq!(cli.params.cameras, 1);
+        assert_eq!(cli.params.k1, -0.2);
+        assert_eq!(cli.params.bump_camera, Some(0));
+        assert!(cli.params.shuffle);
+        cli.params.validate().unwrap();
+        let bad = SimParams { cameras: 4, ..SimParams::default() };
+        assert!(matches!(bad.validate(), Err(SimParamError { option: "cameras", .. })));
+        let cli = Cli::try_parse_from(["x", "--drift-camera", "1", "--drift-rot-deg", "-0.05", "--drift-trans-mm", "0.3"]).unwrap();
+        assert_eq!((cli.params.drift_camera, cli.params.drift_rot_deg, cli.params.drift_trans_mm), (Some(1), -0.05, 0.3));
+        cli.params.validate().unwrap();
+        let bad = SimParams { drift_camera: Some(3), ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("drift_camera"));
+        let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
+        assert!(toml::from_str::<SimParams>("colour = 3").is_err());
+    }
+}
