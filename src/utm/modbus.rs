@@ -186,6 +186,14 @@ pub enum PollFault {
         /// What was wrong.
         detail: String,
     },
+    /// The reply could not be decoded at all (the client library failed on it).
+    #[error("UTM {address}: malformed reply: {detail}")]
+    Malformed {
+        /// Configured address.
+        address: String,
+        /// What failed.
+        detail: String,
+    },
     /// The registers do not decode to a value.
     #[error("UTM {address}: {source}")]
     Decode {
@@ -350,7 +358,7 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
             r = shutdown.changed() => if r.is_err() || *shutdown.borrow() { break } else { continue },
         }
         let result = tokio::select! {
-            r = link.poll() => r,
+            r = poll_guarded(&mut link) => r,
             r = shutdown.changed() => {
                 // The poll was cancelled mid-request: its connection may be out of step.
                 link.drop_connection();
@@ -407,6 +415,31 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
     link.drop_connection();
     tracing::info!(address = %address, "UTM poller stopped");
     Ok(())
+}
+
+/// One poll of `link`, with a panic inside the Modbus client library turned into a fault.
+///
+/// tokio-modbus 0.15 panics (index out of bounds in `unpack_coils`) when a reply claims
+/// more coil bytes than it carries — a reply to a request the poller never sent, from a
+/// device out of step or a noisy serial gateway (upstream issue slowtec/tokio-modbus#298;
+/// found by the `modbus_peer` fuzz target). Such a panic must not end the poller (the test
+/// would go on without load, silently): the reply is reported as malformed, the connection
+/// is dropped and re-made like after any other bad reply.
+async fn poll_guarded(link: &mut Link) -> Result<UtmSample, PollFault> {
+    use futures_util::FutureExt;
+    let address = link.cfg.address.clone();
+    match std::panic::AssertUnwindSafe(link.poll()).catch_unwind().await {
+        Ok(r) => r,
+        Err(panic) => {
+            let what = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("a panic")
+                .to_string();
+            Err(PollFault::Malformed { address, detail: format!("the Modbus client library failed on the reply ({what})") })
+        }
+    }
 }
 
 /// Sends a state event, waiting for room unless shutdown comes first; false = stop polling.

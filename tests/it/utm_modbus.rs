@@ -308,6 +308,48 @@ async fn short_reply_is_a_clear_error() {
     device.abort();
 }
 
+/// A device whose first reply is a read-coils answer claiming 194 coil bytes and carrying
+/// none: tokio-modbus 0.15 panics decoding it (slowtec/tokio-modbus#298, found by the
+/// `modbus_peer` fuzz target). The poller reports a malformed reply, reconnects, and reads
+/// the well-formed replies that follow: the test goes on with load.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reply_that_breaks_the_modbus_library_is_a_fault_not_the_end_of_the_poller() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let device = tokio::spawn(async move {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let mut first = true;
+        while let Ok((mut s, _)) = listener.accept().await {
+            let poison = std::mem::replace(&mut first, false);
+            tokio::spawn(async move {
+                let mut req = [0u8; 12];
+                while s.read_exact(&mut req).await.is_ok() {
+                    let reply: Vec<u8> = if poison {
+                        // Function 1 (read coils), byte count 0xc2, no bytes.
+                        vec![req[0], req[1], 0, 0, 0, 3, req[6], 1, 0xc2]
+                    } else {
+                        // Two input registers: f32 12.5 (0x41480000).
+                        vec![req[0], req[1], 0, 0, 0, 7, req[6], req[7], 4, 0x41, 0x48, 0, 0]
+                    };
+                    if s.write_all(&reply).await.is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
+    let mut p = Poller::start(utm(addr.to_string(), load, None));
+    let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
+    let UtmEvent::Down { reason } = down else { unreachable!() };
+    println!("poisoned reply: {reason}");
+    assert!(reason.contains(&addr.to_string()) && reason.contains("malformed reply"), "{reason}");
+    let s = p.sample(Duration::from_secs(5)).await;
+    assert!(close(s.load_kn, 12.5, 1e-9), "{s:?}");
+    p.stop().await;
+    device.abort();
+}
+
 // ----------------------------------------------------------------------------------------
 // Our simulated UTM.
 
