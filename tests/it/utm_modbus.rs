@@ -277,26 +277,36 @@ async fn nan_from_the_device_is_a_clear_error() {
     p.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn short_reply_is_a_clear_error() {
-    // A hand-made device that answers every read with one register, whatever was asked.
+/// A hand-made Modbus TCP device on loopback: every 12-byte read request (MBAP + function,
+/// address, count) is answered with `reply(request, connection index)`.
+async fn scripted_device(reply: impl Fn(&[u8; 12], usize) -> Vec<u8> + Send + Sync + 'static) -> (std::net::SocketAddr, JoinHandle<()>) {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
+    let reply = Arc::new(reply);
     let device = tokio::spawn(async move {
         use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let mut connection = 0;
         while let Ok((mut s, _)) = listener.accept().await {
+            let (reply, index) = (Arc::clone(&reply), connection);
+            connection += 1;
             tokio::spawn(async move {
-                let mut req = [0u8; 12]; // MBAP (7) + function, address, count (5)
+                let mut req = [0u8; 12];
                 while s.read_exact(&mut req).await.is_ok() {
-                    // Same transaction and unit, length 5 = unit + function + count + 2 bytes.
-                    let reply = [req[0], req[1], 0, 0, 0, 5, req[6], req[7], 2, 0x41, 0x48];
-                    if s.write_all(&reply).await.is_err() {
+                    if s.write_all(&reply(&req, index)).await.is_err() {
                         break;
                     }
                 }
             });
         }
     });
+    (addr, device)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn short_reply_is_a_clear_error() {
+    // A hand-made device that answers every read with one register, whatever was asked.
+    // Same transaction and unit, length 5 = unit + function + count + 2 bytes.
+    let (addr, device) = scripted_device(|req, _| vec![req[0], req[1], 0, 0, 0, 5, req[6], req[7], 2, 0x41, 0x48]).await;
     let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
     let mut p = Poller::start(utm(addr.to_string(), load, None));
     let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
@@ -314,30 +324,16 @@ async fn short_reply_is_a_clear_error() {
 /// the well-formed replies that follow: the test goes on with load.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reply_that_breaks_the_modbus_library_is_a_fault_not_the_end_of_the_poller() {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let device = tokio::spawn(async move {
-        use tokio::io::{AsyncReadExt, AsyncWriteExt};
-        let mut first = true;
-        while let Ok((mut s, _)) = listener.accept().await {
-            let poison = std::mem::replace(&mut first, false);
-            tokio::spawn(async move {
-                let mut req = [0u8; 12];
-                while s.read_exact(&mut req).await.is_ok() {
-                    let reply: Vec<u8> = if poison {
-                        // Function 1 (read coils), byte count 0xc2, no bytes.
-                        vec![req[0], req[1], 0, 0, 0, 3, req[6], 1, 0xc2]
-                    } else {
-                        // Two input registers: f32 12.5 (0x41480000).
-                        vec![req[0], req[1], 0, 0, 0, 7, req[6], req[7], 4, 0x41, 0x48, 0, 0]
-                    };
-                    if s.write_all(&reply).await.is_err() {
-                        break;
-                    }
-                }
-            });
+    let (addr, device) = scripted_device(|req, connection| {
+        if connection == 0 {
+            // Function 1 (read coils), byte count 0xc2, no bytes.
+            vec![req[0], req[1], 0, 0, 0, 3, req[6], 1, 0xc2]
+        } else {
+            // Two input registers: f32 12.5 (0x41480000).
+            vec![req[0], req[1], 0, 0, 0, 7, req[6], req[7], 4, 0x41, 0x48, 0, 0]
         }
-    });
+    })
+    .await;
     let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
     let mut p = Poller::start(utm(addr.to_string(), load, None));
     let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
