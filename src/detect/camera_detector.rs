@@ -393,6 +393,7 @@ impl CameraDetector {
     /// are refined as usual. Tiles are searched without refinement; only the tags not
     /// already found (confirmed, or in the windows) are then refined — corners as good as a
     /// full-frame search's without refining every confirmed tag twice.
+    #[allow(clippy::too_many_arguments)]
     fn search(
         &mut self,
         rig: &RigDetectors,

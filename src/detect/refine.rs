@@ -344,7 +344,7 @@ fn phi_pdf(x: f64) -> (f64, f64) {
 #[inline(always)]
 fn phi_pdf_in(table: &[[f64; 8]], x: f64) -> (f64, f64) {
     let a = x.abs();
-    if !(a < PHI_MAX) {
+    if a.is_nan() || a >= PHI_MAX {
         return (if x > 0.0 { 1.0 } else { 0.0 }, 0.0);
     }
     let u = a * PHI_NODES_PER_UNIT;
