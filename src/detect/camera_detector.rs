@@ -214,12 +214,8 @@ impl CameraDetector {
     /// at the frame at `t_ns` (waiting for the search if it has not finished); returns the
     /// time waited, seconds.
     fn take_background_result(&mut self, t_ns: i64, rig: &RigDetectors) -> f64 {
-        let Some((t_search, _)) = &self.pending else { return 0.0 };
-        let t_search = *t_search;
-        if t_ns.saturating_sub(t_search) < BACKGROUND_SEARCH_LAG_NS {
-            return 0.0;
-        }
-        let Some((_, rx)) = self.pending.take() else { return 0.0 };
+        let due = self.pending.as_ref().is_some_and(|(t_search, _)| t_ns.saturating_sub(*t_search) >= BACKGROUND_SEARCH_LAG_NS);
+        let Some((t_search, rx)) = self.pending.take_if(|_| due) else { return 0.0 };
         let c0 = Instant::now();
         let result = rx.recv();
         let waited = c0.elapsed().as_secs_f64();

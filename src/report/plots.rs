@@ -200,14 +200,7 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
             ))
             .map_err(err)?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font((FONT, 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(180, 180, 180))
-        .draw()
-        .map_err(err)?;
+    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     root.present().map_err(err)?;
     Ok(())
 }
@@ -257,16 +250,24 @@ fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report,
         .map_err(err)?
         .label(format!("{} (right axis)", report.x_axis))
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], red.stroke_width(2)));
+    draw_legend(std::ops::DerefMut::deref_mut(&mut chart), SeriesLabelPosition::UpperMiddle)?;
+    root.present().map_err(err)?;
+    Ok(())
+}
+
+/// The legend of both plots, at `position`.
+fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    position: SeriesLabelPosition,
+) -> Result<(), String> {
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperMiddle)
+        .position(position)
         .label_font((FONT, 14))
         .background_style(WHITE.mix(0.85))
         .border_style(RGBColor(180, 180, 180))
         .draw()
-        .map_err(err)?;
-    root.present().map_err(err)?;
-    Ok(())
+        .map_err(err)
 }
 
 fn encode_png(rgb: &[u8]) -> Result<Vec<u8>, String> {

@@ -427,7 +427,6 @@ pub async fn run_poller(cfg: UtmConfig, tx: mpsc::Sender<UtmEvent>, mut shutdown
 /// is dropped and re-made like after any other bad reply.
 async fn poll_guarded(link: &mut Link) -> Result<UtmSample, PollFault> {
     use futures_util::FutureExt;
-    let address = link.cfg.address.clone();
     match std::panic::AssertUnwindSafe(link.poll()).catch_unwind().await {
         Ok(r) => r,
         Err(panic) => {
@@ -437,7 +436,10 @@ async fn poll_guarded(link: &mut Link) -> Result<UtmSample, PollFault> {
                 .or_else(|| panic.downcast_ref::<&str>().copied())
                 .unwrap_or("a panic")
                 .to_string();
-            Err(PollFault::Malformed { address, detail: format!("the Modbus client library failed on the reply ({what})") })
+            Err(PollFault::Malformed {
+                address: link.cfg.address.clone(),
+                detail: format!("the Modbus client library failed on the reply ({what})"),
+            })
         }
     }
 }
