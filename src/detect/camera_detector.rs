@@ -3,7 +3,7 @@
 //! ([`super::confirm`]), searches windows of the tags it could not confirm and the sweep's
 //! tiles with the AprilTag library, sorts what it found into background and specimen tags
 //! and remembers, per tag, what the next frame needs (where it was, its edge fits' levels,
-//! the contrast of the tags it follows).
+//! the pixels they were fitted on, the contrast of the tags it follows).
 //!
 //! What the cameras of a rig share is in [`RigDetectors`]: the one AprilTag [`Detector`]
 //! (its tag36h11 decoding table is 37 MB, so one for all cameras; its searches take their
@@ -38,7 +38,7 @@ use rayon::prelude::*;
 use super::apriltag::{Detector, SearchOptions};
 use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
 use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
-use super::refine::{refine_corners_with, EdgeLevels};
+use super::refine::{refine_corners_with, EdgeMemory};
 use super::{Detection, Rect};
 use crate::camera::{CameraIntrinsics, IdealPixelMap, Lens};
 use crate::frame::GrayImage;
@@ -100,6 +100,15 @@ pub struct DetectReport {
     pub window_searches: u64,
     /// Tags confirmed at their predicted place (no search needed).
     pub confirmed_tags: u64,
+    /// Of those, fitted on the pixels selected in an earlier frame (the tag had barely moved).
+    pub reused_bands: u64,
+}
+
+/// The tags confirmed in a frame.
+struct Confirmed {
+    tags: Vec<Detection>,
+    /// How many of them reused their pixels from an earlier frame.
+    reused_bands: u64,
 }
 
 /// The tags of one camera's frame, sorted by role (others are ignored).
@@ -167,8 +176,8 @@ pub struct RigDetectors {
 pub struct CameraDetector {
     intrinsics: CameraIntrinsics,
     planner: RoiPlanner,
-    /// Each followed tag's last edge-fit levels (the warm start of its next fit).
-    edge_levels: HashMap<(TagFamily, u32), EdgeLevels>,
+    /// What each followed tag's last fit left for its next (see [`EdgeMemory`]).
+    edge_memory: HashMap<(TagFamily, u32), EdgeMemory>,
     /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
     tag_contrast: Option<f64>,
     /// The sweep's masked copy of a tile (reused).
@@ -193,7 +202,7 @@ impl CameraDetector {
         Self {
             intrinsics,
             planner: RoiPlanner::new(intrinsics, roi_tracking, full_search_interval_s).with_phase(phase),
-            edge_levels: HashMap::new(),
+            edge_memory: HashMap::new(),
             tag_contrast: None,
             tile: GrayImage::new(0, 0),
             pixel_map: None,
@@ -307,8 +316,9 @@ impl CameraDetector {
                 }
                 let (confirmed, windows, cpu) = self.confirm(image, tags, rig);
                 report.parts.tracking = cpu;
-                report.confirmed_tags = confirmed.len() as u64;
-                let mut found = confirmed;
+                report.confirmed_tags = confirmed.tags.len() as u64;
+                report.reused_bands = confirmed.reused_bands;
+                let mut found = confirmed.tags;
                 let c0 = Instant::now();
                 let more = self.search(rig, image, &windows, &sweep, &found, decimate, sweep_decimate);
                 found.extend(more);
@@ -326,17 +336,17 @@ impl CameraDetector {
 
     /// Confirms the planned tags at their predicted places; returns the confirmed tags, the
     /// (merged) windows of the others and the CPU time spent.
-    fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Vec<Detection>, Vec<Rect>, f64) {
+    fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Confirmed, Vec<Rect>, f64) {
         let refine = rig.library.options().subpixel.as_ref();
         if self.pixel_map.as_ref().map(|m| m.size()) != Some((image.width, image.height)) {
             self.pixel_map = Some(IdealPixelMap::new(self.intrinsics, image.width, image.height));
         }
-        let levels = &self.edge_levels;
+        let memories = &self.edge_memory;
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let one = |t: &PlannedTag| {
             let c0 = crate::clock::thread_cpu_s();
-            let levels = levels.get(&(t.family, t.id)).copied().unwrap_or([None; 4]);
-            let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, levels };
+            let memory = memories.get(&(t.family, t.id)).cloned().unwrap_or_default();
+            let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, memory };
             let result = match refine {
                 Some(opts) => rig.confirmer.confirm(image, &prediction, lens, opts),
                 None => Err(ConfirmMiss::Unsupported),
@@ -345,18 +355,19 @@ impl CameraDetector {
         };
         let results: Vec<(Result<ConfirmedTag, ConfirmMiss>, f64)> =
             if tags.len() > 1 { tags.par_iter().map(one).collect() } else { tags.iter().map(one).collect() };
-        let (mut confirmed, mut windows, mut cpu) = (Vec::new(), Vec::new(), 0.0);
+        let (mut confirmed, mut windows, mut cpu, mut reused) = (Vec::new(), Vec::new(), 0.0, 0);
         let mut weakest: Option<f64> = None;
         for (t, (result, cpu_s)) in tags.into_iter().zip(results) {
             cpu += cpu_s;
             match result {
                 Ok(tag) => {
                     weakest = Some(weakest.map_or(tag.contrast, |w: f64| w.min(tag.contrast)));
-                    self.edge_levels.insert((t.family, t.id), tag.levels);
+                    reused += tag.memory.reused_bands() as u64;
+                    self.edge_memory.insert((t.family, t.id), tag.memory);
                     confirmed.push(tag.detection);
                 }
                 Err(_) => {
-                    self.edge_levels.remove(&(t.family, t.id));
+                    self.edge_memory.remove(&(t.family, t.id));
                     windows.push(t.window);
                 }
             }
@@ -364,7 +375,7 @@ impl CameraDetector {
         if weakest.is_some() {
             self.tag_contrast = weakest;
         }
-        (confirmed, merge_rects(windows), cpu)
+        (Confirmed { tags: confirmed, reused_bands: reused }, merge_rects(windows), cpu)
     }
 
     /// The options of window and sweep searches: decimation `search_decimate` (at least the

@@ -19,7 +19,7 @@ use nalgebra::{Point2, Vector2};
 use std::collections::HashMap;
 
 use super::family::tag_bitmap;
-use super::refine::{refine_corners_warm, EdgeLevels, RefineOptions};
+use super::refine::{refine_corners_warm, EdgeMemory, RefineOptions};
 use super::Detection;
 use crate::camera::{apply_homography, Lens};
 use crate::frame::GrayImage;
@@ -59,7 +59,7 @@ pub enum ConfirmMiss {
 }
 
 /// Where a tracked tag is expected in a frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Prediction {
     /// Its family.
     pub family: TagFamily,
@@ -67,9 +67,9 @@ pub struct Prediction {
     pub id: u32,
     /// Its predicted corners, pixels, SPEC order.
     pub corners: [Point2<f64>; 4],
-    /// Its last edge fits in this camera (warm start: about one iteration less per edge),
-    /// or `[None; 4]`.
-    pub levels: EdgeLevels,
+    /// What its last fit in this camera left (warm start: about one iteration less per
+    /// edge, and the pixels to fit while it has barely moved), or the default.
+    pub memory: EdgeMemory,
 }
 
 /// A tag confirmed at its predicted place.
@@ -80,8 +80,8 @@ pub struct ConfirmedTag {
     pub detection: Detection,
     /// Mean white cell minus mean black cell, grey levels.
     pub contrast: f64,
-    /// The edge fits' levels (the warm start of the tag's next fit).
-    pub levels: EdgeLevels,
+    /// What this fit leaves for the tag's next fit.
+    pub memory: EdgeMemory,
 }
 
 /// Confirms known tags in frames. Immutable while confirming, so one confirmer serves every
@@ -108,7 +108,8 @@ impl TagConfirmer {
         lens: Lens<'_>,
         refine: &RefineOptions,
     ) -> Result<ConfirmedTag, ConfirmMiss> {
-        let Prediction { family, id, corners: predicted, mut levels } = *prediction;
+        let Prediction { family, id, corners: predicted, ref memory } = *prediction;
+        let mut memory = memory.clone();
         let predicted = &predicted;
         let read;
         let bitmap = match self.bitmaps.get(&(family, id)) {
@@ -120,7 +121,7 @@ impl TagConfirmer {
         };
         let mut det = Detection { family, id, corners: *predicted, decision_margin: 0.0, hamming: 0 };
         let refine = &RefineOptions { passes: self.options.refine_passes.min(refine.passes).max(1), ..refine.clone() };
-        let report = refine_corners_warm(image, &mut det, lens, refine, &mut levels);
+        let report = refine_corners_warm(image, &mut det, lens, refine, &mut memory);
         if report.refined != 4 {
             return Err(if report.failed_fit == 4 && edge_bits_px(predicted, family) < refine.min_bit_px {
                 ConfirmMiss::Unsupported
@@ -134,7 +135,7 @@ impl TagConfirmer {
         }
         det.decision_margin = read.margin as f32;
         det.hamming = read.wrong.min(u8::MAX as u32) as u8;
-        Ok(ConfirmedTag { detection: det, contrast: read.contrast, levels })
+        Ok(ConfirmedTag { detection: det, contrast: read.contrast, memory })
     }
 }
 

@@ -204,6 +204,8 @@ pub struct BenchFigures {
     pub background_wait_ms: f64,
     /// Tag views confirmed at their predicted place without a search.
     pub tracked_tags: u64,
+    /// Of those, fitted on the pixels selected in an earlier frame (the tag had barely moved).
+    pub reused_band_tags: u64,
     /// Accuracy against the recording's ground truth (synthetic recordings only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub accuracy: Option<crate::accuracy::Accuracy>,
@@ -331,6 +333,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         background_searches: stats.background_searches,
         background_wait_ms: parts.background_wait / n * 1e3,
         tracked_tags: stats.tracked_tags,
+        reused_band_tags: stats.reused_band_tags,
         accuracy: (!rec.truth.is_empty()).then(|| crate::accuracy::evaluate(&rec.config, &rec.truth, &lines)),
     })
 }
@@ -368,7 +371,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 24] = [
+    let rows: [Row; 25] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -393,6 +396,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("background searches", |f| f.background_searches.to_string()),
         ("  waited for, ms/set", |f| format!("{:.2}", f.background_wait_ms)),
         ("tags tracked without search", |f| f.tracked_tags.to_string()),
+        ("  on reused pixels", |f| f.reused_band_tags.to_string()),
     ];
     print!("{:<28}", "");
     for r in runs {

@@ -48,6 +48,8 @@ pub struct MeasureStats {
     pub background_searches: u64,
     /// Tag views confirmed at their predicted place (no search needed).
     pub tracked_tags: u64,
+    /// Of those, fitted on pixels selected in an earlier frame.
+    pub reused_band_tags: u64,
     /// Specimen tag views rejected as outliers.
     pub rejected_views: u64,
     /// Camera bumps detected.
@@ -403,6 +405,7 @@ impl Measurement {
             self.stats.window_searches += report.window_searches;
             self.stats.background_searches += report.background_searches;
             self.stats.tracked_tags += report.confirmed_tags;
+            self.stats.reused_band_tags += report.reused_bands;
             out.push((ci, dets));
         }
         (out, parts)

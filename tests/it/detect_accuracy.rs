@@ -367,13 +367,14 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
         let Some(found) = det.detect(&img).into_iter().find(|d| d.family == family && d.id == id) else { continue };
         let shift = nalgebra::Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5));
         let predicted = truth.map(|c| c + shift + nalgebra::Vector2::new(rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1)));
-        let at = |family, id, corners| Prediction { family, id, corners, levels: [None; 4] };
+        let at = |family, id, corners| Prediction { family, id, corners, memory: Default::default() };
         let tracked =
             tracker.confirm(&img, &at(family, id, predicted), Lens::new(None), &refine).unwrap_or_else(|e| panic!("tag {t}: {e:?}"));
         assert!(tracked.contrast > 120.0, "contrast {}", tracked.contrast);
         // Warm-started from its own fit (as in the next frame), the fit lands on the same corners.
-        let warm =
-            tracker.confirm(&img, &Prediction { levels: tracked.levels, ..at(family, id, predicted) }, Lens::new(None), &refine).unwrap();
+        let warm = tracker
+            .confirm(&img, &Prediction { memory: tracked.memory.clone(), ..at(family, id, predicted) }, Lens::new(None), &refine)
+            .unwrap();
         let moved = (0..4).map(|i| (warm.detection.corners[i] - tracked.detection.corners[i]).norm()).fold(0.0, f64::max);
         assert!(moved < 1e-3, "tag {t}: warm start moved a corner by {moved} px");
         assert_eq!(tracked.detection.hamming, 0);
@@ -404,6 +405,63 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
     println!("tracked corners RMS {tracked_rms:.4} px, refined library detections {detected_rms:.4} px");
     assert!(tracked_rms < 0.025, "tracked corner RMS {tracked_rms:.4} px");
     assert!(tracked_rms < 1.15 * detected_rms + 0.002, "tracked {tracked_rms:.4} vs detected {detected_rms:.4} px");
+}
+
+/// A tracked tag fitted again near where its last fit started reuses that fit's pixels: at
+/// the same place the corners equal those of a fresh selection exactly, 0.05 px away they
+/// are as accurate as a fresh selection's (they differ by a fraction of the noise: a few
+/// pixels at the band's limits weigh differently), and 0.3 px away the pixels are
+/// selected anew.
+#[test]
+fn a_tag_that_barely_moved_is_fitted_on_its_last_pixels() {
+    use tagdeflect::detect::{Prediction, RefineOptions, TagConfirmer};
+    let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
+    let mut rng = ChaCha8Rng::seed_from_u64(33);
+    let tracker = TagConfirmer::default();
+    let reuse = RefineOptions::default();
+    let fresh = RefineOptions { band_reuse_px: 0.0, ..RefineOptions::default() };
+    assert_eq!(reuse.band_reuse_px, 0.1);
+    let (mut worst_near, mut se_reused, mut se_fresh) = (0.0f64, 0.0, 0.0);
+    for t in 0..20 {
+        // Tags from 28 px (the bench's) to 90 px wide.
+        let edge = rng.gen_range(28.0..90.0);
+        let truth = random_corners(&mut rng, 150.0, 150.0, edge, 0.04);
+        let (family, id) = (TagFamily::Tag36h11, t as u32);
+        let img = render(&scene, &[(family, id, truth)], &mut rng);
+        let predicted = truth.map(|c| c + nalgebra::Vector2::new(rng.gen_range(-0.3..0.3), rng.gen_range(-0.3..0.3)));
+        let at = |corners, memory| Prediction { family, id, corners, memory };
+        let first = tracker.confirm(&img, &at(predicted, Default::default()), Lens::new(None), &reuse).unwrap();
+        assert!(!first.memory.reused_bands(), "tag {t}: nothing to reuse yet");
+        let max_diff =
+            |a: &[nalgebra::Point2<f64>; 4], b: &[nalgebra::Point2<f64>; 4]| (0..4).map(|i| (a[i] - b[i]).norm()).fold(0.0, f64::max);
+        // The same place: the same pixels, the same corners.
+        let again = tracker.confirm(&img, &at(predicted, first.memory.clone()), Lens::new(None), &reuse).unwrap();
+        let anew = tracker.confirm(&img, &at(predicted, first.memory.clone()), Lens::new(None), &fresh).unwrap();
+        assert!(again.memory.reused_bands() && !anew.memory.reused_bands(), "tag {t}");
+        let d = max_diff(&again.detection.corners, &anew.detection.corners);
+        assert!(d < 1e-9, "tag {t}: reused pixels moved a corner by {d:.2e} px");
+        // 0.05 px away: reused, nearly the same corners.
+        let near = predicted.map(|c| c + nalgebra::Vector2::new(0.035, -0.035));
+        let near_reused = tracker.confirm(&img, &at(near, first.memory.clone()), Lens::new(None), &reuse).unwrap();
+        let near_fresh = tracker.confirm(&img, &at(near, first.memory.clone()), Lens::new(None), &fresh).unwrap();
+        assert!(near_reused.memory.reused_bands(), "tag {t}");
+        worst_near = worst_near.max(max_diff(&near_reused.detection.corners, &near_fresh.detection.corners));
+        se_reused += errors(&near_reused.detection, &truth).iter().sum::<f64>();
+        se_fresh += errors(&near_fresh.detection, &truth).iter().sum::<f64>();
+        // 0.3 px away: selected anew, so exactly the fresh fit.
+        let far = predicted.map(|c| c + nalgebra::Vector2::new(0.3, 0.0));
+        let far_fit = tracker.confirm(&img, &at(far, first.memory.clone()), Lens::new(None), &reuse).unwrap();
+        let far_fresh = tracker.confirm(&img, &at(far, first.memory.clone()), Lens::new(None), &fresh).unwrap();
+        assert!(!far_fit.memory.reused_bands(), "tag {t}");
+        assert!(max_diff(&far_fit.detection.corners, &far_fresh.detection.corners) < 1e-9, "tag {t}");
+    }
+    let (rms_reused, rms_fresh) = ((se_reused / 80.0).sqrt(), (se_fresh / 80.0).sqrt());
+    println!(
+        "pixels selected 0.05 px away vs anew: corner RMS {rms_reused:.4} vs {rms_fresh:.4} px, corners differ by at most {worst_near:.4} px"
+    );
+    assert!(rms_reused < 1.05 * rms_fresh + 0.0005, "reused {rms_reused:.4} vs fresh {rms_fresh:.4} px");
+    // The corner noise of this scene is ~0.014 px (see the test above).
+    assert!(worst_near < 0.01, "{worst_near:.4} px");
 }
 
 /// The sweep searches a copy of each tile with the tags already found blanked out: the
