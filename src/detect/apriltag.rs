@@ -32,9 +32,9 @@ use nalgebra::Point2;
 use thiserror::Error;
 
 use super::family::FamilyTable;
-use super::refine::{refine_corners_with, RefineOptions, RefineStats};
+use super::refine::{refine_corners_warm, refine_corners_with, EdgeMemory, RefineOptions, RefineStats};
 use super::{Detection, Rect};
-use crate::camera::CameraIntrinsics;
+use crate::camera::{CameraIntrinsics, Lens};
 use crate::frame::GrayImage;
 use crate::tags::TagFamily;
 
@@ -380,19 +380,14 @@ impl Detector {
 
     /// Detects tags in `rect` of `image` (the whole image for `None`) with the options of
     /// this search, on a free worker (thread-safe); corners refined when `search.refine`
-    /// and the detector has refinement options, straightened by `intrinsics`.
-    pub fn search(
-        &self,
-        image: &GrayImage,
-        rect: Option<Rect>,
-        search: &SearchOptions,
-        intrinsics: Option<&CameraIntrinsics>,
-    ) -> Vec<Detection> {
+    /// and the detector has refinement options, straightened through `lens` (the camera's,
+    /// e.g. with its [`IdealPixelMap`](crate::camera::IdealPixelMap); `Lens::new(None)`: none).
+    pub fn search(&self, image: &GrayImage, rect: Option<Rect>, search: &SearchOptions, lens: Lens<'_>) -> Vec<Detection> {
         let raws = self.raw(image, rect, search);
         let mut out: Vec<Detection> = raws.iter().map(RawDetection::to_detection).collect();
         if let (true, Some(opts)) = (search.refine, &self.options.subpixel) {
             for d in &mut out {
-                refine_corners_with(image, d, intrinsics, opts);
+                refine_corners_warm(image, d, lens, opts, &mut EdgeMemory::default());
             }
         }
         out

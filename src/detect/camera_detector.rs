@@ -38,7 +38,7 @@ use rayon::prelude::*;
 use super::apriltag::{Detector, SearchOptions};
 use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
 use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
-use super::refine::{refine_corners_with, EdgeMemory};
+use super::refine::{refine_corners_warm, EdgeMemory};
 use super::{Detection, Rect};
 use crate::camera::{CameraIntrinsics, IdealPixelMap, Lens};
 use crate::frame::GrayImage;
@@ -247,7 +247,7 @@ impl CameraDetector {
         let (tx, rx) = mpsc::channel();
         let (image, rig, intrinsics) = (image.clone(), Arc::clone(rig), self.intrinsics);
         let spawned = std::thread::Builder::new().name("background-search".into()).spawn(move || {
-            let found = rig.library.search(&image, None, &options, Some(&intrinsics));
+            let found = rig.library.search(&image, None, &options, Lens::new(Some(&intrinsics)));
             let _ = tx.send(found);
         });
         match spawned {
@@ -266,10 +266,12 @@ impl CameraDetector {
     /// start-up search); returns the tags and the number of searches run.
     fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64) {
         let configured = SearchOptions::of(rig.library.options());
+        self.prepare_pixel_map(image);
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let startup = self.tracking && !self.searched_once && configured.quad_decimate < STARTUP_DECIMATE;
         if startup {
             let options = SearchOptions { quad_decimate: STARTUP_DECIMATE, ..configured };
-            let found = rig.library.search(image, None, &options, Some(&self.intrinsics));
+            let found = rig.library.search(image, None, &options, lens);
             let seen: HashSet<u32> = found.iter().filter(|d| d.family == rig.roles.specimen_family).map(|d| d.id).collect();
             if rig.roles.specimen.iter().all(|id| seen.contains(id)) {
                 return (found, 1);
@@ -279,9 +281,9 @@ impl CameraDetector {
                 specimen_tags = rig.roles.specimen.len(),
                 "decimated start-up search missed specimen tags: searching at full resolution"
             );
-            return (rig.library.search(image, None, &configured, Some(&self.intrinsics)), 2);
+            return (rig.library.search(image, None, &configured, lens), 2);
         }
-        (rig.library.search(image, None, &configured, Some(&self.intrinsics)), 1)
+        (rig.library.search(image, None, &configured, lens), 1)
     }
 
     /// Detects the tags of the frame at `t_ns`: the tags followed are confirmed where they
@@ -334,13 +336,18 @@ impl CameraDetector {
         (dets, report)
     }
 
+    /// Makes the camera's pixel map fit `image` (a new one when the frame size changed).
+    fn prepare_pixel_map(&mut self, image: &GrayImage) {
+        if self.pixel_map.as_ref().map(|m| m.size()) != Some((image.width, image.height)) {
+            self.pixel_map = Some(IdealPixelMap::new(self.intrinsics, image.width, image.height));
+        }
+    }
+
     /// Confirms the planned tags at their predicted places; returns the confirmed tags, the
     /// (merged) windows of the others and the CPU time spent.
     fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Confirmed, Vec<Rect>, f64) {
         let refine = rig.library.options().subpixel.as_ref();
-        if self.pixel_map.as_ref().map(|m| m.size()) != Some((image.width, image.height)) {
-            self.pixel_map = Some(IdealPixelMap::new(self.intrinsics, image.width, image.height));
-        }
+        self.prepare_pixel_map(image);
         let memories = &self.edge_memory;
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let one = |t: &PlannedTag| {
@@ -417,8 +424,10 @@ impl CameraDetector {
         }
         let configured = rig.library.options();
         let options = self.search_options(rig, search_decimate);
+        self.prepare_pixel_map(image);
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         for r in windows {
-            out.extend(rig.library.search(image, Some(*r), &options, Some(&self.intrinsics)));
+            out.extend(rig.library.search(image, Some(*r), &options, lens));
         }
         if !tiles.is_empty() {
             let tile_options = SearchOptions { refine: false, ..self.search_options(rig, sweep_decimate) };
@@ -428,7 +437,7 @@ impl CameraDetector {
                 // The tile with the tags already found blanked out (see `plan::masked_tile`).
                 masked_tile(image, *r, &known, &mut self.tile);
                 let whole = Rect { x: 0, y: 0, width: r.width, height: r.height };
-                for mut d in rig.library.search(&self.tile, Some(whole), &tile_options, None) {
+                for mut d in rig.library.search(&self.tile, Some(whole), &tile_options, Lens::new(None)) {
                     for c in d.corners.iter_mut() {
                         *c += nalgebra::Vector2::new(r.x as f64, r.y as f64);
                     }
@@ -440,7 +449,7 @@ impl CameraDetector {
             }
             if let Some(opts) = &configured.subpixel {
                 for d in &mut new {
-                    refine_corners_with(image, d, Some(&self.intrinsics), opts);
+                    refine_corners_warm(image, d, lens, opts, &mut EdgeMemory::default());
                 }
             }
             out.extend(new);

@@ -517,7 +517,7 @@ fn parallel_searches_on_shared_family_tables_equal_one_detector() {
     let search = SearchOptions::of(&opts);
     std::thread::scope(|s| {
         let handles: Vec<_> =
-            (0..6).map(|_| s.spawn(|| (0..5).map(|_| shared.search(&img, None, &search, None)).collect::<Vec<_>>())).collect();
+            (0..6).map(|_| s.spawn(|| (0..5).map(|_| shared.search(&img, None, &search, Lens::new(None))).collect::<Vec<_>>())).collect();
         for h in handles {
             for found in h.join().unwrap() {
                 assert_eq!(found, expected, "a parallel search differs from the single detector's");
@@ -525,7 +525,7 @@ fn parallel_searches_on_shared_family_tables_equal_one_detector() {
         }
     });
     // Per-call options: an unrefined decimated search leaves the detector's own as they were.
-    let coarse = shared.search(&img, None, &SearchOptions { quad_decimate: 2.0, refine: false, ..search }, None);
+    let coarse = shared.search(&img, None, &SearchOptions { quad_decimate: 2.0, refine: false, ..search }, Lens::new(None));
     assert_eq!(coarse.len(), 4);
-    assert_eq!(shared.search(&img, None, &search, None), expected);
+    assert_eq!(shared.search(&img, None, &search, Lens::new(None)), expected);
 }
