@@ -13,7 +13,9 @@
 //! (an archive deduplicates them on `(rig, test, seq)`). At most `buffer_lines` lines are
 //! held, sent or not; beyond that the oldest is dropped and counted. The count so far is
 //! written into every feed line as `mqtt_dropped` (the local feed and the published line
-//! carry the same value: the count includes a drop caused by this very line).
+//! carry the same value: the count includes a drop caused by this very line). It bounds
+//! what the broker never got from above: a dropped line that was sent but not yet
+//! acknowledged when the connection broke may have reached the broker after all.
 //!
 //! **Metrics.** [`MqttPublisher::stats`] returns an `Arc<`[`MqttStats`]`>` of atomics an HTTP
 //! `/metrics` endpoint can read at any time: `dropped` (lines dropped from the buffer),

@@ -270,14 +270,18 @@ fn broker_down_for_10_s_loses_nothing_within_the_buffer_and_counts_the_drops() {
     let dropped = feed.last().unwrap()["mqtt_dropped"].as_u64().unwrap() as usize;
     // ~100 lines made during the outage, 15 kept.
     assert!(dropped >= 50, "only {dropped} lines dropped from a 15-line buffer during a 10 s outage");
+    // A dropped line was never acknowledged, but one on its way when the broker stopped
+    // (sent, its acknowledgement not yet back) may have reached it: `mqtt_dropped` bounds
+    // the loss from above, by at most the lines in flight (on loopback at ~10 lines/s, one
+    // or two).
+    const IN_FLIGHT: usize = 2;
     let rows = wait_rows(&pg.url(), "small", "bo", feed.len() - dropped, Duration::from_secs(30));
     std::thread::sleep(Duration::from_millis(500));
     let rows_again = archived(&pg.url(), "small", "bo");
     assert_eq!(rows.len(), rows_again.len(), "more lines arrived than the feed says were kept");
-    assert_eq!(
-        rows.len() + dropped,
-        feed.len(),
-        "rig small: {} archived + {dropped} dropped != {} made\n{}",
+    assert!(
+        rows.len() + dropped >= feed.len() && rows.len() + dropped <= feed.len() + IN_FLIGHT,
+        "rig small: {} archived + {dropped} dropped vs {} made\n{}",
         rows.len(),
         feed.len(),
         logs()
@@ -285,8 +289,8 @@ fn broker_down_for_10_s_loses_nothing_within_the_buffer_and_counts_the_drops() {
     assert_rows_equal_feed(&rows, &feed);
     // What is missing is one run of consecutive lines: the oldest of the outage.
     let missing: Vec<i64> = feed.iter().map(|l| l["seq"].as_i64().unwrap()).filter(|s| !rows.contains_key(s)).collect();
-    assert_eq!(missing.len(), dropped);
-    assert_eq!(missing.last().unwrap() - missing[0] + 1, dropped as i64, "dropped lines are not consecutive: {missing:?}");
+    assert_eq!(missing.len(), feed.len() - rows.len());
+    assert_eq!(missing.last().unwrap() - missing[0] + 1, missing.len() as i64, "missing lines are not consecutive: {missing:?}");
     assert!(archive.alive());
 }
 
