@@ -43,7 +43,9 @@ pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection, S
 pub use self::camera_detector::{CameraDetections, CameraDetector, DetectParts, DetectReport, RigDetectors, TagRoles};
 pub use self::confirm::{ConfirmMiss, ConfirmOptions, ConfirmedTag, Prediction, TagConfirmer};
 pub use self::family::tag_bitmap;
-pub use self::refine::{refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, RefineOptions, RefineReport, RefineStats};
+pub use self::refine::{
+    refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, RefineOptions, RefineReport, RefineStats,
+};
 
 /// A rectangle of pixels: columns `x..x+width`, rows `y..y+height` (a detection window).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
