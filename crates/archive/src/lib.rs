@@ -1,0 +1,472 @@
+//! `tagdeflect archive --mqtt URL --postgres URL` (SPEC "Archive"): subscribes to the
+//! feeds that rigs publish (`[output.mqtt]`) and keeps every line in PostgreSQL.
+//!
+//! ```text
+//! broker ──<topic>/feed──▶ MQTT task ──▶ writer: batch ─▶ one transaction ─▶ PUBACKs
+//! ```
+//!
+//! - **At least once, never twice.** The session is persistent (`clean_session = false`,
+//!   a fixed client id) and acknowledgements are manual: a message is acknowledged only
+//!   after the transaction holding it has committed. Whatever was received but not
+//!   committed when the archive, the broker or the database went away is redelivered by
+//!   the broker; rows are upserted on (rig, test, seq), so a redelivery never makes a
+//!   duplicate.
+//! - **Batches** form by themselves: while one transaction commits, the next messages
+//!   queue up and go into the next one (up to `--batch` lines).
+//! - **Several archives** can share the load (`--group NAME`): they subscribe to the same
+//!   MQTT shared subscription `$share/<group>/...` (each with its own `--client-id`), so
+//!   the broker hands each message to one of them. One archive alone uses a plain
+//!   persistent subscription: Mosquitto 2.0 restores those after its own restart, not
+//!   shared ones (lines published between the broker's restart and the archives'
+//!   reconnection would be lost to a shared group).
+//! - **Bad messages** (not JSON, not a feed line, a topic that does not fit the template)
+//!   are logged, acknowledged and skipped; the database refusing a row as bad data skips
+//!   that row only.
+//! - **Outages**: the MQTT connection and the database connection are retried with a
+//!   backoff (0.2 s doubling to 2 s); while the database is away nothing is acknowledged
+//!   and the broker holds the backlog.
+
+pub mod bench;
+pub mod db;
+pub mod local;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use rumqttc::{AsyncClient, Event, EventLoop, Packet, Publish, QoS};
+use tokio::sync::{mpsc, watch};
+
+use tagdeflect_core::feed::FeedLine;
+use db::{Db, LineRow, StatusRow};
+
+/// Options of `tagdeflect archive`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ArchiveOptions {
+    /// The broker: mqtt://[user[:password]@]host[:port] or mqtts://... (TLS).
+    #[arg(long)]
+    pub mqtt: String,
+    /// The database: a libpq URL or key=value string, e.g. postgresql://user@host:5432/db.
+    #[arg(long)]
+    pub postgres: String,
+    /// The rigs' topic template (as in `[output.mqtt] topic`).
+    #[arg(long, default_value = "tagdeflect/{rig}/{test}")]
+    pub topic: String,
+    /// Share the load with other archives: subscribe through the MQTT shared subscription
+    /// `$share/<GROUP>/...`, so the broker hands each message to one archive of the group.
+    /// Without it, a plain persistent subscription (what one archive needs; Mosquitto 2.0
+    /// does not restore shared subscriptions after its own restart, plain ones it does).
+    #[arg(long)]
+    pub group: Option<String>,
+    /// The MQTT client id; keep it fixed across restarts (the broker keeps the session),
+    /// and different for each archive (default: tagdeflect-archive-<host>).
+    #[arg(long)]
+    pub client_id: Option<String>,
+    /// TLS: PEM file of the CA certificates of the broker (mqtts://).
+    #[arg(long)]
+    pub ca_file: Option<std::path::PathBuf>,
+    /// Feed lines per transaction at most.
+    #[arg(long, default_value_t = 1000)]
+    pub batch: usize,
+}
+
+/// Which message a topic carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// `<topic>/feed`: a feed line.
+    Feed,
+    /// `<topic>/status`: the rig's status.
+    Status,
+}
+
+/// The topic template of the rigs, to subscribe and to read rig and test from a topic.
+#[derive(Debug, Clone)]
+pub struct TopicLayout {
+    levels: Vec<String>,
+    rig: usize,
+    test: usize,
+}
+
+impl TopicLayout {
+    /// Parses a template such as `tagdeflect/{rig}/{test}`.
+    pub fn new(template: &str) -> Result<TopicLayout, String> {
+        tagdeflect_sinks::mqtt::check_topic_template(template)?;
+        let levels: Vec<String> = template.split('/').map(str::to_string).collect();
+        let rig = levels.iter().position(|l| l == "{rig}").expect("checked");
+        let test = levels.iter().position(|l| l == "{test}").expect("checked");
+        Ok(TopicLayout { levels, rig, test })
+    }
+
+    /// The subscription filter of one kind of message (placeholders become `+`).
+    pub fn filter(&self, kind: Kind) -> String {
+        let mut f: Vec<&str> = self.levels.iter().map(|l| if l == "{rig}" || l == "{test}" { "+" } else { l.as_str() }).collect();
+        f.push(match kind {
+            Kind::Feed => "feed",
+            Kind::Status => "status",
+        });
+        f.join("/")
+    }
+
+    /// Rig, test and kind of a topic, or `None` when it does not fit the template.
+    pub fn parse(&self, topic: &str) -> Option<(String, String, Kind)> {
+        let parts: Vec<&str> = topic.split('/').collect();
+        if parts.len() != self.levels.len() + 1 {
+            return None;
+        }
+        for (i, l) in self.levels.iter().enumerate() {
+            if i != self.rig && i != self.test && parts[i] != l {
+                return None;
+            }
+        }
+        let kind = match parts[self.levels.len()] {
+            "feed" => Kind::Feed,
+            "status" => Kind::Status,
+            _ => return None,
+        };
+        let (rig, test) = (parts[self.rig], parts[self.test]);
+        if rig.is_empty() || test.is_empty() {
+            return None;
+        }
+        Some((rig.to_string(), test.to_string(), kind))
+    }
+}
+
+/// Counters of a running archive.
+#[derive(Debug, Default)]
+pub struct ArchiveStats {
+    /// Feed lines newly stored.
+    pub inserted: AtomicU64,
+    /// Feed lines received again and already stored.
+    pub duplicates: AtomicU64,
+    /// Messages skipped as malformed (or refused by the database as bad data).
+    pub malformed: AtomicU64,
+    /// Status messages stored.
+    pub statuses: AtomicU64,
+    /// Transactions committed.
+    pub batches: AtomicU64,
+    /// Failed database attempts (retried).
+    pub db_retries: AtomicU64,
+}
+
+/// Checks the options before anything connects (bad input: exit 2).
+pub fn check_options(opts: &ArchiveOptions) -> anyhow::Result<(TopicLayout, tokio_postgres::Config)> {
+    tagdeflect_sinks::mqtt::BrokerUrl::parse(&opts.mqtt).map_err(|m| anyhow::anyhow!("--mqtt: {m}"))?;
+    let pg: tokio_postgres::Config = opts.postgres.parse().map_err(|e| anyhow::anyhow!("--postgres \"{}\": {e}", opts.postgres))?;
+    let layout = TopicLayout::new(&opts.topic).map_err(|m| anyhow::anyhow!("--topic: {m}"))?;
+    if let Some(g) = &opts.group {
+        tagdeflect_sinks::mqtt::check_level_name("--group", g).map_err(anyhow::Error::msg)?;
+    }
+    if opts.batch == 0 {
+        anyhow::bail!("--batch must be at least 1");
+    }
+    Ok((layout, pg))
+}
+
+/// `tagdeflect archive`: runs until SIGTERM/SIGINT, then commits what it holds and exits.
+pub fn run(opts: ArchiveOptions) -> anyhow::Result<()> {
+    check_options(&opts)?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    rt.block_on(async move {
+        let (stop_tx, stop_rx) = watch::channel(false);
+        tokio::spawn(async move {
+            let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).expect("SIGTERM handler");
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT: stopping"),
+                _ = term.recv() => tracing::info!("SIGTERM: stopping"),
+            }
+            let _ = stop_tx.send(true);
+        });
+        let stats = Arc::new(ArchiveStats::default());
+        run_until(opts, stats, stop_rx).await
+    })
+}
+
+/// The archive on the current runtime until `stop` turns true.
+pub async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop: watch::Receiver<bool>) -> anyhow::Result<()> {
+    let (layout, _) = check_options(&opts)?;
+    let client_id = opts.client_id.clone().unwrap_or_else(|| format!("tagdeflect-archive-{}", tagdeflect_sinks::mqtt::hostname()));
+    let tls = match &opts.ca_file {
+        Some(ca) => Some(archive_tls(&opts.mqtt, ca)?),
+        None => None,
+    };
+    let mut mo = tagdeflect_sinks::mqtt::mqtt_options(&opts.mqtt, &client_id, None, None, tls).map_err(anyhow::Error::msg)?;
+    mo.set_clean_session(false);
+    mo.set_manual_acks(true);
+    mo.set_keep_alive(Duration::from_secs(15));
+    let (client, eventloop) = AsyncClient::new(mo, 4 * opts.batch.max(64));
+    let subs: Vec<String> = [Kind::Feed, Kind::Status]
+        .iter()
+        .map(|k| match &opts.group {
+            Some(g) => format!("$share/{g}/{}", layout.filter(*k)),
+            None => layout.filter(*k),
+        })
+        .collect();
+    tracing::info!(client_id = %client_id, subscriptions = ?subs, "archive: {} -> PostgreSQL", opts.mqtt);
+
+    let (tx, rx) = mpsc::channel::<Publish>(4 * opts.batch.max(64));
+    let mqtt_task = tokio::spawn(drive_mqtt(eventloop, client.clone(), subs, tx));
+
+    // The database: retried until it answers (a service may start before it).
+    let mut db = match connect_db(&opts.postgres, &stats, &mut stop).await {
+        Some(db) => db,
+        None => {
+            mqtt_task.abort();
+            return Ok(());
+        }
+    };
+    tracing::info!("archive: database ready (schema version {})", db::MIGRATIONS.last().map_or(0, |m| m.0));
+    let res = write_loop(&opts, &layout, &client, rx, &mut db, &stats, &mut stop).await;
+    let _ = client.try_disconnect();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    mqtt_task.abort();
+    tracing::info!(
+        inserted = stats.inserted.load(Ordering::Relaxed),
+        duplicates = stats.duplicates.load(Ordering::Relaxed),
+        malformed = stats.malformed.load(Ordering::Relaxed),
+        "archive: stopped"
+    );
+    res
+}
+
+fn archive_tls(url: &str, ca: &std::path::Path) -> anyhow::Result<Arc<rustls::ClientConfig>> {
+    if !tagdeflect_sinks::mqtt::BrokerUrl::parse(url).map_err(anyhow::Error::msg)?.tls {
+        anyhow::bail!("--ca-file is for mqtts:// brokers; {url} is not one");
+    }
+    tagdeflect_sinks::mqtt::tls_config_for(Some(ca), None, None).map_err(|m| anyhow::anyhow!("--ca-file: {m}"))
+}
+
+/// Resolves when `stop` is (or becomes) true.
+pub async fn stopped(stop: &mut watch::Receiver<bool>) {
+    loop {
+        if *stop.borrow_and_update() {
+            return;
+        }
+        if stop.changed().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    }
+}
+
+async fn connect_db(url: &str, stats: &ArchiveStats, stop: &mut watch::Receiver<bool>) -> Option<Db> {
+    let mut backoff = Duration::from_millis(200);
+    let mut last = String::new();
+    loop {
+        match Db::connect(url).await {
+            Ok(db) => return Some(db),
+            Err(e) => {
+                stats.db_retries.fetch_add(1, Ordering::Relaxed);
+                let msg = format!("{e}");
+                if msg != last {
+                    tracing::warn!("archive: database unreachable ({msg}); retrying");
+                    last = msg;
+                }
+            }
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(backoff) => {}
+            _ = stopped(stop) => return None,
+        }
+        backoff = (backoff * 2).min(Duration::from_secs(2));
+    }
+}
+
+/// Drives the MQTT connection; subscribes on every connection (idempotent).
+async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<String>, tx: mpsc::Sender<Publish>) {
+    let mut backoff = Duration::from_millis(200);
+    let mut last_error = String::new();
+    loop {
+        match eventloop.poll().await {
+            Ok(Event::Incoming(Packet::ConnAck(c))) => {
+                backoff = Duration::from_millis(200);
+                last_error.clear();
+                tracing::info!(session_present = c.session_present, "archive: connected to the broker");
+                // Subscribe on every connection: a broker restored from its persistence
+                // may present the session without its shared subscriptions (Mosquitto 2.0).
+                {
+                    for s in &subs {
+                        if let Err(e) = client.try_subscribe(s.clone(), QoS::AtLeastOnce) {
+                            tracing::error!("archive: cannot subscribe to {s}: {e}");
+                        }
+                    }
+                }
+            }
+            Ok(Event::Incoming(Packet::SubAck(s))) => {
+                if s.return_codes.iter().any(|c| matches!(c, rumqttc::SubscribeReasonCode::Failure)) {
+                    tracing::error!("archive: the broker refused a subscription ({:?})", s.return_codes);
+                } else {
+                    tracing::info!(pkid = s.pkid, "archive: subscribed");
+                }
+            }
+            Ok(Event::Incoming(Packet::Publish(p))) => {
+                if tx.send(p).await.is_err() {
+                    return;
+                }
+            }
+            Ok(_) => {}
+            Err(e) => {
+                let msg = e.to_string();
+                if msg != last_error {
+                    tracing::warn!("archive: broker unreachable ({msg}); retrying");
+                    last_error = msg;
+                }
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(2));
+            }
+        }
+    }
+}
+
+/// What one message turned out to be.
+enum Parsed {
+    Line(LineRow),
+    Status(StatusRow),
+    Skip,
+}
+
+fn parse_message(layout: &TopicLayout, p: &Publish) -> Result<Parsed, String> {
+    let Some((rig, test, kind)) = layout.parse(&p.topic) else {
+        return Err(format!("topic {} does not fit the template", p.topic));
+    };
+    let value: serde_json::Value = serde_json::from_slice(&p.payload).map_err(|e| format!("not JSON: {e}"))?;
+    match kind {
+        Kind::Feed => {
+            let line: FeedLine = serde_json::from_value(value.clone()).map_err(|e| format!("not a feed line: {e}"))?;
+            let seq = i64::try_from(line.seq).map_err(|_| "seq out of range".to_string())?;
+            let mut ids = std::collections::HashSet::new();
+            if line.tags.iter().any(|t| !ids.insert(t.id)) {
+                return Err("a tag id appears twice".into());
+            }
+            if let Some(g) = value.get("gauges") {
+                let ok = g.as_object().is_some_and(|m| {
+                    m.values().all(|v| {
+                        v.is_object()
+                            && v.get("value").is_none_or(|x| x.is_number() || x.is_null())
+                            && v.get("sigma").is_none_or(|x| x.is_number() || x.is_null())
+                    })
+                });
+                if !ok {
+                    return Err("`gauges` is not an object of {value, sigma, unit}".into());
+                }
+            }
+            Ok(Parsed::Line(LineRow { rig, test, seq, line: value }))
+        }
+        Kind::Status => {
+            if !value.is_object() {
+                return Ok(Parsed::Skip);
+            }
+            Ok(Parsed::Status(StatusRow { rig, test, status: value }))
+        }
+    }
+}
+
+async fn write_loop(
+    opts: &ArchiveOptions,
+    layout: &TopicLayout,
+    client: &AsyncClient,
+    mut rx: mpsc::Receiver<Publish>,
+    db: &mut Db,
+    stats: &ArchiveStats,
+    stop: &mut watch::Receiver<bool>,
+) -> anyhow::Result<()> {
+    let mut report = tokio::time::interval(Duration::from_secs(10));
+    report.tick().await;
+    let mut last_inserted = 0;
+    loop {
+        let first = tokio::select! {
+            p = rx.recv() => p,
+            _ = stopped(stop) => None,
+            _ = report.tick() => {
+                let n = stats.inserted.load(Ordering::Relaxed);
+                if n != last_inserted {
+                    tracing::info!(inserted = n, duplicates = stats.duplicates.load(Ordering::Relaxed), malformed = stats.malformed.load(Ordering::Relaxed), "archive: {} feed lines in the last 10 s", n - last_inserted);
+                    last_inserted = n;
+                }
+                continue;
+            }
+        };
+        let Some(first) = first else { return Ok(()) };
+        let mut batch = vec![first];
+        while batch.len() < opts.batch {
+            match rx.try_recv() {
+                Ok(p) => batch.push(p),
+                Err(_) => break,
+            }
+        }
+        let mut lines = Vec::with_capacity(batch.len());
+        let mut statuses: Vec<StatusRow> = Vec::new();
+        let mut seen = std::collections::HashSet::new();
+        for p in &batch {
+            match parse_message(layout, p) {
+                Ok(Parsed::Line(l)) => {
+                    if seen.insert((l.rig.clone(), l.test.clone(), l.seq)) {
+                        lines.push(l);
+                    } else {
+                        stats.duplicates.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+                Ok(Parsed::Status(s)) => {
+                    statuses.retain(|x| !(x.rig == s.rig && x.test == s.test));
+                    statuses.push(s);
+                }
+                Ok(Parsed::Skip) => {}
+                Err(why) => {
+                    stats.malformed.fetch_add(1, Ordering::Relaxed);
+                    let head: String = String::from_utf8_lossy(&p.payload).chars().take(80).collect();
+                    tracing::warn!(topic = %p.topic, "archive: malformed message skipped: {why} (payload starts {head:?})");
+                }
+            }
+        }
+        // Commit, retrying through database outages; nothing is acknowledged before.
+        let mut backoff = Duration::from_millis(200);
+        let mut logged = false;
+        loop {
+            if db.is_closed() {
+                match connect_db(&opts.postgres, stats, stop).await {
+                    Some(d) => {
+                        *db = d;
+                        tracing::info!("archive: database back");
+                    }
+                    None => return Ok(()), // stopping: the batch stays unacknowledged
+                }
+            }
+            match db.write_or_skip(&lines, &statuses).await {
+                Ok(w) => {
+                    stats.inserted.fetch_add(w.inserted, Ordering::Relaxed);
+                    stats.duplicates.fetch_add(w.duplicates, Ordering::Relaxed);
+                    stats.malformed.fetch_add(w.rejected, Ordering::Relaxed);
+                    stats.statuses.fetch_add(statuses.len() as u64, Ordering::Relaxed);
+                    stats.batches.fetch_add(1, Ordering::Relaxed);
+                    break;
+                }
+                Err(e) => {
+                    stats.db_retries.fetch_add(1, Ordering::Relaxed);
+                    if !logged {
+                        tracing::warn!("archive: cannot commit {} feed lines ({e}); retrying, nothing acknowledged", lines.len());
+                        logged = true;
+                    }
+                    tokio::select! {
+                        _ = tokio::time::sleep(backoff) => {}
+                        _ = stopped(stop) => return Ok(()),
+                    }
+                    backoff = (backoff * 2).min(Duration::from_secs(2));
+                    if !db.is_closed() {
+                        // A failed transaction on a live connection: start afresh.
+                        if let Some(d) = connect_db(&opts.postgres, stats, stop).await {
+                            *db = d;
+                        } else {
+                            return Ok(());
+                        }
+                    }
+                }
+            }
+        }
+        if logged {
+            tracing::info!("archive: committed after the database came back");
+        }
+        for p in &batch {
+            if client.ack(p).await.is_err() {
+                break; // the MQTT task ended; unacknowledged messages will be redelivered
+            }
+        }
+    }
+}

@@ -1,0 +1,380 @@
+//! `tagdeflect calibrate`: camera intrinsics from views of a target, with their
+//! uncertainty and what it means for a measurement.
+//!
+//! [`target`] parses `--target` and finds the target in an image; [`solve`] runs Zhang's
+//! closed-form start and the Levenberg–Marquardt fit over all views with the product's camera
+//! model; [`calibrate_views`] adds the outlier policy; [`report`] makes the coverage map, the
+//! uncertainty at a distance and the OpenCV FileStorage file; [`live`] grabs views from a
+//! configured camera; [`render`] renders targets with known intrinsics for tests.
+//!
+//! **Outliers.** After a fit, single points whose residual exceeds
+//! `max(5 s, 1 px)` (`s` the residual scatter per axis) are dropped, then whole views whose
+//! RMS exceeds `max(3 × median view RMS, 0.5 px)` are rejected and named with their RMS, and
+//! the fit is repeated until nothing more is dropped (at least three views stay).
+
+pub mod live;
+pub mod render;
+pub mod report;
+pub mod solve;
+pub mod target;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use nalgebra::Point2;
+
+use self::report::{uncertainty_at, Coverage};
+use self::solve::{Calibration, SolveOptions, View, PARAM_NAMES};
+use self::target::{TargetDetector, TargetSpec};
+use tagdeflect_core::frame::GrayImage;
+
+/// Options of `tagdeflect calibrate`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CalibrateOptions {
+    /// A folder of images of the target (PNG or JPEG), all from one camera.
+    #[arg(long, conflicts_with_all = ["config", "camera"])]
+    pub images: Option<PathBuf>,
+    /// Grab views live from a camera of this config (with --camera).
+    #[arg(long, requires = "camera")]
+    pub config: Option<PathBuf>,
+    /// The `[[camera]]` name to calibrate (with --config).
+    #[arg(long, requires = "config")]
+    pub camera: Option<String>,
+    /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners) or
+    /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]`.
+    #[arg(long)]
+    pub target: String,
+    /// The OpenCV FileStorage YAML to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Hold k3 at zero (OpenCV CALIB_FIX_K3).
+    #[arg(long)]
+    pub fix_k3: bool,
+    /// Hold fx/fy at --aspect-ratio (OpenCV CALIB_FIX_ASPECT_RATIO).
+    #[arg(long)]
+    pub fix_aspect_ratio: bool,
+    /// The ratio fx/fy held by --fix-aspect-ratio.
+    #[arg(long, default_value_t = 1.0)]
+    pub aspect_ratio: f64,
+    /// Hold p1 = p2 = 0 (OpenCV CALIB_ZERO_TANGENT_DIST).
+    #[arg(long)]
+    pub zero_tangent_dist: bool,
+    /// Hold the principal point at the image centre (OpenCV CALIB_FIX_PRINCIPAL_POINT).
+    #[arg(long)]
+    pub fix_principal_point: bool,
+    /// Keep every view and point (no outlier rejection).
+    #[arg(long)]
+    pub keep_outliers: bool,
+    /// Distance of the tags in the test, mm, for the uncertainty report (default: the median
+    /// distance of the target in the views).
+    #[arg(long)]
+    pub distance_mm: Option<f64>,
+    /// The coverage map PNG (default: next to --out, `<out>.coverage.png`).
+    #[arg(long)]
+    pub coverage: Option<PathBuf>,
+    /// Live mode: stop after this many views that added coverage.
+    #[arg(long, default_value_t = 20)]
+    pub views: usize,
+    /// Live mode: give up after this many seconds.
+    #[arg(long, default_value_t = 120.0)]
+    pub duration_s: f64,
+}
+
+impl CalibrateOptions {
+    /// The solver flags.
+    pub fn solve_options(&self) -> SolveOptions {
+        SolveOptions {
+            fix_k3: self.fix_k3,
+            fix_aspect_ratio: self.fix_aspect_ratio,
+            aspect_ratio: Some(self.aspect_ratio),
+            zero_tangent_dist: self.zero_tangent_dist,
+            fix_principal_point: self.fix_principal_point,
+        }
+    }
+
+    fn flags_text(&self) -> String {
+        let mut f = Vec::new();
+        if self.fix_aspect_ratio {
+            f.push(format!("fix-aspect-ratio {}", self.aspect_ratio));
+        }
+        if self.fix_k3 {
+            f.push("fix-k3".into());
+        }
+        if self.zero_tangent_dist {
+            f.push("zero-tangent-dist".into());
+        }
+        if self.fix_principal_point {
+            f.push("fix-principal-point".into());
+        }
+        if f.is_empty() {
+            "all parameters free".into()
+        } else {
+            f.join(", ")
+        }
+    }
+}
+
+/// A view that was not used, and why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rejected {
+    /// The view's name.
+    pub name: String,
+    /// Why.
+    pub reason: String,
+}
+
+/// A calibration with its outlier bookkeeping.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationRun {
+    /// The fit over the views kept.
+    pub calibration: Calibration,
+    /// The views kept (same order as the calibration's poses).
+    pub views: Vec<View>,
+    /// Views rejected as outliers.
+    pub rejected: Vec<Rejected>,
+    /// Single points dropped as outliers.
+    pub dropped_points: usize,
+}
+
+/// Calibrates from detected views with the outlier policy of the module docs (none when
+/// `keep_outliers`).
+pub fn calibrate_views(views: Vec<View>, width: u32, height: u32, options: &SolveOptions, keep_outliers: bool) -> Result<CalibrationRun> {
+    let mut views = views;
+    let mut rejected = Vec::new();
+    let mut dropped_points = 0;
+    loop {
+        let cal = solve::calibrate(&views, width, height, options)?;
+        if keep_outliers {
+            return Ok(CalibrationRun { calibration: cal, views, rejected, dropped_points });
+        }
+        // Points first: a single mislabelled corner should not cost its view.
+        let limit = (5.0 * cal.sigma_px).max(1.0);
+        let mut dropped = 0;
+        for (v, pose) in views.iter_mut().zip(&cal.poses) {
+            let res = solve::residuals(&cal.intrinsics, pose, v);
+            let keep: Vec<bool> = res.iter().map(|r| r.x.abs() <= limit && r.y.abs() <= limit).collect();
+            let n = keep.iter().filter(|k| !**k).count();
+            if n > 0 && n < v.object.len() / 4 {
+                let mut it = keep.iter();
+                v.object.retain(|_| *it.next().unwrap());
+                let mut it = keep.iter();
+                v.image.retain(|_| *it.next().unwrap());
+                dropped += n;
+            }
+        }
+        dropped_points += dropped;
+        if dropped > 0 {
+            continue;
+        }
+        let med = tagdeflect_estimate::lm::median(&cal.view_rms_px).unwrap_or(0.0);
+        let view_limit = (3.0 * med).max(0.5);
+        let worst =
+            cal.view_rms_px.iter().enumerate().filter(|(_, r)| **r > view_limit).max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, r)| (i, *r));
+        match worst {
+            Some((i, rms)) if views.len() > 3 => {
+                let v = views.remove(i);
+                rejected.push(Rejected {
+                    name: v.name,
+                    reason: format!(
+                        "reprojection RMS {rms:.3} px > {view_limit:.3} px (3 × the median view's {med:.3} px, at least 0.5 px)"
+                    ),
+                });
+            }
+            _ => return Ok(CalibrationRun { calibration: cal, views, rejected, dropped_points }),
+        }
+    }
+}
+
+/// Decodes an image file to 8-bit grey (BT.601 luma, as OpenCV's `cvtColor` and JPEG's Y).
+pub fn load_gray(path: &Path) -> Result<GrayImage> {
+    let img = image::open(path).with_context(|| format!("cannot decode image {}", path.display()))?;
+    let rgb = img.to_rgb8();
+    let data = rgb
+        .pixels()
+        .map(|p| (0.299 * p.0[0] as f64 + 0.587 * p.0[1] as f64 + 0.114 * p.0[2] as f64).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    Ok(GrayImage { width: rgb.width(), height: rgb.height(), data })
+}
+
+/// The image files of a folder (PNG, JPEG), sorted by name.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read the image folder {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension().and_then(|e| e.to_str()).is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("no PNG or JPEG images in {}", dir.display());
+    }
+    Ok(files)
+}
+
+/// Views detected in a set of images, the image size, and the images where the target was
+/// not found (with the reason).
+pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
+    let mut det = TargetDetector::new(spec.clone())?;
+    let mut views = Vec::new();
+    let mut failed = Vec::new();
+    let mut size: Option<(u32, u32, &Path)> = None;
+    for f in files {
+        let img = load_gray(f)?;
+        match size {
+            None => size = Some((img.width, img.height, f)),
+            Some((w, h, first)) if (w, h) != (img.width, img.height) => bail!(
+                "image {} is {}x{} but {} is {}x{}: all views must come from one camera at one resolution",
+                f.display(),
+                img.width,
+                img.height,
+                first.display(),
+                w,
+                h
+            ),
+            _ => {}
+        }
+        let name = f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        match det.detect(&img, &name) {
+            Ok(v) => views.push(v),
+            Err(reason) => failed.push(Rejected { name, reason }),
+        }
+    }
+    let (w, h, _) = size.expect("at least one image");
+    Ok((views, w, h, failed))
+}
+
+/// The text report of a calibration (what `tagdeflect calibrate` prints).
+pub fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Coverage, distance_mm: f64, target: &str) -> String {
+    let c = &run.calibration;
+    let k = &c.intrinsics;
+    let s = c.sigmas();
+    let vals = solve::to_vector(k);
+    let mut out = String::new();
+    let _ = writeln!(out, "calibration of a {}x{} camera from {} views of a {target}", k.width, k.height, run.views.len());
+    let _ = writeln!(out, "start: {}; {} LM iterations; {} parameters", c.start, c.iterations, c.parameters);
+    for i in 0..9 {
+        let unit = if i < 4 { " px" } else { "" };
+        let fixed = if s[i] == 0.0 { "  (fixed)" } else { "" };
+        let _ = writeln!(out, "  {:<3} = {:>12.6}{unit} ± {:.6}{unit} (1σ){fixed}", PARAM_NAMES[i], vals[i], s[i]);
+    }
+    let _ = writeln!(
+        out,
+        "reprojection RMS {:.4} px over {} points (residual scatter {:.4} px per axis)",
+        c.rms_px,
+        run.views.iter().map(|v| v.object.len()).sum::<usize>(),
+        c.sigma_px
+    );
+    let _ = writeln!(out, "per view:");
+    for (v, r) in run.views.iter().zip(&c.view_rms_px) {
+        let _ = writeln!(out, "  {:<28} {:>3} points  RMS {:.4} px", v.name, v.object.len(), r);
+    }
+    for r in &run.rejected {
+        let _ = writeln!(out, "rejected view {}: {}", r.name, r.reason);
+    }
+    for r in not_found {
+        let _ = writeln!(out, "not used {}: {}", r.name, r.reason);
+    }
+    if run.dropped_points > 0 {
+        let _ = writeln!(out, "dropped {} single outlier points (residual > max(5σ, 1 px))", run.dropped_points);
+    }
+    let _ = writeln!(
+        out,
+        "coverage: {:.0} % of {}x{} image cells hold target points",
+        100.0 * coverage.covered_fraction,
+        coverage.cols,
+        coverage.rows
+    );
+    if let Some(w) = coverage.warning() {
+        let _ = writeln!(out, "WARNING {w}");
+    }
+    let disp = 10.0;
+    let _ = writeln!(out, "what the uncertainty means for a tag at {distance_mm:.0} mm (1σ, one camera, distance known):");
+    for u in uncertainty_at(k, &c.covariance, distance_mm, disp) {
+        let _ = writeln!(
+            out,
+            "  {:<6} (pixel {:>6.1}, {:>6.1}): position ± {:.4} mm, a {disp:.0} mm deflection ± {:.2} µm",
+            u.place,
+            u.pixel.x,
+            u.pixel.y,
+            u.lateral_mm,
+            1000.0 * u.displacement_error_mm
+        );
+    }
+    let _ = writeln!(out, "  focal length ±{:.0} ppm: distances from tag size and displacements scale by that much", 1e6 * s[1] / k.fy);
+    out
+}
+
+/// Median distance of the target from the camera over the views, mm.
+pub fn median_distance_mm(c: &Calibration, views: &[View]) -> f64 {
+    let d: Vec<f64> = c
+        .poses
+        .iter()
+        .zip(views)
+        .map(|(p, v)| {
+            let n = v.object.len().max(1) as f64;
+            let mean = v.object.iter().fold(nalgebra::Vector3::zeros(), |a, x| a + x) / n;
+            p.transform(&mean).z
+        })
+        .collect();
+    tagdeflect_estimate::lm::median(&d).unwrap_or(1000.0)
+}
+
+/// Writes the FileStorage file and the coverage map, returns the text report (with the config
+/// snippet).
+pub fn write_outputs(run: &CalibrationRun, not_found: &[Rejected], spec: &TargetSpec, opts: &CalibrateOptions) -> Result<String> {
+    let c = &run.calibration;
+    let k = &c.intrinsics;
+    let all_points: Vec<Point2<f64>> = run.views.iter().flat_map(|v| v.image.iter().copied()).collect();
+    let coverage = Coverage::new(k.width, k.height, &all_points);
+    let names: Vec<String> = run.views.iter().map(|v| v.name.clone()).collect();
+    let yaml = report::opencv_yaml(c, &spec.describe(), &opts.flags_text(), &names);
+    if let Some(parent) = opts.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    std::fs::write(&opts.out, yaml).with_context(|| format!("cannot write {}", opts.out.display()))?;
+    let cov_path = opts.coverage.clone().unwrap_or_else(|| {
+        let mut p = opts.out.clone().into_os_string();
+        p.push(".coverage.png");
+        PathBuf::from(p)
+    });
+    let per_view: Vec<Vec<Point2<f64>>> = run.views.iter().map(|v| v.image.clone()).collect();
+    coverage.write_png(&cov_path, k.width, k.height, &per_view).with_context(|| format!("cannot write {}", cov_path.display()))?;
+    let distance = opts.distance_mm.unwrap_or_else(|| median_distance_mm(c, &run.views));
+    let mut text = report_text(run, not_found, &coverage, distance, &spec.describe());
+    let _ = writeln!(text, "wrote {} and the coverage map {}", opts.out.display(), cov_path.display());
+    let _ = writeln!(text, "config snippet (in the camera's [[camera]] section, instead of fx/fy/cx/cy/dist):");
+    let _ = writeln!(text, "  calibration = \"{}\"", opts.out.display());
+    Ok(text)
+}
+
+/// `tagdeflect calibrate`: from a folder of images or live from a configured camera.
+pub fn run(opts: &CalibrateOptions) -> Result<()> {
+    let spec: TargetSpec = opts.target.parse()?;
+    if !(opts.aspect_ratio.is_finite() && opts.aspect_ratio > 0.0) {
+        bail!("--aspect-ratio must be a positive number, got {}", opts.aspect_ratio);
+    }
+    if let Some(d) = opts.distance_mm {
+        if !(d.is_finite() && d > 0.0) {
+            bail!("--distance-mm must be a positive distance, got {d}");
+        }
+    }
+    let (views, w, h, not_found) = match (&opts.images, &opts.config, &opts.camera) {
+        (Some(dir), None, None) => {
+            let files = image_files(dir)?;
+            detect_views(&files, &spec)?
+        }
+        (None, Some(cfg), Some(cam)) => live::grab_views(cfg, cam, &spec, opts.views, opts.duration_s)?,
+        _ => bail!("calibrate takes either --images DIR or --config FILE --camera NAME"),
+    };
+    if views.len() < 3 {
+        let why: Vec<String> = not_found.iter().map(|r| format!("{}: {}", r.name, r.reason)).collect();
+        bail!("the target was found in {} views, need at least 3 ({})", views.len(), why.join("; "));
+    }
+    let run = calibrate_views(views, w, h, &opts.solve_options(), opts.keep_outliers)?;
+    let text = write_outputs(&run, &not_found, &spec, opts)?;
+    print!("{text}");
+    Ok(())
+}

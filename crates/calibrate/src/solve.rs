@@ -1,0 +1,623 @@
+//! The calibration itself: Zhang's closed-form start and Levenberg–Marquardt over the
+//! intrinsics and every view's pose at once, with the covariance of the result.
+//!
+//! **Model.** The product's camera model ([`CameraIntrinsics`]: pinhole + radial-tangential
+//! k1, k2, p1, p2, k3, OpenCV convention) with its analytic Jacobians
+//! ([`CameraIntrinsics::project_with_jacobian`], [`CameraIntrinsics::project_intrinsics_jacobian`]),
+//! and each view's board pose updated on the manifold like every pose in the solver
+//! ([`tagdeflect_estimate::lm::retract`]).
+//!
+//! **Fixed parameters** are handled by a basis: the nine intrinsics move as `θ = θ₀ + B q`
+//! with `q` the free parameters. Fixing k3 or the tangential terms drops columns of `B`;
+//! fixing the aspect ratio (OpenCV's `CALIB_FIX_ASPECT_RATIO`) replaces the fx and fy columns
+//! by one column `(a, 1)` with `a = fx / fy` held at its start value. The covariance of `θ` is
+//! `B Σ_q Bᵀ`, so a fixed parameter reports σ = 0 and fx, fy are fully correlated under a
+//! fixed ratio.
+//!
+//! **Start.** Zhang (2000): one plane → image homography per view, the image of the
+//! absolute conic from their orthogonality constraints, intrinsics from it, distortion zero.
+//! When that fails (fewer than three usable views, near-degenerate views — all parallel
+//! boards — or a principal point off the image) the start falls back to OpenCV's variant
+//! with the principal point at the image centre and only the focal lengths solved. Each
+//! view's pose then comes from its homography and is refined alone (six-parameter LM)
+//! before the joint fit.
+//!
+//! **Uncertainty.** `Σ = s² (JᵀJ)⁻¹` at the minimum with `s² = SSR / (2N − p)` (the
+//! residuals' own scatter), i.e. the usual first-order covariance of a least-squares fit
+//! with independent, equal corner noise. It is honest when the model fits (reprojection
+//! residuals are noise, not an unmodelled lens); an RMS much larger than the corner
+//! detector's precision is itself the warning.
+
+use nalgebra::{DMatrix, DVector, Matrix2x6, Matrix3, Point2, SMatrix, Vector2, Vector3, Vector6};
+
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+use tagdeflect_estimate::camera_pose::camera_point_terms;
+use tagdeflect_estimate::init::{homography, pose_from_homography};
+use tagdeflect_estimate::lm::{minimize, retract, Evaluation, LmOptions, PoseProblem};
+
+/// Names of the nine intrinsic parameters, in the order of every 9-vector here.
+pub const PARAM_NAMES: [&str; 9] = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"];
+
+/// One view of the target: board points (mm, board frame, z = 0) and their detected pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// Where the view came from (file name or frame number).
+    pub name: String,
+    /// Board points, mm.
+    pub object: Vec<Vector3<f64>>,
+    /// Detected pixels (OpenCV convention), same order.
+    pub image: Vec<Point2<f64>>,
+}
+
+/// Which intrinsics are held fixed (OpenCV's flags).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SolveOptions {
+    /// Hold k3 at zero (`CALIB_FIX_K3`).
+    pub fix_k3: bool,
+    /// Hold fx / fy at its start value, `aspect_ratio` (`CALIB_FIX_ASPECT_RATIO`).
+    pub fix_aspect_ratio: bool,
+    /// The ratio fx / fy held by `fix_aspect_ratio` (OpenCV takes it from the initial
+    /// camera matrix; 1 when `None`).
+    pub aspect_ratio: Option<f64>,
+    /// Hold p1 = p2 = 0 (`CALIB_ZERO_TANGENT_DIST`).
+    pub zero_tangent_dist: bool,
+    /// Hold cx, cy at the image centre (`CALIB_FIX_PRINCIPAL_POINT`).
+    pub fix_principal_point: bool,
+}
+
+/// Why a calibration could not be computed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// Not enough views or points.
+    #[error("too few views of the target: {views} usable (need at least {need})")]
+    TooFewViews {
+        /// Usable views.
+        views: usize,
+        /// Views needed.
+        need: usize,
+    },
+    /// The closed-form start found no focal length.
+    #[error("no initial estimate of the focal length (are the views all frontal and parallel?)")]
+    NoStart,
+    /// The normal equations were singular (the views do not constrain the free parameters).
+    #[error("the views do not constrain the camera parameters (singular normal equations); move the target through more orientations")]
+    Singular,
+}
+
+/// The result of [`calibrate`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibration {
+    /// The intrinsics at the minimum.
+    pub intrinsics: CameraIntrinsics,
+    /// The board pose of every view (board → camera, mm).
+    pub poses: Vec<Pose>,
+    /// 9×9 covariance of (fx, fy, cx, cy, k1, k2, p1, p2, k3); fixed parameters have zero rows.
+    pub covariance: SMatrix<f64, 9, 9>,
+    /// Reprojection RMS per view, pixels: `√(Σ|e|² / n)` over the view's points (OpenCV's
+    /// per-view error).
+    pub view_rms_px: Vec<f64>,
+    /// Reprojection RMS over all points: `√(Σ|e|² / N)` (what `cv::calibrateCamera` returns).
+    pub rms_px: f64,
+    /// Residual scatter per axis `s = √(SSR / (2N − p))`, pixels (scales the covariance).
+    pub sigma_px: f64,
+    /// Number of free parameters (intrinsics + 6 per view).
+    pub parameters: usize,
+    /// LM iterations of the joint fit.
+    pub iterations: usize,
+    /// Which start was used: "zhang" or "centred" (principal point at the image centre).
+    pub start: &'static str,
+}
+
+impl Calibration {
+    /// 1-σ of the nine intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3); 0 for fixed ones.
+    pub fn sigmas(&self) -> [f64; 9] {
+        std::array::from_fn(|i| self.covariance[(i, i)].max(0.0).sqrt())
+    }
+}
+
+/// The nine intrinsics as a vector (order of [`PARAM_NAMES`]).
+pub fn to_vector(k: &CameraIntrinsics) -> SMatrix<f64, 9, 1> {
+    SMatrix::<f64, 9, 1>::from_column_slice(&[k.fx, k.fy, k.cx, k.cy, k.dist[0], k.dist[1], k.dist[2], k.dist[3], k.dist[4]])
+}
+
+fn from_vector(v: &SMatrix<f64, 9, 1>, width: u32, height: u32) -> CameraIntrinsics {
+    CameraIntrinsics { width, height, fx: v[0], fy: v[1], cx: v[2], cy: v[3], dist: [v[4], v[5], v[6], v[7], v[8]] }
+}
+
+/// Columns of the basis `B` (9 × m): which directions of θ are free.
+fn basis(options: &SolveOptions, aspect: f64) -> DMatrix<f64> {
+    let mut cols: Vec<SMatrix<f64, 9, 1>> = Vec::new();
+    let unit = |i: usize| {
+        let mut c = SMatrix::<f64, 9, 1>::zeros();
+        c[i] = 1.0;
+        c
+    };
+    if options.fix_aspect_ratio {
+        let mut c = SMatrix::<f64, 9, 1>::zeros();
+        c[0] = aspect;
+        c[1] = 1.0;
+        cols.push(c);
+    } else {
+        cols.push(unit(0));
+        cols.push(unit(1));
+    }
+    if !options.fix_principal_point {
+        cols.push(unit(2));
+        cols.push(unit(3));
+    }
+    cols.push(unit(4));
+    cols.push(unit(5));
+    if !options.zero_tangent_dist {
+        cols.push(unit(6));
+        cols.push(unit(7));
+    }
+    if !options.fix_k3 {
+        cols.push(unit(8));
+    }
+    let mut b = DMatrix::zeros(9, cols.len());
+    for (j, c) in cols.iter().enumerate() {
+        b.column_mut(j).copy_from(c);
+    }
+    b
+}
+
+/// Zhang's closed form: intrinsics (no skew, no distortion) from ≥ 3 homographies.
+fn zhang(hs: &[Matrix3<f64>], width: u32, height: u32) -> Option<CameraIntrinsics> {
+    if hs.len() < 3 {
+        return None;
+    }
+    let v = |h: &Matrix3<f64>, i: usize, j: usize| -> SMatrix<f64, 1, 6> {
+        let (hi, hj) = (h.column(i), h.column(j));
+        SMatrix::<f64, 1, 6>::from_row_slice(&[
+            hi[0] * hj[0],
+            hi[0] * hj[1] + hi[1] * hj[0],
+            hi[1] * hj[1],
+            hi[2] * hj[0] + hi[0] * hj[2],
+            hi[2] * hj[1] + hi[1] * hj[2],
+            hi[2] * hj[2],
+        ])
+    };
+    // Condition the homographies: pixels scaled to ~1 around the image centre.
+    let s = 2.0 / (width.max(height).max(1) as f64);
+    let (ccx, ccy) = (0.5 * (width as f64 - 1.0), 0.5 * (height as f64 - 1.0));
+    let t = Matrix3::new(s, 0.0, -s * ccx, 0.0, s, -s * ccy, 0.0, 0.0, 1.0);
+    let mut vtv = SMatrix::<f64, 6, 6>::zeros();
+    for h in hs {
+        let h = t * h;
+        let h = h / h.norm();
+        let a = v(&h, 0, 1);
+        let b = v(&h, 0, 0) - v(&h, 1, 1);
+        // No skew: B12 = 0, added as a constraint row.
+        vtv += a.transpose() * a + b.transpose() * b;
+    }
+    let skew_row = SMatrix::<f64, 1, 6>::from_row_slice(&[0.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
+    vtv += skew_row.transpose() * skew_row * (vtv.trace() + 1.0);
+    let eig = vtv.symmetric_eigen();
+    let (imin, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let mut b = eig.eigenvectors.column(imin).into_owned();
+    if b[0] < 0.0 {
+        b = -b;
+    }
+    let (b11, b12, b22, b13, b23, b33) = (b[0], b[1], b[2], b[3], b[4], b[5]);
+    let den = b11 * b22 - b12 * b12;
+    if den <= 0.0 || b11 <= 0.0 {
+        return None;
+    }
+    let v0 = (b12 * b13 - b11 * b23) / den;
+    let lambda = b33 - (b13 * b13 + v0 * (b12 * b13 - b11 * b23)) / b11;
+    if lambda / b11 <= 0.0 || lambda * b11 / den <= 0.0 {
+        return None;
+    }
+    let alpha = (lambda / b11).sqrt();
+    let beta = (lambda * b11 / den).sqrt();
+    let u0 = -b13 * alpha * alpha / lambda;
+    // Undo the conditioning.
+    let k = CameraIntrinsics { width, height, fx: alpha / s, fy: beta / s, cx: u0 / s + ccx, cy: v0 / s + ccy, dist: [0.0; 5] };
+    let ok = [k.fx, k.fy, k.cx, k.cy].iter().all(|v| v.is_finite())
+        && k.cx > 0.0
+        && k.cy > 0.0
+        && k.cx < width as f64
+        && k.cy < height as f64
+        && (k.fx / k.fy - 1.0).abs() < 0.5;
+    ok.then_some(k)
+}
+
+/// OpenCV's start: principal point at the image centre, focal lengths from the vanishing
+/// points of every homography (least squares in 1/fx², 1/fy²).
+fn centred(hs: &[Matrix3<f64>], width: u32, height: u32, aspect: Option<f64>) -> Option<CameraIntrinsics> {
+    let (cx, cy) = (0.5 * (width as f64 - 1.0), 0.5 * (height as f64 - 1.0));
+    let t = Matrix3::new(1.0, 0.0, -cx, 0.0, 1.0, -cy, 0.0, 0.0, 1.0);
+    let mut ata = nalgebra::Matrix2::zeros();
+    let mut atb = Vector2::zeros();
+    for h in hs {
+        let h = t * h;
+        let h = h / h.norm();
+        let (h1, h2) = (h.column(0), h.column(1));
+        let rows = [
+            (Vector2::new(h1[0] * h2[0], h1[1] * h2[1]), -h1[2] * h2[2]),
+            (Vector2::new(h1[0] * h1[0] - h2[0] * h2[0], h1[1] * h1[1] - h2[1] * h2[1]), -(h1[2] * h1[2] - h2[2] * h2[2])),
+        ];
+        for (a, b) in rows {
+            ata += a * a.transpose();
+            atb += a * b;
+        }
+    }
+    let (fx, fy) = match aspect {
+        Some(a) => {
+            // fx = a fy: one unknown u = 1/fy², coefficient a⁻² on the first column.
+            let c = Vector2::new(1.0 / (a * a), 1.0);
+            let den = c.dot(&(ata * c));
+            let u = c.dot(&atb) / den;
+            if u.is_nan() || u <= 0.0 {
+                return None;
+            }
+            let fy = 1.0 / u.sqrt();
+            (a * fy, fy)
+        }
+        None => {
+            let x = ata.try_inverse()? * atb;
+            if !(x[0] > 0.0 && x[1] > 0.0) {
+                return None;
+            }
+            (1.0 / x[0].sqrt(), 1.0 / x[1].sqrt())
+        }
+    };
+    (fx.is_finite() && fy.is_finite()).then_some(CameraIntrinsics { width, height, fx, fy, cx, cy, dist: [0.0; 5] })
+}
+
+/// One view's pose alone (intrinsics fixed), by the solver's six-parameter LM.
+struct ViewPose<'a> {
+    k: &'a CameraIntrinsics,
+    view: &'a View,
+}
+
+impl PoseProblem for ViewPose<'_> {
+    fn evaluate(&self, pose: &Pose, with_jacobian: bool) -> Option<Evaluation> {
+        let mut e = Evaluation::zero();
+        for (x, u) in self.view.object.iter().zip(&self.view.image) {
+            let (r, j) = camera_point_terms(self.k, pose, x, u)?;
+            e.add(&r, &j, with_jacobian);
+        }
+        Some(e)
+    }
+}
+
+/// The pose of one view for given intrinsics: homography of the undistorted points, then LM.
+pub fn view_pose(k: &CameraIntrinsics, view: &View) -> Option<Pose> {
+    let plane: Vec<Vector2<f64>> = view.object.iter().map(|p| Vector2::new(p.x, p.y)).collect();
+    let norm: Vec<Vector2<f64>> = view.image.iter().map(|p| k.undistort(p)).collect();
+    let h = homography(&plane, &norm)?;
+    let (r, t) = pose_from_homography(&h)?;
+    let start = Pose { rotation: r, translation: t };
+    let out = minimize(&ViewPose { k, view }, &start, &LmOptions { max_iterations: 30, ..LmOptions::default() })?;
+    Some(out.pose)
+}
+
+/// Sum of squared residuals of all views (None when a point falls behind a camera).
+fn cost(k: &CameraIntrinsics, poses: &[Pose], views: &[View]) -> Option<f64> {
+    let mut ssr = 0.0;
+    for (pose, view) in poses.iter().zip(views) {
+        for (x, u) in view.object.iter().zip(&view.image) {
+            let p = k.project(&pose.transform(x))?;
+            ssr += (p - u).norm_squared();
+        }
+    }
+    Some(ssr)
+}
+
+/// Normal equations of the joint problem: `JᵀJ`, `Jᵀr` over (q, poses).
+fn normal_equations(k: &CameraIntrinsics, poses: &[Pose], views: &[View], b: &DMatrix<f64>) -> Option<(DMatrix<f64>, DVector<f64>)> {
+    let m = b.ncols();
+    let n = m + 6 * views.len();
+    let mut a = DMatrix::<f64>::zeros(n, n);
+    let mut g = DVector::<f64>::zeros(n);
+    let bt = b.transpose();
+    for (v, (pose, view)) in poses.iter().zip(views).enumerate() {
+        let o = m + 6 * v;
+        let mut aii = DMatrix::<f64>::zeros(m, m);
+        let mut aip = DMatrix::<f64>::zeros(m, 6);
+        let mut app = nalgebra::Matrix6::<f64>::zeros();
+        let mut gi = DVector::<f64>::zeros(m);
+        let mut gp = Vector6::<f64>::zeros();
+        for (x, u) in view.object.iter().zip(&view.image) {
+            let (r, jp): (Vector2<f64>, Matrix2x6<f64>) = camera_point_terms(k, pose, x, u)?;
+            let ji9 = k.project_intrinsics_jacobian(&pose.transform(x))?;
+            // 2 × m: the intrinsics Jacobian in the free directions.
+            let ji = DMatrix::from_fn(2, 9, |r, c| ji9[(r, c)]) * b;
+            let jit = ji.transpose();
+            aii += &jit * &ji;
+            aip += &jit * DMatrix::from_fn(2, 6, |r, c| jp[(r, c)]);
+            app += jp.transpose() * jp;
+            gi += &jit * DVector::from_column_slice(r.as_slice());
+            gp += jp.transpose() * r;
+        }
+        let _ = &bt;
+        let mut blk = a.view_mut((0, 0), (m, m));
+        blk += &aii;
+        a.view_mut((0, o), (m, 6)).copy_from(&aip);
+        a.view_mut((o, 0), (6, m)).copy_from(&aip.transpose());
+        a.view_mut((o, o), (6, 6)).copy_from(&app);
+        let mut gblk = g.rows_mut(0, m);
+        gblk += &gi;
+        g.rows_mut(o, 6).copy_from(&gp);
+    }
+    Some((a, g))
+}
+
+/// Calibrates from the views: closed-form start, then LM over intrinsics and all poses.
+/// `width` × `height` is the image size in pixels.
+pub fn calibrate(views: &[View], width: u32, height: u32, options: &SolveOptions) -> Result<Calibration, SolveError> {
+    let usable: Vec<&View> = views.iter().filter(|v| v.object.len() >= 6).collect();
+    if usable.len() < 2 || usable.len() != views.len() {
+        return Err(SolveError::TooFewViews { views: usable.len(), need: 2 });
+    }
+    let hs: Vec<Matrix3<f64>> = views
+        .iter()
+        .filter_map(|v| {
+            let plane: Vec<Vector2<f64>> = v.object.iter().map(|p| Vector2::new(p.x, p.y)).collect();
+            let img: Vec<Vector2<f64>> = v.image.iter().map(|p| p.coords).collect();
+            homography(&plane, &img)
+        })
+        .collect();
+    let aspect_hold = options.fix_aspect_ratio.then(|| options.aspect_ratio.unwrap_or(1.0));
+    let mut start_kind = "zhang";
+    let zh = if options.fix_principal_point { None } else { zhang(&hs, width, height) };
+    let mut k = match zh {
+        Some(mut k) => {
+            if let Some(a) = aspect_hold {
+                let f = 0.5 * (k.fx / a + k.fy);
+                k.fx = a * f;
+                k.fy = f;
+            }
+            k
+        }
+        None => {
+            start_kind = "centred";
+            centred(&hs, width, height, aspect_hold).ok_or(SolveError::NoStart)?
+        }
+    };
+    if options.fix_principal_point {
+        k.cx = 0.5 * (width as f64 - 1.0);
+        k.cy = 0.5 * (height as f64 - 1.0);
+    }
+    let aspect = k.fx / k.fy;
+    let mut poses = Vec::with_capacity(views.len());
+    for v in views {
+        poses.push(view_pose(&k, v).ok_or(SolveError::NoStart)?);
+    }
+    let b = basis(options, aspect);
+    let m = b.ncols();
+    let n = m + 6 * views.len();
+    let npts: usize = views.iter().map(|v| v.object.len()).sum();
+    if 2 * npts <= n {
+        return Err(SolveError::TooFewViews { views: views.len(), need: views.len() + 1 });
+    }
+    let apply = |k: &CameraIntrinsics, poses: &[Pose], delta: &DVector<f64>| -> (CameraIntrinsics, Vec<Pose>) {
+        let dq = delta.rows(0, m).into_owned();
+        let dtheta = &b * dq;
+        let theta = to_vector(k) + SMatrix::<f64, 9, 1>::from_iterator(dtheta.iter().copied());
+        let k2 = from_vector(&theta, width, height);
+        let p2 =
+            poses.iter().enumerate().map(|(i, p)| retract(p, &Vector6::from_iterator(delta.rows(m + 6 * i, 6).iter().copied()))).collect();
+        (k2, p2)
+    };
+    let mut ssr = cost(&k, &poses, views).ok_or(SolveError::NoStart)?;
+    let mut lambda = 1e-3;
+    let mut iterations = 0;
+    for _ in 0..200 {
+        iterations += 1;
+        let Some((a, g)) = normal_equations(&k, &poses, views, &b) else { return Err(SolveError::NoStart) };
+        let mut accepted = false;
+        for _ in 0..15 {
+            let mut ad = a.clone();
+            for i in 0..n {
+                ad[(i, i)] += lambda * a[(i, i)].max(1e-12);
+            }
+            let Some(chol) = ad.cholesky() else {
+                lambda *= 10.0;
+                continue;
+            };
+            let delta = -chol.solve(&g);
+            let (k2, p2) = apply(&k, &poses, &delta);
+            match cost(&k2, &p2, views) {
+                Some(c) if c.is_finite() && c <= ssr => {
+                    let gain = ssr - c;
+                    k = k2;
+                    poses = p2;
+                    let old = ssr;
+                    ssr = c;
+                    lambda = (lambda * 0.3).max(1e-12);
+                    accepted = true;
+                    if gain <= 1e-14 * old.max(1e-300) {
+                        return finish(k, poses, views, &b, ssr, iterations, start_kind);
+                    }
+                    break;
+                }
+                _ => lambda *= 10.0,
+            }
+        }
+        if !accepted {
+            break;
+        }
+    }
+    finish(k, poses, views, &b, ssr, iterations, start_kind)
+}
+
+fn finish(
+    k: CameraIntrinsics,
+    poses: Vec<Pose>,
+    views: &[View],
+    b: &DMatrix<f64>,
+    ssr: f64,
+    iterations: usize,
+    start: &'static str,
+) -> Result<Calibration, SolveError> {
+    let (a, _) = normal_equations(&k, &poses, views, b).ok_or(SolveError::Singular)?;
+    let m = b.ncols();
+    let n = a.nrows();
+    let npts: usize = views.iter().map(|v| v.object.len()).sum();
+    let dof = (2 * npts).saturating_sub(n).max(1);
+    let s2 = ssr / dof as f64;
+    // Scale to unit diagonal before inverting (focal lengths and k3 differ by 10⁶).
+    let d: Vec<f64> = (0..n).map(|i| a[(i, i)].max(1e-300).sqrt()).collect();
+    let an = DMatrix::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
+    let inv = an.cholesky().ok_or(SolveError::Singular)?.inverse();
+    let sq = DMatrix::from_fn(m, m, |i, j| inv[(i, j)] / (d[i] * d[j]) * s2);
+    let cov_d = b * sq * b.transpose();
+    let covariance = SMatrix::<f64, 9, 9>::from_fn(|i, j| cov_d[(i, j)]);
+    let view_rms_px: Vec<f64> = poses
+        .iter()
+        .zip(views)
+        .map(|(p, v)| {
+            let s: f64 =
+                v.object.iter().zip(&v.image).map(|(x, u)| k.project(&p.transform(x)).map_or(f64::NAN, |q| (q - u).norm_squared())).sum();
+            (s / v.object.len() as f64).sqrt()
+        })
+        .collect();
+    Ok(Calibration {
+        intrinsics: k,
+        poses,
+        covariance,
+        view_rms_px,
+        rms_px: (ssr / npts as f64).sqrt(),
+        sigma_px: s2.sqrt(),
+        parameters: n,
+        iterations,
+        start,
+    })
+}
+
+/// Residuals (projection − detection, pixels) of one view under a calibration.
+pub fn residuals(k: &CameraIntrinsics, pose: &Pose, view: &View) -> Vec<Vector2<f64>> {
+    view.object.iter().zip(&view.image).map(|(x, u)| k.project(&pose.transform(x)).map_or(Vector2::repeat(f64::NAN), |q| q - u)).collect()
+}
+
+/// Board points of a view mapped through a pose (for tests and the coverage map).
+pub fn board_to_camera(pose: &Pose, object: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
+    object.iter().map(|x| pose.transform(x)).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn truth() -> CameraIntrinsics {
+        CameraIntrinsics { width: 800, height: 600, fx: 700.0, fy: 690.0, cx: 405.0, cy: 296.0, dist: [-0.3, 0.12, 0.001, -0.0008, -0.02] }
+    }
+
+    fn synthetic(k: &CameraIntrinsics, noise: f64, seed: u64) -> Vec<View> {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let nd = Normal::new(0.0, noise.max(1e-12)).unwrap();
+        let object: Vec<Vector3<f64>> =
+            (0..6).flat_map(|j| (0..9).map(move |i| Vector3::new(i as f64 * 30.0, j as f64 * 30.0, 0.0))).collect();
+        let mut views = Vec::new();
+        for (n, (rx, ry, rz, tx, ty, tz)) in [
+            (0.3, -0.2, 0.1, -150.0, -80.0, 500.0),
+            (-0.4, 0.3, -0.2, -100.0, -60.0, 450.0),
+            (0.1, 0.5, 0.3, -60.0, -120.0, 520.0),
+            (0.5, 0.1, -0.4, -200.0, -20.0, 600.0),
+            (-0.2, -0.45, 1.2, 20.0, -150.0, 480.0),
+            (0.25, 0.35, -1.0, -250.0, 10.0, 550.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let pose = Pose::from_rvec_tvec([rx, ry, rz], [tx, ty, tz]);
+            let image: Vec<Point2<f64>> = object
+                .iter()
+                .map(|x| {
+                    let p = k.project(&pose.transform(x)).unwrap();
+                    Point2::new(p.x + nd.sample(&mut rng), p.y + nd.sample(&mut rng))
+                })
+                .collect();
+            views.push(View { name: format!("v{n}"), object: object.clone(), image });
+        }
+        views
+    }
+
+    #[test]
+    fn recovers_exact_intrinsics_from_noiseless_views() {
+        let k = truth();
+        let views = synthetic(&k, 0.0, 1);
+        let c = calibrate(&views, 800, 600, &SolveOptions::default()).unwrap();
+        let e = to_vector(&c.intrinsics) - to_vector(&k);
+        assert!(e.iter().take(4).all(|v| v.abs() < 1e-5), "{e}");
+        assert!(e.iter().skip(4).all(|v| v.abs() < 1e-6), "{e}");
+        assert!(c.rms_px < 1e-6);
+    }
+
+    #[test]
+    fn stated_sigma_matches_the_scatter() {
+        let k = truth();
+        let mut within = 0;
+        let mut total = 0;
+        for seed in 0..12 {
+            let views = synthetic(&k, 0.3, 100 + seed);
+            let c = calibrate(&views, 800, 600, &SolveOptions::default()).unwrap();
+            let s = c.sigmas();
+            let e = to_vector(&c.intrinsics) - to_vector(&k);
+            for i in 0..9 {
+                total += 1;
+                if e[i].abs() <= 2.0 * s[i] {
+                    within += 1;
+                }
+            }
+            assert!((c.sigma_px - 0.3).abs() < 0.05, "sigma {}", c.sigma_px);
+        }
+        let frac = within as f64 / total as f64;
+        assert!(frac > 0.88, "{within}/{total} within 2σ");
+    }
+
+    #[test]
+    fn fixed_parameters_stay_fixed() {
+        let mut k = truth();
+        k.fy = k.fx;
+        k.dist[4] = 0.0;
+        k.dist[2] = 0.0;
+        k.dist[3] = 0.0;
+        let views = synthetic(&k, 0.1, 7);
+        let o = SolveOptions { fix_k3: true, fix_aspect_ratio: true, zero_tangent_dist: true, ..SolveOptions::default() };
+        let c = calibrate(&views, 800, 600, &o).unwrap();
+        assert_eq!(c.intrinsics.dist[4], 0.0);
+        assert_eq!(c.intrinsics.dist[2], 0.0);
+        assert!((c.intrinsics.fx / c.intrinsics.fy - 1.0).abs() < 1e-12);
+        let s = c.sigmas();
+        assert_eq!(s[8], 0.0);
+        assert!((s[0] - s[1]).abs() < 1e-9 * s[0]);
+        assert!((c.intrinsics.fx - k.fx).abs() < 4.0 * s[0] + 1e-9);
+    }
+
+    #[test]
+    fn normal_equations_match_finite_differences() {
+        let k = truth();
+        let views = synthetic(&k, 0.5, 3);
+        let mut k0 = k;
+        k0.fx += 3.0;
+        k0.dist[0] += 0.01;
+        let poses: Vec<Pose> = views.iter().map(|v| view_pose(&k0, v).unwrap()).collect();
+        let b = basis(&SolveOptions::default(), 1.0);
+        let (_, g) = normal_equations(&k0, &poses, &views, &b).unwrap();
+        // Gradient of ½ SSR is Jᵀr: compare with central differences of the cost.
+        let m = b.ncols();
+        for i in 0..(m + 6) {
+            let h = if i < 4 { 1e-4 } else { 1e-7 };
+            let mut d = DVector::zeros(m + 6 * views.len());
+            d[i] = h;
+            let plus = |d: &DVector<f64>| {
+                let dtheta = &b * d.rows(0, m).into_owned();
+                let th = to_vector(&k0) + SMatrix::<f64, 9, 1>::from_iterator(dtheta.iter().copied());
+                let k2 = from_vector(&th, 800, 600);
+                let p2: Vec<Pose> = poses
+                    .iter()
+                    .enumerate()
+                    .map(|(j, p)| retract(p, &Vector6::from_iterator(d.rows(m + 6 * j, 6).iter().copied())))
+                    .collect();
+                cost(&k2, &p2, &views).unwrap()
+            };
+            let fd = (plus(&d) - plus(&(-d.clone()))) / (2.0 * h) * 0.5;
+            assert!((fd - g[i]).abs() < 1e-4 * (1.0 + g[i].abs()), "param {i}: fd {fd} vs {}", g[i]);
+        }
+    }
+}

@@ -1,0 +1,260 @@
+//! The feed writer: JSON lines to stdout or appended to a file.
+//!
+//! A file output is a [`LineFile`]: each line is one write; a failed or partial write
+//! (disk full) is cut back to the last complete line, so the file never holds a partial
+//! line in its middle; a partial last line left by a crash is repaired when the file is
+//! reopened. Lines that cannot be written are held back (at most [`BACKLOG_LINES`], the
+//! oldest dropped and counted beyond that) and written, in order, once the output works
+//! again; retries back off from [`RETRY_MIN`] to [`RETRY_MAX`]. Only a closed stdout pipe
+//! (nobody reads any more) turns an output off for good. Durability: `fdatasync` at most
+//! once per second while lines flow, and at shutdown (see [`crate::linefile`]).
+
+use std::collections::VecDeque;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use crate::feed::FeedLine;
+use crate::linefile::{LineFile, LineTarget};
+
+/// Lines held back while an output fails; beyond that the oldest are dropped (counted).
+pub const BACKLOG_LINES: usize = 10_000;
+/// First retry this long after a failure; doubled after each failed retry.
+pub const RETRY_MIN: Duration = Duration::from_millis(500);
+/// Longest wait between retries.
+pub const RETRY_MAX: Duration = Duration::from_secs(30);
+
+/// State of a sink, as reported in the feed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SinkState {
+    /// Writing.
+    Ok,
+    /// Failing; retried with backoff.
+    Failing,
+    /// Off for good (e.g. nobody reads stdout any more).
+    Off,
+}
+
+impl SinkState {
+    /// `"ok"`, `"failing"` or `"off"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SinkState::Ok => "ok",
+            SinkState::Failing => "failing",
+            SinkState::Off => "off",
+        }
+    }
+}
+
+enum Out {
+    File(LineFile),
+    Stream(Box<dyn Write + Send>),
+    Off,
+}
+
+/// Writes feed lines to one destination; see the module docs.
+pub struct FeedWriter {
+    target: String,
+    out: Out,
+    written: u64,
+    backlog: VecDeque<String>,
+    dropped: u64,
+    failing_since: Option<Instant>,
+    next_retry: Instant,
+    backoff: Duration,
+    retry_min: Duration,
+    retry_max: Duration,
+}
+
+impl FeedWriter {
+    fn with_out(target: String, out: Out) -> Self {
+        Self {
+            target,
+            out,
+            written: 0,
+            backlog: VecDeque::new(),
+            dropped: 0,
+            failing_since: None,
+            next_retry: Instant::now(),
+            backoff: RETRY_MIN,
+            retry_min: RETRY_MIN,
+            retry_max: RETRY_MAX,
+        }
+    }
+
+    /// Standard output.
+    pub fn stdout() -> Self {
+        Self::with_out("stdout".into(), Out::Stream(Box::new(io::stdout())))
+    }
+
+    /// Appends to a file (created if absent, a partial last line repaired); `-` means stdout.
+    pub fn append(path: &Path) -> io::Result<Self> {
+        if path == Path::new("-") {
+            return Ok(Self::stdout());
+        }
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)?;
+        }
+        let (f, _cut) = LineFile::open_append(path)?;
+        Ok(Self::with_out(path.display().to_string(), Out::File(f)))
+    }
+
+    /// Any writer (tests, in-memory sinks); written with `write_all` + `flush` per line.
+    pub fn from_writer(name: &str, w: Box<dyn Write + Send>) -> Self {
+        Self::with_out(name.into(), Out::Stream(w))
+    }
+
+    /// A line file over any [`LineTarget`] currently `len` bytes long (fault injection).
+    pub fn from_target(name: &str, target: Box<dyn LineTarget>, len: u64) -> Self {
+        Self::with_out(name.into(), Out::File(LineFile::new(target, len)))
+    }
+
+    /// Sets the retry backoff (first wait, longest wait).
+    pub fn with_backoff(mut self, min: Duration, max: Duration) -> Self {
+        self.retry_min = min;
+        self.retry_max = max.max(min);
+        self.backoff = min;
+        self
+    }
+
+    /// Where the lines go.
+    pub fn target(&self) -> &str {
+        &self.target
+    }
+
+    /// Lines written so far.
+    pub fn written(&self) -> u64 {
+        self.written
+    }
+
+    /// Lines dropped so far (backlog overflow while failing, or written after the output was off).
+    pub fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
+    /// Lines held back, waiting for the output to work again.
+    pub fn pending(&self) -> usize {
+        self.backlog.len()
+    }
+
+    /// True unless the sink is off for good.
+    pub fn is_open(&self) -> bool {
+        !matches!(self.out, Out::Off)
+    }
+
+    /// The sink's state.
+    pub fn state(&self) -> SinkState {
+        match (&self.out, self.failing_since) {
+            (Out::Off, _) => SinkState::Off,
+            (_, Some(_)) => SinkState::Failing,
+            _ => SinkState::Ok,
+        }
+    }
+
+    /// Queues one line and writes every held-back line. Returns an error only when the
+    /// output starts failing (once per outage) or turns off; while it fails, lines are held
+    /// back and retried with backoff.
+    pub fn write(&mut self, line: &FeedLine) -> io::Result<()> {
+        if matches!(self.out, Out::Off) {
+            self.dropped += 1;
+            return Ok(());
+        }
+        let mut text = line.to_json();
+        text.push('\n');
+        self.backlog.push_back(text);
+        if self.backlog.len() > BACKLOG_LINES {
+            self.backlog.pop_front();
+            self.dropped += 1;
+        }
+        if self.failing_since.is_some() && Instant::now() < self.next_retry {
+            return Ok(());
+        }
+        self.drain()
+    }
+
+    /// Writes the backlog; see [`FeedWriter::write`].
+    fn drain(&mut self) -> io::Result<()> {
+        while let Some(text) = self.backlog.front() {
+            let res = match &mut self.out {
+                Out::File(f) => f.write_line(text.as_bytes()),
+                Out::Stream(w) => w.write_all(text.as_bytes()).and_then(|_| w.flush()),
+                Out::Off => return Ok(()),
+            };
+            match res {
+                Ok(()) => {
+                    self.backlog.pop_front();
+                    self.written += 1;
+                }
+                Err(e) => return self.failed(e),
+            }
+        }
+        if let Some(since) = self.failing_since.take() {
+            tracing::info!(output = %self.target, after_s = since.elapsed().as_secs(), dropped = self.dropped, "feed output writes again");
+            self.backoff = self.retry_min;
+        }
+        if let Out::File(f) = &mut self.out {
+            if let Err(e) = f.sync_if_due() {
+                tracing::warn!(output = %self.target, "fdatasync failed: {e}");
+            }
+        }
+        Ok(())
+    }
+
+    fn failed(&mut self, e: io::Error) -> io::Result<()> {
+        if e.kind() == io::ErrorKind::BrokenPipe && matches!(self.out, Out::Stream(_)) {
+            self.out = Out::Off;
+            self.dropped += self.backlog.len() as u64;
+            self.backlog.clear();
+            self.failing_since = None;
+            return Err(io::Error::new(
+                e.kind(),
+                format!("feed output {}: {e}; nobody reads it any more, it is off, the others go on", self.target),
+            ));
+        }
+        self.next_retry = Instant::now() + self.backoff;
+        let wait = self.backoff;
+        self.backoff = (self.backoff * 2).min(self.retry_max);
+        if self.failing_since.is_none() {
+            self.failing_since = Some(Instant::now());
+            return Err(io::Error::new(
+                e.kind(),
+                format!(
+                    "feed output {}: {e}; lines are held back (up to {BACKLOG_LINES}) and retried, first in {:.1} s; the others go on",
+                    self.target,
+                    wait.as_secs_f64()
+                ),
+            ));
+        }
+        tracing::debug!(output = %self.target, retry_in_s = wait.as_secs_f64(), "feed output still failing: {e}");
+        Ok(())
+    }
+
+    /// Writes what is held back (one last try) and syncs (shutdown).
+    pub fn finish(&mut self) -> io::Result<()> {
+        if !self.backlog.is_empty() {
+            let _ = self.drain();
+        }
+        if !self.backlog.is_empty() {
+            let n = self.backlog.len() as u64;
+            self.dropped += n;
+            self.backlog.clear();
+            tracing::error!(output = %self.target, lines = n, "feed output: lines could not be written before shutdown");
+        }
+        match &mut self.out {
+            Out::File(f) => f.sync(),
+            Out::Stream(w) => w.flush(),
+            Out::Off => Ok(()),
+        }
+    }
+}
+
+impl Drop for FeedWriter {
+    fn drop(&mut self) {
+        let _ = self.finish();
+    }
+}
+
+/// Path of the feed file for `[output] feed`, or `None` for stdout.
+pub fn feed_path(spec: &str) -> Option<PathBuf> {
+    (spec != "-").then(|| PathBuf::from(spec))
+}

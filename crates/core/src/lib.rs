@@ -1,0 +1,27 @@
+//! The building blocks every stage of tagdeflect shares: frames, the camera model, tags and
+//! their roles, the rig as the config describes it (cameras, background, specimen, beam), the
+//! one process clock, reconnect backoff, UTM samples, the feed line (one type, written by the
+//! measurement and read tolerantly by the report) and the line files it goes into.
+//!
+//! Nothing here does I/O beyond reading and writing files, and nothing knows the command line.
+
+pub mod backoff;
+pub mod beam;
+pub mod calibration_file;
+pub mod camera;
+pub mod camera_config;
+pub mod clock;
+pub mod error;
+pub mod feed;
+pub mod feed_file;
+pub mod frame;
+pub mod linefile;
+pub mod problem;
+pub mod rig;
+pub mod stats;
+pub mod tags;
+pub mod text_file;
+pub mod utm_sample;
+
+pub use error::{BadInput, RuntimeFailure};
+pub use problem::Problem;

@@ -1,0 +1,646 @@
+//! Region-of-interest planning: what to look for in the next frame of one camera.
+//!
+//! Once tags have been found, each is expected where its last refined corners, moved by
+//! its image velocity, put it ([`PlannedTag::predicted`]). The measurement first tries to
+//! *confirm* it there without any search (sub-pixel refinement from the prediction, then
+//! the tag's code read back: see `detect::confirm`); only a tag that cannot be confirmed is
+//! searched for with the AprilTag library in its *window*, the predicted box grown by a
+//! margin that scales with the tag's size in the image and its motion.
+//!
+//! - **Specimen tags** are looked for every frame.
+//! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
+//!   is held, see `solve::held_pose`), so after a settling period only a rotating subset of
+//!   [`BACKGROUND_TAGS_PER_FRAME`] of them is looked for per frame; the tracker's bump
+//!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
+//!   the same frame set. When the background tags seen have shifted in the image (a bump),
+//!   all of them are looked for again for [`SETTLE_FRAMES`] frames so the re-posing
+//!   averages every tag.
+//! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
+//!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
+//!   is larger than the biggest tag, so each tag lies wholly inside some tile), with the
+//!   tags already found blanked out ([`masked_tile`]). Tiles are searched with quad
+//!   decimation [`SEARCH_DECIMATE`] when the tags are big enough
+//!   ([`MIN_EXTENT_TO_DECIMATE_SWEEP`]; corners are refined at full resolution), and the
+//!   cameras' tiles are staggered (`with_phase`) so no frame set stalls.
+//! - **Full frame** (full resolution) at the start, when the image size changes and
+//!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
+//!   frame at once (decimated), then the tag is left to the periodic sweep.
+//!
+//! Corners are identical in quality whichever way a tag was found: windows are searched on
+//! a view into the same frame with corners mapped back (see `detect::apriltag`), and every
+//! tag — confirmed, found in a window or in a tile — gets the same sub-pixel refinement on
+//! the full frame (see `detect::camera_detector`).
+
+use nalgebra::{Point2, Vector2};
+use std::collections::HashMap;
+
+use super::{Detection, Rect};
+use tagdeflect_core::camera::CameraIntrinsics;
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+
+/// Background tags searched per frame once the camera has settled (a rotating subset).
+pub const BACKGROUND_TAGS_PER_FRAME: usize = 3;
+/// Frames during which every background tag is searched after the first full-frame search
+/// or a suspected bump (covers the pose tracker's averaging of the corners).
+pub const SETTLE_FRAMES: u32 = 12;
+/// Quad decimation of the windows and the sweep's tiles when every tracked tag is at least
+/// [`MIN_EXTENT_TO_DECIMATE`] px across: the library fits the quads on the full image and
+/// the corners are refined at full resolution, so only the quad search (the costliest part
+/// on a textured specimen) runs on fewer pixels.
+pub const SEARCH_DECIMATE: f32 = 2.0;
+/// Smallest tag extent (px, bounding box) for which window searches are decimated: a tag
+/// that could not be confirmed is often blurred or partly hidden, and the window search is
+/// small, so it keeps full resolution for tags below this.
+pub const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
+/// Smallest tag extent (px) for which the sweep (tiles, and the whole frame after a lost
+/// tag) is decimated. The sweep only looks for tags not followed yet, it is most of the
+/// searching cost in steady state, and the decimated start-up search finds 28-px tags as
+/// the full-resolution one does (`bench` on clean and noisy 3 × 1080p scenes: the same tags
+/// and the same accuracy); below 24 px (12 px at half resolution, 1.5-px border bits) the
+/// sweep keeps full resolution.
+pub const MIN_EXTENT_TO_DECIMATE_SWEEP: f64 = 24.0;
+/// Median shift (px) of the background tags seen, against their last positions, taken as
+/// a possible bump (the pose tracker's default bump floor).
+const BACKGROUND_SHIFT_PX: f64 = 1.0;
+
+fn x1(r: &Rect) -> u32 {
+    r.x + r.width
+}
+fn y1(r: &Rect) -> u32 {
+    r.y + r.height
+}
+fn overlaps(a: &Rect, b: &Rect) -> bool {
+    a.x < x1(b) && b.x < x1(a) && a.y < y1(b) && b.y < y1(a)
+}
+fn union(a: &Rect, b: &Rect) -> Rect {
+    let (x, y) = (a.x.min(b.x), a.y.min(b.y));
+    Rect { x, y, width: x1(a).max(x1(b)) - x, height: y1(a).max(y1(b)) - y }
+}
+
+/// Where a tag was last seen in this camera and how it moved.
+#[derive(Debug, Clone)]
+struct Sighting {
+    corners: [Point2<f64>; 4],
+    velocity: Vector2<f64>,
+    t_ns: i64,
+    /// Searched frames since last seen.
+    missed: u32,
+    /// A background tag (searched in rotation once settled).
+    background: bool,
+    /// Its window was searched in the current frame.
+    searched: bool,
+}
+
+/// A tracked tag expected in the next frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlannedTag {
+    /// Its family.
+    pub family: TagFamily,
+    /// Its id.
+    pub id: u32,
+    /// Its corners as predicted (last corners moved by the tag's image velocity), SPEC order.
+    pub predicted: [Point2<f64>; 4],
+    /// The window to search with the detector if the prediction cannot be confirmed.
+    pub window: Rect,
+}
+
+/// What to search in one frame of one camera.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Plan {
+    /// The whole frame, at the detector's configured resolution.
+    FullFrame,
+    /// Tracked tags (each confirmed at its predicted place, else searched in its window)
+    /// plus sweep tiles (possibly none this frame).
+    Windows {
+        /// Quad decimation to search windows with ([`SEARCH_DECIMATE`] for tags of at
+        /// least [`MIN_EXTENT_TO_DECIMATE`] px, else 1: the configured resolution).
+        decimate: f32,
+        /// Quad decimation of the sweep's tiles and of the whole-frame sweep
+        /// ([`SEARCH_DECIMATE`] for tags of at least [`MIN_EXTENT_TO_DECIMATE_SWEEP`] px).
+        sweep_decimate: f32,
+        /// The tracked tags to look for.
+        tags: Vec<PlannedTag>,
+        /// Tiles of the periodic sweep (or the whole frame after a lost tag).
+        sweep: Vec<Rect>,
+        /// `sweep` is the whole frame at once (after a lost tag), not the periodic tiles.
+        whole_frame: bool,
+    },
+}
+
+/// Plans the searches of one camera.
+#[derive(Debug)]
+pub struct RoiPlanner {
+    enabled: bool,
+    width: u32,
+    height: u32,
+    interval_ns: i64,
+    sightings: HashMap<(TagFamily, u32), Sighting>,
+    full_requested: bool,
+    sweep_all_requested: bool,
+    frame_dt_ns: i64,
+    last_t_ns: Option<i64>,
+    /// Frames planned since the last full-frame search.
+    frame_index: u64,
+    /// Offset of this camera's sweep schedule (frames).
+    phase: u64,
+    /// Frames left during which every background tag is searched.
+    settle: u32,
+    /// Round-robin position among the background tags.
+    bg_cursor: usize,
+}
+
+impl RoiPlanner {
+    /// A planner for one camera; `enabled = false` always asks for full-frame searches.
+    pub fn new(intrinsics: CameraIntrinsics, enabled: bool, full_search_interval_s: f64) -> Self {
+        Self {
+            enabled,
+            width: intrinsics.width,
+            height: intrinsics.height,
+            interval_ns: (full_search_interval_s.max(0.0) * 1e9) as i64,
+            sightings: HashMap::new(),
+            full_requested: true,
+            sweep_all_requested: false,
+            frame_dt_ns: 0,
+            last_t_ns: None,
+            frame_index: 0,
+            phase: 0,
+            settle: SETTLE_FRAMES,
+            bg_cursor: 0,
+        }
+    }
+
+    /// Offsets this camera's sweep schedule by `phase` frames (e.g. the camera's index), so
+    /// the cameras of a rig do not search their sweep tiles in the same frame set.
+    pub fn with_phase(mut self, phase: u32) -> Self {
+        self.phase = phase as u64;
+        self
+    }
+
+    /// The searches to run in the frame at `t_ns`.
+    pub fn plan(&mut self, t_ns: i64, image: &GrayImage) -> Plan {
+        if let Some(last) = self.last_t_ns {
+            let dt = t_ns - last;
+            if dt > 0 {
+                self.frame_dt_ns = if self.frame_dt_ns == 0 { dt } else { (self.frame_dt_ns * 7 + dt) / 8 };
+            }
+        }
+        self.last_t_ns = Some(t_ns);
+        if image.width != self.width || image.height != self.height {
+            self.width = image.width;
+            self.height = image.height;
+            self.full_requested = true;
+        }
+        for tr in self.sightings.values_mut() {
+            tr.searched = false;
+        }
+        if !self.enabled || self.full_requested || self.sightings.is_empty() {
+            self.full_requested = false;
+            self.sweep_all_requested = false;
+            self.frame_index = 0;
+            self.settle = SETTLE_FRAMES;
+            for tr in self.sightings.values_mut() {
+                tr.searched = true;
+            }
+            return Plan::FullFrame;
+        }
+        self.frame_index += 1;
+
+        // Which sightings get a window: every specimen tag, and the background tags in rotation.
+        let mut bg_keys: Vec<(TagFamily, u32)> = self.sightings.iter().filter(|(_, t)| t.background).map(|(k, _)| *k).collect();
+        bg_keys.sort_by_key(|(f, id)| (f.name(), *id));
+        let all_bg = self.settle > 0 || bg_keys.len() <= BACKGROUND_TAGS_PER_FRAME;
+        self.settle = self.settle.saturating_sub(1);
+        let mut chosen: Vec<(TagFamily, u32)> = Vec::new();
+        if all_bg {
+            chosen.extend(&bg_keys);
+        } else {
+            for i in 0..BACKGROUND_TAGS_PER_FRAME {
+                chosen.push(bg_keys[(self.bg_cursor + i) % bg_keys.len()]);
+            }
+            self.bg_cursor = (self.bg_cursor + BACKGROUND_TAGS_PER_FRAME) % bg_keys.len();
+            // A background tag missing from its last search is searched again at once.
+            chosen.extend(bg_keys.iter().filter(|k| self.sightings[*k].missed > 0));
+        }
+        let mut tags: Vec<PlannedTag> = Vec::new();
+        let mut max_extent: f64 = 0.0;
+        let mut min_extent: f64 = f64::INFINITY;
+        let (w, h) = (self.width, self.height);
+        for (key, tr) in self.sightings.iter_mut() {
+            let (lo, hi) = bounds(&tr.corners);
+            max_extent = max_extent.max((hi - lo).max());
+            min_extent = min_extent.min((hi - lo).max());
+            if tr.background && !chosen.contains(key) {
+                continue;
+            }
+            tr.searched = true;
+            let dt = (t_ns - tr.t_ns) as f64 * 1e-9;
+            let shift = tr.velocity * dt;
+            let (lo, hi) = (lo + shift, hi + shift);
+            let extent = (hi - lo).max();
+            // Room for the white border and quiet zone (the detector thresholds in 4 px
+            // tiles), the motion, and a tag missed a while.
+            let margin = 0.3 * extent + 10.0 + 2.0 * shift.norm() + 0.25 * extent * tr.missed as f64;
+            if let Some(window) = clip(w, h, lo.x - margin, lo.y - margin, hi.x + margin, hi.y + margin) {
+                let predicted = tr.corners.map(|c| c + shift);
+                tags.push(PlannedTag { family: key.0, id: key.1, predicted, window });
+            }
+        }
+
+        // The sweep: the tiles of the whole frame once per interval, staggered by phase.
+        let overlap = 1.3 * max_extent + 16.0;
+        let tiles = sweep_tiles(w, h, overlap);
+        let whole_frame = self.sweep_all_requested;
+        let sweep = if self.sweep_all_requested {
+            self.sweep_all_requested = false;
+            clip(w, h, 0.0, 0.0, w as f64, h as f64).into_iter().collect()
+        } else {
+            let frames_per_sweep = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).max(1) as u64 } else { 8 };
+            let n = tiles.len() as u64;
+            // This frame's share of the cycle: tiles i·n/F .. (i+1)·n/F.
+            let i = (self.frame_index + self.phase) % frames_per_sweep;
+            let (first, end) = ((i * n / frames_per_sweep) as usize, ((i + 1) * n / frames_per_sweep) as usize);
+            let out: Vec<Rect> = tiles.get(first..end).map(|t| t.to_vec()).unwrap_or_default();
+            out
+        };
+        let decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE { SEARCH_DECIMATE } else { 1.0 };
+        let sweep_decimate = if min_extent >= MIN_EXTENT_TO_DECIMATE_SWEEP { SEARCH_DECIMATE } else { 1.0 };
+        tags.sort_by_key(|t| (t.family.name(), t.id));
+        Plan::Windows { decimate, sweep_decimate, tags, sweep, whole_frame }
+    }
+
+    /// Starts following tags found by a search of an earlier frame (at `t_ns`) that ran
+    /// while later frames were planned: tags already followed are left as they are, the
+    /// others are looked for from the next plan on, where they were found.
+    pub fn add_found(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
+            self.sightings.entry((d.family, d.id)).or_insert(Sighting {
+                corners: d.corners,
+                velocity: Vector2::zeros(),
+                t_ns,
+                missed: 0,
+                background: is_bg,
+                searched: false,
+            });
+        }
+    }
+
+    /// True when no tag is followed.
+    pub fn is_empty(&self) -> bool {
+        self.sightings.is_empty()
+    }
+
+    /// Records what the frame at `t_ns` showed, for the next plan. A tag searched for but
+    /// not seen triggers one decimated sweep of the whole frame in the next frame; a tag
+    /// missing for a second of frames is dropped from tracking (the sweep picks it up
+    /// again). Background tags whose positions shifted (a bump) are all searched again for
+    /// a while.
+    pub fn observe(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+        let mut seen = std::collections::HashSet::new();
+        let mut bg_shifts = Vec::new();
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
+            let key = (d.family, d.id);
+            seen.insert(key);
+            let c_new = centre(&d.corners);
+            match self.sightings.get_mut(&key) {
+                Some(tr) => {
+                    let dt = (t_ns - tr.t_ns) as f64 * 1e-9;
+                    if is_bg {
+                        bg_shifts.push((c_new - (centre(&tr.corners) + tr.velocity * dt.max(0.0))).norm());
+                    }
+                    if dt > 0.0 {
+                        let v = (c_new - centre(&tr.corners)) / dt;
+                        tr.velocity = if tr.missed == 0 { tr.velocity * 0.5 + v * 0.5 } else { v };
+                    }
+                    tr.corners = d.corners;
+                    tr.t_ns = t_ns;
+                    tr.missed = 0;
+                    tr.background = is_bg;
+                }
+                None => {
+                    self.sightings.insert(
+                        key,
+                        Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+                    );
+                }
+            }
+        }
+        if !bg_shifts.is_empty() {
+            bg_shifts.sort_by(f64::total_cmp);
+            if bg_shifts[bg_shifts.len() / 2] > BACKGROUND_SHIFT_PX {
+                self.settle = SETTLE_FRAMES;
+            }
+        }
+        let max_missed = if self.frame_dt_ns > 0 { (self.interval_ns / self.frame_dt_ns).clamp(2, 60) as u32 } else { 10 };
+        let mut lost_now = false;
+        self.sightings.retain(|k, tr| {
+            if seen.contains(k) || !tr.searched {
+                return true;
+            }
+            tr.missed += 1;
+            if tr.missed == 1 {
+                lost_now = true;
+            }
+            tr.missed <= max_missed
+        });
+        if lost_now {
+            self.sweep_all_requested = true;
+        }
+    }
+}
+
+/// The sweep's tiles of a `width` × `height` frame: a grid whose cells are about three
+/// times `overlap` wide, each grown by `overlap` (so any tag smaller than the overlap lies
+/// wholly inside some tile), in row-major order.
+pub fn sweep_tiles(width: u32, height: u32, overlap: f64) -> Vec<Rect> {
+    let overlap = overlap.max(8.0);
+    let cell = 3.0 * overlap;
+    let nx = ((width as f64 / cell).ceil() as u32).max(1);
+    let ny = ((height as f64 / cell).ceil() as u32).max(1);
+    let (cw, ch) = (width as f64 / nx as f64, height as f64 / ny as f64);
+    let mut out = Vec::with_capacity((nx * ny) as usize);
+    for j in 0..ny {
+        for i in 0..nx {
+            let (x0, y0) = (i as f64 * cw - overlap / 2.0, j as f64 * ch - overlap / 2.0);
+            if let Some(r) = clip(width, height, x0, y0, x0 + cw + overlap, y0 + ch + overlap) {
+                out.push(r);
+            }
+        }
+    }
+    out
+}
+
+fn clip(width: u32, height: u32, x0: f64, y0: f64, x1: f64, y1: f64) -> Option<Rect> {
+    if !(x0.is_finite() && y0.is_finite() && x1.is_finite() && y1.is_finite()) {
+        return None;
+    }
+    let cx0 = x0.floor().max(0.0) as u32;
+    let cy0 = y0.floor().max(0.0) as u32;
+    let cx1 = (x1.ceil().max(0.0) as u32).min(width);
+    let cy1 = (y1.ceil().max(0.0) as u32).min(height);
+    (cx1 > cx0 + 8 && cy1 > cy0 + 8).then_some(Rect { x: cx0, y: cy0, width: cx1 - cx0, height: cy1 - cy0 })
+}
+
+fn bounds(c: &[Point2<f64>; 4]) -> (Vector2<f64>, Vector2<f64>) {
+    let mut lo = Vector2::new(f64::MAX, f64::MAX);
+    let mut hi = Vector2::new(f64::MIN, f64::MIN);
+    for p in c {
+        lo = lo.inf(&p.coords);
+        hi = hi.sup(&p.coords);
+    }
+    (lo, hi)
+}
+
+fn centre(c: &[Point2<f64>; 4]) -> Vector2<f64> {
+    (c[0].coords + c[1].coords + c[2].coords + c[3].coords) / 4.0
+}
+/// Copies `tile` of `image` into `out` (resized to the tile) with the printed area of every
+/// tag in `known` — its black square, the white ring and one more cell — filled with the
+/// mean grey just outside it. A sweep searches this copy: tags already found are flat
+/// patches there, which the contrast filter skips, so the sweep spends its time only on
+/// the rest of the tile (a tag's own bits are otherwise most of what a filtered search
+/// still fits quads to). Tags never overlap, so no new tag is hidden.
+pub fn masked_tile(image: &GrayImage, tile: Rect, known: &[Detection], out: &mut GrayImage) {
+    let (tw, th) = (tile.width as usize, tile.height as usize);
+    out.width = tile.width;
+    out.height = tile.height;
+    out.data.resize(tw * th, 0);
+    let stride = image.width as usize;
+    for row in 0..th {
+        let start = (tile.y as usize + row) * stride + tile.x as usize;
+        out.data[row * tw..(row + 1) * tw].copy_from_slice(&image.data[start..start + tw]);
+    }
+    let (ox, oy) = (tile.x as f64, tile.y as f64);
+    for d in known {
+        let nb = d.family.width_at_border() as f64;
+        let c = centre(&d.corners);
+        let grow = (nb + 4.0) / nb;
+        let poly = d.corners.map(|p| c + (p.coords - c) * grow);
+        let (lo, hi) = (
+            poly.iter().fold(Vector2::new(f64::MAX, f64::MAX), |a, p| a.inf(p)),
+            poly.iter().fold(Vector2::new(f64::MIN, f64::MIN), |a, p| a.sup(p)),
+        );
+        if hi.x < ox || hi.y < oy || lo.x >= ox + tw as f64 || lo.y >= oy + th as f64 {
+            continue;
+        }
+        // Mean grey along the grown outline (in the frame, clamped to it).
+        let mut sum = 0.0;
+        let n = 64;
+        for k in 0..n {
+            let (i, f) = (k * 4 / n, (k % (n / 4)) as f64 / (n / 4) as f64);
+            let p = poly[i] + (poly[(i + 1) % 4] - poly[i]) * f;
+            sum += image.sample(p.x, p.y);
+        }
+        let fill = (sum / n as f64).round().clamp(0.0, 255.0) as u8;
+        // Orientation-free convex test: the point is on the same side of all four edges.
+        let inside = |x: f64, y: f64| {
+            let mut sign = 0.0;
+            for i in 0..4 {
+                let (a, b) = (poly[i], poly[(i + 1) % 4]);
+                let cross = (b.x - a.x) * (y - a.y) - (b.y - a.y) * (x - a.x);
+                if cross * sign < 0.0 {
+                    return false;
+                }
+                if cross != 0.0 {
+                    sign = cross;
+                }
+            }
+            true
+        };
+        let y0 = (lo.y.floor() - oy).max(0.0) as usize;
+        let y1 = ((hi.y.ceil() - oy).max(0.0) as usize).min(th.saturating_sub(1));
+        let x0 = (lo.x.floor() - ox).max(0.0) as usize;
+        let x1 = ((hi.x.ceil() - ox).max(0.0) as usize).min(tw.saturating_sub(1));
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                if inside(x as f64 + ox, y as f64 + oy) {
+                    out.data[y * tw + x] = fill;
+                }
+            }
+        }
+    }
+}
+
+/// Merges overlapping rectangles where the merged one costs no more pixels than the two
+/// apart (overlapping windows are otherwise searched as they are: each tag lies wholly
+/// inside its own window, and detections found twice are de-duplicated).
+pub fn merge_rects(mut rects: Vec<Rect>) -> Vec<Rect> {
+    let area = |r: &Rect| r.width as u64 * r.height as u64;
+    loop {
+        let mut merged = false;
+        'outer: for i in 0..rects.len() {
+            for j in (i + 1)..rects.len() {
+                if overlaps(&rects[i], &rects[j]) {
+                    let u = union(&rects[i], &rects[j]);
+                    if area(&u) <= area(&rects[i]) + area(&rects[j]) {
+                        rects[i] = u;
+                        rects.swap_remove(j);
+                        merged = true;
+                        break 'outer;
+                    }
+                }
+            }
+        }
+        if !merged {
+            return rects;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn det(id: u32, x: f64, y: f64, s: f64) -> Detection {
+        Detection {
+            family: TagFamily::Tag36h11,
+            id,
+            corners: [Point2::new(x, y + s), Point2::new(x + s, y + s), Point2::new(x + s, y), Point2::new(x, y)],
+            decision_margin: 50.0,
+            hamming: 0,
+        }
+    }
+
+    fn bg(id: u32, x: f64, y: f64, s: f64) -> Detection {
+        Detection { family: TagFamily::Tag25h9, ..det(id, x, y, s) }
+    }
+
+    fn intr() -> CameraIntrinsics {
+        CameraIntrinsics { width: 1000, height: 800, fx: 1000.0, fy: 1000.0, cx: 499.5, cy: 399.5, dist: [0.0; 5] }
+    }
+
+    fn inside(rects: &[Rect], x: f64, y: f64, half: f64) -> bool {
+        rects.iter().any(|r| (r.x as f64) < x - half && (x1(r) as f64) > x + half && (r.y as f64) < y - half && (y1(r) as f64) > y + half)
+    }
+
+    fn track(plan: Plan) -> (Vec<Rect>, Vec<Rect>) {
+        match plan {
+            Plan::Windows { tags, sweep, .. } => (merge_rects(tags.iter().map(|t| t.window).collect()), sweep),
+            Plan::FullFrame => panic!("expected windows, got a full-frame search"),
+        }
+    }
+
+    #[test]
+    fn first_frame_is_full_then_small_windows() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        assert_eq!(p.plan(0, &img), Plan::FullFrame);
+        p.observe(0, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)]);
+        let (windows, _) = track(p.plan(33_000_000, &img));
+        assert!(inside(&windows, 120.0, 120.0, 28.0) && inside(&windows, 620.0, 520.0, 28.0), "{windows:?}");
+        let area: u64 = windows.iter().map(Rect::area).sum();
+        assert!(area < 2 * 100 * 100, "windows cover {area} px");
+    }
+
+    #[test]
+    fn a_lost_tag_triggers_one_sweep_of_the_whole_frame() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        p.observe(0, &[], &[det(1, 100.0, 100.0, 40.0), det(2, 600.0, 500.0, 40.0)]);
+        p.plan(33_000_000, &img);
+        p.observe(33_000_000, &[], &[det(1, 100.0, 100.0, 40.0)]);
+        let (_, sweep) = track(p.plan(66_000_000, &img));
+        assert_eq!(sweep, vec![Rect { x: 0, y: 0, width: 1000, height: 800 }], "lost tag → whole frame swept");
+        p.observe(66_000_000, &[], &[det(1, 100.0, 100.0, 40.0)]);
+        let (_, sweep) = track(p.plan(99_000_000, &img));
+        assert!(sweep.iter().map(Rect::area).sum::<u64>() < 1000 * 800 / 4, "still lost → back to the periodic sweep");
+    }
+
+    #[test]
+    fn sweep_tiles_cover_the_whole_frame_within_the_interval_and_spread() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 0.5).with_phase(1);
+        p.plan(0, &img);
+        let mut covered = vec![false; 1000 * 800];
+        let mut worst = 0u64;
+        let frames = 16; // 0.5 s at 30 fps: one sweep cycle
+        for k in 1..=frames {
+            let t = k * 33_333_333;
+            p.observe(t - 33_333_333, &[], &[det(1, 100.0, 100.0, 40.0)]);
+            let (_, sweep) = track(p.plan(t, &img));
+            worst = worst.max(sweep.iter().map(Rect::area).sum());
+            for r in &sweep {
+                for y in r.y..y1(r) {
+                    covered[(y * 1000 + r.x) as usize..(y * 1000 + x1(r)) as usize].iter_mut().for_each(|c| *c = true);
+                }
+            }
+        }
+        assert!(covered.iter().all(|&c| c), "every pixel swept");
+        assert!(worst < 1000 * 800 / 3, "at most a fraction of the frame per frame: {worst} px");
+    }
+
+    #[test]
+    fn tiles_overlap_by_more_than_a_tag() {
+        let tiles = sweep_tiles(1920, 1080, 120.0);
+        assert!(tiles.len() > 4);
+        // Any 120 px square lies wholly inside some tile.
+        for y in (0..=960).step_by(37) {
+            for x in (0..=1800).step_by(41) {
+                let t = Rect { x, y, width: 120, height: 120 };
+                assert!(tiles.iter().any(|r| r.x <= t.x && r.y <= t.y && x1(r) >= x1(&t) && y1(r) >= y1(&t)), "{t:?} in no tile");
+            }
+        }
+    }
+
+    #[test]
+    fn background_tags_rotate_once_settled_and_all_return_after_a_shift() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
+        let sp = [det(1, 400.0, 300.0, 40.0)];
+        let mut t = 0;
+        p.observe(t, &bgs, &sp);
+        let windows_with_bg = |p: &mut RoiPlanner, t: i64| {
+            let (w, _) = track(p.plan(t, &img));
+            (0..8).filter(|&i| inside(&w, 70.0 + 110.0 * i as f64, 720.0, 21.0)).count()
+        };
+        let mut counts = Vec::new();
+        for _ in 0..(SETTLE_FRAMES + 8) {
+            t += 33_000_000;
+            counts.push(windows_with_bg(&mut p, t));
+            // Only the searched tags are reported (the others were not searched).
+            p.observe(t, &bgs, &sp);
+        }
+        assert!(counts[..SETTLE_FRAMES as usize].iter().all(|&c| c == 8), "all while settling: {counts:?}");
+        assert!(counts[SETTLE_FRAMES as usize + 1..].iter().all(|&c| c < 8), "a subset once settled: {counts:?}");
+        // A bump: the background tags seen move by 3 px → all searched again.
+        let bumped: Vec<Detection> = (0..8).map(|i| bg(i, 53.0 + 110.0 * i as f64, 702.0, 40.0)).collect();
+        t += 33_000_000;
+        p.plan(t, &img);
+        p.observe(t, &bumped[..3], &sp);
+        t += 33_000_000;
+        assert_eq!(windows_with_bg(&mut p, t), 8);
+    }
+
+    #[test]
+    fn unsearched_background_tags_are_not_lost() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        let bgs: Vec<Detection> = (0..8).map(|i| bg(i, 50.0 + 110.0 * i as f64, 700.0, 40.0)).collect();
+        p.observe(0, &bgs, &[]);
+        for k in 1..=(SETTLE_FRAMES as i64 + 40) {
+            let t = k * 33_000_000;
+            let (w, sweep) = track(p.plan(t, &img));
+            assert!(k <= 2 || sweep.iter().all(|r| r.area() < 1000 * 800 / 2), "frame {k}: no whole-frame sweep");
+            // Report exactly the tags whose windows were searched.
+            let seen: Vec<Detection> =
+                bgs.iter().filter(|d| inside(&w, d.corners[0].x + 20.0, d.corners[0].y - 20.0, 21.0)).cloned().collect();
+            p.observe(t, &seen, &[]);
+        }
+        assert_eq!(p.sightings.len(), 8);
+    }
+
+    #[test]
+    fn overlapping_rects_merge() {
+        let r = |x, y, w, h| Rect { x, y, width: w, height: h };
+        let m = merge_rects(vec![r(0, 0, 10, 10), r(2, 2, 10, 10), r(50, 50, 10, 10)]);
+        assert_eq!(m.len(), 2);
+        assert!(m.contains(&r(0, 0, 12, 12)));
+        // A full-width strip does not swallow a window that only touches it.
+        let m = merge_rects(vec![r(0, 100, 1000, 50), r(400, 140, 40, 40)]);
+        assert_eq!(m.len(), 2);
+    }
+}

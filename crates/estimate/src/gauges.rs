@@ -1,0 +1,592 @@
+//! Virtual gauges (`[[gauge]]`): what a lab otherwise buys clip gauges, yokes and
+//! extensometers for, computed from the solved specimen tags of each frame set, with a σ
+//! propagated from the tags' covariance.
+//!
+//! Every gauge is a function of the tags' poses now and of their *reference* poses (each
+//! tag's first solved pose, as the feed's `disp_mm`):
+//!
+//! | kind | tags | value | unit |
+//! | --- | --- | --- | --- |
+//! | `net_deflection` | by role (all tags with a role, or the listed ones) | per face: mean downward displacement of the `midspan` tags minus the line through the `support` tags (fitted along the beam) at the midspan tags' place — what a yoke measures; averaged over the faces that have both | mm |
+//! | `distance` | 2 | change of the distance between the two tags' centres; a second entry `<name>.strain` = change / gauge length (`gauge_length_mm`, default the reference distance) | mm, µε |
+//! | `opening` | 2 | component along `direction` of the relative displacement of the two tags at the point `at_mm` (reference position, world; default midway between the tags), each tag carrying the point rigidly (so the opening at a notch mouth below the tags is measured from the halves' turn); positive when the tags move apart | mm |
+//! | `rotation` | 1 | the tag's rotation about `axis` (world, right hand) since its reference orientation | mrad |
+//! | `curvature` | 3 | curvature of the beam's line through the three tags from their vertical displacements (second divided difference along the beam), sagging positive | 1/km |
+//!
+//! σ: first-order propagation, `σ² = Σ_k J_k Σ_k J_kᵀ` over the tags' present 6×6 pose
+//! covariances (tags are solved independently; the reference poses count as exact — see
+//! [`REFERENCE_IN_SIGMA`] — and a gauge at its own reference frame set is exact). Jacobians by central differences on the pose step
+//! `(ω, v)` of [`retract`](super::lm::retract). A gauge is absent from a frame set in which
+//! one of its tags was not solved (never interpolated); `net_deflection` needs, on one face
+//! at least, a midspan tag and a support tag solved.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::ops::Range;
+
+use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
+use toml::Spanned;
+
+use super::lm::retract;
+use tagdeflect_core::camera::Pose;
+use tagdeflect_core::rig::{SpecimenConfig, TagRole};
+use tagdeflect_core::feed::GaugeReading;
+
+/// Whether σ adds the reference poses' own covariance. It does not: a tag's errors in
+/// frame sets of one test are strongly correlated (the same held camera poses, lens and
+/// print), so its displacement errors are about as large as its position errors, not √2
+/// larger — with the reference term σ came out 1.5× too large on simulated truth (every
+/// error within 2σ, RMS error/σ 0.65); the feed's per-tag `sigma_mm` is the present pose's
+/// σ for the same reason. The reference's error is an offset common to the whole test.
+const REFERENCE_IN_SIGMA: bool = false;
+
+/// What a gauge measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GaugeKind {
+    /// Midspan relative to the supports' line (a yoke), mm.
+    NetDeflection,
+    /// Change of length between two tags (mm) and strain over the gauge length (µε).
+    Distance,
+    /// Opening across a notch between two tags, along a direction (CMOD), mm.
+    Opening,
+    /// A tag's rotation about an axis, mrad.
+    Rotation,
+    /// Curvature from three tags along the beam, 1/km.
+    Curvature,
+}
+
+impl GaugeKind {
+    const NAMES: &'static str = "\"net_deflection\", \"distance\", \"opening\", \"rotation\" or \"curvature\"";
+
+    fn parse(s: &str) -> Option<GaugeKind> {
+        Some(match s {
+            "net_deflection" => GaugeKind::NetDeflection,
+            "distance" => GaugeKind::Distance,
+            "opening" => GaugeKind::Opening,
+            "rotation" => GaugeKind::Rotation,
+            "curvature" => GaugeKind::Curvature,
+            _ => return None,
+        })
+    }
+
+    /// The unit of the gauge's value in the feed.
+    pub fn unit(self) -> &'static str {
+        match self {
+            GaugeKind::NetDeflection | GaugeKind::Distance | GaugeKind::Opening => "mm",
+            GaugeKind::Rotation => "mrad",
+            GaugeKind::Curvature => "1/km",
+        }
+    }
+}
+
+/// Unit of the `<name>.strain` entry of a `distance` gauge.
+pub const STRAIN_UNIT: &str = "µε";
+
+/// One validated `[[gauge]]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GaugeConfig {
+    /// Name: the key in the feed's `gauges` (letters, digits, `_`, `-`).
+    pub name: String,
+    /// What it measures.
+    pub kind: GaugeKind,
+    /// The specimen tags it uses (`net_deflection`: optional subset, by role).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tags: Vec<u32>,
+    /// `opening`: the direction of the component measured (normalised on load).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direction: Option<[f64; 3]>,
+    /// `rotation`: the axis (normalised on load).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis: Option<[f64; 3]>,
+    /// `distance`: strain is reported over this length, mm (default: the reference distance).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gauge_length_mm: Option<f64>,
+    /// `opening`: the point (world, at rest, mm) where the opening is measured, e.g. the
+    /// notch mouth; default midway between the two tags.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub at_mm: Option<[f64; 3]>,
+}
+
+/// A `[[gauge]]` as written, with the spans validation needs.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawGauge {
+    name: Spanned<String>,
+    kind: Spanned<String>,
+    #[serde(default)]
+    tags: Option<Spanned<Vec<u32>>>,
+    #[serde(default)]
+    direction: Option<Spanned<Vec<f64>>>,
+    #[serde(default)]
+    axis: Option<Spanned<Vec<f64>>>,
+    #[serde(default)]
+    gauge_length_mm: Option<Spanned<f64>>,
+    #[serde(default)]
+    at_mm: Option<Spanned<Vec<f64>>>,
+}
+
+/// A `[[gauge]]` problem: where (byte span in the file), the key and what is wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GaugeConfigError {
+    /// Byte span of the offending value.
+    pub span: Option<Range<usize>>,
+    /// Dotted key, e.g. `gauge[1].tags`.
+    pub key: String,
+    /// What is wrong and what is expected.
+    pub message: String,
+}
+
+fn unit_vector(v: &Spanned<Vec<f64>>, key: &str) -> Result<[f64; 3], GaugeConfigError> {
+    let err = |m: String| GaugeConfigError { span: Some(v.span()), key: key.to_string(), message: m };
+    let x = v.get_ref();
+    if x.len() != 3 {
+        return Err(err(format!("expected [x, y, z], got {} numbers", x.len())));
+    }
+    let n = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+    if !(n.is_finite() && n > 1e-9) {
+        return Err(err("must be a non-zero direction, e.g. [1.0, 0.0, 0.0]".into()));
+    }
+    Ok([x[0] / n, x[1] / n, x[2] / n])
+}
+
+/// Validates every `[[gauge]]` against the specimen tags (ids, roles).
+pub fn validate_gauges(raw: &[Spanned<RawGauge>], specimen: &SpecimenConfig) -> Result<Vec<GaugeConfig>, GaugeConfigError> {
+    let mut names = HashSet::new();
+    let mut out = Vec::new();
+    let roles: HashMap<u32, Option<TagRole>> = specimen.tags.iter().map(|t| (t.id, t.role)).collect();
+    for (i, g) in raw.iter().enumerate() {
+        let whole = g.span();
+        let g = g.get_ref();
+        let key = |k: &str| format!("gauge[{i}].{k}");
+        let err = |span: Option<Range<usize>>, k: &str, m: String| GaugeConfigError { span, key: key(k), message: m };
+        let name = g.name.get_ref().trim().to_string();
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-') {
+            return Err(err(
+                Some(g.name.span()),
+                "name",
+                format!("\"{name}\": a gauge name is letters, digits, `_` and `-` (it is a feed key and a CSV column)"),
+            ));
+        }
+        if !names.insert(name.clone()) {
+            return Err(err(Some(g.name.span()), "name", format!("duplicate gauge name \"{name}\"")));
+        }
+        let kind = GaugeKind::parse(g.kind.get_ref().trim()).ok_or_else(|| {
+            err(Some(g.kind.span()), "kind", format!("\"{}\" is not a gauge kind: expected {}", g.kind.get_ref(), GaugeKind::NAMES))
+        })?;
+        let tags: Vec<u32> = g.tags.as_ref().map(|t| t.get_ref().clone()).unwrap_or_default();
+        let tags_span = g.tags.as_ref().map(|t| t.span()).or(Some(whole.clone()));
+        let needed = match kind {
+            GaugeKind::NetDeflection => None,
+            GaugeKind::Distance | GaugeKind::Opening => Some(2),
+            GaugeKind::Rotation => Some(1),
+            GaugeKind::Curvature => Some(3),
+        };
+        if let Some(n) = needed {
+            if tags.len() != n {
+                return Err(err(
+                    tags_span,
+                    "tags",
+                    format!("a {} gauge uses {n} specimen tag{}, got {}", kind_name(kind), if n == 1 { "" } else { "s" }, tags.len()),
+                ));
+            }
+        }
+        let mut seen = HashSet::new();
+        for id in &tags {
+            if !roles.contains_key(id) {
+                return Err(err(tags_span, "tags", format!("tag {id} is not a [[specimen.tag]] id")));
+            }
+            if !seen.insert(*id) {
+                return Err(err(tags_span, "tags", format!("tag {id} is listed twice")));
+            }
+        }
+        if kind == GaugeKind::NetDeflection {
+            let used: Vec<Option<TagRole>> =
+                if tags.is_empty() { roles.values().copied().collect() } else { tags.iter().map(|id| roles[id]).collect() };
+            let has = |r: TagRole| used.contains(&Some(r));
+            if !has(TagRole::Support) || !has(TagRole::Midspan) {
+                return Err(err(
+                    tags_span,
+                    "tags",
+                    "a net_deflection gauge needs tags with role = \"support\" and role = \"midspan\" (set in [[specimen.tag]])".into(),
+                ));
+            }
+        }
+        let direction = match (&g.direction, kind) {
+            (Some(d), GaugeKind::Opening) => Some(unit_vector(d, &key("direction"))?),
+            (None, GaugeKind::Opening) => {
+                return Err(err(Some(whole), "direction", "an opening gauge needs `direction = [x, y, z]` (the component measured)".into()))
+            }
+            (Some(d), GaugeKind::Rotation) => {
+                return Err(err(Some(d.span()), "direction", "a rotation gauge takes `axis = [x, y, z]`".into()))
+            }
+            (Some(d), _) => return Err(err(Some(d.span()), "direction", format!("not used by a {} gauge", kind_name(kind)))),
+            (None, _) => None,
+        };
+        let axis = match (&g.axis, kind) {
+            (Some(a), GaugeKind::Rotation) => Some(unit_vector(a, &key("axis"))?),
+            (None, GaugeKind::Rotation) => return Err(err(Some(whole), "axis", "a rotation gauge needs `axis = [x, y, z]`".into())),
+            (Some(a), _) => return Err(err(Some(a.span()), "axis", format!("not used by a {} gauge", kind_name(kind)))),
+            (None, _) => None,
+        };
+        let gauge_length_mm = match &g.gauge_length_mm {
+            None => None,
+            Some(l) if kind != GaugeKind::Distance => {
+                return Err(err(Some(l.span()), "gauge_length_mm", format!("not used by a {} gauge", kind_name(kind))))
+            }
+            Some(l) => {
+                let v = *l.get_ref();
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(err(Some(l.span()), "gauge_length_mm", format!("must be a positive length in mm, got {v}")));
+                }
+                Some(v)
+            }
+        };
+        let at_mm = match &g.at_mm {
+            None => None,
+            Some(a) if kind != GaugeKind::Opening => {
+                return Err(err(Some(a.span()), "at_mm", format!("not used by a {} gauge", kind_name(kind))))
+            }
+            Some(a) => {
+                let v = a.get_ref();
+                if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
+                    return Err(err(Some(a.span()), "at_mm", "expected a point [x, y, z] in mm".into()));
+                }
+                Some([v[0], v[1], v[2]])
+            }
+        };
+        out.push(GaugeConfig { name, kind, tags, direction, axis, gauge_length_mm, at_mm });
+    }
+    Ok(out)
+}
+
+fn kind_name(kind: GaugeKind) -> &'static str {
+    match kind {
+        GaugeKind::NetDeflection => "net_deflection",
+        GaugeKind::Distance => "distance",
+        GaugeKind::Opening => "opening",
+        GaugeKind::Rotation => "rotation",
+        GaugeKind::Curvature => "curvature",
+    }
+}
+
+/// One solved specimen tag as the gauges see it: its pose (tag → world) and the 6×6
+/// covariance of the pose step `(ω, v)` (rad, mm).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GaugeTag {
+    /// Specimen tag id.
+    pub id: u32,
+    /// Tag frame → world.
+    pub pose: Pose,
+    /// Covariance of the pose step `(ω, v)`.
+    pub covariance: Matrix6<f64>,
+}
+
+impl GaugeTag {
+    /// A tag known exactly (truth).
+    pub fn exact(id: u32, pose: Pose) -> GaugeTag {
+        GaugeTag { id, pose, covariance: Matrix6::zeros() }
+    }
+}
+
+/// The gauges of a run: their configs and each tag's reference (first solved) pose.
+#[derive(Debug, Clone)]
+pub struct Gauges {
+    gauges: Vec<GaugeConfig>,
+    up: Vector3<f64>,
+    roles: HashMap<u32, Option<TagRole>>,
+    refs: HashMap<u32, GaugeTag>,
+}
+
+/// Pose of one tag now and at its reference, for a gauge's value function.
+#[derive(Clone, Copy)]
+struct Pair {
+    now: Pose,
+    reference: Pose,
+}
+
+impl Gauges {
+    /// The gauges of `gauges`; `up` is `world.up`; roles from the specimen tags.
+    pub fn new(gauges: &[GaugeConfig], up: [f64; 3], specimen: &SpecimenConfig) -> Gauges {
+        Gauges {
+            gauges: gauges.to_vec(),
+            up: Vector3::from(up).normalize(),
+            roles: specimen.tags.iter().map(|t| (t.id, t.role)).collect(),
+            refs: HashMap::new(),
+        }
+    }
+
+    /// True when no gauge is configured.
+    pub fn is_empty(&self) -> bool {
+        self.gauges.is_empty()
+    }
+
+    /// Forgets the reference poses (a new test).
+    pub fn reset(&mut self) {
+        self.refs.clear();
+    }
+
+    /// The gauges of one frame set from the tags solved in it. Tags seen for the first time
+    /// become their own reference.
+    pub fn evaluate(&mut self, tags: &[GaugeTag]) -> BTreeMap<String, GaugeReading> {
+        let mut out = BTreeMap::new();
+        if self.gauges.is_empty() {
+            return out;
+        }
+        let mut fresh = HashSet::new();
+        for t in tags {
+            if let std::collections::hash_map::Entry::Vacant(e) = self.refs.entry(t.id) {
+                e.insert(*t);
+                fresh.insert(t.id);
+            }
+        }
+        let now: HashMap<u32, &GaugeTag> = tags.iter().map(|t| (t.id, t)).collect();
+        for g in &self.gauges {
+            let ids: Vec<u32> = match g.kind {
+                GaugeKind::NetDeflection => self.net_tags(g, &now),
+                _ => g.tags.clone(),
+            };
+            if ids.is_empty() || ids.iter().any(|id| !now.contains_key(id)) {
+                continue;
+            }
+            let tags_now: Vec<&GaugeTag> = ids.iter().map(|id| now[id]).collect();
+            let tags_ref: Vec<&GaugeTag> = ids.iter().map(|id| &self.refs[id]).collect();
+            let pairs: Vec<Pair> = tags_now.iter().zip(&tags_ref).map(|(n, r)| Pair { now: n.pose, reference: r.pose }).collect();
+            let f = |p: &[Pair]| self.value(g, &ids, p);
+            let values = f(&pairs);
+            if values.is_empty() {
+                continue;
+            }
+            // σ² per output: Σ over tags of J Σ Jᵀ (now and reference).
+            let mut var = vec![0.0f64; values.len()];
+            for k in 0..pairs.len() {
+                let same = fresh.contains(&ids[k]);
+                let mut j_now = vec![Vector6::zeros(); values.len()];
+                let mut j_ref = vec![Vector6::zeros(); values.len()];
+                for q in 0..6 {
+                    let h = if q < 3 { 1e-6 } else { 1e-4 };
+                    let mut d = Vector6::zeros();
+                    d[q] = h;
+                    for (which, jac) in [(0, &mut j_now), (1, &mut j_ref)] {
+                        let mut plus = pairs.clone();
+                        let mut minus = pairs.clone();
+                        if which == 0 {
+                            plus[k].now = retract(&pairs[k].now, &d);
+                            minus[k].now = retract(&pairs[k].now, &-d);
+                        } else {
+                            plus[k].reference = retract(&pairs[k].reference, &d);
+                            minus[k].reference = retract(&pairs[k].reference, &-d);
+                        }
+                        let (a, b) = (f(&plus), f(&minus));
+                        if a.len() != values.len() || b.len() != values.len() {
+                            continue;
+                        }
+                        for (o, jo) in jac.iter_mut().enumerate() {
+                            jo[q] = (a[o].1 - b[o].1) / (2.0 * h);
+                        }
+                    }
+                }
+                for o in 0..values.len() {
+                    if same {
+                        let j = j_now[o] + j_ref[o];
+                        var[o] += (j.transpose() * tags_now[k].covariance * j)[(0, 0)];
+                    } else {
+                        var[o] += (j_now[o].transpose() * tags_now[k].covariance * j_now[o])[(0, 0)];
+                        if REFERENCE_IN_SIGMA {
+                            var[o] += (j_ref[o].transpose() * tags_ref[k].covariance * j_ref[o])[(0, 0)];
+                        }
+                    }
+                }
+            }
+            for (o, (suffix, v, unit)) in values.iter().enumerate() {
+                if !v.is_finite() {
+                    continue;
+                }
+                let name = match suffix {
+                    Some(s) => format!("{}.{s}", g.name),
+                    None => g.name.clone(),
+                };
+                out.insert(name, GaugeReading::new(*v, var[o].max(0.0).sqrt(), unit));
+            }
+        }
+        out
+    }
+
+    /// The tags a net_deflection gauge uses in this frame set: the solved ones with a role.
+    fn net_tags(&self, g: &GaugeConfig, now: &HashMap<u32, &GaugeTag>) -> Vec<u32> {
+        let mut ids: Vec<u32> = if g.tags.is_empty() {
+            self.roles.iter().filter(|(_, r)| r.is_some()).map(|(id, _)| *id).collect()
+        } else {
+            g.tags.iter().copied().filter(|id| self.roles.get(id).copied().flatten().is_some()).collect()
+        };
+        ids.retain(|id| now.contains_key(id));
+        ids.sort_unstable();
+        ids
+    }
+
+    /// The gauge's outputs `(suffix, value, unit)` from its tags' poses (in `ids` order).
+    fn value(&self, g: &GaugeConfig, ids: &[u32], p: &[Pair]) -> Vec<(Option<&'static str>, f64, &'static str)> {
+        let unit = g.kind.unit();
+        let disp = |k: usize| p[k].now.translation - p[k].reference.translation;
+        match g.kind {
+            GaugeKind::Distance => {
+                let l0 = (p[1].reference.translation - p[0].reference.translation).norm();
+                let l = (p[1].now.translation - p[0].now.translation).norm();
+                let change = l - l0;
+                let base = g.gauge_length_mm.unwrap_or(l0);
+                vec![(None, change, unit), (Some("strain"), change / base * 1e6, STRAIN_UNIT)]
+            }
+            GaugeKind::Opening => {
+                let d = Vector3::from(g.direction.unwrap_or([1.0, 0.0, 0.0]));
+                let (a0, b0) = (p[0].reference.translation, p[1].reference.translation);
+                let at = g.at_mm.map(Vector3::from).unwrap_or((a0 + b0) * 0.5);
+                // The point carried rigidly by each tag from its reference pose to now.
+                let carried = |k: usize| {
+                    let rel = p[k].now.rotation * p[k].reference.rotation.inverse();
+                    rel * (at - p[k].reference.translation) + p[k].now.translation
+                };
+                let sign = if d.dot(&(b0 - a0)) < 0.0 { -1.0 } else { 1.0 };
+                vec![(None, sign * d.dot(&(carried(1) - carried(0))), unit)]
+            }
+            GaugeKind::Rotation => {
+                let n = Vector3::from(g.axis.unwrap_or([0.0, 1.0, 0.0]));
+                let rel: Rotation3<f64> = p[0].now.rotation * p[0].reference.rotation.inverse();
+                vec![(None, n.dot(&rel.scaled_axis()) * 1e3, unit)]
+            }
+            GaugeKind::Curvature => {
+                let (a0, c0) = (p[0].reference.translation, p[2].reference.translation);
+                let mut u = c0 - a0;
+                u -= self.up * self.up.dot(&u);
+                if u.norm() < 1e-6 {
+                    return Vec::new();
+                }
+                let u = u.normalize();
+                let mut pts: Vec<(f64, f64)> = (0..3).map(|k| (u.dot(&p[k].reference.translation), self.up.dot(&disp(k)))).collect();
+                pts.sort_by(|x, y| x.0.total_cmp(&y.0));
+                let [(sa, ya), (sb, yb), (sc, yc)] = [pts[0], pts[1], pts[2]];
+                if sb - sa < 1e-6 || sc - sb < 1e-6 {
+                    return Vec::new();
+                }
+                let k = 2.0 * ((yc - yb) / (sc - sb) - (yb - ya) / (sb - sa)) / (sc - sa);
+                vec![(None, k * 1e6, unit)]
+            }
+            GaugeKind::NetDeflection => {
+                // Faces: tags whose reference normals agree within ~30°.
+                let normal = |k: usize| p[k].reference.rotation * Vector3::z();
+                let mut faces: Vec<(Vector3<f64>, Vec<usize>)> = Vec::new();
+                for k in 0..p.len() {
+                    let n = normal(k);
+                    match faces.iter_mut().find(|(fnorm, _)| fnorm.dot(&n) > 0.85) {
+                        Some(f) => f.1.push(k),
+                        None => faces.push((n, vec![k])),
+                    }
+                }
+                let mut per_face = Vec::new();
+                for (n, members) in &faces {
+                    let mut u = self.up.cross(n);
+                    if u.norm() < 1e-6 {
+                        u = Vector3::x();
+                    }
+                    let u = u.normalize();
+                    let role = |k: usize| self.roles.get(&ids[k]).copied().flatten();
+                    let down = |k: usize| -self.up.dot(&disp(k));
+                    let s = |k: usize| u.dot(&p[k].reference.translation);
+                    let sup: Vec<usize> = members.iter().copied().filter(|&k| role(k) == Some(TagRole::Support)).collect();
+                    let mid: Vec<usize> = members.iter().copied().filter(|&k| role(k) == Some(TagRole::Midspan)).collect();
+                    if sup.is_empty() || mid.is_empty() {
+                        continue;
+                    }
+                    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+                    let mid_d = mean(&mid.iter().map(|&k| down(k)).collect::<Vec<_>>());
+                    let mid_s = mean(&mid.iter().map(|&k| s(k)).collect::<Vec<_>>());
+                    let ss: Vec<f64> = sup.iter().map(|&k| s(k)).collect();
+                    let ds: Vec<f64> = sup.iter().map(|&k| down(k)).collect();
+                    let (sm, dm) = (mean(&ss), mean(&ds));
+                    let sxx: f64 = ss.iter().map(|x| (x - sm).powi(2)).sum();
+                    let spread = ss.iter().cloned().fold(f64::NEG_INFINITY, f64::max) - ss.iter().cloned().fold(f64::INFINITY, f64::min);
+                    let line = if spread > 1.0 {
+                        let sxy: f64 = ss.iter().zip(&ds).map(|(x, y)| (x - sm) * (y - dm)).sum();
+                        dm + sxy / sxx * (mid_s - sm)
+                    } else {
+                        dm
+                    };
+                    per_face.push(mid_d - line);
+                }
+                if per_face.is_empty() {
+                    return Vec::new();
+                }
+                vec![(None, per_face.iter().sum::<f64>() / per_face.len() as f64, unit)]
+            }
+        }
+    }
+}
+
+/// The gauges and the clock check as the measurement uses them: tags are added while a
+/// frame set is solved ([`add_tag`](Self::add_tag)), the feed line is completed at the end
+/// ([`finish_line`](Self::finish_line)).
+#[derive(Debug, Clone)]
+pub struct LineGauges {
+    gauges: Gauges,
+    pending: Vec<GaugeTag>,
+    clock: super::clock_offset::ClockCheck,
+}
+
+impl LineGauges {
+    /// The gauges of `config` (`[[gauge]]`) and its clock check (`[clock_check]`, defaults
+    /// when absent; it only answers when the feed has a net deflection and a UTM stroke).
+    pub fn new(config: &crate::measure::MeasurementConfig) -> LineGauges {
+        LineGauges {
+            gauges: Gauges::new(&config.gauges, config.world.up, &config.specimen),
+            pending: Vec::new(),
+            clock: super::clock_offset::ClockCheck::new(config.clock_check.clone().unwrap_or_default()),
+        }
+    }
+
+    /// A tag solved in the current frame set: its pose as reported (after any monocular
+    /// fusion, whose position covariance is `fused_position_cov`). The gauges use the
+    /// covariance of the pixel noise: the camera poses' part is common to all frame sets
+    /// while the cameras are held still and cancels from the displacements gauges measure.
+    pub fn add_tag(&mut self, id: u32, pose: &Pose, solution: &super::TagSolution, fused_position_cov: Option<nalgebra::Matrix3<f64>>) {
+        if self.gauges.is_empty() {
+            return;
+        }
+        let mut covariance = solution.noise_covariance;
+        if let Some(c) = fused_position_cov {
+            covariance.fixed_view_mut::<3, 3>(3, 3).copy_from(&c);
+            covariance.fixed_view_mut::<3, 3>(0, 3).fill(0.0);
+            covariance.fixed_view_mut::<3, 3>(3, 0).fill(0.0);
+        }
+        self.pending.push(GaugeTag { id, pose: *pose, covariance });
+    }
+
+    /// Fills the line's `gauges` from the tags added since the last line, and its
+    /// `clock_offset_ms` when the clock check reports.
+    pub fn finish_line(&mut self, mut line: tagdeflect_core::feed::FeedLine, utm: &tagdeflect_core::utm_sample::UtmHistory) -> tagdeflect_core::feed::FeedLine {
+        let tags = std::mem::take(&mut self.pending);
+        line.gauges = self.gauges.evaluate(&tags);
+        let net = line.net_deflection_mm.or_else(|| {
+            self.gauges.gauges.iter().find(|g| g.kind == GaugeKind::NetDeflection).and_then(|g| line.gauges.get(&g.name)).map(|r| r.value)
+        });
+        line.clock_offset_ms = self.clock.update(line.t_ns, net, line.load_kn, utm);
+        line
+    }
+
+    /// The clock check's latest estimate.
+    pub fn clock_offset(&self) -> Option<super::clock_offset::ClockOffset> {
+        self.clock.latest()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_parse_and_have_units() {
+        assert_eq!(GaugeKind::parse("opening"), Some(GaugeKind::Opening));
+        assert_eq!(GaugeKind::parse("cmod"), None);
+        assert_eq!(GaugeKind::Curvature.unit(), "1/km");
+        assert_eq!(GaugeKind::Rotation.unit(), "mrad");
+    }
+}

@@ -1,0 +1,62 @@
+//! The solver: camera poses from background tags, specimen tag poses, their uncertainty.
+//!
+//! Pure maths on observations (pixels) and known geometry; no images, no I/O.
+//!
+//! * [`camera_pose`]: one camera's pose from background tags (closed-form start + LM with
+//!   the distortion model in the residual, outlier tags rejected, 6×6 covariance).
+//! * [`held_pose`]: a camera's pose kept across frame sets ([`HeldCameraPose`]): held still
+//!   while the camera is static so per-frame noise does not leak into the measurement,
+//!   re-posed when the camera is bumped.
+//! * [`drift`]: slow drift of a held camera estimated from the background tags
+//!   ([`DriftFilter`], a Kalman filter on the pose since it was fixed).
+//! * [`tag_pose`]: a specimen tag's 6-DOF pose over all views at once ([`solve_tag`]),
+//!   warm-started, outlier views rejected, σ from the covariance.
+//! * [`lm`]: the small Levenberg–Marquardt both use; [`init`]: closed-form starts.
+//!
+//! Pose step convention (for every Jacobian and covariance here): a 6-vector `(ω, v)`
+//! updates a pose `(R, t)` to `(exp(ω) R, t + v)`; ω in radians, v in mm.
+
+pub mod camera_pose;
+pub mod clock_offset;
+pub mod drift;
+pub mod gauges;
+pub mod held_pose;
+pub mod init;
+pub mod lm;
+pub mod measure;
+pub mod measure_config;
+pub mod motion;
+pub mod tag_pose;
+
+pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
+pub use drift::{DriftConfig, DriftEstimate, DriftFilter};
+pub use held_pose::{HeldCameraPose, HeldPoseOptions, HeldPoseStatus};
+pub use motion::TagMotion;
+pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};
+
+/// Why a solve failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// Not enough usable observations.
+    #[error("{what}: too few corners ({got}, need at least {needed})")]
+    TooFewCorners {
+        /// Which solve.
+        what: String,
+        /// Corners needed.
+        needed: usize,
+        /// Corners given (finite ones).
+        got: usize,
+    },
+    /// The geometry does not determine a pose.
+    #[error("degenerate geometry: {what}")]
+    Degenerate {
+        /// What failed and where.
+        what: String,
+    },
+    /// An argument is out of range.
+    #[error("invalid input: {what}")]
+    InvalidInput {
+        /// What is wrong.
+        what: String,
+    },
+}

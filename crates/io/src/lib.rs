@@ -1,0 +1,11 @@
+//! What comes in: camera sources (V4L2, Aravis, a recording played at its pace), frame-set
+//! assembly ([`sync`]), the testing machine over Modbus TCP ([`utm`]), and recordings on disk
+//! ([`recording`]) — written by the recorder, read by replay.
+//!
+//! Each owns its config section: `[sync]` ([`sync::SyncConfig`]) and `[utm]`
+//! ([`utm::UtmConfig`]); cameras are described by `tagdeflect_core::camera_config`.
+
+pub mod recording;
+pub mod sources;
+pub mod sync;
+pub mod utm;

@@ -1,0 +1,671 @@
+//! V4L2 cameras (`source = "v4l2:/dev/videoN"`) through the `v4l` crate.
+//!
+//! The device is opened, set to the configured size and the first pixel format it offers
+//! among GREY, Y16, Y12, Y10, YUYV and MJPEG (in that order of preference: no decoding
+//! beats decoding), and the configured frame rate when given; frames are streamed from
+//! memory-mapped buffers. Of each buffer only `bytesused` bytes are read, buffers flagged
+//! `V4L2_BUF_FLAG_ERROR` are counted as incomplete and never delivered, and the driver's
+//! timestamp is mapped from CLOCK_MONOTONIC to the Unix epoch ([`map_buffer_timestamp`]).
+//!
+//! A camera that disappears (a read error such as ENODEV, or no frame for
+//! `max(2 s, 10 frame periods)`) is reported as [`SourceEvent::Lost`] and reopened with
+//! backoff (0.5 s doubling to 10 s) while the other cameras go on; streaming resumes with
+//! [`SourceEvent::Reopened`]. The frame counter `seq` continues across reopenings and counts
+//! every complete frame captured, so a gap in `seq` is a frame dropped on a full channel.
+//!
+//! The `v4l` crate's stream panics in `Drop` when `VIDIOC_STREAMOFF` fails with anything
+//! but ENODEV (a device gone in another way). [`close_stream`] therefore stops the stream
+//! itself first: after success or ENODEV (unplugged) the stream is dropped, which unmaps its
+//! buffers and closes the file descriptor (under `catch_unwind` as a last guard); after any
+//! other error it is leaked (its mappings and fd stay open until the process ends) rather
+//! than risking an abort.
+//!
+//! Each wait for a buffer is a `poll` bounded by half a second (so the stop flag is seen);
+//! the buffer is dequeued only once it is done, so a camera that pauses is never reported
+//! lost for a buffer queued twice ([`ring_next`]).
+//!
+//! What is tested where: format conversion, `bytesused` handling and timestamp mapping are
+//! pure functions tested on captured-buffer fixtures (tests/it/v4l2_convert.rs); the order of
+//! queue/dequeue calls against a model of the kernel's buffer queue (unit tests below).
+//! Opening a real device, format negotiation, frame-rate setting, the driver's timestamps,
+//! unplugging and replugging are exercised against the kernel's virtual camera driver
+//! (`vivid`) in a VM by `scripts/vivid-vm.sh` (not in CI); the README says what it showed
+//! and which physical cameras have been checked.
+
+use std::io;
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::mpsc::Sender;
+use v4l::buffer::Type;
+use v4l::io::mmap::Stream as MmapStream;
+use v4l::io::traits::{CaptureStream, Stream as _};
+use v4l::video::Capture;
+use v4l::{Format, FourCC, Fraction};
+
+use tagdeflect_core::clock::{now_epoch_ns, MonotonicToEpoch};
+use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::frame::GrayImage;
+use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
+use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
+
+/// Pixel formats requested from the device, most preferred first.
+pub const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
+
+/// `V4L2_BUF_FLAG_TIMESTAMP_MASK`.
+pub const TIMESTAMP_MASK: u32 = 0x0000_e000;
+/// `V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC`: the buffer time is on CLOCK_MONOTONIC.
+pub const TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
+/// `V4L2_BUF_FLAG_ERROR`: the buffer is done but its data is corrupted.
+pub const BUF_FLAG_ERROR: u32 = 0x0000_0040;
+
+/// Buffers in the memory-mapped ring.
+const N_BUFFERS: u32 = 4;
+/// How long one dequeue waits before checking the stop flag.
+const DEQUEUE_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The converter for a V4L2 fourcc, if supported.
+pub fn fourcc_layout(fourcc: [u8; 4]) -> Option<PixelLayout> {
+    match &fourcc {
+        b"GREY" => Some(PixelLayout::Gray8),
+        b"Y16 " => Some(PixelLayout::Gray16Le { bits: 16 }),
+        b"Y12 " => Some(PixelLayout::Gray16Le { bits: 12 }),
+        b"Y10 " => Some(PixelLayout::Gray16Le { bits: 10 }),
+        b"YUYV" => Some(PixelLayout::Yuyv),
+        b"MJPG" | b"JPEG" => Some(PixelLayout::Mjpeg),
+        _ => None,
+    }
+}
+
+/// Which clock a frame's time came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimeSource {
+    /// The driver's CLOCK_MONOTONIC buffer timestamp, mapped to the epoch.
+    Driver,
+    /// The host's epoch clock when the buffer was dequeued (driver time unusable).
+    Receive,
+}
+
+/// Maps a V4L2 buffer timestamp to ns since the Unix epoch.
+///
+/// The driver's time (`sec`, `usec`) is used when `flags` says it is on CLOCK_MONOTONIC,
+/// it is non-zero, and once mapped it lies between 2 s before and 10 ms after the receive
+/// time (a buffer cannot be stamped after it was dequeued; older than 2 s means a broken
+/// stamp). Otherwise — `TIMESTAMP_UNKNOWN`, `TIMESTAMP_COPY` (an output's time copied
+/// through), a zero or implausible stamp — the receive time is used.
+pub fn map_buffer_timestamp(flags: u32, sec: i64, usec: i64, clock: MonotonicToEpoch, receive_epoch_ns: i64) -> (i64, TimeSource) {
+    if flags & TIMESTAMP_MASK == TIMESTAMP_MONOTONIC && (sec != 0 || usec != 0) {
+        let mono = sec.saturating_mul(1_000_000_000).saturating_add(usec.saturating_mul(1_000));
+        let t = clock.to_epoch(mono);
+        if t <= receive_epoch_ns + 10_000_000 && t >= receive_epoch_ns - 2_000_000_000 {
+            return (t, TimeSource::Driver);
+        }
+    }
+    (receive_epoch_ns, TimeSource::Receive)
+}
+
+/// What one dequeued buffer turned out to be.
+#[derive(Debug)]
+pub enum BufferOutcome {
+    /// A complete converted image.
+    Image(GrayImage),
+    /// The driver flagged the buffer as corrupted.
+    Corrupted,
+    /// The bytes could not be converted.
+    Bad(ConvertError),
+}
+
+/// Turns a dequeued buffer into an image: reads only the first `bytesused` bytes of the
+/// mapping (the rest is stale data of earlier frames), rejects buffers flagged
+/// [`BUF_FLAG_ERROR`], converts to 8-bit grey. `stride` is the format's `bytesperline`.
+pub fn convert_buffer(
+    layout: PixelLayout,
+    width: u32,
+    height: u32,
+    stride: u32,
+    mapped: &[u8],
+    bytesused: u32,
+    flags: u32,
+) -> BufferOutcome {
+    let mut img = GrayImage::new(0, 0);
+    match convert_buffer_into(layout, width, height, stride, mapped, bytesused, flags, &mut img) {
+        Ok(()) => BufferOutcome::Image(img),
+        Err(BufferRejected::Corrupted) => BufferOutcome::Corrupted,
+        Err(BufferRejected::Bad(e)) => BufferOutcome::Bad(e),
+    }
+}
+
+/// Why a dequeued buffer gave no image.
+#[derive(Debug)]
+pub enum BufferRejected {
+    /// The driver flagged the buffer as corrupted.
+    Corrupted,
+    /// The bytes could not be converted.
+    Bad(ConvertError),
+}
+
+/// [`convert_buffer`] into `out` (a recycled frame buffer).
+#[allow(clippy::too_many_arguments)]
+pub fn convert_buffer_into(
+    layout: PixelLayout,
+    width: u32,
+    height: u32,
+    stride: u32,
+    mapped: &[u8],
+    bytesused: u32,
+    flags: u32,
+    out: &mut GrayImage,
+) -> Result<(), BufferRejected> {
+    if flags & BUF_FLAG_ERROR != 0 {
+        return Err(BufferRejected::Corrupted);
+    }
+    let valid = &mapped[..(bytesused as usize).min(mapped.len())];
+    to_gray8_into(layout, width, height, stride as usize, valid, out).map_err(BufferRejected::Bad)
+}
+
+/// An open, configured, streaming device.
+struct Session {
+    // Field order matters: the stream is closed (by `close_stream`) before the device.
+    stream: Option<MmapStream<'static>>,
+    /// Where the buffer ring stands (see [`ring_next`]).
+    ring: RingState,
+    _dev: v4l::Device,
+    layout: PixelLayout,
+    width: u32,
+    height: u32,
+    stride: u32,
+}
+
+impl Session {
+    fn open(path: &str, cfg: &CameraConfig) -> Result<Session, String> {
+        let dev = v4l::Device::with_path(path).map_err(|e| format!("cannot open {path}: {e}"))?;
+        let offered: Vec<[u8; 4]> = match dev.enum_formats() {
+            Ok(list) => list.iter().map(|d| d.fourcc.repr).collect(),
+            Err(_) => PREFERRED_FOURCCS.to_vec(),
+        };
+        let mut chosen = None;
+        for want in PREFERRED_FOURCCS.iter().filter(|f| offered.contains(f)) {
+            let req = Format::new(cfg.width, cfg.height, FourCC::new(want));
+            match dev.set_format(&req) {
+                Ok(got) if got.fourcc.repr == *want => {
+                    if got.width != cfg.width || got.height != cfg.height {
+                        return Err(format!(
+                            "{path} offers {}x{} in {}, the config asks for {}x{} (the intrinsics are for that size)",
+                            got.width,
+                            got.height,
+                            String::from_utf8_lossy(want),
+                            cfg.width,
+                            cfg.height
+                        ));
+                    }
+                    chosen = Some(got);
+                    break;
+                }
+                Ok(_) => continue,
+                Err(e) => return Err(format!("{path}: cannot set format {}: {e}", String::from_utf8_lossy(want))),
+            }
+        }
+        let fmt = chosen.ok_or_else(|| {
+            let names: Vec<String> = offered.iter().map(|f| String::from_utf8_lossy(f).into_owned()).collect();
+            format!("{path} offers none of GREY, Y16, Y12, Y10, YUYV, MJPG (it offers {})", names.join(", "))
+        })?;
+        let layout = fourcc_layout(fmt.fourcc.repr).ok_or_else(|| format!("{path}: unsupported format"))?;
+        if let Some(fps) = cfg.fps.filter(|f| *f > 0.0) {
+            // Frame interval = numerator / denominator seconds.
+            let params = v4l::video::capture::Parameters::new(Fraction::new(1000, (fps * 1000.0).round() as u32));
+            match dev.set_params(&params) {
+                Ok(p) if p.interval.numerator > 0 => {
+                    let got = p.interval.denominator as f64 / p.interval.numerator as f64;
+                    if (got - fps).abs() > 0.01 * fps {
+                        tracing::warn!(path, requested = fps, got, "camera runs at a different frame rate");
+                    }
+                }
+                Ok(_) => {}
+                Err(e) => tracing::warn!(path, fps, error = %e, "cannot set the frame rate; using the device's"),
+            }
+        }
+        let mut stream =
+            MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS).map_err(|e| format!("{path}: cannot map buffers: {e}"))?;
+        stream.set_timeout(DEQUEUE_TIMEOUT);
+        tracing::info!(path, fourcc = %String::from_utf8_lossy(&fmt.fourcc.repr), width = fmt.width, height = fmt.height, stride = fmt.stride, "v4l2 camera open");
+        Ok(Session {
+            stream: Some(stream),
+            ring: RingState::Fresh,
+            _dev: dev,
+            layout,
+            width: fmt.width,
+            height: fmt.height,
+            stride: fmt.stride,
+        })
+    }
+}
+
+impl CaptureSession for Session {
+    /// Waits for and dequeues one buffer ([`ring_next`]).
+    fn next(&mut self, into: &mut GrayImage) -> Captured {
+        let Some(stream) = self.stream.as_mut() else {
+            return Captured::Failed("stream closed".into());
+        };
+        let (layout, width, height, stride) = (self.layout, self.width, self.height, self.stride);
+        let got = ring_next(stream, &mut self.ring, N_BUFFERS as usize, DEQUEUE_TIMEOUT, |b| {
+            let receive = now_epoch_ns();
+            // The process clock's current mapping: a wall-clock step re-maps every source at once.
+            let clock = MonotonicToEpoch::current();
+            let (t_ns, _) = map_buffer_timestamp(b.flags, b.sec, b.usec, clock, receive);
+            match convert_buffer_into(layout, width, height, stride, b.data, b.bytesused, b.flags, into) {
+                Ok(()) => Captured::Image(t_ns),
+                Err(BufferRejected::Corrupted) => Captured::Incomplete("buffer flagged V4L2_BUF_FLAG_ERROR".into()),
+                Err(BufferRejected::Bad(e)) => Captured::Bad(e.to_string()),
+            }
+        });
+        match got {
+            RingNext::Buffer(c) => c,
+            RingNext::Timeout => Captured::Timeout,
+            RingNext::Failed(e) => Captured::Failed(e.to_string()),
+        }
+    }
+}
+
+/// One dequeued buffer as [`ring_next`] hands it over.
+#[derive(Debug, Clone, Copy)]
+pub struct RawBuffer<'a> {
+    /// The whole mapping of the buffer.
+    pub data: &'a [u8],
+    /// Bytes of `data` the driver filled.
+    pub bytesused: u32,
+    /// `v4l2_buffer.flags`.
+    pub flags: u32,
+    /// Driver timestamp, seconds.
+    pub sec: i64,
+    /// Driver timestamp, microseconds.
+    pub usec: i64,
+}
+
+/// The calls [`ring_next`] makes on a memory-mapped V4L2 buffer ring: the `v4l` crate's
+/// stream (on a non-blocking fd), or a model of the kernel's queue in tests.
+pub trait BufferRing {
+    /// `VIDIOC_QBUF` of buffer `index`.
+    fn queue(&mut self, index: usize) -> io::Result<()>;
+    /// `VIDIOC_STREAMON`.
+    fn start(&mut self) -> io::Result<()>;
+    /// `VIDIOC_DQBUF` (non-blocking: `WouldBlock` when no buffer is done); the stream
+    /// remembers the index as the one to requeue next.
+    fn dequeue(&mut self) -> io::Result<usize>;
+    /// `poll(POLLIN)` for up to `timeout`: true when a buffer is done or the device reports
+    /// an error condition (unplugged: the next call fails with `ENODEV`).
+    fn ready(&mut self, timeout: Duration) -> io::Result<bool>;
+    /// The crate's `CaptureStream::next`: requeues the buffer dequeued last, dequeues the
+    /// next and hands it to `f`.
+    fn requeue_and_next<T>(&mut self, f: impl FnOnce(RawBuffer<'_>) -> T) -> io::Result<T>;
+}
+
+/// Where a buffer ring stands between two [`ring_next`] calls.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RingState {
+    /// Buffers allocated, none queued, not streaming.
+    Fresh,
+    /// Streaming; every buffer is with the driver.
+    Streaming,
+    /// Streaming; the buffer dequeued last is held by us (the stream requeues it next).
+    Holding,
+}
+
+/// What one [`ring_next`] call produced.
+#[derive(Debug)]
+pub enum RingNext<T> {
+    /// A buffer, handed to the closure, and what it returned.
+    Buffer(T),
+    /// No buffer within the timeout (or the ring's first buffer, which is requeued unread).
+    Timeout,
+    /// The device failed (unplugged: `ENODEV`).
+    Failed(io::Error),
+}
+
+/// Waits up to `timeout` for the next filled buffer of `ring` and hands it to `f`.
+///
+/// The `v4l` crate's `CaptureStream::next` requeues the buffer it handed out last *before*
+/// waiting; when its wait times out that buffer is already back with the driver, and the
+/// following `next` queues it a second time: `VIDIOC_QBUF` fails with `EINVAL` and a camera
+/// that merely paused for longer than the wait (a slow or triggered camera, a frame rate
+/// below 2 fps, a busy machine) was reported lost and reopened. Here the wait comes first
+/// (`poll`), and the crate's `next` is only called once a buffer is done, so a timeout never
+/// requeues anything. The crate's `next` also cannot start a stream without blocking on its
+/// first buffer, so the ring is started here (`n` buffers queued, `STREAMON`) and its first
+/// buffer is dequeued by hand (and requeued unread: the crate gives no access to a buffer
+/// it did not hand out itself).
+pub fn ring_next<R: BufferRing, T>(
+    ring: &mut R,
+    state: &mut RingState,
+    n: usize,
+    timeout: Duration,
+    f: impl FnOnce(RawBuffer<'_>) -> T,
+) -> RingNext<T> {
+    if *state == RingState::Fresh {
+        for i in 0..n.max(1) {
+            match ring.queue(i) {
+                Ok(()) => {}
+                // The driver gave fewer buffers than asked for.
+                Err(e) if i > 0 && e.raw_os_error() == Some(libc::EINVAL) => break,
+                Err(e) => return RingNext::Failed(e),
+            }
+        }
+        if let Err(e) = ring.start() {
+            return RingNext::Failed(e);
+        }
+        *state = RingState::Streaming;
+    }
+    match ring.ready(timeout) {
+        Ok(true) => {}
+        Ok(false) => return RingNext::Timeout,
+        Err(e) => return RingNext::Failed(e),
+    }
+    if *state == RingState::Streaming {
+        return match ring.dequeue() {
+            Ok(_) => {
+                *state = RingState::Holding;
+                RingNext::Timeout
+            }
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => RingNext::Timeout,
+            Err(e) => RingNext::Failed(e),
+        };
+    }
+    match ring.requeue_and_next(f) {
+        Ok(t) => RingNext::Buffer(t),
+        // Requeued, then nothing to dequeue after all: every buffer is with the driver.
+        Err(e) if matches!(e.kind(), io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut) => {
+            *state = RingState::Streaming;
+            RingNext::Timeout
+        }
+        Err(e) => RingNext::Failed(e),
+    }
+}
+
+impl BufferRing for MmapStream<'static> {
+    fn queue(&mut self, index: usize) -> io::Result<()> {
+        CaptureStream::queue(self, index)
+    }
+
+    fn start(&mut self) -> io::Result<()> {
+        v4l::io::traits::Stream::start(self)
+    }
+
+    fn dequeue(&mut self) -> io::Result<usize> {
+        CaptureStream::dequeue(self)
+    }
+
+    fn ready(&mut self, timeout: Duration) -> io::Result<bool> {
+        let ms = i32::try_from(timeout.as_millis()).unwrap_or(i32::MAX);
+        Ok(self.handle().poll(libc::POLLIN, ms)? > 0)
+    }
+
+    // `time_t` is i64 on 64-bit Linux, i32 on some 32-bit targets.
+    #[allow(clippy::useless_conversion)]
+    fn requeue_and_next<T>(&mut self, f: impl FnOnce(RawBuffer<'_>) -> T) -> io::Result<T> {
+        let (buf, meta) = CaptureStream::next(self)?;
+        Ok(f(RawBuffer {
+            data: buf,
+            bytesused: meta.bytesused,
+            flags: meta.flags.bits(),
+            sec: i64::from(meta.timestamp.sec),
+            usec: i64::from(meta.timestamp.usec),
+        }))
+    }
+}
+
+impl Drop for Session {
+    fn drop(&mut self) {
+        if let Some(stream) = self.stream.take() {
+            close_stream(stream);
+        }
+    }
+}
+
+/// What to do with a stream whose `STREAMOFF` returned `errno` (`None`: it succeeded).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CloseAction {
+    /// Drop it: its `Drop` unmaps the buffers and closes the fd without panicking — after a
+    /// successful STREAMOFF, or on `ENODEV` (the device was unplugged), which the `v4l` crate's
+    /// `Drop` impls ignore after unmapping.
+    Release,
+    /// Any other error: the crate's `Drop` would panic, and its buffer arena would panic again
+    /// while unwinding (an abort), so the stream is kept alive (leaked, logged). A device that
+    /// refuses STREAMOFF for another reason is still open and usable by nobody else anyway.
+    Leak,
+}
+
+/// The decision of [`close_stream`], apart for testing.
+pub fn close_action(streamoff_errno: Option<i32>) -> CloseAction {
+    match streamoff_errno {
+        None => CloseAction::Release,
+        Some(libc::ENODEV) => CloseAction::Release,
+        Some(_) => CloseAction::Leak,
+    }
+}
+
+/// Stops and releases a stream without letting the `v4l` crate's `Drop` panic on a device
+/// that is gone: stopped by hand first, then released ([`close_action`]): an unplugged camera
+/// (`ENODEV`) gives back its fd and mappings, so unplugging and replugging a camera for hours
+/// leaks nothing.
+fn close_stream(mut stream: MmapStream<'static>) {
+    let errno = match stream.stop() {
+        Ok(()) => None,
+        Err(e) => Some(e.raw_os_error().unwrap_or(libc::EIO)),
+    };
+    match close_action(errno) {
+        CloseAction::Release => {
+            if errno.is_some() {
+                tracing::info!("v4l2 STREAMOFF: device gone; releasing its buffers and file descriptor");
+            }
+            if std::panic::catch_unwind(AssertUnwindSafe(move || drop(stream))).is_err() {
+                tracing::warn!("v4l2 stream panicked while closing; ignored");
+            }
+        }
+        CloseAction::Leak => {
+            tracing::error!(errno, "v4l2 STREAMOFF failed: keeping the stream's buffers rather than risking an abort");
+            std::mem::forget(stream);
+        }
+    }
+}
+
+/// Opens `path` in a new capture thread and returns once it streams (see [`crate::sources::spawn_camera`]).
+pub(crate) fn spawn(
+    index: usize,
+    cfg: &CameraConfig,
+    path: &str,
+    policy: crate::sources::live::OpenPolicy,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<LiveCamera, SourceError> {
+    let name = cfg.name.clone();
+    let timing = LoopTiming::for_fps(cfg.fps);
+    let source = format!("v4l2:{path}");
+    let (cfg, path) = (cfg.clone(), path.to_string());
+    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, policy, tx, stop)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_preferred_fourcc_has_a_converter() {
+        for f in PREFERRED_FOURCCS {
+            assert!(fourcc_layout(f).is_some(), "{}", String::from_utf8_lossy(&f));
+        }
+        assert_eq!(fourcc_layout(*b"RGB3"), None);
+    }
+
+    #[test]
+    fn an_unplugged_device_is_released_not_leaked() {
+        assert_eq!(close_action(None), CloseAction::Release);
+        assert_eq!(close_action(Some(libc::ENODEV)), CloseAction::Release);
+        assert_eq!(close_action(Some(libc::EBUSY)), CloseAction::Leak);
+    }
+
+    #[test]
+    fn opening_a_missing_device_is_an_error() {
+        let cfg_err = Session::open("/dev/video-does-not-exist", &test_cfg());
+        assert!(cfg_err.is_err());
+        let msg = cfg_err.err().unwrap_or_default();
+        assert!(msg.contains("/dev/video-does-not-exist"), "{msg}");
+    }
+
+    /// A model of the kernel's buffer queue (videobuf2) as the `v4l` crate drives it:
+    /// `QBUF` of a buffer already queued or done is `EINVAL`, `DQBUF` on the non-blocking
+    /// fd is `EAGAIN` when none is done, and `requeue_and_next` is the crate's `next`
+    /// (requeue the buffer dequeued last, wait with the crate's timeout, dequeue).
+    /// `arrivals` scripts the camera: per wait, whether a frame is captured during it.
+    struct ModelQueue {
+        n: usize,
+        queued: std::collections::VecDeque<usize>,
+        done: std::collections::VecDeque<(usize, u8)>,
+        held: Option<(usize, u8)>,
+        last: usize,
+        streaming: bool,
+        arrivals: std::collections::VecDeque<bool>,
+        captured: u8,
+    }
+
+    impl ModelQueue {
+        fn new(n: usize, arrivals: &[bool]) -> Self {
+            Self {
+                n,
+                queued: Default::default(),
+                done: Default::default(),
+                held: None,
+                last: 0,
+                streaming: false,
+                arrivals: arrivals.iter().copied().collect(),
+                captured: 0,
+            }
+        }
+
+        /// One wait: the camera fills the oldest queued buffer if the script says so.
+        fn wait(&mut self) -> bool {
+            if self.arrivals.pop_front().unwrap_or(false) {
+                if let Some(i) = self.queued.pop_front() {
+                    self.captured += 1;
+                    self.done.push_back((i, self.captured));
+                }
+            }
+            !self.done.is_empty()
+        }
+    }
+
+    fn errno(e: i32) -> io::Error {
+        io::Error::from_raw_os_error(e)
+    }
+
+    impl BufferRing for ModelQueue {
+        fn queue(&mut self, index: usize) -> io::Result<()> {
+            let busy = self.queued.contains(&index) || self.done.iter().any(|(i, _)| *i == index);
+            if index >= self.n || busy {
+                return Err(errno(libc::EINVAL));
+            }
+            if self.held.is_some_and(|(i, _)| i == index) {
+                self.held = None;
+            }
+            self.queued.push_back(index);
+            Ok(())
+        }
+
+        fn start(&mut self) -> io::Result<()> {
+            self.streaming = true;
+            Ok(())
+        }
+
+        fn dequeue(&mut self) -> io::Result<usize> {
+            let (i, content) = self.done.pop_front().ok_or_else(|| errno(libc::EAGAIN))?;
+            self.held = Some((i, content));
+            self.last = i;
+            Ok(i)
+        }
+
+        fn ready(&mut self, _timeout: Duration) -> io::Result<bool> {
+            Ok(self.wait())
+        }
+
+        fn requeue_and_next<T>(&mut self, f: impl FnOnce(RawBuffer<'_>) -> T) -> io::Result<T> {
+            // The crate: queue(arena_index)?, then its own poll with the timeout, then DQBUF.
+            let last = self.last;
+            self.queue(last)?;
+            if self.done.is_empty() && !self.wait() {
+                return Err(io::Error::new(io::ErrorKind::TimedOut, "VIDIOC_DQBUF"));
+            }
+            self.dequeue()?;
+            let content = [self.held.map_or(0, |(_, c)| c)];
+            Ok(f(RawBuffer { data: &content, bytesused: 1, flags: TIMESTAMP_MONOTONIC, sec: 1, usec: 0 }))
+        }
+    }
+
+    #[test]
+    fn a_camera_that_pauses_is_not_lost_for_a_buffer_queued_twice() {
+        // Four frames, a pause longer than three waits, four frames, a pause, two frames.
+        let script = [true, true, true, true, false, false, false, true, true, true, true, false, true, true];
+        let mut ring = ModelQueue::new(4, &script);
+        let mut state = RingState::Fresh;
+        let mut got = Vec::new();
+        for _ in 0..script.len() {
+            match ring_next(&mut ring, &mut state, 4, Duration::from_millis(1), |b| b.data[0]) {
+                RingNext::Buffer(c) => got.push(c),
+                RingNext::Timeout => {}
+                RingNext::Failed(e) => panic!("failed after frames {got:?}: {e}"),
+            }
+        }
+        // Frame 1 starts the ring (requeued unread); every later frame is delivered in order.
+        assert_eq!(got, vec![2, 3, 4, 5, 6, 7, 8, 9, 10]);
+        assert!(ring.streaming);
+    }
+
+    #[test]
+    fn the_crates_next_after_a_timeout_queues_a_queued_buffer() {
+        // What the capture did before `ring_next`: the crate's `next` straight away. After
+        // its wait times out once, the next call queues the same buffer again: EINVAL, and
+        // the camera was reported lost (seen on the vivid driver in a VM).
+        let mut ring = ModelQueue::new(4, &[true, true, false, true]);
+        for i in 0..4 {
+            ring.queue(i).expect("queue");
+        }
+        ring.start().expect("start");
+        assert!(ring.wait());
+        ring.dequeue().expect("first buffer");
+        assert!(ring.requeue_and_next(|b| b.data[0]).is_ok());
+        let timed_out = ring.requeue_and_next(|b| b.data[0]).err().map(|e| e.kind());
+        assert_eq!(timed_out, Some(io::ErrorKind::TimedOut));
+        let again = ring.requeue_and_next(|b| b.data[0]).err().and_then(|e| e.raw_os_error());
+        assert_eq!(again, Some(libc::EINVAL));
+    }
+
+    #[test]
+    fn an_unplugged_ring_fails_instead_of_waiting() {
+        struct Gone;
+        impl BufferRing for Gone {
+            fn queue(&mut self, _: usize) -> io::Result<()> {
+                Err(errno(libc::ENODEV))
+            }
+            fn start(&mut self) -> io::Result<()> {
+                Err(errno(libc::ENODEV))
+            }
+            fn dequeue(&mut self) -> io::Result<usize> {
+                Err(errno(libc::ENODEV))
+            }
+            fn ready(&mut self, _: Duration) -> io::Result<bool> {
+                Ok(true) // POLLERR | POLLHUP
+            }
+            fn requeue_and_next<T>(&mut self, _: impl FnOnce(RawBuffer<'_>) -> T) -> io::Result<T> {
+                Err(errno(libc::ENODEV))
+            }
+        }
+        for mut state in [RingState::Fresh, RingState::Streaming, RingState::Holding] {
+            let got = ring_next(&mut Gone, &mut state, 4, Duration::from_millis(1), |_| ());
+            assert!(matches!(got, RingNext::Failed(e) if e.raw_os_error() == Some(libc::ENODEV)), "{state:?}");
+        }
+    }
+
+    fn test_cfg() -> CameraConfig {
+        toml::from_str("name = \"t\"\nsource = \"v4l2:/dev/video-does-not-exist\"\nwidth = 64\nheight = 48\nfx = 100.0\nfy = 100.0\ncx = 31.5\ncy = 23.5\n")
+            .expect("test camera config")
+    }
+}

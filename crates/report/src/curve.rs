@@ -1,0 +1,316 @@
+//! The load–deflection (or load–CMOD) curve and the numerical steps every standard uses:
+//! smoothing over time, the first crossing of a deflection, interpolation with its σ, the
+//! area under the curve with its σ, and the first peak.
+//!
+//! **Smoothing.** Deflection (or CMOD) `x` is smoothed over time by a moving local-linear
+//! least-squares fit of `m` points (`smooth_points`, odd; 1 = none): `x̃ᵢ = Σⱼ wᵢⱼ xⱼ`. A
+//! straight ramp passes unchanged; the σ of `x̃ᵢ` is propagated from the feed's σ,
+//! `σ²(x̃ᵢ) = Σⱼ wᵢⱼ² σⱼ² + σ_ref²`, where `σ_ref` (the uncertainty of the zero reference,
+//! common to every point) is not reduced by smoothing. The load is not smoothed for values;
+//! its σ per reading is `√(noise² + resolution²/12)`, the noise estimated robustly from the
+//! data (below).
+//!
+//! **Noise estimate.** For each interior point the deviation from the straight line through
+//! its two neighbours (in time), normalised to unit variance for white noise; σ̂ = 1.4826 ·
+//! median absolute deviation. Ramps cancel; sharp corners are outliers the median ignores.
+
+/// A curve in time order: load against `x` (net deflection or CMOD), with σ.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curve {
+    /// Times, ns since the Unix epoch.
+    pub t_ns: Vec<i64>,
+    /// Seconds since the first point.
+    pub t_s: Vec<f64>,
+    /// Load, kN.
+    pub load: Vec<f64>,
+    /// `x` as read, mm.
+    pub x: Vec<f64>,
+    /// σ of each `x` reading (random part), mm.
+    pub sx: Vec<f64>,
+    /// σ of the zero reference, common to all points, mm.
+    pub x_ref_sigma: f64,
+    /// `x` smoothed over time, mm.
+    pub xs: Vec<f64>,
+    /// σ of `xs` (including `x_ref_sigma`), mm.
+    pub sxs: Vec<f64>,
+    /// σ of one load reading, kN.
+    pub load_sigma: f64,
+    /// Robust scatter of the load about a local line, kN.
+    pub load_noise: f64,
+    /// Robust scatter of `x` about a local line, mm.
+    pub x_noise: f64,
+    /// Smoothing window, points.
+    pub smooth_points: usize,
+}
+
+/// Errors building a curve.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CurveError {
+    /// Fewer than two usable points.
+    #[error("the curve has {0} point(s) with both load and {1}: at least 2 are needed")]
+    TooShort(usize, &'static str),
+    /// Input of different lengths or not finite.
+    #[error("curve input: {0}")]
+    Input(String),
+}
+
+impl Curve {
+    /// Builds a curve from points in time order. `sx[i] = None` means the feed gave no σ
+    /// for that point: the robust scatter of `x` is used instead.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        t_ns: Vec<i64>,
+        load: Vec<f64>,
+        x: Vec<f64>,
+        sx: Vec<Option<f64>>,
+        x_ref_sigma: f64,
+        smooth_points: usize,
+        load_resolution: f64,
+        what: &'static str,
+    ) -> Result<Curve, CurveError> {
+        let n = t_ns.len();
+        if load.len() != n || x.len() != n || sx.len() != n {
+            return Err(CurveError::Input("columns of different lengths".into()));
+        }
+        if n < 2 {
+            return Err(CurveError::TooShort(n, what));
+        }
+        if load.iter().chain(&x).any(|v| !v.is_finite()) {
+            return Err(CurveError::Input("a load or x value is not finite".into()));
+        }
+        let t0 = t_ns[0];
+        let t_s: Vec<f64> = t_ns.iter().map(|&t| (t - t0) as f64 * 1e-9).collect();
+        let x_noise = robust_noise(&t_s, &x);
+        let load_noise = robust_noise(&t_s, &load);
+        let sx: Vec<f64> = sx.into_iter().map(|s| s.filter(|v| v.is_finite() && *v >= 0.0).unwrap_or(x_noise)).collect();
+        let m = smooth_points.max(1);
+        let mut xs = Vec::with_capacity(n);
+        let mut sxs = Vec::with_capacity(n);
+        for i in 0..n {
+            let (lo, hi) = window(i, n, m);
+            let w = fit_weights(&t_s[lo..hi], t_s[i]);
+            xs.push(w.iter().zip(&x[lo..hi]).map(|(w, v)| w * v).sum());
+            let var: f64 = w.iter().zip(&sx[lo..hi]).map(|(w, s)| w * w * s * s).sum();
+            sxs.push((var + x_ref_sigma * x_ref_sigma).sqrt());
+        }
+        let load_sigma = (load_noise * load_noise + load_resolution * load_resolution / 12.0).sqrt();
+        Ok(Curve { t_ns, t_s, load, x, sx, x_ref_sigma, xs, sxs, load_sigma, load_noise, x_noise, smooth_points: m })
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.load.len()
+    }
+
+    /// True without points (never for a built curve).
+    pub fn is_empty(&self) -> bool {
+        self.load.is_empty()
+    }
+
+    /// Index of the largest load (the first one if several are equal).
+    pub fn peak_index(&self) -> usize {
+        let mut k = 0;
+        for (i, &p) in self.load.iter().enumerate() {
+            if p > self.load[k] {
+                k = i;
+            }
+        }
+        k
+    }
+
+    /// The load smoothed like `x` (local-linear fit over time): used to find the first peak.
+    pub fn smoothed_load(&self) -> Vec<f64> {
+        let n = self.len();
+        (0..n)
+            .map(|i| {
+                let (lo, hi) = window(i, n, self.smooth_points);
+                let w = fit_weights(&self.t_s[lo..hi], self.t_s[i]);
+                w.iter().zip(&self.load[lo..hi]).map(|(w, v)| w * v).sum()
+            })
+            .collect()
+    }
+
+    /// The first point where smoothed `x` reaches `target`: `(i, f)` with the crossing
+    /// between points `i - 1` and `i` at fraction `f` (`(0, 0.0)` when the first point is
+    /// there). `None` when `x` never gets there, or when the curve starts beyond it (the
+    /// crossing was not measured).
+    pub fn crossing(&self, target: f64) -> Option<(usize, f64)> {
+        if self.xs[0] == target {
+            return Some((0, 0.0));
+        }
+        if self.xs[0] > target {
+            return None;
+        }
+        (1..self.len()).find(|&i| self.xs[i] >= target).map(|i| {
+            let (a, b) = (self.xs[i - 1], self.xs[i]);
+            (i, if b > a { ((target - a) / (b - a)).clamp(0.0, 1.0) } else { 1.0 })
+        })
+    }
+
+    /// Why `target` (called `what`) has no crossing: the curve starts beyond it, or never
+    /// gets there.
+    pub fn not_reached(&self, what: &str, target: f64) -> String {
+        let max = self.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        if self.xs[0] > target {
+            format!("the curve starts at {:.3} mm, beyond {what}: that point was not measured", self.xs[0])
+        } else {
+            format!("the curve never reached {what} (largest: {max:.3} mm)")
+        }
+    }
+
+    /// A column's value at a crossing, interpolated linearly.
+    pub fn at(v: &[f64], (i, f): (usize, f64)) -> f64 {
+        if i == 0 {
+            v[0]
+        } else {
+            v[i - 1] + f * (v[i] - v[i - 1])
+        }
+    }
+
+    /// Local slope dP/dx (kN/mm) around point `i`: least squares of load on smoothed `x`
+    /// over a window of `max(smooth_points, 5)` points.
+    pub fn local_slope(&self, i: usize) -> f64 {
+        let n = self.len();
+        let (lo, hi) = window(i.min(n - 1), n, self.smooth_points.max(5));
+        let xs = &self.xs[lo..hi];
+        let ps = &self.load[lo..hi];
+        let k = xs.len() as f64;
+        let mx = xs.iter().sum::<f64>() / k;
+        let mp = ps.iter().sum::<f64>() / k;
+        let sxx: f64 = xs.iter().map(|x| (x - mx) * (x - mx)).sum();
+        let sxp: f64 = xs.iter().zip(ps).map(|(x, p)| (x - mx) * (p - mp)).sum();
+        if sxx > 1e-18 {
+            sxp / sxx
+        } else {
+            0.0
+        }
+    }
+
+    /// The load where smoothed `x` first reaches `target`, with its σ, and the crossing.
+    /// Interpolating between the bracketing points `i-1`, `i` at fraction `f`, first-order
+    /// propagation gives `σ² = s²·((1−f)²σ²(x̃ᵢ₋₁) + f²σ²(x̃ᵢ)) + ((1−f)² + f²)·σ_load²`, with
+    /// `s` the slope dP/dx there: the secant of the two points when they are more than 3σ
+    /// apart in `x` (sparse points: the interpolation's own slope), else the local
+    /// least-squares slope (dense, noisy points, where a secant would be noise).
+    pub fn load_at(&self, target: f64) -> Option<(f64, f64, (usize, f64))> {
+        let c = self.crossing(target)?;
+        let p = Self::at(&self.load, c);
+        let (i, f) = c;
+        if i == 0 {
+            let s = self.local_slope(0) * self.sxs[0];
+            return Some((p, (s * s + self.load_sigma.powi(2)).sqrt(), c));
+        }
+        let (s0, s1) = (self.sxs[i - 1], self.sxs[i]);
+        let dx = self.xs[i] - self.xs[i - 1];
+        let slope = if dx > 3.0 * s0.max(s1) { (self.load[i] - self.load[i - 1]) / dx } else { self.local_slope(i) };
+        let var_x = (1.0 - f).powi(2) * s0 * s0 + f * f * s1 * s1;
+        let var_p = ((1.0 - f).powi(2) + f * f) * self.load_sigma.powi(2);
+        Some((p, (slope * slope * var_x + var_p).sqrt(), c))
+    }
+
+    /// Area under load against smoothed `x` from the first point to where `x` first reaches
+    /// `target` (trapezoids; kN·mm = J), with its σ from every point's σ of `x̃` and load
+    /// (treated as independent) and the zero reference:
+    /// `σ² = Σ (∂T/∂x̃ⱼ σ(x̃ⱼ))² + Σ (∂T/∂Pⱼ σ_P)² + ((P_end − P_0) σ_ref)²`.
+    pub fn area_to(&self, target: f64) -> Option<(f64, f64)> {
+        let (p_end, sp_end, c) = self.load_at(target)?;
+        let (i, _) = c;
+        // Points 0..i (exclusive of i), then the interpolated end at x = target.
+        let mut xs: Vec<f64> = self.xs[..i].to_vec();
+        let mut ps: Vec<f64> = self.load[..i].to_vec();
+        let mut sx: Vec<f64> = self.sxs[..i].iter().map(|s| (s * s - self.x_ref_sigma.powi(2)).max(0.0).sqrt()).collect();
+        let mut sp: Vec<f64> = vec![self.load_sigma; i];
+        xs.push(target);
+        ps.push(p_end);
+        sx.push(0.0); // the end is at x = target by definition; its uncertainty is in sp_end
+        sp.push(sp_end);
+        let n = xs.len();
+        if n < 2 {
+            return Some((0.0, 0.0));
+        }
+        let mut area = 0.0;
+        for j in 0..n - 1 {
+            area += 0.5 * (ps[j] + ps[j + 1]) * (xs[j + 1] - xs[j]);
+        }
+        let mut var = 0.0;
+        for j in 0..n {
+            let d_dx = match j {
+                0 => -0.5 * (ps[0] + ps[1]),
+                j if j == n - 1 => 0.5 * (ps[n - 2] + ps[n - 1]),
+                j => 0.5 * (ps[j - 1] - ps[j + 1]),
+            };
+            let d_dp = match j {
+                0 => 0.5 * (xs[1] - xs[0]),
+                j if j == n - 1 => 0.5 * (xs[n - 1] - xs[n - 2]),
+                j => 0.5 * (xs[j + 1] - xs[j - 1]),
+            };
+            var += (d_dx * sx[j]).powi(2) + (d_dp * sp[j]).powi(2);
+        }
+        var += ((p_end - ps[0]) * self.x_ref_sigma).powi(2);
+        Some((area, var.sqrt()))
+    }
+
+    /// The first peak: the first local maximum of the smoothed load after which the load
+    /// falls by at least `drop` before it ever exceeds that maximum (the point where the
+    /// slope of the curve becomes zero, robust to noise), among maxima above `floor`. The
+    /// index returned is that of the largest *measured* load within the smoothing window
+    /// around the smoothed maximum. `None` when the load never falls so.
+    pub fn first_peak(&self, drop: f64, floor: f64) -> Option<usize> {
+        let ps = self.smoothed_load();
+        let mut best = f64::NEG_INFINITY;
+        let mut k = 0;
+        for (i, &p) in ps.iter().enumerate() {
+            if p > best {
+                best = p;
+                k = i;
+            } else if best >= floor && p <= best - drop {
+                let (lo, hi) = window(k, self.len(), self.smooth_points);
+                let j = (lo..hi).fold(lo, |a, b| if self.load[b] > self.load[a] { b } else { a });
+                return Some(j);
+            }
+        }
+        None
+    }
+}
+
+/// Indices `lo..hi` of a window of `m` points centred on `i` (shifted inside `0..n`).
+pub fn window(i: usize, n: usize, m: usize) -> (usize, usize) {
+    let m = m.clamp(1, n.max(1));
+    let lo = i.saturating_sub(m / 2).min(n - m);
+    (lo, lo + m)
+}
+
+/// Weights `w` with `Σ w_j y_j` = the least-squares line through `(t_j, y_j)` evaluated at `at`.
+pub fn fit_weights(t: &[f64], at: f64) -> Vec<f64> {
+    let n = t.len() as f64;
+    let mean = t.iter().sum::<f64>() / n;
+    let s: f64 = t.iter().map(|v| (v - mean) * (v - mean)).sum();
+    t.iter().map(|v| if s > 0.0 { 1.0 / n + (at - mean) * (v - mean) / s } else { 1.0 / n }).collect()
+}
+
+/// Robust noise of `y(t)`: 1.4826 · MAD of each interior point's deviation from the line
+/// through its neighbours, normalised to the σ of white noise. 0 with fewer than 5 points.
+pub fn robust_noise(t: &[f64], y: &[f64]) -> f64 {
+    if y.len() < 5 {
+        return 0.0;
+    }
+    let mut r: Vec<f64> = (1..y.len() - 1)
+        .filter_map(|i| {
+            let span = t[i + 1] - t[i - 1];
+            if span <= 0.0 {
+                return None;
+            }
+            let a = (t[i + 1] - t[i]) / span;
+            let b = (t[i] - t[i - 1]) / span;
+            Some((y[i] - (a * y[i - 1] + b * y[i + 1])) / (1.0 + a * a + b * b).sqrt())
+        })
+        .collect();
+    if r.len() < 3 {
+        return 0.0;
+    }
+    let med = median(&mut r);
+    let mut dev: Vec<f64> = r.iter().map(|v| (v - med).abs()).collect();
+    1.4826 * median(&mut dev)
+}
+
+pub use tagdeflect_core::stats::median_in_place as median;

@@ -1,0 +1,305 @@
+//! The QC section: how complete and how healthy the feed behind a report is.
+
+use serde::Serialize;
+use serde_json::Value;
+use std::collections::BTreeMap;
+
+use super::{Curve, Feed};
+use tagdeflect_core::rig::TagRole;
+use crate::config::Config;
+
+/// A time interval with the UTM link down.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Outage {
+    /// First line with `utm = "down"`, ns.
+    pub from_t_ns: i64,
+    /// First line after it with the link up again (or the last line), ns.
+    pub to_t_ns: i64,
+    /// Its length, s.
+    pub duration_s: f64,
+}
+
+/// One camera's events over the feed.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CameraEvents {
+    /// Camera name.
+    pub camera: String,
+    /// Lines in which it was found moved and re-posed.
+    pub bumps: usize,
+    /// Lines without a frame from it.
+    pub lines_without_frame: usize,
+    /// Lines in which it had no pose.
+    pub lines_unposed: usize,
+}
+
+/// A drift or stale-pose field seen in the feed.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FieldSummary {
+    /// The field (`camera.<name>.<field>` for per-camera fields).
+    pub field: String,
+    /// Lines where it is present and non-zero / true.
+    pub lines: usize,
+    /// Largest absolute numeric value, when numeric.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_abs: Option<f64>,
+}
+
+/// Coverage of one specimen tag.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TagCoverage {
+    /// Tag id.
+    pub id: u32,
+    /// Its role in the config.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub role: Option<&'static str>,
+    /// Lines that solved it.
+    pub lines: usize,
+    /// Fraction of all lines, %.
+    pub coverage_pct: f64,
+    /// Mean number of cameras that saw it.
+    pub mean_views: f64,
+    /// Median σ of its position along world.up, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub median_sigma_up_mm: Option<f64>,
+}
+
+/// The QC section of a report (`report.json` `qc`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Qc {
+    /// Feed lines read.
+    pub lines: usize,
+    /// Time of the first line, ns.
+    pub first_t_ns: i64,
+    /// Time of the last line, ns.
+    pub last_t_ns: i64,
+    /// Duration of the feed, s.
+    pub duration_s: f64,
+    /// Frame sets without a line: gaps in `seq`.
+    pub frame_sets_without_line: u64,
+    /// Lines without a load.
+    pub lines_without_load: usize,
+    /// Lines with a load but without the curve's `x` (net deflection or CMOD).
+    pub lines_with_load_without_x: usize,
+    /// Points of the curve (lines with both).
+    pub curve_points: usize,
+    /// Frame sets dropped by the live pipeline (the last `dropped_sets`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dropped_sets: Option<u64>,
+    /// Lines with the UTM link down.
+    pub utm_down_lines: usize,
+    /// UTM outages.
+    pub utm_outages: Vec<Outage>,
+    /// Per camera: bumps, missing frames, missing poses.
+    pub cameras: Vec<CameraEvents>,
+    /// Drift and stale-pose fields present in the feed.
+    pub drift_and_stale: Vec<FieldSummary>,
+    /// The clock offset between camera and UTM time, as the feed's last line reports it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub clock_offset: Option<Value>,
+    /// Coverage per specimen tag.
+    pub tags: Vec<TagCoverage>,
+    /// Scatter of `x` about a local line (robust), mm.
+    pub x_scatter_mm: f64,
+    /// Median σ of `x` as the feed gives it, mm.
+    pub x_feed_sigma_median_mm: f64,
+    /// Scatter of the load about a local line (robust), kN.
+    pub load_noise_kn: f64,
+    /// Everything worth a look, in words.
+    pub warnings: Vec<String>,
+}
+
+fn is_drift_or_stale(key: &str) -> bool {
+    let k = key.to_ascii_lowercase();
+    k.contains("drift") || k.contains("stale")
+}
+
+fn summarise(map: &mut BTreeMap<String, (usize, Option<f64>)>, field: String, v: &Value) {
+    let e = map.entry(field).or_insert((0, None));
+    match v {
+        Value::Bool(true) => e.0 += 1,
+        Value::Number(n) => {
+            let x = n.as_f64().unwrap_or(0.0);
+            if x != 0.0 {
+                e.0 += 1;
+            }
+            e.1 = Some(e.1.unwrap_or(0.0).max(x.abs()));
+        }
+        Value::Null | Value::Bool(false) => {}
+        Value::Object(o) if o.is_empty() => {}
+        Value::Array(a) if a.is_empty() => {}
+        _ => e.0 += 1,
+    }
+}
+
+impl Qc {
+    /// The QC of a feed and the curve made from it.
+    pub fn of(feed: &Feed, config: &Config, curve: &Curve, x_name: &str) -> Qc {
+        let lines = &feed.lines;
+        let n = lines.len();
+        let first_t_ns = lines[0].t_ns;
+        let last_t_ns = lines[n - 1].t_ns;
+        let mut seqs: Vec<u64> = lines.iter().map(|l| l.seq).collect();
+        seqs.sort_unstable();
+        seqs.dedup();
+        let frame_sets_without_line = (seqs[seqs.len() - 1] - seqs[0] + 1).saturating_sub(seqs.len() as u64);
+        let lines_without_load = lines.iter().filter(|l| l.load_kn.is_none()).count();
+        let lines_with_load_without_x = (n - lines_without_load).saturating_sub(curve.len());
+        let dropped_sets = lines.iter().filter_map(|l| l.dropped_sets).max();
+
+        let mut utm_outages = Vec::new();
+        let mut down_from: Option<i64> = None;
+        let mut utm_down_lines = 0;
+        for l in lines {
+            match l.utm.as_deref() {
+                Some("down") => {
+                    utm_down_lines += 1;
+                    down_from.get_or_insert(l.t_ns);
+                }
+                Some(_) => {
+                    if let Some(f) = down_from.take() {
+                        utm_outages.push(Outage { from_t_ns: f, to_t_ns: l.t_ns, duration_s: (l.t_ns - f) as f64 * 1e-9 });
+                    }
+                }
+                None => {}
+            }
+        }
+        if let Some(f) = down_from {
+            utm_outages.push(Outage { from_t_ns: f, to_t_ns: last_t_ns, duration_s: (last_t_ns - f) as f64 * 1e-9 });
+        }
+
+        let mut cams: BTreeMap<String, CameraEvents> = BTreeMap::new();
+        let mut fields: BTreeMap<String, (usize, Option<f64>)> = BTreeMap::new();
+        let mut clock_offset = None;
+        for l in lines {
+            for c in &l.cameras {
+                let e = cams.entry(c.name.clone()).or_insert(CameraEvents {
+                    camera: c.name.clone(),
+                    bumps: 0,
+                    lines_without_frame: 0,
+                    lines_unposed: 0,
+                });
+                e.bumps += c.bumped as usize;
+                e.lines_without_frame += (!c.frame) as usize;
+                e.lines_unposed += (!c.posed) as usize;
+                for (k, v) in &c.extra {
+                    if is_drift_or_stale(k) {
+                        summarise(&mut fields, format!("camera.{}.{k}", c.name), v);
+                    }
+                }
+            }
+            for (k, v) in &l.extra {
+                if is_drift_or_stale(k) {
+                    summarise(&mut fields, k.clone(), v);
+                }
+                if k.to_ascii_lowercase().contains("clock") && !v.is_null() {
+                    clock_offset = Some(serde_json::json!({ "field": k, "value": v }));
+                }
+            }
+        }
+        let drift_and_stale: Vec<FieldSummary> =
+            fields.into_iter().map(|(field, (lines, max_abs))| FieldSummary { field, lines, max_abs }).collect();
+
+        let up = config.world.up;
+        let mut tags = Vec::new();
+        for id in feed.tag_ids() {
+            let mut count = 0;
+            let mut views = 0;
+            let mut sig = Vec::new();
+            for l in lines {
+                if let Some(t) = l.tags.iter().find(|t| t.id == id) {
+                    count += 1;
+                    views += t.views;
+                    if let Some(s) = t.sigma_mm {
+                        sig.push(((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt());
+                    }
+                }
+            }
+            let role = config.role_of(id).map(|r| match r {
+                TagRole::Support => "support",
+                TagRole::Midspan => "midspan",
+            });
+            tags.push(TagCoverage {
+                id,
+                role,
+                lines: count,
+                coverage_pct: 100.0 * count as f64 / n as f64,
+                mean_views: views as f64 / count.max(1) as f64,
+                median_sigma_up_mm: (!sig.is_empty()).then(|| super::curve::median(&mut sig)),
+            });
+        }
+        let mut feed_sigma = curve.sx.clone();
+        let x_feed_sigma_median_mm = super::curve::median(&mut feed_sigma);
+
+        let mut warnings = feed.warnings.clone();
+        if frame_sets_without_line > 0 {
+            warnings.push(format!("{frame_sets_without_line} frame set(s) have no feed line (gaps in seq)"));
+        }
+        if lines_without_load > 0 {
+            warnings.push(format!("{lines_without_load} line(s) without load"));
+        }
+        if lines_with_load_without_x > 0 {
+            warnings.push(format!("{lines_with_load_without_x} line(s) with a load but without {x_name}"));
+        }
+        if let Some(d) = dropped_sets.filter(|d| *d > 0) {
+            warnings.push(format!("{d} frame set(s) dropped by the live pipeline"));
+        }
+        if !utm_outages.is_empty() {
+            let total: f64 = utm_outages.iter().map(|o| o.duration_s).sum();
+            warnings.push(format!("UTM down {} time(s), {total:.1} s in all", utm_outages.len()));
+        }
+        for c in cams.values() {
+            if c.bumps > 0 {
+                warnings.push(format!("camera {} was bumped (re-posed) {} time(s)", c.camera, c.bumps));
+            }
+        }
+        for f in &drift_and_stale {
+            if f.lines > 0 {
+                warnings.push(format!("{} present in {} line(s)", f.field, f.lines));
+            }
+        }
+        for t in &tags {
+            if t.role.is_some() && t.coverage_pct < 95.0 {
+                warnings.push(format!("{} tag {} solved in only {:.1} % of the lines", t.role.unwrap_or(""), t.id, t.coverage_pct));
+            }
+        }
+        if curve.xs[0].abs() > 0.01 {
+            warnings.push(format!(
+                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
+                curve.xs[0]
+            ));
+        }
+        if curve.xs[0].abs() > 0.01 {
+            warnings.push(format!(
+                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
+                curve.xs[0]
+            ));
+        }
+        if x_feed_sigma_median_mm > 0.0 && curve.x_noise > 3.0 * x_feed_sigma_median_mm {
+            warnings.push(format!(
+                "the scatter of {x_name} ({:.4} mm) is more than 3× the feed's σ ({:.4} mm): the σ reported may be too small",
+                curve.x_noise, x_feed_sigma_median_mm
+            ));
+        }
+        Qc {
+            lines: n,
+            first_t_ns,
+            last_t_ns,
+            duration_s: (last_t_ns - first_t_ns) as f64 * 1e-9,
+            frame_sets_without_line,
+            lines_without_load,
+            lines_with_load_without_x,
+            curve_points: curve.len(),
+            dropped_sets,
+            utm_down_lines,
+            utm_outages,
+            cameras: cams.into_values().collect(),
+            drift_and_stale,
+            clock_offset,
+            tags,
+            x_scatter_mm: curve.x_noise,
+            x_feed_sigma_median_mm,
+            load_noise_kn: curve.load_noise,
+            warnings,
+        }
+    }
+}

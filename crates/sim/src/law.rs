@@ -1,0 +1,294 @@
+//! Real tests in the simulator: the load law of the specimen (elastic, or elastic to a first
+//! crack then softening or hardening to a residual level, as fibre-reinforced concrete and
+//! UHPC behave) and the kinematics of a notched beam in three-point bending (after cracking
+//! the two halves turn about the crack tip, so the crack mouth opens).
+//!
+//! The test is deflection-controlled: the midspan deflection `δ` follows the ramp of
+//! [`SimRig::midspan_deflection`](super::SimRig::midspan_deflection) whatever the load does,
+//! and the UTM load is the law `P(δ)`:
+//!
+//! * `elastic`: `P = k δ` (k = `stiffness_kn_per_mm`);
+//! * `softening` / `hardening`: `P = k δ` up to the first crack at `δc` =
+//!   `crack_deflection_mm` (first-crack load `Pc = k δc`), then a sudden drop to
+//!   `(1 − crack_drop) Pc` and an exponential approach to the residual level `r Pc`
+//!   (`r` = `residual_ratio`, by default 0.5 softening, 1.5 hardening) over a deflection
+//!   scale `softening_mm`: `P = Pc (r + (1 − crack_drop − r) exp(−(δ − δc) / softening_mm))`.
+//!
+//! Four-point tests keep the elastic curve for the shape of the beam (only the load
+//! follows the law). In the notched three-point test the midspan deflection splits into an
+//! elastic part `δe = P / k` (the elastic curve of a centre-loaded beam, which unloads when
+//! the load drops) and a hinge part `δh = δ − δe`: the two halves turn rigidly by `∓φ` about
+//! the crack tip at height `crack_tip_mm` above the bottom face (default: notch + 0.6 of the
+//! ligament, below the midspan tag at the top), which drops by `δh`; the supports stay on their line (they roll outward), so
+//! `δh = (L/2) sin φ + h_tip (1 − cos φ)`. The crack mouth (at the bottom face) opens by
+//! about `2 h_tip sin φ`.
+
+use super::beam::{DeformedBeam, FourPointBeam};
+use super::SimParams;
+/// The load law and the kind of test are `[sim]` options (`config::sim`).
+pub use crate::params::{LoadLaw, SimTest};
+
+/// The residual ratio in force (the option, or the law's default).
+pub fn residual_ratio(p: &SimParams) -> f64 {
+    p.residual_ratio.unwrap_or(match p.load_law {
+        LoadLaw::Hardening => 1.5,
+        _ => 0.5,
+    })
+}
+
+/// The UTM load (kN) at midspan deflection `d` (mm) under the rig's load law.
+pub fn load_at(p: &SimParams, d: f64) -> f64 {
+    let k = p.stiffness_kn_per_mm;
+    if p.load_law == LoadLaw::Elastic || d <= p.crack_deflection_mm {
+        return k * d;
+    }
+    let pc = k * p.crack_deflection_mm;
+    let r = residual_ratio(p);
+    pc * (r + (1.0 - p.crack_drop - r) * (-(d - p.crack_deflection_mm) / p.softening_mm).exp())
+}
+
+/// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
+pub fn crack_tip_height(p: &SimParams) -> f64 {
+    p.crack_tip_height()
+}
+
+/// The rigid turn of the two halves of a cracked notched beam.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hinge {
+    /// Turn of each half, rad (left half clockwise, right half counter-clockwise, seen from the front).
+    pub phi: f64,
+    /// Drop of the crack tip beyond the elastic deflection, mm.
+    pub drop: f64,
+    /// Height of the crack tip above the neutral axis at rest, mm.
+    pub zeta: f64,
+    /// Elastic midspan deflection, mm (the tip's elastic drop).
+    pub elastic: f64,
+}
+
+impl Hinge {
+    /// Moves a point `(X, Z)` (already displaced elastically; beam coordinates, `Z` above
+    /// the neutral axis at rest) of the half on side `side` (−1 left, +1 right) with the turn.
+    #[inline]
+    pub fn apply(&self, side: f64, x: f64, z: f64) -> (f64, f64) {
+        let (s, c) = (side * self.phi).sin_cos();
+        let hz = self.zeta - self.elastic;
+        let (rx, rz) = (x, z - hz);
+        (c * rx - s * rz, hz - self.drop + s * rx + c * rz)
+    }
+
+    /// The inverse of [`apply`](Self::apply).
+    #[inline]
+    pub fn invert(&self, side: f64, x: f64, z: f64) -> (f64, f64) {
+        let (s, c) = (side * self.phi).sin_cos();
+        let hz = self.zeta - self.elastic;
+        let (rx, rz) = (x, z - hz + self.drop);
+        (c * rx + s * rz, hz - s * rx + c * rz)
+    }
+}
+
+/// The deformation of the beam at one instant: the elastic curve (at the elastic part of
+/// the deflection) and, for a cracked notched beam, the hinge.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BeamMotion {
+    /// The elastic model (three-point: `load_span = 0`).
+    pub beam: FourPointBeam,
+    /// Elastic midspan deflection, mm.
+    pub elastic: f64,
+    /// The halves' turn (notched three-point test after cracking).
+    pub hinge: Option<Hinge>,
+    /// Notch `(half width, depth)`, mm, for a notched beam.
+    pub notch: Option<(f64, f64)>,
+    /// Half the beam height, mm.
+    pub half_height: f64,
+}
+
+impl BeamMotion {
+    /// The motion at total midspan deflection `d` for the rig's parameters.
+    pub fn new(p: &SimParams, beam: &FourPointBeam, d: f64) -> BeamMotion {
+        let hh = 0.5 * p.beam_height_mm;
+        if p.test == SimTest::FourPoint {
+            return BeamMotion { beam: *beam, elastic: d, hinge: None, notch: None, half_height: hh };
+        }
+        let k = p.stiffness_kn_per_mm;
+        let elastic = if p.load_law == LoadLaw::Elastic || k <= 0.0 { d } else { (load_at(p, d) / k).clamp(0.0, d.max(0.0)) };
+        let drop = d - elastic;
+        let notch = Some((0.5 * p.notch_width_mm, p.notch_mm));
+        if drop <= 0.0 {
+            return BeamMotion { beam: *beam, elastic, hinge: None, notch, half_height: hh };
+        }
+        let tip = crack_tip_height(p);
+        let half = 0.5 * beam.span;
+        let mut phi = (drop / half).min(1.0).asin();
+        for _ in 0..6 {
+            phi = ((drop - tip * (1.0 - phi.cos())) / half).clamp(-1.0, 1.0).asin();
+        }
+        BeamMotion { beam: *beam, elastic, hinge: Some(Hinge { phi, drop, zeta: tip - hh, elastic }), notch, half_height: hh }
+    }
+
+    /// Side of a material point: −1 left of the notch, +1 right (midspan counts right).
+    #[inline]
+    fn side(x: f64) -> f64 {
+        if x < 0.0 {
+            -1.0
+        } else {
+            1.0
+        }
+    }
+
+    /// `(dx, dz, rotation)` of the material point `(x, zeta)` (see
+    /// [`FourPointBeam::displace`]), hinge included.
+    pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64, f64) {
+        let (dx, dz, rot) = self.beam.displace(x, zeta, self.elastic);
+        match &self.hinge {
+            None => (dx, dz, rot),
+            Some(h) => {
+                let side = Self::side(x);
+                let (nx, nz) = h.apply(side, x + dx, zeta + dz);
+                (nx - x, nz - zeta, rot + side * h.phi)
+            }
+        }
+    }
+
+    /// True when `(x, zeta)` lies in the notch (no material there).
+    #[inline]
+    pub fn in_notch(&self, x: f64, zeta: f64) -> bool {
+        matches!(self.notch, Some((w, depth)) if x.abs() < w && zeta < depth - self.half_height)
+    }
+}
+
+/// [`DeformedBeam`] with the hinge and the notch of a [`BeamMotion`]: fast lookups for the
+/// renderer.
+#[derive(Debug, Clone)]
+pub struct DeformedShape {
+    table: DeformedBeam,
+    motion: BeamMotion,
+}
+
+impl DeformedShape {
+    /// Tabulates the motion's elastic curve over `|x| ≤ half_length`.
+    pub fn new(motion: &BeamMotion, half_length: f64) -> Self {
+        Self { table: DeformedBeam::new(&motion.beam, motion.elastic, half_length), motion: *motion }
+    }
+
+    /// The motion tabulated.
+    pub fn motion(&self) -> &BeamMotion {
+        &self.motion
+    }
+
+    /// `(dx, dz)` of the material point `(x, zeta)`.
+    #[inline]
+    pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64) {
+        let (dx, dz) = self.table.displace(x, zeta);
+        match &self.motion.hinge {
+            None => (dx, dz),
+            Some(h) => {
+                let side = BeamMotion::side(x);
+                let (nx, nz) = h.apply(side, x + dx, zeta + dz);
+                (nx - x, nz - zeta)
+            }
+        }
+    }
+
+    /// The material point at the deformed face position `(px, pz)`; NaN where there is no
+    /// material (the notch, the open crack).
+    #[inline]
+    pub fn material_point(&self, px: f64, pz: f64) -> (f64, f64) {
+        let (mx, mz) = match &self.motion.hinge {
+            None => self.table.material_point(px, pz),
+            Some(h) => {
+                let first = BeamMotion::side(px);
+                let mut found = (f64::NAN, f64::NAN);
+                for side in [first, -first] {
+                    let (ex, ez) = h.invert(side, px, pz);
+                    let (mx, mz) = self.table.material_point(ex, ez);
+                    if BeamMotion::side(mx) == side {
+                        found = (mx, mz);
+                        break;
+                    }
+                }
+                found
+            }
+        };
+        if self.motion.notch.is_some() && self.motion.in_notch(mx, mz) {
+            return (f64::NAN, f64::NAN);
+        }
+        (mx, mz)
+    }
+
+    /// The material `x` of the fibre at height `zeta` whose deformed position is at `px`
+    /// along the beam, and that point's vertical displacement `dz`.
+    #[inline]
+    pub fn fibre_point(&self, px: f64, zeta: f64) -> (f64, f64) {
+        if self.motion.hinge.is_none() {
+            return self.table.fibre_point(px, zeta);
+        }
+        let mut x = px;
+        for _ in 0..4 {
+            let (dx, _) = self.displace(x, zeta);
+            x = px - dx;
+        }
+        (x, self.displace(x, zeta).1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn notched() -> SimParams {
+        SimParams {
+            test: SimTest::ThreePointNotched,
+            load_law: LoadLaw::Softening,
+            span_mm: 500.0,
+            stiffness_kn_per_mm: 100.0,
+            ..SimParams::default()
+        }
+    }
+
+    #[test]
+    fn softening_and_hardening_laws() {
+        let p = SimParams { load_law: LoadLaw::Softening, ..SimParams::default() };
+        let (dc, k) = (p.crack_deflection_mm, p.stiffness_kn_per_mm);
+        assert!((load_at(&p, 0.5 * dc) - 0.5 * k * dc).abs() < 1e-12);
+        assert!((load_at(&p, dc) - k * dc).abs() < 1e-12);
+        assert!((load_at(&p, dc + 1e-9) - 0.9 * k * dc).abs() < 1e-6, "the drop at the crack");
+        assert!((load_at(&p, 50.0) - 0.5 * k * dc).abs() < 1e-9, "residual level");
+        let h = SimParams { load_law: LoadLaw::Hardening, ..p.clone() };
+        assert!((load_at(&h, 50.0) - 1.5 * k * dc).abs() < 1e-9);
+        let e = SimParams::default();
+        assert_eq!(load_at(&e, 3.0), 3.0 * e.stiffness_kn_per_mm);
+    }
+
+    #[test]
+    fn hinge_keeps_supports_on_their_line_and_opens_the_mouth() {
+        let p = notched();
+        let beam = FourPointBeam { span: p.span_mm, load_span: 0.0 };
+        let m = BeamMotion::new(&p, &beam, 3.0);
+        let h = m.hinge.expect("cracked");
+        assert!(h.drop > 2.5 && m.elastic < 0.5);
+        let hh = 0.5 * p.beam_height_mm;
+        // Supports (bottom, x = ±L/2) stay at the support height (to the elastic part's
+        // second-order terms), midspan deflects by d.
+        for x in [-250.0, 250.0] {
+            let (_, dz, _) = m.displace(x, -hh);
+            assert!(dz.abs() < 0.01, "support at {x} moved {dz}");
+        }
+        let (_, dz, _) = m.displace(0.0, 0.0);
+        assert!((dz + 3.0).abs() < 0.02, "midspan {dz}");
+        // The mouth opens by ≈ 2 h_tip sin φ; the crack tip stays closed.
+        let tip = crack_tip_height(&p);
+        let (dl, _, _) = m.displace(-1.5, -hh);
+        let (dr, _, _) = m.displace(1.5, -hh);
+        let cmod = dr - dl;
+        assert!((cmod - 2.0 * tip * h.phi.sin()).abs() < 0.02, "cmod {cmod}");
+        let (tl, _, _) = m.displace(-1e-9, tip - hh);
+        let (tr, _, _) = m.displace(0.0, tip - hh);
+        assert!((tr - tl).abs() < 1e-6);
+        // The inverse and the notch.
+        let shape = DeformedShape::new(&m, 275.0);
+        let (dx, dz) = shape.displace(-40.0, -60.0);
+        let (mx, mz) = shape.material_point(-40.0 + dx, -60.0 + dz);
+        assert!((mx + 40.0).abs() < 1e-3 && (mz + 60.0).abs() < 1e-3, "{mx} {mz}");
+        assert!(shape.material_point(0.0, -hh + 5.0).0.is_nan(), "the notch and the crack are empty");
+    }
+}

@@ -1,0 +1,59 @@
+//! The synthetic rig: scene, beam mechanics, renderer and ground truth.
+//!
+//! [`SimParams`] (from `config::sim`) holds every option of the simulated rig (the `[sim]`
+//! config section and the options of `tagdeflect simulate`); [`SimRig`] builds the scene
+//! from them and renders camera images at any time; [`simulate`] writes a SPEC recording
+//! with ground truth.
+//!
+//! **World frame** of the simulated rig (mm): origin at midspan on the bottom edge of the
+//! beam's front face; `x` along the beam (to the right as the cameras see it), `y`
+//! horizontal away from the cameras (into the scene), `z` up (`world.up = [0, 0, 1]`).
+//! The beam occupies `|x| ≤ length/2`, `0 ≤ y ≤ width`, `0 ≤ z ≤ height` at rest; the
+//! supports are under its bottom edge at `x = ±span/2`; deflection is positive downward.
+
+mod beam;
+pub mod live_rig;
+pub mod params;
+pub mod law;
+mod record;
+pub mod render;
+mod rig;
+mod scene;
+
+pub use beam::{DeformedBeam, FourPointBeam};
+pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
+pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
+
+// The parameters of the rig are config (`[sim]`, checked when the config is read); the
+// simulator uses them from there and the config never imports the simulator.
+pub use crate::params::{camera_names, LoadLaw, SimParamError, SimParams, SimTest, DEFAULT_START_NS};
+
+/// An invalid simulation option or a failure while writing the simulated recording.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// An option is out of range.
+    #[error("simulation option `{option}`: {message}")]
+    Param {
+        /// The option (as in `[sim]` and `--<option>`).
+        option: &'static str,
+        /// What is wrong and what is expected.
+        message: String,
+    },
+    /// Writing the recording failed.
+    #[error("writing the simulated recording: {0}")]
+    Recording(#[from] tagdeflect_io::recording::RecordingError),
+    /// Writing an extra truth file failed.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+}
+
+impl From<SimParamError> for SimError {
+    fn from(e: SimParamError) -> Self {
+        SimError::Param { option: e.option, message: e.message }
+    }
+}

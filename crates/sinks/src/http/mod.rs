@@ -1,0 +1,578 @@
+//! The live page and its endpoints (SPEC "Live page and endpoints", `[output] http`).
+//!
+//! ```text
+//! solver thread ──SolverTap::publish (never waits)──▶ LiveView ──▶ axum server (tokio runtime)
+//!   ├─ each feed line: JSON once, into a bounded broadcast (`/events`) + a decimated backlog
+//!   ├─ status and metrics: small updates under short locks / atomics
+//!   └─ at most one frame per camera per second ──try_send──▶ snapshot thread (JPEG)
+//! assembler (frames, drops, lost cameras), UTM forwarder, recorder ──hooks──▶ LiveView
+//! ```
+//!
+//! Endpoints: `/` the page (assets embedded in the binary, no network needed),
+//! `/events` Server-Sent Events (`data:` = one feed line; `event: snapshot` = a new camera
+//! snapshot), `/api/status` JSON ([`status::Status`]), `/camera/NAME.jpg` the latest
+//! annotated snapshot, `/metrics` the OpenMetrics text exposition.
+//!
+//! A slow or stalled client never holds the measurement back: the broadcast keeps the last
+//! [`EVENT_BUFFER`] events and a client that falls further behind skips ahead (counted in
+//! `tagdeflect_http_events_lagged_total`); the solver's send never blocks.
+
+pub mod metrics;
+mod routes;
+pub mod snapshot;
+pub mod status;
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{mpsc as std_mpsc, Arc, Mutex};
+use std::time::Instant;
+use tokio::sync::broadcast;
+
+use crate::config::Config;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::frame::FrameSet;
+use tagdeflect_estimate::measure::Measurement;
+use tagdeflect_io::sources::SourceEvent;
+use tagdeflect_io::utm::modbus::UtmEvent;
+use metrics::{cam, Metrics};
+use snapshot::{Snapshot, SnapshotJob, SNAPSHOT_INTERVAL};
+
+/// Where `demo` serves the page unless told otherwise (and `[output] http`'s usual value).
+pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
+/// Events (feed lines, snapshot notices) kept for `/events` clients that fall behind.
+pub const EVENT_BUFFER: usize = 256;
+/// Feed lines kept for clients that connect later (sent first on `/events`); when full,
+/// every second line is dropped, so the backlog spans the whole run (older parts at a
+/// coarser step, the newest at full rate).
+pub const BACKLOG_LINES: usize = 2000;
+
+/// A problem of the HTTP sink.
+#[derive(Debug, thiserror::Error)]
+pub enum HttpError {
+    /// The address cannot be listened on.
+    #[error("cannot serve the live page on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The runtime or a thread could not be started.
+    #[error("live page: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// Where to serve the page.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HttpOptions {
+    /// The address to listen on (port 0: any free port; the bound address is printed).
+    pub addr: SocketAddr,
+    /// Failing to listen is an error (else a warning and the run goes on without the page:
+    /// `demo`'s default address may be taken by another program).
+    pub required: bool,
+}
+
+/// Parses a listen address: `IP:PORT`, `[IPv6]:PORT` or `localhost:PORT`.
+pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
+    let bad = || format!("\"{s}\" is not a listen address: expected IP:PORT, e.g. \"{DEFAULT_ADDR}\" (loopback) or \"0.0.0.0:8080\"");
+    if let Ok(a) = s.parse::<SocketAddr>() {
+        return Ok(a);
+    }
+    match s.rsplit_once(':') {
+        Some(("localhost", port)) => port.parse::<u16>().map(|p| SocketAddr::from(([127, 0, 0, 1], p))).map_err(|_| bad()),
+        _ => Err(bad()),
+    }
+}
+
+/// Byte span of `key = …` inside the `[table]` of a TOML text (for located config errors).
+pub fn key_span(text: &str, table: &str, key: &str) -> Option<std::ops::Range<usize>> {
+    let mut in_table = false;
+    let mut offset = 0;
+    for line in text.split_inclusive('\n') {
+        let t = line.trim();
+        if t.starts_with('[') {
+            in_table = t.trim_start_matches('[').trim_end_matches(']').trim() == table;
+        } else if in_table && t.split('=').next().is_some_and(|k| k.trim().trim_matches('"') == key) && t.contains('=') {
+            let start = offset + (line.len() - line.trim_start().len());
+            return Some(start..offset + line.len());
+        }
+        offset += line.len();
+    }
+    None
+}
+
+/// What `/events` carries.
+#[derive(Clone, Debug)]
+pub(crate) enum Event {
+    /// A feed line (JSON).
+    Line(Arc<str>),
+    /// A new snapshot of a camera (JSON notice).
+    Snapshot(Arc<str>),
+}
+
+/// Per camera, as the page shows it.
+#[derive(Debug, Default)]
+pub(crate) struct CameraState {
+    pub frames: u64,
+    pub frames_dropped: u64,
+    pub lost: Option<String>,
+    pub recent: VecDeque<Instant>,
+    pub last_frame: Option<Instant>,
+    pub health: Option<tagdeflect_core::feed::CameraHealth>,
+    pub bumps: u64,
+    pub last_bump: Option<Instant>,
+    pub pose: Option<tagdeflect_core::camera::Pose>,
+    pub snapshot: Option<Snapshot>,
+}
+
+/// The UTM as the page shows it.
+#[derive(Debug, Default)]
+pub(crate) struct UtmState {
+    pub up: Option<bool>,
+    pub last_error: Option<String>,
+    pub samples: u64,
+    pub outages: u64,
+    pub last_sample: Option<tagdeflect_io::utm::UtmSample>,
+}
+
+/// The recording as the page shows it.
+#[derive(Debug, Default)]
+pub(crate) struct RecordingState {
+    pub dir: Option<String>,
+    pub failed: Option<String>,
+    pub drops: Option<Arc<crate::recorder::RecorderStatus>>,
+}
+
+/// The feed as the page shows it.
+#[derive(Debug, Default)]
+pub(crate) struct FeedState {
+    pub lines: u64,
+    pub last: Option<FeedLine>,
+    pub last_at: Option<Instant>,
+}
+
+#[derive(Debug, Default)]
+pub(crate) struct State {
+    pub cameras: Vec<CameraState>,
+    pub utm: UtmState,
+    pub recording: RecordingState,
+    pub feed: FeedState,
+    pub finished: bool,
+}
+
+/// The backlog of feed lines and the broadcast, changed together so that a client that
+/// subscribes sees every line exactly once (backlog first, then live).
+struct Events {
+    backlog: VecDeque<Arc<str>>,
+}
+
+/// Everything the endpoints serve: shared by the server, the solver's tap and the hooks.
+pub struct LiveView {
+    pub(crate) config: Config,
+    pub(crate) mode: &'static str,
+    pub(crate) metrics: Metrics,
+    pub(crate) state: Mutex<State>,
+    events: Mutex<Events>,
+    tx: broadcast::Sender<Event>,
+    pub(crate) started: Instant,
+    pub(crate) started_ns: i64,
+    pub(crate) clients: AtomicU64,
+}
+
+impl LiveView {
+    /// A view of a run of `config`; `mode` is `"live"` or `"replay"` (shown in the status).
+    pub fn new(config: &Config, mode: &'static str) -> Arc<LiveView> {
+        let (tx, _) = broadcast::channel(EVENT_BUFFER);
+        let metrics = Metrics::new();
+        let view = LiveView {
+            config: config.clone(),
+            mode,
+            metrics,
+            state: Mutex::new(State { cameras: config.cameras.iter().map(|_| CameraState::default()).collect(), ..State::default() }),
+            events: Mutex::new(Events { backlog: VecDeque::new() }),
+            tx,
+            started: Instant::now(),
+            started_ns: tagdeflect_core::clock::now_epoch_ns(),
+            clients: AtomicU64::new(0),
+        };
+        for c in &config.cameras {
+            // Every camera's series exist from the start (a dashboard sees zeros, not gaps).
+            let l = cam(&c.name);
+            let _ = view.metrics.frames.get_or_create(&l);
+            let _ = view.metrics.frames_dropped.get_or_create(&l);
+            let _ = view.metrics.bumps.get_or_create(&l);
+            let _ = view.metrics.posed.get_or_create(&l);
+        }
+        Arc::new(view)
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        // A panicking holder leaves plain data behind: keep serving it.
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The backlog so far and a receiver of what follows.
+    pub(crate) fn subscribe(&self) -> (Vec<Arc<str>>, broadcast::Receiver<Event>) {
+        let ev = self.events.lock().unwrap_or_else(|e| e.into_inner());
+        (ev.backlog.iter().cloned().collect(), self.tx.subscribe())
+    }
+
+    /// Publishes a feed line to `/events`, the status and the metrics (never waits on a
+    /// client). `latency_ms` and `dropped_sets` are read from the line.
+    pub fn publish_line(&self, line: &FeedLine) {
+        let json: Arc<str> = Arc::from(line.to_json());
+        let m = &self.metrics;
+        m.sets_solved.inc();
+        if let Some(d) = line.dropped_sets {
+            let seen = m.sets_dropped.get();
+            if d > seen {
+                m.sets_dropped.inc_by(d - seen);
+            }
+        }
+        if let Some(l) = line.latency_ms {
+            m.latency.observe(l / 1e3);
+        }
+        if let Some(n) = line.net_deflection_mm {
+            m.net_deflection_mm.set(n);
+        }
+        if let Some(l) = line.load_kn {
+            m.load_kn.set(l);
+        }
+        for h in &line.cameras {
+            let l = cam(&h.name);
+            if h.frame {
+                m.frames_solved.get_or_create(&l).inc();
+            }
+            if let Some(r) = h.pose_reproj_px {
+                m.pose_reproj_px.get_or_create(&l).set(r);
+            }
+            m.posed.get_or_create(&l).set(h.posed as i64);
+            if h.bumped {
+                m.bumps.get_or_create(&l).inc();
+            }
+        }
+        {
+            let now = Instant::now();
+            let mut st = self.lock();
+            for h in &line.cameras {
+                if let Some(i) = self.config.camera_index(&h.name) {
+                    let c = &mut st.cameras[i];
+                    if h.bumped {
+                        c.bumps += 1;
+                        c.last_bump = Some(now);
+                    }
+                    c.health = Some(h.clone());
+                }
+            }
+            st.feed.lines += 1;
+            st.feed.last = Some(line.clone());
+            st.feed.last_at = Some(now);
+        }
+        let mut ev = self.events.lock().unwrap_or_else(|e| e.into_inner());
+        if ev.backlog.len() >= BACKLOG_LINES {
+            // Keep every second line: the backlog covers the whole run at half the step.
+            let mut keep = false;
+            ev.backlog.retain(|_| {
+                keep = !keep;
+                keep
+            });
+        }
+        ev.backlog.push_back(json.clone());
+        // No receivers is not an error; a full buffer overwrites the oldest event.
+        let _ = self.tx.send(Event::Line(json));
+    }
+
+    /// Camera poses after a frame set (world → camera).
+    pub fn set_poses(&self, poses: Vec<Option<tagdeflect_core::camera::Pose>>) {
+        let mut st = self.lock();
+        for (c, p) in st.cameras.iter_mut().zip(poses) {
+            c.pose = p;
+        }
+    }
+
+    /// Hook: camera `camera` delivered a frame.
+    pub fn on_frame(&self, camera: usize) {
+        if let Some(c) = self.config.cameras.get(camera) {
+            self.metrics.frames.get_or_create(&cam(&c.name)).inc();
+        }
+        let now = Instant::now();
+        let mut st = self.lock();
+        if let Some(c) = st.cameras.get_mut(camera) {
+            c.frames += 1;
+            c.last_frame = Some(now);
+            c.lost = None;
+            c.recent.push_back(now);
+            while c.recent.len() > 16 {
+                c.recent.pop_front();
+            }
+        }
+    }
+
+    /// Hook: camera `camera`'s source lost `count` frames.
+    pub fn on_frames_dropped(&self, camera: usize, count: u64) {
+        if let Some(c) = self.config.cameras.get(camera) {
+            self.metrics.frames_dropped.get_or_create(&cam(&c.name)).inc_by(count);
+        }
+        if let Some(c) = self.lock().cameras.get_mut(camera) {
+            c.frames_dropped += count;
+        }
+    }
+
+    /// Hook: camera `camera` was lost (`Some(reason)`) or is back (`None`).
+    pub fn on_camera_lost(&self, camera: usize, reason: Option<&str>) {
+        if let (Some(c), Some(_)) = (self.config.cameras.get(camera), reason) {
+            self.metrics.camera_lost.get_or_create(&cam(&c.name)).inc();
+        }
+        if let Some(c) = self.lock().cameras.get_mut(camera) {
+            c.lost = reason.map(str::to_string);
+        }
+    }
+
+    /// Hook: an event of the UTM poller (or a sample of a replayed recording).
+    pub fn on_utm(&self, ev: &UtmEvent) {
+        let m = &self.metrics;
+        let mut st = self.lock();
+        match ev {
+            UtmEvent::Sample(s) => {
+                m.utm_samples.inc();
+                st.utm.samples += 1;
+                st.utm.last_sample = Some(*s);
+                if st.utm.up != Some(true) {
+                    st.utm.up = Some(true);
+                    m.utm_up.set(1);
+                }
+            }
+            UtmEvent::Up => {
+                st.utm.up = Some(true);
+                m.utm_up.set(1);
+            }
+            UtmEvent::Down { reason } => {
+                m.utm_up.set(0);
+                m.utm_outages.inc();
+                m.utm_poll_errors.inc();
+                st.utm.outages += 1;
+                st.utm.up = Some(false);
+                st.utm.last_error = Some(reason.clone());
+            }
+        }
+    }
+
+    /// Hook: a recording is written into `dir`; `drops` is the recorder's state and what it
+    /// could not keep up with (`sinks::recorder`).
+    pub fn on_recording(&self, dir: &Path, drops: Arc<crate::recorder::RecorderStatus>) {
+        self.metrics.recorder_active.set(1);
+        let mut st = self.lock();
+        st.recording.dir = Some(dir.display().to_string());
+        st.recording.drops = Some(drops);
+    }
+
+    /// Hook: the recording failed (the feed goes on).
+    pub fn on_recording_failed(&self, error: &str) {
+        self.metrics.recorder_active.set(0);
+        self.metrics.recorder_failed.set(1);
+        self.lock().recording.failed = Some(error.to_string());
+    }
+
+    /// Hook: the run's sources are consumed (a replay ended); the page stays up.
+    pub fn on_finished(&self) {
+        self.lock().finished = true;
+    }
+
+    /// A camera's newest snapshot.
+    pub(crate) fn snapshot(&self, camera: usize) -> Option<Snapshot> {
+        self.lock().cameras.get(camera).and_then(|c| c.snapshot.clone())
+    }
+
+    fn store_snapshot(&self, camera: usize, snap: Snapshot) {
+        let Some(name) = self.config.cameras.get(camera).map(|c| c.name.clone()) else { return };
+        let notice = serde_json::json!({
+            "camera": name, "seq": snap.seq, "t_ns": snap.t_ns, "width": snap.width, "height": snap.height,
+            "url": format!("/camera/{name}.jpg?seq={}", snap.seq),
+        });
+        if let Some(c) = self.lock().cameras.get_mut(camera) {
+            c.snapshot = Some(snap);
+        }
+        let _ = self.tx.send(Event::Snapshot(Arc::from(notice.to_string())));
+    }
+
+    /// The solver's handle: publishes each frame set's line and offers snapshots.
+    pub fn tap(self: &Arc<Self>) -> Result<SolverTap, HttpError> {
+        let n = self.config.cameras.len();
+        let (tx, rx) = std_mpsc::sync_channel::<SnapshotJob>(n.max(1));
+        let view = self.clone();
+        snapshot::spawn_encoder(rx, move |camera, snap| view.store_snapshot(camera, snap))?;
+        Ok(SolverTap { view: self.clone(), snapshots: tx, last_offer: vec![None; n] })
+    }
+}
+
+/// The solver thread's side of the live view: [`SolverTap::publish`] never waits.
+pub struct SolverTap {
+    view: Arc<LiveView>,
+    snapshots: std_mpsc::SyncSender<SnapshotJob>,
+    last_offer: Vec<Option<Instant>>,
+}
+
+impl SolverTap {
+    /// Publishes a finished feed line; offers each camera's frame of `set` with the tags
+    /// `measure` detected in it to the snapshot thread, at most once per camera per second.
+    pub fn publish(&mut self, line: &FeedLine, set: &FrameSet, measure: &Measurement) {
+        self.view.publish_line(line);
+        self.view.set_poses(measure.camera_poses());
+        let now = Instant::now();
+        for (ci, tags) in measure.last_seen() {
+            let Some(last) = self.last_offer.get_mut(*ci) else { continue };
+            if last.is_some_and(|t| now.duration_since(t) < SNAPSHOT_INTERVAL) {
+                continue;
+            }
+            let Some(frame) = set.frames.iter().find(|f| f.camera == *ci) else { continue };
+            let job = SnapshotJob { camera: *ci, seq: set.seq, t_ns: frame.t_ns, image: frame.image.clone(), tags: tags.clone() };
+            // A busy encoder: this frame is skipped, the next set is offered again.
+            if self.snapshots.try_send(job).is_ok() {
+                *last = Some(now);
+            }
+        }
+    }
+}
+
+/// The running server; stops (closing every connection) when dropped.
+pub struct HttpServer {
+    /// The bound address.
+    pub addr: SocketAddr,
+    handle: tokio::task::JoinHandle<()>,
+}
+
+impl Drop for HttpServer {
+    fn drop(&mut self) {
+        self.handle.abort();
+    }
+}
+
+/// Starts serving `view` on the current tokio runtime. Prints `live page: http://ADDR/` on
+/// stderr with the bound address. When the address cannot be listened on: an error if
+/// `opts.required`, else a warning and `None`.
+pub async fn serve(opts: HttpOptions, view: Arc<LiveView>) -> Result<Option<HttpServer>, HttpError> {
+    let listener = match tokio::net::TcpListener::bind(opts.addr).await {
+        Ok(l) => l,
+        Err(source) if opts.required => return Err(HttpError::Bind { addr: opts.addr, source }),
+        Err(e) => {
+            tracing::warn!("cannot serve the live page on {}: {e}; going on without it (choose another with --http ADDR)", opts.addr);
+            return Ok(None);
+        }
+    };
+    let addr = listener.local_addr()?;
+    if !addr.ip().is_loopback() {
+        tracing::warn!(%addr, "the live page is served beyond this machine (no authentication): put it behind the lab's proxy or use an SSH tunnel");
+    }
+    let app = routes::router(view);
+    let handle = tokio::spawn(async move {
+        if let Err(e) = axum::serve(listener, app).await {
+            tracing::error!("live page: {e}");
+        }
+    });
+    eprintln!("live page: http://{addr}/");
+    tracing::info!(%addr, "live page and metrics served");
+    Ok(Some(HttpServer { addr, handle }))
+}
+
+/// `replay DIR --http ADDR` (without `--realtime`): the replay as fast as it goes, its lines
+/// on the page; then the page stays up until SIGINT/SIGTERM. The feed goes to stdout.
+pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: HttpOptions) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let rec = crate::pipeline::replay::open(dir, config)?;
+    let rt =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().context("cannot start the async runtime")?;
+    let view = LiveView::new(&rec.config, "replay");
+    let _server = rt.block_on(serve(opts, view.clone()))?;
+    for s in &rec.utm {
+        view.on_utm(&UtmEvent::Sample(*s));
+    }
+    let mut out = tagdeflect_core::feed_file::FeedWriter::stdout();
+    let mut write_err = None;
+    let ro = crate::pipeline::replay::ReplayOptions { full_frame, progress: false };
+    crate::pipeline::replay::replay(&rec, ro, |line, _, _| {
+        view.publish_line(line);
+        if write_err.is_none() {
+            write_err = out.write(line).err();
+        }
+    })?;
+    if let Some(e) = write_err {
+        return Err(e.into());
+    }
+    view.on_finished();
+    rt.block_on(linger())
+}
+
+/// Keeps the page up after a replay until SIGINT/SIGTERM.
+pub async fn linger() -> anyhow::Result<()> {
+    use anyhow::Context;
+    tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
+    Ok(())
+}
+
+/// Where a live run serves the page: `opts` (the command line) first, else `[output] http`
+/// (validated when the config was loaded: a taken address is then an error).
+pub fn wanted(config: &Config, opts: Option<HttpOptions>) -> Option<HttpOptions> {
+    opts.or_else(|| config.output.http.as_deref().and_then(|a| parse_addr(a).ok()).map(|addr| HttpOptions { addr, required: true }))
+}
+
+/// Hook of the live pipeline's assembler: shows `ev` to the view (frames, drops, lost
+/// cameras) and hands it back.
+pub fn observe(view: Option<&LiveView>, ev: Option<SourceEvent>) -> Option<SourceEvent> {
+    if let (Some(v), Some(e)) = (view, &ev) {
+        match e {
+            SourceEvent::Frame(f) => v.on_frame(f.camera),
+            SourceEvent::Dropped { camera, count, .. } => v.on_frames_dropped(*camera, *count),
+            SourceEvent::Lost { camera, reason } => v.on_camera_lost(*camera, Some(reason)),
+            SourceEvent::Reopened { camera } => v.on_camera_lost(*camera, None),
+        }
+    }
+    ev
+}
+
+/// Counts an `/events` client while it is connected.
+pub(crate) struct ClientGuard(pub Arc<LiveView>);
+
+impl ClientGuard {
+    pub fn new(view: Arc<LiveView>) -> Self {
+        let n = view.clients.fetch_add(1, Ordering::Relaxed) + 1;
+        view.metrics.http_clients.set(n as i64);
+        ClientGuard(view)
+    }
+}
+
+impl Drop for ClientGuard {
+    fn drop(&mut self) {
+        let n = self.0.clients.fetch_sub(1, Ordering::Relaxed).saturating_sub(1);
+        self.0.metrics.http_clients.set(n as i64);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses() {
+        assert_eq!(parse_addr("127.0.0.1:8080").unwrap(), SocketAddr::from(([127, 0, 0, 1], 8080)));
+        assert_eq!(parse_addr("localhost:9000").unwrap(), SocketAddr::from(([127, 0, 0, 1], 9000)));
+        assert!(parse_addr("[::1]:0").unwrap().ip().is_loopback());
+        for bad in ["8080", "127.0.0.1", "127.0.0.1:99999", "lab-pc:80", ""] {
+            assert!(parse_addr(bad).unwrap_err().contains("not a listen address"), "{bad}");
+        }
+    }
+
+    #[test]
+    fn key_spans() {
+        let t = "[camera]\nhttp = 1\n[output]\nfeed = \"x\"\n  http = \"nope\"\n[utm]\nhttp = 2\n";
+        let s = key_span(t, "output", "http").unwrap();
+        assert_eq!(&t[s], "http = \"nope\"\n");
+        assert!(key_span(t, "output", "record").is_none());
+    }
+}

@@ -1,0 +1,361 @@
+//! `/api/status`: what the run is doing now, as JSON (field list in the README).
+//!
+//! `problems` lists, in words, everything the page's banner shows: the UTM down, a camera
+//! lost, stale (no frame for [`STALE_FRAME_INTERVALS`] frame intervals) or bumped in the
+//! last [`BUMP_SHOWN_S`] s, not posed, the recording failing, no feed line for
+//! [`STALE_FRAME_INTERVALS`] frame intervals.
+
+use serde::Serialize;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use super::LiveView;
+use tagdeflect_core::rig::TagRole;
+
+/// A camera (or the feed) is stale after this many frame intervals without a frame (line).
+pub const STALE_FRAME_INTERVALS: f64 = 5.0;
+/// A bump is shown this long after it was detected, seconds.
+pub const BUMP_SHOWN_S: f64 = 10.0;
+/// Staleness is never claimed sooner than this, seconds (slow frame rates, start-up).
+pub const MIN_STALE_S: f64 = 2.0;
+
+/// The whole status.
+#[derive(Debug, Serialize)]
+pub struct Status {
+    /// `tagdeflect` version.
+    pub version: &'static str,
+    /// `"live"` or `"replay"`.
+    pub mode: &'static str,
+    /// The run started, ns since the Unix epoch.
+    pub started_ns: i64,
+    /// Seconds since the start.
+    pub uptime_s: f64,
+    /// A replay whose recording is consumed (the page stays up).
+    pub finished: bool,
+    /// `world.up`: the page shows vertical displacement as `disp_mm · up`.
+    pub world_up: [f64; 3],
+    /// The expected frame interval, seconds (from the cameras' `fps`), when known.
+    pub frame_interval_s: Option<f64>,
+    /// The cameras.
+    pub sources: Vec<SourceStatus>,
+    /// The specimen tags and their roles.
+    pub specimen_tags: Vec<TagStatus>,
+    /// The testing machine.
+    pub utm: UtmStatus,
+    /// The recording.
+    pub recording: RecordingStatus,
+    /// The feed and the pipeline's counters.
+    pub feed: FeedStatus,
+    /// `/events` clients.
+    pub http: HttpStatus,
+    /// Everything wrong now, in words (empty when all is well).
+    pub problems: Vec<String>,
+}
+
+/// One camera.
+#[derive(Debug, Serialize)]
+pub struct SourceStatus {
+    /// Name from the config.
+    pub name: String,
+    /// `source` from the config.
+    pub source: String,
+    /// Image size, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Configured frame rate, Hz.
+    pub fps: Option<f64>,
+    /// Frames delivered by the source.
+    pub frames: u64,
+    /// Frames the source lost before the pipeline.
+    pub frames_dropped: u64,
+    /// Measured frame rate over the last 16 frames, Hz.
+    pub frame_rate_hz: Option<f64>,
+    /// Seconds since the last frame.
+    pub last_frame_age_s: Option<f64>,
+    /// Why the camera is lost (being reopened), when it is.
+    pub lost: Option<String>,
+    /// No frame for several frame intervals.
+    pub stale: bool,
+    /// The camera has a pose.
+    pub posed: bool,
+    /// Bumps detected so far.
+    pub bumps: u64,
+    /// A bump was detected in the last [`BUMP_SHOWN_S`] seconds.
+    pub bumped_recently: bool,
+    /// RMS reprojection error of the background tags with the pose in use, px.
+    pub pose_reproj_px: Option<f64>,
+    /// Background tags seen in the last frame set.
+    pub background_tags: Option<usize>,
+    /// Specimen tags seen in the last frame set.
+    pub specimen_tags: Option<usize>,
+    /// The pose in use, world → camera (`x_cam = R(rvec) x_world + tvec_mm`).
+    pub pose: Option<PoseStatus>,
+    /// The newest annotated snapshot.
+    pub snapshot: Option<SnapshotStatus>,
+}
+
+/// A camera pose.
+#[derive(Debug, Serialize)]
+pub struct PoseStatus {
+    /// Rotation vector (OpenCV), rad.
+    pub rvec: [f64; 3],
+    /// Translation, mm.
+    pub tvec_mm: [f64; 3],
+    /// Camera centre in the world, mm.
+    pub centre_mm: [f64; 3],
+}
+
+/// A camera snapshot.
+#[derive(Debug, Serialize)]
+pub struct SnapshotStatus {
+    /// Where to get it.
+    pub url: String,
+    /// Frame set it shows.
+    pub seq: u64,
+    /// Frame time, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// Seconds since it was made.
+    pub age_s: f64,
+}
+
+/// A specimen tag.
+#[derive(Debug, Serialize)]
+pub struct TagStatus {
+    /// Tag id.
+    pub id: u32,
+    /// `"support"`, `"midspan"` or none.
+    pub role: Option<&'static str>,
+}
+
+/// The testing machine.
+#[derive(Debug, Serialize)]
+pub struct UtmStatus {
+    /// A UTM is configured (or the recording has UTM samples).
+    pub configured: bool,
+    /// `"ok"`, `"down"`, `"waiting"` (configured, no answer yet) or `"none"`.
+    pub state: &'static str,
+    /// The configured address.
+    pub address: Option<String>,
+    /// Samples received.
+    pub samples: u64,
+    /// Times the link went down.
+    pub outages: u64,
+    /// The last fault reported.
+    pub last_error: Option<String>,
+    /// The newest sample's load, kN.
+    #[serde(rename = "load_kN")]
+    pub load_kn: Option<f64>,
+    /// The newest sample's stroke, mm.
+    pub stroke_mm: Option<f64>,
+}
+
+/// The recording.
+#[derive(Debug, Serialize)]
+pub struct RecordingStatus {
+    /// A recording is being written.
+    pub active: bool,
+    /// Its folder.
+    pub dir: Option<String>,
+    /// Why it stopped, if it failed (the feed goes on).
+    pub failed: Option<String>,
+    /// Frames and samples it could not keep up with.
+    pub dropped: u64,
+}
+
+/// The feed and the pipeline's counters.
+#[derive(Debug, Serialize)]
+pub struct FeedStatus {
+    /// Feed lines so far.
+    pub lines: u64,
+    /// The newest line's frame set number.
+    pub last_seq: Option<u64>,
+    /// The newest line's time, ns since the Unix epoch.
+    pub last_t_ns: Option<i64>,
+    /// Seconds since the newest line was made.
+    pub last_line_age_s: Option<f64>,
+    /// No line for several frame intervals (live runs).
+    pub stale: bool,
+    /// Frame sets dropped in front of the solver so far.
+    pub dropped_sets: u64,
+    /// The newest line's latency, ms.
+    pub latency_ms: Option<f64>,
+    /// The newest line's net deflection, mm.
+    pub net_deflection_mm: Option<f64>,
+    /// The newest line's load, kN.
+    #[serde(rename = "load_kN")]
+    pub load_kn: Option<f64>,
+    /// The newest line's RMS specimen reprojection error, px.
+    pub reproj_px: Option<f64>,
+    /// Specimen tags solved in the newest line.
+    pub tags_solved: usize,
+}
+
+/// `/events` clients.
+#[derive(Debug, Serialize)]
+pub struct HttpStatus {
+    /// Connected now.
+    pub clients: u64,
+    /// Events skipped by slow clients so far.
+    pub lagged_events: u64,
+}
+
+fn age(t: Option<Instant>, now: Instant) -> Option<f64> {
+    t.map(|t| (now.duration_since(t).as_secs_f64() * 1e3).round() / 1e3)
+}
+
+/// The status now.
+pub fn status(view: &LiveView) -> Status {
+    let now = Instant::now();
+    let cfg = &view.config;
+    let max_fps = cfg.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
+    let frame_interval_s = (max_fps > 0.0).then(|| 1.0 / max_fps);
+    let stale_after = (STALE_FRAME_INTERVALS * frame_interval_s.unwrap_or(0.2)).max(MIN_STALE_S);
+    let uptime_s = now.duration_since(view.started).as_secs_f64();
+    let st = view.lock();
+    let live = view.mode == "live" || view.mode == "realtime";
+    let mut problems = Vec::new();
+
+    let mut sources = Vec::new();
+    for (c, s) in cfg.cameras.iter().zip(&st.cameras) {
+        let rate = (s.recent.len() >= 2)
+            .then(|| {
+                let span = s.recent.back()?.duration_since(*s.recent.front()?).as_secs_f64();
+                (span > 0.0).then(|| ((s.recent.len() - 1) as f64 / span * 100.0).round() / 100.0)
+            })
+            .flatten();
+        let last_age = age(s.last_frame, now);
+        let stale = live && !st.finished && last_age.map_or(uptime_s > stale_after, |a| a > stale_after);
+        let bumped_recently = s.last_bump.is_some_and(|t| now.duration_since(t).as_secs_f64() < BUMP_SHOWN_S);
+        let h = s.health.as_ref();
+        let posed = h.is_some_and(|h| h.posed);
+        if let Some(r) = &s.lost {
+            problems.push(format!("camera {} lost: {r}", c.name));
+        } else if stale {
+            problems.push(format!("camera {}: no frame for {:.1} s", c.name, last_age.unwrap_or(uptime_s)));
+        }
+        if bumped_recently {
+            problems.push(format!("camera {} was bumped and re-posed", c.name));
+        }
+        if h.is_some() && !posed {
+            problems.push(format!("camera {} has no pose (too few background tags seen)", c.name));
+        }
+        sources.push(SourceStatus {
+            name: c.name.clone(),
+            source: c.source.to_string(),
+            width: c.width,
+            height: c.height,
+            fps: c.fps,
+            frames: s.frames,
+            frames_dropped: s.frames_dropped,
+            frame_rate_hz: rate,
+            last_frame_age_s: last_age,
+            lost: s.lost.clone(),
+            stale,
+            posed,
+            bumps: s.bumps,
+            bumped_recently,
+            pose_reproj_px: h.and_then(|h| h.pose_reproj_px),
+            background_tags: h.map(|h| h.background_tags),
+            specimen_tags: h.map(|h| h.specimen_tags),
+            pose: s.pose.map(|p| {
+                let c = p.centre();
+                PoseStatus { rvec: p.rvec(), tvec_mm: p.translation.into(), centre_mm: c.into() }
+            }),
+            snapshot: s.snapshot.as_ref().map(|sn| SnapshotStatus {
+                url: format!("/camera/{}.jpg?seq={}", c.name, sn.seq),
+                seq: sn.seq,
+                t_ns: sn.t_ns,
+                age_s: age(Some(sn.made), now).unwrap_or(0.0),
+            }),
+        });
+    }
+
+    let utm_configured = cfg.utm.is_some() || st.utm.samples > 0;
+    let state = match (utm_configured, st.utm.up) {
+        (false, _) => "none",
+        (true, None) => "waiting",
+        (true, Some(true)) => "ok",
+        (true, Some(false)) => "down",
+    };
+    if state == "down" {
+        problems.push(format!("UTM down: {}", st.utm.last_error.as_deref().unwrap_or("no answer")));
+    } else if state == "waiting" && live && uptime_s > stale_after {
+        problems.push("UTM: no answer yet".to_string());
+    }
+    let utm = UtmStatus {
+        configured: utm_configured,
+        state,
+        address: cfg.utm.as_ref().map(|u| u.address.clone()),
+        samples: st.utm.samples,
+        outages: st.utm.outages,
+        last_error: st.utm.last_error.clone(),
+        load_kn: st.utm.last_sample.map(|s| s.load_kn),
+        stroke_mm: st.utm.last_sample.and_then(|s| s.stroke_mm),
+    };
+
+    let dropped_rec = st.recording.drops.as_ref().map_or(0, |d| d.dropped_frames());
+    let failing = st.recording.drops.as_ref().is_some_and(|d| d.state() != tagdeflect_core::feed_file::SinkState::Ok);
+    if let Some(e) = &st.recording.failed {
+        problems.push(format!("recording failed: {e}"));
+    } else if failing && !st.finished {
+        problems.push("recording failing: writes fail, retrying (frames dropped meanwhile are counted)".to_string());
+    }
+    let recording = RecordingStatus {
+        active: st.recording.dir.is_some() && st.recording.failed.is_none() && !failing && !st.finished,
+        dir: st.recording.dir.clone(),
+        failed: st.recording.failed.clone(),
+        dropped: dropped_rec,
+    };
+
+    let last = st.feed.last.as_ref();
+    let line_age = age(st.feed.last_at, now);
+    let feed_stale = live && !st.finished && line_age.map_or(uptime_s > 2.0 * stale_after, |a| a > stale_after);
+    if feed_stale {
+        problems.push(match line_age {
+            Some(a) => format!("no feed line for {a:.1} s"),
+            None => "no feed line yet".to_string(),
+        });
+    }
+    let feed = FeedStatus {
+        lines: st.feed.lines,
+        last_seq: last.map(|l| l.seq),
+        last_t_ns: last.map(|l| l.t_ns),
+        last_line_age_s: line_age,
+        stale: feed_stale,
+        dropped_sets: last.and_then(|l| l.dropped_sets).unwrap_or(0),
+        latency_ms: last.and_then(|l| l.latency_ms),
+        net_deflection_mm: last.and_then(|l| l.net_deflection_mm),
+        load_kn: last.and_then(|l| l.load_kn),
+        reproj_px: last.and_then(|l| l.reproj_px),
+        tags_solved: last.map_or(0, |l| l.tags.len()),
+    };
+    let specimen_tags = cfg
+        .specimen
+        .tags
+        .iter()
+        .map(|t| TagStatus {
+            id: t.id,
+            role: t.role.map(|r| match r {
+                TagRole::Support => "support",
+                TagRole::Midspan => "midspan",
+            }),
+        })
+        .collect();
+    Status {
+        version: env!("CARGO_PKG_VERSION"),
+        mode: view.mode,
+        started_ns: view.started_ns,
+        uptime_s: (uptime_s * 1e3).round() / 1e3,
+        finished: st.finished,
+        world_up: cfg.world.up,
+        frame_interval_s,
+        sources,
+        specimen_tags,
+        utm,
+        recording,
+        feed,
+        http: HttpStatus { clients: view.clients.load(Ordering::Relaxed), lagged_events: view.metrics.http_events_lagged.get() },
+        problems,
+    }
+}

@@ -1,0 +1,9 @@
+//! Sinks: where feed lines go. Each sink fails on its own: an output that cannot be
+//! written is reported, retried with backoff and never holds the measurement back.
+
+#[cfg(feature = "http")]
+pub mod http;
+#[cfg(feature = "mqtt")]
+pub mod mqtt;
+pub mod output;
+pub mod recorder;
