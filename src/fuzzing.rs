@@ -178,7 +178,7 @@ pub fn modbus_peer(data: &[u8]) {
             offset: 0.0,
         };
         let cfg = crate::config::UtmConfig {
-            address: addr.to_string(),
+            address: tagdeflect_io::utm::UtmAddress::Tcp(addr.to_string()),
             unit: 1,
             poll_hz: 1000.0,
             timeout_ms: 20.0,

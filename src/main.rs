@@ -1,16 +1,18 @@
 //! The `tagdeflect` command line (SPEC "Command line"). Only argument parsing, logging
 //! set-up and the mapping of errors to exit codes live here.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use tagdeflect::config::Config;
+use tagdeflect::graph::page::HttpOptions;
 use tagdeflect::pipeline::{self, bench::BenchOptions, live::LiveOptions};
+#[cfg(feature = "sim")]
 use tagdeflect::recording::FrameFormat;
+#[cfg(feature = "sim")]
 use tagdeflect::sim::SimParams;
-use tagdeflect::sinks::http::HttpOptions;
 
 /// Non-contact deflection measurement of beams in bending with AprilTags.
 #[derive(Parser)]
@@ -67,6 +69,7 @@ enum Command {
         duration_s: Option<f64>,
     },
     /// Write a synthetic recording with ground truth (`truth.jsonl`).
+    #[cfg(feature = "sim")]
     Simulate {
         /// The new recording folder.
         #[arg(long)]
@@ -91,6 +94,7 @@ enum Command {
     Bench(BenchOptions),
     /// The live pipeline on the built-in simulated rig (simulated cameras, simulated UTM
     /// over real Modbus TCP on loopback); the feed goes to stdout.
+    #[cfg(feature = "sim")]
     Demo {
         /// Stop after this many seconds (default: until SIGTERM/SIGINT).
         #[arg(long, value_parser = parse_duration_s)]
@@ -107,20 +111,53 @@ enum Command {
         no_http: bool,
     },
     /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
+    #[cfg(feature = "archive")]
     Archive(tagdeflect::archive::ArchiveOptions),
     /// Measure how many feed lines per second one archive ingests (simulated rigs).
+    #[cfg(feature = "archive")]
     ArchiveBench(tagdeflect::archive::bench::ArchiveBenchOptions),
     /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
     /// FileStorage YAML and reports uncertainties, coverage and outliers.
+    #[cfg(feature = "calibrate")]
     Calibrate(tagdeflect::calibrate::CalibrateOptions),
     /// The test report from a feed: report.html, report.json, curve.csv and plots.
-    Report(tagdeflect::report::ReportArgs),
+    Report(pipeline::report_cmd::ReportArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
-    Export(tagdeflect::report::ExportArgs),
+    Export(pipeline::report_cmd::ExportArgs),
+    /// A command this build was made without (its feature is named in the error).
+    #[command(external_subcommand)]
+    Missing(Vec<String>),
+}
+
+/// The commands that need a cargo feature, and the feature.
+const FEATURE_COMMANDS: &[(&str, &str)] =
+    &[("simulate", "sim"), ("demo", "sim"), ("archive", "archive"), ("archive-bench", "archive"), ("calibrate", "calibrate")];
+
+/// The error for a command this build does not have.
+fn missing_command(args: &[String]) -> anyhow::Error {
+    let name = args.first().map(String::as_str).unwrap_or("");
+    match FEATURE_COMMANDS.iter().find(|(c, _)| *c == name) {
+        Some((c, f)) => anyhow::Error::new(tagdeflect::BadInput::new(format!(
+            "`tagdeflect {c}` is not in this build: it needs the `{f}` feature (cargo build --release --features {f})"
+        ))),
+        None => anyhow::Error::new(tagdeflect::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
+    }
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    tagdeflect::sinks::http::parse_addr(s)
+    #[cfg(feature = "http")]
+    return tagdeflect::sinks::http::parse_addr(s);
+    #[cfg(not(feature = "http"))]
+    Err(format!("{s}: this build has no live page (it needs the `http` feature)"))
+}
+
+/// `--http ADDR` as the graph takes it.
+#[cfg_attr(not(feature = "http"), allow(unused_variables))]
+fn http_options(addr: Option<std::net::SocketAddr>, required: bool) -> Option<HttpOptions> {
+    #[cfg(feature = "http")]
+    return addr.map(|addr| HttpOptions { addr, required });
+    #[cfg(not(feature = "http"))]
+    None
 }
 
 fn main() -> ExitCode {
@@ -143,6 +180,16 @@ fn exit_code(e: &anyhow::Error) -> u8 {
         1
     } else {
         2
+    }
+}
+
+/// An archive error with its exit code (bad options exit 2, a failure of the machine 1).
+#[cfg(feature = "archive")]
+fn archive_error(e: tagdeflect::archive::ArchiveError) -> anyhow::Error {
+    if e.is_bad_input() {
+        anyhow::Error::new(tagdeflect::BadInput::new(e.to_string()))
+    } else {
+        anyhow::Error::new(tagdeflect::RuntimeFailure::new(e.to_string()))
     }
 }
 
@@ -191,11 +238,14 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Replay { dir, config, realtime, full_frame, http } => {
             let cfg = config.as_deref().map(load_config).transpose()?;
-            let http = http.map(|addr| HttpOptions { addr, required: true });
+            let http = http_options(http, true);
             if realtime {
                 pipeline::live::replay_realtime_http(&dir, cfg, full_frame, http)
             } else if let Some(h) = http {
-                tagdeflect::sinks::http::replay_with_page(&dir, cfg, full_frame, h)
+                #[cfg(feature = "http")]
+                return pipeline::replay::replay_with_page(&dir, cfg, full_frame, h);
+                #[cfg(not(feature = "http"))]
+                match h {}
             } else {
                 pipeline::replay::replay_to_stdout(&dir, cfg, full_frame).map(|_| ())
             }
@@ -204,9 +254,10 @@ fn run(cli: Cli) -> Result<()> {
             let cfg = load_config(&config)?;
             pipeline::live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
+        #[cfg(feature = "sim")]
         Command::Simulate { out, frame_format, params } => {
             let summary =
-                tagdeflect::sim::simulate_as(&params, &out, frame_format).with_context(|| format!("simulating into {}", out.display()))?;
+                anyhow::Context::with_context(tagdeflect::sim::simulate_as(&params, &out, frame_format), || format!("simulating into {}", out.display()))?;
             eprintln!(
                 "simulated {} frame sets ({} frames, {} dropped, {} UTM samples) into {}; final midspan deflection {:.3} mm",
                 summary.frame_sets,
@@ -224,10 +275,11 @@ fn run(cli: Cli) -> Result<()> {
             _ => anyhow::bail!("check takes either a recording folder or --config FILE"),
         },
         Command::Bench(opts) => pipeline::bench::bench(&opts),
+        #[cfg(feature = "sim")]
         Command::Demo { duration_s, config, http, no_http } => {
             let cfg = match config {
                 Some(p) => load_config(&p)?,
-                None => tagdeflect::sources::sim::demo_config(),
+                None => Config::demo(),
             };
             // The page by default on loopback; a taken default port only costs the page.
             let mut cfg = cfg;
@@ -236,16 +288,23 @@ fn run(cli: Cli) -> Result<()> {
             }
             let http = match (http, no_http) {
                 (_, true) => None,
-                (Some(addr), false) => Some(HttpOptions { addr, required: true }),
+                (Some(addr), false) => http_options(Some(addr), true),
                 (None, false) if cfg.output.http.is_some() => None,
-                (None, false) => Some(HttpOptions { addr: tagdeflect::sinks::http::DEFAULT_ADDR.parse()?, required: false }),
+                #[cfg(feature = "http")]
+                (None, false) => http_options(Some(tagdeflect::sinks::http::DEFAULT_ADDR.parse()?), false),
+                #[cfg(not(feature = "http"))]
+                (None, false) => None,
             };
             pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
-        Command::Archive(opts) => tagdeflect::archive::run(opts),
-        Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts),
-        Command::Calibrate(opts) => tagdeflect::calibrate::run(&opts),
-        Command::Report(args) => tagdeflect::report::run_cli(&args).map(|_| ()),
-        Command::Export(args) => tagdeflect::report::export_cli(&args),
+        #[cfg(feature = "archive")]
+        Command::Archive(opts) => tagdeflect::archive::run(opts).map_err(archive_error),
+        #[cfg(feature = "archive")]
+        Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts).map_err(archive_error),
+        #[cfg(feature = "calibrate")]
+        Command::Calibrate(opts) => pipeline::calibrate_cmd::run(&opts),
+        Command::Report(args) => pipeline::report_cmd::run_cli(&args).map(|_| ()),
+        Command::Export(args) => pipeline::report_cmd::export_cli(&args),
+        Command::Missing(args) => Err(missing_command(&args)),
     }
 }

@@ -1,22 +1,28 @@
-//! The schema: the clean, validated configuration the rest of the program uses, as serde
-//! structs with their defaults. Every struct here is what [`super::Config::load`] hands out
-//! after validation (see `validate.rs`); it is also what [`super::Config::to_toml_string`]
-//! writes into a recording, so a field's `skip_serializing_if` keeps old recordings' configs
-//! as they were.
-//!
-//! The `[specimen.beam]` table is [`super::beam::BeamConfig`], the `[sim]` table
-//! [`super::sim::SimParams`]; tables of other components (`[report]`, `[output.mqtt]`,
-//! `[[gauge]]`, `[clock_check]`) have their structs beside their component.
+//! The whole configuration: one field per section, each section's type owned by the
+//! component that uses it. It is what [`super::Config::load`] hands out after validation,
+//! and what [`super::Config::to_toml_string`] writes into a recording, so a field's
+//! `skip_serializing_if` keeps old recordings' configs as they were.
 
 use serde::{Deserialize, Serialize};
-use std::fmt;
-use std::path::PathBuf;
 
-use crate::camera::CameraIntrinsics;
-use crate::frame::FrameFormat;
-use crate::tags::TagFamily;
+use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::rig::{BackgroundConfig, SpecimenConfig, TagRole, WorldConfig};
+use tagdeflect_estimate::clock_offset::ClockCheckConfig;
+use tagdeflect_estimate::gauges::GaugeConfig;
+use tagdeflect_estimate::measure_config::MeasureConfig;
+use tagdeflect_io::sync::SyncConfig;
+use tagdeflect_io::utm::config::UtmConfig;
+use tagdeflect_report::ReportConfig;
+use tagdeflect_sinks::output::OutputConfig;
 
-use super::beam;
+/// `[sim]` as this build takes it: the simulated rig's parameters with the `sim` feature;
+/// without it the table is kept as written (a recording made from the simulated rig still
+/// replays; `source = "sim"` and `utm.address = "sim"` are refused at load).
+#[cfg(feature = "sim")]
+pub type SimSection = tagdeflect_sim::SimParams;
+/// `[sim]` as this build takes it (built without the `sim` feature): kept as written.
+#[cfg(not(feature = "sim"))]
+pub type SimSection = toml::Table;
 
 /// The whole, validated configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -43,20 +49,20 @@ pub struct Config {
     pub output: OutputConfig,
     /// The test report `run` writes at its end (optional; see `report`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub report: Option<crate::report::ReportConfig>,
+    pub report: Option<ReportConfig>,
     /// Measurement options (extension of SPEC; all optional).
     #[serde(default)]
     pub measure: MeasureConfig,
     /// Parameters of the built-in simulated rig (extension of SPEC; used by
     /// `source = "sim"` cameras, `utm.address = "sim"` and `simulate`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sim: Option<super::sim::SimParams>,
-    /// Virtual gauges (`[[gauge]]`, see `solve::gauges`).
+    pub sim: Option<SimSection>,
+    /// Virtual gauges (`[[gauge]]`, see `tagdeflect_estimate::gauges`).
     #[serde(rename = "gauge", default, skip_serializing_if = "Vec::is_empty")]
-    pub gauges: Vec<crate::solve::gauges::GaugeConfig>,
-    /// The live clock check (`[clock_check]`, extension; see `solve::clock_offset`).
+    pub gauges: Vec<GaugeConfig>,
+    /// The live clock check (`[clock_check]`, extension; see `tagdeflect_estimate::clock_offset`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub clock_check: Option<crate::solve::clock_offset::ClockCheckConfig>,
+    pub clock_check: Option<ClockCheckConfig>,
 }
 
 impl Config {
@@ -67,6 +73,48 @@ impl Config {
 
     /// Role of a specimen tag.
     pub fn role_of(&self, id: u32) -> Option<TagRole> {
-        self.specimen.tags.iter().find(|t| t.id == id).and_then(|t| t.role)
+        self.specimen.role_of(id)
+    }
+
+    /// What the measurement is built from.
+    pub fn measurement(&self) -> tagdeflect_estimate::measure::MeasurementConfig {
+        tagdeflect_estimate::measure::MeasurementConfig {
+            world: self.world.clone(),
+            cameras: self.cameras.clone(),
+            background: self.background.clone(),
+            specimen: self.specimen.clone(),
+            measure: self.measure.clone(),
+            gauges: self.gauges.clone(),
+            clock_check: self.clock_check.clone(),
+            utm_poll_hz: self.utm.as_ref().map(|u| u.poll_hz),
+        }
+    }
+
+    /// What the live page, the metrics and the MQTT status show of the rig.
+    pub fn rig_info(&self) -> tagdeflect_sinks::RigInfo {
+        tagdeflect_sinks::RigInfo {
+            cameras: self.cameras.clone(),
+            world: self.world.clone(),
+            specimen: self.specimen.clone(),
+            utm: self.utm.as_ref().map(|u| u.address.clone()),
+        }
+    }
+
+    /// What the report needs of the rig.
+    pub fn test_rig(&self) -> tagdeflect_report::TestRig {
+        tagdeflect_report::TestRig { world: self.world.clone(), specimen: self.specimen.clone(), gauges: self.gauges.clone() }
+    }
+}
+
+impl tagdeflect_io::recording::RecordedConfig for Config {
+    type Error = super::ConfigError;
+    fn load(path: &std::path::Path) -> Result<Self, Self::Error> {
+        Config::load(path)
+    }
+    fn cameras(&self) -> &[CameraConfig] {
+        &self.cameras
+    }
+    fn to_toml_string(&self) -> String {
+        Config::to_toml_string(self)
     }
 }

@@ -74,7 +74,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     if sets.is_empty() {
         bail!("no frame could be read: nothing to check");
     }
-    let mut m = Measurement::new(config, false).context("cannot start the tag detector")?;
+    let mut m = Measurement::new(&config.measurement(), false).context("cannot start the tag detector")?;
     let mut last: Option<FeedLine> = None;
     for s in sets {
         last = Some(m.process(s).0);

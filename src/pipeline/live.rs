@@ -25,8 +25,9 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 
-use crate::config::Config;
+use crate::config::{CameraSource, Config};
 use crate::frame::{Frame, FrameSet};
+use crate::graph::page::{HttpOptions, Page};
 use crate::pipeline::journal::{FrameDrops, JournalSummary, SUMMARY_INTERVAL};
 use crate::pipeline::measure::Measurement;
 use crate::recording::Recording;
@@ -36,6 +37,7 @@ use crate::sources::{OpenPolicy, SourceEvent};
 use crate::sync::FrameSetAssembler;
 use crate::utm::modbus::{run_poller, UtmEvent};
 use crate::utm::relay::{relay, RelayReceiver};
+use tagdeflect_sinks::{Fanout, FeedFileSink, Finished, LineSink};
 
 /// Frame sets waiting for the solver at most; older ones are dropped first.
 pub const QUEUE_SETS: usize = 2;
@@ -54,7 +56,7 @@ pub struct LiveOptions {
     /// Force full-frame detection.
     pub full_frame: bool,
     /// Serve the live page (`demo`, `replay --http`); else `[output] http` decides.
-    pub http: Option<crate::sinks::http::HttpOptions>,
+    pub http: Option<HttpOptions>,
 }
 
 /// `run`, `record` and `demo`: live sources from the config.
@@ -74,7 +76,7 @@ pub fn replay_realtime_http(
     dir: &std::path::Path,
     config: Option<Config>,
     full_frame: bool,
-    http: Option<crate::sinks::http::HttpOptions>,
+    http: Option<HttpOptions>,
 ) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
     replay_paced_with(rec, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
@@ -92,7 +94,7 @@ fn replay_paced_with(rec: Recording, opts: LiveOptions, feeds: Vec<FeedWriter>) 
     cfg.output.feed = None;
     // Every camera plays its recorded frames: the recording is the source.
     for cam in &mut cfg.cameras {
-        cam.source = crate::config::CameraSource::Recording { dir: rec.dir.clone() };
+        cam.source = CameraSource::Recording { dir: rec.dir.clone() };
     }
     // Nor is the recorded run's page served: only `--http` does.
     cfg.output.http = None;
@@ -149,48 +151,27 @@ impl SetQueue {
     }
 }
 
-async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>, mut feeds: Vec<FeedWriter>) -> Result<()> {
+async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>, feeds: Vec<FeedWriter>) -> Result<()> {
     let ncam = config.cameras.len();
     let stop = Arc::new(AtomicBool::new(false));
     let (src_tx, mut src_rx) = mpsc::channel::<SourceEvent>(4 * ncam.max(1));
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
 
     // Sinks first: an unwritable output is reported before any camera starts.
-    if opts.feed_to_stdout {
-        feeds.push(FeedWriter::stdout());
-    }
-    if let Some(spec) = &config.output.feed {
-        if spec == "-" {
-            if !opts.feed_to_stdout {
-                feeds.push(FeedWriter::stdout());
-            }
-        } else {
-            feeds.push(FeedWriter::append(std::path::Path::new(spec)).with_context(|| format!("cannot open the feed output {spec}"))?);
-        }
-    }
-    // The live page (sinks::http): before the cameras, so a taken address stops the run first.
-    let view = crate::sinks::http::wanted(&config, opts.http)
-        .map(|_| crate::sinks::http::LiveView::new(&config, if recording.is_some() { "realtime" } else { "live" }));
-    let _http = match (crate::sinks::http::wanted(&config, opts.http), &view) {
-        (Some(o), Some(v)) => crate::sinks::http::serve(o, v.clone()).await?,
-        _ => None,
-    };
-    // `[report]`: this run's feed copied into the report folder, the report written at the end.
-    let run_report = match recording.is_none() && !opts.record_only {
-        true => crate::report::live::RunReport::start(&config)?.map(|(r, w)| {
-            feeds.push(w);
-            r
-        }),
-        false => None,
-    };
+    let mode = if recording.is_some() { "realtime" } else { "live" };
+    let page = Page::start(&config, opts.http, mode).await?;
     let record_dir = opts.record.clone().or_else(|| {
         (recording.is_none())
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
             .flatten()
     });
+    let outputs = Outputs::build(&config, &opts, recording.is_some(), record_dir.as_deref(), feeds, &page)?;
     // The recorder (sinks::recorder): retries after write errors; state in every feed line.
     let recorder = match &record_dir {
-        Some(dir) => Some(Recorder::start(dir, &config, 8 * ncam.max(1)).with_context(|| format!("cannot record into {}", dir.display()))?),
+        Some(dir) => Some(
+            Recorder::start(dir, &config, config.output.record_format, 8 * ncam.max(1))
+                .with_context(|| format!("cannot record into {}", dir.display()))?,
+        ),
         None => None,
     };
     if let Some(dir) = &record_dir {
@@ -199,40 +180,36 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let rec_tx = recorder.as_ref().map(Recorder::sender);
     let rec_status = recorder.as_ref().map(Recorder::status);
     let frame_drops = Arc::new(FrameDrops::new(ncam));
-    if let (Some(v), Some(dir), Some(st)) = (&view, &record_dir, &rec_status) {
-        v.on_recording(dir, st.clone());
+    if let (Some(dir), Some(st)) = (&record_dir, &rec_status) {
+        page.on_recording(dir, st.clone());
     }
-    // MQTT publisher (live runs only; never on a replay).
-    let mqtt = match (&config.output.mqtt, &recording) {
-        (Some(m), None) => {
-            Some(Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config, record_dir.as_deref()).map_err(anyhow::Error::msg)?))
-        }
-        _ => None,
-    };
 
     // The measurement is built before any source starts: a detector option it cannot take
     // is a config error (exit 2), never a daemon that captures without measuring.
     let measure = if opts.record_only {
         None
     } else {
-        Some(Measurement::new(&config, !opts.full_frame).map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?)
+        Some(Measurement::new(&config.measurement(), !opts.full_frame).map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?)
     };
 
     // Cameras (a recording's frames too: `replay --realtime` sets every camera's source to it).
     // `run` keeps retrying a camera that is not there yet; a replay's recording must open.
     let policy = if recording.is_some() { OpenPolicy::Require } else { OpenPolicy::Retry };
-    let sources = crate::sources::start(&config, policy, src_tx.clone(), stop.clone())?;
+    let sources = crate::graph::sources::start(&config, policy, src_tx.clone(), stop.clone())?;
+    #[cfg(feature = "sim")]
     let rig = sources.rig.clone();
     drop(src_tx);
 
     // UTM.
     let (utm_tx, mut utm_rx) = mpsc::channel::<UtmEvent>(256);
+    #[cfg(feature = "sim")]
     let mut _sim_utm = None;
     let utm_configured = config.utm.is_some();
     if let Some(rec) = &recording {
         tokio::spawn(play_utm(rec.clone(), utm_tx));
     } else if let Some(ucfg) = &config.utm {
-        let ucfg = if ucfg.address == "sim" {
+        #[cfg(feature = "sim")]
+        let ucfg = if ucfg.address.is_sim() {
             let rig = rig.clone().expect("sim rig built");
             let (polled, server) = crate::utm::sim_server::start_sim_utm_with_outage(ucfg, rig.utm_model(), rig.utm_outage())
                 .await
@@ -242,6 +219,8 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
         } else {
             ucfg.clone()
         };
+        #[cfg(not(feature = "sim"))]
+        let ucfg = ucfg.clone();
         let rx = shutdown_rx.clone();
         tokio::spawn(async move {
             if let Err(e) = run_poller(ucfg, utm_tx, rx).await {
@@ -260,12 +239,10 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let (solver_utm_tx, solver_utm_rx) = relay(UTM_RELAY_SAMPLES);
     let forwarder = {
         let rec_tx = rec_tx.clone();
-        let fwd_view = view.clone();
+        let fwd_page = page.handle();
         tokio::spawn(async move {
             while let Some(ev) = utm_rx.recv().await {
-                if let Some(v) = &fwd_view {
-                    v.on_utm(&ev);
-                }
+                fwd_page.on_utm(&ev);
                 if let (UtmEvent::Sample(s), Some(tx)) = (&ev, &rec_tx) {
                     tx.utm(*s);
                 }
@@ -278,6 +255,8 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     // solving); the watchdog is pinged from the assembler loop while the beat is fresh.
     let queue = Arc::new(SetQueue::new());
     let heartbeat = Arc::new(AtomicU64::new(0));
+    let Outputs { sinks, mqtt, run_report } = outputs;
+    let fanout = Arc::new(Fanout::start(sinks).context("cannot start the sinks' thread")?);
     let solver = match measure {
         None => {
             drop(solver_utm_rx);
@@ -287,14 +266,17 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             let queue = queue.clone();
             let config = config.clone();
             let heartbeat = heartbeat.clone();
-            let tap = view.as_ref().map(|v| v.tap()).transpose()?;
-            let mqtt = mqtt.clone();
-            let status = LineStatus { recorder: rec_status.clone(), frame_drops: frame_drops.clone() };
-            let sinks = SolverSinks { feeds, tap, mqtt, status };
+            let status = LineStatus {
+                recorder: rec_status.clone(),
+                frame_drops: frame_drops.clone(),
+                #[cfg(feature = "mqtt")]
+                mqtt: mqtt.clone(),
+            };
+            let fanout = fanout.clone();
             Some(
                 std::thread::Builder::new()
                     .name("solver".into())
-                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, sinks, utm_configured, heartbeat))?,
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, fanout, status, utm_configured, heartbeat))?,
             )
         }
     };
@@ -329,7 +311,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             }
         };
         tokio::select! {
-            ev = src_rx.recv() => match crate::sinks::http::observe(view.as_deref(), ev) {
+            ev = src_rx.recv() => match page.observe(ev) {
                 None => break, // every source ended (a recording was played out)
                 Some(SourceEvent::Frame(f)) => {
                     frames_seen += 1;
@@ -406,18 +388,30 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let Some(r) = recorder {
         tokio::task::spawn_blocking(move || r.finish()).await.ok();
     }
+    // Every queued line reaches every sink before the broker's buffer is drained.
+    match Arc::try_unwrap(fanout) {
+        Ok(f) => tokio::task::spawn_blocking(move || f.finish()).await.ok(),
+        Err(_) => {
+            tracing::error!("the sinks are still in use at shutdown");
+            None
+        }
+    };
+    #[cfg(feature = "mqtt")]
     if let Some(m) = &mqtt {
         m.finish(Duration::from_secs(5)).await;
     }
+    #[cfg(not(feature = "mqtt"))]
+    let _ = mqtt;
     let dropped = queue.dropped.load(Ordering::Relaxed);
     let rec_dropped = rec_status.as_ref().map_or(0, |s| s.dropped_frames());
     tracing::info!(frames = frames_seen, dropped_sets = dropped, recorder_dropped = rec_dropped, "stopped");
     if let Some(r) = run_report {
         tokio::task::spawn_blocking(move || r.finish()).await.ok();
     }
-    if let (Some(v), Some(_), Some(_)) = (&view, &recording, &_http) {
-        v.on_finished();
-        crate::sinks::http::linger().await?;
+    #[cfg(feature = "http")]
+    if recording.is_some() && page.is_served() {
+        page.on_finished();
+        crate::pipeline::replay::linger().await?;
     }
     if solver_panicked {
         return Err(anyhow::Error::new(crate::RuntimeFailure::new(
@@ -427,14 +421,72 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     Ok(())
 }
 
-/// Where the solver hands each feed line: the feed files (written, flushed per line), the
-/// live page (a non-blocking tap) and the MQTT publisher (a non-blocking hand-off).
-struct SolverSinks {
-    feeds: Vec<FeedWriter>,
-    tap: Option<crate::sinks::http::SolverTap>,
+/// What a run writes its lines to, built from the config in one place ([`Outputs::build`]):
+/// every line sink in order (feed files and stdout, the report's copy of the feed, the live
+/// page, the MQTT publisher), and the handles whose end takes more than a flush.
+struct Outputs {
+    sinks: Vec<Box<dyn LineSink>>,
+    #[cfg(feature = "mqtt")]
     mqtt: Option<Arc<crate::sinks::mqtt::MqttPublisher>>,
-    /// Recorder state and per-camera drops, written into every line.
-    status: LineStatus,
+    #[cfg(not(feature = "mqtt"))]
+    mqtt: Option<std::convert::Infallible>,
+    run_report: Option<crate::pipeline::run_report::RunReport>,
+}
+
+impl Outputs {
+    /// Every line sink of a run; an output that cannot be opened stops the run before any
+    /// camera starts.
+    fn build(
+        config: &Config,
+        opts: &LiveOptions,
+        replaying: bool,
+        record_dir: Option<&std::path::Path>,
+        mut feeds: Vec<FeedWriter>,
+        page: &Page,
+    ) -> Result<Outputs> {
+        if opts.feed_to_stdout {
+            feeds.push(FeedWriter::stdout());
+        }
+        if let Some(spec) = &config.output.feed {
+            if spec == "-" {
+                if !opts.feed_to_stdout {
+                    feeds.push(FeedWriter::stdout());
+                }
+            } else {
+                feeds.push(FeedWriter::append(std::path::Path::new(spec)).with_context(|| format!("cannot open the feed output {spec}"))?);
+            }
+        }
+        // `[report]`: this run's feed copied into the report folder, the report written at the end.
+        let run_report = match !replaying && !opts.record_only {
+            true => crate::pipeline::run_report::RunReport::start(config)?.map(|(r, w)| {
+                feeds.push(w);
+                r
+            }),
+            false => None,
+        };
+        let mut sinks: Vec<Box<dyn LineSink>> = feeds.into_iter().map(|f| Box::new(FeedFileSink(f)) as Box<dyn LineSink>).collect();
+        if let Some(s) = page.sink()? {
+            sinks.push(s);
+        }
+        // MQTT publisher (live runs only; never on a replay).
+        #[cfg(feature = "mqtt")]
+        let mqtt = match (&config.output.mqtt, replaying) {
+            (Some(m), false) => {
+                let p = Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(anyhow::Error::msg)?);
+                sinks.push(Box::new(crate::sinks::mqtt::MqttSink(p.clone())));
+                Some(p)
+            }
+            _ => None,
+        };
+        #[cfg(not(feature = "mqtt"))]
+        let mqtt = match (&config.output.mqtt, replaying, record_dir) {
+            (Some(_), false, _) => {
+                return Err(crate::BadInput::new("[output.mqtt]: this build has no MQTT publisher: build with the `mqtt` feature").into())
+            }
+            _ => None,
+        };
+        Ok(Outputs { sinks, mqtt, run_report })
+    }
 }
 
 /// A solver heartbeat older than this stops the watchdog pings (systemd then restarts the
@@ -446,11 +498,11 @@ fn solver_loop(
     mut measure: Measurement,
     queue: Arc<SetQueue>,
     utm_rx: RelayReceiver,
-    sinks: SolverSinks,
+    fanout: Arc<Fanout>,
+    status: LineStatus,
     utm_configured: bool,
     heartbeat: Arc<AtomicU64>,
 ) {
-    let SolverSinks { mut feeds, mut tap, mqtt, status } = sinks;
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
     measure.utm_mut().set_window(LIVE_UTM_WINDOW_NS);
@@ -500,18 +552,9 @@ fn solver_loop(
         line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
         line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
         status.apply(&mut line);
-        if let Some(m) = &mqtt {
-            m.publish(&mut line); // non-blocking hand-off; sets `mqtt_dropped`
-        }
-        for f in feeds.iter_mut() {
-            if let Err(e) = f.write(&line) {
-                tracing::error!("{e}");
-            }
-        }
         journal.observe(&line, measure.rejected_views_by_camera());
-        if let Some(t) = tap.as_mut() {
-            t.publish(&line, &set, &measure);
-        }
+        // The line is complete: the sinks take it on their own thread.
+        fanout.send(Finished { line, set: Some(set), observed: Arc::new(measure.observed()) });
     }
 }
 
@@ -520,10 +563,14 @@ const UTM_RELAY_SAMPLES: usize = 4096;
 /// UTM samples kept for interpolation in live runs: this far behind the newest.
 const LIVE_UTM_WINDOW_NS: i64 = 60_000_000_000;
 
-/// What the solver adds to every feed line of a live run besides the measurement.
+/// What the solver adds to every feed line of a live run besides the measurement: the
+/// state the run's other parts share (the recorder's, the cameras' drops, the MQTT buffer's
+/// drops), read here so that the line is complete before any sink sees it.
 struct LineStatus {
     recorder: Option<Arc<RecorderStatus>>,
     frame_drops: Arc<FrameDrops>,
+    #[cfg(feature = "mqtt")]
+    mqtt: Option<Arc<crate::sinks::mqtt::MqttPublisher>>,
 }
 
 impl LineStatus {
@@ -532,6 +579,10 @@ impl LineStatus {
         if let Some(r) = &self.recorder {
             line.recording = Some(r.state().as_str().to_string());
             line.recorder_dropped = Some(r.dropped_frames());
+        }
+        #[cfg(feature = "mqtt")]
+        if let Some(m) = &self.mqtt {
+            line.mqtt_dropped = Some(m.reserve());
         }
     }
 }
@@ -556,7 +607,7 @@ pub fn grab_frame_set(config: &Config, timeout: Duration) -> Result<FrameSet> {
     runtime()?.block_on(async {
         let stop = Arc::new(AtomicBool::new(false));
         let (tx, mut rx) = mpsc::channel::<SourceEvent>(4 * config.cameras.len().max(1));
-        let sources = crate::sources::start(config, OpenPolicy::Require, tx.clone(), stop.clone())?;
+        let sources = crate::graph::sources::start(config, OpenPolicy::Require, tx.clone(), stop.clone())?;
         drop(tx);
         let mut frames: Vec<Option<Frame>> = vec![None; config.cameras.len()];
         let deadline = tokio::time::Instant::now() + timeout;

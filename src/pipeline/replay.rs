@@ -84,7 +84,7 @@ pub fn replay_to_stdout(dir: &Path, config: Option<Config>, full_frame: bool) ->
 pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
     let start = Instant::now();
     let config = &rec.config;
-    let mut measure = Measurement::new(config, !opts.full_frame).context("cannot start the tag detector")?;
+    let mut measure = Measurement::new(&config.measurement(), !opts.full_frame).context("cannot start the tag detector")?;
     for s in &rec.utm {
         measure.utm_mut().push(*s);
     }
@@ -138,4 +138,46 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
         anyhow::bail!("{}: no frame could be read, nothing was solved", rec.dir.display());
     }
     Ok(summary)
+}
+
+/// `replay DIR --http ADDR` (without `--realtime`): the replay as fast as it goes, its lines
+/// on the page; then the page stays up until SIGINT/SIGTERM. The feed goes to stdout.
+#[cfg(feature = "http")]
+pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: tagdeflect_sinks::http::HttpOptions) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let rec = open(dir, config)?;
+    let rt =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().context("cannot start the async runtime")?;
+    let view = tagdeflect_sinks::http::LiveView::new(&rec.config.rig_info(), "replay");
+    let _server = rt.block_on(tagdeflect_sinks::http::serve(opts, view.clone()))?;
+    for s in &rec.utm {
+        view.on_utm(&crate::utm::UtmEvent::Sample(*s));
+    }
+    let mut out = tagdeflect_core::feed_file::FeedWriter::stdout();
+    let mut write_err = None;
+    let ro = ReplayOptions { full_frame, progress: false };
+    replay(&rec, ro, |line, _, _| {
+        view.publish_line(line);
+        if write_err.is_none() {
+            write_err = out.write(line).err();
+        }
+    })?;
+    if let Some(e) = write_err {
+        return Err(e.into());
+    }
+    view.on_finished();
+    rt.block_on(linger())
+}
+
+/// Keeps the page up after a replay until SIGINT/SIGTERM.
+#[cfg(feature = "http")]
+pub async fn linger() -> anyhow::Result<()> {
+    use anyhow::Context;
+    tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
+    Ok(())
 }

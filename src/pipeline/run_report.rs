@@ -4,8 +4,8 @@
 
 use std::path::PathBuf;
 
-use super::{Feed, ReportOptions};
 use crate::config::Config;
+use tagdeflect_report::Feed;
 use crate::sinks::feed::FeedWriter;
 
 /// A report to be written when the run ends.
@@ -36,10 +36,11 @@ impl RunReport {
     /// the feed is already safe on disk and `tagdeflect report` can try again.
     pub fn finish(self) {
         let Some(r) = &self.config.report else { return };
-        let opts = ReportOptions::from_config(r);
         let cfg_path = self.dir.join("tagdeflect.toml");
-        let result = Feed::read(&self.feed)
-            .and_then(|feed| super::build(&feed, &self.config, &cfg_path, &opts).and_then(|rep| super::write(&rep, &feed, &self.dir)));
+        let rig = self.config.test_rig();
+        let result = Feed::read(&self.feed).and_then(|feed| {
+            tagdeflect_report::build(&feed, &rig, &cfg_path, r).and_then(|rep| tagdeflect_report::write(&rep, &feed, &self.dir))
+        });
         match result {
             Ok(files) => tracing::info!("report written into {} ({} files)", self.dir.display(), files.len()),
             Err(e) => tracing::error!(

@@ -82,8 +82,8 @@ fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
 fn demo_config(dir: &Path, broker: &str, rig: &str, test: &str, buffer: usize) -> (PathBuf, PathBuf) {
     let params =
         SimParams { cameras: 1, width: 480, height: 360, fps: 10.0, frame_sets: 60, rest_frames: 5, subsamples: 2, ..SimParams::default() };
-    let mut config = SimRig::new(&params).unwrap().config();
-    config.utm = tagdeflect::sources::sim::demo_config().utm;
+    let mut config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
+    config.utm = tagdeflect::config::Config::demo().utm;
     let feed = dir.join(format!("{rig}.jsonl"));
     config.output.feed = Some(feed.display().to_string());
     let mut text = config.to_toml_string();
@@ -376,7 +376,7 @@ fn broker_urls_topic_templates_and_config_errors() {
 
     // Config errors name the file, the line and the key.
     let dir = tempfile::tempdir().unwrap();
-    let base = tagdeflect::sources::sim::demo_config().to_toml_string();
+    let base = tagdeflect::config::Config::demo().to_toml_string();
     for (extra, key, line_has) in [
         ("qos = 3", "output.mqtt.qos", "qos = 3"),
         ("topic = \"x/{rig}\"", "output.mqtt.topic", "topic ="),

@@ -425,18 +425,18 @@ fn measurement_with_recovered_calibration_within_accuracy_floors() {
 #[test]
 fn live_mode_grabs_frames_from_a_sim_camera() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = tagdeflect::sources::sim::demo_config();
+    let mut cfg = tagdeflect::config::Config::demo();
     cfg.cameras.truncate(1);
     let name = cfg.cameras[0].name.clone();
     let path = dir.path().join("rig.toml");
     std::fs::write(&path, cfg.to_toml_string()).unwrap();
     let spec: TargetSpec = "checkerboard:9x6:25".parse().unwrap();
-    let (views, w, h, skipped) = tagdeflect::calibrate::live::grab_views(&path, &name, &spec, 5, 2.0).unwrap();
+    let (views, w, h, skipped) = tagdeflect::pipeline::calibrate_cmd::grab_views(&path, &name, &spec, 5, 2.0).unwrap();
     eprintln!("{w}x{h}: {} views, skipped {skipped:?}", views.len());
     assert!(views.is_empty());
     assert!(w > 0 && h > 0, "frames arrived");
     assert!(skipped.iter().any(|r| r.reason.contains("target not found")), "{skipped:?}");
-    let e = tagdeflect::calibrate::live::grab_views(&path, "nope", &spec, 5, 1.0).unwrap_err().to_string();
+    let e = tagdeflect::pipeline::calibrate_cmd::grab_views(&path, "nope", &spec, 5, 1.0).unwrap_err().to_string();
     assert!(e.contains("no camera named \"nope\""), "{e}");
 }
 

@@ -28,7 +28,7 @@ use tagdeflect::tags::TagFamily;
 
 fn base_config() -> String {
     let p = SimParams { cameras: 1, width: 320, height: 240, frame_sets: 2, ..SimParams::default() };
-    SimRig::new(&p).unwrap().config().to_toml_string()
+    tagdeflect::config::Config::from_sim(&SimRig::new(&p).unwrap()).to_toml_string()
 }
 
 fn load_with(gauges: &str) -> Result<Config, String> {

@@ -52,8 +52,8 @@ fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
         utm_outage_s: outage.map_or(5.0, |o| o.1),
         ..SimParams::default()
     };
-    let mut cfg: Config = SimRig::new(&params).unwrap().config();
-    cfg.utm = tagdeflect::sources::sim::demo_config().utm;
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = tagdeflect::config::Config::demo().utm;
     let path = dir.join("rig.toml");
     std::fs::write(&path, cfg.to_toml_string()).unwrap();
     path

@@ -18,9 +18,9 @@ use tagdeflect::sim::{SimParams, SimRig};
 /// fixture's f32 12.5 CDAB load at input 0 and i32 −25000 at holding 10 as stroke × 1e-4).
 fn live_config(dir: &Path, port: u16) -> PathBuf {
     let params = SimParams { cameras: 2, width: 400, height: 300, fps: 5.0, frame_sets: 40, ..SimParams::default() };
-    let mut cfg: Config = SimRig::new(&params).unwrap().config();
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Some(UtmConfig {
-        address: format!("127.0.0.1:{port}"),
+        address: tagdeflect::config::UtmAddress::Tcp(format!("127.0.0.1:{port}")),
         unit: 1,
         poll_hz: 20.0,
         timeout_ms: 200.0,
@@ -202,7 +202,7 @@ fn demo_gives_a_clean_feed_with_load_from_the_simulated_modbus_utm() {
     assert!(lines.len() >= 5, "{} lines in 6 s", lines.len());
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("demo.toml");
-    fs::write(&cfg, tagdeflect::sources::sim::demo_config().to_toml_string()).unwrap();
+    fs::write(&cfg, tagdeflect::config::Config::demo().to_toml_string()).unwrap();
     common::feedcheck_text(&text, &cfg);
     assert!(
         lines.iter().skip(2).all(|l| l.load_kn.is_some() && l.utm.as_deref() == Some("ok")),
@@ -244,7 +244,7 @@ fn a_full_disk_under_the_feed_does_not_stop_the_run_or_the_recording() {
 fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
-    let mut cfg: Config = SimRig::new(&params).unwrap().config();
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = None;
     let cfg_path = dir.path().join("rig.toml");
     fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
@@ -268,7 +268,7 @@ fn record_then_replay_and_check_a_live_config() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 2, width: 400, height: 300, fps: 5.0, ..SimParams::default() };
     let cfg_path = dir.path().join("rig.toml");
-    fs::write(&cfg_path, SimRig::new(&params).unwrap().config().to_toml_string()).unwrap();
+    fs::write(&cfg_path, tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap()).to_toml_string()).unwrap();
     let rec = dir.path().join("rec");
     let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
         .args(["record", "--config", cfg_path.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--duration-s", "2"])
@@ -333,7 +333,7 @@ fn run_with_an_invalid_detector_option_exits_2_before_ready() {
     // config check, send READY=1 and capture for ever without writing one feed line.
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
-    let mut cfg: Config = SimRig::new(&params).unwrap().config();
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.measure.quad_decimate = 20.0;
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
     let path = dir.path().join("rig.toml");

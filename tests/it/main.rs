@@ -11,6 +11,7 @@ mod cli;
 mod config;
 mod detect_accuracy;
 mod detect_sim;
+mod docs;
 mod drift;
 mod gauges;
 mod http;

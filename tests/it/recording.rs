@@ -11,7 +11,7 @@ use tagdeflect::utm::UtmSample;
 
 fn tiny_config() -> tagdeflect::config::Config {
     let rig = tagdeflect::sim::SimRig::new(&SimParams { cameras: 2, width: 64, height: 48, ..SimParams::default() }).unwrap();
-    rig.config()
+    tagdeflect::config::Config::from_sim(&rig)
 }
 
 fn gradient(w: u32, h: u32) -> GrayImage {

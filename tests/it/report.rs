@@ -440,8 +440,8 @@ fn run_writes_the_report_at_its_end() {
         subsamples: 2,
         ..Default::default()
     };
-    let mut cfg = tagdeflect::sim::SimRig::new(&params).unwrap().config();
-    cfg.utm = tagdeflect::sources::sim::demo_config().utm;
+    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    cfg.utm = tagdeflect::config::Config::demo().utm;
     cfg.specimen.beam = Some(BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, notch_mm: None });
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
     cfg.report = Some(tagdeflect::report::ReportConfig {

@@ -383,7 +383,7 @@ fn recorder_retries_after_its_folder_vanishes_and_counts_what_it_dropped() {
 fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
     let dir = tempfile::tempdir().unwrap();
     let cfg_path = dir.path().join("demo.toml");
-    fs::write(&cfg_path, tagdeflect::sources::sim::demo_config().to_toml_string()).unwrap();
+    fs::write(&cfg_path, tagdeflect::config::Config::demo().to_toml_string()).unwrap();
     let rec = dir.path().join("rec");
     let err_path = dir.path().join("stderr.log");
     let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
@@ -426,7 +426,7 @@ fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
 fn record_mode_keeps_utm_samples_and_exits_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let cfg_path = dir.path().join("demo.toml");
-    let mut cfg = tagdeflect::sources::sim::demo_config();
+    let mut cfg = tagdeflect::config::Config::demo();
     cfg.cameras.truncate(1);
     fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let out = dir.path().join("rec");
@@ -444,7 +444,7 @@ fn a_camera_without_background_tags_reports_a_stale_pose() {
     use tagdeflect::frame::{FrameSet, GrayImage};
     use tagdeflect::pipeline::measure::Measurement;
     let rec = tagdeflect::recording::Recording::open(&common::root().join("replay/three-cam")).unwrap();
-    let mut m = Measurement::new(&rec.config, true).unwrap();
+    let mut m = Measurement::new(&rec.config.measurement(), true).unwrap();
     let mut asm = tagdeflect::sync::FrameSetAssembler::new(rec.config.cameras.len(), rec.config.sync.tolerance_ms);
     let mut sets: Vec<FrameSet> = Vec::new();
     for (i, e) in rec.frames.iter().enumerate() {

@@ -28,7 +28,7 @@ fn reg(register: u16, kind: RegisterKind, value_type: ValueType, word_order: Wor
 }
 
 fn utm(address: String, load: RegisterConfig, stroke: Option<RegisterConfig>) -> UtmConfig {
-    UtmConfig { address, unit: 1, poll_hz: 20.0, timeout_ms: 300.0, load, stroke }
+    UtmConfig { address: tagdeflect::config::UtmAddress::from(address.as_str()), unit: 1, poll_hz: 20.0, timeout_ms: 300.0, load, stroke }
 }
 
 /// A running poller; stopped (and awaited) by [`Poller::stop`], aborted on drop.
@@ -363,7 +363,7 @@ async fn sim_server_read_by_our_client_follows_the_model() {
     // 1 kN/s from t0, stroke 0.1 mm/kN.
     let model = tagdeflect::utm::sim_server::ramp_model(t0, 1.0, 1000.0, 0.1);
     let (cfg, sim) = start_sim_utm(&sim_layout(), model.clone()).await.unwrap();
-    assert_eq!(cfg.address, sim.addr.to_string());
+    assert_eq!(cfg.address.to_string(), sim.addr.to_string());
     let mut p = Poller::start(cfg);
     p.wait_for(Duration::from_secs(5), "Up", |e| *e == UtmEvent::Up).await;
     let mut worst_kn: f64 = 0.0;

@@ -12,38 +12,38 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use rumqttc::{AsyncClient, QoS};
 use tokio::sync::watch;
 
-use super::{ArchiveOptions, ArchiveStats};
+use super::{ArchiveError, ArchiveOptions, ArchiveStats};
 use tagdeflect_core::feed::{CameraHealth, FeedLine, FeedTag};
 
 /// Options of `tagdeflect archive-bench`.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ArchiveBenchOptions {
     /// Simulated rigs publishing at once.
-    #[arg(long, default_value_t = 4)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 4))]
     pub rigs: usize,
     /// Feed lines each rig publishes.
-    #[arg(long, default_value_t = 3000)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3000))]
     pub lines: usize,
     /// Solved tags per feed line.
-    #[arg(long, default_value_t = 8)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 8))]
     pub tags: usize,
     /// Feed lines per transaction at most.
-    #[arg(long, default_value_t = 1000)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1000))]
     pub batch: usize,
     /// Use this broker instead of a local Mosquitto.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub mqtt: Option<String>,
     /// Use this database instead of a local PostgreSQL cluster (tables are added to it).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub postgres: Option<String>,
 }
 
 /// A synthetic feed line of a 3-camera rig, as JSON.
-pub fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
+fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
     let tags: Vec<FeedTag> = (0..tags as u32)
         .map(|id| FeedTag {
             id,
@@ -90,18 +90,18 @@ pub fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
 }
 
 /// Runs the benchmark and prints the figures.
-pub fn run(opts: &ArchiveBenchOptions) -> anyhow::Result<()> {
+pub fn run(opts: &ArchiveBenchOptions) -> Result<(), ArchiveError> {
     let local_mqtt = match opts.mqtt {
-        None => Some(super::local::LocalMosquitto::start().context("cannot start a local Mosquitto")?),
+        None => Some(super::local::LocalMosquitto::start().map_err(|cause| ArchiveError::LocalServer { server: "Mosquitto", cause })?),
         Some(_) => None,
     };
     let local_pg = match opts.postgres {
-        None => Some(super::local::LocalPostgres::start(true).context("cannot start a local PostgreSQL")?),
+        None => Some(super::local::LocalPostgres::start(true).map_err(|cause| ArchiveError::LocalServer { server: "PostgreSQL", cause })?),
         Some(_) => None,
     };
     let mqtt = opts.mqtt.clone().or_else(|| local_mqtt.as_ref().map(|m| m.url())).expect("a broker");
     let postgres = opts.postgres.clone().or_else(|| local_pg.as_ref().map(|p| p.url())).expect("a database");
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().map_err(ArchiveError::Runtime)?;
     let res = rt.block_on(bench(opts, mqtt, postgres));
     drop(rt);
     drop(local_mqtt);
@@ -109,7 +109,7 @@ pub fn run(opts: &ArchiveBenchOptions) -> anyhow::Result<()> {
     res
 }
 
-async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> anyhow::Result<()> {
+async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Result<(), ArchiveError> {
     let run_id = format!("{:08x}", rand::random::<u32>());
     let archive_opts = ArchiveOptions {
         mqtt: mqtt.clone(),
@@ -126,14 +126,16 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> an
 
     // One line first: the archive is subscribed and the schema in place once it is stored.
     let (probe, mut probe_loop) = AsyncClient::new(
-        tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-probe-{run_id}"), None, None, None).map_err(anyhow::Error::msg)?,
+        tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-probe-{run_id}"), None, None, None).map_err(ArchiveError::BadOption)?,
         16,
     );
     let probe_task = tokio::spawn(async move { while probe_loop.poll().await.is_ok() {} });
     let until = Instant::now() + Duration::from_secs(30);
     let mut k = 0;
     while stats.inserted.load(Ordering::Relaxed) == 0 {
-        anyhow::ensure!(Instant::now() < until, "the archive stored nothing within 30 s (broker {mqtt})");
+        if Instant::now() >= until {
+            return Err(ArchiveError::Bench(format!("the archive stored nothing within 30 s (broker {mqtt})")));
+        }
         probe.publish(format!("tagdeflect/bench-probe/{run_id}/feed"), QoS::AtLeastOnce, false, synthetic_line(k, 0, opts.tags)).await?;
         k += 1;
         tokio::time::sleep(Duration::from_millis(200)).await;
@@ -146,8 +148,8 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> an
     let t0 = Instant::now();
     let mut publishers = Vec::new();
     for r in 0..opts.rigs {
-        let mut mo =
-            tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-rig-{r}-{run_id}"), None, None, None).map_err(anyhow::Error::msg)?;
+        let mut mo = tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-rig-{r}-{run_id}"), None, None, None)
+            .map_err(ArchiveError::BadOption)?;
         mo.set_inflight(100);
         let (client, mut el) = AsyncClient::new(mo, 64);
         let driver = tokio::spawn(async move { while el.poll().await.is_ok() {} });
@@ -171,11 +173,12 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> an
     let published_s = t0.elapsed().as_secs_f64();
     let until = Instant::now() + Duration::from_secs(300);
     while stats.inserted.load(Ordering::Relaxed) - base < total {
-        anyhow::ensure!(
-            Instant::now() < until,
-            "only {} of {total} lines stored after 300 s",
-            stats.inserted.load(Ordering::Relaxed) - base
-        );
+        if Instant::now() >= until {
+            return Err(ArchiveError::Bench(format!(
+                "only {} of {total} lines stored after 300 s",
+                stats.inserted.load(Ordering::Relaxed) - base
+            )));
+        }
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let secs = t0.elapsed().as_secs_f64();

@@ -6,8 +6,9 @@ use std::collections::HashMap;
 
 use tokio_postgres::{Client, NoTls, Statement};
 
-/// The schema migrations in order: (version, name, SQL). Files live in `migrations/`.
-pub const MIGRATIONS: &[(i32, &str, &str)] = &[(1, "init", include_str!("../../migrations/0001_init.sql"))];
+/// The schema migrations in order: (version, name, SQL). Files live in the workspace's
+/// `migrations/`.
+pub const MIGRATIONS: &[(i32, &str, &str)] = &[(1, "init", include_str!("../../../migrations/0001_init.sql"))];
 
 /// Advisory lock key held while migrating ("tagdefle" in ASCII).
 const MIGRATION_LOCK: i64 = 0x7461_6764_6566_6c65;
@@ -112,11 +113,6 @@ impl Db {
     /// True once the connection has gone (the server stopped, the network broke).
     pub fn is_closed(&self) -> bool {
         self.client.is_closed()
-    }
-
-    /// The underlying client (queries of tests and benchmarks).
-    pub fn client(&self) -> &Client {
-        &self.client
     }
 
     /// Writes one batch in one transaction: rigs and tests as needed, every feed line

@@ -25,9 +25,12 @@
 //! - **Outages**: the MQTT connection and the database connection are retried with a
 //!   backoff (0.2 s doubling to 2 s); while the database is away nothing is acknowledged
 //!   and the broker holds the backlog.
+//!
+//! Errors are [`ArchiveError`]s, which tell bad input from runtime failures.
 
 pub mod bench;
-pub mod db;
+mod db;
+mod error;
 pub mod local;
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -37,36 +40,38 @@ use std::time::Duration;
 use rumqttc::{AsyncClient, Event, EventLoop, Packet, Publish, QoS};
 use tokio::sync::{mpsc, watch};
 
-use tagdeflect_core::feed::FeedLine;
 use db::{Db, LineRow, StatusRow};
+pub use error::ArchiveError;
+use tagdeflect_core::feed::FeedLine;
 
 /// Options of `tagdeflect archive`.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct ArchiveOptions {
     /// The broker: mqtt://[user[:password]@]host[:port] or mqtts://... (TLS).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub mqtt: String,
     /// The database: a libpq URL or key=value string, e.g. postgresql://user@host:5432/db.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub postgres: String,
     /// The rigs' topic template (as in `[output.mqtt] topic`).
-    #[arg(long, default_value = "tagdeflect/{rig}/{test}")]
+    #[cfg_attr(feature = "clap", arg(long, default_value = "tagdeflect/{rig}/{test}"))]
     pub topic: String,
     /// Share the load with other archives: subscribe through the MQTT shared subscription
     /// `$share/<GROUP>/...`, so the broker hands each message to one archive of the group.
     /// Without it, a plain persistent subscription (what one archive needs; Mosquitto 2.0
     /// does not restore shared subscriptions after its own restart, plain ones it does).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub group: Option<String>,
     /// The MQTT client id; keep it fixed across restarts (the broker keeps the session),
     /// and different for each archive (default: tagdeflect-archive-<host>).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub client_id: Option<String>,
     /// TLS: PEM file of the CA certificates of the broker (mqtts://).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub ca_file: Option<std::path::PathBuf>,
     /// Feed lines per transaction at most.
-    #[arg(long, default_value_t = 1000)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1000))]
     pub batch: usize,
 }
 
@@ -133,7 +138,7 @@ impl TopicLayout {
 
 /// Counters of a running archive.
 #[derive(Debug, Default)]
-pub struct ArchiveStats {
+pub(crate) struct ArchiveStats {
     /// Feed lines newly stored.
     pub inserted: AtomicU64,
     /// Feed lines received again and already stored.
@@ -149,23 +154,24 @@ pub struct ArchiveStats {
 }
 
 /// Checks the options before anything connects (bad input: exit 2).
-pub fn check_options(opts: &ArchiveOptions) -> anyhow::Result<(TopicLayout, tokio_postgres::Config)> {
-    tagdeflect_sinks::mqtt::BrokerUrl::parse(&opts.mqtt).map_err(|m| anyhow::anyhow!("--mqtt: {m}"))?;
-    let pg: tokio_postgres::Config = opts.postgres.parse().map_err(|e| anyhow::anyhow!("--postgres \"{}\": {e}", opts.postgres))?;
-    let layout = TopicLayout::new(&opts.topic).map_err(|m| anyhow::anyhow!("--topic: {m}"))?;
+fn check_options(opts: &ArchiveOptions) -> Result<(TopicLayout, tokio_postgres::Config), ArchiveError> {
+    tagdeflect_sinks::mqtt::BrokerUrl::parse(&opts.mqtt).map_err(|m| ArchiveError::BadOption(format!("--mqtt: {m}")))?;
+    let pg: tokio_postgres::Config =
+        opts.postgres.parse().map_err(|e| ArchiveError::BadOption(format!("--postgres \"{}\": {e}", opts.postgres)))?;
+    let layout = TopicLayout::new(&opts.topic).map_err(|m| ArchiveError::BadOption(format!("--topic: {m}")))?;
     if let Some(g) = &opts.group {
-        tagdeflect_sinks::mqtt::check_level_name("--group", g).map_err(anyhow::Error::msg)?;
+        tagdeflect_sinks::mqtt::check_level_name("--group", g).map_err(ArchiveError::BadOption)?;
     }
     if opts.batch == 0 {
-        anyhow::bail!("--batch must be at least 1");
+        return Err(ArchiveError::BadOption("--batch must be at least 1".into()));
     }
     Ok((layout, pg))
 }
 
 /// `tagdeflect archive`: runs until SIGTERM/SIGINT, then commits what it holds and exits.
-pub fn run(opts: ArchiveOptions) -> anyhow::Result<()> {
+pub fn run(opts: ArchiveOptions) -> Result<(), ArchiveError> {
     check_options(&opts)?;
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().map_err(ArchiveError::Runtime)?;
     rt.block_on(async move {
         let (stop_tx, stop_rx) = watch::channel(false);
         tokio::spawn(async move {
@@ -182,14 +188,14 @@ pub fn run(opts: ArchiveOptions) -> anyhow::Result<()> {
 }
 
 /// The archive on the current runtime until `stop` turns true.
-pub async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop: watch::Receiver<bool>) -> anyhow::Result<()> {
+pub(crate) async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop: watch::Receiver<bool>) -> Result<(), ArchiveError> {
     let (layout, _) = check_options(&opts)?;
     let client_id = opts.client_id.clone().unwrap_or_else(|| format!("tagdeflect-archive-{}", tagdeflect_sinks::mqtt::hostname()));
     let tls = match &opts.ca_file {
         Some(ca) => Some(archive_tls(&opts.mqtt, ca)?),
         None => None,
     };
-    let mut mo = tagdeflect_sinks::mqtt::mqtt_options(&opts.mqtt, &client_id, None, None, tls).map_err(anyhow::Error::msg)?;
+    let mut mo = tagdeflect_sinks::mqtt::mqtt_options(&opts.mqtt, &client_id, None, None, tls).map_err(ArchiveError::BadOption)?;
     mo.set_clean_session(false);
     mo.set_manual_acks(true);
     mo.set_keep_alive(Duration::from_secs(15));
@@ -215,7 +221,7 @@ pub async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop:
         }
     };
     tracing::info!("archive: database ready (schema version {})", db::MIGRATIONS.last().map_or(0, |m| m.0));
-    let res = write_loop(&opts, &layout, &client, rx, &mut db, &stats, &mut stop).await;
+    write_loop(&opts, &layout, &client, rx, &mut db, &stats, &mut stop).await;
     let _ = client.try_disconnect();
     tokio::time::sleep(Duration::from_millis(100)).await;
     mqtt_task.abort();
@@ -225,18 +231,18 @@ pub async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mut stop:
         malformed = stats.malformed.load(Ordering::Relaxed),
         "archive: stopped"
     );
-    res
+    Ok(())
 }
 
-fn archive_tls(url: &str, ca: &std::path::Path) -> anyhow::Result<Arc<rustls::ClientConfig>> {
-    if !tagdeflect_sinks::mqtt::BrokerUrl::parse(url).map_err(anyhow::Error::msg)?.tls {
-        anyhow::bail!("--ca-file is for mqtts:// brokers; {url} is not one");
+fn archive_tls(url: &str, ca: &std::path::Path) -> Result<Arc<rustls::ClientConfig>, ArchiveError> {
+    if !tagdeflect_sinks::mqtt::BrokerUrl::parse(url).map_err(ArchiveError::BadOption)?.tls {
+        return Err(ArchiveError::BadOption(format!("--ca-file is for mqtts:// brokers; {url} is not one")));
     }
-    tagdeflect_sinks::mqtt::tls_config_for(Some(ca), None, None).map_err(|m| anyhow::anyhow!("--ca-file: {m}"))
+    tagdeflect_sinks::mqtt::tls_config_for(Some(ca), None, None).map_err(|m| ArchiveError::BadOption(format!("--ca-file: {m}")))
 }
 
 /// Resolves when `stop` is (or becomes) true.
-pub async fn stopped(stop: &mut watch::Receiver<bool>) {
+async fn stopped(stop: &mut watch::Receiver<bool>) {
     loop {
         if *stop.borrow_and_update() {
             return;
@@ -367,7 +373,7 @@ async fn write_loop(
     db: &mut Db,
     stats: &ArchiveStats,
     stop: &mut watch::Receiver<bool>,
-) -> anyhow::Result<()> {
+) {
     let mut report = tokio::time::interval(Duration::from_secs(10));
     report.tick().await;
     let mut last_inserted = 0;
@@ -384,7 +390,7 @@ async fn write_loop(
                 continue;
             }
         };
-        let Some(first) = first else { return Ok(()) };
+        let Some(first) = first else { return };
         let mut batch = vec![first];
         while batch.len() < opts.batch {
             match rx.try_recv() {
@@ -426,7 +432,7 @@ async fn write_loop(
                         *db = d;
                         tracing::info!("archive: database back");
                     }
-                    None => return Ok(()), // stopping: the batch stays unacknowledged
+                    None => return, // stopping: the batch stays unacknowledged
                 }
             }
             match db.write_or_skip(&lines, &statuses).await {
@@ -446,7 +452,7 @@ async fn write_loop(
                     }
                     tokio::select! {
                         _ = tokio::time::sleep(backoff) => {}
-                        _ = stopped(stop) => return Ok(()),
+                        _ = stopped(stop) => return,
                     }
                     backoff = (backoff * 2).min(Duration::from_secs(2));
                     if !db.is_closed() {
@@ -454,7 +460,7 @@ async fn write_loop(
                         if let Some(d) = connect_db(&opts.postgres, stats, stop).await {
                             *db = d;
                         } else {
-                            return Ok(());
+                            return;
                         }
                     }
                 }

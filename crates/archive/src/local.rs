@@ -11,7 +11,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// A free TCP port on 127.0.0.1 (bound once and released).
-pub fn free_port() -> io::Result<u16> {
+fn free_port() -> io::Result<u16> {
     Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
@@ -168,7 +168,7 @@ pub struct LocalPostgres {
 }
 
 /// The newest PostgreSQL server binaries under /usr/lib/postgresql/*/bin.
-pub fn postgres_bin() -> io::Result<PathBuf> {
+fn postgres_bin() -> io::Result<PathBuf> {
     let mut versions: Vec<(u32, PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
         .map_err(|e| io::Error::new(e.kind(), format!("/usr/lib/postgresql: {e} (install the postgresql package: scripts/setup.sh)")))?
         .filter_map(|e| e.ok())

@@ -5,13 +5,15 @@
 //! closed-form start and the Levenberg–Marquardt fit over all views with the product's camera
 //! model; [`calibrate_views`] adds the outlier policy; [`report`] makes the coverage map, the
 //! uncertainty at a distance and the OpenCV FileStorage file; [`live`] grabs views from a
-//! configured camera; [`render`] renders targets with known intrinsics for tests.
+//! camera whose frames the caller supplies; [`render`] renders targets with known intrinsics
+//! for tests. Errors are [`CalibrateError`]s, which tell bad input from runtime failures.
 //!
 //! **Outliers.** After a fit, single points whose residual exceeds
 //! `max(5 s, 1 px)` (`s` the residual scatter per axis) are dropped, then whole views whose
 //! RMS exceeds `max(3 × median view RMS, 0.5 px)` are rejected and named with their RMS, and
 //! the fit is repeated until nothing more is dropped (at least three views stay).
 
+mod error;
 pub mod live;
 pub mod render;
 pub mod report;
@@ -21,69 +23,70 @@ pub mod target;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
 use nalgebra::Point2;
 
+pub use self::error::CalibrateError;
 use self::report::{uncertainty_at, Coverage};
 use self::solve::{Calibration, SolveOptions, View, PARAM_NAMES};
 use self::target::{TargetDetector, TargetSpec};
-use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::frame::{FrameSet, GrayImage};
 
 /// Options of `tagdeflect calibrate`.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 pub struct CalibrateOptions {
     /// A folder of images of the target (PNG or JPEG), all from one camera.
-    #[arg(long, conflicts_with_all = ["config", "camera"])]
+    #[cfg_attr(feature = "clap", arg(long, conflicts_with_all = ["config", "camera"]))]
     pub images: Option<PathBuf>,
     /// Grab views live from a camera of this config (with --camera).
-    #[arg(long, requires = "camera")]
+    #[cfg_attr(feature = "clap", arg(long, requires = "camera"))]
     pub config: Option<PathBuf>,
     /// The `[[camera]]` name to calibrate (with --config).
-    #[arg(long, requires = "config")]
+    #[cfg_attr(feature = "clap", arg(long, requires = "config"))]
     pub camera: Option<String>,
     /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners) or
     /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]`.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub target: String,
     /// The OpenCV FileStorage YAML to write.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub out: PathBuf,
     /// Hold k3 at zero (OpenCV CALIB_FIX_K3).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub fix_k3: bool,
     /// Hold fx/fy at --aspect-ratio (OpenCV CALIB_FIX_ASPECT_RATIO).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub fix_aspect_ratio: bool,
     /// The ratio fx/fy held by --fix-aspect-ratio.
-    #[arg(long, default_value_t = 1.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
     pub aspect_ratio: f64,
     /// Hold p1 = p2 = 0 (OpenCV CALIB_ZERO_TANGENT_DIST).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub zero_tangent_dist: bool,
     /// Hold the principal point at the image centre (OpenCV CALIB_FIX_PRINCIPAL_POINT).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub fix_principal_point: bool,
     /// Keep every view and point (no outlier rejection).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub keep_outliers: bool,
     /// Distance of the tags in the test, mm, for the uncertainty report (default: the median
     /// distance of the target in the views).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub distance_mm: Option<f64>,
     /// The coverage map PNG (default: next to --out, `<out>.coverage.png`).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub coverage: Option<PathBuf>,
     /// Live mode: stop after this many views that added coverage.
-    #[arg(long, default_value_t = 20)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 20))]
     pub views: usize,
     /// Live mode: give up after this many seconds.
-    #[arg(long, default_value_t = 120.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 120.0))]
     pub duration_s: f64,
 }
 
 impl CalibrateOptions {
     /// The solver flags.
-    pub fn solve_options(&self) -> SolveOptions {
+    fn solve_options(&self) -> SolveOptions {
         SolveOptions {
             fix_k3: self.fix_k3,
             fix_aspect_ratio: self.fix_aspect_ratio,
@@ -139,7 +142,13 @@ pub struct CalibrationRun {
 
 /// Calibrates from detected views with the outlier policy of the module docs (none when
 /// `keep_outliers`).
-pub fn calibrate_views(views: Vec<View>, width: u32, height: u32, options: &SolveOptions, keep_outliers: bool) -> Result<CalibrationRun> {
+pub fn calibrate_views(
+    views: Vec<View>,
+    width: u32,
+    height: u32,
+    options: &SolveOptions,
+    keep_outliers: bool,
+) -> Result<CalibrationRun, CalibrateError> {
     let mut views = views;
     let mut rejected = Vec::new();
     let mut dropped_points = 0;
@@ -167,7 +176,7 @@ pub fn calibrate_views(views: Vec<View>, width: u32, height: u32, options: &Solv
         if dropped > 0 {
             continue;
         }
-        let med = tagdeflect_estimate::lm::median(&cal.view_rms_px).unwrap_or(0.0);
+        let med = tagdeflect_core::stats::median(&cal.view_rms_px).unwrap_or(0.0);
         let view_limit = (3.0 * med).max(0.5);
         let worst =
             cal.view_rms_px.iter().enumerate().filter(|(_, r)| **r > view_limit).max_by(|a, b| a.1.total_cmp(b.1)).map(|(i, r)| (i, *r));
@@ -187,8 +196,8 @@ pub fn calibrate_views(views: Vec<View>, width: u32, height: u32, options: &Solv
 }
 
 /// Decodes an image file to 8-bit grey (BT.601 luma, as OpenCV's `cvtColor` and JPEG's Y).
-pub fn load_gray(path: &Path) -> Result<GrayImage> {
-    let img = image::open(path).with_context(|| format!("cannot decode image {}", path.display()))?;
+fn load_gray(path: &Path) -> Result<GrayImage, CalibrateError> {
+    let img = image::open(path).map_err(|cause| CalibrateError::Decode { path: path.to_path_buf(), cause })?;
     let rgb = img.to_rgb8();
     let data = rgb
         .pixels()
@@ -198,9 +207,9 @@ pub fn load_gray(path: &Path) -> Result<GrayImage> {
 }
 
 /// The image files of a folder (PNG, JPEG), sorted by name.
-pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, CalibrateError> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read the image folder {}", dir.display()))?
+        .map_err(|cause| CalibrateError::ReadFolder { dir: dir.to_path_buf(), cause })?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
             p.is_file()
@@ -209,14 +218,14 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
         .collect();
     files.sort();
     if files.is_empty() {
-        bail!("no PNG or JPEG images in {}", dir.display());
+        return Err(CalibrateError::NoImages(dir.to_path_buf()));
     }
     Ok(files)
 }
 
 /// Views detected in a set of images, the image size, and the images where the target was
 /// not found (with the reason).
-pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
+pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, u32, u32, Vec<Rejected>), CalibrateError> {
     let mut det = TargetDetector::new(spec.clone())?;
     let mut views = Vec::new();
     let mut failed = Vec::new();
@@ -225,15 +234,14 @@ pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, 
         let img = load_gray(f)?;
         match size {
             None => size = Some((img.width, img.height, f)),
-            Some((w, h, first)) if (w, h) != (img.width, img.height) => bail!(
-                "image {} is {}x{} but {} is {}x{}: all views must come from one camera at one resolution",
-                f.display(),
-                img.width,
-                img.height,
-                first.display(),
-                w,
-                h
-            ),
+            Some((w, h, first)) if (w, h) != (img.width, img.height) => {
+                return Err(CalibrateError::SizeMismatch {
+                    path: f.clone(),
+                    size: (img.width, img.height),
+                    first: first.to_path_buf(),
+                    first_size: (w, h),
+                })
+            }
             _ => {}
         }
         let name = f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
@@ -247,7 +255,7 @@ pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, 
 }
 
 /// The text report of a calibration (what `tagdeflect calibrate` prints).
-pub fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Coverage, distance_mm: f64, target: &str) -> String {
+fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Coverage, distance_mm: f64, target: &str) -> String {
     let c = &run.calibration;
     let k = &c.intrinsics;
     let s = c.sigmas();
@@ -308,7 +316,7 @@ pub fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Cove
 }
 
 /// Median distance of the target from the camera over the views, mm.
-pub fn median_distance_mm(c: &Calibration, views: &[View]) -> f64 {
+fn median_distance_mm(c: &Calibration, views: &[View]) -> f64 {
     let d: Vec<f64> = c
         .poses
         .iter()
@@ -319,12 +327,17 @@ pub fn median_distance_mm(c: &Calibration, views: &[View]) -> f64 {
             p.transform(&mean).z
         })
         .collect();
-    tagdeflect_estimate::lm::median(&d).unwrap_or(1000.0)
+    tagdeflect_core::stats::median(&d).unwrap_or(1000.0)
 }
 
 /// Writes the FileStorage file and the coverage map, returns the text report (with the config
 /// snippet).
-pub fn write_outputs(run: &CalibrationRun, not_found: &[Rejected], spec: &TargetSpec, opts: &CalibrateOptions) -> Result<String> {
+fn write_outputs(
+    run: &CalibrationRun,
+    not_found: &[Rejected],
+    spec: &TargetSpec,
+    opts: &CalibrateOptions,
+) -> Result<String, CalibrateError> {
     let c = &run.calibration;
     let k = &c.intrinsics;
     let all_points: Vec<Point2<f64>> = run.views.iter().flat_map(|v| v.image.iter().copied()).collect();
@@ -332,16 +345,16 @@ pub fn write_outputs(run: &CalibrationRun, not_found: &[Rejected], spec: &Target
     let names: Vec<String> = run.views.iter().map(|v| v.name.clone()).collect();
     let yaml = report::opencv_yaml(c, &spec.describe(), &opts.flags_text(), &names);
     if let Some(parent) = opts.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).with_context(|| format!("cannot create {}", parent.display()))?;
+        std::fs::create_dir_all(parent).map_err(|cause| CalibrateError::CreateDir { path: parent.to_path_buf(), cause })?;
     }
-    std::fs::write(&opts.out, yaml).with_context(|| format!("cannot write {}", opts.out.display()))?;
+    std::fs::write(&opts.out, yaml).map_err(|cause| CalibrateError::Write { path: opts.out.clone(), cause })?;
     let cov_path = opts.coverage.clone().unwrap_or_else(|| {
         let mut p = opts.out.clone().into_os_string();
         p.push(".coverage.png");
         PathBuf::from(p)
     });
     let per_view: Vec<Vec<Point2<f64>>> = run.views.iter().map(|v| v.image.clone()).collect();
-    coverage.write_png(&cov_path, k.width, k.height, &per_view).with_context(|| format!("cannot write {}", cov_path.display()))?;
+    coverage.write_png(&cov_path, k.width, k.height, &per_view).map_err(|cause| CalibrateError::Write { path: cov_path.clone(), cause })?;
     let distance = opts.distance_mm.unwrap_or_else(|| median_distance_mm(c, &run.views));
     let mut text = report_text(run, not_found, &coverage, distance, &spec.describe());
     let _ = writeln!(text, "wrote {} and the coverage map {}", opts.out.display(), cov_path.display());
@@ -350,28 +363,44 @@ pub fn write_outputs(run: &CalibrationRun, not_found: &[Rejected], spec: &Target
     Ok(text)
 }
 
-/// `tagdeflect calibrate`: from a folder of images or live from a configured camera.
-pub fn run(opts: &CalibrateOptions) -> Result<()> {
+/// Checks the options before anything is read (every error is bad input): the target, the
+/// numbers, and that either `--images` or `--config` with `--camera` is given. Returns the
+/// parsed target. [`run`] checks them too; a caller that has to open the live camera first
+/// (from `--config`) calls this before.
+pub fn check_options(opts: &CalibrateOptions) -> Result<TargetSpec, CalibrateError> {
     let spec: TargetSpec = opts.target.parse()?;
     if !(opts.aspect_ratio.is_finite() && opts.aspect_ratio > 0.0) {
-        bail!("--aspect-ratio must be a positive number, got {}", opts.aspect_ratio);
+        return Err(CalibrateError::BadOption(format!("--aspect-ratio must be a positive number, got {}", opts.aspect_ratio)));
     }
     if let Some(d) = opts.distance_mm {
         if !(d.is_finite() && d > 0.0) {
-            bail!("--distance-mm must be a positive distance, got {d}");
+            return Err(CalibrateError::BadOption(format!("--distance-mm must be a positive distance, got {d}")));
         }
     }
-    let (views, w, h, not_found) = match (&opts.images, &opts.config, &opts.camera) {
+    match (&opts.images, &opts.config, &opts.camera) {
+        (Some(_), None, None) | (None, Some(_), Some(_)) => Ok(spec),
+        _ => Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
+    }
+}
+
+/// `tagdeflect calibrate`: from a folder of images (`--images`) or live (`--config FILE
+/// --camera NAME`), then writes the outputs and prints the report.
+///
+/// Live mode needs `grab`: the next frame set of that one camera (`Err` with the message
+/// when none arrives in time), which the caller builds from the config's camera and its
+/// source; see [`live::grab_views`]. With `--images`, `grab` must be `None`.
+pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, String>>) -> Result<(), CalibrateError> {
+    let spec = check_options(opts)?;
+    let (views, w, h, not_found) = match (&opts.images, &opts.camera, grab) {
         (Some(dir), None, None) => {
             let files = image_files(dir)?;
             detect_views(&files, &spec)?
         }
-        (None, Some(cfg), Some(cam)) => live::grab_views(cfg, cam, &spec, opts.views, opts.duration_s)?,
-        _ => bail!("calibrate takes either --images DIR or --config FILE --camera NAME"),
+        (None, Some(cam), Some(grab)) => live::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?,
+        _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
     if views.len() < 3 {
-        let why: Vec<String> = not_found.iter().map(|r| format!("{}: {}", r.name, r.reason)).collect();
-        bail!("the target was found in {} views, need at least 3 ({})", views.len(), why.join("; "));
+        return Err(CalibrateError::TooFewViews { found: views.len(), not_found });
     }
     let run = calibrate_views(views, w, h, &opts.solve_options(), opts.keep_outliers)?;
     let text = write_outputs(&run, &not_found, &spec, opts)?;

@@ -1,28 +1,25 @@
 //! Live calibration: views grabbed from a configured camera while the target is moved,
 //! keeping only frames that add coverage.
 //!
-//! Frames come through the product's own sources ([`crate::pipeline::live::grab_frame_set`]
-//! on the config reduced to the one camera), so every source the config supports (V4L2,
-//! Aravis, `sim`) works here. A frame is kept when the target is found and at least
-//! [`MIN_NEW_CELLS`] cells of a fine grid (16 columns) that no kept view has touched yet
-//! hold its points; the first view is always kept. The loop ends after the requested number
-//! of views or the time limit.
+//! Frames come from the caller: the command line builds [`grab_views`]'s `grab` from the
+//! product's own sources on its config reduced to the one camera, so every source the config
+//! supports (V4L2, Aravis, `sim`) works here. A frame is kept when the target is found and at
+//! least three (`MIN_NEW_CELLS`) cells of a fine grid (16 columns) that no kept view has
+//! touched yet hold its points; the first view is always kept. The loop ends after the
+//! requested number of views or the time limit.
 
-use std::path::Path;
-use std::time::{Duration, Instant};
-
-use anyhow::{bail, Context, Result};
+use std::time::Instant;
 
 use super::solve::View;
 use super::target::{TargetDetector, TargetSpec};
-use super::Rejected;
-use crate::config::Config;
+use super::{CalibrateError, Rejected};
+use tagdeflect_core::frame::FrameSet;
 
 /// New fine-grid cells a frame must cover to be kept.
-pub const MIN_NEW_CELLS: usize = 3;
+const MIN_NEW_CELLS: usize = 3;
 
 /// Columns of the fine grid that decides whether a frame adds coverage.
-pub const FINE_COLS: usize = 16;
+const FINE_COLS: usize = 16;
 
 /// Tracks which fine-grid cells the kept views cover.
 #[derive(Debug, Clone)]
@@ -68,28 +65,25 @@ impl CoverageTracker {
     }
 
     /// Fraction of fine cells covered.
-    pub fn fraction(&self) -> f64 {
+    pub(crate) fn fraction(&self) -> f64 {
         self.seen.iter().filter(|s| **s).count() as f64 / self.seen.len() as f64
     }
 }
 
-/// Grabs views of `spec` from camera `camera` of the config at `config_path`: at most `views`
-/// frames that add coverage, within `duration_s`. Returns the views, the image size and the
-/// frames not used (with the reason) — the last only summarised, frames arrive continuously.
+/// Grabs views of `spec` from camera `camera`: at most `views` frames that add coverage,
+/// within `duration_s`. `grab` returns the next frame set of that one camera (its first frame
+/// is used; the command line grabs through its sources with a 5 s timeout), or the message
+/// of why none came, which ends the grab with [`CalibrateError::Grab`] (`camera <camera>:
+/// <message>`). `camera` names the camera in messages and logs. Returns the views, the image
+/// size and the frames not used (with the reason) — the last only summarised, frames arrive
+/// continuously.
 pub fn grab_views(
-    config_path: &Path,
+    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
     camera: &str,
     spec: &TargetSpec,
     views: usize,
     duration_s: f64,
-) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
-    let mut cfg = Config::load(config_path)?;
-    let Some(i) = cfg.cameras.iter().position(|c| c.name == camera) else {
-        let names: Vec<&str> = cfg.cameras.iter().map(|c| c.name.as_str()).collect();
-        bail!("{}: no camera named {camera:?} (cameras: {})", config_path.display(), names.join(", "));
-    };
-    let cam = cfg.cameras.remove(i);
-    cfg.cameras = vec![cam];
+) -> Result<(Vec<View>, u32, u32, Vec<Rejected>), CalibrateError> {
     let mut det = TargetDetector::new(spec.clone())?;
     let t0 = Instant::now();
     let mut kept: Vec<View> = Vec::new();
@@ -98,7 +92,7 @@ pub fn grab_views(
     let mut last_reason = String::new();
     let mut size = (0, 0);
     while kept.len() < views && t0.elapsed().as_secs_f64() < duration_s {
-        let set = crate::pipeline::live::grab_frame_set(&cfg, Duration::from_secs(5)).with_context(|| format!("camera {camera}"))?;
+        let set = grab().map_err(|message| CalibrateError::Grab { camera: camera.to_string(), message })?;
         let Some(frame) = set.frames.first() else { continue };
         frames += 1;
         let img = &frame.image;
@@ -136,4 +130,40 @@ pub fn grab_views(
         skipped.push(Rejected { name: format!("{no_gain} of {frames} frames"), reason: "added no coverage".into() });
     }
     Ok((kept, size.0, size.1, skipped))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::render::{render_target, RenderOptions};
+    use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+    use tagdeflect_core::frame::Frame;
+
+    #[test]
+    fn keeps_frames_that_add_coverage_and_names_the_camera_when_frames_stop() {
+        let k = CameraIntrinsics { width: 640, height: 480, fx: 600.0, fy: 600.0, cx: 319.5, cy: 239.5, dist: [0.0; 5] };
+        let spec: TargetSpec = "checkerboard:9x6:30".parse().unwrap();
+        // The board's centre (120, 75) mm placed left of, again left of, then right of the middle.
+        let frame = |seq: u64, dx: f64| {
+            let pose = Pose::from_rvec_tvec([0.1, -0.1, 0.0], [-120.0 + dx, -75.0, 600.0]);
+            let image = render_target(&spec, &k, &pose, &RenderOptions { seed: seq, ..RenderOptions::default() });
+            FrameSet::new(seq, vec![Frame { camera: 0, seq, t_ns: 0, image: Arc::new(image) }])
+        };
+        let mut frames = vec![frame(0, -110.0), frame(1, -110.0), frame(2, 110.0)].into_iter();
+        let mut grab = || frames.next().ok_or_else(|| "no more frames".to_string());
+        let (views, w, h, skipped) = grab_views(&mut grab, "left", &spec, 2, 60.0).unwrap();
+        assert_eq!((w, h), (640, 480));
+        assert_eq!(views.len(), 2, "{skipped:?}");
+        assert_eq!(views[0].name, "frame 0");
+        assert_eq!(views[1].name, "frame 2");
+        assert_eq!(skipped, vec![Rejected { name: "1 of 3 frames".into(), reason: "added no coverage".into() }]);
+
+        // No frame at all: the camera is named with the source's message, a runtime failure.
+        let mut grab = || Err::<FrameSet, _>("no camera delivered a frame within 5 s".to_string());
+        let e = grab_views(&mut grab, "left", &spec, 2, 60.0).unwrap_err();
+        assert_eq!(e.to_string(), "camera left: no camera delivered a frame within 5 s");
+        assert!(!e.is_bad_input());
+    }
 }

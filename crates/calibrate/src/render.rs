@@ -7,10 +7,10 @@ use nalgebra::Vector3;
 
 use super::target::{tag_centre, TargetSpec};
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
-use tagdeflect_detect::tag_bitmap;
 use tagdeflect_core::frame::GrayImage;
-use tagdeflect_sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
 use tagdeflect_core::tags::TagBitmap;
+use tagdeflect_detect::tag_bitmap;
+use tagdeflect_sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
 
 /// How a target image is rendered.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -10,7 +10,7 @@ use super::solve::{Calibration, PARAM_NAMES};
 use tagdeflect_core::camera::CameraIntrinsics;
 
 /// Cells of the coverage grid across the image (the rows follow the aspect ratio).
-pub const COVERAGE_COLS: usize = 8;
+const COVERAGE_COLS: usize = 8;
 
 /// Where the target's points fell in the image.
 #[derive(Debug, Clone, PartialEq)]
@@ -82,7 +82,7 @@ impl Coverage {
     /// Writes the coverage map as PNG: the grid over the image (scaled so its longest side is
     /// at most 640 px), empty cells red, covered cells green by count, every point a dot,
     /// each view's points in their own colour.
-    pub fn write_png(&self, path: &Path, width: u32, height: u32, views: &[Vec<Point2<f64>>]) -> std::io::Result<()> {
+    pub(crate) fn write_png(&self, path: &Path, width: u32, height: u32, views: &[Vec<Point2<f64>>]) -> std::io::Result<()> {
         let scale = (640.0 / width.max(height) as f64).min(1.0);
         let (w, h) = (((width as f64) * scale).round().max(1.0) as usize, ((height as f64) * scale).round().max(1.0) as usize);
         let mut rgb = vec![0u8; w * h * 3];

@@ -84,7 +84,7 @@ pub enum SolveError {
     Singular,
 }
 
-/// The result of [`calibrate`].
+/// The result of a calibration (the fit inside [`crate::calibrate_views`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
     /// The intrinsics at the minimum.
@@ -283,7 +283,7 @@ impl PoseProblem for ViewPose<'_> {
 }
 
 /// The pose of one view for given intrinsics: homography of the undistorted points, then LM.
-pub fn view_pose(k: &CameraIntrinsics, view: &View) -> Option<Pose> {
+fn view_pose(k: &CameraIntrinsics, view: &View) -> Option<Pose> {
     let plane: Vec<Vector2<f64>> = view.object.iter().map(|p| Vector2::new(p.x, p.y)).collect();
     let norm: Vec<Vector2<f64>> = view.image.iter().map(|p| k.undistort(p)).collect();
     let h = homography(&plane, &norm)?;
@@ -346,7 +346,7 @@ fn normal_equations(k: &CameraIntrinsics, poses: &[Pose], views: &[View], b: &DM
 
 /// Calibrates from the views: closed-form start, then LM over intrinsics and all poses.
 /// `width` × `height` is the image size in pixels.
-pub fn calibrate(views: &[View], width: u32, height: u32, options: &SolveOptions) -> Result<Calibration, SolveError> {
+pub(crate) fn calibrate(views: &[View], width: u32, height: u32, options: &SolveOptions) -> Result<Calibration, SolveError> {
     let usable: Vec<&View> = views.iter().filter(|v| v.object.len() >= 6).collect();
     if usable.len() < 2 || usable.len() != views.len() {
         return Err(SolveError::TooFewViews { views: usable.len(), need: 2 });
@@ -488,13 +488,8 @@ fn finish(
 }
 
 /// Residuals (projection − detection, pixels) of one view under a calibration.
-pub fn residuals(k: &CameraIntrinsics, pose: &Pose, view: &View) -> Vec<Vector2<f64>> {
+pub(crate) fn residuals(k: &CameraIntrinsics, pose: &Pose, view: &View) -> Vec<Vector2<f64>> {
     view.object.iter().zip(&view.image).map(|(x, u)| k.project(&pose.transform(x)).map_or(Vector2::repeat(f64::NAN), |q| q - u)).collect()
-}
-
-/// Board points of a view mapped through a pose (for tests and the coverage map).
-pub fn board_to_camera(pose: &Pose, object: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
-    object.iter().map(|x| pose.transform(x)).collect()
 }
 
 #[cfg(test)]

@@ -31,9 +31,9 @@
 use nalgebra::{Point2, Vector3};
 
 use super::solve::View;
-use tagdeflect_detect::{Detector, DetectorOptions};
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::{tag_corners, TagFamily};
+use tagdeflect_detect::{Detector, DetectorOptions};
 
 /// A calibration target (parsed `--target`).
 #[derive(Debug, Clone, PartialEq)]
@@ -174,7 +174,7 @@ impl TargetSpec {
 }
 
 /// Centre of tag (`col`, `row`) of a tag board (x right, y up; row 0 at the top).
-pub fn tag_centre(col: u32, row: u32, pitch_mm: f64) -> Vector3<f64> {
+pub(crate) fn tag_centre(col: u32, row: u32, pitch_mm: f64) -> Vector3<f64> {
     Vector3::new(col as f64 * pitch_mm, -(row as f64) * pitch_mm, 0.0)
 }
 
@@ -295,7 +295,7 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
 /// orthogonality condition in a `(2 half + 1)²` window with Gaussian weights, iterated until
 /// it moves less than 0.001 px. `None` when the window leaves the image, the structure
 /// tensor is singular, or the corner wanders further than `half` from `start`.
-pub fn refine_saddle(image: &GrayImage, start: Point2<f64>, half: i32) -> Option<Point2<f64>> {
+fn refine_saddle(image: &GrayImage, start: Point2<f64>, half: i32) -> Option<Point2<f64>> {
     let (w, h) = (image.width as f64, image.height as f64);
     let hf = half as f64;
     let mut q = start;

@@ -47,19 +47,20 @@ impl Default for ClockCheckConfig {
 }
 
 impl ClockCheckConfig {
-    /// Checks the values; the error names the key.
-    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+    /// Checks the values; keys relative to `[clock_check]`.
+    pub fn validate(&self) -> Result<(), tagdeflect_core::Problem> {
+        use tagdeflect_core::Problem;
         if self.every_lines == 0 {
-            return Err(("every_lines", "must be ≥ 1".into()));
+            return Err(Problem::new("every_lines", "must be ≥ 1"));
         }
         if !(self.warn_ms.is_finite() && self.warn_ms > 0.0) {
-            return Err(("warn_ms", format!("must be a positive number of ms, got {}", self.warn_ms)));
+            return Err(Problem::new("warn_ms", format!("must be a positive number of ms, got {}", self.warn_ms)));
         }
         if !(self.max_offset_ms.is_finite() && self.max_offset_ms > 0.0 && self.max_offset_ms <= 60_000.0) {
-            return Err(("max_offset_ms", format!("must be in (0, 60000] ms, got {}", self.max_offset_ms)));
+            return Err(Problem::new("max_offset_ms", format!("must be in (0, 60000] ms, got {}", self.max_offset_ms)));
         }
         if self.min_points < 8 {
-            return Err(("min_points", "must be ≥ 8".into()));
+            return Err(Problem::new("min_points", "must be ≥ 8"));
         }
         Ok(())
     }

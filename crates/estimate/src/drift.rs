@@ -66,13 +66,13 @@ impl DriftConfig {
         }
     }
 
-    /// Checks the values; the error is `(key after "drift_", message)`.
-    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+    /// Checks the values; keys as in `[measure]` (`drift_rate_deg_per_h`, …).
+    pub fn validate(&self) -> Result<(), tagdeflect_core::Problem> {
         for (key, v) in
             [("rate_deg_per_h", self.rate_deg_per_h), ("rate_mm_per_h", self.rate_mm_per_h), ("rate_change_h", self.rate_change_h)]
         {
             if !(v.is_finite() && v > 0.0 && v <= 1e6) {
-                return Err((key, format!("{v}: expected a positive number (at most 1e6)")));
+                return Err(tagdeflect_core::Problem::new(format!("drift_{key}"), format!("{v}: expected a positive number (at most 1e6)")));
             }
         }
         Ok(())

@@ -91,6 +91,17 @@ pub struct SeenTag {
     pub corners: [nalgebra::Point2<f64>; 4],
 }
 
+/// What the measurement saw in a frame set, for the sinks that show it (the live page's
+/// thumbnails and camera poses): part of its output, like the feed line.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Observed {
+    /// The tags detected in each camera's frame, as (camera index, tags); cameras without a
+    /// frame in the set are absent.
+    pub seen: Vec<(usize, Vec<SeenTag>)>,
+    /// Each camera's pose (world → camera) after the set, `None` until posed.
+    pub camera_poses: Vec<Option<Pose>>,
+}
+
 /// The live page's view of one camera's detections (see [`SeenTag`]).
 fn seen_tags(d: &CameraDetections) -> Vec<SeenTag> {
     let tag = |t: &tagdeflect_detect::Detection, specimen: bool| SeenTag { family: t.family, id: t.id, specimen, corners: t.corners };
@@ -249,6 +260,11 @@ impl Measurement {
     /// (camera index, tags); cameras without a frame in that set are absent.
     pub fn last_seen(&self) -> &[(usize, Vec<SeenTag>)] {
         &self.last_seen
+    }
+
+    /// What the last frame set processed showed ([`Observed`]).
+    pub fn observed(&self) -> Observed {
+        Observed { seen: self.last_seen.clone(), camera_poses: self.camera_poses() }
     }
 
     /// Processes one frame set into a feed line.

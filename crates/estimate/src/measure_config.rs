@@ -58,3 +58,37 @@ impl Default for MeasureConfig {
     }
 }
 
+
+impl MeasureConfig {
+    /// Checks `[measure]` with the detector's and the drift model's own limits (so nothing
+    /// fails after `tagdeflect check`); keys relative to `[measure]`.
+    pub fn validate(&self) -> Result<(), tagdeflect_core::Problem> {
+        use tagdeflect_core::Problem;
+        if !(self.quad_decimate.is_finite() && self.quad_decimate >= 1.0) {
+            return Err(Problem::new("quad_decimate", "must be >= 1.0 (1 = full resolution)"));
+        }
+        if self.detector_threads == 0 {
+            return Err(Problem::new("detector_threads", "must be >= 1"));
+        }
+        let opts = tagdeflect_detect::DetectorOptions {
+            quad_decimate: self.quad_decimate,
+            nthreads: self.detector_threads,
+            ..tagdeflect_detect::DetectorOptions::default()
+        };
+        if let Err(tagdeflect_detect::DetectError::BadOption { name, value, expected }) = opts.validate() {
+            let key = match name {
+                "nthreads" => "detector_threads",
+                "quad_decimate" => "quad_decimate",
+                _ => "",
+            };
+            return Err(Problem::new(key, format!("{value} is out of range: {expected}")));
+        }
+        if !(self.full_search_interval_s.is_finite() && self.full_search_interval_s > 0.0 && self.full_search_interval_s <= 3600.0) {
+            return Err(Problem::new(
+                "full_search_interval_s",
+                format!("must be in (0, 3600] seconds, got {}", self.full_search_interval_s),
+            ));
+        }
+        crate::DriftConfig::from_measure(self).validate()
+    }
+}

@@ -189,7 +189,7 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
     let _ = write!(
         h,
         "<li><b>Load σ:</b> {:.4} kN per reading = √(scatter² + resolution²/12), scatter {:.4} kN (robust: 1.4826·MAD of each point's deviation from the line through its neighbours), resolution {} kN.</li>",
-        c.load_sigma, c.load_noise, report.options.load_resolution_kn
+        c.load_sigma, c.load_noise, report.options.load_resolution_kn.unwrap_or(0.0)
     );
     h.push_str("<li><b>Values at a deflection/CMOD:</b> the first point where the smoothed curve reaches it, loads interpolated linearly between the two bracketing points; σ² = s²·((1−f)²σ²(x̃ᵢ₋₁) + f²σ²(x̃ᵢ)) + ((1−f)² + f²)·σ_load², f the fraction between them, s the slope there (their secant when they are more than 3σ apart, else the local least-squares slope over the smoothing window).</li>");
     if report.standard != Standard::En14651 {

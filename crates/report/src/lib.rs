@@ -29,23 +29,24 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 use tagdeflect_core::rig::TagRole;
-use crate::config::Config;
+use tagdeflect_core::rig::{SpecimenConfig, WorldConfig};
 
 /// The standard a report follows.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Standard {
     /// ASTM C1609/C1609M: fibre-reinforced concrete, third-point loading, net deflection.
     #[serde(rename = "astm-c1609")]
-    #[value(name = "astm-c1609")]
+    #[cfg_attr(feature = "clap", value(name = "astm-c1609"))]
     AstmC1609,
     /// ASTM C1856/C1856M (UHPC): the flexural test of C1609 on the specimens C1856 calls
     /// for; the quantities are C1609's, the geometry is taken from the config.
     #[serde(rename = "astm-c1856")]
-    #[value(name = "astm-c1856")]
+    #[cfg_attr(feature = "clap", value(name = "astm-c1856"))]
     AstmC1856,
     /// EN 14651: notched beam, three-point loading, CMOD.
     #[serde(rename = "en-14651")]
-    #[value(name = "en-14651")]
+    #[cfg_attr(feature = "clap", value(name = "en-14651"))]
     En14651,
 }
 
@@ -157,70 +158,23 @@ pub enum ReportError {
     },
 }
 
-/// How a report is made (the command line's options or `[report]`).
+/// What the report needs of the rig: the world's up direction (deflection is along it) and
+/// the specimen — its tags' roles and `[specimen.beam]`.
 #[derive(Debug, Clone, PartialEq)]
-pub struct ReportOptions {
-    /// The standard.
-    pub standard: Standard,
-    /// Gauge used as net deflection instead of the feed's `net_deflection_mm`.
-    pub deflection_gauge: Option<String>,
-    /// Gauge used as CMOD (EN 14651).
-    pub cmod_gauge: Option<String>,
-    /// Smoothing window, points (odd).
-    pub smooth_points: usize,
-    /// Load resolution, kN.
-    pub load_resolution_kn: f64,
+pub struct TestRig {
+    /// `[world]`.
+    pub world: WorldConfig,
+    /// `[specimen]`.
+    pub specimen: SpecimenConfig,
+    /// `[[gauge]]`.
+    pub gauges: Vec<tagdeflect_estimate::gauges::GaugeConfig>,
 }
 
-impl ReportOptions {
-    /// Options from `[report]`.
-    pub fn from_config(r: &ReportConfig) -> Self {
-        Self {
-            standard: r.standard,
-            deflection_gauge: r.deflection_gauge.clone(),
-            cmod_gauge: r.cmod_gauge.clone(),
-            smooth_points: r.smooth_points,
-            load_resolution_kn: r.load_resolution_kn.unwrap_or(0.0),
-        }
+impl TestRig {
+    /// Role of a specimen tag.
+    pub fn role_of(&self, id: u32) -> Option<TagRole> {
+        self.specimen.role_of(id)
     }
-}
-
-/// `tagdeflect report` options.
-#[derive(Debug, Clone, clap::Args)]
-pub struct ReportArgs {
-    /// The feed (JSON Lines) of the test.
-    pub feed: PathBuf,
-    /// The config of the test (its `[specimen.beam]` gives the geometry).
-    #[arg(long)]
-    pub config: PathBuf,
-    /// The standard.
-    #[arg(long, value_enum)]
-    pub standard: Standard,
-    /// Output folder (created; existing report files in it are replaced).
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Use this gauge as the net deflection (default: the feed's `net_deflection_mm`).
-    #[arg(long)]
-    pub deflection_gauge: Option<String>,
-    /// Use this gauge as the CMOD (EN 14651; default: the gauge named `cmod`).
-    #[arg(long)]
-    pub cmod_gauge: Option<String>,
-    /// Points of the local-linear smoothing of deflection/CMOD over time (odd; 1 = none).
-    #[arg(long, default_value_t = config::default_smooth())]
-    pub smooth_points: usize,
-    /// Resolution of the load reading, kN (adds resolution/√12 to each load's σ).
-    #[arg(long, default_value_t = 0.0)]
-    pub load_resolution_kn: f64,
-}
-
-/// `tagdeflect export` options.
-#[derive(Debug, Clone, clap::Args)]
-pub struct ExportArgs {
-    /// The feed (JSON Lines).
-    pub feed: PathBuf,
-    /// The CSV file to write (`-` = stdout).
-    #[arg(long)]
-    pub csv: PathBuf,
 }
 
 /// A computed report.
@@ -247,7 +201,7 @@ pub struct Report {
     /// Where the feed was read.
     pub feed_path: PathBuf,
     /// Report options used.
-    pub options: ReportOptions,
+    pub options: ReportConfig,
 }
 
 /// The statement every report carries about the clauses cited.
@@ -257,7 +211,7 @@ pub const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited fo
      against your copy before relying on this report.";
 
 /// Builds the report of a feed.
-pub fn build(feed: &Feed, config: &Config, config_path: &Path, opts: &ReportOptions) -> Result<Report, ReportError> {
+pub fn build(feed: &Feed, config: &TestRig, config_path: &Path, opts: &ReportConfig) -> Result<Report, ReportError> {
     let beam = config.specimen.beam.clone().ok_or_else(|| ReportError::Config {
         path: config_path.to_path_buf(),
         message:
@@ -338,13 +292,13 @@ fn gauge_columns(feed: &Feed, name: &str) -> Columns {
     c
 }
 
-fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportOptions, what: &'static str) -> Result<Curve, String> {
-    Curve::new(c.t, c.p, c.x, c.sx, ref_sigma, opts.smooth_points, opts.load_resolution_kn, what).map_err(|e| e.to_string())
+fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportConfig, what: &'static str) -> Result<Curve, String> {
+    Curve::new(c.t, c.p, c.x, c.sx, ref_sigma, opts.smooth_points, opts.load_resolution_kn.unwrap_or(0.0), what).map_err(|e| e.to_string())
 }
 
 /// Load against net deflection: a gauge when asked for, else the feed's `net_deflection_mm`
 /// with σ propagated from the role tags' `sigma_mm` along `world.up`.
-fn deflection_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Curve, String, String, String), String> {
+fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
     // Asked for, else the config's `net_deflection` gauge when the feed carries it (its σ
     // comes from the tags' covariance), else the feed's net_deflection_mm.
     let configured = config
@@ -399,7 +353,7 @@ fn deflection_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Resul
 }
 
 /// σ of a line's net deflection from its role tags, `None` when a role tag has no σ.
-fn role_sigma(l: &feed::FeedRecord, config: &Config, down_sigma: &dyn Fn([f64; 3]) -> f64) -> Option<f64> {
+fn role_sigma(l: &feed::FeedRecord, config: &TestRig, down_sigma: &dyn Fn([f64; 3]) -> f64) -> Option<f64> {
     let mut mid = Vec::new();
     let mut sup = Vec::new();
     for t in &l.tags {
@@ -418,7 +372,7 @@ fn role_sigma(l: &feed::FeedRecord, config: &Config, down_sigma: &dyn Fn([f64; 3
 
 /// The CMOD gauge: the one asked for, else the config's only `opening` gauge in the feed,
 /// else `cmod`, else the only gauge named like an opening.
-pub fn cmod_gauge_name(feed: &Feed, config: &Config, asked: Option<&str>) -> Result<String, String> {
+pub fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result<String, String> {
     let names = feed.gauge_names();
     let openings: Vec<&str> = config
         .gauges
@@ -449,7 +403,7 @@ pub fn cmod_gauge_name(feed: &Feed, config: &Config, asked: Option<&str>) -> Res
     }
 }
 
-fn cmod_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Curve, String, String, String), String> {
+fn cmod_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
     let name = cmod_gauge_name(feed, config, opts.cmod_gauge.as_deref())?;
     let curve = curve_of(gauge_columns(feed, &name), 0.0, opts, "CMOD")?;
     Ok((
@@ -458,50 +412,6 @@ fn cmod_curve(feed: &Feed, config: &Config, opts: &ReportOptions) -> Result<(Cur
         "CMOD".into(),
         format!("gauge `{name}` of the feed (an opening across the notch), with its σ"),
     ))
-}
-
-/// Reads the config and feed of `report` and writes the report; returns the files written.
-pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
-    use anyhow::Context;
-    if args.smooth_points == 0 || args.smooth_points.is_multiple_of(2) {
-        anyhow::bail!("--smooth-points must be odd and at least 1, got {}", args.smooth_points);
-    }
-    if !(args.load_resolution_kn.is_finite() && args.load_resolution_kn >= 0.0) {
-        anyhow::bail!("--load-resolution-kn must be a non-negative load in kN");
-    }
-    let config = Config::load(&args.config)?;
-    let feed = Feed::read(&args.feed)?;
-    let opts = ReportOptions {
-        standard: args.standard,
-        deflection_gauge: args.deflection_gauge.clone(),
-        cmod_gauge: args.cmod_gauge.clone(),
-        smooth_points: args.smooth_points,
-        load_resolution_kn: args.load_resolution_kn,
-    };
-    let report = build(&feed, &config, &args.config, &opts)?;
-    let files = write(&report, &feed, &args.out).with_context(|| format!("writing the report into {}", args.out.display()))?;
-    for e in &report.entries {
-        match &e.result {
-            Ok(q) => tracing::info!("{} = {:.4} ± {:.4} {}", e.key, q.value, q.sigma, q.unit),
-            Err(why) => tracing::warn!("{}: not determined: {why}", e.key),
-        }
-    }
-    tracing::info!("report written into {} ({} files)", args.out.display(), files.len());
-    Ok(files)
-}
-
-/// `tagdeflect export`: the feed as CSV.
-pub fn export_cli(args: &ExportArgs) -> anyhow::Result<()> {
-    let feed = Feed::read(&args.feed)?;
-    if args.csv == Path::new("-") {
-        let mut out = std::io::stdout().lock();
-        csv_out::write_curve_csv(&feed, &mut out).map_err(|e| anyhow::anyhow!("writing the CSV to stdout: {e}"))?;
-    } else {
-        let mut buf = Vec::new();
-        csv_out::write_curve_csv(&feed, &mut buf).map_err(|e| anyhow::anyhow!("{}: {e}", args.csv.display()))?;
-        write_atomic(&args.csv, &buf)?;
-    }
-    Ok(())
 }
 
 /// Writes a file through a temporary sibling and a rename: a reader never sees half a file,
@@ -582,7 +492,7 @@ pub fn to_json(report: &Report) -> serde_json::Value {
             "x": report.x_name, "x_source": report.x_source, "points": c.len(),
             "smooth_points": c.smooth_points,
             "load_sigma_kN": c.load_sigma, "load_noise_kN": c.load_noise,
-            "load_resolution_kN": report.options.load_resolution_kn,
+            "load_resolution_kN": report.options.load_resolution_kn.unwrap_or(0.0),
             "x_scatter_mm": c.x_noise, "x_reference_sigma_mm": c.x_ref_sigma,
             "max_x_mm": c.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
         }),

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 
 use super::{Curve, Feed};
 use tagdeflect_core::rig::TagRole;
-use crate::config::Config;
+use crate::TestRig;
 
 /// A time interval with the UTM link down.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -133,7 +133,7 @@ fn summarise(map: &mut BTreeMap<String, (usize, Option<f64>)>, field: String, v:
 
 impl Qc {
     /// The QC of a feed and the curve made from it.
-    pub fn of(feed: &Feed, config: &Config, curve: &Curve, x_name: &str) -> Qc {
+    pub fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str) -> Qc {
         let lines = &feed.lines;
         let n = lines.len();
         let first_t_ns = lines[0].t_ns;

@@ -22,7 +22,7 @@ mod scene;
 
 pub use beam::{DeformedBeam, FourPointBeam};
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
-pub use rig::{SimCamera, SimRig, SimTruthCamera, SimTruthLine, SimTruthTag};
+pub use rig::{SimCamera, SimRig, SimRigSections, SimTruthCamera, SimTruthLine, SimTruthTag};
 
 // The parameters of the rig are config (`[sim]`, checked when the config is read); the
 // simulator uses them from there and the config never imports the simulator.

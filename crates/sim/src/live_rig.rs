@@ -12,8 +12,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tagdeflect_core::clock;
-use tagdeflect_io::utm::config::UtmConfig;
-use crate::config::Config;
+use tagdeflect_io::utm::config::{RegisterConfig, RegisterKind, UtmAddress, UtmConfig, ValueType, WordOrder};
 use tagdeflect_core::frame::GrayImage;
 use crate::{SimError, SimParams, SimRig};
 use tagdeflect_io::sources::live::{CaptureSession, Captured};
@@ -29,8 +28,8 @@ impl LiveRig {
     /// Builds the rig from the config's `[sim]` section (defaults when absent), with its
     /// clock starting at `start_ns` and a cyclic load history. The config's `sim` cameras are
     /// the rig's cameras (same names, in order): checked when the config is read.
-    pub fn new(config: &Config, start_ns: i64) -> Result<LiveRig, SimError> {
-        let mut params = config.sim.clone().unwrap_or_default();
+    pub fn new(sim: Option<&SimParams>, start_ns: i64) -> Result<LiveRig, SimError> {
+        let mut params = sim.cloned().unwrap_or_default();
         params.start_ns = start_ns;
         params.cyclic = true;
         let rig = SimRig::new(&params)?;
@@ -114,35 +113,22 @@ impl CaptureSession for SimSession {
     }
 }
 
-/// The built-in demo rig: three simulated 640x480 cameras at 5 fps and a simulated UTM
-/// served over Modbus TCP on loopback (f32 load at input register 0, f32 stroke at 2).
-/// Sized to keep up on a 2-core machine (rendering and measuring share the cores).
-pub fn demo_config() -> Config {
-    let params =
-        SimParams { cameras: 3, width: 640, height: 480, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let rig = SimRig::new(&params).expect("demo parameters are valid");
-    let mut config = rig.config();
-    config.utm = Some(UtmConfig {
-        address: "sim".into(),
-        unit: 1,
-        poll_hz: 50.0,
-        timeout_ms: 200.0,
-        load: tagdeflect_io::utm::config::RegisterConfig {
-            register: 0,
-            kind: tagdeflect_io::utm::config::RegisterKind::Input,
-            value_type: tagdeflect_io::utm::config::ValueType::F32,
-            word_order: tagdeflect_io::utm::config::WordOrder::Abcd,
-            scale: 1.0,
-            offset: 0.0,
-        },
-        stroke: Some(tagdeflect_io::utm::config::RegisterConfig {
-            register: 2,
-            kind: tagdeflect_io::utm::config::RegisterKind::Input,
-            value_type: tagdeflect_io::utm::config::ValueType::F32,
-            word_order: tagdeflect_io::utm::config::WordOrder::Abcd,
-            scale: 1.0,
-            offset: 0.0,
-        }),
-    });
-    config
+/// The built-in demo rig's parameters: three simulated 640x480 cameras at 5 fps. Sized to
+/// keep up on a 2-core machine (rendering and measuring share the cores).
+pub fn demo_params() -> SimParams {
+    SimParams { cameras: 3, width: 640, height: 480, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() }
+}
+
+/// The demo's UTM: the simulated UTM served over Modbus TCP on loopback (f32 load at input
+/// register 0, f32 stroke at 2), polled at 50 Hz.
+pub fn demo_utm() -> UtmConfig {
+    let f32_at = |register| RegisterConfig {
+        register,
+        kind: RegisterKind::Input,
+        value_type: ValueType::F32,
+        word_order: WordOrder::Abcd,
+        scale: 1.0,
+        offset: 0.0,
+    };
+    UtmConfig { address: UtmAddress::Sim, unit: 1, poll_hz: 50.0, timeout_ms: 200.0, load: f32_at(0), stroke: Some(f32_at(2)) }
 }

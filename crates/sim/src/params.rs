@@ -10,7 +10,8 @@ use serde::{Deserialize, Serialize};
 pub const DEFAULT_START_NS: i64 = 1_767_225_600_000_000_000;
 
 /// The load law of the simulated specimen (`simulate --load-law`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum LoadLaw {
     /// Load proportional to deflection throughout.
@@ -23,7 +24,8 @@ pub enum LoadLaw {
 }
 
 /// The kind of test simulated (`simulate --test`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum SimTest {
     /// Unnotched beam, two loads at `±load_span/2` (ASTM C1609 with `load_span = span/3`).
@@ -64,155 +66,156 @@ pub fn camera_names(count: usize) -> Vec<String> {
 ///
 /// Every field is also a `--kebab-case` option of `tagdeflect simulate` (flatten this
 /// struct into the subcommand with `#[command(flatten)]`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, clap::Args)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
 #[serde(deny_unknown_fields, default)]
 pub struct SimParams {
     /// Seed of every random choice (noise, jitter, dropped frames, texture); 0 to 2^63 - 1
     /// (it is written into the recording's TOML config, whose integers are signed 64-bit).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(..=i64::MAX as u64))]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(..=i64::MAX as u64)))]
     pub seed: u64,
     /// Number of cameras (1 to 3): 1 = centre, 2 = left + right, 3 = left + centre + right.
-    #[arg(long, default_value_t = 3)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3))]
     pub cameras: u32,
     /// Image width, pixels (the focal length follows the width of a 4:3 frame: the view stays the same).
-    #[arg(long, default_value_t = 1280)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1280))]
     pub width: u32,
     /// Image height, pixels.
-    #[arg(long, default_value_t = 960)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 960))]
     pub height: u32,
     /// Number of frame sets to write.
-    #[arg(long, default_value_t = 40)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 40))]
     pub frame_sets: u32,
     /// Frame rate of every camera, Hz.
-    #[arg(long, default_value_t = 10.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 10.0))]
     pub fps: f64,
     /// Sensor noise, standard deviation in grey levels (added after the blur).
-    #[arg(long, default_value_t = 2.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 2.0))]
     pub noise_sigma: f64,
     /// Optical blur, standard deviation of a Gaussian in pixels (0 = none).
-    #[arg(long, default_value_t = 0.6)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.6))]
     pub blur_sigma: f64,
     /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
-    #[arg(long, default_value_t = 0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub motion_blur_every: u32,
     /// Length of the motion-blur streak, pixels.
-    #[arg(long, default_value_t = 3.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3.0))]
     pub motion_blur_px: f64,
     /// Per-frame timing jitter of each camera, standard deviation in ms (clipped at 3 sigma).
-    #[arg(long, default_value_t = 1.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
     pub jitter_ms: f64,
     /// Probability that a camera drops a frame (the frame is simply absent).
-    #[arg(long, default_value_t = 0.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
     pub drop_prob: f64,
     /// Camera (index from 0) bumped mid-run; none by default.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub bump_camera: Option<u32>,
     /// Frame set from which the bumped camera has its new pose.
-    #[arg(long, default_value_t = 20)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 20))]
     pub bump_at: u32,
     /// Rotation of the bump, degrees (about an oblique axis through the camera centre).
-    #[arg(long, default_value_t = 0.3)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.3))]
     pub bump_rot_deg: f64,
     /// Translation of the bump, mm.
-    #[arg(long, default_value_t = 2.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 2.0))]
     pub bump_trans_mm: f64,
     /// Camera (index from 0) that drifts slowly (thermal, creep) over the recording; none by
     /// default. Its pose turns and shifts linearly from the first frame set to the last.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub drift_camera: Option<u32>,
     /// Total rotation of the drift over the recording, degrees (about an oblique, mostly
     /// horizontal axis through the camera centre).
-    #[arg(long, default_value_t = 0.05, allow_hyphen_values = true)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.05, allow_hyphen_values = true))]
     #[serde(skip_serializing_if = "is_default_drift_rot")]
     pub drift_rot_deg: f64,
     /// Total shift of the drifting camera's centre over the recording, mm (mostly downward).
-    #[arg(long, default_value_t = 0.3, allow_hyphen_values = true)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.3, allow_hyphen_values = true))]
     #[serde(skip_serializing_if = "is_default_drift_trans")]
     pub drift_trans_mm: f64,
     /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub hide_tag: Option<u32>,
     /// Camera (index from 0) that loses sight of `hide_tag`.
-    #[arg(long, default_value_t = 0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub hide_camera: u32,
     /// First frame set in which the tag is hidden.
-    #[arg(long, default_value_t = 10)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 10))]
     pub hide_from: u32,
     /// Number of frame sets the tag stays hidden.
-    #[arg(long, default_value_t = 10)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 10))]
     pub hide_count: u32,
     /// Radial distortion k1 of every camera (mild lens; k2 = -k1/2, tiny tangential terms).
-    #[arg(long, default_value_t = -0.05, allow_hyphen_values = true)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = -0.05, allow_hyphen_values = true))]
     pub k1: f64,
     /// Camera (index from 0) with a strongly distorting lens; none by default.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub strong_distortion_camera: Option<u32>,
     /// k1 of the strongly distorting lens.
-    #[arg(long, default_value_t = -0.25, allow_hyphen_values = true)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = -0.25, allow_hyphen_values = true))]
     pub strong_k1: f64,
     /// Midspan deflection at the end of the ramp, mm (positive downward).
-    #[arg(long, default_value_t = 6.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 6.0))]
     pub max_deflection_mm: f64,
     /// Frame sets at rest before the load ramp starts.
-    #[arg(long, default_value_t = 3)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3))]
     pub rest_frames: u32,
     /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
     /// after the ramp (for long live demos).
-    #[arg(long, default_value_t = false)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
     pub cyclic: bool,
     /// Beam length, mm.
-    #[arg(long, default_value_t = 550.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 550.0))]
     pub beam_length_mm: f64,
     /// Beam height, mm.
-    #[arg(long, default_value_t = 150.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 150.0))]
     pub beam_height_mm: f64,
     /// Beam width (depth into the scene), mm.
-    #[arg(long, default_value_t = 150.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 150.0))]
     pub beam_width_mm: f64,
     /// Support span, mm (supports at ±span/2).
-    #[arg(long, default_value_t = 450.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 450.0))]
     pub span_mm: f64,
     /// Distance between the two loads, mm (default span/3: loads at the third points).
-    #[arg(long, default_value_t = 150.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 150.0))]
     pub load_span_mm: f64,
     /// Number of specimen tags (1 to 15): middle row (midspan, supports), then top and bottom
     /// rows, then the load points.
-    #[arg(long, default_value_t = 9)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 9))]
     pub specimen_tags: u32,
     /// Edge of a specimen tag's black square (tag36h11), mm.
-    #[arg(long, default_value_t = 30.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 30.0))]
     pub specimen_tag_mm: f64,
     /// Edge of a background tag's black square (tag25h9), mm.
-    #[arg(long, default_value_t = 70.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 70.0))]
     pub background_tag_mm: f64,
     /// UTM sampling rate, Hz.
-    #[arg(long, default_value_t = 50.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 50.0))]
     pub utm_hz: f64,
     /// Phase of the UTM samples against the frame clock, ms.
-    #[arg(long, default_value_t = 7.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 7.0))]
     pub utm_phase_ms: f64,
     /// Beam stiffness: load per mm of midspan deflection, kN/mm.
-    #[arg(long, default_value_t = 10.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 10.0))]
     pub stiffness_kn_per_mm: f64,
     /// Machine compliance: stroke per kN beyond the beam's own deflection, mm/kN.
-    #[arg(long, default_value_t = 0.01)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.01))]
     pub compliance_mm_per_kn: f64,
     /// Shuffle the lines of frames.jsonl (SPEC allows any order across cameras).
-    #[arg(long, default_value_t = false)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
     pub shuffle: bool,
     /// Time of the first frame set, ns since the Unix epoch.
-    #[arg(long, default_value_t = DEFAULT_START_NS)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = DEFAULT_START_NS))]
     pub start_ns: i64,
     /// Sub-samples per pixel along each axis where a pixel straddles an edge (area integration).
-    #[arg(long, default_value_t = 8)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 8))]
     pub subsamples: u32,
     /// Fault injection: the UTM goes silent this many seconds after the first frame set
     /// (live: the simulated Modbus server stops answering; `simulate`: no UTM samples in the
     /// window); never by default.
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     pub utm_outage_at_s: Option<f64>,
     /// Length of the UTM outage, seconds.
-    #[arg(long, default_value_t = 5.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 5.0))]
     #[serde(skip_serializing_if = "is_default_outage")]
     pub utm_outage_s: f64,
 
@@ -220,46 +223,46 @@ pub struct SimParams {
     // recordings of the default rig are unchanged.
     /// The test: `four-point` (loads at `±load_span/2`) or `three-point-notched` (centre
     /// load, notch at midspan, tags straddling it; `load_span_mm` is then ignored).
-    #[arg(long, value_enum, default_value_t = SimTest::FourPoint)]
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = SimTest::FourPoint))]
     #[serde(skip_serializing_if = "is_default")]
     pub test: SimTest,
     /// The load law: `elastic` (load = stiffness × deflection), `softening` or `hardening`
     /// (elastic to the first crack, then to `residual_ratio` × the first-crack load).
-    #[arg(long, value_enum, default_value_t = LoadLaw::Elastic)]
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = LoadLaw::Elastic))]
     #[serde(skip_serializing_if = "is_default")]
     pub load_law: LoadLaw,
     /// Midspan deflection at the first crack, mm (first-crack load = stiffness × this).
-    #[arg(long, default_value_t = 0.3)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.3))]
     #[serde(skip_serializing_if = "is_default_crack")]
     pub crack_deflection_mm: f64,
     /// Sudden drop of the load at the first crack, fraction of the first-crack load.
-    #[arg(long, default_value_t = 0.1)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.1))]
     #[serde(skip_serializing_if = "is_default_drop")]
     pub crack_drop: f64,
     /// Residual load / first-crack load that the law tends to (default 0.5 softening, 1.5 hardening).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub residual_ratio: Option<f64>,
     /// Deflection scale of the approach to the residual level after the crack, mm.
-    #[arg(long, default_value_t = 0.5)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.5))]
     #[serde(skip_serializing_if = "is_default_softening")]
     pub softening_mm: f64,
     /// Notch depth (three-point-notched), mm.
-    #[arg(long, default_value_t = 25.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 25.0))]
     #[serde(skip_serializing_if = "is_default_notch")]
     pub notch_mm: f64,
     /// Notch width (three-point-notched), mm.
-    #[arg(long, default_value_t = 3.0)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 3.0))]
     #[serde(skip_serializing_if = "is_default_notch_width")]
     pub notch_width_mm: f64,
     /// Height of the crack tip (the halves' hinge) above the bottom face after cracking, mm
     /// (default: notch + 0.6 × (height − notch)).
-    #[arg(long)]
+    #[cfg_attr(feature = "clap", arg(long))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub crack_tip_mm: Option<f64>,
     /// Offset of the UTM's clock against the cameras' clock, ms: a UTM sample taken at true
     /// time t is stamped t + offset.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0, allow_hyphen_values = true))]
     #[serde(skip_serializing_if = "is_default")]
     pub utm_clock_offset_ms: f64,
 }
@@ -529,7 +532,9 @@ impl SimParams {
     }
 }
 
-#[cfg(test)]
+// The flags of `tagdeflect simulate` are these fields (derived with the `clap` feature,
+// which the binary turns on): their defaults must be the `[sim]` defaults.
+#[cfg(all(test, feature = "clap"))]
 mod tests {
     use super::*;
     use clap::Parser;

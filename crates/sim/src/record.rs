@@ -17,7 +17,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use tagdeflect_io::recording::{FrameEntry, FrameFormat, RecordingError, RecordingWriter, TruthLine, TruthTag};
+use tagdeflect_io::recording::{FrameEntry, FrameFormat, RecordedConfig, RecordingError, RecordingWriter, TruthLine, TruthTag};
 
 use super::{SimError, SimParams, SimRig};
 
@@ -46,20 +46,20 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SimError + '_ {
 }
 
 /// Writes a simulated recording of `params` into `out` (which must not hold a recording),
-/// frames as PNG.
+/// frames as PNG; `config` is the rig's config as the binary builds it (written as the
+/// recording's `tagdeflect.toml`).
 ///
 /// Frames are rendered at their own (jittered) capture times; `truth.jsonl` holds one
 /// line per frame set at the set's nominal time; dropped frames are simply absent.
-pub fn simulate(params: &SimParams, out: &Path) -> Result<SimSummary, SimError> {
-    simulate_as(params, out, FrameFormat::Png)
+pub fn simulate(params: &SimParams, out: &Path, config: &impl RecordedConfig) -> Result<SimSummary, SimError> {
+    simulate_as(params, out, FrameFormat::Png, config)
 }
 
 /// [`simulate`] with the frames written in `format`.
-pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat) -> Result<SimSummary, SimError> {
+pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat, config: &impl RecordedConfig) -> Result<SimSummary, SimError> {
     let rig = SimRig::new(params)?;
-    let config = rig.config();
-    let mut writer = RecordingWriter::create(out, &config)?;
-    let names: Vec<String> = config.cameras.iter().map(|c| c.name.clone()).collect();
+    let mut writer = RecordingWriter::create(out, config)?;
+    let names: Vec<String> = config.cameras().iter().map(|c| c.name.clone()).collect();
     let truth_path = out.join(SIM_TRUTH_FILE);
     let mut sim_truth = std::io::BufWriter::new(std::fs::File::create(&truth_path).map_err(io_err(&truth_path))?);
     let mut entries = Vec::new();

@@ -24,7 +24,7 @@ use tagdeflect_core::frame::GrayImage;
 
 /// A rectangle of pixels `x0..x1`, `y0..y1` (exclusive ends).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct PixelRect {
+pub struct PixelRect {
     /// First column.
     pub x0: usize,
     /// First row.
@@ -56,7 +56,7 @@ impl PixelRect {
 
 /// Undistorted normalised rays through the pixel corners of one camera.
 #[derive(Debug, Clone)]
-pub(crate) struct CornerRays {
+pub struct CornerRays {
     /// Image width.
     pub w: usize,
     /// Image height.
@@ -88,13 +88,13 @@ impl CornerRays {
 
 /// What a traced ray hits: a region label (equal labels = one uniformly shaded region),
 /// the grey level there, and, on a tag, the point in the tag's frame (mm; else zeros).
-pub(crate) type Hit = (u32, f32, [f64; 2]);
+pub type Hit = (u32, f32, [f64; 2]);
 
 /// Labels of tag pixels: bits 8.. name the tag (non-zero), bit 0 its colour. A pixel whose
 /// four corners lie on one tag is integrated in the tag's own frame, the sub-samples
 /// interpolated bilinearly between the corners' tag coordinates (the pixel-to-plane map is
 /// smooth at the pixel scale), then shaded by `flat(label, x, y)` without tracing.
-pub(crate) type Flat<'a> = Option<&'a (dyn Fn(u32, f64, f64) -> f32 + Sync)>;
+pub type Flat<'a> = Option<&'a (dyn Fn(u32, f64, f64) -> f32 + Sync)>;
 
 #[inline]
 fn tag_key(label: u32) -> Option<u32> {
@@ -102,7 +102,7 @@ fn tag_key(label: u32) -> Option<u32> {
 }
 
 /// Which uniform pixels to copy from a buffer instead: (label predicate, full-image buffer).
-pub(crate) type Keep<'a> = Option<(&'a (dyn Fn(u32) -> bool + Sync), &'a [f32])>;
+pub type Keep<'a> = Option<(&'a (dyn Fn(u32) -> bool + Sync), &'a [f32])>;
 
 /// Renders pixels of `rect` into `out` (row-major, `rect.width()` wide) by area
 /// integration. `corner` is traced at the pixel corners; a pixel whose four corner labels
@@ -111,7 +111,7 @@ pub(crate) type Keep<'a> = Option<(&'a (dyn Fn(u32) -> bool + Sync), &'a [f32])>
 /// Any other pixel is integrated with `n × n` sub-samples of `sample(direction, x, y)`
 /// (`x`, `y`: the pixel). `rot_cw` maps camera to world directions.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn render_rect<C, S>(
+pub fn render_rect<C, S>(
     rays: &CornerRays,
     rot_cw: &Rotation3<f64>,
     rect: PixelRect,
@@ -196,7 +196,7 @@ pub(crate) fn render_rect<C, S>(
 }
 
 /// A normalised Gaussian kernel of standard deviation `sigma` (radius 3 sigma).
-pub(crate) fn gaussian_kernel(sigma: f64) -> Vec<f32> {
+pub fn gaussian_kernel(sigma: f64) -> Vec<f32> {
     if sigma <= 0.0 {
         return vec![1.0];
     }
@@ -207,7 +207,7 @@ pub(crate) fn gaussian_kernel(sigma: f64) -> Vec<f32> {
 }
 
 /// Separable convolution of a `w × h` image with `kernel` (odd length), edges clamped.
-pub(crate) fn blur(img: &[f32], w: usize, h: usize, kernel: &[f32]) -> Vec<f32> {
+pub fn blur(img: &[f32], w: usize, h: usize, kernel: &[f32]) -> Vec<f32> {
     if kernel.len() <= 1 || w == 0 || h == 0 {
         return img.to_vec();
     }
@@ -239,7 +239,7 @@ pub(crate) fn blur(img: &[f32], w: usize, h: usize, kernel: &[f32]) -> Vec<f32> 
 
 /// Motion blur (camera shake): the mean of the image shifted along a straight streak of
 /// `length` pixels at angle `angle`, centred on zero shift (the centroid does not move).
-pub(crate) fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> Vec<f32> {
+pub fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> Vec<f32> {
     let steps = (length.ceil() as usize * 2).max(2) + 1;
     let (dx, dy) = (angle.cos() * length, angle.sin() * length);
     let offsets: Vec<(f64, f64)> = (0..steps)
@@ -270,7 +270,7 @@ pub(crate) fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f
 }
 
 /// Adds Gaussian noise of `sigma` grey levels (seeded per row) and rounds to 8 bits.
-pub(crate) fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -> GrayImage {
+pub fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -> GrayImage {
     let mut data = vec![0u8; w * h];
     data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ (y as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));

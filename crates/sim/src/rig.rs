@@ -14,10 +14,7 @@ use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use tagdeflect_core::rig::{BackgroundConfig, BackgroundTag, SpecimenConfig, SpecimenTag, TagRole, WorldConfig};
 use tagdeflect_core::beam::BeamConfig;
 use tagdeflect_core::camera_config::CameraConfig;
-use tagdeflect_estimate::measure_config::MeasureConfig;
-use tagdeflect_sinks::output::OutputConfig;
 use tagdeflect_io::sync::SyncConfig;
-use crate::config::Config;
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_estimate::gauges::{GaugeConfig, GaugeKind, GaugeTag, Gauges};
 use tagdeflect_core::tags::{tag_corners, TagFamily};
@@ -402,9 +399,11 @@ impl SimRig {
         self.layout.specimen.iter().map(|s| (s.id, s.role)).collect()
     }
 
-    /// The config of the rig: true intrinsics, no poses, `source = "sim"`, the background
-    /// tags' world corners, specimen tags with roles, and `[sim]` = the parameters.
-    pub fn config(&self) -> Config {
+    /// The rig's description as config sections: true intrinsics, no poses, `source =
+    /// "sim"`, the background tags' world corners, specimen tags with roles, and (for a real
+    /// test) `[specimen.beam]` and gauges. The binary adds `[sim]` = the parameters and
+    /// builds the whole config from it (through the same validation as a file).
+    pub fn sections(&self) -> SimRigSections {
         let p = &self.params;
         let cameras = (0..self.camera_count())
             .map(|i| {
@@ -426,7 +425,7 @@ impl SimRig {
             })
             .collect();
         let tolerance_ms = (10.0f64).max(6.0 * p.jitter_ms).min(450.0 / p.fps);
-        Config {
+        SimRigSections {
             world: WorldConfig { up: [0.0, 0.0, 1.0] },
             sync: SyncConfig { tolerance_ms },
             cameras,
@@ -442,13 +441,7 @@ impl SimRig {
                     notch_mm: (p.test == SimTest::ThreePointNotched).then_some(p.notch_mm),
                 }),
             },
-            utm: None,
-            output: OutputConfig::default(),
-            report: None,
-            measure: MeasureConfig::default(),
-            sim: Some(p.clone()),
             gauges: if self.real_test() { self.gauges() } else { Vec::new() },
-            clock_check: None,
         }
     }
 
@@ -503,7 +496,7 @@ impl SimRig {
 
     /// True values of the config's gauges at midspan deflection `d` (tags referenced to rest).
     pub fn gauge_truth(&self, d: f64) -> std::collections::BTreeMap<String, f64> {
-        let config = self.config();
+        let config = self.sections();
         let mut gauges = Gauges::new(&config.gauges, config.world.up, &config.specimen);
         let exact = |poses: Vec<(u32, Pose)>| poses.into_iter().map(|(id, p)| GaugeTag::exact(id, p)).collect::<Vec<_>>();
         gauges.evaluate(&exact(self.tag_poses_at(0.0)));
@@ -885,4 +878,21 @@ impl SimRig {
         let seed = mix(mix(self.params.seed, 0x4015e), mix(cam as u64, t_ns as u64));
         quantize(&img, w, h, self.params.noise_sigma, seed)
     }
+}
+
+/// The simulated rig described as the config sections it fills (see [`SimRig::sections`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimRigSections {
+    /// `[world]`.
+    pub world: WorldConfig,
+    /// `[sync]`: a tolerance fit for the rig's frame rate and jitter.
+    pub sync: SyncConfig,
+    /// The rig's cameras (`source = "sim"`).
+    pub cameras: Vec<CameraConfig>,
+    /// `[background]`.
+    pub background: BackgroundConfig,
+    /// `[specimen]`.
+    pub specimen: SpecimenConfig,
+    /// `[[gauge]]` (a real test's).
+    pub gauges: Vec<GaugeConfig>,
 }

@@ -31,7 +31,7 @@ use std::time::Duration;
 use rumqttc::{AsyncClient, Event, EventLoop, LastWill, MqttOptions, Outgoing, Packet, QoS, TlsConfiguration, Transport};
 use serde::{Deserialize, Serialize};
 
-use crate::config::Config;
+use crate::RigInfo;
 use tagdeflect_core::feed::FeedLine;
 
 /// `[output.mqtt]`: publish the feed to an MQTT broker.
@@ -434,7 +434,7 @@ impl MqttPublisher {
     /// Starts the publisher on the current tokio runtime: the connection is made in the
     /// background (the run does not wait for the broker). Fails only on a configuration
     /// the broker client rejects.
-    pub fn start(cfg: &MqttConfig, config: &Config, recording: Option<&Path>) -> Result<MqttPublisher, String> {
+    pub fn start(cfg: &MqttConfig, config: &RigInfo, recording: Option<&Path>) -> Result<MqttPublisher, String> {
         let test = cfg.test.clone().unwrap_or_else(new_test_id);
         let base = topic_for(&cfg.topic, &cfg.rig, &test);
         let client_id = cfg.client_id.clone().unwrap_or_else(|| format!("tagdeflect-{}", cfg.rig));
@@ -458,7 +458,7 @@ impl MqttPublisher {
                 .iter()
                 .map(|c| CameraStatus { name: c.name.clone(), source: c.source.to_string(), frame: None })
                 .collect(),
-            utm: config.utm.as_ref().map(|u| UtmStatus { address: u.address.clone(), state: None }),
+            utm: config.utm.as_ref().map(|a| UtmStatus { address: a.to_string(), state: None }),
             recording: recording.map(|p| p.display().to_string()),
             last_seq: None,
             last_t_ns: None,
@@ -522,10 +522,11 @@ impl MqttPublisher {
         self.shared.stats.clone()
     }
 
-    /// Hands a feed line over for publishing, never waiting on the network: sets
-    /// `line.mqtt_dropped` to the drop count (including a drop this line causes), then
-    /// buffers the line as serialised with that value.
-    pub fn publish(&self, line: &mut FeedLine) {
+    /// Makes room in the buffer for the next line (dropping the oldest when it is full) and
+    /// returns the lines dropped so far, this one's drop included: the `mqtt_dropped` of the
+    /// line about to be [published](Self::publish). Called by the measurement's status step,
+    /// so the line is complete before any sink sees it.
+    pub fn reserve(&self) -> u64 {
         let s = &self.shared;
         let mut st = s.state.lock().expect("mqtt state");
         if st.unsent.len() + st.sent.len() >= s.cap {
@@ -546,7 +547,16 @@ impl MqttPublisher {
             st.dropped += 1;
             s.stats.dropped.fetch_add(1, Ordering::Relaxed);
         }
-        line.mqtt_dropped = Some(st.dropped);
+        st.dropped
+    }
+
+    /// Hands a feed line over for publishing, never waiting on the network: buffers the
+    /// line as serialised (its `mqtt_dropped` came from [`Self::reserve`]). Lines reserved
+    /// but not yet handed over (those in the sinks' queue) may hold the buffer that many
+    /// lines above its size for a moment.
+    pub fn publish(&self, line: &FeedLine) {
+        let s = &self.shared;
+        let mut st = s.state.lock().expect("mqtt state");
         let bytes = line.to_json().into_bytes();
         let id = st.next_id;
         st.next_id += 1;
@@ -767,4 +777,17 @@ pub fn key_offset(text: &str, key: &str) -> Option<usize> {
         offset += line.len();
     }
     header
+}
+
+/// The publisher as a sink of finished lines (the room for each was made by
+/// [`MqttPublisher::reserve`] when its line was completed).
+pub struct MqttSink(pub Arc<MqttPublisher>);
+
+impl crate::LineSink for MqttSink {
+    fn name(&self) -> String {
+        "mqtt".into()
+    }
+    fn accept(&mut self, f: &crate::Finished) {
+        self.0.publish(&f.line);
+    }
 }

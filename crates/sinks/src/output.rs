@@ -25,7 +25,54 @@ pub struct OutputConfig {
     /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
     /// recording carries no broker address or credentials).
     #[serde(default, skip_serializing)]
-    pub mqtt: Option<crate::mqtt::MqttConfig>,
+    pub mqtt: Option<MqttSection>,
+}
+
+/// `[output.mqtt]` as this build takes it: the MQTT publisher's section with the `mqtt`
+/// feature; without it the table is kept as written (a config of a full build still loads;
+/// `run` then refuses to start, naming the feature).
+#[cfg(feature = "mqtt")]
+pub type MqttSection = crate::mqtt::MqttConfig;
+/// `[output.mqtt]` as this build takes it (built without the `mqtt` feature).
+#[cfg(not(feature = "mqtt"))]
+pub type MqttSection = serde_json::Value;
+
+impl OutputConfig {
+    /// Checks `[output]` but `[output.mqtt]` (`http`: an address the live page can serve;
+    /// relative `feed` and `record` paths are made relative to `base`); keys relative to
+    /// `[output]`.
+    pub fn validate(&mut self, base: &std::path::Path) -> Result<(), tagdeflect_core::Problem> {
+        use tagdeflect_core::Problem;
+        if let Some(h) = &self.http {
+            #[cfg(feature = "http")]
+            crate::http::parse_addr(h).map_err(|m| Problem::new("http", m))?;
+            #[cfg(not(feature = "http"))]
+            return Err(Problem::new("http", format!("\"{h}\": this build has no live page: build with the `http` feature")));
+        }
+        if let Some(r) = &self.record {
+            if r.is_relative() {
+                self.record = Some(base.join(r));
+            }
+        }
+        if let Some(f) = &self.feed {
+            if f != "-" && std::path::Path::new(f).is_relative() {
+                self.feed = Some(base.join(f).to_string_lossy().into_owned());
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks `[output.mqtt]` (the publisher's own checks; files relative to `base`); keys
+    /// relative to `[output]`.
+    pub fn validate_mqtt(&mut self, base: &std::path::Path) -> Result<(), tagdeflect_core::Problem> {
+        #[cfg(feature = "mqtt")]
+        if let Some(m) = self.mqtt.as_mut() {
+            m.validate(base).map_err(|(k, msg)| tagdeflect_core::Problem::new(format!("mqtt.{k}"), msg))?;
+        }
+        #[cfg(not(feature = "mqtt"))]
+        let _ = base;
+        Ok(())
+    }
 }
 
 fn is_default_format(f: &FrameFormat) -> bool {

@@ -17,9 +17,9 @@ use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::config::Config;
 use tagdeflect_core::frame::Frame;
-use tagdeflect_io::recording::{RecordingError, RecordingWriter};
+use tagdeflect_core::frame::FrameFormat;
+use tagdeflect_io::recording::{RecordedConfig, RecordingError, RecordingWriter};
 use tagdeflect_core::feed_file::SinkState;
 use tagdeflect_io::utm::UtmSample;
 
@@ -109,9 +109,9 @@ pub struct Recorder {
 impl Recorder {
     /// Creates the recording folder (errors here are reported before anything starts) and
     /// starts the recorder thread with a queue of `queue` messages.
-    pub fn start(dir: &Path, config: &Config, queue: usize) -> Result<Recorder, RecordingError> {
-        let writer = RecordingWriter::create(dir, config)?.with_format(config.output.record_format);
-        let names: Vec<String> = config.cameras.iter().map(|c| c.name.clone()).collect();
+    pub fn start(dir: &Path, config: &impl RecordedConfig, format: FrameFormat, queue: usize) -> Result<Recorder, RecordingError> {
+        let writer = RecordingWriter::create(dir, config)?.with_format(format);
+        let names: Vec<String> = config.cameras().iter().map(|c| c.name.clone()).collect();
         Ok(Self::start_with(writer, names, queue, RETRY_MIN))
     }
 

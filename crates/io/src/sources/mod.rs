@@ -20,6 +20,7 @@
 //! `replay` and `bench` read a recording as fast as they can instead, through
 //! `Recording::frames` — the same frames, without the pacing.
 
+#[cfg(feature = "aravis")]
 pub mod aravis;
 pub use tagdeflect_core::clock;
 pub mod convert;

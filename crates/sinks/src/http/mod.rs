@@ -30,10 +30,10 @@ use std::sync::{mpsc as std_mpsc, Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::broadcast;
 
-use crate::config::Config;
+use crate::RigInfo;
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::frame::FrameSet;
-use tagdeflect_estimate::measure::Measurement;
+use tagdeflect_estimate::measure::Observed;
 use tagdeflect_io::sources::SourceEvent;
 use tagdeflect_io::utm::modbus::UtmEvent;
 use metrics::{cam, Metrics};
@@ -170,7 +170,7 @@ struct Events {
 
 /// Everything the endpoints serve: shared by the server, the solver's tap and the hooks.
 pub struct LiveView {
-    pub(crate) config: Config,
+    pub(crate) config: RigInfo,
     pub(crate) mode: &'static str,
     pub(crate) metrics: Metrics,
     pub(crate) state: Mutex<State>,
@@ -183,7 +183,7 @@ pub struct LiveView {
 
 impl LiveView {
     /// A view of a run of `config`; `mode` is `"live"` or `"replay"` (shown in the status).
-    pub fn new(config: &Config, mode: &'static str) -> Arc<LiveView> {
+    pub fn new(config: &RigInfo, mode: &'static str) -> Arc<LiveView> {
         let (tx, _) = broadcast::channel(EVENT_BUFFER);
         let metrics = Metrics::new();
         let view = LiveView {
@@ -407,7 +407,7 @@ impl LiveView {
     }
 }
 
-/// The solver thread's side of the live view: [`SolverTap::publish`] never waits.
+/// The sinks' side of the live view: [`SolverTap::publish`] never waits.
 pub struct SolverTap {
     view: Arc<LiveView>,
     snapshots: std_mpsc::SyncSender<SnapshotJob>,
@@ -416,12 +416,14 @@ pub struct SolverTap {
 
 impl SolverTap {
     /// Publishes a finished feed line; offers each camera's frame of `set` with the tags
-    /// `measure` detected in it to the snapshot thread, at most once per camera per second.
-    pub fn publish(&mut self, line: &FeedLine, set: &FrameSet, measure: &Measurement) {
+    /// the measurement detected in it to the snapshot thread, at most once per camera per
+    /// second.
+    pub fn publish(&mut self, line: &FeedLine, set: Option<&FrameSet>, observed: &Observed) {
         self.view.publish_line(line);
-        self.view.set_poses(measure.camera_poses());
+        self.view.set_poses(observed.camera_poses.clone());
+        let Some(set) = set else { return };
         let now = Instant::now();
-        for (ci, tags) in measure.last_seen() {
+        for (ci, tags) in &observed.seen {
             let Some(last) = self.last_offer.get_mut(*ci) else { continue };
             if last.is_some_and(|t| now.duration_since(t) < SNAPSHOT_INTERVAL) {
                 continue;
@@ -476,50 +478,11 @@ pub async fn serve(opts: HttpOptions, view: Arc<LiveView>) -> Result<Option<Http
     Ok(Some(HttpServer { addr, handle }))
 }
 
-/// `replay DIR --http ADDR` (without `--realtime`): the replay as fast as it goes, its lines
-/// on the page; then the page stays up until SIGINT/SIGTERM. The feed goes to stdout.
-pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: HttpOptions) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let rec = crate::pipeline::replay::open(dir, config)?;
-    let rt =
-        tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().context("cannot start the async runtime")?;
-    let view = LiveView::new(&rec.config, "replay");
-    let _server = rt.block_on(serve(opts, view.clone()))?;
-    for s in &rec.utm {
-        view.on_utm(&UtmEvent::Sample(*s));
-    }
-    let mut out = tagdeflect_core::feed_file::FeedWriter::stdout();
-    let mut write_err = None;
-    let ro = crate::pipeline::replay::ReplayOptions { full_frame, progress: false };
-    crate::pipeline::replay::replay(&rec, ro, |line, _, _| {
-        view.publish_line(line);
-        if write_err.is_none() {
-            write_err = out.write(line).err();
-        }
-    })?;
-    if let Some(e) = write_err {
-        return Err(e.into());
-    }
-    view.on_finished();
-    rt.block_on(linger())
-}
-
-/// Keeps the page up after a replay until SIGINT/SIGTERM.
-pub async fn linger() -> anyhow::Result<()> {
-    use anyhow::Context;
-    tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
-    Ok(())
-}
 
 /// Where a live run serves the page: `opts` (the command line) first, else `[output] http`
 /// (validated when the config was loaded: a taken address is then an error).
-pub fn wanted(config: &Config, opts: Option<HttpOptions>) -> Option<HttpOptions> {
-    opts.or_else(|| config.output.http.as_deref().and_then(|a| parse_addr(a).ok()).map(|addr| HttpOptions { addr, required: true }))
+pub fn wanted(configured: Option<&str>, opts: Option<HttpOptions>) -> Option<HttpOptions> {
+    opts.or_else(|| configured.and_then(|a| parse_addr(a).ok()).map(|addr| HttpOptions { addr, required: true }))
 }
 
 /// Hook of the live pipeline's assembler: shows `ev` to the view (frames, drops, lost
@@ -574,5 +537,14 @@ mod tests {
         let s = key_span(t, "output", "http").unwrap();
         assert_eq!(&t[s], "http = \"nope\"\n");
         assert!(key_span(t, "output", "record").is_none());
+    }
+}
+
+impl crate::LineSink for SolverTap {
+    fn name(&self) -> String {
+        "live page".into()
+    }
+    fn accept(&mut self, f: &crate::Finished) {
+        self.publish(&f.line, f.set.as_ref(), &f.observed);
     }
 }

@@ -286,7 +286,7 @@ pub fn status(view: &LiveView) -> Status {
     let utm = UtmStatus {
         configured: utm_configured,
         state,
-        address: cfg.utm.as_ref().map(|u| u.address.clone()),
+        address: cfg.utm.as_ref().map(|a| a.to_string()),
         samples: st.utm.samples,
         outages: st.utm.outages,
         last_error: st.utm.last_error.clone(),

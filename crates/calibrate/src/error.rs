@@ -1,0 +1,205 @@
+//! The errors of `tagdeflect calibrate`.
+
+use std::fmt;
+use std::path::PathBuf;
+
+use crate::solve::SolveError;
+use crate::target::TargetError;
+use crate::Rejected;
+
+/// Why `tagdeflect calibrate` (or one of its steps) failed.
+///
+/// **Bad input or runtime failure.** [`CalibrateError::is_bad_input`] tells the two apart:
+///
+/// - *Bad input* (the command line exits 2; the same input fails the same way again): a bad
+///   `--target` ([`Target`](Self::Target)), an option out of range or options that do not
+///   fit together ([`BadOption`](Self::BadOption)), an image folder that cannot be read or
+///   holds no image ([`ReadFolder`](Self::ReadFolder), [`NoImages`](Self::NoImages)), an
+///   image that cannot be read or decoded ([`Decode`](Self::Decode)), images of different
+///   sizes ([`SizeMismatch`](Self::SizeMismatch)), views that do not show the target often
+///   enough or do not determine a calibration ([`TooFewViews`](Self::TooFewViews),
+///   [`Solve`](Self::Solve)), and detector options the AprilTag library refuses
+///   ([`Detector`](Self::Detector) other than [`DetectError::Create`](tagdeflect_detect::DetectError::Create)).
+/// - *Runtime failure* (exit 1): the AprilTag library failing to create its detector
+///   ([`DetectError::Create`](tagdeflect_detect::DetectError::Create)), the live camera not
+///   delivering frames ([`Grab`](Self::Grab)), and the outputs that cannot be written
+///   ([`CreateDir`](Self::CreateDir), [`Write`](Self::Write)).
+///
+/// (A config that cannot be loaded or names no such camera is the caller's: the binary
+/// reads the config and builds the camera's frame source for [`crate::live::grab_views`].)
+///
+/// **Messages.** A variant that adds context holds its cause in its own message
+/// (`context: cause: cause of the cause`, what the command line's `{:#}` printed before) and
+/// returns no [`source`](std::error::Error::source), so printing it with `{:#}` through
+/// `anyhow` does not repeat the cause; a variant that wraps another error alone is
+/// transparent (its message and sources are that error's).
+#[derive(Debug, thiserror::Error)]
+pub enum CalibrateError {
+    /// A bad `--target` (bad input).
+    #[error(transparent)]
+    Target(#[from] TargetError),
+    /// An option out of range, or options that do not fit together (bad input).
+    #[error("{0}")]
+    BadOption(String),
+    /// The `--images` folder cannot be read (bad input).
+    #[error("cannot read the image folder {}: {}", .dir.display(), Chain(.cause))]
+    ReadFolder {
+        /// The folder.
+        dir: PathBuf,
+        /// Why.
+        cause: std::io::Error,
+    },
+    /// The `--images` folder holds no PNG or JPEG file (bad input).
+    #[error("no PNG or JPEG images in {}", .0.display())]
+    NoImages(PathBuf),
+    /// An image cannot be read or decoded (bad input).
+    #[error("cannot decode image {}: {}", .path.display(), Chain(.cause))]
+    Decode {
+        /// The image file.
+        path: PathBuf,
+        /// Why.
+        cause: image::ImageError,
+    },
+    /// Two images differ in size: they cannot come from one camera at one resolution (bad input).
+    #[error(
+        "image {} is {}x{} but {} is {}x{}: all views must come from one camera at one resolution",
+        .path.display(),
+        .size.0,
+        .size.1,
+        .first.display(),
+        .first_size.0,
+        .first_size.1
+    )]
+    SizeMismatch {
+        /// The image that differs.
+        path: PathBuf,
+        /// Its width and height.
+        size: (u32, u32),
+        /// The first image.
+        first: PathBuf,
+        /// The first image's width and height.
+        first_size: (u32, u32),
+    },
+    /// The target was found in fewer than three views (bad input).
+    #[error("the target was found in {found} views, need at least 3 ({})", Reasons(.not_found))]
+    TooFewViews {
+        /// Views in which the target was found.
+        found: usize,
+        /// The images or frames where it was not, and why.
+        not_found: Vec<Rejected>,
+    },
+    /// The views do not determine a calibration (bad input).
+    #[error(transparent)]
+    Solve(#[from] SolveError),
+    /// The AprilTag detector of a tag board could not be created (runtime failure when the
+    /// library failed to create it, bad input for options it refuses).
+    #[error(transparent)]
+    Detector(#[from] tagdeflect_detect::DetectError),
+    /// Live mode: the camera delivered no frame set (runtime failure).
+    #[error("camera {camera}: {message}")]
+    Grab {
+        /// The camera's name.
+        camera: String,
+        /// What the frame source said.
+        message: String,
+    },
+    /// A folder for the outputs cannot be created (runtime failure).
+    #[error("cannot create {}: {}", .path.display(), Chain(.cause))]
+    CreateDir {
+        /// The folder.
+        path: PathBuf,
+        /// Why.
+        cause: std::io::Error,
+    },
+    /// An output file (the FileStorage YAML, the coverage map) cannot be written (runtime failure).
+    #[error("cannot write {}: {}", .path.display(), Chain(.cause))]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        cause: std::io::Error,
+    },
+}
+
+impl CalibrateError {
+    /// True for bad input (the command line exits 2), false for a runtime failure (exit 1);
+    /// see the type's documentation for which is which.
+    pub fn is_bad_input(&self) -> bool {
+        match self {
+            CalibrateError::Target(_)
+            | CalibrateError::BadOption(_)
+            | CalibrateError::ReadFolder { .. }
+            | CalibrateError::NoImages(_)
+            | CalibrateError::Decode { .. }
+            | CalibrateError::SizeMismatch { .. }
+            | CalibrateError::TooFewViews { .. }
+            | CalibrateError::Solve(_) => true,
+            CalibrateError::Detector(e) => !matches!(e, tagdeflect_detect::DetectError::Create(_)),
+            CalibrateError::Grab { .. } | CalibrateError::CreateDir { .. } | CalibrateError::Write { .. } => false,
+        }
+    }
+}
+
+/// An error and its sources, `: `-separated (what `anyhow`'s `{:#}` printed for a context).
+struct Chain<'a, E>(&'a E);
+
+impl<E: std::error::Error> fmt::Display for Chain<'_, E> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.0)?;
+        let mut source = self.0.source();
+        while let Some(s) = source {
+            write!(f, ": {s}")?;
+            source = s.source();
+        }
+        Ok(())
+    }
+}
+
+/// `name: reason; name: reason` of views not used.
+struct Reasons<'a>(&'a [Rejected]);
+
+impl fmt::Display for Reasons<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, r) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str("; ")?;
+            }
+            write!(f, "{}: {}", r.name, r.reason)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn messages_hold_their_cause_and_name_the_kind() {
+        let dir = PathBuf::from("/nonexistent/calibration-images");
+        let e = CalibrateError::ReadFolder { dir: dir.clone(), cause: std::fs::read_dir(&dir).unwrap_err() };
+        let text = e.to_string();
+        assert!(text.starts_with("cannot read the image folder /nonexistent/calibration-images: "), "{text}");
+        assert!(text.contains("No such file"), "{text}");
+        assert!(std::error::Error::source(&e).is_none(), "the cause is in the message, not repeated by `{{:#}}`");
+        assert!(e.is_bad_input());
+        let e = CalibrateError::TooFewViews {
+            found: 1,
+            not_found: vec![
+                Rejected { name: "a.png".into(), reason: "no checkerboard found".into() },
+                Rejected { name: "b.png".into(), reason: "too dark".into() },
+            ],
+        };
+        assert_eq!(e.to_string(), "the target was found in 1 views, need at least 3 (a.png: no checkerboard found; b.png: too dark)");
+        let e = CalibrateError::Grab { camera: "left".into(), message: "no camera delivered a frame within 5 s".into() };
+        assert_eq!(e.to_string(), "camera left: no camera delivered a frame within 5 s");
+        assert!(!e.is_bad_input());
+        let e = CalibrateError::Write { path: "out/cam.yml".into(), cause: std::io::Error::other("disk full") };
+        assert_eq!(e.to_string(), "cannot write out/cam.yml: disk full");
+        assert!(!e.is_bad_input());
+        let e: CalibrateError = "checkerboard:9:25".parse::<crate::target::TargetSpec>().unwrap_err().into();
+        assert!(e.is_bad_input() && e.to_string().contains("COLSxROWS"), "{e}");
+        fn send_sync<T: Send + Sync + 'static>() {}
+        send_sync::<CalibrateError>();
+    }
+}

@@ -1,0 +1,123 @@
+//! Every camera of a config, started: the one place that builds the sources (V4L2, Aravis,
+//! a recording played at its pace, the simulated rig's cameras).
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::mpsc::Sender;
+
+use tagdeflect_core::camera_config::CameraSource;
+use tagdeflect_io::sources::recording as player;
+use tagdeflect_io::sources::{spawn_capture, spawn_device, Backoff, LiveCamera, LoopTiming, OpenPolicy, SourceError, SourceEvent};
+
+use crate::config::Config;
+use crate::recording::Recording;
+
+#[cfg(feature = "sim")]
+use tagdeflect_sim::live_rig as sim;
+
+/// Every camera of a config, started.
+#[derive(Debug)]
+pub struct Sources {
+    /// The cameras, in config order.
+    pub cameras: Vec<LiveCamera>,
+    /// The simulated rig, when a camera or the UTM is simulated (the simulated UTM server
+    /// reads its load from it).
+    #[cfg(feature = "sim")]
+    pub rig: Option<Arc<sim::LiveRig>>,
+}
+
+impl Sources {
+    /// Waits for every capture thread to end (set the stop flag first).
+    pub fn join(self) {
+        for c in self.cameras {
+            c.join();
+        }
+    }
+}
+
+/// Whether the config asks for the simulated rig: a `sim` camera, or `utm.address = "sim"`
+/// unless the cameras play a recording (a replay takes its UTM samples from the recording).
+pub fn wants_rig(config: &Config) -> bool {
+    let replaying = config.cameras.iter().any(|c| matches!(c.source, CameraSource::Recording { .. }));
+    config.cameras.iter().any(|c| c.source.is_sim()) || (!replaying && config.utm.as_ref().is_some_and(|u| u.address.is_sim()))
+}
+
+/// Starts every camera of `config` (see the module doc). Returns once each device is open —
+/// or, with [`OpenPolicy::Retry`], once each device is open or being retried. The simulated
+/// rig's clock starts now.
+pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<Sources, SourceError> {
+    #[cfg(feature = "sim")]
+    let rig = if wants_rig(config) {
+        let rig = sim::LiveRig::new(config.sim.as_ref(), tagdeflect_core::clock::now_epoch_ns()).map_err(|e| SourceError::Open {
+            camera: 0,
+            name: "sim".into(),
+            spec: "sim".into(),
+            message: format!("cannot build the simulated rig: {e}"),
+        })?;
+        Some(Arc::new(rig))
+    } else {
+        None
+    };
+    let mut recordings: HashMap<PathBuf, (Arc<Recording>, Arc<player::Playhead>)> = HashMap::new();
+    let mut cameras = Vec::with_capacity(config.cameras.len());
+    let fail = |cameras: Vec<LiveCamera>, stop: &AtomicBool, e: SourceError| {
+        stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        for c in cameras {
+            c.join();
+        }
+        Err(e)
+    };
+    for (i, cam) in config.cameras.iter().enumerate() {
+        let started = match &cam.source {
+            CameraSource::V4l2 { .. } | CameraSource::Aravis { .. } => spawn_device(i, cam, policy, tx.clone(), stop.clone()),
+            #[cfg(not(feature = "sim"))]
+            CameraSource::Sim => Err(SourceError::Sim { camera: i, name: cam.name.clone() }),
+            #[cfg(feature = "sim")]
+            CameraSource::Sim => {
+                let rig = rig.clone().expect("the rig is built when a camera is simulated");
+                let mut session = Some(sim::SimSession::new(rig.clone(), i));
+                let open = move || Ok::<_, String>(session.take().unwrap_or_else(|| sim::SimSession::new(rig.clone(), i)));
+                spawn_capture(i, &cam.name, "sim".into(), open, LoopTiming::for_fps(cam.fps), policy, tx.clone(), stop.clone())
+            }
+            CameraSource::Recording { dir } => {
+                let entry = match recordings.get(dir) {
+                    Some(e) => Ok(e.clone()),
+                    None => Recording::open_with(dir, config.clone()).map(|rec| {
+                        let rec = Arc::new(rec);
+                        let e = (rec.clone(), player::Playhead::start(&*rec));
+                        recordings.insert(dir.clone(), e.clone());
+                        e
+                    }),
+                };
+                match entry {
+                    Err(e) => {
+                        Err(SourceError::Open { camera: i, name: cam.name.clone(), spec: cam.source.to_string(), message: e.to_string() })
+                    }
+                    Ok((rec, playhead)) => {
+                        let name = cam.name.clone();
+                        let mut session = Some(player::RecordingSession::new(&rec, playhead, &name));
+                        // A recording is played once: a "reopen" has nothing more to give.
+                        let open = move || session.take().ok_or_else(|| "played out".to_string());
+                        // Gaps in a recording are not a lost camera.
+                        let timing = LoopTiming { stall: Duration::from_secs(365 * 24 * 3600), backoff: Backoff::default() };
+                        spawn_capture(i, &cam.name, cam.source.to_string(), open, timing, OpenPolicy::Require, tx.clone(), stop.clone())
+                    }
+                }
+            }
+        };
+        match started {
+            Ok(c) => cameras.push(c),
+            Err(e) => return fail(cameras, &stop, e),
+        }
+    }
+    Ok(Sources {
+        cameras,
+        #[cfg(feature = "sim")]
+        rig,
+    })
+}
+
