@@ -67,9 +67,6 @@ width_mm = 150.0
 depth_mm = 150.0
 span_mm = 450.0
 
-[output]
-http = "127.0.0.1:0"
-
 [output.mqtt]
 url = "mqtt://127.0.0.1:1883"
 rig = "frame1"

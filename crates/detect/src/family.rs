@@ -194,7 +194,7 @@ mod bitmap_tests {
 
     #[test]
     fn bitmaps_match_apriltag_imgs() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata/apriltag-imgs");
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/realdata/apriltag-imgs");
         let mut checked = 0;
         for (family, dir, prefix, ids) in [
             (TagFamily::Tag36h11, "tag36h11", "tag36_11_", vec![0u32, 1, 7, 42, 100, 311, 586]),
