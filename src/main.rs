@@ -8,7 +8,8 @@ use std::process::ExitCode;
 
 use tagdeflect::config::Config;
 use tagdeflect::graph::page::HttpOptions;
-use tagdeflect::pipeline::{self, bench::BenchOptions, live::LiveOptions};
+use tagdeflect::graph::run::{self as live, LiveOptions};
+use tagdeflect::pipeline::{self, bench::BenchOptions};
 #[cfg(feature = "sim")]
 use tagdeflect::recording::FrameFormat;
 #[cfg(feature = "sim")]
@@ -172,15 +173,39 @@ fn main() -> ExitCode {
     }
 }
 
-/// Exit codes: 0 done; 2 bad input (config, recording, command line — a restart cannot help,
-/// so the unit says `RestartPreventExitStatus=2`); 1 a failure of the running daemon that a
-/// restart may cure ([`tagdeflect::RuntimeFailure`]).
+/// Exit codes, chosen from the error's type: 0 done; 2 bad input — a config, a recording, a
+/// feed, an option, an output path that cannot be used: a restart cannot help, so the unit
+/// says `RestartPreventExitStatus=2`; 1 a failure of the running program that a restart may
+/// cure ([`tagdeflect::RuntimeFailure`], and any error not known as bad input: a thread or
+/// runtime that cannot start, an I/O failure on the way).
 fn exit_code(e: &anyhow::Error) -> u8 {
     if e.chain().any(|c| c.is::<tagdeflect::RuntimeFailure>()) {
-        1
-    } else {
-        2
+        return 1;
     }
+    if e.chain().any(is_bad_input) {
+        2
+    } else {
+        1
+    }
+}
+
+/// The error types that say the input is at fault.
+fn is_bad_input(c: &(dyn std::error::Error + 'static)) -> bool {
+    #[cfg(feature = "sim")]
+    if c.is::<tagdeflect::sim::SimError>() {
+        return true;
+    }
+    #[cfg(feature = "http")]
+    if matches!(c.downcast_ref::<tagdeflect::sinks::http::HttpError>(), Some(tagdeflect::sinks::http::HttpError::Bind { .. })) {
+        return true;
+    }
+    c.is::<tagdeflect::BadInput>()
+        || c.is::<tagdeflect::config::ConfigError>()
+        || c.is::<tagdeflect::config::CalibrationError>()
+        || c.is::<tagdeflect::recording::RecordingError>()
+        || c.is::<tagdeflect::report::ReportError>()
+        || c.is::<tagdeflect::sources::SourceError>()
+        || c.is::<clap::Error>()
 }
 
 /// An archive error with its exit code (bad options exit 2, a failure of the machine 1).
@@ -234,13 +259,13 @@ fn run(cli: Cli) -> Result<()> {
             // Without `[output] feed` the feed goes to stdout (SPEC leaves it open; a feed
             // nobody sees helps no one).
             let feed_to_stdout = cfg.output.feed.is_none();
-            pipeline::live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
+            live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
         }
         Command::Replay { dir, config, realtime, full_frame, http } => {
             let cfg = config.as_deref().map(load_config).transpose()?;
             let http = http_options(http, true);
             if realtime {
-                pipeline::live::replay_realtime_http(&dir, cfg, full_frame, http)
+                live::replay_realtime_http(&dir, cfg, full_frame, http)
             } else if let Some(h) = http {
                 #[cfg(feature = "http")]
                 return pipeline::replay::replay_with_page(&dir, cfg, full_frame, h);
@@ -252,7 +277,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Record { config, out, duration_s } => {
             let cfg = load_config(&config)?;
-            pipeline::live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
+            live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
         #[cfg(feature = "sim")]
         Command::Simulate { out, frame_format, params } => {
@@ -272,7 +297,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Check { dir, config } => match (dir, config) {
             (Some(dir), None) => pipeline::check::check_recording(&dir),
             (None, Some(cfg)) => pipeline::check::check_config(&cfg),
-            _ => anyhow::bail!("check takes either a recording folder or --config FILE"),
+            _ => Err(tagdeflect::BadInput::new("check takes either a recording folder or --config FILE").into()),
         },
         Command::Bench(opts) => pipeline::bench::bench(&opts),
         #[cfg(feature = "sim")]
@@ -295,7 +320,7 @@ fn run(cli: Cli) -> Result<()> {
                 #[cfg(not(feature = "http"))]
                 (None, false) => None,
             };
-            pipeline::live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
+            live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
         #[cfg(feature = "archive")]
         Command::Archive(opts) => tagdeflect::archive::run(opts).map_err(archive_error),

@@ -83,7 +83,7 @@ impl std::io::Write for SharedBuf {
 fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<RealtimeFigures> {
     let buf = SharedBuf::default();
     let sink = crate::sinks::feed::FeedWriter::from_writer("bench", Box::new(buf.clone()));
-    crate::pipeline::live::replay_paced(rec.clone(), full_frame, vec![sink])?;
+    crate::graph::run::replay_paced(rec.clone(), full_frame, vec![sink])?;
     let text = String::from_utf8(std::mem::take(&mut *buf.0.lock().expect("feed buffer")))?;
     let lines: Vec<crate::feed::FeedLine> = text.lines().map(serde_json::from_str).collect::<Result<_, _>>()?;
     let mut per_camera = std::collections::HashMap::new();

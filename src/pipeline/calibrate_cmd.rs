@@ -37,11 +37,11 @@ fn one_camera(config_path: &Path, camera: &str) -> Result<Config> {
 }
 
 fn grabber(cfg: Config) -> impl FnMut() -> Result<FrameSet, String> {
-    move || crate::pipeline::live::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| format!("{e:#}"))
+    move || crate::graph::run::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| format!("{e:#}"))
 }
 
 /// Live mode: views of the target from the config's camera `camera`, kept when they add
-/// coverage (see `tagdeflect_calibrate::live::grab_views`).
+/// coverage (see `tagdeflect_calibrate::live_views::grab_views`).
 pub fn grab_views(
     config_path: &Path,
     camera: &str,
@@ -50,7 +50,7 @@ pub fn grab_views(
     duration_s: f64,
 ) -> Result<(Vec<View>, u32, u32, Vec<Rejected>)> {
     let mut grab = grabber(one_camera(config_path, camera)?);
-    tagdeflect_calibrate::live::grab_views(&mut grab, camera, spec, views, duration_s).map_err(with_exit_code)
+    tagdeflect_calibrate::live_views::grab_views(&mut grab, camera, spec, views, duration_s).map_err(with_exit_code)
 }
 
 /// `tagdeflect calibrate`.

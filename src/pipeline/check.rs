@@ -4,7 +4,7 @@
 //! A camera that sees too few background tags to be posed gets a clear warning; when no
 //! camera at all can be posed, `check` fails (exit 2): such a rig cannot measure.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -60,7 +60,7 @@ pub fn check_config(path: &Path) -> Result<()> {
         config.background.tags.len(),
         config.specimen.tags.len()
     );
-    let set = crate::pipeline::live::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
+    let set = crate::graph::run::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
     for (i, cam) in config.cameras.iter().enumerate() {
         if !set.frames.iter().any(|f| f.camera == i) {
             println!("  warning: camera {} ({}) delivered no frame within 10 s", cam.name, cam.source);
@@ -72,7 +72,7 @@ pub fn check_config(path: &Path) -> Result<()> {
 /// Runs the measurement over the sets and prints the per-camera summary of the last one.
 fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     if sets.is_empty() {
-        bail!("no frame could be read: nothing to check");
+        return Err(crate::BadInput::new("no frame could be read: nothing to check").into());
     }
     let mut m = Measurement::new(&config.measurement(), false).context("cannot start the tag detector")?;
     let mut last: Option<FeedLine> = None;
@@ -122,7 +122,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
         );
     }
     if posed == 0 {
-        bail!("no camera could be posed from the background tags: check the [background] tags' ids, family and world corners against what the cameras see");
+        return Err(crate::BadInput::new("no camera could be posed from the background tags: check the [background] tags' ids, family and world corners against what the cameras see").into());
     }
     Ok(())
 }

@@ -1,12 +1,12 @@
-//! The commands' drivers around the graph: replay, live (run / record / demo / replay
-//! --realtime), check and bench, and the report a run writes at its end.
+//! One module per command around the graph ([`crate::graph`]): replay, check, bench, report
+//! and export, calibrate, the daemon's journal summaries, and the report a run writes at its
+//! end.
 
 pub mod bench;
 #[cfg(feature = "calibrate")]
 pub mod calibrate_cmd;
 pub mod check;
 pub mod journal;
-pub mod live;
 pub mod replay;
 pub mod report_cmd;
 pub mod run_report;

@@ -82,6 +82,16 @@ pub fn replay_to_stdout(dir: &Path, config: Option<Config>, full_frame: bool) ->
 /// Replays a recording through the measurement; `on_line(line, stage_times, latency_s)`
 /// is called for every frame set in order (latency: frame set complete → line made).
 pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
+    replay_sets(rec, opts, |_, line, times, latency, _| on_line(&line, times, latency))
+}
+
+/// [`replay`] handing over each frame set with its line and the measurement that made it
+/// (what the sinks take: the live page shows the set's tags).
+fn replay_sets(
+    rec: &Recording,
+    opts: ReplayOptions,
+    mut on_set: impl FnMut(crate::frame::FrameSet, FeedLine, &StageTimes, f64, &Measurement),
+) -> Result<ReplaySummary> {
     let start = Instant::now();
     let config = &rec.config;
     let mut measure = Measurement::new(&config.measurement(), !opts.full_frame).context("cannot start the tag detector")?;
@@ -98,7 +108,7 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
     let mut process = |set: crate::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
         let (line, times) = measure.process(&set);
         summary.sets += 1;
-        on_line(&line, &times, ready.elapsed().as_secs_f64());
+        on_set(set, line, &times, ready.elapsed().as_secs_f64(), &measure);
     };
     let (mut bad, mut decode_s) = (0u64, 0.0);
     let mut newest_ready = Instant::now();
@@ -135,37 +145,35 @@ pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&Fee
     summary.stats = measure.stats().clone();
     summary.wall_s = start.elapsed().as_secs_f64();
     if summary.sets == 0 {
-        anyhow::bail!("{}: no frame could be read, nothing was solved", rec.dir.display());
+        return Err(crate::BadInput::new(format!("{}: no frame could be read, nothing was solved", rec.dir.display())).into());
     }
     Ok(summary)
 }
 
 /// `replay DIR --http ADDR` (without `--realtime`): the replay as fast as it goes, its lines
-/// on the page; then the page stays up until SIGINT/SIGTERM. The feed goes to stdout.
+/// to the sinks a run would have for it — the feed on stdout and the live page, on the sinks'
+/// own thread; then the page stays up until SIGINT/SIGTERM.
 #[cfg(feature = "http")]
-pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: tagdeflect_sinks::http::HttpOptions) -> anyhow::Result<()> {
+pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: crate::graph::page::HttpOptions) -> anyhow::Result<()> {
     use anyhow::Context;
+    use tagdeflect_sinks::{Fanout, FeedFileSink, Finished, LineSink};
     let rec = open(dir, config)?;
     let rt =
         tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().context("cannot start the async runtime")?;
-    let view = tagdeflect_sinks::http::LiveView::new(&rec.config.rig_info(), "replay");
-    let _server = rt.block_on(tagdeflect_sinks::http::serve(opts, view.clone()))?;
+    let page = rt.block_on(crate::graph::page::Page::start(&rec.config, Some(opts), "replay"))?;
+    let hooks = page.handle();
     for s in &rec.utm {
-        view.on_utm(&crate::utm::UtmEvent::Sample(*s));
+        hooks.on_utm(&crate::utm::UtmEvent::Sample(*s));
     }
-    let mut out = tagdeflect_core::feed_file::FeedWriter::stdout();
-    let mut write_err = None;
+    let mut sinks: Vec<Box<dyn LineSink>> = vec![Box::new(FeedFileSink(tagdeflect_core::feed_file::FeedWriter::stdout()))];
+    sinks.extend(page.sink()?);
+    let fanout = Fanout::start(sinks).context("cannot start the sinks' thread")?;
     let ro = ReplayOptions { full_frame, progress: false };
-    replay(&rec, ro, |line, _, _| {
-        view.publish_line(line);
-        if write_err.is_none() {
-            write_err = out.write(line).err();
-        }
+    replay_sets(&rec, ro, |set, line, _, _, measure| {
+        fanout.send(Finished { line, set: Some(set), observed: std::sync::Arc::new(measure.observed()) });
     })?;
-    if let Some(e) = write_err {
-        return Err(e.into());
-    }
-    view.on_finished();
+    fanout.finish();
+    page.on_finished();
     rt.block_on(linger())
 }
 

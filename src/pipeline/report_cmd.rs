@@ -49,10 +49,10 @@ pub struct ExportArgs {
 pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
     use anyhow::Context;
     if args.smooth_points == 0 || args.smooth_points.is_multiple_of(2) {
-        anyhow::bail!("--smooth-points must be odd and at least 1, got {}", args.smooth_points);
+        return Err(crate::BadInput::new(format!("--smooth-points must be odd and at least 1, got {}", args.smooth_points)).into());
     }
     if !(args.load_resolution_kn.is_finite() && args.load_resolution_kn >= 0.0) {
-        anyhow::bail!("--load-resolution-kn must be a non-negative load in kN");
+        return Err(crate::BadInput::new("--load-resolution-kn must be a non-negative load in kN").into());
     }
     let config = Config::load(&args.config)?;
     let feed = Feed::read(&args.feed)?;
@@ -81,10 +81,10 @@ pub fn export_cli(args: &ExportArgs) -> anyhow::Result<()> {
     let feed = Feed::read(&args.feed)?;
     if args.csv == Path::new("-") {
         let mut out = std::io::stdout().lock();
-        csv_out::write_curve_csv(&feed, &mut out).map_err(|e| anyhow::anyhow!("writing the CSV to stdout: {e}"))?;
+        csv_out::write_curve_csv(&feed, &mut out).map_err(|e| crate::BadInput::new(format!("writing the CSV to stdout: {e}")))?;
     } else {
         let mut buf = Vec::new();
-        csv_out::write_curve_csv(&feed, &mut buf).map_err(|e| anyhow::anyhow!("{}: {e}", args.csv.display()))?;
+        csv_out::write_curve_csv(&feed, &mut buf).map_err(|e| crate::BadInput::new(format!("{}: {e}", args.csv.display())))?;
         write_atomic(&args.csv, &buf)?;
     }
     Ok(())

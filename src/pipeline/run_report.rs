@@ -18,16 +18,17 @@ pub struct RunReport {
 impl RunReport {
     /// With `[report]` configured: creates the run's report folder and returns the hook and
     /// the feed writer (a sink of the run) that copies the feed into it.
-    pub fn start(config: &Config) -> anyhow::Result<Option<(RunReport, FeedWriter)>> {
-        use anyhow::Context;
+    /// A folder or file that cannot be written is bad input (`[report] out` names it).
+    pub fn start(config: &Config) -> Result<Option<(RunReport, FeedWriter)>, crate::BadInput> {
+        let bad = |what: String| move |e: std::io::Error| crate::BadInput::new(format!("{what}: {e}"));
         let Some(r) = &config.report else { return Ok(None) };
         let dir = r.out.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string());
-        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create the report folder {}", dir.display()))?;
+        std::fs::create_dir_all(&dir).map_err(bad(format!("cannot create the report folder {}", dir.display())))?;
         let feed = dir.join("feed.jsonl");
-        let writer = FeedWriter::append(&feed).with_context(|| format!("cannot write {}", feed.display()))?;
+        let writer = FeedWriter::append(&feed).map_err(bad(format!("cannot write {}", feed.display())))?;
         // The config in force beside the feed: `tagdeflect report feed.jsonl --config tagdeflect.toml` redoes the report.
         let cfg = dir.join("tagdeflect.toml");
-        std::fs::write(&cfg, config.to_toml_string()).with_context(|| format!("cannot write {}", cfg.display()))?;
+        std::fs::write(&cfg, config.to_toml_string()).map_err(bad(format!("cannot write {}", cfg.display())))?;
         tracing::info!("the report of this run goes into {}", dir.display());
         Ok(Some((RunReport { dir, feed, config: config.clone() }, writer)))
     }

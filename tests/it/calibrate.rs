@@ -442,7 +442,7 @@ fn live_mode_grabs_frames_from_a_sim_camera() {
 
 #[test]
 fn coverage_tracker_keeps_only_frames_that_add_coverage() {
-    use tagdeflect::calibrate::live::CoverageTracker;
+    use tagdeflect::calibrate::live_views::CoverageTracker;
     let mut t = CoverageTracker::new(640, 480);
     let view = |x0: f64| View {
         name: "v".into(),

@@ -1,7 +1,5 @@
 //! The errors of `tagdeflect archive` and `tagdeflect archive-bench`.
 
-use std::fmt;
-
 /// Why `tagdeflect archive` or `tagdeflect archive-bench` stopped with an error.
 ///
 /// **Bad input or runtime failure.** [`ArchiveError::is_bad_input`] tells the two apart:
@@ -18,10 +16,11 @@ use std::fmt;
 /// Outages of the broker or the database are no error: the archive retries them.
 ///
 /// **Messages.** A variant that adds context holds its cause in its own message
-/// (`context: cause: cause of the cause`, what the command line's `{:#}` printed before) and
-/// returns no [`source`](std::error::Error::source), so printing it with `{:#}` through
-/// `anyhow` does not repeat the cause; a variant that wraps another error alone is
-/// transparent (its message and sources are that error's).
+/// (`context: cause`, what the command line's `{:#}` printed before: the local servers'
+/// I/O errors carry their whole story in their message, they have no sources) and returns
+/// no [`source`](std::error::Error::source), so printing it with `{:#}` through `anyhow`
+/// does not repeat the cause; a variant that wraps another error alone is transparent (its
+/// message and sources are that error's).
 #[derive(Debug, thiserror::Error)]
 pub enum ArchiveError {
     /// An option that cannot be used (bad input); the message names it.
@@ -31,7 +30,7 @@ pub enum ArchiveError {
     #[error(transparent)]
     Runtime(std::io::Error),
     /// `archive-bench`: a local Mosquitto or PostgreSQL could not be started (runtime failure).
-    #[error("cannot start a local {server}: {}", Chain(.cause))]
+    #[error("cannot start a local {server}: {cause}")]
     LocalServer {
         /// "Mosquitto" or "PostgreSQL".
         server: &'static str,
@@ -61,21 +60,6 @@ impl ArchiveError {
             | ArchiveError::Task(_)
             | ArchiveError::Bench(_) => false,
         }
-    }
-}
-
-/// An error and its sources, `: `-separated (what `anyhow`'s `{:#}` printed for a context).
-struct Chain<'a, E>(&'a E);
-
-impl<E: std::error::Error> fmt::Display for Chain<'_, E> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}", self.0)?;
-        let mut source = self.0.source();
-        while let Some(s) = source {
-            write!(f, ": {s}")?;
-            source = s.source();
-        }
-        Ok(())
     }
 }
 

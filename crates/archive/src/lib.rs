@@ -42,6 +42,7 @@ use tokio::sync::{mpsc, watch};
 
 use db::{Db, LineRow, StatusRow};
 pub use error::ArchiveError;
+use tagdeflect_core::backoff::Backoff;
 use tagdeflect_core::feed::FeedLine;
 
 /// Options of `tagdeflect archive`.
@@ -253,8 +254,14 @@ async fn stopped(stop: &mut watch::Receiver<bool>) {
     }
 }
 
+/// The retry delays of the broker and the database connections and of a commit: 0.2 s
+/// doubling to 2 s.
+fn retry_backoff() -> Backoff {
+    Backoff::new(Duration::from_millis(200), Duration::from_secs(2))
+}
+
 async fn connect_db(url: &str, stats: &ArchiveStats, stop: &mut watch::Receiver<bool>) -> Option<Db> {
-    let mut backoff = Duration::from_millis(200);
+    let mut backoff = retry_backoff();
     let mut last = String::new();
     loop {
         match Db::connect(url).await {
@@ -269,21 +276,20 @@ async fn connect_db(url: &str, stats: &ArchiveStats, stop: &mut watch::Receiver<
             }
         }
         tokio::select! {
-            _ = tokio::time::sleep(backoff) => {}
+            _ = tokio::time::sleep(backoff.next_delay()) => {}
             _ = stopped(stop) => return None,
         }
-        backoff = (backoff * 2).min(Duration::from_secs(2));
     }
 }
 
 /// Drives the MQTT connection; subscribes on every connection (idempotent).
 async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<String>, tx: mpsc::Sender<Publish>) {
-    let mut backoff = Duration::from_millis(200);
+    let mut backoff = retry_backoff();
     let mut last_error = String::new();
     loop {
         match eventloop.poll().await {
             Ok(Event::Incoming(Packet::ConnAck(c))) => {
-                backoff = Duration::from_millis(200);
+                backoff.reset();
                 last_error.clear();
                 tracing::info!(session_present = c.session_present, "archive: connected to the broker");
                 // Subscribe on every connection: a broker restored from its persistence
@@ -315,8 +321,7 @@ async fn drive_mqtt(mut eventloop: EventLoop, client: AsyncClient, subs: Vec<Str
                     tracing::warn!("archive: broker unreachable ({msg}); retrying");
                     last_error = msg;
                 }
-                tokio::time::sleep(backoff).await;
-                backoff = (backoff * 2).min(Duration::from_secs(2));
+                tokio::time::sleep(backoff.next_delay()).await;
             }
         }
     }
@@ -423,7 +428,7 @@ async fn write_loop(
             }
         }
         // Commit, retrying through database outages; nothing is acknowledged before.
-        let mut backoff = Duration::from_millis(200);
+        let mut backoff = retry_backoff();
         let mut logged = false;
         loop {
             if db.is_closed() {
@@ -451,10 +456,9 @@ async fn write_loop(
                         logged = true;
                     }
                     tokio::select! {
-                        _ = tokio::time::sleep(backoff) => {}
+                        _ = tokio::time::sleep(backoff.next_delay()) => {}
                         _ = stopped(stop) => return,
                     }
-                    backoff = (backoff * 2).min(Duration::from_secs(2));
                     if !db.is_closed() {
                         // A failed transaction on a live connection: start afresh.
                         if let Some(d) = connect_db(&opts.postgres, stats, stop).await {

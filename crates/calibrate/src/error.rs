@@ -26,7 +26,7 @@ use crate::Rejected;
 ///   ([`CreateDir`](Self::CreateDir), [`Write`](Self::Write)).
 ///
 /// (A config that cannot be loaded or names no such camera is the caller's: the binary
-/// reads the config and builds the camera's frame source for [`crate::live::grab_views`].)
+/// reads the config and builds the camera's frame source for [`crate::live_views::grab_views`].)
 ///
 /// **Messages.** A variant that adds context holds its cause in its own message
 /// (`context: cause: cause of the cause`, what the command line's `{:#}` printed before) and

@@ -4,7 +4,7 @@
 //! [`target`] parses `--target` and finds the target in an image; [`solve`] runs Zhang's
 //! closed-form start and the Levenberg–Marquardt fit over all views with the product's camera
 //! model; [`calibrate_views`] adds the outlier policy; [`report`] makes the coverage map, the
-//! uncertainty at a distance and the OpenCV FileStorage file; [`live`] grabs views from a
+//! uncertainty at a distance and the OpenCV FileStorage file; [`live_views`] grabs views from a
 //! camera whose frames the caller supplies; [`render`] renders targets with known intrinsics
 //! for tests. Errors are [`CalibrateError`]s, which tell bad input from runtime failures.
 //!
@@ -14,7 +14,7 @@
 //! the fit is repeated until nothing more is dropped (at least three views stay).
 
 mod error;
-pub mod live;
+pub mod live_views;
 pub mod render;
 pub mod report;
 pub mod solve;
@@ -388,7 +388,7 @@ pub fn check_options(opts: &CalibrateOptions) -> Result<TargetSpec, CalibrateErr
 ///
 /// Live mode needs `grab`: the next frame set of that one camera (`Err` with the message
 /// when none arrives in time), which the caller builds from the config's camera and its
-/// source; see [`live::grab_views`]. With `--images`, `grab` must be `None`.
+/// source; see [`live_views::grab_views`]. With `--images`, `grab` must be `None`.
 pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, String>>) -> Result<(), CalibrateError> {
     let spec = check_options(opts)?;
     let (views, w, h, not_found) = match (&opts.images, &opts.camera, grab) {
@@ -396,7 +396,7 @@ pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<Fram
             let files = image_files(dir)?;
             detect_views(&files, &spec)?
         }
-        (None, Some(cam), Some(grab)) => live::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?,
+        (None, Some(cam), Some(grab)) => live_views::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?,
         _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
     if views.len() < 3 {

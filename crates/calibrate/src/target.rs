@@ -138,14 +138,6 @@ impl std::str::FromStr for TargetSpec {
 }
 
 impl TargetSpec {
-    /// Number of points a full view of the target gives.
-    pub fn point_count(&self) -> usize {
-        match self {
-            TargetSpec::Checkerboard { cols, rows, .. } => (*cols * *rows) as usize,
-            TargetSpec::TagBoard { cols, rows, .. } => (4 * *cols * *rows) as usize,
-        }
-    }
-
     /// Every board point (mm, z = 0), for renderers and tests: checkerboard corners row-major
     /// (`x = col · square`, `y = row · square`); tag-board corners tag by tag in SPEC order.
     pub fn board_points(&self) -> Vec<Vector3<f64>> {
@@ -192,11 +184,6 @@ impl TargetDetector {
             TargetSpec::Checkerboard { .. } => None,
         };
         Ok(Self { spec, tags })
-    }
-
-    /// The target.
-    pub fn spec(&self) -> &TargetSpec {
-        &self.spec
     }
 
     /// Finds the target in `image`: board points and their sub-pixel pixels. `Err` says

@@ -1,5 +1,6 @@
-//! Reconnect delays, the one backoff every reconnecting component uses (cameras, the UTM
-//! client): a first delay doubling up to a maximum, back to the first after a success.
+//! Reconnect delays, the one backoff every reconnecting or retrying component uses (cameras,
+//! the UTM client, feed files, the recorder, the MQTT publisher): a first delay doubling up
+//! to a maximum, back to the first after a success.
 
 use std::time::Duration;
 

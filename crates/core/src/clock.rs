@@ -33,16 +33,16 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// re-map the process clock. Smaller differences are left alone: every stamp is on the
 /// process clock, so they cannot pair load with the wrong frame, and NTP's gradual slewing
 /// moves CLOCK_MONOTONIC's rate along with the wall clock's.
-pub const STEP_THRESHOLD_NS: i64 = 1_000_000_000;
+pub(crate) const STEP_THRESHOLD_NS: i64 = 1_000_000_000;
 
 /// How fast the process clock absorbs a backwards step of the wall clock: 5000 ppm (5 ms per
 /// second; a 5 s step is absorbed in 1000 s). Intervals measured meanwhile are 0.5 % short —
 /// far below what matters for pairing load and frames, which share this clock.
-pub const SLEW_PPM: i64 = 5_000;
+pub(crate) const SLEW_PPM: i64 = 5_000;
 
 /// Nanoseconds since the Unix epoch on the host's realtime (wall) clock. Can step; stamp
 /// nothing with it — use [`now_epoch_ns`].
-pub fn wall_epoch_ns() -> i64 {
+pub(crate) fn wall_epoch_ns() -> i64 {
     match SystemTime::now().duration_since(UNIX_EPOCH) {
         Ok(d) => i64::try_from(d.as_nanos()).unwrap_or(i64::MAX),
         // A clock set before 1970: report it as negative time rather than panicking.

@@ -8,6 +8,12 @@
 //! `recording` / `recorder_dropped` (recorder state and frames it dropped, live runs that
 //! record); per camera `drift_deg` / `drift_mm` (estimated slow drift since the pose was
 //! fixed), `stale_pose` / `pose_age_sets` (pose held unchecked) and `dropped_frames` (live).
+//!
+//! **Read tolerantly.** The same types read a feed back (the report, the archive): unknown
+//! fields are ignored, every extension may be absent, and so may what a feed written
+//! by another version or by hand may leave out — a line's `tags` (none solved), a tag's
+//! `views` (0), a camera's `frame` and `posed` (`true`) and its tag counts (0), a gauge's
+//! `sigma` (unknown: NaN, see [`GaugeReading::known_sigma`]) and `unit` (empty).
 
 use serde::{Deserialize, Serialize};
 
@@ -20,7 +26,8 @@ pub struct FeedTag {
     pub pos_mm: [f64; 3],
     /// `pos_mm` minus the tag's position in the first frame set that solved it.
     pub disp_mm: [f64; 3],
-    /// Cameras that saw it (and were used).
+    /// Cameras that saw it (and were used); 0 when a feed does not say.
+    #[serde(default)]
     pub views: usize,
     /// 1-σ uncertainty of `pos_mm` along world x, y, z.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -35,16 +42,20 @@ pub struct FeedTag {
 pub struct CameraHealth {
     /// Camera name.
     pub name: String,
-    /// True when the camera contributed a frame to this set.
+    /// True when the camera contributed a frame to this set (read as `true` when absent).
+    #[serde(default = "yes")]
     pub frame: bool,
     /// Background tags seen.
+    #[serde(default)]
     pub background_tags: usize,
     /// Specimen tags seen.
+    #[serde(default)]
     pub specimen_tags: usize,
     /// RMS reprojection error of the background corners with the pose in use, px.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_reproj_px: Option<f64>,
-    /// The camera has a pose (from background tags or the config).
+    /// The camera has a pose (from background tags or the config; read as `true` when absent).
+    #[serde(default = "yes")]
     pub posed: bool,
     /// The camera was found moved (bumped) and re-posed in this frame set.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
@@ -82,7 +93,8 @@ pub struct FeedLine {
     /// UTM stroke interpolated at `t_ns`, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stroke_mm: Option<f64>,
-    /// The specimen tags solved in this frame set.
+    /// The specimen tags solved in this frame set (none when absent).
+    #[serde(default)]
     pub tags: Vec<FeedTag>,
     /// Mean downward displacement of midspan tags minus that of support tags, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -128,9 +140,12 @@ pub struct FeedLine {
 pub struct GaugeReading {
     /// The value.
     pub value: f64,
-    /// Its 1-σ uncertainty, propagated from the tags' covariance.
+    /// Its 1-σ uncertainty, propagated from the tags' covariance; NaN when a feed read back
+    /// does not give it (absent or `null`; not written then), see [`GaugeReading::known_sigma`].
+    #[serde(default = "unknown_sigma", deserialize_with = "sigma_or_unknown", skip_serializing_if = "is_unknown_sigma")]
     pub sigma: f64,
-    /// Unit of both: `mm`, `µε`, `mrad`, `1/km`.
+    /// Unit of both: `mm`, `µε`, `mrad`, `1/km`; empty when a feed read back does not give it.
+    #[serde(default, deserialize_with = "unit_or_empty", skip_serializing_if = "String::is_empty")]
     pub unit: String,
 }
 
@@ -145,6 +160,35 @@ impl GaugeReading {
         let r = |v: f64| (v / step).round() * step;
         GaugeReading { value: r(value), sigma: r(sigma).max(step), unit: unit.to_string() }
     }
+
+    /// The σ, `None` when the feed did not give it.
+    pub fn known_sigma(&self) -> Option<f64> {
+        Some(self.sigma).filter(|s| !s.is_nan())
+    }
+}
+
+/// Default of a camera's `frame` and `posed` read from a feed that does not give them.
+fn yes() -> bool {
+    true
+}
+
+/// A gauge's σ that a feed does not give.
+fn unknown_sigma() -> f64 {
+    f64::NAN
+}
+
+fn is_unknown_sigma(s: &f64) -> bool {
+    s.is_nan()
+}
+
+/// A gauge's σ, `null` read as unknown.
+fn sigma_or_unknown<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or_else(unknown_sigma))
+}
+
+/// A gauge's unit, `null` read as none.
+fn unit_or_empty<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    Ok(Option::<String>::deserialize(d)?.unwrap_or_default())
 }
 
 /// A value with its 1-σ uncertainty (unit in the field's name).
@@ -165,5 +209,28 @@ impl FeedLine {
     /// The line as compact JSON (no trailing newline).
     pub fn to_json(&self) -> String {
         serde_json::to_string(self).expect("feed line serialises")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_what_other_writers_leave_out_and_writes_it_back_the_same() {
+        let text = r#"{"seq":3,"t_ns":7,"future_field":{"x":1},"cameras":[{"name":"left","bumped":true}],"gauges":{"a":{"value":0.5},"b":{"value":1.0,"sigma":null,"unit":null}}}"#;
+        let l: FeedLine = serde_json::from_str(text).unwrap();
+        assert!(l.tags.is_empty());
+        let c = &l.cameras[0];
+        assert!(c.frame && c.posed && c.bumped && c.background_tags == 0);
+        for g in l.gauges.values() {
+            assert!(g.sigma.is_nan() && g.known_sigma().is_none() && g.unit.is_empty());
+        }
+        let back: serde_json::Value = serde_json::from_str(&l.to_json()).unwrap();
+        assert_eq!(back["gauges"]["a"], serde_json::json!({"value": 0.5}), "an unknown σ is not written");
+        let tag: FeedTag = serde_json::from_str(r#"{"id":1,"pos_mm":[0,0,1],"disp_mm":[0,0,0]}"#).unwrap();
+        assert_eq!(tag.views, 0);
+        let g = GaugeReading::new(0.123456, 0.0, "mm");
+        assert_eq!(g.known_sigma(), Some(1e-5));
     }
 }

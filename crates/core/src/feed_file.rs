@@ -14,6 +14,7 @@ use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use crate::backoff::Backoff;
 use crate::feed::FeedLine;
 use crate::linefile::{LineFile, LineTarget};
 
@@ -61,9 +62,7 @@ pub struct FeedWriter {
     dropped: u64,
     failing_since: Option<Instant>,
     next_retry: Instant,
-    backoff: Duration,
-    retry_min: Duration,
-    retry_max: Duration,
+    backoff: Backoff,
 }
 
 impl FeedWriter {
@@ -76,9 +75,7 @@ impl FeedWriter {
             dropped: 0,
             failing_since: None,
             next_retry: Instant::now(),
-            backoff: RETRY_MIN,
-            retry_min: RETRY_MIN,
-            retry_max: RETRY_MAX,
+            backoff: Backoff::new(RETRY_MIN, RETRY_MAX),
         }
     }
 
@@ -111,9 +108,7 @@ impl FeedWriter {
 
     /// Sets the retry backoff (first wait, longest wait).
     pub fn with_backoff(mut self, min: Duration, max: Duration) -> Self {
-        self.retry_min = min;
-        self.retry_max = max.max(min);
-        self.backoff = min;
+        self.backoff = Backoff::new(min, max);
         self
     }
 
@@ -190,7 +185,7 @@ impl FeedWriter {
         }
         if let Some(since) = self.failing_since.take() {
             tracing::info!(output = %self.target, after_s = since.elapsed().as_secs(), dropped = self.dropped, "feed output writes again");
-            self.backoff = self.retry_min;
+            self.backoff.reset();
         }
         if let Out::File(f) = &mut self.out {
             if let Err(e) = f.sync_if_due() {
@@ -211,9 +206,8 @@ impl FeedWriter {
                 format!("feed output {}: {e}; nobody reads it any more, it is off, the others go on", self.target),
             ));
         }
-        self.next_retry = Instant::now() + self.backoff;
-        let wait = self.backoff;
-        self.backoff = (self.backoff * 2).min(self.retry_max);
+        let wait = self.backoff.next_delay();
+        self.next_retry = Instant::now() + wait;
         if self.failing_since.is_none() {
             self.failing_since = Some(Instant::now());
             return Err(io::Error::new(

@@ -21,7 +21,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 /// At most one `fdatasync` per this interval while lines are being written.
-pub const SYNC_INTERVAL: Duration = Duration::from_secs(1);
+pub(crate) const SYNC_INTERVAL: Duration = Duration::from_secs(1);
 
 /// What a [`LineFile`] needs from the file underneath.
 pub trait LineTarget: Send {

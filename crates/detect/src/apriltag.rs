@@ -14,7 +14,7 @@
 //! **Corner order.** The library's `det->p[i]` are the homography images of the tag
 //! coordinates `(-1, 1), (1, 1), (1, -1), (-1, -1)`, with tag `y` growing downwards along the
 //! printed bit rows: bottom-left, bottom-right, top-right, top-left as printed. That is
-//! SPEC's order, so the mapping is the identity ([`LIBRARY_TO_SPEC`]); the real-data tests
+//! SPEC's order, so the mapping is the identity (`LIBRARY_TO_SPEC`); the real-data tests
 //! check it on upright renderings of the tag images.
 //!
 //! **Windows.** [`Detector::detect_window`] runs the library on a sub-rectangle of a frame
@@ -22,6 +22,10 @@
 //! offset with `stride` = frame width. The window's origin is aligned down to the library's
 //! 4-pixel threshold tiles so that, inside the window, the binarisation (and so the quads and
 //! corners) is the same as on the full frame.
+//!
+//! **Refinement.** Corners are refined after the library (when the options ask for it)
+//! through [`crate::refine`], which works on [`Detection`]s and knows nothing of this
+//! module: the imports go one way, from this wrapper to refinement.
 #![allow(unsafe_code)] // FFI module: every `unsafe` block carries its SAFETY comment.
 
 use std::ptr::NonNull;
@@ -29,7 +33,6 @@ use std::sync::{Mutex, TryLockError};
 
 use apriltag_sys as sys;
 use nalgebra::Point2;
-use thiserror::Error;
 
 use super::family::FamilyTable;
 use super::refine::{refine_corners_warm, refine_corners_with, EdgeMemory, RefineOptions, RefineStats};
@@ -38,38 +41,18 @@ use tagdeflect_core::camera::{CameraIntrinsics, Lens};
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::TagFamily;
 
+// The detector's errors live below this module and `refine` (which reports bad options
+// with them); re-exported here, where the detector's users find them.
+pub use crate::error::DetectError;
+
 /// Maps SPEC corner index → the library's `det->p` index (identity, see the module docs).
-pub const LIBRARY_TO_SPEC: [usize; 4] = [0, 1, 2, 3];
+const LIBRARY_TO_SPEC: [usize; 4] = [0, 1, 2, 3];
 
 /// Offset added to a library coordinate to get an OpenCV coordinate.
 pub const LIBRARY_TO_OPENCV: f64 = -0.5;
 
 /// Size of the library's thresholding tiles; windows are aligned to it.
 const THRESHOLD_TILE: u32 = 4;
-
-/// Errors of the detector wrapper.
-#[derive(Debug, Error)]
-pub enum DetectError {
-    /// The option set holds no tag family.
-    #[error("detector options: no tag family given (expected at least one of tag36h11, tag25h9, tag16h5)")]
-    NoFamily,
-    /// A family was listed twice.
-    #[error("detector options: tag family {0} listed twice")]
-    DuplicateFamily(TagFamily),
-    /// An option is out of range.
-    #[error("detector option {name} = {value}: {expected}")]
-    BadOption {
-        /// Option name.
-        name: &'static str,
-        /// The value given.
-        value: String,
-        /// What is expected.
-        expected: &'static str,
-    },
-    /// The C library returned a null pointer when creating an object.
-    #[error("the AprilTag library failed to create {0} (out of memory?)")]
-    Create(&'static str),
-}
 
 /// Options of a [`Detector`].
 #[derive(Debug, Clone, PartialEq)]

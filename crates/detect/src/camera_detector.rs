@@ -48,17 +48,17 @@ use tagdeflect_core::tags::TagFamily;
 /// the weakest tracked tag's (a new tag printed and lit like the others has about their
 /// contrast; a third of it leaves room for shadows) — the beam's low-contrast texture is
 /// then not searched at all, which is most of a search's cost on a textured specimen.
-pub const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
+const SEARCH_CONTRAST_FRACTION: f64 = 0.3;
 /// Cap of the contrast filter of tracking-mode searches, grey levels.
-pub const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
+const MAX_SEARCH_WHITE_BLACK_DIFF: f64 = 40.0;
 
 /// Time (frame time, ns) after a background search's frame at which its tags are taken in
 /// (see the module docs): 0.5 s — a full-resolution search of a 1920x1080 frame takes
 /// ~0.3 s of one core, and a tag lost for half a second more costs nothing a lost tag has
 /// not already cost.
-pub const BACKGROUND_SEARCH_LAG_NS: i64 = 500_000_000;
+const BACKGROUND_SEARCH_LAG_NS: i64 = 500_000_000;
 /// Quad decimation of a camera's start-up search in tracking mode (see the module docs).
-pub const STARTUP_DECIMATE: f32 = 2.0;
+const STARTUP_DECIMATE: f32 = 2.0;
 
 /// Time of one frame set's detection by kind of work, seconds.
 #[derive(Debug, Clone, Copy, Default)]
@@ -136,7 +136,7 @@ pub struct TagRoles {
 impl TagRoles {
     /// Sorts detections into background and specimen tags; when both share a family, an id
     /// of both lists is a background tag.
-    pub fn classify(&self, dets: Vec<Detection>) -> CameraDetections {
+    pub(crate) fn classify(&self, dets: Vec<Detection>) -> CameraDetections {
         let same_family = self.background_family == self.specimen_family;
         let mut out = CameraDetections::default();
         for d in dets {

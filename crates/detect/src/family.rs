@@ -24,7 +24,7 @@ const CONSTRUCTORS: [(unsafe extern "C" fn() -> *mut sys::apriltag_family_t, uns
 
 /// Owner of one family table created by the AprilTag library.
 #[derive(Debug)]
-pub struct FamilyTable {
+pub(crate) struct FamilyTable {
     family: TagFamily,
     ptr: *mut sys::apriltag_family_t,
 }
@@ -67,7 +67,8 @@ impl FamilyTable {
         self.raw().ncodes
     }
 
-    /// Number of data bits.
+    /// Number of data bits (the tests check the bit positions against it).
+    #[cfg(test)]
     pub fn nbits(&self) -> u32 {
         self.raw().nbits
     }
@@ -133,7 +134,7 @@ impl Drop for FamilyTable {
 }
 
 /// The layout of `family`, read from the library once per process and cached.
-pub fn family_layout(family: TagFamily) -> &'static FamilyLayout {
+pub(crate) fn family_layout(family: TagFamily) -> &'static FamilyLayout {
     use std::sync::OnceLock;
     static LAYOUTS: [OnceLock<FamilyLayout>; 3] = [OnceLock::new(), OnceLock::new(), OnceLock::new()];
     LAYOUTS[family.index()].get_or_init(|| match FamilyTable::new(family) {

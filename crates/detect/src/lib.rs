@@ -3,7 +3,7 @@
 //! refinement; and one camera's detection from frame to frame ([`CameraDetector`]: what to
 //! look for, confirming followed tags, window and sweep searches).
 
-pub mod family;
+mod family;
 
 use nalgebra::Point2;
 
@@ -34,14 +34,16 @@ impl Detection {
 }
 
 pub mod apriltag;
-pub mod camera_detector;
-pub mod confirm;
+mod camera_detector;
+mod confirm;
+mod error;
 pub mod plan;
 pub mod refine;
 
-pub use self::apriltag::{DetectError, Detector, DetectorOptions, RawDetection, SearchOptions};
+pub use self::apriltag::{Detector, DetectorOptions, RawDetection, SearchOptions};
 pub use self::camera_detector::{CameraDetections, CameraDetector, DetectParts, DetectReport, RigDetectors, TagRoles};
 pub use self::confirm::{ConfirmMiss, ConfirmOptions, ConfirmedTag, Prediction, TagConfirmer};
+pub use self::error::DetectError;
 pub use self::family::tag_bitmap;
 pub use self::refine::{
     refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, RefineOptions, RefineReport, RefineStats,

@@ -1,7 +1,7 @@
 //! Region-of-interest planning: what to look for in the next frame of one camera.
 //!
 //! Once tags have been found, each is expected where its last refined corners, moved by
-//! its image velocity, put it ([`PlannedTag::predicted`]). The measurement first tries to
+//! its image velocity, put it (`PlannedTag::predicted`). The measurement first tries to
 //! *confirm* it there without any search (sub-pixel refinement from the prediction, then
 //! the tag's code read back: see `detect::confirm`); only a tag that cannot be confirmed is
 //! searched for with the AprilTag library in its *window*, the predicted box grown by a
@@ -10,17 +10,17 @@
 //! - **Specimen tags** are looked for every frame.
 //! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
 //!   is held, see `solve::held_pose`), so after a settling period only a rotating subset of
-//!   [`BACKGROUND_TAGS_PER_FRAME`] of them is looked for per frame; the tracker's bump
+//!   `BACKGROUND_TAGS_PER_FRAME` of them is looked for per frame; the tracker's bump
 //!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
 //!   the same frame set. When the background tags seen have shifted in the image (a bump),
-//!   all of them are looked for again for [`SETTLE_FRAMES`] frames so the re-posing
+//!   all of them are looked for again for `SETTLE_FRAMES` frames so the re-posing
 //!   averages every tag.
 //! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
 //!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
 //!   is larger than the biggest tag, so each tag lies wholly inside some tile), with the
 //!   tags already found blanked out ([`masked_tile`]). Tiles are searched with quad
-//!   decimation [`SEARCH_DECIMATE`] when the tags are big enough
-//!   ([`MIN_EXTENT_TO_DECIMATE_SWEEP`]; corners are refined at full resolution), and the
+//!   decimation `SEARCH_DECIMATE` when the tags are big enough
+//!   (`MIN_EXTENT_TO_DECIMATE_SWEEP`; corners are refined at full resolution), and the
 //!   cameras' tiles are staggered (`with_phase`) so no frame set stalls.
 //! - **Full frame** (full resolution) at the start, when the image size changes and
 //!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
@@ -40,26 +40,26 @@ use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::TagFamily;
 
 /// Background tags searched per frame once the camera has settled (a rotating subset).
-pub const BACKGROUND_TAGS_PER_FRAME: usize = 3;
+const BACKGROUND_TAGS_PER_FRAME: usize = 3;
 /// Frames during which every background tag is searched after the first full-frame search
 /// or a suspected bump (covers the pose tracker's averaging of the corners).
-pub const SETTLE_FRAMES: u32 = 12;
+const SETTLE_FRAMES: u32 = 12;
 /// Quad decimation of the windows and the sweep's tiles when every tracked tag is at least
 /// [`MIN_EXTENT_TO_DECIMATE`] px across: the library fits the quads on the full image and
 /// the corners are refined at full resolution, so only the quad search (the costliest part
 /// on a textured specimen) runs on fewer pixels.
-pub const SEARCH_DECIMATE: f32 = 2.0;
+const SEARCH_DECIMATE: f32 = 2.0;
 /// Smallest tag extent (px, bounding box) for which window searches are decimated: a tag
 /// that could not be confirmed is often blurred or partly hidden, and the window search is
 /// small, so it keeps full resolution for tags below this.
-pub const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
+const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
 /// Smallest tag extent (px) for which the sweep (tiles, and the whole frame after a lost
 /// tag) is decimated. The sweep only looks for tags not followed yet, it is most of the
 /// searching cost in steady state, and the decimated start-up search finds 28-px tags as
 /// the full-resolution one does (`bench` on clean and noisy 3 × 1080p scenes: the same tags
 /// and the same accuracy); below 24 px (12 px at half resolution, 1.5-px border bits) the
 /// sweep keeps full resolution.
-pub const MIN_EXTENT_TO_DECIMATE_SWEEP: f64 = 24.0;
+const MIN_EXTENT_TO_DECIMATE_SWEEP: f64 = 24.0;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
@@ -94,7 +94,7 @@ struct Sighting {
 
 /// A tracked tag expected in the next frame.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PlannedTag {
+pub(crate) struct PlannedTag {
     /// Its family.
     pub family: TagFamily,
     /// Its id.
@@ -107,7 +107,7 @@ pub struct PlannedTag {
 
 /// What to search in one frame of one camera.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Plan {
+pub(crate) enum Plan {
     /// The whole frame, at the detector's configured resolution.
     FullFrame,
     /// Tracked tags (each confirmed at its predicted place, else searched in its window)
@@ -130,7 +130,7 @@ pub enum Plan {
 
 /// Plans the searches of one camera.
 #[derive(Debug)]
-pub struct RoiPlanner {
+pub(crate) struct RoiPlanner {
     enabled: bool,
     width: u32,
     height: u32,

@@ -262,7 +262,7 @@ pub fn estimate(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64>, max_
 
 /// [`estimate`] searching offsets in `[lo_ms, hi_ms]` only (the live check, once determined,
 /// searches near its last estimate).
-pub fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64>, lo_ms: f64, hi_ms: f64) -> Option<ClockOffset> {
+pub(crate) fn estimate_within(points: &[(i64, f64)], stroke: impl Fn(i64) -> Option<f64>, lo_ms: f64, hi_ms: f64) -> Option<ClockOffset> {
     let pts = ramp(points);
     if pts.len() < 8 {
         return None;

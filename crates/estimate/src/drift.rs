@@ -124,7 +124,7 @@ pub struct DriftFilter {
 }
 
 /// The pose `held` moved by `d = (ω, Δc)`: `R = exp(ω) R_held`, centre `c_held + Δc`.
-pub fn drifted_pose(held: &Pose, d: &Vector6<f64>) -> Pose {
+pub(crate) fn drifted_pose(held: &Pose, d: &Vector6<f64>) -> Pose {
     let w = Vector3::new(d[0], d[1], d[2]);
     let dc = Vector3::new(d[3], d[4], d[5]);
     let rotation = nalgebra::Rotation3::new(w) * held.rotation;
@@ -134,7 +134,7 @@ pub fn drifted_pose(held: &Pose, d: &Vector6<f64>) -> Pose {
 
 /// `pose` relative to `held` in `(ω, Δc)` and its covariance, from the covariance of `pose`
 /// in the solver's step parameters `(ω, v)` (`R ← exp(ω) R`, `t ← t + v`).
-pub fn pose_offset(held: &Pose, pose: &Pose, step_covariance: &Matrix6<f64>) -> (Vector6<f64>, Matrix6<f64>) {
+pub(crate) fn pose_offset(held: &Pose, pose: &Pose, step_covariance: &Matrix6<f64>) -> (Vector6<f64>, Matrix6<f64>) {
     let w = (pose.rotation * held.rotation.inverse()).scaled_axis();
     let dc = pose.centre() - held.centre();
     let j = offset_jacobian(pose);
@@ -146,7 +146,7 @@ pub fn pose_offset(held: &Pose, pose: &Pose, step_covariance: &Matrix6<f64>) -> 
 
 /// Jacobian of `(ω, c)` (rotation, camera centre) with respect to the solver's step
 /// `(ω, v)` at `pose`: from `c = −Rᵀ t`, `dc = −Rᵀ [t]× dω − Rᵀ dv`.
-pub fn offset_jacobian(pose: &Pose) -> Matrix6<f64> {
+pub(crate) fn offset_jacobian(pose: &Pose) -> Matrix6<f64> {
     let rt: Matrix3<f64> = *pose.rotation.inverse().matrix();
     let mut j = Matrix6::identity();
     j.fixed_view_mut::<3, 3>(3, 0).copy_from(&(-rt * skew(&pose.translation)));

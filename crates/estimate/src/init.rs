@@ -44,7 +44,7 @@ pub fn pose_from_homography(h: &Matrix3<f64>) -> Option<(Rotation3<f64>, Vector3
 
 /// The other solution of the planar pose ambiguity: the plane's normal mirrored about the
 /// line of sight to the plane's origin, same origin. Equal to the input for a frontal view.
-pub fn mirrored(rotation: &Rotation3<f64>, t: &Vector3<f64>) -> Rotation3<f64> {
+pub(crate) fn mirrored(rotation: &Rotation3<f64>, t: &Vector3<f64>) -> Rotation3<f64> {
     let n = rotation * Vector3::z();
     let ray = t.normalize();
     let n_alt = ray * (2.0 * n.dot(&ray)) - n;

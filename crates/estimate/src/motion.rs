@@ -14,10 +14,10 @@
 use nalgebra::{Matrix3, Vector3};
 
 /// Multi-view history older than this is not used, ns.
-pub const MAX_AGE_NS: i64 = 2_000_000_000;
+pub(crate) const MAX_AGE_NS: i64 = 2_000_000_000;
 /// Unmodelled change of velocity, mm/s per √s: how far a tag may stray from a straight
 /// path between solutions. Beams in a bending test move at most a few mm/s.
-pub const ACCEL_NOISE_MM_S: f64 = 2.0;
+pub(crate) const ACCEL_NOISE_MM_S: f64 = 2.0;
 
 /// The last multi-view solutions of one tag.
 #[derive(Debug, Clone, Default)]

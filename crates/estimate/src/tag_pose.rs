@@ -70,7 +70,7 @@ pub struct TagSolution {
 /// Residual of one tag corner in one view and its Jacobians with respect to the tag pose
 /// step and the camera pose step (both `(ω, v)`, see [`retract`](super::lm::retract)).
 /// `None` behind the camera.
-pub fn tag_corner_terms(
+pub(crate) fn tag_corner_terms(
     view: &TagView,
     tag_to_world: &Pose,
     corner_tag: &Vector3<f64>,

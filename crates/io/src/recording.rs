@@ -228,7 +228,7 @@ impl<C: RecordedConfig> Recording<C> {
 
 /// Longest line accepted in an index file (`frames.jsonl`, `utm.jsonl`, `truth.jsonl`):
 /// real lines are a few hundred bytes; a longer one is corrupt.
-pub const MAX_JSONL_LINE: usize = 1 << 20;
+pub(crate) const MAX_JSONL_LINE: usize = 1 << 20;
 
 /// Reads a JSON Lines file line by line (never the whole file at once; each line at most
 /// [`MAX_JSONL_LINE`] bytes), skipping (and recording) a truncated last line.
@@ -290,9 +290,9 @@ pub fn read_jsonl_from<T: for<'de> Deserialize<'de>, R: BufRead>(
 }
 
 /// Largest image accepted without a known camera size (pixels): 256 Mpx.
-pub const MAX_IMAGE_PIXELS: u64 = 1 << 28;
+pub(crate) const MAX_IMAGE_PIXELS: u64 = 1 << 28;
 /// Largest image file read (bytes): 512 MiB.
-pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 29;
+pub(crate) const MAX_IMAGE_FILE_BYTES: u64 = 1 << 29;
 
 /// Reads an 8-bit grey PNG or binary PGM (P5, maxval ≤ 255) into `img`, reusing its buffer;
 /// at most [`MAX_IMAGE_PIXELS`] pixels and [`MAX_IMAGE_FILE_BYTES`] bytes.
@@ -307,7 +307,7 @@ pub fn read_gray_into(path: &Path, img: &mut GrayImage, scratch: &mut Vec<u8>) -
 /// A PGM's pixels are read from the file straight into `img` (no intermediate copy); a
 /// PNG is read whole into `scratch` (kept by the caller between frames) and decoded into
 /// `img`, so a steady replay allocates nothing per frame.
-pub fn read_gray_into_checked(
+pub(crate) fn read_gray_into_checked(
     path: &Path,
     img: &mut GrayImage,
     scratch: &mut Vec<u8>,
@@ -584,7 +584,3 @@ pub fn read_jsonl_file<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<Vec<
     read_jsonl(path, &mut skipped)
 }
 
-/// Counts the lines of a file (for progress reporting).
-pub fn count_lines(path: &Path) -> std::io::Result<usize> {
-    Ok(BufReader::new(File::open(path)?).lines().count())
-}

@@ -15,12 +15,12 @@
 use super::{BeamConfig, Curve, Entry, Quantity};
 
 /// Fraction of the maximum load below which maxima are not first peaks (seating, noise).
-pub const FIRST_PEAK_FLOOR: f64 = 0.10;
+const FIRST_PEAK_FLOOR: f64 = 0.10;
 /// Least fall after a maximum, as a fraction of the maximum load.
-pub const FIRST_PEAK_MIN_DROP: f64 = 0.005;
+const FIRST_PEAK_MIN_DROP: f64 = 0.005;
 
 /// The first peak's index in the curve (see the module documentation), or `None`.
-pub fn first_peak(curve: &Curve) -> Option<usize> {
+pub(crate) fn first_peak(curve: &Curve) -> Option<usize> {
     let pmax = curve.load.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     let drop = (3.0 * curve.load_sigma).max(FIRST_PEAK_MIN_DROP * pmax.abs());
     curve.first_peak(drop, FIRST_PEAK_FLOOR * pmax)

@@ -48,7 +48,10 @@ fn is_default_smooth(n: &usize) -> bool {
 /// Keys are relative to `[report]`.
 pub fn validate_report(r: &ReportConfig, beam: Option<&BeamConfig>) -> Result<(), Problem> {
     let Some(beam) = beam else {
-        return Err(Problem::new("standard", "a report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm"));
+        return Err(Problem::new(
+            "standard",
+            "a report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm",
+        ));
     };
     if r.standard == Standard::En14651 && beam.notch_mm.is_none() {
         return Err(Problem::new("standard", "EN 14651 tests notched beams: give [specimen.beam] notch_mm"));

@@ -8,7 +8,7 @@ use std::io::Write;
 use super::Feed;
 
 /// The header row.
-pub fn header(feed: &Feed) -> Vec<String> {
+fn header(feed: &Feed) -> Vec<String> {
     let mut h: Vec<String> =
         ["t_ns", "time [s]", "load [kN]", "stroke [mm]", "net_deflection [mm]"].iter().map(|s| s.to_string()).collect();
     for g in feed.gauge_names() {
@@ -43,7 +43,7 @@ pub fn write_curve_csv<W: Write>(feed: &Feed, out: W) -> Result<(), ::csv::Error
         for g in &gauges {
             let r = l.gauges.get(g);
             row.push(num(r.map(|r| r.value)));
-            row.push(num(r.and_then(|r| r.sigma)));
+            row.push(num(r.and_then(|r| r.known_sigma())));
         }
         for id in &ids {
             let t = l.tags.iter().find(|t| t.id == *id);

@@ -98,17 +98,12 @@ impl Curve {
     }
 
     /// Number of points.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.load.len()
     }
 
-    /// True without points (never for a built curve).
-    pub fn is_empty(&self) -> bool {
-        self.load.is_empty()
-    }
-
     /// Index of the largest load (the first one if several are equal).
-    pub fn peak_index(&self) -> usize {
+    pub(crate) fn peak_index(&self) -> usize {
         let mut k = 0;
         for (i, &p) in self.load.iter().enumerate() {
             if p > self.load[k] {
@@ -119,7 +114,7 @@ impl Curve {
     }
 
     /// The load smoothed like `x` (local-linear fit over time): used to find the first peak.
-    pub fn smoothed_load(&self) -> Vec<f64> {
+    fn smoothed_load(&self) -> Vec<f64> {
         let n = self.len();
         (0..n)
             .map(|i| {
@@ -134,7 +129,7 @@ impl Curve {
     /// between points `i - 1` and `i` at fraction `f` (`(0, 0.0)` when the first point is
     /// there). `None` when `x` never gets there, or when the curve starts beyond it (the
     /// crossing was not measured).
-    pub fn crossing(&self, target: f64) -> Option<(usize, f64)> {
+    pub(crate) fn crossing(&self, target: f64) -> Option<(usize, f64)> {
         if self.xs[0] == target {
             return Some((0, 0.0));
         }
@@ -149,7 +144,7 @@ impl Curve {
 
     /// Why `target` (called `what`) has no crossing: the curve starts beyond it, or never
     /// gets there.
-    pub fn not_reached(&self, what: &str, target: f64) -> String {
+    pub(crate) fn not_reached(&self, what: &str, target: f64) -> String {
         let max = self.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         if self.xs[0] > target {
             format!("the curve starts at {:.3} mm, beyond {what}: that point was not measured", self.xs[0])
@@ -159,7 +154,7 @@ impl Curve {
     }
 
     /// A column's value at a crossing, interpolated linearly.
-    pub fn at(v: &[f64], (i, f): (usize, f64)) -> f64 {
+    fn at(v: &[f64], (i, f): (usize, f64)) -> f64 {
         if i == 0 {
             v[0]
         } else {
@@ -169,7 +164,7 @@ impl Curve {
 
     /// Local slope dP/dx (kN/mm) around point `i`: least squares of load on smoothed `x`
     /// over a window of `max(smooth_points, 5)` points.
-    pub fn local_slope(&self, i: usize) -> f64 {
+    fn local_slope(&self, i: usize) -> f64 {
         let n = self.len();
         let (lo, hi) = window(i.min(n - 1), n, self.smooth_points.max(5));
         let xs = &self.xs[lo..hi];
@@ -192,7 +187,7 @@ impl Curve {
     /// `s` the slope dP/dx there: the secant of the two points when they are more than 3σ
     /// apart in `x` (sparse points: the interpolation's own slope), else the local
     /// least-squares slope (dense, noisy points, where a secant would be noise).
-    pub fn load_at(&self, target: f64) -> Option<(f64, f64, (usize, f64))> {
+    pub(crate) fn load_at(&self, target: f64) -> Option<(f64, f64, (usize, f64))> {
         let c = self.crossing(target)?;
         let p = Self::at(&self.load, c);
         let (i, f) = c;
@@ -212,7 +207,7 @@ impl Curve {
     /// `target` (trapezoids; kN·mm = J), with its σ from every point's σ of `x̃` and load
     /// (treated as independent) and the zero reference:
     /// `σ² = Σ (∂T/∂x̃ⱼ σ(x̃ⱼ))² + Σ (∂T/∂Pⱼ σ_P)² + ((P_end − P_0) σ_ref)²`.
-    pub fn area_to(&self, target: f64) -> Option<(f64, f64)> {
+    pub(crate) fn area_to(&self, target: f64) -> Option<(f64, f64)> {
         let (p_end, sp_end, c) = self.load_at(target)?;
         let (i, _) = c;
         // Points 0..i (exclusive of i), then the interpolated end at x = target.
@@ -255,7 +250,7 @@ impl Curve {
     /// slope of the curve becomes zero, robust to noise), among maxima above `floor`. The
     /// index returned is that of the largest *measured* load within the smoothing window
     /// around the smoothed maximum. `None` when the load never falls so.
-    pub fn first_peak(&self, drop: f64, floor: f64) -> Option<usize> {
+    pub(crate) fn first_peak(&self, drop: f64, floor: f64) -> Option<usize> {
         let ps = self.smoothed_load();
         let mut best = f64::NEG_INFINITY;
         let mut k = 0;
@@ -274,14 +269,14 @@ impl Curve {
 }
 
 /// Indices `lo..hi` of a window of `m` points centred on `i` (shifted inside `0..n`).
-pub fn window(i: usize, n: usize, m: usize) -> (usize, usize) {
+fn window(i: usize, n: usize, m: usize) -> (usize, usize) {
     let m = m.clamp(1, n.max(1));
     let lo = i.saturating_sub(m / 2).min(n - m);
     (lo, lo + m)
 }
 
 /// Weights `w` with `Σ w_j y_j` = the least-squares line through `(t_j, y_j)` evaluated at `at`.
-pub fn fit_weights(t: &[f64], at: f64) -> Vec<f64> {
+fn fit_weights(t: &[f64], at: f64) -> Vec<f64> {
     let n = t.len() as f64;
     let mean = t.iter().sum::<f64>() / n;
     let s: f64 = t.iter().map(|v| (v - mean) * (v - mean)).sum();
@@ -290,7 +285,7 @@ pub fn fit_weights(t: &[f64], at: f64) -> Vec<f64> {
 
 /// Robust noise of `y(t)`: 1.4826 · MAD of each interior point's deviation from the line
 /// through its neighbours, normalised to the σ of white noise. 0 with fewer than 5 points.
-pub fn robust_noise(t: &[f64], y: &[f64]) -> f64 {
+fn robust_noise(t: &[f64], y: &[f64]) -> f64 {
     if y.len() < 5 {
         return 0.0;
     }
@@ -313,4 +308,4 @@ pub fn robust_noise(t: &[f64], y: &[f64]) -> f64 {
     1.4826 * median(&mut dev)
 }
 
-pub use tagdeflect_core::stats::median_in_place as median;
+pub(crate) use tagdeflect_core::stats::median_in_place as median;

@@ -8,14 +8,14 @@
 use super::{BeamConfig, Curve, Entry, Quantity};
 
 /// Upper end of the CMOD interval of the limit of proportionality, mm.
-pub const LOP_CMOD_MM: f64 = 0.05;
+pub(crate) const LOP_CMOD_MM: f64 = 0.05;
 /// CMOD of the residual strengths fR1..fR4, mm.
-pub const CMOD_J_MM: [f64; 4] = [0.5, 1.5, 2.5, 3.5];
+pub(crate) const CMOD_J_MM: [f64; 4] = [0.5, 1.5, 2.5, 3.5];
 
 /// The largest load while the smoothed CMOD is within `0..=limit` (up to where it first
 /// passes `limit`, including the interpolated point there), with its σ and its index
 /// (`None` for the interpolated end point).
-pub fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Option<usize>)> {
+pub(crate) fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Option<usize>)> {
     let end = curve.crossing(limit);
     let upto = match end {
         Some((i, _)) => i,

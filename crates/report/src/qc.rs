@@ -5,8 +5,8 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 
 use super::{Curve, Feed};
-use tagdeflect_core::rig::TagRole;
 use crate::TestRig;
+use tagdeflect_core::rig::TagRole;
 
 /// A time interval with the UTM link down.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -108,32 +108,26 @@ pub struct Qc {
     pub warnings: Vec<String>,
 }
 
-fn is_drift_or_stale(key: &str) -> bool {
-    let k = key.to_ascii_lowercase();
-    k.contains("drift") || k.contains("stale")
+/// Lines where a field is present and non-zero, and its largest absolute value.
+type Presence = BTreeMap<String, (usize, Option<f64>)>;
+
+/// A numeric drift field present in a line.
+fn count_value(map: &mut Presence, field: String, x: f64) {
+    let e = map.entry(field).or_insert((0, None));
+    if x != 0.0 {
+        e.0 += 1;
+    }
+    e.1 = Some(e.1.unwrap_or(0.0).max(x.abs()));
 }
 
-fn summarise(map: &mut BTreeMap<String, (usize, Option<f64>)>, field: String, v: &Value) {
-    let e = map.entry(field).or_insert((0, None));
-    match v {
-        Value::Bool(true) => e.0 += 1,
-        Value::Number(n) => {
-            let x = n.as_f64().unwrap_or(0.0);
-            if x != 0.0 {
-                e.0 += 1;
-            }
-            e.1 = Some(e.1.unwrap_or(0.0).max(x.abs()));
-        }
-        Value::Null | Value::Bool(false) => {}
-        Value::Object(o) if o.is_empty() => {}
-        Value::Array(a) if a.is_empty() => {}
-        _ => e.0 += 1,
-    }
+/// A flag present (true) in a line.
+fn count_flag(map: &mut Presence, field: String) {
+    map.entry(field).or_insert((0, None)).0 += 1;
 }
 
 impl Qc {
     /// The QC of a feed and the curve made from it.
-    pub fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str) -> Qc {
+    pub(crate) fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str) -> Qc {
         let lines = &feed.lines;
         let n = lines.len();
         let first_t_ns = lines[0].t_ns;
@@ -168,7 +162,7 @@ impl Qc {
         }
 
         let mut cams: BTreeMap<String, CameraEvents> = BTreeMap::new();
-        let mut fields: BTreeMap<String, (usize, Option<f64>)> = BTreeMap::new();
+        let mut fields = Presence::new();
         let mut clock_offset = None;
         for l in lines {
             for c in &l.cameras {
@@ -181,19 +175,19 @@ impl Qc {
                 e.bumps += c.bumped as usize;
                 e.lines_without_frame += (!c.frame) as usize;
                 e.lines_unposed += (!c.posed) as usize;
-                for (k, v) in &c.extra {
-                    if is_drift_or_stale(k) {
-                        summarise(&mut fields, format!("camera.{}.{k}", c.name), v);
-                    }
+                let field = |k: &str| format!("camera.{}.{k}", c.name);
+                if let Some(x) = c.drift_deg {
+                    count_value(&mut fields, field("drift_deg"), x);
+                }
+                if let Some(x) = c.drift_mm {
+                    count_value(&mut fields, field("drift_mm"), x);
+                }
+                if c.stale_pose {
+                    count_flag(&mut fields, field("stale_pose"));
                 }
             }
-            for (k, v) in &l.extra {
-                if is_drift_or_stale(k) {
-                    summarise(&mut fields, k.clone(), v);
-                }
-                if k.to_ascii_lowercase().contains("clock") && !v.is_null() {
-                    clock_offset = Some(serde_json::json!({ "field": k, "value": v }));
-                }
+            if let Some(c) = &l.clock_offset_ms {
+                clock_offset = Some(serde_json::json!({ "field": "clock_offset_ms", "value": c }));
             }
         }
         let drift_and_stale: Vec<FieldSummary> =

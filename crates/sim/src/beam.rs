@@ -19,7 +19,7 @@ pub struct FourPointBeam {
 
 impl FourPointBeam {
     /// Shear span `a`: distance from a support to the nearer load.
-    pub fn shear_span(&self) -> f64 {
+    pub(crate) fn shear_span(&self) -> f64 {
         0.5 * (self.span - self.load_span)
     }
 
@@ -65,7 +65,7 @@ impl FourPointBeam {
     }
 
     /// Slope `dw/dx` at `x` for midspan deflection `delta`.
-    pub fn slope(&self, x: f64, delta: f64) -> f64 {
+    pub(crate) fn slope(&self, x: f64, delta: f64) -> f64 {
         let h = 0.5 * self.span;
         let k = delta / self.shape_mid();
         let xc = x.clamp(-h, h);
@@ -75,7 +75,7 @@ impl FourPointBeam {
     /// World-plane displacement of a material point of the face at `(x, zeta)`:
     /// `(dx, dz)` with `dz` positive upward, and the section's rotation angle (rad,
     /// counter-clockwise seen from the front, i.e. `-atan(w')`).
-    pub fn displace(&self, x: f64, zeta: f64, delta: f64) -> (f64, f64, f64) {
+    pub(crate) fn displace(&self, x: f64, zeta: f64, delta: f64) -> (f64, f64, f64) {
         let w = self.deflection(x, delta);
         let a = self.slope(x, delta).atan();
         let (sa, ca) = a.sin_cos();
@@ -83,8 +83,10 @@ impl FourPointBeam {
     }
 
     /// The material point `(x, zeta)` that sits at the deformed face position `(px, pz)`
-    /// (`pz` relative to the neutral axis at rest), by fixed-point iteration.
-    pub fn material_point(&self, px: f64, pz: f64, delta: f64) -> (f64, f64) {
+    /// (`pz` relative to the neutral axis at rest), by fixed-point iteration (the reference
+    /// of [`DeformedBeam::material_point`] in the tests).
+    #[cfg(test)]
+    fn material_point(&self, px: f64, pz: f64, delta: f64) -> (f64, f64) {
         let (mut x, mut zeta) = (px, pz);
         for _ in 0..12 {
             let (dx, dz, _) = self.displace(x, zeta, delta);

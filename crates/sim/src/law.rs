@@ -170,11 +170,6 @@ impl DeformedShape {
         Self { table: DeformedBeam::new(&motion.beam, motion.elastic, half_length), motion: *motion }
     }
 
-    /// The motion tabulated.
-    pub fn motion(&self) -> &BeamMotion {
-        &self.motion
-    }
-
     /// `(dx, dz)` of the material point `(x, zeta)`.
     #[inline]
     pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64) {

@@ -12,21 +12,28 @@
 //! supports are under its bottom edge at `x = ±span/2`; deflection is positive downward.
 
 mod beam;
+mod drift;
+mod law;
 pub mod live_rig;
-pub mod params;
-pub mod law;
+mod loading;
+mod params;
 mod record;
 pub mod render;
+mod render_rig;
 mod rig;
 mod scene;
+mod timing;
+mod trace;
+mod truth;
 
-pub use beam::{DeformedBeam, FourPointBeam};
+pub use beam::FourPointBeam;
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
-pub use rig::{SimCamera, SimRig, SimRigSections, SimTruthCamera, SimTruthLine, SimTruthTag};
+pub use rig::{SimCamera, SimRig, SimRigSections};
+pub use truth::{SimTruthCamera, SimTruthLine, SimTruthTag};
 
 // The parameters of the rig are config (`[sim]`, checked when the config is read); the
 // simulator uses them from there and the config never imports the simulator.
-pub use crate::params::{camera_names, LoadLaw, SimParamError, SimParams, SimTest, DEFAULT_START_NS};
+pub use crate::params::{camera_names, LoadLaw, SimParamError, SimParams, SimTest};
 
 /// An invalid simulation option or a failure while writing the simulated recording.
 #[derive(Debug, thiserror::Error)]

@@ -15,7 +15,7 @@ use tagdeflect_core::clock;
 use tagdeflect_io::utm::config::{RegisterConfig, RegisterKind, UtmAddress, UtmConfig, ValueType, WordOrder};
 use tagdeflect_core::frame::GrayImage;
 use crate::{SimError, SimParams, SimRig};
-use tagdeflect_io::sources::live::{CaptureSession, Captured};
+use tagdeflect_io::sources::capture::{CaptureSession, Captured};
 use tagdeflect_io::utm::sim_server::UtmModel;
 
 /// The simulated rig of a live run.
@@ -58,7 +58,7 @@ impl LiveRig {
 
 /// Simulated camera `camera` of the rig as a capture session: each frame of set `k` is
 /// rendered at its nominal time `start + k / fps` (with the rig's jitter and dropped frames)
-/// and handed to the same capture loop as a real camera's buffers ([`tagdeflect_io::sources::live`]:
+/// and handed to the same capture loop as a real camera's buffers ([`tagdeflect_io::sources::capture`]:
 /// same emitter, frame pool and drop counting). If rendering falls behind the frame clock,
 /// frames are skipped and counted as missed, never queued up, as a real camera's would be.
 #[derive(Debug)]

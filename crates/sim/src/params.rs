@@ -362,7 +362,7 @@ impl Default for SimParams {
 
 impl SimParams {
     /// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
-    pub fn crack_tip_height(&self) -> f64 {
+    pub(crate) fn crack_tip_height(&self) -> f64 {
         self.crack_tip_mm.unwrap_or(self.notch_mm + 0.6 * (self.beam_height_mm - self.notch_mm))
     }
 

@@ -22,9 +22,9 @@ use tagdeflect_core::frame::FrameSet;
 use tagdeflect_estimate::measure::Observed;
 
 /// Lines queued for the sinks at most.
-pub const QUEUE_LINES: usize = 10_000;
+pub(crate) const QUEUE_LINES: usize = 10_000;
 /// Queued lines that keep their frame set's images (for the live page's thumbnails).
-pub const QUEUE_SETS_WITH_IMAGES: usize = 4;
+pub(crate) const QUEUE_SETS_WITH_IMAGES: usize = 4;
 
 /// A finished frame set as the sinks receive it.
 #[derive(Debug, Clone)]

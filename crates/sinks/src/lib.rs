@@ -1,14 +1,14 @@
 //! Sinks: where feed lines go. Each sink fails on its own: an output that cannot be
 //! written is reported, retried with backoff and never holds the measurement back.
 
-pub mod fanout;
+mod fanout;
 #[cfg(feature = "http")]
 pub mod http;
 #[cfg(feature = "mqtt")]
 pub mod mqtt;
 pub mod output;
 pub mod recorder;
-pub mod rig_info;
+mod rig_info;
 
 pub use fanout::{Fanout, FeedFileSink, Finished, LineSink};
 pub use rig_info::RigInfo;

@@ -4,7 +4,7 @@
 //! It never holds the measurement back: a full queue drops the frame (counted). A write
 //! error (disk full, folder gone) does not stop it for good: it switches to *failing*,
 //! drops the frames that arrive meanwhile (counted; UTM samples are held back, at most
-//! [`UTM_BACKLOG`]) and retries with backoff ([`RETRY_MIN`] doubling to [`RETRY_MAX`]);
+//! `UTM_BACKLOG`) and retries with backoff (`RETRY_MIN` doubling to `RETRY_MAX`);
 //! the first frame written again switches it back to *ok*. Its state and drop count are
 //! read by the solver for every feed line (`recording`, `recorder_dropped`). Images are
 //! written under a temporary name and renamed; index lines are written whole or cut back
@@ -17,18 +17,19 @@ use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use tagdeflect_core::backoff::Backoff;
+use tagdeflect_core::feed_file::SinkState;
 use tagdeflect_core::frame::Frame;
 use tagdeflect_core::frame::FrameFormat;
 use tagdeflect_io::recording::{RecordedConfig, RecordingError, RecordingWriter};
-use tagdeflect_core::feed_file::SinkState;
 use tagdeflect_io::utm::UtmSample;
 
 /// First retry this long after a write error; doubled after each failed retry.
-pub const RETRY_MIN: Duration = Duration::from_millis(500);
+const RETRY_MIN: Duration = Duration::from_millis(500);
 /// Longest wait between retries.
-pub const RETRY_MAX: Duration = Duration::from_secs(10);
+const RETRY_MAX: Duration = Duration::from_secs(10);
 /// UTM samples held back while failing (about 30 min at 50 Hz); beyond that the oldest drop.
-pub const UTM_BACKLOG: usize = 100_000;
+const UTM_BACKLOG: usize = 100_000;
 
 /// The recorder's state and counters, shared with the solver (feed lines).
 #[derive(Debug, Default)]
@@ -155,7 +156,7 @@ fn recorder_loop(
 ) {
     let mut failing_since: Option<Instant> = None;
     let mut next_retry = Instant::now();
-    let mut backoff = retry_min;
+    let mut backoff = Backoff::new(retry_min, RETRY_MAX);
     let mut utm_backlog: VecDeque<UtmSample> = VecDeque::new();
     let mut dropped_at_failure = 0u64;
     for msg in rx {
@@ -193,23 +194,23 @@ fn recorder_loop(
                     let lost = status.dropped_frames() - dropped_at_failure;
                     tracing::warn!(after_s = since.elapsed().as_secs(), frames_lost = lost, "recording writes again");
                     status.set(SinkState::Ok);
-                    backoff = retry_min;
+                    backoff.reset();
                 }
                 if let Err(e) = writer.sync_if_due() {
                     tracing::warn!("recording: fdatasync failed: {e}");
                 }
             }
             Err(e) => {
+                let wait = backoff.next_delay();
                 if failing_since.is_none() {
                     failing_since = Some(Instant::now());
                     dropped_at_failure = status.dropped_frames();
                     status.set(SinkState::Failing);
-                    tracing::error!("recording failing: {e}; frames are dropped (counted in the feed as recorder_dropped) and writing is retried, first in {:.1} s", backoff.as_secs_f64());
+                    tracing::error!("recording failing: {e}; frames are dropped (counted in the feed as recorder_dropped) and writing is retried, first in {:.1} s", wait.as_secs_f64());
                 } else {
                     tracing::debug!("recording still failing: {e}");
                 }
-                next_retry = Instant::now() + backoff;
-                backoff = (backoff * 2).min(RETRY_MAX);
+                next_retry = Instant::now() + wait;
             }
         }
     }

@@ -44,7 +44,7 @@ use tagdeflect_core::clock::{now_epoch_ns, DeviceClockMap};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::frame::GrayImage;
 use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
-use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
+use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Tuning of an Aravis stream (defaults suit the product; tests change them).
 #[derive(Debug, Clone)]
@@ -71,7 +71,7 @@ static OPEN_LOCK: Mutex<()> = Mutex::new(());
 static FAKE_ENABLED: Once = Once::new();
 
 /// Enables Aravis's in-process "Fake" interface (device id `Fake_1`), once per process.
-pub fn enable_fake_interface() {
+pub(crate) fn enable_fake_interface() {
     FAKE_ENABLED.call_once(|| {
         let name = CString::new("Fake").unwrap_or_default();
         let _guard = OPEN_LOCK.lock().unwrap_or_else(|p| p.into_inner());
@@ -83,12 +83,12 @@ pub fn enable_fake_interface() {
 }
 
 /// Whether a device id names Aravis's in-process fake camera.
-pub fn is_fake_id(id: &str) -> bool {
+pub(crate) fn is_fake_id(id: &str) -> bool {
     id.starts_with("Fake") || id.starts_with("Aravis-Fake")
 }
 
 /// The converter for a GenICam pixel format, if supported.
-pub fn pixel_layout(format: PixelFormat) -> Option<PixelLayout> {
+pub(crate) fn pixel_layout(format: PixelFormat) -> Option<PixelLayout> {
     if format == PixelFormat::MONO_8 {
         Some(PixelLayout::Gray8)
     } else if format == PixelFormat::MONO_16 {
@@ -104,7 +104,7 @@ pub fn pixel_layout(format: PixelFormat) -> Option<PixelLayout> {
 
 /// Chooses a frame's time (ns since the epoch): the buffer's system timestamp when
 /// plausible, else the mapped device timestamp, else the receive time (module docs).
-pub fn frame_time(system_ns: u64, device_ns: u64, receive_epoch_ns: i64, device_map: &mut DeviceClockMap) -> i64 {
+pub(crate) fn frame_time(system_ns: u64, device_ns: u64, receive_epoch_ns: i64, device_map: &mut DeviceClockMap) -> i64 {
     const PLAUSIBLE_NS: i64 = 10_000_000_000;
     let sys = system_ns as i64;
     if system_ns > 0 && system_ns <= i64::MAX as u64 && (sys - receive_epoch_ns).abs() < PLAUSIBLE_NS {
@@ -286,7 +286,7 @@ pub fn spawn(
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
-    spawn_with(index, cfg, id, opts, crate::sources::live::OpenPolicy::Require, tx, stop)
+    spawn_with(index, cfg, id, opts, crate::sources::capture::OpenPolicy::Require, tx, stop)
 }
 
 /// [`spawn`] with a policy for a camera that is not there yet.
@@ -295,7 +295,7 @@ pub(crate) fn spawn_with(
     cfg: &CameraConfig,
     id: &str,
     opts: AravisOptions,
-    policy: crate::sources::live::OpenPolicy,
+    policy: crate::sources::capture::OpenPolicy,
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
@@ -306,7 +306,7 @@ pub(crate) fn spawn_with(
     }
     let source = format!("aravis:{id}");
     let (cfg, id) = (cfg.clone(), id.to_string());
-    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&id, &cfg, &opts), timing, policy, tx, stop)
+    crate::sources::capture::spawn_capture(index, &name, source, move || Session::open(&id, &cfg, &opts), timing, policy, tx, stop)
 }
 
 #[cfg(test)]

@@ -100,7 +100,7 @@ pub fn to_gray8(layout: PixelLayout, width: u32, height: u32, stride: usize, dat
 }
 
 /// [`to_gray8`] into `out`, reusing its buffer (a capture loop's recycled frame).
-pub fn to_gray8_into(
+pub(crate) fn to_gray8_into(
     layout: PixelLayout,
     width: u32,
     height: u32,

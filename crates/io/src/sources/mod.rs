@@ -3,8 +3,8 @@
 //! # One capture seam
 //!
 //! Every camera — V4L2, Aravis, the simulated rig, a recording played at its pace — runs in
-//! its own OS thread through the same capture loop ([`live::run_capture_loop`]) behind the
-//! same [`live::CaptureSession`] trait, and pushes [`SourceEvent`]s into one bounded
+//! its own OS thread through the same capture loop ([`capture::run_capture_loop`]) behind the
+//! same [`capture::CaptureSession`] trait, and pushes [`SourceEvent`]s into one bounded
 //! `tokio::sync::mpsc` channel with `try_send` only: capture never waits for a slow consumer —
 //! a full channel drops the frame and counts it ([`DropReason::ChannelFull`], reported as
 //! [`SourceEvent::Dropped`] once the channel has room). Frames land in recycled buffers
@@ -24,7 +24,7 @@
 pub mod aravis;
 pub use tagdeflect_core::clock;
 pub mod convert;
-pub mod live;
+pub mod capture;
 pub mod recording;
 pub mod v4l2;
 
@@ -33,10 +33,10 @@ use std::sync::Arc;
 
 use tokio::sync::mpsc::Sender;
 
-pub use live::{CaptureStats, DropReason, LiveCamera, OpenPolicy, SourceError, SourceEvent, StatsSnapshot};
+pub use capture::{CaptureStats, DropReason, LiveCamera, OpenPolicy, SourceError, SourceEvent, StatsSnapshot};
 
 use tagdeflect_core::camera_config::{CameraConfig, CameraSource};
-pub use live::{spawn_capture, Backoff, LoopTiming};
+pub use capture::{spawn_capture, Backoff, LoopTiming};
 
 /// Starts a live device camera in its own thread and returns once the device is open and
 /// configured, or with the error that prevented it ([`OpenPolicy::Require`]: `check`,

@@ -1,6 +1,6 @@
 //! A recording as a live source (`source = "recording:<folder>"`, and every camera of
 //! `replay --realtime` / `bench --realtime`): each camera's recorded frames, played at their
-//! recorded pace through the capture loop every camera uses ([`crate::sources::live`]: same
+//! recorded pace through the capture loop every camera uses ([`crate::sources::capture`]: same
 //! emitter, frame pool, drop counting). A frame that cannot be read is a bad buffer (counted,
 //! skipped); the camera's thread ends when its frames are played out.
 //!
@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use tagdeflect_core::frame::GrayImage;
 use crate::recording::{CameraList, RecordedConfig, Recording};
-use crate::sources::live::{CaptureSession, Captured};
+use crate::sources::capture::{CaptureSession, Captured};
 
 /// The shared start of a recording's playback.
 #[derive(Debug)]

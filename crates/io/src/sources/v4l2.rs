@@ -49,15 +49,15 @@ use tagdeflect_core::clock::{now_epoch_ns, MonotonicToEpoch};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::frame::GrayImage;
 use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
-use crate::sources::live::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
+use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
 
 /// Pixel formats requested from the device, most preferred first.
-pub const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
+pub(crate) const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
 
 /// `V4L2_BUF_FLAG_TIMESTAMP_MASK`.
-pub const TIMESTAMP_MASK: u32 = 0x0000_e000;
+pub(crate) const TIMESTAMP_MASK: u32 = 0x0000_e000;
 /// `V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC`: the buffer time is on CLOCK_MONOTONIC.
-pub const TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
+pub(crate) const TIMESTAMP_MONOTONIC: u32 = 0x0000_2000;
 /// `V4L2_BUF_FLAG_ERROR`: the buffer is done but its data is corrupted.
 pub const BUF_FLAG_ERROR: u32 = 0x0000_0040;
 
@@ -139,7 +139,7 @@ pub fn convert_buffer(
 
 /// Why a dequeued buffer gave no image.
 #[derive(Debug)]
-pub enum BufferRejected {
+pub(crate) enum BufferRejected {
     /// The driver flagged the buffer as corrupted.
     Corrupted,
     /// The bytes could not be converted.
@@ -148,7 +148,7 @@ pub enum BufferRejected {
 
 /// [`convert_buffer`] into `out` (a recycled frame buffer).
 #[allow(clippy::too_many_arguments)]
-pub fn convert_buffer_into(
+pub(crate) fn convert_buffer_into(
     layout: PixelLayout,
     width: u32,
     height: u32,
@@ -270,7 +270,7 @@ impl CaptureSession for Session {
 
 /// One dequeued buffer as [`ring_next`] hands it over.
 #[derive(Debug, Clone, Copy)]
-pub struct RawBuffer<'a> {
+pub(crate) struct RawBuffer<'a> {
     /// The whole mapping of the buffer.
     pub data: &'a [u8],
     /// Bytes of `data` the driver filled.
@@ -285,7 +285,7 @@ pub struct RawBuffer<'a> {
 
 /// The calls [`ring_next`] makes on a memory-mapped V4L2 buffer ring: the `v4l` crate's
 /// stream (on a non-blocking fd), or a model of the kernel's queue in tests.
-pub trait BufferRing {
+pub(crate) trait BufferRing {
     /// `VIDIOC_QBUF` of buffer `index`.
     fn queue(&mut self, index: usize) -> io::Result<()>;
     /// `VIDIOC_STREAMON`.
@@ -303,7 +303,7 @@ pub trait BufferRing {
 
 /// Where a buffer ring stands between two [`ring_next`] calls.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RingState {
+pub(crate) enum RingState {
     /// Buffers allocated, none queued, not streaming.
     Fresh,
     /// Streaming; every buffer is with the driver.
@@ -314,7 +314,7 @@ pub enum RingState {
 
 /// What one [`ring_next`] call produced.
 #[derive(Debug)]
-pub enum RingNext<T> {
+pub(crate) enum RingNext<T> {
     /// A buffer, handed to the closure, and what it returned.
     Buffer(T),
     /// No buffer within the timeout (or the ring's first buffer, which is requeued unread).
@@ -335,7 +335,7 @@ pub enum RingNext<T> {
 /// first buffer, so the ring is started here (`n` buffers queued, `STREAMON`) and its first
 /// buffer is dequeued by hand (and requeued unread: the crate gives no access to a buffer
 /// it did not hand out itself).
-pub fn ring_next<R: BufferRing, T>(
+pub(crate) fn ring_next<R: BufferRing, T>(
     ring: &mut R,
     state: &mut RingState,
     n: usize,
@@ -424,7 +424,7 @@ impl Drop for Session {
 
 /// What to do with a stream whose `STREAMOFF` returned `errno` (`None`: it succeeded).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CloseAction {
+pub(crate) enum CloseAction {
     /// Drop it: its `Drop` unmaps the buffers and closes the fd without panicking — after a
     /// successful STREAMOFF, or on `ENODEV` (the device was unplugged), which the `v4l` crate's
     /// `Drop` impls ignore after unmapping.
@@ -436,7 +436,7 @@ pub enum CloseAction {
 }
 
 /// The decision of [`close_stream`], apart for testing.
-pub fn close_action(streamoff_errno: Option<i32>) -> CloseAction {
+pub(crate) fn close_action(streamoff_errno: Option<i32>) -> CloseAction {
     match streamoff_errno {
         None => CloseAction::Release,
         Some(libc::ENODEV) => CloseAction::Release,
@@ -474,7 +474,7 @@ pub(crate) fn spawn(
     index: usize,
     cfg: &CameraConfig,
     path: &str,
-    policy: crate::sources::live::OpenPolicy,
+    policy: crate::sources::capture::OpenPolicy,
     tx: Sender<SourceEvent>,
     stop: Arc<AtomicBool>,
 ) -> Result<LiveCamera, SourceError> {
@@ -482,7 +482,7 @@ pub(crate) fn spawn(
     let timing = LoopTiming::for_fps(cfg.fps);
     let source = format!("v4l2:{path}");
     let (cfg, path) = (cfg.clone(), path.to_string());
-    crate::sources::live::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, policy, tx, stop)
+    crate::sources::capture::spawn_capture(index, &name, source, move || Session::open(&path, &cfg), timing, policy, tx, stop)
 }
 
 #[cfg(test)]

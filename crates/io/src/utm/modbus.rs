@@ -18,11 +18,11 @@ use tokio_modbus::client::{tcp, Client, Context};
 use tokio_modbus::{ExceptionCode, Request, Response, Slave};
 
 /// Largest number of registers one Modbus read may ask for.
-pub const MAX_READ_REGISTERS: u16 = 125;
+pub(crate) const MAX_READ_REGISTERS: u16 = 125;
 /// First reconnect delay.
-pub const BACKOFF_MIN: Duration = Duration::from_millis(200);
+pub(crate) const BACKOFF_MIN: Duration = Duration::from_millis(200);
 /// Longest reconnect delay.
-pub const BACKOFF_MAX: Duration = Duration::from_secs(5);
+pub(crate) const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
 /// What the poller reports.
 #[derive(Debug, Clone, PartialEq)]

@@ -66,7 +66,7 @@ pub async fn serve_sim_utm_with_outage(
 }
 
 /// `cfg` with its address replaced by `addr` (the bound simulated server).
-pub fn with_address(cfg: &UtmConfig, addr: SocketAddr) -> UtmConfig {
+pub(crate) fn with_address(cfg: &UtmConfig, addr: SocketAddr) -> UtmConfig {
     UtmConfig { address: crate::utm::config::UtmAddress::Tcp(addr.to_string()), ..cfg.clone() }
 }
 

@@ -1,9 +1,6 @@
 //! `/metrics`: the Prometheus (OpenMetrics text) exposition, with the `prometheus-client`
 //! crate. Every metric is an atomic updated where the event happens (solver, assembler,
 //! UTM forwarder, recorder); a scrape only reads them.
-//!
-//! Other parts of the daemon add their own metrics through [`Metrics::registry_mut`]
-//! before the server starts (e.g. a sub-registry with the prefix `tagdeflect_mqtt`).
 
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
@@ -130,11 +127,6 @@ impl Metrics {
         registry.register("http_event_clients", "Clients connected to /events", m.http_clients.clone());
         registry.register("http_events_lagged", "Events skipped by slow /events clients", m.http_events_lagged.clone());
         Metrics { registry, ..m }
-    }
-
-    /// The registry, for components that add metrics of their own (before serving).
-    pub fn registry_mut(&mut self) -> &mut Registry {
-        &mut self.registry
     }
 
     /// The OpenMetrics text exposition of every metric.

@@ -11,7 +11,7 @@ use std::convert::Infallible;
 use std::sync::Arc;
 use tokio::sync::broadcast::error::RecvError;
 
-use super::{ClientGuard, Event, LiveView};
+use super::view::{ClientGuard, Event, LiveView};
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const APP_JS: &str = include_str!("assets/app.js");

@@ -1,6 +1,6 @@
 //! Annotated camera snapshots (`/camera/NAME.jpg`): a frame downscaled to at most
 //! [`THUMB_WIDTH`] pixels wide, the detected tags outlined and labelled (specimen tags in
-//! orange "S<id>", background tags in cyan "B<id>"), encoded as JPEG.
+//! orange `S<id>`, background tags in cyan `B<id>`), encoded as JPEG.
 //!
 //! Encoding runs on its own thread ([`spawn_encoder`]); the solver offers at most one frame
 //! per camera per [`SNAPSHOT_INTERVAL`] through a bounded channel with `try_send`, so a slow
@@ -116,8 +116,8 @@ pub fn spawn_encoder(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tagdeflect_core::tags::TagFamily;
     use nalgebra::Point2;
+    use tagdeflect_core::tags::TagFamily;
 
     #[test]
     fn thumbnail_is_downscaled_jpeg_with_outlines_in_role_colours() {

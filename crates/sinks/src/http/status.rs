@@ -9,7 +9,7 @@ use serde::Serialize;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use super::LiveView;
+use super::view::LiveView;
 use tagdeflect_core::rig::TagRole;
 
 /// A camera (or the feed) is stale after this many frame intervals without a frame (line).

@@ -238,7 +238,7 @@ where
 }
 
 /// Sleeps up to `d` in short steps; returns `false` if `stop` was set meanwhile.
-pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
+pub(crate) fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
     let step = Duration::from_millis(50);
     let mut left = d;
     while !left.is_zero() {
@@ -302,7 +302,7 @@ impl LoopTiming {
 /// and bad buffers, reports the device lost on failure or stall, reopens it with `open`
 /// after backoff delays, and ends when `stop` is set or the channel closes. `label` names the
 /// device in messages. `seq` counts complete frames across reopenings.
-pub fn run_capture_loop<S: CaptureSession>(
+pub(crate) fn run_capture_loop<S: CaptureSession>(
     em: &mut Emitter,
     label: &str,
     session: Option<S>,
@@ -379,7 +379,7 @@ pub fn run_capture_loop<S: CaptureSession>(
 
 /// The sending side of one camera thread: never blocks, counts what it cannot deliver.
 #[derive(Debug)]
-pub struct Emitter {
+pub(crate) struct Emitter {
     camera: usize,
     tx: Sender<SourceEvent>,
     stats: Arc<CaptureStats>,
@@ -409,11 +409,6 @@ impl Emitter {
     /// The camera index.
     pub fn camera(&self) -> usize {
         self.camera
-    }
-
-    /// The counters.
-    pub fn stats(&self) -> &Arc<CaptureStats> {
-        &self.stats
     }
 
     /// Whether the receiver is gone (the thread should end).
@@ -514,7 +509,7 @@ mod tests {
         for s in 0..5 {
             em.frame(frame(s));
         }
-        let snap = em.stats().snapshot();
+        let snap = em.stats.snapshot();
         assert_eq!((snap.delivered, snap.dropped_full), (2, 3));
         assert!(matches!(rx.try_recv(), Ok(SourceEvent::Frame(f)) if f.seq == 0));
         assert!(matches!(rx.try_recv(), Ok(SourceEvent::Frame(f)) if f.seq == 1));

@@ -1,329 +1,20 @@
-//! The MQTT publisher (`[output.mqtt]`, SPEC "Configuration"): every feed line goes to
-//! `<topic>/feed`, a retained status message to `<topic>/status`, with a last will that
-//! says the rig went offline.
-//!
-//! The measurement never waits on the broker. [`MqttPublisher::publish`] only takes a lock
-//! for a few microseconds and hands the serialised line to a bounded buffer; a task on the
-//! pipeline's runtime drives the connection ([`rumqttc`]), sends what the buffer holds and
-//! reconnects with a backoff (0.2 s doubling to 2 s) while the broker is unreachable.
-//!
-//! **Delivery accounting.** The buffer owns every line until the broker has acknowledged it
-//! (PUBACK at QoS 1, PUBCOMP at QoS 2): lines sent but unacknowledged when the connection
-//! breaks go back to the front of the buffer and are sent again on the next connection
-//! (an archive deduplicates them on `(rig, test, seq)`). At most `buffer_lines` lines are
-//! held, sent or not; beyond that the oldest is dropped and counted. The count so far is
-//! written into every feed line as `mqtt_dropped` (the local feed and the published line
-//! carry the same value: the count includes a drop caused by this very line). It bounds
-//! what the broker never got from above: a dropped line that was sent but not yet
-//! acknowledged when the connection broke may have reached the broker after all.
-//!
-//! **Metrics.** [`MqttPublisher::stats`] returns an `Arc<`[`MqttStats`]`>` of atomics an HTTP
-//! `/metrics` endpoint can read at any time: `dropped` (lines dropped from the buffer),
-//! `published` (lines acknowledged by the broker), `buffered` (lines held now),
-//! `connected` (0/1) and `reconnects`.
+//! The publisher: the buffer of feed lines, the task that drives the connection and pumps
+//! the buffer into it, and the publisher as a sink (see the module doc of [`super`]).
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use rumqttc::{AsyncClient, Event, EventLoop, LastWill, MqttOptions, Outgoing, Packet, QoS, TlsConfiguration, Transport};
-use serde::{Deserialize, Serialize};
+use rumqttc::{AsyncClient, Event, EventLoop, LastWill, Outgoing, Packet, QoS};
+use serde::Serialize;
 
+use super::client::{mqtt_options, topic_for, BrokerUrl};
+use super::MqttConfig;
 use crate::RigInfo;
+use tagdeflect_core::backoff::Backoff;
 use tagdeflect_core::feed::FeedLine;
-
-/// `[output.mqtt]`: publish the feed to an MQTT broker.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MqttConfig {
-    /// `mqtt://host[:port]` (1883) or `mqtts://host[:port]` (TLS, 8883).
-    pub url: String,
-    /// Topic prefix; `{rig}` and `{test}` must each be a whole topic level.
-    #[serde(default = "default_topic")]
-    pub topic: String,
-    /// This rig's name (default: the host name).
-    #[serde(default = "default_rig")]
-    pub rig: String,
-    /// The test id; generated per run (`YYYYMMDDTHHMMSSZ-xxxx`, printed) when absent. A
-    /// configured id must be new for every run: an archive keeps the first line it got for
-    /// each (rig, test, seq).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub test: Option<String>,
-    /// QoS of the feed lines (0, 1 or 2; 1 = at least once).
-    #[serde(default = "default_qos")]
-    pub qos: u8,
-    /// MQTT client id (default `tagdeflect-<rig>`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub client_id: Option<String>,
-    /// User name for the broker.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub username: Option<String>,
-    /// Password for the broker (never written into recordings).
-    #[serde(default, skip_serializing)]
-    pub password: Option<String>,
-    /// TLS: PEM file of the CA certificates that sign the broker's certificate (default:
-    /// the system bundle `/etc/ssl/certs/ca-certificates.crt`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ca_file: Option<PathBuf>,
-    /// TLS client authentication: PEM certificate chain (with `client_key`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub client_cert: Option<PathBuf>,
-    /// TLS client authentication: PEM private key (with `client_cert`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub client_key: Option<PathBuf>,
-    /// Feed lines held while the broker is unreachable or slow (sent or not yet
-    /// acknowledged); the oldest is dropped beyond this.
-    #[serde(default = "default_buffer")]
-    pub buffer_lines: usize,
-    /// MQTT keep-alive, seconds.
-    #[serde(default = "default_keep_alive")]
-    pub keep_alive_s: u64,
-    /// Seconds between refreshes of the retained status.
-    #[serde(default = "default_status_interval")]
-    pub status_interval_s: f64,
-}
-
-fn default_topic() -> String {
-    "tagdeflect/{rig}/{test}".into()
-}
-fn default_rig() -> String {
-    hostname()
-}
-fn default_qos() -> u8 {
-    1
-}
-fn default_buffer() -> usize {
-    10_000
-}
-fn default_keep_alive() -> u64 {
-    15
-}
-fn default_status_interval() -> f64 {
-    5.0
-}
-
-/// This machine's host name (`localhost` when unknown).
-pub fn hostname() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .or_else(|_| std::fs::read_to_string("/etc/hostname"))
-        .map(|s| s.trim().to_string())
-        .ok()
-        .filter(|s| !s.is_empty())
-        .unwrap_or_else(|| "localhost".into())
-}
-
-/// A broker address parsed from `mqtt://` / `mqtts://` URLs.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct BrokerUrl {
-    /// True for `mqtts://` (also `ssl://`).
-    pub tls: bool,
-    /// Host name or address.
-    pub host: String,
-    /// TCP port.
-    pub port: u16,
-    /// User name given in the URL.
-    pub username: Option<String>,
-    /// Password given in the URL.
-    pub password: Option<String>,
-}
-
-impl BrokerUrl {
-    /// Parses `mqtt://[user[:password]@]host[:port]` (also `tcp://`; `mqtts://` / `ssl://` for TLS).
-    pub fn parse(url: &str) -> Result<BrokerUrl, String> {
-        let (scheme, rest) = url.split_once("://").ok_or_else(|| format!("\"{url}\" is not a URL like mqtt://host:1883"))?;
-        let tls = match scheme {
-            "mqtt" | "tcp" => false,
-            "mqtts" | "ssl" => true,
-            _ => return Err(format!("unknown scheme \"{scheme}\": expected mqtt:// or mqtts://")),
-        };
-        let rest = rest.trim_end_matches('/');
-        if rest.contains('/') || rest.contains('?') {
-            return Err(format!("\"{url}\": expected mqtt://host[:port] with no path"));
-        }
-        let (auth, hostport) = match rest.rsplit_once('@') {
-            Some((a, h)) => (Some(a), h),
-            None => (None, rest),
-        };
-        let (username, password) = match auth {
-            None => (None, None),
-            Some(a) => match a.split_once(':') {
-                Some((u, p)) => (Some(u.to_string()), Some(p.to_string())),
-                None => (Some(a.to_string()), None),
-            },
-        };
-        let (host, port) = if let Some(h) = hostport.strip_prefix('[') {
-            // [v6]:port
-            let (h, p) = h.split_once(']').ok_or_else(|| format!("\"{url}\": unclosed [ in the host"))?;
-            (h.to_string(), p.strip_prefix(':'))
-        } else {
-            match hostport.rsplit_once(':') {
-                Some((h, p)) => (h.to_string(), Some(p)),
-                None => (hostport.to_string(), None),
-            }
-        };
-        if host.is_empty() {
-            return Err(format!("\"{url}\": no host"));
-        }
-        let port = match port {
-            Some(p) => p.parse::<u16>().map_err(|_| format!("\"{url}\": port \"{p}\" is not a number 1..65535"))?,
-            None if tls => 8883,
-            None => 1883,
-        };
-        Ok(BrokerUrl { tls, host, port, username, password })
-    }
-}
-
-/// Replaces `{rig}` and `{test}` in a topic template.
-pub fn topic_for(template: &str, rig: &str, test: &str) -> String {
-    template.replace("{rig}", rig).replace("{test}", test)
-}
-
-/// Checks a topic template: no wildcards, `{rig}` and `{test}` each one whole level.
-pub fn check_topic_template(t: &str) -> Result<(), String> {
-    if t.is_empty() || t.contains(['+', '#', '\0']) {
-        return Err(format!("\"{t}\" must be a non-empty topic without the wildcards + and #"));
-    }
-    let levels: Vec<&str> = t.split('/').collect();
-    for ph in ["{rig}", "{test}"] {
-        let whole = levels.iter().filter(|l| **l == ph).count();
-        if whole != 1 || t.matches(ph).count() != 1 {
-            return Err(format!("\"{t}\" must contain {ph} exactly once, as a whole topic level (e.g. \"tagdeflect/{{rig}}/{{test}}\"), so an archive can tell rigs and tests apart"));
-        }
-    }
-    Ok(())
-}
-
-/// Checks a rig or test name used in a topic level.
-pub fn check_level_name(what: &str, v: &str) -> Result<(), String> {
-    if v.is_empty() || v.contains(['/', '+', '#', '\0']) || v.starts_with('$') {
-        return Err(format!("{what} \"{v}\" must be non-empty, without '/', '+', '#' and not start with '$' (it is a topic level)"));
-    }
-    Ok(())
-}
-
-impl MqttConfig {
-    /// Validates the section and resolves TLS file paths against `base` (the config's
-    /// folder). On error: the key (below `output.mqtt`) and what is wrong.
-    pub fn validate(&mut self, base: &Path) -> Result<(), (&'static str, String)> {
-        let url = BrokerUrl::parse(&self.url).map_err(|m| ("url", m))?;
-        check_topic_template(&self.topic).map_err(|m| ("topic", m))?;
-        check_level_name("rig", &self.rig).map_err(|m| ("rig", m))?;
-        if let Some(t) = &self.test {
-            check_level_name("test", t).map_err(|m| ("test", m))?;
-        }
-        if self.qos > 2 {
-            return Err(("qos", format!("must be 0, 1 or 2, got {}", self.qos)));
-        }
-        if let Some(id) = &self.client_id {
-            if id.is_empty() || id.len() > 256 {
-                return Err(("client_id", "must be 1 to 256 characters".into()));
-            }
-        }
-        if self.password.is_some() && self.username.is_none() && url.username.is_none() {
-            return Err(("password", "a password needs a `username`".into()));
-        }
-        if self.buffer_lines == 0 {
-            return Err(("buffer_lines", "must be at least 1".into()));
-        }
-        if self.keep_alive_s < 5 || self.keep_alive_s > 3600 {
-            return Err(("keep_alive_s", format!("must be 5..3600 s, got {}", self.keep_alive_s)));
-        }
-        if !(self.status_interval_s.is_finite() && self.status_interval_s >= 0.1) {
-            return Err(("status_interval_s", "must be at least 0.1 s".into()));
-        }
-        let tls_keys = self.ca_file.is_some() || self.client_cert.is_some() || self.client_key.is_some();
-        if tls_keys && !url.tls {
-            return Err(("url", "TLS options are set but the URL is not mqtts://".into()));
-        }
-        if self.client_cert.is_some() != self.client_key.is_some() {
-            return Err(("client_cert", "give both `client_cert` and `client_key`, or neither".into()));
-        }
-        for (key, p) in [("ca_file", &mut self.ca_file), ("client_cert", &mut self.client_cert), ("client_key", &mut self.client_key)] {
-            if let Some(path) = p {
-                if path.is_relative() {
-                    *path = base.join(&*path);
-                }
-                if let Err(e) = std::fs::metadata(&*path) {
-                    return Err((key, format!("cannot read {}: {e}", path.display())));
-                }
-            }
-        }
-        if url.tls {
-            tls_config(self).map_err(|m| ("ca_file", m))?;
-        }
-        Ok(())
-    }
-}
-
-/// Builds the rustls client configuration of a `mqtts://` connection: the CA bundle
-/// (default: the system's), and optionally a client certificate and key (PEM files).
-pub fn tls_config_for(
-    ca_file: Option<&Path>,
-    client_cert: Option<&Path>,
-    client_key: Option<&Path>,
-) -> Result<Arc<rustls::ClientConfig>, String> {
-    use rustls::pki_types::pem::PemObject;
-    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
-    let ca = ca_file.map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("/etc/ssl/certs/ca-certificates.crt"));
-    let mut roots = rustls::RootCertStore::empty();
-    let certs = CertificateDer::pem_file_iter(&ca).map_err(|e| format!("{}: {e}", ca.display()))?;
-    for c in certs {
-        let c = c.map_err(|e| format!("{}: {e}", ca.display()))?;
-        roots.add(c).map_err(|e| format!("{}: {e}", ca.display()))?;
-    }
-    if roots.is_empty() {
-        return Err(format!("{}: no CA certificate in it", ca.display()));
-    }
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let builder = rustls::ClientConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
-        .map_err(|e| e.to_string())?
-        .with_root_certificates(roots);
-    let config = match (client_cert, client_key) {
-        (Some(cert), Some(key)) => {
-            let chain: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(cert)
-                .and_then(|it| it.collect::<Result<Vec<_>, _>>())
-                .map_err(|e| format!("{}: {e}", cert.display()))?;
-            let key = PrivateKeyDer::from_pem_file(key).map_err(|e| format!("{}: {e}", key.display()))?;
-            builder.with_client_auth_cert(chain, key).map_err(|e| format!("client certificate: {e}"))?
-        }
-        _ => builder.with_no_client_auth(),
-    };
-    Ok(Arc::new(config))
-}
-
-fn tls_config(cfg: &MqttConfig) -> Result<Arc<rustls::ClientConfig>, String> {
-    tls_config_for(cfg.ca_file.as_deref(), cfg.client_cert.as_deref(), cfg.client_key.as_deref())
-}
-
-/// Connection options for a broker URL (TLS, credentials from the URL or given).
-pub fn mqtt_options(
-    url: &str,
-    client_id: &str,
-    username: Option<&str>,
-    password: Option<&str>,
-    tls: Option<Arc<rustls::ClientConfig>>,
-) -> Result<MqttOptions, String> {
-    let u = BrokerUrl::parse(url)?;
-    let mut o = MqttOptions::new(client_id, u.host.clone(), u.port);
-    if u.tls {
-        let cfg = match tls {
-            Some(c) => c,
-            None => tls_config_for(None, None, None)?,
-        };
-        o.set_transport(Transport::tls_with_config(TlsConfiguration::Rustls(cfg)));
-    }
-    let user = username.map(str::to_string).or(u.username);
-    let pass = password.map(str::to_string).or(u.password);
-    if let Some(user) = user {
-        o.set_credentials(user, pass.unwrap_or_default());
-    }
-    // Feed lines of a big rig are a few kB; leave ample room.
-    o.set_max_packet_size(1 << 20, 1 << 20);
-    Ok(o)
-}
 
 fn qos_of(q: u8) -> QoS {
     match q {
@@ -334,7 +25,7 @@ fn qos_of(q: u8) -> QoS {
 }
 
 /// A new test id: the UTC start time and four random hex digits.
-pub fn new_test_id() -> String {
+fn new_test_id() -> String {
     format!("{}-{:04x}", chrono::Utc::now().format("%Y%m%dT%H%M%SZ"), rand::random::<u16>())
 }
 
@@ -438,7 +129,7 @@ impl MqttPublisher {
         let test = cfg.test.clone().unwrap_or_else(new_test_id);
         let base = topic_for(&cfg.topic, &cfg.rig, &test);
         let client_id = cfg.client_id.clone().unwrap_or_else(|| format!("tagdeflect-{}", cfg.rig));
-        let tls = if BrokerUrl::parse(&cfg.url)?.tls { Some(tls_config(cfg)?) } else { None };
+        let tls = if BrokerUrl::parse(&cfg.url)?.tls { Some(cfg.tls_config()?) } else { None };
         let mut opts = mqtt_options(&cfg.url, &client_id, cfg.username.as_deref(), cfg.password.as_deref(), tls)?;
         // The buffer retransmits itself: a clean session means the client never resends
         // anything of its own after a reconnect.
@@ -665,7 +356,7 @@ impl Shared {
 
 /// Drives the connection: never cancelled mid-poll, so no packet is half written.
 async fn drive(shared: Arc<Shared>, mut eventloop: EventLoop, done: Arc<AtomicBool>) {
-    let mut backoff = Duration::from_millis(200);
+    let mut backoff = Backoff::new(Duration::from_millis(200), Duration::from_secs(2));
     let mut connections = 0u64;
     let mut last_error: Option<String> = None;
     while !done.load(Ordering::Relaxed) {
@@ -678,7 +369,7 @@ async fn drive(shared: Arc<Shared>, mut eventloop: EventLoop, done: Arc<AtomicBo
                     shared.stats.reconnects.fetch_add(1, Ordering::Relaxed);
                 }
                 connections += 1;
-                backoff = Duration::from_millis(200);
+                backoff.reset();
                 last_error = None;
                 let n = st.unsent.len();
                 tracing::info!(buffered = n, "MQTT: connected to the broker");
@@ -746,37 +437,10 @@ async fn drive(shared: Arc<Shared>, mut eventloop: EventLoop, done: Arc<AtomicBo
                     tracing::warn!("MQTT: broker unreachable ({msg}); buffering up to {} feed lines, retrying", shared.cap);
                     last_error = Some(msg);
                 }
-                tokio::time::sleep(backoff).await;
-                backoff = (backoff * 2).min(Duration::from_secs(2));
+                tokio::time::sleep(backoff.next_delay()).await;
             }
         }
     }
-}
-
-/// Byte offset of `key = ...` in the `[output.mqtt]` section of a config text (or of the
-/// section header when the key is not written there), for located config errors.
-pub fn key_offset(text: &str, key: &str) -> Option<usize> {
-    let mut offset = 0;
-    let mut header = None;
-    for line in text.split_inclusive('\n') {
-        let t = line.trim();
-        if t.starts_with('[') {
-            if header.is_some() {
-                break;
-            }
-            if t.trim_start_matches('[').trim_end_matches(']').trim() == "output.mqtt" {
-                header = Some(offset);
-            }
-        } else if header.is_some() {
-            if let Some((k, _)) = t.split_once('=') {
-                if k.trim().trim_matches('"') == key {
-                    return Some(offset);
-                }
-            }
-        }
-        offset += line.len();
-    }
-    header
 }
 
 /// The publisher as a sink of finished lines (the room for each was made by

@@ -453,7 +453,7 @@ impl Outputs {
                     feeds.push(FeedWriter::stdout());
                 }
             } else {
-                feeds.push(FeedWriter::append(std::path::Path::new(spec)).with_context(|| format!("cannot open the feed output {spec}"))?);
+                feeds.push(FeedWriter::append(std::path::Path::new(spec)).map_err(|e| crate::BadInput::new(format!("cannot open the feed output {spec}: {e}")))?);
             }
         }
         // `[report]`: this run's feed copied into the report folder, the report written at the end.
@@ -472,7 +472,7 @@ impl Outputs {
         #[cfg(feature = "mqtt")]
         let mqtt = match (&config.output.mqtt, replaying) {
             (Some(m), false) => {
-                let p = Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(anyhow::Error::msg)?);
+                let p = Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(crate::BadInput::new)?);
                 sinks.push(Box::new(crate::sinks::mqtt::MqttSink(p.clone())));
                 Some(p)
             }
@@ -629,7 +629,7 @@ pub fn grab_frame_set(config: &Config, timeout: Duration) -> Result<FrameSet> {
         tokio::task::spawn_blocking(move || sources.join()).await.ok();
         let frames: Vec<Frame> = frames.into_iter().flatten().collect();
         if frames.is_empty() {
-            anyhow::bail!("no camera delivered a frame within {:.0} s", timeout.as_secs_f64());
+            return Err(crate::BadInput::new(format!("no camera delivered a frame within {:.0} s", timeout.as_secs_f64())).into());
         }
         Ok(FrameSet::new(0, frames))
     })

@@ -1,0 +1,214 @@
+//! The build of a report: the curve the standard needs picked from the feed (net deflection
+//! or a gauge for ASTM, the CMOD gauge for EN 14651) with its σ, the standard's quantities,
+//! the notes and the QC section.
+
+use std::path::Path;
+
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::rig::TagRole;
+use tagdeflect_estimate::gauges::GaugeKind;
+
+use crate::{c1609, en14651, qc, Curve, Feed, Report, ReportConfig, ReportError, Standard, TestRig};
+
+/// The statement every report carries about the clauses cited.
+const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow the standards as the authors of this \
+     software know them; the text of the standards was not at hand when this was written, so \
+     the clause numbers and the definitions have not been checked against it. Check them \
+     against your copy before relying on this report.";
+
+/// Builds the report of a feed.
+pub fn build(feed: &Feed, config: &TestRig, config_path: &Path, opts: &ReportConfig) -> Result<Report, ReportError> {
+    let beam = config.specimen.beam.clone().ok_or_else(|| ReportError::Config {
+        path: config_path.to_path_buf(),
+        message:
+            "the report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm (and notch_mm for EN 14651)"
+                .into(),
+    })?;
+    let data_err = |message: String| ReportError::Data { path: feed.path.clone(), message };
+    let (curve, x_name, x_axis, x_source) = match opts.standard {
+        Standard::AstmC1609 | Standard::AstmC1856 => deflection_curve(feed, config, opts).map_err(data_err)?,
+        Standard::En14651 => {
+            if beam.notch_mm.is_none() {
+                return Err(ReportError::Config {
+                    path: config_path.to_path_buf(),
+                    message: "EN 14651 tests notched beams: give [specimen.beam] notch_mm".into(),
+                });
+            }
+            cmod_curve(feed, config, opts).map_err(data_err)?
+        }
+    };
+    let entries = match opts.standard {
+        Standard::AstmC1609 | Standard::AstmC1856 => c1609::compute(&curve, &beam),
+        Standard::En14651 => en14651::compute(&curve, &beam),
+    };
+    let mut notes = Vec::new();
+    match opts.standard {
+        Standard::AstmC1609 => notes.push(format!(
+            "Geometry from the config ([specimen.beam]): b = {} mm, d = {} mm, L = {} mm; third-point loading assumed (four-point bending, loads at L/3).",
+            beam.width_mm, beam.depth_mm, beam.span_mm
+        )),
+        Standard::AstmC1856 => notes.push(format!(
+            "ASTM C1856 refers the flexural test to ASTM C1609 with specimens of its own; the quantities below are C1609's, computed with the geometry of the config ([specimen.beam]): b = {} mm, d = {} mm, L = {} mm. Whether these dimensions are the ones C1856 calls for was not checked.",
+            beam.width_mm, beam.depth_mm, beam.span_mm
+        )),
+        Standard::En14651 => notes.push(format!(
+            "Geometry from the config ([specimen.beam]): b = {} mm, depth {} mm, notch {} mm, h_sp = {} mm, l = {} mm; three-point loading of a notched beam assumed.",
+            beam.width_mm,
+            beam.depth_mm,
+            beam.notch_mm.unwrap_or(0.0),
+            beam.ligament_mm(),
+            beam.span_mm
+        )),
+    }
+    notes.push(CLAUSES_UNCHECKED.to_string());
+    let qc = qc::Qc::of(feed, config, &curve, &x_name);
+    Ok(Report {
+        standard: opts.standard,
+        beam,
+        entries,
+        curve,
+        x_name,
+        x_axis,
+        x_source,
+        qc,
+        notes,
+        feed_path: feed.path.clone(),
+        options: opts.clone(),
+    })
+}
+
+/// The curve's columns as they are gathered from the feed.
+struct Columns {
+    t: Vec<i64>,
+    p: Vec<f64>,
+    x: Vec<f64>,
+    sx: Vec<Option<f64>>,
+}
+
+fn gauge_columns(feed: &Feed, name: &str) -> Columns {
+    let mut c = Columns { t: vec![], p: vec![], x: vec![], sx: vec![] };
+    for l in &feed.lines {
+        if let (Some(p), Some(g)) = (l.load_kn, l.gauges.get(name)) {
+            c.t.push(l.t_ns);
+            c.p.push(p);
+            c.x.push(g.value);
+            c.sx.push(g.known_sigma());
+        }
+    }
+    c
+}
+
+fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportConfig, what: &'static str) -> Result<Curve, String> {
+    Curve::new(c.t, c.p, c.x, c.sx, ref_sigma, opts.smooth_points, opts.load_resolution_kn.unwrap_or(0.0), what).map_err(|e| e.to_string())
+}
+
+/// Load against net deflection: a gauge when asked for, else the feed's `net_deflection_mm`
+/// with σ propagated from the role tags' `sigma_mm` along `world.up`.
+fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
+    // Asked for, else the config's `net_deflection` gauge when the feed carries it (its σ
+    // comes from the tags' covariance), else the feed's net_deflection_mm.
+    let configured =
+        config.gauges.iter().find(|g| g.kind == GaugeKind::NetDeflection && feed.gauge_names().contains(&g.name)).map(|g| g.name.clone());
+    if let Some(g) = opts.deflection_gauge.as_ref().or(configured.as_ref()) {
+        if !feed.gauge_names().contains(g) {
+            return Err(format!("no line carries the gauge `{g}` (gauges in the feed: {:?})", feed.gauge_names()));
+        }
+        let curve = curve_of(gauge_columns(feed, g), 0.0, opts, "deflection")?;
+        return Ok((curve, format!("net deflection (gauge {g})"), "net deflection".into(), format!("gauge `{g}` of the feed, with its σ")));
+    }
+    let up = config.world.up;
+    let down_sigma = |s: [f64; 3]| ((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt();
+    // σ of each role tag's zero reference: its σ in the first line that solved it.
+    let mut first_sigma: std::collections::BTreeMap<u32, f64> = Default::default();
+    let mut c = Columns { t: vec![], p: vec![], x: vec![], sx: vec![] };
+    let mut any_net = false;
+    for l in &feed.lines {
+        for t in &l.tags {
+            if let Some(s) = t.sigma_mm {
+                first_sigma.entry(t.id).or_insert(down_sigma(s));
+            }
+        }
+        let Some(net) = l.net_deflection_mm else { continue };
+        any_net = true;
+        let Some(p) = l.load_kn else { continue };
+        c.t.push(l.t_ns);
+        c.p.push(p);
+        c.x.push(net);
+        c.sx.push(role_sigma(l, config, &down_sigma));
+    }
+    if !any_net {
+        return Err("no line carries net_deflection_mm: give the specimen tags roles (support and midspan) in the config, or a deflection gauge (--deflection-gauge)".into());
+    }
+    // Reference σ: the roles' first-line σ combined like the net deflection itself.
+    let group =
+        |role: TagRole| -> Vec<f64> { first_sigma.iter().filter(|(id, _)| config.role_of(**id) == Some(role)).map(|(_, s)| *s).collect() };
+    let comb = |v: Vec<f64>| if v.is_empty() { 0.0 } else { v.iter().map(|s| s * s).sum::<f64>() / (v.len() * v.len()) as f64 };
+    let ref_sigma = (comb(group(TagRole::Midspan)) + comb(group(TagRole::Support))).sqrt();
+    let curve = curve_of(c, ref_sigma, opts, "net deflection")?;
+    Ok((
+        curve,
+        "net deflection".into(),
+        "net deflection".into(),
+        "the feed's net_deflection_mm (midspan tags relative to the support tags); σ per point from the tags' sigma_mm along world.up, \
+         midspan and support tags taken as independent, plus the σ of each tag's zero reference (its first solved frame set)"
+            .into(),
+    ))
+}
+
+/// σ of a line's net deflection from its role tags, `None` when a role tag has no σ.
+fn role_sigma(l: &FeedLine, config: &TestRig, down_sigma: &dyn Fn([f64; 3]) -> f64) -> Option<f64> {
+    let mut mid = Vec::new();
+    let mut sup = Vec::new();
+    for t in &l.tags {
+        match config.role_of(t.id) {
+            Some(TagRole::Midspan) => mid.push(down_sigma(t.sigma_mm?)),
+            Some(TagRole::Support) => sup.push(down_sigma(t.sigma_mm?)),
+            None => {}
+        }
+    }
+    if mid.is_empty() || sup.is_empty() {
+        return None;
+    }
+    let var = |v: &[f64]| v.iter().map(|s| s * s).sum::<f64>() / (v.len() * v.len()) as f64;
+    Some((var(&mid) + var(&sup)).sqrt())
+}
+
+/// The CMOD gauge: the one asked for, else the config's only `opening` gauge in the feed,
+/// else `cmod`, else the only gauge named like an opening.
+fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result<String, String> {
+    let names = feed.gauge_names();
+    let openings: Vec<&str> =
+        config.gauges.iter().filter(|g| g.kind == GaugeKind::Opening && names.contains(&g.name)).map(|g| g.name.as_str()).collect();
+    if let (None, [one]) = (asked, openings.as_slice()) {
+        return Ok(one.to_string());
+    }
+    if let Some(a) = asked {
+        return if names.iter().any(|n| n == a) {
+            Ok(a.to_string())
+        } else {
+            Err(format!("no line carries the CMOD gauge `{a}` (gauges in the feed: {names:?})"))
+        };
+    }
+    if let Some(n) = names.iter().find(|n| n.eq_ignore_ascii_case("cmod")) {
+        return Ok(n.clone());
+    }
+    let like: Vec<&String> = names.iter().filter(|n| n.to_lowercase().contains("cmod") || n.to_lowercase().contains("opening")).collect();
+    match like.as_slice() {
+        [one] => Ok((*one).clone()),
+        [] => Err(format!(
+            "EN 14651 needs the CMOD: no gauge named `cmod` in the feed (gauges: {names:?}); configure an `opening` gauge across the notch or name one with --cmod-gauge"
+        )),
+        more => Err(format!("several gauges could be the CMOD ({more:?}): name one with --cmod-gauge")),
+    }
+}
+
+fn cmod_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
+    let name = cmod_gauge_name(feed, config, opts.cmod_gauge.as_deref())?;
+    let curve = curve_of(gauge_columns(feed, &name), 0.0, opts, "CMOD")?;
+    Ok((
+        curve,
+        format!("CMOD (gauge {name})"),
+        "CMOD".into(),
+        format!("gauge `{name}` of the feed (an opening across the notch), with its σ"),
+    ))
+}

@@ -1,0 +1,83 @@
+//! The course of the simulated test: the midspan deflection over time, the beam's
+//! deformation at a deflection, and the UTM's readings (load law, stroke, outage).
+
+use tagdeflect_io::utm::UtmSample;
+
+use super::law::{self, BeamMotion};
+use super::SimRig;
+
+impl SimRig {
+    /// Midspan deflection (mm, positive downward) at `t_ns`: zero for `rest_frames` frame
+    /// sets, then a linear ramp reaching `max_deflection_mm` at the last frame set (held
+    /// after it, or repeated down and up again with `cyclic`).
+    pub fn midspan_deflection(&self, t_ns: i64) -> f64 {
+        let p = &self.params;
+        let s = (t_ns - p.start_ns) as f64 * 1e-9;
+        let period = 1.0 / p.fps;
+        let rest = p.rest_frames as f64 * period;
+        let ramp = (p.frame_sets as f64 - 1.0 - p.rest_frames as f64).max(0.0) * period;
+        let max = p.max_deflection_mm;
+        if ramp <= 0.0 {
+            return if s >= rest { max } else { 0.0 };
+        }
+        if !p.cyclic {
+            return ((s - rest) / ramp).clamp(0.0, 1.0) * max;
+        }
+        let cycle = rest + 2.0 * ramp;
+        let u = s.rem_euclid(cycle);
+        if u < rest {
+            0.0
+        } else if u < rest + ramp {
+            (u - rest) / ramp * max
+        } else {
+            (1.0 - (u - rest - ramp) / ramp) * max
+        }
+    }
+
+    /// The beam's deformation at midspan deflection `d` (mm).
+    pub(crate) fn motion_at(&self, d: f64) -> BeamMotion {
+        BeamMotion::new(&self.params, &self.beam, d)
+    }
+
+    /// The UTM's reading at true time `t_ns`: load = the load law at the midspan deflection
+    /// (elastic: stiffness × deflection, see the `law` module); stroke = the deflection under the
+    /// loading points + machine compliance × load.
+    pub fn utm_sample(&self, t_ns: i64) -> UtmSample {
+        let d = self.midspan_deflection(t_ns);
+        let load = law::load_at(&self.params, d);
+        let under_load = self.beam.deflection(0.5 * self.beam.load_span, d);
+        UtmSample { t_ns, load_kn: load, stroke_mm: Some(under_load + self.params.compliance_mm_per_kn * load) }
+    }
+
+    /// UTM samples at `utm_hz` (with `utm_phase_ms` against the frame clock) covering the
+    /// recording from 0.25 s (+ the clock offset) before the first frame set to 0.25 s (+ the
+    /// offset) after the last, stamped on the UTM's clock (`utm_clock_offset_ms` ahead).
+    pub(crate) fn utm_samples(&self) -> Vec<UtmSample> {
+        let p = &self.params;
+        let dt = 1e9 / p.utm_hz;
+        let margin = 250_000_000 + (p.utm_clock_offset_ms.abs() * 1e6).round() as i64;
+        let t_first = p.start_ns - margin;
+        let t_last = self.set_time_ns(p.frame_sets as u64 - 1) + margin;
+        let phase = p.utm_phase_ms * 1e6;
+        let j0 = ((t_first - p.start_ns) as f64 - phase) / dt;
+        let j1 = ((t_last - p.start_ns) as f64 - phase) / dt;
+        let outage = self.utm_outage();
+        let offset_ns = (p.utm_clock_offset_ms * 1e6).round() as i64;
+        (j0.ceil() as i64..=j1.floor() as i64)
+            .map(|j| p.start_ns + (phase + j as f64 * dt).round() as i64)
+            .filter(|t| outage.is_none_or(|(a, b)| *t < a || *t >= b))
+            // Stamped on the UTM's clock: taken at true time `stamp - offset`.
+            .map(|stamp| UtmSample { t_ns: stamp, ..self.utm_sample(stamp - offset_ns) })
+            .collect()
+    }
+
+    /// The simulated UTM outage (`utm_outage_at_s`, `utm_outage_s`) as [start, end) in ns
+    /// since the Unix epoch, when one is set.
+    pub(crate) fn utm_outage(&self) -> Option<(i64, i64)> {
+        let p = &self.params;
+        p.utm_outage_at_s.map(|a| {
+            let start = p.start_ns + (a * 1e9) as i64;
+            (start, start + (p.utm_outage_s * 1e9) as i64)
+        })
+    }
+}

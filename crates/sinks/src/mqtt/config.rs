@@ -1,0 +1,137 @@
+//! `[output.mqtt]`: the publisher's section, its defaults and its checks.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
+
+use super::client::{check_level_name, check_topic_template, hostname, tls_config_for, BrokerUrl};
+
+/// `[output.mqtt]`: publish the feed to an MQTT broker.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MqttConfig {
+    /// `mqtt://host[:port]` (1883) or `mqtts://host[:port]` (TLS, 8883).
+    pub url: String,
+    /// Topic prefix; `{rig}` and `{test}` must each be a whole topic level.
+    #[serde(default = "default_topic")]
+    pub topic: String,
+    /// This rig's name (default: the host name).
+    #[serde(default = "default_rig")]
+    pub rig: String,
+    /// The test id; generated per run (`YYYYMMDDTHHMMSSZ-xxxx`, printed) when absent. A
+    /// configured id must be new for every run: an archive keeps the first line it got for
+    /// each (rig, test, seq).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test: Option<String>,
+    /// QoS of the feed lines (0, 1 or 2; 1 = at least once).
+    #[serde(default = "default_qos")]
+    pub qos: u8,
+    /// MQTT client id (default `tagdeflect-<rig>`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id: Option<String>,
+    /// User name for the broker.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub username: Option<String>,
+    /// Password for the broker (never written into recordings).
+    #[serde(default, skip_serializing)]
+    pub password: Option<String>,
+    /// TLS: PEM file of the CA certificates that sign the broker's certificate (default:
+    /// the system bundle `/etc/ssl/certs/ca-certificates.crt`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ca_file: Option<PathBuf>,
+    /// TLS client authentication: PEM certificate chain (with `client_key`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_cert: Option<PathBuf>,
+    /// TLS client authentication: PEM private key (with `client_cert`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_key: Option<PathBuf>,
+    /// Feed lines held while the broker is unreachable or slow (sent or not yet
+    /// acknowledged); the oldest is dropped beyond this.
+    #[serde(default = "default_buffer")]
+    pub buffer_lines: usize,
+    /// MQTT keep-alive, seconds.
+    #[serde(default = "default_keep_alive")]
+    pub keep_alive_s: u64,
+    /// Seconds between refreshes of the retained status.
+    #[serde(default = "default_status_interval")]
+    pub status_interval_s: f64,
+}
+
+fn default_topic() -> String {
+    "tagdeflect/{rig}/{test}".into()
+}
+fn default_rig() -> String {
+    hostname()
+}
+fn default_qos() -> u8 {
+    1
+}
+fn default_buffer() -> usize {
+    10_000
+}
+fn default_keep_alive() -> u64 {
+    15
+}
+fn default_status_interval() -> f64 {
+    5.0
+}
+
+impl MqttConfig {
+    /// Validates the section and resolves TLS file paths against `base` (the config's
+    /// folder). On error: the key (below `output.mqtt`) and what is wrong.
+    pub fn validate(&mut self, base: &Path) -> Result<(), (&'static str, String)> {
+        let url = BrokerUrl::parse(&self.url).map_err(|m| ("url", m))?;
+        check_topic_template(&self.topic).map_err(|m| ("topic", m))?;
+        check_level_name("rig", &self.rig).map_err(|m| ("rig", m))?;
+        if let Some(t) = &self.test {
+            check_level_name("test", t).map_err(|m| ("test", m))?;
+        }
+        if self.qos > 2 {
+            return Err(("qos", format!("must be 0, 1 or 2, got {}", self.qos)));
+        }
+        if let Some(id) = &self.client_id {
+            if id.is_empty() || id.len() > 256 {
+                return Err(("client_id", "must be 1 to 256 characters".into()));
+            }
+        }
+        if self.password.is_some() && self.username.is_none() && url.username.is_none() {
+            return Err(("password", "a password needs a `username`".into()));
+        }
+        if self.buffer_lines == 0 {
+            return Err(("buffer_lines", "must be at least 1".into()));
+        }
+        if self.keep_alive_s < 5 || self.keep_alive_s > 3600 {
+            return Err(("keep_alive_s", format!("must be 5..3600 s, got {}", self.keep_alive_s)));
+        }
+        if !(self.status_interval_s.is_finite() && self.status_interval_s >= 0.1) {
+            return Err(("status_interval_s", "must be at least 0.1 s".into()));
+        }
+        let tls_keys = self.ca_file.is_some() || self.client_cert.is_some() || self.client_key.is_some();
+        if tls_keys && !url.tls {
+            return Err(("url", "TLS options are set but the URL is not mqtts://".into()));
+        }
+        if self.client_cert.is_some() != self.client_key.is_some() {
+            return Err(("client_cert", "give both `client_cert` and `client_key`, or neither".into()));
+        }
+        for (key, p) in [("ca_file", &mut self.ca_file), ("client_cert", &mut self.client_cert), ("client_key", &mut self.client_key)] {
+            if let Some(path) = p {
+                if path.is_relative() {
+                    *path = base.join(&*path);
+                }
+                if let Err(e) = std::fs::metadata(&*path) {
+                    return Err((key, format!("cannot read {}: {e}", path.display())));
+                }
+            }
+        }
+        if url.tls {
+            self.tls_config().map_err(|m| ("ca_file", m))?;
+        }
+        Ok(())
+    }
+
+    /// The rustls client configuration of this section's `mqtts://` connection.
+    pub(crate) fn tls_config(&self) -> Result<Arc<rustls::ClientConfig>, String> {
+        tls_config_for(self.ca_file.as_deref(), self.client_cert.as_deref(), self.client_key.as_deref())
+    }
+}
