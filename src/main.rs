@@ -281,8 +281,9 @@ fn run(cli: Cli) -> Result<()> {
         }
         #[cfg(feature = "sim")]
         Command::Simulate { out, frame_format, params } => {
-            let summary =
-                anyhow::Context::with_context(tagdeflect::sim::simulate_as(&params, &out, frame_format), || format!("simulating into {}", out.display()))?;
+            let summary = anyhow::Context::with_context(tagdeflect::sim::simulate_as(&params, &out, frame_format), || {
+                format!("simulating into {}", out.display())
+            })?;
             eprintln!(
                 "simulated {} frame sets ({} frames, {} dropped, {} UTM samples) into {}; final midspan deflection {:.3} mm",
                 summary.frame_sets,

@@ -66,7 +66,9 @@ impl<'a> Locator<'a> {
         let mut best: Option<Range<usize>> = None;
         for step in steps(path) {
             let next: Option<(Node<'_>, Option<Range<usize>>)> = match (&node, step) {
-                (Node::Table(t), Step::Key(k)) => t.get_key_value(k).map(|(key, item)| (Node::Item(item), key.span().or_else(|| item.span()))),
+                (Node::Table(t), Step::Key(k)) => {
+                    t.get_key_value(k).map(|(key, item)| (Node::Item(item), key.span().or_else(|| item.span())))
+                }
                 (Node::Item(Item::Table(t)), Step::Key(k)) => {
                     t.get_key_value(k).map(|(key, item)| (Node::Item(item), key.span().or_else(|| item.span())))
                 }

@@ -107,4 +107,3 @@ fn check_sim(_sim: Option<&SimSection>, cameras: &[CameraConfig], sim_utm: bool)
     }
     Ok(())
 }
-

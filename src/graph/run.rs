@@ -72,12 +72,7 @@ pub fn replay_realtime(dir: &std::path::Path, config: Option<Config>, full_frame
 
 /// `replay --realtime [--http ADDR]`: as [`replay_realtime`], serving the live page; with
 /// the page, it stays up after the recording is consumed until SIGINT/SIGTERM.
-pub fn replay_realtime_http(
-    dir: &std::path::Path,
-    config: Option<Config>,
-    full_frame: bool,
-    http: Option<HttpOptions>,
-) -> Result<()> {
+pub fn replay_realtime_http(dir: &std::path::Path, config: Option<Config>, full_frame: bool, http: Option<HttpOptions>) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
     replay_paced_with(rec, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
 }
@@ -189,7 +184,10 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let measure = if opts.record_only {
         None
     } else {
-        Some(Measurement::new(&config.measurement(), !opts.full_frame).map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?)
+        Some(
+            Measurement::new(&config.measurement(), !opts.full_frame)
+                .map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?,
+        )
     };
 
     // Cameras (a recording's frames too: `replay --realtime` sets every camera's source to it).
@@ -453,7 +451,10 @@ impl Outputs {
                     feeds.push(FeedWriter::stdout());
                 }
             } else {
-                feeds.push(FeedWriter::append(std::path::Path::new(spec)).map_err(|e| crate::BadInput::new(format!("cannot open the feed output {spec}: {e}")))?);
+                feeds.push(
+                    FeedWriter::append(std::path::Path::new(spec))
+                        .map_err(|e| crate::BadInput::new(format!("cannot open the feed output {spec}: {e}")))?,
+                );
             }
         }
         // `[report]`: this run's feed copied into the report folder, the report written at the end.
@@ -472,7 +473,8 @@ impl Outputs {
         #[cfg(feature = "mqtt")]
         let mqtt = match (&config.output.mqtt, replaying) {
             (Some(m), false) => {
-                let p = Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(crate::BadInput::new)?);
+                let p =
+                    Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(crate::BadInput::new)?);
                 sinks.push(Box::new(crate::sinks::mqtt::MqttSink(p.clone())));
                 Some(p)
             }

@@ -120,4 +120,3 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
         rig,
     })
 }
-

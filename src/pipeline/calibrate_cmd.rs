@@ -29,7 +29,9 @@ fn one_camera(config_path: &Path, camera: &str) -> Result<Config> {
     let mut cfg = Config::load(config_path)?;
     let Some(i) = cfg.cameras.iter().position(|c| c.name == camera) else {
         let names: Vec<&str> = cfg.cameras.iter().map(|c| c.name.as_str()).collect();
-        return Err(crate::BadInput::new(format!("{}: no camera named {camera:?} (cameras: {})", config_path.display(), names.join(", "))).into());
+        return Err(
+            crate::BadInput::new(format!("{}: no camera named {camera:?} (cameras: {})", config_path.display(), names.join(", "))).into()
+        );
     };
     let cam = cfg.cameras.remove(i);
     cfg.cameras = vec![cam];

@@ -89,4 +89,3 @@ pub fn export_cli(args: &ExportArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
-

@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 
 use crate::config::Config;
-use tagdeflect_report::Feed;
 use crate::sinks::feed::FeedWriter;
+use tagdeflect_report::Feed;
 
 /// A report to be written when the run ends.
 pub struct RunReport {

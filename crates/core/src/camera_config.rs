@@ -132,7 +132,6 @@ impl CameraConfig {
     }
 }
 
-
 /// Lowest camera frame rate accepted, Hz.
 pub const MIN_FPS: f64 = 0.01;
 /// Highest camera frame rate accepted, Hz.

@@ -81,7 +81,6 @@ pub enum TagRole {
     Midspan,
 }
 
-
 impl WorldConfig {
     /// `[world]` checked, `up` normalised; keys relative to `[world]`.
     pub fn normalised(&self) -> Result<WorldConfig, crate::Problem> {
@@ -172,6 +171,17 @@ fn check_size(v: f64) -> Result<f64, crate::Problem> {
     Ok(v)
 }
 
+/// A tag id of `family` at `key`: within the family's codes, not seen before in its set.
+fn check_id(family: TagFamily, id: u32, seen: bool, set: &str, key: &str) -> Result<(), crate::Problem> {
+    if seen {
+        return Err(crate::Problem::new(format!("{key}.id"), format!("duplicate {set} tag id {id}")));
+    }
+    if id >= family.code_count() {
+        return Err(crate::Problem::new(format!("{key}.id"), format!("{family} has ids 0..{}, got {id}", family.code_count() - 1)));
+    }
+    Ok(())
+}
+
 fn resolve_background(bg: &BackgroundSection) -> Result<BackgroundConfig, crate::Problem> {
     use crate::Problem;
     if bg.beam.is_some() {
@@ -186,12 +196,7 @@ fn resolve_background(bg: &BackgroundSection) -> Result<BackgroundConfig, crate:
     for (i, t) in bg.tag.iter().enumerate() {
         let key = format!("tag[{i}]");
         let id = t.id;
-        if tags.iter().any(|o| o.id == id) {
-            return Err(Problem::new(format!("{key}.id"), format!("duplicate background tag id {id}")));
-        }
-        if id >= family.code_count() {
-            return Err(Problem::new(format!("{key}.id"), format!("{family} has ids 0..{}, got {id}", family.code_count() - 1)));
-        }
+        check_id(family, id, tags.iter().any(|o| o.id == id), "background", &key)?;
         let c = &t.corners_mm;
         if c.len() != 4 || c.iter().any(|p| p.len() != 3) {
             return Err(Problem::new(
@@ -247,12 +252,7 @@ fn resolve_specimen(sp: &SpecimenSection) -> Result<SpecimenConfig, crate::Probl
     let mut tags: Vec<SpecimenTag> = Vec::new();
     for (i, t) in sp.tag.iter().enumerate() {
         let id = t.id;
-        if tags.iter().any(|o| o.id == id) {
-            return Err(Problem::new(format!("tag[{i}].id"), format!("duplicate specimen tag id {id}")));
-        }
-        if id >= family.code_count() {
-            return Err(Problem::new(format!("tag[{i}].id"), format!("{family} has ids 0..{}, got {id}", family.code_count() - 1)));
-        }
+        check_id(family, id, tags.iter().any(|o| o.id == id), "specimen", &format!("tag[{i}]"))?;
         tags.push(t.clone());
     }
     if let Some(b) = &sp.beam {

@@ -32,8 +32,8 @@
 //! innovation far outside its covariance (a mis-detected frame) is down-weighted, not
 //! dropped, so the filter can never lock itself out; a real jump is the bump test's job.
 
-use tagdeflect_core::camera::{skew, Pose};
 use nalgebra::{Matrix3, Matrix6, SMatrix, SVector, Vector3, Vector6};
+use tagdeflect_core::camera::{skew, Pose};
 
 /// Tracking of slow camera drift while a pose is held (`[measure]` keys `drift_tracking`,
 /// `drift_rate_deg_per_h`, `drift_rate_mm_per_h`, `drift_rate_change_h`).
@@ -72,7 +72,10 @@ impl DriftConfig {
             [("rate_deg_per_h", self.rate_deg_per_h), ("rate_mm_per_h", self.rate_mm_per_h), ("rate_change_h", self.rate_change_h)]
         {
             if !(v.is_finite() && v > 0.0 && v <= 1e6) {
-                return Err(tagdeflect_core::Problem::new(format!("drift_{key}"), format!("{v}: expected a positive number (at most 1e6)")));
+                return Err(tagdeflect_core::Problem::new(
+                    format!("drift_{key}"),
+                    format!("{v}: expected a positive number (at most 1e6)"),
+                ));
             }
         }
         Ok(())

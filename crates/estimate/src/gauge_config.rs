@@ -118,16 +118,16 @@ pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Resul
         let err = |k: &str, m: String| Problem::new(key(k), m);
         let name = g.name.trim().to_string();
         if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-') {
-            return Err(err("name",
+            return Err(err(
+                "name",
                 format!("\"{name}\": a gauge name is letters, digits, `_` and `-` (it is a feed key and a CSV column)"),
             ));
         }
         if !names.insert(name.clone()) {
             return Err(err("name", format!("duplicate gauge name \"{name}\"")));
         }
-        let kind = GaugeKind::parse(g.kind.trim()).ok_or_else(|| {
-            err("kind", format!("\"{}\" is not a gauge kind: expected {}", g.kind, GaugeKind::NAMES))
-        })?;
+        let kind = GaugeKind::parse(g.kind.trim())
+            .ok_or_else(|| err("kind", format!("\"{}\" is not a gauge kind: expected {}", g.kind, GaugeKind::NAMES)))?;
         let tags: Vec<u32> = g.tags.clone().unwrap_or_default();
         let needed = match kind {
             GaugeKind::NetDeflection => None,
@@ -137,7 +137,8 @@ pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Resul
         };
         if let Some(n) = needed {
             if tags.len() != n {
-                return Err(err("tags",
+                return Err(err(
+                    "tags",
                     format!("a {} gauge uses {n} specimen tag{}, got {}", kind_name(kind), if n == 1 { "" } else { "s" }, tags.len()),
                 ));
             }
@@ -156,7 +157,8 @@ pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Resul
                 if tags.is_empty() { roles.values().copied().collect() } else { tags.iter().map(|id| roles[id]).collect() };
             let has = |r: TagRole| used.contains(&Some(r));
             if !has(TagRole::Support) || !has(TagRole::Midspan) {
-                return Err(err("tags",
+                return Err(err(
+                    "tags",
                     "a net_deflection gauge needs tags with role = \"support\" and role = \"midspan\" (set in [[specimen.tag]])".into(),
                 ));
             }
@@ -166,9 +168,7 @@ pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Resul
             (None, GaugeKind::Opening) => {
                 return Err(err("direction", "an opening gauge needs `direction = [x, y, z]` (the component measured)".into()))
             }
-            (Some(_), GaugeKind::Rotation) => {
-                return Err(err("direction", "a rotation gauge takes `axis = [x, y, z]`".into()))
-            }
+            (Some(_), GaugeKind::Rotation) => return Err(err("direction", "a rotation gauge takes `axis = [x, y, z]`".into())),
             (Some(_), _) => return Err(err("direction", format!("not used by a {} gauge", kind_name(kind)))),
             (None, _) => None,
         };
@@ -193,9 +193,7 @@ pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Resul
         };
         let at_mm = match &g.at_mm {
             None => None,
-            Some(a) if kind != GaugeKind::Opening => {
-                return Err(err("at_mm", format!("not used by a {} gauge", kind_name(kind))))
-            }
+            Some(a) if kind != GaugeKind::Opening => return Err(err("at_mm", format!("not used by a {} gauge", kind_name(kind)))),
             Some(a) => {
                 let v = a;
                 if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
@@ -218,4 +216,3 @@ fn kind_name(kind: GaugeKind) -> &'static str {
         GaugeKind::Curvature => "curvature",
     }
 }
-

@@ -26,8 +26,8 @@ use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
 
 use super::lm::retract;
 use tagdeflect_core::camera::Pose;
-use tagdeflect_core::rig::{SpecimenConfig, TagRole};
 use tagdeflect_core::feed::GaugeReading;
+use tagdeflect_core::rig::{SpecimenConfig, TagRole};
 
 pub use crate::gauge_config::{validate_gauges, GaugeConfig, GaugeKind, GaugeSection, STRAIN_UNIT};
 
@@ -330,7 +330,11 @@ impl LineGauges {
 
     /// Fills the line's `gauges` from the tags added since the last line, and its
     /// `clock_offset_ms` when the clock check reports.
-    pub fn finish_line(&mut self, mut line: tagdeflect_core::feed::FeedLine, utm: &tagdeflect_core::utm_sample::UtmHistory) -> tagdeflect_core::feed::FeedLine {
+    pub fn finish_line(
+        &mut self,
+        mut line: tagdeflect_core::feed::FeedLine,
+        utm: &tagdeflect_core::utm_sample::UtmHistory,
+    ) -> tagdeflect_core::feed::FeedLine {
         let tags = std::mem::take(&mut self.pending);
         line.gauges = self.gauges.evaluate(&tags);
         let net = line.net_deflection_mm.or_else(|| {

@@ -61,8 +61,8 @@ pub(crate) fn mirrored(rotation: &Rotation3<f64>, t: &Vector3<f64>) -> Rotation3
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tagdeflect_core::camera::rotation_angle;
     use nalgebra::Vector2;
+    use tagdeflect_core::camera::rotation_angle;
 
     #[test]
     fn homography_pose_round_trip() {

@@ -8,19 +8,19 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::{solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagMotion, TagView};
+use rayon::prelude::*;
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
-use tagdeflect_core::rig::TagRole;
 use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
+use tagdeflect_core::frame::FrameSet;
+use tagdeflect_core::rig::TagRole;
 use tagdeflect_core::rig::{BackgroundConfig, SpecimenConfig, WorldConfig};
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_core::utm_sample::UtmHistory;
 use tagdeflect_detect::apriltag::{DetectError, Detector, DetectorOptions};
 use tagdeflect_detect::refine::RefineOptions;
 use tagdeflect_detect::{CameraDetections, CameraDetector, ConfirmOptions, DetectReport, RigDetectors, TagConfirmer, TagRoles};
-use tagdeflect_core::feed::{round_mm, CameraHealth, FeedLine, FeedTag};
-use tagdeflect_core::frame::FrameSet;
-use crate::{solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagMotion, TagView};
-use tagdeflect_core::tags::TagFamily;
-use tagdeflect_core::utm_sample::UtmHistory;
-use rayon::prelude::*;
 
 pub use tagdeflect_detect::DetectParts;
 

@@ -58,7 +58,6 @@ impl Default for MeasureConfig {
     }
 }
 
-
 impl MeasureConfig {
     /// Checks `[measure]` with the detector's and the drift model's own limits (so nothing
     /// fails after `tagdeflect check`); keys relative to `[measure]`.

@@ -20,14 +20,14 @@ use std::fs::{self, File};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
+use crate::utm::UtmSample;
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::linefile::LineFile;
-use crate::utm::UtmSample;
 
 mod frames;
-pub use tagdeflect_core::frame::{encode_png, FrameFormat};
 pub use frames::{CameraList, FrameReader, ReadFrame};
+pub use tagdeflect_core::frame::{encode_png, FrameFormat};
 
 /// Name of the config file inside a recording.
 pub const CONFIG_FILE: &str = "tagdeflect.toml";
@@ -583,4 +583,3 @@ pub fn read_jsonl_file<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<Vec<
     let mut skipped = Vec::new();
     read_jsonl(path, &mut skipped)
 }
-

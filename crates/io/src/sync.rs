@@ -194,8 +194,8 @@ impl FrameSetAssembler {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tagdeflect_core::frame::GrayImage;
     use std::sync::Arc;
+    use tagdeflect_core::frame::GrayImage;
 
     fn f(camera: usize, t_ms: i64) -> Frame {
         Frame { camera, seq: 0, t_ns: 1_700_000_000_000_000_000 + t_ms * 1_000_000, image: Arc::new(GrayImage::new(1, 1)) }

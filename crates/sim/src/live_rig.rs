@@ -11,11 +11,11 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use tagdeflect_core::clock;
-use tagdeflect_io::utm::config::{RegisterConfig, RegisterKind, UtmAddress, UtmConfig, ValueType, WordOrder};
-use tagdeflect_core::frame::GrayImage;
 use crate::{SimError, SimParams, SimRig};
+use tagdeflect_core::clock;
+use tagdeflect_core::frame::GrayImage;
 use tagdeflect_io::sources::capture::{CaptureSession, Captured};
+use tagdeflect_io::utm::config::{RegisterConfig, RegisterKind, UtmAddress, UtmConfig, ValueType, WordOrder};
 use tagdeflect_io::utm::sim_server::UtmModel;
 
 /// The simulated rig of a live run.

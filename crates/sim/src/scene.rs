@@ -5,11 +5,11 @@ use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use crate::params::{camera_places, SIM_CAMERA_NAMES};
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use tagdeflect_core::rig::TagRole;
-use tagdeflect_detect::tag_bitmap;
 use tagdeflect_core::tags::{TagBitmap, TagFamily};
+use tagdeflect_detect::tag_bitmap;
 
 use super::SimParams;
 

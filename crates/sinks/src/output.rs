@@ -78,4 +78,3 @@ impl OutputConfig {
 fn is_default_format(f: &FrameFormat) -> bool {
     *f == FrameFormat::default()
 }
-

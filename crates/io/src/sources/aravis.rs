@@ -40,11 +40,11 @@ use aravis::prelude::*;
 use aravis::{AcquisitionMode, Buffer, BufferPayloadType, BufferStatus, Camera, GvStream, GvStreamPacketResend, PixelFormat, Stream};
 use tokio::sync::mpsc::Sender;
 
-use tagdeflect_core::clock::{now_epoch_ns, DeviceClockMap};
-use tagdeflect_core::camera_config::CameraConfig;
-use tagdeflect_core::frame::GrayImage;
-use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
+use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
+use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::clock::{now_epoch_ns, DeviceClockMap};
+use tagdeflect_core::frame::GrayImage;
 
 /// Tuning of an Aravis stream (defaults suit the product; tests change them).
 #[derive(Debug, Clone)]

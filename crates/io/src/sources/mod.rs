@@ -23,8 +23,8 @@
 #[cfg(feature = "aravis")]
 pub mod aravis;
 pub use tagdeflect_core::clock;
-pub mod convert;
 pub mod capture;
+pub mod convert;
 pub mod recording;
 pub mod v4l2;
 
@@ -35,8 +35,8 @@ use tokio::sync::mpsc::Sender;
 
 pub use capture::{CaptureStats, DropReason, LiveCamera, OpenPolicy, SourceError, SourceEvent, StatsSnapshot};
 
-use tagdeflect_core::camera_config::{CameraConfig, CameraSource};
 pub use capture::{spawn_capture, Backoff, LoopTiming};
+use tagdeflect_core::camera_config::{CameraConfig, CameraSource};
 
 /// Starts a live device camera in its own thread and returns once the device is open and
 /// configured, or with the error that prevented it ([`OpenPolicy::Require`]: `check`,

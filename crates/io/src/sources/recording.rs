@@ -10,9 +10,9 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tagdeflect_core::frame::GrayImage;
 use crate::recording::{CameraList, RecordedConfig, Recording};
 use crate::sources::capture::{CaptureSession, Captured};
+use tagdeflect_core::frame::GrayImage;
 
 /// The shared start of a recording's playback.
 #[derive(Debug)]

@@ -45,11 +45,11 @@ use v4l::io::traits::{CaptureStream, Stream as _};
 use v4l::video::Capture;
 use v4l::{Format, FourCC, Fraction};
 
-use tagdeflect_core::clock::{now_epoch_ns, MonotonicToEpoch};
-use tagdeflect_core::camera_config::CameraConfig;
-use tagdeflect_core::frame::GrayImage;
-use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
 use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
+use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
+use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::clock::{now_epoch_ns, MonotonicToEpoch};
+use tagdeflect_core::frame::GrayImage;
 
 /// Pixel formats requested from the device, most preferred first.
 pub(crate) const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];

@@ -175,7 +175,6 @@ pub enum WordOrder {
     Dcba,
 }
 
-
 impl UtmConfig {
     /// Checks `[utm]`; keys relative to it.
     pub fn validate(&self) -> Result<(), Problem> {

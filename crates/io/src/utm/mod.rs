@@ -8,8 +8,8 @@ pub mod sim_server;
 
 pub use codec::{decode, encode, DecodeError, EncodeError};
 pub use modbus::{run_poller, PollerError, UtmEvent};
-pub use tagdeflect_core::utm_sample::{UtmHistory, UtmSample};
 pub use sim_server::{serve_sim_utm, start_sim_utm, SimUtm, UtmModel};
+pub use tagdeflect_core::utm_sample::{UtmHistory, UtmSample};
 
 pub mod config;
 pub use config::*;

@@ -264,8 +264,8 @@ impl AsyncWrite for Tracked {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::utm::config::{ValueType, WordOrder};
     use crate::utm::codec::decode;
+    use crate::utm::config::{ValueType, WordOrder};
 
     fn layout() -> UtmConfig {
         UtmConfig {
