@@ -92,18 +92,11 @@ fn check_sim(sim: Option<&SimSection>, cameras: &[CameraConfig], _sim_utm: bool)
     Ok(())
 }
 
-/// Without the simulator, a simulated camera or UTM cannot run: said at load.
+/// Without the simulator, `[sim]` is kept as written and simulated cameras or a simulated
+/// UTM are refused when a run starts them, not at load: a recording made from the simulated
+/// rig carries `source = "sim"` cameras and replays in every build (replay ignores camera
+/// sources).
 #[cfg(not(feature = "sim"))]
-fn check_sim(_sim: Option<&SimSection>, cameras: &[CameraConfig], sim_utm: bool) -> Result<(), Problem> {
-    let replaying = cameras.iter().any(|c| matches!(c.source, tagdeflect_core::camera_config::CameraSource::Recording { .. }));
-    if let Some(i) = cameras.iter().position(|c| c.source.is_sim()) {
-        return Err(Problem::new(
-            format!("camera[{i}].source"),
-            "\"sim\": this build has no simulated rig: build with the `sim` feature (or replay a recording)",
-        ));
-    }
-    if sim_utm && !replaying {
-        return Err(Problem::new("utm.address", "\"sim\": this build has no simulated UTM: build with the `sim` feature"));
-    }
+fn check_sim(_sim: Option<&SimSection>, _cameras: &[CameraConfig], _sim_utm: bool) -> Result<(), Problem> {
     Ok(())
 }

@@ -218,7 +218,11 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             ucfg.clone()
         };
         #[cfg(not(feature = "sim"))]
-        let ucfg = ucfg.clone();
+        let ucfg = if ucfg.address.is_sim() {
+            return Err(crate::BadInput::new("utm.address = \"sim\": this build has no simulated UTM: build with the `sim` feature").into());
+        } else {
+            ucfg.clone()
+        };
         let rx = shutdown_rx.clone();
         tokio::spawn(async move {
             if let Err(e) = run_poller(ucfg, utm_tx, rx).await {

@@ -75,7 +75,12 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
         let started = match &cam.source {
             CameraSource::V4l2 { .. } | CameraSource::Aravis { .. } => spawn_device(i, cam, policy, tx.clone(), stop.clone()),
             #[cfg(not(feature = "sim"))]
-            CameraSource::Sim => Err(SourceError::Sim { camera: i, name: cam.name.clone() }),
+            CameraSource::Sim => Err(SourceError::Open {
+                camera: i,
+                name: cam.name.clone(),
+                spec: "sim".into(),
+                message: "this build has no simulated rig: build with the `sim` feature".into(),
+            }),
             #[cfg(feature = "sim")]
             CameraSource::Sim => {
                 let rig = rig.clone().expect("the rig is built when a camera is simulated");
