@@ -275,11 +275,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 mqtt: mqtt.clone(),
             };
             let fanout = fanout.clone();
-            Some(
-                std::thread::Builder::new()
-                    .name("solver".into())
-                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, fanout, status, utm_configured, heartbeat))?,
-            )
+            Some(std::thread::Builder::new().name("solver".into()).spawn(move || {
+                solver_loop(config, measure, queue, solver_utm_rx, SolverOut { fanout, status }, utm_configured, heartbeat)
+            })?)
         }
     };
     let started = Instant::now();
@@ -504,11 +502,11 @@ fn solver_loop(
     mut measure: Measurement,
     queue: Arc<SetQueue>,
     utm_rx: RelayReceiver,
-    fanout: Arc<Fanout>,
-    status: LineStatus,
+    out: SolverOut,
     utm_configured: bool,
     heartbeat: Arc<AtomicU64>,
 ) {
+    let SolverOut { fanout, status } = out;
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
     measure.utm_mut().set_window(LIVE_UTM_WINDOW_NS);
@@ -568,6 +566,13 @@ fn solver_loop(
 const UTM_RELAY_SAMPLES: usize = 4096;
 /// UTM samples kept for interpolation in live runs: this far behind the newest.
 const LIVE_UTM_WINDOW_NS: i64 = 60_000_000_000;
+
+/// Where the solver's lines go: the run's shared status completes each line, then the sinks'
+/// thread takes it.
+struct SolverOut {
+    fanout: Arc<Fanout>,
+    status: LineStatus,
+}
 
 /// What the solver adds to every feed line of a live run besides the measurement: the
 /// state the run's other parts share (the recorder's, the cameras' drops, the MQTT buffer's
