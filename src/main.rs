@@ -125,16 +125,20 @@ enum Command {
     Report(pipeline::report_cmd::ReportArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
     Export(pipeline::report_cmd::ExportArgs),
-    /// A command this build was made without (its feature is named in the error).
+    /// A command this build was made without (its feature is named in the error); only in a
+    /// build without some feature, so a full build keeps clap's own error for a typo.
+    #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
     #[command(external_subcommand)]
     Missing(Vec<String>),
 }
 
 /// The commands that need a cargo feature, and the feature.
+#[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
 const FEATURE_COMMANDS: &[(&str, &str)] =
     &[("simulate", "sim"), ("demo", "sim"), ("archive", "archive"), ("archive-bench", "archive"), ("calibrate", "calibrate")];
 
 /// The error for a command this build does not have.
+#[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
 fn missing_command(args: &[String]) -> anyhow::Error {
     let name = args.first().map(String::as_str).unwrap_or("");
     match FEATURE_COMMANDS.iter().find(|(c, _)| *c == name) {
@@ -331,6 +335,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Calibrate(opts) => pipeline::calibrate_cmd::run(&opts),
         Command::Report(args) => pipeline::report_cmd::run_cli(&args).map(|_| ()),
         Command::Export(args) => pipeline::report_cmd::export_cli(&args),
+        #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
         Command::Missing(args) => Err(missing_command(&args)),
     }
 }

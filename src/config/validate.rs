@@ -43,7 +43,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     };
     let mut output = raw.output.unwrap_or_default();
     output.validate(base).map_err(|p| p.within("output"))?;
-    check_sim(raw.sim.as_ref(), &cameras, raw.utm.as_ref().is_some_and(|u| u.address.is_sim()))?;
+    check_sim(raw.sim.as_ref(), &cameras)?;
     output.validate_mqtt(base).map_err(|p| p.within("output"))?;
     let gauges = tagdeflect_estimate::gauges::validate_gauges(&raw.gauge, &specimen)?;
     if let Some(c) = &raw.clock_check {
@@ -68,7 +68,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
 /// `[sim]` checked by the simulator, and simulated cameras are the rig's cameras, by name
 /// and in order.
 #[cfg(feature = "sim")]
-fn check_sim(sim: Option<&SimSection>, cameras: &[CameraConfig], _sim_utm: bool) -> Result<(), Problem> {
+fn check_sim(sim: Option<&SimSection>, cameras: &[CameraConfig]) -> Result<(), Problem> {
     if let Some(sim) = sim {
         sim.validate().map_err(|e| Problem::new(format!("sim.{}", e.option), e.message))?;
     }
@@ -97,6 +97,6 @@ fn check_sim(sim: Option<&SimSection>, cameras: &[CameraConfig], _sim_utm: bool)
 /// rig carries `source = "sim"` cameras and replays in every build (replay ignores camera
 /// sources).
 #[cfg(not(feature = "sim"))]
-fn check_sim(_sim: Option<&SimSection>, _cameras: &[CameraConfig], _sim_utm: bool) -> Result<(), Problem> {
+fn check_sim(_sim: Option<&SimSection>, _cameras: &[CameraConfig]) -> Result<(), Problem> {
     Ok(())
 }

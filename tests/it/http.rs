@@ -457,3 +457,15 @@ fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error
     let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["demo", "--http", "nonsense"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
 }
+
+/// The page builds what comes from configs and the network as text: no `innerHTML`,
+/// `outerHTML` or `insertAdjacentHTML` in its script (a camera name like
+/// `<img src=x onerror=...>` must show as those characters, not run).
+#[test]
+fn the_page_script_puts_no_data_in_as_markup() {
+    let js = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/sinks/src/http/assets/app.js")).unwrap();
+    for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write"] {
+        assert!(!js.contains(sink), "app.js uses {sink}");
+    }
+    assert!(js.contains("textContent"), "app.js writes text with textContent");
+}

@@ -165,10 +165,23 @@ function cameraCard(src) {
   const el = document.createElement("div");
   el.className = "camera";
   el.dataset.camera = src.name;
-  el.innerHTML = `<div class="head"><span>${src.name}</span><span class="chip state">–</span></div>
-    <img class="thumb" alt="camera ${src.name}: no snapshot yet">
-    <dl><dt>pose reprojection</dt><dd class="reproj">–</dd><dt>frame rate</dt><dd class="rate">–</dd>
-    <dt>frames / dropped</dt><dd class="frames">–</dd><dt>tags seen</dt><dd class="seen">–</dd></dl>`;
+  // Built as elements with text, never markup from data: a camera name is the config's,
+  // and a recording's config may come from anywhere.
+  const node = (tag, cls, text) => {
+    const n = document.createElement(tag);
+    if (cls) n.className = cls;
+    if (text !== undefined) n.textContent = text;
+    return n;
+  };
+  const head = node("div", "head");
+  head.append(node("span", "", src.name), node("span", "chip state", "–"));
+  const img = node("img", "thumb");
+  img.alt = `camera ${src.name}: no snapshot yet`;
+  const dl = node("dl");
+  for (const [label, cls] of [["pose reprojection", "reproj"], ["frame rate", "rate"], ["frames / dropped", "frames"], ["tags seen", "seen"]]) {
+    dl.append(node("dt", "", label), node("dd", cls, "–"));
+  }
+  el.append(head, img, dl);
   $("cameras").append(el);
   c = { el, img: el.querySelector("img"), state: el.querySelector(".state"), reproj: el.querySelector(".reproj"),
     rate: el.querySelector(".rate"), frames: el.querySelector(".frames"), seen: el.querySelector(".seen"), seq: -1 };
