@@ -7,6 +7,7 @@ mod accuracy;
 mod aravis_fake;
 mod archive;
 mod calibrate;
+mod calibrate_guard;
 mod cli;
 mod config;
 mod detect_accuracy;
