@@ -24,7 +24,7 @@ pub fn write(mut cmd: clap::Command, out: &Path) -> Result<()> {
         std::fs::write(&path, buf).with_context(|| format!("cannot write {}", path.display()))
     };
     write_page(&cmd, "tagdeflect")?;
-    for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
+    for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set() && s.get_name() != "help") {
         let name = format!("tagdeflect-{}", sub.get_name());
         let sub = sub.clone().display_name(name.clone()).bin_name(format!("tagdeflect {}", sub.get_name()));
         write_page(&sub, &name)?;

@@ -17,6 +17,7 @@ mod drift;
 mod gauges;
 mod http;
 mod live;
+mod package;
 mod realdata;
 mod recording;
 mod report;
