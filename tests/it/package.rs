@@ -59,7 +59,10 @@ fn package_holds_binary_unit_conffile_man_pages_and_completions() {
     assert_eq!(std::fs::read_to_string(x.join("DEBIAN/conffiles")).unwrap().trim(), "/etc/tagdeflect/tagdeflect.toml");
     let postinst = std::fs::read_to_string(x.join("DEBIAN/postinst")).unwrap();
     let commands: Vec<&str> = postinst.lines().map(str::trim).filter(|l| l.starts_with("systemctl")).collect();
-    assert!(!commands.is_empty() && commands.iter().all(|l| l.starts_with("systemctl daemon-reload")), "postinst only reloads: {commands:?}");
+    assert!(
+        !commands.is_empty() && commands.iter().all(|l| l.starts_with("systemctl daemon-reload")),
+        "postinst only reloads: {commands:?}"
+    );
     let cfg = tagdeflect::config::Config::load(&x.join("etc/tagdeflect/tagdeflect.toml")).unwrap();
     assert_eq!(cfg.cameras.len(), 3);
     assert_eq!(cfg.output.feed.as_deref(), Some("/var/lib/tagdeflect/feed.jsonl"));

@@ -194,7 +194,13 @@ impl fmt::Display for TooFew<'_> {
         if self.not_found.is_empty() {
             write!(f, "; every image showed the target: take more views")
         } else {
-            write!(f, "; not found in {} of {} images: {}", self.not_found.len(), self.found + self.not_found.len(), Reasons(self.not_found))
+            write!(
+                f,
+                "; not found in {} of {} images: {}",
+                self.not_found.len(),
+                self.found + self.not_found.len(),
+                Reasons(self.not_found)
+            )
         }
     }
 }

@@ -95,10 +95,8 @@ pub fn check_board(spec: &TargetSpec, text: &str, seen: &[(String, BoardSeen)], 
     let target = format!("--target {text}");
     match *spec {
         TargetSpec::Checkerboard { cols, rows, .. } => {
-            let larger: Vec<(&str, (u32, u32))> = seen
-                .iter()
-                .filter_map(|(n, s)| s.grid.filter(|g| g.0 > cols || g.1 > rows).map(|g| (n.as_str(), g)))
-                .collect();
+            let larger: Vec<(&str, (u32, u32))> =
+                seen.iter().filter_map(|(n, s)| s.grid.filter(|g| g.0 > cols || g.1 > rows).map(|g| (n.as_str(), g))).collect();
             if !larger.is_empty() {
                 let (_, (a, b)) = larger[0];
                 let names: Vec<&str> = larger.iter().map(|(n, _)| *n).collect();
@@ -112,11 +110,8 @@ pub fn check_board(spec: &TargetSpec, text: &str, seen: &[(String, BoardSeen)], 
             }
             let whole = seen.iter().filter(|(_, s)| s.grid == Some((cols, rows))).count();
             if whole == 0 && !force {
-                let (name, best) = seen
-                    .iter()
-                    .filter_map(|(n, s)| s.grid.map(|g| (n.as_str(), g)))
-                    .max_by_key(|(_, g)| g.0 * g.1)
-                    .unwrap_or(("", (0, 0)));
+                let (name, best) =
+                    seen.iter().filter_map(|(n, s)| s.grid.map(|g| (n.as_str(), g))).max_by_key(|(_, g)| g.0 * g.1).unwrap_or(("", (0, 0)));
                 return Err(CalibrateError::BoardMismatch(format!(
                     "{target} declares {cols}x{rows} inner corners, but no view shows the whole board: the largest grid seen is \
                      {}x{} (in {name}). Is the board {}x{}? Partial views are used, but at least one view must show the whole \
@@ -235,7 +230,8 @@ pub fn split_views_stats(run: &CalibrationRun, options: &SolveOptions) -> Option
     let (imax, _) = eig.eigenvalues.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
     let dir = eig.eigenvectors.column(imax).into_owned();
     let mut in_a: Vec<bool> = pulls.iter().map(|p| p.dot(&dir) >= 0.0).collect();
-    let group = |in_a: &[bool], a: bool| -> Vec<View> { views.iter().zip(in_a).filter(|(_, g)| **g == a).map(|(v, _)| v.clone()).collect() };
+    let group =
+        |in_a: &[bool], a: bool| -> Vec<View> { views.iter().zip(in_a).filter(|(_, g)| **g == a).map(|(v, _)| v.clone()).collect() };
     let mut fits = None;
     for _ in 0..8 {
         let (ga, gb) = (group(&in_a, true), group(&in_a, false));
@@ -371,9 +367,8 @@ pub fn verdict(run: &CalibrationRun, coverage: &Coverage, distance_mm: f64) -> V
     reasons.push((g, cov_text));
     if g != Grade::Good {
         let where_ = if empty > 0 { format!("in the {} corner(s) and ", coverage.empty_corners.join(", ")) } else { String::new() };
-        hints.push(format!(
-            "add views with the target {where_}along the image borders (distortion is largest there; see the coverage map)"
-        ));
+        hints
+            .push(format!("add views with the target {where_}along the image borders (distortion is largest there; see the coverage map)"));
     }
     let g = if c.rms_px <= RMS_GOOD_PX {
         Grade::Good

@@ -224,7 +224,12 @@ impl TargetDetector {
                     let mut m = format!("{found} board tags found (need at least 2)");
                     if !seen.outside_ids.is_empty() {
                         seen.outside_ids.sort_unstable();
-                        let _ = write!(m, "; tags {:?} of the family seen, outside the board's ids {first_id}..{}", seen.outside_ids, first_id + cols * rows - 1);
+                        let _ = write!(
+                            m,
+                            "; tags {:?} of the family seen, outside the board's ids {first_id}..{}",
+                            seen.outside_ids,
+                            first_id + cols * rows - 1
+                        );
                     }
                     return Err(m);
                 }
