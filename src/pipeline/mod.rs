@@ -6,6 +6,7 @@ pub mod assets;
 pub mod bench;
 #[cfg(feature = "calibrate")]
 pub mod calibrate_cmd;
+pub mod cameras;
 pub mod check;
 pub mod journal;
 pub mod replay;
