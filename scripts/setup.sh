@@ -12,6 +12,9 @@ pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev 
 pkgs+=(chromium chromium-driver)
 # The test report: a TrueType font for the plots' text (PNG).
 pkgs+=(fonts-dejavu-core)
+# The Debian package (scripts/package.sh: dpkg-deb, dpkg-shlibdeps, strip) and its install test
+# in a fresh Debian (scripts/debian-install-test.sh: debootstrap; curl reads the live page).
+pkgs+=(dpkg-dev binutils debootstrap curl)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

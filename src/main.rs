@@ -140,6 +140,13 @@ enum Command {
     Report(pipeline::report_cmd::ReportArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
     Export(pipeline::report_cmd::ExportArgs),
+    /// Write the man pages and shell completions into OUT (for packaging).
+    #[command(hide = true)]
+    Assets {
+        /// The folder for man/ and completions/.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// A command this build was made without (its feature is named in the error); only in a
     /// build without some feature, so a full build keeps clap's own error for a typo.
     #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
@@ -421,6 +428,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Calibrate(opts) => pipeline::calibrate_cmd::run(&opts),
         Command::Report(args) => pipeline::report_cmd::run_cli(&args).map(|_| ()),
         Command::Export(args) => pipeline::report_cmd::export_cli(&args),
+        Command::Assets { out } => pipeline::assets::write(<Cli as clap::CommandFactory>::command(), &out),
         #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
         Command::Missing(args) => Err(missing_command(&args)),
     }

@@ -2,6 +2,7 @@
 //! and export, calibrate, the daemon's journal summaries, and the report a run writes at its
 //! end.
 
+pub mod assets;
 pub mod bench;
 #[cfg(feature = "calibrate")]
 pub mod calibrate_cmd;

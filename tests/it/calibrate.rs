@@ -14,9 +14,7 @@ use tagdeflect::camera::{CameraIntrinsics, Pose};
 use tagdeflect::config::load_calibration;
 
 fn realdata() -> PathBuf {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata");
-    assert!(dir.join("MANIFEST.md").is_file(), "real test data not found at {}: these tests need ../shared/realdata", dir.display());
-    dir.join("opencv-samples-data")
+    crate::calibrate_guard::realdata_dir().join("opencv-samples-data")
 }
 
 fn fixtures() -> PathBuf {

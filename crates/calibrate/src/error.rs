@@ -80,14 +80,25 @@ pub enum CalibrateError {
         /// The first image's width and height.
         first_size: (u32, u32),
     },
-    /// The target was found in fewer than three views (bad input).
-    #[error("the target was found in {found} views, need at least 3 ({})", Reasons(.not_found))]
+    /// The target was found in fewer views than needed: [`crate::guard::MIN_VIEWS`], or three
+    /// with `--force` (bad input).
+    #[error("{}", too_few(*.found, *.need, *.forced, .not_found))]
     TooFewViews {
         /// Views in which the target was found.
         found: usize,
+        /// Views needed.
+        need: usize,
+        /// Whether `--force` lowered the need to its absolute minimum.
+        forced: bool,
         /// The images or frames where it was not, and why.
         not_found: Vec<Rejected>,
     },
+    /// The `--target` is not the board the images show (bad input).
+    #[error("{0}")]
+    BoardMismatch(String),
+    /// The views come from two cameras or two focus settings (bad input).
+    #[error("{0}")]
+    MixedViews(String),
     /// The views do not determine a calibration (bad input).
     #[error(transparent)]
     Solve(#[from] SolveError),
@@ -133,6 +144,8 @@ impl CalibrateError {
             | CalibrateError::Decode { .. }
             | CalibrateError::SizeMismatch { .. }
             | CalibrateError::TooFewViews { .. }
+            | CalibrateError::BoardMismatch(_)
+            | CalibrateError::MixedViews(_)
             | CalibrateError::Solve(_) => true,
             CalibrateError::Detector(e) => !matches!(e, tagdeflect_detect::DetectError::Create(_)),
             CalibrateError::Grab { .. } | CalibrateError::CreateDir { .. } | CalibrateError::Write { .. } => false,
@@ -152,6 +165,43 @@ impl<E: std::error::Error> fmt::Display for Chain<'_, E> {
             source = s.source();
         }
         Ok(())
+    }
+}
+
+/// The message of [`CalibrateError::TooFewViews`].
+struct TooFew<'a> {
+    found: usize,
+    need: usize,
+    forced: bool,
+    not_found: &'a [Rejected],
+}
+
+fn too_few(found: usize, need: usize, forced: bool, not_found: &[Rejected]) -> TooFew<'_> {
+    TooFew { found, need, forced, not_found }
+}
+
+impl fmt::Display for TooFew<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let views = if self.found == 1 { "view" } else { "views" };
+        write!(f, "the target was found in {} {views}, need at least {}", self.found, self.need)?;
+        if !self.forced {
+            write!(
+                f,
+                " for parameters and σ to be trusted (15–30 views are best; --force calibrates from as few as {})",
+                crate::guard::ABSOLUTE_MIN_VIEWS
+            )?;
+        }
+        if self.not_found.is_empty() {
+            write!(f, "; every image showed the target: take more views")
+        } else {
+            write!(
+                f,
+                "; not found in {} of {} images: {}",
+                self.not_found.len(),
+                self.found + self.not_found.len(),
+                Reasons(self.not_found)
+            )
+        }
     }
 }
 
@@ -185,12 +235,22 @@ mod tests {
         assert!(e.is_bad_input());
         let e = CalibrateError::TooFewViews {
             found: 1,
+            need: 3,
+            forced: true,
             not_found: vec![
                 Rejected { name: "a.png".into(), reason: "no checkerboard found".into() },
                 Rejected { name: "b.png".into(), reason: "too dark".into() },
             ],
         };
-        assert_eq!(e.to_string(), "the target was found in 1 views, need at least 3 (a.png: no checkerboard found; b.png: too dark)");
+        assert_eq!(
+            e.to_string(),
+            "the target was found in 1 view, need at least 3; not found in 2 of 3 images: a.png: no checkerboard found; b.png: too dark"
+        );
+        let e = CalibrateError::TooFewViews { found: 2, need: 10, forced: false, not_found: vec![] };
+        let text = e.to_string();
+        assert!(text.starts_with("the target was found in 2 views, need at least 10 for "), "{text}");
+        assert!(text.contains("--force") && text.ends_with("every image showed the target: take more views"), "{text}");
+        assert!(!text.contains("()"), "{text}");
         let e = CalibrateError::Grab { camera: "left".into(), message: "no camera delivered a frame within 5 s".into() };
         assert_eq!(e.to_string(), "camera left: no camera delivered a frame within 5 s");
         assert!(!e.is_bad_input());

@@ -12,8 +12,13 @@
 //! `max(5 s, 1 px)` (`s` the residual scatter per axis) are dropped, then whole views whose
 //! RMS exceeds `max(3 × median view RMS, 0.5 px)` are rejected and named with their RMS, and
 //! the fit is repeated until nothing more is dropped (at least three views stay).
+//!
+//! **Guard rails** ([`guard`]): too few views, a `--target` that is not the board in the
+//! images, and views of another camera or focus are refused or named; every calibration ends
+//! with a verdict (good / usable / poor) with its reasons and hints.
 
 mod error;
+pub mod guard;
 pub mod live_views;
 pub mod render;
 pub mod report;
@@ -28,7 +33,7 @@ use nalgebra::Point2;
 pub use self::error::CalibrateError;
 use self::report::{uncertainty_at, Coverage};
 use self::solve::{Calibration, SolveOptions, View, PARAM_NAMES};
-use self::target::{TargetDetector, TargetSpec};
+use self::target::{BoardSeen, TargetDetector, TargetSpec};
 use tagdeflect_core::frame::{FrameSet, GrayImage};
 
 /// Options of `tagdeflect calibrate`.
@@ -69,6 +74,11 @@ pub struct CalibrateOptions {
     /// Keep every view and point (no outlier rejection).
     #[cfg_attr(feature = "clap", arg(long))]
     pub keep_outliers: bool,
+    /// Calibrate despite the guard rails that can be overruled: fewer than 10 views (at
+    /// least 3), a checkerboard of which no view shows the whole board, a tag board with ids
+    /// outside its range or never seen, views that look like two cameras or focus settings.
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub force: bool,
     /// Distance of the tags in the test, mm, for the uncertainty report (default: the median
     /// distance of the target in the views).
     #[cfg_attr(feature = "clap", arg(long))]
@@ -226,7 +236,29 @@ pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>, CalibrateError> {
 /// Views detected in a set of images, the image size, and the images where the target was
 /// not found (with the reason).
 pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, u32, u32, Vec<Rejected>), CalibrateError> {
+    detect_views_seen(files, spec).map(|d| (d.views, d.width, d.height, d.not_found))
+}
+
+/// What [`detect_views_seen`] found in a folder of images.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Detected {
+    /// The views where the target was found.
+    pub views: Vec<View>,
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// The images where it was not, and why.
+    pub not_found: Vec<Rejected>,
+    /// What the detector saw of the board in every view (name, seen), for
+    /// [`guard::check_board`].
+    pub seen: Vec<(String, BoardSeen)>,
+}
+
+/// [`detect_views`], with what the detector saw of the board in every view.
+pub fn detect_views_seen(files: &[PathBuf], spec: &TargetSpec) -> Result<Detected, CalibrateError> {
     let mut det = TargetDetector::new(spec.clone())?;
+    let mut seen = Vec::new();
     let mut views = Vec::new();
     let mut failed = Vec::new();
     let mut size: Option<(u32, u32, &Path)> = None;
@@ -245,17 +277,28 @@ pub fn detect_views(files: &[PathBuf], spec: &TargetSpec) -> Result<(Vec<View>, 
             _ => {}
         }
         let name = f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        match det.detect(&img, &name) {
-            Ok(v) => views.push(v),
+        match det.detect_seen(&img, &name) {
+            Ok((v, s)) => {
+                views.push(v);
+                seen.push((name, s));
+            }
             Err(reason) => failed.push(Rejected { name, reason }),
         }
     }
-    let (w, h, _) = size.expect("at least one image");
-    Ok((views, w, h, failed))
+    let (width, height, _) = size.expect("at least one image");
+    Ok(Detected { views, width, height, not_found: failed, seen })
 }
 
 /// The text report of a calibration (what `tagdeflect calibrate` prints).
-fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Coverage, distance_mm: f64, target: &str) -> String {
+fn report_text(
+    run: &CalibrationRun,
+    not_found: &[Rejected],
+    coverage: &Coverage,
+    distance_mm: f64,
+    target: &str,
+    verdict: &guard::Verdict,
+    notes: &[String],
+) -> String {
     let c = &run.calibration;
     let k = &c.intrinsics;
     let s = c.sigmas();
@@ -312,6 +355,10 @@ fn report_text(run: &CalibrationRun, not_found: &[Rejected], coverage: &Coverage
         );
     }
     let _ = writeln!(out, "  focal length ±{:.0} ppm: distances from tag size and displacements scale by that much", 1e6 * s[1] / k.fy);
+    for n in notes {
+        let _ = writeln!(out, "WARNING {n}");
+    }
+    out.push_str(&verdict.text());
     out
 }
 
@@ -337,13 +384,19 @@ fn write_outputs(
     not_found: &[Rejected],
     spec: &TargetSpec,
     opts: &CalibrateOptions,
+    notes: &[String],
 ) -> Result<String, CalibrateError> {
     let c = &run.calibration;
     let k = &c.intrinsics;
     let all_points: Vec<Point2<f64>> = run.views.iter().flat_map(|v| v.image.iter().copied()).collect();
     let coverage = Coverage::new(k.width, k.height, &all_points);
     let names: Vec<String> = run.views.iter().map(|v| v.name.clone()).collect();
-    let yaml = report::opencv_yaml(c, &spec.describe(), &opts.flags_text(), &names);
+    let distance = opts.distance_mm.unwrap_or_else(|| median_distance_mm(c, &run.views));
+    let verdict = guard::verdict(run, &coverage, distance);
+    let mut yaml = report::opencv_yaml(c, &spec.describe(), &opts.flags_text(), &names);
+    for line in verdict.text().lines() {
+        let _ = writeln!(yaml, "# {line}");
+    }
     if let Some(parent) = opts.out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|cause| CalibrateError::CreateDir { path: parent.to_path_buf(), cause })?;
     }
@@ -355,8 +408,7 @@ fn write_outputs(
     });
     let per_view: Vec<Vec<Point2<f64>>> = run.views.iter().map(|v| v.image.clone()).collect();
     coverage.write_png(&cov_path, k.width, k.height, &per_view).map_err(|cause| CalibrateError::Write { path: cov_path.clone(), cause })?;
-    let distance = opts.distance_mm.unwrap_or_else(|| median_distance_mm(c, &run.views));
-    let mut text = report_text(run, not_found, &coverage, distance, &spec.describe());
+    let mut text = report_text(run, not_found, &coverage, distance, &spec.describe(), &verdict, notes);
     let _ = writeln!(text, "wrote {} and the coverage map {}", opts.out.display(), cov_path.display());
     let _ = writeln!(text, "config snippet (in the camera's [[camera]] section, instead of fx/fy/cx/cy/dist):");
     let _ = writeln!(text, "  calibration = \"{}\"", opts.out.display());
@@ -391,19 +443,77 @@ pub fn check_options(opts: &CalibrateOptions) -> Result<TargetSpec, CalibrateErr
 /// source; see [`live_views::grab_views`]. With `--images`, `grab` must be `None`.
 pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, String>>) -> Result<(), CalibrateError> {
     let spec = check_options(opts)?;
-    let (views, w, h, not_found) = match (&opts.images, &opts.camera, grab) {
+    let (views, w, h, not_found, seen) = match (&opts.images, &opts.camera, grab) {
         (Some(dir), None, None) => {
             let files = image_files(dir)?;
-            detect_views(&files, &spec)?
+            let d = detect_views_seen(&files, &spec)?;
+            (d.views, d.width, d.height, d.not_found, d.seen)
         }
-        (None, Some(cam), Some(grab)) => live_views::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?,
+        (None, Some(cam), Some(grab)) => {
+            let (v, w, h, nf) = live_views::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?;
+            (v, w, h, nf, Vec::new())
+        }
         _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
-    if views.len() < 3 {
-        return Err(CalibrateError::TooFewViews { found: views.len(), not_found });
-    }
-    let run = calibrate_views(views, w, h, &opts.solve_options(), opts.keep_outliers)?;
-    let text = write_outputs(&run, &not_found, &spec, opts)?;
+    let (run, notes) = calibrate_guarded(views, w, h, &not_found, &seen, &spec, opts)?;
+    let text = write_outputs(&run, &not_found, &spec, opts, &notes)?;
     print!("{text}");
     Ok(())
+}
+
+/// The guard rails around [`calibrate_views`] (see [`guard`]): the board check, the minimum
+/// number of views, and views of another camera or focus — a minority of them (under a
+/// third of the views) rejected and named, a larger group refused unless `--force`. Returns
+/// the run and the warnings to print.
+pub fn calibrate_guarded(
+    views: Vec<View>,
+    width: u32,
+    height: u32,
+    not_found: &[Rejected],
+    seen: &[(String, BoardSeen)],
+    spec: &TargetSpec,
+    opts: &CalibrateOptions,
+) -> Result<(CalibrationRun, Vec<String>), CalibrateError> {
+    guard::check_board(spec, &opts.target, seen, opts.force)?;
+    let need = if opts.force { guard::ABSOLUTE_MIN_VIEWS } else { guard::MIN_VIEWS };
+    if views.len() < need {
+        return Err(CalibrateError::TooFewViews { found: views.len(), need, forced: opts.force, not_found: not_found.to_vec() });
+    }
+    let mut notes = Vec::new();
+    if views.len() < guard::MIN_VIEWS {
+        notes.push(format!("--force: calibrated from {} views, fewer than the {} needed for trustworthy σ", views.len(), guard::MIN_VIEWS));
+    }
+    let options = opts.solve_options();
+    let mut run = calibrate_views(views, width, height, &options, opts.keep_outliers)?;
+    if let Some(split) = guard::split_views(&run, &options) {
+        let what = split.describe(&run.views);
+        if 3 * split.minority.len() < run.views.len() {
+            let mut keep = Vec::new();
+            let mut rejected = std::mem::take(&mut run.rejected);
+            for (i, v) in run.views.into_iter().enumerate() {
+                if split.minority.contains(&i) {
+                    rejected.push(Rejected {
+                        name: v.name,
+                        reason: "another camera or focus setting: its views fit other intrinsics (see the warning)".into(),
+                    });
+                } else {
+                    keep.push(v);
+                }
+            }
+            let dropped = run.dropped_points;
+            run = calibrate_views(keep, width, height, &options, opts.keep_outliers)?;
+            rejected.append(&mut run.rejected);
+            run.rejected = rejected;
+            run.dropped_points += dropped;
+            notes.push(format!("views of another camera or focus setting rejected: {what}"));
+        } else if opts.force {
+            notes.push(format!("--force: the views look like two cameras or focus settings, calibrated as one: {what}"));
+        } else {
+            return Err(CalibrateError::MixedViews(format!(
+                "the views look like two cameras or two focus settings: {what}. Calibrate each camera (and focus) from its own \
+                 folder; --force calibrates them as one"
+            )));
+        }
+    }
+    Ok((run, notes))
 }

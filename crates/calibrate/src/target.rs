@@ -28,6 +28,8 @@
 //! image codec into the build; an AprilGrid's tags have a 2-bit border the AprilTag library
 //! does not decode.
 
+use std::fmt::Write as _;
+
 use nalgebra::{Point2, Vector3};
 
 use super::solve::View;
@@ -189,6 +191,12 @@ impl TargetDetector {
     /// Finds the target in `image`: board points and their sub-pixel pixels. `Err` says
     /// why nothing usable was found.
     pub fn detect(&mut self, image: &GrayImage, name: &str) -> Result<View, String> {
+        self.detect_seen(image, name).map(|(v, _)| v)
+    }
+
+    /// [`detect`](Self::detect), plus what the detector saw of the board beyond the points
+    /// used (for [`crate::guard::check_board`]).
+    pub fn detect_seen(&mut self, image: &GrayImage, name: &str) -> Result<(View, BoardSeen), String> {
         match self.spec.clone() {
             TargetSpec::Checkerboard { cols, rows, square_mm } => detect_checkerboard(image, name, cols, rows, square_mm),
             TargetSpec::TagBoard { cols, rows, size_mm, pitch_mm, first_id, .. } => {
@@ -196,10 +204,13 @@ impl TargetDetector {
                 let mut object = Vec::new();
                 let mut pixels = Vec::new();
                 let mut found = 0;
+                let mut seen = BoardSeen::default();
                 for d in det.detect(image) {
                     if d.id < first_id || d.id >= first_id + cols * rows {
+                        seen.outside_ids.push(d.id);
                         continue;
                     }
+                    seen.ids.push(d.id);
                     let k = d.id - first_id;
                     let (c, r) = (k % cols, k / cols);
                     let centre = tag_centre(c, r, pitch_mm);
@@ -210,17 +221,44 @@ impl TargetDetector {
                     }
                 }
                 if found < 2 {
-                    return Err(format!("{found} board tags found (need at least 2)"));
+                    let mut m = format!("{found} board tags found (need at least 2)");
+                    if !seen.outside_ids.is_empty() {
+                        seen.outside_ids.sort_unstable();
+                        let _ = write!(
+                            m,
+                            "; tags {:?} of the family seen, outside the board's ids {first_id}..{}",
+                            seen.outside_ids,
+                            first_id + cols * rows - 1
+                        );
+                    }
+                    return Err(m);
                 }
-                Ok(View { name: name.to_string(), object, image: pixels })
+                seen.outside_ids.sort_unstable();
+                seen.ids.sort_unstable();
+                Ok((View { name: name.to_string(), object, image: pixels }, seen))
             }
         }
     }
 }
 
+/// What the detector saw of the board in one view, beyond the points it used: the evidence
+/// that the `--target` given is not the board in the images.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BoardSeen {
+    /// Checkerboard: the dense grid of inner corners the view shows (outer lines with less
+    /// than half of a full line's corners trimmed), in the declared orientation (cols, rows).
+    pub grid: Option<(u32, u32)>,
+    /// Checkerboard: the whole grid the detector labelled (same orientation).
+    pub labelled: Option<(u32, u32)>,
+    /// Tag board: the board ids found.
+    pub ids: Vec<u32>,
+    /// Tag board: ids of the family found outside the board's range.
+    pub outside_ids: Vec<u32>,
+}
+
 /// Checkerboard corners: ChESS + grid labelling (`calib-targets-chessboard`), trimmed to
 /// the board's size, refined by [`refine_saddle`].
-fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, square_mm: f64) -> Result<View, String> {
+fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, square_mm: f64) -> Result<(View, BoardSeen), String> {
     use calib_targets_chessboard as ct;
     let view = ct::GrayImageView { width: image.width as usize, height: image.height as usize, data: &image.data };
     let corners = ct::detect_corners(&view, &ct::default_chess_config());
@@ -235,9 +273,33 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
         let (vmin, vmax) = p.iter().fold((i32::MAX, i32::MIN), |a, q| (a.0.min(q.1), a.1.max(q.1)));
         (umin, umax, vmin, vmax)
     };
-    let (cu, cv) = {
+    let on = |p: &(i32, i32, Point2<f64>), (is_u, k): (bool, i32)| if is_u { p.0 == k } else { p.1 == k };
+    let labelled = {
         let (umin, umax, vmin, vmax) = extent(&pts);
-        let (eu, ev) = (umax - umin + 1, vmax - vmin + 1);
+        ((umax - umin + 1) as u32, (vmax - vmin + 1) as u32)
+    };
+    // The dense grid: outer lines holding less than half of a full line's corners trimmed
+    // (stray X-junctions next to the board; a line cut by the image's edge) — what the view
+    // shows of the board whatever the target declares.
+    let dense = {
+        let mut q = pts.clone();
+        loop {
+            let (umin, umax, vmin, vmax) = extent(&q);
+            let (eu, ev) = (umax - umin + 1, vmax - vmin + 1);
+            let lines = [((true, umin), ev), ((true, umax), ev), ((false, vmin), eu), ((false, vmax), eu)];
+            let (line, frac) = lines
+                .iter()
+                .map(|&(l, len)| (l, q.iter().filter(|p| on(p, l)).count() as f64 / len as f64))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .expect("four lines");
+            if frac >= 0.5 || eu <= 2 || ev <= 2 {
+                break (eu, ev);
+            }
+            q.retain(|p| !on(p, line));
+        }
+    };
+    let (cu, cv) = {
+        let (eu, ev) = dense;
         // Transposed when that fits better.
         if (eu > ev) == (cols >= rows) {
             (cols as i32, rows as i32)
@@ -258,7 +320,6 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
         if vmax - vmin >= cv {
             lines.extend([(false, vmin), (false, vmax)]);
         }
-        let on = |p: &(i32, i32, Point2<f64>), (is_u, k): (bool, i32)| if is_u { p.0 == k } else { p.1 == k };
         let drop = lines.into_iter().min_by_key(|&l| pts.iter().filter(|p| on(p, l)).count()).expect("a line to drop");
         pts.retain(|p| !on(p, drop));
     }
@@ -275,7 +336,10 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
         object.push(Vector3::new((u - umin) as f64 * square_mm, (v - vmin) as f64 * square_mm, 0.0));
         pixels.push(refine_saddle(image, p, half).unwrap_or(p));
     }
-    Ok(View { name: name.to_string(), object, image: pixels })
+    // In the declared orientation: (cols, rows) when cols ≥ rows matched u, else swapped.
+    let orient = |(a, b): (u32, u32)| if cu as u32 == cols { (a, b) } else { (b, a) };
+    let seen = BoardSeen { grid: Some(orient((dense.0 as u32, dense.1 as u32))), labelled: Some(orient(labelled)), ..BoardSeen::default() };
+    Ok((View { name: name.to_string(), object, image: pixels }, seen))
 }
 
 /// Sub-pixel position of a checkerboard saddle near `start` (OpenCV pixels) from the gradient
