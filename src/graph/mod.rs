@@ -10,3 +10,4 @@
 pub mod page;
 pub mod run;
 pub mod sources;
+pub mod utm_file;
