@@ -12,6 +12,8 @@ pkgs=(pkg-config libclang-dev clang libaravis-dev aravis-tools libusb-1.0-0-dev 
 pkgs+=(chromium chromium-driver)
 # The test report: a TrueType font for the plots' text (PNG).
 pkgs+=(fonts-dejavu-core)
+# The report printed to PDF by headless Chromium, and its pages looked at (pdftoppm).
+pkgs+=(poppler-utils)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

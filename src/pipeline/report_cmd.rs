@@ -62,6 +62,9 @@ pub struct ReportArgs {
     /// Longest time without a feed line or UTM sample in a valid test, s (default 2).
     #[arg(long)]
     pub max_gap_s: Option<f64>,
+    /// Do not print `report.pdf` (printed with headless Chromium when it is installed).
+    #[arg(long)]
+    pub no_pdf: bool,
     /// Specimen id.
     #[arg(long)]
     pub specimen: Option<String>,
@@ -131,6 +134,9 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
         if let Some(v) = src {
             *dst = v;
         }
+    }
+    if args.no_pdf {
+        o.pdf = false;
     }
     let lab = &mut o.lab;
     for (dst, src) in [

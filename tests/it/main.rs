@@ -19,6 +19,7 @@ mod live;
 mod realdata;
 mod recording;
 mod report;
+mod report_lab;
 mod robustness;
 mod simulate;
 mod solve;

@@ -42,6 +42,9 @@ pub struct ReportConfig {
     /// Longest time without a feed line or a UTM sample that a valid test may have, s.
     #[serde(default = "default_max_gap", skip_serializing_if = "is_default_max_gap")]
     pub max_gap_s: f64,
+    /// Print `report.pdf` with headless Chromium when it is installed.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub pdf: bool,
     /// What the lab files with the values (specimen id, operator, dates, machine, ...).
     #[serde(default, skip_serializing_if = "LabInfo::is_empty")]
     pub lab: LabInfo,
@@ -108,6 +111,13 @@ impl LabInfo {
     }
 }
 
+fn yes() -> bool {
+    true
+}
+fn is_true(v: &bool) -> bool {
+    *v
+}
+
 /// Default `max_load_kn`.
 pub fn default_max_load() -> f64 {
     crate::feed_reader::DEFAULT_MAX_LOAD_KN
@@ -143,6 +153,7 @@ impl ReportConfig {
             max_load_kn: default_max_load(),
             max_length_mm: default_max_length(),
             max_gap_s: default_max_gap(),
+            pdf: true,
             lab: LabInfo::default(),
         }
     }

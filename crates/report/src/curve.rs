@@ -198,13 +198,16 @@ impl Curve {
     }
 
     /// σ of a peak read from samples: the true peak lies between the sample taken and the
-    /// next, missed by up to the rise over one sampling period `r` (the rise into the peak
-    /// sample); the RMS of such a one-sided error is `r/√3`.
+    /// next, missed by up to the rise over one sampling period `r`; the RMS of such a
+    /// one-sided error is `r/√3`. `r` is the mean rise per sample over the (up to)
+    /// `max(smooth_points, 5)` samples before the peak, so that one noisy reading does not
+    /// make it.
     pub(crate) fn peak_sampling_sigma(&self, j: usize) -> f64 {
-        if j == 0 {
+        let m = self.smooth_points.max(5).min(j);
+        if m == 0 {
             return 0.0;
         }
-        (self.load[j] - self.load[j - 1]).max(0.0) / 3f64.sqrt()
+        ((self.load[j] - self.load[j - m]) / m as f64).max(0.0) / 3f64.sqrt()
     }
 
     /// Number of points.

@@ -41,7 +41,73 @@ pub fn write(report: &Report, feed: &Feed, dir: &Path) -> Result<Vec<PathBuf>, R
     let json = serde_json::to_string_pretty(&to_json(report, &inputs)).expect("report serialises");
     put("report.json", json.as_bytes())?;
     put("report.html", html::render(report, &plots, &inputs).as_bytes())?;
+    if report.options.pdf {
+        match print_pdf(&dir.join("report.html"), &dir.join("report.pdf")) {
+            Ok(true) => files.push(dir.join("report.pdf")),
+            Ok(false) => tracing::info!("no Chromium found: report.pdf not printed (print report.html from a browser)"),
+            Err(e) => tracing::warn!("report.pdf could not be printed: {e}"),
+        }
+    }
     Ok(files)
+}
+
+/// The Chromium to print with: `$TAGDEFLECT_CHROMIUM`, else `chromium` / `chromium-browser`
+/// on the PATH.
+fn chromium() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os("TAGDEFLECT_CHROMIUM") {
+        return Some(PathBuf::from(p));
+    }
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path).flat_map(|d| ["chromium", "chromium-browser"].map(|n| d.join(n))).find(|p| p.is_file())
+}
+
+/// Prints `html` to `pdf` with headless Chromium (A4, the page's own header and footer with
+/// page numbers); `Ok(false)` when there is no Chromium. The browser is killed after 120 s.
+fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
+    let Some(bin) = chromium() else { return Ok(false) };
+    let profile = std::env::temp_dir().join(format!("tagdeflect-pdf-{}-{}", std::process::id(), chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)));
+    let tmp = pdf.with_file_name(".report.pdf.tmp");
+    let url = format!("file://{}", std::path::absolute(html).map_err(|e| e.to_string())?.display());
+    let mut child = std::process::Command::new(&bin)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-pdf-header-footer",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--print-to-pdf={}", tmp.display()))
+        .arg(url)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .map_err(|e| format!("{}: {e}", bin.display()))?;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(s)) => break Ok(s),
+            Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(std::time::Duration::from_millis(50)),
+            Ok(None) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                break Err("Chromium did not finish within 120 s".to_string());
+            }
+            Err(e) => break Err(e.to_string()),
+        }
+    };
+    let _ = std::fs::remove_dir_all(&profile);
+    let status = status?;
+    if !status.success() || !tmp.is_file() {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(format!("{} exited with {status} without a PDF", bin.display()));
+    }
+    std::fs::rename(&tmp, pdf).map_err(|e| e.to_string())?;
+    Ok(true)
 }
 
 /// One input of a report with its SHA-256.
