@@ -478,6 +478,15 @@ fn run_writes_the_report_at_its_end() {
     assert!(j["qc"]["lines"].as_u64().unwrap() >= 5, "{}", j["qc"]);
     assert!(j["Pp"]["value"].as_f64().unwrap() > 1.0, "a load from the simulated UTM: {}", j["Pp"]);
     assert!(runs[0].join("report.html").is_file() && runs[0].join("feed.jsonl").is_file() && runs[0].join("tagdeflect.toml").is_file());
+    // Every UTM sample at its own rate beside the feed (50 Hz against 5 frame sets a second),
+    // and the report's loads from them.
+    let utm = fs::read_to_string(runs[0].join("utm.jsonl")).unwrap();
+    let samples: Vec<tagdeflect::utm::UtmSample> = utm.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines = j["qc"]["lines"].as_u64().unwrap() as usize;
+    assert!(samples.len() > 5 * lines, "{} UTM samples for {lines} feed lines", samples.len());
+    assert!(samples.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
+    assert_eq!(j["curve"]["load_from_utm"], true, "{}", j["load_source"]);
+    assert_eq!(fs::read_to_string(dir.path().join("utm.jsonl")).unwrap(), utm, "beside the [output] feed too");
     // The copy of the feed is this run's feed, line for line.
     assert_eq!(fs::read_to_string(runs[0].join("feed.jsonl")).unwrap(), fs::read_to_string(dir.path().join("feed.jsonl")).unwrap());
 }

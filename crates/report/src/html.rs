@@ -156,25 +156,6 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         if report.curve.load_from_utm { "UTM samples (own rate)" } else { "feed (frame rate)" }
     );
 
-    // Specimen.
-    let b = &report.beam;
-    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
-    let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>| {
-        let t = tol.map_or(String::new(), |t| format!(" ± {t}"));
-        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v}{t} mm</td></tr>");
-    };
-    row("width", "b", b.width_mm, b.width_tol_mm);
-    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm, b.depth_tol_mm);
-    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm, b.span_tol_mm);
-    if let Some(n) = b.notch_mm {
-        row("notch depth", "a₀", n, b.notch_tol_mm);
-        row("height above the notch tip", "h_sp", b.ligament_mm(), None);
-    }
-    h.push_str("</table>");
-    for n in &report.notes {
-        let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
-    }
-
     // Results.
     h.push_str("<h2>Results</h2><table><tr><th>Quantity</th><th>Symbol</th><th class=\"num\">Value</th><th class=\"num\">± σ</th><th>Unit</th><th>Key</th><th>Definition</th></tr>");
     for e in &report.entries {
@@ -214,6 +195,25 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         esc(&report.x_axis),
         esc(&report.load_source)
     );
+
+    // Specimen.
+    let b = &report.beam;
+    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
+    let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>| {
+        let t = tol.map_or(String::new(), |t| format!(" ± {t}"));
+        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v}{t} mm</td></tr>");
+    };
+    row("width", "b", b.width_mm, b.width_tol_mm);
+    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm, b.depth_tol_mm);
+    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm, b.span_tol_mm);
+    if let Some(n) = b.notch_mm {
+        row("notch depth", "a₀", n, b.notch_tol_mm);
+        row("height above the notch tip", "h_sp", b.ligament_mm(), None);
+    }
+    h.push_str("</table>");
+    for n in &report.notes {
+        let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
+    }
 
     // Plots.
     h.push_str("<h2>Curves</h2>");
