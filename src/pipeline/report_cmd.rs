@@ -130,7 +130,9 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
     if args.load_resolution_kn.is_some() {
         o.load_resolution_kn = args.load_resolution_kn;
     }
-    for (dst, src) in [(&mut o.max_load_kn, args.max_load_kn), (&mut o.max_length_mm, args.max_length_mm), (&mut o.max_gap_s, args.max_gap_s)] {
+    for (dst, src) in
+        [(&mut o.max_load_kn, args.max_load_kn), (&mut o.max_length_mm, args.max_length_mm), (&mut o.max_gap_s, args.max_gap_s)]
+    {
         if let Some(v) = src {
             *dst = v;
         }

@@ -719,15 +719,5 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     let t = en14651::compute(&truth_curve(&on_utm, "cmod"), &EN_BEAM);
     let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
     let pc = 100.0 * 0.3;
-    against_truth(
-        "notched",
-        &j,
-        &t,
-        &[
-            ("fR1", mpa(0.01 * pc)),
-            ("fR2", mpa(0.01 * pc)),
-            ("fR3", mpa(0.01 * pc)),
-            ("fR4", mpa(0.01 * pc)),
-        ],
-    );
+    against_truth("notched", &j, &t, &[("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
 }

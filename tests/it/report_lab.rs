@@ -134,7 +134,8 @@ fn notched(x: f64) -> f64 {
 }
 
 fn report(feed: &Path, cfg: &Path, standard: &str, out: &Path, extra: &[&str]) -> Output {
-    let mut a = vec!["report", feed.to_str().unwrap(), "--config", cfg.to_str().unwrap(), "--standard", standard, "--out", out.to_str().unwrap()];
+    let mut a =
+        vec!["report", feed.to_str().unwrap(), "--config", cfg.to_str().unwrap(), "--standard", standard, "--out", out.to_str().unwrap()];
     a.extend_from_slice(extra);
     if !extra.contains(&"--pdf-please") {
         a.push("--no-pdf");
@@ -290,7 +291,8 @@ fn mc_trial(rng: &mut rand_chacha::ChaCha8Rng, cmod: bool) -> (Vec<Entry>, Vec<E
     } else {
         BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, ..Default::default() }
     };
-    let tol = BeamConfig { width_tol_mm: Some(0.5), depth_tol_mm: Some(0.5), span_tol_mm: Some(1.0), notch_tol_mm: Some(0.3), ..nominal.clone() };
+    let tol =
+        BeamConfig { width_tol_mm: Some(0.5), depth_tol_mm: Some(0.5), span_tol_mm: Some(1.0), notch_tol_mm: Some(0.3), ..nominal.clone() };
     let mut truth_beam = nominal.clone();
     truth_beam.width_mm += rng.gen_range(-0.5..0.5);
     truth_beam.depth_mm += rng.gen_range(-0.5..0.5);
@@ -334,10 +336,9 @@ fn mc_trial(rng: &mut rand_chacha::ChaCha8Rng, cmod: bool) -> (Vec<Entry>, Vec<E
 #[test]
 fn monte_carlo_about_95_percent_of_truths_within_2_sigma() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
-    for (cmod, keys) in [
-        (false, &["P1", "delta1", "f1", "f150", "T150", "RT150"][..]),
-        (true, &["FL", "fL", "fR1", "fR2", "fR3", "fR4"][..]),
-    ] {
+    for (cmod, keys) in
+        [(false, &["P1", "delta1", "f1", "f150", "T150", "RT150"][..]), (true, &["FL", "fL", "fR1", "fR2", "fR3", "fR4"][..])]
+    {
         let trials = 150;
         let mut within = vec![0usize; keys.len()];
         let mut within1 = vec![0usize; keys.len()];
@@ -435,7 +436,11 @@ fn a_jump_in_time_with_contiguous_seq_is_a_gap() {
     assert_eq!(j["qc"]["frame_sets_without_line"], 0, "seq is contiguous");
     assert_eq!(j["qc"]["time_gaps"].as_array().unwrap().len(), 1, "{}", j["qc"]);
     assert!((j["qc"]["time_gaps"][0]["duration_s"].as_f64().unwrap() - 20.1).abs() < 1e-6);
-    assert!(j["qc"]["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("gap(s) in time")), "{}", j["qc"]["warnings"]);
+    assert!(
+        j["qc"]["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("gap(s) in time")),
+        "{}",
+        j["qc"]["warnings"]
+    );
     assert!(j["invalid_reasons"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("20.1 s")), "{}", j["invalid_reasons"]);
 }
 
@@ -656,7 +661,12 @@ fn the_report_prints_to_pdf_with_page_numbers() {
     assert!(fs::read(&pdf).unwrap().starts_with(b"%PDF"));
     // Its first page as an image: text and the plot's ink are there.
     let png = dir.path().join("page");
-    let o = Command::new("pdftoppm").args(["-png", "-r", "60", "-f", "1", "-l", "1"]).arg(&pdf).arg(&png).output().expect("pdftoppm (poppler-utils, scripts/setup.sh)");
+    let o = Command::new("pdftoppm")
+        .args(["-png", "-r", "60", "-f", "1", "-l", "1"])
+        .arg(&pdf)
+        .arg(&png)
+        .output()
+        .expect("pdftoppm (poppler-utils, scripts/setup.sh)");
     assert!(o.status.success(), "{}", stderr(&o));
     let first = fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().path()).find(|p| p.to_string_lossy().contains("page")).unwrap();
     let img = image::open(&first).unwrap().to_rgb8();

@@ -18,7 +18,13 @@ const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow
 
 /// Builds the report of a feed, with the load-based values from the UTM's own samples when
 /// `utm` is given (SPEC "Report").
-pub fn build(feed: &Feed, utm: Option<&UtmStream>, config: &TestRig, config_path: &Path, opts: &ReportConfig) -> Result<Report, ReportError> {
+pub fn build(
+    feed: &Feed,
+    utm: Option<&UtmStream>,
+    config: &TestRig,
+    config_path: &Path,
+    opts: &ReportConfig,
+) -> Result<Report, ReportError> {
     let beam = config.specimen.beam.clone().ok_or_else(|| ReportError::Config {
         path: config_path.to_path_buf(),
         message:
@@ -119,8 +125,11 @@ pub fn build(feed: &Feed, utm: Option<&UtmStream>, config: &TestRig, config_path
     let mut qc = qc::Qc::of(feed, config, &feed_curve, &x_name, opts);
     if let Some(u) = utm {
         qc.warnings.extend(u.warnings.iter().cloned());
-        if u.samples.first().is_some_and(|s| s.t_ns > feed.lines[0].t_ns) || u.samples.last().is_some_and(|s| s.t_ns < feed.lines[feed.lines.len() - 1].t_ns) {
-            qc.warnings.push(format!("the UTM stream {} does not cover the whole feed: the ends of the curve have no load", u.path.display()));
+        if u.samples.first().is_some_and(|s| s.t_ns > feed.lines[0].t_ns)
+            || u.samples.last().is_some_and(|s| s.t_ns < feed.lines[feed.lines.len() - 1].t_ns)
+        {
+            qc.warnings
+                .push(format!("the UTM stream {} does not cover the whole feed: the ends of the curve have no load", u.path.display()));
         }
     }
     let utm_outages_s: f64 = qc.utm_outages.iter().map(|o| o.duration_s).sum();

@@ -81,10 +81,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         "residual flexural tensile strength at CMOD 3.5 mm",
     ];
     for (j, &cmod) in CMOD_J_MM.iter().enumerate() {
-        let r = curve
-            .load_at(cmod)
-            .map(|(p, s, _)| f_of(p, s))
-            .ok_or_else(|| curve.not_reached(&format!("CMOD {cmod} mm"), cmod));
+        let r = curve.load_at(cmod).map(|(p, s, _)| f_of(p, s)).ok_or_else(|| curve.not_reached(&format!("CMOD {cmod} mm"), cmod));
         out.push(Entry {
             key: KEYS[j],
             symbol: SYMS[j],

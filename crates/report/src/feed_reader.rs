@@ -75,8 +75,8 @@ impl Feed {
 
     /// Reads a feed into its runs (one unless `allow_restarts`).
     pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
-        let text = std::fs::read(path)
-            .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") })?;
+        let text =
+            std::fs::read(path).map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") })?;
         let text = String::from_utf8(text).map_err(|e| ReportError::BadLine {
             path: path.to_path_buf(),
             line: text_line_of(&e.as_bytes()[..e.utf8_error().valid_up_to()]),
@@ -87,7 +87,11 @@ impl Feed {
 
     /// Parses feed text; `path` names the file in errors.
     pub fn parse(text: &str, path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
-        let bad = |line: usize, message: String| ReportError::BadLine { path: path.to_path_buf(), line, message: format!("not a feed line: {message}") };
+        let bad = |line: usize, message: String| ReportError::BadLine {
+            path: path.to_path_buf(),
+            line,
+            message: format!("not a feed line: {message}"),
+        };
         let ends_with_newline = text.ends_with('\n');
         let raw: Vec<&str> = text.lines().collect();
         let mut runs: Vec<Feed> = Vec::new();
@@ -131,7 +135,10 @@ impl Feed {
                 } else if l.t_ns <= prev.t_ns {
                     return Err(bad(
                         no,
-                        format!("t_ns {} is not after t_ns {} of line {prev_no}: the feed's time must increase with seq", l.t_ns, prev.t_ns),
+                        format!(
+                            "t_ns {} is not after t_ns {} of line {prev_no}: the feed's time must increase with seq",
+                            l.t_ns, prev.t_ns
+                        ),
                     ));
                 }
             }
@@ -184,7 +191,12 @@ impl Feed {
     /// A name for messages: the file, and the run when the file holds several.
     pub fn label(&self) -> String {
         match self.run {
-            Some((k, n)) => format!("{} (run {k} of {n}, lines {}–{})", self.path.display(), self.line_numbers[0], self.line_numbers.last().unwrap_or(&0)),
+            Some((k, n)) => format!(
+                "{} (run {k} of {n}, lines {}–{})",
+                self.path.display(),
+                self.line_numbers[0],
+                self.line_numbers.last().unwrap_or(&0)
+            ),
             None => self.path.display().to_string(),
         }
     }

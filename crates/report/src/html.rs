@@ -91,12 +91,8 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     };
     let qc = &report.qc;
     let lab = &report.lab;
-    let head_text = format!(
-        "{} — specimen {} — {}",
-        std_short,
-        lab.specimen.as_deref().unwrap_or("(no id)"),
-        lab.test_date.as_deref().unwrap_or("")
-    );
+    let head_text =
+        format!("{} — specimen {} — {}", std_short, lab.specimen.as_deref().unwrap_or("(no id)"), lab.test_date.as_deref().unwrap_or(""));
     let _ = write!(
         h,
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\

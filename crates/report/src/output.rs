@@ -65,7 +65,11 @@ fn chromium() -> Option<PathBuf> {
 /// page numbers); `Ok(false)` when there is no Chromium. The browser is killed after 120 s.
 fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
     let Some(bin) = chromium() else { return Ok(false) };
-    let profile = std::env::temp_dir().join(format!("tagdeflect-pdf-{}-{}", std::process::id(), chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)));
+    let profile = std::env::temp_dir().join(format!(
+        "tagdeflect-pdf-{}-{}",
+        std::process::id(),
+        chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+    ));
     let tmp = pdf.with_file_name(".report.pdf.tmp");
     let url = format!("file://{}", std::path::absolute(html).map_err(|e| e.to_string())?.display());
     let mut child = std::process::Command::new(&bin)
@@ -147,7 +151,8 @@ fn input_hashes(report: &Report) -> Result<Vec<InputHash>, ReportError> {
     list.extend(report.inputs.iter().cloned());
     list.into_iter()
         .map(|(role, path)| {
-            let sha256 = sha256_file(&path).map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
+            let sha256 =
+                sha256_file(&path).map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
             let path = std::path::absolute(&path).unwrap_or(path);
             Ok(InputHash { role, path, sha256 })
         })
@@ -170,7 +175,12 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     root.insert(
         "rates".into(),
         Value::Array(
-            report.validity.rates.iter().map(|(p, r, (lo, hi))| json!({"phase": p, "mm_per_min": r, "window_mm_per_min": [lo, hi]})).collect(),
+            report
+                .validity
+                .rates
+                .iter()
+                .map(|(p, r, (lo, hi))| json!({"phase": p, "mm_per_min": r, "window_mm_per_min": [lo, hi]}))
+                .collect(),
         ),
     );
     let b = &report.beam;
@@ -183,7 +193,12 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
         spec["notch_mm"] = json!(n);
         spec["h_sp_mm"] = json!(b.ligament_mm());
     }
-    for (k, v) in [("width_tol_mm", b.width_tol_mm), ("depth_tol_mm", b.depth_tol_mm), ("span_tol_mm", b.span_tol_mm), ("notch_tol_mm", b.notch_tol_mm)] {
+    for (k, v) in [
+        ("width_tol_mm", b.width_tol_mm),
+        ("depth_tol_mm", b.depth_tol_mm),
+        ("span_tol_mm", b.span_tol_mm),
+        ("notch_tol_mm", b.notch_tol_mm),
+    ] {
         if let Some(v) = v {
             spec[k] = json!(v);
         }

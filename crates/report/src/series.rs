@@ -75,7 +75,8 @@ fn num(v: f64, d: usize) -> String {
 /// Writes `series.json`, `series.html` and the overlaid curves into `dir`.
 pub fn write(reports: &[Report], dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
     use serde_json::json;
-    std::fs::create_dir_all(dir).map_err(|e| ReportError::Io { path: dir.to_path_buf(), message: format!("cannot create the folder: {e}") })?;
+    std::fs::create_dir_all(dir)
+        .map_err(|e| ReportError::Io { path: dir.to_path_buf(), message: format!("cannot create the folder: {e}") })?;
     let st = stats(reports);
     let names: Vec<String> = reports.iter().map(specimen_name).collect();
     let specimens: Vec<serde_json::Value> = reports
@@ -129,7 +130,13 @@ pub fn write(reports: &[Report], dir: &Path) -> Result<Vec<PathBuf>, ReportError
     }
     h.push_str("</tr>");
     for (r, n) in reports.iter().zip(&names) {
-        let _ = write!(h, "<tr><td>{}</td><td class=\"{}\">{}</td>", esc(n), if r.validity.valid { "" } else { "bad" }, if r.validity.valid { "yes" } else { "no" });
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td class=\"{}\">{}</td>",
+            esc(n),
+            if r.validity.valid { "" } else { "bad" },
+            if r.validity.valid { "yes" } else { "no" }
+        );
         for s in &st {
             let cell = r.entries.iter().find(|e| e.key == s.key).and_then(|e| e.result.as_ref().ok()).map_or("—".to_string(), |q| {
                 let d = q.decimals();

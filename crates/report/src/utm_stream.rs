@@ -54,16 +54,25 @@ impl UtmStream {
                 return Err(bad(no, format!("t_ns {} is not a time between 1970 and 2200", s.t_ns)));
             }
             if !(s.load_kn.is_finite() && s.load_kn.abs() <= limits.max_load_kn) {
-                return Err(bad(no, format!("load_kN = {} is outside ±{} kN (max_load_kn)", crate::feed_reader::fmt_g(s.load_kn), limits.max_load_kn)));
+                return Err(bad(
+                    no,
+                    format!("load_kN = {} is outside ±{} kN (max_load_kn)", crate::feed_reader::fmt_g(s.load_kn), limits.max_load_kn),
+                ));
             }
             if let Some(st) = s.stroke_mm {
                 if !(st.is_finite() && st.abs() <= limits.max_length_mm) {
-                    return Err(bad(no, format!("stroke_mm = {} is outside ±{} mm (max_length_mm)", crate::feed_reader::fmt_g(st), limits.max_length_mm)));
+                    return Err(bad(
+                        no,
+                        format!("stroke_mm = {} is outside ±{} mm (max_length_mm)", crate::feed_reader::fmt_g(st), limits.max_length_mm),
+                    ));
                 }
             }
             if let Some(p) = samples.last() {
                 if s.t_ns <= p.t_ns {
-                    return Err(bad(no, format!("t_ns {} is not after t_ns {} of line {prev_line}: samples must be in time order", s.t_ns, p.t_ns)));
+                    return Err(bad(
+                        no,
+                        format!("t_ns {} is not after t_ns {} of line {prev_line}: samples must be in time order", s.t_ns, p.t_ns),
+                    ));
                 }
             }
             samples.push(s);

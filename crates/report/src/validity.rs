@@ -56,11 +56,10 @@ fn t_of(feed: &Feed, t_ns: i64) -> f64 {
 /// Checks the rules.
 pub(crate) fn check(i: &Input) -> Validity {
     let mut reasons = Vec::new();
-    let mut unchecked = vec![
-        "The validity rules (the deflection rates in particular) follow the standards as the authors of this software know them; \
+    let mut unchecked =
+        vec!["The validity rules (the deflection rates in particular) follow the standards as the authors of this software know them; \
          they were not checked against the standards' text."
-            .to_string(),
-    ];
+            .to_string()];
     let fc = i.feed_curve;
     let lc = i.load_curve;
     let xmax = fc.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
@@ -78,10 +77,8 @@ pub(crate) fn check(i: &Input) -> Validity {
 
     // Reached the end of the test.
     if fc.xs[0] > 5.0 * fc.sxs[0] + 0.01 * end {
-        reasons.push(format!(
-            "The {} was already {:.3} mm at the first line: the test was not recorded from its start.",
-            i.x_name, fc.xs[0]
-        ));
+        reasons
+            .push(format!("The {} was already {:.3} mm at the first line: the test was not recorded from its start.", i.x_name, fc.xs[0]));
     }
     if fc.crossing(end).is_none() {
         reasons.push(format!(
@@ -137,7 +134,10 @@ pub(crate) fn check(i: &Input) -> Validity {
 
     // Rates.
     let mut rates = Vec::new();
-    let phases = [(format!("up to {split_name}"), 0.1 * rate_split, rate_split, windows[0]), (format!("from {split_name} to {end_name}"), rate_split, end, windows[1])];
+    let phases = [
+        (format!("up to {split_name}"), 0.1 * rate_split, rate_split, windows[0]),
+        (format!("from {split_name} to {end_name}"), rate_split, end, windows[1]),
+    ];
     for (name, lo, hi, (wlo, whi)) in phases {
         // The first pass through the phase (a later unloading is another fault).
         let idx: Vec<usize> = match (0..fc.len()).find(|&k| fc.xs[k] >= lo) {

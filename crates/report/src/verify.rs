@@ -34,9 +34,10 @@ pub fn verify(dir: &Path) -> Result<(Vec<Checked>, String), ReportError> {
     let text = std::fs::read_to_string(&p).map_err(|e| ReportError::Io { path: p.clone(), message: format!("cannot read: {e}") })?;
     let v: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| ReportError::Data { path: p.clone(), message: format!("not a report: {e}") })?;
-    let files = v["inputs"]["files"]
-        .as_array()
-        .ok_or_else(|| ReportError::Data { path: p.clone(), message: "no `inputs.files`: a report made before inputs were recorded".into() })?;
+    let files = v["inputs"]["files"].as_array().ok_or_else(|| ReportError::Data {
+        path: p.clone(),
+        message: "no `inputs.files`: a report made before inputs were recorded".into(),
+    })?;
     let mut out = Vec::new();
     for f in files {
         let (Some(role), Some(path), Some(sha)) = (f["role"].as_str(), f["path"].as_str(), f["sha256"].as_str()) else {
