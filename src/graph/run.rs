@@ -343,7 +343,7 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
     let utm_files = crate::graph::utm_file::UtmFiles::for_run(
         config.output.feed.as_deref(),
         outputs.run_report.as_ref().map(|r| r.dir()),
-        recording.is_none() && !opts.record_only,
+        !replaying && !opts.record_only,
     );
     let forwarder = {
         let rec_tx = rec_tx.clone();
