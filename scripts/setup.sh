@@ -15,6 +15,8 @@ pkgs+=(fonts-dejavu-core)
 # The Debian package (scripts/package.sh: dpkg-deb, dpkg-shlibdeps, strip) and its install test
 # in a fresh Debian (scripts/debian-install-test.sh: debootstrap; curl reads the live page).
 pkgs+=(dpkg-dev binutils debootstrap curl)
+# The report printed to PDF by headless Chromium, and its pages looked at (pdftoppm).
+pkgs+=(poppler-utils)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -13,7 +13,7 @@ use crate::utm::{UtmHistory, UtmSample};
 
 /// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
 pub const TARGETS: &[&str] =
-    &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect"];
+    &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect", "report_feed"];
 
 /// Runs target `name` on `data` (regression tests); `false` for an unknown name.
 pub fn run(name: &str, data: &[u8]) -> bool {
@@ -28,6 +28,7 @@ pub fn run(name: &str, data: &[u8]) -> bool {
         "assembly" => assembly(data),
         "roi" => roi(data),
         "window_detect" => window_detect(data),
+        "report_feed" => report_feed(data),
         _ => return false,
     }
     true
@@ -328,4 +329,40 @@ pub fn window_detect(data: &[u8]) {
             assert!(det.corners.iter().all(|c| c.x.is_finite() && c.y.is_finite()), "non-finite corner");
         }
     });
+}
+
+/// The report's feed reader and the report built from what it accepts (curves, standards,
+/// QC, validity, CSV), for both standards: any bytes give a report or an error, never a
+/// panic or a loop; an accepted feed has lines in seq and time order with finite values.
+pub fn report_feed(data: &[u8]) {
+    use std::sync::OnceLock;
+    use tagdeflect_report::{Feed, ReadOptions, ReportConfig, Standard, TestRig};
+    static RIG: OnceLock<TestRig> = OnceLock::new();
+    let rig = RIG.get_or_init(|| {
+        let text = format!(
+            "{}\n[specimen.beam]\nwidth_mm = 150.0\ndepth_mm = 150.0\nspan_mm = 450.0\nnotch_mm = 25.0\n",
+            include_str!("../config/one-camera.toml")
+        );
+        Config::from_toml_str(&text, Path::new("config/one-camera.toml")).expect("the one-camera config loads").test_rig()
+    });
+    let Ok(text) = std::str::from_utf8(data) else { return };
+    let path = Path::new("fuzz.jsonl");
+    for allow_restarts in [false, true] {
+        let Ok(runs) = Feed::parse(text, path, &ReadOptions { allow_restarts, ..Default::default() }) else { continue };
+        for feed in &runs {
+            assert!(feed.lines.windows(2).all(|w| w[0].seq < w[1].seq && w[0].t_ns < w[1].t_ns));
+            let mut csv = Vec::new();
+            let _ = tagdeflect_report::csv_out::write_curve_csv(feed, &mut csv);
+            for standard in [Standard::AstmC1609, Standard::En14651] {
+                let opts = ReportConfig::new(standard, "out".into());
+                if let Ok(r) = tagdeflect_report::build(feed, None, rig, path, &opts) {
+                    for e in &r.entries {
+                        if let Ok(q) = &e.result {
+                            assert!(q.value.is_finite(), "{}: {}", e.key, q.value);
+                        }
+                    }
+                }
+            }
+        }
+    }
 }

@@ -11,3 +11,4 @@ pub mod lab_tests;
 pub mod page;
 pub mod run;
 pub mod sources;
+pub mod utm_file;

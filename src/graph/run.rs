@@ -349,6 +349,11 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
     // Bounded (drop-oldest): memory stays flat while the solver waits, and in `record`
     // (no solver) nothing accumulates.
     let (solver_utm_tx, solver_utm_rx) = relay(UTM_RELAY_SAMPLES);
+    let utm_files = crate::graph::utm_file::UtmFiles::for_run(
+        config.output.feed.as_deref(),
+        outputs.run_report.as_ref().map(|r| r.dir()),
+        !replaying && !opts.record_only,
+    );
     let forwarder = {
         let rec_tx = rec_tx.clone();
         let fwd_page = page.handle();
@@ -358,6 +363,9 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
                 fwd_page.on_utm(&ev);
                 if let (UtmEvent::Sample(s), Some(t)) = (&ev, &fwd_tests) {
                     t.on_utm(s);
+                }
+                if let UtmEvent::Sample(s) = &ev {
+                    utm_files.push(s);
                 }
                 if let (UtmEvent::Sample(s), Some(tx)) = (&ev, &rec_tx) {
                     tx.utm(*s);

@@ -1,6 +1,7 @@
 //! The report at the end of `run` (`[report]` in the config): the run's feed is copied into
 //! a new timestamped folder under `[report] out` while it runs (`feed.jsonl`, so the report
-//! can be made again with `tagdeflect report`), and the report is written there at shutdown.
+//! can be made again with `tagdeflect report`), with every UTM sample at its own rate
+//! (`utm.jsonl`, see `graph::utm_file`), and the report is written there at shutdown.
 
 use std::path::PathBuf;
 
@@ -33,15 +34,27 @@ impl RunReport {
         Ok(Some((RunReport { dir, feed, config: config.clone() }, writer)))
     }
 
+    /// The run's report folder (where `utm.jsonl` goes beside the feed).
+    pub fn dir(&self) -> &std::path::Path {
+        &self.dir
+    }
+
     /// Writes the report (after every sink is flushed). A failure is logged, never fatal:
     /// the feed is already safe on disk and `tagdeflect report` can try again.
     pub fn finish(self) {
         let Some(r) = &self.config.report else { return };
         let cfg_path = self.dir.join("tagdeflect.toml");
         let rig = self.config.test_rig();
-        let result = Feed::read(&self.feed).and_then(|feed| {
-            tagdeflect_report::build(&feed, &rig, &cfg_path, r).and_then(|rep| tagdeflect_report::write(&rep, &feed, &self.dir))
-        });
+        let utm_path = self.dir.join("utm.jsonl");
+        let result = Feed::read_runs(&self.feed, &tagdeflect_report::ReadOptions { limits: r.limits(), allow_restarts: false })
+            .map(|mut runs| runs.remove(0))
+            .and_then(|feed| {
+                let utm = utm_path.is_file().then(|| tagdeflect_report::UtmStream::read(&utm_path, &r.limits())).transpose()?;
+                tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, r).and_then(|mut rep| {
+                    rep.inputs = vec![("config".into(), cfg_path.clone())];
+                    tagdeflect_report::write(&rep, &feed, &self.dir)
+                })
+            });
         match result {
             Ok(files) => tracing::info!("report written into {} ({} files)", self.dir.display(), files.len()),
             Err(e) => tracing::error!(

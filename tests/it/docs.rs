@@ -78,6 +78,9 @@ quad_decimate = 1.0
 standard = "astm-c1609"
 out = "reports"
 
+[report.lab]
+specimen = "B1"
+
 [[gauge]]
 name = "net"
 kind = "net_deflection"
@@ -150,6 +153,7 @@ const TABLES: &[&str] = &[
     "output.mqtt",
     "measure",
     "report",
+    "report.lab",
     "gauge",
     "clock_check",
     "sim",

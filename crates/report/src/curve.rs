@@ -41,6 +41,14 @@ pub struct Curve {
     pub x_noise: f64,
     /// Smoothing window, points.
     pub smooth_points: usize,
+    /// Points over which the errors of `xs` are correlated (the smoothing window, in this
+    /// curve's points): the random part of an area's σ is scaled by its square root.
+    pub x_corr_points: f64,
+    /// Sampling period of the load, s (median step of `t_s`).
+    pub load_period_s: f64,
+    /// True when the load comes from the UTM's own samples (`utm.jsonl`), false when it is the
+    /// feed's load sampled at the frame rate.
+    pub load_from_utm: bool,
 }
 
 /// Errors building a curve.
@@ -94,7 +102,112 @@ impl Curve {
             sxs.push((var + x_ref_sigma * x_ref_sigma).sqrt());
         }
         let load_sigma = (load_noise * load_noise + load_resolution * load_resolution / 12.0).sqrt();
-        Ok(Curve { t_ns, t_s, load, x, sx, x_ref_sigma, xs, sxs, load_sigma, load_noise, x_noise, smooth_points: m })
+        let load_period_s = median_step(&t_s);
+        Ok(Curve {
+            t_ns,
+            t_s,
+            load,
+            x,
+            sx,
+            x_ref_sigma,
+            xs,
+            sxs,
+            load_sigma,
+            load_noise,
+            x_noise,
+            smooth_points: m,
+            x_corr_points: m as f64,
+            load_period_s,
+            load_from_utm: false,
+        })
+    }
+
+    /// The curve on the UTM's own samples: one point per sample (UTM clock minus `offset_ns`
+    /// = camera clock) inside this curve's time span, with this curve's smoothed `x` and its σ
+    /// interpolated linearly at the sample's time. A sample between two points further apart
+    /// than `max_gap_s` gets no point (nothing is invented across a gap). The σ of the time
+    /// alignment `sigma_t_s` adds `|dx/dt|·σ_t` to every point's σ.
+    pub fn on_utm(
+        &self,
+        utm: &[tagdeflect_core::utm_sample::UtmSample],
+        offset_ns: i64,
+        sigma_t_s: f64,
+        load_resolution: f64,
+        max_gap_s: f64,
+    ) -> Result<Curve, CurveError> {
+        let n = self.len();
+        let (first, last) = (self.t_ns[0], self.t_ns[n - 1]);
+        let max_gap_ns = (max_gap_s * 1e9).min(i64::MAX as f64) as i64;
+        let (mut t_ns, mut load, mut x, mut sx, mut sxs) = (vec![], vec![], vec![], vec![], vec![]);
+        let ref2 = self.x_ref_sigma * self.x_ref_sigma;
+        for s in utm {
+            let tc = s.t_ns.saturating_sub(offset_ns);
+            if tc < first || tc > last {
+                continue;
+            }
+            let i = self.t_ns.partition_point(|&t| t < tc);
+            let (v, sig, rate) = if self.t_ns[i] == tc || i == 0 {
+                let rate = if i + 1 < n { (self.xs[i + 1] - self.xs[i]) / (self.t_s[i + 1] - self.t_s[i]).max(1e-12) } else { 0.0 };
+                (self.xs[i], self.sxs[i], rate)
+            } else {
+                let (a, b) = (i - 1, i);
+                if self.t_ns[b] - self.t_ns[a] > max_gap_ns {
+                    continue;
+                }
+                let w = (tc - self.t_ns[a]) as f64 / (self.t_ns[b] - self.t_ns[a]) as f64;
+                let dt = self.t_s[b] - self.t_s[a];
+                (
+                    self.xs[a] + w * (self.xs[b] - self.xs[a]),
+                    self.sxs[a] + w * (self.sxs[b] - self.sxs[a]),
+                    (self.xs[b] - self.xs[a]) / dt.max(1e-12),
+                )
+            };
+            let st = rate.abs() * sigma_t_s;
+            t_ns.push(tc);
+            load.push(s.load_kn);
+            x.push(v);
+            sx.push(((sig * sig - ref2).max(0.0) + st * st).sqrt());
+            sxs.push((sig * sig + st * st).sqrt());
+        }
+        if t_ns.len() < 2 {
+            return Err(CurveError::TooShort(t_ns.len(), "UTM samples within the feed's time"));
+        }
+        let t0 = t_ns[0];
+        let t_s: Vec<f64> = t_ns.iter().map(|&t| (t - t0) as f64 * 1e-9).collect();
+        let load_noise = robust_noise(&t_s, &load);
+        let load_sigma = (load_noise * load_noise + load_resolution * load_resolution / 12.0).sqrt();
+        let load_period_s = median_step(&t_s);
+        let per_feed_point = (self.load_period_s / load_period_s.max(1e-12)).max(1.0);
+        Ok(Curve {
+            xs: x.clone(),
+            t_ns,
+            t_s,
+            load,
+            x,
+            sx,
+            x_ref_sigma: self.x_ref_sigma,
+            sxs,
+            load_sigma,
+            load_noise,
+            x_noise: self.x_noise,
+            smooth_points: self.smooth_points,
+            x_corr_points: self.x_corr_points * per_feed_point,
+            load_period_s,
+            load_from_utm: true,
+        })
+    }
+
+    /// σ of a peak read from samples: the true peak lies between the sample taken and the
+    /// next, missed by up to the rise over one sampling period `r`; the RMS of such a
+    /// one-sided error is `r/√3`. `r` is the mean rise per sample over the (up to)
+    /// `max(smooth_points, 5)` samples before the peak, so that one noisy reading does not
+    /// make it.
+    pub(crate) fn peak_sampling_sigma(&self, j: usize) -> f64 {
+        let m = self.smooth_points.max(5).min(j);
+        if m == 0 {
+            return 0.0;
+        }
+        ((self.load[j] - self.load[j - m]) / m as f64).max(0.0) / 3f64.sqrt()
     }
 
     /// Number of points.
@@ -198,7 +311,9 @@ impl Curve {
         let (s0, s1) = (self.sxs[i - 1], self.sxs[i]);
         let dx = self.xs[i] - self.xs[i - 1];
         let slope = if dx > 3.0 * s0.max(s1) { (self.load[i] - self.load[i - 1]) / dx } else { self.local_slope(i) };
-        let var_x = (1.0 - f).powi(2) * s0 * s0 + f * f * s1 * s1;
+        // Neighbouring points of a smoothed (or interpolated) x are correlated: their σ combine
+        // linearly.
+        let var_x = ((1.0 - f) * s0 + f * s1).powi(2);
         let var_p = ((1.0 - f).powi(2) + f * f) * self.load_sigma.powi(2);
         Some((p, (slope * slope * var_x + var_p).sqrt(), c))
     }
@@ -228,6 +343,7 @@ impl Curve {
             area += 0.5 * (ps[j] + ps[j + 1]) * (xs[j + 1] - xs[j]);
         }
         let mut var = 0.0;
+        let mut var_x = 0.0;
         for j in 0..n {
             let d_dx = match j {
                 0 => -0.5 * (ps[0] + ps[1]),
@@ -239,8 +355,11 @@ impl Curve {
                 j if j == n - 1 => 0.5 * (xs[n - 1] - xs[n - 2]),
                 j => 0.5 * (xs[j + 1] - xs[j - 1]),
             };
-            var += (d_dx * sx[j]).powi(2) + (d_dp * sp[j]).powi(2);
+            var_x += (d_dx * sx[j]).powi(2);
+            var += (d_dp * sp[j]).powi(2);
         }
+        // The errors of x̃ are correlated over `x_corr_points` points.
+        var += var_x * self.x_corr_points.max(1.0);
         var += ((p_end - ps[0]) * self.x_ref_sigma).powi(2);
         Some((area, var.sqrt()))
     }
@@ -266,6 +385,15 @@ impl Curve {
         }
         None
     }
+}
+
+/// Median step of increasing times, s (0 with fewer than 2).
+fn median_step(t: &[f64]) -> f64 {
+    if t.len() < 2 {
+        return 0.0;
+    }
+    let mut d: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    median(&mut d)
 }
 
 /// Indices `lo..hi` of a window of `m` points centred on `i` (shifted inside `0..n`).

@@ -24,7 +24,8 @@ pub(crate) fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Op
     let mut best: Option<(f64, f64, Option<usize>)> = None;
     for j in 0..upto {
         if curve.xs[j] <= limit && best.is_none_or(|b| curve.load[j] > b.0) {
-            best = Some((curve.load[j], curve.load_sigma, Some(j)));
+            let s = (curve.load_sigma.powi(2) + curve.peak_sampling_sigma(j).powi(2)).sqrt();
+            best = Some((curve.load[j], s, Some(j)));
         }
     }
     if end.is_some() {
@@ -40,7 +41,14 @@ pub(crate) fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Op
 /// The EN 14651 quantities: F_L, f_L, fR1..fR4.
 pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     let (b, l, h) = (beam.width_mm, beam.span_mm, beam.ligament_mm());
+    let (ub, ud, ul, un) = beam.sigmas_mm();
     let stress = |f: f64| 1500.0 * f * l / (b * h * h);
+    // Relative variance of l/(b·h_sp²), h_sp = depth − notch.
+    let geo_rel2 = (ul / l).powi(2) + (ub / b).powi(2) + 4.0 * (ud * ud + un * un) / (h * h);
+    let f_of = |p: f64, s: f64| {
+        let f = stress(p);
+        Quantity::new(f, (stress(s).powi(2) + f * f * geo_rel2).sqrt(), "MPa")
+    };
     let mut out = Vec::new();
     let fl = max_load_within(curve, LOP_CMOD_MM)
         .map(|(p, s, _)| Quantity::new(p, s, "kN"))
@@ -51,7 +59,8 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         name: "load at the limit of proportionality",
         result: fl.clone(),
         method: "largest load while the smoothed CMOD is within 0 to 0.05 mm (the interpolated load at 0.05 mm included); σ = σ of one \
-                 load reading, or, when the largest is the one interpolated at 0.05 mm, the σ of that interpolation"
+                 load reading and of the sampling of a peak (r/√3, r the rise into it over one sampling period), or, when the largest \
+                 is the one interpolated at 0.05 mm, the σ of that interpolation"
             .into(),
         clause: "EN 14651 §9.1 (limit of proportionality, F_L)",
     });
@@ -59,8 +68,8 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         key: "fL",
         symbol: "f_ct,L^f",
         name: "limit of proportionality",
-        result: fl.map(|q| Quantity::new(stress(q.value), stress(q.sigma), "MPa")),
-        method: "f = 3·F_L·l/(2·b·h_sp²); σ from the load's σ only (geometry taken as exact)".into(),
+        result: fl.map(|q| f_of(q.value, q.sigma)),
+        method: "f = 3·F_L·l/(2·b·h_sp²); σ from the load's σ and the dimensions' tolerances (uniform: σ = tol/√3)".into(),
         clause: "EN 14651 §9.1, Eq. 1",
     });
     const KEYS: [&str; 4] = ["fR1", "fR2", "fR3", "fR4"];
@@ -72,10 +81,7 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         "residual flexural tensile strength at CMOD 3.5 mm",
     ];
     for (j, &cmod) in CMOD_J_MM.iter().enumerate() {
-        let r = curve
-            .load_at(cmod)
-            .map(|(p, s, _)| Quantity::new(stress(p), stress(s), "MPa"))
-            .ok_or_else(|| curve.not_reached(&format!("CMOD {cmod} mm"), cmod));
+        let r = curve.load_at(cmod).map(|(p, s, _)| f_of(p, s)).ok_or_else(|| curve.not_reached(&format!("CMOD {cmod} mm"), cmod));
         out.push(Entry {
             key: KEYS[j],
             symbol: SYMS[j],

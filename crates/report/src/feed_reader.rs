@@ -1,73 +1,173 @@
 //! Reading a feed for the report: the lines as [`FeedLine`]s, the type the measurement
 //! writes, which reads tolerantly (unknown fields ignored, extensions and what other writers
 //! leave out optional; see [`tagdeflect_core::feed`]).
+//!
+//! Tolerant of what is missing, strict about what is wrong: a feed is one run in time order
+//! (SPEC), so `seq` must increase and `t_ns` with it; a `seq` that goes back or repeats (two
+//! runs appended to one file, a file concatenated twice, a repeated line) is an error naming
+//! the line, or, with [`ReadOptions::allow_restarts`], the start of a new run, reported on
+//! its own. Every value must be finite and within physical ranges ([`Limits`]): a load of
+//! 3e38 kN is a broken line, not a test.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
+use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 
 use crate::ReportError;
 
-/// A whole feed file.
+/// Physical ranges of a feed's values (`[report] max_load_kn`, `max_length_mm`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Limits {
+    /// Largest |load| a line may carry, kN.
+    pub max_load_kn: f64,
+    /// Largest |length| (positions, displacements, stroke, deflection, gauges in mm, σ), mm.
+    pub max_length_mm: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits { max_load_kn: DEFAULT_MAX_LOAD_KN, max_length_mm: DEFAULT_MAX_LENGTH_MM }
+    }
+}
+
+/// Default largest load: beyond the largest flexural testing machines.
+pub const DEFAULT_MAX_LOAD_KN: f64 = 10_000.0;
+/// Default largest length: a 10 m world around the rig.
+pub const DEFAULT_MAX_LENGTH_MM: f64 = 10_000.0;
+/// Largest |value| of a gauge in another unit (µε, mrad, 1/km).
+const MAX_OTHER_GAUGE: f64 = 1e9;
+/// Latest time a feed may carry: 2200-01-01 (the i64 nanosecond clock ends in 2262).
+const MAX_T_NS: i64 = 7_258_118_400_000_000_000;
+
+/// How a feed is read.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ReadOptions {
+    /// Physical ranges.
+    pub limits: Limits,
+    /// A `seq` going back or repeating starts a new run instead of being an error.
+    pub allow_restarts: bool,
+}
+
+/// A whole feed file (or one run of it).
 #[derive(Debug, Clone)]
 pub struct Feed {
     /// Where it was read from.
     pub path: PathBuf,
     /// The lines in time order.
     pub lines: Vec<FeedLine>,
+    /// 1-based file line of each line (for messages).
+    pub line_numbers: Vec<usize>,
     /// Warnings from reading (a truncated last line).
     pub warnings: Vec<String>,
+    /// `(index from 1, runs in the file)` when the file held several runs.
+    pub run: Option<(usize, usize)>,
 }
 
 impl Feed {
-    /// Reads a feed (JSON Lines). A truncated last line (no newline, cut JSON — what a
-    /// writer killed mid-line leaves) is skipped with a warning, as the recording reader
-    /// does; any other bad line is an error naming the file and line.
+    /// Reads a feed (JSON Lines) that must hold one run. A truncated last line (no newline,
+    /// cut JSON — what a writer killed mid-line leaves) is skipped with a warning, as the
+    /// recording reader does; any other bad line is an error naming the file and line.
     pub fn read(path: &Path) -> Result<Feed, ReportError> {
-        let mut text = String::new();
-        std::fs::File::open(path)
-            .and_then(|mut f| f.read_to_string(&mut text))
-            .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") })?;
-        Self::parse(&text, path)
+        let mut runs = Self::read_runs(path, &ReadOptions::default())?;
+        Ok(runs.remove(0))
+    }
+
+    /// Reads a feed into its runs (one unless `allow_restarts`).
+    pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
+        let text =
+            std::fs::read(path).map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") })?;
+        let text = String::from_utf8(text).map_err(|e| ReportError::BadLine {
+            path: path.to_path_buf(),
+            line: text_line_of(&e.as_bytes()[..e.utf8_error().valid_up_to()]),
+            message: "not a feed line: not UTF-8 text".into(),
+        })?;
+        Self::parse(&text, path, opts)
     }
 
     /// Parses feed text; `path` names the file in errors.
-    fn parse(text: &str, path: &Path) -> Result<Feed, ReportError> {
+    pub fn parse(text: &str, path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
+        let bad = |line: usize, message: String| ReportError::BadLine {
+            path: path.to_path_buf(),
+            line,
+            message: format!("not a feed line: {message}"),
+        };
         let ends_with_newline = text.ends_with('\n');
         let raw: Vec<&str> = text.lines().collect();
-        let mut lines = Vec::with_capacity(raw.len());
+        let mut runs: Vec<Feed> = Vec::new();
+        let mut cur = Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None };
         let mut warnings = Vec::new();
         for (i, line) in raw.iter().enumerate() {
+            let no = i + 1;
             if line.trim().is_empty() {
                 continue;
             }
-            match serde_json::from_str::<FeedLine>(line) {
-                Ok(r) => lines.push(r),
+            let l = match serde_json::from_str::<FeedLine>(line) {
+                Ok(l) => l,
                 Err(e) => {
-                    if i + 1 == raw.len() && !ends_with_newline && e.is_eof() {
-                        let msg = format!("{}:{}: truncated last line skipped", path.display(), i + 1);
+                    if no == raw.len() && !ends_with_newline && e.is_eof() {
+                        let msg = format!("{}:{no}: truncated last line skipped", path.display());
                         tracing::warn!("{msg}");
                         warnings.push(msg);
-                    } else {
-                        return Err(ReportError::BadLine { path: path.to_path_buf(), line: i + 1, message: e.to_string() });
+                        continue;
                     }
+                    return Err(bad(no, e.to_string()));
+                }
+            };
+            check_values(&l, &opts.limits).map_err(|m| bad(no, m))?;
+            if let (Some(prev), Some(&prev_no)) = (cur.lines.last(), cur.line_numbers.last()) {
+                if l.seq <= prev.seq {
+                    if !opts.allow_restarts {
+                        let what = if l.seq == prev.seq { "repeats" } else { "goes back from" };
+                        return Err(bad(
+                            no,
+                            format!(
+                                "seq {} {what} seq {} of line {prev_no}: a feed holds one run in order (two runs appended to one file, or a repeated line?); \
+                                 split the file, or give --allow-restarts to report each run on its own",
+                                l.seq, prev.seq
+                            ),
+                        ));
+                    }
+                    runs.push(std::mem::replace(
+                        &mut cur,
+                        Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None },
+                    ));
+                } else if l.t_ns <= prev.t_ns {
+                    return Err(bad(
+                        no,
+                        format!(
+                            "t_ns {} is not after t_ns {} of line {prev_no}: the feed's time must increase with seq",
+                            l.t_ns, prev.t_ns
+                        ),
+                    ));
                 }
             }
+            cur.lines.push(l);
+            cur.line_numbers.push(no);
         }
-        if lines.is_empty() {
-            return Err(ReportError::BadLine { path: path.to_path_buf(), line: raw.len().max(1), message: "the feed has no lines".into() });
+        if !cur.lines.is_empty() {
+            runs.push(cur);
         }
-        lines.sort_by_key(|l| l.t_ns);
-        Ok(Feed { path: path.to_path_buf(), lines, warnings })
+        if runs.is_empty() {
+            return Err(bad(raw.len().max(1), "the feed has no lines".into()));
+        }
+        let n = runs.len();
+        for (k, r) in runs.iter_mut().enumerate() {
+            r.warnings = warnings.clone();
+            if n > 1 {
+                r.run = Some((k + 1, n));
+            }
+        }
+        Ok(runs)
     }
 
     /// Gauge names in order of first appearance.
     pub(crate) fn gauge_names(&self) -> Vec<String> {
         let mut names: Vec<String> = Vec::new();
+        let mut seen = std::collections::HashSet::new();
         for l in &self.lines {
             for k in l.gauges.keys() {
-                if !names.contains(k) {
+                if seen.insert(k.as_str()) {
                     names.push(k.clone());
                 }
             }
@@ -87,30 +187,169 @@ impl Feed {
         ids.dedup();
         ids
     }
+
+    /// A name for messages: the file, and the run when the file holds several.
+    pub fn label(&self) -> String {
+        match self.run {
+            Some((k, n)) => format!(
+                "{} (run {k} of {n}, lines {}–{})",
+                self.path.display(),
+                self.line_numbers[0],
+                self.line_numbers.last().unwrap_or(&0)
+            ),
+            None => self.path.display().to_string(),
+        }
+    }
+}
+
+/// A number for a message: scientific beyond ordinary magnitudes.
+pub(crate) fn fmt_g(v: f64) -> String {
+    if v != 0.0 && (v.abs() >= 1e7 || v.abs() < 1e-4) {
+        format!("{v:e}")
+    } else {
+        v.to_string()
+    }
+}
+
+use fmt_g as g;
+
+/// 1-based line of the end of `bytes`.
+fn text_line_of(bytes: &[u8]) -> usize {
+    bytes.iter().filter(|&&b| b == b'\n').count() + 1
+}
+
+/// Every value of a line finite and within the limits; the message names the field.
+fn check_values(l: &FeedLine, lim: &Limits) -> Result<(), String> {
+    if !(0..=MAX_T_NS).contains(&l.t_ns) {
+        return Err(format!("t_ns {} is not a time between 1970 and 2200 (ns since the Unix epoch)", l.t_ns));
+    }
+    if l.seq > (1u64 << 53) {
+        return Err(format!("seq {} is beyond 2^53 (not a frame-set count)", l.seq));
+    }
+    let len = |what: &str, v: f64| -> Result<(), String> {
+        if v.is_finite() && v.abs() <= lim.max_length_mm {
+            Ok(())
+        } else {
+            Err(format!("{what} = {} mm is outside ±{} mm (max_length_mm)", g(v), lim.max_length_mm))
+        }
+    };
+    let sig = |what: &str, v: f64| -> Result<(), String> {
+        if v.is_finite() && (0.0..=lim.max_length_mm).contains(&v) {
+            Ok(())
+        } else {
+            Err(format!("{what} = {} is not a σ between 0 and {} mm", g(v), lim.max_length_mm))
+        }
+    };
+    if let Some(p) = l.load_kn {
+        if !(p.is_finite() && p.abs() <= lim.max_load_kn) {
+            return Err(format!("load_kN = {} is outside ±{} kN (max_load_kn)", g(p), lim.max_load_kn));
+        }
+    }
+    if let Some(s) = l.stroke_mm {
+        len("stroke_mm", s)?;
+    }
+    if let Some(d) = l.net_deflection_mm {
+        len("net_deflection_mm", d)?;
+    }
+    for t in &l.tags {
+        for k in 0..3 {
+            len(&format!("tag {} pos_mm", t.id), t.pos_mm[k])?;
+            len(&format!("tag {} disp_mm", t.id), t.disp_mm[k])?;
+            if let Some(s) = t.sigma_mm {
+                sig(&format!("tag {} sigma_mm", t.id), s[k])?;
+            }
+        }
+    }
+    for (name, g) in &l.gauges {
+        if g.unit == "mm" || g.unit.is_empty() {
+            len(&format!("gauge {name}"), g.value)?;
+        } else if !(g.value.is_finite() && g.value.abs() <= MAX_OTHER_GAUGE) {
+            return Err(format!("gauge {name} = {} {} is not a finite reading within ±1e9", fmt_g(g.value), g.unit));
+        }
+        if let Some(s) = g.known_sigma() {
+            if !(s.is_finite() && s >= 0.0 && (g.unit != "mm" || s <= lim.max_length_mm)) {
+                return Err(format!("gauge {name} sigma = {s} is not a finite, non-negative σ"));
+            }
+        }
+    }
+    if let Some(c) = &l.clock_offset_ms {
+        if !(c.value.is_finite() && c.value.abs() <= 1e7 && c.sigma.is_finite() && (0.0..=1e7).contains(&c.sigma)) {
+            return Err(format!("clock_offset_ms = {} ± {} is not an offset within ±10^7 ms", c.value, c.sigma));
+        }
+    }
+    for c in &l.cameras {
+        for (k, v) in [("drift_deg", c.drift_deg), ("drift_mm", c.drift_mm)] {
+            if let Some(v) = v {
+                if !(v.is_finite() && v.abs() <= 360.0 * 1e3) {
+                    return Err(format!("camera {} {k} = {v} is not finite", c.name));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn parse(text: &str) -> Result<Vec<Feed>, ReportError> {
+        Feed::parse(text, Path::new("f.jsonl"), &ReadOptions::default())
+    }
+
     #[test]
     fn reads_lines_other_writers_leave_short_and_skips_a_truncated_last_one() {
         let text = concat!(
-            r#"{"seq":1,"t_ns":20,"load_kN":1.5,"gauges":{"cmod":{"value":0.1}},"cameras":[{"name":"left"}],"drift_px":3}"#,
-            "\n",
             r#"{"seq":0,"t_ns":10,"tags":[{"id":4,"pos_mm":[0,0,0],"disp_mm":[0,0,-1]}],"gauges":{"cmod":{"value":0.0,"sigma":0.002,"unit":"mm"}}}"#,
+            "\n",
+            r#"{"seq":1,"t_ns":20,"load_kN":1.5,"gauges":{"cmod":{"value":0.1}},"cameras":[{"name":"left"}],"drift_px":3}"#,
             "\n",
             r#"{"seq":2,"t_ns":30,"tags":[{"id""#,
         );
-        let feed = Feed::parse(text, Path::new("f.jsonl")).unwrap();
-        assert_eq!(feed.lines.iter().map(|l| l.seq).collect::<Vec<_>>(), vec![0, 1], "in time order, the cut line skipped");
+        let feed = parse(text).unwrap().remove(0);
+        assert_eq!(feed.lines.iter().map(|l| l.seq).collect::<Vec<_>>(), vec![0, 1], "the cut line skipped");
         assert_eq!(feed.warnings, vec!["f.jsonl:3: truncated last line skipped".to_string()]);
         assert_eq!(feed.gauge_names(), vec!["cmod".to_string()]);
         assert_eq!(feed.gauge_unit("cmod").as_deref(), Some("mm"), "from the first line that names one");
         assert_eq!(feed.lines[1].gauges["cmod"].known_sigma(), None);
         assert!(feed.lines[1].cameras[0].frame && feed.lines[1].cameras[0].posed);
         assert_eq!(feed.tag_ids(), vec![4]);
-        let e = Feed::parse("{\"seq\":0,\"t_ns\":\"soon\"}\n", Path::new("f.jsonl")).unwrap_err();
+        let e = parse("{\"seq\":0,\"t_ns\":\"soon\"}\n").unwrap_err();
         assert!(e.to_string().starts_with("f.jsonl:1: not a feed line"), "{e}");
+    }
+
+    #[test]
+    fn a_seq_going_back_or_repeating_is_an_error_or_a_new_run() {
+        let l = |seq: u64, t: i64| format!("{{\"seq\":{seq},\"t_ns\":{t},\"load_kN\":1.0}}\n");
+        let restart = [l(0, 10), l(1, 20), l(0, 30), l(1, 40), l(2, 50)].concat();
+        let e = parse(&restart).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:3: not a feed line: seq 0 goes back from seq 1 of line 2"), "{e}");
+        let e = parse(&[l(0, 10), l(1, 20), l(1, 30)].concat()).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:3:") && e.contains("seq 1 repeats seq 1"), "{e}");
+        let e = parse(&[l(0, 10), l(1, 5)].concat()).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:2:") && e.contains("t_ns 5 is not after"), "{e}");
+        let runs = Feed::parse(&restart, Path::new("f.jsonl"), &ReadOptions { allow_restarts: true, ..Default::default() }).unwrap();
+        assert_eq!(runs.len(), 2);
+        assert_eq!((runs[0].lines.len(), runs[1].lines.len()), (2, 3));
+        assert_eq!(runs[1].run, Some((2, 2)));
+        assert_eq!(runs[1].line_numbers, vec![3, 4, 5]);
+    }
+
+    #[test]
+    fn absurd_values_are_errors_naming_the_field() {
+        let cases = [
+            (r#"{"seq":0,"t_ns":10,"load_kN":1e308}"#, "load_kN = 1e308"),
+            (r#"{"seq":0,"t_ns":10,"load_kN":-3e38}"#, "load_kN = -3"),
+            (r#"{"seq":0,"t_ns":-9223372036854775808}"#, "t_ns -9223372036854775808"),
+            (r#"{"seq":0,"t_ns":9223372036854775807}"#, "t_ns 9223372036854775807"),
+            (r#"{"seq":18446744073709551615,"t_ns":10}"#, "seq 18446744073709551615"),
+            (r#"{"seq":0,"t_ns":10,"net_deflection_mm":1e20}"#, "net_deflection_mm"),
+            (r#"{"seq":0,"t_ns":10,"gauges":{"cmod":{"value":1e300,"unit":"mm"}}}"#, "gauge cmod"),
+            (r#"{"seq":0,"t_ns":10,"tags":[{"id":3,"pos_mm":[0,0,1e99],"disp_mm":[0,0,0]}]}"#, "tag 3 pos_mm"),
+        ];
+        for (line, want) in cases {
+            let e = parse(&format!("{line}\n")).unwrap_err().to_string();
+            assert!(e.starts_with("f.jsonl:1: not a feed line") && e.contains(want), "{line}: {e}");
+        }
     }
 }

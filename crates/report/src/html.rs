@@ -3,6 +3,7 @@
 
 use std::fmt::Write;
 
+use super::output::InputHash;
 use super::plots::Plot;
 use super::{Quantity, Report, Standard};
 
@@ -12,17 +13,12 @@ fn esc(s: &str) -> String {
 
 /// Decimals that show σ with two significant digits (value and σ alike).
 pub fn decimals(q: &Quantity) -> usize {
-    let s = q.sigma.abs();
-    if s > 0.0 && s.is_finite() {
-        (1 - s.log10().floor() as i64).clamp(0, 6) as usize
-    } else {
-        let v = q.value.abs();
-        if v > 0.0 && v.is_finite() {
-            (3 - v.log10().floor() as i64).clamp(0, 6) as usize
-        } else {
-            1
-        }
-    }
+    q.decimals()
+}
+
+/// Text inside a CSS string literal.
+fn css_string(s: &str) -> String {
+    s.chars().filter(|c| !c.is_control() && *c != '<' && *c != '>').map(|c| if c == '"' || c == '\\' { ' ' } else { c }).collect()
 }
 
 fn time_utc(t_ns: i64) -> String {
@@ -64,7 +60,18 @@ figure svg { width: 100%; height: auto; display: block; border: 1px solid var(--
 figcaption { color: var(--muted); font-size: 12px; margin-top: 4px; }
 ul { margin: 4px 0 8px 18px; padding: 0; }
 footer { margin-top: 30px; color: var(--muted); font-size: 12px; border-top: 1px solid var(--rule); padding-top: 6px; }
-@page { size: A4; margin: 14mm; }
+.banner { border: 2px solid; padding: 8px 12px; margin: 12px 0; font-size: 14px; }
+.banner.bad { border-color: #b3261e; background: #fdecea; color: #7a1a14; }
+.banner.good { border-color: #2e7d32; background: #edf7ee; color: #1b4d1f; }
+.banner ul { margin: 4px 0 0 18px; }
+table.id td { width: 25%; }
+tr.informative td { color: var(--muted); }
+@page { size: A4; margin: 18mm 14mm 16mm 14mm;
+  @top-left { content: var(--page-head, ""); font: 9px "DejaVu Sans", sans-serif; color: #5b6470; }
+  @top-right { content: "tagdeflect flexural test report"; font: 9px "DejaVu Sans", sans-serif; color: #5b6470; }
+  @bottom-left { content: "Page " counter(page) " of " counter(pages); font: 9px "DejaVu Sans", sans-serif; color: #5b6470; }
+  @bottom-right { content: "Signed: ____________________"; font: 9px "DejaVu Sans", sans-serif; color: #5b6470; }
+}
 @media print {
   body { max-width: none; padding: 0; font-size: 11px; }
   h2 { break-after: avoid; }
@@ -75,7 +82,7 @@ footer { margin-top: 30px; color: var(--muted); font-size: 12px; border-top: 1px
 "#;
 
 /// The HTML page of a report.
-pub fn render(report: &Report, plots: &[Plot]) -> String {
+pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     let mut h = String::with_capacity(64 * 1024);
     let std_short = match report.standard {
         Standard::AstmC1609 => "ASTM C1609",
@@ -83,17 +90,22 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
         Standard::En14651 => "EN 14651",
     };
     let qc = &report.qc;
+    let lab = &report.lab;
+    let head_text =
+        format!("{} — specimen {} — {}", std_short, lab.specimen.as_deref().unwrap_or("(no id)"), lab.test_date.as_deref().unwrap_or(""));
     let _ = write!(
         h,
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
-         <title>Flexural test report — {}</title><style>{STYLE}</style></head><body>\n",
-        esc(std_short)
+         <title>Flexural test report — {}</title><style>{STYLE}\n@page {{ @top-left {{ content: \"{}\"; }} }}</style></head><body>\n",
+        esc(std_short),
+        css_string(&head_text)
     );
     let _ = write!(
         h,
-        "<header><h1>Flexural test report — {}</h1><p class=\"sub\">{}</p><p class=\"sub\">Feed <code>{}</code>: {} lines, {} to {} ({:.1} s). Measured without contact by tagdeflect {}.</p></header>",
+        "<header><h1>Flexural test report — {}</h1><p class=\"sub\">{}{}</p><p class=\"sub\">Feed <code>{}</code>: {} lines, {} to {} ({:.1} s). Measured without contact by tagdeflect {}.</p></header>",
         esc(std_short),
         esc(report.standard.title()),
+        lab.edition.as_ref().map_or(String::new(), |e| format!(" — edition {}", esc(e))),
         esc(&report.feed_path.display().to_string()),
         qc.lines,
         time_utc(qc.first_t_ns),
@@ -102,23 +114,43 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
         env!("CARGO_PKG_VERSION")
     );
 
-    // Specimen.
-    let b = &report.beam;
-    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
-    let mut row = |name: &str, sym: &str, v: f64| {
-        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v} mm</td></tr>");
-    };
-    row("width", "b", b.width_mm);
-    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm);
-    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm);
-    if let Some(n) = b.notch_mm {
-        row("notch depth", "a₀", n);
-        row("height above the notch tip", "h_sp", b.ligament_mm());
+    // Validity, first.
+    let v = &report.validity;
+    if v.valid {
+        let _ = write!(h, "<div class=\"banner good\"><b>Valid test of {}</b>: every rule checked holds.</div>", esc(std_short));
+    } else {
+        let _ = write!(
+            h,
+            "<div class=\"banner bad\"><b>Not a valid test of {}</b> — the values below are for information only, not for a test report:<ul>",
+            esc(std_short)
+        );
+        for r in &v.reasons {
+            let _ = write!(h, "<li>{}</li>", esc(r));
+        }
+        h.push_str("</ul></div>");
     }
-    h.push_str("</table>");
-    for n in &report.notes {
-        let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
-    }
+
+    // Identification.
+    let opt = |o: &Option<String>| o.as_deref().map_or("—".to_string(), esc);
+    let _ = write!(
+        h,
+        "<table class=\"id\"><tr><th>Specimen</th><td>{}</td><th>Operator</th><td>{}</td></tr>\
+         <tr><th>Cast</th><td>{}</td><th>Tested</th><td>{}</td></tr>\
+         <tr><th>Age</th><td>{}</td><th>Machine</th><td>{}</td></tr>\
+         <tr><th>Standard</th><td>{}{}</td><th>Fracture</th><td>{}</td></tr>\
+         <tr><th>Laboratory</th><td>{}</td><th>Load from</th><td>{}</td></tr></table>",
+        opt(&lab.specimen),
+        opt(&lab.operator),
+        opt(&lab.cast_date),
+        opt(&lab.test_date),
+        lab.age_days().map_or("—".into(), |a| format!("{a} days")),
+        opt(&lab.machine),
+        esc(std_short),
+        lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e))),
+        opt(&lab.fracture),
+        opt(&lab.laboratory),
+        if report.curve.load_from_utm { "UTM samples (own rate)" } else { "feed (frame rate)" }
+    );
 
     // Results.
     h.push_str("<h2>Results</h2><table><tr><th>Quantity</th><th>Symbol</th><th class=\"num\">Value</th><th class=\"num\">± σ</th><th>Unit</th><th>Key</th><th>Definition</th></tr>");
@@ -126,9 +158,11 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
         match &e.result {
             Ok(q) => {
                 let d = decimals(q);
+                let q = &q.rounded();
                 let _ = write!(
                     h,
-                    "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.d$}</td><td class=\"num\">{:.d$}</td><td>{}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                    "<tr{}><td>{}</td><td>{}</td><td class=\"num\">{:.d$}</td><td class=\"num\">{:.d$}</td><td>{}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                    if report.validity.valid { "" } else { " class=\"informative\"" },
                     esc(e.name),
                     esc(e.symbol),
                     q.value,
@@ -151,7 +185,31 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
             }
         }
     }
-    h.push_str("</table><p class=\"sub\">σ: one standard uncertainty from the feed's σ of the deflection/CMOD and the load's scatter and resolution (see Method). The specimen's dimensions are taken as exact.</p>");
+    let _ = write!(
+        h,
+        "</table><p class=\"sub\">Values rounded to two significant digits of their σ. σ: one standard uncertainty from the feed's σ of the {}, the time alignment of the UTM, the load's scatter and resolution, the sampling of peaks and the dimensions' tolerances (see Method). Loads: {}.</p>",
+        esc(&report.x_axis),
+        esc(&report.load_source)
+    );
+
+    // Specimen.
+    let b = &report.beam;
+    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
+    let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>| {
+        let t = tol.map_or(String::new(), |t| format!(" ± {t}"));
+        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v}{t} mm</td></tr>");
+    };
+    row("width", "b", b.width_mm, b.width_tol_mm);
+    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm, b.depth_tol_mm);
+    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm, b.span_tol_mm);
+    if let Some(n) = b.notch_mm {
+        row("notch depth", "a₀", n, b.notch_tol_mm);
+        row("height above the notch tip", "h_sp", b.ligament_mm(), None);
+    }
+    h.push_str("</table>");
+    for n in &report.notes {
+        let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
+    }
 
     // Plots.
     h.push_str("<h2>Curves</h2>");
@@ -195,6 +253,13 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
     if report.standard != Standard::En14651 {
         h.push_str("<li><b>First peak:</b> C1609 defines it as the first point where the slope of the curve is zero. Here: the first local maximum of the load (smoothed like the deflection) above 10 % of the maximum load after which the smoothed load falls by max(3·σ_load, 0.5 % of the maximum load) before exceeding it; P1 is the largest measured load within the smoothing window there. A flat stretch without such a fall is not taken as the first peak.</li>");
     }
+    let _ = write!(h, "<li><b>Loads:</b> {}.</li>", esc(&report.load_source));
+    for (phase, r, (lo, hi)) in &report.validity.rates {
+        let _ = write!(h, "<li><b>Rate {}:</b> {:.3} mm/min (the standard: {lo} to {hi} mm/min).</li>", esc(phase), r);
+    }
+    for u in &report.validity.unchecked {
+        let _ = write!(h, "<li><b>Not checked:</b> {}</li>", esc(u));
+    }
     h.push_str("</ul><table><tr><th>Key</th><th>How it is determined</th></tr>");
     for e in &report.entries {
         let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
@@ -219,6 +284,7 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
     kv("feed lines", qc.lines.to_string());
     kv("curve points (load and deflection/CMOD)", qc.curve_points.to_string());
     kv("frame sets without a line (gaps in seq)", qc.frame_sets_without_line.to_string());
+    kv("gaps in time between lines", qc.time_gaps.len().to_string());
     kv("lines without load", qc.lines_without_load.to_string());
     kv(&format!("lines with load but without {}", report.x_axis), qc.lines_with_load_without_x.to_string());
     kv("frame sets dropped (live pipeline)", qc.dropped_sets.map_or("not reported".into(), |d| d.to_string()));
@@ -282,6 +348,17 @@ pub fn render(report: &Report, plots: &[Plot]) -> String {
             t.coverage_pct,
             t.mean_views,
             t.median_sigma_up_mm.map_or(String::new(), |s| format!("{s:.4} mm"))
+        );
+    }
+    h.push_str("</table>");
+    h.push_str("<h2>Inputs</h2><table><tr><th>role</th><th>file</th><th>SHA-256</th></tr>");
+    for i in inputs {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td><code>{}</code></td><td class=\"key\">{}</td></tr>",
+            esc(&i.role),
+            esc(&i.path.display().to_string()),
+            i.sha256
         );
     }
     h.push_str("</table>");

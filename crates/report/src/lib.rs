@@ -27,12 +27,17 @@ mod html;
 mod output;
 mod plots;
 pub mod qc;
+pub mod series;
+mod utm_stream;
+pub mod validity;
+pub mod verify;
 
 pub use build::build;
-pub use config::{BeamConfig, ReportConfig};
+pub use config::{BeamConfig, LabInfo, ReportConfig};
 pub use curve::{Curve, CurveError};
-pub use feed_reader::Feed;
+pub use feed_reader::{Feed, Limits, ReadOptions};
 pub use output::{write, write_atomic};
+pub use utm_stream::UtmStream;
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -101,6 +106,38 @@ impl Quantity {
     pub fn new(value: f64, sigma: f64, unit: &str) -> Self {
         Self { value, sigma, unit: unit.to_string() }
     }
+
+    /// Decimals that show σ with two significant digits (the GUM's rounding; value and σ
+    /// alike); without a σ, four significant digits of the value.
+    pub fn decimals(&self) -> usize {
+        let s = self.sigma.abs();
+        if s > 0.0 && s.is_finite() {
+            (1 - s.log10().floor() as i64).clamp(0, 12) as usize
+        } else {
+            let v = self.value.abs();
+            if v > 0.0 && v.is_finite() {
+                (3 - v.log10().floor() as i64).clamp(0, 12) as usize
+            } else {
+                1
+            }
+        }
+    }
+
+    /// Value and σ rounded to two significant digits of σ.
+    pub fn rounded(&self) -> Quantity {
+        let d = self.decimals() as i32;
+        let k = 10f64.powi(d);
+        let v = (self.value * k).round() / k;
+        let s = (self.sigma * k).round() / k;
+        Quantity { value: if v == 0.0 { 0.0 } else { v }, sigma: s, unit: self.unit.clone() }
+    }
+
+    /// `value ± σ unit` rounded as [`rounded`](Self::rounded).
+    pub fn text(&self) -> String {
+        let d = self.decimals();
+        let r = self.rounded();
+        format!("{:.d$} ± {:.d$} {}", r.value, r.sigma, r.unit)
+    }
 }
 
 /// One line of a standard's results.
@@ -123,8 +160,8 @@ pub struct Entry {
 /// Errors of the report.
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
-    /// A feed line that cannot be read.
-    #[error("{}:{line}: not a feed line: {message}", path.display())]
+    /// A feed (or UTM) line that cannot be read.
+    #[error("{}:{line}: {message}", path.display())]
     BadLine {
         /// The feed file.
         path: PathBuf,
@@ -195,8 +232,20 @@ pub struct Report {
     pub beam: BeamConfig,
     /// The standard's quantities in the standard's order.
     pub entries: Vec<Entry>,
-    /// The curve the quantities come from.
+    /// The curve the quantities come from (on the UTM's samples when there is a UTM stream).
     pub curve: Curve,
+    /// The curve at the frame rate, as the feed gives it.
+    pub feed_curve: Curve,
+    /// Where the loads come from, in words.
+    pub load_source: String,
+    /// Is the feed a complete test of the standard.
+    pub validity: validity::Validity,
+    /// What identifies the test.
+    pub lab: LabInfo,
+    /// The UTM stream read, when one was.
+    pub utm_path: Option<PathBuf>,
+    /// Every input besides the feed and the UTM stream (config, calibration files): `(role, path)`.
+    pub inputs: Vec<(String, PathBuf)>,
     /// What the curve's `x` is (e.g. `net deflection` or `CMOD (gauge cmod)`).
     pub x_name: String,
     /// Short name of `x` for axis labels and the CSV (e.g. `net deflection`).
@@ -209,6 +258,8 @@ pub struct Report {
     pub notes: Vec<String>,
     /// Where the feed was read.
     pub feed_path: PathBuf,
+    /// `(index from 1, runs)` when the feed file held several runs.
+    pub run: Option<(usize, usize)>,
     /// Report options used.
     pub options: ReportConfig,
 }

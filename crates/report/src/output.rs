@@ -37,19 +37,152 @@ pub fn write(report: &Report, feed: &Feed, dir: &Path) -> Result<Vec<PathBuf>, R
         put(&format!("{}.svg", p.name), p.svg.as_bytes())?;
         put(&format!("{}.png", p.name), &p.png)?;
     }
-    let json = serde_json::to_string_pretty(&to_json(report)).expect("report serialises");
+    let inputs = input_hashes(report)?;
+    let json = serde_json::to_string_pretty(&to_json(report, &inputs)).expect("report serialises");
     put("report.json", json.as_bytes())?;
-    put("report.html", html::render(report, &plots).as_bytes())?;
+    put("report.html", html::render(report, &plots, &inputs).as_bytes())?;
+    if report.options.pdf {
+        match print_pdf(&dir.join("report.html"), &dir.join("report.pdf")) {
+            Ok(true) => files.push(dir.join("report.pdf")),
+            Ok(false) => tracing::info!("no Chromium found: report.pdf not printed (print report.html from a browser)"),
+            Err(e) => tracing::warn!("report.pdf could not be printed: {e}"),
+        }
+    }
     Ok(files)
+}
+
+/// The Chromium to print with: `$TAGDEFLECT_CHROMIUM`, else `chromium` / `chromium-browser`
+/// on the PATH.
+fn chromium() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os("TAGDEFLECT_CHROMIUM") {
+        return Some(PathBuf::from(p));
+    }
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path).flat_map(|d| ["chromium", "chromium-browser"].map(|n| d.join(n))).find(|p| p.is_file())
+}
+
+/// Prints `html` to `pdf` with headless Chromium (A4, the page's own header and footer with
+/// page numbers); `Ok(false)` when there is no Chromium. The browser is killed after 120 s.
+fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
+    let Some(bin) = chromium() else { return Ok(false) };
+    let profile = std::env::temp_dir().join(format!(
+        "tagdeflect-pdf-{}-{}",
+        std::process::id(),
+        chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
+    ));
+    let tmp = pdf.with_file_name(".report.pdf.tmp");
+    let url = format!("file://{}", std::path::absolute(html).map_err(|e| e.to_string())?.display());
+    let mut child = std::process::Command::new(&bin)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-pdf-header-footer",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--print-to-pdf={}", tmp.display()))
+        .arg(url)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .map_err(|e| format!("{}: {e}", bin.display()))?;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(s)) => break Ok(s),
+            Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(std::time::Duration::from_millis(50)),
+            Ok(None) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                break Err("Chromium did not finish within 120 s".to_string());
+            }
+            Err(e) => break Err(e.to_string()),
+        }
+    };
+    let _ = std::fs::remove_dir_all(&profile);
+    let status = status?;
+    if !status.success() || !tmp.is_file() {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(format!("{} exited with {status} without a PDF", bin.display()));
+    }
+    std::fs::rename(&tmp, pdf).map_err(|e| e.to_string())?;
+    Ok(true)
+}
+
+/// One input of a report with its SHA-256.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputHash {
+    /// What it is (`feed`, `utm`, `config`, `calibration`).
+    pub role: String,
+    /// Its path, absolute when it could be made so.
+    pub path: PathBuf,
+    /// SHA-256, lower-case hex.
+    pub sha256: String,
+}
+
+/// SHA-256 of a file, lower-case hex.
+pub fn sha256_file(path: &Path) -> Result<String, std::io::Error> {
+    use sha2::Digest;
+    use std::io::Read;
+    let mut f = std::fs::File::open(path)?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Every input of the report hashed (feed, UTM stream, then the caller's: config, calibration files).
+fn input_hashes(report: &Report) -> Result<Vec<InputHash>, ReportError> {
+    let mut list: Vec<(String, PathBuf)> = vec![("feed".into(), report.feed_path.clone())];
+    if let Some(u) = &report.utm_path {
+        list.push(("utm".into(), u.clone()));
+    }
+    list.extend(report.inputs.iter().cloned());
+    list.into_iter()
+        .map(|(role, path)| {
+            let sha256 =
+                sha256_file(&path).map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
+            let path = std::path::absolute(&path).unwrap_or(path);
+            Ok(InputHash { role, path, sha256 })
+        })
+        .collect()
 }
 
 /// `report.json`: every quantity as `{"value", "sigma", "unit"}` under the SPEC keys, plus
 /// `standard`, `specimen`, `qc`, and how each value was found.
-fn to_json(report: &Report) -> serde_json::Value {
+fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     use serde_json::{json, Map, Value};
     let mut root = Map::new();
     root.insert("standard".into(), json!(report.standard.id()));
     root.insert("standard_title".into(), json!(report.standard.title()));
+    if let Some(e) = &report.lab.edition {
+        root.insert("standard_edition".into(), json!(e));
+    }
+    root.insert("valid".into(), json!(report.validity.valid));
+    root.insert("invalid_reasons".into(), json!(report.validity.reasons));
+    root.insert("validity_unchecked".into(), json!(report.validity.unchecked));
+    root.insert(
+        "rates".into(),
+        Value::Array(
+            report
+                .validity
+                .rates
+                .iter()
+                .map(|(p, r, (lo, hi))| json!({"phase": p, "mm_per_min": r, "window_mm_per_min": [lo, hi]}))
+                .collect(),
+        ),
+    );
     let b = &report.beam;
     let mut spec = json!({
         "width_mm": b.width_mm, "depth_mm": b.depth_mm, "span_mm": b.span_mm,
@@ -60,13 +193,48 @@ fn to_json(report: &Report) -> serde_json::Value {
         spec["notch_mm"] = json!(n);
         spec["h_sp_mm"] = json!(b.ligament_mm());
     }
+    for (k, v) in [
+        ("width_tol_mm", b.width_tol_mm),
+        ("depth_tol_mm", b.depth_tol_mm),
+        ("span_tol_mm", b.span_tol_mm),
+        ("notch_tol_mm", b.notch_tol_mm),
+    ] {
+        if let Some(v) = v {
+            spec[k] = json!(v);
+        }
+    }
+    let lab = &report.lab;
+    for (k, v) in [
+        ("id", &lab.specimen),
+        ("operator", &lab.operator),
+        ("cast_date", &lab.cast_date),
+        ("test_date", &lab.test_date),
+        ("machine", &lab.machine),
+        ("fracture", &lab.fracture),
+        ("laboratory", &lab.laboratory),
+    ] {
+        if let Some(v) = v {
+            spec[k] = json!(v);
+        }
+    }
+    if let Some(a) = lab.age_days() {
+        spec["age_days"] = json!(a);
+    }
     root.insert("specimen".into(), spec);
+    root.insert(
+        "inputs".into(),
+        json!({
+            "files": inputs.iter().map(|i| json!({"role": i.role, "path": i.path.display().to_string(), "sha256": i.sha256})).collect::<Vec<_>>(),
+            "software": {"name": "tagdeflect", "version": env!("CARGO_PKG_VERSION")},
+        }),
+    );
+    root.insert("load_source".into(), json!(report.load_source));
     let mut undetermined = Map::new();
     let mut defs = Map::new();
     for e in &report.entries {
         match &e.result {
             Ok(q) => {
-                root.insert(e.key.into(), serde_json::to_value(q).expect("quantity"));
+                root.insert(e.key.into(), serde_json::to_value(q.rounded()).expect("quantity"));
             }
             Err(why) => {
                 undetermined.insert(e.key.into(), json!(why));
@@ -83,6 +251,7 @@ fn to_json(report: &Report) -> serde_json::Value {
             "x": report.x_name, "x_source": report.x_source, "points": c.len(),
             "smooth_points": c.smooth_points,
             "load_sigma_kN": c.load_sigma, "load_noise_kN": c.load_noise,
+            "load_from_utm": c.load_from_utm, "load_period_s": c.load_period_s,
             "load_resolution_kN": report.options.load_resolution_kn.unwrap_or(0.0),
             "x_scatter_mm": c.x_noise, "x_reference_sigma_mm": c.x_ref_sigma,
             "max_x_mm": c.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
@@ -90,6 +259,13 @@ fn to_json(report: &Report) -> serde_json::Value {
     );
     root.insert("notes".into(), json!(report.notes));
     root.insert("feed".into(), json!(report.feed_path.display().to_string()));
+    if let Some((k, n)) = report_run(report) {
+        root.insert("run".into(), json!({"index": k, "of": n}));
+    }
     root.insert("qc".into(), serde_json::to_value(&report.qc).expect("qc"));
     Value::Object(root)
+}
+
+fn report_run(report: &Report) -> Option<(usize, usize)> {
+    report.run
 }

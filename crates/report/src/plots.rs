@@ -34,7 +34,7 @@ const FONT_PATHS: [&str; 5] = [
 ];
 
 /// Registers a TrueType font for plot text once per process.
-fn ensure_font() -> Result<(), ReportError> {
+pub(crate) fn ensure_font() -> Result<(), ReportError> {
     static DONE: OnceLock<Result<(), String>> = OnceLock::new();
     DONE.get_or_init(|| {
         let mut tried: Vec<String> = Vec::new();
@@ -206,10 +206,14 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
 }
 
 fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, feed: &Feed, title: &str) -> Result<(), String> {
-    let c = &report.curve;
+    let c = &report.feed_curve;
     let t0 = feed.lines[0].t_ns;
     let ts = |t: i64| (t - t0) as f64 * 1e-9;
-    let load: Vec<(f64, f64)> = feed.lines.iter().filter_map(|l| l.load_kn.map(|p| (ts(l.t_ns), p))).collect();
+    let load: Vec<(f64, f64)> = if report.curve.load_from_utm {
+        report.curve.t_ns.iter().zip(&report.curve.load).map(|(&t, &p)| (ts(t), p)).collect()
+    } else {
+        feed.lines.iter().filter_map(|l| l.load_kn.map(|p| (ts(l.t_ns), p))).collect()
+    };
     let xs: Vec<(f64, f64)> = c.t_ns.iter().zip(&c.xs).map(|(&t, &x)| (ts(t), x)).collect();
     root.fill(&WHITE).map_err(err)?;
     let (tmin, tmax) = range(feed.lines.iter().map(|l| ts(l.t_ns)));

@@ -76,6 +76,9 @@ pub struct Qc {
     pub duration_s: f64,
     /// Frame sets without a line: gaps in `seq`.
     pub frame_sets_without_line: u64,
+    /// Gaps in time: consecutive lines further apart than 3 median frame periods (and than
+    /// 0.5 s), whatever `seq` says.
+    pub time_gaps: Vec<Outage>,
     /// Lines without a load.
     pub lines_without_load: usize,
     /// Lines with a load but without the curve's `x` (net deflection or CMOD).
@@ -127,15 +130,21 @@ fn count_flag(map: &mut Presence, field: String) {
 
 impl Qc {
     /// The QC of a feed and the curve made from it.
-    pub(crate) fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str) -> Qc {
+    pub(crate) fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str, opts: &crate::ReportConfig) -> Qc {
         let lines = &feed.lines;
         let n = lines.len();
         let first_t_ns = lines[0].t_ns;
         let last_t_ns = lines[n - 1].t_ns;
-        let mut seqs: Vec<u64> = lines.iter().map(|l| l.seq).collect();
-        seqs.sort_unstable();
-        seqs.dedup();
-        let frame_sets_without_line = (seqs[seqs.len() - 1] - seqs[0] + 1).saturating_sub(seqs.len() as u64);
+        // The reader guarantees seq and t_ns increasing.
+        let frame_sets_without_line: u64 = lines.windows(2).map(|w| w[1].seq.saturating_sub(w[0].seq).saturating_sub(1)).sum();
+        let mut steps: Vec<f64> = lines.windows(2).map(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9).collect();
+        let period = if steps.is_empty() { 0.0 } else { super::curve::median(&mut steps) };
+        let gap_s = (3.0 * period).max(0.5).min(opts.max_gap_s);
+        let time_gaps: Vec<Outage> = lines
+            .windows(2)
+            .filter(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9 > gap_s)
+            .map(|w| Outage { from_t_ns: w[0].t_ns, to_t_ns: w[1].t_ns, duration_s: (w[1].t_ns - w[0].t_ns) as f64 * 1e-9 })
+            .collect();
         let lines_without_load = lines.iter().filter(|l| l.load_kn.is_none()).count();
         let lines_with_load_without_x = (n - lines_without_load).saturating_sub(curve.len());
         let dropped_sets = lines.iter().filter_map(|l| l.dropped_sets).max();
@@ -194,20 +203,20 @@ impl Qc {
             fields.into_iter().map(|(field, (lines, max_abs))| FieldSummary { field, lines, max_abs }).collect();
 
         let up = config.world.up;
-        let mut tags = Vec::new();
-        for id in feed.tag_ids() {
-            let mut count = 0;
-            let mut views = 0;
-            let mut sig = Vec::new();
-            for l in lines {
-                if let Some(t) = l.tags.iter().find(|t| t.id == id) {
-                    count += 1;
-                    views += t.views;
-                    if let Some(s) = t.sigma_mm {
-                        sig.push(((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt());
-                    }
+        // One pass over the lines (a line may hold very many tags).
+        let mut per_tag: BTreeMap<u32, (usize, usize, Vec<f64>)> = BTreeMap::new();
+        for l in lines {
+            for t in &l.tags {
+                let e = per_tag.entry(t.id).or_default();
+                e.0 += 1;
+                e.1 += t.views;
+                if let Some(s) = t.sigma_mm {
+                    e.2.push(((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt());
                 }
             }
+        }
+        let mut tags = Vec::new();
+        for (id, (count, views, mut sig)) in per_tag {
             let role = config.role_of(id).map(|r| match r {
                 TagRole::Support => "support",
                 TagRole::Midspan => "midspan",
@@ -228,6 +237,14 @@ impl Qc {
         if frame_sets_without_line > 0 {
             warnings.push(format!("{frame_sets_without_line} frame set(s) have no feed line (gaps in seq)"));
         }
+        if let Some(g) = time_gaps.iter().max_by(|a, b| a.duration_s.total_cmp(&b.duration_s)) {
+            warnings.push(format!(
+                "{} gap(s) in time longer than {gap_s:.1} s between feed lines (the longest {:.1} s, {:.1} s into the feed)",
+                time_gaps.len(),
+                g.duration_s,
+                (g.from_t_ns - first_t_ns) as f64 * 1e-9
+            ));
+        }
         if lines_without_load > 0 {
             warnings.push(format!("{lines_without_load} line(s) without load"));
         }
@@ -246,9 +263,30 @@ impl Qc {
                 warnings.push(format!("camera {} was bumped (re-posed) {} time(s)", c.camera, c.bumps));
             }
         }
+        // Drift matters when what it moves the deflection by exceeds 2 σ of the deflection:
+        // drift_mm as it is, drift_deg as the shift it makes at 1 m from the camera.
+        let x_sigma_floor = 2.0 * x_feed_sigma_median_mm.max(curve.x_noise).max(1e-4);
         for f in &drift_and_stale {
-            if f.lines > 0 {
-                warnings.push(format!("{} present in {} line(s)", f.field, f.lines));
+            if f.lines == 0 {
+                continue;
+            }
+            let effect_mm = match f.max_abs {
+                Some(v) if f.field.ends_with("drift_deg") => v.to_radians() * 1000.0,
+                Some(v) => v,
+                None => f64::INFINITY, // a stale pose: always worth a look
+            };
+            if effect_mm > x_sigma_floor {
+                let what = match f.max_abs {
+                    Some(v) if f.field.ends_with("drift_deg") => format!("up to {v:.4}° (≈ {effect_mm:.3} mm at 1 m)"),
+                    Some(v) => format!("up to {v:.3} mm"),
+                    None => "present".to_string(),
+                };
+                warnings.push(format!(
+                    "{} {what} in {} line(s): more than 2 σ of the {x_name} ({:.4} mm)",
+                    f.field,
+                    f.lines,
+                    x_sigma_floor / 2.0
+                ));
             }
         }
         for t in &tags {
@@ -256,16 +294,11 @@ impl Qc {
                 warnings.push(format!("{} tag {} solved in only {:.1} % of the lines", t.role.unwrap_or(""), t.id, t.coverage_pct));
             }
         }
-        if curve.xs[0].abs() > 0.01 {
+        // Against the first point's own σ (the zero reference's included).
+        if curve.xs[0].abs() > 4.0 * curve.sxs[0] + 1e-4 {
             warnings.push(format!(
-                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
-                curve.xs[0]
-            ));
-        }
-        if curve.xs[0].abs() > 0.01 {
-            warnings.push(format!(
-                "the curve starts at {x_name} = {:.3} mm, not 0: the test was not recorded from its start (areas and early points are incomplete)",
-                curve.xs[0]
+                "the curve starts at {x_name} = {:.3} mm (σ {:.4} mm), not 0: the test was not recorded from its start (areas and early points are incomplete)",
+                curve.xs[0], curve.sxs[0]
             ));
         }
         if x_feed_sigma_median_mm > 0.0 && curve.x_noise > 3.0 * x_feed_sigma_median_mm {
@@ -280,6 +313,7 @@ impl Qc {
             last_t_ns,
             duration_s: (last_t_ns - first_t_ns) as f64 * 1e-9,
             frame_sets_without_line,
+            time_gaps,
             lines_without_load,
             lines_with_load_without_x,
             curve_points: curve.len(),

@@ -163,6 +163,7 @@ impl SimRig {
                     depth_mm: p.beam_height_mm,
                     span_mm: p.span_mm,
                     notch_mm: (p.test == SimTest::ThreePointNotched).then_some(p.notch_mm),
+                    ..Default::default()
                 }),
             },
             gauges: if self.real_test() { self.gauges() } else { Vec::new() },

@@ -1,0 +1,234 @@
+//! Is the feed a complete test of the standard? `report.json` `valid` and `invalid_reasons`,
+//! and the banner at the top of the HTML. Every reason is a sentence a technician
+//! understands (what was found, where, and what the standard asks for).
+//!
+//! The rules:
+//! * ASTM C1609 / C1856: a first peak (a maximum the load falls from) before L/150; the net
+//!   deflection carried to L/150. EN 14651: F_L determined; the CMOD carried to 3.5 mm.
+//! * Loading monotonic: the smoothed deflection (CMOD) never goes back by more than 5 σ.
+//! * The rate of deflection (CMOD) within the standard's window, per phase (least-squares
+//!   slope over the phase). C1609: up to L/900 0.025–0.075 mm/min (depth ≤ 125 mm) or
+//!   0.035–0.10 mm/min (larger beams), after it 0.05–0.20 or 0.05–0.30 mm/min. EN 14651:
+//!   0.05 ± 0.01 mm/min up to CMOD 0.1 mm, 0.2 ± 0.04 mm/min after it. These windows are
+//!   the authors' reading of the standards, not checked against their text (the report
+//!   says so), and C1856's own rates (if any) are not known here: C1609's are applied.
+//! * No gap longer than `max_gap_s` between feed lines or UTM samples, no UTM outage.
+//! * The load starts near zero: within max(3 σ, 5 % of the peak load).
+
+use crate::{c1609, en14651, BeamConfig, Curve, Feed, Standard};
+
+/// Least points for a rate to be measured over a phase.
+const MIN_RATE_POINTS: usize = 5;
+
+/// The verdict.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Validity {
+    /// True only when no rule failed.
+    pub valid: bool,
+    /// Why not, one sentence each.
+    pub reasons: Vec<String>,
+    /// Rules that could not be checked, and the caveat on the standards' text.
+    pub unchecked: Vec<String>,
+    /// Measured rates: `(phase, mm/min, window)`.
+    pub rates: Vec<(String, f64, (f64, f64))>,
+}
+
+/// What the check needs.
+pub(crate) struct Input<'a> {
+    pub standard: Standard,
+    pub beam: &'a BeamConfig,
+    /// The frame-rate curve (x as measured, smoothed).
+    pub feed_curve: &'a Curve,
+    /// The curve the load-based values come from.
+    pub load_curve: &'a Curve,
+    pub feed: &'a Feed,
+    pub x_name: &'a str,
+    pub max_gap_s: f64,
+    /// Gaps of the UTM stream longer than `max_gap_s`, s from the feed's start.
+    pub utm_gaps: Vec<(f64, f64)>,
+    pub utm_outages_s: f64,
+}
+
+fn t_of(feed: &Feed, t_ns: i64) -> f64 {
+    (t_ns - feed.lines[0].t_ns) as f64 * 1e-9
+}
+
+/// Checks the rules.
+pub(crate) fn check(i: &Input) -> Validity {
+    let mut reasons = Vec::new();
+    let mut unchecked =
+        vec!["The validity rules (the deflection rates in particular) follow the standards as the authors of this software know them; \
+         they were not checked against the standards' text."
+            .to_string()];
+    let fc = i.feed_curve;
+    let lc = i.load_curve;
+    let xmax = fc.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let (end, end_name, rate_split, split_name, windows): (f64, String, f64, String, [(f64, f64); 2]) = match i.standard {
+        Standard::AstmC1609 | Standard::AstmC1856 => {
+            let l = i.beam.span_mm;
+            let w = if i.beam.depth_mm <= 125.0 { [(0.025, 0.075), (0.05, 0.20)] } else { [(0.035, 0.10), (0.05, 0.30)] };
+            (l / 150.0, format!("L/150 = {:.2} mm", l / 150.0), l / 900.0, format!("L/900 = {:.3} mm", l / 900.0), w)
+        }
+        Standard::En14651 => (3.5, "CMOD = 3.5 mm".into(), 0.1, "CMOD = 0.1 mm".into(), [(0.04, 0.06), (0.16, 0.24)]),
+    };
+    if i.standard == Standard::AstmC1856 {
+        unchecked.push("ASTM C1856 may give rates of its own; those of C1609 were applied.".into());
+    }
+
+    // Reached the end of the test.
+    if fc.xs[0] > 5.0 * fc.sxs[0] + 0.01 * end {
+        reasons
+            .push(format!("The {} was already {:.3} mm at the first line: the test was not recorded from its start.", i.x_name, fc.xs[0]));
+    }
+    if fc.crossing(end).is_none() {
+        reasons.push(format!(
+            "The {} reached only {:.3} mm: {} needs the test carried to {end_name}.",
+            i.x_name,
+            xmax,
+            match i.standard {
+                Standard::En14651 => "EN 14651",
+                _ => "ASTM C1609",
+            }
+        ));
+    }
+
+    // The first peak / the limit of proportionality.
+    match i.standard {
+        Standard::AstmC1609 | Standard::AstmC1856 => match c1609::first_peak(lc) {
+            None => reasons.push(
+                "No first peak: the load never fell after a maximum, so the first crack (the first point where the slope is zero) \
+                 was not reached or not recorded."
+                    .into(),
+            ),
+            Some(j) if lc.xs[j] >= end => reasons.push(format!(
+                "The first peak ({:.2} kN at a net deflection of {:.3} mm) lies beyond {end_name}: the beam did not crack as a C1609 \
+                 specimen does (an uncracked beam, load cycles, or not this test).",
+                lc.load[j], lc.xs[j]
+            )),
+            Some(_) => {}
+        },
+        Standard::En14651 => {
+            if en14651::max_load_within(lc, en14651::LOP_CMOD_MM).is_none() {
+                reasons.push("No load was measured with the CMOD between 0 and 0.05 mm: F_L cannot be determined.".into());
+            }
+        }
+    }
+
+    // Monotonic loading.
+    let mut run_max = fc.xs[0];
+    let mut worst: Option<(usize, f64, f64)> = None;
+    for k in 1..fc.len() {
+        run_max = run_max.max(fc.xs[k]);
+        let back = run_max - fc.xs[k];
+        if back > 5.0 * fc.sxs[k].max(1e-6) && worst.is_none_or(|w| back > w.1) {
+            worst = Some((k, back, run_max));
+        }
+    }
+    if let Some((k, back, from)) = worst {
+        reasons.push(format!(
+            "The {} went back by {back:.3} mm (from {from:.3} mm to {:.3} mm, {:.1} s into the feed): the loading was not monotonic \
+             (load cycles or an unloading); the standard loads continuously.",
+            i.x_name, fc.xs[k], fc.t_s[k]
+        ));
+    }
+
+    // Rates.
+    let mut rates = Vec::new();
+    let phases = [
+        (format!("up to {split_name}"), 0.1 * rate_split, rate_split, windows[0]),
+        (format!("from {split_name} to {end_name}"), rate_split, end, windows[1]),
+    ];
+    for (name, lo, hi, (wlo, whi)) in phases {
+        // The first pass through the phase (a later unloading is another fault).
+        let idx: Vec<usize> = match (0..fc.len()).find(|&k| fc.xs[k] >= lo) {
+            Some(s) => (s..fc.len()).take_while(|&k| fc.xs[k] <= hi).collect(),
+            None => Vec::new(),
+        };
+        if idx.len() < MIN_RATE_POINTS {
+            unchecked.push(format!(
+                "The rate {name} could not be checked: {} point(s) of the curve lie there (at least {MIN_RATE_POINTS} are needed).",
+                idx.len()
+            ));
+            continue;
+        }
+        let ts: Vec<f64> = idx.iter().map(|&k| fc.t_s[k]).collect();
+        let xs: Vec<f64> = idx.iter().map(|&k| fc.xs[k]).collect();
+        let rate = slope(&ts, &xs) * 60.0;
+        rates.push((name.clone(), rate, (wlo, whi)));
+        if !(wlo..=whi).contains(&rate) {
+            reasons.push(format!(
+                "The {} increased at {} mm/min {name}; the standard asks for {wlo} to {whi} mm/min.",
+                i.x_name,
+                fmt_rate(rate)
+            ));
+        }
+    }
+
+    // Gaps.
+    let feed = i.feed;
+    let mut gaps = 0;
+    let mut longest = (0.0, 0.0, 0.0);
+    for w in feed.lines.windows(2) {
+        let d = (w[1].t_ns - w[0].t_ns) as f64 * 1e-9;
+        if d > i.max_gap_s {
+            gaps += 1;
+            if d > longest.0 {
+                longest = (d, t_of(feed, w[0].t_ns), t_of(feed, w[1].t_ns));
+            }
+        }
+    }
+    if gaps > 0 {
+        reasons.push(format!(
+            "The feed has {gaps} gap(s) longer than {} s without a line (the longest {:.1} s, from {:.1} s to {:.1} s into the feed): \
+             the curve is not measured there.",
+            i.max_gap_s, longest.0, longest.1, longest.2
+        ));
+    }
+    if let Some(&(a, b)) = i.utm_gaps.iter().max_by(|x, y| (x.1 - x.0).total_cmp(&(y.1 - y.0))) {
+        reasons.push(format!(
+            "The UTM stream has {} gap(s) longer than {} s (the longest {:.1} s, from {a:.1} s to {b:.1} s into the feed): the load is not known there.",
+            i.utm_gaps.len(),
+            i.max_gap_s,
+            b - a
+        ));
+    }
+    if i.utm_outages_s > 0.0 {
+        reasons.push(format!("The UTM was unreachable for {:.1} s during the test: the load is not known then.", i.utm_outages_s));
+    }
+
+    // The load from zero.
+    let pmax = lc.load.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let p0 = lc.load[0];
+    if p0.abs() > (3.0 * lc.load_sigma).max(0.05 * pmax.abs()) {
+        reasons.push(format!(
+            "The load was already {p0:.2} kN at the first point ({:.0} % of the peak load): the test was not recorded from its start, \
+             or the load cell was not zeroed.",
+            100.0 * p0 / pmax
+        ));
+    }
+    Validity { valid: reasons.is_empty(), reasons, unchecked, rates }
+}
+
+fn fmt_rate(r: f64) -> String {
+    if r.abs() >= 10.0 {
+        format!("{r:.0}")
+    } else if r.abs() >= 1.0 {
+        format!("{r:.1}")
+    } else {
+        format!("{r:.3}")
+    }
+}
+
+/// Least-squares slope of `y` on `t`.
+fn slope(t: &[f64], y: &[f64]) -> f64 {
+    let n = t.len() as f64;
+    let mt = t.iter().sum::<f64>() / n;
+    let my = y.iter().sum::<f64>() / n;
+    let stt: f64 = t.iter().map(|v| (v - mt) * (v - mt)).sum();
+    let sty: f64 = t.iter().zip(y).map(|(a, b)| (a - mt) * (b - my)).sum();
+    if stt > 0.0 {
+        sty / stt
+    } else {
+        0.0
+    }
+}
