@@ -110,6 +110,10 @@ enum Command {
         /// Do not serve the live page.
         #[arg(long)]
         no_http: bool,
+        /// Serve the net deflection (or `[output.control] gauge`) as a control signal on a
+        /// read-only Modbus TCP server at ADDR (IP:PORT; see docs/control.md).
+        #[arg(long, value_name = "ADDR", value_parser = parse_control_addr)]
+        control: Option<std::net::SocketAddr>,
     },
     /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
     #[cfg(feature = "archive")]
@@ -147,6 +151,10 @@ fn missing_command(args: &[String]) -> anyhow::Error {
         ))),
         None => anyhow::Error::new(tagdeflect::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
     }
+}
+
+fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
+    tagdeflect::sinks::control::parse_addr(s)
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -306,13 +314,17 @@ fn run(cli: Cli) -> Result<()> {
         },
         Command::Bench(opts) => pipeline::bench::bench(&opts),
         #[cfg(feature = "sim")]
-        Command::Demo { duration_s, config, http, no_http } => {
+        Command::Demo { duration_s, config, http, no_http, control } => {
             let cfg = match config {
                 Some(p) => load_config(&p)?,
                 None => Config::demo(),
             };
             // The page by default on loopback; a taken default port only costs the page.
             let mut cfg = cfg;
+            if let Some(addr) = control {
+                let c = cfg.output.control.get_or_insert_with(|| tagdeflect::sinks::control::ControlConfig::on(&addr.to_string()));
+                c.modbus = addr.to_string();
+            }
             if no_http {
                 cfg.output.http = None;
             }

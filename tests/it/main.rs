@@ -9,6 +9,7 @@ mod archive;
 mod calibrate;
 mod cli;
 mod config;
+mod control;
 mod detect_accuracy;
 mod detect_sim;
 mod docs;

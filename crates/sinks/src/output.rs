@@ -22,6 +22,10 @@ pub struct OutputConfig {
     /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http: Option<String>,
+    /// `[output.control]`: the configured gauge as a control signal on a read-only Modbus
+    /// TCP server (see `sinks::control`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<crate::control::ControlConfig>,
     /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
     /// recording carries no broker address or credentials).
     #[serde(default, skip_serializing)]
