@@ -153,15 +153,7 @@ pub struct TagFilter {
 impl TagFilter {
     /// A filter started at a first measurement (`cov`: its pixel-noise covariance).
     pub fn new(config: TemporalConfig, t_ns: i64, centre: Vector3<f64>, cov: &Matrix3<f64>) -> TagFilter {
-        let mut f = TagFilter {
-            config,
-            t_ns,
-            x: V6::zeros(),
-            p: M6::zeros(),
-            adapt: 1.0,
-            nis: 1.0,
-            history: None,
-        };
+        let mut f = TagFilter { config, t_ns, x: V6::zeros(), p: M6::zeros(), adapt: 1.0, nis: 1.0, history: None };
         f.start(t_ns, centre, cov);
         f
     }
