@@ -123,6 +123,10 @@ enum Command {
         /// Keep each test in its own folder here (as `[output] tests`; enables the control API).
         #[arg(long, value_name = "DIR")]
         tests: Option<PathBuf>,
+        /// Serve the net deflection (or `[output.control] gauge`) as a control signal on a
+        /// read-only Modbus TCP server at ADDR (IP:PORT; see docs/control.md).
+        #[arg(long, value_name = "ADDR", value_parser = parse_control_addr)]
+        control: Option<std::net::SocketAddr>,
     },
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
     Test(pipeline::test_cmd::TestArgs),
@@ -169,6 +173,10 @@ fn missing_command(args: &[String]) -> anyhow::Error {
         ))),
         None => anyhow::Error::new(tagdeflect::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
     }
+}
+
+fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
+    tagdeflect::sinks::control::parse_addr(s)
 }
 
 fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -396,13 +404,17 @@ fn run(cli: Cli) -> Result<()> {
         Command::Test(args) => pipeline::test_cmd::run(&args),
         Command::Bench(opts) => pipeline::bench::bench(&opts),
         #[cfg(feature = "sim")]
-        Command::Demo { duration_s, config, http, no_http, tests } => {
+        Command::Demo { duration_s, config, http, no_http, tests, control } => {
             let cfg = match config {
                 Some(p) => load_config(&p)?,
                 None => Config::demo(),
             };
             // The page by default on loopback; a taken default port only costs the page.
             let mut cfg = cfg;
+            if let Some(addr) = control {
+                let c = cfg.output.control.get_or_insert_with(|| tagdeflect::sinks::control::ControlConfig::on(&addr.to_string()));
+                c.modbus = addr.to_string();
+            }
             if no_http {
                 cfg.output.http = None;
             }

@@ -2,7 +2,7 @@
 //! path relative to the section, prefixed here), then the checks that span sections. The
 //! tables are checked in a fixed order (world, sync, cameras — each camera's intrinsics taken
 //! inline or imported from its calibration file —, background, specimen, utm, measure,
-//! report, output, sim, sim camera names, output.mqtt, gauges, clock_check); the first problem
+//! report, output, sim, sim camera names, output.mqtt, gauges, output.control, clock_check); the first problem
 //! found is the one reported.
 
 use std::path::Path;
@@ -46,6 +46,10 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     check_sim(raw.sim.as_ref(), &cameras)?;
     output.validate_mqtt(base).map_err(|p| p.within("output"))?;
     let gauges = tagdeflect_estimate::gauges::validate_gauges(&raw.gauge, &specimen)?;
+    if let Some(c) = &output.control {
+        let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
+        c.validate(&names).map_err(|p| p.within("output.control"))?;
+    }
     if let Some(c) = &raw.clock_check {
         c.validate().map_err(|p| p.within("clock_check"))?;
     }

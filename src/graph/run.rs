@@ -630,6 +630,10 @@ impl Outputs {
         if let Some(s) = page.sink()? {
             sinks.push(s);
         }
+        // `[output.control]`: the gauge as a control signal (sinks::control).
+        if let Some(c) = &config.output.control {
+            sinks.push(Box::new(crate::sinks::control::ControlSink::start(c).map_err(|e| crate::BadInput::new(e.to_string()))?));
+        }
         // MQTT publisher (live runs only; never on a replay).
         #[cfg(feature = "mqtt")]
         let mqtt = match (&config.output.mqtt, replaying) {

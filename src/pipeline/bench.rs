@@ -29,6 +29,10 @@ pub struct BenchOptions {
     /// per second, dropped, and latency frame set complete → feed line.
     #[arg(long)]
     pub realtime: bool,
+    /// Run once with each estimator (`[measure] estimator`: temporal, then per set) and
+    /// print both side by side (accuracy and net-deflection noise against truth).
+    #[arg(long)]
+    pub estimators: bool,
 }
 
 /// Figures of a paced run of a recording through the live pipeline (`bench --realtime`).
@@ -55,6 +59,11 @@ pub struct RealtimeFigures {
     pub latency_p99_ms: f64,
     /// The same, worst, ms.
     pub latency_max_ms: f64,
+    /// Exposure (the frame set's time) → feed line written and control register updated,
+    /// steady state, median, ms (an upper bound: counted from before the sources open).
+    pub exposure_to_register_p50_ms: f64,
+    /// The same, 99th percentile, ms.
+    pub exposure_to_register_p99_ms: f64,
     /// Peak resident memory, MB.
     pub peak_rss_mb: f64,
     /// From the first frame played (sources open) to the first feed line with a solved
@@ -66,13 +75,18 @@ pub struct RealtimeFigures {
     pub dropped_after_1s: u64,
 }
 
-/// An in-memory feed sink shared with the bench.
+/// An in-memory feed sink shared with the bench; it notes when each line was written.
 #[derive(Clone, Default)]
-struct SharedBuf(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+struct SharedBuf(std::sync::Arc<std::sync::Mutex<Vec<u8>>>, std::sync::Arc<std::sync::Mutex<Vec<std::time::Instant>>>);
 
 impl std::io::Write for SharedBuf {
     fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
         self.0.lock().expect("feed buffer").extend_from_slice(b);
+        let lines = b.iter().filter(|&&c| c == b'\n').count();
+        if lines > 0 {
+            let now = std::time::Instant::now();
+            self.1.lock().expect("feed stamps").extend(std::iter::repeat_n(now, lines));
+        }
         Ok(b.len())
     }
     fn flush(&mut self) -> std::io::Result<()> {
@@ -83,7 +97,13 @@ impl std::io::Write for SharedBuf {
 fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<RealtimeFigures> {
     let buf = SharedBuf::default();
     let sink = crate::sinks::feed::FeedWriter::from_writer("bench", Box::new(buf.clone()));
-    crate::graph::run::replay_paced(rec.clone(), full_frame, vec![sink])?;
+    // The control output serves the run too (its register is updated on the sinks' thread
+    // right after the feed line is written).
+    let mut paced = rec.clone();
+    paced.config.output.control = Some(crate::sinks::control::ControlConfig::on("127.0.0.1:0"));
+    let started = std::time::Instant::now();
+    crate::graph::run::replay_paced(paced, full_frame, vec![sink])?;
+    let stamps = std::mem::take(&mut *buf.1.lock().expect("feed stamps"));
     let text = String::from_utf8(std::mem::take(&mut *buf.0.lock().expect("feed buffer")))?;
     let lines: Vec<crate::feed::FeedLine> = text.lines().map(serde_json::from_str).collect::<Result<_, _>>()?;
     let mut per_camera = std::collections::HashMap::new();
@@ -102,6 +122,15 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
     let dropped_since = |l: Option<&crate::feed::FeedLine>| l.map_or(0, |l| total_dropped - l.dropped_sets.unwrap_or(0));
     let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
     lat.sort_by(f64::total_cmp);
+    // Exposure → line written (and register updated): the line's time after the playhead's
+    // start (an upper bound: the playhead starts when the sources open, after `started`).
+    let mut exposure: Vec<f64> = lines
+        .iter()
+        .zip(&stamps)
+        .skip(warm)
+        .map(|(l, at)| (at.duration_since(started).as_secs_f64() - (l.t_ns - t0) as f64 * 1e-9) * 1e3)
+        .collect();
+    exposure.sort_by(f64::total_cmp);
     Ok(RealtimeFigures {
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         recorded_sets: per_camera.values().copied().max().unwrap_or(0),
@@ -116,6 +145,8 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
         latency_p50_ms: percentile(&lat, 0.5),
         latency_p99_ms: percentile(&lat, 0.99),
         latency_max_ms: lat.last().copied().unwrap_or(0.0),
+        exposure_to_register_p50_ms: percentile(&exposure, 0.5),
+        exposure_to_register_p99_ms: percentile(&exposure, 0.99),
         peak_rss_mb: peak_rss_mb(),
         first_solved_s: first_solved.map_or(f64::NAN, |l| (l.t_ns - t0) as f64 * 1e-9 + l.latency_ms.unwrap_or(0.0) * 1e-3),
         dropped_after_first_solved: dropped_since(first_solved),
@@ -140,6 +171,8 @@ fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
     println!("{:<36}{:>12.1}", "latency p50 ms (steady)", r.latency_p50_ms);
     println!("{:<36}{:>12.1}", "latency p99 ms (steady)", r.latency_p99_ms);
     println!("{:<36}{:>12.1}", "latency max ms (steady)", r.latency_max_ms);
+    println!("{:<36}{:>12.1}", "exposure → register p50 ms", r.exposure_to_register_p50_ms);
+    println!("{:<36}{:>12.1}", "exposure → register p99 ms", r.exposure_to_register_p99_ms);
     println!("{:<36}{:>12.1}", "peak RSS MB", r.peak_rss_mb);
     println!("{:<36}{:>12.3}", "first solved set after s", r.first_solved_s);
     println!("{:<36}{:>12}", "dropped after the first solved set", r.dropped_after_first_solved);
@@ -206,6 +239,13 @@ pub struct BenchFigures {
     pub tracked_tags: u64,
     /// Of those, fitted on the pixels selected in an earlier frame (the tag had barely moved).
     pub reused_band_tags: u64,
+    /// Standard deviation of the net deflection's error against truth, mm (synthetic
+    /// recordings with support and midspan tags): the output noise (at rest: the noise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub net_noise_mm: Option<f64>,
+    /// Mean of `net_deflection_sigma_mm` over the lines, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub net_sigma_mm: Option<f64>,
     /// Accuracy against the recording's ground truth (synthetic recordings only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub accuracy: Option<crate::accuracy::Accuracy>,
@@ -224,7 +264,19 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
         return Ok(());
     }
     preload(&rec);
-    let mut runs = vec![run_once(&rec, false, opts.repeat)?];
+    let mut runs = Vec::new();
+    if opts.estimators {
+        use tagdeflect_estimate::temporal::Estimator;
+        for (e, label) in [(Estimator::Temporal, "temporal"), (Estimator::PerSet, "per-set")] {
+            let mut r = rec.clone();
+            r.config.measure.estimator = e;
+            let mut f = run_once(&r, false, opts.repeat)?;
+            f.mode = label.into();
+            runs.push(f);
+        }
+    } else {
+        runs.push(run_once(&rec, false, opts.repeat)?);
+    }
     if opts.full_frame {
         runs.push(run_once(&rec, true, opts.repeat)?);
     }
@@ -334,8 +386,46 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         background_wait_ms: parts.background_wait / n * 1e3,
         tracked_tags: stats.tracked_tags,
         reused_band_tags: stats.reused_band_tags,
+        net_noise_mm: net_noise(rec, &lines),
+        net_sigma_mm: {
+            let s: Vec<f64> = lines.iter().filter_map(|l| l.net_deflection_sigma_mm).collect();
+            (!s.is_empty()).then(|| s.iter().sum::<f64>() / s.len() as f64)
+        },
         accuracy: (!rec.truth.is_empty()).then(|| crate::accuracy::evaluate(&rec.config, &rec.truth, &lines)),
     })
+}
+
+/// Standard deviation of the net deflection's error against truth (the first line with a
+/// net deflection is the reference, as the feed's displacements), mm.
+fn net_noise(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine]) -> Option<f64> {
+    use crate::config::TagRole;
+    let up = nalgebra::Vector3::from(rec.config.world.up).normalize();
+    let mut first = std::collections::HashMap::new();
+    let mut errs = Vec::new();
+    for l in lines {
+        let tr = crate::accuracy::truth_at(&rec.truth, l.t_ns);
+        let mut down = std::collections::HashMap::new();
+        for t in &l.tags {
+            if let Some(p) = tr.get(&t.id) {
+                let p0 = *first.entry(t.id).or_insert(*p);
+                down.insert(t.id, -(p - p0).dot(&up));
+            }
+        }
+        let Some(net) = l.net_deflection_mm else { continue };
+        let mean = |role: TagRole| {
+            let v: Vec<f64> =
+                l.tags.iter().filter(|t| rec.config.role_of(t.id) == Some(role)).filter_map(|t| down.get(&t.id)).copied().collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        if let (Some(m), Some(s)) = (mean(TagRole::Midspan), mean(TagRole::Support)) {
+            errs.push(net - (m - s));
+        }
+    }
+    if errs.len() < 2 {
+        return None;
+    }
+    let mean = errs.iter().sum::<f64>() / errs.len() as f64;
+    Some((errs.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (errs.len() - 1) as f64).sqrt())
 }
 
 /// Reads every frame file once before the timed runs, so they measure the pipeline and
@@ -371,7 +461,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 25] = [
+    let rows: [Row; 27] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -397,6 +487,8 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("  waited for, ms/set", |f| format!("{:.2}", f.background_wait_ms)),
         ("tags tracked without search", |f| f.tracked_tags.to_string()),
         ("  on reused pixels", |f| f.reused_band_tags.to_string()),
+        ("net deflection noise µm", |f| f.net_noise_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
+        ("net deflection mean σ µm", |f| f.net_sigma_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
     ];
     print!("{:<28}", "");
     for r in runs {

@@ -71,6 +71,9 @@ span_mm = 450.0
 url = "mqtt://127.0.0.1:1883"
 rig = "frame1"
 
+[output.control]
+modbus = "127.0.0.1:5020"
+
 [measure]
 quad_decimate = 1.0
 
@@ -151,6 +154,7 @@ const TABLES: &[&str] = &[
     "utm.stroke",
     "output",
     "output.mqtt",
+    "output.control",
     "measure",
     "report",
     "report.lab",

@@ -10,6 +10,7 @@ mod calibrate;
 mod calibrate_guard;
 mod cli;
 mod config;
+mod control;
 mod detect_accuracy;
 mod detect_sim;
 mod docs;

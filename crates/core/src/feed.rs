@@ -99,6 +99,17 @@ pub struct FeedLine {
     /// Mean downward displacement of midspan tags minus that of support tags, mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub net_deflection_mm: Option<f64>,
+    /// 1-σ uncertainty of `net_deflection_mm`, mm (present with it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub net_deflection_sigma_mm: Option<f64>,
+    /// (extension) Rate of `net_deflection_mm`, mm/min (from the temporal estimate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub net_deflection_rate_mm_per_min: Option<f64>,
+    /// (extension) The frame set lacked a camera's frame, or saw a tag with fewer cameras
+    /// than usual: its values lean on the temporal estimate's state (or, solved per set,
+    /// are less certain).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub partial_set: bool,
     /// RMS reprojection error over all solved specimen tags, px.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reproj_px: Option<f64>,

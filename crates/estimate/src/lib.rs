@@ -11,6 +11,8 @@
 //!   ([`DriftFilter`], a Kalman filter on the pose since it was fixed).
 //! * [`tag_pose`]: a specimen tag's 6-DOF pose over all views at once ([`solve_tag`]),
 //!   warm-started, outlier views rejected, σ from the covariance.
+//! * [`temporal`]: each specimen tag's centre and rate carried over frame sets
+//!   ([`temporal::TagFilter`], a Kalman filter with adaptive process noise; RTS smoother).
 //! * [`lm`]: the small Levenberg–Marquardt both use; [`init`]: closed-form starts.
 //!
 //! Pose step convention (for every Jacobian and covariance here): a 6-vector `(ω, v)`
@@ -28,6 +30,7 @@ pub mod measure;
 pub mod measure_config;
 pub mod motion;
 pub mod tag_pose;
+pub mod temporal;
 
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 pub use drift::{DriftConfig, DriftEstimate, DriftFilter};

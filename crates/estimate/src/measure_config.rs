@@ -29,6 +29,21 @@ pub struct MeasureConfig {
     /// Time over which the drift rate may change by about its σ, hours.
     #[serde(skip_serializing_if = "is_1")]
     pub drift_rate_change_h: f64,
+    /// How frame sets become positions: `"temporal"` (each tag's state carried over sets,
+    /// see `estimate::temporal`) or `"per_set"` (every set solved on its own).
+    #[serde(skip_serializing_if = "is_temporal")]
+    pub estimator: crate::temporal::Estimator,
+    /// Temporal estimator: expected size (1 σ) of the unmodelled change of a tag's rate,
+    /// mm/s per √s (the process noise; it adapts upward to the innovations).
+    #[serde(skip_serializing_if = "is_default_accel")]
+    pub temporal_accel_mm_s2: f64,
+}
+
+fn is_temporal(e: &crate::temporal::Estimator) -> bool {
+    *e == crate::temporal::Estimator::Temporal
+}
+fn is_default_accel(v: &f64) -> bool {
+    *v == crate::temporal::DEFAULT_ACCEL_MM_S2
 }
 
 // Defaults are not written back, so a recording's config reads as before these options.
@@ -54,6 +69,8 @@ impl Default for MeasureConfig {
             drift_rate_deg_per_h: 0.1,
             drift_rate_mm_per_h: 1.0,
             drift_rate_change_h: 1.0,
+            estimator: crate::temporal::Estimator::Temporal,
+            temporal_accel_mm_s2: crate::temporal::DEFAULT_ACCEL_MM_S2,
         }
     }
 }
@@ -88,6 +105,17 @@ impl MeasureConfig {
                 format!("must be in (0, 3600] seconds, got {}", self.full_search_interval_s),
             ));
         }
+        if !(self.temporal_accel_mm_s2.is_finite() && self.temporal_accel_mm_s2 > 0.0 && self.temporal_accel_mm_s2 <= 1e3) {
+            return Err(Problem::new(
+                "temporal_accel_mm_s2",
+                format!("{}: expected a positive number of mm/s per √s (at most 1000)", self.temporal_accel_mm_s2),
+            ));
+        }
         crate::DriftConfig::from_measure(self).validate()
+    }
+
+    /// The temporal estimator's options.
+    pub fn temporal(&self) -> crate::temporal::TemporalConfig {
+        crate::temporal::TemporalConfig { accel_mm_s2: self.temporal_accel_mm_s2, ..Default::default() }
     }
 }

@@ -16,6 +16,7 @@ mod drift;
 mod law;
 pub mod live_rig;
 mod loading;
+pub mod machine;
 mod params;
 mod record;
 pub mod render;

@@ -1,6 +1,7 @@
 //! Sinks: where feed lines go. Each sink fails on its own: an output that cannot be
 //! written is reported, retried with backoff and never holds the measurement back.
 
+pub mod control;
 mod fanout;
 #[cfg(feature = "http")]
 pub mod http;

@@ -22,6 +22,10 @@ pub struct OutputConfig {
     /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http: Option<String>,
+    /// `[output.control]`: the configured gauge as a control signal on a read-only Modbus
+    /// TCP server (see `sinks::control`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<crate::control::ControlConfig>,
     /// (extension) Host names the live page answers to besides IP addresses, `localhost` and
     /// this machine's own name (a request naming any other host is refused: DNS rebinding).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

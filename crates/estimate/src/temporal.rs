@@ -1,0 +1,427 @@
+//! Temporal estimation of each specimen tag's centre over frame sets (`[measure] estimator =
+//! "temporal"`, the default; `"per_set"` solves every frame set on its own as before).
+//!
+//! Why: a frame set that lacks a camera is solved from what is left, and a tag seen by one
+//! camera only is located poorly along that camera's line of sight; its camera-pose error is
+//! also that one camera's instead of the average of all. Solved on its own, such a set throws
+//! the net deflection by a fraction of a millimetre. A beam under load moves slowly and
+//! smoothly (but for the jump of a first crack), so each tag's state is carried from set to
+//! set and every set's views update what they observe.
+//!
+//! Model (per tag, a linear Kalman filter on 6 states): the tag's centre `p` (mm, world)
+//! and its rate `ṗ` (mm/s), white-noise acceleration of spectral density `q`
+//! ([`TemporalConfig::accel_mm_s2`]² per second). Each frame set's multi-view (or
+//! single-view) solve is the measurement `z = p + v`:
+//!
+//! * `v`'s covariance is the solve's pixel-noise covariance while the tag is seen by as many
+//!   cameras as usual (the held camera poses' errors are then common to every set and cancel
+//!   from displacements), and its full covariance, camera poses included, when fewer cameras
+//!   see it (a partial set: the camera-pose part is no longer the same, and a monocular
+//!   view's line-of-sight uncertainty is large), so such a set moves the state only along
+//!   what its views observe well.
+//! * Adaptive process noise: the normalised innovation squared (NIS) of full sets is
+//!   averaged; while it stays above its expectation the process noise is scaled up (a rate
+//!   change the model did not expect is followed within a few sets), and it relaxes back.
+//! * A jump (a first crack, a bump of the specimen): a full set's innovation beyond the
+//!   χ² gate widens the predicted position covariance by the innovation itself, so the state
+//!   moves to the measurement at once without throwing the rate. A partial set's innovation
+//!   beyond the gate is down-weighted instead (its depth is the suspect).
+//!
+//! σ: the posterior covariance of `p` (pixel noise; the caller adds the camera-pose part for
+//! the feed's absolute `sigma_mm`). A fixed-interval Rauch–Tung–Striebel smoother over a
+//! stored run ([`smooth`]) gives the replay's and the report's best estimate.
+
+use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3, Vector6};
+
+/// Which estimator turns frame sets into positions (`[measure] estimator`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Estimator {
+    /// Each tag's state carried over frame sets (this module).
+    #[default]
+    Temporal,
+    /// Every frame set solved on its own (monocular views fused with the recent
+    /// multi-view history, `solve::motion`).
+    PerSet,
+}
+
+/// Options of the temporal estimator.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TemporalConfig {
+    /// Expected size (1 σ) of the unmodelled change of a tag's rate, mm/s per √s (the
+    /// white-noise acceleration's spectral density is its square).
+    pub accel_mm_s2: f64,
+    /// Most the adaptive scale may raise the process noise's density.
+    pub max_adapt: f64,
+}
+
+impl Default for TemporalConfig {
+    fn default() -> Self {
+        Self { accel_mm_s2: DEFAULT_ACCEL_MM_S2, max_adapt: 1e4 }
+    }
+}
+
+/// Default `[measure] temporal_accel_mm_s2`.
+pub const DEFAULT_ACCEL_MM_S2: f64 = 0.02;
+
+/// Squared Mahalanobis distance (3 d.o.f.) beyond which an innovation is a jump (full set)
+/// or suspect (partial set): χ²₃ at 99.9 %.
+const GATE: f64 = 16.3;
+/// Weight of the newest full set in the running NIS average.
+const NIS_WEIGHT: f64 = 0.25;
+/// A tag not updated for this long starts afresh, ns.
+const RESTART_NS: i64 = 5_000_000_000;
+/// Sets over which the usual number of views of a tag is remembered.
+const VIEWS_MEMORY: u32 = 50;
+
+type M6 = Matrix6<f64>;
+type V6 = Vector6<f64>;
+
+/// The usual number of cameras that see a tag: the most seen lately (forgotten after
+/// [`VIEWS_MEMORY`] sets with fewer, so a camera lost for good stops making every set partial).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct UsualViews {
+    usual: usize,
+    since: u32,
+}
+
+impl UsualViews {
+    /// Counts a set that saw the tag with `views` cameras; true when that is fewer than usual.
+    pub fn observe(&mut self, views: usize) -> bool {
+        if views >= self.usual {
+            self.usual = views;
+            self.since = 0;
+            return false;
+        }
+        self.since += 1;
+        if self.since > VIEWS_MEMORY {
+            self.usual = views;
+            self.since = 0;
+            return false;
+        }
+        true
+    }
+}
+
+/// One filter step as stored for the smoother.
+#[derive(Debug, Clone, Copy)]
+pub struct Step {
+    /// Time of the set, ns.
+    pub t_ns: i64,
+    /// Predicted state and covariance (before the update).
+    pub x_pred: V6,
+    /// Predicted covariance.
+    pub p_pred: M6,
+    /// Filtered state (after the update).
+    pub x: V6,
+    /// Filtered covariance.
+    pub p: M6,
+    /// Transition from the previous step to this one.
+    pub f: M6,
+}
+
+/// What one update did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Update {
+    /// Filtered centre, mm.
+    pub centre: Vector3<f64>,
+    /// Its covariance (pixel noise only), mm².
+    pub covariance: Matrix3<f64>,
+    /// Filtered rate, mm/s.
+    pub rate: Vector3<f64>,
+    /// The set saw the tag with fewer cameras than usual.
+    pub partial: bool,
+    /// The innovation was taken as a jump of the tag.
+    pub jump: bool,
+}
+
+/// The temporal filter of one tag (see the module docs).
+#[derive(Debug, Clone)]
+pub struct TagFilter {
+    config: TemporalConfig,
+    t_ns: i64,
+    x: V6,
+    p: M6,
+    /// Adaptive scale of the process noise (≥ 1).
+    adapt: f64,
+    /// Running mean of the full sets' NIS / 3.
+    nis: f64,
+    /// The steps so far, when kept for the smoother.
+    history: Option<Vec<Step>>,
+}
+
+impl TagFilter {
+    /// A filter started at a first measurement (`cov`: its pixel-noise covariance).
+    pub fn new(config: TemporalConfig, t_ns: i64, centre: Vector3<f64>, cov: &Matrix3<f64>) -> TagFilter {
+        let mut f = TagFilter { config, t_ns, x: V6::zeros(), p: M6::zeros(), adapt: 1.0, nis: 1.0, history: None };
+        f.start(t_ns, centre, cov);
+        f
+    }
+
+    /// Keeps every step for [`smooth`].
+    pub fn keep_history(mut self) -> Self {
+        let now = Step { t_ns: self.t_ns, x_pred: self.x, p_pred: self.p, x: self.x, p: self.p, f: M6::identity() };
+        self.history = Some(vec![now]);
+        self
+    }
+
+    /// The stored steps (when kept).
+    pub fn history(&self) -> &[Step] {
+        self.history.as_deref().unwrap_or(&[])
+    }
+
+    fn start(&mut self, t_ns: i64, centre: Vector3<f64>, cov: &Matrix3<f64>) {
+        self.t_ns = t_ns;
+        self.x = V6::zeros();
+        self.x.fixed_rows_mut::<3>(0).copy_from(&centre);
+        self.p = M6::zeros();
+        self.p.fixed_view_mut::<3, 3>(0, 0).copy_from(cov);
+        // The rate is unknown at start: a few mm/s (a beam in a test moves far less).
+        self.p.fixed_view_mut::<3, 3>(3, 3).copy_from(&(Matrix3::identity() * 1.0));
+        self.adapt = 1.0;
+        self.nis = 1.0;
+        if let Some(h) = self.history.as_mut() {
+            h.push(Step { t_ns, x_pred: self.x, p_pred: self.p, x: self.x, p: self.p, f: M6::identity() });
+        }
+    }
+
+    /// The state's time, ns.
+    pub fn t_ns(&self) -> i64 {
+        self.t_ns
+    }
+
+    /// Filtered centre (mm) and rate (mm/s) now.
+    pub fn centre(&self) -> Vector3<f64> {
+        self.x.fixed_rows::<3>(0).into_owned()
+    }
+
+    /// Filtered rate, mm/s.
+    pub fn rate(&self) -> Vector3<f64> {
+        self.x.fixed_rows::<3>(3).into_owned()
+    }
+
+    /// Covariance of the centre, mm².
+    pub fn covariance(&self) -> Matrix3<f64> {
+        self.p.fixed_view::<3, 3>(0, 0).into_owned()
+    }
+
+    /// Centre and covariance predicted at `t_ns` (for a set that did not see the tag).
+    pub fn predict_at(&self, t_ns: i64) -> (Vector3<f64>, Matrix3<f64>) {
+        let (f, q) = self.transition(t_ns);
+        let x = f * self.x;
+        let p = f * self.p * f.transpose() + q;
+        (x.fixed_rows::<3>(0).into_owned(), p.fixed_view::<3, 3>(0, 0).into_owned())
+    }
+
+    /// The current adaptive scale of the process noise (1 = the configured density).
+    pub fn adaptive_scale(&self) -> f64 {
+        self.adapt
+    }
+
+    fn transition(&self, t_ns: i64) -> (M6, M6) {
+        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
+        let mut f = M6::identity();
+        f.fixed_view_mut::<3, 3>(0, 3).copy_from(&(Matrix3::identity() * dt));
+        let q = self.config.accel_mm_s2.powi(2) * self.adapt;
+        let i = Matrix3::<f64>::identity();
+        let mut qm = M6::zeros();
+        qm.fixed_view_mut::<3, 3>(0, 0).copy_from(&(i * (q * dt.powi(3) / 3.0 + 1e-12)));
+        qm.fixed_view_mut::<3, 3>(0, 3).copy_from(&(i * (q * dt.powi(2) / 2.0)));
+        qm.fixed_view_mut::<3, 3>(3, 0).copy_from(&(i * (q * dt.powi(2) / 2.0)));
+        qm.fixed_view_mut::<3, 3>(3, 3).copy_from(&(i * (q * dt)));
+        (f, qm)
+    }
+
+    /// Updates the state with one set's solve of the tag: `centre` with its pixel-noise
+    /// covariance `noise_cov` and its full covariance `full_cov` (camera poses included);
+    /// `partial` when fewer cameras than usual saw the tag (see [`UsualViews`]).
+    pub fn update(&mut self, t_ns: i64, centre: Vector3<f64>, noise_cov: &Matrix3<f64>, full_cov: &Matrix3<f64>, partial: bool) -> Update {
+        if t_ns - self.t_ns > RESTART_NS || t_ns < self.t_ns {
+            self.start(t_ns, centre, if partial { full_cov } else { noise_cov });
+            return self.result(partial, false);
+        }
+        let (f, q) = self.transition(t_ns);
+        let x_pred = f * self.x;
+        let mut p_pred = f * self.p * f.transpose() + q;
+        let mut r = if partial { *full_cov } else { *noise_cov };
+        let h = SMatrix::<f64, 3, 6>::identity();
+        let d = centre - x_pred.fixed_rows::<3>(0);
+        let s = p_pred.fixed_view::<3, 3>(0, 0) + r;
+        let Some(s_inv) = s.try_inverse() else {
+            return self.result(partial, false);
+        };
+        let nis = d.dot(&(s_inv * d));
+        let mut jump = false;
+        if nis > GATE {
+            if partial {
+                // Suspect depth: down-weight, never lock out.
+                r *= nis / GATE;
+            } else {
+                // A jump: the position may be anywhere along the innovation.
+                let widen = d * d.transpose();
+                let mut pp = p_pred.fixed_view_mut::<3, 3>(0, 0);
+                pp += widen;
+                jump = true;
+            }
+        }
+        if !partial {
+            self.nis = (1.0 - NIS_WEIGHT) * self.nis + NIS_WEIGHT * (nis / 3.0).min(GATE);
+            // Covariance matching: raise the process noise while innovations are larger than
+            // the model expects, relax it back while they are not.
+            if self.nis > 2.0 {
+                self.adapt = (self.adapt * 2.0).min(self.config.max_adapt);
+            } else if self.nis < 1.2 {
+                self.adapt = (self.adapt * 0.8).max(1.0);
+            }
+        }
+        let s = h * p_pred * h.transpose() + r;
+        let Some(s_inv) = s.try_inverse() else {
+            return self.result(partial, false);
+        };
+        let k = p_pred * h.transpose() * s_inv;
+        let x = x_pred + k * d;
+        // Joseph form: stays symmetric positive definite.
+        let ikh = M6::identity() - k * h;
+        let p = ikh * p_pred * ikh.transpose() + k * r * k.transpose();
+        self.x = x;
+        self.p = (p + p.transpose()) * 0.5;
+        self.t_ns = t_ns;
+        if let Some(hist) = self.history.as_mut() {
+            hist.push(Step { t_ns, x_pred, p_pred, x: self.x, p: self.p, f });
+        }
+        self.result(partial, jump)
+    }
+
+    fn result(&self, partial: bool, jump: bool) -> Update {
+        Update { centre: self.centre(), covariance: self.covariance(), rate: self.rate(), partial, jump }
+    }
+}
+
+/// Fixed-interval Rauch–Tung–Striebel smoothing of a filter's stored steps: each step's
+/// smoothed centre and its covariance (mm, mm²), in step order.
+pub fn smooth(steps: &[Step]) -> Vec<(i64, Vector3<f64>, Matrix3<f64>)> {
+    let n = steps.len();
+    if n == 0 {
+        return Vec::new();
+    }
+    let mut xs: Vec<V6> = steps.iter().map(|s| s.x).collect();
+    let mut ps: Vec<M6> = steps.iter().map(|s| s.p).collect();
+    for k in (0..n - 1).rev() {
+        let next = &steps[k + 1];
+        let Some(pp_inv) = next.p_pred.try_inverse() else { continue };
+        let c = steps[k].p * next.f.transpose() * pp_inv;
+        xs[k] = steps[k].x + c * (xs[k + 1] - next.x_pred);
+        let p = steps[k].p + c * (ps[k + 1] - next.p_pred) * c.transpose();
+        ps[k] = (p + p.transpose()) * 0.5;
+    }
+    steps
+        .iter()
+        .zip(xs.iter().zip(&ps))
+        .map(|(s, (x, p))| (s.t_ns, x.fixed_rows::<3>(0).into_owned(), p.fixed_view::<3, 3>(0, 0).into_owned()))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    const DT: i64 = 33_333_333;
+
+    fn iso(s: f64) -> Matrix3<f64> {
+        Matrix3::identity() * s * s
+    }
+
+    /// Runs a filter over `truth(k)` with noise σ = `sigma` mm; returns (raw errors, filtered errors).
+    fn run(truth: impl Fn(usize) -> f64, sets: usize, sigma: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = Normal::new(0.0, sigma).unwrap();
+        let mut f: Option<TagFilter> = None;
+        let (mut raw, mut est, mut sig) = (Vec::new(), Vec::new(), Vec::new());
+        for k in 0..sets {
+            let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), truth(k) + n.sample(&mut rng));
+            let t = k as i64 * DT;
+            let u = match f.as_mut() {
+                None => {
+                    f = Some(TagFilter::new(TemporalConfig::default(), t, z, &iso(sigma)));
+                    f.as_ref().unwrap().result(false, false)
+                }
+                Some(f) => f.update(t, z, &iso(sigma), &iso(sigma * 3.0), false),
+            };
+            raw.push(z.z - truth(k));
+            est.push(u.centre.z - truth(k));
+            sig.push(u.covariance[(2, 2)].sqrt());
+        }
+        (raw, est, sig)
+    }
+
+    fn rms(v: &[f64]) -> f64 {
+        (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+    }
+
+    #[test]
+    fn noise_at_rest_falls_to_less_than_half() {
+        let (raw, est, sig) = run(|_| 0.0, 600, 0.003);
+        let (r, e) = (rms(&raw[100..]), rms(&est[100..]));
+        println!("at rest: raw {r:.5} mm, estimated {e:.5} mm, σ {:.5}", sig[500]);
+        assert!(e <= 0.5 * r, "raw {r}, estimated {e}");
+        let within = est[100..].iter().zip(&sig[100..]).filter(|(e, s)| e.abs() <= 2.0 * **s).count();
+        assert!(within as f64 >= 0.85 * 500.0, "{within} of 500 within 2σ");
+    }
+
+    #[test]
+    fn a_sudden_step_is_followed_within_two_frames() {
+        let step = 0.05;
+        let (_, est, _) = run(|k| if k >= 300 { step } else { 0.0 }, 320, 0.003);
+        // Within 10 % of the step from the second frame after it on.
+        for (k, e) in est.iter().enumerate().skip(301) {
+            assert!(e.abs() <= 0.1 * step, "frame {k} after the step: error {e}");
+        }
+    }
+
+    #[test]
+    fn a_ramp_is_followed_without_lag() {
+        // 1 mm/min, then 6 mm/min (a rate change), then on.
+        let truth = |k: usize| {
+            let t = k as f64 * DT as f64 * 1e-9;
+            if t < 10.0 {
+                t / 60.0
+            } else {
+                10.0 / 60.0 + (t - 10.0) * 0.1
+            }
+        };
+        let (raw, est, _) = run(truth, 600, 0.003);
+        let (r, e) = (rms(&raw[30..]), rms(&est[30..]));
+        println!("ramp: raw {r:.5} mm, estimated {e:.5} mm");
+        assert!(e < r, "raw {r}, estimated {e}");
+    }
+
+    #[test]
+    fn a_partial_set_moves_the_state_only_where_it_observes() {
+        let mut f = TagFilter::new(TemporalConfig::default(), 0, Vector3::zeros(), &iso(0.002));
+        for k in 1..30 {
+            f.update(k * DT, Vector3::zeros(), &iso(0.002), &iso(0.004), false);
+        }
+        // One camera: 1 mm off along y (its line of sight), good in x and z.
+        let full = Matrix3::from_diagonal(&Vector3::new(0.004f64.powi(2), 0.5f64.powi(2), 0.004f64.powi(2)));
+        let u = f.update(30 * DT, Vector3::new(0.0, 1.0, 0.0), &full, &full, true);
+        assert!(u.partial && !u.jump);
+        assert!(u.centre.y.abs() < 0.01, "depth kept from the state: {}", u.centre);
+    }
+
+    #[test]
+    fn the_smoother_is_no_worse_than_the_filter() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let n = Normal::new(0.0, 0.003).unwrap();
+        let mut f = TagFilter::new(TemporalConfig::default(), 0, Vector3::zeros(), &iso(0.003)).keep_history();
+        let mut filt = Vec::new();
+        for k in 1..400 {
+            let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
+            filt.push(f.update(k as i64 * DT, z, &iso(0.003), &iso(0.003), false).centre.z);
+        }
+        let sm: Vec<f64> = smooth(f.history()).iter().skip(1).map(|(_, c, _)| c.z).collect();
+        assert_eq!(sm.len(), filt.len());
+        assert!(rms(&sm[50..]) <= rms(&filt[50..]), "smoothed {} filtered {}", rms(&sm[50..]), rms(&filt[50..]));
+    }
+}

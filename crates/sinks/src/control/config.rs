@@ -1,0 +1,98 @@
+//! `[output.control]`: the deflection as a control signal (SPEC "Control output").
+
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+
+/// `[output.control]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControlConfig {
+    /// Address of the Modbus TCP server (`IP:PORT`; loopback unless set otherwise).
+    pub modbus: String,
+    /// The value served: `"net_deflection"` (the feed's `net_deflection_mm`) or the name of
+    /// a `[[gauge]]`.
+    #[serde(default = "default_gauge")]
+    pub gauge: String,
+    /// The value is valid only while its 1-σ is below this, mm.
+    #[serde(default = "default_max_sigma")]
+    pub max_sigma_mm: f64,
+    /// (extension) The value turns invalid once its tags were not solved in this many
+    /// consecutive frame sets, or no frame set came for this many frame periods (plus one).
+    #[serde(default = "default_stale_sets")]
+    pub stale_sets: u32,
+}
+
+/// The gauge served by default.
+pub const NET_DEFLECTION: &str = "net_deflection";
+
+fn default_gauge() -> String {
+    NET_DEFLECTION.to_string()
+}
+fn default_max_sigma() -> f64 {
+    0.01
+}
+fn default_stale_sets() -> u32 {
+    1
+}
+
+impl ControlConfig {
+    /// The control output on `modbus` with every other key at its default.
+    pub fn on(modbus: &str) -> ControlConfig {
+        ControlConfig {
+            modbus: modbus.to_string(),
+            gauge: default_gauge(),
+            max_sigma_mm: default_max_sigma(),
+            stale_sets: default_stale_sets(),
+        }
+    }
+
+    /// The server's address.
+    pub fn addr(&self) -> Result<SocketAddr, String> {
+        parse_addr(&self.modbus)
+    }
+
+    /// Checks the section; `gauges` are the configured `[[gauge]]` names. Keys relative to
+    /// `[output.control]`.
+    pub fn validate(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
+        use tagdeflect_core::Problem;
+        self.addr().map_err(|m| Problem::new("modbus", m))?;
+        if self.gauge != NET_DEFLECTION && !gauges.iter().any(|g| *g == self.gauge) {
+            return Err(Problem::new(
+                "gauge",
+                format!("\"{}\" is neither \"{NET_DEFLECTION}\" nor a configured [[gauge]] (have: {gauges:?})", self.gauge),
+            ));
+        }
+        if !(self.max_sigma_mm.is_finite() && self.max_sigma_mm > 0.0) {
+            return Err(Problem::new("max_sigma_mm", format!("{}: expected a positive number of mm", self.max_sigma_mm)));
+        }
+        if self.stale_sets == 0 || self.stale_sets > 1000 {
+            return Err(Problem::new("stale_sets", format!("{}: expected 1 to 1000 frame sets", self.stale_sets)));
+        }
+        Ok(())
+    }
+}
+
+/// `IP:PORT` of the control output's server.
+pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
+    s.parse::<SocketAddr>().map_err(|_| format!("\"{s}\": expected IP:PORT (e.g. 127.0.0.1:5020)"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checks_name_the_key() {
+        let c = ControlConfig::on("127.0.0.1:5020");
+        assert!(c.validate(&[]).is_ok());
+        let bad = ControlConfig { modbus: "localhost".into(), ..c.clone() };
+        assert_eq!(bad.validate(&[]).unwrap_err().key, "modbus");
+        let bad = ControlConfig { gauge: "cmod".into(), ..c.clone() };
+        assert_eq!(bad.validate(&[]).unwrap_err().key, "gauge");
+        assert!(bad.validate(&["cmod".into()]).is_ok());
+        let bad = ControlConfig { max_sigma_mm: 0.0, ..c.clone() };
+        assert_eq!(bad.validate(&[]).unwrap_err().key, "max_sigma_mm");
+        let bad = ControlConfig { stale_sets: 0, ..c };
+        assert_eq!(bad.validate(&[]).unwrap_err().key, "stale_sets");
+    }
+}
