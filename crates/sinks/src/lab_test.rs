@@ -534,7 +534,11 @@ impl Zero {
         }
         if let Some(v) = line.net_deflection_mm.as_mut() {
             if self.net.n > 0 {
-                *v = round_um(*v - self.net.get().0[0]);
+                let (mean, sd) = self.net.get();
+                *v = round_um(*v - mean[0]);
+                if let Some(s) = line.net_deflection_sigma_mm.as_mut() {
+                    *s = (s.powi(2) + sd[0].powi(2)).sqrt();
+                }
             }
         }
         for (k, g) in line.gauges.iter_mut() {
