@@ -560,3 +560,38 @@ pub async fn migrate(client: &mut Client) -> Result<(), tokio_postgres::Error> {
     }
     tx.commit().await
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lines_join_their_run_and_a_seq_again_later_starts_a_new_one() {
+        let mut h = Holdings::default();
+        // Run 1: seq 0..=9 at t 100..=109, seq 5 arriving late.
+        for s in (0..10).filter(|s| *s != 5) {
+            assert_eq!(h.assign(s, 100 + s as i64), (1, s == 0));
+        }
+        assert_eq!(h.missing(1).iter().collect::<Vec<_>>(), vec![(5, 5)]);
+        assert_eq!(h.assign(5, 105), (1, false), "a late line inside the run's span");
+        assert!(h.missing(1).is_empty());
+        assert_eq!(h.assign(3, 103), (1, false), "a redelivery");
+        // A restart: seq 0 again, later.
+        assert_eq!(h.assign(0, 500), (2, true));
+        assert_eq!(h.assign(1, 501), (2, false));
+        // A trailing line of run 1 that arrives now still fits run 1 (before run 2 in time).
+        assert_eq!(h.assign(10, 110), (1, false));
+        // Run 2's line that arrives after a later one of it: before run 2's span in time
+        // and seq, after run 1's span but not after all of run 1's seqs: run 2.
+        let mut g = Holdings::default();
+        for s in 0..10 {
+            g.assign(s, 100 + s as i64);
+        }
+        assert_eq!(g.assign(4, 504), (2, true));
+        assert_eq!(g.assign(2, 502), (2, false));
+        assert_eq!(
+            g.ack_runs().iter().map(|r| (r.run, r.high, r.gaps.clone())).collect::<Vec<_>>(),
+            vec![(1, 9, vec![]), (2, 4, vec![(0, 1), (3, 3)])]
+        );
+    }
+}

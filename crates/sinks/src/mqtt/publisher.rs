@@ -161,6 +161,9 @@ impl State {
     }
 }
 
+/// Lines read back from the feed file (seq, bytes), and the largest seq the file holds so far.
+type ReadBack = (Vec<(u64, Vec<u8>)>, Option<u64>);
+
 /// This run's lines in the feed file (`[output] feed`): read back for lines that left the
 /// memory buffer before the archive confirmed them.
 struct FeedSource {
@@ -176,7 +179,7 @@ struct FeedSource {
 impl FeedSource {
     /// Reads the lines of `wanted` (ascending) from the file; also says the largest seq the
     /// file holds so far (a wanted seq below it that was not found is not in the file).
-    fn read(&mut self, wanted: &[u64]) -> std::io::Result<(Vec<(u64, Vec<u8>)>, Option<u64>)> {
+    fn read(&mut self, wanted: &[u64]) -> std::io::Result<ReadBack> {
         use std::io::{BufRead, Seek, SeekFrom};
         #[derive(serde::Deserialize)]
         struct SeqOnly {
