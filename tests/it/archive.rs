@@ -111,12 +111,17 @@ fn demo_config_with(
 }
 
 fn start_demo(config: &Path, seconds: f64, log: &Path) -> Proc {
+    start_demo_to(config, seconds, log, None)
+}
+
+/// [`start_demo`] with its stdout (the feed, when the config has no feed file) into `out`.
+fn start_demo_to(config: &Path, seconds: f64, log: &Path, out: Option<&Path>) -> Proc {
     let child = Command::new(bin())
         .args(["demo", "--config"])
         .arg(config)
         .args(["--duration-s", &seconds.to_string()])
         .stdin(Stdio::null())
-        .stdout(Stdio::null())
+        .stdout(out.map_or_else(Stdio::null, |p| fs::File::create(p).unwrap().into()))
         .stderr(fs::File::create(log).unwrap())
         .spawn()
         .unwrap();
@@ -308,7 +313,8 @@ fn broker_down_for_10_s_loses_nothing_with_a_feed_file_and_counts_exactly_withou
     let (cfg_tiny, _) = demo_config_with(dir.path(), &broker.url(), "tiny", "bo", 15, false, 60);
     let mut big = start_demo(&cfg_big, 22.0, &dir.path().join("big.log"));
     let mut small = start_demo(&cfg_small, 22.0, &dir.path().join("small.log"));
-    let mut tiny = start_demo(&cfg_tiny, 22.0, &dir.path().join("tiny.log"));
+    let tiny_feed = dir.path().join("tiny-stdout.jsonl");
+    let mut tiny = start_demo_to(&cfg_tiny, 22.0, &dir.path().join("tiny.log"), Some(&tiny_feed));
     for rig in ["big", "small", "tiny"] {
         assert!(!wait_rows(&pg.url(), rig, "bo", 10, Duration::from_secs(30)).is_empty(), "rig {rig}: nothing archived");
     }
@@ -324,18 +330,20 @@ fn broker_down_for_10_s_loses_nothing_with_a_feed_file_and_counts_exactly_withou
         assert_eq!(read_feed(feed).last().unwrap()["mqtt_dropped"], 0, "rig {rig} lost nothing for good");
     }
     // Without a feed file: what left the 15-line memory before the broker took it is lost,
-    // and exactly that is counted. The tiny rig's feed went to its stdout; its last
-    // status says how many lines it made.
-    let (made, dropped) = query(&pg.url(), |c| {
+    // and exactly that is counted (the tiny rig's feed went to its stdout).
+    let tiny_lines = read_feed(&tiny_feed);
+    let made = tiny_lines.len() as i64;
+    // The count at the rig's end: its last (offline) status; the last feed line's is not above it.
+    let dropped = query(&pg.url(), |c| {
         Box::pin(async move {
             let r = c
                 .query_one("SELECT t.status FROM tests t JOIN rigs r ON r.id = t.rig_id WHERE r.name = 'tiny' AND t.name = 'bo'", &[])
                 .await
                 .unwrap();
-            let s: serde_json::Value = r.get(0);
-            (s["last_seq"].as_i64().unwrap() + 1, s["mqtt_dropped"].as_i64().unwrap())
+            r.get::<_, serde_json::Value>(0)["mqtt_dropped"].as_i64().unwrap()
         })
     });
+    assert!(tiny_lines.last().unwrap()["mqtt_dropped"].as_i64().unwrap() <= dropped);
     assert!(dropped >= 50, "only {dropped} lines dropped from a 15-line memory during a 10 s outage\n{}", logs());
     let rows = wait_rows(&pg.url(), "tiny", "bo", (made - dropped) as usize, Duration::from_secs(30));
     assert_eq!(rows.len() as i64 + dropped, made, "rig tiny: {} archived + {dropped} dropped vs {made} made\n{}", rows.len(), logs());
@@ -427,25 +435,30 @@ fn backfill_loads_a_feed_file_once_and_the_gap_view_shows_what_is_missing() {
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     assert!(out.status.success(), "{err}");
     assert!(err.contains("partial last line skipped"), "{err}");
-    assert!(err.contains("gap opened") && err.contains("seq 5..=9"), "{err}");
-    let gaps = query(&pg.url(), |c| {
-        Box::pin(async move {
-            c.query("SELECT first_seq, last_seq, missing FROM feed_gaps WHERE rig = 'bf' AND test = 'bf'", &[])
-                .await
-                .unwrap()
-                .iter()
-                .map(|r| (r.get::<_, i64>(0), r.get::<_, i64>(1), r.get::<_, i64>(2)))
-                .collect::<Vec<_>>()
+    // The hole: from after line 4 to before line 10 (frame sets the rig dropped have seqs too).
+    let seq_of = |i: usize| serde_json::from_str::<serde_json::Value>(lines[i]).unwrap()["seq"].as_i64().unwrap();
+    let (first, last) = (seq_of(4) + 1, seq_of(10) - 1);
+    assert!(err.contains("gap opened") && err.contains(&format!("seq {first}..={last}")), "{err}");
+    let gaps_of = |pg: String| {
+        query(&pg, |c| {
+            Box::pin(async move {
+                c.query("SELECT first_seq, last_seq, missing FROM feed_gaps WHERE rig = 'bf' AND test = 'bf'", &[])
+                    .await
+                    .unwrap()
+                    .iter()
+                    .map(|r| (r.get::<_, i64>(0), r.get::<_, i64>(1), r.get::<_, i64>(2)))
+                    .collect::<Vec<_>>()
+            })
         })
-    });
-    let first_seq = serde_json::from_str::<serde_json::Value>(lines[0]).unwrap()["seq"].as_i64().unwrap();
-    assert_eq!(gaps.last(), Some(&(first_seq + 5, first_seq + 9, 5)), "feed_gaps: {gaps:?}");
+    };
+    assert_eq!(gaps_of(pg.url()), vec![(first, last, 5)], "feed_gaps");
     let out = backfill(&feed_path);
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     let said = String::from_utf8_lossy(&out.stdout).to_string();
     assert!(out.status.success(), "{err}");
     assert!(said.contains(&format!("{} feed lines", lines.len())) && said.contains("5 stored"), "{said}");
     assert!(err.contains("gap filled"), "{err}");
+    assert_eq!(gaps_of(pg.url()), vec![], "feed_gaps after the whole file");
     let rows = archived(&pg.url(), "bf", "bf");
     assert_rows_equal_feed(&rows, &read_feed(&feed_path));
     assert_eq!(rows.len(), lines.len());
