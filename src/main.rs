@@ -90,6 +90,13 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// List the cameras this machine sees: V4L2 devices by their stable /dev/v4l/by-id paths
+    /// with formats, sizes and frame rates, and GigE/USB3 Vision devices (Aravis) by id.
+    Cameras {
+        /// Also list Aravis's in-process fake camera (a demonstration; `aravis:Fake_1`).
+        #[arg(long)]
+        with_fake: bool,
+    },
     /// Replay a recording as fast as possible and print throughput, stage times, latency
     /// and peak memory.
     Bench(BenchOptions),
@@ -168,13 +175,46 @@ fn http_options(addr: Option<std::net::SocketAddr>, required: bool) -> Option<Ht
 fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging();
+    // A panic anywhere (a library's, caught or not) is one ERROR log line with its place,
+    // with the journal's priority, rather than the default hook's raw text on stderr.
+    std::panic::set_hook(Box::new(|info| {
+        let thread = std::thread::current().name().unwrap_or("unnamed").to_string();
+        let place = info.location().map(|l| format!("{}:{}", l.file(), l.line())).unwrap_or_default();
+        let what = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "(no message)".into());
+        tracing::error!(thread = %thread, at = %place, "panic: {what}");
+    }));
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("tagdeflect: error: {e:#}");
+            eprintln!("tagdeflect: error: {}", error_text(&e));
             ExitCode::from(exit_code(&e))
         }
     }
+}
+
+/// The error and its causes in one line, each said once: a cause whose text its error
+/// already quotes (`cannot serve the live page on ADDR: Address already in use`) is not
+/// repeated after it.
+fn error_text(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let c = cause.to_string();
+        if text.is_empty() {
+            text = c;
+        } else if !c.is_empty() && !text.contains(&c) {
+            text.push_str(": ");
+            text.push_str(&c);
+        }
+    }
+    if text.trim().is_empty() {
+        text = format!("{e:?}");
+    }
+    text
 }
 
 /// Exit codes, chosen from the error's type: 0 done; 2 bad input — a config, a recording, a
@@ -225,17 +265,51 @@ fn archive_error(e: tagdeflect::archive::ArchiveError) -> anyhow::Error {
 fn init_logging() {
     use tracing_subscriber::{fmt, EnvFilter};
     // TAGDEFLECT_LOG, else RUST_LOG, else "info" (e.g. TAGDEFLECT_LOG=debug).
-    let filter =
-        EnvFilter::try_from_env("TAGDEFLECT_LOG").or_else(|_| EnvFilter::try_from_default_env()).unwrap_or_else(|_| EnvFilter::new("info"));
-    // Under systemd the journal adds its own timestamps.
+    let wanted = std::env::var("TAGDEFLECT_LOG").or_else(|_| std::env::var("RUST_LOG")).unwrap_or_else(|_| "info".into());
+    // The Modbus library logs every poll at DEBUG: that is TRACE for a lab; it speaks at
+    // DEBUG only when the filter names it (`TAGDEFLECT_LOG=debug,tokio_modbus=debug`).
+    let directives = if wanted.contains("tokio_modbus") { wanted.clone() } else { format!("{wanted},tokio_modbus=info") };
+    let filter = EnvFilter::try_new(&directives).unwrap_or_else(|e| {
+        eprintln!("TAGDEFLECT_LOG=\"{wanted}\" is not a log filter ({e}); logging at info");
+        EnvFilter::new("info,tokio_modbus=info")
+    });
+    // Under systemd the journal adds its own timestamps, and takes each line's priority from
+    // a `<N>` prefix (sd-daemon(3)), so `journalctl -p warning` shows warnings and errors.
     let under_systemd = std::env::var_os("JOURNAL_STREAM").is_some();
     // Colour only on a terminal: files and the journal get plain text.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
     let builder = fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).with_ansi(ansi);
     if under_systemd {
-        builder.without_time().init();
+        builder.event_format(JournalPrefix(fmt::format().without_time().with_target(false).with_ansi(false))).init();
     } else {
         builder.init();
+    }
+}
+
+/// Writes each event with the journal's priority prefix (`<3>` error … `<7>` debug), then
+/// as `inner` formats it.
+struct JournalPrefix<F>(F);
+
+impl<S, N, F> tracing_subscriber::fmt::FormatEvent<S, N> for JournalPrefix<F>
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+    N: for<'a> tracing_subscriber::fmt::FormatFields<'a> + 'static,
+    F: tracing_subscriber::fmt::FormatEvent<S, N>,
+{
+    fn format_event(
+        &self,
+        ctx: &tracing_subscriber::fmt::FmtContext<'_, S, N>,
+        mut writer: tracing_subscriber::fmt::format::Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result {
+        let priority = match *event.metadata().level() {
+            tracing::Level::ERROR => 3,
+            tracing::Level::WARN => 4,
+            tracing::Level::INFO => 6,
+            _ => 7,
+        };
+        write!(writer, "<{priority}>")?;
+        self.0.format_event(ctx, writer, event)
     }
 }
 
@@ -268,15 +342,11 @@ fn run(cli: Cli) -> Result<()> {
         Command::Replay { dir, config, realtime, full_frame, http } => {
             let cfg = config.as_deref().map(load_config).transpose()?;
             let http = http_options(http, true);
+            // One graph; `--realtime` is only the recording's pacing.
             if realtime {
                 live::replay_realtime_http(&dir, cfg, full_frame, http)
-            } else if let Some(h) = http {
-                #[cfg(feature = "http")]
-                return pipeline::replay::replay_with_page(&dir, cfg, full_frame, h);
-                #[cfg(not(feature = "http"))]
-                match h {}
             } else {
-                pipeline::replay::replay_to_stdout(&dir, cfg, full_frame).map(|_| ())
+                live::replay(&dir, cfg, full_frame, http)
             }
         }
         Command::Record { config, out, duration_s } => {
@@ -304,6 +374,7 @@ fn run(cli: Cli) -> Result<()> {
             (None, Some(cfg)) => pipeline::check::check_config(&cfg),
             _ => Err(tagdeflect::BadInput::new("check takes either a recording folder or --config FILE").into()),
         },
+        Command::Cameras { with_fake } => pipeline::cameras::list(with_fake),
         Command::Bench(opts) => pipeline::bench::bench(&opts),
         #[cfg(feature = "sim")]
         Command::Demo { duration_s, config, http, no_http } => {

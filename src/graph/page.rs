@@ -41,7 +41,7 @@ impl Page {
             use tagdeflect_sinks::http;
             let Some(o) = http::wanted(config.output.http.as_deref(), opts) else { return Ok(Page::default()) };
             let view = http::LiveView::new(&config.rig_info(), mode);
-            let server = http::serve(o, view.clone()).await?;
+            let server = http::serve(o, http::AllowedHosts::new(&config.output.http_hosts), view.clone()).await?;
             Ok(Page { view: Some(view), _server: server })
         }
         #[cfg(not(feature = "http"))]

@@ -1,4 +1,4 @@
-//! The live pipeline behind `run`, `record`, `demo` and `replay --realtime`.
+//! The one graph behind `run`, `record`, `demo` and `replay` (with or without `--realtime`).
 //!
 //! ```text
 //! camera threads (v4l2 / aravis / sim / recording player) ──SourceEvent──▶ assembler task
@@ -7,10 +7,21 @@
 //! UTM poller task ──UtmEvent──▶ solver thread (+ recorder)
 //! ```
 //!
+//! A recording is a source like a camera; how it is played is its [`Pacing`]:
+//! [`Pacing::Recorded`] (`replay --realtime`) plays each camera's frames at their recorded
+//! times through the live run's threads and drop-oldest queues, so a replay meets what a run
+//! met; [`Pacing::AsFast`] (plain `replay`) has one reader hand the frames over in time order
+//! and every hand-off — source to assembler, queue to solver, solver to sinks — wait for room
+//! instead of dropping, so the frame sets are exactly the recording's and the feed is the same
+//! on every replay, however busy the machine. The status a live run adds to its lines
+//! (`dropped_sets`, `latency_ms`, the UTM's state) describes the run, not the recording, and is
+//! left out of an as-fast replay's lines; the recording's UTM samples are all known before the
+//! first set, so each set's load is interpolated from the whole stream.
+//!
 //! Capture never blocks on the solver: camera threads only `try_send`, and the queue in
 //! front of the solver holds at most [`QUEUE_SETS`] frame sets — when the solver falls
 //! behind, the oldest set is dropped and counted, and every feed line carries the count
-//! (`dropped_sets`). SIGTERM/SIGINT (or `--duration-s`) stops capture, lets the solver
+//! (`dropped_sets`). SIGTERM/SIGINT/SIGHUP (or `--duration-s`) stops capture, lets the solver
 //! finish the sets already queued, flushes every sink and returns `Ok` (exit 0).
 //!
 //! systemd: READY=1 is sent once every source is open; the watchdog is pinged by the
@@ -37,10 +48,27 @@ use crate::sources::{OpenPolicy, SourceEvent};
 use crate::sync::FrameSetAssembler;
 use crate::utm::modbus::{run_poller, UtmEvent};
 use crate::utm::relay::{relay, RelayReceiver};
-use tagdeflect_sinks::{Fanout, FeedFileSink, Finished, LineSink};
+use tagdeflect_sinks::{Fanout, FeedFileSink, Finished, LineSink, Overflow};
 
 /// Frame sets waiting for the solver at most; older ones are dropped first.
 pub const QUEUE_SETS: usize = 2;
+
+/// How a recording is played through the graph (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pacing {
+    /// At its recorded pace, one player per camera, as a run would have met it.
+    Recorded,
+    /// As fast as the measurement goes, in time order, nothing dropped.
+    AsFast,
+}
+
+/// A recording as the graph's source.
+struct Playback {
+    rec: Recording,
+    pacing: Pacing,
+    /// A progress bar on stderr ([`Pacing::AsFast`], when stderr is a terminal).
+    progress: bool,
+}
 
 /// Options of a live run.
 #[derive(Debug, Clone, Default)]
@@ -64,6 +92,16 @@ pub fn run(config: Config, opts: LiveOptions) -> Result<()> {
     runtime()?.block_on(run_async(config, opts, None, Vec::new()))
 }
 
+/// `replay DIR [--http ADDR]` (without `--realtime`): the recording as fast as it goes
+/// ([`Pacing::AsFast`]), the feed to stdout; with the page, it stays up after the recording is
+/// consumed until SIGINT/SIGTERM.
+pub fn replay(dir: &std::path::Path, config: Option<Config>, full_frame: bool, http: Option<HttpOptions>) -> Result<()> {
+    let rec = crate::pipeline::replay::open(dir, config)?;
+    let progress = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let playback = Playback { rec, pacing: Pacing::AsFast, progress };
+    play(playback, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
+}
+
 /// `replay --realtime`: the recording's frames at their recorded pace through the live
 /// pipeline (same drop policy as `run`, drops counted); the feed goes to stdout.
 pub fn replay_realtime(dir: &std::path::Path, config: Option<Config>, full_frame: bool) -> Result<()> {
@@ -74,16 +112,18 @@ pub fn replay_realtime(dir: &std::path::Path, config: Option<Config>, full_frame
 /// the page, it stays up after the recording is consumed until SIGINT/SIGTERM.
 pub fn replay_realtime_http(dir: &std::path::Path, config: Option<Config>, full_frame: bool, http: Option<HttpOptions>) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
-    replay_paced_with(rec, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
+    let playback = Playback { rec, pacing: Pacing::Recorded, progress: false };
+    play(playback, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
 }
 
 /// A recording's frames at their recorded pace through the live pipeline, the feed to
 /// `feeds` (`replay --realtime`, `bench --realtime`).
 pub fn replay_paced(rec: Recording, full_frame: bool, feeds: Vec<FeedWriter>) -> Result<()> {
-    replay_paced_with(rec, LiveOptions { full_frame, ..LiveOptions::default() }, feeds)
+    play(Playback { rec, pacing: Pacing::Recorded, progress: false }, LiveOptions { full_frame, ..LiveOptions::default() }, feeds)
 }
 
-fn replay_paced_with(rec: Recording, opts: LiveOptions, feeds: Vec<FeedWriter>) -> Result<()> {
+fn play(playback: Playback, opts: LiveOptions, feeds: Vec<FeedWriter>) -> Result<()> {
+    let rec = &playback.rec;
     let mut cfg = rec.config.clone();
     // A replay's feed goes to `feeds` only, never to the recorded run's feed file.
     cfg.output.feed = None;
@@ -93,7 +133,7 @@ fn replay_paced_with(rec: Recording, opts: LiveOptions, feeds: Vec<FeedWriter>) 
     }
     // Nor is the recorded run's page served: only `--http` does.
     cfg.output.http = None;
-    runtime()?.block_on(run_async(cfg, opts, Some(rec), feeds))
+    runtime()?.block_on(run_async(cfg, opts, Some(playback), feeds))
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -104,12 +144,14 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 struct SetQueue {
     inner: Mutex<(VecDeque<(FrameSet, Instant)>, bool)>,
     ready: Condvar,
+    /// A set was taken (for [`SetQueue::push_wait`]).
+    room: Condvar,
     dropped: AtomicU64,
 }
 
 impl SetQueue {
     fn new() -> Self {
-        Self { inner: Mutex::new((VecDeque::new(), false)), ready: Condvar::new(), dropped: AtomicU64::new(0) }
+        Self { inner: Mutex::new((VecDeque::new(), false)), ready: Condvar::new(), room: Condvar::new(), dropped: AtomicU64::new(0) }
     }
     fn push(&self, set: FrameSet) {
         let mut g = self.inner.lock().expect("queue lock");
@@ -120,9 +162,32 @@ impl SetQueue {
         g.0.push_back((set, Instant::now()));
         self.ready.notify_one();
     }
+    /// Queues `set`, waiting while the queue is full ([`Pacing::AsFast`]: nothing dropped).
+    fn push_wait(&self, set: FrameSet) {
+        let mut g = self.inner.lock().expect("queue lock");
+        while g.0.len() >= QUEUE_SETS && !g.1 {
+            g = self.room.wait(g).expect("queue lock");
+        }
+        if g.1 {
+            // The solver has ended (it failed): nobody takes the set.
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        g.0.push_back((set, Instant::now()));
+        self.ready.notify_one();
+    }
+    /// Queues `set` by the run's policy: drop-oldest, or wait when `lossless`.
+    fn push_by(&self, set: FrameSet, lossless: bool) {
+        if lossless {
+            self.push_wait(set)
+        } else {
+            self.push(set)
+        }
+    }
     fn close(&self) {
         self.inner.lock().expect("queue lock").1 = true;
         self.ready.notify_all();
+        self.room.notify_all();
     }
     /// Next set (`Some(Some)`), nothing within `wait` (`Some(None)`), or `None` once closed
     /// and empty.
@@ -132,6 +197,7 @@ impl SetQueue {
         let mut g = self.inner.lock().expect("queue lock");
         loop {
             if let Some(x) = g.0.pop_front() {
+                self.room.notify_one();
                 return Some(Some(x));
             }
             if g.1 {
@@ -146,21 +212,29 @@ impl SetQueue {
     }
 }
 
-async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recording>, feeds: Vec<FeedWriter>) -> Result<()> {
+async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>, feeds: Vec<FeedWriter>) -> Result<()> {
+    let started_at = Instant::now();
+    let replaying = playback.is_some();
+    // Every hand-off waits instead of dropping (see the module doc).
+    let lossless = playback.as_ref().is_some_and(|p| p.pacing == Pacing::AsFast);
     let ncam = config.cameras.len();
     let stop = Arc::new(AtomicBool::new(false));
     let (src_tx, mut src_rx) = mpsc::channel::<SourceEvent>(4 * ncam.max(1));
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
 
     // Sinks first: an unwritable output is reported before any camera starts.
-    let mode = if recording.is_some() { "realtime" } else { "live" };
+    let mode = match playback.as_ref().map(|p| p.pacing) {
+        None => "live",
+        Some(Pacing::Recorded) => "realtime",
+        Some(Pacing::AsFast) => "replay",
+    };
     let page = Page::start(&config, opts.http, mode).await?;
     let record_dir = opts.record.clone().or_else(|| {
-        (recording.is_none())
+        (!replaying)
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
             .flatten()
     });
-    let outputs = Outputs::build(&config, &opts, recording.is_some(), record_dir.as_deref(), feeds, &page)?;
+    let outputs = Outputs::build(&config, &opts, replaying, record_dir.as_deref(), feeds, &page)?;
     // The recorder (sinks::recorder): retries after write errors; state in every feed line.
     let recorder = match &record_dir {
         Some(dir) => Some(
@@ -181,7 +255,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
 
     // The measurement is built before any source starts: a detector option it cannot take
     // is a config error (exit 2), never a daemon that captures without measuring.
-    let measure = if opts.record_only {
+    let mut measure = if opts.record_only {
         None
     } else {
         Some(
@@ -189,22 +263,49 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 .map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?,
         )
     };
+    // As fast as it goes: the recording's whole UTM stream is known before its first set.
+    if let (Some(pb), Some(m)) = (playback.as_ref().filter(|_| lossless), measure.as_mut()) {
+        let hooks = page.handle();
+        for s in &pb.rec.utm {
+            m.utm_mut().push(*s);
+            hooks.on_utm(&UtmEvent::Sample(*s));
+        }
+    }
 
     // Cameras (a recording's frames too: `replay --realtime` sets every camera's source to it).
     // `run` keeps retrying a camera that is not there yet; a replay's recording must open.
-    let policy = if recording.is_some() { OpenPolicy::Require } else { OpenPolicy::Retry };
-    let sources = crate::graph::sources::start(&config, policy, src_tx.clone(), stop.clone())?;
+    // As fast as it goes, one reader hands the recording's frames over in time order.
+    let policy = if replaying { OpenPolicy::Require } else { OpenPolicy::Retry };
+    let (sources, reader) = match playback.as_ref().filter(|_| lossless) {
+        Some(pb) => (None, Some(spawn_reader(&pb.rec, pb.progress, src_tx.clone(), stop.clone())?)),
+        None => (Some(crate::graph::sources::start(&config, policy, src_tx.clone(), stop.clone())?), None),
+    };
     #[cfg(feature = "sim")]
-    let rig = sources.rig.clone();
+    let rig = sources.as_ref().and_then(|s| s.rig.clone());
     drop(src_tx);
 
     // UTM.
     let (utm_tx, mut utm_rx) = mpsc::channel::<UtmEvent>(256);
     #[cfg(feature = "sim")]
     let mut _sim_utm = None;
-    let utm_configured = config.utm.is_some();
-    if let Some(rec) = &recording {
-        tokio::spawn(play_utm(rec.clone(), utm_tx));
+    // An as-fast replay has its UTM samples already (above) and marks no UTM state.
+    // A replay at the recorded pace plays the recording's UTM samples whether or not its
+    // config has a `[utm]` (a folder may carry `utm.jsonl` from a UTM configured elsewhere):
+    // each set then waits for the sample after it, as in a run.
+    let utm_feed = match (&playback, &config.utm) {
+        // A recorded stream is up from its first sample: the first set waits for it too.
+        (Some(pb), _) if pb.pacing == Pacing::Recorded && !pb.rec.utm.is_empty() => {
+            Some(UtmFeed { wait: recorded_utm_wait(&pb.rec), up_at_start: true })
+        }
+        (Some(_), _) => None,
+        (None, Some(u)) => Some(UtmFeed { wait: Duration::from_secs_f64(2.5 / u.poll_hz), up_at_start: false }),
+        (None, None) => None,
+    };
+    if let Some(pb) = &playback {
+        match pb.pacing {
+            Pacing::Recorded => drop(tokio::spawn(play_utm(pb.rec.clone(), utm_tx))),
+            Pacing::AsFast => drop(utm_tx),
+        }
     } else if let Some(ucfg) = &config.utm {
         #[cfg(feature = "sim")]
         let ucfg = if ucfg.address.is_sim() {
@@ -258,7 +359,8 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let queue = Arc::new(SetQueue::new());
     let heartbeat = Arc::new(AtomicU64::new(0));
     let Outputs { sinks, mqtt, run_report } = outputs;
-    let fanout = Arc::new(Fanout::start(sinks).context("cannot start the sinks' thread")?);
+    let overflow = if lossless { Overflow::Wait } else { Overflow::DropOldest };
+    let fanout = Arc::new(Fanout::start_with(sinks, overflow).context("cannot start the sinks' thread")?);
     let solver = match measure {
         None => {
             drop(solver_utm_rx);
@@ -275,9 +377,12 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 mqtt: mqtt.clone(),
             };
             let fanout = fanout.clone();
-            Some(std::thread::Builder::new().name("solver".into()).spawn(move || {
-                solver_loop(config, measure, queue, solver_utm_rx, SolverOut { fanout, status }, utm_configured, heartbeat)
-            })?)
+            let out = SolverOut { fanout, status: (!lossless).then_some(status) };
+            Some(
+                std::thread::Builder::new()
+                    .name("solver".into())
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, out, utm_feed, heartbeat))?,
+            )
         }
     };
     let started = Instant::now();
@@ -293,7 +398,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
 
     // Assembler: until the sources end or a stop is asked for.
     // Live frames of different cameras may arrive out of order by a frame or two.
-    let mut assembler = FrameSetAssembler::with_open_sets(ncam, config.sync.tolerance_ms, 3);
+    // A recording read in time order closes each set as the next one starts.
+    let open_sets = if lossless { 1 } else { 3 };
+    let mut assembler = FrameSetAssembler::with_open_sets(ncam, config.sync.tolerance_ms, open_sets);
     // A set waits for its missing cameras at most a frame period (and at least 50 ms).
     let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
     let set_wait = Duration::from_secs_f64(if max_fps > 0.0 { (1.0 / max_fps).max(0.05) } else { 0.1 });
@@ -302,6 +409,9 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     let deadline =
         opts.duration_s.and_then(|s| Duration::try_from_secs_f64(s).ok()).and_then(|d| tokio::time::Instant::now().checked_add(d));
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
+    // A closed terminal or a `kill -HUP` ends the run as SIGTERM does (last sync, report,
+    // recorder drained), never at once.
+    let mut sighup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot watch SIGHUP")?;
     let mut frames_seen = 0u64;
     loop {
         let until_deadline = async {
@@ -320,7 +430,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                     }
                     if !opts.record_only {
                         for set in assembler.push(f) {
-                            queue.push(set);
+                            queue.push_by(set, lossless);
                         }
                         frame_drops.set_late(assembler.late_by_camera());
                     }
@@ -333,7 +443,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
                 }
             },
             _ = tick.tick() => {
-                if recording.is_none() {
+                if !replaying {
                     for set in assembler.poll(set_wait) {
                         queue.push(set);
                     }
@@ -356,6 +466,7 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
             }
             _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: stopping"); break; }
             _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
+            _ = sighup.recv() => { tracing::info!("SIGHUP: stopping as on SIGTERM"); break; }
             _ = until_deadline => { tracing::info!("duration reached: stopping"); break; }
         }
     }
@@ -367,19 +478,29 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     while let Ok(ev) = src_rx.try_recv() {
         if let (SourceEvent::Frame(f), false) = (ev, opts.record_only) {
             for set in assembler.push(f) {
-                queue.push(set);
+                queue.push_by(set, lossless);
             }
         }
     }
     for set in assembler.flush() {
-        queue.push(set);
+        queue.push_by(set, lossless);
     }
     queue.close();
-    let threads_done = tokio::task::spawn_blocking(move || sources.join());
-    let _ = tokio::time::timeout(Duration::from_secs(5), threads_done).await;
+    let threads_done = tokio::task::spawn_blocking(move || {
+        if let Some(s) = sources {
+            s.join();
+        }
+        reader.map(|r| r.join().unwrap_or_default())
+    });
+    let bad_frames = tokio::time::timeout(Duration::from_secs(5), threads_done).await.ok().and_then(|r| r.ok()).flatten();
     let mut solver_panicked = false;
+    let mut solved = None;
     if let Some(s) = solver {
-        solver_panicked = matches!(tokio::task::spawn_blocking(move || s.join()).await, Ok(Err(_)));
+        match tokio::task::spawn_blocking(move || s.join()).await {
+            Ok(Ok(done)) => solved = Some(done),
+            Ok(Err(_)) => solver_panicked = true,
+            Err(_) => {}
+        }
     }
     // The forwarder holds a sender of the recorder: end it before waiting for the recorder.
     forwarder.abort();
@@ -408,8 +529,24 @@ async fn run_async(config: Config, opts: LiveOptions, recording: Option<Recordin
     if let Some(r) = run_report {
         tokio::task::spawn_blocking(move || r.finish()).await.ok();
     }
+    if let (true, Some(done)) = (lossless, &solved) {
+        tracing::info!(
+            sets = done.sets,
+            bad_frames = bad_frames.unwrap_or(0),
+            late_frames = assembler.late_frames(),
+            full_frame_searches = done.stats.full_frame_searches,
+            window_searches = done.stats.window_searches,
+            tracked_tags = done.stats.tracked_tags,
+            "replay done in {:.2} s",
+            started_at.elapsed().as_secs_f64()
+        );
+        if done.sets == 0 {
+            let dir = playback.as_ref().map(|p| p.rec.dir.display().to_string()).unwrap_or_default();
+            return Err(crate::BadInput::new(format!("{dir}: no frame could be read, nothing was solved")).into());
+        }
+    }
     #[cfg(feature = "http")]
-    if recording.is_some() && page.is_served() {
+    if replaying && page.is_served() {
         page.on_finished();
         crate::pipeline::replay::linger().await?;
     }
@@ -504,22 +641,57 @@ impl Outputs {
 /// daemon after `WatchdogSec`).
 const WATCHDOG_STALE_MS: u64 = 10_000;
 
+/// A UTM feeds the run: each set waits at most `wait` for the sample after it while the UTM
+/// is up (`up_at_start`: before its first event — a recorded stream).
+#[derive(Debug, Clone, Copy)]
+struct UtmFeed {
+    wait: Duration,
+    up_at_start: bool,
+}
+
+/// What the solver did, when it ended.
+struct Solved {
+    sets: u64,
+    stats: crate::pipeline::measure::MeasureStats,
+}
+
+/// Closes the queue when the solver ends, even by a panic: a producer waiting for room
+/// ([`SetQueue::push_wait`]) is let go.
+struct CloseOnDrop(Arc<SetQueue>);
+
+impl Drop for CloseOnDrop {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
 fn solver_loop(
     config: Config,
     mut measure: Measurement,
     queue: Arc<SetQueue>,
     utm_rx: RelayReceiver,
     out: SolverOut,
-    utm_configured: bool,
+    utm_feed: Option<UtmFeed>,
     heartbeat: Arc<AtomicU64>,
-) {
+) -> Solved {
     let SolverOut { fanout, status } = out;
+    let _close = CloseOnDrop(queue.clone());
     let started = Instant::now();
     let beat = || heartbeat.store(started.elapsed().as_millis() as u64 + 1, Ordering::Relaxed);
-    measure.utm_mut().set_window(LIVE_UTM_WINDOW_NS);
+    // A live run keeps a minute of UTM samples; a run's status (`status`) marks a live line.
+    let live = status.is_some();
+    if live {
+        measure.utm_mut().set_window(LIVE_UTM_WINDOW_NS);
+    }
+    let mut sets = 0u64;
+    let mut last_t_ns: Option<i64> = None;
+    // A gap worth a warning: ten frame periods of the slowest camera, at least 2 s.
+    let min_fps = config.cameras.iter().filter_map(|c| c.fps).fold(f64::INFINITY, f64::min);
+    let gap_warn_s = if min_fps.is_finite() && min_fps > 0.0 { (10.0 / min_fps).max(2.0) } else { 2.0 };
     let mut journal = JournalSummary::new(config.cameras.iter().map(|c| c.name.clone()).collect(), SUMMARY_INTERVAL);
-    let mut utm_up = false;
-    let utm_wait = config.utm.as_ref().map(|u| Duration::from_secs_f64(2.5 / u.poll_hz)).unwrap_or_default();
+    let mut utm_up = utm_feed.is_some_and(|u| u.up_at_start);
+    let utm_configured = utm_feed.is_some();
+    let utm_wait = utm_feed.map(|u| u.wait).unwrap_or_default();
     let handle = |ev: UtmEvent, m: &mut Measurement, up: &mut bool| match ev {
         UtmEvent::Sample(s) => {
             *up = true;
@@ -536,7 +708,9 @@ fn solver_loop(
     };
     loop {
         beat();
-        let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else { break };
+        let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else {
+            return Solved { sets, stats: measure.stats().clone() };
+        };
         let Some((set, arrived)) = popped else { continue };
         while let Some(ev) = utm_rx.try_recv() {
             handle(ev, &mut measure, &mut utm_up);
@@ -556,13 +730,25 @@ fn solver_loop(
                 }
             }
         }
+        // A hole in time is a hole whatever the counters say (a stalled process, a suspended
+        // machine: SIGSTOP for 20 s gave contiguous seq and no dropped set).
+        if let Some(prev) = last_t_ns {
+            let gap_s = (set.t_ns as i128 - prev as i128) as f64 * 1e-9;
+            if gap_s > gap_warn_s {
+                tracing::warn!(gap_s = format!("{gap_s:.1}"), seq = set.seq, "no frame set for {gap_s:.1} s: the feed has a gap here");
+            }
+        }
+        last_t_ns = Some(set.t_ns);
         let (mut line, _) = measure.process(&set);
+        sets += 1;
         if utm_configured {
             line.utm = Some(if utm_up { "ok" } else { "down" }.to_string());
         }
-        line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
-        line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
-        status.apply(&mut line);
+        if let Some(status) = &status {
+            line.dropped_sets = Some(queue.dropped.load(Ordering::Relaxed));
+            line.latency_ms = Some((arrived.elapsed().as_secs_f64() * 1e4).round() / 10.0);
+            status.apply(&mut line);
+        }
         journal.observe(&line, measure.rejected_views_by_camera());
         // The line is complete: the sinks take it on their own thread.
         fanout.send(Finished { line, set: Some(set), observed: Arc::new(measure.observed()) });
@@ -578,7 +764,8 @@ const LIVE_UTM_WINDOW_NS: i64 = 60_000_000_000;
 /// thread takes it.
 struct SolverOut {
     fanout: Arc<Fanout>,
-    status: LineStatus,
+    /// A live run's status (absent in an as-fast replay: see the module doc).
+    status: Option<LineStatus>,
 }
 
 /// What the solver adds to every feed line of a live run besides the measurement: the
@@ -605,14 +792,72 @@ impl LineStatus {
     }
 }
 
+/// Hands a recording's frames to the assembler in time order, waiting for room
+/// ([`Pacing::AsFast`]); a frame that cannot be read is logged and skipped (its set is solved
+/// from the other cameras). Returns the frames skipped.
+fn spawn_reader(
+    rec: &Recording,
+    progress: bool,
+    tx: mpsc::Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+) -> Result<std::thread::JoinHandle<u64>> {
+    let frames = rec.frames();
+    let total = rec.frames.len() as u64;
+    let reader = std::thread::Builder::new().name("recording".into()).spawn(move || {
+        let bar = progress.then(|| {
+            let b = indicatif::ProgressBar::new(total);
+            b.set_style(indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  ETA {eta}").expect("template"));
+            b
+        });
+        let mut bad = 0u64;
+        for read in frames {
+            if stop.load(Ordering::SeqCst) {
+                break;
+            }
+            if let Some(b) = &bar {
+                b.inc(1);
+            }
+            match read.frame {
+                Ok(frame) => {
+                    if tx.blocking_send(SourceEvent::Frame(frame)).is_err() {
+                        break;
+                    }
+                }
+                Err(e) => {
+                    bad += 1;
+                    tracing::warn!("frame skipped: {e}");
+                }
+            }
+        }
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        bad
+    });
+    reader.context("cannot start the recording's reader")
+}
+
+/// How long a set waits for the UTM sample after it when a recording's UTM stream is played
+/// at its pace: two and a half of its sampling intervals (median), at least 20 ms, at most 1 s.
+fn recorded_utm_wait(rec: &Recording) -> Duration {
+    let mut gaps: Vec<f64> =
+        rec.utm.windows(2).map(|w| (w[1].t_ns as i128 - w[0].t_ns as i128) as f64 * 1e-9).filter(|g| *g > 0.0).collect();
+    gaps.sort_by(f64::total_cmp);
+    let median = gaps.get(gaps.len() / 2).copied().unwrap_or(0.02);
+    Duration::from_secs_f64((2.5 * median).clamp(0.02, 1.0))
+}
+
 /// Sends a recording's UTM samples at their recorded pace (relative to its first frame),
 /// as a live UTM would (`replay --realtime`).
 async fn play_utm(rec: Recording, tx: mpsc::Sender<UtmEvent>) {
-    let Some(first) = rec.frames.first().map(|f| f.t_ns) else { return };
+    if rec.frames.is_empty() {
+        return;
+    }
+    // The cameras' schedule (long pauses capped alike), started within a few ms of theirs.
+    let playhead = tagdeflect_io::sources::recording::Playhead::start_silent(&rec);
     let t0 = tokio::time::Instant::now();
     for s in &rec.utm {
-        let due = Duration::from_nanos((s.t_ns as i128 - first as i128).clamp(0, u64::MAX as i128) as u64);
-        tokio::time::sleep_until(t0 + due).await;
+        tokio::time::sleep_until(t0 + playhead.due(s.t_ns)).await;
         if tx.send(UtmEvent::Sample(*s)).await.is_err() {
             break;
         }

@@ -18,6 +18,10 @@ use crate::sync::FrameSetAssembler;
 /// Frame sets of a recording that `check` looks at (poses settle over a few sets).
 const CHECK_SETS: usize = 3;
 
+/// Times a recording's frames and UTM samples may carry: 2000-01-01 to 2200-01-01 UTC, in
+/// nanoseconds since the Unix epoch.
+const PLAUSIBLE_T_NS: std::ops::RangeInclusive<i64> = 946_684_800_000_000_000..=7_258_118_400_000_000_000;
+
 /// `check DIR`.
 pub fn check_recording(dir: &Path) -> Result<()> {
     let rec = Recording::open(dir).with_context(|| format!("cannot check {}", dir.display()))?;
@@ -27,8 +31,30 @@ pub fn check_recording(dir: &Path) -> Result<()> {
         let n = rec.frames.iter().filter(|f| rec.config.camera_index(&f.camera) == Some(i)).count();
         writeln!(out, "  camera {:<10} {:>5} frames  {}x{}", cam.name, n, cam.width, cam.height)?;
     }
+    // SPEC: times are nanoseconds since the Unix epoch; a time outside 2000–2200 is a
+    // recording written by something else (a counter, a relative clock) and would give a
+    // feed whose times mean nothing.
+    if let Some(f) = rec.frames.iter().find(|f| !PLAUSIBLE_T_NS.contains(&f.t_ns)) {
+        return Err(crate::BadInput::new(format!(
+            "{}: frame {} of camera {} has t_ns {}: not a time between 2000 and 2200 in nanoseconds since the Unix epoch (SPEC)",
+            dir.join("frames.jsonl").display(),
+            f.seq,
+            f.camera,
+            f.t_ns
+        ))
+        .into());
+    }
+    if let Some(u) = rec.utm.iter().find(|u| !PLAUSIBLE_T_NS.contains(&u.t_ns)) {
+        return Err(crate::BadInput::new(format!(
+            "{}: a UTM sample has t_ns {}: not a time between 2000 and 2200 in nanoseconds since the Unix epoch (SPEC)",
+            dir.join("utm.jsonl").display(),
+            u.t_ns
+        ))
+        .into());
+    }
     let (first, last) = (rec.frames.first().map(|f| f.t_ns).unwrap_or(0), rec.frames.last().map(|f| f.t_ns).unwrap_or(0));
-    writeln!(out, "  span {:.3} s, {} UTM samples, {} truth lines", (last - first) as f64 * 1e-9, rec.utm.len(), rec.truth.len())?;
+    let span_s = (last as i128 - first as i128) as f64 * 1e-9;
+    writeln!(out, "  span {span_s:.3} s, {} UTM samples, {} truth lines", rec.utm.len(), rec.truth.len())?;
     for s in &rec.skipped_lines {
         writeln!(out, "  warning: {s}")?;
     }
@@ -66,7 +92,72 @@ pub fn check_config(path: &Path) -> Result<()> {
             println!("  warning: camera {} ({}) delivered no frame within 10 s", cam.name, cam.source);
         }
     }
+    // The UTM is read once: a silent address is said here, not at the first test. The config
+    // itself is fine, so this is a warning (exit 0), like a camera that sends no frame.
+    if let Some(u) = &config.utm {
+        check_utm(u);
+    }
     report(&config, &[set])
+}
+
+/// How long `check --config` waits for the UTM's first reading.
+const UTM_CHECK_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Reads the UTM once through the daemon's own poller; prints the value and the time to the
+/// first reading, or what went wrong.
+fn check_utm(u: &crate::utm::UtmConfig) {
+    use crate::utm::modbus::{run_poller, UtmEvent};
+    if u.address.is_sim() {
+        println!("UTM: simulated (served by `run`/`demo` on loopback; nothing to contact)");
+        return;
+    }
+    let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+        Ok(rt) => rt,
+        Err(e) => {
+            println!("  warning: UTM {}: cannot start the async runtime: {e}", u.address);
+            return;
+        }
+    };
+    let outcome = rt.block_on(async {
+        let (tx, mut rx) = tokio::sync::mpsc::channel(16);
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let started = std::time::Instant::now();
+        let poller = tokio::spawn(run_poller(u.clone(), tx, stop_rx));
+        let mut problem = None;
+        let deadline = tokio::time::Instant::now() + UTM_CHECK_TIMEOUT;
+        let got = loop {
+            match tokio::time::timeout_at(deadline, rx.recv()).await {
+                Ok(Some(UtmEvent::Sample(s))) => break Some((s, started.elapsed())),
+                Ok(Some(UtmEvent::Down { reason })) => problem = Some(reason),
+                Ok(Some(UtmEvent::Up)) => {}
+                Ok(None) | Err(_) => break None,
+            }
+        };
+        let _ = stop_tx.send(true);
+        poller.abort();
+        (got, problem)
+    });
+    match outcome {
+        (Some((s, rtt)), _) => println!(
+            "UTM {}: load {:.4} kN{}; first reading after {:.0} ms",
+            u.address,
+            s.load_kn,
+            s.stroke_mm.map(|v| format!(", stroke {v:.4} mm")).unwrap_or_default(),
+            rtt.as_secs_f64() * 1e3
+        ),
+        (None, Some(reason)) => {
+            println!("  warning: UTM {}: no reading within {} s: {reason}", u.address, UTM_CHECK_TIMEOUT.as_secs())
+        }
+        (None, None) => println!("  warning: UTM {}: no answer within {} s", u.address, UTM_CHECK_TIMEOUT.as_secs()),
+    }
+}
+
+/// The side a specimen tag should have in the image at least (docs/rig-setup.md).
+const MIN_TAG_PX: f64 = 25.0;
+
+/// Mean side length of a tag's quadrilateral, pixels.
+fn side_px(c: &[nalgebra::Point2<f64>; 4]) -> f64 {
+    (0..4).map(|k| (c[(k + 1) % 4] - c[k]).norm()).sum::<f64>() / 4.0
 }
 
 /// Runs the measurement over the sets and prints the per-camera summary of the last one.
@@ -81,6 +172,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     }
     let line = last.expect("one set at least");
     let poses = m.camera_poses();
+    let seen = m.observed().seen;
     let mut posed = 0;
     for (i, h) in line.cameras.iter().enumerate() {
         println!("camera {}:", h.name);
@@ -107,6 +199,23 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
                 "  warning: camera {} cannot be posed: it sees {} background tag(s); it needs at least one whole background tag (better several, on two planes) in view",
                 h.name, h.background_tags
             ),
+        }
+        // How large each specimen tag appears: the sub-pixel corners need ~25 px a side.
+        if let Some((_, tags)) = seen.iter().find(|(c, _)| *c == i) {
+            let mut sizes: Vec<(u32, f64)> = tags.iter().filter(|t| t.specimen).map(|t| (t.id, side_px(&t.corners))).collect();
+            sizes.sort_by_key(|s| s.0);
+            if !sizes.is_empty() {
+                let list: Vec<String> = sizes.iter().map(|(id, px)| format!("{id}: {px:.0}")).collect();
+                println!("  specimen tag size (px, mean side): {}", list.join(", "));
+                let small: Vec<String> = sizes.iter().filter(|s| s.1 < MIN_TAG_PX).map(|s| s.0.to_string()).collect();
+                if !small.is_empty() {
+                    println!(
+                        "  warning: specimen tag(s) {} appear smaller than {MIN_TAG_PX:.0} px in camera {}: move the camera closer, use a longer lens or larger tags",
+                        small.join(", "),
+                        h.name
+                    );
+                }
+            }
         }
     }
     println!("specimen tags solved: {} of {}", line.tags.len(), config.specimen.tags.len());

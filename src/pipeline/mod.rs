@@ -5,6 +5,7 @@
 pub mod bench;
 #[cfg(feature = "calibrate")]
 pub mod calibrate_cmd;
+pub mod cameras;
 pub mod check;
 pub mod journal;
 pub mod replay;

@@ -1,11 +1,16 @@
-//! `replay`: the measurement over a recording, as fast as it goes.
+//! The measurement over a recording, driven in-process on the caller's thread: what `bench`
+//! times stage by stage and what tests read feed lines from.
+//!
+//! `tagdeflect replay` itself is the graph ([`crate::graph::run::replay`]: the recording a
+//! source, [`crate::graph::run::Pacing`] its pacing); this driver gives the same lines as the
+//! graph's as-fast replay (`tests/it` checks it line for line), without threads between the
+//! stages, so each stage's time is its own.
 //!
 //! [`Recording::frames`] decodes frames ahead on worker threads, in time order (a bad frame is
 //! logged and skipped: the frame set is solved from the other cameras); the assembler and the
 //! measurement take them in turn; feed lines go to a callback.
 
 use anyhow::{Context, Result};
-use std::io::IsTerminal;
 use std::path::Path;
 use std::time::Instant;
 
@@ -13,7 +18,6 @@ use crate::config::Config;
 use crate::feed::FeedLine;
 use crate::pipeline::measure::{MeasureStats, Measurement, StageTimes};
 use crate::recording::Recording;
-use crate::sinks::feed::FeedWriter;
 use crate::sync::FrameSetAssembler;
 
 /// What a replay did.
@@ -51,42 +55,13 @@ pub fn open(dir: &Path, config: Option<Config>) -> Result<Recording> {
     rec.with_context(|| format!("cannot replay {}", dir.display()))
 }
 
-/// `tagdeflect replay DIR`: the feed to stdout.
-pub fn replay_to_stdout(dir: &Path, config: Option<Config>, full_frame: bool) -> Result<ReplaySummary> {
-    let rec = open(dir, config)?;
-    let mut out = FeedWriter::stdout();
-    let mut write_err = None;
-    let progress = std::io::stderr().is_terminal();
-    let summary = replay(&rec, ReplayOptions { full_frame, progress }, |line, _, _| {
-        if write_err.is_none() {
-            if let Err(e) = out.write(line) {
-                write_err = Some(e);
-            }
-        }
-    })?;
-    if let Some(e) = write_err {
-        return Err(e.into());
-    }
-    tracing::info!(
-        sets = summary.sets,
-        bad_frames = summary.bad_frames,
-        full_frame_searches = summary.stats.full_frame_searches,
-        window_searches = summary.stats.window_searches,
-        tracked_tags = summary.stats.tracked_tags,
-        "replay done in {:.2} s",
-        summary.wall_s
-    );
-    Ok(summary)
-}
-
 /// Replays a recording through the measurement; `on_line(line, stage_times, latency_s)`
 /// is called for every frame set in order (latency: frame set complete → line made).
 pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
     replay_sets(rec, opts, |_, line, times, latency, _| on_line(&line, times, latency))
 }
 
-/// [`replay`] handing over each frame set with its line and the measurement that made it
-/// (what the sinks take: the live page shows the set's tags).
+/// [`replay`] handing over each frame set with its line and the measurement that made it.
 fn replay_sets(
     rec: &Recording,
     opts: ReplayOptions,
@@ -150,42 +125,17 @@ fn replay_sets(
     Ok(summary)
 }
 
-/// `replay DIR --http ADDR` (without `--realtime`): the replay as fast as it goes, its lines
-/// to the sinks a run would have for it — the feed on stdout and the live page, on the sinks'
-/// own thread; then the page stays up until SIGINT/SIGTERM.
-#[cfg(feature = "http")]
-pub fn replay_with_page(dir: &Path, config: Option<Config>, full_frame: bool, opts: crate::graph::page::HttpOptions) -> anyhow::Result<()> {
-    use anyhow::Context;
-    use tagdeflect_sinks::{Fanout, FeedFileSink, Finished, LineSink};
-    let rec = open(dir, config)?;
-    let rt =
-        tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().context("cannot start the async runtime")?;
-    let page = rt.block_on(crate::graph::page::Page::start(&rec.config, Some(opts), "replay"))?;
-    let hooks = page.handle();
-    for s in &rec.utm {
-        hooks.on_utm(&crate::utm::UtmEvent::Sample(*s));
-    }
-    let mut sinks: Vec<Box<dyn LineSink>> = vec![Box::new(FeedFileSink(tagdeflect_core::feed_file::FeedWriter::stdout()))];
-    sinks.extend(page.sink()?);
-    let fanout = Fanout::start(sinks).context("cannot start the sinks' thread")?;
-    let ro = ReplayOptions { full_frame, progress: false };
-    replay_sets(&rec, ro, |set, line, _, _, measure| {
-        fanout.send(Finished { line, set: Some(set), observed: std::sync::Arc::new(measure.observed()) });
-    })?;
-    fanout.finish();
-    page.on_finished();
-    rt.block_on(linger())
-}
-
 /// Keeps the page up after a replay until SIGINT/SIGTERM.
 #[cfg(feature = "http")]
 pub async fn linger() -> anyhow::Result<()> {
     use anyhow::Context;
     tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
+    let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot watch SIGHUP")?;
     tokio::select! {
         _ = tokio::signal::ctrl_c() => {}
         _ = term.recv() => {}
+        _ = hup.recv() => {}
     }
     Ok(())
 }

@@ -391,3 +391,17 @@ fn two_in_process_fake_cameras_stream_side_by_side() {
         assert_eq!((f.image.width, f.image.height), want);
     }
 }
+
+/// `tagdeflect cameras` lists what a config can name: here Aravis's in-process fake camera
+/// (with `--with-fake`), with the `source = ...` line to write; without it, not.
+#[test]
+fn cameras_lists_the_fake_camera_with_its_source_line() {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["cameras", "--with-fake"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("V4L2 capture devices:"), "{text}");
+    assert!(text.contains("source = \"aravis:Fake_1\"") || text.contains("source = \"aravis:Aravis-Fake"), "{text}");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect")).arg("cameras").output().unwrap();
+    assert!(o.status.success());
+    assert!(!String::from_utf8_lossy(&o.stdout).contains("Fake"), "the fake camera only when asked for");
+}

@@ -143,6 +143,11 @@ fn bundled_recordings_replay_to_clean_accurate_feeds() {
         common::feedcheck_text(&text, &dir.join("tagdeflect.toml"));
         let rec = tagdeflect::recording::Recording::open(&dir).unwrap();
         let lines: Vec<tagdeflect::feed::FeedLine> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        // `replay` is the graph with the recording as its source; it writes exactly the lines
+        // of the measurement driven in-process (what bench and the other tests use).
+        let (_, in_process, _) = common::replay_lines(&dir, false);
+        let expected: String = in_process.iter().map(|l| l.to_json() + "\n").collect();
+        assert!(text == expected, "{}: the graph's replay differs from the in-process lines", dir.display());
         let acc = tagdeflect::accuracy::evaluate(&rec.config, &rec.truth, &lines);
         println!("{}: {acc}", dir.display());
         assert_eq!(acc.coverage(), 1.0, "{}", dir.display());

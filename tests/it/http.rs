@@ -469,3 +469,86 @@ fn the_page_script_puts_no_data_in_as_markup() {
     }
     assert!(js.contains("textContent"), "app.js writes text with textContent");
 }
+
+/// Raw request on a fresh connection: the response's head (status line and headers).
+fn raw_head(addr: SocketAddr, request: &str) -> String {
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    s.write_all(request.as_bytes()).unwrap();
+    let mut raw = Vec::new();
+    let _ = s.read_to_end(&mut raw);
+    let text = String::from_utf8_lossy(&raw).to_string();
+    text.split("\r\n\r\n").next().unwrap_or_default().to_string()
+}
+
+/// Open sockets of process `pid` (its entries in /proc/PID/fd that are sockets).
+fn sockets_of(pid: u32) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .map(|d| d.filter_map(|e| std::fs::read_link(e.ok()?.path()).ok()).filter(|l| l.to_string_lossy().starts_with("socket:")).count())
+        .unwrap_or(0)
+}
+
+/// The page's server guards itself: a `Host` naming another site is refused (DNS
+/// rebinding), every answer carries a Content-Security-Policy, a half-sent header is closed
+/// after the header timeout, and idle connections beyond the cap are closed at once — the
+/// daemon's descriptors stay bounded and the page answers again once they time out.
+#[test]
+fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
+    use tagdeflect::sinks::http::{HEADER_TIMEOUT, MAX_CONNECTIONS};
+    let rec = root().join("replay/one-cam");
+    let mut d = Daemon::start(&["replay", rec.to_str().unwrap(), "--http", "127.0.0.1:0"]);
+    let addr = d.addr();
+    finished_status(addr);
+
+    let head = raw_head(addr, "GET /api/status HTTP/1.1\r\nHost: evil.example:8080\r\nConnection: close\r\n\r\n");
+    assert!(head.starts_with("HTTP/1.1 421"), "{head}");
+    let head = raw_head(addr, &format!("GET / HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"));
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    let csp = head.lines().find(|l| l.to_ascii_lowercase().starts_with("content-security-policy:")).unwrap_or_else(|| panic!("{head}"));
+    assert!(csp.contains("script-src 'self'") && csp.contains("object-src 'none'"), "{csp}");
+    let head = raw_head(addr, "GET / HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n");
+    assert!(head.starts_with("HTTP/1.1 200"), "localhost is this server: {head}");
+
+    // Half a header: the server closes the connection once the header timeout has passed.
+    let mut half = TcpStream::connect(addr).unwrap();
+    half.write_all(b"GET / HTTP/1.1\r\nHost: 127").unwrap();
+    half.set_read_timeout(Some(HEADER_TIMEOUT + Duration::from_secs(20))).unwrap();
+    let t0 = Instant::now();
+    let mut buf = [0u8; 512];
+    let n = half.read(&mut buf);
+    assert!(matches!(n, Ok(_)), "closed by the server, not by our read timeout: {n:?}");
+    assert!(t0.elapsed() >= HEADER_TIMEOUT - Duration::from_secs(1), "closed after {:?}", t0.elapsed());
+
+    // Far more idle connections than the cap: the daemon holds at most the cap.
+    let pid = d.child.id();
+    let before = sockets_of(pid);
+    let idle: Vec<TcpStream> = (0..MAX_CONNECTIONS + 100).map(|_| TcpStream::connect(addr).unwrap()).collect();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    // Wait until the daemon has taken every connection from the backlog (accepted or closed).
+    loop {
+        let held = sockets_of(pid);
+        let still_open = idle.iter().filter(|s| {
+            s.set_nonblocking(true).unwrap();
+            let r = s.peek(&mut [0u8; 1]);
+            matches!(r, Err(ref e) if e.kind() == std::io::ErrorKind::WouldBlock)
+        });
+        if still_open.count() <= MAX_CONNECTIONS {
+            assert!(held <= before + MAX_CONNECTIONS + 2, "{held} sockets held (cap {MAX_CONNECTIONS}, {before} before)");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the daemon did not close the connections beyond its cap");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // The idle ones time out; the page answers again.
+    let deadline = Instant::now() + tagdeflect::sinks::http::IDLE_TIMEOUT + Duration::from_secs(30);
+    loop {
+        let head = raw_head(addr, &format!("GET /api/status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"));
+        if head.starts_with("HTTP/1.1 200") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the page did not answer after the idle connections timed out: {head}");
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    drop(idle);
+    assert_eq!(d.stop(), Some(0));
+}

@@ -63,12 +63,17 @@ impl Daemon {
     }
 
     /// SIGTERM, then wait (at most 20 s) for the exit status and the output.
-    fn terminate(mut self) -> (Option<i32>, String, String) {
+    fn terminate(self) -> (Option<i32>, String, String) {
+        self.stop_with(libc::SIGTERM)
+    }
+
+    /// Sends `signal`, then waits (at most 20 s) for the exit status and the output.
+    fn stop_with(mut self, signal: i32) -> (Option<i32>, String, String) {
         // SAFETY: kill(2) on the pid of a child this test started and still owns.
-        unsafe { libc::kill(self.0.id() as i32, libc::SIGTERM) };
+        unsafe { libc::kill(self.0.id() as i32, signal) };
         let deadline = Instant::now() + Duration::from_secs(20);
         while self.0.try_wait().unwrap().is_none() {
-            assert!(Instant::now() < deadline, "tagdeflect did not stop within 20 s of SIGTERM");
+            assert!(Instant::now() < deadline, "tagdeflect did not stop within 20 s of signal {signal}");
             std::thread::sleep(Duration::from_millis(50));
         }
         let child = std::mem::replace(&mut self.0, Command::new("true").spawn().unwrap());
@@ -261,6 +266,90 @@ fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
     let lines: Vec<FeedLine> = stdout.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert!(lines.len() >= 4 && lines.iter().all(|l| l.load_kn.is_none() && l.utm.is_none()));
     common::feedcheck_text(&stdout, &cfg_path);
+}
+
+/// A closed terminal (SIGHUP) ends a run as SIGTERM does: exit 0, the recorder drained
+/// (every frame it took is in `frames.jsonl` with its image), the feed's lines complete.
+#[test]
+fn sighup_stops_a_run_as_sigterm_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = None;
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let rec = dir.path().join("rec");
+    let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()]);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while fs::read_to_string(rec.join("frames.jsonl")).unwrap_or_default().lines().count() < 5 {
+        assert!(Instant::now() < deadline, "recording did not grow");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (code, stdout, stderr) = daemon.stop_with(libc::SIGHUP);
+    assert_eq!(code, Some(0), "SIGHUP must end the run cleanly (exit 0), not kill it (129): {stderr}");
+    assert!(stderr.contains("SIGHUP: stopping"), "{stderr}");
+    let lines: Vec<FeedLine> = stdout.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(lines.len() >= 4, "{} lines", lines.len());
+    // The recorder was drained: every recorded frame's image is on disk, and the replay of the
+    // recording reads every one of them.
+    let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap();
+    for l in frames.lines() {
+        let v: serde_json::Value = serde_json::from_str(l).unwrap();
+        let file = v["file"].as_str().unwrap();
+        assert!(rec.join(file).is_file(), "{file} listed but not written");
+    }
+}
+
+/// A stalled process (SIGSTOP, then SIGCONT) leaves a hole in time with contiguous seq and no
+/// dropped set: the run says so (WARN with the gap) instead of passing over it.
+#[test]
+fn a_stalled_run_warns_of_the_gap_in_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = None;
+    let feed = dir.path().join("feed.jsonl");
+    cfg.output.feed = Some(feed.to_string_lossy().into_owned());
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap()]);
+    wait_for_lines(&feed, 3, Duration::from_secs(60));
+    let pid = daemon.0.id() as i32;
+    // SAFETY: kill(2) on the pid of a child this test started and still owns.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    std::thread::sleep(Duration::from_secs(4)); // the stall itself, not a synchronisation
+                                                // SAFETY: as above.
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    let before = read_feed(&feed).len();
+    wait_for_lines(&feed, before + 3, Duration::from_secs(60));
+    let (code, _, stderr) = daemon.terminate();
+    assert_eq!(code, Some(0), "{stderr}");
+    let lines = read_feed(&feed);
+    let biggest = lines.windows(2).map(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9).fold(0.0, f64::max);
+    assert!(biggest >= 3.0, "the stall shows in the feed's times: largest step {biggest:.1} s");
+    assert!(stderr.contains("no frame set for") && stderr.contains("the feed has a gap here"), "{stderr}");
+}
+
+/// `check --config` reads the UTM once: the value and the time to the first reading from a
+/// real Modbus peer; against an address where nothing listens it says so (exit 0: the config
+/// itself is fine). It also prints each specimen tag's size in pixels per camera.
+#[test]
+fn check_reads_the_utm_once_and_says_when_it_is_silent() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let server = start_pymodbus(port);
+    let cfg = live_config(dir.path(), port);
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["check", "--config", cfg.to_str().unwrap()]).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}{text}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains(&format!("UTM 127.0.0.1:{port}: load 12.5000 kN, stroke -2.5000 mm; first reading after")), "{text}");
+    assert_eq!(text.matches("specimen tag size (px, mean side)").count(), 2, "{text}");
+    drop(server);
+    // Nothing listens there now.
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["check", "--config", cfg.to_str().unwrap()]).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "a silent UTM is a warning, the config is fine: {}{text}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains(&format!("warning: UTM 127.0.0.1:{port}: no")), "{text}");
 }
 
 #[test]

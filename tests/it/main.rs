@@ -13,6 +13,7 @@ mod detect_accuracy;
 mod detect_sim;
 mod docs;
 mod drift;
+mod faults;
 mod gauges;
 mod http;
 mod live;

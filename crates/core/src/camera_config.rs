@@ -189,8 +189,18 @@ impl CameraSection {
     pub fn resolve(&self, base: &std::path::Path) -> Result<CameraConfig, crate::Problem> {
         use crate::Problem;
         let name = self.name.trim().to_string();
-        if name.is_empty() || name.contains(['/', '\\']) || name == "." || name == ".." || name.chars().any(|ch| ch.is_control()) {
-            return Err(Problem::new("name", "must be a non-empty name usable as a folder name (no slashes)"));
+        // A name is a folder name, a metric label, an MQTT topic level and text on the live
+        // page: letters, digits, `_`, `-`, `.` only, so that no name is markup, a path or a
+        // topic wildcard wherever it lands.
+        let allowed = |ch: char| ch.is_alphanumeric() || matches!(ch, '_' | '-' | '.');
+        if name.is_empty() || name.chars().count() > 64 || name.starts_with('.') || !name.chars().all(allowed) {
+            return Err(Problem::new(
+                "name",
+                format!(
+                    "\"{}\" is not a camera name: 1 to 64 letters, digits, `_`, `-` and `.` (not first), usable as a folder name",
+                    self.name.escape_debug()
+                ),
+            ));
         }
         if let Some(f) = RESERVED_NAMES.iter().find(|f| f.eq_ignore_ascii_case(&name)) {
             return Err(Problem::new(

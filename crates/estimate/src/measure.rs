@@ -301,7 +301,8 @@ impl Measurement {
                         self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
                     })
                     .collect();
-                let status = cam.pose.update_at(set.t_ns, &obs);
+                // Every line the held pose logs names its camera (the span's field).
+                let status = tracing::info_span!("pose", camera = %cam.name).in_scope(|| cam.pose.update_at(set.t_ns, &obs));
                 if let Some(d) = status.drift {
                     h.drift_deg = Some((d.angle_deg() * 1e6).round() / 1e6);
                     h.drift_mm = Some(round_mm(d.shift_mm()));

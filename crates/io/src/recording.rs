@@ -16,7 +16,7 @@
 //! complete line.
 
 use serde::{Deserialize, Serialize};
-use std::fs::{self, File};
+use std::fs;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
@@ -233,7 +233,7 @@ pub(crate) const MAX_JSONL_LINE: usize = 1 << 20;
 /// Reads a JSON Lines file line by line (never the whole file at once; each line at most
 /// [`MAX_JSONL_LINE`] bytes), skipping (and recording) a truncated last line.
 fn read_jsonl<T: for<'de> Deserialize<'de>>(path: &Path, skipped: &mut Vec<String>) -> Result<Vec<T>, RecordingError> {
-    let file = File::open(path).map_err(io_err(path))?;
+    let file = tagdeflect_core::text_file::open_regular(path).map_err(io_err(path))?;
     read_jsonl_from(BufReader::new(file), path, skipped)
 }
 
@@ -314,7 +314,7 @@ pub(crate) fn read_gray_into_checked(
     expect: Option<(u32, u32)>,
 ) -> Result<(), RecordingError> {
     let bad = |m: String| RecordingError::BadImage { path: path.to_path_buf(), message: m };
-    let mut file = File::open(path).map_err(io_err(path))?;
+    let mut file = tagdeflect_core::text_file::open_regular(path).map_err(io_err(path))?;
     let file_len = file.metadata().map_err(io_err(path))?.len();
     // A frame file is at most its pixels plus headers (PNG: plus incompressible overhead).
     let max_file = expect.map_or(MAX_IMAGE_FILE_BYTES, |(w, h)| (w as u64 * h as u64 * 2 + (1 << 20)).min(MAX_IMAGE_FILE_BYTES));

@@ -9,6 +9,9 @@
 //! ever fill, the oldest line is dropped, counted ([`Fanout::dropped`]) and logged: that is a
 //! sink stalled for minutes, which its own error reporting has said by then.
 //!
+//! A replay as fast as it goes ([`Overflow::Wait`]) wants the opposite: every line, however
+//! slow the reader of its stdout; there `send` waits for room instead of dropping.
+//!
 //! Every sink sees the lines in order, complete: status counters (recorder state, drops,
 //! `mqtt_dropped`) are written into the line before it leaves the measurement, never by a
 //! sink, so the order of sinks cannot change the output.
@@ -56,25 +59,60 @@ struct Queue {
     dropped: u64,
 }
 
+/// What [`Fanout::send`] does when [`QUEUE_LINES`] lines wait.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Overflow {
+    /// Drop the oldest line and count it: the measurement never waits (live runs).
+    #[default]
+    DropOldest,
+    /// Wait until the sinks have taken a line: nothing is lost and the producer slows to the
+    /// sinks' pace (a replay as fast as it goes, which has no camera to keep up with).
+    Wait,
+}
+
 /// The sinks' thread and its queue.
 pub struct Fanout {
-    shared: Arc<(Mutex<Queue>, Condvar)>,
+    shared: Arc<Shared>,
+    overflow: Overflow,
     thread: Option<JoinHandle<Vec<Box<dyn LineSink>>>>,
 }
 
+struct Shared {
+    queue: Mutex<Queue>,
+    /// A line was queued, or the queue closed.
+    ready: Condvar,
+    /// A line was taken ([`Overflow::Wait`]).
+    room: Condvar,
+}
+
 impl Fanout {
-    /// Starts the thread that feeds `sinks`, in this order.
+    /// Starts the thread that feeds `sinks`, in this order; a full queue drops its oldest line.
     pub fn start(sinks: Vec<Box<dyn LineSink>>) -> std::io::Result<Fanout> {
-        let shared = Arc::new((Mutex::new(Queue { lines: VecDeque::new(), closed: false, dropped: 0 }), Condvar::new()));
-        let s = shared.clone();
-        let thread = std::thread::Builder::new().name("sinks".into()).spawn(move || run(&s, sinks))?;
-        Ok(Fanout { shared, thread: Some(thread) })
+        Self::start_with(sinks, Overflow::DropOldest)
     }
 
-    /// Queues a finished set for every sink; never waits (see the module doc).
+    /// Starts the thread that feeds `sinks`, in this order, with the given overflow policy.
+    pub fn start_with(sinks: Vec<Box<dyn LineSink>>, overflow: Overflow) -> std::io::Result<Fanout> {
+        let shared = Arc::new(Shared {
+            queue: Mutex::new(Queue { lines: VecDeque::new(), closed: false, dropped: 0 }),
+            ready: Condvar::new(),
+            room: Condvar::new(),
+        });
+        let s = shared.clone();
+        let thread = std::thread::Builder::new().name("sinks".into()).spawn(move || run(&s, sinks))?;
+        Ok(Fanout { shared, overflow, thread: Some(thread) })
+    }
+
+    /// Queues a finished set for every sink. With [`Overflow::DropOldest`] it never waits;
+    /// with [`Overflow::Wait`] it waits while the queue is full (see the module doc).
     pub fn send(&self, mut finished: Finished) {
-        let (lock, ready) = &*self.shared;
-        let mut q = lock.lock().expect("sink queue");
+        let mut q = self.shared.queue.lock().expect("sink queue");
+        if self.overflow == Overflow::Wait {
+            // `closed`: the sinks' thread has ended (it failed); drop-oldest from there on.
+            while q.lines.len() >= QUEUE_LINES && !q.closed {
+                q = self.shared.room.wait(q).expect("sink queue");
+            }
+        }
         if q.lines.len() >= QUEUE_SETS_WITH_IMAGES {
             finished.set = None;
         }
@@ -86,12 +124,12 @@ impl Fanout {
             }
         }
         q.lines.push_back(finished);
-        ready.notify_one();
+        self.shared.ready.notify_one();
     }
 
     /// Lines dropped because the sinks were stalled.
     pub fn dropped(&self) -> u64 {
-        self.shared.0.lock().expect("sink queue").dropped
+        self.shared.queue.lock().expect("sink queue").dropped
     }
 
     /// Lets the sinks take every queued line, finishes each and ends the thread.
@@ -101,9 +139,8 @@ impl Fanout {
 
     fn close_and_join(&mut self) {
         {
-            let (lock, ready) = &*self.shared;
-            lock.lock().expect("sink queue").closed = true;
-            ready.notify_all();
+            self.shared.queue.lock().expect("sink queue").closed = true;
+            self.shared.ready.notify_all();
         }
         if let Some(t) = self.thread.take() {
             match t.join() {
@@ -120,19 +157,33 @@ impl Drop for Fanout {
     }
 }
 
-fn run(shared: &(Mutex<Queue>, Condvar), mut sinks: Vec<Box<dyn LineSink>>) -> Vec<Box<dyn LineSink>> {
-    let (lock, ready) = shared;
+/// Marks the queue closed when the sinks' thread ends, even by a panic, so that a sender
+/// waiting for room ([`Overflow::Wait`]) is let go.
+struct CloseOnExit<'a>(&'a Shared);
+
+impl Drop for CloseOnExit<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut q) = self.0.queue.lock() {
+            q.closed = true;
+        }
+        self.0.room.notify_all();
+    }
+}
+
+fn run(shared: &Shared, mut sinks: Vec<Box<dyn LineSink>>) -> Vec<Box<dyn LineSink>> {
+    let _close = CloseOnExit(shared);
     loop {
         let next = {
-            let mut q = lock.lock().expect("sink queue");
+            let mut q = shared.queue.lock().expect("sink queue");
             loop {
                 if let Some(f) = q.lines.pop_front() {
+                    shared.room.notify_one();
                     break Some(f);
                 }
                 if q.closed {
                     break None;
                 }
-                q = ready.wait(q).expect("sink queue");
+                q = shared.ready.wait(q).expect("sink queue");
             }
         };
         let Some(f) = next else { return sinks };
@@ -214,5 +265,31 @@ mod tests {
         let with_images = seen.iter().filter(|s| s.1).count();
         assert!((1..=QUEUE_SETS_WITH_IMAGES + 1).contains(&with_images), "{with_images} sets kept their images");
         assert!(done.load(Ordering::SeqCst), "finish reached the sink");
+    }
+
+    #[test]
+    fn with_overflow_wait_a_full_queue_slows_the_sender_and_drops_nothing() {
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let gate = Arc::new(AtomicBool::new(false));
+        let done = Arc::new(AtomicBool::new(false));
+        let sink = Slow { seen: seen.clone(), gate: gate.clone(), finished: done.clone() };
+        let fan = Arc::new(Fanout::start_with(vec![Box::new(sink)], Overflow::Wait).unwrap());
+        let total = QUEUE_LINES as u64 + 50;
+        let sender = {
+            let fan = fan.clone();
+            std::thread::spawn(move || (0..total).for_each(|k| fan.send(finished(k))))
+        };
+        // The sender fills the queue and then waits: it cannot finish while the sink is stalled.
+        while fan.shared.queue.lock().unwrap().lines.len() < QUEUE_LINES {
+            std::thread::yield_now();
+        }
+        assert!(!sender.is_finished(), "the sender waits for room");
+        gate.store(true, Ordering::SeqCst);
+        sender.join().unwrap();
+        let fan = Arc::try_unwrap(fan).ok().expect("one owner left");
+        assert_eq!(fan.dropped(), 0);
+        fan.finish();
+        let seen = seen.lock().unwrap();
+        assert_eq!(seen.iter().map(|s| s.0).collect::<Vec<_>>(), (0..total).collect::<Vec<_>>(), "every line, in order");
     }
 }

@@ -10,5 +10,5 @@ pub mod output;
 pub mod recorder;
 mod rig_info;
 
-pub use fanout::{Fanout, FeedFileSink, Finished, LineSink};
+pub use fanout::{Fanout, FeedFileSink, Finished, LineSink, Overflow};
 pub use rig_info::RigInfo;

@@ -22,6 +22,10 @@ pub struct OutputConfig {
     /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http: Option<String>,
+    /// (extension) Host names the live page answers to besides IP addresses, `localhost` and
+    /// this machine's own name (a request naming any other host is refused: DNS rebinding).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub http_hosts: Vec<String>,
     /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
     /// recording carries no broker address or credentials).
     #[serde(default, skip_serializing)]
@@ -48,6 +52,12 @@ impl OutputConfig {
             crate::http::parse_addr(h).map_err(|m| Problem::new("http", m))?;
             #[cfg(not(feature = "http"))]
             return Err(Problem::new("http", format!("\"{h}\": this build has no live page: build with the `http` feature")));
+        }
+        for (i, h) in self.http_hosts.iter().enumerate() {
+            let ok = !h.is_empty() && h.len() <= 253 && h.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.');
+            if !ok {
+                return Err(Problem::new(format!("http_hosts[{i}]"), format!("\"{h}\" is not a host name (letters, digits, `-` and `.`)")));
+            }
         }
         if let Some(r) = &self.record {
             if r.is_relative() {

@@ -82,6 +82,45 @@ pub(crate) fn enable_fake_interface() {
     });
 }
 
+/// Every device Aravis's discovery finds now (each enabled interface: GigE Vision, USB3
+/// Vision, and the fake one when enabled).
+pub(crate) fn list_devices() -> Vec<super::list::AravisDevice> {
+    use std::ffi::CStr;
+    let _guard = OPEN_LOCK.lock().unwrap_or_else(|p| p.into_inner());
+    // SAFETY: Aravis's global device list is rebuilt and read under OPEN_LOCK, which every
+    // other user of it in this process takes; the call has no arguments.
+    let n = unsafe {
+        aravis_sys::arv_update_device_list();
+        aravis_sys::arv_get_n_devices()
+    };
+    let text = |p: *const std::os::raw::c_char| -> String {
+        if p.is_null() {
+            String::new()
+        } else {
+            // SAFETY: a non-null pointer from arv_get_device_* is a NUL-terminated string owned
+            // by Aravis's device list, valid until the list is next updated (we hold the lock
+            // and copy it at once).
+            unsafe { CStr::from_ptr(p) }.to_string_lossy().into_owned()
+        }
+    };
+    (0..n)
+        .map(|i| {
+            // SAFETY: `i` < arv_get_n_devices() for the list just updated under the lock; each
+            // getter returns NULL or a string owned by the list (copied by `text`).
+            unsafe {
+                super::list::AravisDevice {
+                    id: text(aravis_sys::arv_get_device_id(i)),
+                    vendor: text(aravis_sys::arv_get_device_vendor(i)),
+                    model: text(aravis_sys::arv_get_device_model(i)),
+                    serial: text(aravis_sys::arv_get_device_serial_nbr(i)),
+                    address: text(aravis_sys::arv_get_device_address(i)),
+                    protocol: text(aravis_sys::arv_get_device_protocol(i)),
+                }
+            }
+        })
+        .collect()
+}
+
 /// Whether a device id names Aravis's in-process fake camera.
 pub(crate) fn is_fake_id(id: &str) -> bool {
     id.starts_with("Fake") || id.starts_with("Aravis-Fake")

@@ -17,14 +17,16 @@
 //! `replay --realtime`, `bench --realtime`). Every frame is stamped on the process clock
 //! ([`tagdeflect_core::clock`]).
 //!
-//! `replay` and `bench` read a recording as fast as they can instead, through
-//! `Recording::frames` — the same frames, without the pacing.
+//! A plain `replay` (and `bench`) reads a recording as fast as it can instead, through
+//! `Recording::frames` — the same frames, without the pacing, handed over in time order
+//! (the graph's `Pacing::AsFast`). [`list`] says which cameras the machine can see.
 
 #[cfg(feature = "aravis")]
 pub mod aravis;
 pub use tagdeflect_core::clock;
 pub mod capture;
 pub mod convert;
+pub mod list;
 pub mod recording;
 pub mod v4l2;
 

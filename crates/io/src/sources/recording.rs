@@ -5,7 +5,9 @@
 //! skipped); the camera's thread ends when its frames are played out.
 //!
 //! The cameras of one recording share one [`Playhead`]: frame `t` is due `t − t_first` after
-//! the playhead started, so the cameras keep their recorded relative timing.
+//! the playhead started, so the cameras keep their recorded relative timing — except that a
+//! pause in the recording longer than [`MAX_PLAYED_GAP`] is played as that long (and logged):
+//! a frame stamped hours or 10^18 ns later is played next, never waited for.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -14,23 +16,68 @@ use crate::recording::{CameraList, RecordedConfig, Recording};
 use crate::sources::capture::{CaptureSession, Captured};
 use tagdeflect_core::frame::GrayImage;
 
-/// The shared start of a recording's playback.
+/// The longest pause between two recorded frames that a paced replay waits out.
+pub const MAX_PLAYED_GAP: Duration = Duration::from_secs(5);
+
+/// The shared start of a recording's playback, and its schedule.
 #[derive(Debug)]
 pub struct Playhead {
     started: Instant,
-    first_t_ns: i64,
+    /// The recording's distinct frame times, ascending, with when each is due after the start
+    /// (recorded time since the first frame, each pause capped at [`MAX_PLAYED_GAP`]).
+    schedule: Vec<(i64, Duration)>,
 }
 
 impl Playhead {
     /// Starts now; the recording's earliest frame is due at once.
     pub fn start<C>(rec: &Recording<C>) -> Arc<Playhead> {
-        Arc::new(Playhead { started: Instant::now(), first_t_ns: rec.frames.first().map_or(0, |f| f.t_ns) })
+        Arc::new(Self::with_times(rec.frames.iter().map(|f| f.t_ns), true))
+    }
+
+    /// As [`Playhead::start`], without logging the capped pauses (a second player of the same
+    /// recording: its UTM stream).
+    pub fn start_silent<C>(rec: &Recording<C>) -> Playhead {
+        Self::with_times(rec.frames.iter().map(|f| f.t_ns), false)
+    }
+
+    fn with_times(times: impl Iterator<Item = i64>, warn: bool) -> Playhead {
+        let mut times: Vec<i64> = times.collect();
+        times.sort_unstable();
+        times.dedup();
+        let mut schedule = Vec::with_capacity(times.len());
+        let mut due = Duration::ZERO;
+        for (k, &t) in times.iter().enumerate() {
+            if k > 0 {
+                let gap = Duration::from_nanos(u64::try_from(t as i128 - times[k - 1] as i128).unwrap_or(u64::MAX));
+                if warn && gap > MAX_PLAYED_GAP {
+                    tracing::warn!(
+                        "the recording pauses {:.1} s before the frame at t_ns={t}; played as {} s",
+                        gap.as_secs_f64(),
+                        MAX_PLAYED_GAP.as_secs()
+                    );
+                }
+                due += gap.min(MAX_PLAYED_GAP);
+            }
+            schedule.push((t, due));
+        }
+        Playhead { started: Instant::now(), schedule }
+    }
+
+    /// When something recorded at `t_ns` (a frame, a UTM sample) is due after the start: the
+    /// schedule of the last frame at or before it, plus the rest (capped as a pause is).
+    pub fn due(&self, t_ns: i64) -> Duration {
+        let k = self.schedule.partition_point(|(t, _)| *t <= t_ns);
+        if k == 0 {
+            return Duration::ZERO;
+        }
+        let (t, at) = self.schedule[k - 1];
+        let rest = Duration::from_nanos(u64::try_from(t_ns as i128 - t as i128).unwrap_or(u64::MAX));
+        at + rest.min(MAX_PLAYED_GAP)
     }
 
     /// How long until a frame recorded at `t_ns` is due (zero when due or late).
     fn wait_for(&self, t_ns: i64) -> Duration {
-        let due = Duration::from_nanos(t_ns.saturating_sub(self.first_t_ns).max(0).unsigned_abs());
-        due.saturating_sub(self.started.elapsed())
+        self.due(t_ns).saturating_sub(self.started.elapsed())
     }
 }
 
@@ -83,5 +130,23 @@ impl CaptureSession for RecordingSession {
             Ok(()) => Captured::Image(entry.t_ns),
             Err(e) => Captured::Bad(e.to_string()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_schedule_keeps_recorded_spacing_and_caps_long_pauses() {
+        let s = 1_000_000_000i64;
+        let head = Playhead::with_times([0, s / 10, 2 * s / 10, 2 * s / 10 + 1_000_000_000_000_000_000, i64::MAX].into_iter(), false);
+        assert_eq!(head.due(0), Duration::ZERO);
+        assert_eq!(head.due(s / 10), Duration::from_millis(100));
+        assert_eq!(head.due(s / 20), Duration::from_millis(50), "between frames: recorded spacing");
+        // A frame 10^18 ns later is due one capped pause later, not in 31 years.
+        assert_eq!(head.due(2 * s / 10 + 1_000_000_000_000_000_000), Duration::from_millis(200) + MAX_PLAYED_GAP);
+        assert_eq!(head.due(i64::MAX), Duration::from_millis(200) + 2 * MAX_PLAYED_GAP);
+        assert_eq!(head.due(i64::MIN), Duration::ZERO, "before the first frame: at once");
     }
 }

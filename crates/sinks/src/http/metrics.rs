@@ -64,6 +64,8 @@ pub struct Metrics {
     pub http_clients: Gauge,
     /// Events lost by slow `/events` clients (they skip ahead; the solver never waits).
     pub http_events_lagged: Counter,
+    /// Connections and requests the server refused (connection cap, `Host` check).
+    pub http_refused: Counter,
 }
 
 impl Default for Metrics {
@@ -99,6 +101,7 @@ impl Metrics {
             recorder_dropped: Gauge::default(),
             http_clients: Gauge::default(),
             http_events_lagged: Counter::default(),
+            http_refused: Counter::default(),
             registry: Registry::default(),
         };
         registry.register("camera_frames", "Frames delivered by the camera's source", m.frames.clone());
@@ -126,6 +129,7 @@ impl Metrics {
         registry.register("recorder_dropped", "Frames and UTM samples the recorder could not keep up with", m.recorder_dropped.clone());
         registry.register("http_event_clients", "Clients connected to /events", m.http_clients.clone());
         registry.register("http_events_lagged", "Events skipped by slow /events clients", m.http_events_lagged.clone());
+        registry.register("http_refused", "Connections and requests refused (connection cap, Host check)", m.http_refused.clone());
         Metrics { registry, ..m }
     }
 

@@ -27,7 +27,9 @@ mod view;
 
 use std::net::SocketAddr;
 
-pub use server::{parse_addr, serve, wanted, HttpOptions, HttpServer, DEFAULT_ADDR};
+pub use server::{
+    parse_addr, serve, wanted, AllowedHosts, HttpOptions, HttpServer, DEFAULT_ADDR, HEADER_TIMEOUT, IDLE_TIMEOUT, MAX_CONNECTIONS,
+};
 pub use tap::SolverTap;
 pub use view::{observe, LiveView};
 

@@ -1,8 +1,10 @@
 //! The server: where the page is served ([`HttpOptions`], [`parse_addr`], [`wanted`]) and
 //! the axum server on the pipeline's runtime ([`serve`], [`HttpServer`]).
 
+use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 
 use super::{routes, HttpError, LiveView};
 
@@ -37,6 +39,21 @@ pub fn wanted(configured: Option<&str>, opts: Option<HttpOptions>) -> Option<Htt
     opts.or_else(|| configured.and_then(|a| parse_addr(a).ok()).map(|addr| HttpOptions { addr, required: true }))
 }
 
+/// Connections served at once at most; one more is closed at once (counted, logged). The
+/// page needs two per viewer (`/events` and the fetches): 64 viewers, and the daemon's own
+/// files — recorder, feed, cameras — keep their room under the unit's `LimitNOFILE`.
+pub const MAX_CONNECTIONS: usize = 128;
+/// A client has this long to send a request's headers (a connection that sends nothing, or
+/// half a header, is closed: `slowloris`).
+pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
+/// A kept-alive connection with no request in flight is closed after this long.
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// The response headers every answer carries: the page runs only its own script and styles,
+/// loads nothing from elsewhere, and cannot be framed.
+const CSP: &str = "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; \
+                   object-src 'none'; base-uri 'none'; frame-ancestors 'none'; form-action 'self'";
+
 /// The running server; stops (closing every connection) when dropped.
 pub struct HttpServer {
     /// The bound address.
@@ -50,10 +67,52 @@ impl Drop for HttpServer {
     }
 }
 
+/// The names a request's `Host` may carry besides IP literals and `localhost`: this machine's
+/// host name (and `NAME.local`), and `extra` (`[output] http_hosts`). Any other name is a
+/// page of another site whose name was pointed at this machine (DNS rebinding): refused.
+#[derive(Debug, Clone)]
+pub struct AllowedHosts(Vec<String>);
+
+impl AllowedHosts {
+    /// This machine's names and `extra`.
+    pub fn new(extra: &[String]) -> Self {
+        let mut names: Vec<String> = extra.iter().map(|h| h.trim().to_ascii_lowercase()).collect();
+        if let Ok(h) = std::fs::read_to_string("/proc/sys/kernel/hostname") {
+            let h = h.trim().to_ascii_lowercase();
+            if !h.is_empty() {
+                names.push(format!("{h}.local"));
+                names.push(h);
+            }
+        }
+        AllowedHosts(names)
+    }
+
+    /// Whether `host` (a `Host` header: name or IP, with or without the port) names this server.
+    pub fn allows(&self, host: &str) -> bool {
+        let host = host.trim();
+        let name = if let Some(rest) = host.strip_prefix('[') {
+            // [IPv6]:PORT
+            return rest.split_once(']').is_some_and(|(ip, _)| ip.parse::<std::net::Ipv6Addr>().is_ok());
+        } else {
+            match host.rsplit_once(':') {
+                Some((n, port)) if port.chars().all(|c| c.is_ascii_digit()) => n,
+                _ => host,
+            }
+        };
+        name.parse::<std::net::IpAddr>().is_ok()
+            || name.eq_ignore_ascii_case("localhost")
+            || self.0.iter().any(|a| a.eq_ignore_ascii_case(name))
+    }
+}
+
 /// Starts serving `view` on the current tokio runtime. Prints `live page: http://ADDR/` on
 /// stderr with the bound address. When the address cannot be listened on: an error if
 /// `opts.required`, else a warning and `None`.
-pub async fn serve(opts: HttpOptions, view: Arc<LiveView>) -> Result<Option<HttpServer>, HttpError> {
+///
+/// The server guards itself: at most [`MAX_CONNECTIONS`] connections, [`HEADER_TIMEOUT`] for
+/// a request's headers, [`IDLE_TIMEOUT`] for an idle kept-alive connection, a `Host` that
+/// names this server ([`AllowedHosts`]), and a Content-Security-Policy on every answer.
+pub async fn serve(opts: HttpOptions, hosts: AllowedHosts, view: Arc<LiveView>) -> Result<Option<HttpServer>, HttpError> {
     let listener = match tokio::net::TcpListener::bind(opts.addr).await {
         Ok(l) => l,
         Err(source) if opts.required => return Err(HttpError::Bind { addr: opts.addr, source }),
@@ -66,15 +125,141 @@ pub async fn serve(opts: HttpOptions, view: Arc<LiveView>) -> Result<Option<Http
     if !addr.ip().is_loopback() {
         tracing::warn!(%addr, "the live page is served beyond this machine (no authentication): put it behind the lab's proxy or use an SSH tunnel");
     }
-    let app = routes::router(view);
-    let handle = tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, app).await {
-            tracing::error!("live page: {e}");
-        }
-    });
+    let app = guarded(routes::router(view.clone()), hosts, view.clone());
+    let handle = tokio::spawn(accept_loop(listener, app, view));
     eprintln!("live page: http://{addr}/");
     tracing::info!(%addr, "live page and metrics served");
     Ok(Some(HttpServer { addr, handle }))
+}
+
+/// The router behind the `Host` check, with the security headers on every answer.
+fn guarded(router: axum::Router, hosts: AllowedHosts, view: Arc<LiveView>) -> axum::Router {
+    use axum::http::{header, HeaderValue, StatusCode};
+    use axum::response::IntoResponse;
+    let hosts = Arc::new(hosts);
+    router.layer(axum::middleware::from_fn(move |req: axum::extract::Request, next: axum::middleware::Next| {
+        let hosts = hosts.clone();
+        let view = view.clone();
+        async move {
+            let host = req.headers().get(header::HOST).map(|h| h.to_str().unwrap_or("\u{fffd}").to_string());
+            let mut resp = match host {
+                Some(h) if !hosts.allows(&h) => {
+                    let n = view.metrics.http_refused.inc() + 1;
+                    if n.is_power_of_two() {
+                        tracing::warn!(host = %h, refused = n, "live page: a request for another host name refused (DNS rebinding?); add the name to [output] http_hosts if it is this machine's");
+                    }
+                    (StatusCode::MISDIRECTED_REQUEST, format!("Host \"{h}\" does not name this server: add it to [output] http_hosts\n")).into_response()
+                }
+                _ => next.run(req).await,
+            };
+            let hd = resp.headers_mut();
+            hd.insert(header::CONTENT_SECURITY_POLICY, HeaderValue::from_static(CSP));
+            hd.insert(header::X_CONTENT_TYPE_OPTIONS, HeaderValue::from_static("nosniff"));
+            hd.insert(header::REFERRER_POLICY, HeaderValue::from_static("no-referrer"));
+            resp
+        }
+    }))
+}
+
+/// Accepts connections while fewer than [`MAX_CONNECTIONS`] are open; serves each with the
+/// header and idle timeouts.
+async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view: Arc<LiveView>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let mut accept_errors = 0u64;
+    loop {
+        let (stream, peer) = match listener.accept().await {
+            Ok(x) => x,
+            Err(e) => {
+                // Out of file descriptors, or the like: wait, never spin.
+                accept_errors += 1;
+                if accept_errors.is_power_of_two() {
+                    tracing::warn!(errors = accept_errors, "live page: cannot accept a connection: {e}");
+                }
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        let Ok(slot) = slots.clone().try_acquire_owned() else {
+            let n = view.metrics.http_refused.inc() + 1;
+            if n.is_power_of_two() {
+                tracing::warn!(%peer, refused = n, "live page: {MAX_CONNECTIONS} connections open; a new one was closed");
+            }
+            drop(stream);
+            continue;
+        };
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        tokio::spawn(async move {
+            let _slot = slot;
+            let io = IdleTimeout::new(stream, IDLE_TIMEOUT);
+            let mut http = hyper::server::conn::http1::Builder::new();
+            http.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT).keep_alive(true);
+            if let Err(e) = http.serve_connection(hyper_util::rt::TokioIo::new(io), service).await {
+                tracing::debug!(%peer, "live page connection: {e}");
+            }
+        });
+    }
+}
+
+/// A connection that fails (and so is closed) when nothing has been read or written for
+/// `limit` while no response is being streamed — an idle kept-alive client. A stream of events
+/// (`/events`, kept alive every 15 s by the server) writes, and so stays open.
+struct IdleTimeout {
+    inner: tokio::net::TcpStream,
+    limit: Duration,
+    sleep: std::pin::Pin<Box<tokio::time::Sleep>>,
+}
+
+impl IdleTimeout {
+    fn new(inner: tokio::net::TcpStream, limit: Duration) -> Self {
+        Self { inner, limit, sleep: Box::pin(tokio::time::sleep(limit)) }
+    }
+    fn touch(&mut self) {
+        let at = tokio::time::Instant::now() + self.limit;
+        self.sleep.as_mut().reset(at);
+    }
+}
+
+impl tokio::io::AsyncRead for IdleTimeout {
+    fn poll_read(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        use std::task::Poll;
+        let before = buf.filled().len();
+        match std::pin::Pin::new(&mut self.inner).poll_read(cx, buf) {
+            Poll::Ready(r) => {
+                if buf.filled().len() > before {
+                    self.touch();
+                }
+                Poll::Ready(r)
+            }
+            Poll::Pending => match self.sleep.as_mut().poll(cx) {
+                Poll::Ready(()) => Poll::Ready(Err(std::io::Error::new(std::io::ErrorKind::TimedOut, "idle connection closed"))),
+                Poll::Pending => Poll::Pending,
+            },
+        }
+    }
+}
+
+impl tokio::io::AsyncWrite for IdleTimeout {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        data: &[u8],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        let r = std::pin::Pin::new(&mut self.inner).poll_write(cx, data);
+        if matches!(r, std::task::Poll::Ready(Ok(n)) if n > 0) {
+            self.touch();
+        }
+        r
+    }
+    fn poll_flush(mut self: std::pin::Pin<&mut Self>, cx: &mut std::task::Context<'_>) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_flush(cx)
+    }
+    fn poll_shutdown(mut self: std::pin::Pin<&mut Self>, cx: &mut std::task::Context<'_>) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
 }
 
 #[cfg(test)]
@@ -88,6 +273,17 @@ mod tests {
         assert!(parse_addr("[::1]:0").unwrap().ip().is_loopback());
         for bad in ["8080", "127.0.0.1", "127.0.0.1:99999", "lab-pc:80", ""] {
             assert!(parse_addr(bad).unwrap_err().contains("not a listen address"), "{bad}");
+        }
+    }
+
+    #[test]
+    fn host_names_of_this_server_only() {
+        let hosts = AllowedHosts(vec!["lab-pc".into(), "lab-pc.local".into(), "rig3.lab.example".into()]);
+        for ok in ["127.0.0.1:8080", "localhost:8080", "LOCALHOST", "[::1]:8080", "10.0.0.7", "lab-pc:8080", "rig3.lab.example:80"] {
+            assert!(hosts.allows(ok), "{ok}");
+        }
+        for bad in ["evil.example:8080", "localhost.evil.example", "lab-pc.evil.example", "[evil]:80", "", "127.0.0.1.nip.io:8080"] {
+            assert!(!hosts.allows(bad), "{bad}");
         }
     }
 }
