@@ -38,6 +38,9 @@ enum Command {
         /// Stop after this many seconds (default: run until SIGTERM/SIGINT).
         #[arg(long, value_parser = parse_duration_s)]
         duration_s: Option<f64>,
+        /// Keep each test in its own folder here (as `[output] tests`; enables the control API).
+        #[arg(long, value_name = "DIR")]
+        tests: Option<PathBuf>,
     },
     /// The same pipeline over a recording: feed to stdout, logs to stderr.
     Replay {
@@ -117,7 +120,12 @@ enum Command {
         /// Do not serve the live page.
         #[arg(long)]
         no_http: bool,
+        /// Keep each test in its own folder here (as `[output] tests`; enables the control API).
+        #[arg(long, value_name = "DIR")]
+        tests: Option<PathBuf>,
     },
+    /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
+    Test(pipeline::test_cmd::TestArgs),
     /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
     #[cfg(feature = "archive")]
     Archive(tagdeflect::archive::ArchiveOptions),
@@ -332,8 +340,11 @@ fn load_config(path: &std::path::Path) -> Result<Config> {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
-        Command::Run { config, record, duration_s } => {
-            let cfg = load_config(&config)?;
+        Command::Run { config, record, duration_s, tests } => {
+            let mut cfg = load_config(&config)?;
+            if tests.is_some() {
+                cfg.output.tests = tests;
+            }
             // Without `[output] feed` the feed goes to stdout (SPEC leaves it open; a feed
             // nobody sees helps no one).
             let feed_to_stdout = cfg.output.feed.is_none();
@@ -375,9 +386,10 @@ fn run(cli: Cli) -> Result<()> {
             _ => Err(tagdeflect::BadInput::new("check takes either a recording folder or --config FILE").into()),
         },
         Command::Cameras { with_fake } => pipeline::cameras::list(with_fake),
+        Command::Test(args) => pipeline::test_cmd::run(&args),
         Command::Bench(opts) => pipeline::bench::bench(&opts),
         #[cfg(feature = "sim")]
-        Command::Demo { duration_s, config, http, no_http } => {
+        Command::Demo { duration_s, config, http, no_http, tests } => {
             let cfg = match config {
                 Some(p) => load_config(&p)?,
                 None => Config::demo(),
@@ -386,6 +398,9 @@ fn run(cli: Cli) -> Result<()> {
             let mut cfg = cfg;
             if no_http {
                 cfg.output.http = None;
+            }
+            if tests.is_some() {
+                cfg.output.tests = tests;
             }
             let http = match (http, no_http) {
                 (_, true) => None,

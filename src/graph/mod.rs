@@ -7,6 +7,7 @@
 //!   (`Outputs::build`) and fed on their own thread;
 //! * [`page`]: the live page's hooks (absent without the `http` feature).
 
+pub mod lab_tests;
 pub mod page;
 pub mod run;
 pub mod sources;

@@ -64,6 +64,17 @@ impl Page {
         ev
     }
 
+    /// Serves the tests' control API; false when no page is served (nowhere to serve it).
+    #[cfg_attr(not(feature = "http"), allow(unused_variables))]
+    pub fn set_control(&self, tests: Arc<tagdeflect_sinks::lab_test::LabTests>, token: String) -> bool {
+        #[cfg(feature = "http")]
+        if let (Some(v), true) = (&self.view, self.is_served()) {
+            v.set_control(tests, token);
+            return true;
+        }
+        false
+    }
+
     /// A handle for other tasks (the UTM forwarder).
     pub fn handle(&self) -> PageHandle {
         PageHandle {

@@ -234,7 +234,16 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
             .then(|| config.output.record.as_ref().map(|d| d.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string())))
             .flatten()
     });
-    let outputs = Outputs::build(&config, &opts, replaying, record_dir.as_deref(), feeds, &page)?;
+    let mut outputs = Outputs::build(&config, &opts, replaying, record_dir.as_deref(), feeds, &page)?;
+    // The tests (`[output] tests`): their lines are a sink, their control API on the page.
+    let tests = match (&config.output.tests, replaying || opts.record_only) {
+        (Some(dir), false) => {
+            let t = crate::graph::lab_tests::start(&config, dir, &page)?;
+            outputs.sinks.push(Box::new(tagdeflect_sinks::lab_test::LabTestSink(t.clone())));
+            Some(t)
+        }
+        _ => None,
+    };
     // The recorder (sinks::recorder): retries after write errors; state in every feed line.
     let recorder = match &record_dir {
         Some(dir) => Some(
@@ -343,9 +352,13 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
     let forwarder = {
         let rec_tx = rec_tx.clone();
         let fwd_page = page.handle();
+        let fwd_tests = tests.clone();
         tokio::spawn(async move {
             while let Some(ev) = utm_rx.recv().await {
                 fwd_page.on_utm(&ev);
+                if let (UtmEvent::Sample(s), Some(t)) = (&ev, &fwd_tests) {
+                    t.on_utm(s);
+                }
                 if let (UtmEvent::Sample(s), Some(tx)) = (&ev, &rec_tx) {
                     tx.utm(*s);
                 }
@@ -371,6 +384,7 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
             let config = config.clone();
             let heartbeat = heartbeat.clone();
             let status = LineStatus {
+                tests: tests.clone(),
                 recorder: rec_status.clone(),
                 frame_drops: frame_drops.clone(),
                 #[cfg(feature = "mqtt")]
@@ -772,6 +786,8 @@ struct SolverOut {
 /// state the run's other parts share (the recorder's, the cameras' drops, the MQTT buffer's
 /// drops), read here so that the line is complete before any sink sees it.
 struct LineStatus {
+    /// The running test: its id, events and zero (`[output] tests`).
+    tests: Option<Arc<tagdeflect_sinks::lab_test::LabTests>>,
     recorder: Option<Arc<RecorderStatus>>,
     frame_drops: Arc<FrameDrops>,
     #[cfg(feature = "mqtt")]
@@ -780,6 +796,9 @@ struct LineStatus {
 
 impl LineStatus {
     fn apply(&self, line: &mut crate::feed::FeedLine) {
+        if let Some(t) = &self.tests {
+            t.apply(line);
+        }
         self.frame_drops.apply(line);
         if let Some(r) = &self.recorder {
             line.recording = Some(r.state().as_str().to_string());

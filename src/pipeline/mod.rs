@@ -11,5 +11,6 @@ pub mod journal;
 pub mod replay;
 pub mod report_cmd;
 pub mod run_report;
+pub mod test_cmd;
 
 pub use tagdeflect_estimate::measure;

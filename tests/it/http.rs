@@ -516,7 +516,7 @@ fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
     let t0 = Instant::now();
     let mut buf = [0u8; 512];
     let n = half.read(&mut buf);
-    assert!(matches!(n, Ok(_)), "closed by the server, not by our read timeout: {n:?}");
+    assert!(n.is_ok(), "closed by the server, not by our read timeout: {n:?}");
     assert!(t0.elapsed() >= HEADER_TIMEOUT - Duration::from_secs(1), "closed after {:?}", t0.elapsed());
 
     // Far more idle connections than the cap: the daemon holds at most the cap.
@@ -550,5 +550,179 @@ fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
         std::thread::sleep(Duration::from_millis(500));
     }
     drop(idle);
+    assert_eq!(d.stop(), Some(0));
+}
+
+/// A raw POST to the control API: status code and body.
+fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> (u16, String) {
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let mut req = format!("POST {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    s.write_all(req.as_bytes()).unwrap();
+    let _ = s.write_all(body);
+    let mut raw = Vec::new();
+    let _ = s.read_to_end(&mut raw);
+    let text = String::from_utf8_lossy(&raw).to_string();
+    let code = text.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    (code, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_string())
+}
+
+fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
+    let url = format!("http://{addr}");
+    let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
+    all.extend_from_slice(args);
+    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(&all).output().unwrap();
+    assert!(o.status.success(), "tagdeflect {all:?}: {}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&o.stdout)))
+}
+
+/// Two tests on a running daemon without restarting it, through `tagdeflect test` (the API's
+/// client): start (zero at its first sets), mark, zero, stop; each test's folder complete with
+/// its hashes; the daemon's feed carries the events. The API refuses a POST without the token,
+/// with a wrong one, from another origin, with an oversized or non-JSON body; no GET changes
+/// anything.
+#[test]
+fn two_tests_through_the_control_api_with_its_refusals() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let token_file = tests_dir.join(".token");
+    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
+    assert!(d.stderr.lock().unwrap().contains(&format!("control token: {token}")));
+    use std::os::unix::fs::PermissionsExt;
+    assert_eq!(std::fs::metadata(&token_file).unwrap().permissions().mode() & 0o777, 0o600);
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
+
+    // Refusals: no token, a wrong token, another origin, a huge body, a form body, a GET.
+    let json = ("Content-Type", "application/json");
+    let bearer = format!("Bearer {token}");
+    let start = br#"{"specimen": "B1"}"#;
+    assert_eq!(post(addr, "/api/test/start", &[json], start).0, 401);
+    assert_eq!(post(addr, "/api/test/start", &[json, ("Authorization", "Bearer 0123456789abcdef")], start).0, 401);
+    assert_eq!(post(addr, "/api/test/start", &[json, ("Authorization", &bearer), ("Origin", "http://evil.example")], start).0, 403);
+    let huge = vec![b' '; 64 * 1024];
+    assert_eq!(post(addr, "/api/test/start", &[json, ("Authorization", &bearer)], &huge).0, 413);
+    assert_eq!(post(addr, "/api/test/start", &[("Content-Type", "text/plain"), ("Authorization", &bearer)], start).0, 415);
+    assert_eq!(get(addr, "/api/test/start").0, 405, "no state change on a GET");
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
+    assert!(d.stderr.lock().unwrap().contains("control API: a POST with a wrong token refused"), "logged with the peer");
+
+    // Test 1: start, mark, zero, stop.
+    let st = tagdeflect_test(addr, &token_file, &["start", "--specimen", "B1", "--operator", "A. Tester"]);
+    assert_eq!(st["state"], "running");
+    let id1 = st["id"].as_str().unwrap().to_string();
+    assert!(id1.ends_with("-B1"), "{id1}");
+    assert_eq!(post(addr, "/api/test/start", &[json, ("Authorization", &bearer)], br#"{"specimen": "B9"}"#).0, 409, "one test at a time");
+    let with_test = |d: &Daemon, id: &str| d.lines().iter().filter(|(_, l)| l.test.as_ref().is_some_and(|t| t.id == id)).count();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while with_test(&d, &id1) < 8 {
+        assert!(Instant::now() < deadline, "the test's lines did not come");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    tagdeflect_test(addr, &token_file, &["mark", "first crack seen"]);
+    tagdeflect_test(addr, &token_file, &["zero"]);
+    let n = with_test(&d, &id1);
+    while with_test(&d, &id1) < n + 8 {
+        assert!(Instant::now() < deadline, "lines after the zero did not come");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert_eq!(stopped["id"], id1.as_str());
+    let folder = PathBuf::from(stopped["folder"].as_str().unwrap());
+    let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record["specimen"], "B1");
+    assert_eq!(record["operator"], "A. Tester");
+    let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+    assert_eq!(kinds, ["start", "mark", "zero", "stop"]);
+    assert_eq!(record["events"][1]["note"], "first crack seen");
+    let test_lines: Vec<FeedLine> =
+        std::fs::read_to_string(folder.join("feed.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(record["lines"].as_u64(), Some(test_lines.len() as u64));
+    assert!(test_lines.len() >= 16 && test_lines.iter().all(|l| l.test.as_ref().unwrap().id == id1));
+    assert!(test_lines[..5].iter().all(|l| l.test.as_ref().unwrap().zeroing) && !test_lines[5].test.as_ref().unwrap().zeroing);
+    // The test's zero: its first sets average to zero displacement.
+    let first_disp: f64 = test_lines[..5].iter().map(|l| l.tags[0].disp_mm[2]).sum::<f64>() / 5.0;
+    assert!(first_disp.abs() < 0.05, "mean displacement over the zero's sets {first_disp}");
+    let utm = std::fs::read_to_string(folder.join("utm.jsonl")).unwrap();
+    assert!(
+        utm.lines().count() > test_lines.len(),
+        "every UTM sample at its own rate: {} samples, {} lines",
+        utm.lines().count(),
+        test_lines.len()
+    );
+    for f in ["feed.jsonl", "utm.jsonl", "tagdeflect.toml"] {
+        use sha2::Digest;
+        let want: String = sha2::Sha256::digest(std::fs::read(folder.join(f)).unwrap()).iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(record["sha256"][f], want.as_str(), "{f}");
+    }
+    assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
+
+    // Test 2, the next specimen, without a restart.
+    let st = tagdeflect_test(addr, &token_file, &["start", "--specimen", "B2"]);
+    let id2 = st["id"].as_str().unwrap().to_string();
+    while with_test(&d, &id2) < 6 {
+        assert!(Instant::now() < deadline, "the second test's lines did not come");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert!(PathBuf::from(stopped["folder"].as_str().unwrap()).join("test.json").is_file());
+    assert_ne!(id1, id2);
+    // The daemon's own feed carries every event (the stop in the line after it).
+    let events = |d: &Daemon| -> Vec<String> { d.lines().iter().flat_map(|(_, l)| l.events.iter().map(|e| e.kind.clone())).collect() };
+    while events(&d).len() < 6 {
+        assert!(Instant::now() < deadline, "the events did not reach the feed: {:?}", events(&d));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let events = events(&d);
+    assert_eq!(events, ["start", "mark", "zero", "stop", "start", "stop"]);
+    assert_eq!(d.stop(), Some(0));
+}
+
+/// The operator's page in Chromium drives two whole tests (specimen form, start, mark, zero,
+/// stop; the token asked once per browser session); each folder is complete.
+#[test]
+fn the_operator_page_drives_two_tests_in_chromium() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
+    let shot = dir.path().join("operator-page.png");
+    let out = Command::new(python())
+        .arg(root().join("tests/fixtures/operator_page.py"))
+        .arg(format!("http://{addr}/"))
+        .arg(&token)
+        .arg(&shot)
+        .stdin(Stdio::null())
+        .output()
+        .expect("run the browser driver");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    println!("BROWSER {seen}");
+    assert!(seen.get("error").is_none() && seen.get("timeout").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
+    assert_eq!(seen["prompts"].as_u64(), Some(1 + 2 * 2), "the token once, then a note and a confirmation per test: {seen}");
+    let tests = seen["tests"].as_array().unwrap();
+    assert_eq!(tests.len(), 2);
+    for (t, specimen) in tests.iter().zip(["B1", "B2"]) {
+        assert!(t["state"].as_str().unwrap().contains(&format!("-{specimen}")), "{t}");
+        let folder = PathBuf::from(t["folder"].as_str().unwrap());
+        let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+        assert_eq!(record["specimen"], specimen);
+        assert_eq!(record["operator"], "A. Tester");
+        let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+        assert_eq!(kinds, ["start", "mark", "zero", "stop"], "{record}");
+        assert_eq!(record["events"][1]["note"], "first crack seen");
+        assert!(record["lines"].as_u64().unwrap() >= 5, "{record}");
+    }
+    assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
+    assert_eq!(&std::fs::read(&shot).unwrap()[1..4], b"PNG");
+    if let Some(to) = std::env::var_os("TAGDEFLECT_OPERATOR_SCREENSHOT") {
+        std::fs::copy(&shot, to).unwrap();
+    }
     assert_eq!(d.stop(), Some(0));
 }

@@ -133,6 +133,38 @@ pub struct FeedLine {
     /// Frames the recorder did not record so far (queue full or writes failing).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recorder_dropped: Option<u64>,
+    /// The test running when the set was solved (SPEC "Tests"); its displacements and gauges
+    /// then count from the test's zero.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test: Option<TestRef>,
+    /// What happened since the previous line (a test started, stopped, marked or zeroed).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub events: Vec<FeedEvent>,
+}
+
+/// The test a feed line belongs to.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct TestRef {
+    /// The test's id (its folder's name).
+    pub id: String,
+    /// The specimen's id.
+    pub specimen: String,
+    /// True while the test's zero is still being taken (its first frame sets): the values
+    /// count from the mean of the sets so far.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub zeroing: bool,
+}
+
+/// An event of a test: `start`, `stop`, `mark` or `zero`, with its time and an optional note.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FeedEvent {
+    /// `start`, `stop`, `mark` or `zero`.
+    pub kind: String,
+    /// When it happened, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// The operator's note (a mark's text), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 /// One gauge's reading in a feed line.

@@ -413,6 +413,8 @@ impl Measurement {
             recorder_dropped: None,
             gauges: Default::default(),
             clock_offset_ms: None,
+            test: None,
+            events: Vec::new(),
         };
         let line = self.gauges.finish_line(line, &self.utm);
         (line, times)

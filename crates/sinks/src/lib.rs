@@ -4,6 +4,7 @@
 mod fanout;
 #[cfg(feature = "http")]
 pub mod http;
+pub mod lab_test;
 #[cfg(feature = "mqtt")]
 pub mod mqtt;
 pub mod output;

@@ -26,6 +26,14 @@ pub struct OutputConfig {
     /// this machine's own name (a request naming any other host is refused: DNS rebinding).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub http_hosts: Vec<String>,
+    /// Keep each test (SPEC "Tests") in its own folder `<tests>/<test id>/`; enables the
+    /// control API on the `http` address.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tests: Option<PathBuf>,
+    /// The control API's bearer token, read from this file (first line); without it a random
+    /// token is made at start, printed once and written to `<tests>/.token` (mode 0600).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub http_token_file: Option<PathBuf>,
     /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
     /// recording carries no broker address or credentials).
     #[serde(default, skip_serializing)]
@@ -57,6 +65,23 @@ impl OutputConfig {
             let ok = !h.is_empty() && h.len() <= 253 && h.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.');
             if !ok {
                 return Err(Problem::new(format!("http_hosts[{i}]"), format!("\"{h}\" is not a host name (letters, digits, `-` and `.`)")));
+            }
+        }
+        for p in [&mut self.tests, &mut self.http_token_file].into_iter().flatten() {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        }
+        if let Some(t) = &self.http_token_file {
+            match std::fs::read_to_string(t) {
+                Ok(text) if text.lines().next().is_some_and(|l| l.trim().len() >= 16) => {}
+                Ok(_) => {
+                    return Err(Problem::new(
+                        "http_token_file",
+                        format!("{}: the first line must hold a token of at least 16 characters", t.display()),
+                    ))
+                }
+                Err(e) => return Err(Problem::new("http_token_file", format!("{}: {e}", t.display()))),
             }
         }
         if let Some(r) = &self.record {

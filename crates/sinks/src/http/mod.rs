@@ -17,6 +17,7 @@
 //! `EVENT_BUFFER` events and a client that falls further behind skips ahead (counted in
 //! `tagdeflect_http_events_lagged_total`); the solver's send never blocks.
 
+mod control;
 mod metrics;
 mod routes;
 mod server;
@@ -27,6 +28,7 @@ mod view;
 
 use std::net::SocketAddr;
 
+pub use control::{FAILURE_WINDOW, MAX_BODY, MAX_FAILURES};
 pub use server::{
     parse_addr, serve, wanted, AllowedHosts, HttpOptions, HttpServer, DEFAULT_ADDR, HEADER_TIMEOUT, IDLE_TIMEOUT, MAX_CONNECTIONS,
 };

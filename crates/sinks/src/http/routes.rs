@@ -33,6 +33,10 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/status", get(status))
         .route("/camera/{file}", get(camera))
         .route("/metrics", get(metrics))
+        .route("/api/test", get(super::control::status))
+        .route("/api/test/{command}", axum::routing::post(super::control::command))
+        // Larger bodies are refused before they are read whole (the control API's limit).
+        .layer(axum::extract::DefaultBodyLimit::max(super::control::MAX_BODY))
         .with_state(view)
 }
 

@@ -187,7 +187,12 @@ async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view:
             drop(stream);
             continue;
         };
-        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        // The peer's address for the handlers (a refused token is logged with it).
+        let with_peer = tower::util::MapRequestLayer::new(move |mut req: axum::extract::Request<hyper::body::Incoming>| {
+            req.extensions_mut().insert(axum::extract::ConnectInfo(peer));
+            req
+        });
+        let service = hyper_util::service::TowerToHyperService::new(tower::Layer::layer(&with_peer, app.clone()));
         tokio::spawn(async move {
             let _slot = slot;
             let io = IdleTimeout::new(stream, IDLE_TIMEOUT);

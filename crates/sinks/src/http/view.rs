@@ -101,6 +101,8 @@ pub struct LiveView {
     pub(crate) started: Instant,
     pub(crate) started_ns: i64,
     pub(crate) clients: AtomicU64,
+    /// The tests and their control API (`[output] tests`), once set.
+    pub(crate) control: std::sync::OnceLock<super::control::Control>,
 }
 
 impl LiveView {
@@ -118,6 +120,7 @@ impl LiveView {
             started: Instant::now(),
             started_ns: tagdeflect_core::clock::now_epoch_ns(),
             clients: AtomicU64::new(0),
+            control: std::sync::OnceLock::new(),
         };
         for c in &config.cameras {
             // Every camera's series exist from the start (a dashboard sees zeros, not gaps).
@@ -128,6 +131,11 @@ impl LiveView {
             let _ = view.metrics.posed.get_or_create(&l);
         }
         Arc::new(view)
+    }
+
+    /// Serves the control API of `tests` (SPEC "Tests"): every POST needs `token`.
+    pub fn set_control(&self, tests: Arc<crate::lab_test::LabTests>, token: String) {
+        let _ = self.control.set(super::control::Control::new(tests, token));
     }
 
     pub(super) fn lock(&self) -> std::sync::MutexGuard<'_, State> {

@@ -127,6 +127,7 @@ function onLine(line) {
   S.lastLine = line;
   S.lastLineAt = performance.now();
   S.dirty = true;
+  onTestLine(line);
 }
 
 function redraw() {
@@ -264,7 +265,80 @@ function connect() {
   es.addEventListener("snapshot", (e) => { const n = JSON.parse(e.data); showSnapshot(n.camera, n.url, n.seq); });
 }
 
+// The test panel: the state from GET /api/test, the commands as POSTs with the token, asked
+// once per browser session (sessionStorage). Text only through textContent.
+const T = { state: null, startedNs: null, peak: null, lastRate: null };
+function testMessage(text, bad) { const m = $("t-message"); m.textContent = text; m.className = bad ? "bad" : "muted"; }
+function token() {
+  let t = sessionStorage.getItem("tagdeflect-token");
+  if (!t) {
+    t = window.prompt("Control token (printed by the daemon at start, or in its tests folder's .token):") || "";
+    t = t.trim();
+    if (t) sessionStorage.setItem("tagdeflect-token", t);
+  }
+  return t;
+}
+async function command(cmd, body) {
+  const t = token();
+  if (!t) { testMessage("no token given", true); return; }
+  const r = await fetch("/api/test/" + cmd, {
+    method: "POST", cache: "no-store",
+    headers: { "Content-Type": "application/json", "Authorization": "Bearer " + t },
+    body: JSON.stringify(body || {}),
+  });
+  let answer = {};
+  try { answer = await r.json(); } catch (e) { answer = {}; }
+  if (r.status === 401) sessionStorage.removeItem("tagdeflect-token");
+  if (!r.ok) { testMessage(cmd + " refused (" + r.status + "): " + (answer.error || ""), true); return; }
+  testMessage(cmd === "stop" ? "stopped; folder " + (answer.folder || "") : cmd + " done", false);
+  await pollTest();
+}
+function onTest(st) {
+  T.state = st.state;
+  const running = st.state === "running";
+  $("t-state").textContent = running ? "running: " + st.id + (st.zeroing ? " (taking its zero)" : "") : st.state;
+  $("t-specimen").textContent = running ? st.specimen : "–";
+  T.startedNs = running ? st.started_t_ns : null;
+  if (!running) T.peak = null;
+  $("b-start").disabled = running || st.state === "off";
+  for (const id of ["b-mark", "b-zero", "b-stop"]) $(id).disabled = !running;
+  if (st.state === "off") testMessage("tests are off: start the daemon with --tests DIR or [output] tests", false);
+}
+function onTestLine(line) {
+  if (!line.test) return;
+  if (line.load_kN !== undefined && (T.peak === null || line.load_kN > T.peak)) T.peak = line.load_kN;
+  if (line.net_deflection_mm !== undefined) {
+    if (T.lastRate) {
+      const dt = (line.t_ns - T.lastRate.t) / 6e10;
+      if (dt > 0.05 / 60) { T.rate = (line.net_deflection_mm - T.lastRate.v) / dt; T.lastRate = { t: line.t_ns, v: line.net_deflection_mm }; }
+    } else T.lastRate = { t: line.t_ns, v: line.net_deflection_mm };
+  }
+  $("t-peak").textContent = fmt(T.peak, 2);
+  $("t-rate").textContent = fmt(T.rate, 3);
+  if (T.startedNs !== null) {
+    const s = Math.max(0, (line.t_ns - T.startedNs) / 1e9);
+    $("t-elapsed").textContent = Math.floor(s / 60) + " min " + (s % 60).toFixed(0).padStart(2, "0") + " s";
+  }
+}
+async function pollTest() {
+  try {
+    const r = await fetch("/api/test", { cache: "no-store" });
+    if (r.ok) onTest(await r.json());
+  } catch (e) { /* the status poll reports a lost server */ }
+}
+$("t-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  const body = { specimen: $("f-specimen").value.trim() };
+  for (const k of ["operator", "standard", "notes"]) { const v = $("f-" + k).value.trim(); if (v) body[k] = v; }
+  command("start", body);
+});
+$("b-mark").addEventListener("click", () => { const note = window.prompt("Mark (e.g. first crack seen):"); if (note !== null) command("mark", { note }); });
+$("b-zero").addEventListener("click", () => command("zero"));
+$("b-stop").addEventListener("click", () => { if (window.confirm("Stop the test and complete its folder?")) command("stop"); });
+
 initCharts();
+pollTest();
+setInterval(pollTest, 1000);
 pollStatus().then(connect);
 setInterval(pollStatus, 1000);
 setInterval(redraw, 250);

@@ -1,0 +1,730 @@
+//! A test as a lab runs it (SPEC "Tests"): one specimen from start to stop, while the daemon
+//! keeps measuring between tests.
+//!
+//! ```text
+//! control API / `tagdeflect test` ──start/stop/mark/zero──▶ LabTests (one lock, short holds)
+//! solver thread ──LabTests::apply(&mut line)──▶ the line gets `test`, `events`, values from the zero
+//! sinks' thread ──LabTests::on_line──▶ tests/<id>/feed.jsonl
+//! UTM forwarder ──LabTests::on_utm──▶ tests/<id>/utm.jsonl (every sample, at its own rate)
+//! ```
+//!
+//! States: idle → running → idle. `start` opens `tests/<id>/` (id: the UTC start time and the
+//! specimen, `20261202T013000Z-B12`); the test's zero is the mean of its first
+//! [`ZERO_SETS`] frame sets — per specimen tag (its position), the net deflection and each
+//! gauge — and every later value counts from it (lines taken while the zero forms are marked
+//! `zeroing` and count from the mean so far; the zero's σ, the spread of those sets over √n,
+//! goes into every σ). `zero` takes it again from the next sets. `mark` puts an operator's
+//! note into the feed and `test.json`. `stop` waits (at most [`STOP_WAIT`]) until the sinks
+//! have written every line up to the stop, then completes the folder: `tagdeflect.toml` (the
+//! config in force), `test.json` (metadata, events, the SHA-256 of every file of the folder
+//! and of the calibration files) and, through the hook the binary installs, `report/`.
+//!
+//! A running test survives a restart of the daemon (a crash, `Restart=on-failure`): its state —
+//! the record, the folder, the zero with its σ — is kept in `TESTS/.running.json` (written at
+//! start, when the zero forms and at every event, atomically); a daemon that finds it at start
+//! resumes the test from the same zero and puts a `resume` event (with the gap) into the feed
+//! and `test.json`, so the curve never gets a second zero in its middle.
+//!
+//! Nothing here blocks the solver for longer than a few field updates under the lock: files are
+//! written on the sinks' thread and by the caller of `stop`.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use sha2::Digest;
+
+use tagdeflect_core::feed::{FeedEvent, FeedLine, TestRef};
+use tagdeflect_core::utm_sample::UtmSample;
+
+/// Frame sets whose mean is a test's zero.
+pub const ZERO_SETS: usize = 5;
+/// How long `stop` waits for the sinks to write the test's last lines.
+pub const STOP_WAIT: Duration = Duration::from_millis(1500);
+
+/// What a test is started with (the control API's JSON body).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TestMeta {
+    /// The specimen's id (required; letters, digits, `_`, `-`, `.`).
+    pub specimen: String,
+    /// Who runs the test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<String>,
+    /// `astm-c1609`, `astm-c1856` or `en-14651`: the report made at stop.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub standard: Option<String>,
+    /// Free text.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notes: Option<String>,
+    /// Measured dimensions and other values the lab records (`{"width_mm": 150.2}`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub measured: BTreeMap<String, f64>,
+}
+
+/// Standards a test may name.
+pub const STANDARDS: [&str; 3] = ["astm-c1609", "astm-c1856", "en-14651"];
+
+impl TestMeta {
+    /// Checks what an operator typed: the specimen id is a folder name and text on the page.
+    pub fn validate(&self) -> Result<(), TestError> {
+        let ok = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
+        let sp = self.specimen.trim();
+        if sp.is_empty() || sp.chars().count() > 64 || sp.starts_with('.') || !sp.chars().all(ok) {
+            return Err(TestError::Bad(format!(
+                "specimen \"{}\": 1 to 64 letters, digits, `_`, `-` and `.` (not first)",
+                self.specimen.escape_debug()
+            )));
+        }
+        if let Some(s) = &self.standard {
+            if !STANDARDS.contains(&s.as_str()) {
+                return Err(TestError::Bad(format!("standard \"{}\": one of {}", s.escape_debug(), STANDARDS.join(", "))));
+            }
+        }
+        for (k, text) in [("operator", &self.operator), ("notes", &self.notes)] {
+            if text.as_ref().is_some_and(|t| t.len() > 4096 || t.chars().any(|c| c.is_control() && c != '\n')) {
+                return Err(TestError::Bad(format!("{k}: at most 4096 characters, no control characters")));
+            }
+        }
+        if let Some((k, v)) = self.measured.iter().find(|(k, v)| !v.is_finite() || k.len() > 64) {
+            return Err(TestError::Bad(format!("measured.{k} = {v}: a finite number under a short name")));
+        }
+        Ok(())
+    }
+}
+
+/// Why a command was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum TestError {
+    /// The command does not fit the state (start while running, stop while idle): HTTP 409.
+    #[error("{0}")]
+    Conflict(String),
+    /// The request is malformed: HTTP 400.
+    #[error("{0}")]
+    Bad(String),
+    /// The folder could not be written: HTTP 500.
+    #[error("{0}")]
+    Io(String),
+}
+
+/// `test.json` (SPEC "Tests").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TestRecord {
+    /// The test's id.
+    pub id: String,
+    /// What it was started with.
+    #[serde(flatten)]
+    pub meta: TestMeta,
+    /// When it started and stopped, ns since the Unix epoch.
+    pub started_t_ns: i64,
+    /// When it stopped (absent while it runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopped_t_ns: Option<i64>,
+    /// Start, marks, zeros, stop.
+    pub events: Vec<FeedEvent>,
+    /// Feed lines and UTM samples in the folder.
+    pub lines: u64,
+    /// UTM samples kept.
+    pub utm_samples: u64,
+    /// SHA-256 (hex) of every file of the folder (but `test.json`) and of the calibration files.
+    pub sha256: BTreeMap<String, String>,
+}
+
+/// What `stop` answers.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Stopped {
+    /// The test's id.
+    pub id: String,
+    /// Its folder.
+    pub folder: PathBuf,
+}
+
+/// Made by the binary: writes `folder/report/` for a stopped test with a standard.
+pub type ReportHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), String> + Send + Sync>;
+
+/// The running test.
+struct Running {
+    record: TestRecord,
+    folder: PathBuf,
+    feed: std::fs::File,
+    utm: std::fs::File,
+    zero: Zero,
+    /// The newest line written to the folder.
+    written_t_ns: i64,
+}
+
+#[derive(Default)]
+struct Inner {
+    running: Option<Running>,
+    /// Events for the next line.
+    pending: Vec<FeedEvent>,
+    /// The newest line's time (`stop` waits for the sinks to pass it).
+    last_line_t_ns: i64,
+    /// The last test's id and folder (`GET /api/test` after a stop).
+    last: Option<(String, PathBuf)>,
+}
+
+/// The tests of a daemon; see the module doc.
+pub struct LabTests {
+    dir: PathBuf,
+    config_text: String,
+    calibration_files: Vec<PathBuf>,
+    report: Option<ReportHook>,
+    inner: Mutex<Inner>,
+    written: Condvar,
+}
+
+impl LabTests {
+    /// Tests kept under `dir` (created); `config_text` is the config in force, written into
+    /// every test's folder; `calibration_files` are hashed into `test.json`.
+    ///
+    /// A test that was running when the daemon stopped (`TESTS/.running.json`) is resumed.
+    pub fn new(dir: &Path, config_text: String, calibration_files: Vec<PathBuf>, report: Option<ReportHook>) -> std::io::Result<Arc<Self>> {
+        std::fs::create_dir_all(dir)?;
+        let tests =
+            LabTests { dir: dir.to_path_buf(), config_text, calibration_files, report, inner: Mutex::default(), written: Condvar::new() };
+        tests.resume()?;
+        Ok(Arc::new(tests))
+    }
+
+    fn state_file(&self) -> PathBuf {
+        self.dir.join(".running.json")
+    }
+
+    /// Keeps the running test's state on disk (see the module doc); a failure is logged.
+    fn persist(&self, r: &Running) {
+        let p = Persisted {
+            record: r.record.clone(),
+            folder: r.folder.clone(),
+            zero_n: r.zero.n,
+            tags: r.zero.tags.iter().map(|(k, m)| (*k, m.to_parts())).collect(),
+            net: r.zero.net.to_parts(),
+            gauges: r.zero.gauges.iter().map(|(k, m)| (k.clone(), m.to_parts())).collect(),
+            last_line_t_ns: r.written_t_ns,
+        };
+        let path = self.state_file();
+        let tmp = path.with_extension("json.tmp");
+        let result = serde_json::to_vec(&p)
+            .map_err(std::io::Error::other)
+            .and_then(|bytes| {
+                let mut f = std::fs::File::create(&tmp)?;
+                f.write_all(&bytes)?;
+                f.sync_all()
+            })
+            .and_then(|()| std::fs::rename(&tmp, &path));
+        if let Err(e) = result {
+            tracing::error!(test = %r.record.id, "cannot keep the running test's state in {}: {e}", path.display());
+        }
+    }
+
+    /// Resumes the test of `TESTS/.running.json`, if there is one.
+    fn resume(&self) -> std::io::Result<()> {
+        let path = self.state_file();
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(e),
+        };
+        let p: Persisted = serde_json::from_str(&text)
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{}: {e}", path.display())))?;
+        // A crash may have cut the last line of the test's files: cut back to whole lines.
+        for name in ["feed.jsonl", "utm.jsonl"] {
+            tagdeflect_core::linefile::LineFile::open_append(&p.folder.join(name))?;
+        }
+        let open = |name: &str| std::fs::OpenOptions::new().append(true).open(p.folder.join(name));
+        let (feed, utm) = (open("feed.jsonl")?, open("utm.jsonl")?);
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let gap_s = if p.last_line_t_ns > i64::MIN { (now as i128 - p.last_line_t_ns as i128) as f64 * 1e-9 } else { f64::NAN };
+        let ev = FeedEvent {
+            kind: "resume".into(),
+            t_ns: now,
+            note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
+        };
+        let mut record = p.record;
+        record.events.push(ev.clone());
+        let zero = Zero {
+            n: p.zero_n,
+            tags: p.tags.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
+            net: Mean::from_parts(&p.net),
+            gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
+        };
+        tracing::warn!(test = %record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
+        let r = Running { record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns };
+        self.persist(&r);
+        let mut g = self.lock();
+        g.pending.push(ev);
+        g.running = Some(r);
+        Ok(())
+    }
+
+    /// The folder tests are kept in.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Starts a test (its zero from the next frame sets); refused while one runs.
+    pub fn start(&self, meta: TestMeta) -> Result<serde_json::Value, TestError> {
+        meta.validate()?;
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
+        let id = format!("{stamp}-{}", meta.specimen.trim());
+        let mut g = self.lock();
+        if let Some(r) = &g.running {
+            return Err(TestError::Conflict(format!("test {} is running: stop it first", r.record.id)));
+        }
+        let folder = self.dir.join(&id);
+        if folder.exists() {
+            return Err(TestError::Conflict(format!("{} exists already: wait a second and start again", folder.display())));
+        }
+        let io = |e: std::io::Error| TestError::Io(format!("cannot open the test's folder {}: {e}", folder.display()));
+        std::fs::create_dir_all(&folder).map_err(io)?;
+        let open = |name: &str| std::fs::OpenOptions::new().create_new(true).append(true).open(folder.join(name));
+        let feed = open("feed.jsonl").map_err(io)?;
+        let utm = open("utm.jsonl").map_err(io)?;
+        let start = FeedEvent { kind: "start".into(), t_ns: now, note: None };
+        g.pending.push(start.clone());
+        let record = TestRecord {
+            id: id.clone(),
+            meta,
+            started_t_ns: now,
+            stopped_t_ns: None,
+            events: vec![start],
+            lines: 0,
+            utm_samples: 0,
+            sha256: BTreeMap::new(),
+        };
+        tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
+        let r = Running { record, folder: folder.clone(), feed, utm, zero: Zero::default(), written_t_ns: i64::MIN };
+        self.persist(&r);
+        g.running = Some(r);
+        drop(g);
+        Ok(self.status())
+    }
+
+    /// An operator's note, into the feed and `test.json`.
+    pub fn mark(&self, note: Option<String>) -> Result<serde_json::Value, TestError> {
+        if let Some(n) = &note {
+            if n.len() > 4096 || n.chars().any(|c| c.is_control()) {
+                return Err(TestError::Bad("note: at most 4096 characters, no control characters".into()));
+            }
+        }
+        self.event("mark", note)
+    }
+
+    /// Takes the zero again from the next frame sets.
+    pub fn zero(&self) -> Result<serde_json::Value, TestError> {
+        let v = self.event("zero", None)?;
+        let mut g = self.lock();
+        if let Some(r) = g.running.as_mut() {
+            r.zero = Zero::default();
+            self.persist(r);
+        }
+        Ok(v)
+    }
+
+    fn event(&self, kind: &str, note: Option<String>) -> Result<serde_json::Value, TestError> {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
+        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note };
+        r.record.events.push(ev.clone());
+        self.persist(r);
+        g.pending.push(ev);
+        drop(g);
+        Ok(self.status())
+    }
+
+    /// Ends the running test: waits until the sinks have written its lines (at most
+    /// [`STOP_WAIT`]), then completes its folder (report included) and answers.
+    pub fn stop(&self) -> Result<Stopped, TestError> {
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let mut g = self.lock();
+        if g.running.is_none() {
+            return Err(TestError::Conflict("no test is running: nothing to stop".into()));
+        }
+        // Every line solved before the stop reaches the folder first (the sinks run behind
+        // the solver by a line or two).
+        let target = g.last_line_t_ns;
+        let (g2, _) = self
+            .written
+            .wait_timeout_while(g, STOP_WAIT, |g| g.running.as_ref().is_some_and(|r| r.written_t_ns < target))
+            .unwrap_or_else(|p| p.into_inner());
+        g = g2;
+        let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note: None };
+        r.record.events.push(stop.clone());
+        r.record.stopped_t_ns = Some(now);
+        g.pending.push(stop);
+        g.last = Some((r.record.id.clone(), r.folder.clone()));
+        drop(g);
+        if let Err(e) = std::fs::remove_file(self.state_file()) {
+            tracing::error!("cannot remove {}: {e}", self.state_file().display());
+        }
+        let id = r.record.id.clone();
+        let folder = r.folder.clone();
+        self.complete(r)?;
+        tracing::info!(test = %id, folder = %folder.display(), "test stopped; its folder is complete");
+        Ok(Stopped { id, folder })
+    }
+
+    /// Writes the config, the report and `test.json` of a stopped test.
+    fn complete(&self, r: Running) -> Result<(), TestError> {
+        let Running { mut record, folder, feed, utm, .. } = r;
+        let io = |what: &str, e: std::io::Error| TestError::Io(format!("{}: {what}: {e}", folder.display()));
+        feed.sync_all().map_err(|e| io("feed.jsonl", e))?;
+        utm.sync_all().map_err(|e| io("utm.jsonl", e))?;
+        std::fs::write(folder.join("tagdeflect.toml"), &self.config_text).map_err(|e| io("tagdeflect.toml", e))?;
+        if record.meta.standard.is_some() {
+            if let Some(hook) = &self.report {
+                if let Err(e) = hook(&folder, &record) {
+                    tracing::error!(test = %record.id, "the test's report could not be made: {e}");
+                }
+            }
+        }
+        record.sha256 = hash_folder(&folder).map_err(|e| io("hashing", e))?;
+        for c in &self.calibration_files {
+            if let Ok(bytes) = std::fs::read(c) {
+                record.sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
+            }
+        }
+        let text = serde_json::to_string_pretty(&record).map_err(|e| TestError::Io(e.to_string()))?;
+        let tmp = folder.join("test.json.tmp");
+        std::fs::write(&tmp, text + "\n").map_err(|e| io("test.json", e))?;
+        std::fs::rename(&tmp, folder.join("test.json")).map_err(|e| io("test.json", e))?;
+        Ok(())
+    }
+
+    /// `GET /api/test`.
+    pub fn status(&self) -> serde_json::Value {
+        let g = self.lock();
+        match &g.running {
+            Some(r) => serde_json::json!({
+                "state": "running",
+                "id": r.record.id,
+                "specimen": r.record.meta.specimen,
+                "operator": r.record.meta.operator,
+                "standard": r.record.meta.standard,
+                "started_t_ns": r.record.started_t_ns,
+                "events": r.record.events,
+                "lines": r.record.lines,
+                "zeroing": r.zero.n < ZERO_SETS,
+                "folder": r.folder,
+            }),
+            None => serde_json::json!({
+                "state": "idle",
+                "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f})),
+            }),
+        }
+    }
+
+    /// The solver's step: the line gets the pending events, the running test and values
+    /// counted from the test's zero.
+    pub fn apply(&self, line: &mut FeedLine) {
+        let mut g = self.lock();
+        g.last_line_t_ns = line.t_ns;
+        line.events.append(&mut g.pending);
+        if let Some(r) = g.running.as_mut() {
+            let zeroing = r.zero.take(line);
+            if zeroing && r.zero.n == ZERO_SETS {
+                // The zero has formed: a restart from here resumes from it.
+                self.persist(r);
+            }
+            r.zero.apply(line);
+            line.test = Some(TestRef { id: r.record.id.clone(), specimen: r.record.meta.specimen.clone(), zeroing });
+        }
+    }
+
+    /// The sinks' step: a line of the running test into its folder.
+    pub fn on_line(&self, line: &FeedLine) {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return };
+        if line.test.as_ref().is_some_and(|t| t.id == r.record.id) {
+            let text = line.to_json() + "\n";
+            if let Err(e) = r.feed.write_all(text.as_bytes()) {
+                tracing::error!(test = %r.record.id, "cannot write the test's feed: {e}");
+            } else {
+                r.record.lines += 1;
+            }
+        }
+        r.written_t_ns = r.written_t_ns.max(line.t_ns);
+        self.written.notify_all();
+    }
+
+    /// The UTM forwarder's step: a sample of the running test into its folder.
+    pub fn on_utm(&self, s: &UtmSample) {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return };
+        if s.t_ns < r.record.started_t_ns {
+            return;
+        }
+        match serde_json::to_string(s) {
+            Ok(text) => match r.utm.write_all((text + "\n").as_bytes()) {
+                Ok(()) => r.record.utm_samples += 1,
+                Err(e) => tracing::error!(test = %r.record.id, "cannot write the test's UTM samples: {e}"),
+            },
+            Err(e) => tracing::error!("UTM sample: {e}"),
+        }
+    }
+}
+
+/// A line sink that hands every line to [`LabTests::on_line`].
+pub struct LabTestSink(pub Arc<LabTests>);
+
+impl crate::LineSink for LabTestSink {
+    fn name(&self) -> String {
+        format!("tests {}", self.0.dir.display())
+    }
+    fn accept(&mut self, finished: &crate::Finished) {
+        self.0.on_line(&finished.line);
+    }
+}
+
+/// A test's zero: the mean of its first [`ZERO_SETS`] sets, per quantity.
+#[derive(Default)]
+struct Zero {
+    n: usize,
+    tags: BTreeMap<u32, Mean<3>>,
+    net: Mean<1>,
+    gauges: BTreeMap<String, Mean<1>>,
+}
+
+impl Zero {
+    /// Takes `line` into the zero while it forms; true while it does.
+    fn take(&mut self, line: &FeedLine) -> bool {
+        if self.n >= ZERO_SETS {
+            return false;
+        }
+        self.n += 1;
+        for t in &line.tags {
+            self.tags.entry(t.id).or_default().add(t.pos_mm);
+        }
+        if let Some(v) = line.net_deflection_mm {
+            self.net.add([v]);
+        }
+        for (k, g) in &line.gauges {
+            self.gauges.entry(k.clone()).or_default().add([g.value]);
+        }
+        true
+    }
+
+    /// Counts the line's values from the zero; a tag first seen after the zero formed counts
+    /// from where it was first seen.
+    fn apply(&mut self, line: &mut FeedLine) {
+        for t in &mut line.tags {
+            let m = self.tags.entry(t.id).or_insert_with(|| {
+                let mut m = Mean::default();
+                m.add(t.pos_mm);
+                m
+            });
+            let (mean, sd_of_mean) = m.get();
+            for k in 0..3 {
+                t.disp_mm[k] = round_um(t.pos_mm[k] - mean[k]);
+            }
+            if let Some(s) = t.sigma_mm.as_mut() {
+                for k in 0..3 {
+                    s[k] = (s[k].powi(2) + sd_of_mean[k].powi(2)).sqrt();
+                }
+            }
+        }
+        if let Some(v) = line.net_deflection_mm.as_mut() {
+            if self.net.n > 0 {
+                *v = round_um(*v - self.net.get().0[0]);
+            }
+        }
+        for (k, g) in line.gauges.iter_mut() {
+            if let Some(m) = self.gauges.get(k) {
+                let (mean, sd) = m.get();
+                g.value -= mean[0];
+                if g.sigma.is_finite() {
+                    g.sigma = (g.sigma.powi(2) + sd[0].powi(2)).sqrt();
+                }
+            }
+        }
+    }
+}
+
+/// The running test's state on disk (`TESTS/.running.json`).
+#[derive(Serialize, Deserialize)]
+struct Persisted {
+    record: TestRecord,
+    folder: PathBuf,
+    zero_n: usize,
+    tags: BTreeMap<u32, MeanParts>,
+    net: MeanParts,
+    gauges: BTreeMap<String, MeanParts>,
+    last_line_t_ns: i64,
+}
+
+/// A [`Mean`] as stored: count, sums, sums of squares.
+type MeanParts = (usize, Vec<f64>, Vec<f64>);
+
+/// A running mean of `N` values with the standard deviation of the mean.
+#[derive(Clone, Copy)]
+struct Mean<const N: usize> {
+    n: usize,
+    sum: [f64; N],
+    sum_sq: [f64; N],
+}
+
+impl<const N: usize> Default for Mean<N> {
+    fn default() -> Self {
+        Mean { n: 0, sum: [0.0; N], sum_sq: [0.0; N] }
+    }
+}
+
+impl<const N: usize> Mean<N> {
+    fn to_parts(self) -> MeanParts {
+        (self.n, self.sum.to_vec(), self.sum_sq.to_vec())
+    }
+    fn from_parts(p: &MeanParts) -> Self {
+        let mut m = Mean::default();
+        m.n = p.0;
+        for k in 0..N {
+            m.sum[k] = p.1.get(k).copied().unwrap_or(0.0);
+            m.sum_sq[k] = p.2.get(k).copied().unwrap_or(0.0);
+        }
+        m
+    }
+    fn add(&mut self, v: [f64; N]) {
+        self.n += 1;
+        for k in 0..N {
+            self.sum[k] += v[k];
+            self.sum_sq[k] += v[k] * v[k];
+        }
+    }
+    /// Mean, and the standard deviation of the mean (0 from one value).
+    fn get(&self) -> ([f64; N], [f64; N]) {
+        let n = self.n.max(1) as f64;
+        let mut mean = [0.0; N];
+        let mut sd = [0.0; N];
+        for k in 0..N {
+            mean[k] = self.sum[k] / n;
+            if self.n > 1 {
+                let var = ((self.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0)).max(0.0);
+                sd[k] = (var / n).sqrt();
+            }
+        }
+        (mean, sd)
+    }
+}
+
+fn round_um(v: f64) -> f64 {
+    (v * 1e6).round() / 1e6
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// SHA-256 of every file under `folder` (but `test.json`), by path relative to it.
+fn hash_folder(folder: &Path) -> std::io::Result<BTreeMap<String, String>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![folder.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d)? {
+            let e = e?;
+            let p = e.path();
+            if e.file_type()?.is_dir() {
+                stack.push(p);
+                continue;
+            }
+            let rel = p.strip_prefix(folder).unwrap_or(&p).to_string_lossy().into_owned();
+            if rel == "test.json" || rel.ends_with(".tmp") {
+                continue;
+            }
+            out.insert(rel, hex(&sha2::Sha256::digest(std::fs::read(&p)?)));
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tagdeflect_core::feed::FeedTag;
+
+    fn line(t_ns: i64, z: f64, net: f64) -> FeedLine {
+        let tag = FeedTag { id: 1, pos_mm: [10.0, 0.0, z], disp_mm: [0.0, 0.0, z], views: 2, sigma_mm: Some([0.01; 3]), reproj_px: None };
+        FeedLine { seq: t_ns as u64, t_ns, tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
+    }
+
+    #[test]
+    fn a_test_counts_from_the_mean_of_its_first_sets_and_keeps_its_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let tests = LabTests::new(dir.path(), "[world]\n".into(), Vec::new(), None).unwrap();
+        assert!(matches!(tests.stop(), Err(TestError::Conflict(_))));
+        tests.start(TestMeta { specimen: "B12".into(), ..TestMeta::default() }).unwrap();
+        assert!(matches!(tests.start(TestMeta { specimen: "B13".into(), ..TestMeta::default() }), Err(TestError::Conflict(_))));
+        // Five sets at rest around z = 5 ± 0.01, then the beam deflects by 1 mm.
+        let rest = [5.01, 4.99, 5.0, 5.02, 4.98];
+        let mut out = Vec::new();
+        for (k, z) in rest.iter().enumerate() {
+            let mut l = line(k as i64, *z, *z * 0.1);
+            tests.apply(&mut l);
+            tests.on_line(&l);
+            out.push(l);
+        }
+        let mut l = line(10, 4.0, 0.4);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+        assert!(out.iter().all(|l| l.test.as_ref().unwrap().zeroing));
+        assert_eq!(out[0].events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start"]);
+        let t = l.test.as_ref().unwrap();
+        assert!(!t.zeroing && t.specimen == "B12");
+        assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
+        assert!((l.net_deflection_mm.unwrap() + 0.1).abs() < 1e-9);
+        tests.mark(Some("first crack seen".into())).unwrap();
+        let stopped = tests.stop().unwrap();
+        let mut after = line(11, 4.0, 0.4);
+        tests.apply(&mut after);
+        assert!(after.test.is_none());
+        assert_eq!(after.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["mark", "stop"]);
+        let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+        assert_eq!(record.lines, 6);
+        assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "mark", "stop"]);
+        for f in ["feed.jsonl", "utm.jsonl", "tagdeflect.toml"] {
+            let want = hex(&sha2::Sha256::digest(std::fs::read(stopped.folder.join(f)).unwrap()));
+            assert_eq!(record.sha256.get(f), Some(&want), "{f}");
+        }
+        assert!(!dir.path().join(".running.json").exists(), "a stopped test leaves no state behind");
+        assert!(TestMeta { specimen: "<b>".into(), ..TestMeta::default() }.validate().is_err());
+        assert!(TestMeta { specimen: "B1".into(), standard: Some("iso".into()), ..TestMeta::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn a_test_running_when_the_daemon_stops_resumes_from_its_zero() {
+        let dir = tempfile::tempdir().unwrap();
+        let id = {
+            let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+            tests.start(TestMeta { specimen: "B7".into(), ..TestMeta::default() }).unwrap();
+            for k in 0..ZERO_SETS {
+                let mut l = line(k as i64, 5.0 + 0.01 * k as f64, 0.5);
+                tests.apply(&mut l);
+                tests.on_line(&l);
+            }
+            tests.status()["id"].as_str().unwrap().to_string()
+            // Dropped without a stop: the daemon died.
+        };
+        let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+        let st = tests.status();
+        assert_eq!(st["state"], "running");
+        assert_eq!(st["id"], id.as_str());
+        let mut l = line(100, 4.02, 0.4);
+        tests.apply(&mut l);
+        assert_eq!(l.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["resume"]);
+        assert!(!l.test.as_ref().unwrap().zeroing, "the zero is kept, not taken again");
+        // The zero was the mean of 5.00 .. 5.04 = 5.02.
+        assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
+        tests.on_line(&l);
+        let stopped = tests.stop().unwrap();
+        let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+        assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "resume", "stop"]);
+        assert_eq!(std::fs::read_to_string(stopped.folder.join("feed.jsonl")).unwrap().lines().count(), ZERO_SETS + 1);
+    }
+}

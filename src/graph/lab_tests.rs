@@ -1,0 +1,79 @@
+//! The tests of a run (`[output] tests`, `--tests DIR`; SPEC "Tests"): built here from the
+//! config, their control API handed to the live page, their report made by the report crate.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::Result;
+use tagdeflect_sinks::lab_test::{LabTests, TestRecord};
+
+use crate::config::Config;
+use crate::graph::page::Page;
+
+/// Builds the tests under `dir`, serves their control API on the page and returns them. The
+/// token is `[output] http_token_file`'s first line, else made now, printed once and written
+/// to `dir/.token` (mode 0600).
+pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> {
+    let bad = |m: String| crate::BadInput::new(m);
+    let report_config = config.clone();
+    let hook: tagdeflect_sinks::lab_test::ReportHook =
+        Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record));
+    let tests = LabTests::new(dir, config.to_toml_string(), Vec::new(), Some(hook))
+        .map_err(|e| bad(format!("[output] tests: cannot create {}: {e}", dir.display())))?;
+    let token = match &config.output.http_token_file {
+        Some(f) => std::fs::read_to_string(f)
+            .map_err(|e| bad(format!("[output] http_token_file {}: {e}", f.display())))?
+            .lines()
+            .next()
+            .unwrap_or_default()
+            .trim()
+            .to_string(),
+        None => {
+            use rand::RngCore;
+            let mut bytes = [0u8; 24];
+            rand::rngs::OsRng.fill_bytes(&mut bytes);
+            let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+            let path = dir.join(".token");
+            write_private(&path, &token).map_err(|e| bad(format!("cannot write the control token to {}: {e}", path.display())))?;
+            eprintln!("control token: {token}");
+            tracing::info!("control token written to {} (mode 0600)", path.display());
+            token
+        }
+    };
+    if !page.set_control(tests.clone(), token) {
+        return Err(bad(format!(
+            "[output] tests = {}: the tests are driven through the control API, which needs the live page: set [output] http (or --http ADDR)",
+            dir.display()
+        ))
+        .into());
+    }
+    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero", dir.display());
+    Ok(tests)
+}
+
+fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new().create(true).write(true).truncate(true).mode(0o600).open(path)?;
+    f.write_all(text.as_bytes())?;
+    f.write_all(b"\n")?;
+    f.sync_all()
+}
+
+/// The report of a stopped test with a standard, into `folder/report/`.
+fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), String> {
+    let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
+    let out = folder.join("report");
+    let std: tagdeflect_report::Standard =
+        serde_json::from_value(serde_json::json!(standard)).map_err(|e| format!("standard {standard}: {e}"))?;
+    let mut rc = match &config.report {
+        Some(r) => r.clone(),
+        None => serde_json::from_value(serde_json::json!({"standard": standard, "out": out})).map_err(|e| format!("[report]: {e}"))?,
+    };
+    rc.standard = std;
+    let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl")).map_err(|e| e.to_string())?;
+    let rig = config.test_rig();
+    let rep = tagdeflect_report::build(&feed, &rig, &folder.join("tagdeflect.toml"), &rc).map_err(|e| e.to_string())?;
+    std::fs::create_dir_all(&out).map_err(|e| e.to_string())?;
+    tagdeflect_report::write(&rep, &feed, &out).map(|_| ()).map_err(|e| e.to_string())
+}

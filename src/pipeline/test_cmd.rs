@@ -1,0 +1,103 @@
+//! `tagdeflect test start|stop|mark|zero`: a thin client of a running daemon's control API
+//! (SPEC "Tests"); prints the daemon's JSON answer.
+
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+
+/// `tagdeflect test ...`.
+#[derive(Debug, clap::Args)]
+pub struct TestArgs {
+    /// What to do.
+    #[command(subcommand)]
+    pub action: TestAction,
+    /// The daemon's live page.
+    #[arg(long, global = true, default_value = "http://127.0.0.1:8080")]
+    pub url: String,
+    /// The file holding the control token (`[output] http_token_file`, or `<tests>/.token`
+    /// written by the daemon at start).
+    #[arg(long, global = true, value_name = "FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+/// A command of the control API.
+#[derive(Debug, clap::Subcommand)]
+pub enum TestAction {
+    /// Start a test (its zero is taken at its first frame sets).
+    Start {
+        /// The specimen's id.
+        #[arg(long)]
+        specimen: String,
+        /// Who runs the test.
+        #[arg(long)]
+        operator: Option<String>,
+        /// The standard of the report made at stop (`astm-c1609`, `astm-c1856`, `en-14651`).
+        #[arg(long)]
+        standard: Option<String>,
+        /// Free text.
+        #[arg(long)]
+        notes: Option<String>,
+    },
+    /// Stop the running test; answers once its folder (report included) is complete.
+    Stop,
+    /// Put a note into the feed and the test's record ("first crack seen").
+    Mark {
+        /// The note.
+        note: Option<String>,
+    },
+    /// Take the test's zero again from the next frame sets.
+    Zero,
+    /// Print the test's state (no token needed).
+    Status,
+}
+
+/// Sends the command and prints the answer; a refusal is an error with the daemon's reason.
+pub fn run(args: &TestArgs) -> Result<()> {
+    let base = args.url.trim_end_matches('/');
+    let agent = ureq::AgentBuilder::new().timeout(std::time::Duration::from_secs(30)).build();
+    let (path, body) = match &args.action {
+        TestAction::Status => {
+            let text = agent.get(&format!("{base}/api/test")).call().map_err(http_error)?.into_string()?;
+            println!("{text}");
+            return Ok(());
+        }
+        TestAction::Start { specimen, operator, standard, notes } => {
+            ("start", serde_json::json!({"specimen": specimen, "operator": operator, "standard": standard, "notes": notes}))
+        }
+        TestAction::Stop => ("stop", serde_json::json!({})),
+        TestAction::Mark { note } => ("mark", serde_json::json!({"note": note})),
+        TestAction::Zero => ("zero", serde_json::json!({})),
+    };
+    let token_file = args.token_file.as_ref().ok_or_else(|| {
+        crate::BadInput::new("--token-file FILE: the control token (the daemon wrote it to <tests>/.token, or [output] http_token_file)")
+    })?;
+    let token = std::fs::read_to_string(token_file).with_context(|| format!("cannot read the token file {}", token_file.display()))?;
+    let token = token.lines().next().unwrap_or_default().trim().to_string();
+    // Drop nulls: the API takes absent fields, not nulls.
+    let body = match body {
+        serde_json::Value::Object(m) => serde_json::Value::Object(m.into_iter().filter(|(_, v)| !v.is_null()).collect()),
+        v => v,
+    };
+    let answer = agent
+        .post(&format!("{base}/api/test/{path}"))
+        .set("Authorization", &format!("Bearer {token}"))
+        .send_json(body)
+        .map_err(http_error)?
+        .into_string()?;
+    println!("{answer}");
+    Ok(())
+}
+
+/// The daemon's refusal (its JSON `error`) as bad input, a connection failure as is.
+fn http_error(e: ureq::Error) -> anyhow::Error {
+    match e {
+        ureq::Error::Status(code, resp) => {
+            let text = resp.into_string().unwrap_or_default();
+            let why = serde_json::from_str::<serde_json::Value>(&text)
+                .ok()
+                .and_then(|v| v.get("error").and_then(|e| e.as_str()).map(str::to_string))
+                .unwrap_or(text);
+            anyhow::Error::new(crate::BadInput::new(format!("the daemon refused ({code}): {why}")))
+        }
+        other => anyhow::Error::new(crate::RuntimeFailure::new(format!("cannot reach the daemon: {other}"))),
+    }
+}
