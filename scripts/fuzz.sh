@@ -31,7 +31,12 @@ targets=("$@")
 mkdir -p logs
 # Integer overflow checks and debug assertions on (-a); memory limits catch allocations
 # driven by input sizes.
-cargo "${tc[@]}" fuzz build "${td[@]}" -a -s "$san"
+# Only the targets asked for are built (each links the whole crate).
+if [ $# -gt 0 ]; then
+    for t in "${targets[@]}"; do cargo "${tc[@]}" fuzz build "${td[@]}" -a -s "$san" "$t"; done
+else
+    cargo "${tc[@]}" fuzz build "${td[@]}" -a -s "$san"
+fi
 status=0
 printf '%-14s %12s %10s  %s\n' target execs exec/s result
 for t in "${targets[@]}"; do

@@ -638,8 +638,15 @@ impl Outputs {
         #[cfg(feature = "mqtt")]
         let mqtt = match (&config.output.mqtt, replaying) {
             (Some(m), false) => {
-                let p =
-                    Arc::new(crate::sinks::mqtt::MqttPublisher::start(m, &config.rig_info(), record_dir).map_err(crate::BadInput::new)?);
+                let p = Arc::new(
+                    crate::sinks::mqtt::MqttPublisher::start(
+                        m,
+                        &config.rig_info(),
+                        record_dir,
+                        config.output.feed.as_deref().and_then(tagdeflect_core::feed_file::feed_path).as_deref(),
+                    )
+                    .map_err(crate::BadInput::new)?,
+                );
                 sinks.push(Box::new(crate::sinks::mqtt::MqttSink(p.clone())));
                 Some(p)
             }

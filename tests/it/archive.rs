@@ -62,11 +62,12 @@ fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
         .spawn()
         .unwrap();
     let mut p = Proc { child, name: "archive" };
-    // Ready once subscribed: messages published before would not reach its session.
+    // Ready once subscribed (messages published before would not reach its session) and
+    // its schema is in place.
     let until = Instant::now() + Duration::from_secs(30);
     loop {
         let text = fs::read_to_string(log).unwrap_or_default().get(skip..).unwrap_or_default().to_string();
-        if text.matches("archive: subscribed").count() >= 2 {
+        if text.matches("archive: subscribed").count() >= 2 && text.contains("archive: database ready") {
             break;
         }
         assert!(p.alive(), "the archive exited: {text}");
@@ -80,12 +81,26 @@ fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
 /// `broker` as `rig`/`test` with a buffer of `buffer` lines; the feed also goes to
 /// `<dir>/<rig>.jsonl`.
 fn demo_config(dir: &Path, broker: &str, rig: &str, test: &str, buffer: usize) -> (PathBuf, PathBuf) {
+    demo_config_with(dir, broker, rig, test, buffer, true, 60)
+}
+
+/// [`demo_config`] with or without the feed file (without: the feed goes to the demo's
+/// stdout, and the publisher has nothing to read lines back from) and `frame_sets` lines.
+fn demo_config_with(
+    dir: &Path,
+    broker: &str,
+    rig: &str,
+    test: &str,
+    buffer: usize,
+    feed_file: bool,
+    frame_sets: u32,
+) -> (PathBuf, PathBuf) {
     let params =
-        SimParams { cameras: 1, width: 480, height: 360, fps: 10.0, frame_sets: 60, rest_frames: 5, subsamples: 2, ..SimParams::default() };
+        SimParams { cameras: 1, width: 480, height: 360, fps: 10.0, frame_sets, rest_frames: 5, subsamples: 2, ..SimParams::default() };
     let mut config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     config.utm = tagdeflect::config::Config::demo().utm;
     let feed = dir.join(format!("{rig}.jsonl"));
-    config.output.feed = Some(feed.display().to_string());
+    config.output.feed = feed_file.then(|| feed.display().to_string());
     let mut text = config.to_toml_string();
     text.push_str(&format!(
         "\n[output.mqtt]\nurl = \"{broker}\"\nrig = \"{rig}\"\ntest = \"{test}\"\nbuffer_lines = {buffer}\nstatus_interval_s = 1.0\n"
@@ -96,12 +111,17 @@ fn demo_config(dir: &Path, broker: &str, rig: &str, test: &str, buffer: usize) -
 }
 
 fn start_demo(config: &Path, seconds: f64, log: &Path) -> Proc {
+    start_demo_to(config, seconds, log, None)
+}
+
+/// [`start_demo`] with its stdout (the feed, when the config has no feed file) into `out`.
+fn start_demo_to(config: &Path, seconds: f64, log: &Path, out: Option<&Path>) -> Proc {
     let child = Command::new(bin())
         .args(["demo", "--config"])
         .arg(config)
         .args(["--duration-s", &seconds.to_string()])
         .stdin(Stdio::null())
-        .stdout(Stdio::null())
+        .stdout(out.map_or_else(Stdio::null, |p| fs::File::create(p).unwrap().into()))
         .stderr(fs::File::create(log).unwrap())
         .spawn()
         .unwrap();
@@ -236,70 +256,311 @@ fn demo_to_postgres_round_trip_and_a_malformed_message_is_skipped() {
     archive.kill();
 }
 
+fn logs_of(dir: &Path, files: &[&str]) -> String {
+    files.iter().map(|f| format!("--- {f}\n{}", fs::read_to_string(dir.join(f)).unwrap_or_default())).collect()
+}
+
+/// Waits until the archive holds every line of the feed file and checks it holds each once,
+/// equal to the feed line.
+fn assert_converged(pg: &str, rig: &str, test: &str, feed_path: &Path, logs: impl Fn() -> String) -> usize {
+    let feed = read_feed(feed_path);
+    let rows = wait_rows(pg, rig, test, feed.len(), Duration::from_secs(40));
+    let missing: Vec<i64> = feed.iter().map(|l| l["seq"].as_i64().unwrap()).filter(|s| !rows.contains_key(s)).collect();
+    assert_eq!(rows.len(), feed.len(), "rig {rig}: archived {} of {} lines; missing {missing:?}\n{}", rows.len(), feed.len(), logs());
+    assert_rows_equal_feed(&rows, &feed);
+    feed.len()
+}
+
+/// The outage of issue 27: a broker *without* persistence stopped for 8 s mid-run and
+/// started again. It forgets the archive's session; after its restart it acknowledges the
+/// rig's backlog and delivers it to nobody if the rig reconnects before the archive has
+/// subscribed again. The archive's acknowledgement makes the rig send those lines again.
 #[test]
-fn broker_down_for_10_s_loses_nothing_within_the_buffer_and_counts_the_drops() {
+fn broker_without_persistence_restarted_mid_run_the_archive_gets_every_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut broker = LocalMosquitto::start_with(false).unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-np", &dir.path().join("archive.log"));
+    let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "np", "np", 10_000);
+    let mut demo = start_demo(&cfg, 20.0, &dir.path().join("demo.log"));
+    // Mid-run: once the archive holds lines.
+    assert!(wait_rows(&pg.url(), "np", "np", 20, Duration::from_secs(30)).len() >= 20, "nothing archived");
+    broker.stop();
+    std::thread::sleep(Duration::from_secs(8)); // the outage itself
+    broker.start_again().unwrap();
+    assert!(demo.wait(Duration::from_secs(60)).success(), "{}", fs::read_to_string(dir.path().join("demo.log")).unwrap());
+    let logs = || logs_of(dir.path(), &["demo.log", "archive.log"]);
+    let n = assert_converged(&pg.url(), "np", "np", &feed_path, logs);
+    let feed = read_feed(&feed_path);
+    assert_eq!(feed.last().unwrap()["mqtt_dropped"], 0, "nothing was lost for good");
+    assert!(n >= 150, "only {n} lines");
+    let demo_log = fs::read_to_string(dir.path().join("demo.log")).unwrap();
+    assert!(demo_log.contains("the archive confirmed every feed line"), "{}", logs());
+    assert!(archive.alive());
+}
+
+/// A broker *with* persistence down for 10 s: a rig whose buffer holds the outage, one
+/// whose 15-line buffer does not but whose feed file does (lines are read back from it),
+/// and one with a 15-line buffer and no feed file: it loses exactly what it counts.
+#[test]
+fn broker_down_for_10_s_loses_nothing_with_a_feed_file_and_counts_exactly_without() {
     let dir = tempfile::tempdir().unwrap();
     let mut broker = LocalMosquitto::start().unwrap();
     let pg = LocalPostgres::start(false).unwrap();
     let mut archive = start_archive(&broker.url(), &pg.url(), "archive-bo", &dir.path().join("archive.log"));
-    // Rig "big" buffers 10 000 lines (the outage fits), rig "small" 15 (it does not).
     let (cfg_big, feed_big) = demo_config(dir.path(), &broker.url(), "big", "bo", 10_000);
     let (cfg_small, feed_small) = demo_config(dir.path(), &broker.url(), "small", "bo", 15);
+    let (cfg_tiny, _) = demo_config_with(dir.path(), &broker.url(), "tiny", "bo", 15, false, 60);
     let mut big = start_demo(&cfg_big, 22.0, &dir.path().join("big.log"));
     let mut small = start_demo(&cfg_small, 22.0, &dir.path().join("small.log"));
-    std::thread::sleep(Duration::from_secs(5));
+    let tiny_feed = dir.path().join("tiny-stdout.jsonl");
+    let mut tiny = start_demo_to(&cfg_tiny, 22.0, &dir.path().join("tiny.log"), Some(&tiny_feed));
+    for rig in ["big", "small", "tiny"] {
+        assert!(!wait_rows(&pg.url(), rig, "bo", 10, Duration::from_secs(30)).is_empty(), "rig {rig}: nothing archived");
+    }
     broker.stop();
-    std::thread::sleep(Duration::from_secs(10));
+    std::thread::sleep(Duration::from_secs(10)); // the outage itself
     broker.start_again().unwrap();
-    assert!(big.wait(Duration::from_secs(60)).success(), "{}", fs::read_to_string(dir.path().join("big.log")).unwrap());
-    assert!(small.wait(Duration::from_secs(60)).success(), "{}", fs::read_to_string(dir.path().join("small.log")).unwrap());
-
-    let feed = read_feed(&feed_big);
-    let rows = wait_rows(&pg.url(), "big", "bo", feed.len(), Duration::from_secs(30));
-    assert_eq!(feed.last().unwrap()["mqtt_dropped"], 0, "the big buffer held the whole outage");
-    let logs = || {
-        ["big.log", "small.log", "archive.log"]
-            .iter()
-            .map(|f| format!("--- {f}\n{}", fs::read_to_string(dir.path().join(f)).unwrap_or_default()))
-            .collect::<String>()
-    };
-    assert_eq!(rows.len(), feed.len(), "rig big: archived {} of {} lines\n{}", rows.len(), feed.len(), logs());
-    assert_rows_equal_feed(&rows, &feed);
-
-    let feed = read_feed(&feed_small);
-    let dropped = feed.last().unwrap()["mqtt_dropped"].as_u64().unwrap() as usize;
-    // ~100 lines made during the outage, 15 kept.
-    assert!(dropped >= 50, "only {dropped} lines dropped from a 15-line buffer during a 10 s outage");
-    // A dropped line was never acknowledged, but one on its way when the broker stopped
-    // (sent, its acknowledgement not yet back) may have reached it: `mqtt_dropped` bounds
-    // the loss from above, by at most the lines in flight (on loopback at ~10 lines/s, one
-    // or two).
-    const IN_FLIGHT: usize = 2;
-    let rows = wait_rows(&pg.url(), "small", "bo", feed.len() - dropped, Duration::from_secs(30));
-    std::thread::sleep(Duration::from_millis(500));
-    let rows_again = archived(&pg.url(), "small", "bo");
-    assert_eq!(rows.len(), rows_again.len(), "more lines arrived than the feed says were kept");
-    assert!(
-        rows.len() + dropped >= feed.len() && rows.len() + dropped <= feed.len() + IN_FLIGHT,
-        "rig small: {} archived + {dropped} dropped vs {} made\n{}",
-        rows.len(),
-        feed.len(),
-        logs()
-    );
-    assert_rows_equal_feed(&rows, &feed);
-    // What is missing is one run of consecutive lines: the oldest of the outage.
-    let missing: Vec<i64> = feed.iter().map(|l| l["seq"].as_i64().unwrap()).filter(|s| !rows.contains_key(s)).collect();
-    assert_eq!(missing.len(), feed.len() - rows.len());
-    // Where the feed counted its drops (the seq of each line whose making dropped one).
-    let drops_at: Vec<i64> =
-        feed.windows(2).filter(|w| w[1]["mqtt_dropped"] != w[0]["mqtt_dropped"]).map(|w| w[1]["seq"].as_i64().unwrap()).collect();
-    assert_eq!(
-        missing.last().unwrap() - missing[0] + 1,
-        missing.len() as i64,
-        "missing lines are not consecutive: {missing:?}; drops counted at {drops_at:?}\n{}",
-        logs()
-    );
+    let logs = || logs_of(dir.path(), &["big.log", "small.log", "tiny.log", "archive.log"]);
+    for (p, name) in [(&mut big, "big"), (&mut small, "small"), (&mut tiny, "tiny")] {
+        assert!(p.wait(Duration::from_secs(60)).success(), "rig {name} failed\n{}", logs());
+    }
+    for (rig, feed) in [("big", &feed_big), ("small", &feed_small)] {
+        assert_converged(&pg.url(), rig, "bo", feed, logs);
+        assert_eq!(read_feed(feed).last().unwrap()["mqtt_dropped"], 0, "rig {rig} lost nothing for good");
+    }
+    // Without a feed file: what left the 15-line memory before the broker took it is lost,
+    // and exactly that is counted (the tiny rig's feed went to its stdout).
+    let tiny_lines = read_feed(&tiny_feed);
+    let made = tiny_lines.len() as i64;
+    // The count at the rig's end: its last (offline) status; the last feed line's is not above it.
+    let dropped = query(&pg.url(), |c| {
+        Box::pin(async move {
+            let r = c
+                .query_one("SELECT t.status FROM tests t JOIN rigs r ON r.id = t.rig_id WHERE r.name = 'tiny' AND t.name = 'bo'", &[])
+                .await
+                .unwrap();
+            r.get::<_, serde_json::Value>(0)["mqtt_dropped"].as_i64().unwrap()
+        })
+    });
+    assert!(tiny_lines.last().unwrap()["mqtt_dropped"].as_i64().unwrap() <= dropped);
+    assert!(dropped >= 50, "only {dropped} lines dropped from a 15-line memory during a 10 s outage\n{}", logs());
+    let rows = wait_rows(&pg.url(), "tiny", "bo", (made - dropped) as usize, Duration::from_secs(30));
+    assert_eq!(rows.len() as i64 + dropped, made, "rig tiny: {} archived + {dropped} dropped vs {made} made\n{}", rows.len(), logs());
     assert!(archive.alive());
+}
+
+/// The archive stopped while the rig runs and started again only after the rig ended:
+/// the broker's persistent session keeps what the archive missed.
+#[test]
+fn archive_stopped_during_the_run_and_started_after_it_gets_every_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let alog = dir.path().join("archive.log");
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-sa", &alog);
+    let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "sa", "sa", 10_000);
+    let mut demo = start_demo(&cfg, 10.0, &dir.path().join("demo.log"));
+    assert!(!wait_rows(&pg.url(), "sa", "sa", 10, Duration::from_secs(30)).is_empty());
+    archive.kill();
+    assert!(demo.wait(Duration::from_secs(60)).success());
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-sa", &alog);
+    assert_converged(&pg.url(), "sa", "sa", &feed_path, || logs_of(dir.path(), &["demo.log", "archive.log"]));
+    assert!(archive.alive());
+}
+
+/// Two runs with one fixed test id (a run and its restart): both are kept, the second as
+/// run 2 (`<test>#2` in feed_lines), and the archive warns.
+#[test]
+fn a_restarted_run_with_the_same_test_id_is_kept_as_a_second_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let alog = dir.path().join("archive.log");
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-rr", &alog);
+    let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "rr", "fixed", 10_000);
+    let mut first = start_demo(&cfg, 4.0, &dir.path().join("run1.log"));
+    assert!(first.wait(Duration::from_secs(60)).success());
+    let n1 = read_feed(&feed_path).len();
+    let rows1 = wait_rows(&pg.url(), "rr", "fixed", n1, Duration::from_secs(30));
+    assert_eq!(rows1.len(), n1);
+    let mut second = start_demo(&cfg, 4.0, &dir.path().join("run2.log"));
+    assert!(second.wait(Duration::from_secs(60)).success());
+    // The feed file holds both runs, appended.
+    let feed = read_feed(&feed_path);
+    let (run1, run2) = feed.split_at(n1);
+    assert_eq!(run2[0]["seq"], run1[0]["seq"], "the restart numbers its lines from the start again");
+    let rows2 = wait_rows(&pg.url(), "rr", "fixed#2", run2.len(), Duration::from_secs(30));
+    let logs = || logs_of(dir.path(), &["run1.log", "run2.log", "archive.log"]);
+    assert_eq!(rows2.len(), run2.len(), "run 2: archived {} of {}\n{}", rows2.len(), run2.len(), logs());
+    assert_rows_equal_feed(&rows2, run2);
+    let rows1 = archived(&pg.url(), "rr", "fixed");
+    assert_eq!(rows1.len(), run1.len(), "run 1 kept as it was");
+    assert_rows_equal_feed(&rows1, run1);
+    assert!(fs::read_to_string(&alog).unwrap().contains("a new run 2"), "{}", logs());
+    let run2_log = fs::read_to_string(dir.path().join("run2.log")).unwrap();
+    assert!(run2_log.contains("the archive confirmed every feed line"), "{}", logs());
+    assert!(archive.alive());
+}
+
+/// `archive backfill`: a rig that never reached the broker; the gap view and the gap log;
+/// idempotent; a bad line is bad input naming file and line.
+#[test]
+fn backfill_loads_a_feed_file_once_and_the_gap_view_shows_what_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    // A rig whose broker is not there at all.
+    let dead = format!("mqtt://127.0.0.1:{}", crate::common::free_port());
+    let (cfg, feed_path) = demo_config(dir.path(), &dead, "bf", "bf", 10_000);
+    let mut demo = start_demo(&cfg, 4.0, &dir.path().join("demo.log"));
+    assert!(demo.wait(Duration::from_secs(60)).success());
+    let feed_text = fs::read_to_string(&feed_path).unwrap();
+    let lines: Vec<&str> = feed_text.lines().collect();
+    assert!(lines.len() >= 20, "only {} lines", lines.len());
+    // First a file without seq 5..=9 and a partial last line, then the whole file.
+    let holed = dir.path().join("holed.jsonl");
+    let mut text: String = lines.iter().enumerate().filter(|(i, _)| !(5..=9).contains(i)).map(|(_, l)| format!("{l}\n")).collect();
+    text.push_str("{\"seq\": 99, \"t_n");
+    fs::write(&holed, text).unwrap();
+    let backfill = |file: &Path| {
+        Command::new(bin())
+            .args(["archive", "backfill"])
+            .arg(file)
+            .args(["--rig", "bf", "--test", "bf", "--postgres", &pg.url()])
+            .env("TAGDEFLECT_LOG", "info")
+            .output()
+            .unwrap()
+    };
+    let out = backfill(&holed);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("partial last line skipped"), "{err}");
+    // The hole: from after line 4 to before line 10 (frame sets the rig dropped have seqs too).
+    let seq_of = |i: usize| serde_json::from_str::<serde_json::Value>(lines[i]).unwrap()["seq"].as_i64().unwrap();
+    let (first, last) = (seq_of(4) + 1, seq_of(10) - 1);
+    assert!(err.contains("gap opened") && err.contains(&format!("seq {first}..={last}")), "{err}");
+    let gaps_of = |pg: String| {
+        query(&pg, |c| {
+            Box::pin(async move {
+                c.query("SELECT first_seq, last_seq, missing FROM feed_gaps WHERE rig = 'bf' AND test = 'bf'", &[])
+                    .await
+                    .unwrap()
+                    .iter()
+                    .map(|r| (r.get::<_, i64>(0), r.get::<_, i64>(1), r.get::<_, i64>(2)))
+                    .collect::<Vec<_>>()
+            })
+        })
+    };
+    assert_eq!(gaps_of(pg.url()), vec![(first, last, 5)], "feed_gaps");
+    let out = backfill(&feed_path);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    let said = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(out.status.success(), "{err}");
+    assert!(said.contains(&format!("{} feed lines", lines.len())) && said.contains("5 stored"), "{said}");
+    assert!(err.contains("gap filled"), "{err}");
+    assert_eq!(gaps_of(pg.url()), vec![], "feed_gaps after the whole file");
+    let rows = archived(&pg.url(), "bf", "bf");
+    assert_rows_equal_feed(&rows, &read_feed(&feed_path));
+    assert_eq!(rows.len(), lines.len());
+    // Again: nothing new.
+    let out = backfill(&feed_path);
+    let said = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(said.contains("0 stored") && said.contains(&format!("{} already held", lines.len())), "{said}");
+    assert_eq!(archived(&pg.url(), "bf", "bf").len(), lines.len());
+    // A bad line in the middle: exit 2, file and line named, nothing written.
+    let bad = dir.path().join("bad.jsonl");
+    fs::write(&bad, format!("{}\n{{\"seq\": 1}}\n{}\n", lines[0], lines[1])).unwrap();
+    let out = backfill(&bad);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("bad.jsonl:2"), "{err}");
+}
+
+/// Messages the archive cannot take are malformed, never a stop: a 2 MB feed message at
+/// QoS 1, a retained 1.1 MB status, a status claiming another rig; lines behind them are stored.
+#[test]
+fn oversized_and_forged_messages_are_skipped_and_the_archive_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    // Published before the archive starts: the retained status reaches even a fresh archive.
+    {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async {
+            let mut mo = rumqttc::MqttOptions::new("big-sender", "127.0.0.1", broker.port());
+            mo.set_max_packet_size(4 << 20, 4 << 20);
+            let (c, mut el) = rumqttc::AsyncClient::new(mo, 16);
+            let big_status = format!("{{\"rig\": \"huge\", \"pad\": \"{}\"}}", "x".repeat(1_100_000));
+            c.publish("tagdeflect/huge/t0/status", rumqttc::QoS::AtLeastOnce, true, big_status).await.unwrap();
+            c.publish("tagdeflect/victim/t0/status", rumqttc::QoS::AtLeastOnce, true, r#"{"rig": "intruder", "state": "offline"}"#)
+                .await
+                .unwrap();
+            let mut acked = 0;
+            while acked < 2 {
+                if let rumqttc::Event::Incoming(rumqttc::Packet::PubAck(_)) = el.poll().await.unwrap() {
+                    acked += 1;
+                }
+            }
+        });
+    }
+    let alog = dir.path().join("archive.log");
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-big", &alog);
+    {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async {
+            let mut mo = rumqttc::MqttOptions::new("big-feed", "127.0.0.1", broker.port());
+            mo.set_max_packet_size(4 << 20, 4 << 20);
+            let (c, mut el) = rumqttc::AsyncClient::new(mo, 16);
+            let big = format!("{{\"seq\": 0, \"t_ns\": 1, \"tags\": [], \"pad\": \"{}\"}}", "y".repeat(2_000_000));
+            c.publish("tagdeflect/huge/t0/feed", rumqttc::QoS::AtLeastOnce, false, big).await.unwrap();
+            loop {
+                if let rumqttc::Event::Incoming(rumqttc::Packet::PubAck(_)) = el.poll().await.unwrap() {
+                    break;
+                }
+            }
+        });
+    }
+    let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "after", "big", 10_000);
+    let mut demo = start_demo(&cfg, 4.0, &dir.path().join("demo.log"));
+    assert!(demo.wait(Duration::from_secs(60)).success());
+    assert_converged(&pg.url(), "after", "big", &feed_path, || logs_of(dir.path(), &["demo.log", "archive.log"]));
+    let log = fs::read_to_string(&alog).unwrap();
+    assert!(log.matches("more than the 1048576 a feed line or status may have").count() >= 2, "{log}");
+    assert!(log.contains("topic tagdeflect/victim/t0/status") && log.contains("\"intruder\""), "{log}");
+    assert!(!log.contains("payload size limit exceeded"), "{log}");
+    let victim = query(&pg.url(), |c| Box::pin(async move { c.query("SELECT 1 FROM tests WHERE name = 't0'", &[]).await.unwrap().len() }));
+    assert_eq!(victim, 0, "nothing of the rejected messages is stored");
+    assert!(archive.alive(), "{log}");
+}
+
+/// A database error is logged with its cause, not as a bare "db error".
+#[test]
+fn a_database_error_is_logged_with_its_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let url = pg.url().replace("/postgres", "/no_such_db");
+    let log = dir.path().join("archive.log");
+    let child = Command::new(bin())
+        .args(["archive", "--mqtt", &broker.url(), "--postgres", &url, "--client-id", "archive-err"])
+        .env("TAGDEFLECT_LOG", "info")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut p = Proc { child, name: "archive" };
+    let until = Instant::now() + Duration::from_secs(30);
+    loop {
+        let text = fs::read_to_string(&log).unwrap_or_default();
+        if text.contains("database unreachable") {
+            assert!(text.contains("database \"no_such_db\" does not exist"), "{text}");
+            break;
+        }
+        assert!(p.alive() && Instant::now() < until, "{text}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    p.kill();
 }
 
 #[test]

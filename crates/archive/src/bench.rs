@@ -112,8 +112,9 @@ pub fn run(opts: &ArchiveBenchOptions) -> Result<(), ArchiveError> {
 async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Result<(), ArchiveError> {
     let run_id = format!("{:08x}", rand::random::<u32>());
     let archive_opts = ArchiveOptions {
-        mqtt: mqtt.clone(),
-        postgres,
+        command: None,
+        mqtt: Some(mqtt.clone()),
+        postgres: Some(postgres),
         topic: "tagdeflect/{rig}/{test}".into(),
         group: None,
         client_id: Some(format!("tagdeflect-archive-bench-{run_id}")),

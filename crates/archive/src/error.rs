@@ -46,6 +46,10 @@ pub enum ArchiveError {
     /// `archive-bench`: the archive did not store the lines in time (runtime failure).
     #[error("{0}")]
     Bench(String),
+    /// `archive backfill`: the database or the broker failed (runtime failure); the message
+    /// holds the whole chain of causes.
+    #[error("{0}")]
+    Database(String),
 }
 
 impl ArchiveError {
@@ -58,7 +62,8 @@ impl ArchiveError {
             | ArchiveError::LocalServer { .. }
             | ArchiveError::Publish(_)
             | ArchiveError::Task(_)
-            | ArchiveError::Bench(_) => false,
+            | ArchiveError::Bench(_)
+            | ArchiveError::Database(_) => false,
         }
     }
 }

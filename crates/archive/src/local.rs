@@ -72,6 +72,12 @@ pub struct LocalMosquitto {
 impl LocalMosquitto {
     /// Starts the broker (`mosquitto` from Debian's package).
     pub fn start() -> io::Result<LocalMosquitto> {
+        LocalMosquitto::start_with(true)
+    }
+
+    /// Starts the broker with or without persistence (without: a restart forgets every
+    /// session, subscription, queued and retained message, as a broker run that way does).
+    pub fn start_with(persistence: bool) -> io::Result<LocalMosquitto> {
         let dir = temp_dir("mosquitto")?;
         let port = free_port()?;
         let conf = dir.join("mosquitto.conf");
@@ -87,7 +93,7 @@ impl LocalMosquitto {
             ""
         };
         let mut text = format!(
-            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\n\
+            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence {persistence}\npersistence_location {}/\n\
              max_inflight_messages 1000\nmax_queued_messages 1000000\nmax_queued_bytes 0\n\
              log_dest file {}/mosquitto.log\nlog_type error\nlog_type warning\nlog_type notice\n",
             dir.display(),

@@ -20,8 +20,8 @@ pub struct MqttConfig {
     #[serde(default = "default_rig")]
     pub rig: String,
     /// The test id; generated per run (`YYYYMMDDTHHMMSSZ-xxxx`, printed) when absent. A
-    /// configured id must be new for every run: an archive keeps the first line it got for
-    /// each (rig, test, seq).
+    /// configured id used again (or a run restarted) gives the archive a second run of the
+    /// test (its lines numbered from 0 again; `<test>#2` in `feed_lines`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test: Option<String>,
     /// QoS of the feed lines (0, 1 or 2; 1 = at least once).
@@ -46,8 +46,9 @@ pub struct MqttConfig {
     /// TLS client authentication: PEM private key (with `client_cert`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub client_key: Option<PathBuf>,
-    /// Feed lines held while the broker is unreachable or slow (sent or not yet
-    /// acknowledged); the oldest is dropped beyond this.
+    /// Feed lines kept in memory until the archive has confirmed them; beyond this the
+    /// oldest leaves memory (read back from the feed file when it must be sent; without a
+    /// feed file lost, and counted, if the broker never took it).
     #[serde(default = "default_buffer")]
     pub buffer_lines: usize,
     /// MQTT keep-alive, seconds.

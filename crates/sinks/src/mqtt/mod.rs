@@ -7,25 +7,40 @@
 //! pipeline's runtime drives the connection ([`rumqttc`]), sends what the buffer holds and
 //! reconnects with a backoff (0.2 s doubling to 2 s) while the broker is unreachable.
 //!
-//! **Delivery accounting.** The buffer owns every line until the broker has acknowledged it
-//! (PUBACK at QoS 1, PUBCOMP at QoS 2): lines sent but unacknowledged when the connection
-//! breaks go back to the front of the buffer and are sent again on the next connection
-//! (an archive deduplicates them on `(rig, test, seq)`). At most `buffer_lines` lines are
-//! held, sent or not; beyond that the oldest is dropped and counted. The count so far is
-//! written into every feed line as `mqtt_dropped` (the local feed and the published line
-//! carry the same value: the count includes a drop caused by this very line). It bounds
-//! what the broker never got from above: a dropped line that was sent but not yet
-//! acknowledged when the connection broke may have reached the broker after all.
+//! **Delivery, end to end.** QoS 1 is a promise between the rig and the broker, not between
+//! the rig and the archive: a broker restarted without persistence acknowledges lines and
+//! delivers them to nobody until the archive has subscribed again. So the rig keeps every
+//! line until the *archive* has confirmed it. After each commit, an archive publishes,
+//! retained, on `<topic>/archive` what it holds of the test ([`ArchiveAck`]: per run, the
+//! high-water seq and the gaps below it). The rig subscribes to it on every connection,
+//! forgets what the archive holds, and sends again what the broker acknowledged but the
+//! archive lacks below its high water (lines older than a second: the archive's view may
+//! be a moment older than the broker's acknowledgement); at the end of a run, lines past
+//! the archive's high water are sent again after 2 s without progress. An archive
+//! deduplicates them on (rig, test, run, seq).
+//!
+//! **Memory and the feed file.** At most `buffer_lines` lines are kept in memory; beyond
+//! that the oldest leaves memory. With a feed file (`[output] feed`) it stays owed: it is
+//! read back from this run's part of the file when it has to be sent. Without one, a line
+//! that leaves memory before the broker acknowledged it is lost and counted. The count so
+//! far is written into every feed line as `mqtt_dropped` (the local feed and the published
+//! line carry the same value): lines the archive will never get from this rig. Lines the
+//! broker took but the archive never confirmed before they left memory (no feed file) are
+//! counted apart (`evicted_unconfirmed`); the gap view of the archive shows them.
 //!
 //! **Metrics.** [`MqttPublisher::stats`] returns an `Arc<`[`MqttStats`]`>` of atomics an HTTP
-//! `/metrics` endpoint can read at any time: `dropped` (lines dropped from the buffer),
-//! `published` (lines acknowledged by the broker), `buffered` (lines held now),
-//! `connected` (0/1) and `reconnects`.
+//! `/metrics` endpoint can read at any time: `dropped`, `published` (lines acknowledged by
+//! the broker), `buffered` (lines in memory), `unconfirmed`, `archive_lag` (lines of this
+//! run the archive does not hold yet), `archive_high`, `archive_confirmed`,
+//! `evicted_unconfirmed`, `connected` (0/1) and `reconnects`. The retained status carries
+//! `archive_lag` too.
 
+pub mod ack;
 mod client;
 mod config;
 mod publisher;
 
+pub use ack::{ArchiveAck, RunHeld, SeqRanges, ACK_SUFFIX};
 pub use client::{check_level_name, check_topic_template, hostname, mqtt_options, tls_config_for, topic_for, BrokerUrl};
 pub use config::MqttConfig;
 pub use publisher::{MqttPublisher, MqttSink, MqttStats};
