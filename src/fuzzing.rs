@@ -12,8 +12,20 @@ use crate::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine
 use crate::utm::{UtmHistory, UtmSample};
 
 /// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
-pub const TARGETS: &[&str] =
-    &["image", "jsonl", "config", "calibration", "convert", "modbus", "modbus_peer", "assembly", "roi", "window_detect", "report_feed"];
+pub const TARGETS: &[&str] = &[
+    "image",
+    "jsonl",
+    "config",
+    "calibration",
+    "convert",
+    "modbus",
+    "modbus_peer",
+    "assembly",
+    "roi",
+    "window_detect",
+    "report_feed",
+    "archive_message",
+];
 
 /// Runs target `name` on `data` (regression tests); `false` for an unknown name.
 pub fn run(name: &str, data: &[u8]) -> bool {
@@ -29,6 +41,8 @@ pub fn run(name: &str, data: &[u8]) -> bool {
         "roi" => roi(data),
         "window_detect" => window_detect(data),
         "report_feed" => report_feed(data),
+        #[cfg(feature = "archive")]
+        "archive_message" => crate::archive::fuzz_message(data),
         _ => return false,
     }
     true
