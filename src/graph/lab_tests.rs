@@ -73,7 +73,15 @@ fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), Str
     rc.standard = std;
     let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl")).map_err(|e| e.to_string())?;
     let rig = config.test_rig();
-    let rep = tagdeflect_report::build(&feed, &rig, &folder.join("tagdeflect.toml"), &rc).map_err(|e| e.to_string())?;
+    let cfg_path = folder.join("tagdeflect.toml");
+    // The load-based values from the test's own UTM samples (SPEC "Report").
+    let utm_path = folder.join("utm.jsonl");
+    let utm = match std::fs::metadata(&utm_path) {
+        Ok(m) if m.len() > 0 => Some(tagdeflect_report::UtmStream::read(&utm_path, &rc.limits()).map_err(|e| e.to_string())?),
+        _ => None,
+    };
+    let mut rep = tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, &rc).map_err(|e| e.to_string())?;
+    rep.inputs = vec![("config".into(), cfg_path)];
     std::fs::create_dir_all(&out).map_err(|e| e.to_string())?;
     tagdeflect_report::write(&rep, &feed, &out).map(|_| ()).map_err(|e| e.to_string())
 }
