@@ -67,17 +67,23 @@ impl LineFile {
     /// Opens `path` for appending (created if absent), repairing a partial last line.
     /// Returns the file and the number of bytes cut off (0 when the file was sound).
     ///
-    /// Only a regular file that takes writes is a line file: a folder, a device, a FIFO, or a
-    /// file of a kernel filesystem such as `/proc/version` (which opens, then fails every write
-    /// and every sync) is refused here, at open, rather than losing every line later.
+    /// A folder, a FIFO, a socket or a block device is refused here, at open, and so is a
+    /// regular file that cannot be synced — a file of a kernel filesystem such as
+    /// `/proc/version`, which opens and then fails every write — rather than losing every line
+    /// later. A character device (`/dev/full`, a serial line) is taken as it is.
     pub fn open_append(path: &Path) -> io::Result<(LineFile, u64)> {
-        if let Ok(m) = std::fs::metadata(path) {
-            if !m.is_file() {
-                return Err(io::Error::new(io::ErrorKind::InvalidInput, "not a regular file"));
+        use std::os::unix::fs::FileTypeExt;
+        let existing = std::fs::metadata(path).ok();
+        if let Some(m) = &existing {
+            let t = m.file_type();
+            if !t.is_file() && !t.is_char_device() {
+                return Err(io::Error::new(io::ErrorKind::InvalidInput, "not a regular file (a folder, FIFO, socket or block device)"));
             }
         }
         let mut f = OpenOptions::new().create(true).read(true).append(true).open(path)?;
-        f.sync_all().map_err(|e| io::Error::new(e.kind(), format!("the file does not take writes (sync: {e})")))?;
+        if existing.as_ref().is_none_or(|m| m.is_file()) {
+            f.sync_all().map_err(|e| io::Error::new(e.kind(), format!("the file does not take writes (sync: {e})")))?;
+        }
         let len = f.metadata()?.len();
         let good = complete_prefix_len(&mut f, len)?;
         if good < len {

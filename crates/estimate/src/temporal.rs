@@ -36,12 +36,16 @@ use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3, Vector6};
 /// Which estimator turns frame sets into positions (`[measure] estimator`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
+///
+/// The default is `PerSet`: on the hard simulated scene (noise, blur, motion blur, strong
+/// distortion) the temporal estimate's displacement RMS was 0.10 mm against 0.016 mm per set,
+/// and full sets lose 13 % on clean scenes; it stays opt-in until it is no worse on full sets.
 pub enum Estimator {
     /// Each tag's state carried over frame sets (this module).
-    #[default]
     Temporal,
     /// Every frame set solved on its own (monocular views fused with the recent
     /// multi-view history, `solve::motion`).
+    #[default]
     PerSet,
 }
 
