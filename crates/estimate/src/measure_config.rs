@@ -31,7 +31,7 @@ pub struct MeasureConfig {
     pub drift_rate_change_h: f64,
     /// How frame sets become positions: `"temporal"` (each tag's state carried over sets,
     /// see `estimate::temporal`) or `"per_set"` (every set solved on its own).
-    #[serde(skip_serializing_if = "is_temporal")]
+    #[serde(skip_serializing_if = "is_default_estimator")]
     pub estimator: crate::temporal::Estimator,
     /// Temporal estimator: expected size (1 σ) of the unmodelled change of a tag's rate,
     /// mm/s per √s (the process noise; it adapts upward to the innovations).
@@ -39,8 +39,8 @@ pub struct MeasureConfig {
     pub temporal_accel_mm_s2: f64,
 }
 
-fn is_temporal(e: &crate::temporal::Estimator) -> bool {
-    *e == crate::temporal::Estimator::Temporal
+fn is_default_estimator(e: &crate::temporal::Estimator) -> bool {
+    *e == crate::temporal::Estimator::default()
 }
 fn is_default_accel(v: &f64) -> bool {
     *v == crate::temporal::DEFAULT_ACCEL_MM_S2
