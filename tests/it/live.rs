@@ -245,21 +245,28 @@ fn a_full_disk_under_the_feed_does_not_stop_the_run_or_the_recording() {
     common::feedcheck_text(&feed, &rec.join("tagdeflect.toml"));
 }
 
-#[test]
-fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
-    let dir = tempfile::tempdir().unwrap();
+/// `run` of one small simulated camera without a UTM, recording into `dir/rec`; returns once
+/// five frames are recorded (the daemon, its config, the recording's folder).
+fn recording_run_without_utm(dir: &Path) -> (Daemon, PathBuf, PathBuf) {
     let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
     let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = None;
-    let cfg_path = dir.path().join("rig.toml");
+    let cfg_path = dir.join("rig.toml");
     fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
-    let rec = dir.path().join("rec");
+    let rec = dir.join("rec");
     let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()]);
     let deadline = Instant::now() + Duration::from_secs(60);
     while fs::read_to_string(rec.join("frames.jsonl")).unwrap_or_default().lines().count() < 5 {
         assert!(Instant::now() < deadline, "recording did not grow");
         std::thread::sleep(Duration::from_millis(100));
     }
+    (daemon, cfg_path, rec)
+}
+
+#[test]
+fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let (daemon, cfg_path, _rec) = recording_run_without_utm(dir.path());
     let (code, stdout, stderr) = daemon.terminate();
     assert_eq!(code, Some(0), "{stderr}");
     // No [output] feed: the feed went to stdout; no UTM: no load fields.
@@ -273,18 +280,7 @@ fn run_without_a_utm_stops_cleanly_on_sigterm_while_recording() {
 #[test]
 fn sighup_stops_a_run_as_sigterm_does() {
     let dir = tempfile::tempdir().unwrap();
-    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, ..SimParams::default() };
-    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
-    cfg.utm = None;
-    let cfg_path = dir.path().join("rig.toml");
-    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
-    let rec = dir.path().join("rec");
-    let daemon = Daemon::start(&["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()]);
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while fs::read_to_string(rec.join("frames.jsonl")).unwrap_or_default().lines().count() < 5 {
-        assert!(Instant::now() < deadline, "recording did not grow");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let (daemon, _cfg_path, rec) = recording_run_without_utm(dir.path());
     let (code, stdout, stderr) = daemon.stop_with(libc::SIGHUP);
     assert_eq!(code, Some(0), "SIGHUP must end the run cleanly (exit 0), not kill it (129): {stderr}");
     assert!(stderr.contains("SIGHUP: stopping"), "{stderr}");
