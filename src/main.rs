@@ -195,6 +195,24 @@ fn http_options(addr: Option<std::net::SocketAddr>, required: bool) -> Option<Ht
     None
 }
 
+/// The live page of `demo`: `--http ADDR` must be served (an error if it cannot be);
+/// without it the config's `[output] http` is used, else [`DEFAULT_ADDR`] on loopback, where
+/// a port another program holds only costs the page (a warning); `--no-http`: none.
+///
+/// [`DEFAULT_ADDR`]: tagdeflect::sinks::http::DEFAULT_ADDR
+#[cfg(feature = "sim")]
+fn demo_http(http: Option<std::net::SocketAddr>, no_http: bool, configured: bool) -> anyhow::Result<Option<HttpOptions>> {
+    Ok(match (http, no_http) {
+        (_, true) => None,
+        (Some(addr), false) => http_options(Some(addr), true),
+        (None, false) if configured => None,
+        #[cfg(feature = "http")]
+        (None, false) => http_options(Some(tagdeflect::sinks::http::DEFAULT_ADDR.parse()?), false),
+        #[cfg(not(feature = "http"))]
+        (None, false) => None,
+    })
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging();
@@ -421,15 +439,7 @@ fn run(cli: Cli) -> Result<()> {
             if tests.is_some() {
                 cfg.output.tests = tests;
             }
-            let http = match (http, no_http) {
-                (_, true) => None,
-                (Some(addr), false) => http_options(Some(addr), true),
-                (None, false) if cfg.output.http.is_some() => None,
-                #[cfg(feature = "http")]
-                (None, false) => http_options(Some(tagdeflect::sinks::http::DEFAULT_ADDR.parse()?), false),
-                #[cfg(not(feature = "http"))]
-                (None, false) => None,
-            };
+            let http = demo_http(http, no_http, cfg.output.http.is_some())?;
             live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
         #[cfg(feature = "archive")]
@@ -443,5 +453,24 @@ fn run(cli: Cli) -> Result<()> {
         Command::Assets { out } => pipeline::assets::write(<Cli as clap::CommandFactory>::command(), &out),
         #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
         Command::Missing(args) => Err(missing_command(&args)),
+    }
+}
+
+#[cfg(all(test, feature = "sim", feature = "http"))]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn demo_serves_the_default_page_on_loopback_and_only_warns_when_its_port_is_taken() {
+        let default = demo_http(None, false, false).unwrap().unwrap();
+        assert_eq!(default.addr, std::net::SocketAddr::from(([127, 0, 0, 1], 8080)));
+        assert!(default.addr.ip().is_loopback());
+        assert!(!default.required, "a taken default port costs only the page");
+        let given: std::net::SocketAddr = "127.0.0.1:0".parse().unwrap();
+        let asked = demo_http(Some(given), false, false).unwrap().unwrap();
+        assert_eq!((asked.addr, asked.required), (given, true), "--http ADDR must be served");
+        assert!(demo_http(None, true, false).unwrap().is_none());
+        assert!(demo_http(Some(given), true, false).unwrap().is_none());
+        assert!(demo_http(None, false, true).unwrap().is_none(), "the config's [output] http is served by the graph");
     }
 }

@@ -202,8 +202,13 @@ fn a_full_channel_drops_frames_and_counts_them() {
     let (tx, mut rx) = tokio::sync::mpsc::channel(2);
     let stop = Arc::new(AtomicBool::new(false));
     let cam = spawn(0, &cfg, "Fake_1", AravisOptions::default(), tx, stop.clone()).expect("fake camera opens");
-    // Nobody reads for a while: the capture thread must not block.
-    std::thread::sleep(Duration::from_millis(800));
+    // Nobody reads: the capture thread must not block, and what it captures meanwhile is
+    // counted as dropped (waited for, however slow the machine).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while cam.stats.snapshot().dropped_full < 5 {
+        assert!(Instant::now() < deadline, "no frame counted as dropped on a full channel in 30 s: {:?}", cam.stats.snapshot());
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let before = cam.stats.snapshot();
     let c = collect(&mut rx, 4, Duration::from_secs(3));
     let after = cam.stats.snapshot();

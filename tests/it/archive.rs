@@ -117,7 +117,7 @@ fn start_demo(config: &Path, seconds: f64, log: &Path) -> Proc {
 /// [`start_demo`] with its stdout (the feed, when the config has no feed file) into `out`.
 fn start_demo_to(config: &Path, seconds: f64, log: &Path, out: Option<&Path>) -> Proc {
     let child = Command::new(bin())
-        .args(["demo", "--config"])
+        .args(["demo", "--no-http", "--config"])
         .arg(config)
         .args(["--duration-s", &seconds.to_string()])
         .stdin(Stdio::null())
@@ -410,7 +410,7 @@ fn backfill_loads_a_feed_file_once_and_the_gap_view_shows_what_is_missing() {
     let dir = tempfile::tempdir().unwrap();
     let pg = LocalPostgres::start(false).unwrap();
     // A rig whose broker is not there at all.
-    let dead = format!("mqtt://127.0.0.1:{}", crate::common::free_port());
+    let dead = format!("mqtt://127.0.0.1:{}", crate::common::unused_port());
     let (cfg, feed_path) = demo_config(dir.path(), &dead, "bf", "bf", 10_000);
     let mut demo = start_demo(&cfg, 4.0, &dir.path().join("demo.log"));
     assert!(demo.wait(Duration::from_secs(60)).success());
@@ -572,9 +572,9 @@ fn archive_killed_and_restarted_resumes_without_duplicates() {
     let mut archive = start_archive(&broker.url(), &pg.url(), "archive-ar", &alog);
     let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "frame-2", "ar", 10_000);
     let mut demo = start_demo(&cfg, 12.0, &dir.path().join("demo.log"));
-    std::thread::sleep(Duration::from_secs(4));
-    let before = archived(&pg.url(), "frame-2", "ar").len();
-    assert!(before > 0, "nothing archived in 4 s");
+    // Mid-run: once the archive holds lines.
+    let before = wait_rows(&pg.url(), "frame-2", "ar", 5, Duration::from_secs(30)).len();
+    assert!(before >= 5, "nothing archived in 30 s");
     archive.kill(); // SIGKILL: whatever it held uncommitted is unacknowledged
     std::thread::sleep(Duration::from_secs(3));
     let mut archive = start_archive(&broker.url(), &pg.url(), "archive-ar", &alog);
@@ -597,9 +597,10 @@ fn postgres_down_for_10_s_the_archive_retries_and_loses_nothing() {
     let mut archive = start_archive(&broker.url(), &pg.url(), "archive-pd", &alog);
     let (cfg, feed_path) = demo_config(dir.path(), &broker.url(), "frame-3", "pd", 10_000);
     let mut demo = start_demo(&cfg, 15.0, &dir.path().join("demo.log"));
-    std::thread::sleep(Duration::from_secs(3));
+    // Mid-run: once the archive holds lines.
+    assert!(wait_rows(&pg.url(), "frame-3", "pd", 5, Duration::from_secs(30)).len() >= 5, "nothing archived");
     pg.stop().unwrap();
-    std::thread::sleep(Duration::from_secs(10));
+    std::thread::sleep(Duration::from_secs(10)); // the outage itself
     pg.start_again().unwrap();
     assert!(demo.wait(Duration::from_secs(60)).success());
     let feed = read_feed(&feed_path);

@@ -3,7 +3,8 @@
 #![allow(dead_code)]
 
 use std::io::Read;
-use std::net::{SocketAddr, TcpListener as StdListener, TcpStream as StdStream};
+use std::fs;
+use std::net::TcpListener as StdListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -105,7 +106,10 @@ pub fn fixture() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/modbus_server.py")
 }
 
-pub fn free_port() -> u16 {
+/// A loopback port nothing listened on a moment ago: only for an address that must have
+/// no server behind it (a dead broker, a UTM that is not there). A server of a test takes
+/// port 0 and says which port it got, or is checked to listen itself ([`start_pymodbus`]).
+pub fn unused_port() -> u16 {
     StdListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("no free loopback port")
 }
 
@@ -119,9 +123,27 @@ impl Drop for ChildGuard {
     }
 }
 
-/// The pymodbus server of tests/fixtures/modbus_server.py on 127.0.0.1:`port`, accepting
-/// connections when this returns.
-pub fn start_pymodbus(port: u16) -> ChildGuard {
+/// The pymodbus server of tests/fixtures/modbus_server.py on a free loopback port, listening
+/// when this returns: the server and its port. A port taken by another program between
+/// the choice and the server's bind is noticed (the listening socket must be the server's
+/// own) and another one is tried.
+pub fn start_pymodbus() -> (ChildGuard, u16) {
+    for _ in 0..5 {
+        let port = unused_port();
+        if let Some(server) = try_start_pymodbus(port) {
+            return (server, port);
+        }
+    }
+    panic!("the pymodbus server did not listen on any of 5 free ports");
+}
+
+/// The pymodbus server on 127.0.0.1:`port` (a server restarted on the port it had); panics
+/// when it does not listen there itself within 30 s.
+pub fn start_pymodbus_on(port: u16) -> ChildGuard {
+    try_start_pymodbus(port).unwrap_or_else(|| panic!("the pymodbus server did not listen on 127.0.0.1:{port}"))
+}
+
+fn try_start_pymodbus(port: u16) -> Option<ChildGuard> {
     let child = Command::new(python())
         .arg(fixture())
         .arg(port.to_string())
@@ -132,19 +154,36 @@ pub fn start_pymodbus(port: u16) -> ChildGuard {
         .expect("cannot start python");
     let mut guard = ChildGuard(child);
     let deadline = Instant::now() + Duration::from_secs(30);
-    let addr = SocketAddr::from(([127, 0, 0, 1], port));
     loop {
-        if StdStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {
-            return guard;
+        if tagdeflect::archive::local::process_listens_on(guard.0.id(), port) {
+            return Some(guard);
         }
         if let Ok(Some(status)) = guard.0.try_wait() {
             let mut err = String::new();
             if let Some(mut e) = guard.0.stderr.take() {
                 let _ = e.read_to_string(&mut err);
             }
-            panic!("the pymodbus server exited ({status}) before listening on {addr}: {err}");
+            eprintln!("the pymodbus server exited ({status}) before listening on 127.0.0.1:{port}: {err}");
+            return None;
         }
-        assert!(Instant::now() < deadline, "the pymodbus server did not listen on {addr} within 30 s");
-        std::thread::sleep(Duration::from_millis(100));
+        if Instant::now() > deadline {
+            eprintln!("the pymodbus server did not listen on 127.0.0.1:{port} within 30 s");
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Copies the folder `from` (a recording) to `to`, recursively.
+pub fn copy_dir(from: &Path, to: &Path) {
+    fs::create_dir_all(to).unwrap();
+    for e in fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            fs::copy(e.path(), dest).unwrap();
+        }
     }
 }

@@ -17,7 +17,7 @@ use tagdeflect::recording::Recording;
 use tagdeflect::sim::SimParams;
 use tagdeflect::solve::temporal::Estimator;
 
-use crate::common::{self, free_port, ChildGuard};
+use crate::common::{self, ChildGuard};
 use tagdeflect::sinks::control::ControlConfig;
 
 /// Net-deflection error against truth of every line that has one: (seq, error mm, σ mm, partial).
@@ -154,14 +154,14 @@ fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_s
 #[test]
 fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
     let tmp = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let addr = format!("127.0.0.1:{port}");
+    // The control output takes any free port and logs the one it took.
+    let addr = "127.0.0.1:0";
     let feed_path = tmp.path().join("feed.jsonl");
     let log_path = tmp.path().join("demo.log");
     // The demo rig (three 640x480 cameras: σ of its net deflection is a few µm to ~0.02 mm)
     // with a σ limit it meets, and three frame sets of slack for a loaded machine.
     let mut cfg = Config::demo();
-    cfg.output.control = Some(ControlConfig { max_sigma_mm: 0.05, stale_sets: 3, ..ControlConfig::on(&addr) });
+    cfg.output.control = Some(ControlConfig { max_sigma_mm: 0.05, stale_sets: 3, ..ControlConfig::on(addr) });
     let cfg_path = tmp.path().join("demo.toml");
     fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let demo = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
@@ -173,6 +173,7 @@ fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
         .spawn()
         .expect("start tagdeflect demo");
     let mut demo = ChildGuard(demo);
+    let port = control_port_from_log(&log_path, &mut demo);
     let monitor = Command::new(common::python())
         .arg(common::root().join("scripts/control_monitor.py"))
         .args(["127.0.0.1", &port.to_string(), "--interval", "0.05", "--try-write"])
@@ -388,4 +389,22 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     );
     assert!(off.is_empty(), "achieved rate off target: {off:?}");
     assert!(checked >= 20, "{checked} windows checked");
+}
+
+/// The port the control output logged (`control output serving Modbus TCP … addr=IP:PORT`),
+/// waiting for the line while the daemon starts.
+fn control_port_from_log(log: &std::path::Path, demo: &mut ChildGuard) -> u16 {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        let text = fs::read_to_string(log).unwrap_or_default();
+        if let Some(line) = text.lines().find(|l| l.contains("control output serving Modbus TCP")) {
+            let addr = line.split_whitespace().find_map(|w| w.strip_prefix("addr=")).unwrap_or_else(|| panic!("no addr= in {line}"));
+            return addr.parse::<std::net::SocketAddr>().unwrap_or_else(|e| panic!("{addr}: {e}")).port();
+        }
+        if let Ok(Some(status)) = demo.0.try_wait() {
+            panic!("demo exited ({status}) before serving the control output:\n{text}");
+        }
+        assert!(std::time::Instant::now() < deadline, "the control output was not served within 60 s:\n{text}");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
 }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::common::{self, free_port, start_pymodbus};
+use crate::common::{self, start_pymodbus, start_pymodbus_on};
 use tagdeflect::config::{Config, RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
 use tagdeflect::feed::FeedLine;
 use tagdeflect::sim::{SimParams, SimRig};
@@ -108,8 +108,7 @@ fn wait_for_lines(path: &Path, n: usize, timeout: Duration) {
 #[test]
 fn run_with_sim_cameras_and_a_real_modbus_server_then_sigterm() {
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let server = start_pymodbus(port);
+    let (server, port) = start_pymodbus();
     let cfg = live_config(dir.path(), port);
     let rec = dir.path().join("rec");
     let feed_path = dir.path().join("feed.jsonl");
@@ -119,7 +118,7 @@ fn run_with_sim_cameras_and_a_real_modbus_server_then_sigterm() {
     drop(server);
     let down_from = read_feed(&feed_path).len();
     std::thread::sleep(Duration::from_millis(1500));
-    let server = start_pymodbus(port);
+    let server = start_pymodbus_on(port);
     // Reconnection backs off (0.2 s doubling): wait until load is back for five sets.
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
@@ -159,6 +158,11 @@ fn run_with_sim_cameras_and_a_real_modbus_server_then_sigterm() {
     assert!(replayed.status.success(), "{}", String::from_utf8_lossy(&replayed.stderr));
     let replayed: Vec<FeedLine> = String::from_utf8(replayed.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     let by_time: HashMap<i64, &FeedLine> = replayed.iter().map(|l| (l.t_ns, l)).collect();
+    // The same positions when the live run solved every frame set; a loaded machine makes
+    // it drop sets (counted on its lines), and the held camera poses then average other sets
+    // than the replay's: the positions then agree within their σ.
+    let live_dropped = lines.last().and_then(|l| l.dropped_sets).unwrap_or(0);
+    println!("live run: {} lines, {live_dropped} frame sets dropped", lines.len());
     let mut matched = 0;
     for l in &lines {
         let Some(r) = by_time.get(&l.t_ns) else { continue };
@@ -167,7 +171,16 @@ fn run_with_sim_cameras_and_a_real_modbus_server_then_sigterm() {
         for (a, b) in l.tags.iter().zip(&r.tags) {
             assert_eq!(a.id, b.id);
             for k in 0..3 {
-                assert!((a.pos_mm[k] - b.pos_mm[k]).abs() < 1e-3, "tag {} at {}: live {:?} replay {:?}", a.id, l.t_ns, a.pos_mm, b.pos_mm);
+                let tol = if live_dropped == 0 { 1e-3 } else { 3.0 * a.sigma_mm.map_or(0.0, |s| s[k]).hypot(b.sigma_mm.map_or(0.0, |s| s[k])) };
+                assert!(
+                    (a.pos_mm[k] - b.pos_mm[k]).abs() < tol,
+                    "tag {} at {} ({live_dropped} sets dropped live): live {:?} replay {:?} σ {:?}",
+                    a.id,
+                    l.t_ns,
+                    a.pos_mm,
+                    b.pos_mm,
+                    a.sigma_mm
+                );
             }
         }
         if l.utm.as_deref() == Some("ok") {
@@ -200,7 +213,7 @@ fn replay_realtime_runs_the_live_pipeline_at_the_recorded_pace() {
 
 #[test]
 fn demo_gives_a_clean_feed_with_load_from_the_simulated_modbus_utm() {
-    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["demo", "--duration-s", "6"]).output().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["demo", "--duration-s", "6", "--no-http"]).output().unwrap();
     assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
     let text = String::from_utf8(out.stdout).unwrap();
     let lines: Vec<FeedLine> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
@@ -218,8 +231,7 @@ fn demo_gives_a_clean_feed_with_load_from_the_simulated_modbus_utm() {
 #[test]
 fn a_full_disk_under_the_feed_does_not_stop_the_run_or_the_recording() {
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let _server = start_pymodbus(port);
+    let (_server, port) = start_pymodbus();
     let cfg_path = live_config(dir.path(), port);
     // The feed goes to a device that is always full; the recording to a good folder.
     let text = fs::read_to_string(&cfg_path).unwrap();
@@ -332,8 +344,7 @@ fn a_stalled_run_warns_of_the_gap_in_time() {
 #[test]
 fn check_reads_the_utm_once_and_says_when_it_is_silent() {
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let server = start_pymodbus(port);
+    let (server, port) = start_pymodbus();
     let cfg = live_config(dir.path(), port);
     let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["check", "--config", cfg.to_str().unwrap()]).output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
@@ -361,8 +372,22 @@ fn record_then_replay_and_check_a_live_config() {
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(out.stdout.is_empty(), "record writes no feed");
-    let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap().lines().count();
-    assert!(frames >= 10, "{frames} frames recorded in 2 s at 5 fps x 2 cameras");
+    let entries: Vec<tagdeflect::recording::FrameEntry> = tagdeflect::recording::read_jsonl_file(&rec.join("frames.jsonl")).unwrap();
+    let frames = entries.len();
+    assert!(frames >= 4, "{frames} frames recorded");
+    // Each camera at its 5 fps: frames 200 ms apart (their stamps, not a count in the run's
+    // wall-clock window).
+    let cams: std::collections::BTreeSet<&str> = entries.iter().map(|e| e.camera.as_str()).collect();
+    assert_eq!(cams.len(), 2, "{cams:?}");
+    for cam in cams {
+        let mut t: Vec<i64> = entries.iter().filter(|e| e.camera == cam).map(|e| e.t_ns).collect();
+        t.sort_unstable();
+        assert!(t.len() >= 2, "{cam}: {} frames", t.len());
+        let mut dt: Vec<i64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+        dt.sort_unstable();
+        let median_ms = dt[dt.len() / 2] as f64 / 1e6;
+        assert!((150.0..=250.0).contains(&median_ms), "{cam}: frames {median_ms} ms apart (5 fps: 200 ms)");
+    }
     let out = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["replay", rec.to_str().unwrap()]).output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
@@ -387,6 +412,19 @@ impl NotifySocket {
         let sock = std::os::unix::net::UnixDatagram::bind(&path).expect("bind notify socket");
         sock.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
         NotifySocket { sock, path }
+    }
+
+    /// Messages until `enough` says so (or `deadline` runs out).
+    fn messages_until(&self, deadline: Duration, enough: impl Fn(&[String]) -> bool) -> Vec<String> {
+        let until = Instant::now() + deadline;
+        let mut out = Vec::new();
+        let mut buf = [0u8; 4096];
+        while Instant::now() < until && !enough(&out) {
+            if let Ok(n) = self.sock.recv(&mut buf) {
+                out.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+            }
+        }
+        out
     }
 
     /// Every message received within `wait`.
@@ -455,11 +493,11 @@ fn a_missing_camera_is_retried_and_the_watchdog_is_fed_meanwhile() {
     fs::write(&path, text).unwrap();
     let notify = NotifySocket::new(dir.path());
     let daemon = daemon_with_notify(&["run", "--config", path.to_str().unwrap()], &notify, Some(2_000_000));
-    let sent = notify.messages(Duration::from_secs(5));
+    let pings = |sent: &[String]| sent.iter().filter(|m| m.contains("WATCHDOG=1")).count();
+    let sent = notify.messages_until(Duration::from_secs(60), |sent| pings(sent) >= 3);
     let (code, _stdout, stderr) = daemon.terminate();
     assert_eq!(code, Some(0), "{stderr}");
     assert!(sent.iter().any(|m| m.contains("READY=1")), "no READY=1: {sent:?}\n{stderr}");
-    let pings = sent.iter().filter(|m| m.contains("WATCHDOG=1")).count();
-    assert!(pings >= 3, "{pings} watchdog pings in 5 s without a camera: {sent:?}");
+    assert!(pings(&sent) >= 3, "{} watchdog pings in 60 s without a camera: {sent:?}", pings(&sent));
     assert!(stderr.contains("no-such-camera") && stderr.contains("retrying"), "the missing camera is not reported: {stderr}");
 }

@@ -18,7 +18,7 @@ use tokio::task::JoinHandle;
 // ----------------------------------------------------------------------------------------
 // Python and the pymodbus server.
 
-use crate::common::{free_port, python, start_pymodbus};
+use crate::common::{python, start_pymodbus, start_pymodbus_on, unused_port};
 
 // ----------------------------------------------------------------------------------------
 // The poller.
@@ -102,8 +102,7 @@ fn close(a: f64, b: f64, tol: f64) -> bool {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn poller_decodes_and_scales_what_pymodbus_serves() {
-    let port = free_port();
-    let _server = start_pymodbus(port);
+    let (_server, port) = start_pymodbus();
     let addr = format!("127.0.0.1:{port}");
     let i = RegisterKind::Input;
     let h = RegisterKind::Holding;
@@ -148,8 +147,7 @@ async fn poller_decodes_and_scales_what_pymodbus_serves() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn server_killed_is_down_and_restarted_is_up_again() {
-    let port = free_port();
-    let server = start_pymodbus(port);
+    let (server, port) = start_pymodbus();
     let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Cdab, 1.0, 0.0);
     let mut p = Poller::start(utm(format!("127.0.0.1:{port}"), load, None));
     p.wait_for(Duration::from_secs(10), "Up", |e| *e == UtmEvent::Up).await;
@@ -169,7 +167,7 @@ async fn server_killed_is_down_and_restarted_is_up_again() {
     }
     assert!(quiet.is_empty(), "events while the server was down: {quiet:?}");
 
-    let _server = start_pymodbus(port); // back on the same port
+    let _server = start_pymodbus_on(port); // back on the same port
     let t0 = Instant::now();
     let (_, before_up) = p.wait_for(Duration::from_secs(15), "Up after the restart", |e| *e == UtmEvent::Up).await;
     assert!(before_up.is_empty(), "events between Down and Up: {before_up:?}");
@@ -183,14 +181,14 @@ async fn server_killed_is_down_and_restarted_is_up_again() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn poller_started_before_the_server_by_host_name_comes_up() {
     // The daemon may start before the UTM is switched on; the address may be a host name.
-    let port = free_port();
+    let port = unused_port();
     let load = reg(0, RegisterKind::Input, ValueType::F32, WordOrder::Cdab, 1.0, 0.0);
     let mut p = Poller::start(utm(format!("localhost:{port}"), load, None));
     let (down, _) = p.wait_for(Duration::from_secs(5), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;
     println!("nothing listening: {down:?}");
     let UtmEvent::Down { reason } = down else { unreachable!() };
     assert!(reason.contains(&format!("localhost:{port}")) && reason.contains("cannot connect"), "{reason}");
-    let _server = start_pymodbus(port);
+    let _server = start_pymodbus_on(port);
     p.wait_for(Duration::from_secs(15), "Up once the server listens", |e| *e == UtmEvent::Up).await;
     assert_eq!(p.sample(Duration::from_secs(5)).await.load_kn, 12.5);
     p.stop().await;
@@ -198,8 +196,7 @@ async fn poller_started_before_the_server_by_host_name_comes_up() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exception_reply_is_a_clear_error() {
-    let port = free_port();
-    let _server = start_pymodbus(port);
+    let (_server, port) = start_pymodbus();
     // Input registers 1000.. are not mapped by the fixture: Illegal Data Address.
     let load = reg(1000, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
     let mut p = Poller::start(utm(format!("127.0.0.1:{port}"), load, None));
@@ -265,8 +262,7 @@ async fn silent_server_times_out_and_is_retried() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nan_from_the_device_is_a_clear_error() {
-    let port = free_port();
-    let _server = start_pymodbus(port);
+    let (_server, port) = start_pymodbus();
     let load = reg(10, RegisterKind::Input, ValueType::F32, WordOrder::Abcd, 1.0, 0.0);
     let mut p = Poller::start(utm(format!("127.0.0.1:{port}"), load, None));
     let (down, _) = p.wait_for(Duration::from_secs(10), "Down", |e| matches!(e, UtmEvent::Down { .. })).await;

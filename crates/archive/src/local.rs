@@ -5,14 +5,56 @@
 //! its own system user (`mosquitto`, `postgres`): PostgreSQL refuses to run as root.
 
 use std::io;
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// A free TCP port on 127.0.0.1 (bound once and released).
+/// A TCP port on 127.0.0.1 that was free a moment ago (bound once and released). Neither
+/// Mosquitto nor PostgreSQL can listen on port 0 and say which port it took, so a server
+/// started on it is checked with [`process_listens_on`] and started again on another port
+/// when another program took this one in between.
 fn free_port() -> io::Result<u16> {
     Ok(TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+/// Whether process `pid` itself listens on TCP 127.0.0.1:`port` (or on every address): the
+/// listening socket's inode in `/proc/net/tcp` is among the process's open files. A port
+/// that another program listens on is not taken for the server's.
+pub fn process_listens_on(pid: u32, port: u16) -> bool {
+    let Ok(table) = std::fs::read_to_string("/proc/net/tcp") else { return false };
+    let inodes: Vec<String> = table
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            let (ip, p) = f.get(1)?.split_once(':')?;
+            let listening = f.get(3) == Some(&"0A");
+            let ours = u16::from_str_radix(p, 16).ok()? == port && (ip == "0100007F" || ip == "00000000");
+            (listening && ours).then(|| f.get(9).map(|s| format!("socket:[{s}]"))).flatten()
+        })
+        .collect();
+    if inodes.is_empty() {
+        return false;
+    }
+    let Ok(fds) = std::fs::read_dir(format!("/proc/{pid}/fd")) else { return false };
+    fds.flatten().any(|fd| std::fs::read_link(fd.path()).is_ok_and(|l| inodes.iter().any(|i| l.as_os_str() == i.as_str())))
+}
+
+/// Waits until `child` listens on `port` itself: `Ok(true)`; `Ok(false)` when it exited
+/// first (the port taken, a bad config) or did not listen within `timeout`.
+fn wait_listening(child: &mut Child, port: u16, timeout: Duration) -> io::Result<bool> {
+    let until = Instant::now() + timeout;
+    while Instant::now() < until {
+        if child.try_wait()?.is_some() {
+            return Ok(false);
+        }
+        if process_listens_on(child.id(), port) {
+            return Ok(true);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok(false)
 }
 
 fn temp_dir(what: &str) -> io::Result<PathBuf> {
@@ -48,17 +90,6 @@ fn chown_tree(dir: &Path, uid: u32, gid: u32) -> io::Result<()> {
     Ok(())
 }
 
-fn wait_port(port: u16, timeout: Duration) -> bool {
-    let until = Instant::now() + timeout;
-    let addr = SocketAddr::from(([127, 0, 0, 1], port));
-    while Instant::now() < until {
-        if TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_ok() {
-            return true;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    false
-}
 
 /// A Mosquitto broker on 127.0.0.1 with persistent sessions (sessions and queued messages
 /// survive a stop/start), generous in-flight and queue limits.
@@ -79,8 +110,6 @@ impl LocalMosquitto {
     /// session, subscription, queued and retained message, as a broker run that way does).
     pub fn start_with(persistence: bool) -> io::Result<LocalMosquitto> {
         let dir = temp_dir("mosquitto")?;
-        let port = free_port()?;
-        let conf = dir.join("mosquitto.conf");
         let user = if is_root() {
             match user_ids("mosquitto") {
                 Some((uid, gid)) => {
@@ -92,20 +121,30 @@ impl LocalMosquitto {
         } else {
             ""
         };
-        let mut text = format!(
-            "listener {port} 127.0.0.1\nallow_anonymous true\npersistence {persistence}\npersistence_location {}/\n\
-             max_inflight_messages 1000\nmax_queued_messages 1000000\nmax_queued_bytes 0\n\
-             log_dest file {}/mosquitto.log\nlog_type error\nlog_type warning\nlog_type notice\n",
-            dir.display(),
-            dir.display()
-        );
-        if !user.is_empty() {
-            text.push_str(&format!("user {user}\n"));
+        let conf = dir.join("mosquitto.conf");
+        let mut m = LocalMosquitto { dir, conf, port: 0, child: None };
+        // A port free a moment ago may have been taken since: then another one.
+        let mut last = None;
+        for _ in 0..5 {
+            m.port = free_port()?;
+            let mut text = format!(
+                "listener {} 127.0.0.1\nallow_anonymous true\npersistence {persistence}\npersistence_location {}/\n\
+                 max_inflight_messages 1000\nmax_queued_messages 1000000\nmax_queued_bytes 0\n\
+                 log_dest file {}/mosquitto.log\nlog_type error\nlog_type warning\nlog_type notice\n",
+                m.port,
+                m.dir.display(),
+                m.dir.display()
+            );
+            if !user.is_empty() {
+                text.push_str(&format!("user {user}\n"));
+            }
+            std::fs::write(&m.conf, text)?;
+            match m.start_again() {
+                Ok(()) => return Ok(m),
+                Err(e) => last = Some(e),
+            }
         }
-        std::fs::write(&conf, text)?;
-        let mut m = LocalMosquitto { dir, conf, port, child: None };
-        m.start_again()?;
-        Ok(m)
+        Err(last.unwrap_or_else(|| io::Error::other("mosquitto did not start")))
     }
 
     /// The broker's URL, `mqtt://127.0.0.1:PORT`.
@@ -144,10 +183,13 @@ impl LocalMosquitto {
             .stderr(Stdio::null())
             .spawn()
             .map_err(|e| io::Error::new(e.kind(), format!("cannot start mosquitto (run scripts/setup.sh): {e}")))?;
-        self.child = Some(child);
-        if !wait_port(self.port, Duration::from_secs(10)) {
+        let child = self.child.insert(child);
+        if !wait_listening(child, self.port, Duration::from_secs(10))? {
+            let _ = child.kill();
+            let _ = child.wait();
+            self.child = None;
             let log = std::fs::read_to_string(self.dir.join("mosquitto.log")).unwrap_or_default();
-            return Err(io::Error::other(format!("mosquitto did not open port {}: {log}", self.port)));
+            return Err(io::Error::other(format!("mosquitto did not listen on port {}: {log}", self.port)));
         }
         Ok(())
     }
@@ -191,7 +233,6 @@ impl LocalPostgres {
     pub fn start(durable: bool) -> io::Result<LocalPostgres> {
         let bin = postgres_bin()?;
         let dir = temp_dir("postgres")?;
-        let port = free_port()?;
         let run_as = if is_root() {
             let (uid, gid) = user_ids("postgres").ok_or_else(|| io::Error::other("running as root needs the postgres system user"))?;
             chown_tree(&dir, uid, gid)?;
@@ -199,18 +240,27 @@ impl LocalPostgres {
         } else {
             None
         };
-        let mut options = format!("-p {port} -c listen_addresses=127.0.0.1 -k {} -c max_connections=50", dir.display());
-        if !durable {
-            options.push_str(" -c fsync=off -c synchronous_commit=off -c full_page_writes=off");
-        }
-        let pg = LocalPostgres { dir, bin, port, run_as, options };
+        let mut pg = LocalPostgres { dir, bin, port: 0, run_as, options: String::new() };
         let data = pg.dir.join("data");
         pg.run(
             "initdb",
             &["-D", data.to_str().unwrap_or_default(), "-A", "trust", "-U", "tagdeflect", "-E", "UTF8", "--no-sync", "--locale=C"],
         )?;
-        pg.start_again()?;
-        Ok(pg)
+        // A port free a moment ago may have been taken since: PostgreSQL then fails to bind
+        // (and `pg_ctl -w` says so), and it is started on another one.
+        let mut last = None;
+        for _ in 0..5 {
+            pg.port = free_port()?;
+            pg.options = format!("-p {} -c listen_addresses=127.0.0.1 -k {} -c max_connections=50", pg.port, pg.dir.display());
+            if !durable {
+                pg.options.push_str(" -c fsync=off -c synchronous_commit=off -c full_page_writes=off");
+            }
+            match pg.start_again() {
+                Ok(()) => return Ok(pg),
+                Err(e) => last = Some(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| io::Error::other("PostgreSQL did not start")))
     }
 
     fn command(&self, tool: &str) -> Command {

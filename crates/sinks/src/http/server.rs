@@ -291,4 +291,27 @@ mod tests {
             assert!(!hosts.allows(bad), "{bad}");
         }
     }
+
+    #[test]
+    fn a_taken_address_is_an_error_when_required_else_the_run_goes_on_without_the_page() {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        // Another program holds the port for the whole test.
+        let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = held.local_addr().unwrap();
+        let specimen = tagdeflect_core::rig::SpecimenConfig {
+            family: tagdeflect_core::tags::TagFamily::Tag36h11,
+            size_mm: 30.0,
+            tags: vec![],
+            beam: None,
+        };
+        let rig = crate::rig_info::RigInfo { cameras: vec![], world: Default::default(), specimen, utm: None };
+        let hosts = AllowedHosts::new(&[]);
+        let view = LiveView::new(&rig, "live");
+        let optional = rt.block_on(serve(HttpOptions { addr, required: false }, hosts.clone(), view.clone()));
+        assert!(matches!(optional, Ok(None)), "{:?}", optional.as_ref().map(|o| o.is_some()).map_err(|e| e.to_string()));
+        let required = rt.block_on(serve(HttpOptions { addr, required: true }, hosts, view));
+        let e = required.err().expect("a required page on a taken port is an error");
+        assert!(e.to_string().contains(&format!("cannot serve the live page on {addr}")), "{e}");
+        drop(held);
+    }
 }
