@@ -36,6 +36,9 @@ pub struct Accuracy {
     /// Fraction of per-axis position errors within 2σ (lines with `sigma_mm`), where the
     /// position error is taken relative to the tag's first solution (as displacement).
     pub within_2sigma: Option<f64>,
+    /// RMS of the per-axis errors in units of their σ (1 when σ is right; below 1 when σ
+    /// is inflated, above when it is too small): the two-sided check of σ.
+    pub z_rms: Option<f64>,
 }
 
 impl Accuracy {
@@ -78,7 +81,7 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
     let mut acc = Accuracy { lines: counted, tag_slots: counted * config.specimen.tags.len(), ..Accuracy::default() };
     let (mut sq, mut sq_v, mut n) = (0.0, 0.0, 0usize);
     let (mut net_sq, mut net_n) = (0.0, 0usize);
-    let (mut in2, mut n_sigma) = (0usize, 0usize);
+    let (mut in2, mut n_sigma, mut z_sq) = (0usize, 0usize, 0.0f64);
     for line in feed {
         let tr = truth_at(truth, line.t_ns);
         let mut true_disp: HashMap<u32, Vector3<f64>> = HashMap::new();
@@ -98,6 +101,7 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
             if let Some(s) = tag.sigma_mm {
                 for k in 0..3 {
                     n_sigma += 1;
+                    z_sq += (err[k] / s[k]).powi(2);
                     if err[k].abs() <= 2.0 * s[k] {
                         in2 += 1;
                     }
@@ -132,6 +136,7 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
     acc.net_lines = net_n;
     acc.net_rms_mm = (net_n > 0).then(|| (net_sq / net_n as f64).sqrt());
     acc.within_2sigma = (n_sigma > 0).then(|| in2 as f64 / n_sigma as f64);
+    acc.z_rms = (n_sigma > 0).then(|| (z_sq / n_sigma as f64).sqrt());
     acc
 }
 
@@ -139,7 +144,7 @@ impl std::fmt::Display for Accuracy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} lines, coverage {:.1} %, displacement RMS {:.4} mm (vertical {:.4} mm, max {:.4} mm), net deflection RMS {}, within 2σ {}",
+            "{} lines, coverage {:.1} %, displacement RMS {:.4} mm (vertical {:.4} mm, max {:.4} mm), net deflection RMS {}, within 2σ {} (RMS error/σ {})",
             self.lines,
             100.0 * self.coverage(),
             self.disp_rms_mm,
@@ -147,6 +152,7 @@ impl std::fmt::Display for Accuracy {
             self.disp_max_mm,
             self.net_rms_mm.map_or("n/a".into(), |v| format!("{v:.4} mm")),
             self.within_2sigma.map_or("n/a".into(), |v| format!("{:.1} %", 100.0 * v)),
+            self.z_rms.map_or("n/a".into(), |v| format!("{v:.2}")),
         )
     }
 }

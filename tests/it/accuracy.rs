@@ -1,7 +1,10 @@
 //! Accuracy on simulated recordings with ground truth (issue "The measurement"): each
 //! scenario is rendered fresh (seeded), replayed through the product's pipeline and compared
-//! with truth. Thresholds are the product's floors; the measured figures are printed
-//! (`cargo test --test accuracy -- --nocapture`) and reported in the README.
+//! with truth. On a fixed seed the figures are deterministic, so each floor is set at about
+//! 1.4 × the figure measured (in the comment beside it): a regression of half that size
+//! fails. σ is checked both ways: the fraction of errors within 2σ, and the RMS of error/σ
+//! (an inflated σ fails as a too small one does). The figures are printed
+//! (`cargo test --test it accuracy -- --nocapture`) and kept in docs/accuracy.md.
 
 use crate::common::*;
 use tagdeflect::sim::SimParams;
@@ -16,16 +19,17 @@ fn three_cameras_1280x960_moderate_noise() {
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
     assert_eq!(acc.lines, 16);
     assert_eq!(acc.coverage(), 1.0, "every tag solved in every frame set");
-    assert!(acc.disp_rms_mm <= 0.05, "displacement RMS {}", acc.disp_rms_mm);
-    assert!(acc.vertical_rms_mm <= 0.02, "vertical RMS {}", acc.vertical_rms_mm);
-    assert!(acc.net_rms_mm.unwrap() <= 0.01, "net deflection RMS {:?}", acc.net_rms_mm);
+    assert!(acc.disp_rms_mm <= 0.014, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0098
+    assert!(acc.vertical_rms_mm <= 0.005, "vertical RMS {}", acc.vertical_rms_mm); // 0.0035
+    assert!(acc.net_rms_mm.unwrap() <= 0.005, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0035
+    sigma_honest("3 cameras 1280x960", &acc);
     assert_eq!(acc.net_lines, 16);
     // Load is interpolated from the UTM samples: load ∝ midspan deflection in the rig.
     assert!(lines.iter().all(|l| l.load_kn.is_some() && l.stroke_mm.is_some()));
-    // Tracking changes nothing that matters: the same figures within 5 % (or 2 µm).
+    // Tracking changes nothing that matters: the same figures within 5 % (as the README says).
     let (full, _, _) = accuracy_of("3 cameras 1280x960", &rec, true);
     assert!(
-        (full.disp_rms_mm - acc.disp_rms_mm).abs() <= (0.05 * full.disp_rms_mm).max(0.002),
+        (full.disp_rms_mm - acc.disp_rms_mm).abs() <= 0.05 * full.disp_rms_mm,
         "tracking {} vs full-frame {}",
         acc.disp_rms_mm,
         full.disp_rms_mm
@@ -61,7 +65,10 @@ fn hard_case() {
     let rec = simulate(dir.path(), "hard", &p);
     let (acc, lines, recording) = accuracy_of("hard case", &rec, false);
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
-    assert!(acc.disp_rms_mm <= 0.08, "displacement RMS {}", acc.disp_rms_mm);
+    assert!(acc.disp_rms_mm <= 0.022, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0157
+    assert!(acc.vertical_rms_mm <= 0.0095, "vertical RMS {}", acc.vertical_rms_mm); // 0.0066
+    assert!(acc.net_rms_mm.unwrap() <= 0.0066, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0047
+    sigma_honest("hard case", &acc);
     // No set lost except where every camera lost the frame.
     let sets_with_frames = (0..p.frame_sets as u64)
         .filter(|k| {
@@ -85,7 +92,10 @@ fn one_camera_1920x1080() {
     let (acc, lines, _) = accuracy_of("1 camera 1920x1080", &rec, false);
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
     assert_eq!(acc.coverage(), 1.0);
-    assert!(acc.vertical_rms_mm <= 0.2, "vertical RMS {}", acc.vertical_rms_mm);
+    // Depth from the tag's size alone: the displacement's error is mostly along the view.
+    assert!(acc.disp_rms_mm <= 0.34, "displacement RMS {}", acc.disp_rms_mm); // measured 0.2467
+    assert!(acc.vertical_rms_mm <= 0.10, "vertical RMS {}", acc.vertical_rms_mm); // 0.0712
+    sigma_honest("1 camera", &acc);
     assert!(lines.iter().all(|l| l.tags.iter().all(|t| t.views == 1)));
 }
 
@@ -116,5 +126,16 @@ fn camera_bumped_mid_run() {
     let after_only = after.disp_rms_mm;
     let acc_after = tagdeflect::accuracy::evaluate(&recording.config, &recording.truth, &lines);
     println!("ACCURACY bump: after the bump displacement RMS {after_only:.4} mm; whole run: {acc_after}");
-    assert!(after_only <= 0.1, "displacement RMS after the bump {after_only}");
+    assert!(after_only <= 0.016, "displacement RMS after the bump {after_only}"); // measured 0.0116
+    sigma_honest("bump", &acc_after);
+}
+
+/// σ honest both ways: ≈ 95 % of the per-axis errors within 2σ (not all of them: an
+/// inflated σ would put every error inside), and the RMS of error/σ near 1 (measured 0.67–0.91:
+/// σ is on the safe side; a doubled σ gives 0.34–0.45 and fails).
+fn sigma_honest(label: &str, acc: &tagdeflect::accuracy::Accuracy) {
+    let (w, z) = (acc.within_2sigma.expect("σ on the tags"), acc.z_rms.expect("σ on the tags"));
+    println!("SIGMA {label}: {:.1} % within 2σ, RMS error/σ {z:.3}", 100.0 * w);
+    assert!((0.90..=0.997).contains(&w), "{label}: {:.1} % of the errors within 2σ", 100.0 * w);
+    assert!((0.6..=1.3).contains(&z), "{label}: RMS error/σ {z:.3}");
 }

@@ -57,7 +57,9 @@ fn run(params: &SimParams, sets: &[u64]) -> Figures {
             ref_det.set_intrinsics(Some(intr));
             // Truth: every tag whose four corners project well inside the image.
             let mut truth: Vec<(TagFamily, u32, [Point2<f64>; 4])> = Vec::new();
-            let project = |w: &Vector3<f64>| intr.project(&pose.transform(w));
+            // The simulator's own lens model (independent of the product's).
+            let lens = tagdeflect::sim::lens::Lens::of(&intr);
+            let project = |w: &Vector3<f64>| lens.pixel(&pose.transform(w));
             for (id, corners) in rig.tag_corners_world(t_ns) {
                 let px: Vec<Point2<f64>> = corners.iter().filter_map(project).collect();
                 if px.len() == 4 && px.iter().all(|p| intr.in_image(p, 10.0)) {

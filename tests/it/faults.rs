@@ -2,7 +2,6 @@
 //! before its fix (docs/operations.md, fault table).
 
 use std::fs;
-use std::path::Path;
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
@@ -75,7 +74,7 @@ fn a_realtime_replay_carries_the_recorded_load_on_every_line() {
 fn a_realtime_replay_does_not_wait_for_a_frame_stamped_far_ahead() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("rec");
-    copy_dir(&common::root().join("replay/one-cam"), &rec);
+    common::copy_dir(&common::root().join("replay/one-cam"), &rec);
     let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap();
     let last: serde_json::Value = serde_json::from_str(frames.lines().last().unwrap()).unwrap();
     let mut far = last.clone();
@@ -108,19 +107,6 @@ fn a_feed_that_takes_no_writes_is_refused_at_start() {
     }
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    fs::create_dir_all(to).unwrap();
-    for e in fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dest = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dest);
-        } else {
-            fs::copy(e.path(), dest).unwrap();
-        }
-    }
-}
-
 /// A camera name is text on the live page, a folder and a topic level: markup in it is
 /// refused when the config is loaded (stored XSS through a shared recording).
 #[test]
@@ -146,7 +132,7 @@ fn a_camera_name_with_markup_is_refused_at_load() {
 fn under_the_journal_every_log_line_has_its_priority() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("rec");
-    copy_dir(&common::root().join("replay/three-cam"), &rec);
+    common::copy_dir(&common::root().join("replay/three-cam"), &rec);
     // One unreadable frame: a warning.
     fs::write(rec.join("left/000001.png"), b"not a png").unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
@@ -176,7 +162,7 @@ fn under_the_journal_every_log_line_has_its_priority() {
 fn a_fifo_as_a_frame_or_calibration_file_is_refused_not_waited_on() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("rec");
-    copy_dir(&common::root().join("replay/one-cam"), &rec);
+    common::copy_dir(&common::root().join("replay/one-cam"), &rec);
     let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap();
     let first: serde_json::Value = serde_json::from_str(frames.lines().next().unwrap()).unwrap();
     let frame = rec.join(first["file"].as_str().unwrap());
@@ -213,7 +199,7 @@ fn a_fifo_as_a_frame_or_calibration_file_is_refused_not_waited_on() {
 fn check_refuses_a_recording_whose_times_are_not_epoch_times() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("rec");
-    copy_dir(&common::root().join("replay/one-cam"), &rec);
+    common::copy_dir(&common::root().join("replay/one-cam"), &rec);
     let frames = fs::read_to_string(rec.join("frames.jsonl")).unwrap();
     let mut lines: Vec<serde_json::Value> = frames.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     lines[0]["t_ns"] = serde_json::json!(12);

@@ -445,12 +445,15 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
         );
         assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
-    assert!(c.rms("net") <= 0.01, "net deflection RMS {} mm", c.rms("net"));
-    assert!(c.rms("rot1") <= 0.5, "end rotation RMS {} mrad", c.rms("rot1"));
-    assert!(c.rms("curv") <= 0.5, "curvature RMS {} 1/km", c.rms("curv"));
+    // Floors ~1.4 × the figures measured on this seed (0.0028 mm, 0.147 mrad, 0.138 1/km).
+    assert!(c.rms("net") <= 0.004, "net deflection RMS {} mm", c.rms("net"));
+    assert!(c.rms("rot1") <= 0.21, "end rotation RMS {} mrad", c.rms("rot1"));
+    assert!(c.rms("curv") <= 0.19, "curvature RMS {} 1/km", c.rms("curv"));
     let (ok, n) = c.within_2sigma();
     println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    // σ honest both ways (measured 70 of 72, RMS error/σ 0.85; a doubled σ gives ~0.43).
     assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
+    assert!((0.6..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
 
     // Clock: the UTM is stamped 80 ms ahead.
     let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
@@ -463,7 +466,8 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
     // period (5 ms at 50 Hz; 25 ms between the feed's lines at 10 Hz) on top.
     assert!((from_utm.offset_ms - 80.0).abs() <= 3.0 * from_utm.sigma_ms + 5.0, "{from_utm:?}");
     assert!((live.value - 80.0).abs() <= 3.0 * live.sigma + 5.0, "{live:?}");
-    assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 25.0, "{from_feed:?}");
+    // Measured: 76.6 ± 0.9 ms from utm.jsonl, 70.0 ± 5.5 ms from the feed.
+    assert!((from_feed.offset_ms - 80.0).abs() <= 3.0 * from_feed.sigma_ms + 5.0, "{from_feed:?}");
     assert!(from_utm.sigma_ms < 10.0, "{from_utm:?}");
 }
 
@@ -495,8 +499,10 @@ fn notched_three_point_test_replays_with_cmod() {
         println!("GAUGES notched 3-point {name}: RMS {:.5}, max {:.5} over {} lines", c.rms(name), c.max(name), c.errors[name].len());
         assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
-    assert!(c.rms("net") <= 0.01, "net deflection RMS {} mm", c.rms("net"));
-    assert!(c.rms("cmod") <= 0.01, "CMOD RMS {} mm", c.rms("cmod"));
+    // Floors ~1.4 × the figures measured on this seed (0.0058 mm, 0.0068 mm, 0.103 mrad).
+    assert!(c.rms("net") <= 0.0082, "net deflection RMS {} mm", c.rms("net"));
+    assert!(c.rms("cmod") <= 0.0095, "CMOD RMS {} mm", c.rms("cmod"));
+    assert!(c.rms("rot1") <= 0.145, "end rotation RMS {} mrad", c.rms("rot1"));
     // Against the physical mouth opening of the truth file, line by line.
     let worst =
         lines.iter().map(|l| (l.gauges["cmod"].value - rig.cmod_at(rig.midspan_deflection(l.t_ns)).unwrap()).abs()).fold(0.0, f64::max);
@@ -504,12 +510,13 @@ fn notched_three_point_test_replays_with_cmod() {
     assert!(worst <= 0.06, "{worst}");
     let (ok, n) = c.within_2sigma();
     println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
+    // σ honest both ways (measured 47 of 48, RMS error/σ 0.98).
     assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
-    // No clock offset here: the estimate agrees with zero.
-    if let Some(est) = estimate_from_utm(&lines, &recording.utm, 1000.0) {
-        println!("CLOCK 0 ms (notched): {est:?}");
-        assert!(est.offset_ms.abs() <= 3.0 * est.sigma_ms + 1.0, "{est:?}");
-    }
+    assert!((0.6..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
+    // No clock check here: this test cracks on its second loaded frame set (two points
+    // before the peak), too few for the pre-peak fit; the clock check is asserted on the
+    // four-point test above (80 ms), where the ramp has 13 points.
+    assert!(estimate_from_utm(&lines, &recording.utm, 1000.0).is_none(), "an estimate from two pre-peak points");
 }
 
 /// The default rig is untouched by the real tests: `replay/one-cam` (made by `simulate`

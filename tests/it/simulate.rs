@@ -17,7 +17,8 @@ fn small(cameras: u32, width: u32, height: u32, frame_sets: u32) -> SimParams {
 }
 
 fn project(k: &CameraIntrinsics, pose: &Pose, w: &Vector3<f64>) -> Point2<f64> {
-    k.project(&pose.transform(w)).expect("in front of the camera")
+    // The simulator's own lens model (independent of the product's).
+    tagdeflect::sim::lens::Lens::of(k).pixel(&pose.transform(w)).expect("in front of the camera")
 }
 
 #[test]

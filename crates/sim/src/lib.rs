@@ -14,6 +14,7 @@
 mod beam;
 mod drift;
 mod law;
+pub mod lens;
 pub mod live_rig;
 mod loading;
 pub mod machine;
@@ -28,6 +29,7 @@ mod trace;
 mod truth;
 
 pub use beam::FourPointBeam;
+pub use law::load_at;
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimRigSections};
 pub use truth::{SimTruthCamera, SimTruthLine, SimTruthTag};

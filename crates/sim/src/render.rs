@@ -13,7 +13,7 @@
 //! pixel grid is resolved to `1/n²` of a pixel), whose rays are interpolated bilinearly
 //! between the four corner rays (the distortion is smooth at the pixel scale).
 
-use nalgebra::{Point2, Rotation3, Vector3};
+use nalgebra::{Rotation3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -66,14 +66,16 @@ pub struct CornerRays {
 }
 
 impl CornerRays {
-    /// Undistorts every pixel corner of `k` (both cores).
+    /// Undistorts every pixel corner of `k` (both cores) with the simulator's own lens
+    /// model ([`crate::lens`]), not the product's.
     pub fn new(k: &CameraIntrinsics) -> Self {
         let (w, h) = (k.width as usize, k.height as usize);
+        let lens = crate::lens::Lens::of(k);
         let mut rays = vec![[0.0f32; 2]; (w + 1) * (h + 1)];
         rays.par_chunks_mut(w + 1).enumerate().for_each(|(j, row)| {
             for (i, r) in row.iter_mut().enumerate() {
-                let n = k.undistort(&Point2::new(i as f64 - 0.5, j as f64 - 0.5));
-                *r = [n.x as f32, n.y as f32];
+                let (x, y) = lens.ray(i as f64 - 0.5, j as f64 - 0.5);
+                *r = [x as f32, y as f32];
             }
         });
         Self { w, h, rays }

@@ -186,6 +186,7 @@ impl SimRig {
     pub(crate) fn beam_rect(&self, cam: usize, pose: &Pose, st: &BeamState) -> PixelRect {
         let p = &self.params;
         let k = &self.layout.intrinsics[cam];
+        let lens = crate::lens::Lens::of(k);
         let (hl, hh, bw) = (0.5 * p.beam_length_mm, 0.5 * p.beam_height_mm, p.beam_width_mm);
         let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
         let n = 60;
@@ -195,7 +196,7 @@ impl SimRig {
                 let (dx, dz, _) = st.motion.displace(x, zeta);
                 for y in [0.0, bw] {
                     let w = Vector3::new(x + dx, y, hh + zeta + dz);
-                    if let Some(px) = k.project(&pose.transform(&w)) {
+                    if let Some(px) = lens.pixel(&pose.transform(&w)) {
                         x0 = x0.min(px.x);
                         y0 = y0.min(px.y);
                         x1 = x1.max(px.x);

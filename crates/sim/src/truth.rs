@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::camera::Pose;
 use tagdeflect_core::rig::TagRole;
 use tagdeflect_core::tags::tag_corners;
-use tagdeflect_estimate::gauges::{GaugeTag, Gauges};
+use tagdeflect_estimate::gauges::GaugeKind;
 
 use super::law::SimTest;
 use super::SimRig;
@@ -129,13 +129,78 @@ impl SimRig {
         Some(dr - dl)
     }
 
-    /// True values of the config's gauges at midspan deflection `d` (tags referenced to rest).
+    /// True values of the config's gauges at midspan deflection `d` (tags referenced to rest),
+    /// computed here from the true tag poses with each gauge's definition written out plainly
+    /// (SPEC, `[[gauge]]`), not with the product's `Gauges`: a wrong sign or term in the
+    /// product's gauge arithmetic shows as an error against this truth. The world's up is
+    /// +z; "down" is the displacement along −z.
     pub fn gauge_truth(&self, d: f64) -> std::collections::BTreeMap<String, f64> {
+        use std::collections::HashMap;
         let config = self.sections();
-        let mut gauges = Gauges::new(&config.gauges, config.world.up, &config.specimen);
-        let exact = |poses: Vec<(u32, Pose)>| poses.into_iter().map(|(id, p)| GaugeTag::exact(id, p)).collect::<Vec<_>>();
-        gauges.evaluate(&exact(self.tag_poses_at(0.0)));
-        gauges.evaluate(&exact(self.tag_poses_at(d))).into_iter().map(|(k, v)| (k, v.value)).collect()
+        let rest: HashMap<u32, Pose> = self.tag_poses_at(0.0).into_iter().collect();
+        let now: HashMap<u32, Pose> = self.tag_poses_at(d).into_iter().collect();
+        let role: HashMap<u32, Option<TagRole>> = self.layout.specimen.iter().map(|s| (s.id, s.role)).collect();
+        let down = |id: u32| rest[&id].translation.z - now[&id].translation.z;
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let mut out = std::collections::BTreeMap::new();
+        for g in &config.gauges {
+            let value = match g.kind {
+                GaugeKind::NetDeflection => {
+                    // The midspan tags' mean drop, less the supports' line (through the support
+                    // tags' drops against their x at rest) at the midspan tags' mean x.
+                    let with = |r: TagRole| -> Vec<u32> {
+                        let mut ids: Vec<u32> = role.iter().filter(|(_, x)| **x == Some(r)).map(|(id, _)| *id).collect();
+                        ids.sort_unstable();
+                        ids
+                    };
+                    let (mid, sup) = (with(TagRole::Midspan), with(TagRole::Support));
+                    if mid.is_empty() || sup.is_empty() {
+                        continue;
+                    }
+                    let xs: Vec<f64> = sup.iter().map(|id| rest[id].translation.x).collect();
+                    let ds: Vec<f64> = sup.iter().map(|id| down(*id)).collect();
+                    let xm = mean(&mid.iter().map(|id| rest[id].translation.x).collect::<Vec<_>>());
+                    let (sx, sd) = (mean(&xs), mean(&ds));
+                    let sxx: f64 = xs.iter().map(|x| (x - sx).powi(2)).sum();
+                    let sxd: f64 = xs.iter().zip(&ds).map(|(x, d)| (x - sx) * (d - sd)).sum();
+                    let line = if sxx > 1e-9 { sd + sxd / sxx * (xm - sx) } else { sd };
+                    mean(&mid.iter().map(|id| down(*id)).collect::<Vec<_>>()) - line
+                }
+                GaugeKind::Rotation => {
+                    // The tag's rotation from rest, as an angle about the gauge's axis, mrad.
+                    let id = g.tags[0];
+                    let rel = now[&id].rotation * rest[&id].rotation.inverse();
+                    let axis = Vector3::from(g.axis.unwrap_or([0.0, 1.0, 0.0])).normalize();
+                    let (a, angle) = rel.axis_angle().map(|(a, t)| (a.into_inner(), t)).unwrap_or((axis, 0.0));
+                    axis.dot(&a) * angle * 1e3
+                }
+                GaugeKind::Curvature => {
+                    // Second divided difference of the upward displacements along x, 1/km.
+                    let mut pts: Vec<(f64, f64)> = g.tags.iter().map(|id| (rest[id].translation.x, -down(*id))).collect();
+                    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    let [(xa, ya), (xb, yb), (xc, yc)] = [pts[0], pts[1], pts[2]];
+                    2.0 * ((yc - yb) / (xc - xb) - (yb - ya) / (xb - xa)) / (xc - xa) * 1e6
+                }
+                GaugeKind::Opening => {
+                    // The gauge point carried rigidly by each tag; their separation along the
+                    // direction (from the first tag toward the second) against rest.
+                    let (a, b) = (g.tags[0], g.tags[1]);
+                    let at = Vector3::from(g.at_mm.unwrap_or([0.0; 3]));
+                    let carried = |id: u32| now[&id].rotation * (rest[&id].rotation.inverse() * (at - rest[&id].translation)) + now[&id].translation;
+                    let mut dir = Vector3::from(g.direction.unwrap_or([1.0, 0.0, 0.0])).normalize();
+                    if dir.dot(&(rest[&b].translation - rest[&a].translation)) < 0.0 {
+                        dir = -dir;
+                    }
+                    dir.dot(&(carried(b) - carried(a)))
+                }
+                GaugeKind::Distance => {
+                    let (a, b) = (g.tags[0], g.tags[1]);
+                    (now[&b].translation - now[&a].translation).norm() - (rest[&b].translation - rest[&a].translation).norm()
+                }
+            };
+            out.insert(g.name.clone(), value);
+        }
+        out
     }
 
     /// Everything true about frame set `k` (the `sim_truth.jsonl` line).
