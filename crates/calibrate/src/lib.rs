@@ -50,8 +50,9 @@ pub struct CalibrateOptions {
     /// The `[[camera]]` name to calibrate (with --config).
     #[cfg_attr(feature = "clap", arg(long, requires = "config"))]
     pub camera: Option<String>,
-    /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners) or
-    /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]`.
+    /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners),
+    /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]` or Kalibr's
+    /// `aprilgrid:COLSxROWS:TAG_M:SPACING_RATIO`.
     #[cfg_attr(feature = "clap", arg(long))]
     pub target: String,
     /// The OpenCV FileStorage YAML to write.
