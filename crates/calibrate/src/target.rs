@@ -257,7 +257,7 @@ fn grow_quad(corners: &[Point2<f64>; 4], by: f64) -> [Point2<f64>; 4] {
         let (a, b) = (corners[i].coords, corners[(i + 1) % 4].coords);
         let d = b - a;
         let len = d.norm();
-        if !(len > 1e-9) {
+        if len.is_nan() || len <= 1e-9 {
             return *corners;
         }
         let d = d / len;
