@@ -4,6 +4,7 @@
 mod common;
 
 mod accuracy;
+mod aprilgrid;
 mod aravis_fake;
 mod archive;
 mod calibrate;

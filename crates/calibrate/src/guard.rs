@@ -120,7 +120,12 @@ pub fn check_board(spec: &TargetSpec, text: &str, seen: &[(String, BoardSeen)], 
                 )));
             }
         }
-        TargetSpec::TagBoard { family, cols, rows, first_id, .. } => {
+        TargetSpec::TagBoard { .. } | TargetSpec::AprilGrid { .. } => {
+            let (family, cols, rows, first_id) = match *spec {
+                TargetSpec::TagBoard { family, cols, rows, first_id, .. } => (family, cols, rows, first_id),
+                TargetSpec::AprilGrid { cols, rows, .. } => (tagdeflect_core::tags::TagFamily::Tag36h11, cols, rows, 0),
+                TargetSpec::Checkerboard { .. } => unreachable!("matched above"),
+            };
             let last = first_id + cols * rows - 1;
             let mut outside: Vec<u32> = seen.iter().flat_map(|(_, s)| s.outside_ids.iter().copied()).collect();
             outside.sort_unstable();

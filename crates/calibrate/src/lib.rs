@@ -34,6 +34,7 @@ pub use self::error::CalibrateError;
 use self::report::{uncertainty_at, Coverage};
 use self::solve::{Calibration, SolveOptions, View, PARAM_NAMES};
 use self::target::{BoardSeen, TargetDetector, TargetSpec};
+use tagdeflect_core::camera::CameraIntrinsics;
 use tagdeflect_core::frame::{FrameSet, GrayImage};
 
 /// Options of `tagdeflect calibrate`.
@@ -49,8 +50,9 @@ pub struct CalibrateOptions {
     /// The `[[camera]]` name to calibrate (with --config).
     #[cfg_attr(feature = "clap", arg(long, requires = "config"))]
     pub camera: Option<String>,
-    /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners) or
-    /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]`.
+    /// The target: `checkerboard:COLSxROWS:SQUARE_MM` (inner corners),
+    /// `tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]` or Kalibr's
+    /// `aprilgrid:COLSxROWS:TAG_M:SPACING_RATIO`.
     #[cfg_attr(feature = "clap", arg(long))]
     pub target: String,
     /// The OpenCV FileStorage YAML to write.
@@ -257,7 +259,18 @@ pub struct Detected {
 
 /// [`detect_views`], with what the detector saw of the board in every view.
 pub fn detect_views_seen(files: &[PathBuf], spec: &TargetSpec) -> Result<Detected, CalibrateError> {
+    detect_views_seen_with(files, spec, None)
+}
+
+/// [`detect_views_seen`] with the tags' edges fitted through `intrinsics` (a first
+/// calibration's; see [`TargetDetector::set_intrinsics`]).
+pub fn detect_views_seen_with(
+    files: &[PathBuf],
+    spec: &TargetSpec,
+    intrinsics: Option<&CameraIntrinsics>,
+) -> Result<Detected, CalibrateError> {
     let mut det = TargetDetector::new(spec.clone())?;
+    det.set_intrinsics(intrinsics.copied());
     let mut seen = Vec::new();
     let mut views = Vec::new();
     let mut failed = Vec::new();
@@ -455,7 +468,15 @@ pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<Fram
         }
         _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
-    let (run, notes) = calibrate_guarded(views, w, h, &not_found, &seen, &spec, opts)?;
+    let (mut run, mut notes) = calibrate_guarded(views, w, h, &not_found, &seen, &spec, opts)?;
+    let mut not_found = not_found;
+    if let (true, Some(dir)) = (spec.has_tags(), &opts.images) {
+        // Tag edges are straight only without the lens: fitted again through the first
+        // calibration, the corners lose the bias of fitting lines to bent edges (module docs).
+        let d = detect_views_seen_with(&image_files(dir)?, &spec, Some(&run.calibration.intrinsics))?;
+        (run, notes) = calibrate_guarded(d.views, d.width, d.height, &d.not_found, &d.seen, &spec, opts)?;
+        not_found = d.not_found;
+    }
     let text = write_outputs(&run, &not_found, &spec, opts, &notes)?;
     print!("{text}");
     Ok(())

@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 use super::target::{tag_centre, TargetSpec};
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use tagdeflect_core::frame::GrayImage;
-use tagdeflect_core::tags::TagBitmap;
+use tagdeflect_core::tags::{TagBitmap, TagFamily};
 use tagdeflect_detect::tag_bitmap;
 use tagdeflect_sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
 
@@ -47,6 +47,9 @@ pub fn render_target(spec: &TargetSpec, k: &CameraIntrinsics, pose: &Pose, o: &R
     let bitmaps: Vec<TagBitmap> = match spec {
         TargetSpec::TagBoard { family, cols, rows, first_id, .. } => {
             (0..cols * rows).map(|i| tag_bitmap(*family, first_id + i).expect("board ids validated")).collect()
+        }
+        TargetSpec::AprilGrid { cols, rows, .. } => {
+            (0..cols * rows).map(|i| tag_bitmap(TagFamily::Tag36h11, i).expect("grid ids validated")).collect()
         }
         TargetSpec::Checkerboard { .. } => Vec::new(),
     };
@@ -88,6 +91,38 @@ pub fn render_target(spec: &TargetSpec, k: &CameraIntrinsics, pose: &Pose, o: &R
                 match bm.cell_at(x - t.x, y - t.y, size_mm) {
                     Some((cc, rr)) if !bm.is_white(cc, rr) => (0, black),
                     _ => (1, white),
+                }
+            }
+            TargetSpec::AprilGrid { cols, rows, tag_mm, spacing } => {
+                // Kalibr's layout: tag (c, r) spans [c p, c p + tag] × [r p, r p + tag]; a black
+                // square of the gap's size in every gap crossing, the outer ones included; white
+                // paper one gap beyond them.
+                let gap = spacing * tag_mm;
+                let p = tag_mm + gap;
+                let (cf, rf) = ((x / p).floor(), (y / p).floor());
+                let (u, v) = (x - cf * p, y - rf * p);
+                let (wide, high) = (cols as f64 * p - gap, rows as f64 * p - gap);
+                if x < -2.0 * gap || y < -2.0 * gap || x > wide + 2.0 * gap || y > high + 2.0 * gap {
+                    return (2, bg);
+                }
+                let in_gap_x = u >= tag_mm;
+                let in_gap_y = v >= tag_mm;
+                let inside = x >= -gap && y >= -gap && x <= wide + gap && y <= high + gap;
+                if in_gap_x && in_gap_y {
+                    return if inside { (0, black) } else { (1, white) };
+                }
+                if in_gap_x || in_gap_y || cf < 0.0 || rf < 0.0 || cf >= cols as f64 || rf >= rows as f64 {
+                    return (1, white);
+                }
+                // Inside tag (cf, rf): 10 cells, the outer ring black, the inner 8 × 8 the tag's
+                // bitmap (whose own outer ring is the white one, here black), rows from the top.
+                let cell = tag_mm / 10.0;
+                let (cc, rr) = ((u / cell).floor().clamp(0.0, 9.0) as u32, (9.0 - (v / cell).floor()).clamp(0.0, 9.0) as u32);
+                let bm = &bitmaps[(rf as u32 * cols + cf as u32) as usize];
+                if cc == 0 || rr == 0 || cc == 9 || rr == 9 || !bm.is_white(cc, rr) {
+                    (0, black)
+                } else {
+                    (1, white)
                 }
             }
         }

@@ -487,6 +487,16 @@ fn finish(
     })
 }
 
+/// One view's pose fitted alone under fixed intrinsics `k` (PnP: homography start, then LM)
+/// and its reprojection RMS (pixels, `√(mean |r|²)` over the points); `None` when no pose
+/// is found.
+pub fn view_pnp(k: &CameraIntrinsics, view: &View) -> Option<(Pose, f64)> {
+    let pose = view_pose(k, view)?;
+    let r = residuals(k, &pose, view);
+    let rms = (r.iter().map(|r| r.norm_squared()).sum::<f64>() / r.len().max(1) as f64).sqrt();
+    rms.is_finite().then_some((pose, rms))
+}
+
 /// Sum of squared residuals of one view with its pose fitted alone under intrinsics `k`
 /// (`None` when no pose is found).
 pub(crate) fn view_ssr(k: &CameraIntrinsics, view: &View) -> Option<f64> {

@@ -3,6 +3,7 @@
 //! ```text
 //! checkerboard:COLSxROWS:SQUARE_MM                       inner corners, e.g. checkerboard:9x6:25
 //! tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]  e.g. tagboard:tag36h11:6x4:30:40
+//! aprilgrid:COLSxROWS:TAG_M:SPACING_RATIO                Kalibr's, e.g. aprilgrid:6x6:0.088:0.3
 //! ```
 //!
 //! **Checkerboard.** `COLS` × `ROWS` inner corners (OpenCV's `patternSize`), squares of
@@ -23,19 +24,44 @@
 //! right, y up as printed, origin at the centre of the top-left tag (tag frames as in
 //! [`tagdeflect_core::tags::tag_corners`]).
 //!
-//! Kalibr's AprilGrid (`aprilgrid:...`) is recognised and refused with an explanation: the
-//! one Rust detector for it (`aprilgrid`) brings a second linear-algebra stack and every
-//! image codec into the build; an AprilGrid's tags have a 2-bit border the AprilTag library
-//! does not decode.
+//! **AprilGrid** (Kalibr's target, its `target.yaml` numbers): `COLS` × `ROWS` tag36h11 tags
+//! of edge `TAG_M` metres (the black square with its 2-bit border, Kalibr's `tagSize`; `88mm`
+//! is taken too), gaps of `SPACING_RATIO` × the tag edge (`tagSpacing`) with a black square
+//! in every gap crossing. Ids and corners as Kalibr: tag `id` sits at column `id % COLS`,
+//! row `id / COLS` counted from the bottom of the grid as printed (x right, y up, origin at
+//! tag 0's bottom-left corner, pitch `TAG · (1 + SPACING)`); its corners are taken
+//! bottom-left, bottom-right, top-right, top-left (corner ids `4 id + k` in yac's numbering;
+//! Kalibr's grid-point index `2·COLS·(2 row + k / 2) + 2 col + …` names the same points).
+//!
+//! *How the 2-bit border is read (decision).* An AprilGrid tag is the tag36h11 code inside
+//! two black rings instead of one: the same 8×8 black square grown by one cell all round.
+//! The tags are found by the same AprilTag library and sub-pixel refinement as a tag board,
+//! with two changes. (1) The family table given to the library describes that wider border
+//! (black square 10 cells, every data bit one cell further in: `border_bits = 2` of
+//! `tagdeflect_detect::DetectorOptions`), so the library's own decoder and code table read
+//! the bits where the grid prints them — no decoder of our own, the library's Hamming
+//! correction and rotation handling unchanged. (2) The black squares in the gap crossings
+//! touch every tag at its four corners, which joins the tags into one black region in which
+//! the library's quad finder sees no tag outline; the library therefore searches a copy of
+//! the image in which black is shrunk by a 3 × 3 maximum filter (one pixel off every black
+//! edge, which parts the touching corners and keeps the 3-pixel bits of a small tag
+//! readable), and a copy with a 2 × 2 filter for tags so small that 3 × 3 erases their bits;
+//! a tag found in both keeps the more confident decode. The corners are then refined on the
+//! original image with the 10-cell square (behind a 2-bit border the edge model's inner side
+//! is black all along), whose bands stay `margin` pixels away from the corners where the
+//! corner squares touch. Decoding the 6 × 6 bits ourselves or locating tags from the corner
+//! squares would have needed a second quad finder; the library's is already tested on every
+//! lens and blur the product sees.
 
 use std::fmt::Write as _;
 
 use nalgebra::{Point2, Vector3};
 
 use super::solve::View;
+use tagdeflect_core::camera::CameraIntrinsics;
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::{tag_corners, TagFamily};
-use tagdeflect_detect::{Detector, DetectorOptions};
+use tagdeflect_detect::{refine_corners_with, Detector, DetectorOptions};
 
 /// A calibration target (parsed `--target`).
 #[derive(Debug, Clone, PartialEq)]
@@ -63,6 +89,17 @@ pub enum TargetSpec {
         pitch_mm: f64,
         /// Id of the top-left tag; ids run row-major.
         first_id: u32,
+    },
+    /// Kalibr's AprilGrid (tag36h11, 2-bit borders, black squares in the gap crossings).
+    AprilGrid {
+        /// Tags per row.
+        cols: u32,
+        /// Tag rows.
+        rows: u32,
+        /// Tag edge (black square with its 2-bit border), mm.
+        tag_mm: f64,
+        /// Gap between tags over the tag edge (Kalibr's `tagSpacing`).
+        spacing: f64,
     },
 }
 
@@ -129,11 +166,33 @@ impl std::str::FromStr for TargetSpec {
                 Ok(TargetSpec::TagBoard { family, cols, rows, size_mm, pitch_mm, first_id })
             }
             "aprilgrid" => {
-                Err(err("Kalibr AprilGrid targets are not supported: use a tag board (tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM) \
-                 or a checkerboard; an existing Kalibr calibration can be imported with `calibration = \"camchain.yaml\"`"))
+                if parts.len() != 4 {
+                    return Err(err("expected aprilgrid:COLSxROWS:TAG_M:SPACING_RATIO (Kalibr's tagCols x tagRows, tagSize in metres, \
+                         tagSpacing), e.g. aprilgrid:6x6:0.088:0.3"));
+                }
+                let (cols, rows) = parse_dims(parts[1]).ok_or_else(|| err("COLSxROWS must be two positive numbers of tags, e.g. 6x6"))?;
+                let t = parts[2].trim();
+                let tag_mm = if let Some(mm) = t.strip_suffix("mm") {
+                    mm.trim().parse::<f64>().ok()
+                } else {
+                    t.trim_end_matches('m').trim().parse::<f64>().ok().map(|m| 1000.0 * m)
+                }
+                .filter(|v| v.is_finite() && *v > 0.0)
+                .ok_or_else(|| err("TAG_M must be the tag edge in metres (Kalibr's tagSize, e.g. 0.088) or in mm with a unit (88mm)"))?;
+                let spacing: f64 = parts[3]
+                    .trim()
+                    .parse()
+                    .ok()
+                    .filter(|v: &f64| v.is_finite() && (0.05..=2.0).contains(v))
+                    .ok_or_else(|| err("SPACING_RATIO must be the gap over the tag edge (Kalibr's tagSpacing, 0.05 to 2, e.g. 0.3)"))?;
+                if cols as u64 * rows as u64 > TagFamily::Tag36h11.code_count() as u64 {
+                    return Err(err(&format!("{cols}x{rows} tags exceed the {} codes of tag36h11", TagFamily::Tag36h11.code_count())));
+                }
+                Ok(TargetSpec::AprilGrid { cols, rows, tag_mm, spacing })
             }
             _ => Err(err(
-                "unknown target: expected checkerboard:COLSxROWS:SQUARE_MM or tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID]",
+                "unknown target: expected checkerboard:COLSxROWS:SQUARE_MM, tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID] \
+                 or aprilgrid:COLSxROWS:TAG_M:SPACING_RATIO",
             )),
         }
     }
@@ -151,6 +210,9 @@ impl TargetSpec {
                 .flat_map(|r| (0..cols).map(move |c| (r, c)))
                 .flat_map(|(r, c)| tag_corners(size_mm).map(|p| p + tag_centre(c, r, pitch_mm)))
                 .collect(),
+            TargetSpec::AprilGrid { cols, rows, tag_mm, spacing } => {
+                (0..cols * rows).flat_map(|id| aprilgrid_corners(id, cols, tag_mm, spacing)).collect()
+            }
         }
     }
 
@@ -163,8 +225,84 @@ impl TargetSpec {
             TargetSpec::TagBoard { family, cols, rows, size_mm, pitch_mm, first_id } => {
                 format!("{family} board {cols}x{rows}, {size_mm} mm tags at {pitch_mm} mm pitch, ids from {first_id}")
             }
+            TargetSpec::AprilGrid { cols, rows, tag_mm, spacing } => {
+                format!("AprilGrid {cols}x{rows}, {tag_mm} mm tags, spacing {spacing}")
+            }
         }
     }
+
+    /// True for targets made of tags (corners from straight edges, refined per tag).
+    pub fn has_tags(&self) -> bool {
+        !matches!(self, TargetSpec::Checkerboard { .. })
+    }
+}
+
+/// The four corners of AprilGrid tag `id` (mm, z = 0), Kalibr's order: bottom-left,
+/// bottom-right, top-right, top-left, in the grid frame (x right, y up, origin at tag 0's
+/// bottom-left corner; row `id / cols` from the bottom).
+pub fn aprilgrid_corners(id: u32, cols: u32, tag_mm: f64, spacing: f64) -> [Vector3<f64>; 4] {
+    let pitch = tag_mm * (1.0 + spacing);
+    let (x, y) = ((id % cols) as f64 * pitch, (id / cols) as f64 * pitch);
+    [Vector3::new(x, y, 0.0), Vector3::new(x + tag_mm, y, 0.0), Vector3::new(x + tag_mm, y + tag_mm, 0.0), Vector3::new(x, y + tag_mm, 0.0)]
+}
+
+/// The quad `corners` with every edge moved `by` pixels outwards (its corners the
+/// intersections of the moved edges); unchanged when an edge is degenerate.
+fn grow_quad(corners: &[Point2<f64>; 4], by: f64) -> [Point2<f64>; 4] {
+    use nalgebra::Vector2;
+    let centre = corners.iter().fold(Vector2::zeros(), |a, p| a + p.coords) / 4.0;
+    // Edge i from corner i to i+1: a point on it (moved) and its direction.
+    let mut lines = [(Vector2::zeros(), Vector2::zeros()); 4];
+    for i in 0..4 {
+        let (a, b) = (corners[i].coords, corners[(i + 1) % 4].coords);
+        let d = b - a;
+        let len = d.norm();
+        if len.is_nan() || len <= 1e-9 {
+            return *corners;
+        }
+        let d = d / len;
+        let mut n = Vector2::new(-d.y, d.x);
+        if n.dot(&(a - centre)) < 0.0 {
+            n = -n;
+        }
+        lines[i] = (a + by * n, d);
+    }
+    let mut out = *corners;
+    for (i, c) in out.iter_mut().enumerate() {
+        // Corner i lies on edge i−1 and edge i.
+        let ((p, u), (q, v)) = (lines[(i + 3) % 4], lines[i]);
+        let den = u.x * v.y - u.y * v.x;
+        if den.abs() < 1e-9 {
+            return *corners;
+        }
+        let t = ((q - p).x * v.y - (q - p).y * v.x) / den;
+        *c = Point2::from(p + t * u);
+    }
+    out
+}
+
+/// `image` with black shrunk by a `size` × `size` maximum filter (`size` 2 or 3; the 2 × 2
+/// window reaches right and down), for the AprilGrid's quad search (see the module docs).
+fn shrink_black(image: &GrayImage, size: u32) -> GrayImage {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let (lo, hi) = if size >= 3 { (1usize, 1usize) } else { (0, 1) };
+    let px = |x: usize, y: usize| image.data[y * w + x];
+    // Rows first, then columns (the maximum is separable).
+    let mut rows = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(lo), (x + hi).min(w - 1));
+            rows[y * w + x] = (a..=b).map(|i| px(i, y)).max().unwrap_or(0);
+        }
+    }
+    let mut out = vec![0u8; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(lo), (y + hi).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).map(|j| rows[j * w + x]).max().unwrap_or(0);
+        }
+    }
+    GrayImage { width: image.width, height: image.height, data: out }
 }
 
 /// Centre of tag (`col`, `row`) of a tag board (x right, y up; row 0 at the top).
@@ -176,6 +314,7 @@ pub(crate) fn tag_centre(col: u32, row: u32, pitch_mm: f64) -> Vector3<f64> {
 pub struct TargetDetector {
     spec: TargetSpec,
     tags: Option<Detector>,
+    intrinsics: Option<CameraIntrinsics>,
 }
 
 impl TargetDetector {
@@ -183,9 +322,48 @@ impl TargetDetector {
     pub fn new(spec: TargetSpec) -> Result<Self, tagdeflect_detect::DetectError> {
         let tags = match &spec {
             TargetSpec::TagBoard { family, .. } => Some(Detector::new(DetectorOptions::for_families(&[*family]))?),
+            TargetSpec::AprilGrid { .. } => Some(Detector::new(DetectorOptions::for_families(&[TagFamily::Tag36h11]).with_border_bits(2))?),
             TargetSpec::Checkerboard { .. } => None,
         };
-        Ok(Self { spec, tags })
+        Ok(Self { spec, tags, intrinsics: None })
+    }
+
+    /// The camera's intrinsics (e.g. a first calibration's) for the tags' sub-pixel
+    /// refinement: their edges are then fitted as straight lines in undistorted pixels
+    /// instead of in the distorted image, where a lens bends them (see
+    /// [`crate::run`]). Checkerboard corners are point features: unchanged.
+    pub fn set_intrinsics(&mut self, intrinsics: Option<CameraIntrinsics>) {
+        self.intrinsics = intrinsics;
+        if let Some(d) = &mut self.tags {
+            d.set_intrinsics(self.intrinsics);
+        }
+    }
+
+    /// The tags of an AprilGrid: the library on the two black-shrunk copies, each tag's
+    /// more confident decode, refined on `image` (module docs).
+    fn aprilgrid_tags(&mut self, image: &GrayImage) -> Vec<tagdeflect_detect::Detection> {
+        let det = self.tags.as_mut().expect("tag detector for an AprilGrid");
+        let mut best: Vec<tagdeflect_detect::Detection> = Vec::new();
+        for size in [3, 2] {
+            let shrunk = shrink_black(image, size);
+            for raw in det.detect_raw(&shrunk, None) {
+                let mut d = raw.to_detection();
+                // The filter moved the black square's edges: put them back before refining.
+                let (grow, shift) = if size >= 3 { (1.0, 0.0) } else { (0.5, 0.5) };
+                d.corners = grow_quad(&d.corners, grow).map(|c| c + nalgebra::Vector2::new(shift, shift));
+                match best.iter_mut().find(|b| b.id == d.id) {
+                    Some(b) if b.decision_margin >= d.decision_margin => {}
+                    Some(b) => *b = d,
+                    None => best.push(d),
+                }
+            }
+        }
+        let opts = det.options().subpixel.clone().unwrap_or_default();
+        for d in &mut best {
+            refine_corners_with(image, d, self.intrinsics.as_ref(), &opts);
+        }
+        best.sort_by_key(|d| d.id);
+        best
     }
 
     /// Finds the target in `image`: board points and their sub-pixel pixels. `Err` says
@@ -237,6 +415,40 @@ impl TargetDetector {
                 seen.ids.sort_unstable();
                 Ok((View { name: name.to_string(), object, image: pixels }, seen))
             }
+            TargetSpec::AprilGrid { cols, rows, tag_mm, spacing } => {
+                let mut object = Vec::new();
+                let mut pixels = Vec::new();
+                let mut seen = BoardSeen::default();
+                for d in self.aprilgrid_tags(image) {
+                    if d.id >= cols * rows {
+                        seen.outside_ids.push(d.id);
+                        continue;
+                    }
+                    seen.ids.push(d.id);
+                    for (corner, px) in aprilgrid_corners(d.id, cols, tag_mm, spacing).iter().zip(d.corners) {
+                        object.push(*corner);
+                        pixels.push(px);
+                    }
+                }
+                if seen.ids.len() < 2 {
+                    let mut m = format!("{} AprilGrid tags found (need at least 2)", seen.ids.len());
+                    if !seen.outside_ids.is_empty() {
+                        let _ = write!(m, "; tag36h11 tags {:?} seen, outside the grid's ids 0..{}", seen.outside_ids, cols * rows - 1);
+                    }
+                    return Err(m);
+                }
+                Ok((View { name: name.to_string(), object, image: pixels }, seen))
+            }
+        }
+    }
+
+    /// The AprilGrid tags found in `image` (ids of the family, whether on the grid or not),
+    /// corners refined, SPEC order; empty for other targets. For tests and diagnostics.
+    pub fn aprilgrid_detections(&mut self, image: &GrayImage) -> Vec<tagdeflect_detect::Detection> {
+        if matches!(self.spec, TargetSpec::AprilGrid { .. }) {
+            self.aprilgrid_tags(image)
+        } else {
+            Vec::new()
         }
     }
 }
@@ -401,8 +613,17 @@ mod tests {
         assert!(e.to_string().contains("COLSxROWS"), "{e}");
         let e = "tagboard:tag25h9:10x10:30:40".parse::<TargetSpec>().unwrap_err();
         assert!(e.to_string().contains("exceed"), "{e}");
-        let e = "aprilgrid:6x6:88mm:0.3".parse::<TargetSpec>().unwrap_err();
-        assert!(e.to_string().contains("AprilGrid"), "{e}");
+        let grid = TargetSpec::AprilGrid { cols: 6, rows: 6, tag_mm: 88.0, spacing: 0.3 };
+        assert_eq!("aprilgrid:6x6:88mm:0.3".parse::<TargetSpec>().unwrap(), grid);
+        let TargetSpec::AprilGrid { tag_mm, .. } = "aprilgrid:6x6:0.088:0.3".parse::<TargetSpec>().unwrap() else { panic!() };
+        assert!((tag_mm - 88.0).abs() < 1e-9);
+        assert!("aprilgrid:6x6:0.088".parse::<TargetSpec>().unwrap_err().to_string().contains("SPACING_RATIO"));
+        assert!("aprilgrid:6x6:0.088:3".parse::<TargetSpec>().unwrap_err().to_string().contains("tagSpacing"));
+        assert!("aprilgrid:30x30:0.088:0.3".parse::<TargetSpec>().unwrap_err().to_string().contains("exceed"));
+        // Kalibr's grid: tag 7 of a 6-wide grid is column 1 of row 1; pitch 88 · 1.3 mm.
+        let c = aprilgrid_corners(7, 6, 88.0, 0.3);
+        assert!((c[0] - Vector3::new(114.4, 114.4, 0.0)).norm() < 1e-9 && (c[2] - Vector3::new(202.4, 202.4, 0.0)).norm() < 1e-9);
+        assert_eq!(grid.board_points().len(), 144);
         assert!("tagboard:tag36h11:6x4:40:30".parse::<TargetSpec>().is_err());
     }
 

@@ -82,6 +82,10 @@ pub struct DetectorOptions {
     pub min_white_black_diff: u8,
     /// Sub-pixel corner refinement against the image (see [`super::refine`]); `None` = off.
     pub subpixel: Option<RefineOptions>,
+    /// Width of the tags' black border in bits: 1 (the families as designed, the default)
+    /// or 2 (Kalibr's AprilGrid: one more black ring, see `FamilyTable::with_border`). The
+    /// refinement's [`RefineOptions::border_bits`] must be the same.
+    pub border_bits: u32,
 }
 
 impl Default for DetectorOptions {
@@ -96,6 +100,7 @@ impl Default for DetectorOptions {
             max_bits_corrected: 2,
             min_white_black_diff: 5,
             subpixel: Some(RefineOptions::default()),
+            border_bits: 1,
         }
     }
 }
@@ -104,6 +109,16 @@ impl DetectorOptions {
     /// Default options for the given families.
     pub fn for_families(families: &[TagFamily]) -> Self {
         Self { families: families.to_vec(), ..Self::default() }
+    }
+
+    /// These options for tags with a black border of `border_bits` bits (detection and
+    /// refinement).
+    pub fn with_border_bits(mut self, border_bits: u32) -> Self {
+        self.border_bits = border_bits;
+        if let Some(r) = &mut self.subpixel {
+            r.border_bits = border_bits;
+        }
+        self
     }
 
     /// Checks every option; the detector is built only from valid options.
@@ -147,8 +162,22 @@ impl DetectorOptions {
                 expected: "expected 0 to 3",
             });
         }
+        if !(1..=2).contains(&self.border_bits) {
+            return Err(DetectError::BadOption {
+                name: "border_bits",
+                value: self.border_bits.to_string(),
+                expected: "expected 1 (classic tags) or 2 (AprilGrid tags)",
+            });
+        }
         if let Some(r) = &self.subpixel {
             r.validate()?;
+            if r.border_bits != self.border_bits {
+                return Err(DetectError::BadOption {
+                    name: "subpixel.border_bits",
+                    value: r.border_bits.to_string(),
+                    expected: "expected the detector's own border_bits (see DetectorOptions::with_border_bits)",
+                });
+            }
         }
         Ok(())
     }
@@ -265,7 +294,7 @@ impl Detector {
         options.validate()?;
         let mut families = Vec::with_capacity(options.families.len());
         for &f in &options.families {
-            families.push(FamilyTable::new(f).ok_or(DetectError::Create("a tag family table"))?);
+            families.push(FamilyTable::with_border(f, options.border_bits).ok_or(DetectError::Create("a tag family table"))?);
         }
         let mut det = Self { workers: Vec::new(), families, options, intrinsics: None, stats: RefineStats::default() };
         for _ in 0..workers.max(1) {
@@ -312,11 +341,14 @@ impl Detector {
     /// (they are fixed when the detector is built).
     pub fn set_options(&mut self, options: DetectorOptions) -> Result<(), DetectError> {
         options.validate()?;
-        if options.families != self.options.families || options.max_bits_corrected != self.options.max_bits_corrected {
+        if options.families != self.options.families
+            || options.max_bits_corrected != self.options.max_bits_corrected
+            || options.border_bits != self.options.border_bits
+        {
             return Err(DetectError::BadOption {
                 name: "families",
                 value: format!("{:?}", options.families),
-                expected: "the detector's own families and max_bits_corrected (build a new detector for others)",
+                expected: "the detector's own families, max_bits_corrected and border_bits (build a new detector for others)",
             });
         }
         self.options = options;

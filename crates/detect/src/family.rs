@@ -46,6 +46,38 @@ impl FamilyTable {
         }
     }
 
+    /// Creates the library's table for `family` printed with a black border of
+    /// `border_bits` cells (1: the family as designed; 2: Kalibr's AprilGrid tags, the same
+    /// code inside one more black ring). The wider border is the library's own table with
+    /// the black square two cells wider and every data bit one cell further in, so the
+    /// library's quad decoder samples the bits where an AprilGrid prints them. `None` for a
+    /// border outside 1–2 or when the library's allocation failed.
+    pub fn with_border(family: TagFamily, border_bits: u32) -> Option<Self> {
+        if !(1..=2).contains(&border_bits) {
+            return None;
+        }
+        let table = Self::new(family)?;
+        let extra = border_bits - 1;
+        if extra > 0 {
+            // SAFETY: `ptr` is non-null and owned by `table` alone; the detector has not seen
+            // it yet. `bit_x` / `bit_y` hold `nbits` entries each (allocated by the
+            // constructor and freed by the destructor, which only frees them): shifting their
+            // values in place changes no allocation.
+            unsafe {
+                let raw = &mut *table.ptr;
+                raw.width_at_border += 2 * extra as i32;
+                raw.total_width += 2 * extra as i32;
+                if !raw.bit_x.is_null() && !raw.bit_y.is_null() {
+                    for i in 0..raw.nbits as usize {
+                        *raw.bit_x.add(i) += extra;
+                        *raw.bit_y.add(i) += extra;
+                    }
+                }
+            }
+        }
+        Some(table)
+    }
+
     /// The family this table describes.
     pub fn family(&self) -> TagFamily {
         self.family
@@ -174,6 +206,12 @@ mod tests {
             assert_eq!((t.width_at_border(), t.total_width()), (f.facts().width_at_border, f.facts().total_width), "{f}: facts table");
         }
         let t = FamilyTable::new(TagFamily::Tag36h11).unwrap();
+        let wide = FamilyTable::with_border(TagFamily::Tag36h11, 2).unwrap();
+        assert_eq!((wide.width_at_border(), wide.total_width()), (10, 12));
+        let shifted: Vec<(u32, u32)> = t.bit_positions().iter().map(|&(x, y)| (x + 1, y + 1)).collect();
+        assert_eq!(wide.bit_positions(), shifted);
+        assert_eq!(wide.code(5), t.code(5));
+        assert!(FamilyTable::with_border(TagFamily::Tag36h11, 3).is_none());
         assert_eq!(t.nbits(), 36);
         assert_eq!((t.width_at_border(), t.total_width()), (8, 10));
         assert_eq!(t.code(0), Some(0x0000_000d_7e00_984b));

@@ -156,9 +156,11 @@ pub(super) fn select_band(
         return None;
     }
     let threshold = 0.5 * (white_ref + black_ref);
-    // Border cells (first and last) are black inside; data cells are read from the image.
+    // Border cells (the first and last `border_bits`) are black inside; data cells are read
+    // from the image (behind a 2-bit border they read black too).
+    let bb = opts.border_bits.max(1) as usize;
     let white: Vec<bool> =
-        (0..nbits).map(|k| k != 0 && k + 1 != nbits && ((inner_val[k] - threshold) * contrast0.signum()) > 0.0).collect();
+        (0..nbits).map(|k| k >= bb && k + bb < nbits && ((inner_val[k] - threshold) * contrast0.signum()) > 0.0).collect();
 
     // Band limits, pixels (depth inwards positive) and bits.
     let inner_px = (opts.inner_band_bits * bit_px).min(2.0 * bit_px - opts.margin_px).min(opts.max_band_px);

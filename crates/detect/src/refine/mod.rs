@@ -87,6 +87,9 @@ pub struct RefineOptions {
     /// corners stay within this distance (pixels) of that selection's (0: always select
     /// anew); see [`refine_corners_warm`].
     pub band_reuse_px: f64,
+    /// Width of the tags' black border in bits (1, or 2 for Kalibr's AprilGrid): the corners
+    /// are those of a black square `width_at_border + 2 (border_bits − 1)` bits across.
+    pub border_bits: u32,
 }
 
 impl Default for RefineOptions {
@@ -101,6 +104,7 @@ impl Default for RefineOptions {
             checker_above_px: 120.0,
             passes: 2,
             band_reuse_px: 0.1,
+            border_bits: 1,
         }
     }
 }
@@ -132,6 +136,9 @@ impl RefineOptions {
         }
         if !(self.band_reuse_px >= 0.0 && self.band_reuse_px <= 2.0) {
             return bad("subpixel.band_reuse_px", self.band_reuse_px, "expected 0 to 2 pixels");
+        }
+        if !(1..=2).contains(&self.border_bits) {
+            return bad("subpixel.border_bits", self.border_bits as f64, "expected 1 or 2 bits");
         }
         if self.passes == 0 || self.passes > 10 {
             return bad("subpixel.passes", self.passes as f64, "expected 1 to 10");
@@ -219,7 +226,7 @@ pub fn refine_corners_warm(
     if det.corners.iter().any(|c| !(c.x.is_finite() && c.y.is_finite())) {
         return keep_all;
     }
-    let nb = det.family.width_at_border() as f64;
+    let nb = (det.family.width_at_border() + 2 * (opts.border_bits.clamp(1, 2) - 1)) as f64;
     let original = det.corners;
     // Corners in ideal coordinates.
     let mut ideal: [Vector2<f64>; 4] = original.map(|c| lens.pixel_to_ideal(&c.coords, None));
