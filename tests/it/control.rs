@@ -80,7 +80,7 @@ fn partial_pattern(k: u64) -> Vec<usize> {
         return vec![1, 2];
     }
     match k % 3 {
-        1 if k % 2 == 0 => vec![(k / 3 % 3) as usize],
+        1 if k.is_multiple_of(2) => vec![(k / 3 % 3) as usize],
         1 => vec![(k / 3 % 3) as usize, ((k / 3 + 1) % 3) as usize],
         _ => vec![],
     }

@@ -523,8 +523,8 @@ impl Zero {
                 m
             });
             let (mean, sd_of_mean) = m.get();
-            for k in 0..3 {
-                t.disp_mm[k] = round_um(t.pos_mm[k] - mean[k]);
+            for ((d, p), m) in t.disp_mm.iter_mut().zip(t.pos_mm).zip(mean) {
+                *d = round_um(p - m);
             }
             if let Some(s) = t.sigma_mm.as_mut() {
                 for k in 0..3 {
@@ -587,19 +587,18 @@ impl<const N: usize> Mean<N> {
         (self.n, self.sum.to_vec(), self.sum_sq.to_vec())
     }
     fn from_parts(p: &MeanParts) -> Self {
-        let mut m = Mean::default();
-        m.n = p.0;
-        for k in 0..N {
-            m.sum[k] = p.1.get(k).copied().unwrap_or(0.0);
-            m.sum_sq[k] = p.2.get(k).copied().unwrap_or(0.0);
+        let mut m = Mean { n: p.0, ..Mean::default() };
+        for (k, (sum, sq)) in m.sum.iter_mut().zip(m.sum_sq.iter_mut()).enumerate() {
+            *sum = p.1.get(k).copied().unwrap_or(0.0);
+            *sq = p.2.get(k).copied().unwrap_or(0.0);
         }
         m
     }
     fn add(&mut self, v: [f64; N]) {
         self.n += 1;
-        for k in 0..N {
-            self.sum[k] += v[k];
-            self.sum_sq[k] += v[k] * v[k];
+        for ((sum, sq), x) in self.sum.iter_mut().zip(self.sum_sq.iter_mut()).zip(v) {
+            *sum += x;
+            *sq += x * x;
         }
     }
     /// Mean, and the standard deviation of the mean (0 from one value).

@@ -56,7 +56,7 @@ impl ControlConfig {
     pub fn validate(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
         use tagdeflect_core::Problem;
         self.addr().map_err(|m| Problem::new("modbus", m))?;
-        if self.gauge != NET_DEFLECTION && !gauges.iter().any(|g| *g == self.gauge) {
+        if self.gauge != NET_DEFLECTION && !gauges.contains(&self.gauge) {
             return Err(Problem::new(
                 "gauge",
                 format!("\"{}\" is neither \"{NET_DEFLECTION}\" nor a configured [[gauge]] (have: {gauges:?})", self.gauge),
