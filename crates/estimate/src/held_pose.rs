@@ -478,7 +478,7 @@ impl HeldCameraPose {
         let sol = solve_camera_pose(&self.intrinsics, tags, Some(held)).map_err(|e| format!("no pose: {e}"))?;
         let noise = self.noise_px().unwrap_or(0.0);
         let limit = REPOSE_MAX_RMS_PX.max(self.options.bump_noise_factor * noise);
-        if !(sol.rms_px <= limit) {
+        if sol.rms_px.is_nan() || sol.rms_px > limit {
             return Err(format!("re-pose misfits its corners: RMS {:.2} px > {limit:.2} px", sol.rms_px));
         }
         if let Some(why) = self.one_tag_ambiguity(tags, &sol) {

@@ -320,7 +320,7 @@ impl Measurement {
             // whole before the camera is posed from it (see the module docs).
             if let (Some(slot), Some(report)) = (detections.iter_mut().find(|(i, _)| *i == ci), reports[ci].as_ref()) {
                 let threshold = cam.pose.bump_threshold_px();
-                let above = |s: f64| !(s <= threshold);
+                let above = |s: f64| s.is_nan() || s > threshold;
                 let jumped = cam.pose.preview_shift_px(set.t_ns, &observations(&slot.1)).is_some_and(above);
                 let moved_again = report.background.shift_px.is_some_and(above);
                 let search = cam.pose.estimated()
