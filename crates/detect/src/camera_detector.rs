@@ -27,6 +27,15 @@
 //! search's); when it did not find every specimen tag of the rig, the same frame is searched
 //! again at the configured resolution, so a camera that sees every specimen tag is ready in
 //! a quarter of the time and no tag is lost to the decimation.
+//!
+//! **A camera that moved** ([`CameraDetector::search_again`]): when the background tags of
+//! a frame were lost or jumped ([`DetectReport::background`], or the pose tracker's bump
+//! statistic), the measurement has the same frame searched whole at the configured
+//! resolution, in the frame set, before it poses the camera — the windows were placed where
+//! the tags no longer are, and a background search would deliver them half a second late
+//! at places the camera may have left again. Its tags replace the frame's detections and
+//! their sightings; a background search under way is abandoned (its tags are of the old
+//! view).
 
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc;
@@ -37,7 +46,7 @@ use rayon::prelude::*;
 
 use super::apriltag::{Detector, SearchOptions};
 use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
-use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
+use super::plan::{masked_tile, merge_rects, BackgroundCheck, Plan, PlannedTag, RoiPlanner};
 use super::refine::{refine_corners_warm, EdgeMemory};
 use super::{Detection, Rect};
 use tagdeflect_core::camera::{CameraIntrinsics, IdealPixelMap, Lens};
@@ -102,6 +111,8 @@ pub struct DetectReport {
     pub confirmed_tags: u64,
     /// Of those, fitted on the pixels selected in an earlier frame (the tag had barely moved).
     pub reused_bands: u64,
+    /// What the frame showed of the background tags followed (lost, shifted).
+    pub background: BackgroundCheck,
 }
 
 /// The tags confirmed in a frame.
@@ -332,7 +343,28 @@ impl CameraDetector {
         };
         self.searched_once = true;
         let dets = rig.roles.classify(found);
-        self.planner.observe(t_ns, &dets.background, &dets.specimen);
+        report.background = self.planner.observe(t_ns, &dets.background, &dets.specimen);
+        (dets, report)
+    }
+
+    /// Searches the frame at `t_ns`, already detected, whole at the configured resolution
+    /// (the camera moved: see the module docs); its tags are the frame's detections and are
+    /// followed from where they are found.
+    pub fn search_again(&mut self, t_ns: i64, image: &GrayImage, rig: &RigDetectors) -> (CameraDetections, DetectReport) {
+        let mut report = DetectReport::default();
+        let c0 = Instant::now();
+        let configured = SearchOptions::of(rig.library.options());
+        self.prepare_pixel_map(image);
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
+        let found = rig.library.search(image, None, &configured, lens);
+        report.full_frame_searches = 1;
+        report.parts.full_frame = c0.elapsed().as_secs_f64();
+        self.pending = None;
+        let dets = rig.roles.classify(found);
+        for d in dets.background.iter().chain(&dets.specimen) {
+            self.edge_memory.remove(&(d.family, d.id));
+        }
+        self.planner.refound(t_ns, &dets.background, &dets.specimen);
         (dets, report)
     }
 

@@ -26,6 +26,14 @@
 //!   whenever no tag is tracked; when a tracked tag is lost the next frame sweeps the whole
 //!   frame at once (decimated), then the tag is left to the periodic sweep.
 //!
+//! - **Background tags lost or jumped** (the camera moved): a background tag searched for
+//!   and not seen, or the background tags' bump statistic above its threshold, makes the
+//!   measurement search the *same frame* whole at the configured resolution before the
+//!   camera is posed from it (see `detect::camera_detector` and `estimate::measure`); the
+//!   frame is still at hand then, so it is never deferred to the next one. The tags found
+//!   there replace their sightings ([`RoiPlanner::refound`]): followed from where they are
+//!   now, with no velocity (a jump is not a motion to extrapolate).
+//!
 //! Corners are identical in quality whichever way a tag was found: windows are searched on
 //! a view into the same frame with corners mapped back (see `detect::apriltag`), and every
 //! tag — confirmed, found in a window or in a tile — gets the same sub-pixel refinement on
@@ -126,6 +134,15 @@ pub(crate) enum Plan {
         /// `sweep` is the whole frame at once (after a lost tag), not the periodic tiles.
         whole_frame: bool,
     },
+}
+
+/// What one frame's observation told about the camera's background tags.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct BackgroundCheck {
+    /// A followed background tag was searched for and not seen (first miss).
+    pub lost: bool,
+    /// Median shift (px) of the background tags seen against their predicted places.
+    pub shift_px: Option<f64>,
 }
 
 /// Plans the searches of one camera.
@@ -285,6 +302,24 @@ impl RoiPlanner {
         }
     }
 
+    /// Takes the tags of a whole-frame search of the frame at `t_ns` that was already
+    /// observed (the camera moved: see the module docs): each tag found is followed from
+    /// where it is now with no velocity; tags not found keep their state (their miss is
+    /// counted); every background tag is searched again for the settling period.
+    pub fn refound(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+        for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
+            self.sightings.insert(
+                (d.family, d.id),
+                Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+            );
+        }
+        self.settle = SETTLE_FRAMES;
+        if !background.is_empty() || !specimen.is_empty() {
+            // The whole frame was just searched: no decimated sweep of it next frame.
+            self.sweep_all_requested = false;
+        }
+    }
+
     /// True when no tag is followed.
     pub fn is_empty(&self) -> bool {
         self.sightings.is_empty()
@@ -295,7 +330,7 @@ impl RoiPlanner {
     /// missing for a second of frames is dropped from tracking (the sweep picks it up
     /// again). Background tags whose positions shifted (a bump) are all searched again for
     /// a while.
-    pub fn observe(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) {
+    pub fn observe(&mut self, t_ns: i64, background: &[Detection], specimen: &[Detection]) -> BackgroundCheck {
         let mut seen = std::collections::HashSet::new();
         let mut bg_shifts = Vec::new();
         for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
@@ -325,9 +360,12 @@ impl RoiPlanner {
                 }
             }
         }
+        let mut check = BackgroundCheck::default();
         if !bg_shifts.is_empty() {
             bg_shifts.sort_by(f64::total_cmp);
-            if bg_shifts[bg_shifts.len() / 2] > BACKGROUND_SHIFT_PX {
+            let shift = bg_shifts[bg_shifts.len() / 2];
+            check.shift_px = Some(shift);
+            if shift > BACKGROUND_SHIFT_PX {
                 self.settle = SETTLE_FRAMES;
             }
         }
@@ -340,12 +378,14 @@ impl RoiPlanner {
             tr.missed += 1;
             if tr.missed == 1 {
                 lost_now = true;
+                check.lost |= tr.background;
             }
             tr.missed <= max_missed
         });
         if lost_now {
             self.sweep_all_requested = true;
         }
+        check
     }
 }
 

@@ -4,6 +4,12 @@
 //! solution), ranked by a truncated reprojection cost over every corner, then LM over all
 //! corners with the distortion inside the residual. A tag whose residual is an outlier
 //! (RMS > max(3 × median tag RMS, 2 px)) is dropped and the pose re-solved.
+//!
+//! One tag alone has two local minima (the planar "mirror" ambiguity: the tag tilted one way
+//! or the other about the line of sight). [`single_tag_minima`] refines both closed-form
+//! starts separately so a caller can tell whether the corners decide between them (the
+//! other minimum's RMS well above the best one's and above the corner noise) before it
+//! trusts a one-tag pose (see `held_pose`).
 
 use nalgebra::{Matrix2x6, Matrix6, Point2, Vector2, Vector3};
 
@@ -110,6 +116,26 @@ fn tag_candidates(intrinsics: &CameraIntrinsics, tag: &BackgroundTagObservation)
         Pose { rotation: rot_cw, translation: t - rot_cw * origin }
     };
     vec![to_pose(r), to_pose(mirrored(&r, &t))]
+}
+
+/// The two local minima of a one-tag pose (see the module docs): LM over the tag's four
+/// corners from each closed-form start (homography pose and its mirror), as
+/// `(pose, rms_px)` sorted by RMS; when both starts end in the same minimum (within 0.5°
+/// and 1 mm of camera centre) only one is returned: the corners decide the pose.
+pub fn single_tag_minima(intrinsics: &CameraIntrinsics, tag: &BackgroundTagObservation) -> Vec<(Pose, f64)> {
+    let problem = CameraProblem { intrinsics, tags: vec![tag] };
+    let options = LmOptions::default();
+    let mut out: Vec<(Pose, f64)> = Vec::new();
+    for start in tag_candidates(intrinsics, tag) {
+        let Some(sol) = minimize(&problem, &start, &options) else { continue };
+        let rms = (sol.evaluation.ssr / sol.evaluation.residuals.max(1) as f64).sqrt();
+        let same = out.iter().any(|(p, _)| p.angle_to(&sol.pose) < 0.5f64.to_radians() && (p.centre() - sol.pose.centre()).norm() < 1.0);
+        if !same && rms.is_finite() {
+            out.push((sol.pose, rms));
+        }
+    }
+    out.sort_by(|a, b| a.1.total_cmp(&b.1));
+    out
 }
 
 /// Solves a camera's pose from background tags. Needs at least one tag (4 corners); two or

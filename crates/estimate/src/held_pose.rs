@@ -21,6 +21,22 @@
 //! a partially occluded or mis-detected tag cannot fake (or hide) a bump; tags that disagree
 //! with the pose are left out of the running means.
 //!
+//! Checks before a re-pose replaces the held pose (a camera can move far: a tripod knocked
+//! over, a camera turned by hand; see `docs/operations.md`): the re-pose must fit its own
+//! corners (RMS ≤ max([`REPOSE_MAX_RMS_PX`], bump factor × corner noise)); and a re-pose that
+//! rests on one tag — whose corners allow two poses, the tag tilted one way or its mirror
+//! ([`super::camera_pose::single_tag_minima`]) — must be decided by its corners (the other
+//! minimum's RMS above [`AMBIGUITY_RATIO`] × the best one's and above
+//! max([`AMBIGUITY_FLOOR_PX`], 3 × corner noise)) or else by the held pose (exactly one of the
+//! minima within [`HELD_CONSISTENT_DEG`] of it: a small bump). A re-pose that fails a check
+//! does not replace the held pose: the camera is reported unposed (`pose: None`,
+//! [`HeldPoseStatus::refused`] with the reason) until a later update passes the checks (more
+//! tags in view) or shows the camera back where it was held (the bump test passes again,
+//! against the corner means kept from before the bump); its old pose is never used while
+//! refused, so no position is measured from a pose that failed its checks. The first posing
+//! has nothing to check a one-tag pose against: it takes the best minimum and says in
+//! `message` when the mirror fits as well.
+//!
 //! Slow drift (see [`super::drift`]): when updates carry their time
 //! ([`HeldCameraPose::update_at`]) and [`HeldPoseOptions::drift`] is enabled, each static
 //! update also solves the camera from its own background corners and feeds that to a
@@ -35,7 +51,7 @@ use std::collections::HashMap;
 
 use nalgebra::{Matrix6, Point2, Vector2, Vector3};
 
-use super::camera_pose::{solve_camera_pose, BackgroundTagObservation};
+use super::camera_pose::{single_tag_minima, solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 use super::drift::{DriftConfig, DriftEstimate, DriftFilter};
 use super::lm::median;
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
@@ -102,6 +118,9 @@ pub struct HeldPoseStatus {
     pub noise_px: Option<f64>,
     /// A human-readable note on anything unusual (too few tags, failed re-pose).
     pub message: Option<String>,
+    /// The camera moved and no re-pose passed the checks (see the module docs): why. `pose`
+    /// is `None`; nothing is to be measured from this camera in this update.
+    pub refused: Option<String>,
     /// The camera's estimated slow drift since its pose was last fixed (first posing or
     /// re-posing after a bump); `None` while not tracked (configured pose, no times, disabled).
     pub drift: Option<DriftEstimate>,
@@ -109,6 +128,17 @@ pub struct HeldPoseStatus {
 
 /// Static updates after which a held pose is checked once against the averaged corners.
 const SANITY_CHECK_UPDATES: usize = 10;
+/// Largest reprojection RMS (px, per axis) of a re-pose's own corners (or the bump factor ×
+/// the corner noise, if larger) for it to replace the held pose.
+pub const REPOSE_MAX_RMS_PX: f64 = 3.0;
+/// A one-tag pose is decided by its corners when the other minimum's RMS is above this many
+/// times the best one's...
+pub const AMBIGUITY_RATIO: f64 = 4.0;
+/// ...and above this (px) and 3 × the corner noise.
+pub const AMBIGUITY_FLOOR_PX: f64 = 1.0;
+/// An undecided one-tag pose is taken when exactly one of its minima is within this angle
+/// of the held pose (a small bump; the mirror solution is tens of degrees away).
+pub const HELD_CONSISTENT_DEG: f64 = 3.0;
 
 #[derive(Debug, Clone, Copy)]
 struct CornerStats {
@@ -140,6 +170,9 @@ pub struct HeldCameraPose {
     drift: Option<DriftFilter>,
     /// Time of the update in progress (from [`HeldCameraPose::update_at`]).
     now_ns: Option<i64>,
+    /// The camera moved away from the held `raw` pose and no re-pose passed the checks:
+    /// why (the pose is not reported while set; see the module docs).
+    refused: Option<String>,
 }
 
 impl HeldCameraPose {
@@ -165,12 +198,45 @@ impl HeldCameraPose {
             average_limit: options.average_updates_initial.max(1),
             drift: None,
             now_ns: None,
+            refused: None,
         }
     }
 
-    /// The current pose (world → camera) to measure with, if any.
+    /// The current pose (world → camera) to measure with, if any (`None` while a re-pose
+    /// is refused: see the module docs).
     pub fn pose(&self) -> Option<Pose> {
+        if self.refused.is_some() {
+            return None;
+        }
         self.current_raw().map(|r| r.compose(&self.fix))
+    }
+
+    /// True when the pose is estimated from background tags (not configured).
+    pub fn estimated(&self) -> bool {
+        !self.fixed
+    }
+
+    /// Why the camera is unposed after it moved (a re-pose refused by the checks), if so.
+    pub fn refused(&self) -> Option<&str> {
+        self.refused.as_deref()
+    }
+
+    /// The bump statistic these background tags would give against the held pose, without
+    /// taking them in: the median corner shift (px; infinite when the held pose cannot
+    /// project them), `None` when there is nothing to test (fixed or never posed, too few
+    /// corners). The measurement uses it to search a frame whole before posing from it.
+    pub fn preview_shift_px(&self, t_ns: i64, tags: &[BackgroundTagObservation]) -> Option<f64> {
+        let pose = self.raw.filter(|_| !self.fixed)?;
+        let tags: Vec<&BackgroundTagObservation> = tags.iter().filter(|t| valid_observation(t)).collect();
+        if tags.len() * 4 < self.options.min_corners.max(4) {
+            return None;
+        }
+        let predicted = match &self.drift {
+            Some(f) if self.now_ns.is_some() => f.predicted_pose(t_ns),
+            _ => pose,
+        };
+        let shifts: Vec<f64> = tags.iter().flat_map(|t| (0..4).map(move |k| (*t, k))).map(|(t, k)| self.corner_shift(&pose, &predicted, t, k)).collect();
+        median(&shifts)
     }
 
     /// The image-fitted pose now: `raw` moved by the estimated drift.
@@ -229,13 +295,7 @@ impl HeldCameraPose {
     }
 
     fn update_inner(&mut self, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
-        let tags: Vec<BackgroundTagObservation> = tags
-            .iter()
-            .filter(|t| {
-                t.pixels.iter().all(|p| p.x.is_finite() && p.y.is_finite()) && t.world.iter().all(|w| w.iter().all(|v| v.is_finite()))
-            })
-            .copied()
-            .collect();
+        let tags: Vec<BackgroundTagObservation> = tags.iter().filter(|t| valid_observation(t)).copied().collect();
         let corners = tags.len() * 4;
         let threshold = self.bump_threshold_px();
         let mut status = HeldPoseStatus {
@@ -252,6 +312,7 @@ impl HeldCameraPose {
             rejected_tags: Vec::new(),
             noise_px: self.noise_px(),
             message: None,
+            refused: self.refused.clone(),
             drift: self.drift(),
         };
         if self.fixed {
@@ -288,20 +349,22 @@ impl HeldCameraPose {
                 corners,
                 "camera bumped: background tags moved in the image; re-posing"
             );
-            // Keep the reported pose continuous: the camera's motion is measured between the
-            // averaged corners before the bump and those after it, so the held pose's own
-            // error carries over instead of a new single-frame error replacing it.
-            if self.period_updates >= 2 {
-                if let Ok(before) = solve_camera_pose(&self.intrinsics, &self.averaged_observations(), Some(&pose)) {
-                    self.fix = before.pose.inverse().compose(&pose).compose(&self.fix);
-                }
-            }
-            self.archive_noise();
-            self.corners.clear();
-            self.period_updates = 0;
             status.bumped = true;
-            return match solve_camera_pose(&self.intrinsics, &tags, Some(&pose)) {
+            return match self.checked_repose(&tags, &pose) {
                 Ok(sol) => {
+                    // Keep the reported pose continuous: the camera's motion is measured
+                    // between the averaged corners before the bump and those after it, so the
+                    // held pose's own error carries over instead of a new single-frame error
+                    // replacing it.
+                    if self.period_updates >= 2 {
+                        if let Ok(before) = solve_camera_pose(&self.intrinsics, &self.averaged_observations(), Some(&pose)) {
+                            self.fix = before.pose.inverse().compose(&pose).compose(&self.fix);
+                        }
+                    }
+                    self.archive_noise();
+                    self.corners.clear();
+                    self.period_updates = 0;
+                    self.refused = None;
                     self.raw = Some(sol.pose);
                     self.covariance = Some(sol.covariance);
                     self.hold();
@@ -312,21 +375,29 @@ impl HeldCameraPose {
                     status.covariance = Some(sol.covariance);
                     status.rms_px = Some(sol.rms_px);
                     status.rejected_tags = sol.rejected_tags;
+                    status.refused = None;
                     status.drift = self.drift();
                     status
                 }
-                Err(e) => {
-                    tracing::warn!(error = %e, "camera bumped and could not be re-posed");
-                    status.drift = None;
-                    self.raw = None;
-                    self.covariance = None;
-                    self.drift = None;
+                Err(why) => {
+                    // The held pose stays the reference (with its corner means) but is not
+                    // used: the camera is unposed until a re-pose passes or it is back.
+                    tracing::warn!(reason = %why, "camera moved and its re-pose failed the checks: not posed (its views are left out)");
+                    self.refused = Some(why.clone());
                     status.pose = None;
                     status.covariance = None;
-                    status.message = Some(format!("bumped, re-pose failed: {e}"));
+                    status.rms_px = None;
+                    status.drift = None;
+                    status.message = Some(format!("moved, re-pose refused: {why}"));
+                    status.refused = Some(why);
                     status
                 }
             };
+        }
+        if let Some(why) = self.refused.take() {
+            tracing::info!(shift_px = shift, "camera back at its held pose: posed again");
+            status.message = Some(format!("back at the held pose (was refused: {why})"));
+            status.refused = None;
         }
 
         // Static: tags that disagree with the pose stay out of the running means.
@@ -401,10 +472,57 @@ impl HeldCameraPose {
         status
     }
 
+    /// A re-pose from this update's corners that passes the checks of the module docs, or
+    /// why not.
+    fn checked_repose(&self, tags: &[BackgroundTagObservation], held: &Pose) -> Result<CameraPoseSolution, String> {
+        let sol = solve_camera_pose(&self.intrinsics, tags, Some(held)).map_err(|e| format!("no pose: {e}"))?;
+        let noise = self.noise_px().unwrap_or(0.0);
+        let limit = REPOSE_MAX_RMS_PX.max(self.options.bump_noise_factor * noise);
+        if sol.rms_px.is_nan() || sol.rms_px > limit {
+            return Err(format!("re-pose misfits its corners: RMS {:.2} px > {limit:.2} px", sol.rms_px));
+        }
+        if let Some(why) = self.one_tag_ambiguity(tags, &sol) {
+            let consistent = self.one_tag_minima(tags, &sol).map(|m| {
+                let near: Vec<&(Pose, f64)> = m.iter().filter(|(p, _)| p.angle_to(held) < HELD_CONSISTENT_DEG.to_radians()).collect();
+                near.len() == 1 && near[0].0.angle_to(&sol.pose) < 0.5f64.to_radians()
+            });
+            if consistent != Some(true) {
+                return Err(format!("one-tag pose is ambiguous ({why}) and neither minimum is the held pose's"));
+            }
+            tracing::info!("one-tag re-pose undecided by its corners ({why}); the minimum next to the held pose is taken");
+        }
+        Ok(sol)
+    }
+
+    /// The minima of `sol`'s pose when it rests on one tag, else `None`.
+    fn one_tag_minima(&self, tags: &[BackgroundTagObservation], sol: &CameraPoseSolution) -> Option<Vec<(Pose, f64)>> {
+        let used: Vec<&BackgroundTagObservation> = tags.iter().filter(|t| !sol.rejected_tags.contains(&t.id)).collect();
+        (used.len() == 1).then(|| single_tag_minima(&self.intrinsics, used[0]))
+    }
+
+    /// When `sol` rests on one tag whose corners do not decide between its two minima (see
+    /// the module docs), a description of the two fits.
+    fn one_tag_ambiguity(&self, tags: &[BackgroundTagObservation], sol: &CameraPoseSolution) -> Option<String> {
+        let minima = self.one_tag_minima(tags, sol)?;
+        if minima.len() < 2 {
+            return None;
+        }
+        let (best, other) = (minima[0].1, minima[1].1);
+        let floor = AMBIGUITY_FLOOR_PX.max(3.0 * self.noise_px().unwrap_or(0.0));
+        let decided = other > AMBIGUITY_RATIO * best && other > floor;
+        (!decided).then(|| {
+            format!("its mirror pose fits with RMS {other:.2} px against {best:.2} px, {:.1}° away", minima[0].0.angle_to(&minima[1].0).to_degrees())
+        })
+    }
+
     fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: HeldPoseStatus) -> HeldPoseStatus {
         match solve_camera_pose(&self.intrinsics, &tags, None) {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
+                if let Some(why) = self.one_tag_ambiguity(&tags, &sol) {
+                    tracing::warn!("first pose rests on one tag whose mirror pose fits as well ({why}); taken (nothing to check it against)");
+                    status.message = Some(format!("first pose from one ambiguous tag: {why}"));
+                }
                 // `fix` is kept: identity at start, the last correction after a failed re-pose.
                 self.raw = Some(sol.pose);
                 self.covariance = Some(sol.covariance);
@@ -527,6 +645,11 @@ impl HeldCameraPose {
     }
 }
 
+/// Finite pixels and world corners.
+fn valid_observation(t: &BackgroundTagObservation) -> bool {
+    t.pixels.iter().all(|p| p.x.is_finite() && p.y.is_finite()) && t.world.iter().all(|w| w.iter().all(|v| v.is_finite()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -597,5 +720,85 @@ mod tests {
         let st = t.update(&obs);
         assert!(!st.bumped, "the median ignores one displaced tag");
         assert_eq!(st.rejected_tags, vec![0], "and that tag is kept out of the running means");
+    }
+
+    /// One tag of 200 mm seen nearly frontally from 2 m (~140 px): its corners hardly
+    /// decide between the pose and its mirror.
+    fn far_tag() -> [Vector3<f64>; 4] {
+        let c = Vector3::new(0.0, 250.0, 150.0);
+        [(-100.0, -100.0), (100.0, -100.0), (100.0, 100.0), (-100.0, 100.0)].map(|(x, y)| c + Vector3::new(x, y, 0.0))
+    }
+
+    /// Turns `pose`'s camera by `deg` about an oblique axis through its centre.
+    fn turned(pose: &Pose, deg: f64) -> Pose {
+        let axis = nalgebra::Unit::new_normalize(Vector3::new(0.3, 1.0, 0.2));
+        let rot = nalgebra::Rotation3::from_axis_angle(&axis, deg.to_radians()) * pose.rotation;
+        Pose { rotation: rot, translation: -(rot * pose.centre()) }
+    }
+
+    #[test]
+    fn an_ambiguous_one_tag_re_pose_is_refused_and_the_held_pose_kept() {
+        let (intr, pose, tags) = setup();
+        let mut t = HeldCameraPose::new(intr, None);
+        for step in 0..12 {
+            let st = t.update(&observe(&intr, &pose, &tags, 0.1, step));
+            assert!(st.pose.is_some() && st.refused.is_none());
+        }
+        let held = t.pose().expect("posed");
+        // The camera turns by 6° and only one tag stays in view.
+        let moved = turned(&pose, 6.0);
+        let one = [far_tag()];
+        let obs = observe(&intr, &moved, &one, 0.1, 0);
+        // The scenario is what it says: two minima, the mirror fitting within the noise and
+        // far from the truth (taking it would be wrong by degrees).
+        let minima = single_tag_minima(&intr, &obs[0]);
+        assert_eq!(minima.len(), 2, "{minima:?}");
+        let (truth_near, mirror_far) =
+            (minima.iter().map(|m| m.0.angle_to(&moved)).fold(f64::MAX, f64::min), minima.iter().map(|m| m.0.angle_to(&moved)).fold(0.0, f64::max));
+        println!("minima RMS {:.3} / {:.3} px; nearest {:.3}°, other {:.1}° from the truth", minima[0].1, minima[1].1, truth_near.to_degrees(), mirror_far.to_degrees());
+        assert!(minima[1].1 < AMBIGUITY_FLOOR_PX && mirror_far.to_degrees() > 5.0, "ambiguous scenario");
+        let st = t.update(&obs);
+        assert!(st.bumped, "the move is caught");
+        assert!(st.pose.is_none() && t.pose().is_none(), "the ambiguous pose replaces nothing and the held one is not used");
+        assert!(st.refused.as_deref().is_some_and(|m| m.contains("ambiguous")), "{:?}", st.refused);
+        // Still one ambiguous tag: still refused.
+        let st = t.update(&observe(&intr, &moved, &one, 0.1, 1));
+        assert!(st.pose.is_none() && st.refused.is_some());
+        // Back where it was held: posed again with the held pose, unchanged.
+        let st = t.update(&observe(&intr, &pose, &tags, 0.1, 2));
+        assert!(!st.bumped && st.refused.is_none(), "{st:?}");
+        assert_eq!(st.pose, Some(held));
+    }
+
+    #[test]
+    fn a_one_tag_re_pose_is_taken_when_decided_by_its_corners_or_by_the_held_pose() {
+        let (intr, pose, tags) = setup();
+        // A small bump (0.4°) seen by one ambiguous tag: the minimum next to the held pose.
+        let mut t = HeldCameraPose::new(intr, None);
+        for step in 0..12 {
+            t.update(&observe(&intr, &pose, &tags, 0.1, step));
+        }
+        let bumped = turned(&pose, 0.4);
+        let st = t.update(&observe(&intr, &bumped, &[far_tag()], 0.1, 0));
+        assert!(st.bumped && st.refused.is_none(), "{st:?}");
+        let got = st.pose.expect("re-posed");
+        // The minimum next to the truth (one noisy tag: ~0.3°), not its mirror (~17° away).
+        assert!(got.angle_to(&bumped).to_degrees() < 1.0, "re-posed {:.3}° from the truth", got.angle_to(&bumped).to_degrees());
+        // A far move seen by one big, steeply tilted tag: its corners decide.
+        let mut t = HeldCameraPose::new(intr, None);
+        for step in 0..12 {
+            t.update(&observe(&intr, &pose, &tags, 0.1, step));
+        }
+        let moved = turned(&pose, 6.0);
+        let c = Vector3::new(0.0, 0.0, 1000.0);
+        let (e1, e2) = (Vector3::new(0.5f64.sqrt(), 0.0, -(0.5f64.sqrt())), Vector3::y());
+        let tilted = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b): (f64, f64)| c + e1 * (150.0 * a) + e2 * (150.0 * b));
+        let obs = observe(&intr, &moved, &[tilted], 0.1, 0);
+        let minima = single_tag_minima(&intr, &obs[0]);
+        println!("tilted tag minima {:?}", minima.iter().map(|m| m.1).collect::<Vec<_>>());
+        let st = t.update(&obs);
+        assert!(st.bumped && st.refused.is_none(), "{st:?}");
+        let got = st.pose.expect("re-posed");
+        assert!(got.angle_to(&moved).to_degrees() < 1.0, "re-posed {:.3}° from the truth", got.angle_to(&moved).to_degrees());
     }
 }

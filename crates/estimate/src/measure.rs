@@ -2,6 +2,17 @@
 //! line. Only orchestrates: each camera's detection is its `detect::CameraDetector`
 //! (cameras in parallel); it holds the cameras' poses, each tag's warm start and first
 //! position, and the UTM history.
+//!
+//! **A camera that moved** (see `estimate::held_pose`, `detect::plan`): before a camera is
+//! posed from a frame, its background tags are checked — a followed one lost (searched, not
+//! seen) or the bump statistic above its threshold (an infinite shift included: the held
+//! pose cannot even project them) — and if so that same frame, still at hand in the frame
+//! set, is searched whole at the configured resolution ([`CameraDetector::search_again`]) and
+//! the camera is posed (and its specimen tags measured) from what that search found; the
+//! windows had been placed where the tags were. While a re-pose is refused the search is
+//! repeated only when the tags moved again in the image. A camera whose pose failed its
+//! checks (`pose` refused by the held pose) has no pose: the frame set is solved without
+//! its views, its health says `posed: false` (with `bumped`), and a WARN names it.
 
 use nalgebra::{Matrix6, Vector3};
 use std::collections::{BTreeMap, HashMap};
@@ -57,6 +68,11 @@ pub struct MeasureStats {
     pub rejected_views: u64,
     /// Camera bumps detected.
     pub bumps: u64,
+    /// Whole-frame searches of a frame whose background tags were lost or jumped (in
+    /// `full_frame_searches` too).
+    pub moved_camera_searches: u64,
+    /// Frame-set views of cameras left out because their re-pose failed its checks.
+    pub refused_poses: u64,
 }
 
 struct CameraState {
@@ -286,15 +302,48 @@ impl Measurement {
     pub fn process(&mut self, set: &FrameSet) -> (FeedLine, StageTimes) {
         let mut times = StageTimes::default();
         let t0 = Instant::now();
-        let (detections, cpu) = self.detect(set);
-        self.last_seen = detections.iter().map(|(ci, d)| (*ci, seen_tags(d))).collect();
+        let (mut detections, reports, mut cpu) = self.detect(set);
         times.detect = t0.elapsed().as_secs_f64();
-        times.detect_parts = cpu;
 
         // Camera poses from the background tags.
         let t1 = Instant::now();
         let mut health = Vec::with_capacity(self.cameras.len());
         for (ci, cam) in self.cameras.iter_mut().enumerate() {
+            let background_world = &self.background_world;
+            let observations = |d: &CameraDetections| -> Vec<BackgroundTagObservation> {
+                d.background
+                    .iter()
+                    .filter_map(|det| background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w }))
+                    .collect()
+            };
+            // The camera moved (background tags lost or jumped): the same frame searched
+            // whole before the camera is posed from it (see the module docs).
+            if let (Some(slot), Some(report)) = (detections.iter_mut().find(|(i, _)| *i == ci), reports[ci].as_ref()) {
+                let threshold = cam.pose.bump_threshold_px();
+                let above = |s: f64| s.is_nan() || s > threshold;
+                let jumped = cam.pose.preview_shift_px(set.t_ns, &observations(&slot.1)).is_some_and(above);
+                let moved_again = report.background.shift_px.is_some_and(above);
+                let search = cam.pose.estimated()
+                    && (cam.pose.pose().is_some() || cam.pose.refused().is_some())
+                    && report.full_frame_searches == 0
+                    && (report.background.lost || (jumped && (cam.pose.refused().is_none() || moved_again)));
+                if let Some(frame) = set.frames.iter().find(|f| f.camera == ci).filter(|_| search) {
+                    let c0 = Instant::now();
+                    let (again, r) = cam.detector.search_again(frame.t_ns, &frame.image, &self.rig);
+                    tracing::warn!(
+                        camera = %cam.name,
+                        seq = set.seq,
+                        lost = report.background.lost,
+                        jumped,
+                        background_tags = again.background.len(),
+                        "background tags lost or jumped: the frame searched whole before posing"
+                    );
+                    self.stats.full_frame_searches += r.full_frame_searches;
+                    self.stats.moved_camera_searches += 1;
+                    cpu.full_frame += c0.elapsed().as_secs_f64();
+                    slot.1 = again;
+                }
+            }
             let det = detections.iter().find(|(i, _)| *i == ci).map(|(_, d)| d);
             let mut h = CameraHealth {
                 name: cam.name.clone(),
@@ -309,13 +358,7 @@ impl Measurement {
             if let Some(d) = det {
                 h.background_tags = d.background.len();
                 h.specimen_tags = d.specimen.len();
-                let obs: Vec<BackgroundTagObservation> = d
-                    .background
-                    .iter()
-                    .filter_map(|det| {
-                        self.background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
-                    })
-                    .collect();
+                let obs = observations(d);
                 // Every line the held pose logs names its camera (the span's field).
                 let status = tracing::info_span!("pose", camera = %cam.name).in_scope(|| cam.pose.update_at(set.t_ns, &obs));
                 if let Some(d) = status.drift {
@@ -326,7 +369,10 @@ impl Measurement {
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;
                 checked = status.fixed || !status.stale;
-                if status.bumped {
+                if let Some(why) = &status.refused {
+                    self.stats.refused_poses += 1;
+                    tracing::warn!(camera = %cam.name, seq = set.seq, reason = %why, "camera moved and its pose failed the checks: the frame set is solved without it");
+                } else if status.bumped {
                     self.stats.bumps += 1;
                     tracing::warn!(camera = %cam.name, seq = set.seq, "camera moved: background tags shifted in the image; re-posed");
                 }
@@ -339,6 +385,8 @@ impl Measurement {
             health.push(h);
         }
         times.pose = t1.elapsed().as_secs_f64();
+        times.detect_parts = cpu;
+        self.last_seen = detections.iter().map(|(ci, d)| (*ci, seen_tags(d))).collect();
 
         // Specimen tags over all views.
         let t2 = Instant::now();
@@ -493,7 +541,8 @@ impl Measurement {
 
     /// Detects tags in every frame of the set, the cameras in parallel (each camera's
     /// [`CameraDetector`]; the first frame of a camera in the set counts).
-    fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, DetectParts) {
+    #[allow(clippy::type_complexity)]
+    fn detect(&mut self, set: &FrameSet) -> (Vec<(usize, CameraDetections)>, Vec<Option<DetectReport>>, DetectParts) {
         let mut frame_of: Vec<Option<usize>> = vec![None; self.cameras.len()];
         let mut order = Vec::new();
         for (fi, f) in set.frames.iter().enumerate() {
@@ -513,8 +562,10 @@ impl Measurement {
             .collect();
         let mut parts = DetectParts::default();
         let mut out = Vec::with_capacity(order.len());
+        let mut reports = vec![None; self.cameras.len()];
         for ci in order {
             let Some((dets, report)) = results[ci].take() else { continue };
+            reports[ci] = Some(report);
             parts.add(&report.parts);
             self.stats.full_frame_searches += report.full_frame_searches;
             self.stats.window_searches += report.window_searches;
@@ -523,7 +574,7 @@ impl Measurement {
             self.stats.reused_band_tags += report.reused_bands;
             out.push((ci, dets));
         }
-        (out, parts)
+        (out, reports, parts)
     }
 
     /// Mean downward displacement of midspan tags minus that of support tags, its 1-σ (mm;

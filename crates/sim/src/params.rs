@@ -420,11 +420,11 @@ impl SimParams {
             }
         }
         if !self.bump_rot_deg.is_finite()
-            || self.bump_rot_deg.abs() > 10.0
+            || self.bump_rot_deg.abs() > 30.0
             || !self.bump_trans_mm.is_finite()
-            || self.bump_trans_mm.abs() > 100.0
+            || self.bump_trans_mm.abs() > 300.0
         {
-            return bad("bump_rot_deg", "expected a bump of at most 10 degrees and 100 mm");
+            return bad("bump_rot_deg", "expected a bump of at most 30 degrees and 300 mm");
         }
         if !self.drift_rot_deg.is_finite() || self.drift_rot_deg.abs() > 10.0 {
             return bad("drift_rot_deg", format!("{}: expected at most 10 degrees", self.drift_rot_deg));
