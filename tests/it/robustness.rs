@@ -618,7 +618,17 @@ fn mutation_fuzz() {
         .unwrap();
     let mut conv = vec![3u8, 0, 16, 0, 8, 0, 0, 0];
     conv.extend(&jpeg);
+    // A feed of the bundled recording (report_feed), and one of its lines as the archive
+    // receives it on each kind of topic (archive_message: the first byte picks the topic).
+    let feed = {
+        let (_, lines, _) = common::replay_lines(&root.join("replay/one-cam"), false);
+        lines.iter().take(6).map(|l| l.to_json() + "\n").collect::<String>().into_bytes()
+    };
+    let first_line = feed.split(|b| *b == b'\n').next().unwrap().to_vec();
+    let ack = br#"{"runs":[{"run":1,"high":40,"gaps":[[3,5]]}]}"#.to_vec();
     let seeds: Vec<(&str, Vec<Vec<u8>>)> = vec![
+        ("report_feed", vec![feed.clone()]),
+        ("archive_message", vec![[vec![0u8], first_line.clone()].concat(), [vec![1u8], b"{\"state\":\"online\"}".to_vec()].concat(), [vec![2u8], ack].concat()]),
         ("image", vec![pgm.clone(), png.clone()]),
         ("jsonl", vec![frames, utm]),
         ("config", vec![cfg_text]),
@@ -655,7 +665,12 @@ fn mutation_fuzz() {
         rand_chacha::ChaCha8Rng::seed_from_u64(std::env::var("TAGDEFLECT_FUZZ_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(1));
     std::panic::set_hook(Box::new(|_| {}));
     let mut crashes = Vec::new();
+    // TAGDEFLECT_FUZZ_TARGETS=a,b: only those targets (default: all).
+    let only: Option<Vec<String>> = std::env::var("TAGDEFLECT_FUZZ_TARGETS").ok().map(|v| v.split(',').map(str::to_string).collect());
     for (target, seeds) in &seeds {
+        if only.as_ref().is_some_and(|o| !o.iter().any(|t| t == target)) {
+            continue;
+        }
         let start = std::time::Instant::now();
         let mut execs = 0u64;
         let mut corpus = seeds.clone();
