@@ -2,8 +2,8 @@
 //! truth, check a feed with the SPEC checker.
 #![allow(dead_code)]
 
-use std::io::Read;
 use std::fs;
+use std::io::Read;
 use std::net::TcpListener as StdListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

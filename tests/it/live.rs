@@ -171,7 +171,8 @@ fn run_with_sim_cameras_and_a_real_modbus_server_then_sigterm() {
         for (a, b) in l.tags.iter().zip(&r.tags) {
             assert_eq!(a.id, b.id);
             for k in 0..3 {
-                let tol = if live_dropped == 0 { 1e-3 } else { 3.0 * a.sigma_mm.map_or(0.0, |s| s[k]).hypot(b.sigma_mm.map_or(0.0, |s| s[k])) };
+                let tol =
+                    if live_dropped == 0 { 1e-3 } else { 3.0 * a.sigma_mm.map_or(0.0, |s| s[k]).hypot(b.sigma_mm.map_or(0.0, |s| s[k])) };
                 assert!(
                     (a.pos_mm[k] - b.pos_mm[k]).abs() < tol,
                     "tag {} at {} ({live_dropped} sets dropped live): live {:?} replay {:?} σ {:?}",

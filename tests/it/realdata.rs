@@ -262,12 +262,21 @@ fn a_camera_moved_between_real_photos_is_searched_whole_and_followed_from_there(
     assert_eq!((frontal.width, frontal.height), (oblique.width, oblique.height));
     let (w, h) = (frontal.width, frontal.height);
     // No calibration is published: a distortion-free pinhole (corners are compared in pixels).
-    let intr = CameraIntrinsics { width: w, height: h, fx: w as f64, fy: w as f64, cx: 0.5 * (w as f64 - 1.0), cy: 0.5 * (h as f64 - 1.0), dist: [0.0; 5] };
+    let intr = CameraIntrinsics {
+        width: w,
+        height: h,
+        fx: w as f64,
+        fy: w as f64,
+        cx: 0.5 * (w as f64 - 1.0),
+        cy: 0.5 * (h as f64 - 1.0),
+        dist: [0.0; 5],
+    };
     // The sheet's top and bottom rows as background tags, the rest as specimen tags.
     let background: std::collections::HashSet<u32> = (14..=23).chain((14 + 24 * 7)..=(23 + 24 * 7)).collect();
     let specimen = (0..8).flat_map(|r| (14 + 24 * r)..=(23 + 24 * r)).filter(|id| !background.contains(id)).collect();
     let roles = TagRoles { background_family: TagFamily::Tag36h11, background, specimen_family: TagFamily::Tag36h11, specimen };
-    let opts = DetectorOptions { nthreads: 1, subpixel: Some(RefineOptions::default()), ..DetectorOptions::for_families(&[TagFamily::Tag36h11]) };
+    let opts =
+        DetectorOptions { nthreads: 1, subpixel: Some(RefineOptions::default()), ..DetectorOptions::for_families(&[TagFamily::Tag36h11]) };
     let library = Detector::with_workers(opts, 2).unwrap();
     let confirmer = TagConfirmer::new(ConfirmOptions::default(), roles.known());
     let rig = Arc::new(RigDetectors { library, confirmer, roles });
@@ -285,7 +294,12 @@ fn a_camera_moved_between_real_photos_is_searched_whole_and_followed_from_there(
     let (full_ids, full) = full_search(&oblique);
     let mut cam = CameraDetector::new(intr, true, 1.0, 0);
     let (first, _) = cam.detect(0, &frontal, &rig);
-    assert!(first.background.len() >= 18 && first.specimen.len() >= 55, "frontal photo: {} + {} tags", first.background.len(), first.specimen.len());
+    assert!(
+        first.background.len() >= 18 && first.specimen.len() >= 55,
+        "frontal photo: {} + {} tags",
+        first.background.len(),
+        first.specimen.len()
+    );
     // The camera moved: the oblique photo.
     let t1 = 100_000_000;
     let (windows, report) = cam.detect(t1, &oblique, &rig);
@@ -311,7 +325,12 @@ fn a_camera_moved_between_real_photos_is_searched_whole_and_followed_from_there(
     // (Measured: 27 of 29; tags 119 and 159, at the photo's far edge, are not followed.)
     let missed: Vec<u32> = full_ids.iter().copied().filter(|id| !next_ids.contains(id)).collect();
     println!("REALDATA moved camera, next frame: tags of the whole-frame search not followed {missed:?}");
-    assert!(missed.len() * 10 <= full_ids.len(), "the next frame follows {} of {} tags: missed {missed:?}", full_ids.len() - missed.len(), full_ids.len());
+    assert!(
+        missed.len() * 10 <= full_ids.len(),
+        "the next frame follows {} of {} tags: missed {missed:?}",
+        full_ids.len() - missed.len(),
+        full_ids.len()
+    );
     assert_eq!((next_report.full_frame_searches, next_report.background_searches), (0, 0), "no whole-frame search needed");
     let mut worst: f64 = 0.0;
     for d in next.background.iter().chain(&next.specimen) {

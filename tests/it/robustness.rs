@@ -628,7 +628,14 @@ fn mutation_fuzz() {
     let ack = br#"{"runs":[{"run":1,"high":40,"gaps":[[3,5]]}]}"#.to_vec();
     let seeds: Vec<(&str, Vec<Vec<u8>>)> = vec![
         ("report_feed", vec![feed.clone()]),
-        ("archive_message", vec![[vec![0u8], first_line.clone()].concat(), [vec![1u8], b"{\"state\":\"online\"}".to_vec()].concat(), [vec![2u8], ack].concat()]),
+        (
+            "archive_message",
+            vec![
+                [vec![0u8], first_line.clone()].concat(),
+                [vec![1u8], b"{\"state\":\"online\"}".to_vec()].concat(),
+                [vec![2u8], ack].concat(),
+            ],
+        ),
         ("image", vec![pgm.clone(), png.clone()]),
         ("jsonl", vec![frames, utm]),
         ("config", vec![cfg_text]),

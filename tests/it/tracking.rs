@@ -221,10 +221,19 @@ fn a_camera_moved_far_is_searched_whole_and_re_posed_in_the_set_it_moved() {
         let ids = |l: &FeedLine| l.tags.iter().map(|t| t.id).collect::<Vec<_>>();
         assert_eq!(ids(a), ids(b), "set {}: tracking solves the tags full-frame solves", a.seq);
     }
-    assert!(after_t.disp_rms_mm <= 1.5 * after_f.disp_rms_mm.max(0.02), "displacement RMS {} vs full-frame {}", after_t.disp_rms_mm, after_f.disp_rms_mm);
+    assert!(
+        after_t.disp_rms_mm <= 1.5 * after_f.disp_rms_mm.max(0.02),
+        "displacement RMS {} vs full-frame {}",
+        after_t.disp_rms_mm,
+        after_f.disp_rms_mm
+    );
     assert!(pos_t <= 1.5 * pos_f.max(0.5), "position RMS {pos_t} vs full-frame {pos_f}");
     // Against truth (measured 0.69 mm and 0.57 mm, ~1.4× floors).
-    assert!(after_t.disp_rms_mm <= 1.0 && pos_t <= 0.8, "after the move: displacement RMS {} mm, position RMS {pos_t} mm", after_t.disp_rms_mm);
+    assert!(
+        after_t.disp_rms_mm <= 1.0 && pos_t <= 0.8,
+        "after the move: displacement RMS {} mm, position RMS {pos_t} mm",
+        after_t.disp_rms_mm
+    );
 }
 
 /// Keeps only background tag `keep` in a recording's config (the others become unknown

@@ -90,7 +90,6 @@ fn chown_tree(dir: &Path, uid: u32, gid: u32) -> io::Result<()> {
     Ok(())
 }
 
-
 /// A Mosquitto broker on 127.0.0.1 with persistent sessions (sessions and queued messages
 /// survive a stop/start), generous in-flight and queue limits.
 pub struct LocalMosquitto {

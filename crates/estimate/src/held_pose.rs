@@ -235,7 +235,8 @@ impl HeldCameraPose {
             Some(f) if self.now_ns.is_some() => f.predicted_pose(t_ns),
             _ => pose,
         };
-        let shifts: Vec<f64> = tags.iter().flat_map(|t| (0..4).map(move |k| (*t, k))).map(|(t, k)| self.corner_shift(&pose, &predicted, t, k)).collect();
+        let shifts: Vec<f64> =
+            tags.iter().flat_map(|t| (0..4).map(move |k| (*t, k))).map(|(t, k)| self.corner_shift(&pose, &predicted, t, k)).collect();
         median(&shifts)
     }
 
@@ -511,7 +512,10 @@ impl HeldCameraPose {
         let floor = AMBIGUITY_FLOOR_PX.max(3.0 * self.noise_px().unwrap_or(0.0));
         let decided = other > AMBIGUITY_RATIO * best && other > floor;
         (!decided).then(|| {
-            format!("its mirror pose fits with RMS {other:.2} px against {best:.2} px, {:.1}° away", minima[0].0.angle_to(&minima[1].0).to_degrees())
+            format!(
+                "its mirror pose fits with RMS {other:.2} px against {best:.2} px, {:.1}° away",
+                minima[0].0.angle_to(&minima[1].0).to_degrees()
+            )
         })
     }
 
@@ -520,7 +524,9 @@ impl HeldCameraPose {
             Ok(sol) => {
                 tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
                 if let Some(why) = self.one_tag_ambiguity(&tags, &sol) {
-                    tracing::warn!("first pose rests on one tag whose mirror pose fits as well ({why}); taken (nothing to check it against)");
+                    tracing::warn!(
+                        "first pose rests on one tag whose mirror pose fits as well ({why}); taken (nothing to check it against)"
+                    );
                     status.message = Some(format!("first pose from one ambiguous tag: {why}"));
                 }
                 // `fix` is kept: identity at start, the last correction after a failed re-pose.
@@ -753,9 +759,17 @@ mod tests {
         // far from the truth (taking it would be wrong by degrees).
         let minima = single_tag_minima(&intr, &obs[0]);
         assert_eq!(minima.len(), 2, "{minima:?}");
-        let (truth_near, mirror_far) =
-            (minima.iter().map(|m| m.0.angle_to(&moved)).fold(f64::MAX, f64::min), minima.iter().map(|m| m.0.angle_to(&moved)).fold(0.0, f64::max));
-        println!("minima RMS {:.3} / {:.3} px; nearest {:.3}°, other {:.1}° from the truth", minima[0].1, minima[1].1, truth_near.to_degrees(), mirror_far.to_degrees());
+        let (truth_near, mirror_far) = (
+            minima.iter().map(|m| m.0.angle_to(&moved)).fold(f64::MAX, f64::min),
+            minima.iter().map(|m| m.0.angle_to(&moved)).fold(0.0, f64::max),
+        );
+        println!(
+            "minima RMS {:.3} / {:.3} px; nearest {:.3}°, other {:.1}° from the truth",
+            minima[0].1,
+            minima[1].1,
+            truth_near.to_degrees(),
+            mirror_far.to_degrees()
+        );
         assert!(minima[1].1 < AMBIGUITY_FLOOR_PX && mirror_far.to_degrees() > 5.0, "ambiguous scenario");
         let st = t.update(&obs);
         assert!(st.bumped, "the move is caught");

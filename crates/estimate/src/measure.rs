@@ -313,7 +313,9 @@ impl Measurement {
             let observations = |d: &CameraDetections| -> Vec<BackgroundTagObservation> {
                 d.background
                     .iter()
-                    .filter_map(|det| background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w }))
+                    .filter_map(|det| {
+                        background_world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w })
+                    })
                     .collect()
             };
             // The camera moved (background tags lost or jumped): the same frame searched

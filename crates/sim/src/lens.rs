@@ -40,7 +40,10 @@ impl Lens {
     fn distorted(&self, x: f64, y: f64) -> (f64, f64) {
         let r2 = x * x + y * y;
         let radial = 1.0 + self.k1 * r2 + self.k2 * r2 * r2 + self.k3 * r2 * r2 * r2;
-        (x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x), y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y)
+        (
+            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
     }
 
     /// The pixel where the camera-frame point `p` (Z forward) is seen; `None` behind the
@@ -106,7 +109,15 @@ mod tests {
     /// implementations of one documented convention.
     #[test]
     fn agrees_with_the_product_model_as_documented() {
-        let k = CameraIntrinsics { width: 800, height: 600, fx: 900.0, fy: 905.0, cx: 399.5, cy: 300.2, dist: [-0.2, 0.1, 0.001, -0.002, 0.01] };
+        let k = CameraIntrinsics {
+            width: 800,
+            height: 600,
+            fx: 900.0,
+            fy: 905.0,
+            cx: 399.5,
+            cy: 300.2,
+            dist: [-0.2, 0.1, 0.001, -0.002, 0.01],
+        };
         let lens = Lens::of(&k);
         for p in [Vector3::new(0.3, -0.2, 1.0), Vector3::new(-120.0, 80.0, 900.0), Vector3::new(0.0, 0.0, 5.0)] {
             let (a, b) = (lens.pixel(&p).unwrap(), k.project(&p).unwrap());

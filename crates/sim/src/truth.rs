@@ -186,7 +186,8 @@ impl SimRig {
                     // direction (from the first tag toward the second) against rest.
                     let (a, b) = (g.tags[0], g.tags[1]);
                     let at = Vector3::from(g.at_mm.unwrap_or([0.0; 3]));
-                    let carried = |id: u32| now[&id].rotation * (rest[&id].rotation.inverse() * (at - rest[&id].translation)) + now[&id].translation;
+                    let carried =
+                        |id: u32| now[&id].rotation * (rest[&id].rotation.inverse() * (at - rest[&id].translation)) + now[&id].translation;
                     let mut dir = Vector3::from(g.direction.unwrap_or([1.0, 0.0, 0.0])).normalize();
                     if dir.dot(&(rest[&b].translation - rest[&a].translation)) < 0.0 {
                         dir = -dir;
