@@ -17,6 +17,8 @@ pkgs+=(fonts-dejavu-core)
 pkgs+=(dpkg-dev binutils debootstrap curl)
 # The report printed to PDF by headless Chromium, and its pages looked at (pdftoppm).
 pkgs+=(poppler-utils)
+# The suite run again and again on a loaded machine (scripts/stress-suite.sh: stress --cpu 2).
+pkgs+=(stress)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

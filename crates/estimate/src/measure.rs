@@ -319,11 +319,15 @@ impl Measurement {
                     .collect()
             };
             // The camera moved (background tags lost or jumped): the same frame searched
-            // whole before the camera is posed from it (see the module docs).
+            // whole before the camera is posed from it (see the module docs). The frame's
+            // observations are made once and posed from, unless that search replaced them.
+            let mut frame_obs = None;
             if let (Some(slot), Some(report)) = (detections.iter_mut().find(|(i, _)| *i == ci), reports[ci].as_ref()) {
                 let threshold = cam.pose.bump_threshold_px();
                 let above = |s: f64| s.is_nan() || s > threshold;
-                let jumped = cam.pose.preview_shift_px(set.t_ns, &observations(&slot.1)).is_some_and(above);
+                let obs = observations(&slot.1);
+                let jumped = cam.pose.preview_shift_px(set.t_ns, &obs).is_some_and(above);
+                frame_obs = Some(obs);
                 let moved_again = report.background.shift_px.is_some_and(above);
                 let search = cam.pose.estimated()
                     && (cam.pose.pose().is_some() || cam.pose.refused().is_some())
@@ -344,6 +348,7 @@ impl Measurement {
                     self.stats.moved_camera_searches += 1;
                     cpu.full_frame += c0.elapsed().as_secs_f64();
                     slot.1 = again;
+                    frame_obs = None;
                 }
             }
             let det = detections.iter().find(|(i, _)| *i == ci).map(|(_, d)| d);
@@ -360,7 +365,7 @@ impl Measurement {
             if let Some(d) = det {
                 h.background_tags = d.background.len();
                 h.specimen_tags = d.specimen.len();
-                let obs = observations(d);
+                let obs = frame_obs.take().unwrap_or_else(|| observations(d));
                 // Every line the held pose logs names its camera (the span's field).
                 let status = tracing::info_span!("pose", camera = %cam.name).in_scope(|| cam.pose.update_at(set.t_ns, &obs));
                 if let Some(d) = status.drift {
