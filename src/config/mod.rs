@@ -32,7 +32,7 @@ pub use tagdeflect_core::text_file::{read_text_limited, MAX_CONFIG_BYTES};
 
 // The sections' types, where the rest of the program (and its tests) find them.
 pub use tagdeflect_core::beam::BeamConfig;
-pub use tagdeflect_core::calibration_file::{load_calibration, parse_calibration, CalibrationError};
+pub use tagdeflect_core::calibration_file::{calibration_file_path, load_calibration, parse_calibration, CalibrationError};
 pub use tagdeflect_core::camera_config::{CameraConfig, CameraSource, MAX_FPS, MIN_FPS, RESERVED_NAMES};
 pub use tagdeflect_core::rig::{BackgroundConfig, BackgroundTag, SpecimenConfig, SpecimenTag, TagRole, WorldConfig};
 pub use tagdeflect_estimate::measure_config::MeasureConfig;
@@ -124,6 +124,7 @@ impl Config {
             sim: Some(params.clone()),
             gauges: s.gauges,
             clock_check: None,
+            calibration_files: Vec::new(),
         };
         config.checked("<simulated rig>").expect("the simulated rig's config is valid")
     }

@@ -63,6 +63,12 @@ pub struct Config {
     /// The live clock check (`[clock_check]`, extension; see `tagdeflect_estimate::clock_offset`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clock_check: Option<ClockCheckConfig>,
+    /// The calibration files the cameras' intrinsics were imported from (`[[camera]]
+    /// calibration`, the file part of `file.yaml#cam1`), resolved against the config's folder;
+    /// hashed into every test's `test.json`. Not written back: a written config carries the
+    /// intrinsics inline.
+    #[serde(skip)]
+    pub calibration_files: Vec<std::path::PathBuf>,
 }
 
 impl Config {
@@ -97,12 +103,73 @@ impl Config {
             world: self.world.clone(),
             specimen: self.specimen.clone(),
             utm: self.utm.as_ref().map(|u| u.address.clone()),
+            cmod_gauge: self.cmod_gauge(),
+            rate_windows: match &self.specimen.beam {
+                None => Default::default(),
+                Some(beam) => {
+                    [tagdeflect_report::Standard::AstmC1609, tagdeflect_report::Standard::AstmC1856, tagdeflect_report::Standard::En14651]
+                        .into_iter()
+                        .filter_map(|std| {
+                            let name = serde_json::to_value(std).ok()?.as_str()?.to_string();
+                            let w = serde_json::to_value(tagdeflect_report::validity::rate_windows(std, beam)).ok()?;
+                            Some((name, w))
+                        })
+                        .collect()
+                }
+            },
+        }
+    }
+
+    /// The CMOD gauge: `[report] cmod_gauge`, else the one `opening` gauge, else the gauge
+    /// named `cmod` (any case).
+    pub fn cmod_gauge(&self) -> Option<String> {
+        use tagdeflect_estimate::gauges::GaugeKind;
+        let openings: Vec<&str> = self.gauges.iter().filter(|g| g.kind == GaugeKind::Opening).map(|g| g.name.as_str()).collect();
+        match (self.report.as_ref().and_then(|r| r.cmod_gauge.clone()), openings.as_slice()) {
+            (Some(g), _) => Some(g),
+            (None, [one]) => Some(one.to_string()),
+            (None, _) => self.gauges.iter().find(|g| g.name.eq_ignore_ascii_case("cmod")).map(|g| g.name.clone()),
         }
     }
 
     /// What the report needs of the rig.
     pub fn test_rig(&self) -> tagdeflect_report::TestRig {
         tagdeflect_report::TestRig { world: self.world.clone(), specimen: self.specimen.clone(), gauges: self.gauges.clone() }
+    }
+
+    /// The rules of `[output.auto_test]` with what the rest of the config says about a
+    /// test's end: the standard (the table's, else `[report] standard`), the span
+    /// (`[specimen.beam]`) for ASTM's L/150, and the CMOD gauge for EN 14651's 4 mm —
+    /// `[report] cmod_gauge`, else the one `opening` gauge, else the gauge named `cmod`.
+    /// A problem (key under `output.auto_test`) when an end the table asks for cannot be
+    /// known, or there is no load to start from.
+    pub fn auto_rules(&self) -> Result<Option<tagdeflect_sinks::lab_test::auto::AutoRules>, tagdeflect_core::Problem> {
+        use tagdeflect_core::Problem;
+        let Some(c) = &self.output.auto_test else { return Ok(None) };
+        let here = |k: &str, m: String| Err(Problem::new(format!("output.auto_test{k}"), m));
+        if self.utm.is_none() {
+            return here("", "an automatic start needs the load: configure [utm] (the testing machine)".into());
+        }
+        let report_standard =
+            self.report.as_ref().and_then(|r| serde_json::to_value(r.standard).ok()).and_then(|v| v.as_str().map(str::to_string));
+        let standard = c.standard.clone().or(report_standard);
+        let span_mm = self.specimen.beam.as_ref().map(|b| b.span_mm);
+        let cmod_gauge = self.cmod_gauge();
+        if c.stop_at_end {
+            match standard.as_deref() {
+                Some("astm-c1609" | "astm-c1856") if span_mm.is_none() => {
+                    return here(".standard", "the test's end (L/150) needs the span: add [specimen.beam] with span_mm, or set stop_at_end = false".into())
+                }
+                Some("en-14651") if cmod_gauge.is_none() => {
+                    return here(
+                        ".standard",
+                        "EN 14651's end (CMOD 4 mm) needs a CMOD gauge: add an `opening` [[gauge]] across the notch (or name one in [report] cmod_gauge), or set stop_at_end = false".into(),
+                    )
+                }
+                _ => {}
+            }
+        }
+        Ok(Some(tagdeflect_sinks::lab_test::auto::AutoRules { config: c.clone(), standard, span_mm, cmod_gauge }))
     }
 }
 

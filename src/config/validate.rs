@@ -24,6 +24,12 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     let sync = raw.sync.unwrap_or_default();
     sync.validate().map_err(|p| p.within("sync"))?;
     let cameras = resolve_cameras(&raw.camera, base)?;
+    let calibration_files = raw
+        .camera
+        .iter()
+        .filter_map(|c| c.calibration.as_ref())
+        .map(|c| tagdeflect_core::calibration_file::calibration_file_path(&base.join(c)))
+        .collect();
     let (background, specimen) = resolve_tag_sets(raw.background.as_ref(), raw.specimen.as_ref())?;
     if let Some(u) = &raw.utm {
         u.validate().map_err(|p| p.within("utm"))?;
@@ -53,7 +59,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     if let Some(c) = &raw.clock_check {
         c.validate().map_err(|p| p.within("clock_check"))?;
     }
-    Ok(Config {
+    let config = Config {
         world,
         sync,
         cameras,
@@ -66,7 +72,10 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
         sim: raw.sim,
         gauges,
         clock_check: raw.clock_check,
-    })
+        calibration_files,
+    };
+    config.auto_rules()?;
+    Ok(config)
 }
 
 /// `[sim]` checked by the simulator, and simulated cameras are the rig's cameras, by name

@@ -18,8 +18,16 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
     let report_config = config.clone();
     let hook: tagdeflect_sinks::lab_test::ReportHook =
         Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record));
-    let tests = LabTests::new(dir, config.to_toml_string(), Vec::new(), Some(hook))
-        .map_err(|e| bad(format!("[output] tests: cannot create {}: {e}", dir.display())))?;
+    let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
+        .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
+    if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {
+        tracing::info!(
+            start_load_kn = rules.config.start_load_kn,
+            standard = rules.standard.as_deref().unwrap_or("none"),
+            "tests start and stop automatically ([output.auto_test])"
+        );
+        tests.set_auto(rules);
+    }
     let token = match &config.output.http_token_file {
         Some(f) => std::fs::read_to_string(f)
             .map_err(|e| bad(format!("[output] http_token_file {}: {e}", f.display())))?

@@ -242,6 +242,12 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
             outputs.sinks.push(Box::new(tagdeflect_sinks::lab_test::LabTestSink(t.clone())));
             Some(t)
         }
+        (None, false) if config.output.auto_test.is_some() => {
+            return Err(crate::BadInput::new(
+                "[output.auto_test]: automatic tests need the tests' folder: set [output] tests or --tests DIR".to_string(),
+            )
+            .into())
+        }
         _ => None,
     };
     // The recorder (sinks::recorder): retries after write errors; state in every feed line.

@@ -428,6 +428,19 @@ fn imports_opencv_kalibr_and_ros_files() {
     std::fs::copy(f.join("kalibr_camchain.yaml"), dir.path().join("camchain.yaml")).unwrap();
     let p = dir.path().join("camchain.yaml#cam0");
     assert_eq!(load_calibration(&p).unwrap().cy, 248.375);
+    // The file a test's record hashes is the camchain itself.
+    assert_eq!(tagdeflect::config::calibration_file_path(&p), dir.path().join("camchain.yaml"));
+    let cfg = dir.path().join("rig.toml");
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/one-camera.toml")).unwrap();
+    let text: String = text
+        .lines()
+        .filter(|l| !["fx =", "fy =", "cx =", "cy =", "dist ="].iter().any(|k| l.starts_with(k)))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&cfg, text.replacen("[[camera]]\n", "[[camera]]\ncalibration = \"camchain.yaml#cam0\"\n", 1)).unwrap();
+    let config = tagdeflect::config::Config::load(&cfg).unwrap();
+    assert_eq!(config.calibration_files, [dir.path().join("camchain.yaml")]);
+    assert_eq!(config.cameras[0].fx, 458.654);
 }
 
 /// The measurement with recovered calibrations: the simulated rig's three cameras are

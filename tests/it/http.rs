@@ -717,3 +717,145 @@ fn the_operator_page_drives_two_tests_in_chromium() {
     }
     assert_eq!(d.stop(), Some(0));
 }
+
+/// A camera whose intrinsics come from a calibration file: every test's `test.json` carries
+/// that file's SHA-256 as it was when the daemon read it (the file is changed during the test:
+/// the hash is still the one of the calibration in force).
+#[test]
+fn a_tests_record_carries_the_hash_of_the_calibration_in_force() {
+    use sha2::Digest;
+    let dir = tempfile::tempdir().unwrap();
+    let rig = rig_config(dir.path(), None);
+    let mut table: toml::Table = std::fs::read_to_string(&rig).unwrap().parse().unwrap();
+    let cam = table["camera"].as_array_mut().unwrap()[0].as_table_mut().unwrap();
+    let num = |v: &toml::Value| v.as_float().or(v.as_integer().map(|i| i as f64)).unwrap();
+    let (fx, fy, cx, cy) = (num(&cam["fx"]), num(&cam["fy"]), num(&cam["cx"]), num(&cam["cy"]));
+    let dist: Vec<f64> = cam.get("dist").map_or(vec![0.0; 5], |d| d.as_array().unwrap().iter().map(num).collect());
+    for k in ["fx", "fy", "cx", "cy", "dist"] {
+        cam.remove(k);
+    }
+    let cal = dir.path().join("cam0.json");
+    let cal_text = serde_json::json!({
+        "image_width": cam["width"].as_integer(), "image_height": cam["height"].as_integer(),
+        "camera_matrix": {"rows": 3, "cols": 3, "data": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]},
+        "distortion_coefficients": {"rows": 1, "cols": 5, "data": dist},
+    })
+    .to_string();
+    std::fs::write(&cal, &cal_text).unwrap();
+    cam.insert("calibration".into(), toml::Value::String("cam0.json".into()));
+    std::fs::write(&rig, toml::to_string(&table).unwrap()).unwrap();
+    let want: String = sha2::Sha256::digest(cal_text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect();
+
+    let tests_dir = dir.path().join("tests");
+    let mut d =
+        Daemon::start(&["demo", "--config", rig.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let token_file = tests_dir.join(".token");
+    let st = tagdeflect_test(addr, &token_file, &["start", "--specimen", "C1"]);
+    let id = st["id"].as_str().unwrap().to_string();
+    std::fs::write(&cal, "recalibrated during the test\n").unwrap();
+    d.wait_lines(3, Duration::from_secs(60));
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert_eq!(stopped["id"], id.as_str());
+    let folder = PathBuf::from(stopped["folder"].as_str().unwrap());
+    let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record["sha256"][cal.display().to_string()], want.as_str(), "{record}");
+    assert_eq!(d.stop(), Some(0));
+
+    // A calibration file that is gone: the config is refused, naming the file.
+    std::fs::remove_file(&cal).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["check", "--config", rig.to_str().unwrap()]).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("cam0.json"), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Automatic start and stop on a simulated test (`[output.auto_test]`): the simulated machine
+/// loads the beam to 60 kN and back, again and again. The daemon arms at a low load, starts a
+/// test when the load passes 5 kN (its zero there, as a machine's preload), stops it at ASTM
+/// C1609's end (net deflection L/150 + 0.5 mm = 3.5 mm from the zero) with the report, and
+/// starts the next one only after the beam was unloaded; the page's API says what it waits for.
+#[test]
+fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
+    let dir = tempfile::tempdir().unwrap();
+    let params =
+        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 30, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+    let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    cfg.specimen.beam = Some(tagdeflect::report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    });
+    let span = params.span_mm;
+    let mut text = cfg.to_toml_string();
+    text.push_str("\n[output.auto_test]\nstart_load_kn = 5.0\nstandard = \"astm-c1609\"\n");
+    let path = dir.path().join("rig.toml");
+    std::fs::write(&path, text).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let mut d =
+        Daemon::start(&["demo", "--config", path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let test_status = || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap();
+
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut seen_waiting = std::collections::BTreeSet::new();
+    let mut ids: Vec<String> = Vec::new();
+    let mut stopped: Option<String> = None;
+    while ids.len() < 2 {
+        assert!(
+            Instant::now() < deadline,
+            "two automatic tests did not start within 120 s; waited for {seen_waiting:?}\n{}",
+            d.stderr.lock().unwrap()
+        );
+        let st = test_status();
+        if let Some(a) = st.get("auto") {
+            seen_waiting.insert(format!(
+                "{}: {}",
+                a["state"].as_str().unwrap(),
+                a["waiting_for"].as_str().unwrap().split(" (").next().unwrap()
+            ));
+        }
+        match st["state"].as_str().unwrap() {
+            "running" => {
+                let id = st["id"].as_str().unwrap().to_string();
+                if !ids.contains(&id) {
+                    ids.push(id);
+                }
+            }
+            _ => {
+                if let Some(last) = st["last"]["id"].as_str() {
+                    stopped = Some(last.to_string());
+                }
+            }
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(stopped.as_deref(), Some(ids[0].as_str()), "the first test stopped before the second started");
+    assert!(ids.iter().all(|id| id.ends_with("-auto")), "{ids:?}");
+    let waits = format!("{seen_waiting:?}");
+    println!("AUTO waited for {waits}");
+    assert!(waits.contains("armed: the load to reach 5.00 kN to start a test"), "{waits}");
+    assert!(waits.contains("disarmed: the load to fall below 2.50 kN"), "after a stop, while the beam is loaded: {waits}");
+    assert!(waits.contains(&format!("running: net deflection {:.3} mm", span / 150.0 + 0.5)), "{waits}");
+
+    // The first test's folder: started at the preload, stopped at the end, with its report.
+    let folder = tests_dir.join(&ids[0]);
+    let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record["standard"], "astm-c1609");
+    let events = record["events"].as_array().unwrap();
+    assert_eq!(events.iter().map(|e| e["kind"].as_str().unwrap()).collect::<Vec<_>>(), ["start", "stop"], "{record}");
+    assert!(events[0]["note"].as_str().unwrap().starts_with("auto: the load reached"), "{record}");
+    assert!(events[1]["note"].as_str().unwrap().contains("L/150"), "{record}");
+    let lines: Vec<FeedLine> =
+        std::fs::read_to_string(folder.join("feed.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let first_load = lines.iter().find_map(|l| l.load_kn).unwrap();
+    assert!((4.5..15.0).contains(&first_load), "the test begins at the preload: {first_load} kN");
+    let end = span / 150.0 + 0.5;
+    let past: Vec<f64> = lines.iter().filter_map(|l| l.net_deflection_mm).filter(|v| *v >= end).collect();
+    assert!(past.len() >= 3, "three lines past the end {end} mm before the stop: {past:?}");
+    let max_net = lines.iter().filter_map(|l| l.net_deflection_mm).fold(f64::MIN, f64::max);
+    assert!(max_net < end + 1.5, "stopped soon after the end: {max_net} mm");
+    assert!(folder.join("report").is_dir(), "the report of the standard is made at the automatic stop");
+    assert_eq!(d.stop(), Some(0));
+}

@@ -74,6 +74,12 @@ fn parse_selected(text: &str, is_json: bool, path: &Path, selector: Option<&str>
     Ok(CameraIntrinsics { width: dim("image_width"), height: dim("image_height"), fx: k[0], fy: k[4], cx: k[2], cy: k[5], dist })
 }
 
+/// The file a `calibration` value names: `file.yaml#cam1` (a camera of a Kalibr camchain)
+/// is `file.yaml`, when `file.yaml#cam1` itself does not exist.
+pub fn calibration_file_path(path: &Path) -> PathBuf {
+    split_selector(path).0
+}
+
 /// Splits `file#sel` when `file#sel` itself does not exist.
 fn split_selector(path: &Path) -> (PathBuf, Option<String>) {
     if path.exists() {

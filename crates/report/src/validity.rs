@@ -33,6 +33,31 @@ pub struct Validity {
     pub rates: Vec<(String, f64, (f64, f64))>,
 }
 
+/// A standard's windows for the rate of its controlled quantity (net deflection; CMOD for EN
+/// 14651), below and above `split_mm` of it (see the module doc); the live page colours the
+/// rate by them.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct RateWindows {
+    /// Where the second window begins (L/900; CMOD 0.1 mm), mm.
+    pub split_mm: f64,
+    /// Up to `split_mm`: `[low, high]`, mm/min.
+    pub below_mm_per_min: (f64, f64),
+    /// Beyond it.
+    pub above_mm_per_min: (f64, f64),
+}
+
+/// The windows of `standard` for `beam`.
+pub fn rate_windows(standard: Standard, beam: &BeamConfig) -> RateWindows {
+    let (split_mm, [below, above]) = match standard {
+        Standard::AstmC1609 | Standard::AstmC1856 => {
+            let w = if beam.depth_mm <= 125.0 { [(0.025, 0.075), (0.05, 0.20)] } else { [(0.035, 0.10), (0.05, 0.30)] };
+            (beam.span_mm / 900.0, w)
+        }
+        Standard::En14651 => (0.1, [(0.04, 0.06), (0.16, 0.24)]),
+    };
+    RateWindows { split_mm, below_mm_per_min: below, above_mm_per_min: above }
+}
+
 /// What the check needs.
 pub(crate) struct Input<'a> {
     pub standard: Standard,
@@ -63,13 +88,14 @@ pub(crate) fn check(i: &Input) -> Validity {
     let fc = i.feed_curve;
     let lc = i.load_curve;
     let xmax = fc.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let (end, end_name, rate_split, split_name, windows): (f64, String, f64, String, [(f64, f64); 2]) = match i.standard {
+    let rw = rate_windows(i.standard, i.beam);
+    let (rate_split, windows) = (rw.split_mm, [rw.below_mm_per_min, rw.above_mm_per_min]);
+    let (end, end_name, split_name): (f64, String, String) = match i.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => {
             let l = i.beam.span_mm;
-            let w = if i.beam.depth_mm <= 125.0 { [(0.025, 0.075), (0.05, 0.20)] } else { [(0.035, 0.10), (0.05, 0.30)] };
-            (l / 150.0, format!("L/150 = {:.2} mm", l / 150.0), l / 900.0, format!("L/900 = {:.3} mm", l / 900.0), w)
+            (l / 150.0, format!("L/150 = {:.2} mm", l / 150.0), format!("L/900 = {:.3} mm", l / 900.0))
         }
-        Standard::En14651 => (3.5, "CMOD = 3.5 mm".into(), 0.1, "CMOD = 0.1 mm".into(), [(0.04, 0.06), (0.16, 0.24)]),
+        Standard::En14651 => (3.5, "CMOD = 3.5 mm".into(), "CMOD = 0.1 mm".into()),
     };
     if i.standard == Standard::AstmC1856 {
         unchecked.push("ASTM C1856 may give rates of its own; those of C1609 were applied.".into());

@@ -38,6 +38,10 @@ pub struct OutputConfig {
     /// token is made at start, printed once and written to `<tests>/.token` (mode 0600).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http_token_file: Option<PathBuf>,
+    /// `[output.auto_test]`: start and stop tests from the load and the standard's end
+    /// (see `sinks::lab_test::auto`; off without the table).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_test: Option<crate::lab_test::auto::AutoTestConfig>,
     /// `[output.mqtt]`: publish the feed to an MQTT broker (never written back: a
     /// recording carries no broker address or credentials).
     #[serde(default, skip_serializing)]
@@ -87,6 +91,9 @@ impl OutputConfig {
                 }
                 Err(e) => return Err(Problem::new("http_token_file", format!("{}: {e}", t.display()))),
             }
+        }
+        if let Some(a) = &self.auto_test {
+            a.validate().map_err(|p| p.within("auto_test"))?;
         }
         if let Some(r) = &self.record {
             if r.is_relative() {

@@ -16,6 +16,12 @@ pub struct RigInfo {
     pub specimen: SpecimenConfig,
     /// `utm.address`, when a UTM is configured.
     pub utm: Option<UtmAddress>,
+    /// The CMOD gauge, when the rig has one (the page's load–CMOD curve, EN 14651's rate).
+    pub cmod_gauge: Option<String>,
+    /// Per standard (`astm-c1609`, `astm-c1856`, `en-14651`): its deflection-rate windows for
+    /// this beam as the report judges them (`{"split_mm", "below_mm_per_min": [lo, hi],
+    /// "above_mm_per_min": [lo, hi]}`); empty without `[specimen.beam]`.
+    pub rate_windows: std::collections::BTreeMap<String, serde_json::Value>,
 }
 
 impl RigInfo {

@@ -56,6 +56,12 @@ pub(crate) async fn status(State(view): State<Arc<LiveView>>) -> Response {
     }
 }
 
+/// `GET /api/tests`: the day's stopped tests' curves (the page draws them in grey).
+pub(crate) async fn earlier(State(view): State<Arc<LiveView>>) -> Response {
+    let tests = view.control.get().map(|c| c.tests.earlier()).unwrap_or_default();
+    Json(serde_json::json!({ "tests": tests })).into_response()
+}
+
 /// `POST /api/test/{command}`.
 pub(crate) async fn command(
     State(view): State<Arc<LiveView>>,

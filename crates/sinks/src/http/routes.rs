@@ -34,6 +34,7 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/camera/{file}", get(camera))
         .route("/metrics", get(metrics))
         .route("/api/test", get(super::control::status))
+        .route("/api/tests", get(super::control::earlier))
         .route("/api/test/{command}", axum::routing::post(super::control::command))
         // Larger bodies are refused before they are read whole (the control API's limit).
         .layer(axum::extract::DefaultBodyLimit::max(super::control::MAX_BODY))

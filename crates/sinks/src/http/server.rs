@@ -304,7 +304,14 @@ mod tests {
             tags: vec![],
             beam: None,
         };
-        let rig = crate::rig_info::RigInfo { cameras: vec![], world: Default::default(), specimen, utm: None };
+        let rig = crate::rig_info::RigInfo {
+            cameras: vec![],
+            world: Default::default(),
+            specimen,
+            utm: None,
+            cmod_gauge: None,
+            rate_windows: Default::default(),
+        };
         let hosts = AllowedHosts::new(&[]);
         let view = LiveView::new(&rig, "live");
         let optional = rt.block_on(serve(HttpOptions { addr, required: false }, hosts.clone(), view.clone()));

@@ -40,6 +40,12 @@ pub struct Status {
     pub sources: Vec<SourceStatus>,
     /// The specimen tags and their roles.
     pub specimen_tags: Vec<TagStatus>,
+    /// `[specimen.beam]` (the page's bending profile: the span), when configured.
+    pub beam: Option<tagdeflect_core::beam::BeamConfig>,
+    /// The CMOD gauge, when the rig has one.
+    pub cmod_gauge: Option<String>,
+    /// The standards' deflection-rate windows for this beam (see `RigInfo::rate_windows`).
+    pub rate_windows: std::collections::BTreeMap<String, serde_json::Value>,
     /// The testing machine.
     pub utm: UtmStatus,
     /// The recording.
@@ -352,6 +358,9 @@ pub fn status(view: &LiveView) -> Status {
         frame_interval_s,
         sources,
         specimen_tags,
+        beam: cfg.specimen.beam.clone(),
+        cmod_gauge: cfg.cmod_gauge.clone(),
+        rate_windows: cfg.rate_windows.clone(),
         utm,
         recording,
         feed,

@@ -302,6 +302,7 @@ function onTest(st) {
   if (!running) T.peak = null;
   $("b-start").disabled = running || st.state === "off";
   for (const id of ["b-mark", "b-zero", "b-stop"]) $(id).disabled = !running;
+  $("t-auto").textContent = st.auto ? "automatic (" + st.auto.state + "): waiting for " + st.auto.waiting_for : "";
   if (st.state === "off") testMessage("tests are off: start the daemon with --tests DIR or [output] tests", false);
 }
 function onTestLine(line) {

@@ -25,6 +25,10 @@
 //! resumes the test from the same zero and puts a `resume` event (with the gap) into the feed
 //! and `test.json`, so the curve never gets a second zero in its middle.
 //!
+//! Tests may also start and stop by themselves, from the load and the standard's end
+//! (`[output.auto_test]`, [`auto`]); an automatic stop runs on a short thread of its own, as
+//! `stop` waits for the sinks.
+//!
 //! Nothing here blocks the solver for longer than a few field updates under the lock: files are
 //! written on the sinks' thread and by the caller of `stop`.
 
@@ -39,6 +43,8 @@ use sha2::Digest;
 
 use tagdeflect_core::feed::{FeedEvent, FeedLine, TestRef};
 use tagdeflect_core::utm_sample::UtmSample;
+
+pub mod auto;
 
 /// Frame sets whose mean is a test's zero.
 pub const ZERO_SETS: usize = 5;
@@ -133,6 +139,79 @@ pub struct TestRecord {
     pub sha256: BTreeMap<String, String>,
 }
 
+/// A stopped test's curve for the page (`GET /api/tests`): load over net deflection from its
+/// zero, at most [`EARLIER_POINTS`] points.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EarlierTest {
+    /// The test's id.
+    pub id: String,
+    /// Its specimen.
+    pub specimen: String,
+    /// When it started, ns since the Unix epoch.
+    pub started_t_ns: i64,
+    /// Net deflection, mm.
+    pub net_deflection_mm: Vec<f64>,
+    /// Load, kN, at the same lines.
+    pub load_kn: Vec<f64>,
+}
+
+/// Points of an earlier test's curve on the page.
+pub const EARLIER_POINTS: usize = 500;
+/// Earlier tests on the page at most (the day's newest).
+pub const EARLIER_TESTS: usize = 12;
+
+impl EarlierTest {
+    fn new(record: &TestRecord, curve: &[(f64, f64)]) -> EarlierTest {
+        let step = curve.len().div_ceil(EARLIER_POINTS).max(1);
+        let kept: Vec<(f64, f64)> = curve.iter().step_by(step).copied().chain(curve.last().copied().filter(|_| step > 1)).collect();
+        EarlierTest {
+            id: record.id.clone(),
+            specimen: record.meta.specimen.clone(),
+            started_t_ns: record.started_t_ns,
+            net_deflection_mm: kept.iter().map(|p| p.0).collect(),
+            load_kn: kept.iter().map(|p| p.1).collect(),
+        }
+    }
+}
+
+/// The (net deflection, load) points of a test's `feed.jsonl`; lines that do not parse are
+/// skipped (the file is this daemon's own; a line cut by a crash is the usual one).
+fn read_curve(feed: &Path) -> std::io::Result<Vec<(f64, f64)>> {
+    #[derive(Deserialize)]
+    struct Point {
+        #[serde(rename = "load_kN")]
+        load_kn: Option<f64>,
+        net_deflection_mm: Option<f64>,
+    }
+    use std::io::BufRead;
+    let mut out = Vec::new();
+    for line in std::io::BufReader::new(std::fs::File::open(feed)?).lines() {
+        if let Ok(Point { load_kn: Some(l), net_deflection_mm: Some(n) }) = serde_json::from_str::<Point>(&line?) {
+            push_point(&mut out, n, l);
+        }
+    }
+    Ok(out)
+}
+
+/// Adds a point to a running curve, halving it when it grows past 4 × [`EARLIER_POINTS`].
+fn push_point(curve: &mut Vec<(f64, f64)>, net: f64, load: f64) {
+    if net.is_finite() && load.is_finite() {
+        curve.push((net, load));
+    }
+    if curve.len() > 4 * EARLIER_POINTS {
+        let mut k = 0;
+        curve.retain(|_| {
+            k += 1;
+            k % 2 == 1
+        });
+    }
+}
+
+/// The local calendar day of a time, ns since the Unix epoch.
+fn day_of(t_ns: i64) -> chrono::NaiveDate {
+    chrono::DateTime::from_timestamp_nanos(t_ns).with_timezone(&chrono::Local).date_naive()
+}
+
 /// What `stop` answers.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Stopped {
@@ -154,6 +233,8 @@ struct Running {
     zero: Zero,
     /// The newest line written to the folder.
     written_t_ns: i64,
+    /// (net deflection, load) of the test's lines, thinned (the page's earlier tests).
+    curve: Vec<(f64, f64)>,
 }
 
 #[derive(Default)]
@@ -165,13 +246,18 @@ struct Inner {
     last_line_t_ns: i64,
     /// The last test's id and folder (`GET /api/test` after a stop).
     last: Option<(String, PathBuf)>,
+    /// Automatic start and stop (`[output.auto_test]`).
+    auto: Option<auto::AutoTest>,
+    /// The tests stopped today, oldest first (at most [`EARLIER_TESTS`]).
+    earlier: Vec<EarlierTest>,
 }
 
 /// The tests of a daemon; see the module doc.
 pub struct LabTests {
     dir: PathBuf,
     config_text: String,
-    calibration_files: Vec<PathBuf>,
+    /// SHA-256 of each calibration file, by its path, taken when the daemon read its config.
+    calibration_sha256: BTreeMap<String, String>,
     report: Option<ReportHook>,
     inner: Mutex<Inner>,
     written: Condvar,
@@ -179,13 +265,23 @@ pub struct LabTests {
 
 impl LabTests {
     /// Tests kept under `dir` (created); `config_text` is the config in force, written into
-    /// every test's folder; `calibration_files` are hashed into `test.json`.
+    /// every test's folder; `calibration_files` (the files the intrinsics in force were read
+    /// from) are hashed now — when the daemon has just read them, not when a test stops an hour
+    /// later and someone may have recalibrated — and the hashes go into every `test.json`. A
+    /// calibration file that cannot be read is an error: a test must not claim an unhashed
+    /// calibration.
     ///
     /// A test that was running when the daemon stopped (`TESTS/.running.json`) is resumed.
     pub fn new(dir: &Path, config_text: String, calibration_files: Vec<PathBuf>, report: Option<ReportHook>) -> std::io::Result<Arc<Self>> {
+        let mut calibration_sha256 = BTreeMap::new();
+        for c in &calibration_files {
+            let bytes = std::fs::read(c).map_err(|e| std::io::Error::new(e.kind(), format!("calibration file {}: {e}", c.display())))?;
+            calibration_sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
+        }
         std::fs::create_dir_all(dir)?;
         let tests =
-            LabTests { dir: dir.to_path_buf(), config_text, calibration_files, report, inner: Mutex::default(), written: Condvar::new() };
+            LabTests { dir: dir.to_path_buf(), config_text, calibration_sha256, report, inner: Mutex::default(), written: Condvar::new() };
+        tests.read_earlier();
         tests.resume()?;
         Ok(Arc::new(tests))
     }
@@ -220,6 +316,34 @@ impl LabTests {
         }
     }
 
+    /// The curves of today's stopped tests in the folder (once, at start).
+    fn read_earlier(&self) {
+        let today = day_of(tagdeflect_core::clock::now_epoch_ns());
+        let Ok(entries) = std::fs::read_dir(&self.dir) else { return };
+        let mut found: Vec<EarlierTest> = Vec::new();
+        for e in entries.flatten() {
+            let folder = e.path();
+            let Ok(text) = std::fs::read_to_string(folder.join("test.json")) else { continue };
+            let Ok(record) = serde_json::from_str::<TestRecord>(&text) else { continue };
+            if day_of(record.started_t_ns) != today {
+                continue;
+            }
+            match read_curve(&folder.join("feed.jsonl")) {
+                Ok(curve) => found.push(EarlierTest::new(&record, &curve)),
+                Err(e) => tracing::warn!(test = %record.id, "the curve of an earlier test cannot be read: {e}"),
+            }
+        }
+        found.sort_by_key(|t| t.started_t_ns);
+        let skip = found.len().saturating_sub(EARLIER_TESTS);
+        self.lock().earlier = found.split_off(skip);
+    }
+
+    /// `GET /api/tests`: today's stopped tests, oldest first.
+    pub fn earlier(&self) -> Vec<EarlierTest> {
+        let today = day_of(tagdeflect_core::clock::now_epoch_ns());
+        self.lock().earlier.iter().filter(|t| day_of(t.started_t_ns) == today).cloned().collect()
+    }
+
     /// Resumes the test of `TESTS/.running.json`, if there is one.
     fn resume(&self) -> std::io::Result<()> {
         let path = self.state_file();
@@ -252,7 +376,8 @@ impl LabTests {
             gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
         };
         tracing::warn!(test = %record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
-        let r = Running { record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns };
+        let curve = read_curve(&p.folder.join("feed.jsonl")).unwrap_or_default();
+        let r = Running { record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve };
         self.persist(&r);
         let mut g = self.lock();
         g.pending.push(ev);
@@ -269,13 +394,25 @@ impl LabTests {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Starts and stops tests by `rules` from now on (see [`auto`]).
+    pub fn set_auto(&self, rules: auto::AutoRules) {
+        self.lock().auto = Some(auto::AutoTest::new(rules));
+    }
+
     /// Starts a test (its zero from the next frame sets); refused while one runs.
     pub fn start(&self, meta: TestMeta) -> Result<serde_json::Value, TestError> {
         meta.validate()?;
+        let mut g = self.lock();
+        self.open(&mut g, meta, None)?;
+        drop(g);
+        Ok(self.status())
+    }
+
+    /// Opens the test's folder and makes it the running test; `note` goes with its start event.
+    fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>) -> Result<String, TestError> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
         let id = format!("{stamp}-{}", meta.specimen.trim());
-        let mut g = self.lock();
         if let Some(r) = &g.running {
             return Err(TestError::Conflict(format!("test {} is running: stop it first", r.record.id)));
         }
@@ -288,7 +425,7 @@ impl LabTests {
         let open = |name: &str| std::fs::OpenOptions::new().create_new(true).append(true).open(folder.join(name));
         let feed = open("feed.jsonl").map_err(io)?;
         let utm = open("utm.jsonl").map_err(io)?;
-        let start = FeedEvent { kind: "start".into(), t_ns: now, note: None };
+        let start = FeedEvent { kind: "start".into(), t_ns: now, note };
         g.pending.push(start.clone());
         let record = TestRecord {
             id: id.clone(),
@@ -301,11 +438,10 @@ impl LabTests {
             sha256: BTreeMap::new(),
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
-        let r = Running { record, folder: folder.clone(), feed, utm, zero: Zero::default(), written_t_ns: i64::MIN };
+        let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
         self.persist(&r);
         g.running = Some(r);
-        drop(g);
-        Ok(self.status())
+        Ok(id)
     }
 
     /// An operator's note, into the feed and `test.json`.
@@ -343,6 +479,11 @@ impl LabTests {
     /// Ends the running test: waits until the sinks have written its lines (at most
     /// [`STOP_WAIT`]), then completes its folder (report included) and answers.
     pub fn stop(&self) -> Result<Stopped, TestError> {
+        self.stop_with(None)
+    }
+
+    /// [`LabTests::stop`] with a note on the stop event (why it stopped).
+    fn stop_with(&self, note: Option<String>) -> Result<Stopped, TestError> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let mut g = self.lock();
         if g.running.is_none() {
@@ -357,11 +498,15 @@ impl LabTests {
             .unwrap_or_else(|p| p.into_inner());
         g = g2;
         let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
-        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note: None };
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note };
         r.record.events.push(stop.clone());
         r.record.stopped_t_ns = Some(now);
         g.pending.push(stop);
         g.last = Some((r.record.id.clone(), r.folder.clone()));
+        g.earlier.push(EarlierTest::new(&r.record, &r.curve));
+        if g.earlier.len() > EARLIER_TESTS {
+            g.earlier.remove(0);
+        }
         drop(g);
         if let Err(e) = std::fs::remove_file(self.state_file()) {
             tracing::error!("cannot remove {}: {e}", self.state_file().display());
@@ -388,11 +533,7 @@ impl LabTests {
             }
         }
         record.sha256 = hash_folder(&folder).map_err(|e| io("hashing", e))?;
-        for c in &self.calibration_files {
-            if let Ok(bytes) = std::fs::read(c) {
-                record.sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
-            }
-        }
+        record.sha256.extend(self.calibration_sha256.clone());
         let text = serde_json::to_string_pretty(&record).map_err(|e| TestError::Io(e.to_string()))?;
         let tmp = folder.join("test.json.tmp");
         std::fs::write(&tmp, text + "\n").map_err(|e| io("test.json", e))?;
@@ -403,7 +544,7 @@ impl LabTests {
     /// `GET /api/test`.
     pub fn status(&self) -> serde_json::Value {
         let g = self.lock();
-        match &g.running {
+        let mut st = match &g.running {
             Some(r) => serde_json::json!({
                 "state": "running",
                 "id": r.record.id,
@@ -420,14 +561,27 @@ impl LabTests {
                 "state": "idle",
                 "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f})),
             }),
+        };
+        if let Some(a) = &g.auto {
+            st["auto"] = a.status();
         }
+        st
     }
 
     /// The solver's step: the line gets the pending events, the running test and values
-    /// counted from the test's zero.
-    pub fn apply(&self, line: &mut FeedLine) {
+    /// counted from the test's zero; the automatic rules see it (a start is made here, at
+    /// once; a stop on a thread of its own, as it waits for the sinks).
+    pub fn apply(self: &Arc<Self>, line: &mut FeedLine) {
         let mut g = self.lock();
         g.last_line_t_ns = line.t_ns;
+        if g.running.is_none() {
+            if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
+                match self.open(&mut g, meta, Some(why.clone())) {
+                    Ok(id) => tracing::info!(test = %id, "test started automatically ({why})"),
+                    Err(e) => tracing::error!("the automatic start failed: {e}"),
+                }
+            }
+        }
         line.events.append(&mut g.pending);
         if let Some(r) = g.running.as_mut() {
             let zeroing = r.zero.take(line);
@@ -437,6 +591,23 @@ impl LabTests {
             }
             r.zero.apply(line);
             line.test = Some(TestRef { id: r.record.id.clone(), specimen: r.record.meta.specimen.clone(), zeroing });
+        }
+        let Inner { running, auto, .. } = &mut *g;
+        if let (Some(r), Some(a)) = (running.as_ref(), auto.as_mut()) {
+            let test = auto::RunningTest { standard: r.record.meta.standard.as_deref(), zero_formed: r.zero.n >= ZERO_SETS };
+            if let Some(auto::Action::Stop(why)) = a.step(line, Some(test)) {
+                let id = r.record.id.clone();
+                drop(g);
+                tracing::info!(test = %id, "stopping the test automatically ({why})");
+                let me = self.clone();
+                let spawned = std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why)) {
+                    Ok(s) => tracing::info!(test = %s.id, "the test stopped automatically"),
+                    Err(e) => tracing::warn!(test = %id, "the automatic stop did not go through: {e}"),
+                });
+                if let Err(e) = spawned {
+                    tracing::error!("cannot stop the test automatically: {e}");
+                }
+            }
         }
     }
 
@@ -450,6 +621,9 @@ impl LabTests {
                 tracing::error!(test = %r.record.id, "cannot write the test's feed: {e}");
             } else {
                 r.record.lines += 1;
+            }
+            if let (Some(n), Some(l)) = (line.net_deflection_mm, line.load_kn) {
+                push_point(&mut r.curve, n, l);
             }
         }
         r.written_t_ns = r.written_t_ns.max(line.t_ns);
