@@ -37,10 +37,12 @@ fn python() -> PathBuf {
     panic!("no python3 with selenium and prometheus_client (tried {candidates:?}): run scripts/setup.sh");
 }
 
-/// A small simulated rig (two 480x360 cameras at 5 fps, the simulated UTM over Modbus TCP)
-/// whose UTM goes silent `outage` = (after s, for s).
+/// A small simulated rig (two 480x360 cameras at 5 fps, the simulated UTM over Modbus TCP; a
+/// softening beam, so the config has `[specimen.beam]` and gauges) whose UTM goes silent
+/// `outage` = (after s, for s).
 fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
     let params = SimParams {
+        load_law: tagdeflect::sim::LoadLaw::Softening,
         cameras: 2,
         width: 480,
         height: 360,
@@ -176,9 +178,9 @@ fn page_in_chromium_shows_live_data_thumbnails_and_the_utm_outage_banner() {
     let py = python();
     let dir = tempfile::tempdir().unwrap();
     // The UTM goes silent 25 s after the start (the browser has started by then on a busy
-    // machine), for 60 s (the test ends before).
+    // machine), for 10 s.
     let outage_at = 25.0;
-    let cfg = rig_config(dir.path(), Some((outage_at, 60.0)));
+    let cfg = rig_config(dir.path(), Some((outage_at, 10.0)));
     let started = Instant::now();
     let mut demo = Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--duration-s", "90"]);
     let addr = demo.addr();
@@ -216,10 +218,20 @@ fn page_in_chromium_shows_live_data_thumbnails_and_the_utm_outage_banner() {
     if let Some(to) = std::env::var_os("TAGDEFLECT_SCREENSHOT") {
         std::fs::copy(&shot, to).unwrap();
     }
-    // The server agrees: the UTM is down now.
+    // The alarm: active during the outage, kept (cleared) after it until acknowledged.
+    assert_eq!(seen["alarm_during"][0][0], "active", "{seen}");
+    assert!(!seen["banner_after"].as_str().unwrap().contains("UTM"), "the banner goes when the UTM is back: {seen}");
+    assert_eq!(seen["alarm_after"][0][0], "cleared", "the alarm stays after its cause went: {seen}");
+    assert!(seen["alarm_acked"].as_array().unwrap().is_empty(), "gone once acknowledged: {seen}");
+    // Gauges with their σ; the bending profile fitted.
+    let gauges: Vec<&str> = seen["gauges"].as_array().unwrap().iter().filter_map(|g| g.as_str()).collect();
+    assert!(gauges.iter().any(|g| g.starts_with("net deflection") && g.contains('±')), "{gauges:?}");
+    assert!(gauges.len() >= 2 && gauges.iter().all(|g| g.contains("± ")), "every gauge with its σ: {gauges:?}");
+    assert_eq!(seen["profile_fit"], "ok", "{seen}");
+    assert!(seen["profile_note"].as_str().unwrap().contains("rms"), "{seen}");
+    // The server agrees: the UTM is up again.
     let st = status(addr);
-    assert_eq!(st["utm"]["state"], "down", "{st}");
-    assert!(st["problems"].as_array().unwrap().iter().any(|p| p.as_str().unwrap().starts_with("UTM down")));
+    assert_eq!(st["utm"]["state"], "ok", "{st}");
     assert_eq!(demo.stop(), Some(0));
 }
 
@@ -680,7 +692,9 @@ fn two_tests_through_the_control_api_with_its_refusals() {
 fn the_operator_page_drives_two_tests_in_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
-    let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let cfg = rig_config(dir.path(), None);
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
     let shot = dir.path().join("operator-page.png");
@@ -709,7 +723,20 @@ fn the_operator_page_drives_two_tests_in_chromium() {
         assert_eq!(kinds, ["start", "mark", "zero", "stop"], "{record}");
         assert_eq!(record["events"][1]["note"], "first crack seen");
         assert!(record["lines"].as_u64().unwrap() >= 5, "{record}");
+        let gauges: Vec<&str> = t["gauges"].as_array().unwrap().iter().filter_map(|g| g.as_str()).collect();
+        assert!(gauges.iter().any(|g| g.starts_with("net deflection") && g.contains("± ")), "{gauges:?}");
     }
+    // The second test: the first one's curve in grey, the rate judged against C1609's window for
+    // this beam, the deflected shape fitted, the report made at the stop.
+    let second = &tests[1];
+    assert_eq!(second["earlier"], "1", "{second}");
+    assert!(second["rate_window"][1].as_str().unwrap().starts_with("window "), "{second}");
+    assert_eq!(second["profile"][0], "ok", "{second}");
+    let folder = PathBuf::from(second["folder"].as_str().unwrap());
+    assert!(folder.join("report").is_dir(), "the C1609 test's report: {:?}", std::fs::read_dir(&folder).unwrap().collect::<Vec<_>>());
+    let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record["standard"], "astm-c1609");
+    assert!(record["sha256"].as_object().unwrap().keys().any(|k| k.starts_with("report/")), "the report is hashed: {record}");
     assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
     assert_eq!(&std::fs::read(&shot).unwrap()[1..4], b"PNG");
     if let Some(to) = std::env::var_os("TAGDEFLECT_OPERATOR_SCREENSHOT") {

@@ -11,6 +11,9 @@ const S = {
   t0: null,            // first line's t_ns
   t: [],               // seconds since t0
   load: [], net: [], stroke: [],
+  cmodv: [],           // the CMOD gauge's value, aligned with t
+  testIds: [],         // the test of each line (null between tests), aligned with t
+  earlier: [],         // the day's stopped tests: {id, specimen, net_deflection_mm, load_kn}
   tagIds: [],          // specimen tag ids in column order
   tags: new Map(),     // id -> downward displacement [mm] aligned with t
   selected: new Set(),
@@ -51,28 +54,59 @@ function makeTimeChart(el, yLabel, series) {
   return new uPlot(opts, [[], ...series.map(() => [])], el);
 }
 
-function makeCurve(el) {
+// Load over a deflection (mode 2: every series its own x); `earlier` grey curves under the
+// live one (the day's stopped tests).
+function makeCurve(el, earlier, xLabel) {
+  const facets = [{ scale: "x", auto: true }, { scale: "y", auto: true }];
+  const grey = { stroke: "#6b717a", width: 1, paths: uPlot.paths.linear(), points: { show: false }, facets };
   const opts = {
     mode: 2,
     ...size(el),
     height: 340,
     scales: { x: { time: false }, y: {} },
-    axes: [axis("net deflection [mm]"), axis("load [kN]")],
-    series: [{}, { label: "load vs net deflection", stroke: "#ff8c00", width: 2, paths: uPlot.paths.linear(), points: { show: false },
-      facets: [{ scale: "x", auto: true }, { scale: "y", auto: true }] }],
+    axes: [axis(xLabel), axis("load [kN]")],
+    series: [{}, ...Array.from({ length: earlier }, () => ({ ...grey })),
+      { label: "load vs " + xLabel, stroke: "#ff8c00", width: 2, paths: uPlot.paths.linear(), points: { show: false }, facets }],
     legend: { show: false },
     cursor: { drag: { x: false, y: false }, points: { show: false } },
   };
-  return new uPlot(opts, [null, [[], []]], el);
+  return new uPlot(opts, [null, ...Array.from({ length: earlier + 1 }, () => [[], []])], el);
+}
+
+// The deflected shape: each specimen tag's downward displacement at its place along the beam
+// (points) and the elastic curve fitted through them (line); the y axis points down.
+function makeProfile(el) {
+  const facets = [{ scale: "x", auto: true }, { scale: "y", auto: true }];
+  const opts = {
+    mode: 2,
+    ...size(el),
+    scales: { x: { time: false }, y: { dir: -1 } },
+    axes: [axis("along the beam [mm]"), axis("down [mm]")],
+    series: [{},
+      { label: "tags", stroke: "#ff8c00", fill: "#ff8c00", paths: uPlot.paths.points(), points: { show: true, size: 9, fill: "#ff8c00" }, facets },
+      { label: "elastic fit", stroke: "#00c8ff", width: 2, paths: uPlot.paths.linear(), points: { show: false }, facets }],
+    legend: { show: false },
+    cursor: { drag: { x: false, y: false }, points: { show: false } },
+  };
+  return new uPlot(opts, [null, [[], []], [[], []]], el);
+}
+
+function rebuildCurve() {
+  if (S.charts.curve) S.charts.curve.destroy();
+  S.charts.curve = makeCurve($("curve"), S.earlier.length, "net deflection [mm]");
+  $("curve-note").textContent = S.earlier.length ? `(the day's ${S.earlier.length} earlier test${S.earlier.length > 1 ? "s" : ""} in grey)` : "";
+  S.dirty = true;
 }
 
 function initCharts() {
-  S.charts.curve = makeCurve($("curve"));
+  rebuildCurve();
+  S.charts.profile = makeProfile($("profile"));
   S.charts.defl = makeTimeChart($("defl"), "net deflection [mm]", [{ label: "net deflection [mm]", stroke: "#ff8c00", width: 2, value: (u, v) => fmt(v, 3) }]);
   S.charts.load = makeTimeChart($("load"), "load [kN]", [{ label: "load [kN]", stroke: "#00c8ff", width: 2, value: (u, v) => fmt(v, 2) }]);
   rebuildTagChart();
   window.addEventListener("resize", () => {
-    for (const [k, c] of Object.entries(S.charts)) c.setSize(size($(k === "tags" ? "tags" : k)));
+    const el = { cmod: "cmodcurve" };
+    for (const [k, c] of Object.entries(S.charts)) c.setSize(size($(el[k] || k)));
   });
 }
 
@@ -109,6 +143,7 @@ function addTag(id, role) {
 function decimate() {
   const keep = (a) => a.filter((_, i) => i % 2 === 0);
   S.t = keep(S.t); S.load = keep(S.load); S.net = keep(S.net); S.stroke = keep(S.stroke);
+  S.cmodv = keep(S.cmodv); S.testIds = keep(S.testIds);
   for (const [id, a] of S.tags) S.tags.set(id, keep(a));
 }
 
@@ -119,6 +154,9 @@ function onLine(line) {
   S.load.push(line.load_kN ?? null);
   S.net.push(line.net_deflection_mm ?? null);
   S.stroke.push(line.stroke_mm ?? null);
+  const cmod = S.status && S.status.cmod_gauge && line.gauges ? line.gauges[S.status.cmod_gauge] : undefined;
+  S.cmodv.push(cmod ? cmod.value : null);
+  S.testIds.push(line.test ? line.test.id : null);
   const seen = new Map();
   for (const t of line.tags || []) seen.set(t.id, -(t.disp_mm[0] * ux + t.disp_mm[1] * uy + t.disp_mm[2] * uz));
   for (const id of seen.keys()) if (!S.tags.has(id)) { addTag(id, null); S.tags.get(id).pop(); rebuildTagChart(); }
@@ -133,10 +171,24 @@ function onLine(line) {
 function redraw() {
   if (!S.dirty) return;
   S.dirty = false;
-  const xs = [], ys = [];
-  for (let i = 0; i < S.t.length; i++) if (S.net[i] !== null && S.load[i] !== null) { xs.push(S.net[i]); ys.push(S.load[i]); }
-  S.charts.curve.setData([null, [xs, ys]]);
-  $("curve").dataset.points = xs.length;
+  // While a test runs, its own lines (counted from its zero); else every line.
+  const testId = T.state === "running" ? T.id : null;
+  const curveOf = (xv) => {
+    const xs = [], ys = [];
+    for (let i = 0; i < S.t.length; i++) {
+      if ((testId === null || S.testIds[i] === testId) && xv[i] !== null && S.load[i] !== null) { xs.push(xv[i]); ys.push(S.load[i]); }
+    }
+    return [xs, ys];
+  };
+  const cur = curveOf(S.net);
+  S.charts.curve.setData([null, ...S.earlier.map((e) => [e.net_deflection_mm, e.load_kn]), cur]);
+  $("curve").dataset.points = cur[0].length;
+  $("curve").dataset.earlier = S.earlier.length;
+  if (S.charts.cmod) {
+    const c = curveOf(S.cmodv);
+    S.charts.cmod.setData([null, c]);
+    $("cmodcurve").dataset.points = c[0].length;
+  }
   S.charts.defl.setData([S.t, S.net]);
   $("defl").dataset.points = S.net.filter((v) => v !== null).length;
   S.charts.load.setData([S.t, S.load]);
@@ -149,6 +201,8 @@ function redraw() {
     $("r-net").textContent = fmt(l.net_deflection_mm, 3);
     $("r-stroke").textContent = fmt(l.stroke_mm, 3);
     $("r-seq").textContent = l.seq;
+    showGauges(l);
+    showProfile(l);
     chip("c-latency", l.latency_ms === undefined ? "latency – ms" : `latency ${fmt(l.latency_ms, 1)} ms`, l.latency_ms > 1000 ? "warn" : "");
     chip("c-dropped", `dropped sets ${l.dropped_sets ?? 0}`, (l.dropped_sets ?? 0) > 0 ? "warn" : "ok");
   }
@@ -206,6 +260,11 @@ function onStatus(st) {
   $("mode").textContent = st.mode === "live" ? "— live" : st.finished ? "— replay (recording consumed)" : "— replay";
   if (first) for (const t of st.specimen_tags) addTag(t.id, t.role);
   if (first) rebuildTagChart();
+  if (first && st.cmod_gauge) {
+    $("cmod-panel").hidden = false;
+    $("cmod-name").textContent = "(gauge " + st.cmod_gauge + ")";
+    S.charts.cmod = makeCurve($("cmodcurve"), 0, "CMOD [mm]");
+  }
   for (const src of st.sources) {
     const c = cameraCard(src);
     let state = "posed", cls = "ok";
@@ -239,6 +298,9 @@ function updateBanner() {
   const limit = Math.max(5 * S.frameInterval, 2);
   if (live && S.lastLineAt > 0 && quiet > limit && !problems.some((p) => p.startsWith("no feed line")))
     problems.push(`no feed line for ${quiet.toFixed(1)} s`);
+  if (T.rateAlarm) problems.push(T.rateAlarm);
+  // Alarms once the page has heard from the daemon (not the page's own start).
+  if (S.status) updateAlarms(problems);
   const b = $("banner");
   if (problems.length === 0) { b.hidden = true; b.replaceChildren(); return; }
   b.replaceChildren(...problems.map((p) => { const d = document.createElement("div"); d.textContent = "⚠ " + p; return d; }));
@@ -267,7 +329,7 @@ function connect() {
 
 // The test panel: the state from GET /api/test, the commands as POSTs with the token, asked
 // once per browser session (sessionStorage). Text only through textContent.
-const T = { state: null, startedNs: null, peak: null, lastRate: null };
+const T = { state: null, id: null, standard: null, startedNs: null, peak: null, lastRate: null, rate: null, outSince: null, rateAlarm: null };
 function testMessage(text, bad) { const m = $("t-message"); m.textContent = text; m.className = bad ? "bad" : "muted"; }
 function token() {
   let t = sessionStorage.getItem("tagdeflect-token");
@@ -294,8 +356,13 @@ async function command(cmd, body) {
   await pollTest();
 }
 function onTest(st) {
+  const wasRunning = T.state === "running";
   T.state = st.state;
   const running = st.state === "running";
+  if (running && T.id !== st.id) { T.lastRate = null; T.rate = null; T.outSince = null; T.rateAlarm = null; }
+  T.id = running ? st.id : null;
+  T.standard = running ? st.standard || null : null;
+  if (wasRunning && !running) { T.rateAlarm = null; T.outSince = null; fetchEarlier(); }
   $("t-state").textContent = running ? "running: " + st.id + (st.zeroing ? " (taking its zero)" : "") : st.state;
   $("t-specimen").textContent = running ? st.specimen : "–";
   T.startedNs = running ? st.started_t_ns : null;
@@ -305,17 +372,50 @@ function onTest(st) {
   $("t-auto").textContent = st.auto ? "automatic (" + st.auto.state + "): waiting for " + st.auto.waiting_for : "";
   if (st.state === "off") testMessage("tests are off: start the daemon with --tests DIR or [output] tests", false);
 }
+// The rate of the standard's controlled quantity (CMOD for EN 14651, else the net deflection)
+// against the standard's window for this beam (/api/status rate_windows; the report's): green
+// inside, amber within 25 % beyond its edges, red further; red for 10 s is an alarm.
+function controlled(line) {
+  const cmod = T.standard === "en-14651" && S.status && S.status.cmod_gauge;
+  if (cmod) { const g = (line.gauges || {})[cmod]; return { name: "CMOD rate", v: g ? g.value : undefined, rate: undefined }; }
+  return { name: "deflection rate", v: line.net_deflection_mm, rate: line.net_deflection_rate_mm_per_min };
+}
+function judgeRate(line, q) {
+  const box = $("t-rate");
+  const windows = S.status && S.status.rate_windows ? S.status.rate_windows : {};
+  const w = T.standard ? windows[T.standard] : undefined;
+  if (!w) {
+    box.dataset.window = "none";
+    $("t-rate-window").textContent = T.standard ? "no window: the rig has no [specimen.beam]" : "no standard: no window";
+    return;
+  }
+  const below = q.v === undefined || q.v < w.split_mm;
+  const [lo, hi] = below ? w.below_mm_per_min : w.above_mm_per_min;
+  $("t-rate-window").textContent = `window ${lo}–${hi} mm/min (${below ? "up to" : "beyond"} ${fmt(w.split_mm, 3)} mm)`;
+  if (T.rate === null || T.rate === undefined || line.test.zeroing) { box.dataset.window = "none"; return; }
+  const r = T.rate;
+  const verdict = r >= lo && r <= hi ? "ok" : r >= 0.75 * lo && r <= 1.25 * hi ? "warn" : "bad";
+  box.dataset.window = verdict;
+  if (verdict === "bad") {
+    if (T.outSince === null) T.outSince = line.t_ns;
+    if (line.t_ns - T.outSince >= 10e9) T.rateAlarm = `${q.name} ${fmt(r, 3)} mm/min out of the standard's window ${lo}–${hi} mm/min`;
+  } else { T.outSince = null; T.rateAlarm = null; }
+}
 function onTestLine(line) {
   if (!line.test) return;
   if (line.load_kN !== undefined && (T.peak === null || line.load_kN > T.peak)) T.peak = line.load_kN;
-  if (line.net_deflection_mm !== undefined) {
+  const q = controlled(line);
+  $("t-rate-label").textContent = q.name;
+  if (q.rate !== undefined && q.rate !== null) T.rate = q.rate;
+  else if (q.v !== undefined) {
     if (T.lastRate) {
       const dt = (line.t_ns - T.lastRate.t) / 6e10;
-      if (dt > 0.05 / 60) { T.rate = (line.net_deflection_mm - T.lastRate.v) / dt; T.lastRate = { t: line.t_ns, v: line.net_deflection_mm }; }
-    } else T.lastRate = { t: line.t_ns, v: line.net_deflection_mm };
+      if (dt > 0.05 / 60) { T.rate = (q.v - T.lastRate.v) / dt; T.lastRate = { t: line.t_ns, v: q.v }; }
+    } else T.lastRate = { t: line.t_ns, v: q.v };
   }
   $("t-peak").textContent = fmt(T.peak, 2);
   $("t-rate").textContent = fmt(T.rate, 3);
+  judgeRate(line, q);
   if (T.startedNs !== null) {
     const s = Math.max(0, (line.t_ns - T.startedNs) / 1e9);
     $("t-elapsed").textContent = Math.floor(s / 60) + " min " + (s % 60).toFixed(0).padStart(2, "0") + " s";
@@ -337,7 +437,165 @@ $("b-mark").addEventListener("click", () => { const note = window.prompt("Mark (
 $("b-zero").addEventListener("click", () => command("zero"));
 $("b-stop").addEventListener("click", () => { if (window.confirm("Stop the test and complete its folder?")) command("stop"); });
 
+// Gauges (and the net deflection) with their 1-σ, as the line gives them.
+const DECIMALS = { "mm": 3, "mrad": 3, "1/km": 2 };
+function showGauges(l) {
+  const rows = [];
+  if (l.net_deflection_mm !== undefined) rows.push(["net deflection", l.net_deflection_mm, l.net_deflection_sigma_mm, "mm"]);
+  for (const [name, g] of Object.entries(l.gauges || {})) rows.push([name, g.value, g.sigma, g.unit || ""]);
+  const body = $("gauges").tBodies[0];
+  if (rows.length === 0) {
+    const td = document.createElement("td"); td.className = "muted"; td.textContent = "no gauge in this line ([[gauge]] in the config)";
+    const tr = document.createElement("tr"); tr.append(td); body.replaceChildren(tr); return;
+  }
+  body.replaceChildren(...rows.map(([name, v, sigma, unit]) => {
+    const d = DECIMALS[unit] ?? 0;
+    const tr = document.createElement("tr");
+    tr.dataset.gauge = name;
+    const cells = [[name, "name"], [fmt(v, d), "num"], [sigma === undefined || sigma === null ? "± ?" : "± " + fmt(sigma, d), "num sigma"], [unit, "muted"]];
+    for (const [text, cls] of cells) { const td = document.createElement("td"); td.className = cls; td.textContent = text; tr.append(td); }
+    return tr;
+  }));
+}
+
+// The bending profile. The beam's axis: the horizontal direction the tags spread along (the
+// principal direction of their rest positions across world.up). Supports: the `support`
+// tags, else [specimen.beam] span_mm about the midspan tags (or the tags' middle). The elastic
+// curve of a simply supported beam under two loads a = (L − L/3)/2 from the supports (third-
+// point loading, ASTM C1609; one load at midspan for EN 14651), plus a line for the supports'
+// own movement: w(x) = c0 + c1·x + k·f(x), least squares over the tags.
+function shape(x, L, a) {
+  const f = (u) => u <= a ? u * (3 * L * a - 3 * a * a - u * u) : a * (3 * L * u - 3 * u * u - a * a);
+  const slope0 = 3 * L * a - 3 * a * a;
+  const peak = a * (0.75 * L * L - a * a);
+  let v;
+  if (x < 0) v = x * slope0; else if (x > L) v = (L - x) * slope0; else v = x <= L / 2 ? f(x) : f(L - x);
+  return v / peak;
+}
+function solve3(A, b) {
+  const m = A.map((r, i) => [...r, b[i]]);
+  for (let c = 0; c < 3; c++) {
+    let p = c;
+    for (let r = c + 1; r < 3; r++) if (Math.abs(m[r][c]) > Math.abs(m[p][c])) p = r;
+    if (Math.abs(m[p][c]) < 1e-12) return null;
+    [m[c], m[p]] = [m[p], m[c]];
+    for (let r = 0; r < 3; r++) if (r !== c) { const k = m[r][c] / m[c][c]; for (let j = c; j < 4; j++) m[r][j] -= k * m[c][j]; }
+  }
+  return [m[0][3] / m[0][0], m[1][3] / m[1][1], m[2][3] / m[2][2]];
+}
+function showProfile(l) {
+  const tags = (l.tags || []).filter((t) => t.pos_mm && t.disp_mm);
+  const el = $("profile");
+  if (tags.length < 2) { S.charts.profile.setData([null, [[], []], [[], []]]); el.dataset.points = 0; el.dataset.fit = "none"; return; }
+  const up = S.up;
+  const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+  const rest = tags.map((t) => t.pos_mm.map((p, i) => p - t.disp_mm[i]));
+  const mean = [0, 1, 2].map((i) => rest.reduce((s, p) => s + p[i], 0) / rest.length);
+  const flat = rest.map((p) => { const d = p.map((v, i) => v - mean[i]); const h = dot(d, up); return d.map((v, i) => v - h * up[i]); });
+  // Power iteration on the horizontal scatter.
+  let ax = flat.reduce((best, d) => (dot(d, d) > dot(best, best) ? d : best), [1e-9, 0, 0]);
+  for (let it = 0; it < 30; it++) {
+    const n = [0, 0, 0];
+    for (const d of flat) { const k = dot(d, ax); for (let i = 0; i < 3; i++) n[i] += k * d[i]; }
+    const len = Math.sqrt(dot(n, n)) || 1;
+    ax = n.map((v) => v / len);
+  }
+  const big = ax.reduce((b, v, i) => (Math.abs(v) > Math.abs(ax[b]) ? i : b), 0);
+  if (ax[big] < 0) ax = ax.map((v) => -v);
+  const roles = new Map(((S.status && S.status.specimen_tags) || []).map((t) => [t.id, t.role]));
+  const s = flat.map((d) => dot(d, ax));
+  const w = tags.map((t) => -dot(t.disp_mm, up));
+  const sup = s.filter((_, i) => roles.get(tags[i].id) === "support");
+  const mid = s.filter((_, i) => roles.get(tags[i].id) === "midspan");
+  let left = null, L = null;
+  if (sup.length >= 2) { left = Math.min(...sup); L = Math.max(...sup) - left; }
+  else if (S.status && S.status.beam) {
+    L = S.status.beam.span_mm;
+    const c = mid.length ? mid.reduce((a, b) => a + b, 0) / mid.length : (Math.min(...s) + Math.max(...s)) / 2;
+    left = c - L / 2;
+  }
+  const xs = s.map((v) => left === null ? v : v - left);
+  S.charts.profile.setData([null, [xs, w], [[], []]]);
+  el.dataset.points = xs.length;
+  el.dataset.fit = "none";
+  if (L === null || !(L > 0) || tags.length < 3) { $("profile-note").textContent = "(no fit: give support tags or [specimen.beam])"; return; }
+  const a = T.standard === "en-14651" ? L / 2 : L / 3;
+  const rows = xs.map((x) => [1, x, shape(x, L, a)]);
+  const A = [0, 1, 2].map((i) => [0, 1, 2].map((j) => rows.reduce((acc, r) => acc + r[i] * r[j], 0)));
+  const b = [0, 1, 2].map((i) => rows.reduce((acc, r, k) => acc + r[i] * w[k], 0));
+  const c = solve3(A, b);
+  if (!c) { $("profile-note").textContent = "(no fit: the tags do not span the beam)"; return; }
+  const lo = Math.min(0, ...xs), hi = Math.max(L, ...xs);
+  const fx = [], fy = [];
+  for (let i = 0; i <= 80; i++) { const x = lo + (hi - lo) * i / 80; fx.push(x); fy.push(c[0] + c[1] * x + c[2] * shape(x, L, a)); }
+  const res = rows.map((r, k) => w[k] - (c[0] + c[1] * r[1] + c[2] * r[2]));
+  const rms = Math.sqrt(res.reduce((acc, v) => acc + v * v, 0) / res.length);
+  S.charts.profile.setData([null, [xs, w], [fx, fy]]);
+  el.dataset.fit = "ok";
+  el.dataset.bending = c[2].toFixed(4);
+  $("profile-note").textContent = `(x from the left support; fit: bending ${fmt(c[2], 3)} mm at midspan, rms ${fmt(rms * 1000, 0)} µm over ${xs.length} tags)`;
+}
+
+// Alarms: everything the banner says, and a rate out of its window for 10 s, listed until
+// acknowledged (in this browser). An alarm whose cause went away stays, amber, until
+// acknowledged; an acknowledged one stays, grey, while its cause lasts.
+const ALARMS = new Map(); // key (the text without its numbers) -> {text, since, active, acked}
+function updateAlarms(problems) {
+  const now = new Set();
+  for (const text of problems) {
+    const key = text.replace(/[0-9]+([.,][0-9]+)?/g, "#");
+    now.add(key);
+    const a = ALARMS.get(key);
+    if (!a) ALARMS.set(key, { text, since: new Date(), active: true, acked: false });
+    else { a.text = text; if (!a.active) { a.active = true; a.acked = false; a.since = new Date(); } }
+  }
+  for (const [key, a] of ALARMS) if (!now.has(key)) { a.active = false; if (a.acked) ALARMS.delete(key); }
+  renderAlarms();
+}
+function acknowledge(key) {
+  const a = ALARMS.get(key);
+  if (!a) return;
+  a.acked = true;
+  if (!a.active) ALARMS.delete(key);
+  renderAlarms();
+}
+function renderAlarms() {
+  const items = [];
+  let open = 0;
+  for (const [key, a] of ALARMS) {
+    const state = a.acked ? "acked" : a.active ? "active" : "cleared";
+    if (!a.acked) open++;
+    const li = document.createElement("li");
+    li.dataset.state = state;
+    const when = document.createElement("span"); when.className = "when"; when.textContent = a.since.toLocaleTimeString();
+    const text = document.createElement("span"); text.className = "text";
+    text.textContent = a.text + (state === "cleared" ? " — cleared" : state === "acked" ? " — acknowledged, still on" : "");
+    li.append(when, text);
+    if (!a.acked) {
+      const b = document.createElement("button"); b.type = "button"; b.className = "small-button ack"; b.textContent = "acknowledge";
+      b.addEventListener("click", () => acknowledge(key));
+      li.append(b);
+    }
+    items.push(li);
+  }
+  $("alarms").replaceChildren(...items);
+  $("alarm-count").textContent = ALARMS.size === 0 ? "none" : `${open} to acknowledge, ${ALARMS.size} listed`;
+  $("b-ack").disabled = open === 0;
+}
+$("b-ack").addEventListener("click", () => { for (const key of [...ALARMS.keys()]) acknowledge(key); });
+
+async function fetchEarlier() {
+  try {
+    const r = await fetch("/api/tests", { cache: "no-store" });
+    if (!r.ok) return;
+    const j = await r.json();
+    S.earlier = (j.tests || []).filter((t) => Array.isArray(t.net_deflection_mm) && Array.isArray(t.load_kn));
+    rebuildCurve();
+  } catch (e) { /* the status poll reports a lost server */ }
+}
+
 initCharts();
+fetchEarlier();
 pollTest();
 setInterval(pollTest, 1000);
 pollStatus().then(connect);
