@@ -240,6 +240,12 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
         (Some(dir), false) => {
             let t = crate::graph::lab_tests::start(&config, dir, &page)?;
             outputs.sinks.push(Box::new(tagdeflect_sinks::lab_test::LabTestSink(t.clone())));
+            // The archive knows the tests: each record to `<topic>/labtest/<id>`.
+            #[cfg(feature = "mqtt")]
+            if let Some(m) = &outputs.mqtt {
+                let m = m.clone();
+                t.set_on_record(Box::new(move |r| m.publish_lab_test(r)));
+            }
             Some(t)
         }
         (None, false) if config.output.auto_test.is_some() => {

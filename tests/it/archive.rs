@@ -67,7 +67,7 @@ fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
     let until = Instant::now() + Duration::from_secs(30);
     loop {
         let text = fs::read_to_string(log).unwrap_or_default().get(skip..).unwrap_or_default().to_string();
-        if text.matches("archive: subscribed").count() >= 2 && text.contains("archive: database ready") {
+        if text.matches("archive: subscribed").count() >= 3 && text.contains("archive: database ready") {
             break;
         }
         assert!(p.alive(), "the archive exited: {text}");
@@ -403,6 +403,119 @@ fn a_restarted_run_with_the_same_test_id_is_kept_as_a_second_run() {
     assert!(archive.alive());
 }
 
+/// The archive knows the lab's tests: a demo rig keeping tests (started and stopped by the
+/// load, `[output.auto_test]`) publishes each test's record on `<topic>/labtest/<id>`; the
+/// archive keeps it in `lab_tests` (specimen, events, the hashes of the stopped test's files:
+/// test.json's own) and `lab_test_lines` holds every line of the test's folder. A record
+/// forged onto another rig's topic is skipped.
+#[test]
+fn the_archive_keeps_each_lab_test_with_its_record_and_its_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let alog = dir.path().join("archive.log");
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-lab", &alog);
+    let (cfg, _) = demo_config(dir.path(), &broker.url(), "lab-1", "day", 10_000);
+    let mut text = fs::read_to_string(&cfg).unwrap();
+    text.push_str("\n[output.auto_test]\nstart_load_kn = 5.0\n");
+    fs::write(&cfg, text).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let log = dir.path().join("demo.log");
+    let child = Command::new(bin())
+        .args(["demo", "--http", "127.0.0.1:0", "--tests"])
+        .arg(&tests_dir)
+        .arg("--config")
+        .arg(&cfg)
+        .args(["--duration-s", "26"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut demo = Proc { child, name: "demo" };
+    assert!(demo.wait(Duration::from_secs(90)).success(), "{}", fs::read_to_string(&log).unwrap());
+    let logs = || logs_of(dir.path(), &["demo.log", "archive.log"]);
+    // The stopped tests of the folder, with their records.
+    let mut stopped: Vec<(serde_json::Value, usize)> = Vec::new();
+    for e in fs::read_dir(&tests_dir).unwrap().flatten() {
+        if let Ok(t) = fs::read_to_string(e.path().join("test.json")) {
+            let lines = fs::read_to_string(e.path().join("feed.jsonl")).unwrap().lines().count();
+            stopped.push((serde_json::from_str(&t).unwrap(), lines));
+        }
+    }
+    assert!(!stopped.is_empty(), "no test started and stopped by itself in 26 s\n{}", logs());
+    for (record, lines) in &stopped {
+        let id = record["id"].as_str().unwrap().to_string();
+        let until = Instant::now() + Duration::from_secs(30);
+        let (row, held) = loop {
+            let i = id.clone();
+            let row = query(&pg.url(), move |c| {
+                Box::pin(async move {
+                    let r = c
+                        .query_opt(
+                            "SELECT lt.specimen, lt.stopped_t_ns, lt.events, lt.sha256, r.name, t.name,
+                                    (SELECT count(*) FROM lab_test_lines l WHERE l.lab_test = lt.id AND l.rig = r.name)
+                             FROM lab_tests lt JOIN rigs r ON r.id = lt.rig_id JOIN tests t ON t.id = lt.run_test_id WHERE lt.id = $1",
+                            &[&i],
+                        )
+                        .await
+                        .unwrap();
+                    r.map(|r| {
+                        let v: (String, Option<i64>, serde_json::Value, serde_json::Value, String, String) =
+                            (r.get(0), r.get(1), r.get(2), r.get(3), r.get(4), r.get(5));
+                        (v, r.get::<_, i64>(6))
+                    })
+                })
+            });
+            match row {
+                Some((v, n)) if v.1.is_some() && n as usize >= *lines => break (v, n),
+                _ if Instant::now() < until => std::thread::sleep(Duration::from_millis(200)),
+                other => panic!("lab test {id} not archived whole within 30 s: {other:?} of {lines} lines\n{}", logs()),
+            }
+        };
+        assert_eq!(row.0, "auto");
+        assert_eq!(row.1, record["stopped_t_ns"].as_i64());
+        assert_eq!(row.2, record["events"], "the events as in test.json");
+        assert_eq!(row.3, record["sha256"], "the files' hashes as in test.json");
+        assert_eq!((row.4.as_str(), row.5.as_str()), ("lab-1", "day"));
+        assert_eq!(held as usize, *lines, "every line of the test's folder is in lab_test_lines");
+        let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+        assert_eq!(kinds, ["start", "stop"], "{record}");
+    }
+
+    // A record forged onto another rig's topic: skipped, the archive goes on.
+    let (record, _) = &stopped[0];
+    let mut forged = record.clone();
+    forged["rig"] = "lab-1".into();
+    forged["test"] = "day".into();
+    let topic = format!("tagdeflect/other/day/labtest/{}", record["id"].as_str().unwrap());
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let (c, mut el) = rumqttc::AsyncClient::new(rumqttc::MqttOptions::new("forger", "127.0.0.1", broker.port()), 16);
+        c.publish(topic, rumqttc::QoS::AtLeastOnce, false, serde_json::to_vec(&forged).unwrap()).await.unwrap();
+        loop {
+            if let rumqttc::Event::Incoming(rumqttc::Packet::PubAck(_)) = el.poll().await.unwrap() {
+                break;
+            }
+        }
+    });
+    let until = Instant::now() + Duration::from_secs(20);
+    while !fs::read_to_string(&alog).unwrap().contains("a lab test record with rig \"lab-1\" on the topic of rig \"other\"") {
+        assert!(Instant::now() < until, "the forged record was not refused\n{}", logs());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let others = query(&pg.url(), |c| {
+        Box::pin(async move {
+            c.query_one("SELECT count(*) FROM lab_tests lt JOIN rigs r ON r.id = lt.rig_id WHERE r.name = 'other'", &[])
+                .await
+                .unwrap()
+                .get::<_, i64>(0)
+        })
+    });
+    assert_eq!(others, 0);
+    assert!(archive.alive(), "{}", logs());
+}
+
 /// `archive backfill`: a rig that never reached the broker; the gap view and the gap log;
 /// idempotent; a bad line is bad input naming file and line.
 #[test]
@@ -635,6 +748,12 @@ fn broker_urls_topic_templates_and_config_errors() {
     assert_eq!(l.parse("lab/t1/x/r1/status"), Some(("r1".into(), "t1".into(), Kind::Status)));
     assert_eq!(l.parse("lab/t1/y/r1/feed"), None);
     assert_eq!(l.parse("lab/t1/x/r1/other"), None);
+    assert_eq!(l.filter(Kind::LabTest), "lab/+/x/+/labtest/+");
+    assert_eq!(l.parse_lab("lab/t1/x/r1/labtest/20261202T101500Z-B1"), Some(("r1".into(), "t1".into(), "20261202T101500Z-B1".into())));
+    assert_eq!(l.parse_lab("lab/t1/x/r1/labtest/"), None);
+    assert_eq!(l.parse_lab("lab/t1/x/r1/labtest"), None);
+    assert_eq!(l.parse_lab("lab/t1/y/r1/labtest/a"), None);
+    assert_eq!(l.parse("lab/t1/x/r1/labtest/a"), None);
 
     // Config errors name the file, the line and the key.
     let dir = tempfile::tempdir().unwrap();

@@ -626,6 +626,7 @@ fn mutation_fuzz() {
     };
     let first_line = feed.split(|b| *b == b'\n').next().unwrap().to_vec();
     let ack = br#"{"runs":[{"run":1,"high":40,"gaps":[[3,5]]}]}"#.to_vec();
+    let lab_record = br#"{"rig":"r","test":"t","id":"20261202T101500Z-B12","specimen":"B12","operator":"A","started_t_ns":1700000000000000000,"events":[{"kind":"start","t_ns":1700000000000000000}],"lines":3,"utm_samples":30,"sha256":{}}"#.to_vec();
     let seeds: Vec<(&str, Vec<Vec<u8>>)> = vec![
         ("report_feed", vec![feed.clone()]),
         (
@@ -634,6 +635,7 @@ fn mutation_fuzz() {
                 [vec![0u8], first_line.clone()].concat(),
                 [vec![1u8], b"{\"state\":\"online\"}".to_vec()].concat(),
                 [vec![2u8], ack].concat(),
+                [vec![3u8], lab_record].concat(),
             ],
         ),
         ("image", vec![pgm.clone(), png.clone()]),

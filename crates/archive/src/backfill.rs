@@ -95,7 +95,7 @@ pub fn run(opts: &BackfillOptions) -> Result<(), ArchiveError> {
         let mut sum = BackfillSummary { read: lines.len() as u64, ..BackfillSummary::default() };
         let mut test_id = None;
         for chunk in lines.chunks(1000) {
-            let w = db.write_or_skip(chunk, &[]).await.map_err(|e| ArchiveError::Database(super::chain(&e)))?;
+            let w = db.write_or_skip(chunk, &[], &[]).await.map_err(|e| ArchiveError::Database(super::chain(&e)))?;
             sum.inserted += w.inserted;
             sum.duplicates += w.duplicates;
             test_id = test_id.or(w.touched.first().map(|t| t.2));

@@ -13,6 +13,7 @@ use tokio_postgres::{Client, NoTls, Statement};
 pub const MIGRATIONS: &[(i32, &str, &str)] = &[
     (1, "init", include_str!("../../../migrations/0001_init.sql")),
     (2, "runs_and_gaps", include_str!("../../../migrations/0002_runs_and_gaps.sql")),
+    (3, "lab_tests", include_str!("../../../migrations/0003_lab_tests.sql")),
 ];
 
 /// Advisory lock key held while migrating ("tagdefle" in ASCII).
@@ -44,6 +45,31 @@ pub struct StatusRow {
     pub status: serde_json::Value,
 }
 
+/// A lab test's record for the database (checked: [`tagdeflect_sinks::mqtt::LabTestMessage::parse`]).
+#[derive(Debug, Clone)]
+pub struct LabTestRow {
+    /// Rig name (from the topic).
+    pub rig: String,
+    /// The run it was published in (the topic's test).
+    pub run: String,
+    /// The record.
+    pub message: tagdeflect_sinks::mqtt::LabTestMessage,
+}
+
+/// Upserts a lab test; a record with fewer events than the one held is an older version
+/// (a redelivery after a newer one) and leaves it as it is.
+const LAB_TEST_SQL: &str = r#"
+INSERT INTO lab_tests (rig_id, id, run_test_id, specimen, operator, standard, notes, measured,
+                       started_t_ns, stopped_t_ns, events, sha256, record)
+VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)
+ON CONFLICT (rig_id, id) DO UPDATE SET
+    run_test_id = EXCLUDED.run_test_id, specimen = EXCLUDED.specimen, operator = EXCLUDED.operator,
+    standard = EXCLUDED.standard, notes = EXCLUDED.notes, measured = EXCLUDED.measured,
+    started_t_ns = EXCLUDED.started_t_ns, stopped_t_ns = EXCLUDED.stopped_t_ns, events = EXCLUDED.events,
+    sha256 = EXCLUDED.sha256, record = EXCLUDED.record, updated_at = now()
+WHERE jsonb_array_length(EXCLUDED.events) >= jsonb_array_length(lab_tests.events)
+"#;
+
 /// What one committed batch did.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Written {
@@ -57,6 +83,8 @@ pub struct Written {
     pub gauges: u64,
     /// Rows refused by the database as bad data (logged, skipped).
     pub rejected: u64,
+    /// Lab test records upserted.
+    pub lab_tests: u64,
     /// The tests written to (also by duplicates only): (rig, test, test row id).
     pub touched: Vec<(String, String, i64)>,
 }
@@ -68,6 +96,7 @@ impl Written {
         self.tags += w.tags;
         self.gauges += w.gauges;
         self.rejected += w.rejected;
+        self.lab_tests += w.lab_tests;
         for t in w.touched {
             if !self.touched.contains(&t) {
                 self.touched.push(t);
@@ -267,12 +296,22 @@ impl Db {
     /// upserted on (rig, test, run, seq) with its tag and gauge samples, the latest status
     /// per test. Nothing is written unless everything is. Logs the runs it begins and the
     /// gaps that open and close.
-    pub async fn write(&mut self, lines: &[LineRow], statuses: &[StatusRow]) -> Result<Written, tokio_postgres::Error> {
+    pub async fn write(
+        &mut self,
+        lines: &[LineRow],
+        statuses: &[StatusRow],
+        labs: &[LabTestRow],
+    ) -> Result<Written, tokio_postgres::Error> {
         let tx = self.client.transaction().await?;
         let mut new_ids = Vec::new();
         let mut ids: HashMap<(String, String), i64> = HashMap::new();
         let mut w = Written::default();
-        for (rig, test) in lines.iter().map(|l| (&l.rig, &l.test)).chain(statuses.iter().map(|s| (&s.rig, &s.test))) {
+        for (rig, test) in lines
+            .iter()
+            .map(|l| (&l.rig, &l.test))
+            .chain(statuses.iter().map(|s| (&s.rig, &s.test)))
+            .chain(labs.iter().map(|l| (&l.rig, &l.run)))
+        {
             let key = (rig.clone(), test.clone());
             if ids.contains_key(&key) {
                 continue;
@@ -387,6 +426,32 @@ impl Db {
             )
             .await?;
         }
+        for l in labs {
+            let run_id = ids[&(l.rig.clone(), l.run.clone())];
+            let r = &l.message.record;
+            let json = |v: serde_json::Result<serde_json::Value>| v.unwrap_or(serde_json::Value::Null);
+            let rig_id: i32 = tx.query_one("SELECT rig_id FROM tests WHERE id = $1", &[&run_id]).await?.get(0);
+            tx.execute(
+                LAB_TEST_SQL,
+                &[
+                    &rig_id,
+                    &r.id,
+                    &run_id,
+                    &r.meta.specimen,
+                    &r.meta.operator,
+                    &r.meta.standard,
+                    &r.meta.notes,
+                    &json(serde_json::to_value(&r.meta.measured)),
+                    &r.started_t_ns,
+                    &r.stopped_t_ns,
+                    &json(serde_json::to_value(&r.events)),
+                    &json(serde_json::to_value(&r.sha256)),
+                    &json(serde_json::to_value(&l.message)),
+                ],
+            )
+            .await?;
+            w.lab_tests += 1;
+        }
         tx.commit().await?;
         self.tests.extend(new_ids);
         for r in &new_runs {
@@ -407,13 +472,18 @@ impl Db {
 
     /// Writes a batch; when the database refuses it as bad data, writes the rows one by one
     /// and skips (logs) those it refuses, so one bad line never stalls the archive.
-    pub async fn write_or_skip(&mut self, lines: &[LineRow], statuses: &[StatusRow]) -> Result<Written, tokio_postgres::Error> {
-        match self.write(lines, statuses).await {
+    pub async fn write_or_skip(
+        &mut self,
+        lines: &[LineRow],
+        statuses: &[StatusRow],
+        labs: &[LabTestRow],
+    ) -> Result<Written, tokio_postgres::Error> {
+        match self.write(lines, statuses, labs).await {
             Err(e) if is_data_error(&e) => {
                 tracing::warn!("archive: the database refused a batch ({}); writing its lines one by one", crate::chain(&e));
                 let mut total = Written::default();
                 for l in lines {
-                    match self.write(std::slice::from_ref(l), &[]).await {
+                    match self.write(std::slice::from_ref(l), &[], &[]).await {
                         Ok(w) => total.add(w),
                         Err(e) if is_data_error(&e) => {
                             tracing::warn!(rig = %l.rig, test = %l.test, seq = l.seq, "archive: feed line skipped, the database refused it: {}", crate::chain(&e));
@@ -423,9 +493,19 @@ impl Db {
                     }
                 }
                 for s in statuses {
-                    match self.write(&[], std::slice::from_ref(s)).await {
+                    match self.write(&[], std::slice::from_ref(s), &[]).await {
                         Ok(_) => {}
                         Err(e) if is_data_error(&e) => total.rejected += 1,
+                        Err(e) => return Err(e),
+                    }
+                }
+                for l in labs {
+                    match self.write(&[], &[], std::slice::from_ref(l)).await {
+                        Ok(w) => total.add(w),
+                        Err(e) if is_data_error(&e) => {
+                            tracing::warn!(rig = %l.rig, test = %l.message.record.id, "archive: lab test record skipped, the database refused it: {}", crate::chain(&e));
+                            total.rejected += 1;
+                        }
                         Err(e) => return Err(e),
                     }
                 }

@@ -41,7 +41,7 @@ use std::time::Duration;
 use rumqttc::{AsyncClient, Event, EventLoop, Packet, Publish, QoS};
 use tokio::sync::{mpsc, watch};
 
-use db::{Db, LineRow, StatusRow};
+use db::{Db, LabTestRow, LineRow, StatusRow};
 pub use error::ArchiveError;
 use tagdeflect_core::backoff::Backoff;
 use tagdeflect_core::feed::FeedLine;
@@ -121,6 +121,8 @@ pub enum Kind {
     Feed,
     /// `<topic>/status`: the rig's status.
     Status,
+    /// `<topic>/labtest/<id>`: a lab test's record (its id is the last level).
+    LabTest,
 }
 
 /// The topic template of the rigs, to subscribe and to read rig and test from a topic.
@@ -144,10 +146,11 @@ impl TopicLayout {
     /// The subscription filter of one kind of message (placeholders become `+`).
     pub fn filter(&self, kind: Kind) -> String {
         let mut f: Vec<&str> = self.levels.iter().map(|l| if l == "{rig}" || l == "{test}" { "+" } else { l.as_str() }).collect();
-        f.push(match kind {
-            Kind::Feed => "feed",
-            Kind::Status => "status",
-        });
+        match kind {
+            Kind::Feed => f.push("feed"),
+            Kind::Status => f.push("status"),
+            Kind::LabTest => f.extend([tagdeflect_sinks::mqtt::LABTEST_SUFFIX, "+"]),
+        }
         f.join("/")
     }
 
@@ -170,27 +173,45 @@ impl TopicLayout {
         v.join("/")
     }
 
-    /// Rig, test and kind of a topic, or `None` when it does not fit the template.
+    /// Rig and test of the template's levels of `parts`, or `None` when they do not fit.
+    fn base(&self, parts: &[&str]) -> Option<(String, String)> {
+        for (i, l) in self.levels.iter().enumerate() {
+            if i != self.rig && i != self.test && parts.get(i) != Some(&l.as_str()) {
+                return None;
+            }
+        }
+        let (rig, test) = (*parts.get(self.rig)?, *parts.get(self.test)?);
+        if rig.is_empty() || test.is_empty() {
+            return None;
+        }
+        Some((rig.to_string(), test.to_string()))
+    }
+
+    /// Rig, test and kind of a topic, or `None` when it does not fit the template (a lab
+    /// test's topic: [`TopicLayout::parse_lab`]).
     pub fn parse(&self, topic: &str) -> Option<(String, String, Kind)> {
         let parts: Vec<&str> = topic.split('/').collect();
         if parts.len() != self.levels.len() + 1 {
             return None;
-        }
-        for (i, l) in self.levels.iter().enumerate() {
-            if i != self.rig && i != self.test && parts[i] != l {
-                return None;
-            }
         }
         let kind = match parts[self.levels.len()] {
             "feed" => Kind::Feed,
             "status" => Kind::Status,
             _ => return None,
         };
-        let (rig, test) = (parts[self.rig], parts[self.test]);
-        if rig.is_empty() || test.is_empty() {
+        let (rig, test) = self.base(&parts)?;
+        Some((rig, test, kind))
+    }
+
+    /// Rig, run (the topic's test) and lab test id of a `<topic>/labtest/<id>` topic.
+    pub fn parse_lab(&self, topic: &str) -> Option<(String, String, String)> {
+        let parts: Vec<&str> = topic.split('/').collect();
+        let n = self.levels.len();
+        if parts.len() != n + 2 || parts[n] != tagdeflect_sinks::mqtt::LABTEST_SUFFIX || parts[n + 1].is_empty() {
             return None;
         }
-        Some((rig.to_string(), test.to_string(), kind))
+        let (rig, run) = self.base(&parts)?;
+        Some((rig, run, parts[n + 1].to_string()))
     }
 }
 
@@ -264,7 +285,7 @@ pub(crate) async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mu
     mo.set_manual_acks(true);
     mo.set_keep_alive(Duration::from_secs(15));
     let (client, eventloop) = AsyncClient::new(mo, 4 * opts.batch.max(64));
-    let subs: Vec<String> = [Kind::Feed, Kind::Status]
+    let subs: Vec<String> = [Kind::Feed, Kind::Status, Kind::LabTest]
         .iter()
         .map(|k| match &opts.group {
             Some(g) => format!("$share/{g}/{}", layout.filter(*k)),
@@ -405,6 +426,7 @@ async fn drive_mqtt(
 enum Parsed {
     Line(LineRow),
     Status(StatusRow),
+    LabTest(LabTestRow),
     Skip,
 }
 
@@ -415,6 +437,10 @@ pub fn check_message(layout: &TopicLayout, topic: &str, payload: &[u8]) -> Resul
 }
 
 fn parse_message(layout: &TopicLayout, topic: &str, payload: &[u8]) -> Result<Parsed, String> {
+    if let Some((rig, run, id)) = layout.parse_lab(topic) {
+        let m = tagdeflect_sinks::mqtt::LabTestMessage::parse(payload, &rig, &run, &id)?;
+        return Ok(Parsed::LabTest(LabTestRow { rig, run, message: m }));
+    }
     let Some((rig, test, kind)) = layout.parse(topic) else {
         return Err(format!("topic {topic} does not fit the template"));
     };
@@ -461,6 +487,8 @@ fn parse_message(layout: &TopicLayout, topic: &str, payload: &[u8]) -> Result<Pa
             }
             Ok(Parsed::Status(StatusRow { rig, test, status: value }))
         }
+        // `parse` never says LabTest: a lab test's topic has its id (`parse_lab`, above).
+        Kind::LabTest => Err(format!("topic {topic}: a lab test record needs its id as the last level")),
     }
 }
 
@@ -570,6 +598,7 @@ async fn write_loop(
         }
         let mut lines = Vec::with_capacity(batch.len());
         let mut statuses: Vec<StatusRow> = Vec::new();
+        let mut labs: Vec<LabTestRow> = Vec::new();
         let mut seen = std::collections::HashSet::new();
         for p in &batch {
             match parse_message(&ctx.layout, &p.topic, &p.payload) {
@@ -584,6 +613,7 @@ async fn write_loop(
                     statuses.retain(|x| !(x.rig == s.rig && x.test == s.test));
                     statuses.push(s);
                 }
+                Ok(Parsed::LabTest(l)) => labs.push(l),
                 Ok(Parsed::Skip) => {}
                 Err(why) => {
                     stats.malformed.fetch_add(1, Ordering::Relaxed);
@@ -610,7 +640,7 @@ async fn write_loop(
                     None => return, // stopping: the batch stays unacknowledged
                 }
             }
-            match db.write_or_skip(&lines, &statuses).await {
+            match db.write_or_skip(&lines, &statuses, &labs).await {
                 Ok(w) => {
                     stats.inserted.fetch_add(w.inserted, Ordering::Relaxed);
                     stats.duplicates.fetch_add(w.duplicates, Ordering::Relaxed);
@@ -661,10 +691,11 @@ async fn write_loop(
 pub fn fuzz_message(data: &[u8]) {
     let layout = TopicLayout::new("tagdeflect/{rig}/{test}").expect("a valid template");
     let (sel, payload) = data.split_first().unwrap_or((&0, &[]));
-    let topic = match sel % 4 {
+    let topic = match sel % 5 {
         0 => "tagdeflect/r/t/feed",
         1 => "tagdeflect/r/t/status",
         2 => "tagdeflect/r/t/archive",
+        3 => "tagdeflect/r/t/labtest/20261202T101500Z-B12",
         _ => "tagdeflect/r/t/x/feed",
     };
     let _ = check_message(&layout, topic, payload);

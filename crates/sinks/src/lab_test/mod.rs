@@ -224,6 +224,10 @@ pub struct Stopped {
 /// Made by the binary: writes `folder/report/` for a stopped test with a standard.
 pub type ReportHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), String> + Send + Sync>;
 
+/// Made by the binary: hands a test's record on (the MQTT publisher's `<topic>/labtest/<id>`)
+/// at its start, every event and its stop. Must not block.
+pub type RecordHook = Box<dyn Fn(&TestRecord) + Send + Sync>;
+
 /// The running test.
 struct Running {
     record: TestRecord,
@@ -259,6 +263,7 @@ pub struct LabTests {
     /// SHA-256 of each calibration file, by its path, taken when the daemon read its config.
     calibration_sha256: BTreeMap<String, String>,
     report: Option<ReportHook>,
+    on_record: std::sync::OnceLock<RecordHook>,
     inner: Mutex<Inner>,
     written: Condvar,
 }
@@ -279,8 +284,15 @@ impl LabTests {
             calibration_sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
         }
         std::fs::create_dir_all(dir)?;
-        let tests =
-            LabTests { dir: dir.to_path_buf(), config_text, calibration_sha256, report, inner: Mutex::default(), written: Condvar::new() };
+        let tests = LabTests {
+            dir: dir.to_path_buf(),
+            config_text,
+            calibration_sha256,
+            report,
+            on_record: std::sync::OnceLock::new(),
+            inner: Mutex::default(),
+            written: Condvar::new(),
+        };
         tests.read_earlier();
         tests.resume()?;
         Ok(Arc::new(tests))
@@ -394,6 +406,21 @@ impl LabTests {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Hands every record on from now on (the running test's at once); set once.
+    pub fn set_on_record(&self, hook: RecordHook) {
+        let g = self.lock();
+        if let Some(r) = &g.running {
+            hook(&r.record);
+        }
+        let _ = self.on_record.set(hook);
+    }
+
+    fn publish(&self, record: &TestRecord) {
+        if let Some(h) = self.on_record.get() {
+            h(record);
+        }
+    }
+
     /// Starts and stops tests by `rules` from now on (see [`auto`]).
     pub fn set_auto(&self, rules: auto::AutoRules) {
         self.lock().auto = Some(auto::AutoTest::new(rules));
@@ -440,6 +467,7 @@ impl LabTests {
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
         self.persist(&r);
+        self.publish(&r.record);
         g.running = Some(r);
         Ok(id)
     }
@@ -471,6 +499,7 @@ impl LabTests {
         let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note };
         r.record.events.push(ev.clone());
         self.persist(r);
+        self.publish(&r.record);
         g.pending.push(ev);
         drop(g);
         Ok(self.status())
@@ -538,6 +567,7 @@ impl LabTests {
         let tmp = folder.join("test.json.tmp");
         std::fs::write(&tmp, text + "\n").map_err(|e| io("test.json", e))?;
         std::fs::rename(&tmp, folder.join("test.json")).map_err(|e| io("test.json", e))?;
+        self.publish(&record);
         Ok(())
     }
 

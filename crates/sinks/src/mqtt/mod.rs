@@ -1,6 +1,7 @@
 //! The MQTT publisher (`[output.mqtt]`, SPEC "Configuration"): every feed line goes to
 //! `<topic>/feed`, a retained status message to `<topic>/status`, with a last will that
-//! says the rig went offline.
+//! says the rig went offline; each lab test's record, retained, to `<topic>/labtest/<id>`
+//! ([`labtest`]).
 //!
 //! The measurement never waits on the broker. [`MqttPublisher::publish`] only takes a lock
 //! for a few microseconds and hands the serialised line to a bounded buffer; a task on the
@@ -38,9 +39,11 @@
 pub mod ack;
 mod client;
 mod config;
+pub mod labtest;
 mod publisher;
 
 pub use ack::{ArchiveAck, RunHeld, SeqRanges, ACK_SUFFIX};
 pub use client::{check_level_name, check_topic_template, hostname, mqtt_options, tls_config_for, topic_for, BrokerUrl};
 pub use config::MqttConfig;
+pub use labtest::{LabTestMessage, LABTEST_SUFFIX, MAX_LABTEST_BYTES};
 pub use publisher::{MqttPublisher, MqttSink, MqttStats};

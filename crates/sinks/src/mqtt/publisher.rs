@@ -99,7 +99,23 @@ struct UtmStatus {
 enum Sent {
     Line(u64),
     Status,
+    /// A lab test's record, by the serial number of that publish.
+    Lab(u64),
 }
+
+/// A lab test's record to keep on the broker (see [`super::labtest`]).
+#[derive(Debug)]
+struct LabOut {
+    id: String,
+    payload: Vec<u8>,
+    /// The serial number of its latest publish.
+    serial: u64,
+    /// The broker acknowledged its latest version.
+    delivered: bool,
+}
+
+/// Lab test records kept to send again on every connection (the newest; a day has a dozen).
+const LAB_RECORDS: usize = 64;
 
 /// A line acknowledged by the broker is sent again only if the archive still lacks it this
 /// long after (the archive's view may be a moment older than the broker's acknowledgement).
@@ -141,6 +157,10 @@ struct State {
     archive_progress: Option<Instant>,
     /// The feed file loader wants to run.
     want_load: bool,
+    /// The lab tests' records, oldest first.
+    lab: Vec<LabOut>,
+    /// Serial number of the last lab record publish.
+    lab_serial: u64,
 }
 
 impl State {
@@ -229,6 +249,9 @@ struct Shared {
     feed_topic: String,
     status_topic: String,
     ack_topic: String,
+    /// `<topic>`, for `<topic>/labtest/<id>`.
+    base_topic: String,
+    rig: String,
     qos: QoS,
     window: usize,
     cap: usize,
@@ -308,12 +331,16 @@ impl MqttPublisher {
                 archive: None,
                 archive_progress: None,
                 want_load: false,
+                lab: Vec::new(),
+                lab_serial: 0,
             }),
             stats: Arc::new(MqttStats::default()),
             client,
             feed_topic: format!("{base}/feed"),
             status_topic,
             ack_topic: format!("{base}/{ACK_SUFFIX}"),
+            base_topic: base.clone(),
+            rig: cfg.rig.clone(),
             qos: qos_of(cfg.qos),
             window,
             cap: cfg.buffer_lines,
@@ -399,6 +426,38 @@ impl MqttPublisher {
         s.pump(&mut st);
     }
 
+    /// Publishes a lab test's record, retained, on `<topic>/labtest/<id>` (now if connected,
+    /// else on connecting; again on every connection); never blocks.
+    pub fn publish_lab_test(&self, record: &crate::lab_test::TestRecord) {
+        let msg = super::labtest::LabTestMessage::from_record(&self.shared.rig, &self.test, record);
+        let payload = serde_json::to_vec(&msg).expect("a lab test record serialises");
+        if payload.len() > super::labtest::MAX_LABTEST_BYTES {
+            tracing::warn!(test = %record.id, bytes = payload.len(), "MQTT: the lab test record is larger than an archive takes; sent anyway");
+        }
+        let mut st = self.shared.state.lock().expect("mqtt state");
+        let i = match st.lab.iter().position(|l| l.id == record.id) {
+            Some(i) => i,
+            None => {
+                st.lab.push(LabOut { id: record.id.clone(), payload: Vec::new(), serial: 0, delivered: false });
+                st.lab.len() - 1
+            }
+        };
+        st.lab[i].payload = payload;
+        st.lab[i].delivered = false;
+        let id = record.id.clone();
+        while st.lab.len() > LAB_RECORDS {
+            match st.lab.iter().position(|l| l.delivered) {
+                Some(j) => {
+                    st.lab.remove(j);
+                }
+                None => break,
+            }
+        }
+        if let Some(i) = st.lab.iter().position(|l| l.id == id) {
+            self.shared.send_lab(&mut st, i);
+        }
+    }
+
     /// Ends the run: waits up to `timeout` until the archive has confirmed every line (when
     /// an archive has confirmed any line of this run; else until the broker has
     /// acknowledged them), sending again what it lacks; publishes the retained status
@@ -427,6 +486,9 @@ impl MqttPublisher {
                 } else {
                     st.undelivered()
                 }
+            } + {
+                let st = s.state.lock().expect("mqtt state");
+                st.lab.iter().filter(|l| !l.delivered).count() as u64
             };
             if left == 0 || tokio::time::Instant::now() >= until {
                 break;
@@ -544,6 +606,21 @@ impl Shared {
         }
     }
 
+    /// Hands the `i`-th lab record to the client when connected.
+    fn send_lab(&self, st: &mut State, i: usize) {
+        if !st.connected {
+            return;
+        }
+        st.lab_serial += 1;
+        let serial = st.lab_serial;
+        let l = &mut st.lab[i];
+        let topic = format!("{}/{}/{}", self.base_topic, super::labtest::LABTEST_SUFFIX, l.id);
+        if self.client.try_publish(topic, QoS::AtLeastOnce, true, l.payload.clone()).is_ok() {
+            l.serial = serial;
+            st.order.push_back(Sent::Lab(serial));
+        }
+    }
+
     fn send_status(&self, st: &mut State) {
         st.status.mqtt_dropped = st.dropped;
         st.status.archive_lag = st.archive.as_ref().map(|a| st.made.saturating_sub(a.lines));
@@ -554,6 +631,11 @@ impl Shared {
     }
 
     fn acked(&self, st: &mut State, who: Sent) {
+        if let Sent::Lab(serial) = who {
+            if let Some(l) = st.lab.iter_mut().find(|l| l.serial == serial) {
+                l.delivered = true;
+            }
+        }
         if let Sent::Line(seq) = who {
             self.stats.published.fetch_add(1, Ordering::Relaxed);
             st.loaded.remove(&seq);
@@ -726,6 +808,10 @@ async fn drive(shared: Arc<Shared>, mut eventloop: EventLoop, done: Arc<AtomicBo
                     tracing::warn!("MQTT: cannot subscribe to {}: {e}", shared.ack_topic);
                 }
                 shared.send_status(&mut st);
+                // The lab tests' records again: a broker restarted without persistence forgot them.
+                for i in 0..st.lab.len() {
+                    shared.send_lab(&mut st, i);
+                }
                 shared.pump(&mut st);
             }
             Ok(Event::Incoming(Packet::Publish(p))) => {
@@ -746,7 +832,7 @@ async fn drive(shared: Arc<Shared>, mut eventloop: EventLoop, done: Arc<AtomicBo
                 if let Some(who) = who {
                     let qos0 = match who {
                         Sent::Line(_) => shared.qos == QoS::AtMostOnce,
-                        Sent::Status => false,
+                        Sent::Status | Sent::Lab(_) => false,
                     };
                     if qos0 || pkid == 0 {
                         shared.acked(&mut st, who);
