@@ -74,6 +74,9 @@ rig = "frame1"
 [output.control]
 modbus = "127.0.0.1:5020"
 
+[output.auto_test]
+start_load_kn = 2.0
+
 [measure]
 quad_decimate = 1.0
 
@@ -155,6 +158,7 @@ const TABLES: &[&str] = &[
     "output",
     "output.mqtt",
     "output.control",
+    "output.auto_test",
     "measure",
     "report",
     "report.lab",

@@ -886,3 +886,47 @@ fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
     assert!(folder.join("report").is_dir(), "the report of the standard is made at the automatic stop");
     assert_eq!(d.stop(), Some(0));
 }
+
+/// A notched beam in three-point bending with a CMOD gauge (the simulated EN 14651 rig): the
+/// page shows the load–CMOD curve, and the bending profile takes one load at midspan.
+#[test]
+fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams {
+        cameras: 2,
+        width: 480,
+        height: 360,
+        fps: 5.0,
+        frame_sets: 60,
+        rest_frames: 5,
+        subsamples: 4,
+        test: tagdeflect::sim::SimTest::ThreePointNotched,
+        load_law: tagdeflect::sim::LoadLaw::Softening,
+        ..SimParams::default()
+    };
+    let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    assert!(cfg.gauges.iter().any(|g| g.name == "cmod"), "the notched rig has a CMOD gauge");
+    let path = dir.path().join("rig.toml");
+    std::fs::write(&path, cfg.to_toml_string()).unwrap();
+    let mut d = Daemon::start(&["demo", "--config", path.to_str().unwrap(), "--http", "127.0.0.1:0"]);
+    let addr = d.addr();
+    assert_eq!(status(addr)["cmod_gauge"], "cmod");
+    let out = Command::new(python())
+        .arg(root().join("tests/fixtures/cmod_page.py"))
+        .arg(format!("http://{addr}/"))
+        .stdin(Stdio::null())
+        .output()
+        .expect("run the browser driver");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    println!("BROWSER {seen}");
+    assert!(seen.get("error").is_none(), "{seen}");
+    assert_eq!(seen["hidden"], false, "{seen}");
+    assert!(seen["points"].as_u64().unwrap() >= 10, "{seen}");
+    assert_eq!(seen["name"], "(gauge cmod)");
+    assert_eq!(seen["axes"], serde_json::json!(["CMOD [mm]", "load [kN]"]));
+    assert_eq!(seen["loading"], "three-point", "{seen}");
+    assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
+    assert_eq!(d.stop(), Some(0));
+}

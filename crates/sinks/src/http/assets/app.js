@@ -519,7 +519,10 @@ function showProfile(l) {
   el.dataset.points = xs.length;
   el.dataset.fit = "none";
   if (L === null || !(L > 0) || tags.length < 3) { $("profile-note").textContent = "(no fit: give support tags or [specimen.beam])"; return; }
-  const a = T.standard === "en-14651" ? L / 2 : L / 3;
+  // One load at midspan for EN 14651, and for a notched beam when no standard says otherwise.
+  const notched = S.status && S.status.beam && S.status.beam.notch_mm;
+  const threePoint = T.standard === "en-14651" || (!T.standard && notched);
+  const a = threePoint ? L / 2 : L / 3;
   const rows = xs.map((x) => [1, x, shape(x, L, a)]);
   const A = [0, 1, 2].map((i) => [0, 1, 2].map((j) => rows.reduce((acc, r) => acc + r[i] * r[j], 0)));
   const b = [0, 1, 2].map((i) => rows.reduce((acc, r, k) => acc + r[i] * w[k], 0));
@@ -533,7 +536,8 @@ function showProfile(l) {
   S.charts.profile.setData([null, [xs, w], [fx, fy]]);
   el.dataset.fit = "ok";
   el.dataset.bending = c[2].toFixed(4);
-  $("profile-note").textContent = `(x from the left support; fit: bending ${fmt(c[2], 3)} mm at midspan, rms ${fmt(rms * 1000, 0)} µm over ${xs.length} tags)`;
+  el.dataset.loading = threePoint ? "three-point" : "third-point";
+  $("profile-note").textContent = `(x from the left support; ${threePoint ? "one load at midspan" : "loads at the third points"}; fit: bending ${fmt(c[2], 3)} mm at midspan, rms ${fmt(rms * 1000, 0)} µm over ${xs.length} tags)`;
 }
 
 // Alarms: everything the banner says, and a rate out of its window for 10 s, listed until
