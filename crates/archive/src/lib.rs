@@ -426,7 +426,7 @@ async fn drive_mqtt(
 enum Parsed {
     Line(LineRow),
     Status(StatusRow),
-    LabTest(LabTestRow),
+    LabTest(Box<LabTestRow>),
     Skip,
 }
 
@@ -439,7 +439,7 @@ pub fn check_message(layout: &TopicLayout, topic: &str, payload: &[u8]) -> Resul
 fn parse_message(layout: &TopicLayout, topic: &str, payload: &[u8]) -> Result<Parsed, String> {
     if let Some((rig, run, id)) = layout.parse_lab(topic) {
         let m = tagdeflect_sinks::mqtt::LabTestMessage::parse(payload, &rig, &run, &id)?;
-        return Ok(Parsed::LabTest(LabTestRow { rig, run, message: m }));
+        return Ok(Parsed::LabTest(Box::new(LabTestRow { rig, run, message: m })));
     }
     let Some((rig, test, kind)) = layout.parse(topic) else {
         return Err(format!("topic {topic} does not fit the template"));
@@ -613,7 +613,7 @@ async fn write_loop(
                     statuses.retain(|x| !(x.rig == s.rig && x.test == s.test));
                     statuses.push(s);
                 }
-                Ok(Parsed::LabTest(l)) => labs.push(l),
+                Ok(Parsed::LabTest(l)) => labs.push(*l),
                 Ok(Parsed::Skip) => {}
                 Err(why) => {
                     stats.malformed.fetch_add(1, Ordering::Relaxed);
