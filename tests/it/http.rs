@@ -37,22 +37,20 @@ fn python() -> PathBuf {
     panic!("no python3 with selenium and prometheus_client (tried {candidates:?}): run scripts/setup.sh");
 }
 
+/// Two 480x360 cameras at 5 fps, 60 frame sets (a cycle of 24 s in a live demo).
+fn small_rig() -> SimParams {
+    SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() }
+}
+
 /// A small simulated rig (two 480x360 cameras at 5 fps, the simulated UTM over Modbus TCP; a
 /// softening beam, so the config has `[specimen.beam]` and gauges) whose UTM goes silent
 /// `outage` = (after s, for s).
 fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
     let params = SimParams {
         load_law: tagdeflect::sim::LoadLaw::Softening,
-        cameras: 2,
-        width: 480,
-        height: 360,
-        fps: 5.0,
-        frame_sets: 60,
-        rest_frames: 5,
-        subsamples: 4,
         utm_outage_at_s: outage.map(|o| o.0),
         utm_outage_s: outage.map_or(5.0, |o| o.1),
-        ..SimParams::default()
+        ..small_rig()
     };
     let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = tagdeflect::config::Config::demo().utm;
@@ -804,8 +802,7 @@ fn a_tests_record_carries_the_hash_of_the_calibration_in_force() {
 #[test]
 fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
     let dir = tempfile::tempdir().unwrap();
-    let params =
-        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 30, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+    let params = SimParams { frame_sets: 30, ..small_rig() };
     let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.specimen.beam = Some(tagdeflect::report::BeamConfig {
@@ -892,18 +889,8 @@ fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
 #[test]
 fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     let dir = tempfile::tempdir().unwrap();
-    let params = SimParams {
-        cameras: 2,
-        width: 480,
-        height: 360,
-        fps: 5.0,
-        frame_sets: 60,
-        rest_frames: 5,
-        subsamples: 4,
-        test: tagdeflect::sim::SimTest::ThreePointNotched,
-        load_law: tagdeflect::sim::LoadLaw::Softening,
-        ..SimParams::default()
-    };
+    let params =
+        SimParams { test: tagdeflect::sim::SimTest::ThreePointNotched, load_law: tagdeflect::sim::LoadLaw::Softening, ..small_rig() };
     let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     assert!(cfg.gauges.iter().any(|g| g.name == "cmod"), "the notched rig has a CMOD gauge");

@@ -287,5 +287,8 @@ fn a_one_tag_camera_moved_far_publishes_nothing_from_a_refused_pose() {
     }
     assert!(tracked[..bump_at as usize].iter().all(|l| l.cameras[0].posed && l.tags.len() == 9), "posed and measuring before the move");
     assert!(tracked[bump_at as usize].cameras[0].bumped, "the move is caught in its set");
-    assert!(pos_t.is_nan() == pos_f.is_nan() && (pos_t.is_nan() || pos_t <= 1.5 * pos_f.max(0.5)), "position RMS {pos_t} vs full-frame {pos_f}");
+    assert!(
+        pos_t.is_nan() == pos_f.is_nan() && (pos_t.is_nan() || pos_t <= 1.5 * pos_f.max(0.5)),
+        "position RMS {pos_t} vs full-frame {pos_f}"
+    );
 }
