@@ -68,6 +68,28 @@ fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
     f.sync_all()
 }
 
+/// The beam dimensions a test was started with (`measured`: `width_mm`, `depth_mm`, `span_mm`,
+/// `notch_mm`, each specimen measured by the lab) replace the config's for its report; the
+/// names and values replaced. Other measured values are only recorded.
+fn apply_measured(rig: &mut tagdeflect_report::TestRig, measured: &std::collections::BTreeMap<String, f64>) -> Vec<String> {
+    let Some(beam) = rig.specimen.beam.as_mut() else { return Vec::new() };
+    let mut used = Vec::new();
+    for (key, v) in measured {
+        let slot = match key.as_str() {
+            "width_mm" => &mut beam.width_mm,
+            "depth_mm" => &mut beam.depth_mm,
+            "span_mm" => &mut beam.span_mm,
+            "notch_mm" => beam.notch_mm.get_or_insert(0.0),
+            _ => continue,
+        };
+        if *v > 0.0 {
+            *slot = *v;
+            used.push(format!("{key} = {v}"));
+        }
+    }
+    used
+}
+
 /// The report of a stopped test with a standard, into `folder/report/`.
 fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), String> {
     let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
@@ -80,7 +102,8 @@ fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), Str
     };
     rc.standard = std;
     let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl")).map_err(|e| e.to_string())?;
-    let rig = config.test_rig();
+    let mut rig = config.test_rig();
+    let measured = apply_measured(&mut rig, &record.meta.measured);
     let cfg_path = folder.join("tagdeflect.toml");
     // The load-based values from the test's own UTM samples (SPEC "Report").
     let utm_path = folder.join("utm.jsonl");
@@ -90,6 +113,11 @@ fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), Str
     };
     let mut rep = tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, &rc).map_err(|e| e.to_string())?;
     rep.inputs = vec![("config".into(), cfg_path)];
+    if !measured.is_empty() {
+        rep.beam_source = format!("the test's measured dimensions ({}), else config [specimen.beam]", measured.join(", "));
+        rep.notes
+            .push(format!("The test's measured dimensions (test.json `measured`) replace [specimen.beam]'s: {}.", measured.join(", ")));
+    }
     std::fs::create_dir_all(&out).map_err(|e| e.to_string())?;
     tagdeflect_report::write(&rep, &feed, &out).map(|_| ()).map_err(|e| e.to_string())
 }

@@ -36,6 +36,10 @@ pub enum TestAction {
         /// Free text.
         #[arg(long)]
         notes: Option<String>,
+        /// A measured value, `NAME=NUMBER` (repeatable): `width_mm`, `depth_mm`, `span_mm`,
+        /// `notch_mm` replace the config's beam for the report; others are recorded.
+        #[arg(long, value_name = "NAME=NUMBER", value_parser = parse_measured)]
+        measured: Vec<(String, f64)>,
     },
     /// Stop the running test; answers once its folder (report included) is complete.
     Stop,
@@ -50,6 +54,16 @@ pub enum TestAction {
     Status,
 }
 
+/// `--measured width_mm=150.2`.
+fn parse_measured(s: &str) -> Result<(String, f64), String> {
+    let (k, v) = s.split_once('=').ok_or_else(|| format!("\"{s}\": NAME=NUMBER, e.g. width_mm=150.2"))?;
+    let v: f64 = v.trim().parse().map_err(|_| format!("\"{s}\": {v} is not a number"))?;
+    if k.trim().is_empty() || !v.is_finite() {
+        return Err(format!("\"{s}\": a name and a finite number"));
+    }
+    Ok((k.trim().to_string(), v))
+}
+
 /// Sends the command and prints the answer; a refusal is an error with the daemon's reason.
 pub fn run(args: &TestArgs) -> Result<()> {
     let base = args.url.trim_end_matches('/');
@@ -60,8 +74,12 @@ pub fn run(args: &TestArgs) -> Result<()> {
             println!("{text}");
             return Ok(());
         }
-        TestAction::Start { specimen, operator, standard, notes } => {
-            ("start", serde_json::json!({"specimen": specimen, "operator": operator, "standard": standard, "notes": notes}))
+        TestAction::Start { specimen, operator, standard, notes, measured } => {
+            let measured: serde_json::Map<String, serde_json::Value> = measured.iter().map(|(k, v)| (k.clone(), (*v).into())).collect();
+            (
+                "start",
+                serde_json::json!({"specimen": specimen, "operator": operator, "standard": standard, "notes": notes, "measured": measured}),
+            )
         }
         TestAction::Stop => ("stop", serde_json::json!({})),
         TestAction::Mark { note } => ("mark", serde_json::json!({"note": note})),

@@ -735,6 +735,12 @@ fn the_operator_page_drives_two_tests_in_chromium() {
     let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
     assert_eq!(record["standard"], "astm-c1609");
     assert!(record["sha256"].as_object().unwrap().keys().any(|k| k.starts_with("report/")), "the report is hashed: {record}");
+    // The measured dimensions typed into the form: recorded, and the report computes with them.
+    assert_eq!(record["measured"], serde_json::json!({"width_mm": 151.5, "depth_mm": 149.2}), "{record}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("report/report.json")).unwrap()).unwrap();
+    let text = report.to_string();
+    assert!(text.contains("width_mm = 151.5") && text.contains("depth_mm = 149.2"), "the report says it used them: {text}");
+    assert_eq!((report["specimen"]["width_mm"].as_f64(), report["specimen"]["depth_mm"].as_f64()), (Some(151.5), Some(149.2)), "{text}");
     assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
     assert_eq!(&std::fs::read(&shot).unwrap()[1..4], b"PNG");
     if let Some(to) = std::env::var_os("TAGDEFLECT_OPERATOR_SCREENSHOT") {

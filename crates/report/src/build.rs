@@ -166,6 +166,7 @@ pub fn build(
         validity,
         lab,
         notes,
+        beam_source: "config [specimen.beam]".into(),
         feed_path: feed.path.clone(),
         run: feed.run,
         utm_path: utm.map(|u| u.path.clone()),

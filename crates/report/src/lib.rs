@@ -256,6 +256,8 @@ pub struct Report {
     pub qc: qc::Qc,
     /// Notes on the specimen and the standard (geometry, unchecked clauses).
     pub notes: Vec<String>,
+    /// Where `beam` comes from (`report.json` `specimen.source`).
+    pub beam_source: String,
     /// Where the feed was read.
     pub feed_path: PathBuf,
     /// `(index from 1, runs)` when the feed file held several runs.

@@ -186,7 +186,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     let b = &report.beam;
     let mut spec = json!({
         "width_mm": b.width_mm, "depth_mm": b.depth_mm, "span_mm": b.span_mm,
-        "source": "config [specimen.beam]",
+        "source": report.beam_source,
         "loading": match report.standard { Standard::En14651 => "three-point, notched at midspan", _ => "four-point, loads at the third points" },
     });
     if let Some(n) = b.notch_mm {

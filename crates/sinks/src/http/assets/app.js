@@ -431,6 +431,13 @@ $("t-form").addEventListener("submit", (e) => {
   e.preventDefault();
   const body = { specimen: $("f-specimen").value.trim() };
   for (const k of ["operator", "standard", "notes"]) { const v = $("f-" + k).value.trim(); if (v) body[k] = v; }
+  // The specimen's measured dimensions: the report computes with them.
+  const measured = {};
+  for (const [id, key] of [["f-width", "width_mm"], ["f-depth", "depth_mm"]]) {
+    const v = parseFloat($(id).value);
+    if (Number.isFinite(v) && v > 0) measured[key] = v;
+  }
+  if (Object.keys(measured).length) body.measured = measured;
   command("start", body);
 });
 $("b-mark").addEventListener("click", () => { const note = window.prompt("Mark (e.g. first crack seen):"); if (note !== null) command("mark", { note }); });
