@@ -386,19 +386,48 @@ fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
     fs::write(&cfg_path, tagdeflect::config::Config::demo().to_toml_string()).unwrap();
     let rec = dir.path().join("rec");
     let err_path = dir.path().join("stderr.log");
-    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
-        .args(["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap(), "--duration-s", "4"])
+    // Stopped by SIGTERM once 15 frame sets are out, however slow the machine.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["run", "--config", cfg_path.to_str().unwrap(), "--record", rec.to_str().unwrap()])
         .env("TAGDEFLECT_LOG", "info")
         .stdin(Stdio::null())
+        .stdout(Stdio::piped())
         .stderr(fs::File::create(&err_path).unwrap())
-        .output()
+        .spawn()
         .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let feed = Arc::new(Mutex::new(String::new()));
+    let reader = {
+        let feed = feed.clone();
+        std::thread::spawn(move || {
+            use std::io::BufRead;
+            for l in io::BufReader::new(stdout).lines().map_while(Result::ok) {
+                let mut f = feed.lock().unwrap();
+                f.push_str(&l);
+                f.push('\n');
+            }
+        })
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    while feed.lock().unwrap().lines().count() < 15 {
+        assert!(std::time::Instant::now() < deadline, "fewer than 15 feed lines within 120 s:\n{}", fs::read_to_string(&err_path).unwrap());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // SAFETY: kill(2) on the pid of a child this test started and still owns.
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let status = child.wait().unwrap();
+    reader.join().unwrap();
+    let o = Output { status, stdout: feed.lock().unwrap().clone().into_bytes(), stderr: Vec::new() };
     let log = fs::read_to_string(&err_path).unwrap();
     assert!(o.status.success(), "{log}");
     // Finding 8: no colour codes in a file; few INFO lines, none per frame.
     assert!(!log.contains("\x1b["), "ANSI escape codes in a log file:\n{log}");
     let info: Vec<&str> = log.lines().filter(|l| l.contains(" INFO ")).collect();
-    println!("INFO lines in a 4 s run: {}\n{log}", info.len());
+    // The bound is on messages per run, not per second: it means something only when the run
+    // had many frame sets (a slow machine makes fewer; then the check says so, not passes).
+    let sets = String::from_utf8_lossy(&o.stdout).lines().count();
+    println!("INFO lines in a run of {sets} frame sets: {}\n{log}", info.len());
+    assert!(sets >= 15, "only {sets} frame sets in the run: too few to tell per-run from per-frame messages");
     // Start, stop and once-per-camera events only: no message more often than once per camera.
     let mut counts = std::collections::HashMap::new();
     for l in &info {
@@ -407,11 +436,11 @@ fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
         *counts.entry(key).or_insert(0) += 1;
     }
     assert!(counts.values().all(|&n| n <= 3), "an INFO message repeats: {counts:?}\n{log}");
-    assert!(info.len() <= 20, "{} INFO lines in 4 s:\n{log}", info.len());
+    assert!(info.len() <= 20, "{} INFO lines in a run of {sets} frame sets:\n{log}", info.len());
     assert!(!log.lines().any(|l| l.contains(" INFO ") && l.contains("rejected as an outlier")), "{log}");
     // Findings 6 and 7: every line says the recorder's state and the cameras' drops.
     let lines: Vec<FeedLine> = String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    assert!(lines.len() >= 2, "{} lines (the machine may be busy; the demo rig runs at 5 fps)", lines.len());
+    assert!(lines.len() >= 15, "{} lines", lines.len());
     for l in &lines {
         assert_eq!(l.recording.as_deref(), Some("ok"), "seq {}", l.seq);
         assert!(l.recorder_dropped.is_some());

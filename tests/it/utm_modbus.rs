@@ -242,8 +242,9 @@ async fn silent_server_times_out_and_is_retried() {
     let UtmEvent::Down { reason } = down else { unreachable!() };
     println!("silent server: {reason}");
     assert!(reason.contains("no answer") && reason.contains("150 ms") && reason.contains(&addr.to_string()), "{reason}");
-    // Reconnects with backoff (0.2, 0.4, 0.8 s ...): several connections within 3 s, one Down.
-    let deadline = Instant::now() + Duration::from_secs(10);
+    // Reconnects with backoff (0.2, 0.4, 0.8 s ...; 1.4 s for three): waited for, with a
+    // deadline far beyond it for a busy machine; one Down whatever the count.
+    let deadline = Instant::now() + Duration::from_secs(60);
     while accepted.load(Ordering::Relaxed) < 3 && Instant::now() < deadline {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
