@@ -83,6 +83,16 @@ impl Page {
         }
     }
 
+    /// Shows the MQTT publisher's delivery to the archive (its lag) on the status and `/metrics`.
+    #[cfg(feature = "mqtt")]
+    #[cfg_attr(not(feature = "http"), allow(unused_variables))]
+    pub fn on_mqtt(&self, stats: Arc<tagdeflect_sinks::mqtt::MqttStats>) {
+        #[cfg(feature = "http")]
+        if let Some(v) = &self.view {
+            v.set_mqtt(stats);
+        }
+    }
+
     /// Shows the recording's folder and state.
     #[cfg_attr(not(feature = "http"), allow(unused_variables))]
     pub fn on_recording(&self, dir: &Path, status: Arc<RecorderStatus>) {

@@ -235,6 +235,10 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
             .flatten()
     });
     let mut outputs = Outputs::build(&config, &opts, replaying, record_dir.as_deref(), feeds, &page)?;
+    #[cfg(feature = "mqtt")]
+    if let Some(m) = &outputs.mqtt {
+        page.on_mqtt(m.stats());
+    }
     // The tests (`[output] tests`): their lines are a sink, their control API on the page.
     let tests = match (&config.output.tests, replaying || opts.record_only) {
         (Some(dir), false) => {

@@ -45,6 +45,17 @@ impl Drop for Proc {
     }
 }
 
+/// GET `path` from the daemon's page: the body.
+fn http_get(addr: std::net::SocketAddr, path: &str) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(5)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
+    let mut raw = String::new();
+    s.read_to_string(&mut raw).unwrap();
+    raw.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default()
+}
+
 fn bin() -> &'static str {
     env!("CARGO_BIN_EXE_tagdeflect")
 }
@@ -433,6 +444,31 @@ fn the_archive_keeps_each_lab_test_with_its_record_and_its_lines() {
         .spawn()
         .unwrap();
     let mut demo = Proc { child, name: "demo" };
+    // While it runs, the page and /metrics show the archive's lag of this rig.
+    let until = Instant::now() + Duration::from_secs(30);
+    let addr = loop {
+        let text = fs::read_to_string(&log).unwrap_or_default();
+        if let Some(a) = text.split("http://").nth(1).and_then(|r| r.split('/').next()).and_then(|a| a.parse::<std::net::SocketAddr>().ok())
+        {
+            break a;
+        }
+        assert!(Instant::now() < until && demo.alive(), "no page address in the demo's log:\n{text}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let archive_seen = loop {
+        let st: serde_json::Value = serde_json::from_str(&http_get(addr, "/api/status")).unwrap();
+        if st["archive"]["heard"] == true {
+            break st["archive"].clone();
+        }
+        assert!(Instant::now() < until, "the page never heard of the archive: {st}");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    println!("archive on the page: {archive_seen}");
+    assert_eq!(archive_seen["connected"], true);
+    assert!(archive_seen["lag_lines"].as_u64().unwrap() < 100, "the archive keeps up: {archive_seen}");
+    let metrics = http_get(addr, "/metrics");
+    assert!(metrics.lines().any(|l| l.starts_with("tagdeflect_archive_lag_lines ")), "{metrics}");
+    assert!(metrics.lines().any(|l| l.starts_with("tagdeflect_mqtt_connected 1")), "{metrics}");
     assert!(demo.wait(Duration::from_secs(90)).success(), "{}", fs::read_to_string(&log).unwrap());
     let logs = || logs_of(dir.path(), &["demo.log", "archive.log"]);
     // The stopped tests of the folder, with their records.

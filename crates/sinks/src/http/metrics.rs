@@ -66,6 +66,16 @@ pub struct Metrics {
     pub http_events_lagged: Counter,
     /// Connections and requests the server refused (connection cap, `Host` check).
     pub http_refused: Counter,
+    /// 1 while connected to the MQTT broker (`[output.mqtt]`).
+    pub mqtt_connected: Gauge,
+    /// Lines of this run the archive does not hold yet, as it last said.
+    pub archive_lag: Gauge,
+    /// Lines of this run the archive holds, as it last said.
+    pub archive_confirmed: Gauge,
+    /// Lines not confirmed by the archive (in memory or only in the feed file).
+    pub mqtt_unconfirmed: Gauge,
+    /// Lines the archive will never get from this rig.
+    pub mqtt_dropped: Gauge,
 }
 
 impl Default for Metrics {
@@ -102,6 +112,11 @@ impl Metrics {
             http_clients: Gauge::default(),
             http_events_lagged: Counter::default(),
             http_refused: Counter::default(),
+            mqtt_connected: Gauge::default(),
+            archive_lag: Gauge::default(),
+            archive_confirmed: Gauge::default(),
+            mqtt_unconfirmed: Gauge::default(),
+            mqtt_dropped: Gauge::default(),
             registry: Registry::default(),
         };
         registry.register("camera_frames", "Frames delivered by the camera's source", m.frames.clone());
@@ -130,6 +145,15 @@ impl Metrics {
         registry.register("http_event_clients", "Clients connected to /events", m.http_clients.clone());
         registry.register("http_events_lagged", "Events skipped by slow /events clients", m.http_events_lagged.clone());
         registry.register("http_refused", "Connections and requests refused (connection cap, Host check)", m.http_refused.clone());
+        registry.register("mqtt_connected", "1 while connected to the MQTT broker", m.mqtt_connected.clone());
+        registry.register("archive_lag_lines", "Lines of this run the archive does not hold yet, as it last said", m.archive_lag.clone());
+        registry.register("archive_confirmed_lines", "Lines of this run the archive holds, as it last said", m.archive_confirmed.clone());
+        registry.register(
+            "mqtt_unconfirmed_lines",
+            "Feed lines the archive has not confirmed (in memory or in the feed file)",
+            m.mqtt_unconfirmed.clone(),
+        );
+        registry.register("mqtt_dropped_lines", "Feed lines the archive will never get from this rig", m.mqtt_dropped.clone());
         Metrics { registry, ..m }
     }
 

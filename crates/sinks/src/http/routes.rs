@@ -53,6 +53,17 @@ async fn metrics(State(view): State<Arc<LiveView>>) -> Response {
     if let Some(d) = view.lock().recording.drops.as_ref() {
         view.metrics.recorder_dropped.set(d.dropped_frames() as i64);
     }
+    #[cfg(feature = "mqtt")]
+    if let Some(s) = view.mqtt.get() {
+        use std::sync::atomic::Ordering::Relaxed;
+        let m = &view.metrics;
+        let v = |a: &std::sync::atomic::AtomicU64| i64::try_from(a.load(Relaxed)).unwrap_or(i64::MAX);
+        m.mqtt_connected.set(v(&s.connected));
+        m.archive_lag.set(v(&s.archive_lag));
+        m.archive_confirmed.set(v(&s.archive_confirmed));
+        m.mqtt_unconfirmed.set(v(&s.unconfirmed));
+        m.mqtt_dropped.set(v(&s.dropped));
+    }
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], view.metrics.encode()).into_response()
 }
 

@@ -50,6 +50,9 @@ pub struct Status {
     pub utm: UtmStatus,
     /// The recording.
     pub recording: RecordingStatus,
+    /// The feed's delivery to the archive over MQTT (`[output.mqtt]`), when published.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub archive: Option<ArchiveStatus>,
     /// The feed and the pipeline's counters.
     pub feed: FeedStatus,
     /// `/events` clients.
@@ -167,6 +170,25 @@ pub struct RecordingStatus {
     pub failed: Option<String>,
     /// Frames and samples it could not keep up with.
     pub dropped: u64,
+}
+
+/// The feed's delivery to the archive (the MQTT publisher's counters, see `sinks::mqtt`).
+#[derive(Debug, Serialize)]
+pub struct ArchiveStatus {
+    /// Connected to the broker now.
+    pub connected: bool,
+    /// An archive has said what it holds of this run.
+    pub heard: bool,
+    /// Lines of this run the archive does not hold yet, as it last said (absent before it said).
+    pub lag_lines: Option<u64>,
+    /// Lines of this run the archive holds.
+    pub confirmed_lines: u64,
+    /// Lines not confirmed by the archive (in memory or only in the feed file).
+    pub unconfirmed_lines: u64,
+    /// Lines the archive will never get from this rig.
+    pub dropped_lines: u64,
+    /// Connections after the first.
+    pub reconnects: u64,
 }
 
 /// The feed and the pipeline's counters.
@@ -307,6 +329,30 @@ pub fn status(view: &LiveView) -> Status {
     } else if failing && !st.finished {
         problems.push("recording failing: writes fail, retrying (frames dropped meanwhile are counted)".to_string());
     }
+    #[cfg(feature = "mqtt")]
+    let archive = view.mqtt.get().map(|m| {
+        use std::sync::atomic::Ordering::Relaxed;
+        let heard = m.archive_high.load(Relaxed) > 0 || m.archive_confirmed.load(Relaxed) > 0;
+        ArchiveStatus {
+            connected: m.connected.load(Relaxed) == 1,
+            heard,
+            lag_lines: heard.then(|| m.archive_lag.load(Relaxed)),
+            confirmed_lines: m.archive_confirmed.load(Relaxed),
+            unconfirmed_lines: m.unconfirmed.load(Relaxed),
+            dropped_lines: m.dropped.load(Relaxed),
+            reconnects: m.reconnects.load(Relaxed),
+        }
+    });
+    #[cfg(not(feature = "mqtt"))]
+    let archive: Option<ArchiveStatus> = None;
+    if let Some(a) = &archive {
+        if !a.connected && uptime_s > 5.0 {
+            problems.push(format!(
+                "MQTT broker unreachable: {} feed lines wait for the archive (kept, sent on reconnecting)",
+                a.unconfirmed_lines
+            ));
+        }
+    }
     let recording = RecordingStatus {
         active: st.recording.dir.is_some() && st.recording.failed.is_none() && !failing && !st.finished,
         dir: st.recording.dir.clone(),
@@ -363,6 +409,7 @@ pub fn status(view: &LiveView) -> Status {
         rate_windows: cfg.rate_windows.clone(),
         utm,
         recording,
+        archive,
         feed,
         http: HttpStatus { clients: view.clients.load(Ordering::Relaxed), lagged_events: view.metrics.http_events_lagged.get() },
         problems,

@@ -103,6 +103,9 @@ pub struct LiveView {
     pub(crate) clients: AtomicU64,
     /// The tests and their control API (`[output] tests`), once set.
     pub(crate) control: std::sync::OnceLock<super::control::Control>,
+    /// The MQTT publisher's counters (`[output.mqtt]`), once set: the archive's lag.
+    #[cfg(feature = "mqtt")]
+    pub(crate) mqtt: std::sync::OnceLock<Arc<crate::mqtt::MqttStats>>,
 }
 
 impl LiveView {
@@ -121,6 +124,8 @@ impl LiveView {
             started_ns: tagdeflect_core::clock::now_epoch_ns(),
             clients: AtomicU64::new(0),
             control: std::sync::OnceLock::new(),
+            #[cfg(feature = "mqtt")]
+            mqtt: std::sync::OnceLock::new(),
         };
         for c in &config.cameras {
             // Every camera's series exist from the start (a dashboard sees zeros, not gaps).
@@ -131,6 +136,12 @@ impl LiveView {
             let _ = view.metrics.posed.get_or_create(&l);
         }
         Arc::new(view)
+    }
+
+    /// Shows the MQTT publisher's delivery (the archive's lag) on the status and `/metrics`.
+    #[cfg(feature = "mqtt")]
+    pub fn set_mqtt(&self, stats: Arc<crate::mqtt::MqttStats>) {
+        let _ = self.mqtt.set(stats);
     }
 
     /// Serves the control API of `tests` (SPEC "Tests"): every POST needs `token`.

@@ -286,6 +286,14 @@ function onStatus(st) {
   const r = st.recording;
   chip("c-rec", r.failed ? "recording FAILED" : r.active ? `recording${r.dropped ? " (" + r.dropped + " dropped)" : ""}` : "not recording",
     r.failed ? "bad" : r.active ? "ok" : "");
+  const ar = st.archive;
+  $("c-archive").hidden = !ar;
+  if (ar) {
+    const text = !ar.connected ? `archive: broker unreachable (${ar.unconfirmed_lines} waiting)`
+      : !ar.heard ? "archive: not heard yet" : `archive lag ${ar.lag_lines} lines`;
+    chip("c-archive", text, !ar.connected ? "bad" : !ar.heard ? "" : ar.lag_lines > 100 ? "warn" : "ok");
+    $("c-archive").dataset.lag = ar.heard ? ar.lag_lines : "";
+  }
   if (!S.lastLine) chip("c-dropped", `dropped sets ${st.feed.dropped_sets}`, st.feed.dropped_sets > 0 ? "warn" : "ok");
   updateBanner();
 }
