@@ -816,3 +816,80 @@ fn broker_urls_topic_templates_and_config_errors() {
     assert_eq!(c.output.mqtt.as_ref().unwrap().password.as_deref(), Some("secret"));
     assert!(!c.to_toml_string().contains("secret"));
 }
+
+/// The broker ACLs of docs/operations.md, as written there (read from the page): with them a
+/// rig's feed reaches the archive, and another rig can neither write over its status nor slip a
+/// line into its feed — while that rig's own topics still work.
+#[test]
+fn the_documented_acls_let_each_rig_write_only_its_own_topics() {
+    use std::os::unix::fs::PermissionsExt;
+    let docs = fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/operations.md")).unwrap();
+    let acl: String = docs
+        .lines()
+        .skip_while(|l| !l.trim_start().starts_with("# every rig:"))
+        .take_while(|l| !l.trim_start().starts_with("```"))
+        .map(|l| format!("{}\n", l.trim()))
+        .collect();
+    assert!(acl.contains("pattern write tagdeflect/%u/+/feed") && acl.contains("user archive"), "the ACL block of the docs: {acl}");
+    // Files the broker's own user can read.
+    let auth = std::env::temp_dir().join(format!("tagdeflect-acl-{}-{:08x}", std::process::id(), rand::random::<u32>()));
+    fs::create_dir_all(&auth).unwrap();
+    fs::set_permissions(&auth, fs::Permissions::from_mode(0o755)).unwrap();
+    let (acl_file, pw_file) = (auth.join("acl"), auth.join("passwd"));
+    fs::write(&acl_file, &acl).unwrap();
+    for (k, (user, pw)) in [("archive", "apw"), ("rig-a", "pa"), ("rig-b", "pb")].iter().enumerate() {
+        let mut c = Command::new("mosquitto_passwd");
+        if k == 0 {
+            c.arg("-c");
+        }
+        let ok = c.args(["-b"]).arg(&pw_file).args([user, pw]).stdout(Stdio::null()).stderr(Stdio::null()).status().unwrap();
+        assert!(ok.success(), "mosquitto_passwd for {user}");
+    }
+    for f in [&acl_file, &pw_file] {
+        fs::set_permissions(f, fs::Permissions::from_mode(0o644)).unwrap();
+    }
+    let conf = format!("allow_anonymous false\npassword_file {}\nacl_file {}\n", pw_file.display(), acl_file.display());
+    let broker = LocalMosquitto::start_configured(true, &conf).unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let alog = dir.path().join("archive.log");
+    let port = broker.port();
+    let mut archive = start_archive(&format!("mqtt://archive:apw@127.0.0.1:{port}"), &pg.url(), "archive-acl", &alog);
+    let (cfg, feed_path) = demo_config(dir.path(), &format!("mqtt://rig-a:pa@127.0.0.1:{port}"), "rig-a", "t1", 10_000);
+    let mut demo = start_demo(&cfg, 4.0, &dir.path().join("demo.log"));
+    assert!(demo.wait(Duration::from_secs(60)).success());
+    let feed = read_feed(&feed_path);
+    let logs = || logs_of(dir.path(), &["demo.log", "archive.log"]);
+    let rows = wait_rows(&pg.url(), "rig-a", "t1", feed.len(), Duration::from_secs(30));
+    assert_eq!(rows.len(), feed.len(), "rig-a's own feed through the ACLs\n{}", logs());
+
+    // rig-b forges rig-a's status and a line of its feed, then writes a line of its own.
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let mut o = rumqttc::MqttOptions::new("forger", "127.0.0.1", port);
+        o.set_credentials("rig-b", "pb");
+        let (c, mut el) = rumqttc::AsyncClient::new(o, 16);
+        let forged_status = br#"{"state":"forged","rig":"rig-a","test":"t1"}"#.to_vec();
+        let line = |seq: u64| format!(r#"{{"seq":{seq},"t_ns":1700000000000000000,"tags":[]}}"#).into_bytes();
+        c.publish("tagdeflect/rig-a/t1/status", rumqttc::QoS::AtLeastOnce, true, forged_status).await.unwrap();
+        c.publish("tagdeflect/rig-a/t1/feed", rumqttc::QoS::AtLeastOnce, false, line(999_999)).await.unwrap();
+        c.publish("tagdeflect/rig-b/t9/feed", rumqttc::QoS::AtLeastOnce, false, line(0)).await.unwrap();
+        let mut acked = 0;
+        while acked < 3 {
+            if let rumqttc::Event::Incoming(rumqttc::Packet::PubAck(_)) = el.poll().await.unwrap() {
+                acked += 1;
+            }
+        }
+    });
+    let own = wait_rows(&pg.url(), "rig-b", "t9", 1, Duration::from_secs(30));
+    assert_eq!(own.len(), 1, "rig-b's own topic is open to it\n{}", logs());
+    assert_eq!(archived(&pg.url(), "rig-a", "t1").len(), feed.len(), "no forged line in rig-a's feed");
+    let state = query(&pg.url(), |c| {
+        Box::pin(async move {
+            c.query_one("SELECT status->>'state' FROM tests WHERE name = 't1'", &[]).await.map(|r| r.get::<_, Option<String>>(0)).unwrap()
+        })
+    });
+    assert_eq!(state.as_deref(), Some("offline"), "rig-a's status as rig-a left it\n{}", logs());
+    assert!(archive.alive());
+    let _ = fs::remove_dir_all(&auth);
+}

@@ -890,13 +890,19 @@ fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
     assert_eq!(d.stop(), Some(0));
 }
 
-/// A notched beam in three-point bending with a CMOD gauge (the simulated EN 14651 rig): the
-/// page shows the load–CMOD curve, and the bending profile takes one load at midspan.
+/// A notched beam in three-point bending with a CMOD gauge (the simulated EN 14651 rig), its
+/// cameras dropping 15 % of their frames: the page shows the load–CMOD curve, the bending
+/// profile takes one load at midspan, and the net deflection over time has its ±2σ band with
+/// the frame sets that lacked a camera marked.
 #[test]
 fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     let dir = tempfile::tempdir().unwrap();
-    let params =
-        SimParams { test: tagdeflect::sim::SimTest::ThreePointNotched, load_law: tagdeflect::sim::LoadLaw::Softening, ..small_rig() };
+    let params = SimParams {
+        test: tagdeflect::sim::SimTest::ThreePointNotched,
+        load_law: tagdeflect::sim::LoadLaw::Softening,
+        drop_prob: 0.15,
+        ..small_rig()
+    };
     let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     assert!(cfg.gauges.iter().any(|g| g.name == "cmod"), "the notched rig has a CMOD gauge");
@@ -920,6 +926,10 @@ fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     assert_eq!(seen["name"], "(gauge cmod)");
     assert_eq!(seen["axes"], serde_json::json!(["CMOD [mm]", "load [kN]"]));
     assert_eq!(seen["loading"], "three-point", "{seen}");
+    let (band, partial, points) =
+        (seen["band"].as_u64().unwrap(), seen["partial"].as_u64().unwrap(), seen["defl_points"].as_u64().unwrap());
+    assert!(band > 0 && band <= points, "the ±2σ band where the lines give σ: {seen}");
+    assert!(partial > 0 && partial < points, "the partial frame sets marked, and only they: {seen}");
     assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
     assert_eq!(d.stop(), Some(0));
 }

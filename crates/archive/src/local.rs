@@ -108,6 +108,12 @@ impl LocalMosquitto {
     /// Starts the broker with or without persistence (without: a restart forgets every
     /// session, subscription, queued and retained message, as a broker run that way does).
     pub fn start_with(persistence: bool) -> io::Result<LocalMosquitto> {
+        LocalMosquitto::start_configured(persistence, "allow_anonymous true\n")
+    }
+
+    /// Starts the broker with `auth` in place of `allow_anonymous true` (e.g. a
+    /// `password_file` and an `acl_file`, with `allow_anonymous false`).
+    pub fn start_configured(persistence: bool, auth: &str) -> io::Result<LocalMosquitto> {
         let dir = temp_dir("mosquitto")?;
         let user = if is_root() {
             match user_ids("mosquitto") {
@@ -127,7 +133,7 @@ impl LocalMosquitto {
         for _ in 0..5 {
             m.port = free_port()?;
             let mut text = format!(
-                "listener {} 127.0.0.1\nallow_anonymous true\npersistence {persistence}\npersistence_location {}/\n\
+                "listener {} 127.0.0.1\n{auth}persistence {persistence}\npersistence_location {}/\n\
                  max_inflight_messages 1000\nmax_queued_messages 1000000\nmax_queued_bytes 0\n\
                  log_dest file {}/mosquitto.log\nlog_type error\nlog_type warning\nlog_type notice\n",
                 m.port,

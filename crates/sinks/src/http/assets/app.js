@@ -12,6 +12,8 @@ const S = {
   t: [],               // seconds since t0
   load: [], net: [], stroke: [],
   cmodv: [],           // the CMOD gauge's value, aligned with t
+  netHi: [], netLo: [], // net deflection ± 2σ (net_deflection_sigma_mm), aligned with t
+  partial: [],         // the net deflection of a partial frame set (else null), aligned with t
   testIds: [],         // the test of each line (null between tests), aligned with t
   earlier: [],         // the day's stopped tests: {id, specimen, net_deflection_mm, load_kn}
   tagIds: [],          // specimen tag ids in column order
@@ -42,8 +44,9 @@ function size(el) {
   return { width: w, height: el.classList.contains("tall") ? 340 : 260 };
 }
 
-function makeTimeChart(el, yLabel, series) {
+function makeTimeChart(el, yLabel, series, extra) {
   const opts = {
+    ...(extra || {}),
     ...size(el),
     scales: { x: { time: false } },
     axes: [axis("time [s]"), axis(yLabel)],
@@ -101,7 +104,13 @@ function rebuildCurve() {
 function initCharts() {
   rebuildCurve();
   S.charts.profile = makeProfile($("profile"));
-  S.charts.defl = makeTimeChart($("defl"), "net deflection [mm]", [{ label: "net deflection [mm]", stroke: "#ff8c00", width: 2, value: (u, v) => fmt(v, 3) }]);
+  // The net deflection with its ±2σ band, and the frame sets that lacked a camera marked.
+  S.charts.defl = makeTimeChart($("defl"), "net deflection [mm]", [
+    { label: "net deflection [mm]", stroke: "#ff8c00", width: 2, value: (u, v) => fmt(v, 3) },
+    { label: "+2σ", stroke: "rgba(255,140,0,0.35)", width: 1, value: (u, v) => fmt(v, 3) },
+    { label: "−2σ", stroke: "rgba(255,140,0,0.35)", width: 1, value: (u, v) => fmt(v, 3) },
+    { label: "partial set", stroke: "#ff5252", fill: "#ff5252", paths: () => null, points: { show: true, size: 7, stroke: "#ff5252", fill: "#ff5252" }, value: (u, v) => fmt(v, 3) },
+  ], { bands: [{ series: [2, 3], fill: "rgba(255,140,0,0.18)" }] });
   S.charts.load = makeTimeChart($("load"), "load [kN]", [{ label: "load [kN]", stroke: "#00c8ff", width: 2, value: (u, v) => fmt(v, 2) }]);
   rebuildTagChart();
   window.addEventListener("resize", () => {
@@ -144,6 +153,7 @@ function decimate() {
   const keep = (a) => a.filter((_, i) => i % 2 === 0);
   S.t = keep(S.t); S.load = keep(S.load); S.net = keep(S.net); S.stroke = keep(S.stroke);
   S.cmodv = keep(S.cmodv); S.testIds = keep(S.testIds);
+  S.netHi = keep(S.netHi); S.netLo = keep(S.netLo); S.partial = keep(S.partial);
   for (const [id, a] of S.tags) S.tags.set(id, keep(a));
 }
 
@@ -153,6 +163,11 @@ function onLine(line) {
   S.t.push((line.t_ns - S.t0) / 1e9);
   S.load.push(line.load_kN ?? null);
   S.net.push(line.net_deflection_mm ?? null);
+  const net = line.net_deflection_mm, sig = line.net_deflection_sigma_mm;
+  const banded = net !== undefined && sig !== undefined && sig !== null;
+  S.netHi.push(banded ? net + 2 * sig : null);
+  S.netLo.push(banded ? net - 2 * sig : null);
+  S.partial.push(line.partial_set && net !== undefined ? net : null);
   S.stroke.push(line.stroke_mm ?? null);
   const cmod = S.status && S.status.cmod_gauge && line.gauges ? line.gauges[S.status.cmod_gauge] : undefined;
   S.cmodv.push(cmod ? cmod.value : null);
@@ -189,8 +204,10 @@ function redraw() {
     S.charts.cmod.setData([null, c]);
     $("cmodcurve").dataset.points = c[0].length;
   }
-  S.charts.defl.setData([S.t, S.net]);
+  S.charts.defl.setData([S.t, S.net, S.netHi, S.netLo, S.partial]);
   $("defl").dataset.points = S.net.filter((v) => v !== null).length;
+  $("defl").dataset.band = S.netHi.filter((v) => v !== null).length;
+  $("defl").dataset.partial = S.partial.filter((v) => v !== null).length;
   S.charts.load.setData([S.t, S.load]);
   $("load").dataset.points = S.load.filter((v) => v !== null).length;
   S.charts.tags.setData([S.t, ...S.tagChartIds.map((id) => S.tags.get(id))]);
