@@ -89,6 +89,18 @@ fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
     v.to_string()
 }
 
+/// Polls a client's connection for as long as the benchmark runs: an error (the broker
+/// refused or dropped the connection) is logged and the next poll reconnects — a poller that
+/// stopped at the first error would leave its publisher waiting forever for room to send.
+async fn drive(el: &mut rumqttc::EventLoop, who: &str) {
+    loop {
+        if let Err(e) = el.poll().await {
+            tracing::warn!("archive-bench: the {who}'s connection: {e}; reconnecting");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+}
+
 /// Runs the benchmark and prints the figures.
 pub fn run(opts: &ArchiveBenchOptions) -> Result<(), ArchiveError> {
     let local_mqtt = match opts.mqtt {
@@ -130,14 +142,19 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Re
         tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-probe-{run_id}"), None, None, None).map_err(ArchiveError::BadOption)?,
         16,
     );
-    let probe_task = tokio::spawn(async move { while probe_loop.poll().await.is_ok() {} });
+    let probe_task = tokio::spawn(async move { drive(&mut probe_loop, "probe").await });
     let until = Instant::now() + Duration::from_secs(30);
     let mut k = 0;
     while stats.inserted.load(Ordering::Relaxed) == 0 {
         if Instant::now() >= until {
             return Err(ArchiveError::Bench(format!("the archive stored nothing within 30 s (broker {mqtt})")));
         }
-        probe.publish(format!("tagdeflect/bench-probe/{run_id}/feed"), QoS::AtLeastOnce, false, synthetic_line(k, 0, opts.tags)).await?;
+        // Bounded: a connection that takes nothing must end in the error above, not a hang.
+        let publish =
+            probe.publish(format!("tagdeflect/bench-probe/{run_id}/feed"), QoS::AtLeastOnce, false, synthetic_line(k, 0, opts.tags));
+        if let Ok(r) = tokio::time::timeout(Duration::from_secs(1), publish).await {
+            r?;
+        }
         k += 1;
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
@@ -153,7 +170,7 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Re
             .map_err(ArchiveError::BadOption)?;
         mo.set_inflight(100);
         let (client, mut el) = AsyncClient::new(mo, 64);
-        let driver = tokio::spawn(async move { while el.poll().await.is_ok() {} });
+        let driver = tokio::spawn(async move { drive(&mut el, "rig").await });
         let (lines, tags, run_id) = (opts.lines, opts.tags, run_id.clone());
         publishers.push(tokio::spawn(async move {
             let topic = format!("tagdeflect/bench-rig-{r}/{run_id}/feed");
@@ -168,8 +185,12 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Re
         }));
     }
     let mut clients = Vec::new();
+    let until = tokio::time::Instant::now() + Duration::from_secs(300);
     for p in publishers {
-        clients.push(p.await?);
+        match tokio::time::timeout_at(until, p).await {
+            Ok(c) => clients.push(c?),
+            Err(_) => return Err(ArchiveError::Bench("the simulated rigs could not publish their lines within 300 s".into())),
+        }
     }
     let published_s = t0.elapsed().as_secs_f64();
     let until = Instant::now() + Duration::from_secs(300);
