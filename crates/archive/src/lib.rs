@@ -294,7 +294,14 @@ pub(crate) async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mu
         .collect();
     tracing::info!(client_id = %client_id, subscriptions = ?subs, "archive: {mqtt} -> PostgreSQL");
 
-    let (tx, rx) = mpsc::channel::<Publish>(4 * opts.batch.max(64));
+    // Unbounded on purpose: the connection task must never wait for room. It did, under a
+    // burst (4 rigs x 3000 lines at full speed, `archive-bench`): the connection waited for the
+    // write loop to take a batch, the write loop for the connection to take its
+    // acknowledgements, and the broker dropped the silent connection (keep-alive) with
+    // thousands of lines unacknowledged. What waits here is bounded by the broker: with manual
+    // acknowledgements it sends at most `max_inflight_messages` unacknowledged messages (see
+    // docs/operations.md, "Broker settings").
+    let (tx, rx) = mpsc::unbounded_channel::<Publish>();
     let reconnected = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let mqtt_task = tokio::spawn(drive_mqtt(eventloop, client.clone(), subs, tx, reconnected.clone()));
 
@@ -374,7 +381,7 @@ async fn drive_mqtt(
     mut eventloop: EventLoop,
     client: AsyncClient,
     subs: Vec<String>,
-    tx: mpsc::Sender<Publish>,
+    tx: mpsc::UnboundedSender<Publish>,
     reconnected: Arc<std::sync::atomic::AtomicBool>,
 ) {
     let mut backoff = retry_backoff();
@@ -405,7 +412,7 @@ async fn drive_mqtt(
                 }
             }
             Ok(Event::Incoming(Packet::Publish(p))) => {
-                if tx.send(p).await.is_err() {
+                if tx.send(p).is_err() {
                     return;
                 }
             }
@@ -555,7 +562,7 @@ impl Acks {
 async fn write_loop(
     ctx: &WriteCtx,
     client: &AsyncClient,
-    mut rx: mpsc::Receiver<Publish>,
+    mut rx: mpsc::UnboundedReceiver<Publish>,
     db: &mut Db,
     stats: &ArchiveStats,
     stop: &mut watch::Receiver<bool>,
