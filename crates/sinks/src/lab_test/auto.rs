@@ -228,7 +228,9 @@ impl AutoTest {
     /// (its values counted from the test's zero).
     pub fn step(&mut self, line: &FeedLine, running: Option<RunningTest<'_>>) -> Option<Action> {
         self.load_kn = line.load_kn.filter(|l| l.is_finite());
-        let c = self.rules.config.clone();
+        // The numbers only (this runs for every feed line: no allocation).
+        let c = &self.rules.config;
+        let (start_kn, rearm_kn, margin_mm, fraction) = (c.start_load_kn, c.rearm_kn(), c.end_margin_mm, c.stop_below_peak_fraction);
         let Some(test) = running else {
             if matches!(self.state, State::Running { .. } | State::Stopping(_)) {
                 // The test stopped (ours or the operator's): wait for the unloading.
@@ -236,12 +238,16 @@ impl AutoTest {
             }
             let load = self.load_kn?;
             match self.state {
-                State::Disarmed if load < c.rearm_kn() => self.set(State::Armed),
-                State::Armed if load >= c.start_load_kn => {
+                State::Disarmed if load < rearm_kn => self.set(State::Armed),
+                State::Armed if load >= start_kn => {
                     self.streak += 1;
                     if self.streak >= CONFIRM_LINES {
-                        let meta = TestMeta { specimen: c.specimen.clone(), standard: self.rules.standard.clone(), ..TestMeta::default() };
-                        let why = format!("auto: the load reached {load:.2} kN (start at {:.2} kN)", c.start_load_kn);
+                        let meta = TestMeta {
+                            specimen: self.rules.config.specimen.clone(),
+                            standard: self.rules.standard.clone(),
+                            ..TestMeta::default()
+                        };
+                        let why = format!("auto: the load reached {load:.2} kN (start at {start_kn:.2} kN)");
                         self.set(State::Running { peak_kn: Some(load) });
                         return Some(Action::Start(meta, why));
                     }
@@ -276,14 +282,14 @@ impl AutoTest {
             Some(End::Net(at)) => self
                 .net_mm
                 .filter(|v| v >= at)
-                .map(|v| format!("net deflection {v:.3} mm reached the end {at:.3} mm (L/150 + {:.2} mm)", c.end_margin_mm)),
+                .map(|v| format!("net deflection {v:.3} mm reached the end {at:.3} mm (L/150 + {margin_mm:.2} mm)")),
             Some(End::Gauge(g, at)) => self.cmod_mm.filter(|v| v >= at).map(|v| format!("{g} {v:.3} mm reached EN 14651's end {at:.1} mm")),
             None => None,
         };
-        if why.is_none() && c.stop_below_peak_fraction > 0.0 {
+        if why.is_none() && fraction > 0.0 {
             if let (Some(p), Some(l)) = (peak, self.load_kn) {
-                if p >= c.start_load_kn && l < c.stop_below_peak_fraction * p {
-                    why = Some(format!("the load {l:.2} kN fell below {:.0} % of the peak {p:.2} kN", 100.0 * c.stop_below_peak_fraction));
+                if p >= start_kn && l < fraction * p {
+                    why = Some(format!("the load {l:.2} kN fell below {:.0} % of the peak {p:.2} kN", 100.0 * fraction));
                 }
             }
         }
