@@ -315,6 +315,7 @@ pub struct TargetDetector {
     spec: TargetSpec,
     tags: Option<Detector>,
     intrinsics: Option<CameraIntrinsics>,
+    refine: bool,
 }
 
 impl TargetDetector {
@@ -325,7 +326,7 @@ impl TargetDetector {
             TargetSpec::AprilGrid { .. } => Some(Detector::new(DetectorOptions::for_families(&[TagFamily::Tag36h11]).with_border_bits(2))?),
             TargetSpec::Checkerboard { .. } => None,
         };
-        Ok(Self { spec, tags, intrinsics: None })
+        Ok(Self { spec, tags, intrinsics: None, refine: true })
     }
 
     /// The camera's intrinsics (e.g. a first calibration's) for the tags' sub-pixel
@@ -337,6 +338,14 @@ impl TargetDetector {
         if let Some(d) = &mut self.tags {
             d.set_intrinsics(self.intrinsics);
         }
+    }
+
+    /// Turns the tags' sub-pixel refinement off (`false`) or on (the default): off, the
+    /// tags' corners are the AprilTag library's quads (an AprilGrid's with their edges put
+    /// back, module docs); checkerboards are unchanged. Only for measuring what the refinement gains
+    /// (the real-image test of `tests/it/aprilgrid.rs`); calibration always refines.
+    pub fn set_refinement(&mut self, enabled: bool) {
+        self.refine = enabled;
     }
 
     /// The tags of an AprilGrid: the library on the two black-shrunk copies, each tag's
@@ -359,8 +368,10 @@ impl TargetDetector {
             }
         }
         let opts = det.options().subpixel.clone().unwrap_or_default();
-        for d in &mut best {
-            refine_corners_with(image, d, self.intrinsics.as_ref(), &opts);
+        if self.refine {
+            for d in &mut best {
+                refine_corners_with(image, d, self.intrinsics.as_ref(), &opts);
+            }
         }
         best.sort_by_key(|d| d.id);
         best
@@ -383,7 +394,8 @@ impl TargetDetector {
                 let mut pixels = Vec::new();
                 let mut found = 0;
                 let mut seen = BoardSeen::default();
-                for d in det.detect(image) {
+                let dets = if self.refine { det.detect(image) } else { det.detect_raw(image, None).iter().map(|r| r.to_detection()).collect() };
+                for d in dets {
                     if d.id < first_id || d.id >= first_id + cols * rows {
                         seen.outside_ids.push(d.id);
                         continue;
