@@ -790,4 +790,34 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
     let pc = 100.0 * 0.3;
     against_truth("notched", &j, &t, &[("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
+    // The reference above runs the report's own arithmetic on the truth; this one does not:
+    // the simulator's law F(δ) against its own true CMOD at δ, f_R,j = 3·F_j·l / (2·b·h_sp²)
+    // written out here (no code of the report).
+    let law = closed_form_en14651(&p, 500.0, 150.0, 150.0 - 25.0);
+    for (key, t) in ["fR1", "fR2", "fR3", "fR4"].into_iter().zip(law) {
+        let (v, s) = (j[key]["value"].as_f64().unwrap(), j[key]["sigma"].as_f64().unwrap());
+        println!("REPORT notched vs the closed-form law {key}: {v:.4} ± {s:.4} MPa (law {t:.4}; error {:+.4})", v - t);
+        assert!((v - t).abs() <= 2.0 * s + mpa(0.01 * pc), "{key}: {v} ± {s} vs the law's {t}");
+    }
+}
+
+/// EN 14651's residual flexural strengths f_R,1..4 from the simulator's law in closed form:
+/// the load `F(δ)` of `tagdeflect::sim::load_at` at the δ where the true CMOD (the
+/// simulator's gauge truth, from the rendered tags' poses) reaches 0.5, 1.5, 2.5 and 3.5 mm,
+/// δ sampled every 0.3 µm, then `3·F·l / (2·b·h_sp²)` (kN → N).
+fn closed_form_en14651(p: &tagdeflect::sim::SimParams, span_mm: f64, width_mm: f64, h_sp_mm: f64) -> [f64; 4] {
+    let rig = tagdeflect::sim::SimRig::new(p).unwrap();
+    let n = 20_000;
+    let pts: Vec<(f64, f64)> = (0..=n)
+        .map(|i| {
+            let d = p.max_deflection_mm * i as f64 / n as f64;
+            (rig.gauge_truth(d)["cmod"], tagdeflect::sim::load_at(p, d))
+        })
+        .collect();
+    [0.5, 1.5, 2.5, 3.5].map(|cmod| {
+        let i = pts.iter().position(|q| q.0 >= cmod).unwrap_or_else(|| panic!("the test reaches CMOD {cmod} mm"));
+        let (a, b) = (pts[i - 1], pts[i]);
+        let f_kn = a.1 + (b.1 - a.1) * (cmod - a.0) / (b.0 - a.0);
+        3.0 * f_kn * 1000.0 * span_mm / (2.0 * width_mm * h_sp_mm * h_sp_mm)
+    })
 }
