@@ -679,8 +679,8 @@ fn simulated_softening_test_end_to_end_matches_the_truth() {
             ("P150", 0.01 * pc),
             ("f600", fk(0.01 * pc)),
             ("f150", fk(0.01 * pc)),
-            ("T150", 0.01 * pc * 3.0),
-            ("RT150", 1.0),
+            ("T150", 0.15),
+            ("RT150", 0.3),
         ],
     );
     // And the law itself: the first peak is the last sample before the crack (k·δ ≤ 30 kN).
@@ -695,10 +695,10 @@ fn simulated_softening_test_end_to_end_matches_the_truth() {
         ("delta1", law.delta1, 0.01),
         ("P600", law.p600, 0.01 * pc),
         ("P150", law.p150, 0.01 * pc),
-        // T150 is 1.29 J (2.6 %) low against the law while its σ says 0.21 J: a bias of the
-        // report's area on the image-simulated test (docs/report.md, "Known limits"); the
-        // floor holds it there and fails on anything larger.
-        ("T150", law.t150, 0.01 * pc * 3.0),
+        // T150 was 1.29 J (2.6 %) low here while its σ said 0.21 J: the 5-point smoothing
+        // straddled the start of loading (measured 2026-12-02: 49.68 J; 51.05 unsmoothed).
+        // With the window shrunk at kinks (curve.rs) it is 51.04 ± 0.27 against 50.97.
+        ("T150", law.t150, 0.15),
     ] {
         let (v, s) = (j[key]["value"].as_f64().unwrap(), j[key]["sigma"].as_f64().unwrap());
         println!("REPORT softening vs the closed-form law {key}: {v:.4} ± {s:.4} (law {t:.4}; error {:+.4})", v - t);
@@ -821,3 +821,4 @@ fn closed_form_en14651(p: &tagdeflect::sim::SimParams, span_mm: f64, width_mm: f
         3.0 * f_kn * 1000.0 * span_mm / (2.0 * width_mm * h_sp_mm * h_sp_mm)
     })
 }
+

@@ -239,9 +239,10 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     );
     let _ = write!(
         h,
-        "<li><b>Smoothing:</b> the {} is smoothed over time by a moving local-linear least-squares fit of {} points (a straight ramp passes unchanged); its σ is propagated through the fit's weights, the σ of the zero reference ({:.4} mm) added in full. The load is not smoothed.</li>",
+        "<li><b>Smoothing:</b> the {} is smoothed over time by a moving local-linear least-squares fit of up to {} points (a straight ramp passes unchanged); the window shrinks where the wider fit's bias shows, at a kink such as the start of loading ({} points here); its σ is propagated through the fit's weights, the σ of the zero reference ({:.4} mm) added in full. The load is not smoothed.</li>",
         esc(&report.x_axis),
         c.smooth_points,
+        c.smooth_reduced,
         c.x_ref_sigma
     );
     let _ = write!(

@@ -250,6 +250,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
         json!({
             "x": report.x_name, "x_source": report.x_source, "points": c.len(),
             "smooth_points": c.smooth_points,
+            "smooth_points_reduced_at": c.smooth_reduced,
             "load_sigma_kN": c.load_sigma, "load_noise_kN": c.load_noise,
             "load_from_utm": c.load_from_utm, "load_period_s": c.load_period_s,
             "load_resolution_kN": report.options.load_resolution_kn.unwrap_or(0.0),

@@ -173,7 +173,7 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
     chart
         .draw_series(LineSeries::new(c.xs.iter().cloned().zip(c.load.iter().cloned()), blue.stroke_width(2)))
         .map_err(err)?
-        .label(format!("smoothed ({} points)", c.smooth_points))
+        .label(format!("smoothed (up to {} points)", c.smooth_points))
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], blue.stroke_width(2)));
     for (v, name) in &d.verticals {
         if *v < x0 || *v > x1 {
