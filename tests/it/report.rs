@@ -763,36 +763,47 @@ fn closed_form_c1609(p: &tagdeflect::sim::SimParams, span_mm: f64) -> C1609Law {
 fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     use tagdeflect::sim::{LoadLaw, SimTest};
     let dir = tempfile::tempdir().unwrap();
-    let p = sim_test(SimTest::ThreePointNotched, LoadLaw::Softening, 30, 5.5, 73);
+    // 200 frame sets: the CMOD moves 0.004 mm per set before the crack, so F_L (the peak in
+    // CMOD 0–0.05 mm) is resolved; at 30 sets one set spanned the crack and F_L came out 10.6
+    // ± 7 kN (measured 2026-12-02).
+    let p = sim_test(SimTest::ThreePointNotched, LoadLaw::Softening, 200, 5.5, 73);
     let (j, truth, on_utm, lines) = simulate_replay_report(dir.path(), &p, "en-14651");
     // The CMOD gauge against the truth's, line by line (two 960x720 cameras).
     let err: Vec<f64> = lines.iter().zip(&truth).map(|(l, t)| l.gauges["cmod"].value - t.gauges["cmod"]).collect();
     let rms = (err.iter().map(|e| e * e).sum::<f64>() / err.len() as f64).sqrt();
     let worst = err.iter().map(|e| e.abs()).fold(0.0, f64::max);
     println!("REPORT notched: CMOD gauge vs truth, RMS {rms:.4} mm, max {worst:.4} mm over {} lines", lines.len());
-    // With two 960x720 cameras the gauge's σ is about 0.02 mm: every error within 3σ.
+    // With two 960x720 cameras the gauge's σ is about 0.015 mm. A line's σ leaves out the
+    // first frame set's error, which every line carries (an offset common to the run; the
+    // report adds it as the zero reference's σ): each error against both, σ checked both
+    // ways (the fraction within 2σ and the RMS of error/σ), no error beyond 4σ. Measured
+    // 2026-12-02: mean error −0.018 mm, 0.012 mm about it, line σ 0.014 mm; against the line
+    // σ alone 84.5 % within 2σ, RMS error/σ 1.47.
     assert!(rms <= 0.03, "CMOD RMS {rms} mm");
-    for (l, e) in lines.iter().zip(&err) {
-        assert!(
-            e.abs() <= 3.0 * l.gauges["cmod"].sigma + 1e-4,
-            "CMOD {} off by {e} (σ {})",
-            l.gauges["cmod"].value,
-            l.gauges["cmod"].sigma
-        );
-    }
+    let s_ref = j["curve"]["x_reference_sigma_mm"].as_f64().unwrap();
+    assert!(s_ref > 0.005, "the CMOD's zero reference σ {s_ref} mm is in the report");
+    let z: Vec<f64> = lines.iter().zip(&err).map(|(l, e)| e / l.gauges["cmod"].sigma.hypot(s_ref)).collect();
+    let within2 = z.iter().filter(|v| v.abs() <= 2.0).count() as f64 / z.len() as f64;
+    let rms_z = (z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64).sqrt();
+    let worst_z = z.iter().map(|v| v.abs()).fold(0.0, f64::max);
+    println!("REPORT notched: CMOD error/σ: {:.1} % within 2σ, RMS {rms_z:.2}, worst {worst_z:.2}σ", 100.0 * within2);
+    assert!(within2 >= 0.9 && (0.6..=1.3).contains(&rms_z) && worst_z <= 4.0, "CMOD σ: {within2} within 2σ, RMS error/σ {rms_z}, worst {worst_z}σ");
     assert_eq!(j["specimen"]["notch_mm"], 25.0);
     let (fl, sl) = (j["FL"]["value"].as_f64().unwrap(), j["FL"]["sigma"].as_f64().unwrap());
-    // F_L is not checked here: with two 960x720 cameras the CMOD's σ (0.02 mm) is not small
-    // against the 0.05 mm interval, so the smoothed CMOD leaves it before the crack (F_L
-    // from the UTM's samples is checked on a hand-built feed, report_lab.rs).
-    println!("REPORT simulated notched: F_L {fl} ± {sl} kN vs the first crack 30 kN (CMOD σ too large at this resolution)");
+    println!("REPORT simulated notched: F_L {fl} ± {sl} kN vs the first crack 30 kN");
     let t = en14651::compute(&truth_curve(&on_utm, "cmod"), &EN_BEAM);
     let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
     let pc = 100.0 * 0.3;
-    against_truth("notched", &j, &t, &[("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
+    against_truth("notched", &j, &t, &[("FL", 0.01 * pc), ("fL", mpa(0.01 * pc)), ("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
     // The reference above runs the report's own arithmetic on the truth; this one does not:
     // the simulator's law F(δ) against its own true CMOD at δ, f_R,j = 3·F_j·l / (2·b·h_sp²)
     // written out here (no code of the report).
+    // F_L in closed form: the first crack (k·δ_c) opens the notch by less than 0.05 mm.
+    let rig = tagdeflect::sim::SimRig::new(&p).unwrap();
+    assert!(rig.gauge_truth(p.crack_deflection_mm)["cmod"] < 0.05, "the simulated crack opens inside F_L's interval");
+    let fl_law = p.stiffness_kn_per_mm * p.crack_deflection_mm;
+    println!("REPORT notched vs the closed-form law FL: {fl:.4} ± {sl:.4} kN (law {fl_law:.4}; error {:+.4})", fl - fl_law);
+    assert!((fl - fl_law).abs() <= 2.0 * sl + 0.01 * pc, "F_L {fl} ± {sl} vs the law's {fl_law}");
     let law = closed_form_en14651(&p, 500.0, 150.0, 150.0 - 25.0);
     for (key, t) in ["fR1", "fR2", "fR3", "fR4"].into_iter().zip(law) {
         let (v, s) = (j[key]["value"].as_f64().unwrap(), j[key]["sigma"].as_f64().unwrap());
@@ -821,4 +832,5 @@ fn closed_form_en14651(p: &tagdeflect::sim::SimParams, span_mm: f64, width_mm: f
         3.0 * f_kn * 1000.0 * span_mm / (2.0 * width_mm * h_sp_mm * h_sp_mm)
     })
 }
+
 
