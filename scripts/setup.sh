@@ -42,8 +42,8 @@ if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import pymodbus' >/de
   "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'pymodbus>=3.6,<4'
 fi
 # The live page's tests: selenium (drives Debian's chromium-driver) and the Prometheus
-# text parser of the official Python client.
-if ! "$venv/bin/python" -c 'import selenium, prometheus_client' >/dev/null 2>&1; then
-  echo "setup: adding selenium and prometheus_client to $venv" >&2
-  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'selenium>=4.10,<5' 'prometheus_client>=0.17'
+# text parser of the official Python client; matplotlib for scripts/plot_control_loop.py.
+if ! "$venv/bin/python" -c 'import selenium, prometheus_client, matplotlib' >/dev/null 2>&1; then
+  echo "setup: adding selenium, prometheus_client and matplotlib to $venv" >&2
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'selenium>=4.10,<5' 'prometheus_client>=0.17' 'matplotlib>=3.6,<4'
 fi

@@ -297,6 +297,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     let (loss_from, loss_to) = (8.0, 9.0);
     let mut loss_ns = (0i64, 0i64);
     let mut k = 0u64;
+    let mut sets = Vec::new();
     while started.elapsed().as_secs_f64() < duration_s + 0.5 {
         let due = started + period * k as u32;
         if let Some(wait) = due.checked_duration_since(Instant::now()) {
@@ -331,6 +332,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         if lost {
             assert_eq!(control.registers()[6], 0, "invalid at the first frame set without the tags");
         }
+        sets.push((t_ns, control.registers()[6], s.load_kn, s.stroke_mm, s.deflection_mm));
         k += 1;
     }
     let status = pi.0.wait().unwrap();
@@ -379,7 +381,29 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         }
         t += 250_000_000;
     }
-    fs::write(common::root().join("target/control-loop.csv"), &csv).unwrap();
+    let (windows_csv, sets_csv, png) =
+        (common::root().join("target/control-loop.csv"), common::root().join("target/control-loop-sets.csv"), common::root().join("target/control-loop.png"));
+    fs::write(&windows_csv, &csv).unwrap();
+    let mut per_set = String::from("t_s,valid,load_kN,stroke_mm,net_mm\n");
+    for (t, v, load, stroke, net) in &sets {
+        per_set.push_str(&format!("{:.3},{v},{load:.4},{stroke:.5},{net:.5}\n", (t - moving) as f64 * 1e-9));
+    }
+    fs::write(&sets_csv, per_set).unwrap();
+    // The run drawn by the README's script (rate, load, valid) into target/control-loop.png.
+    let _ = fs::remove_file(&png);
+    let o = Command::new(common::python())
+        .arg(common::root().join("scripts/plot_control_loop.py"))
+        .args([&windows_csv, &sets_csv])
+        .args(["--target", &target.to_string(), "--out"])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "plot_control_loop.py: {}", String::from_utf8_lossy(&o.stderr));
+    let img = image::open(&png).expect("the loop's PNG decodes").to_rgb8();
+    assert!(img.width() >= 800 && img.height() >= 600, "PNG {}x{}", img.width(), img.height());
+    // The invalid span is shaded (the script's #f4c7c3) and the rate line drawn (#1c4587).
+    let has = |c: [u8; 3]| img.pixels().any(|p| p.0 == c);
+    assert!(has([0xf4, 0xc7, 0xc3]) && has([0x1c, 0x45, 0x87]), "the PNG lacks the invalid span or the rate line");
     println!(
         "CLOSED LOOP: {checked} windows of 1 s, {} beyond ±10 % of {target} mm/min; crack at {:.1} s; camera lost {:.1}..{:.1} s\n{csv}",
         off.len(),
