@@ -50,6 +50,10 @@ pub struct ReportArgs {
     /// default 5 or `[report] smooth_points`).
     #[arg(long)]
     pub smooth_points: Option<usize>,
+    /// The specimen's response as the lab states it (ASTM C1609/C1856; default softening or
+    /// `[report] response`): hardening accepts a first peak beyond L/150.
+    #[arg(long, value_enum)]
+    pub response: Option<tagdeflect_report::Response>,
     /// Resolution of the load reading, kN (adds resolution/√12 to each load's σ).
     #[arg(long)]
     pub load_resolution_kn: Option<f64>,
@@ -126,6 +130,9 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
     }
     if let Some(n) = args.smooth_points {
         o.smooth_points = n;
+    }
+    if let Some(r) = args.response {
+        o.response = r;
     }
     if args.load_resolution_kn.is_some() {
         o.load_resolution_kn = args.load_resolution_kn;

@@ -244,6 +244,67 @@ fn a_clean_test_of_each_kind_is_valid_without_qc_warnings() {
     }
 }
 
+/// Deflection-hardening (UHPC-like): elastic to 30 kN at 0.05 mm, rising after the first crack
+/// to its peak 45 kN at 3.1 mm (beyond L/150 = 3 mm), then falling.
+fn hardening(x: f64) -> f64 {
+    if x <= 0.05 {
+        600.0 * x
+    } else if x <= 3.1 {
+        30.0 + 15.0 * (x - 0.05) / 3.05
+    } else {
+        45.0 - 20.0 * (x - 3.1)
+    }
+}
+
+/// A deflection-hardening beam whose first zero slope lies beyond L/150: invalid as a
+/// softening specimen (the reason names the option), valid once the lab states the hardening
+/// response (`--response hardening`, or `[report] response`), P1 = Pp at the peak.
+#[test]
+fn a_stated_hardening_response_accepts_a_first_peak_beyond_l_150() {
+    let dir = tempfile::tempdir().unwrap();
+    let feed = Synth { law: hardening, x_end: 3.3, ..clean(false, 9) }.write(&dir.path().join("h"));
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    let out = dir.path().join("soft");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    assert_eq!(j["response"], "softening");
+    assert_eq!(j["valid"], false);
+    let reasons = j["invalid_reasons"].to_string();
+    assert!(reasons.contains("beyond L/150") && reasons.contains("response = \\\"hardening\\\""), "{reasons}");
+    for (how, extra) in [("flag", vec!["--response", "hardening"]), ("config", vec![])] {
+        let cfg = if how == "config" {
+            fs::create_dir_all(dir.path().join("cfg")).unwrap();
+            let c = config_with_beam(&dir.path().join("cfg"), C1609_BEAM);
+            let text = fs::read_to_string(&c).unwrap();
+            fs::write(&c, format!("{text}\n[report]\nstandard = \"astm-c1609\"\nout = \"reports\"\nresponse = \"hardening\"\n")).unwrap();
+            c
+        } else {
+            cfg.clone()
+        };
+        let out = dir.path().join(format!("hard-{how}"));
+        let o = report(&feed, &cfg, "astm-c1609", &out, &extra);
+        assert!(o.status.success(), "{how}: {}", stderr(&o));
+        let j = read_json(&out.join("report.json"));
+        println!("REPORT hardening ({how}): valid {} P1 {} at {} mm, unchecked {}", j["valid"], j["P1"], j["delta1"], j["validity_unchecked"]);
+        assert_eq!(j["response"], "hardening", "{how}");
+        assert_eq!(j["valid"], true, "{how}: {}", j["invalid_reasons"]);
+        assert!(j["validity_unchecked"].to_string().contains("hardening response was stated"), "{how}: {}", j["validity_unchecked"]);
+        let ((p1, _), (pp, _), (d1, _)) = (value(&j, "P1"), value(&j, "Pp"), value(&j, "delta1"));
+        assert!((p1 - 45.0).abs() < 0.2 && p1 == pp && (d1 - 3.1).abs() < 0.02, "{how}: P1 {p1} Pp {pp} δ1 {d1}");
+        let html = fs::read_to_string(out.join("report.html")).unwrap();
+        assert!(html.contains("deflection-hardening response stated"), "{how}: the HTML names the stated response");
+    }
+    // A value the option does not know is a located config error.
+    fs::create_dir_all(dir.path().join("bad")).unwrap();
+    let c = config_with_beam(&dir.path().join("bad"), C1609_BEAM);
+    let text = fs::read_to_string(&c).unwrap();
+    fs::write(&c, format!("{text}\n[report]\nstandard = \"astm-c1609\"\nout = \"reports\"\nresponse = \"hardned\"\n")).unwrap();
+    let o = report(&feed, &c, "astm-c1609", &dir.path().join("bad-out"), &[]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("response"), "{}", stderr(&o));
+}
+
 #[test]
 fn the_demo_feed_is_not_a_valid_test() {
     let dir = tempfile::tempdir().unwrap();

@@ -135,6 +135,7 @@ pub fn build(
     let utm_outages_s: f64 = qc.utm_outages.iter().map(|o| o.duration_s).sum();
     let validity = validity::check(&validity::Input {
         standard: opts.standard,
+        response: opts.response,
         beam: &beam,
         feed_curve: &feed_curve,
         load_curve: &curve,

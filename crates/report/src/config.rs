@@ -30,6 +30,12 @@ pub struct ReportConfig {
     /// 1 = no smoothing).
     #[serde(default = "default_smooth", skip_serializing_if = "is_default_smooth")]
     pub smooth_points: usize,
+    /// The specimen's response as the lab states it (ASTM C1609/C1856): `softening` (the
+    /// default: the first peak must lie before L/150 and the load fall from it) or
+    /// `hardening` (deflection-hardening: the load may rise past the first crack to a peak
+    /// beyond L/150, where the first zero slope — and so P1 — then lies).
+    #[serde(default, skip_serializing_if = "Response::is_default")]
+    pub response: Response,
     /// Resolution of the load reading, kN (adds `resolution/√12` to every load's σ).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub load_resolution_kn: Option<f64>,
@@ -48,6 +54,33 @@ pub struct ReportConfig {
     /// What the lab files with the values (specimen id, operator, dates, machine, ...).
     #[serde(default, skip_serializing_if = "LabInfo::is_empty")]
     pub lab: LabInfo,
+}
+
+/// `[report] response`: the flexural response the lab states for the specimen.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "snake_case")]
+pub enum Response {
+    /// Deflection-softening: the load falls after the first peak (most fibre concretes).
+    #[default]
+    Softening,
+    /// Deflection-hardening: the load rises past the first crack (UHPC and high fibre
+    /// contents); a first peak beyond L/150 is then the specimen's, not a failed test.
+    Hardening,
+}
+
+impl Response {
+    /// The name in the config and in `report.json`.
+    pub fn id(self) -> &'static str {
+        match self {
+            Response::Softening => "softening",
+            Response::Hardening => "hardening",
+        }
+    }
+
+    fn is_default(&self) -> bool {
+        *self == Response::default()
+    }
 }
 
 /// `[report.lab]`: what identifies the test on the report (each optional; a `test.json`
@@ -149,6 +182,7 @@ impl ReportConfig {
             deflection_gauge: None,
             cmod_gauge: None,
             smooth_points: default_smooth(),
+            response: Response::default(),
             load_resolution_kn: None,
             max_load_kn: default_max_load(),
             max_length_mm: default_max_length(),

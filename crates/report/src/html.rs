@@ -146,7 +146,11 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         lab.age_days().map_or("—".into(), |a| format!("{a} days")),
         opt(&lab.machine),
         esc(std_short),
-        lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e))),
+        format!(
+            "{}{}",
+            lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e))),
+            if report.options.response == crate::Response::Hardening { "; deflection-hardening response stated" } else { "" }
+        ),
         opt(&lab.fracture),
         opt(&lab.laboratory),
         if report.curve.load_from_utm { "UTM samples (own rate)" } else { "feed (frame rate)" }

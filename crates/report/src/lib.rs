@@ -33,7 +33,7 @@ pub mod validity;
 pub mod verify;
 
 pub use build::build;
-pub use config::{BeamConfig, LabInfo, ReportConfig};
+pub use config::{BeamConfig, LabInfo, ReportConfig, Response};
 pub use curve::{Curve, CurveError};
 pub use feed_reader::{Feed, Limits, ReadOptions};
 pub use output::{write, write_atomic};

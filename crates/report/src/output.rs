@@ -169,6 +169,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     if let Some(e) = &report.lab.edition {
         root.insert("standard_edition".into(), json!(e));
     }
+    root.insert("response".into(), json!(report.options.response.id()));
     root.insert("valid".into(), json!(report.validity.valid));
     root.insert("invalid_reasons".into(), json!(report.validity.reasons));
     root.insert("validity_unchecked".into(), json!(report.validity.unchecked));

@@ -3,8 +3,10 @@
 //! understands (what was found, where, and what the standard asks for).
 //!
 //! The rules:
-//! * ASTM C1609 / C1856: a first peak (a maximum the load falls from) before L/150; the net
-//!   deflection carried to L/150. EN 14651: F_L determined; the CMOD carried to 3.5 mm.
+//! * ASTM C1609 / C1856: a first peak (a maximum the load falls from) before L/150 — or, when
+//!   the lab states a hardening response (`[report] response = "hardening"`), anywhere (the
+//!   first zero slope of a deflection-hardening curve can lie beyond L/150; said in
+//!   `validity_unchecked`); the net deflection carried to L/150. EN 14651: F_L determined; the CMOD carried to 3.5 mm.
 //! * Loading monotonic: the smoothed deflection (CMOD) never goes back by more than 5 σ.
 //! * The rate of deflection (CMOD) within the standard's window, per phase (least-squares
 //!   slope over the phase). C1609: up to L/900 0.025–0.075 mm/min (depth ≤ 125 mm) or
@@ -61,6 +63,8 @@ pub fn rate_windows(standard: Standard, beam: &BeamConfig) -> RateWindows {
 /// What the check needs.
 pub(crate) struct Input<'a> {
     pub standard: Standard,
+    /// The response the lab stated (`[report] response`).
+    pub response: crate::Response,
     pub beam: &'a BeamConfig,
     /// The frame-rate curve (x as measured, smoothed).
     pub feed_curve: &'a Curve,
@@ -126,9 +130,15 @@ pub(crate) fn check(i: &Input) -> Validity {
                  was not reached or not recorded."
                     .into(),
             ),
+            Some(j) if lc.xs[j] >= end && i.response == crate::Response::Hardening => unchecked.push(format!(
+                "A hardening response was stated: the first zero slope of the curve, and so the first peak, lies beyond \
+                 {end_name} ({:.2} kN at {:.3} mm; P1 = Pp). Whether the beam cracked before it is not judged from the curve.",
+                lc.load[j], lc.xs[j]
+            )),
             Some(j) if lc.xs[j] >= end => reasons.push(format!(
                 "The first peak ({:.2} kN at a net deflection of {:.3} mm) lies beyond {end_name}: the beam did not crack as a C1609 \
-                 specimen does (an uncracked beam, load cycles, or not this test).",
+                 specimen does (an uncracked beam, load cycles, or not this test). A deflection-hardening specimen is stated with \
+                 `[report] response = \"hardening\"` (or --response hardening).",
                 lc.load[j], lc.xs[j]
             )),
             Some(_) => {}
