@@ -930,6 +930,13 @@ fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
         (seen["band"].as_u64().unwrap(), seen["partial"].as_u64().unwrap(), seen["defl_points"].as_u64().unwrap());
     assert!(band > 0 && band <= points, "the ±2σ band where the lines give σ: {seen}");
     assert!(partial > 0 && partial < points, "the partial frame sets marked, and only they: {seen}");
+    // The load–deflection curve: ±2σ lines wherever its points have σ, its partial sets marked.
+    let (c_band, c_partial, c_points) =
+        (seen["curve_band"].as_u64().unwrap(), seen["curve_partial"].as_u64().unwrap(), seen["curve_points"].as_u64().unwrap());
+    assert!(c_points > 0 && c_band > 0 && c_band <= c_points, "the curve's ±2σ lines: {seen}");
+    assert!(c_partial > 0 && c_partial < c_points, "the curve's partial frame sets marked, and only they: {seen}");
+    let labels: Vec<&str> = seen["curve_series"].as_array().unwrap().iter().filter_map(|v| v.as_str()).collect();
+    assert!(labels.ends_with(&["−2σ", "+2σ", "partial set"]), "{seen}");
     assert!(seen["console_errors"].as_array().unwrap().is_empty(), "{seen}");
     assert_eq!(d.stop(), Some(0));
 }

@@ -58,10 +58,15 @@ function makeTimeChart(el, yLabel, series, extra) {
 }
 
 // Load over a deflection (mode 2: every series its own x); `earlier` grey curves under the
-// live one (the day's stopped tests).
-function makeCurve(el, earlier, xLabel) {
+// live one (the day's stopped tests). With `sigma`, the live curve's ±2σ in deflection
+// (net_deflection_sigma_mm) as two thin lines either side, and its partial frame sets as red
+// points: the series after the live one are −2σ, +2σ, partial.
+function makeCurve(el, earlier, xLabel, sigma) {
   const facets = [{ scale: "x", auto: true }, { scale: "y", auto: true }];
   const grey = { stroke: "#6b717a", width: 1, paths: uPlot.paths.linear(), points: { show: false }, facets };
+  const edge = { stroke: "rgba(255,140,0,0.45)", width: 1, dash: [4, 3], paths: uPlot.paths.linear(), points: { show: false }, facets };
+  const extra = sigma ? [{ label: "−2σ", ...edge }, { label: "+2σ", ...edge },
+    { label: "partial set", stroke: "#ff5252", fill: "#ff5252", paths: uPlot.paths.points(), points: { show: true, size: 7, fill: "#ff5252" }, facets }] : [];
   const opts = {
     mode: 2,
     ...size(el),
@@ -69,11 +74,11 @@ function makeCurve(el, earlier, xLabel) {
     scales: { x: { time: false }, y: {} },
     axes: [axis(xLabel), axis("load [kN]")],
     series: [{}, ...Array.from({ length: earlier }, () => ({ ...grey })),
-      { label: "load vs " + xLabel, stroke: "#ff8c00", width: 2, paths: uPlot.paths.linear(), points: { show: false }, facets }],
+      { label: "load vs " + xLabel, stroke: "#ff8c00", width: 2, paths: uPlot.paths.linear(), points: { show: false }, facets }, ...extra],
     legend: { show: false },
     cursor: { drag: { x: false, y: false }, points: { show: false } },
   };
-  return new uPlot(opts, [null, ...Array.from({ length: earlier + 1 }, () => [[], []])], el);
+  return new uPlot(opts, [null, ...Array.from({ length: earlier + 1 + extra.length }, () => [[], []])], el);
 }
 
 // The deflected shape: each specimen tag's downward displacement at its place along the beam
@@ -96,7 +101,7 @@ function makeProfile(el) {
 
 function rebuildCurve() {
   if (S.charts.curve) S.charts.curve.destroy();
-  S.charts.curve = makeCurve($("curve"), S.earlier.length, "net deflection [mm]");
+  S.charts.curve = makeCurve($("curve"), S.earlier.length, "net deflection [mm]", true);
   $("curve-note").textContent = S.earlier.length ? `(the day's ${S.earlier.length} earlier test${S.earlier.length > 1 ? "s" : ""} in grey)` : "";
   S.dirty = true;
 }
@@ -195,9 +200,11 @@ function redraw() {
     }
     return [xs, ys];
   };
-  const cur = curveOf(S.net);
-  S.charts.curve.setData([null, ...S.earlier.map((e) => [e.net_deflection_mm, e.load_kn]), cur]);
+  const cur = curveOf(S.net), lo = curveOf(S.netLo), hi = curveOf(S.netHi), part = curveOf(S.partial);
+  S.charts.curve.setData([null, ...S.earlier.map((e) => [e.net_deflection_mm, e.load_kn]), cur, lo, hi, part]);
   $("curve").dataset.points = cur[0].length;
+  $("curve").dataset.band = lo[0].length;
+  $("curve").dataset.partial = part[0].length;
   $("curve").dataset.earlier = S.earlier.length;
   if (S.charts.cmod) {
     const c = curveOf(S.cmodv);
