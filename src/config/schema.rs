@@ -120,16 +120,13 @@ impl Config {
         }
     }
 
-    /// The CMOD gauge: `[report] cmod_gauge`, else the one `opening` gauge, else the gauge
-    /// named `cmod` (any case).
+    /// The CMOD gauge by the report's rule ([`tagdeflect_report::choose_cmod_gauge`]) among
+    /// the configured gauges: `[report] cmod_gauge`, else the one `opening` gauge, else the
+    /// gauge named `cmod` (any case), else the only one named like an opening.
     pub fn cmod_gauge(&self) -> Option<String> {
-        use tagdeflect_estimate::gauges::GaugeKind;
-        let openings: Vec<&str> = self.gauges.iter().filter(|g| g.kind == GaugeKind::Opening).map(|g| g.name.as_str()).collect();
-        match (self.report.as_ref().and_then(|r| r.cmod_gauge.clone()), openings.as_slice()) {
-            (Some(g), _) => Some(g),
-            (None, [one]) => Some(one.to_string()),
-            (None, _) => self.gauges.iter().find(|g| g.name.eq_ignore_ascii_case("cmod")).map(|g| g.name.clone()),
-        }
+        let names: Vec<String> = self.gauges.iter().map(|g| g.name.clone()).collect();
+        let asked = self.report.as_ref().and_then(|r| r.cmod_gauge.as_deref());
+        tagdeflect_report::choose_cmod_gauge(&self.gauges, &names, asked).ok()
     }
 
     /// What the report needs of the rig.

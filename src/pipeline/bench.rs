@@ -122,13 +122,15 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
     let dropped_since = |l: Option<&crate::feed::FeedLine>| l.map_or(0, |l| total_dropped - l.dropped_sets.unwrap_or(0));
     let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
     lat.sort_by(f64::total_cmp);
-    // Exposure → line written (and register updated): the line's time after the playhead's
-    // start (an upper bound: the playhead starts when the sources open, after `started`).
+    // Exposure → line written (and register updated): when the line was written after the
+    // playhead's start, less when its frames were due (their recorded time since the first
+    // frame: a recording's pauses are short, none capped here).
+    let playhead = tagdeflect_io::sources::recording::last_playhead_start().filter(|p| *p >= started).unwrap_or(started);
     let mut exposure: Vec<f64> = lines
         .iter()
         .zip(&stamps)
         .skip(warm)
-        .map(|(l, at)| (at.duration_since(started).as_secs_f64() - (l.t_ns - t0) as f64 * 1e-9) * 1e3)
+        .map(|(l, at)| (at.saturating_duration_since(playhead).as_secs_f64() - (l.t_ns - t0) as f64 * 1e-9) * 1e3)
         .collect();
     exposure.sort_by(f64::total_cmp);
     Ok(RealtimeFigures {

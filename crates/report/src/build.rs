@@ -288,12 +288,20 @@ fn role_sigma(l: &FeedLine, config: &TestRig, down_sigma: &dyn Fn([f64; 3]) -> f
     Some((var(&mid) + var(&sup)).sqrt())
 }
 
-/// The CMOD gauge: the one asked for, else the config's only `opening` gauge in the feed,
-/// else `cmod`, else the only gauge named like an opening.
+/// The CMOD gauge of `feed`: [`choose_cmod_gauge`] among the gauges the feed carries.
 fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result<String, String> {
-    let names = feed.gauge_names();
+    choose_cmod_gauge(&config.gauges, &feed.gauge_names(), asked)
+}
+
+/// Which gauge is the CMOD (EN 14651) — one rule for the report and the daemon (the live
+/// page's load–CMOD curve, `[output.auto_test]`'s 4 mm end): the one `asked` for (`[report]
+/// cmod_gauge`, `--cmod-gauge`; it must be `available`), else the config's only `opening`
+/// gauge among `available`, else the gauge named `cmod`, else the only one named like an
+/// opening. `available`: the gauges a feed carries (the report), or all configured ones.
+pub fn choose_cmod_gauge(gauges: &[tagdeflect_estimate::gauges::GaugeConfig], available: &[String], asked: Option<&str>) -> Result<String, String> {
+    let names = available;
     let openings: Vec<&str> =
-        config.gauges.iter().filter(|g| g.kind == GaugeKind::Opening && names.contains(&g.name)).map(|g| g.name.as_str()).collect();
+        gauges.iter().filter(|g| g.kind == GaugeKind::Opening && names.contains(&g.name)).map(|g| g.name.as_str()).collect();
     if let (None, [one]) = (asked, openings.as_slice()) {
         return Ok(one.to_string());
     }

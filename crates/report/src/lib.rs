@@ -32,7 +32,7 @@ mod utm_stream;
 pub mod validity;
 pub mod verify;
 
-pub use build::build;
+pub use build::{build, choose_cmod_gauge};
 pub use config::{BeamConfig, LabInfo, ReportConfig, Response};
 pub use curve::{Curve, CurveError};
 pub use feed_reader::{Feed, Limits, ReadOptions};

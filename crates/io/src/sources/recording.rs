@@ -19,6 +19,15 @@ use tagdeflect_core::frame::GrayImage;
 /// The longest pause between two recorded frames that a paced replay waits out.
 pub const MAX_PLAYED_GAP: Duration = Duration::from_secs(5);
 
+/// When the newest [`Playhead::start`] of this process started: `bench --realtime` measures
+/// exposure → feed line and register from it (a frame's exposure is its due time after it).
+static LAST_START: std::sync::Mutex<Option<Instant>> = std::sync::Mutex::new(None);
+
+/// The start of the newest playback of this process (see [`LAST_START`]).
+pub fn last_playhead_start() -> Option<Instant> {
+    *LAST_START.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// The shared start of a recording's playback, and its schedule.
 #[derive(Debug)]
 pub struct Playhead {
@@ -31,7 +40,9 @@ pub struct Playhead {
 impl Playhead {
     /// Starts now; the recording's earliest frame is due at once.
     pub fn start<C>(rec: &Recording<C>) -> Arc<Playhead> {
-        Arc::new(Self::with_times(rec.frames.iter().map(|f| f.t_ns), true))
+        let p = Self::with_times(rec.frames.iter().map(|f| f.t_ns), true);
+        *LAST_START.lock().unwrap_or_else(|e| e.into_inner()) = Some(p.started);
+        Arc::new(p)
     }
 
     /// As [`Playhead::start`], without logging the capped pauses (a second player of the same

@@ -360,7 +360,14 @@ impl LineSink for ControlSink {
 
     fn finish(&mut self) {
         if let Ok(mut c) = self.0.lock() {
-            if let Some(l) = c.latency() {
+            // A replayed recording's lines carry the recording's times, not this clock's: no
+            // latency can be read from them (register 8 then saturates at 65 535 ms too).
+            if let Some(l) = c.latency().filter(|l| l.p50_ms.abs() > 3.6e6) {
+                tracing::info!(
+                    values = l.values,
+                    "control output: the lines' times are not this computer's clock (a replayed recording): no exposure → register latency"
+                );
+            } else if let Some(l) = c.latency() {
                 tracing::info!(
                     values = l.values,
                     p50_ms = l.p50_ms,

@@ -132,24 +132,25 @@ pub struct AutoRules {
     pub cmod_gauge: Option<String>,
 }
 
-/// What a test ends at, by its standard.
-#[derive(Debug, Clone, PartialEq)]
-enum End {
+/// What a test ends at, by its standard (the gauge's name borrowed from the rules: nothing
+/// is allocated per line).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum End<'a> {
     /// Net deflection at or past this, mm.
     Net(f64),
     /// This gauge at or past this, mm.
-    Gauge(String, f64),
+    Gauge(&'a str, f64),
 }
 
 impl AutoRules {
     /// The end of a test with `standard` (none when there is none, or it cannot be known).
-    fn end(&self, standard: Option<&str>) -> Option<End> {
+    fn end(&self, standard: Option<&str>) -> Option<End<'_>> {
         if !self.config.stop_at_end {
             return None;
         }
         match standard? {
             "astm-c1609" | "astm-c1856" => self.span_mm.map(|l| End::Net(l / 150.0 + self.config.end_margin_mm)),
-            "en-14651" => self.cmod_gauge.clone().map(|g| End::Gauge(g, EN14651_END_CMOD_MM)),
+            "en-14651" => self.cmod_gauge.as_deref().map(|g| End::Gauge(g, EN14651_END_CMOD_MM)),
             _ => None,
         }
     }
@@ -266,7 +267,7 @@ impl AutoTest {
         let end = self.rules.end(test.standard);
         self.net_mm = line.net_deflection_mm;
         self.cmod_mm = match &end {
-            Some(End::Gauge(g, _)) => line.gauges.get(g).map(|r| r.value),
+            Some(End::Gauge(g, _)) => line.gauges.get(*g).map(|r| r.value),
             _ => None,
         };
         let State::Running { peak_kn } = &mut self.state else { return None };
