@@ -525,3 +525,83 @@ fn coverage_tracker_keeps_only_frames_that_add_coverage() {
     assert_eq!(t.new_cells(&a), 0, "the same view adds nothing");
     assert!(t.new_cells(&view(400.0)) >= 3, "a view elsewhere adds coverage");
 }
+
+/// Live calibration of a tag target makes the second pass too (the tag edges fitted through
+/// the first calibration's intrinsics, on the frames it kept), and gives the same calibration
+/// as `calibrate --images` on those frames written as PNG files.
+#[test]
+fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
+    use std::sync::Arc;
+    use tagdeflect::frame::{Frame, FrameSet};
+    let truth = sim_camera();
+    let spec: TargetSpec = "tagboard:tag36h11:6x4:32:44".parse().unwrap();
+    let pts = spec.board_points();
+    let centre = pts.iter().fold(Vector3::zeros(), |a, p| a + p) / pts.len() as f64;
+    let poses: Vec<Pose> = (1..=3).flat_map(|seed| sim_poses(&truth, centre, 560.0, seed, true)).collect();
+    let frames: Vec<FrameSet> = poses
+        .iter()
+        .enumerate()
+        .map(|(i, pose)| {
+            let img = render_target(&spec, &truth, pose, &RenderOptions { seed: 100 + i as u64, noise: 2.5, ..RenderOptions::default() });
+            FrameSet::new(i as u64, vec![Frame { camera: 0, seq: i as u64, t_ns: 0, image: Arc::new(img) }])
+        })
+        .collect();
+    let grabber = || {
+        let mut it = frames.clone().into_iter();
+        move || it.next().ok_or_else(|| "no more frames".to_string())
+    };
+    // How many frames the live mode keeps (it grabs until it has that many): its rule, here.
+    let kept = {
+        use tagdeflect::calibrate::live_views::{CoverageTracker, MIN_NEW_CELLS};
+        let mut det = TargetDetector::new(spec.clone()).unwrap();
+        let mut tr = CoverageTracker::new(truth.width, truth.height);
+        let mut n = 0;
+        for f in &frames {
+            if let Ok(v) = det.detect(&f.frames[0].image, "v") {
+                if n == 0 || tr.new_cells(&v) >= MIN_NEW_CELLS {
+                    tr.add(&v);
+                    n += 1;
+                }
+            }
+        }
+        n
+    };
+    let opts = tagdeflect::calibrate::CalibrateOptions {
+        images: None,
+        config: None,
+        camera: Some("cam".into()),
+        target: "tagboard:tag36h11:6x4:32:44".into(),
+        out: "unused.yaml".into(),
+        fix_k3: false,
+        fix_aspect_ratio: false,
+        aspect_ratio: 1.0,
+        zero_tangent_dist: false,
+        fix_principal_point: false,
+        keep_outliers: false,
+        force: false,
+        distance_mm: None,
+        coverage: None,
+        views: kept,
+        duration_s: 60.0,
+    };
+    let (live, _, _) = tagdeflect::calibrate::calibrate_live(&mut grabber(), "cam", &spec, &opts).unwrap();
+    // The first pass alone, on the same kept frames.
+    let g = tagdeflect::calibrate::live_views::grab_views_kept(&mut grabber(), "cam", &spec, kept, 60.0).unwrap();
+    assert!(g.views.len() == kept && kept >= 10, "{} of {} frames kept", g.views.len(), frames.len());
+    let (first, _) = tagdeflect::calibrate::calibrate_guarded(g.views.clone(), g.width, g.height, &[], &[], &spec, &opts).unwrap();
+    // The kept frames as PNG files, calibrated as a folder.
+    let dir = tempfile::tempdir().unwrap();
+    for (i, (_, img)) in g.images.iter().enumerate() {
+        image::GrayImage::from_raw(img.width, img.height, img.data.clone()).unwrap().save(dir.path().join(format!("view_{i:02}.png"))).unwrap();
+    }
+    let (folder, _, _) = tagdeflect::calibrate::calibrate_folder(dir.path(), &spec, &opts).unwrap();
+    let (l, f, p) = (to_vector(&live.calibration.intrinsics), to_vector(&folder.calibration.intrinsics), to_vector(&first.calibration.intrinsics));
+    eprintln!(
+        "live fx {:.4} (folder {:.4}, first pass {:.4}, truth {:.4}); live RMS {:.4} px, first pass {:.4} px",
+        l[0], f[0], p[0], truth.fx, live.calibration.rms_px, first.calibration.rms_px
+    );
+    for i in 0..9 {
+        assert!((l[i] - f[i]).abs() <= 1e-9 * (1.0 + f[i].abs()), "{}: live {} vs folder {}", PARAM_NAMES[i], l[i], f[i]);
+    }
+    assert!((l[0] - p[0]).abs() > 1e-6, "the live result is the second pass's, not the first's (fx {} both)", l[0]);
+}

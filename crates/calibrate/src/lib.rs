@@ -456,30 +456,65 @@ pub fn check_options(opts: &CalibrateOptions) -> Result<TargetSpec, CalibrateErr
 /// source; see [`live_views::grab_views`]. With `--images`, `grab` must be `None`.
 pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, String>>) -> Result<(), CalibrateError> {
     let spec = check_options(opts)?;
-    let (views, w, h, not_found, seen) = match (&opts.images, &opts.camera, grab) {
-        (Some(dir), None, None) => {
-            let files = image_files(dir)?;
-            let d = detect_views_seen(&files, &spec)?;
-            (d.views, d.width, d.height, d.not_found, d.seen)
-        }
-        (None, Some(cam), Some(grab)) => {
-            let (v, w, h, nf) = live_views::grab_views(grab, cam, &spec, opts.views, opts.duration_s)?;
-            (v, w, h, nf, Vec::new())
-        }
+    let (run, notes, not_found) = match (&opts.images, &opts.camera, grab) {
+        (Some(dir), None, None) => calibrate_folder(dir, &spec, opts)?,
+        (None, Some(cam), Some(grab)) => calibrate_live(grab, cam, &spec, opts)?,
         _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
-    let (mut run, mut notes) = calibrate_guarded(views, w, h, &not_found, &seen, &spec, opts)?;
-    let mut not_found = not_found;
-    if let (true, Some(dir)) = (spec.has_tags(), &opts.images) {
-        // Tag edges are straight only without the lens: fitted again through the first
-        // calibration, the corners lose the bias of fitting lines to bent edges (module docs).
-        let d = detect_views_seen_with(&image_files(dir)?, &spec, Some(&run.calibration.intrinsics))?;
-        (run, notes) = calibrate_guarded(d.views, d.width, d.height, &d.not_found, &d.seen, &spec, opts)?;
-        not_found = d.not_found;
-    }
     let text = write_outputs(&run, &not_found, &spec, opts, &notes)?;
     print!("{text}");
     Ok(())
+}
+
+/// A folder of images calibrated as `calibrate --images DIR` does: detected, calibrated with
+/// the guard rails, and — for tag targets — detected again with the tag edges fitted through
+/// that first calibration and calibrated again (tag edges are straight only without the lens:
+/// the second pass removes the bias of fitting lines to bent edges; module docs). Returns the
+/// run, its warnings and the images the target was not found in.
+pub fn calibrate_folder(
+    dir: &Path,
+    spec: &TargetSpec,
+    opts: &CalibrateOptions,
+) -> Result<(CalibrationRun, Vec<String>, Vec<Rejected>), CalibrateError> {
+    let files = image_files(dir)?;
+    let d = detect_views_seen(&files, spec)?;
+    let (run, notes) = calibrate_guarded(d.views, d.width, d.height, &d.not_found, &d.seen, spec, opts)?;
+    if !spec.has_tags() {
+        return Ok((run, notes, d.not_found));
+    }
+    let d = detect_views_seen_with(&files, spec, Some(&run.calibration.intrinsics))?;
+    let (run, notes) = calibrate_guarded(d.views, d.width, d.height, &d.not_found, &d.seen, spec, opts)?;
+    Ok((run, notes, d.not_found))
+}
+
+/// Live calibration (`calibrate --config FILE --camera NAME`): views grabbed while they add
+/// coverage ([`live_views::grab_views_kept`]), calibrated with the guard rails, and — for tag
+/// targets — the kept frames detected again through that first calibration and calibrated
+/// again, exactly as [`calibrate_folder`] does with files (the same frames give the same
+/// result either way).
+pub fn calibrate_live(
+    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
+    camera: &str,
+    spec: &TargetSpec,
+    opts: &CalibrateOptions,
+) -> Result<(CalibrationRun, Vec<String>, Vec<Rejected>), CalibrateError> {
+    let g = live_views::grab_views_kept(grab, camera, spec, opts.views, opts.duration_s)?;
+    let (run, notes) = calibrate_guarded(g.views, g.width, g.height, &g.skipped, &[], spec, opts)?;
+    if !spec.has_tags() {
+        return Ok((run, notes, g.skipped));
+    }
+    let mut det = TargetDetector::new(spec.clone())?;
+    det.set_intrinsics(Some(run.calibration.intrinsics));
+    let mut views = Vec::new();
+    let mut skipped = g.skipped;
+    for (name, img) in &g.images {
+        match det.detect(img, name) {
+            Ok(v) => views.push(v),
+            Err(reason) => skipped.push(Rejected { name: name.clone(), reason: format!("second pass: {reason}") }),
+        }
+    }
+    let (run, notes) = calibrate_guarded(views, g.width, g.height, &skipped, &[], spec, opts)?;
+    Ok((run, notes, skipped))
 }
 
 /// The guard rails around [`calibrate_views`] (see [`guard`]): the board check, the minimum

@@ -8,15 +8,16 @@
 //! touched yet hold its points; the first view is always kept. The loop ends after the
 //! requested number of views or the time limit.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use super::solve::View;
 use super::target::{TargetDetector, TargetSpec};
 use super::{CalibrateError, Rejected};
-use tagdeflect_core::frame::FrameSet;
+use tagdeflect_core::frame::{FrameSet, GrayImage};
 
 /// New fine-grid cells a frame must cover to be kept.
-const MIN_NEW_CELLS: usize = 3;
+pub const MIN_NEW_CELLS: usize = 3;
 
 /// Columns of the fine grid that decides whether a frame adds coverage.
 const FINE_COLS: usize = 16;
@@ -84,9 +85,37 @@ pub fn grab_views(
     views: usize,
     duration_s: f64,
 ) -> Result<(Vec<View>, u32, u32, Vec<Rejected>), CalibrateError> {
+    grab_views_kept(grab, camera, spec, views, duration_s).map(|g| (g.views, g.width, g.height, g.skipped))
+}
+
+/// What [`grab_views_kept`] grabbed.
+#[derive(Debug, Clone)]
+pub struct Grabbed {
+    /// The views kept.
+    pub views: Vec<View>,
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// The frames not used, summarised.
+    pub skipped: Vec<Rejected>,
+    /// Each kept view's frame (same order and names as `views`): a tag target is detected
+    /// again on them through the first calibration's intrinsics (`crate::run`).
+    pub images: Vec<(String, Arc<GrayImage>)>,
+}
+
+/// [`grab_views`], keeping the kept views' frames too.
+pub fn grab_views_kept(
+    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
+    camera: &str,
+    spec: &TargetSpec,
+    views: usize,
+    duration_s: f64,
+) -> Result<Grabbed, CalibrateError> {
     let mut det = TargetDetector::new(spec.clone())?;
     let t0 = Instant::now();
     let mut kept: Vec<View> = Vec::new();
+    let mut images: Vec<(String, Arc<GrayImage>)> = Vec::new();
     let mut tracker: Option<CoverageTracker> = None;
     let (mut frames, mut no_target, mut no_gain) = (0usize, 0usize, 0usize);
     let mut last_reason = String::new();
@@ -98,10 +127,12 @@ pub fn grab_views(
         let img = &frame.image;
         size = (img.width, img.height);
         let tr = tracker.get_or_insert_with(|| CoverageTracker::new(img.width, img.height));
-        match det.detect(img, &format!("frame {}", frame.seq)) {
+        let name = format!("frame {}", frame.seq);
+        match det.detect(img, &name) {
             Ok(v) => {
                 let gain = tr.new_cells(&v);
                 if kept.is_empty() || gain >= MIN_NEW_CELLS {
+                    images.push((name, frame.image.clone()));
                     tr.add(&v);
                     tracing::info!(
                         camera,
@@ -129,7 +160,7 @@ pub fn grab_views(
     if no_gain > 0 {
         skipped.push(Rejected { name: format!("{no_gain} of {frames} frames"), reason: "added no coverage".into() });
     }
-    Ok((kept, size.0, size.1, skipped))
+    Ok(Grabbed { views: kept, width: size.0, height: size.1, skipped, images })
 }
 
 #[cfg(test)]
