@@ -20,6 +20,10 @@
 //! kink the bias shows and the window falls to 3 or 1, where the fit is unbiased. With σ = 0
 //! (a truth curve) only exactly collinear points are smoothed.
 //!
+//! Within a window the line is fitted by weighted least squares, each point weighted by
+//! 1/σ² of its own σ: a frame set that lacked a camera (its σ large) pulls the smoothed
+//! curve little, while with equal σ the fit is the plain one.
+//!
 //! The load is not smoothed for values;
 //! its σ per reading is `√(noise² + resolution²/12)`, the noise estimated robustly from the
 //! data (below).
@@ -428,7 +432,7 @@ fn smooth_at(t: &[f64], x: &[f64], sx: &[f64], i: usize, m_max: usize) -> (f64, 
     let mut m = 1;
     while m <= m_max.min(n) {
         let (lo, hi) = window(i, n, m);
-        let w = fit_weights(&t[lo..hi], t[i]);
+        let w = fit_weights_sigma(&t[lo..hi], &sx[lo..hi], t[i]);
         let v: f64 = w.iter().zip(&x[lo..hi]).map(|(w, v)| w * v).sum();
         let var: f64 = w.iter().zip(&sx[lo..hi]).map(|(w, s)| w * w * s * s).sum();
         let half = ICI_GAMMA * var.sqrt();
@@ -457,6 +461,31 @@ fn fit_weights(t: &[f64], at: f64) -> Vec<f64> {
     let mean = t.iter().sum::<f64>() / n;
     let s: f64 = t.iter().map(|v| (v - mean) * (v - mean)).sum();
     t.iter().map(|v| if s > 0.0 { 1.0 / n + (at - mean) * (v - mean) / s } else { 1.0 / n }).collect()
+}
+
+/// [`fit_weights`] of the line fitted by weighted least squares, each point weighted by
+/// 1/σ² (a partial frame set, its σ large, moves the smoothed curve little). Equal σ give
+/// the plain fit's weights; each σ counts at least half the window's median (a σ of 0 pins
+/// nothing), a window of σ 0 (a truth curve) gets equal weights.
+fn fit_weights_sigma(t: &[f64], s: &[f64], at: f64) -> Vec<f64> {
+    let mut sorted = s.to_vec();
+    let mid = median(&mut sorted);
+    if mid <= 0.0 || !mid.is_finite() {
+        return fit_weights(t, at);
+    }
+    // A point's σ counts at least half the window's median: a reference line's σ of 0 (or a
+    // σ far below its neighbours') must not pin the line to it.
+    let w: Vec<f64> = s.iter().map(|v| 1.0 / v.max(0.5 * mid).powi(2)).collect();
+    let sw: f64 = w.iter().sum();
+    // One time only (one point): its weight is 1 — the rounding of a weighted mean must not
+    // make a slope of it.
+    let span = t.iter().cloned().fold(f64::NEG_INFINITY, f64::max) - t.iter().cloned().fold(f64::INFINITY, f64::min);
+    if span <= 0.0 {
+        return w.iter().map(|w| w / sw).collect();
+    }
+    let tm = w.iter().zip(t).map(|(w, t)| w * t).sum::<f64>() / sw;
+    let stt: f64 = w.iter().zip(t).map(|(w, t)| w * (t - tm) * (t - tm)).sum();
+    w.iter().zip(t).map(|(w, t)| if stt > 0.0 { w / sw + (at - tm) * w * (t - tm) / stt } else { w / sw }).collect()
 }
 
 /// Robust noise of `y(t)`: 1.4826 · MAD of each interior point's deviation from the line
@@ -500,6 +529,28 @@ mod tests {
         let truth: Vec<f64> = (0..n).map(|i| 0.1 * (i as f64 - 10.0).max(0.0)).collect();
         let x: Vec<f64> = truth.iter().map(|v| v + sigma * { let z: f64 = StandardNormal.sample(&mut rng); z }).collect();
         Curve::new(t, truth.iter().map(|v| 100.0 * v).collect(), x, vec![Some(sigma); n], 0.0, 5, 0.0, "deflection").unwrap()
+    }
+
+    /// A point with a large σ and a large error (a partial frame set) in a straight ramp:
+    /// weighted by 1/σ², its neighbours' smoothed values stay near the truth.
+    #[test]
+    fn a_point_with_a_large_sigma_pulls_the_smoothed_curve_little() {
+        let n = 21;
+        let t: Vec<i64> = (0..n).map(|i| i as i64 * 100_000_000).collect();
+        let truth: Vec<f64> = (0..n).map(|i| 0.01 * i as f64).collect();
+        let mut x = truth.clone();
+        let mut sx = vec![Some(0.002); n];
+        x[10] += 0.05; // 50 µm off, as a one-camera set can be
+        sx[10] = Some(0.05);
+        let c = Curve::new(t, truth.iter().map(|v| 100.0 * v).collect(), x, sx, 0.0, 5, 0.0, "deflection").unwrap();
+        for i in [8, 9, 11, 12] {
+            let e = c.xs[i] - truth[i];
+            assert!(e.abs() < 0.0005, "point {i}: smoothed {} off by {e} mm", c.xs[i]);
+        }
+        // Unweighted, the 5-point line through it would put its neighbours 10 µm off.
+        let (lo, hi) = window(9, n, 5);
+        let plain: f64 = fit_weights(&c.t_s[lo..hi], c.t_s[9]).iter().zip(&c.x[lo..hi]).map(|(w, v)| w * v).sum();
+        assert!((plain - truth[9]).abs() > 0.005, "the unweighted fit {plain}");
     }
 
     /// At the start of loading the fixed 5-point line is 20 µm off (σ 3 µm); the window
