@@ -132,6 +132,8 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
 
     // Identification.
     let opt = |o: &Option<String>| o.as_deref().map_or("—".to_string(), esc);
+    let standard_note = lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e)))
+        + if report.options.response == crate::Response::Hardening { "; deflection-hardening response stated" } else { "" };
     let _ = write!(
         h,
         "<table class=\"id\"><tr><th>Specimen</th><td>{}</td><th>Operator</th><td>{}</td></tr>\
@@ -146,11 +148,7 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         lab.age_days().map_or("—".into(), |a| format!("{a} days")),
         opt(&lab.machine),
         esc(std_short),
-        format!(
-            "{}{}",
-            lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e))),
-            if report.options.response == crate::Response::Hardening { "; deflection-hardening response stated" } else { "" }
-        ),
+        standard_note,
         opt(&lab.fracture),
         opt(&lab.laboratory),
         if report.curve.load_from_utm { "UTM samples (own rate)" } else { "feed (frame rate)" }
