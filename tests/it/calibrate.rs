@@ -567,22 +567,10 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
         n
     };
     let opts = tagdeflect::calibrate::CalibrateOptions {
-        images: None,
-        config: None,
         camera: Some("cam".into()),
-        target: "tagboard:tag36h11:6x4:32:44".into(),
-        out: "unused.yaml".into(),
-        fix_k3: false,
-        fix_aspect_ratio: false,
-        aspect_ratio: 1.0,
-        zero_tangent_dist: false,
-        fix_principal_point: false,
-        keep_outliers: false,
-        force: false,
-        distance_mm: None,
-        coverage: None,
         views: kept,
         duration_s: 60.0,
+        ..crate::calibrate_guard::plain_options("tagboard:tag36h11:6x4:32:44")
     };
     let (live, _, _) = tagdeflect::calibrate::calibrate_live(&mut grabber(), "cam", &spec, &opts).unwrap();
     // The first pass alone, on the same kept frames.

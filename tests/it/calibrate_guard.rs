@@ -25,6 +25,29 @@ pub(crate) fn realdata_dir() -> PathBuf {
         .unwrap_or_else(|| panic!("real test data not found: these tests need ../shared/realdata beside {}", here.display()))
 }
 
+/// `calibrate`'s options as the command line's defaults give them, for `target` (no files,
+/// no camera; live mode's 20 views in 1 s).
+pub(crate) fn plain_options(target: &str) -> tagdeflect::calibrate::CalibrateOptions {
+    tagdeflect::calibrate::CalibrateOptions {
+        images: None,
+        config: None,
+        camera: None,
+        target: target.into(),
+        out: "unused.yaml".into(),
+        fix_k3: false,
+        fix_aspect_ratio: false,
+        aspect_ratio: 1.0,
+        zero_tangent_dist: false,
+        fix_principal_point: false,
+        keep_outliers: false,
+        force: false,
+        distance_mm: None,
+        coverage: None,
+        views: 20,
+        duration_s: 1.0,
+    }
+}
+
 fn samples() -> PathBuf {
     realdata_dir().join("opencv-samples-data")
 }
@@ -180,24 +203,7 @@ fn views_at_another_focus_are_rejected_and_named() {
     assert!(minority.iter().all(|n| n.starts_with("focus-b-")), "{minority:?}");
     assert_eq!(minority.len() + named_as_outliers, 4, "{minority:?}");
     // The guarded calibration rejects them and names them, and recovers the first focus.
-    let opts = tagdeflect::calibrate::CalibrateOptions {
-        images: None,
-        config: None,
-        camera: None,
-        target: "checkerboard:9x6:30".into(),
-        out: "unused.yaml".into(),
-        fix_k3: false,
-        fix_aspect_ratio: false,
-        aspect_ratio: 1.0,
-        zero_tangent_dist: false,
-        fix_principal_point: false,
-        keep_outliers: false,
-        force: false,
-        distance_mm: None,
-        coverage: None,
-        views: 20,
-        duration_s: 1.0,
-    };
+    let opts = plain_options("checkerboard:9x6:30");
     let (guarded, notes) = tagdeflect::calibrate::calibrate_guarded(run.views.clone(), 800, 600, &[], &[], &spec, &opts).unwrap();
     eprintln!("{notes:?}");
     assert!(notes.iter().any(|n| n.contains("another camera or focus") && n.contains("focus-b-")), "{notes:?}");
