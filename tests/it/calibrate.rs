@@ -580,10 +580,14 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
     // The kept frames as PNG files, calibrated as a folder.
     let dir = tempfile::tempdir().unwrap();
     for (i, (_, img)) in g.images.iter().enumerate() {
-        image::GrayImage::from_raw(img.width, img.height, img.data.clone()).unwrap().save(dir.path().join(format!("view_{i:02}.png"))).unwrap();
+        image::GrayImage::from_raw(img.width, img.height, img.data.clone())
+            .unwrap()
+            .save(dir.path().join(format!("view_{i:02}.png")))
+            .unwrap();
     }
     let (folder, _, _) = tagdeflect::calibrate::calibrate_folder(dir.path(), &spec, &opts).unwrap();
-    let (l, f, p) = (to_vector(&live.calibration.intrinsics), to_vector(&folder.calibration.intrinsics), to_vector(&first.calibration.intrinsics));
+    let (l, f, p) =
+        (to_vector(&live.calibration.intrinsics), to_vector(&folder.calibration.intrinsics), to_vector(&first.calibration.intrinsics));
     eprintln!(
         "live fx {:.4} (folder {:.4}, first pass {:.4}, truth {:.4}); live RMS {:.4} px, first pass {:.4} px",
         l[0], f[0], p[0], truth.fx, live.calibration.rms_px, first.calibration.rms_px

@@ -381,8 +381,11 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         }
         t += 250_000_000;
     }
-    let (windows_csv, sets_csv, png) =
-        (common::root().join("target/control-loop.csv"), common::root().join("target/control-loop-sets.csv"), common::root().join("target/control-loop.png"));
+    let (windows_csv, sets_csv, png) = (
+        common::root().join("target/control-loop.csv"),
+        common::root().join("target/control-loop-sets.csv"),
+        common::root().join("target/control-loop.png"),
+    );
     fs::write(&windows_csv, &csv).unwrap();
     let mut per_set = String::from("t_s,valid,load_kN,stroke_mm,net_mm\n");
     for (t, v, load, stroke, net) in &sets {

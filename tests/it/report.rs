@@ -787,14 +787,29 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     let rms_z = (z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64).sqrt();
     let worst_z = z.iter().map(|v| v.abs()).fold(0.0, f64::max);
     println!("REPORT notched: CMOD error/σ: {:.1} % within 2σ, RMS {rms_z:.2}, worst {worst_z:.2}σ", 100.0 * within2);
-    assert!(within2 >= 0.9 && (0.6..=1.3).contains(&rms_z) && worst_z <= 4.0, "CMOD σ: {within2} within 2σ, RMS error/σ {rms_z}, worst {worst_z}σ");
+    assert!(
+        within2 >= 0.9 && (0.6..=1.3).contains(&rms_z) && worst_z <= 4.0,
+        "CMOD σ: {within2} within 2σ, RMS error/σ {rms_z}, worst {worst_z}σ"
+    );
     assert_eq!(j["specimen"]["notch_mm"], 25.0);
     let (fl, sl) = (j["FL"]["value"].as_f64().unwrap(), j["FL"]["sigma"].as_f64().unwrap());
     println!("REPORT simulated notched: F_L {fl} ± {sl} kN vs the first crack 30 kN");
     let t = en14651::compute(&truth_curve(&on_utm, "cmod"), &EN_BEAM);
     let mpa = |kn: f64| 0.32 * kn; // 3·F·l/(2·b·h_sp²) on 150 × 150, notch 25, l = 500
     let pc = 100.0 * 0.3;
-    against_truth("notched", &j, &t, &[("FL", 0.01 * pc), ("fL", mpa(0.01 * pc)), ("fR1", mpa(0.01 * pc)), ("fR2", mpa(0.01 * pc)), ("fR3", mpa(0.01 * pc)), ("fR4", mpa(0.01 * pc))]);
+    against_truth(
+        "notched",
+        &j,
+        &t,
+        &[
+            ("FL", 0.01 * pc),
+            ("fL", mpa(0.01 * pc)),
+            ("fR1", mpa(0.01 * pc)),
+            ("fR2", mpa(0.01 * pc)),
+            ("fR3", mpa(0.01 * pc)),
+            ("fR4", mpa(0.01 * pc)),
+        ],
+    );
     // The reference above runs the report's own arithmetic on the truth; this one does not:
     // the simulator's law F(δ) against its own true CMOD at δ, f_R,j = 3·F_j·l / (2·b·h_sp²)
     // written out here (no code of the report).
@@ -832,5 +847,3 @@ fn closed_form_en14651(p: &tagdeflect::sim::SimParams, span_mm: f64, width_mm: f
         3.0 * f_kn * 1000.0 * span_mm / (2.0 * width_mm * h_sp_mm * h_sp_mm)
     })
 }
-
-

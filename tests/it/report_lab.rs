@@ -286,7 +286,10 @@ fn a_stated_hardening_response_accepts_a_first_peak_beyond_l_150() {
         let o = report(&feed, &cfg, "astm-c1609", &out, &extra);
         assert!(o.status.success(), "{how}: {}", stderr(&o));
         let j = read_json(&out.join("report.json"));
-        println!("REPORT hardening ({how}): valid {} P1 {} at {} mm, unchecked {}", j["valid"], j["P1"], j["delta1"], j["validity_unchecked"]);
+        println!(
+            "REPORT hardening ({how}): valid {} P1 {} at {} mm, unchecked {}",
+            j["valid"], j["P1"], j["delta1"], j["validity_unchecked"]
+        );
         assert_eq!(j["response"], "hardening", "{how}");
         assert_eq!(j["valid"], true, "{how}: {}", j["invalid_reasons"]);
         assert!(j["validity_unchecked"].to_string().contains("hardening response was stated"), "{how}: {}", j["validity_unchecked"]);

@@ -394,7 +394,8 @@ impl TargetDetector {
                 let mut pixels = Vec::new();
                 let mut found = 0;
                 let mut seen = BoardSeen::default();
-                let dets = if self.refine { det.detect(image) } else { det.detect_raw(image, None).iter().map(|r| r.to_detection()).collect() };
+                let dets =
+                    if self.refine { det.detect(image) } else { det.detect_raw(image, None).iter().map(|r| r.to_detection()).collect() };
                 for d in dets {
                     if d.id < first_id || d.id >= first_id + cols * rows {
                         seen.outside_ids.push(d.id);

@@ -229,7 +229,12 @@ fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Resul
         }
         let (ref_sigma, ref_text) = gauge_reference_sigma(feed, g);
         let curve = curve_of(gauge_columns(feed, g), ref_sigma, opts, "deflection")?;
-        return Ok((curve, format!("net deflection (gauge {g})"), "net deflection".into(), format!("gauge `{g}` of the feed, with its σ{ref_text}")));
+        return Ok((
+            curve,
+            format!("net deflection (gauge {g})"),
+            "net deflection".into(),
+            format!("gauge `{g}` of the feed, with its σ{ref_text}"),
+        ));
     }
     let up = config.world.up;
     let down_sigma = |s: [f64; 3]| ((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt();
@@ -298,7 +303,11 @@ fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result
 /// cmod_gauge`, `--cmod-gauge`; it must be `available`), else the config's only `opening`
 /// gauge among `available`, else the gauge named `cmod`, else the only one named like an
 /// opening. `available`: the gauges a feed carries (the report), or all configured ones.
-pub fn choose_cmod_gauge(gauges: &[tagdeflect_estimate::gauges::GaugeConfig], available: &[String], asked: Option<&str>) -> Result<String, String> {
+pub fn choose_cmod_gauge(
+    gauges: &[tagdeflect_estimate::gauges::GaugeConfig],
+    available: &[String],
+    asked: Option<&str>,
+) -> Result<String, String> {
     let names = available;
     let openings: Vec<&str> =
         gauges.iter().filter(|g| g.kind == GaugeKind::Opening && names.contains(&g.name)).map(|g| g.name.as_str()).collect();

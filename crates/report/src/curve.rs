@@ -527,7 +527,15 @@ mod tests {
         let n = 60;
         let t: Vec<i64> = (0..n).map(|i| i as i64 * 100_000_000).collect();
         let truth: Vec<f64> = (0..n).map(|i| 0.1 * (i as f64 - 10.0).max(0.0)).collect();
-        let x: Vec<f64> = truth.iter().map(|v| v + sigma * { let z: f64 = StandardNormal.sample(&mut rng); z }).collect();
+        let x: Vec<f64> = truth
+            .iter()
+            .map(|v| {
+                v + sigma * {
+                    let z: f64 = StandardNormal.sample(&mut rng);
+                    z
+                }
+            })
+            .collect();
         Curve::new(t, truth.iter().map(|v| 100.0 * v).collect(), x, vec![Some(sigma); n], 0.0, 5, 0.0, "deflection").unwrap()
     }
 
@@ -575,7 +583,9 @@ mod tests {
             };
             assert!(fixed > 0.012, "seed {seed}: the fixed 5-point fit at the kink {fixed} mm (expected about 0.02)");
         }
-        eprintln!("ramp from rest, 20 seeds: worst smoothed point {worst:.2} σ from the truth, {reduced} of 1200 points with a reduced window");
+        eprintln!(
+            "ramp from rest, 20 seeds: worst smoothed point {worst:.2} σ from the truth, {reduced} of 1200 points with a reduced window"
+        );
         assert!(worst < 3.5, "a smoothed point {worst:.2} σ from the truth");
         // Points near the kink (about 3 of 60) shrink; noise alone shrinks almost none.
         assert!((20..=100).contains(&reduced), "{reduced} points of 1200 with a reduced window");
