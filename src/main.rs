@@ -59,6 +59,14 @@ enum Command {
         /// stays up after the recording is consumed until SIGINT/SIGTERM.
         #[arg(long, value_name = "ADDR", value_parser = parse_http_addr)]
         http: Option<std::net::SocketAddr>,
+        /// Smooth every line with the frame sets after it (a fixed-lag Rauch–Tung–Striebel
+        /// smoother over the temporal estimate; lines say `"smoothed": true`). Not with
+        /// --realtime, which is causal like a live run.
+        #[arg(long, conflicts_with = "realtime")]
+        smooth: bool,
+        /// Frame sets the smoother looks ahead (with --smooth).
+        #[arg(long, value_name = "SETS", default_value_t = tagdeflect_estimate::smooth::DEFAULT_LAG_SETS as u64, value_parser = clap::value_parser!(u64).range(1..=10_000))]
+        smooth_lag_sets: u64,
     },
     /// Save raw frames, UTM samples and the config in force as a recording.
     Record {
@@ -383,14 +391,14 @@ fn run(cli: Cli) -> Result<()> {
             let feed_to_stdout = cfg.output.feed.is_none();
             live::run(cfg, LiveOptions { record, duration_s, feed_to_stdout, ..LiveOptions::default() })
         }
-        Command::Replay { dir, config, realtime, full_frame, http } => {
+        Command::Replay { dir, config, realtime, full_frame, http, smooth, smooth_lag_sets } => {
             let cfg = config.as_deref().map(load_config).transpose()?;
             let http = http_options(http, true);
             // One graph; `--realtime` is only the recording's pacing.
             if realtime {
                 live::replay_realtime_http(&dir, cfg, full_frame, http)
             } else {
-                live::replay(&dir, cfg, full_frame, http)
+                live::replay_smoothed(&dir, cfg, full_frame, http, smooth.then_some(smooth_lag_sets as usize))
             }
         }
         Command::Record { config, out, duration_s } => {

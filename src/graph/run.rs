@@ -85,6 +85,9 @@ pub struct LiveOptions {
     pub full_frame: bool,
     /// Serve the live page (`demo`, `replay --http`); else `[output] http` decides.
     pub http: Option<HttpOptions>,
+    /// Smooth the lines with this many frame sets after them (`replay --smooth`: a fixed-lag
+    /// RTS smoother over the temporal estimate, `estimate::smooth`); as-fast replays only.
+    pub smooth_lag_sets: Option<usize>,
 }
 
 /// `run`, `record` and `demo`: live sources from the config.
@@ -96,10 +99,29 @@ pub fn run(config: Config, opts: LiveOptions) -> Result<()> {
 /// ([`Pacing::AsFast`]), the feed to stdout; with the page, it stays up after the recording is
 /// consumed until SIGINT/SIGTERM.
 pub fn replay(dir: &std::path::Path, config: Option<Config>, full_frame: bool, http: Option<HttpOptions>) -> Result<()> {
+    replay_smoothed(dir, config, full_frame, http, None)
+}
+
+/// [`replay`], the lines smoothed with `smooth_lag_sets` frame sets after them when given
+/// (`replay --smooth`; needs `[measure] estimator = "temporal"`).
+pub fn replay_smoothed(
+    dir: &std::path::Path,
+    config: Option<Config>,
+    full_frame: bool,
+    http: Option<HttpOptions>,
+    smooth_lag_sets: Option<usize>,
+) -> Result<()> {
     let rec = crate::pipeline::replay::open(dir, config)?;
+    if smooth_lag_sets.is_some() && rec.config.measure.estimator != tagdeflect_estimate::temporal::Estimator::Temporal {
+        return Err(crate::BadInput::new(format!(
+            "{}: --smooth needs [measure] estimator = \"temporal\" (the config in force says \"per_set\")",
+            rec.dir.join("tagdeflect.toml").display()
+        ))
+        .into());
+    }
     let progress = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let playback = Playback { rec, pacing: Pacing::AsFast, progress };
-    play(playback, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
+    play(playback, LiveOptions { full_frame, http, smooth_lag_sets, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
 }
 
 /// `replay --realtime`: the recording's frames at their recorded pace through the live
@@ -288,6 +310,11 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
                 .map_err(|e| crate::BadInput::new(format!("cannot build the measurement: {e}")))?,
         )
     };
+    // Smoothing looks ahead: only where nothing waits for the line (an as-fast replay).
+    let smooth_lag_sets = opts.smooth_lag_sets.filter(|_| lossless);
+    if let (Some(_), Some(m)) = (smooth_lag_sets, measure.as_mut()) {
+        m.keep_steps();
+    }
     // As fast as it goes: the recording's whole UTM stream is known before its first set.
     if let (Some(pb), Some(m)) = (playback.as_ref().filter(|_| lossless), measure.as_mut()) {
         let hooks = page.handle();
@@ -419,7 +446,7 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
             Some(
                 std::thread::Builder::new()
                     .name("solver".into())
-                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, out, utm_feed, heartbeat))?,
+                    .spawn(move || solver_loop(config, measure, queue, solver_utm_rx, out, utm_feed, heartbeat, smooth_lag_sets))?,
             )
         }
     };
@@ -707,6 +734,7 @@ impl Drop for CloseOnDrop {
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn solver_loop(
     config: Config,
     mut measure: Measurement,
@@ -715,7 +743,9 @@ fn solver_loop(
     out: SolverOut,
     utm_feed: Option<UtmFeed>,
     heartbeat: Arc<AtomicU64>,
+    smooth_lag_sets: Option<usize>,
 ) -> Solved {
+    let mut smoother = smooth_lag_sets.map(|lag| measure.smoother(lag));
     let SolverOut { fanout, status } = out;
     let _close = CloseOnDrop(queue.clone());
     let started = Instant::now();
@@ -751,6 +781,10 @@ fn solver_loop(
     loop {
         beat();
         let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else {
+            // The lines the smoother still holds, smoothed with what there is.
+            for line in smoother.as_mut().map(|s| s.finish()).unwrap_or_default() {
+                fanout.send(Finished { line, set: None, observed: Arc::new(measure.observed()) });
+            }
             return Solved { sets, stats: measure.stats().clone() };
         };
         let Some((set, arrived)) = popped else { continue };
@@ -792,6 +826,13 @@ fn solver_loop(
             status.apply(&mut line);
         }
         journal.observe(&line, measure.rejected_views_by_camera());
+        // A smoothed line leaves the smoother some sets later: its frames are gone by then.
+        if let Some(sm) = smoother.as_mut() {
+            if let Some(line) = sm.push(line, measure.last_steps().to_vec()) {
+                fanout.send(Finished { line, set: None, observed: Arc::new(measure.observed()) });
+            }
+            continue;
+        }
         // The line is complete: the sinks take it on their own thread.
         fanout.send(Finished { line, set: Some(set), observed: Arc::new(measure.observed()) });
     }

@@ -29,8 +29,9 @@ pub struct BenchOptions {
     /// per second, dropped, and latency frame set complete → feed line.
     #[arg(long)]
     pub realtime: bool,
-    /// Run once with each estimator (`[measure] estimator`: temporal, then per set) and
-    /// print both side by side (accuracy and net-deflection noise against truth).
+    /// Run once with each estimator (`[measure] estimator`: temporal, then per set, then the
+    /// temporal estimate smoothed as `replay --smooth` does) and print them side by side
+    /// (accuracy and net-deflection noise against truth).
     #[arg(long)]
     pub estimators: bool,
 }
@@ -272,18 +273,24 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
         for (e, label) in [(Estimator::Temporal, "temporal"), (Estimator::PerSet, "per-set")] {
             let mut r = rec.clone();
             r.config.measure.estimator = e;
-            let mut f = run_once(&r, false, opts.repeat)?;
+            let mut f = run_once(&r, false, opts.repeat, None)?;
             f.mode = label.into();
             runs.push(f);
         }
+        // The temporal estimate smoothed as `replay --smooth` does.
+        let mut r = rec.clone();
+        r.config.measure.estimator = Estimator::Temporal;
+        let mut f = run_once(&r, false, opts.repeat, Some(tagdeflect_estimate::smooth::DEFAULT_LAG_SETS))?;
+        f.mode = "temporal+smoothed".into();
+        runs.push(f);
     } else {
-        runs.push(run_once(&rec, false, opts.repeat)?);
+        runs.push(run_once(&rec, false, opts.repeat, None)?);
     }
     if opts.full_frame {
-        runs.push(run_once(&rec, true, opts.repeat)?);
+        runs.push(run_once(&rec, true, opts.repeat, None)?);
     }
     if opts.json {
-        let ratio = |f: fn(&BenchFigures) -> f64| (runs.len() == 2).then(|| f(&runs[0]) / f(&runs[1]));
+        let ratio = |f: fn(&BenchFigures) -> f64| (runs.len() == 2 && runs[1].mode == "full-frame").then(|| f(&runs[0]) / f(&runs[1]));
         println!(
             "{}",
             serde_json::json!({
@@ -300,7 +307,7 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
     Ok(())
 }
 
-fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) -> Result<BenchFigures> {
+fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, smooth_lag_sets: Option<usize>) -> Result<BenchFigures> {
     let mut detect = 0.0;
     let mut parts = crate::pipeline::measure::DetectParts::default();
     let mut pose = 0.0;
@@ -320,7 +327,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32) ->
         let mut stamps = Vec::new();
         let mut k = 0usize;
         let warm_sets = (rec.frames.len() / rec.config.cameras.len().max(1) / 10).max(1);
-        let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false }, |line, t, _queued| {
+        let summary = replay::replay(rec, ReplayOptions { full_frame, progress: false, smooth_lag_sets }, |line, t, _queued| {
             let t0 = std::time::Instant::now();
             stamps.push(t0);
             sink.clear();
@@ -504,7 +511,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         }
         println!();
     }
-    if runs.len() == 2 {
+    if runs.len() == 2 && runs[1].mode == "full-frame" {
         println!("{:<28}{:>16.1}x", "speed-up vs full-frame", runs[0].sets_per_s / runs[1].sets_per_s);
         println!("{:<28}{:>16.1}x", "speed-up, steady state", runs[0].steady_sets_per_s / runs[1].steady_sets_per_s);
         println!("{:<28}{:>16.1}x", "speed-up, measure only", runs[0].measure_sets_per_s / runs[1].measure_sets_per_s);

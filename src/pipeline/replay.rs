@@ -44,6 +44,9 @@ pub struct ReplayOptions {
     pub full_frame: bool,
     /// Show a progress bar on stderr (when it is a terminal).
     pub progress: bool,
+    /// Smooth the lines with this many frame sets after them (as `replay --smooth`; the
+    /// temporal estimator only).
+    pub smooth_lag_sets: Option<usize>,
 }
 
 /// Opens a recording, with an optional config override.
@@ -58,7 +61,21 @@ pub fn open(dir: &Path, config: Option<Config>) -> Result<Recording> {
 /// Replays a recording through the measurement; `on_line(line, stage_times, latency_s)`
 /// is called for every frame set in order (latency: frame set complete → line made).
 pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
-    replay_sets(rec, opts, |_, line, times, latency, _| on_line(&line, times, latency))
+    let Some(lag) = opts.smooth_lag_sets else {
+        return replay_sets(rec, opts, |_, line, times, latency, _| on_line(&line, times, latency));
+    };
+    // As the graph's solver does: each line leaves the smoother `lag` sets later.
+    let mut smoother = None;
+    let summary = replay_sets(rec, opts, |_, line, times, latency, m| {
+        let sm = smoother.get_or_insert_with(|| m.smoother(lag));
+        if let Some(out) = sm.push(line, m.last_steps().to_vec()) {
+            on_line(&out, times, latency);
+        }
+    })?;
+    for line in smoother.as_mut().map(|s| s.finish()).unwrap_or_default() {
+        on_line(&line, &StageTimes::default(), 0.0);
+    }
+    Ok(summary)
 }
 
 /// [`replay`] handing over each frame set with its line and the measurement that made it.
@@ -70,6 +87,9 @@ fn replay_sets(
     let start = Instant::now();
     let config = &rec.config;
     let mut measure = Measurement::new(&config.measurement(), !opts.full_frame).context("cannot start the tag detector")?;
+    if opts.smooth_lag_sets.is_some() {
+        measure.keep_steps();
+    }
     for s in &rec.utm {
         measure.utm_mut().push(*s);
     }

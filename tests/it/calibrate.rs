@@ -459,7 +459,7 @@ fn measurement_with_recovered_calibration_within_accuracy_floors() {
     let mut rec = Recording::open(&out).unwrap();
     let run_acc = |rec: &Recording| {
         let mut lines = Vec::new();
-        replay(rec, ReplayOptions { full_frame: false, progress: false }, |l, _, _| lines.push(l.clone())).unwrap();
+        replay(rec, ReplayOptions { full_frame: false, progress: false, ..Default::default() }, |l, _, _| lines.push(l.clone())).unwrap();
         evaluate(&rec.config, &rec.truth, &lines)
     };
     let truth_acc = run_acc(&rec);

@@ -38,7 +38,8 @@ pub fn simulate(dir: &Path, name: &str, params: &SimParams) -> PathBuf {
 pub fn replay_lines(dir: &Path, full_frame: bool) -> (Recording, Vec<FeedLine>, ReplaySummary) {
     let rec = Recording::open(dir).unwrap_or_else(|e| panic!("{e}"));
     let mut lines = Vec::new();
-    let summary = replay::replay(&rec, ReplayOptions { full_frame, progress: false }, |l, _, _| lines.push(l.clone())).unwrap();
+    let summary =
+        replay::replay(&rec, ReplayOptions { full_frame, progress: false, ..Default::default() }, |l, _, _| lines.push(l.clone())).unwrap();
     (rec, lines, summary)
 }
 

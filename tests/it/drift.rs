@@ -25,7 +25,8 @@ fn replay_with(label: &str, dir: &std::path::Path, drift: bool) -> (Accuracy, Ve
     let mut rec = Recording::open(dir).unwrap_or_else(|e| panic!("{e}"));
     rec.config.measure.drift_tracking = drift;
     let mut lines = Vec::new();
-    replay::replay(&rec, ReplayOptions { full_frame: false, progress: false }, |l, _, _| lines.push(l.clone())).unwrap();
+    replay::replay(&rec, ReplayOptions { full_frame: false, progress: false, ..Default::default() }, |l, _, _| lines.push(l.clone()))
+        .unwrap();
     let acc = evaluate(&rec.config, &rec.truth, &lines);
     println!("ACCURACY {label}, drift tracking {}: {acc}", if drift { "on" } else { "off" });
     (acc, lines, rec)
@@ -291,4 +292,52 @@ fn drift_options_are_validated_with_the_config() {
     assert!(e.line.is_some() && e.message.contains("positive"), "{e}");
     std::fs::write(&path, format!("{good}\n[measure]\ndrift_rate = 1.0\n")).unwrap();
     assert!(tagdeflect::config::Config::load(&path).unwrap_err().to_string().contains("drift_rate"), "unknown key refused");
+}
+
+/// A camera turning 0.02° and moving 0.2 mm within 4 s (a tripod leg settling under
+/// vibration: ~200 times the rate prior of 0.1°/h): the drift's process noise adapts to the
+/// innovations' lean and the error falls, though not yet to the static level.
+#[test]
+fn a_fast_drift_is_followed_by_the_adaptive_process_noise() {
+    let scene = |seed, drift_camera| SimParams {
+        cameras: 3,
+        width: 1280,
+        height: 960,
+        frame_sets: 40,
+        fps: 10.0,
+        max_deflection_mm: 1.0,
+        drift_camera,
+        drift_rot_deg: 0.02,
+        drift_trans_mm: 0.2,
+        seed,
+        ..SimParams::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let drifting = simulate(dir.path(), "fast-drift", &scene(67, Some(0)));
+    let still = simulate(dir.path(), "still", &scene(67, None));
+    let (on, lines, _) = replay_with("fast drift", &drifting, true);
+    let (off, _, _) = replay_with("fast drift", &drifting, false);
+    let (still_on, _, _) = replay_with("static cameras, fast scene", &still, true);
+    println!(
+        "FAST DRIFT displacement RMS: corrected {:.4} mm, held {:.4} mm, static cameras {:.4} mm; net deflection {:.4} / {:.4} / {:.4} mm",
+        on.disp_rms_mm,
+        off.disp_rms_mm,
+        still_on.disp_rms_mm,
+        on.net_rms_mm.unwrap(),
+        off.net_rms_mm.unwrap(),
+        still_on.net_rms_mm.unwrap()
+    );
+    assert!(
+        off.disp_rms_mm >= 1.5 * still_on.disp_rms_mm,
+        "the drift shows when the pose is held: {} vs {}",
+        off.disp_rms_mm,
+        still_on.disp_rms_mm
+    );
+    // Measured: corrected 0.0162 mm, held 0.0179 mm (0.0173 mm with the first version of the
+    // adaptation, which looked at the innovations' size), static 0.0099 mm. The adaptation
+    // helps, but the aim — at the static level (≤ 1.5×) — is not reached: the lean
+    // is seen after ~10 sets and the rate is then learned over the next ones, while this
+    // drift lasts 40 (docs/drift.md).
+    assert!(on.disp_rms_mm <= 0.93 * off.disp_rms_mm, "fast drift: corrected {} vs held {}", on.disp_rms_mm, off.disp_rms_mm);
+    assert!(lines.iter().all(|l| l.cameras.iter().all(|c| !c.bumped)), "a drift is never taken for a bump");
 }

@@ -110,6 +110,10 @@ pub struct FeedLine {
     /// are less certain).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub partial_set: bool,
+    /// The line was smoothed with the frame sets after it (`replay --smooth`: a fixed-lag
+    /// Rauch–Tung–Striebel smoother over the temporal estimate); absent in a live feed.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub smoothed: bool,
     /// RMS reprojection error over all solved specimen tags, px.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reproj_px: Option<f64>,

@@ -124,6 +124,63 @@ pub struct DriftFilter {
     x: V18,
     p: M18,
     updates: usize,
+    /// Scale of the rate's process noise (≥ 1), raised by the innovations (see [`Adapt`]).
+    adapt: Adapt,
+}
+
+/// The drift's process noise adapted to the innovations.
+///
+/// The rate prior (0.1°/h, 1 mm/h) is right for a tripod cooling over an hour, but a leg
+/// settling under vibration turns a camera by 0.02° and moves it by 0.2 mm within seconds:
+/// a rate a hundred times the prior, which the filter would follow only over minutes (and
+/// which stays below the bump test). Each step's innovation is small against one frame's
+/// pose noise, so their size says little; their *sign* says it all: while the model fits,
+/// the whitened innovations `w = L⁻¹ y` (`S = L Lᵀ`) are independent with unit covariance,
+/// and their running mean `m ← (1 − a) m + a w` has covariance `a / (2 − a)`; a drift the
+/// model does not follow makes them lean the same way. So `|m|² (2 − a) / a`, χ² with 6
+/// degrees of freedom while the model fits, above [`ADAPT_GATE`] (99.9 %) multiplies the
+/// rate's process noise by [`ADAPT_GROWTH`] per update (up to [`ADAPT_MAX`]); below the
+/// mean (6) it relaxes by [`ADAPT_RELAX`] per update.
+#[derive(Debug, Clone, Copy)]
+struct Adapt {
+    scale: f64,
+    mean: Vector6<f64>,
+}
+
+impl Default for Adapt {
+    fn default() -> Self {
+        Self { scale: 1.0, mean: Vector6::zeros() }
+    }
+}
+
+/// Weight of the newest whitened innovation in the running mean.
+const ADAPT_WEIGHT: f64 = 0.1;
+/// χ²₆ at 99.9 %: the running mean leans further than chance allows.
+const ADAPT_GATE: f64 = 22.5;
+/// Growth of the process noise's scale per update while the drift outruns the model.
+const ADAPT_GROWTH: f64 = 4.0;
+/// Relaxation per update once it does not.
+const ADAPT_RELAX: f64 = 0.9;
+/// Largest scale: a rate 10⁵ × the prior's σ can be reached within seconds.
+const ADAPT_MAX: f64 = 1e10;
+
+impl Adapt {
+    /// Takes one update's whitened innovation; true when the running mean leans beyond
+    /// chance (the mean is then started afresh, so one lean is acted on once).
+    fn observe(&mut self, w: &Vector6<f64>) -> bool {
+        // A mis-detected frame's innovation is clipped so it cannot lean the mean alone.
+        let w = w.map(|v| v.clamp(-5.0, 5.0));
+        self.mean = self.mean * (1.0 - ADAPT_WEIGHT) + w * ADAPT_WEIGHT;
+        let chi2 = self.mean.norm_squared() * (2.0 - ADAPT_WEIGHT) / ADAPT_WEIGHT;
+        if chi2 > ADAPT_GATE {
+            self.scale = (self.scale * ADAPT_GROWTH).min(ADAPT_MAX);
+            return true;
+        }
+        if chi2 < 6.0 {
+            self.scale = (self.scale * ADAPT_RELAX).max(1.0);
+        }
+        false
+    }
 }
 
 /// The pose `held` moved by `d = (ω, Δc)`: `R = exp(ω) R_held`, centre `c_held + Δc`.
@@ -168,7 +225,7 @@ impl DriftFilter {
             p[(12 + i, 12 + i)] = sr * sr;
             p[(15 + i, 15 + i)] = sc * sc;
         }
-        Self { config, held, t0_ns: t_ns, t_ns, x: V18::zeros(), p, updates: 0 }
+        Self { config, held, t0_ns: t_ns, t_ns, x: V18::zeros(), p, updates: 0, adapt: Adapt::default() }
     }
 
     /// Prior covariance of the held pose's own error in `(ω, Δc)`.
@@ -210,6 +267,12 @@ impl DriftFilter {
         self.updates
     }
 
+    /// The scale the innovations put on the rate's process noise now (1 = the configured
+    /// prior; see [`Adapt`]).
+    pub fn adaptive_scale(&self) -> f64 {
+        self.adapt.scale
+    }
+
     fn predicted(&self, t_ns: i64) -> (V18, M18) {
         let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
         if dt == 0.0 {
@@ -224,7 +287,7 @@ impl DriftFilter {
         let mut q = M18::zeros();
         for i in 0..6 {
             let s2 = if i < 3 { sr * sr } else { sc * sc };
-            let qa = s2 / tc; // rate variance gained per second
+            let qa = s2 / tc * self.adapt.scale; // rate variance gained per second
             q[(6 + i, 6 + i)] = qa * dt.powi(3) / 3.0;
             q[(6 + i, 12 + i)] = qa * dt * dt / 2.0;
             q[(12 + i, 6 + i)] = qa * dt * dt / 2.0;
@@ -280,9 +343,12 @@ impl DriftFilter {
         let y = z - h * x;
         let hph = h * p * h.transpose();
         let mut s = hph + r;
-        let m2 = {
+        let (m2, white, lean) = {
             let c = s.cholesky()?;
-            y.dot(&c.solve(&y))
+            let white = c.l().solve_lower_triangular(&y).unwrap_or_else(Vector6::zeros);
+            // The innovations' running mean back in (ω, Δc): how far the model is behind.
+            let lean = c.l() * self.adapt.mean;
+            (y.dot(&c.solve(&y)), white, lean)
         };
         if m2 > GATE {
             // Down-weight, so that the innovation sits on the gate.
@@ -298,8 +364,19 @@ impl DriftFilter {
         let p = ikh * p * ikh.transpose() + k * rr * k.transpose();
         self.x = x;
         self.p = 0.5 * (p + p.transpose());
+        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(1e-3);
         self.t_ns = self.t_ns.max(t_ns);
         self.updates += 1;
+        if self.adapt.observe(&white) {
+            // The model has fallen behind by about `lean` over the running mean's window:
+            // the rate may be off by that over the window's time. Its covariance is widened
+            // so (twice over), and the next innovations place it.
+            let window_s = dt / ADAPT_WEIGHT;
+            for i in 0..6 {
+                self.p[(12 + i, 12 + i)] += 4.0 * (lean[i] / window_s).powi(2);
+            }
+            self.adapt.mean = Vector6::zeros();
+        }
         Some(m2)
     }
 }

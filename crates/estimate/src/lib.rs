@@ -13,6 +13,9 @@
 //!   warm-started, outlier views rejected, σ from the covariance.
 //! * [`temporal`]: each specimen tag's centre and rate carried over frame sets
 //!   ([`temporal::TagFilter`], a Kalman filter with adaptive process noise; RTS smoother).
+//! * [`partial`]: a partial frame set's solve referred to the tag's last full sets, so that
+//!   the subset's camera-pose errors do not throw it.
+//! * [`smooth`]: a fixed-lag RTS smoother over the temporal estimate's lines (replay).
 //! * [`lm`]: the small Levenberg–Marquardt both use; [`init`]: closed-form starts.
 //!
 //! Pose step convention (for every Jacobian and covariance here): a 6-vector `(ω, v)`
@@ -29,6 +32,8 @@ pub mod lm;
 pub mod measure;
 pub mod measure_config;
 pub mod motion;
+pub mod partial;
+pub mod smooth;
 pub mod tag_pose;
 pub mod temporal;
 

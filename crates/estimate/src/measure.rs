@@ -73,6 +73,9 @@ pub struct MeasureStats {
     pub moved_camera_searches: u64,
     /// Frame-set views of cameras left out because their re-pose failed its checks.
     pub refused_poses: u64,
+    /// Tag solutions of partial sets referred to the tag's last full sets (temporal
+    /// estimator, `estimate::partial`).
+    pub referred_partial_views: u64,
 }
 
 struct CameraState {
@@ -99,6 +102,11 @@ struct TagHistory {
     usual_views: crate::temporal::UsualViews,
     /// The pixel-noise covariance of the tag's last full set's solve, mm².
     full_noise: Option<nalgebra::Matrix3<f64>>,
+    /// The camera poses' part of the last full set's covariance, mm² (the absolute σ of a
+    /// position referred to the full sets).
+    full_pose_cov: Option<nalgebra::Matrix3<f64>>,
+    /// The last full sets' views (a partial set is referred to them: `estimate::partial`).
+    recent_full: crate::partial::RecentFull,
 }
 
 /// What the net deflection needs of one solved tag: its downward-relevant displacement
@@ -183,6 +191,12 @@ pub struct Measurement {
     /// specimen views rejected as outliers (cumulative; logged as a summary by live runs).
     pose_age_sets: Vec<u64>,
     rejected_by_camera: Vec<u64>,
+    /// Per camera: a counter raised whenever its pose was re-made or refused (a bump), so
+    /// that views kept from before are not read with the new pose (see `estimate::partial`).
+    pose_epochs: Vec<u64>,
+    /// Each tag's filter step of the last frame set, kept for a smoother when asked
+    /// ([`Measurement::keep_steps`]).
+    last_steps: Option<Vec<crate::smooth::TagStep>>,
     /// Virtual gauges and the clock check (`solve::gauges`, `solve::clock_offset`).
     gauges: crate::gauges::LineGauges,
 }
@@ -254,8 +268,26 @@ impl Measurement {
             last_seen: Vec::new(),
             pose_age_sets: vec![0; config.cameras.len()],
             rejected_by_camera: vec![0; config.cameras.len()],
+            pose_epochs: vec![0; config.cameras.len()],
+            last_steps: None,
             gauges: crate::gauges::LineGauges::new(config),
         })
+    }
+
+    /// Keeps each tag's filter step of every frame set for a smoother ([`Self::last_steps`],
+    /// [`Self::smoother`]); only the temporal estimator has steps.
+    pub fn keep_steps(&mut self) {
+        self.last_steps = Some(Vec::new());
+    }
+
+    /// The tags' filter steps of the last frame set (empty unless [`Self::keep_steps`]).
+    pub fn last_steps(&self) -> &[crate::smooth::TagStep] {
+        self.last_steps.as_deref().unwrap_or(&[])
+    }
+
+    /// A fixed-lag smoother for this rig's lines (`estimate::smooth`).
+    pub fn smoother(&self, lag_sets: usize) -> crate::smooth::FixedLag {
+        crate::smooth::FixedLag::new(lag_sets, self.up, self.specimen_ids.clone())
     }
 
     /// Runs every whole-frame search in its own frame set instead of in the background
@@ -376,6 +408,9 @@ impl Measurement {
                 h.pose_reproj_px = status.rms_px;
                 h.bumped = status.bumped;
                 checked = status.fixed || !status.stale;
+                if status.refused.is_some() || status.bumped {
+                    self.pose_epochs[ci] += 1;
+                }
                 if let Some(why) = &status.refused {
                     self.stats.refused_poses += 1;
                     tracing::warn!(camera = %cam.name, seq = set.seq, reason = %why, "camera moved and its pose failed the checks: the frame set is solved without it");
@@ -415,6 +450,10 @@ impl Measurement {
         let mut sq_n = 0.0;
         let mut partial_set = health.iter().any(|h| !h.frame);
         let mut net_inputs: HashMap<u32, NetInput> = HashMap::new();
+        let cameras = &self.cameras;
+        if let Some(steps) = self.last_steps.as_mut() {
+            steps.clear();
+        }
         for (id, (views, view_cameras)) in &views_by_tag {
             let warm = self.tags.get(id).map(|t| t.pose);
             match solve_tag(views, size, warm.as_ref(), pooled) {
@@ -422,7 +461,7 @@ impl Measurement {
                     self.stats.rejected_views += sol.rejected_views.len() as u64;
                     for r in &sol.rejected_views {
                         self.rejected_by_camera[view_cameras[*r]] += 1;
-                        tracing::debug!(tag = id, camera = %self.cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
+                        tracing::debug!(tag = id, camera = %cameras[view_cameras[*r]].name, seq = set.seq, "specimen tag view rejected as an outlier (its corners disagree with the other views)");
                     }
                     self.noise.add_solution(&sol);
                     let n_res = 8.0 * sol.views as f64;
@@ -435,6 +474,8 @@ impl Measurement {
                         filter: None,
                         usual_views: Default::default(),
                         full_noise: None,
+                        full_pose_cov: None,
+                        recent_full: Default::default(),
                     });
                     let partial = history.usual_views.observe(sol.views);
                     partial_set |= partial;
@@ -456,8 +497,49 @@ impl Measurement {
                             }
                         }
                         Estimator::Temporal => {
+                            // A partial set is referred to the last full sets (their cameras'
+                            // pose errors, not this subset's); a full set is kept for that.
+                            let used: Vec<usize> =
+                                view_cameras.iter().enumerate().filter(|(i, _)| !sol.rejected_views.contains(i)).map(|(_, c)| *c).collect();
+                            let referred = if partial {
+                                let view_of = |cam: usize, corners: [nalgebra::Point2<f64>; 4]| {
+                                    let st: &CameraState = &cameras[cam];
+                                    st.pose.pose().map(|p| TagView {
+                                        intrinsics: st.intrinsics,
+                                        camera_pose: p,
+                                        camera_pose_covariance: st.pose.covariance(),
+                                        corners,
+                                    })
+                                };
+                                history.recent_full.refer(set.t_ns, c, &noise_cov, &used, &self.pose_epochs, size, pooled, view_of)
+                            } else {
+                                history.recent_full.push(
+                                    set.t_ns,
+                                    views,
+                                    view_cameras,
+                                    &sol.rejected_views,
+                                    &self.pose_epochs,
+                                    &sol.tag_to_world,
+                                );
+                                history.full_pose_cov = Some(sol.centre_covariance - noise_cov);
+                                None
+                            };
+                            if referred.is_some() {
+                                self.stats.referred_partial_views += 1;
+                            }
+                            // What this set measures of the tag and how well: referred, the
+                            // pixel noise alone; otherwise (a partial set with nothing kept)
+                            // the camera poses' part too.
+                            let (z, r_partial) = match &referred {
+                                Some(r) => (r.centre_mm, r.covariance),
+                                None => (c, sol.centre_covariance),
+                            };
+                            // A referred set is pixel noise alone, like a full one: the filter
+                            // takes it as such (a jump included); an unreferred partial set is
+                            // taken with its camera poses' part and never as a jump.
                             let u = match history.filter.as_mut() {
-                                Some(f) => f.update(set.t_ns, c, &noise_cov, &sol.centre_covariance, partial),
+                                Some(f) if referred.is_some() => f.update(set.t_ns, z, &r_partial, &r_partial, false),
+                                Some(f) => f.update(set.t_ns, z, &noise_cov, &r_partial, partial),
                                 None => {
                                     let f = crate::temporal::TagFilter::new(self.config.measure.temporal(), set.t_ns, c, &noise_cov);
                                     let u = crate::temporal::Update {
@@ -472,26 +554,38 @@ impl Measurement {
                                 }
                             };
                             c = u.centre;
-                            // The feed's σ of the position adds the camera poses' part back.
-                            let absolute = u.covariance + (sol.centre_covariance - noise_cov);
-                            sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
+                            // The feed's σ of the position adds the camera poses' part back
+                            // (the full sets' when the set was referred to them).
+                            let pose_part = match (&referred, history.full_pose_cov) {
+                                (Some(_), Some(p)) => p,
+                                _ => sol.centre_covariance - noise_cov,
+                            };
                             pose.translation = c;
                             fused_cov = Some(u.covariance);
-                            // The net deflection's σ is never below one full set's: the
+                            // The σ given out is never below one full set's pixel noise: the
                             // errors of consecutive sets are correlated (the same pixels, the
-                            // same held poses), so the filter's gain on white noise does not
-                            // shrink them (on simulated truth the posterior alone covered 69 %
-                            // of errors within 2σ).
+                            // same held poses, the corner fit's bias that changes with the
+                            // tag's sub-pixel place), so the filter's gain on white noise does
+                            // not shrink them (on simulated truth the posterior alone covered
+                            // 69 % of the net deflection's errors within 2σ).
                             if !partial {
                                 history.full_noise = Some(noise_cov);
                             }
-                            // A partial set's floor is its own full covariance (camera poses
-                            // included: the held poses' errors no longer cancel).
-                            let floor = if partial { sol.centre_covariance } else { history.full_noise.unwrap_or(noise_cov) };
+                            // A partial set's floor is what it measured with: referred, its
+                            // pixel noise and the offset's; else its full covariance (camera
+                            // poses included: the held poses' errors no longer cancel).
+                            let floor = if partial { r_partial } else { history.full_noise.unwrap_or(noise_cov) };
                             let up = self.up;
                             let var = |m: &nalgebra::Matrix3<f64>| (up.transpose() * m * up)[(0, 0)];
                             let cov = if var(&u.covariance) < var(&floor) { floor } else { u.covariance };
+                            // The feed's σ of the position adds the camera poses' part back
+                            // (an unreferred partial set's floor holds it already).
+                            let absolute = if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+                            sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
                             net_in = NetInput { cov, rate: Some(u.rate) };
+                            if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
+                                steps.push(crate::smooth::TagStep { id: *id, step: *f.last_step(), pose_part, floor });
+                            }
                         }
                     }
                     net_inputs.insert(*id, net_in);
@@ -529,6 +623,7 @@ impl Measurement {
             net_deflection_sigma_mm: net.map(|n| round_mm(n.1.max(1e-5))),
             net_deflection_rate_mm_per_min: net.and_then(|n| n.2).map(|r| (r * 60.0 * 1e6).round() / 1e6),
             partial_set,
+            smoothed: false,
             reproj_px: reproj,
             cameras: health,
             utm: None,

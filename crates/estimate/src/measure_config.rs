@@ -69,7 +69,7 @@ impl Default for MeasureConfig {
             drift_rate_deg_per_h: 0.1,
             drift_rate_mm_per_h: 1.0,
             drift_rate_change_h: 1.0,
-            estimator: crate::temporal::Estimator::PerSet,
+            estimator: crate::temporal::Estimator::Temporal,
             temporal_accel_mm_s2: crate::temporal::DEFAULT_ACCEL_MM_S2,
         }
     }
