@@ -90,6 +90,9 @@ pub struct ReportArgs {
     /// Where the specimen broke.
     #[arg(long)]
     pub fracture: Option<String>,
+    /// Laboratory name.
+    #[arg(long)]
+    pub laboratory: Option<String>,
 }
 
 /// `tagdeflect report` sub-commands.
@@ -156,6 +159,7 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
         (&mut lab.edition, &args.edition),
         (&mut lab.machine, &args.machine),
         (&mut lab.fracture, &args.fracture),
+        (&mut lab.laboratory, &args.laboratory),
     ] {
         if src.is_some() {
             *dst = src.clone();
@@ -167,15 +171,16 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
     Ok(o)
 }
 
-/// The calibration files a config names (`[[camera]] calibration`), relative to its folder.
-fn calibration_files(config_path: &Path) -> Vec<PathBuf> {
-    let Ok(text) = std::fs::read_to_string(config_path) else { return Vec::new() };
-    let Ok(doc) = text.parse::<toml::Table>() else { return Vec::new() };
-    let dir = config_path.parent().unwrap_or(Path::new("."));
-    doc.get("camera")
-        .and_then(|c| c.as_array())
-        .map(|cams| cams.iter().filter_map(|c| c.get("calibration")?.as_str()).map(|p| dir.join(p)).filter(|p| p.is_file()).collect())
-        .unwrap_or_default()
+/// The calibration files a config names (`[[camera]] calibration`, resolved against its
+/// folder by the config's loading; the camchain itself for `file.yaml#cam1`), each once.
+fn calibration_files(config: &Config) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = Vec::new();
+    for p in &config.calibration_files {
+        if p.is_file() && !files.contains(p) {
+            files.push(p.clone());
+        }
+    }
+    files
 }
 
 /// A feed path, or a test folder holding `feed.jsonl`.
@@ -202,7 +207,7 @@ fn reports_of(
     };
     let utm = utm_path.map(|p| UtmStream::read(&p, &opts.limits())).transpose()?;
     let mut inputs = vec![("config".to_string(), config_path.to_path_buf())];
-    inputs.extend(calibration_files(config_path).into_iter().map(|p| ("calibration".to_string(), p)));
+    inputs.extend(calibration_files(config).into_iter().map(|p| ("calibration".to_string(), p)));
     let rig = config.test_rig();
     let mut out = Vec::new();
     for feed in runs {

@@ -743,3 +743,396 @@ fn the_report_prints_to_pdf_with_page_numbers() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains(&format!("Page 1 of {pages}")) && text.contains("B7"), "header and footer: {}", &text[..text.len().min(600)]);
 }
+
+// ----------------------------------------------------------------------------------------
+// Validity end to end: the UTM stream's gaps and outages, a test stopped early.
+
+fn invalid_reasons(j: &serde_json::Value) -> Vec<String> {
+    j["invalid_reasons"].as_array().unwrap().iter().map(|r| r.as_str().unwrap().to_string()).collect()
+}
+
+fn qc_warnings(j: &serde_json::Value) -> Vec<String> {
+    j["qc"]["warnings"].as_array().unwrap().iter().map(|r| r.as_str().unwrap().to_string()).collect()
+}
+
+/// Removes the lines `lines` (0-based) of a JSON Lines file.
+fn drop_lines(p: &Path, lines: std::ops::Range<usize>) {
+    let kept: Vec<String> =
+        fs::read_to_string(p).unwrap().lines().enumerate().filter(|(k, _)| !lines.contains(k)).map(|(_, l)| l.to_string()).collect();
+    put(p, &kept);
+}
+
+/// The clean C1609 test with 4 s of its UTM samples lost, then with the UTM down for 3 s
+/// (feed lines `"utm": "down"` without a load, no UTM samples then): each a located sentence
+/// in `invalid_reasons` and in the page's banner; the untouched test is valid.
+#[test]
+fn gaps_and_outages_of_the_utm_stream_make_a_test_invalid() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    // UTM sample j is taken at 0.05·j − 0.247 s (20 Hz); j = 20004 at 999.953 s.
+    let feed = clean(false, 21).write(&dir.path().join("gap"));
+    drop_lines(&dir.path().join("gap/utm.jsonl"), 20005..20084);
+    let out = dir.path().join("r-gap");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    println!("REPORT UTM gap: valid {} {:?}", j["valid"], invalid_reasons(&j));
+    assert_eq!(j["valid"], false);
+    assert_eq!(
+        invalid_reasons(&j),
+        ["The UTM stream has 1 gap(s) longer than 2 s (the longest 4.0 s, from 1000.0 s to 1004.0 s into the feed): the load is not known there."]
+    );
+    let html = fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("Not a valid test") && html.contains("The UTM stream has 1 gap(s) longer than 2 s"), "the banner");
+
+    // The UTM down from 500 to 503 s: the feed's lines say so and carry no load.
+    let feed = clean(false, 22).write(&dir.path().join("down"));
+    let lines: Vec<String> = fs::read_to_string(&feed)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
+            let t = (v["t_ns"].as_i64().unwrap() - T0) as f64 * 1e-9;
+            if (500.0..503.0).contains(&t) {
+                v["utm"] = "down".into();
+                v.as_object_mut().unwrap().remove("load_kN");
+            }
+            v.to_string()
+        })
+        .collect();
+    put(&feed, &lines);
+    drop_lines(&dir.path().join("down/utm.jsonl"), 10005..10064);
+    let out = dir.path().join("r-down");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    println!("REPORT UTM down: valid {} {:?} qc {:?}", j["valid"], invalid_reasons(&j), qc_warnings(&j));
+    assert_eq!(j["valid"], false);
+    assert_eq!(
+        invalid_reasons(&j),
+        [
+            "The UTM stream has 1 gap(s) longer than 2 s (the longest 3.0 s, from 500.0 s to 503.0 s into the feed): the load is not known there.",
+            "The UTM was unreachable for 3.0 s during the test: the load is not known then."
+        ]
+    );
+    assert_eq!(j["qc"]["utm_down_lines"], 6);
+    assert!(qc_warnings(&j).iter().any(|w| w == "UTM down 1 time(s), 3.0 s in all"), "{:?}", qc_warnings(&j));
+
+    // The same test untouched: valid.
+    let feed = clean(false, 22).write(&dir.path().join("ok"));
+    let out = dir.path().join("r-ok");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    assert_eq!(j["valid"], true, "{:?}", invalid_reasons(&j));
+}
+
+/// A C1609 test stopped at 2.5 mm (L/150 = 3 mm) and an EN 14651 test stopped at CMOD 3 mm:
+/// invalid, the sentence says how far the test got and what the standard needs, and the
+/// values past the end are undetermined.
+#[test]
+fn a_test_stopped_before_its_end_says_how_far_it_got() {
+    let dir = tempfile::tempdir().unwrap();
+    for (standard, beam, cmod, x_end, x_name, needs, missing) in [
+        ("astm-c1609", C1609_BEAM, false, 2.5, "net deflection", "ASTM C1609 needs the test carried to L/150 = 3.00 mm.", "P150"),
+        ("en-14651", EN_BEAM, true, 3.0, "CMOD (gauge cmod)", "EN 14651 needs the test carried to CMOD = 3.5 mm.", "fR4"),
+    ] {
+        let feed = Synth { x_end, ..clean(cmod, 23) }.write(&dir.path().join(standard));
+        let cfg = config_with_beam(dir.path(), beam);
+        let out = dir.path().join(format!("{standard}-r"));
+        let o = report(&feed, &cfg, standard, &out, &[]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let j = read_json(&out.join("report.json"));
+        let r = invalid_reasons(&j);
+        println!("REPORT stopped early {standard}: {r:?}");
+        assert_eq!(j["valid"], false);
+        assert_eq!(r.len(), 1, "{standard}: {r:?}");
+        let reached: f64 = r[0]
+            .strip_prefix(&format!("The {x_name} reached only "))
+            .and_then(|s| s.strip_suffix(&format!(" mm: {needs}")))
+            .unwrap_or_else(|| panic!("{standard}: {}", r[0]))
+            .parse()
+            .unwrap();
+        assert!((reached - x_end).abs() < 0.01, "{standard}: reached {reached}");
+        assert!(j["undetermined"][missing].is_string(), "{standard}: {missing} undetermined: {}", j["undetermined"]);
+    }
+}
+
+// ----------------------------------------------------------------------------------------
+// QC without false alarms: every standard, every load law.
+
+/// The simulator's hardening law (`simulate --load-law hardening`, `tagdeflect_sim::law`):
+/// elastic to the first crack (30 kN at 0.3 mm), a 10 % drop, then a rise towards 1.5 times
+/// the cracking load (scale 0.5 mm).
+fn sim_hardening(x: f64) -> f64 {
+    if x <= 0.3 {
+        100.0 * x
+    } else {
+        30.0 * (1.5 + (0.9 - 1.5) * (-(x - 0.3) / 0.5).exp())
+    }
+}
+
+/// An elastic beam that never cracks (`simulate --load-law elastic`): 15 kN/mm.
+fn elastic(x: f64) -> f64 {
+    15.0 * x
+}
+
+/// Against CMOD: elastic to 16 kN at 0.03 mm, a drop to 14 kN, then a rise to 20 kN at 4 mm.
+fn notched_hardening(x: f64) -> f64 {
+    if x <= 0.03 {
+        16.0 / 0.03 * x
+    } else {
+        14.0 + 6.0 * (x - 0.03) / 3.97
+    }
+}
+
+/// A UHPC prism (ASTM C1856): 75 × 75 mm on a 225 mm span (L/150 = 1.5 mm, L/900 = 0.25 mm).
+const C1856_BEAM: &str = "width_mm = 75.0\ndepth_mm = 75.0\nspan_mm = 225.0";
+
+/// The clean tests of `a_clean_test_of_each_kind_is_valid_without_qc_warnings` for ASTM
+/// C1856 and for each load law: no QC warning on any; valid, except the never-cracked elastic
+/// beam, which is invalid for the one reason that it has no first peak.
+/// A clean case: name, standard, beam, the test, extra arguments, and the one reason it is
+/// invalid for (none: valid).
+type CleanCase = (&'static str, &'static str, &'static str, Synth, &'static [&'static str], Option<&'static str>);
+
+#[test]
+fn a_clean_test_of_every_standard_and_load_law_has_no_qc_warning() {
+    const NO_PEAK: &str = "No first peak: the load never fell after a maximum, so the first crack (the first point where the slope is \
+                           zero) was not reached or not recorded.";
+    let dir = tempfile::tempdir().unwrap();
+    // The C1856 prism at 0.06 mm/min (inside both of C1609's windows for a beam ≤ 125 mm deep).
+    let uhpc = |law: fn(f64) -> f64, seed| Synth { law, rate: 0.06, x_end: 1.6, ..clean(false, seed) };
+    let cases: [CleanCase; 8] = [
+        ("c1856-softening", "astm-c1856", C1856_BEAM, uhpc(softening, 31), &[], None),
+        ("c1856-hardening", "astm-c1856", C1856_BEAM, uhpc(sim_hardening, 32), &[], None),
+        ("c1856-elastic", "astm-c1856", C1856_BEAM, uhpc(elastic, 33), &[], Some(NO_PEAK)),
+        ("c1609-hardening", "astm-c1609", C1609_BEAM, Synth { law: sim_hardening, ..clean(false, 34) }, &[], None),
+        (
+            "c1609-hardening-stated",
+            "astm-c1609",
+            C1609_BEAM,
+            Synth { law: hardening, x_end: 3.3, ..clean(false, 35) },
+            &["--response", "hardening"],
+            None,
+        ),
+        ("c1609-elastic", "astm-c1609", C1609_BEAM, Synth { law: elastic, ..clean(false, 36) }, &[], Some(NO_PEAK)),
+        ("en-hardening", "en-14651", EN_BEAM, Synth { law: notched_hardening, ..clean(true, 37) }, &[], None),
+        ("en-softening-other-seed", "en-14651", EN_BEAM, clean(true, 38), &[], None),
+    ];
+    for (name, standard, beam, synth, extra, invalid) in cases {
+        let feed = synth.write(&dir.path().join(name));
+        let cfg_dir = dir.path().join(format!("{name}-cfg"));
+        fs::create_dir_all(&cfg_dir).unwrap();
+        let cfg = config_with_beam(&cfg_dir, beam);
+        let out = dir.path().join(format!("{name}-r"));
+        let o = report(&feed, &cfg, standard, &out, extra);
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        let j = read_json(&out.join("report.json"));
+        println!(
+            "REPORT clean {name}: valid {} reasons {:?} qc {:?} rates {}",
+            j["valid"],
+            invalid_reasons(&j),
+            qc_warnings(&j),
+            j["rates"]
+        );
+        assert_eq!(qc_warnings(&j), Vec::<String>::new(), "{name}: QC false alarms");
+        match invalid {
+            None => assert_eq!((j["valid"].as_bool(), invalid_reasons(&j)), (Some(true), vec![]), "{name}"),
+            Some(why) => assert_eq!((j["valid"].as_bool(), invalid_reasons(&j)), (Some(false), vec![why.to_string()]), "{name}"),
+        }
+        let html = fs::read_to_string(out.join("report.html")).unwrap();
+        assert!(html.contains("No warnings."), "{name}: the page's QC says so");
+    }
+}
+
+// ----------------------------------------------------------------------------------------
+// What a lab files, rounding, traceability.
+
+/// Operator, dates, edition, machine, fracture and laboratory from each place they can be
+/// given — `[report.lab]`, the command line, `test.json` beside the feed — in `report.json`
+/// and in the page's identification table (escaped).
+#[test]
+fn what_a_lab_files_is_in_report_json_and_report_html() {
+    let dir = tempfile::tempdir().unwrap();
+    let feed = clean(false, 41).write(&dir.path().join("t"));
+    fs::write(
+        dir.path().join("t/test.json"),
+        serde_json::json!({"id": "T-0042", "specimen": "B12-north", "operator": "J. Json"}).to_string(),
+    )
+    .unwrap();
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    let text = fs::read_to_string(&cfg).unwrap();
+    fs::write(
+        &cfg,
+        format!(
+            "{text}\n[report]\nstandard = \"astm-c1609\"\nout = \"reports\"\n[report.lab]\nlaboratory = \"Lab & Co <Materials>\"\n\
+             machine = \"Instron 5985, S/N 5985K1234, 250 kN cell\"\ncast_date = \"2025-11-03\"\nedition = \"C1609/C1609M-12\"\n"
+        ),
+    )
+    .unwrap();
+    // The command line over the config and test.json.
+    let out = dir.path().join("r");
+    let o = report(
+        &feed,
+        &cfg,
+        "astm-c1609",
+        &out,
+        &[
+            "--operator",
+            "A. Tester",
+            "--test-date",
+            "2026-01-02",
+            "--edition",
+            "C1609/C1609M-19a",
+            "--fracture",
+            "within the middle third, 12 mm left of midspan",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    let s = &j["specimen"];
+    println!("REPORT lab fields: {s} edition {}", j["standard_edition"]);
+    assert_eq!(s["id"], "B12-north", "test.json's specimen");
+    assert_eq!(s["operator"], "A. Tester", "the command line over test.json");
+    assert_eq!(s["cast_date"], "2025-11-03");
+    assert_eq!(s["test_date"], "2026-01-02");
+    assert_eq!(s["age_days"], 60);
+    assert_eq!(j["standard_edition"], "C1609/C1609M-19a", "the command line over [report.lab]");
+    assert_eq!(s["machine"], "Instron 5985, S/N 5985K1234, 250 kN cell");
+    assert_eq!(s["fracture"], "within the middle third, 12 mm left of midspan");
+    assert_eq!(s["laboratory"], "Lab & Co <Materials>");
+    let html = fs::read_to_string(out.join("report.html")).unwrap();
+    for cell in [
+        "<th>Specimen</th><td>B12-north</td>",
+        "<th>Operator</th><td>A. Tester</td>",
+        "<th>Cast</th><td>2025-11-03</td>",
+        "<th>Tested</th><td>2026-01-02</td>",
+        "<th>Age</th><td>60 days</td>",
+        "<th>Machine</th><td>Instron 5985, S/N 5985K1234, 250 kN cell</td>",
+        "<th>Standard</th><td>ASTM C1609 (C1609/C1609M-19a)</td>",
+        "<th>Fracture</th><td>within the middle third, 12 mm left of midspan</td>",
+        "<th>Laboratory</th><td>Lab &amp; Co &lt;Materials&gt;</td>",
+    ] {
+        assert!(html.contains(cell), "{cell} in report.html");
+    }
+    assert!(html.contains("edition C1609/C1609M-19a"), "the edition in the header");
+    assert!(!html.contains("Lab & Co <Materials>"), "escaped");
+
+    // Without the command line: test.json's operator, the test date of the feed's first line
+    // (2026-01-01), the config's edition; --laboratory over the config's.
+    let out = dir.path().join("r2");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &["--laboratory", "Materials Lab, Room 2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    let s = &j["specimen"];
+    assert_eq!(s["operator"], "J. Json", "test.json's operator");
+    assert_eq!(s["test_date"], "2026-01-01", "the date of the feed's first line");
+    assert_eq!(s["age_days"], 59);
+    assert_eq!(j["standard_edition"], "C1609/C1609M-12");
+    assert_eq!(s["laboratory"], "Materials Lab, Room 2");
+    let html = fs::read_to_string(out.join("report.html")).unwrap();
+    for cell in
+        ["<th>Operator</th><td>J. Json</td>", "<th>Tested</th><td>2026-01-01</td>", "<th>Laboratory</th><td>Materials Lab, Room 2</td>"]
+    {
+        assert!(html.contains(cell), "{cell} in report.html");
+    }
+}
+
+/// Every value of a clean report in `report.json` and in the page: σ with exactly two
+/// significant digits, the value to the same decimal, and the page showing the same digits.
+#[test]
+fn report_values_are_rounded_to_two_significant_digits_of_sigma() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    let feed = clean(false, 42).write(&dir.path().join("t"));
+    let out = dir.path().join("r");
+    let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    let html = fs::read_to_string(out.join("report.html")).unwrap();
+    let mut checked = Vec::new();
+    for (key, q) in j.as_object().unwrap() {
+        let (Some(v), Some(s), Some(unit)) = (q["value"].as_f64(), q["sigma"].as_f64(), q["unit"].as_str()) else { continue };
+        assert!(s > 0.0, "{key}: σ {s}");
+        // The power of ten of σ's second significant digit.
+        let e = s.log10().floor() as i32 - 1;
+        let d = (-e).max(0) as usize;
+        let digits = s / 10f64.powi(e);
+        assert!((digits - digits.round()).abs() < 1e-6 && (10.0..=99.0).contains(&digits.round()), "{key}: σ {s} has not two digits");
+        // The JSON's numbers are those decimals exactly (nothing after them).
+        let (vs, ss) = (format!("{v:.d$}"), format!("{s:.d$}"));
+        assert_eq!((vs.parse::<f64>().unwrap(), ss.parse::<f64>().unwrap()), (v, s), "{key}: {v} ± {s} to {d} decimals");
+        assert_eq!(ss.trim_start_matches(['0', '.']).replace('.', "").len(), 2, "{key}: σ printed {ss}");
+        let row = format!("<td class=\"num\">{vs}</td><td class=\"num\">{ss}</td><td>{unit}</td><td class=\"key\">{key}</td>");
+        assert!(html.contains(&row), "{key}: the page shows {row}");
+        checked.push(format!("{key} {vs} ± {ss} {unit}"));
+    }
+    println!("REPORT rounded: {checked:?}");
+    for key in ["P1", "delta1", "f1", "Pp", "P600", "P150", "f150", "T150", "RT150"] {
+        assert!(checked.iter().any(|c| c.starts_with(&format!("{key} "))), "{key} checked: {checked:?}");
+    }
+}
+
+/// A calibration file the config names (`[[camera]] calibration`, an OpenCV file and a
+/// camera of a Kalibr camchain) is an input of the report: role, path and SHA-256 in
+/// `report.json` and the page, and `report verify` sees it change.
+#[test]
+fn calibration_files_the_config_names_are_hashed_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let feed = clean(false, 43).write(&dir.path().join("t"));
+    let sha256 = |p: &Path| {
+        let o = Command::new(common::python())
+            .arg("-c")
+            .arg("import hashlib,sys; print(hashlib.sha256(open(sys.argv[1],'rb').read()).hexdigest())")
+            .arg(p)
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&o.stdout).trim().to_string()
+    };
+    for (name, file, source, value) in [
+        ("opencv", "cam-front.yml", common::root().join("config/centre-calibration.yml"), "cam-front.yml"),
+        ("kalibr", "camchain.yaml", common::root().join("tests/fixtures/calibration/kalibr_camchain.yaml"), "camchain.yaml#cam0"),
+    ] {
+        let d = dir.path().join(name);
+        fs::create_dir_all(&d).unwrap();
+        let cal = d.join(file);
+        fs::copy(&source, &cal).unwrap();
+        // The camera's intrinsics from the file instead of inline.
+        let cfg = config_with_beam(&d, C1609_BEAM);
+        let text: String = fs::read_to_string(&cfg)
+            .unwrap()
+            .lines()
+            .filter(|l| !["fx =", "fy =", "cx =", "cy =", "dist ="].iter().any(|k| l.starts_with(k)))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        fs::write(&cfg, text.replacen("[[camera]]\n", &format!("[[camera]]\ncalibration = \"{value}\"\n"), 1)).unwrap();
+        let out = d.join("r");
+        let o = report(&feed, &cfg, "astm-c1609", &out, &[]);
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        let j = read_json(&out.join("report.json"));
+        let files = j["inputs"]["files"].as_array().unwrap();
+        println!("REPORT inputs ({name}): {}", j["inputs"]);
+        let roles: Vec<&str> = files.iter().map(|f| f["role"].as_str().unwrap()).collect();
+        assert_eq!(roles, ["feed", "utm", "config", "calibration"], "{name}");
+        let c = &files[3];
+        assert_eq!(Path::new(c["path"].as_str().unwrap()), cal, "{name}: the file itself");
+        let hash = sha256(&cal);
+        assert_eq!(hash.len(), 64);
+        assert_eq!(c["sha256"], hash.as_str(), "{name}: its SHA-256");
+        let html = fs::read_to_string(out.join("report.html")).unwrap();
+        assert!(
+            html.contains(&format!("<tr><td>calibration</td><td><code>{}</code></td><td class=\"key\">{hash}</td></tr>", cal.display())),
+            "{name}: the page's inputs"
+        );
+        let o = tagdeflect(&["report", "verify", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        assert!(String::from_utf8_lossy(&o.stdout).contains("every input as when the report was made (4 files)"), "{name}");
+        // The calibration changed after the report.
+        fs::write(&cal, fs::read_to_string(&cal).unwrap() + "\n# edited\n").unwrap();
+        let o = tagdeflect(&["report", "verify", out.to_str().unwrap()]);
+        assert_eq!(o.status.code(), Some(2), "{name}");
+        let so = String::from_utf8_lossy(&o.stdout);
+        assert!(so.contains(&format!("CHANGED  calibration {}", cal.display())) && so.contains("same     config"), "{name}: {so}");
+    }
+}
