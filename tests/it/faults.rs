@@ -235,3 +235,322 @@ fn a_config_with_a_nul_byte_gets_a_message() {
     let msg = err.lines().find(|l| l.contains("error:")).unwrap_or_default();
     assert!(msg.contains("rig.toml") && msg.len() > msg.find("rig.toml").unwrap() + 12, "{err}");
 }
+
+/// A hand-made Modbus TCP device on loopback (std threads, no tokio-modbus): every 12-byte
+/// read request of the first connection is answered with a reply that makes tokio-modbus 0.15
+/// panic (read coils, byte count 0xc2, no bytes: the shape of the fuzz regression input in
+/// tests/fixtures/fuzz-regressions/modbus_peer), of later connections with f32 12.5 (ABCD) in
+/// two input registers. The accepting thread ends when the returned flag is set; a
+/// connection's thread ends when its client closes it (the daemon exiting).
+fn poisoning_modbus_device() -> (String, std::sync::Arc<std::sync::atomic::AtomicBool>, std::thread::JoinHandle<()>) {
+    use std::io::{Read, Write};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    listener.set_nonblocking(true).unwrap();
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let stopped = std::sync::Arc::clone(&stop);
+    let acceptor = std::thread::spawn(move || {
+        let mut connection = 0usize;
+        while !stopped.load(Ordering::Relaxed) {
+            match listener.accept() {
+                Ok((mut s, _)) => {
+                    let index = connection;
+                    connection += 1;
+                    s.set_nonblocking(false).unwrap();
+                    std::thread::spawn(move || {
+                        let mut req = [0u8; 12];
+                        while s.read_exact(&mut req).is_ok() {
+                            let reply = if index == 0 {
+                                vec![req[0], req[1], 0, 0, 0, 3, req[6], 1, 0xc2]
+                            } else {
+                                vec![req[0], req[1], 0, 0, 0, 7, req[6], req[7], 4, 0x41, 0x48, 0, 0]
+                            };
+                            if s.write_all(&reply).is_err() {
+                                break;
+                            }
+                        }
+                    });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => std::thread::sleep(Duration::from_millis(20)),
+                Err(e) => panic!("accept: {e}"),
+            }
+        }
+    });
+    (addr, stop, acceptor)
+}
+
+/// `run` with two simulated cameras and the UTM at `utm` (f32 ABCD load at input register 0,
+/// polled at 20 Hz), for `seconds`, logging with `TAGDEFLECT_LOG=log`; returns the exit
+/// code, the feed and stderr.
+fn run_against_a_utm(dir: &std::path::Path, utm: &str, log: &str, seconds: &str) -> (Option<i32>, Vec<FeedLine>, String) {
+    use tagdeflect::config::{Config, RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
+    let params = SimParams { cameras: 2, width: 400, height: 300, fps: 5.0, frame_sets: 40, ..SimParams::default() };
+    let mut cfg = Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    cfg.utm = Some(UtmConfig {
+        address: tagdeflect::config::UtmAddress::Tcp(utm.to_string()),
+        unit: 1,
+        poll_hz: 20.0,
+        timeout_ms: 200.0,
+        load: RegisterConfig {
+            register: 0,
+            kind: RegisterKind::Input,
+            value_type: ValueType::F32,
+            word_order: WordOrder::Abcd,
+            scale: 1.0,
+            offset: 0.0,
+        },
+        stroke: None,
+    });
+    let feed = dir.join("feed.jsonl");
+    let _ = fs::remove_file(&feed);
+    cfg.output.feed = Some(feed.to_string_lossy().into_owned());
+    let cfg_path = dir.join("rig.toml");
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["run", "--config", cfg_path.to_str().unwrap(), "--duration-s", seconds])
+        .env("TAGDEFLECT_LOG", log)
+        .env_remove("RUST_LOG")
+        .env_remove("RUST_BACKTRACE")
+        .env_remove("JOURNAL_STREAM")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id();
+    let waiter = std::thread::spawn(move || child.wait_with_output().unwrap());
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !waiter.is_finished() {
+        if Instant::now() > deadline {
+            // SAFETY: kill(2) on the pid of a child this test started and has not reaped.
+            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            let _ = waiter.join();
+            panic!("tagdeflect run still ran after 60 s");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = waiter.join().unwrap();
+    let lines = fs::read_to_string(&feed)
+        .unwrap_or_default()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("feed line {l}: {e}")))
+        .collect();
+    (o.status.code(), lines, String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+/// tokio-modbus logs every request at DEBUG (`Call ReadInputRegisters(…)`: 338 of 368 lines
+/// in 8 s at `TAGDEFLECT_LOG=debug`): the daemon lets it speak at DEBUG only when the filter
+/// names `tokio_modbus`. A reply that panics inside the library is reported as a malformed
+/// reply, once, as a log line — never the default hook's `thread … panicked at …` text on
+/// stderr — and the poller goes on to read the load (issue 24, item 14).
+#[test]
+fn modbus_debug_lines_are_demoted_and_a_library_panic_is_a_log_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let (addr, stop, acceptor) = poisoning_modbus_device();
+    let (code, lines, err) = run_against_a_utm(dir.path(), &addr, "debug", "4");
+    // The control first: with the filter naming it, the library's per-request lines are there
+    // (so the check below looks for lines that exist).
+    let (code2, _, err2) = run_against_a_utm(dir.path(), &addr, "debug,tokio_modbus=debug", "2");
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    acceptor.join().unwrap();
+    let calls = |text: &str| text.lines().filter(|l| l.contains(" DEBUG ") && l.contains("Call Read")).count();
+    assert_eq!(code2, Some(0), "{err2}");
+    assert!(calls(&err2) >= 10, "TAGDEFLECT_LOG=debug,tokio_modbus=debug shows tokio-modbus's per-poll lines:\n{err2}");
+
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(calls(&err), 0, "tokio-modbus's per-poll DEBUG lines at TAGDEFLECT_LOG=debug:\n{err}");
+    assert!(err.lines().any(|l| l.contains(" DEBUG ")), "TAGDEFLECT_LOG=debug took effect for our own lines:\n{err}");
+    // The poisoned reply: reported as malformed, naming the device, as log lines.
+    let malformed: Vec<&str> =
+        err.lines().filter(|l| l.contains("malformed reply: the Modbus client library failed on the reply")).collect();
+    assert!(!malformed.is_empty() && malformed.iter().all(|l| l.contains(&addr)), "the malformed reply is reported:\n{err}");
+    assert_eq!(err.lines().filter(|l| l.contains(" ERROR ") && l.contains("malformed reply")).count(), 1, "said once:\n{err}");
+    assert_eq!(
+        err.lines().filter(|l| l.contains(" ERROR ") && l.contains("panic:")).count(),
+        1,
+        "the caught panic is one ERROR log line:\n{err}"
+    );
+    // No default panic message anywhere on stderr.
+    assert!(!err.contains("panicked at"), "the default panic message reached stderr:\n{err}");
+    assert!(!err.contains("RUST_BACKTRACE"), "the default panic note reached stderr:\n{err}");
+    // The poller went on: lines after the reconnection carry the load, and no line carries
+    // another one. (The last line of a run may lack its load: the poller stops before the
+    // solver has its last set, whose sample after it never comes.)
+    let loaded: Vec<f64> = lines.iter().filter_map(|l| l.load_kn).collect();
+    assert!(loaded.iter().all(|v| (v - 12.5).abs() < 1e-9), "{loaded:?}");
+    let with_load = lines.iter().filter(|l| l.utm.as_deref() == Some("ok") && l.load_kn.is_some()).count();
+    assert!(with_load >= 5, "{with_load} of {} lines with the load after the malformed reply:\n{err}", lines.len());
+}
+
+/// A daemon of a test, its stderr collected by a thread; killed (SIGKILL) and reaped on drop.
+struct LoggedDaemon {
+    child: common::ChildGuard,
+    stderr: std::sync::Arc<std::sync::Mutex<String>>,
+}
+
+impl LoggedDaemon {
+    /// `tagdeflect args` (feed on stdout dropped, log at INFO on stderr).
+    fn start(args: &[&str]) -> LoggedDaemon {
+        use std::io::BufRead;
+        let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+            .args(args)
+            .env("TAGDEFLECT_LOG", "info")
+            .env_remove("JOURNAL_STREAM")
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("start tagdeflect");
+        let err = child.stderr.take().unwrap();
+        let stderr = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+        let s = stderr.clone();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(err).lines().map_while(Result::ok) {
+                let mut s = s.lock().unwrap();
+                s.push_str(&line);
+                s.push('\n');
+            }
+        });
+        LoggedDaemon { child: common::ChildGuard(child), stderr }
+    }
+
+    fn log(&self) -> String {
+        self.stderr.lock().unwrap().clone()
+    }
+
+    /// Waits (at most until `deadline`) for `what` to hold; fails with the log when the daemon
+    /// exits or the deadline passes.
+    fn wait_for(&mut self, what: &str, deadline: Instant, mut cond: impl FnMut(&Self) -> bool) {
+        while !cond(self) {
+            if let Ok(Some(status)) = self.child.0.try_wait() {
+                panic!("tagdeflect exited ({status}) while waiting for {what}:\n{}", self.log());
+            }
+            assert!(Instant::now() < deadline, "{what}: not within the deadline\n{}", self.log());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    /// The live page's address, printed on stderr as `http://ADDR/`.
+    fn addr(&mut self, deadline: Instant) -> String {
+        let find = |log: &str| -> Option<String> {
+            let rest = &log[log.find("http://")? + 7..];
+            Some(rest[..rest.find('/')?].to_string())
+        };
+        self.wait_for("the page's address on stderr", deadline, |d| find(&d.log()).is_some());
+        find(&self.log()).unwrap()
+    }
+
+    /// SIGTERM; the exit code.
+    fn terminate(&mut self) -> Option<i32> {
+        // SAFETY: kill(2) on the pid of a child this test started and has not reaped.
+        unsafe { libc::kill(self.child.0.id() as i32, libc::SIGTERM) };
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Some(s) = self.child.0.try_wait().unwrap() {
+                return s.code();
+            }
+            assert!(Instant::now() < deadline, "tagdeflect did not stop within 30 s of SIGTERM:\n{}", self.log());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// `tagdeflect test ARGS` against the daemon at `addr`; its JSON answer.
+fn tagdeflect_test(addr: &str, token_file: &std::path::Path, args: &[&str]) -> serde_json::Value {
+    let url = format!("http://{addr}");
+    let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
+    all.extend_from_slice(args);
+    let o = tagdeflect_within(&all, Duration::from_secs(120));
+    assert!(o.status.success(), "tagdeflect {all:?}: {}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&o.stdout)))
+}
+
+/// The whole lines of a test's feed (a line being written is left out).
+fn whole_feed_lines(path: &std::path::Path) -> Vec<FeedLine> {
+    let text = fs::read_to_string(path).unwrap_or_default();
+    let whole = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
+    whole.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{}: {l}: {e}", path.display()))).collect()
+}
+
+/// A daemon killed (SIGKILL) in the middle of a lab test with a standard and started again
+/// with the same `--tests` folder resumes the test (issue 24 item 3): the new daemon numbers
+/// its frame sets from 0 again, its first line carries the `resume` event, and at the stop the
+/// report is made from the whole feed — one test across the restart, the hole a gap in time —
+/// instead of being refused for the seq going back.
+#[test]
+fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
+    use tagdeflect::config::Config;
+    let dir = tempfile::tempdir().unwrap();
+    // Two small simulated cameras at 5 fps, the demo's simulated UTM, a beam for the report.
+    let params =
+        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+    let mut cfg = Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    cfg.specimen.beam = Some(tagdeflect::report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    });
+    let rig = dir.path().join("rig.toml");
+    fs::write(&rig, cfg.to_toml_string()).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let args = ["demo", "--config", rig.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
+    let token_file = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(240);
+
+    // The first daemon: a test with a standard, killed once its zero has formed and lines came.
+    let mut first = LoggedDaemon::start(&args);
+    let addr = first.addr(deadline);
+    let st = tagdeflect_test(&addr, &token_file, &["start", "--specimen", "R1", "--standard", "astm-c1609"]);
+    let id = st["id"].as_str().unwrap().to_string();
+    let feed = tests_dir.join(&id).join("feed.jsonl");
+    first.wait_for("8 lines of the test before the kill", deadline, |_| whole_feed_lines(&feed).len() >= 8);
+    first.child.0.kill().unwrap();
+    first.child.0.wait().unwrap();
+    let before = whole_feed_lines(&feed);
+    assert!(tests_dir.join(".running.json").is_file(), "the running test's state survives the kill");
+    // A hole of at least 2 s in the test (a restart takes time; here it is not left to chance).
+    let last_t_ns = before.last().unwrap().t_ns;
+    while tagdeflect::clock::now_epoch_ns() < last_t_ns + 2_000_000_000 {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+
+    // The second daemon on the same folder resumes the test; lines come after the resume.
+    let mut second = LoggedDaemon::start(&args);
+    let addr = second.addr(deadline);
+    let after_resume = |_: &LoggedDaemon| {
+        let lines = whole_feed_lines(&feed);
+        lines.iter().position(|l| l.events.iter().any(|e| e.kind == "resume")).is_some_and(|r| lines.len() >= r + 8)
+    };
+    second.wait_for("8 lines of the resumed test", deadline, after_resume);
+    assert!(second.log().contains("resumed from its zero"), "{}", second.log());
+    let stopped = tagdeflect_test(&addr, &token_file, &["stop"]);
+    assert_eq!(stopped["id"], id.as_str());
+    let folder = std::path::PathBuf::from(stopped["folder"].as_str().unwrap());
+    assert_eq!(second.terminate(), Some(0), "{}", second.log());
+    let log = second.log();
+    assert!(!log.contains("report could not be made"), "{log}");
+
+    // The feed: the lines of both daemons, the seq restarting at the resume, time going on.
+    let lines = whole_feed_lines(&folder.join("feed.jsonl"));
+    assert!(lines.iter().all(|l| l.test.as_ref().is_some_and(|t| t.id == id)), "every line is the test's");
+    let r = lines.iter().position(|l| l.events.iter().any(|e| e.kind == "resume")).expect("a line with the resume event");
+    assert!(r >= before.len() && r + 8 <= lines.len(), "{} lines, the resume at {r}", lines.len());
+    assert!(lines[r].seq < lines[r - 1].seq, "the new daemon's seq starts again: {} after {}", lines[r].seq, lines[r - 1].seq);
+    assert!(lines.windows(2).all(|w| w[0].t_ns < w[1].t_ns), "time goes forward across the restart");
+    assert!((lines[r].t_ns - lines[r - 1].t_ns) as f64 * 1e-9 >= 2.0);
+    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+    assert_eq!(kinds, ["start", "resume", "stop"], "{record}");
+    assert!(!tests_dir.join(".running.json").exists(), "a stopped test leaves no state behind");
+
+    // The report: made, one test, the restart's hole counted as a gap and named.
+    let report_json = folder.join("report/report.json");
+    assert!(report_json.is_file(), "no report.json in {}:\n{log}", folder.display());
+    let report: serde_json::Value = serde_json::from_str(&fs::read_to_string(&report_json).unwrap()).unwrap();
+    let gaps = report["qc"]["time_gaps"].as_array().unwrap_or_else(|| panic!("qc.time_gaps: {}", report["qc"]));
+    assert!(gaps.iter().any(|g| g["duration_s"].as_f64().unwrap() >= 2.0), "the restart's hole is a gap: {gaps:?}");
+    let warnings = report["qc"]["warnings"].as_array().unwrap();
+    assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("the daemon restarted during the test")), "{warnings:?}");
+}

@@ -8,6 +8,16 @@
 //! the line, or, with [`ReadOptions::allow_restarts`], the start of a new run, reported on
 //! its own. Every value must be finite and within physical ranges ([`Limits`]): a load of
 //! 3e38 kN is a broken line, not a test.
+//!
+//! One exception, the restart of a daemon in the middle of a lab test (issue 24 item 3): a line
+//! that carries a [`RESUME_EVENT`] starts a new *segment* of the same run. The resumed daemon
+//! numbers its frame sets from 0 again, so `seq` may go back (or repeat) there; the lines on
+//! both sides are read as one test, since the test's zero was restored and its displacements
+//! go on from it. `t_ns` must still increase across the resume (else the line is refused), the
+//! hole is a gap in time as any other (QC's time gaps and validity's `max_gap_s` count it) and
+//! a warning of the feed names the line and the hole. A `seq` going back without a `resume`
+//! event on its line (or with one, after a line of another test) stays an error naming the
+//! line (two runs appended to one feed, issue 24 item 8).
 
 use std::path::{Path, PathBuf};
 
@@ -39,6 +49,16 @@ pub const DEFAULT_MAX_LENGTH_MM: f64 = 10_000.0;
 const MAX_OTHER_GAUGE: f64 = 1e9;
 /// Latest time a feed may carry: 2200-01-01 (the i64 nanosecond clock ends in 2262).
 const MAX_T_NS: i64 = 7_258_118_400_000_000_000;
+
+/// The kind of the feed event a daemon puts on its first line after resuming a lab test it
+/// was running when it stopped (`tagdeflect_sinks::lab_test`, `TESTS/.running.json`): the
+/// line starts a new segment of the same test, where `seq` may restart (see the module doc).
+pub(crate) const RESUME_EVENT: &str = "resume";
+
+/// True when `line` carries a [`RESUME_EVENT`]: its `seq` may go back from the line before it.
+pub(crate) fn resumes(line: &FeedLine) -> bool {
+    line.events.iter().any(|e| e.kind == RESUME_EVENT)
+}
 
 /// How a feed is read.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -116,14 +136,41 @@ impl Feed {
             };
             check_values(&l, &opts.limits).map_err(|m| bad(no, m))?;
             if let (Some(prev), Some(&prev_no)) = (cur.lines.last(), cur.line_numbers.last()) {
-                if l.seq <= prev.seq {
+                // A resumed test: a new segment of this run, not a new run (module doc).
+                let same_test = match (&l.test, &prev.test) {
+                    (Some(a), Some(b)) => a.id == b.id,
+                    _ => true,
+                };
+                let resumed = resumes(&l) && same_test;
+                if resumed {
+                    if l.t_ns <= prev.t_ns {
+                        return Err(bad(
+                            no,
+                            format!(
+                                "t_ns {} is not after t_ns {} of line {prev_no}: a resumed test's time must go on after the restart",
+                                l.t_ns, prev.t_ns
+                            ),
+                        ));
+                    }
+                    let msg = format!(
+                        "{}:{no}: the daemon restarted during the test (a `resume` event): no lines for {:.1} s after line {prev_no} \
+                         (a gap in time), seq {} after seq {}; read as one test, which went on from its kept zero",
+                        path.display(),
+                        (l.t_ns - prev.t_ns) as f64 * 1e-9,
+                        l.seq,
+                        prev.seq
+                    );
+                    tracing::warn!("{msg}");
+                    cur.warnings.push(msg);
+                } else if l.seq <= prev.seq {
                     if !opts.allow_restarts {
                         let what = if l.seq == prev.seq { "repeats" } else { "goes back from" };
                         return Err(bad(
                             no,
                             format!(
                                 "seq {} {what} seq {} of line {prev_no}: a feed holds one run in order (two runs appended to one file, or a repeated line?); \
-                                 split the file, or give --allow-restarts to report each run on its own",
+                                 split the file, or give --allow-restarts to report each run on its own \
+                                 (a daemon that resumed a test after a restart marks the line with a `resume` event: this one has none)",
                                 l.seq, prev.seq
                             ),
                         ));
@@ -153,7 +200,8 @@ impl Feed {
         }
         let n = runs.len();
         for (k, r) in runs.iter_mut().enumerate() {
-            r.warnings = warnings.clone();
+            // The run's own warnings (its resumes) in line order, then the file's.
+            r.warnings.extend(warnings.iter().cloned());
             if n > 1 {
                 r.run = Some((k + 1, n));
             }
@@ -333,6 +381,94 @@ mod tests {
         assert_eq!((runs[0].lines.len(), runs[1].lines.len()), (2, 3));
         assert_eq!(runs[1].run, Some((2, 2)));
         assert_eq!(runs[1].line_numbers, vec![3, 4, 5]);
+    }
+
+    /// A lab test's feed across a restart of its daemon (issue 24 item 3): seq 75–79, then
+    /// the resumed daemon's seq 0–9 after a 12 s hole, its first line with the `resume` event.
+    fn resumed_test_feed(with_event: bool) -> String {
+        const T0: i64 = 1_764_000_000_000_000_000;
+        let test = r#""test":{"id":"20261202T013000Z-B12","specimen":"B12"}"#;
+        let mut text = String::new();
+        let mut line = |seq: u64, t_ns: i64, events: &str| {
+            let x = (t_ns - T0) as f64 * 1e-9 * 0.01;
+            text.push_str(&format!(
+                "{{\"seq\":{seq},\"t_ns\":{t_ns},\"load_kN\":{:.3},\"net_deflection_mm\":{x:.6},{test}{events}}}\n",
+                10.0 + 300.0 * x
+            ));
+        };
+        for k in 0..5 {
+            line(75 + k, T0 + k as i64 * 200_000_000, "");
+        }
+        let t1 = T0 + 800_000_000 + 12_000_000_000;
+        for k in 0..10 {
+            let ev = if k == 0 && with_event {
+                format!(r#","events":[{{"kind":"{RESUME_EVENT}","t_ns":{}}}]"#, t1 - 50_000_000)
+            } else {
+                String::new()
+            };
+            line(k, t1 + k as i64 * 200_000_000, &ev);
+        }
+        text
+    }
+
+    /// With the `resume` event the seq restart is one test read across it, the hole named in
+    /// the feed's warnings and counted as a gap by QC and validity; without it the same feed
+    /// is refused, naming the line; a resume whose time goes back is refused too.
+    #[test]
+    fn a_resumed_test_is_one_test_across_its_seq_restart_and_its_hole_is_a_gap() {
+        let text = resumed_test_feed(true);
+        for allow_restarts in [false, true] {
+            let runs = Feed::parse(&text, Path::new("f.jsonl"), &ReadOptions { allow_restarts, ..Default::default() }).unwrap();
+            assert_eq!(runs.len(), 1, "one test, not two runs (allow_restarts {allow_restarts})");
+            let feed = &runs[0];
+            assert_eq!(feed.run, None);
+            assert_eq!(feed.lines.iter().map(|l| l.seq).collect::<Vec<_>>(), [75, 76, 77, 78, 79, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9]);
+            assert_eq!(feed.line_numbers, (1..=15).collect::<Vec<_>>());
+            assert!(resumes(&feed.lines[5]) && !resumes(&feed.lines[4]));
+            assert_eq!(feed.warnings.len(), 1, "{:?}", feed.warnings);
+            let w = &feed.warnings[0];
+            assert!(
+                w.starts_with("f.jsonl:6: the daemon restarted during the test") && w.contains("no lines for 12.0 s after line 5"),
+                "{w}"
+            );
+            assert!(w.contains("seq 0 after seq 79"), "{w}");
+        }
+
+        // The report reads it as one test: the hole is one gap in time for QC (with the
+        // reader's warning) and for validity.
+        let feed = Feed::parse(&text, Path::new("f.jsonl"), &ReadOptions::default()).unwrap().remove(0);
+        let specimen: tagdeflect_core::rig::SpecimenConfig = serde_json::from_value(serde_json::json!({
+            "family": "tag36h11", "size_mm": 30.0, "tag": [],
+            "beam": {"width_mm": 150.0, "depth_mm": 150.0, "span_mm": 450.0},
+        }))
+        .unwrap();
+        let rig = crate::TestRig { world: Default::default(), specimen, gauges: Vec::new() };
+        let opts = crate::ReportConfig::new(crate::Standard::AstmC1609, "out".into());
+        let rep = crate::build(&feed, None, &rig, Path::new("rig.toml"), &opts).unwrap();
+        assert_eq!(rep.qc.time_gaps.len(), 1, "{:?}", rep.qc.time_gaps);
+        assert!((rep.qc.time_gaps[0].duration_s - 12.0).abs() < 1e-6, "{:?}", rep.qc.time_gaps);
+        assert!(rep.qc.warnings.iter().any(|w| w.contains("the daemon restarted during the test")), "{:?}", rep.qc.warnings);
+        assert!(rep.qc.warnings.iter().any(|w| w.starts_with("1 gap(s) in time")), "{:?}", rep.qc.warnings);
+        assert!(!rep.validity.valid && rep.validity.reasons.iter().any(|r| r.contains("gap(s)")), "{:?}", rep.validity.reasons);
+
+        // The same feed without the event: two runs appended, refused naming the line.
+        let e = parse(&resumed_test_feed(false)).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:6: not a feed line: seq 0 goes back from seq 79 of line 5"), "{e}");
+        assert!(e.contains("`resume` event"), "{e}");
+        // A resume whose time goes back, or a resume after a line of another test, is refused.
+        let back = text.replacen(
+            &format!("\"t_ns\":{}", 1_764_000_000_000_000_000i64 + 800_000_000 + 12_000_000_000),
+            "\"t_ns\":1764000000000000000",
+            1,
+        );
+        let e = parse(&back).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:6: not a feed line: t_ns 1764000000000000000 is not after"), "{e}");
+        let mut other: Vec<String> = text.lines().map(String::from).collect();
+        for l in &mut other[5..] {
+            *l = l.replace("-B12\"", "-B13\"");
+        }
+        let e = parse(&(other.join("\n") + "\n")).unwrap_err().to_string();
+        assert!(e.starts_with("f.jsonl:6: not a feed line: seq 0 goes back from seq 79 of line 5"), "{e}");
     }
 
     #[test]

@@ -135,7 +135,7 @@ impl Qc {
         let n = lines.len();
         let first_t_ns = lines[0].t_ns;
         let last_t_ns = lines[n - 1].t_ns;
-        // The reader guarantees seq and t_ns increasing.
+        // The reader guarantees t_ns increasing (and seq too, but at a lab test's `resume` line).
         let frame_sets_without_line: u64 = lines.windows(2).map(|w| w[1].seq.saturating_sub(w[0].seq).saturating_sub(1)).sum();
         let mut steps: Vec<f64> = lines.windows(2).map(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9).collect();
         let period = if steps.is_empty() { 0.0 } else { super::curve::median(&mut steps) };

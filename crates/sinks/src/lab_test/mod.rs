@@ -23,7 +23,12 @@
 //! the record, the folder, the zero with its σ — is kept in `TESTS/.running.json` (written at
 //! start, when the zero forms and at every event, atomically); a daemon that finds it at start
 //! resumes the test from the same zero and puts a `resume` event (with the gap) into the feed
-//! and `test.json`, so the curve never gets a second zero in its middle.
+//! and `test.json`, so the curve never gets a second zero in its middle. The new daemon numbers
+//! its frame sets from 0 again (a feed line's `seq` is the daemon's frame-set count, not the
+//! test's), so the test's `feed.jsonl` has `seq` going back at the line with the `resume`
+//! event: that line starts a new segment of the same test, which the report's feed reader
+//! (`tagdeflect_report`, issue 24 item 3) reads as one test across it, the hole a gap in time;
+//! a `seq` going back on a line without the event stays an error there.
 //!
 //! Tests may also start and stop by themselves, from the load and the standard's end
 //! (`[output.auto_test]`, [`auto`]); an automatic stop runs on a short thread of its own, as
