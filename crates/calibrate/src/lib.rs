@@ -3,7 +3,8 @@
 //!
 //! [`target`] parses `--target` and finds the target in an image; [`solve`] runs Zhang's
 //! closed-form start and the Levenberg–Marquardt fit over all views with the product's camera
-//! model; [`calibrate_views`] adds the outlier policy; [`report`] makes the coverage map, the
+//! model; [`calibrate_views`] adds the outlier policy, [`calibrate_target_views`] the tag
+//! corners' systematic bias to the σ; [`report`] makes the coverage map, the
 //! uncertainty at a distance and the OpenCV FileStorage file; [`live_views`] grabs views from a
 //! camera whose frames the caller supplies; [`render`] renders targets with known intrinsics
 //! for tests. Errors are [`CalibrateError`]s, which tell bad input from runtime failures.
@@ -207,6 +208,78 @@ pub fn calibrate_views(
     }
 }
 
+/// [`calibrate_views`] for views of `spec`. For tag targets the covariance also holds the
+/// sub-pixel refinement's systematic corner bias: every corner may sit out along its tag's
+/// diagonal by an amount shared by every view, uniform and growing as the tags' bits shrink
+/// in pixels, with the prior of [`TargetSpec::corner_bias_prior`]; the first-order effect of
+/// each of the two patterns on the intrinsics ([`tag_corner_bias`]) is added to the
+/// statistical covariance ([`Calibration::set_corner_bias`]). Checkerboard corners have no
+/// such term.
+pub fn calibrate_target_views(
+    views: Vec<View>,
+    width: u32,
+    height: u32,
+    spec: &TargetSpec,
+    options: &SolveOptions,
+    keep_outliers: bool,
+) -> Result<CalibrationRun, CalibrateError> {
+    let mut run = calibrate_views(views, width, height, options, keep_outliers)?;
+    if let Some(prior) = spec.corner_bias_prior() {
+        let modes = tag_corner_bias(&run, spec, options, &prior).ok_or(CalibrateError::Solve(solve::SolveError::Singular))?;
+        run.calibration.set_corner_bias(modes);
+    }
+    Ok(run)
+}
+
+/// The two patterns of a tag target's systematic corner bias in `run` (views of `spec`),
+/// with the σ of `prior` ([`target::CornerBiasPrior`]): every corner moved outwards along
+/// the image of its tag's diagonal (from the projected tag centre through the projected
+/// corner, under the run's intrinsics and poses) by 1 px ("uniform"), and by
+/// `R / b − 1` px with `b` its tag's bit size in the image ("size": the projected black
+/// square's mean edge over its bits; `R` = [`target::CORNER_BIAS_REFERENCE_BIT_PX`]).
+/// `None` for a checkerboard, or when a direction or a sensitivity cannot be computed.
+pub fn tag_corner_bias(
+    run: &CalibrationRun,
+    spec: &TargetSpec,
+    options: &SolveOptions,
+    prior: &target::CornerBiasPrior,
+) -> Option<Vec<solve::CornerBias>> {
+    use nalgebra::Vector2;
+    let c = &run.calibration;
+    let k = &c.intrinsics;
+    // Per view and point: the unit diagonal (image) and the tag's bit size (px).
+    let geometry: Vec<Vec<(Vector2<f64>, f64)>> = run
+        .views
+        .iter()
+        .zip(&c.poses)
+        .map(|(v, pose)| {
+            v.object
+                .iter()
+                .map(|x| {
+                    let project = |p: &nalgebra::Vector3<f64>| k.project(&pose.transform(p)).map(|q| q.coords);
+                    let (square, bits) = spec.tag_square_of(x)?;
+                    let centre = spec.tag_centre_of(x)?;
+                    let d = project(x)? - project(&centre)?;
+                    let corners = square.iter().map(project).collect::<Option<Vec<_>>>()?;
+                    let perimeter_px: f64 = (0..4).map(|j| (corners[(j + 1) % 4] - corners[j]).norm()).sum();
+                    let bit_px = perimeter_px / (4.0 * bits as f64);
+                    let len = d.norm();
+                    (len > 1e-9 && bit_px > 1e-9 && len.is_finite() && bit_px.is_finite()).then(|| (d / len, bit_px))
+                })
+                .collect::<Option<Vec<_>>>()
+        })
+        .collect::<Option<Vec<_>>>()?;
+    let pattern = |amount: &dyn Fn(f64) -> f64| -> Vec<Vec<Vector2<f64>>> {
+        geometry.iter().map(|g| g.iter().map(|(d, bit_px)| d * amount(*bit_px)).collect()).collect()
+    };
+    let uniform = solve::bias_sensitivity(c, &run.views, options, &pattern(&|_| 1.0))?;
+    let size = solve::bias_sensitivity(c, &run.views, options, &pattern(&|b| target::CORNER_BIAS_REFERENCE_BIT_PX / b - 1.0))?;
+    Some(vec![
+        solve::CornerBias { mode: "uniform along the tags' diagonals", sigma_px: prior.uniform_px, sensitivity_per_px: uniform },
+        solve::CornerBias { mode: "growing as the bits shrink", sigma_px: prior.size_px, sensitivity_per_px: size },
+    ])
+}
+
 /// Decodes an image file to 8-bit grey (BT.601 luma, as OpenCV's `cvtColor` and JPEG's Y).
 fn load_gray(path: &Path) -> Result<GrayImage, CalibrateError> {
     let img = image::open(path).map_err(|cause| CalibrateError::Decode { path: path.to_path_buf(), cause })?;
@@ -323,6 +396,17 @@ fn report_text(
         let unit = if i < 4 { " px" } else { "" };
         let fixed = if s[i] == 0.0 { "  (fixed)" } else { "" };
         let _ = writeln!(out, "  {:<3} = {:>12.6}{unit} ± {:.6}{unit} (1σ){fixed}", PARAM_NAMES[i], vals[i], s[i]);
+    }
+    if !c.corner_bias.is_empty() {
+        let (st, sy) = (c.statistical_sigmas(), c.systematic_sigmas());
+        let modes: Vec<String> = c.corner_bias.iter().map(|b| format!("± {:.3} px {}", b.sigma_px, b.mode)).collect();
+        let _ = writeln!(
+            out,
+            "  (σ includes the tag corners' systematic bias, {}: fx ± {:.6} px from the corner noise alone, ± {:.6} px from the bias)",
+            modes.join(", "),
+            st[0],
+            sy[0]
+        );
     }
     let _ = writeln!(
         out,
@@ -540,7 +624,7 @@ pub fn calibrate_guarded(
         notes.push(format!("--force: calibrated from {} views, fewer than the {} needed for trustworthy σ", views.len(), guard::MIN_VIEWS));
     }
     let options = opts.solve_options();
-    let mut run = calibrate_views(views, width, height, &options, opts.keep_outliers)?;
+    let mut run = calibrate_target_views(views, width, height, spec, &options, opts.keep_outliers)?;
     if let Some(split) = guard::split_views(&run, &options) {
         let what = split.describe(&run.views);
         if 3 * split.minority.len() < run.views.len() {
@@ -557,7 +641,7 @@ pub fn calibrate_guarded(
                 }
             }
             let dropped = run.dropped_points;
-            run = calibrate_views(keep, width, height, &options, opts.keep_outliers)?;
+            run = calibrate_target_views(keep, width, height, spec, &options, opts.keep_outliers)?;
             rejected.append(&mut run.rejected);
             run.rejected = rejected;
             run.dropped_points += dropped;

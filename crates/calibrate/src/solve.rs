@@ -27,6 +27,14 @@
 //! with independent, equal corner noise. It is honest when the model fits (reprojection
 //! residuals are noise, not an unmodelled lens); an RMS much larger than the corner
 //! detector's precision is itself the warning.
+//!
+//! **Systematic corner errors** do not average out over views and are not in `s`: a shift
+//! of every corner by `δ · d_i` (pixels, `d_i` a fixed pattern, e.g. along each tag
+//! corner's diagonal) moves the fit, to first order with every pose free to absorb what it
+//! can, by `Δθ = −(JᵀJ)⁻¹ Jᵀ ∂r/∂δ · δ` ([`bias_sensitivity`]). With a prior σ_b on δ, its
+//! covariance `σ_b² Δθ Δθᵀ` is added to the statistical one, one term per independent
+//! pattern ([`Calibration::set_corner_bias`]); the tag targets do this
+//! ([`crate::calibrate_target_views`]), checkerboards have no such term.
 
 use nalgebra::{DMatrix, DVector, Matrix2x6, Matrix3, Point2, SMatrix, Vector2, Vector3, Vector6};
 
@@ -106,12 +114,63 @@ pub struct Calibration {
     pub iterations: usize,
     /// Which start was used: "zhang" or "centred" (principal point at the image centre).
     pub start: &'static str,
+    /// The systematic corner biases whose effect `covariance` includes (tag targets; empty:
+    /// `covariance` is the statistical one alone).
+    pub corner_bias: Vec<CornerBias>,
+}
+
+/// One pattern of systematic corner displacement, shared by every view, of unknown
+/// amplitude `δ` (pixels) with a prior σ, and what it does to the intrinsics (module docs,
+/// "Systematic corner errors"). Modes are independent: their covariances add.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CornerBias {
+    /// What the pattern is, for reports (e.g. "uniform along the diagonals").
+    pub mode: &'static str,
+    /// Prior 1-σ of the amplitude `δ`, pixels.
+    pub sigma_px: f64,
+    /// First-order change of (fx, fy, cx, cy, k1, k2, p1, p2, k3) per pixel of `δ`
+    /// ([`bias_sensitivity`]); zero for fixed parameters.
+    pub sensitivity_per_px: SMatrix<f64, 9, 1>,
+}
+
+impl CornerBias {
+    /// Its covariance of the nine intrinsics: `σ_b² Δθ Δθᵀ`.
+    pub fn covariance(&self) -> SMatrix<f64, 9, 9> {
+        self.sensitivity_per_px * self.sensitivity_per_px.transpose() * (self.sigma_px * self.sigma_px)
+    }
 }
 
 impl Calibration {
-    /// 1-σ of the nine intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3); 0 for fixed ones.
+    /// 1-σ of the nine intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3), the systematic
+    /// corner biases included when there are any; 0 for fixed ones.
     pub fn sigmas(&self) -> [f64; 9] {
         std::array::from_fn(|i| self.covariance[(i, i)].max(0.0).sqrt())
+    }
+
+    /// The corner noise's part of [`covariance`](Self::covariance): without the systematic
+    /// corner biases.
+    pub fn statistical_covariance(&self) -> SMatrix<f64, 9, 9> {
+        self.corner_bias.iter().fold(self.covariance, |c, b| c - b.covariance())
+    }
+
+    /// 1-σ of the nine intrinsics from the corner noise alone ([`statistical_covariance`](Self::statistical_covariance)).
+    pub fn statistical_sigmas(&self) -> [f64; 9] {
+        let c = self.statistical_covariance();
+        std::array::from_fn(|i| c[(i, i)].max(0.0).sqrt())
+    }
+
+    /// 1-σ of the nine intrinsics from the systematic corner biases alone.
+    pub fn systematic_sigmas(&self) -> [f64; 9] {
+        let c = self.corner_bias.iter().fold(SMatrix::<f64, 9, 9>::zeros(), |c, b| c + b.covariance());
+        std::array::from_fn(|i| c[(i, i)].max(0.0).sqrt())
+    }
+
+    /// Replaces the systematic corner biases held in [`covariance`](Self::covariance)
+    /// (empty: the statistical covariance alone).
+    pub fn set_corner_bias(&mut self, modes: Vec<CornerBias>) {
+        let stat = self.statistical_covariance();
+        self.covariance = modes.iter().fold(stat, |c, b| c + b.covariance());
+        self.corner_bias = modes;
     }
 }
 
@@ -484,7 +543,46 @@ fn finish(
         parameters: n,
         iterations,
         start,
+        corner_bias: Vec::new(),
     })
+}
+
+/// How the calibration `c` of `views` moves, to first order, per pixel of a systematic
+/// displacement of the detected corners: point `i` of view `v` moved by `shift[v][i]`
+/// (pixels per pixel of the bias). The poses are free and absorb what they can:
+/// `Δθ = −(JᵀJ)⁻¹ Jᵀ ∂r/∂δ` over intrinsics and poses, with `Jᵀ ∂r/∂δ` the change of the
+/// gradient `Jᵀr` when the corners move by `shift` (exact: `r` is affine in the corners and
+/// `J` does not depend on them). Returns the change of the nine intrinsics (zero for fixed
+/// ones); `None` when `shift` does not match `views` or the normal equations are singular.
+pub fn bias_sensitivity(
+    c: &Calibration,
+    views: &[View],
+    options: &SolveOptions,
+    shift: &[Vec<Vector2<f64>>],
+) -> Option<SMatrix<f64, 9, 1>> {
+    if shift.len() != views.len() || views.len() != c.poses.len() || views.iter().zip(shift).any(|(v, s)| s.len() != v.image.len()) {
+        return None;
+    }
+    let k = &c.intrinsics;
+    let b = basis(options, k.fx / k.fy);
+    let m = b.ncols();
+    let (a, g0) = normal_equations(k, &c.poses, views, &b)?;
+    let moved: Vec<View> = views
+        .iter()
+        .zip(shift)
+        .map(|(v, s)| View { name: v.name.clone(), object: v.object.clone(), image: v.image.iter().zip(s).map(|(p, d)| p + d).collect() })
+        .collect();
+    let (_, g1) = normal_equations(k, &c.poses, &moved, &b)?;
+    // Scaled to unit diagonal as in `finish`: A = D Â D.
+    let n = a.nrows();
+    let d: Vec<f64> = (0..n).map(|i| a[(i, i)].max(1e-300).sqrt()).collect();
+    let an = DMatrix::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
+    let rhs = DVector::from_fn(n, |i, _| (g1[i] - g0[i]) / d[i]);
+    let y = an.cholesky()?.solve(&rhs);
+    let dq = DVector::from_fn(m, |i, _| -y[i] / d[i]);
+    let dtheta = &b * dq;
+    let out = SMatrix::<f64, 9, 1>::from_iterator(dtheta.iter().copied());
+    out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
 /// One view's pose fitted alone under fixed intrinsics `k` (PnP: homography start, then LM)
@@ -647,6 +745,59 @@ mod tests {
         assert_eq!(s[8], 0.0);
         assert!((s[0] - s[1]).abs() < 1e-9 * s[0]);
         assert!((c.intrinsics.fx - k.fx).abs() < 4.0 * s[0] + 1e-9);
+    }
+
+    #[test]
+    fn bias_sensitivity_matches_recalibration() {
+        let k = truth();
+        let views = synthetic(&k, 0.1, 2);
+        // A pattern like tag corners: 2 × 2 blocks of points, each moved along its block's
+        // diagonals (outwards).
+        let pattern: Vec<Vec<Vector2<f64>>> = views
+            .iter()
+            .map(|v| {
+                v.object
+                    .iter()
+                    .map(|x| {
+                        let (i, j) = ((x.x / 30.0).round() as i64, (x.y / 30.0).round() as i64);
+                        Vector2::new(if i % 2 == 0 { -1.0 } else { 1.0 }, if j % 2 == 0 { -1.0 } else { 1.0 }) / 2f64.sqrt()
+                    })
+                    .collect()
+            })
+            .collect();
+        let o = SolveOptions::default();
+        let c = calibrate(&views, 800, 600, &o).unwrap();
+        let s = bias_sensitivity(&c, &views, &o, &pattern).unwrap();
+        // Central differences of the full (nonlinear) calibration with the corners moved.
+        let eps = 0.05;
+        let moved = |e: f64| -> SMatrix<f64, 9, 1> {
+            let vs: Vec<View> = views
+                .iter()
+                .zip(&pattern)
+                .map(|(v, p)| View { image: v.image.iter().zip(p).map(|(u, d)| u + d * e).collect(), ..v.clone() })
+                .collect();
+            to_vector(&calibrate(&vs, 800, 600, &o).unwrap().intrinsics)
+        };
+        let fd = (moved(eps) - moved(-eps)) / (2.0 * eps);
+        // Pixel terms and distortion terms apart (their scales differ by 10³).
+        for rows in [0..4, 4..9] {
+            let diff = rows.clone().map(|i| (s[i] - fd[i]).powi(2)).sum::<f64>().sqrt();
+            let size = rows.clone().map(|i| fd[i].powi(2)).sum::<f64>().sqrt();
+            assert!(diff <= 0.02 * size && size > 0.0, "rows {rows:?}: linear {s} vs recalibrated {fd}");
+        }
+        // Its covariance adds to the statistical one once, however often it is set.
+        let mut c2 = c.clone();
+        let bias = CornerBias { mode: "test", sigma_px: 0.03, sensitivity_per_px: s };
+        c2.set_corner_bias(vec![bias]);
+        c2.set_corner_bias(vec![bias]);
+        assert!((c2.covariance - c.covariance - bias.covariance()).norm() <= 1e-9 * c2.covariance.norm());
+        assert!((c2.statistical_covariance() - c.covariance).norm() <= 1e-9 * c.covariance.norm());
+        assert!((c2.sigmas()[0].powi(2) - c.sigmas()[0].powi(2) - (0.03 * s[0]).powi(2)).abs() <= 1e-9 * c2.sigmas()[0].powi(2));
+        assert!((c2.systematic_sigmas()[0] - 0.03 * s[0].abs()).abs() <= 1e-12 * s[0].abs());
+        c2.set_corner_bias(Vec::new());
+        assert!((c2.covariance - c.covariance).norm() <= 1e-9 * c.covariance.norm());
+        // A pattern of the wrong shape is refused.
+        assert!(bias_sensitivity(&c, &views[1..], &o, &pattern).is_none());
     }
 
     #[test]

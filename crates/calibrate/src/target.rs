@@ -235,7 +235,85 @@ impl TargetSpec {
     pub fn has_tags(&self) -> bool {
         !matches!(self, TargetSpec::Checkerboard { .. })
     }
+
+    /// The centre (mm, board frame) of the tag that `corner`, one of
+    /// [`board_points`](Self::board_points), belongs to: the point the corner's diagonal runs
+    /// from, along which the refinement's systematic corner bias lies ([`CornerBiasPrior`]).
+    /// `None` for checkerboards.
+    pub fn tag_centre_of(&self, corner: &Vector3<f64>) -> Option<Vector3<f64>> {
+        match *self {
+            TargetSpec::Checkerboard { .. } => None,
+            // Corners lie half a tag from their centre, and a tag is smaller than the pitch:
+            // the nearest centre is the tag's.
+            TargetSpec::TagBoard { pitch_mm, .. } => {
+                let (c, r) = ((corner.x / pitch_mm).round(), (-corner.y / pitch_mm).round());
+                Some(Vector3::new(c * pitch_mm, -r * pitch_mm, 0.0))
+            }
+            TargetSpec::AprilGrid { tag_mm, spacing, .. } => {
+                let pitch = tag_mm * (1.0 + spacing);
+                let half = 0.5 * tag_mm;
+                let (c, r) = (((corner.x - half) / pitch).round(), ((corner.y - half) / pitch).round());
+                Some(Vector3::new(c * pitch + half, r * pitch + half, 0.0))
+            }
+        }
+    }
+
+    /// The black square of the tag that `corner` belongs to: its four corners (mm, board
+    /// frame, SPEC order) and how many bits it spans (a tag board's family's
+    /// `width_at_border`; 10 for an AprilGrid's 2-bit border). `None` for checkerboards.
+    pub fn tag_square_of(&self, corner: &Vector3<f64>) -> Option<([Vector3<f64>; 4], u32)> {
+        let centre = self.tag_centre_of(corner)?;
+        let (edge_mm, bits) = match *self {
+            TargetSpec::Checkerboard { .. } => return None,
+            TargetSpec::TagBoard { family, size_mm, .. } => (size_mm, family.width_at_border()),
+            TargetSpec::AprilGrid { tag_mm, .. } => (tag_mm, 10),
+        };
+        Some((tag_corners(edge_mm).map(|c| c + centre), bits))
+    }
+
+    /// The prior of the sub-pixel refinement's systematic corner bias on this target
+    /// ([`CornerBiasPrior`]); `None` for checkerboards (saddle points have no such bias).
+    pub fn corner_bias_prior(&self) -> Option<CornerBiasPrior> {
+        match self {
+            TargetSpec::Checkerboard { .. } => None,
+            TargetSpec::TagBoard { .. } => Some(TAG_BOARD_CORNER_BIAS),
+            TargetSpec::AprilGrid { .. } => Some(APRILGRID_CORNER_BIAS),
+        }
+    }
 }
+
+/// Bit size (pixels) at which [`CornerBiasPrior::uniform_px`] holds.
+pub const CORNER_BIAS_REFERENCE_BIT_PX: f64 = 4.0;
+
+/// The prior of a tag target's systematic corner bias: every corner of a view set sits
+/// `δ_i = a + c · (R / b_i − 1)` pixels out along its tag's diagonal (from the tag's
+/// centre through the corner, outwards positive), `b_i` its tag's bit size in pixels and
+/// `R` = [`CORNER_BIAS_REFERENCE_BIT_PX`], with `a` and `c` unknown, independent, zero-mean,
+/// of 1-σ `uniform_px` and `size_px`. The size term is there because the sub-pixel edge
+/// refinement's bias changes as the bits shrink in pixels, and on a tilted board that is
+/// what moves fx: the far side's tags shrink more than the near side's, which looks like
+/// another perspective. The σ are what the refinement leaves on rendered views with known
+/// truth (`tests/it/calibrate.rs::rendered_tag_corner_bias`, docs/calibration.md), whose size
+/// and sign on a real camera (blur, print, lens) are not known;
+/// [`crate::calibrate_target_views`] adds their effect on the intrinsics to the covariance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CornerBiasPrior {
+    /// 1-σ of the bias at bits of [`CORNER_BIAS_REFERENCE_BIT_PX`], pixels.
+    pub uniform_px: f64,
+    /// 1-σ of how much more the bias is at bits half that size, pixels.
+    pub size_px: f64,
+}
+
+/// [`CornerBiasPrior`] of a tag board (1-bit border, data bits just inside), measured
+/// 2026-12-03 on `tagboard:tag36h11:6x4:32:44` rendered through the strongly distorted test
+/// camera (24 views, bits 2.6–5.3 px): the RMS over optical blurs 0.5, 0.7 and 1.0 px of the
+/// fitted `a` (−0.0064, −0.0044, −0.0065 px) and `c` (−0.017, −0.022, −0.056 px).
+pub const TAG_BOARD_CORNER_BIAS: CornerBiasPrior = CornerBiasPrior { uniform_px: 0.006, size_px: 0.036 };
+
+/// [`CornerBiasPrior`] of Kalibr's AprilGrid (2-bit border), measured as
+/// [`TAG_BOARD_CORNER_BIAS`] on `aprilgrid:6x6:0.03:0.3` (bits 1.9–4.1 px): `a` −0.024, −0.023,
+/// −0.010 px, `c` +0.011, +0.003, −0.054 px.
+pub const APRILGRID_CORNER_BIAS: CornerBiasPrior = CornerBiasPrior { uniform_px: 0.02, size_px: 0.032 };
 
 /// The four corners of AprilGrid tag `id` (mm, z = 0), Kalibr's order: bottom-left,
 /// bottom-right, top-right, top-left, in the grid frame (x right, y up, origin at tag 0's
@@ -638,6 +716,36 @@ mod tests {
         assert!((c[0] - Vector3::new(114.4, 114.4, 0.0)).norm() < 1e-9 && (c[2] - Vector3::new(202.4, 202.4, 0.0)).norm() < 1e-9);
         assert_eq!(grid.board_points().len(), 144);
         assert!("tagboard:tag36h11:6x4:40:30".parse::<TargetSpec>().is_err());
+    }
+
+    #[test]
+    fn every_tag_corner_knows_its_tag_centre() {
+        for text in ["tagboard:tag36h11:6x4:32:44", "tagboard:tag25h9:3x2:30:31:5", "aprilgrid:6x6:0.03:0.3", "aprilgrid:4x3:88mm:0.05"] {
+            let spec: TargetSpec = text.parse().unwrap();
+            // Board points come tag by tag, four corners each.
+            for tag in spec.board_points().chunks(4) {
+                let mid = tag.iter().fold(Vector3::zeros(), |a, p| a + p) / 4.0;
+                for p in tag {
+                    assert!((spec.tag_centre_of(p).unwrap() - mid).norm() < 1e-9, "{text}: {p} → {:?}, not {mid}", spec.tag_centre_of(p));
+                    // Its black square is the tag's four corners, in the board's order.
+                    let (square, bits) = spec.tag_square_of(p).unwrap();
+                    assert!(square.iter().zip(tag).all(|(a, b)| (a - b).norm() < 1e-9), "{text}: {square:?} vs {tag:?}");
+                    assert_eq!(
+                        bits,
+                        if text.starts_with("aprilgrid") {
+                            10
+                        } else if text.contains("25h9") {
+                            7
+                        } else {
+                            8
+                        }
+                    );
+                }
+            }
+        }
+        let board: TargetSpec = "checkerboard:9x6:25".parse().unwrap();
+        assert_eq!(board.tag_centre_of(&Vector3::zeros()), None);
+        assert!(board.tag_square_of(&Vector3::zeros()).is_none() && board.corner_bias_prior().is_none());
     }
 
     #[test]

@@ -53,8 +53,12 @@ pub(super) struct BandPixel {
     pub(super) index: usize,
     /// Distance (px) from the edge to the inner side of the border bit here.
     pub(super) gap: f64,
-    /// The data bit inside the border here is white.
+    /// A white data bit lies within two bits along the edge, inside: the pixel may see its
+    /// blurred inner edge and is fitted with the model's second edge (weighted by
+    /// `fit::along_white`).
     pub(super) white: bool,
+    /// The bit along the edge the pixel lies beside.
+    pub(super) cell: u32,
     /// Weight (tapers to 0 over 1 px at the band's limits, so the fit is continuous in the
     /// corners it starts from).
     pub(super) weight: f64,
@@ -74,7 +78,12 @@ pub(super) struct EdgeBand {
     /// Per bit along the edge, where the white ring and the black border are sampled
     /// (distorted pixels): the contrast reference of every fit on this band.
     pub(super) refs: Vec<[Vector2<f64>; 2]>,
-    /// The pixels, those beside a black data bit (or the black corner cells) first.
+    /// Where each bit along the edge begins (px along the edge from `a`, at the border bit's
+    /// inner side, so perspective is followed), one more for where the last ends.
+    pub(super) bounds: Vec<f64>,
+    /// Per bit along the edge, whether the data bit inside the border is white.
+    pub(super) white_cells: Vec<bool>,
+    /// The pixels, those that cannot see a white data bit first.
     pub(super) pixels: Vec<BandPixel>,
     /// How many pixels come first.
     pub(super) black: usize,
@@ -150,6 +159,8 @@ pub(super) fn select_band(
         inner_val[k] = sample_at(image, lens.ideal_to_pixel(&to_px(along, 1.5)?));
         refs.push([lens.ideal_to_pixel(&to_px(along, -0.5)?), lens.ideal_to_pixel(&to_px(along, 0.5)?)]);
     }
+    // Where each cell begins along the edge (px from `a`), at the border bit's inner side.
+    let bounds: Vec<f64> = (0..=nbits).map(|j| to_px(j as f64, 1.0).map(|p| (p - a).dot(&dir))).collect::<Option<_>>()?;
     let (white_ref, black_ref) = reference_levels(image, &refs);
     let contrast0 = white_ref - black_ref;
     if contrast0.abs() < 4.0 {
@@ -266,17 +277,18 @@ pub(super) fn select_band(
             }
             let d = u - a;
             let index = y as usize * stride + x as usize;
-            pixels.push(BandPixel { t: d.dot(&dir), n: d.dot(&normal), index, gap: gap[k], white: white[k], weight });
+            let near_white = white[k.saturating_sub(2)..=(k + 2).min(nbits - 1)].iter().any(|&w| w);
+            pixels.push(BandPixel { t: d.dot(&dir), n: d.dot(&normal), index, gap: gap[k], white: near_white, cell: k as u32, weight });
         }
     }
     if pixels.len() < 12 || pixels.iter().map(|s| s.weight).sum::<f64>() < 8.0 {
         return None;
     }
-    // Pixels beside black data bits first (see `NormalSums::add`).
+    // Pixels that cannot see a white data bit first (see `NormalSums::add`).
     let (mut pixels, beside_white): (Vec<BandPixel>, Vec<BandPixel>) = pixels.into_iter().partition(|p| !p.white);
     let black = pixels.len();
     pixels.extend(beside_white);
-    Some(EdgeBand { a, dir, normal, len, bit_px, refs, pixels, black })
+    Some(EdgeBand { a, dir, normal, len, bit_px, refs, bounds, white_cells: white, pixels, black })
 }
 
 /// Mean grey level of the white ring and of the black border at `refs` (one pair per bit

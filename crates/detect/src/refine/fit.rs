@@ -76,6 +76,31 @@ fn phi_pdf(x: f64) -> (f64, f64) {
     phi_pdf_in(&PHI_TABLE, x)
 }
 
+/// The along-edge factor of the white data bits' inner edge for a pixel at `t_px` (pixels
+/// along the edge from its first corner, beside bit `cell`): the blurred indicator of the
+/// white bits along the edge, `Σ_white j [Φ((t − t_j)/σ) − Φ((t − t_{j+1})/σ)]` with `t_j`
+/// where bit `j` begins (`bounds`) and `σ` the blur (pixels). Inside a long run of white bits
+/// it is 1, beside a black bit far from white ones 0; near a colour change it is what a
+/// blurred square's corner gives: with a Gaussian blur the white square
+/// `{t ∈ [t_j, t_{j+1}], depth > 1 bit}` blurs to the product of its two edges' profiles, so
+/// the model's second edge times this factor is exact there. Modelled as 0/1 instead, the
+/// second edge ran at full strength to the very end of a white bit and was absent beside
+/// it: too bright on the white side of every colour change, which the fit met by pulling
+/// the whole edge inwards — by more the smaller the bits in pixels, so the far side of a
+/// tilted board shrank more than the near side, and a calibration on a tag board came out
+/// with fx low (docs/calibration.md).
+pub(super) fn along_white(table: &[[f64; 8]], white: &[bool], bounds: &[f64], t_px: f64, cell: usize, blur_px: f64) -> f64 {
+    let inv = 1.0 / blur_px;
+    let mut w = 0.0;
+    // Bits further than two away contribute less than Φ(−2 bits / σ) (bits ≥ 2 px: < 1e-3).
+    for j in cell.saturating_sub(2)..=(cell + 2).min(white.len() - 1) {
+        if white[j] {
+            w += (phi_pdf_in(table, (t_px - bounds[j]) * inv).0 - phi_pdf_in(table, (t_px - bounds[j + 1]) * inv).0).abs();
+        }
+    }
+    w.clamp(0.0, 1.0)
+}
+
 /// Standard normal CDF and density at `x` from `table` ([`PHI_TABLE`]): two cubics in the
 /// position within the interval (no `exp` and no division in the edge fit's inner loop).
 /// Exactly antisymmetric about 0 (Φ(−x) = 1 − Φ(x)), so it adds no bias.
@@ -113,17 +138,22 @@ pub(super) fn fit_band(image: &GrayImage, band: &EdgeBand, warm: Option<[f64; 3]
     // Levenberg–Marquardt over (angle, offset, B, C, sigma).
     let mut x = match warm {
         Some([bl, c, sg]) => Vector5::new(0.0, 0.0, bl, c, sg),
-        None => Vector5::new(0.0, 0.0, black_ref, contrast0, 0.8),
+        None => Vector5::new(0.0, 0.0, black_ref, contrast0, super::DEFAULT_BLUR_PX),
     };
     // One pass over the samples gives the cost and the normal equations (`NormalSums`);
     // JᵀWJ is symmetric: only its upper triangle is accumulated, written out.
     let table: &[[f64; 8]] = &PHI_TABLE;
     let (plain, beside_white) = band.pixels.split_at(band.black);
     let (plain_values, beside_white_values) = values.split_at(band.black);
+    // The white bits' inner edge along the edge, at the blur the fit starts from (the edge's
+    // last fit, or the default): a function of the pixels and the warm start only, so a fit
+    // of remembered pixels equals one of the same pixels selected anew.
+    let aw: Vec<f64> =
+        beside_white.iter().map(|p| along_white(table, &band.white_cells, &band.bounds, p.t, p.cell as usize, x[4])).collect();
     let normal_eq = |x: &Vector5<f64>| -> (f64, Matrix5<f64>, Vector5<f64>) {
         let mut sums = NormalSums::default();
-        sums.add::<false>(plain, plain_values, x, table);
-        sums.add::<true>(beside_white, beside_white_values, x, table);
+        sums.add::<false>(plain, plain_values, &[], x, table);
+        sums.add::<true>(beside_white, beside_white_values, &aw, x, table);
         let u = &sums.u;
         let mut jtj = Matrix5::<f64>::zeros();
         let mut k = 0;
@@ -192,14 +222,16 @@ struct NormalSums {
 impl NormalSums {
     /// Adds `samples` with their `values` (all with `white` equal to `WHITE`: the samples are partitioned so
     /// that the loop has no data-dependent branch) at parameters `x` = (angle, offset, B,
-    /// C, σ) of the model I = B + C·(Φ(n/σ) + white·Φ((−n − gap)/σ)),
-    /// n = n₀·cos a + t·sin a − offset. The Jacobian's B column is 1.
+    /// C, σ) of the model I = B + C·(Φ(n/σ) + w·Φ((−n − gap)/σ)),
+    /// n = n₀·cos a + t·sin a − offset, `w` the sample's [`along_white`] (in `aw`, one per
+    /// sample when `WHITE`; held fixed during the fit). The Jacobian's B column is 1.
     #[inline(always)]
-    fn add<const WHITE: bool>(&mut self, samples: &[BandPixel], values: &[f64], x: &Vector5<f64>, table: &[[f64; 8]]) {
+    fn add<const WHITE: bool>(&mut self, samples: &[BandPixel], values: &[f64], aw: &[f64], x: &Vector5<f64>, table: &[[f64; 8]]) {
         let (sn, cs) = x[0].sin_cos();
         let (off, bl, c, inv_sg) = (x[1], x[2], x[3], 1.0 / x[4]);
         let (mut u, mut g, mut cost) = (self.u, self.g, self.cost);
-        for (s, &value) in samples.iter().zip(values) {
+        debug_assert!(!WHITE || aw.len() == samples.len());
+        for (i, (s, &value)) in samples.iter().zip(values).enumerate() {
             debug_assert_eq!(s.white, WHITE);
             let n = s.n * cs + s.t * sn - off;
             let dn_dang = -s.n * sn + s.t * cs;
@@ -211,9 +243,10 @@ impl NormalSums {
             if WHITE {
                 let z2 = (-n - s.gap) * inv_sg;
                 let (cdf2, pdf2) = phi_pdf_in(table, z2);
-                val += cdf2;
-                dval_dn -= pdf2 * inv_sg;
-                dval_ds -= z2 * pdf2 * inv_sg;
+                let wa = aw[i];
+                val += wa * cdf2;
+                dval_dn -= wa * pdf2 * inv_sg;
+                dval_ds -= wa * z2 * pdf2 * inv_sg;
             }
             let r = bl + c * val - value;
             let (j0, j1, j3, j4) = (c * dval_dn * dn_dang, -c * dval_dn, val, c * dval_ds);
@@ -280,6 +313,23 @@ fn finish(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn white_bits_along_the_edge_are_blurred_squares() {
+        let table: &[[f64; 8]] = &PHI_TABLE;
+        let bounds = [0.0, 4.0, 8.0, 12.0, 16.0];
+        let f = |white: &[bool], t: f64| along_white(table, white, &bounds, t, (t / 4.0).floor().clamp(0.0, 3.0) as usize, 0.8);
+        let lone = [false, true, false, false];
+        // Inside a lone white bit, its two ends' blur: 1 − 2 Φ(−2.5).
+        assert!((f(&lone, 6.0) - (1.0 - 2.0 * phi_pdf(-2.5).0)).abs() < 1e-9);
+        // At its end half, beside it the spill, far away nothing.
+        assert!((f(&lone, 8.0) - 0.5).abs() < 1e-3);
+        assert!((f(&lone, 10.0) - phi_pdf(-2.5).0).abs() < 1e-3);
+        assert!(f(&lone, 15.0) < 1e-9);
+        // Between two white bits the edge runs on at full strength.
+        let pair = [false, true, true, false];
+        assert!((f(&pair, 8.0) - 1.0).abs() < 1e-6);
+    }
 
     #[test]
     fn phi_matches_known_values() {

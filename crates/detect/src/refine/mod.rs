@@ -10,9 +10,15 @@
 //! ```
 //!
 //! where `n` is the signed distance (pixels, outwards positive) of the pixel centre from the
-//! edge line, and the second term models the data bit just inside the 1-bit black border when
-//! that bit is white (`g` = local bit width; the bit colours are read from the image, so no
-//! family table is needed). Adjacent edge lines are then intersected for the corners.
+//! edge line, and the second term models the data bits just inside the 1-bit black border
+//! where they are white (`g` = local bit width; the bit colours are read from the image, so
+//! no family table is needed). `white` is not a 0/1 flag but the blurred indicator of the
+//! white bits along the edge (1 inside a run of white bits, fading over the blur at its ends
+//! and reaching into the black bits beside it): a white bit is a square, and a blurred
+//! square's corner is the product of its two edges' profiles. Modelled as 0/1, the white
+//! bits' corners biased every edge inwards, the more the smaller the bits in pixels — on a
+//! tilted calibration board, the far side more than the near one, which put fx low by 1.5–2σ
+//! (docs/calibration.md). Adjacent edge lines are then intersected for the corners.
 //!
 //! Pixels are used at their centres (OpenCV convention) with their own values — no
 //! interpolation, which would smooth and bias. With a [`CameraIntrinsics`] the fit runs in
@@ -61,6 +67,9 @@ mod fit;
 
 use band::{select_band, EdgeBand, TagBands};
 use fit::{fit_band, Line};
+
+/// The blur σ (pixels) an edge's fit starts from when no earlier fit of it is known.
+pub(crate) const DEFAULT_BLUR_PX: f64 = 0.8;
 
 /// Options of the sub-pixel refinement.
 #[derive(Debug, Clone, PartialEq)]
