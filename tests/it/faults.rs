@@ -26,6 +26,12 @@ fn tagdeflect_within(args: &[&str], limit: Duration) -> Output {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
+    wait_within(child, limit, &format!("tagdeflect {args:?}"))
+}
+
+/// Waits at most `limit` for `child` (killed, and the test failed naming `what`, past it);
+/// returns its output.
+fn wait_within(child: std::process::Child, limit: Duration, what: &str) -> Output {
     let pid = child.id();
     let waiter = std::thread::spawn(move || child.wait_with_output().unwrap());
     let deadline = Instant::now() + limit;
@@ -34,7 +40,7 @@ fn tagdeflect_within(args: &[&str], limit: Duration) -> Output {
             // SAFETY: kill(2) on the pid of a child this test started and has not reaped.
             unsafe { libc::kill(pid as i32, libc::SIGKILL) };
             let _ = waiter.join();
-            panic!("tagdeflect {args:?} still ran after {limit:?}");
+            panic!("{what} still ran after {limit:?}");
         }
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -317,19 +323,7 @@ fn run_against_a_utm(dir: &std::path::Path, utm: &str, log: &str, seconds: &str)
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let pid = child.id();
-    let waiter = std::thread::spawn(move || child.wait_with_output().unwrap());
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while !waiter.is_finished() {
-        if Instant::now() > deadline {
-            // SAFETY: kill(2) on the pid of a child this test started and has not reaped.
-            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
-            let _ = waiter.join();
-            panic!("tagdeflect run still ran after 60 s");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let o = waiter.join().unwrap();
+    let o = wait_within(child, Duration::from_secs(60), "tagdeflect run");
     let lines = fs::read_to_string(&feed)
         .unwrap_or_default()
         .lines()
