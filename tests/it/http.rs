@@ -114,6 +114,16 @@ impl Daemon {
         self.lines.lock().unwrap().clone()
     }
 
+    /// Waits until stderr holds `needle`: the log is written by another thread of the daemon
+    /// and read by another thread here, so it may come after the HTTP answer that caused it.
+    fn wait_stderr(&self, needle: &str, timeout: Duration, what: &str) {
+        let deadline = Instant::now() + timeout;
+        while !self.stderr.lock().unwrap().contains(needle) {
+            assert!(Instant::now() < deadline, "{what}: no {needle:?} on stderr within {timeout:?}:\n{}", self.stderr.lock().unwrap());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
     fn wait_lines(&self, n: usize, timeout: Duration) {
         let deadline = Instant::now() + timeout;
         while self.lines.lock().unwrap().len() < n {
@@ -594,7 +604,7 @@ fn two_tests_through_the_control_api_with_its_refusals() {
     let addr = d.addr();
     let token_file = tests_dir.join(".token");
     let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
-    assert!(d.stderr.lock().unwrap().contains(&format!("control token: {token}")));
+    d.wait_stderr(&format!("control token: {token}"), Duration::from_secs(10), "the token printed");
     use std::os::unix::fs::PermissionsExt;
     assert_eq!(std::fs::metadata(&token_file).unwrap().permissions().mode() & 0o777, 0o600);
     assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
@@ -611,7 +621,8 @@ fn two_tests_through_the_control_api_with_its_refusals() {
     assert_eq!(post(addr, "/api/test/start", &[("Content-Type", "text/plain"), ("Authorization", &bearer)], start).0, 415);
     assert_eq!(get(addr, "/api/test/start").0, 405, "no state change on a GET");
     assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
-    assert!(d.stderr.lock().unwrap().contains("control API: a POST with a wrong token refused"), "logged with the peer");
+    d.wait_stderr("control API: a POST with a wrong token refused", Duration::from_secs(10), "logged with the peer");
+    assert!(d.stderr.lock().unwrap().lines().any(|l| l.contains("wrong token refused") && l.contains("peer=127.0.0.1")), "the peer named");
 
     // Test 1: start, mark, zero, stop.
     let st = tagdeflect_test(addr, &token_file, &["start", "--specimen", "B1", "--operator", "A. Tester"]);
