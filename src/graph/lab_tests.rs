@@ -11,8 +11,10 @@ use crate::config::Config;
 use crate::graph::page::Page;
 
 /// Builds the tests under `dir`, serves their control API on the page and returns them. The
-/// token is `[output] http_token_file`'s first line, else made now, printed once and written
-/// to `dir/.token` (mode 0600).
+/// token is `[output] http_token_file`'s first line, else `dir/.token`'s: kept from an earlier
+/// start when that file is still private (mode 0600, owned by the folder's owner, 48 hex digits), so a
+/// restart (`Restart=on-failure`, an upgrade) does not lock out a client holding it; else made
+/// now and written there (mode 0600). Printed on stderr at every start.
 pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> {
     let bad = |m: String| crate::BadInput::new(m);
     let report_config = config.clone();
@@ -37,14 +39,23 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
             .trim()
             .to_string(),
         None => {
-            use rand::RngCore;
-            let mut bytes = [0u8; 24];
-            rand::rngs::OsRng.fill_bytes(&mut bytes);
-            let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
             let path = dir.join(".token");
-            write_private(&path, &token).map_err(|e| bad(format!("cannot write the control token to {}: {e}", path.display())))?;
+            let token = match kept_token(&path) {
+                Some(token) => {
+                    tracing::info!("control token kept from {} (written by an earlier start)", path.display());
+                    token
+                }
+                None => {
+                    use rand::RngCore;
+                    let mut bytes = [0u8; 24];
+                    rand::rngs::OsRng.fill_bytes(&mut bytes);
+                    let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+                    write_private(&path, &token).map_err(|e| bad(format!("cannot write the control token to {}: {e}", path.display())))?;
+                    tracing::info!("control token written to {} (mode 0600)", path.display());
+                    token
+                }
+            };
             eprintln!("control token: {token}");
-            tracing::info!("control token written to {} (mode 0600)", path.display());
             token
         }
     };
@@ -57,6 +68,36 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
     }
     tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero", dir.display());
     Ok(tests)
+}
+
+/// The token an earlier start wrote to `path`, if the file is still fit to hold one: a regular
+/// file of the tests folder's owner, readable by nobody else, holding 48 hex digits. Anything else (missing,
+/// widened permissions, edited) makes a new token, with a warning when the file was there.
+fn kept_token(path: &Path) -> Option<String> {
+    use std::os::unix::fs::MetadataExt;
+    let meta = std::fs::symlink_metadata(path).ok()?;
+    // The tests folder is the daemon's own (made or checked writable at start): its owner is us.
+    let me = std::fs::metadata(path.parent()?).ok()?.uid();
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let token = text.lines().next().unwrap_or_default().trim();
+    let why = if !meta.file_type().is_file() {
+        "not a regular file"
+    } else if meta.uid() != me {
+        "owned by another user"
+    } else if meta.mode() & 0o077 != 0 {
+        "readable or writable by others"
+    } else if token.len() != 48 || !token.bytes().all(|b| b.is_ascii_hexdigit()) {
+        "not a token written by tagdeflect"
+    } else {
+        return Some(token.to_string());
+    };
+    tracing::warn!("control token file {}: {why}; a new token is made", path.display());
+    if !meta.file_type().is_file() {
+        // A directory or a link is not replaced behind the lab's back: writing fails and says so.
+        return None;
+    }
+    let _ = std::fs::remove_file(path);
+    None
 }
 
 fn write_private(path: &Path, text: &str) -> std::io::Result<()> {

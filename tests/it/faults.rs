@@ -500,6 +500,7 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     let id = st["id"].as_str().unwrap().to_string();
     let feed = tests_dir.join(&id).join("feed.jsonl");
     first.wait_for("8 lines of the test before the kill", deadline, |_| whole_feed_lines(&feed).len() >= 8);
+    let token = fs::read_to_string(&token_file).unwrap();
     first.child.0.kill().unwrap();
     first.child.0.wait().unwrap();
     let before = whole_feed_lines(&feed);
@@ -519,6 +520,9 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     };
     second.wait_for("8 lines of the resumed test", deadline, after_resume);
     assert!(second.log().contains("resumed from its zero"), "{}", second.log());
+    // The control token survives the restart: a client holding it is not locked out.
+    assert_eq!(fs::read_to_string(&token_file).unwrap(), token, "the restart kept the token file");
+    assert!(second.log().contains(&format!("control token: {}", token.trim())), "{}", second.log());
     let stopped = tagdeflect_test(&addr, &token_file, &["stop"]);
     assert_eq!(stopped["id"], id.as_str());
     let folder = std::path::PathBuf::from(stopped["folder"].as_str().unwrap());
@@ -547,4 +551,16 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     assert!(gaps.iter().any(|g| g["duration_s"].as_f64().unwrap() >= 2.0), "the restart's hole is a gap: {gaps:?}");
     let warnings = report["qc"]["warnings"].as_array().unwrap();
     assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("the daemon restarted during the test")), "{warnings:?}");
+
+    // A token file others may read is not trusted: the next start makes a new token and says why.
+    use std::os::unix::fs::PermissionsExt;
+    fs::set_permissions(&token_file, fs::Permissions::from_mode(0o644)).unwrap();
+    let mut third = LoggedDaemon::start(&args);
+    third.addr(deadline);
+    third.wait_for("the token's warning", deadline, |d| d.log().contains("control token: "));
+    assert_eq!(third.terminate(), Some(0), "{}", third.log());
+    let new_token = fs::read_to_string(&token_file).unwrap();
+    assert_ne!(new_token, token, "a widened token file is replaced");
+    assert_eq!(fs::metadata(&token_file).unwrap().permissions().mode() & 0o777, 0o600);
+    assert!(third.log().contains("readable or writable by others; a new token is made"), "{}", third.log());
 }
