@@ -193,7 +193,7 @@ pub(crate) fn sim_runs(spec: &TargetSpec, truth: &CameraIntrinsics, z: f64, seed
 /// Checks the stated σ of every parameter of every run against the truth, both ways: the
 /// fraction within 2σ at least 80 % (a σ too small fails), and the RMS of the errors in σ
 /// (`z`) within [`Z_RMS_BAND`] of `z_rms_measured`, the figure these seeded runs give today
-/// (a σ grown by 1.5× or more fails the lower bound, which "within 2σ" alone would never see;
+/// (a σ grown by more than 1.4× fails the lower bound, which "within 2σ" alone would never see;
 /// one shrunk by as much fails the upper); panics when one parameter is off by more than
 /// `bound` σ.
 fn check_sigmas(label: &str, runs: &[CalibrationRun], truth: &CameraIntrinsics, bound: f64, z_rms_measured: f64) {
