@@ -236,6 +236,12 @@ impl SetQueue {
 
 async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>, feeds: Vec<FeedWriter>) -> Result<()> {
     let started_at = Instant::now();
+    // The stop signals are watched before anything starts: one that comes while the page,
+    // the tests or the sources start up (systemd may stop a unit at any time) ends the run
+    // at the first turn of the loop below, as it does later (last sync, report, recorder
+    // drained) — never the default action, which would kill the process where it stands.
+    // A closed terminal or a `kill -HUP` ends the run as SIGTERM does.
+    let mut stop_signals = StopSignals::watch()?;
     let replaying = playback.is_some();
     // Every hand-off waits instead of dropping (see the module doc).
     let lossless = playback.as_ref().is_some_and(|p| p.pacing == Pacing::AsFast);
@@ -473,10 +479,6 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
     // An absurd duration (from the library API) means no deadline rather than a panic.
     let deadline =
         opts.duration_s.and_then(|s| Duration::try_from_secs_f64(s).ok()).and_then(|d| tokio::time::Instant::now().checked_add(d));
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
-    // A closed terminal or a `kill -HUP` ends the run as SIGTERM does (last sync, report,
-    // recorder drained), never at once.
-    let mut sighup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot watch SIGHUP")?;
     let mut frames_seen = 0u64;
     loop {
         let until_deadline = async {
@@ -529,9 +531,7 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
                     }
                 }
             }
-            _ = tokio::signal::ctrl_c() => { tracing::info!("SIGINT: stopping"); break; }
-            _ = sigterm.recv() => { tracing::info!("SIGTERM: stopping"); break; }
-            _ = sighup.recv() => { tracing::info!("SIGHUP: stopping as on SIGTERM"); break; }
+            why = stop_signals.recv() => { tracing::info!("{why}"); break; }
             _ = until_deadline => { tracing::info!("duration reached: stopping"); break; }
         }
     }
@@ -613,7 +613,7 @@ async fn run_async(config: Config, opts: LiveOptions, playback: Option<Playback>
     #[cfg(feature = "http")]
     if replaying && page.is_served() {
         page.on_finished();
-        crate::pipeline::replay::linger().await?;
+        crate::pipeline::replay::linger(&mut stop_signals).await?;
     }
     if solver_panicked {
         return Err(anyhow::Error::new(crate::RuntimeFailure::new(
@@ -731,6 +731,35 @@ struct CloseOnDrop(Arc<SetQueue>);
 impl Drop for CloseOnDrop {
     fn drop(&mut self) {
         self.0.close();
+    }
+}
+
+/// SIGINT, SIGTERM and SIGHUP, watched from the moment this is made (a signal that comes
+/// before the first `recv` is kept for it).
+pub(crate) struct StopSignals {
+    int: tokio::signal::unix::Signal,
+    term: tokio::signal::unix::Signal,
+    hup: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    /// Watches the three signals (inside a Tokio runtime).
+    pub(crate) fn watch() -> Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(Self {
+            int: signal(SignalKind::interrupt()).context("cannot watch SIGINT")?,
+            term: signal(SignalKind::terminate()).context("cannot watch SIGTERM")?,
+            hup: signal(SignalKind::hangup()).context("cannot watch SIGHUP")?,
+        })
+    }
+
+    /// Waits for the next stop signal; what to log ("SIGTERM: stopping", ...).
+    pub(crate) async fn recv(&mut self) -> &'static str {
+        tokio::select! {
+            _ = self.int.recv() => "SIGINT: stopping",
+            _ = self.term.recv() => "SIGTERM: stopping",
+            _ = self.hup.recv() => "SIGHUP: stopping as on SIGTERM",
+        }
     }
 }
 

@@ -145,17 +145,11 @@ fn replay_sets(
     Ok(summary)
 }
 
-/// Keeps the page up after a replay until SIGINT/SIGTERM.
+/// Keeps the page up after a replay until SIGINT/SIGTERM/SIGHUP (watched since the run
+/// started: one that came during the replay ends this at once).
 #[cfg(feature = "http")]
-pub async fn linger() -> anyhow::Result<()> {
-    use anyhow::Context;
+pub(crate) async fn linger(signals: &mut crate::graph::run::StopSignals) -> anyhow::Result<()> {
     tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("cannot watch SIGTERM")?;
-    let mut hup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).context("cannot watch SIGHUP")?;
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-        _ = hup.recv() => {}
-    }
+    signals.recv().await;
     Ok(())
 }
