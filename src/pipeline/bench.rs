@@ -246,12 +246,32 @@ pub struct BenchFigures {
     /// recordings with support and midspan tags): the output noise (at rest: the noise).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub net_noise_mm: Option<f64>,
+    /// The response to a step of the net deflection (recordings whose truth holds still, steps
+    /// once and holds again: `simulate --rest-frames R --hold-frames H` with no set left for a
+    /// ramp).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub step: Option<StepResponse>,
     /// Mean of `net_deflection_sigma_mm` over the lines, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub net_sigma_mm: Option<f64>,
     /// Accuracy against the recording's ground truth (synthetic recordings only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub accuracy: Option<crate::accuracy::Accuracy>,
+}
+
+/// How the net deflection followed a step of its truth (`BenchFigures::step`).
+#[derive(Debug, Clone, Serialize)]
+pub struct StepResponse {
+    /// The step of the true net deflection, mm.
+    pub step_mm: f64,
+    /// Errors of the first four lines after the step, µm, less the mean error of the lines
+    /// before it (the zero's own offset): `[0]` is the first set after the step, half a frame
+    /// period after it.
+    pub errors_after_um: Vec<f64>,
+    /// Lines after the step before the error stays within 10 % of the step for five lines in
+    /// a row (0: from the first set after it on, i.e. within half a frame period of the step);
+    /// `None` if it never does.
+    pub sets_to_10_percent: Option<usize>,
 }
 
 /// Runs the bench and prints the figures.
@@ -368,6 +388,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
     latencies.sort_by(f64::total_cmp);
     let n = sets.max(1) as f64;
     let stats: crate::pipeline::measure::MeasureStats = stats;
+    let errors = net_errors(rec, &lines);
     Ok(BenchFigures {
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         sets,
@@ -395,7 +416,8 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
         background_wait_ms: parts.background_wait / n * 1e3,
         tracked_tags: stats.tracked_tags,
         reused_band_tags: stats.reused_band_tags,
-        net_noise_mm: net_noise(rec, &lines),
+        net_noise_mm: net_noise(&errors),
+        step: step_response(&errors),
         net_sigma_mm: {
             let s: Vec<f64> = lines.iter().filter_map(|l| l.net_deflection_sigma_mm).collect();
             (!s.is_empty()).then(|| s.iter().sum::<f64>() / s.len() as f64)
@@ -404,13 +426,13 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
     })
 }
 
-/// Standard deviation of the net deflection's error against truth (the first line with a
-/// net deflection is the reference, as the feed's displacements), mm.
-fn net_noise(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine]) -> Option<f64> {
+/// The true net deflection and the feed's error against it, line by line (the first line
+/// with a net deflection is the reference, as the feed's displacements), mm.
+fn net_errors(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine]) -> Vec<(f64, f64)> {
     use crate::config::TagRole;
     let up = nalgebra::Vector3::from(rec.config.world.up).normalize();
     let mut first = std::collections::HashMap::new();
-    let mut errs = Vec::new();
+    let mut out = Vec::new();
     for l in lines {
         let tr = crate::accuracy::truth_at(&rec.truth, l.t_ns);
         let mut down = std::collections::HashMap::new();
@@ -427,14 +449,41 @@ fn net_noise(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine])
             (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
         };
         if let (Some(m), Some(s)) = (mean(TagRole::Midspan), mean(TagRole::Support)) {
-            errs.push(net - (m - s));
+            out.push((m - s, net - (m - s)));
         }
     }
-    if errs.len() < 2 {
+    out
+}
+
+/// Standard deviation of the net deflection's error against truth (`net_errors`), mm.
+fn net_noise(errors: &[(f64, f64)]) -> Option<f64> {
+    if errors.len() < 2 {
         return None;
     }
-    let mean = errs.iter().sum::<f64>() / errs.len() as f64;
-    Some((errs.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (errs.len() - 1) as f64).sqrt())
+    let n = errors.len() as f64;
+    let mean = errors.iter().map(|e| e.1).sum::<f64>() / n;
+    Some((errors.iter().map(|e| (e.1 - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt())
+}
+
+/// The response to a step of the true net deflection (`net_errors`): one change between
+/// consecutive lines at least 20× every other, with at least three lines before it and five
+/// after; `None` for any other course (a ramp, a recording at rest).
+fn step_response(errors: &[(f64, f64)]) -> Option<StepResponse> {
+    let changes: Vec<f64> = errors.windows(2).map(|w| w[1].0 - w[0].0).collect();
+    let (k, step) = changes.iter().copied().enumerate().max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))?;
+    let at = k + 1;
+    let alone = changes.iter().enumerate().all(|(j, c)| j == k || c.abs() * 20.0 <= step.abs());
+    if step == 0.0 || !alone || at < 3 || errors.len() < at + 5 {
+        return None;
+    }
+    let offset = errors[..at].iter().map(|e| e.1).sum::<f64>() / at as f64;
+    let after: Vec<f64> = errors[at..].iter().map(|e| e.1 - offset).collect();
+    let within = |e: &f64| e.abs() <= 0.1 * step.abs();
+    Some(StepResponse {
+        step_mm: step,
+        errors_after_um: after.iter().take(4).map(|e| e * 1e3).collect(),
+        sets_to_10_percent: (0..=after.len() - 5).find(|&j| after[j..j + 5].iter().all(within)),
+    })
 }
 
 /// Reads every frame file once before the timed runs, so they measure the pipeline and
@@ -470,7 +519,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 27] = [
+    let rows: [Row; 29] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -498,6 +547,12 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("  on reused pixels", |f| f.reused_band_tags.to_string()),
         ("net deflection noise µm", |f| f.net_noise_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
         ("net deflection mean σ µm", |f| f.net_sigma_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
+        ("step: errors after, µm", |f| {
+            f.step.as_ref().map_or("-".into(), |s| s.errors_after_um.iter().map(|e| format!("{e:.0}")).collect::<Vec<_>>().join(" "))
+        }),
+        ("step: sets to within 10 %", |f| {
+            f.step.as_ref().map_or("-".into(), |s| s.sets_to_10_percent.map_or("never".into(), |k| k.to_string()))
+        }),
     ];
     print!("{:<28}", "");
     for r in runs {
@@ -538,4 +593,31 @@ fn proc_status_kb(key: &str) -> f64 {
         .ok()
         .and_then(|s| s.lines().find(|l| l.starts_with(key)).and_then(|l| l.split_whitespace().nth(1)).and_then(|v| v.parse::<f64>().ok()))
         .unwrap_or(0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_step_is_found_and_its_settling_counted() {
+        // Truth 0 for 6 lines, then 0.05 mm; the error has an offset of 2 µm, the estimate
+        // lags by 30 % and 12 % of the step in the first two lines after it.
+        let truth = |k: usize| if k < 6 { 0.0 } else { 0.05 };
+        let err = |k: usize| 0.002 + [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -0.015, -0.006, 0.001, -0.001, 0.0, 0.0, 0.0][k];
+        let errors: Vec<(f64, f64)> = (0..13).map(|k| (truth(k), err(k))).collect();
+        let s = step_response(&errors).unwrap();
+        assert!((s.step_mm - 0.05).abs() < 1e-12);
+        assert_eq!(s.errors_after_um.iter().map(|e| e.round() as i64).collect::<Vec<_>>(), [-15, -6, 1, -1]);
+        assert_eq!(s.sets_to_10_percent, Some(2));
+        // A ramp is no step; nor is a recording at rest.
+        let ramp: Vec<(f64, f64)> = (0..13).map(|k| (k as f64 * 0.01, 0.0)).collect();
+        assert!(step_response(&ramp).is_none());
+        let rest: Vec<(f64, f64)> = (0..13).map(|k| (0.0, k as f64 * 1e-4)).collect();
+        assert!(step_response(&rest).is_none());
+        assert!(net_noise(&rest).unwrap() > 0.0);
+        // Never within 10 %: said.
+        let slow: Vec<(f64, f64)> = (0..13).map(|k| (truth(k), if k < 6 { 0.0 } else { -0.01 })).collect();
+        assert_eq!(step_response(&slow).unwrap().sets_to_10_percent, None);
+    }
 }

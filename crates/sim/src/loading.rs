@@ -8,17 +8,19 @@ use super::SimRig;
 
 impl SimRig {
     /// Midspan deflection (mm, positive downward) at `t_ns`: zero for `rest_frames` frame
-    /// sets, then a linear ramp reaching `max_deflection_mm` at the last frame set (held
-    /// after it, or repeated down and up again with `cyclic`).
+    /// sets, then a linear ramp reaching `max_deflection_mm` `hold_frames` sets before the
+    /// last (held after it, or repeated down and up again with `cyclic`); a step at set
+    /// `rest_frames` (half a frame period before it) when no set is left for the ramp.
     pub fn midspan_deflection(&self, t_ns: i64) -> f64 {
         let p = &self.params;
         let s = (t_ns - p.start_ns) as f64 * 1e-9;
         let period = 1.0 / p.fps;
         let rest = p.rest_frames as f64 * period;
-        let ramp = (p.frame_sets as f64 - 1.0 - p.rest_frames as f64).max(0.0) * period;
+        let ramp = (p.frame_sets as f64 - 1.0 - p.rest_frames as f64 - p.hold_frames as f64).max(0.0) * period;
         let max = p.max_deflection_mm;
         if ramp <= 0.0 {
-            return if s >= rest { max } else { 0.0 };
+            // Half a period before set `rest_frames`: no frame's jitter straddles the step.
+            return if s >= rest - 0.5 * period { max } else { 0.0 };
         }
         if !p.cyclic {
             return ((s - rest) / ramp).clamp(0.0, 1.0) * max;
@@ -79,5 +81,34 @@ impl SimRig {
             let start = p.start_ns + (a * 1e9) as i64;
             (start, start + (p.utm_outage_s * 1e9) as i64)
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::params::SimParams;
+    use crate::SimRig;
+
+    fn deflections(p: SimParams) -> Vec<f64> {
+        let rig = SimRig::new(&p).unwrap();
+        (0..p.frame_sets as u64).map(|k| rig.midspan_deflection(rig.set_time_ns(k))).collect()
+    }
+
+    #[test]
+    fn the_ramp_can_end_early_and_hold_or_be_a_step() {
+        let base =
+            SimParams { cameras: 1, width: 320, height: 240, frame_sets: 11, fps: 10.0, max_deflection_mm: 1.0, ..SimParams::default() };
+        // Rest 2, ramp over 8 periods to set 10.
+        let d = deflections(SimParams { rest_frames: 2, ..base.clone() });
+        assert!(d[2].abs() < 1e-9 && (d[10] - 1.0).abs() < 1e-9, "{d:?}");
+        assert!((d[6] - 0.5).abs() < 1e-9, "{d:?}");
+        // Rest 2, hold 4: the ramp reaches 1.0 at set 6 and holds.
+        let d = deflections(SimParams { rest_frames: 2, hold_frames: 4, ..base.clone() });
+        assert!((d[4] - 0.5).abs() < 1e-9, "{d:?}");
+        assert!(d[6..].iter().all(|&v| (v - 1.0).abs() < 1e-9), "{d:?}");
+        // Rest 4, hold 6: no set left for a ramp — a step at set 4.
+        let d = deflections(SimParams { rest_frames: 4, hold_frames: 6, ..base.clone() });
+        assert!(d[..4].iter().all(|&v| v == 0.0) && d[4..].iter().all(|&v| v == 1.0), "{d:?}");
+        assert!(SimParams { hold_frames: 1, cyclic: true, ..base }.validate().unwrap_err().to_string().contains("hold_frames"));
     }
 }

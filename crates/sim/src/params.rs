@@ -159,6 +159,13 @@ pub struct SimParams {
     /// Frame sets at rest before the load ramp starts.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 3))]
     pub rest_frames: u32,
+    /// Frame sets held at `max_deflection_mm` at the end of the recording, after the ramp
+    /// (0: the ramp ends at the last frame set). With `rest_frames + hold_frames ≥
+    /// frame_sets − 1` there is no ramp: the deflection steps from 0 to the maximum at set
+    /// `rest_frames` (a step response, `bench --estimators`). Not with `cyclic`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub hold_frames: u32,
     /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
     /// after the ramp (for long live demos).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
@@ -328,6 +335,7 @@ impl Default for SimParams {
             strong_k1: -0.25,
             max_deflection_mm: 6.0,
             rest_frames: 3,
+            hold_frames: 0,
             cyclic: false,
             beam_length_mm: 550.0,
             beam_height_mm: 150.0,
@@ -442,6 +450,9 @@ impl SimParams {
         }
         if !finite_nonneg(self.max_deflection_mm) || self.max_deflection_mm > 0.1 * self.span_mm {
             return bad("max_deflection_mm", format!("{}: expected 0 to span/10", self.max_deflection_mm));
+        }
+        if self.cyclic && self.hold_frames > 0 {
+            return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }
         if !finite_pos(self.beam_height_mm) || !finite_pos(self.beam_width_mm) || self.beam_height_mm > 400.0 || self.beam_width_mm > 400.0
         {
