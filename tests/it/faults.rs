@@ -570,8 +570,8 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
 /// exit 0 and the stop logged — never the signal's default action, which killed the process
 /// where it stood. Found by the suite under `stress --cpu 2`: the daemon of
 /// `a_test_resumed_after_the_daemon_was_killed_gets_its_report`, stopped right after its
-/// start, died of SIGTERM (the signals were watched only once the sources ran). With the
-/// signals watched last, this test fails for each of the three (5 of 5 runs by hand).
+/// start, died of SIGTERM (the signals were watched only once the sources ran). With them
+/// watched that late, this test fails at its first signal (5 of 5 such daemons by hand).
 #[test]
 fn a_stop_signal_during_start_up_stops_the_daemon_cleanly() {
     use std::io::{BufRead, BufReader};
