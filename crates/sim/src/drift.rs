@@ -28,13 +28,16 @@ impl SimRig {
             .then(|| self.set_index_at(t_ns).clamp(0, self.params.frame_sets.saturating_sub(1) as i64))
     }
 
-    /// `base` after the drift of frame set `k`: a linear share `k / (frame_sets − 1)` of
+    /// `base` after the drift of frame set `k`: a linear share of
     /// `drift_rot_deg` (about an oblique, mostly horizontal axis through the camera centre —
     /// a tripod head tilting) and of `drift_trans_mm` (the centre moving mostly down — the
-    /// floor settling).
+    /// floor settling): 0 up to set `drift_start_set`, all of it `drift_sets` sets later (0:
+    /// at the last set) and after.
     fn drifted(&self, base: &Pose, k: i64) -> Pose {
         let p = &self.params;
-        let u = if p.frame_sets > 1 { k as f64 / (p.frame_sets - 1) as f64 } else { 0.0 };
+        let from = p.drift_start_set as i64;
+        let len = if p.drift_sets > 0 { p.drift_sets as i64 } else { p.frame_sets as i64 - 1 - from };
+        let u = if len > 0 { ((k - from) as f64 / len as f64).clamp(0.0, 1.0) } else { f64::from(u8::from(k >= from)) };
         let axis = Unit::new_normalize(Vector3::new(1.0, 0.3, 0.2));
         let dr = Rotation3::from_axis_angle(&axis, u * p.drift_rot_deg.to_radians());
         let dt = Vector3::new(0.3, 0.2, -1.0).normalize() * (u * p.drift_trans_mm);
@@ -53,5 +56,25 @@ impl SimRig {
             Some((c, _)) if c == cam && self.set_index_at(t_ns) >= self.params.bump_at as i64 => 1,
             _ => 0,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::{SimParams, SimRig};
+
+    /// A drift from set 10 over 5 sets: still before, linear within, held after.
+    #[test]
+    fn a_drift_can_start_and_end_mid_recording() {
+        let p = SimParams { frame_sets: 30, drift_camera: Some(1), drift_start_set: 10, drift_sets: 5, ..SimParams::default() };
+        let rig = SimRig::new(&p).unwrap();
+        let centre = |k| rig.camera_pose(1, rig.set_time_ns(k)).centre();
+        let shift = |k| (centre(k) - centre(0)).norm();
+        assert_eq!(shift(10), 0.0, "still up to the start");
+        assert!((shift(12) - 0.4 * p.drift_trans_mm).abs() < 1e-9, "{}", shift(12));
+        assert!((shift(15) - p.drift_trans_mm).abs() < 1e-9 && (shift(29) - p.drift_trans_mm).abs() < 1e-9);
+        assert_eq!((rig.camera_pose(0, rig.set_time_ns(29)).centre() - rig.camera_pose(0, 0).centre()).norm(), 0.0, "the others are still");
+        let bad = SimParams { frame_sets: 30, drift_start_set: 30, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("drift_start_set"));
     }
 }

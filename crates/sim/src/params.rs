@@ -132,6 +132,16 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.3, allow_hyphen_values = true))]
     #[serde(skip_serializing_if = "is_default_drift_trans")]
     pub drift_trans_mm: f64,
+    /// Frame set at which the drift starts (before it the camera is still): a leg settling
+    /// in the middle of a test.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub drift_start_set: u32,
+    /// Frame sets over which the drift happens, from `drift_start_set` on (the camera is
+    /// still again after them); 0: until the last frame set.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub drift_sets: u32,
     /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
     #[cfg_attr(feature = "clap", arg(long))]
     pub hide_tag: Option<u32>,
@@ -326,6 +336,8 @@ impl Default for SimParams {
             drift_camera: None,
             drift_rot_deg: 0.05,
             drift_trans_mm: 0.3,
+            drift_start_set: 0,
+            drift_sets: 0,
             hide_tag: None,
             hide_camera: 0,
             hide_from: 10,
@@ -439,6 +451,9 @@ impl SimParams {
         }
         if !self.drift_trans_mm.is_finite() || self.drift_trans_mm.abs() > 100.0 {
             return bad("drift_trans_mm", format!("{}: expected at most 100 mm", self.drift_trans_mm));
+        }
+        if self.drift_start_set >= self.frame_sets.max(1) {
+            return bad("drift_start_set", format!("{}: expected less than frame_sets ({})", self.drift_start_set, self.frame_sets));
         }
         if let Some(id) = self.hide_tag {
             if id >= self.specimen_tags {
