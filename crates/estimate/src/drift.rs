@@ -7,7 +7,7 @@
 //! seen in every frame, so the camera's motion since its pose was fixed is observable; the
 //! question is how to use it without letting the per-frame pose noise back in.
 //!
-//! Model (per camera, a linear Kalman filter, 18 states): the camera's pose relative to the
+//! Model (per camera, linear Kalman filters of 18 states): the camera's pose relative to the
 //! held pose `H`, in the parameters `(ω, Δc)` — rotation vector (rad, `R = exp(ω) R_H`) and
 //! camera-centre shift (mm, world) — is `x₀ + d(t)`:
 //!
@@ -21,7 +21,9 @@
 //! * `ḋ` (6): its rate. Prior N(0, σ²) with σ = [`DriftConfig::rate_deg_per_h`] and
 //!   [`DriftConfig::rate_mm_per_h`]; the rate itself is a random walk that changes by about
 //!   σ over [`DriftConfig::rate_change_h`] (white-noise acceleration), so a drift that turns
-//!   round is followed and a constant drift is followed without lag.
+//!   round is followed and a constant drift is followed without lag. A second model of the
+//!   same states lets the rate change far faster (a leg settling within seconds); the two
+//!   are weighted by how well each predicts the frames ([`MODEL_SCALES`]).
 //!
 //! Each frame's measurement is the pose solved from that frame's background corners
 //! alone, `z = x₀ + d + v`, with `v`'s covariance from the solve. The camera pose used for
@@ -114,74 +116,51 @@ impl DriftEstimate {
     }
 }
 
-/// The Kalman filter of one camera's drift (see the module docs).
+/// The filter of one camera's drift (see the module docs): two motion models run side by
+/// side and weighted by how well each predicts the frames (see [`DriftFilter::update`]).
 #[derive(Debug, Clone)]
 pub struct DriftFilter {
     config: DriftConfig,
     held: Pose,
     t0_ns: i64,
     t_ns: i64,
+    /// The slow model ([`MODEL_SCALES`]`[0]`, the configured prior) and the fast one.
+    models: [Model; 2],
+    /// Probability of each model given the frames so far.
+    probability: [f64; 2],
+    updates: usize,
+}
+
+/// One motion model's state `(x₀, d, ḋ)` and covariance.
+#[derive(Debug, Clone, Copy)]
+struct Model {
     x: V18,
     p: M18,
-    updates: usize,
-    /// Scale of the rate's process noise (≥ 1), raised by the innovations (see [`Adapt`]).
-    adapt: Adapt,
 }
 
-/// The drift's process noise adapted to the innovations.
+/// Scale of each model's rate process noise on the configured one.
 ///
-/// The rate prior (0.1°/h, 1 mm/h) is right for a tripod cooling over an hour, but a leg
-/// settling under vibration turns a camera by 0.02° and moves it by 0.2 mm within seconds:
-/// a rate a hundred times the prior, which the filter would follow only over minutes (and
-/// which stays below the bump test). Each step's innovation is small against one frame's
-/// pose noise, so their size says little; their *sign* says it all: while the model fits,
-/// the whitened innovations `w = L⁻¹ y` (`S = L Lᵀ`) are independent with unit covariance,
-/// and their running mean `m ← (1 − a) m + a w` has covariance `a / (2 − a)`; a drift the
-/// model does not follow makes them lean the same way. So `|m|² (2 − a) / a`, χ² with 6
-/// degrees of freedom while the model fits, above [`ADAPT_GATE`] (99.9 %) multiplies the
-/// rate's process noise by [`ADAPT_GROWTH`] per update (up to [`ADAPT_MAX`]); below the
-/// mean (6) it relaxes by [`ADAPT_RELAX`] per update.
-#[derive(Debug, Clone, Copy)]
-struct Adapt {
-    scale: f64,
-    mean: Vector6<f64>,
-}
-
-impl Default for Adapt {
-    fn default() -> Self {
-        Self { scale: 1.0, mean: Vector6::zeros() }
-    }
-}
-
-/// Weight of the newest whitened innovation in the running mean.
-const ADAPT_WEIGHT: f64 = 0.1;
-/// χ²₆ at 99.9 %: the running mean leans further than chance allows.
-const ADAPT_GATE: f64 = 22.5;
-/// Growth of the process noise's scale per update while the drift outruns the model.
-const ADAPT_GROWTH: f64 = 4.0;
-/// Relaxation per update once it does not.
-const ADAPT_RELAX: f64 = 0.9;
-/// Largest scale: a rate 10⁵ × the prior's σ can be reached within seconds.
-const ADAPT_MAX: f64 = 1e10;
-
-impl Adapt {
-    /// Takes one update's whitened innovation; true when the running mean leans beyond
-    /// chance (the mean is then started afresh, so one lean is acted on once).
-    fn observe(&mut self, w: &Vector6<f64>) -> bool {
-        // A mis-detected frame's innovation is clipped so it cannot lean the mean alone.
-        let w = w.map(|v| v.clamp(-5.0, 5.0));
-        self.mean = self.mean * (1.0 - ADAPT_WEIGHT) + w * ADAPT_WEIGHT;
-        let chi2 = self.mean.norm_squared() * (2.0 - ADAPT_WEIGHT) / ADAPT_WEIGHT;
-        if chi2 > ADAPT_GATE {
-            self.scale = (self.scale * ADAPT_GROWTH).min(ADAPT_MAX);
-            return true;
-        }
-        if chi2 < 6.0 {
-            self.scale = (self.scale * ADAPT_RELAX).max(1.0);
-        }
-        false
-    }
-}
+/// The configured prior (0.1°/h, 1 mm/h, changing over an hour) is right for a tripod
+/// cooling, but a leg settling under vibration turns a camera by 0.02° and moves it by
+/// 0.2 mm within seconds: a rate a hundred times and more the prior's, which a filter on
+/// that prior follows only over minutes and which stays below the bump test. So a second
+/// model lets the rate change by ~1700 σ within a second (10¹⁰ × the rate's variance gained
+/// per unit time; 10⁸ and 10⁹ followed a 0.05° / 0.5 mm drift over 2 s less well, 10¹¹ as
+/// well, docs/drift.md), and the two are run as an interacting multiple model (Blom and
+/// Bar-Shalom): each update mixes the models by their switching probabilities, updates
+/// each with the frame, and weights them by the likelihood of its innovation. While the
+/// camera is still, the fast model predicts worse (its wide prediction spreads the
+/// likelihood) and its weight stays near [`TO_FAST`]; once a drift outruns the slow model
+/// its innovations lean, the fast model gains weight, and the mixing hands the slow model
+/// the fast one's state — even a modest weight moves the estimate onto the drift — until
+/// the motion stops and the slow model predicts best again.
+const MODEL_SCALES: [f64; 2] = [1.0, 1e10];
+/// Probability per update that the camera starts moving fast (slow → fast).
+const TO_FAST: f64 = 0.01;
+/// Probability per update that a fast motion stops (fast → slow).
+const TO_SLOW: f64 = 0.05;
+/// `SWITCH[i][j]`: probability of model `j` at an update after model `i` at the one before.
+const SWITCH: [[f64; 2]; 2] = [[1.0 - TO_FAST, TO_FAST], [TO_SLOW, 1.0 - TO_SLOW]];
 
 /// The pose `held` moved by `d = (ω, Δc)`: `R = exp(ω) R_held`, centre `c_held + Δc`.
 pub(crate) fn drifted_pose(held: &Pose, d: &Vector6<f64>) -> Pose {
@@ -225,7 +204,8 @@ impl DriftFilter {
             p[(12 + i, 12 + i)] = sr * sr;
             p[(15 + i, 15 + i)] = sc * sc;
         }
-        Self { config, held, t0_ns: t_ns, t_ns, x: V18::zeros(), p, updates: 0, adapt: Adapt::default() }
+        let model = Model { x: V18::zeros(), p };
+        Self { config, held, t0_ns: t_ns, t_ns, models: [model; 2], probability: [1.0 - TO_FAST, TO_FAST], updates: 0 }
     }
 
     /// Prior covariance of the held pose's own error in `(ω, Δc)`.
@@ -242,14 +222,17 @@ impl DriftFilter {
     /// new pose's own error starts from its prior).
     pub fn rebase(&mut self, held: Pose, held_covariance: Option<&Matrix6<f64>>) {
         self.held = held;
-        for i in 0..6 {
-            self.x[i] = 0.0;
-            for j in 0..18 {
-                self.p[(i, j)] = 0.0;
-                self.p[(j, i)] = 0.0;
+        let prior = Self::held_prior(&held, held_covariance);
+        for m in &mut self.models {
+            for i in 0..6 {
+                m.x[i] = 0.0;
+                for j in 0..18 {
+                    m.p[(i, j)] = 0.0;
+                    m.p[(j, i)] = 0.0;
+                }
             }
+            m.p.fixed_view_mut::<6, 6>(0, 0).copy_from(&prior);
         }
-        self.p.fixed_view_mut::<6, 6>(0, 0).copy_from(&Self::held_prior(&held, held_covariance));
     }
 
     /// σ of the rate, (rad/s, mm/s).
@@ -267,16 +250,16 @@ impl DriftFilter {
         self.updates
     }
 
-    /// The scale the innovations put on the rate's process noise now (1 = the configured
-    /// prior; see [`Adapt`]).
-    pub fn adaptive_scale(&self) -> f64 {
-        self.adapt.scale
+    /// Probability, given the frames so far, that the camera moves faster than the
+    /// configured prior allows (see [`MODEL_SCALES`]).
+    pub fn fast_probability(&self) -> f64 {
+        self.probability[1]
     }
 
-    fn predicted(&self, t_ns: i64) -> (V18, M18) {
-        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
+    /// `model` predicted `dt` seconds on with its rate process noise scaled by `scale`.
+    fn predict_model(&self, model: &Model, dt: f64, scale: f64) -> Model {
         if dt == 0.0 {
-            return (self.x, self.p);
+            return *model;
         }
         let mut f = M18::identity();
         for i in 0..6 {
@@ -287,13 +270,31 @@ impl DriftFilter {
         let mut q = M18::zeros();
         for i in 0..6 {
             let s2 = if i < 3 { sr * sr } else { sc * sc };
-            let qa = s2 / tc * self.adapt.scale; // rate variance gained per second
+            let qa = s2 / tc * scale; // rate variance gained per second
             q[(6 + i, 6 + i)] = qa * dt.powi(3) / 3.0;
             q[(6 + i, 12 + i)] = qa * dt * dt / 2.0;
             q[(12 + i, 6 + i)] = qa * dt * dt / 2.0;
             q[(12 + i, 12 + i)] = qa * dt;
         }
-        (f * self.x, f * self.p * f.transpose() + q)
+        Model { x: f * model.x, p: f * model.p * f.transpose() + q }
+    }
+
+    /// The models' mixture with weights `w`: its mean and covariance (spread included).
+    fn combine(models: &[Model; 2], w: &[f64; 2]) -> Model {
+        let x = models[0].x * w[0] + models[1].x * w[1];
+        let mut p = M18::zeros();
+        for (m, &wi) in models.iter().zip(w) {
+            let d = m.x - x;
+            p += (m.p + d * d.transpose()) * wi;
+        }
+        Model { x, p: 0.5 * (p + p.transpose()) }
+    }
+
+    fn predicted(&self, t_ns: i64) -> (V18, M18) {
+        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
+        let models = [0, 1].map(|j| self.predict_model(&self.models[j], dt, MODEL_SCALES[j]));
+        let m = Self::combine(&models, &self.probability);
+        (m.x, m.p)
     }
 
     fn estimate_of(&self, x: &V18, p: &M18, t_ns: i64) -> DriftEstimate {
@@ -307,7 +308,8 @@ impl DriftFilter {
 
     /// The drift as of the last update.
     pub fn estimate(&self) -> DriftEstimate {
-        self.estimate_of(&self.x, &self.p, self.t_ns)
+        let m = Self::combine(&self.models, &self.probability);
+        self.estimate_of(&m.x, &m.p, self.t_ns)
     }
 
     /// The drift predicted at `t_ns` (no update).
@@ -318,7 +320,8 @@ impl DriftFilter {
 
     /// The held pose moved by the drift as of the last update.
     pub fn pose(&self) -> Pose {
-        drifted_pose(&self.held, &self.x.fixed_rows::<6>(6).into_owned())
+        let m = Self::combine(&self.models, &self.probability);
+        drifted_pose(&self.held, &m.x.fixed_rows::<6>(6).into_owned())
     }
 
     /// The held pose moved by the drift predicted at `t_ns`.
@@ -328,56 +331,67 @@ impl DriftFilter {
 
     /// Feeds the pose solved from one frame's background corners at `t_ns`, with its
     /// covariance in the solver's step parameters. Returns the innovation's squared
-    /// Mahalanobis distance (`None` when the measurement was unusable).
+    /// Mahalanobis distance under the model more likely before the frame (`None` when the
+    /// measurement was unusable).
+    ///
+    /// One step of the interacting multiple model: each model starts from the mixture of
+    /// both by the probabilities of switching into it, is predicted with its own process
+    /// noise and updated with the frame; the models' probabilities are then weighted by the
+    /// likelihood of their innovations. An innovation beyond [`GATE`] (a mis-detected frame)
+    /// is down-weighted in each model, so it cannot flip the models by itself.
     pub fn update(&mut self, t_ns: i64, pose: &Pose, step_covariance: &Matrix6<f64>) -> Option<f64> {
         let (z, r) = pose_offset(&self.held, pose, step_covariance);
         if !(z.iter().all(|v| v.is_finite()) && r.iter().all(|v| v.is_finite())) {
             return None;
         }
-        let (x, p) = self.predicted(t_ns);
+        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
         let mut h = SMatrix::<f64, 6, 18>::zeros();
         for i in 0..6 {
             h[(i, i)] = 1.0;
             h[(i, 6 + i)] = 1.0;
         }
-        let y = z - h * x;
-        let hph = h * p * h.transpose();
-        let mut s = hph + r;
-        let (m2, white, lean) = {
+        // Mixing: the chance of being in model j now, and where each model comes from.
+        let into = [0, 1].map(|j| SWITCH[0][j] * self.probability[0] + SWITCH[1][j] * self.probability[1]);
+        let mut updated = self.models;
+        let mut log_likelihood = [0.0; 2];
+        let mut m2_of = [0.0; 2];
+        for j in 0..2 {
+            let w = [0, 1].map(|i| SWITCH[i][j] * self.probability[i] / into[j].max(f64::MIN_POSITIVE));
+            let start = Self::combine(&self.models, &w);
+            let pred = self.predict_model(&start, dt, MODEL_SCALES[j]);
+            let y = z - h * pred.x;
+            let hph = h * pred.p * h.transpose();
+            let m2 = {
+                let c = (hph + r).cholesky()?;
+                y.dot(&c.solve(&y))
+            };
+            // Down-weight, so that the innovation sits near the gate.
+            let rr = if m2 > GATE { r * (m2 / GATE) } else { r };
+            let s = hph + rr;
+            let s = 0.5 * (s + s.transpose());
             let c = s.cholesky()?;
-            let white = c.l().solve_lower_triangular(&y).unwrap_or_else(Vector6::zeros);
-            // The innovations' running mean back in (ω, Δc): how far the model is behind.
-            let lean = c.l() * self.adapt.mean;
-            (y.dot(&c.solve(&y)), white, lean)
-        };
-        if m2 > GATE {
-            // Down-weight, so that the innovation sits on the gate.
-            s = hph + r * (m2 / GATE);
+            let k = (c.solve(&(h * pred.p))).transpose(); // P Hᵀ S⁻¹ (P, S symmetric)
+            let x = pred.x + k * y;
+            // Joseph form keeps P symmetric and positive.
+            let ikh = M18::identity() - k * h;
+            let p = ikh * pred.p * ikh.transpose() + k * rr * k.transpose();
+            updated[j] = Model { x, p: 0.5 * (p + p.transpose()) };
+            let log_det: f64 = c.l().diagonal().iter().map(|v| 2.0 * v.ln()).sum();
+            log_likelihood[j] = -0.5 * (y.dot(&c.solve(&y)) + log_det);
+            m2_of[j] = m2;
         }
-        let s = 0.5 * (s + s.transpose());
-        let c = s.cholesky()?;
-        let k = (c.solve(&(h * p))).transpose(); // P Hᵀ S⁻¹ (P, S symmetric)
-        let x = x + k * y;
-        // Joseph form keeps P symmetric and positive.
-        let ikh = M18::identity() - k * h;
-        let rr = if m2 > GATE { r * (m2 / GATE) } else { r };
-        let p = ikh * p * ikh.transpose() + k * rr * k.transpose();
-        self.x = x;
-        self.p = 0.5 * (p + p.transpose());
-        let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(1e-3);
+        let best = log_likelihood[0].max(log_likelihood[1]);
+        let weights = [0, 1].map(|j| into[j] * (log_likelihood[j] - best).exp());
+        let total = weights[0] + weights[1];
+        if !(total.is_finite() && total > 0.0) {
+            return None;
+        }
+        self.models = updated;
+        // A model is never ruled out for good: it can always be switched back into.
+        self.probability = [0, 1].map(|j| (weights[j] / total).clamp(1e-9, 1.0 - 1e-9));
         self.t_ns = self.t_ns.max(t_ns);
         self.updates += 1;
-        if self.adapt.observe(&white) {
-            // The model has fallen behind by about `lean` over the running mean's window:
-            // the rate may be off by that over the window's time. Its covariance is widened
-            // so (twice over), and the next innovations place it.
-            let window_s = dt / ADAPT_WEIGHT;
-            for i in 0..6 {
-                self.p[(12 + i, 12 + i)] += 4.0 * (lean[i] / window_s).powi(2);
-            }
-            self.adapt.mean = Vector6::zeros();
-        }
-        Some(m2)
+        Some(if into[0] >= into[1] { m2_of[0] } else { m2_of[1] })
     }
 }
 
@@ -462,5 +476,59 @@ mod tests {
         // Static: the noise of a line fitted through 30 measurements (σ 0.03 mm per axis of
         // the centre in one frame), no trend.
         assert!(s.angle_deg() < 0.003 && s.shift_mm() < 0.12);
+    }
+
+    /// A still camera that starts moving fast (0.02° and 0.2 mm within 2 s at 10 fps, some
+    /// 400 × the prior's rate, each frame's step a third of one frame's noise) and stops
+    /// again: the drift is followed (error below one frame's noise and a fraction of what
+    /// holding the pose gives), the fast model weighs more than on a still camera while it
+    /// moves and little once it is still again; a still camera stays still.
+    #[test]
+    fn a_fast_drift_is_followed_and_handed_back_to_the_slow_model() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let held = Pose::from_rvec_tvec([0.1, -0.2, 0.05], [10.0, -20.0, 1000.0]);
+        // One frame's pose noise: 1e-4 rad and 0.03 mm per axis.
+        let r: Matrix6<f64> = Matrix6::from_diagonal(&Vector6::new(1e-8, 1e-8, 1e-8, 1e-3, 1e-3, 1e-3));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let n = Normal::new(0.0, 1.0).unwrap();
+        let noise = |rng: &mut rand_chacha::ChaCha8Rng| Vector6::from_fn(|i, _| n.sample(rng) * r[(i, i)].sqrt());
+        let ji = offset_jacobian(&held).try_inverse().unwrap();
+        let step = ji * r * ji.transpose();
+        let total = Vector6::new(0.02f64.to_radians() * 0.6, 0.0, 0.02f64.to_radians() * 0.8, 0.0, 0.12, -0.16);
+        let truth = |k: usize| total * ((k as f64 - 30.0) / 20.0).clamp(0.0, 1.0);
+        let mut moving = DriftFilter::new(DriftConfig::default(), held, Some(&step), 0);
+        let mut still = DriftFilter::new(DriftConfig::default(), held, Some(&step), 0);
+        let (mut err_sq, mut held_sq, mut err_n, mut fast_sum, mut still_fast_sum) = (0.0f64, 0.0f64, 0usize, 0.0f64, 0.0f64);
+        for k in 1..=100usize {
+            let t = k as i64 * 100_000_000;
+            moving.update(t, &drifted_pose(&held, &(truth(k) + noise(&mut rng))), &step).unwrap();
+            still.update(t, &drifted_pose(&held, &noise(&mut rng)), &step).unwrap();
+            let e = moving.estimate();
+            if (30..=60).contains(&k) {
+                err_sq += (e.centre_mm - truth(k).fixed_rows::<3>(3)).norm_squared();
+                held_sq += truth(k).fixed_rows::<3>(3).norm_squared();
+                err_n += 1;
+                fast_sum += moving.fast_probability();
+                still_fast_sum += still.fast_probability();
+            }
+        }
+        let (rms, held_rms) = ((err_sq / err_n as f64).sqrt(), (held_sq / err_n as f64).sqrt());
+        let (fast_mean, still_fast_mean) = (fast_sum / err_n as f64, still_fast_sum / err_n as f64);
+        let (end, still_end) = (moving.estimate(), still.estimate());
+        println!(
+            "fast drift: centre error RMS {rms:.4} mm while moving (held: {held_rms:.4} mm), mean fast probability {fast_mean:.3} (a still camera's {still_fast_mean:.3}), {:.3} at the end; end {:.5}° {:.4} mm; still camera {:.5}° {:.4} mm",
+            moving.fast_probability(),
+            end.angle_deg(),
+            end.shift_mm(),
+            still_end.angle_deg(),
+            still_end.shift_mm()
+        );
+        // One frame's centre noise is 0.03 mm per axis (0.052 mm in 3D); the drift is 0.2 mm.
+        assert!(rms < 0.04 && rms < 0.35 * held_rms, "followed: {rms} (held {held_rms})");
+        assert!(fast_mean > 2.0 * still_fast_mean, "the fast model leads while moving: {fast_mean} vs {still_fast_mean}");
+        assert!(moving.fast_probability() < 0.2, "and hands back: {}", moving.fast_probability());
+        assert!((end.angle_deg() - 0.02).abs() < 0.003 && (end.shift_mm() - 0.2).abs() < 0.03, "{} {}", end.angle_deg(), end.shift_mm());
+        assert!(still_end.angle_deg() < 0.003 && still_end.shift_mm() < 0.03, "{} {}", still_end.angle_deg(), still_end.shift_mm());
     }
 }
