@@ -159,20 +159,22 @@ fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_s
     assert_eq!(smoothed.len(), temporal.len(), "the smoother gives every line back");
     assert!(smoothed.iter().zip(&temporal).all(|(a, b)| a.seq == b.seq && a.smoothed && !b.smoothed));
     // Full sets: as accurate as solved each on its own but for the lag at the start of
-    // loading (measured 5.03 against 4.61 µm); smoothed, that lag is gone (4.89 µm).
-    assert!(ft.full_rms <= fp.full_rms * 1.2, "full sets: temporal {ft}, per set {fp}");
+    // loading (measured 4.81 against 4.60 µm; 5.03 before the prediction was widened along a
+    // surprising innovation); smoothed, 4.73 µm.
+    assert!(ft.full_rms <= fp.full_rms * 1.1, "full sets: temporal {ft}, per set {fp}");
     assert!(fs.full_rms <= ft.full_rms, "full sets: smoothed {fs}, temporal {ft}");
-    // Partial sets about as good as full ones (measured 4.74 against 4.31 µm; per set 6×
+    // Partial sets about as good as full ones (measured 4.54 against 4.11 µm; per set 7×
     // worse), referred to the full sets' cameras; smoothed better still.
     assert!(t.partial_rms <= 1.4 * t.full_rms, "partial vs full: {t}");
     assert!(t.partial_rms * 4.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
     assert!(s.partial_rms <= t.partial_rms, "partial sets: smoothed {s}, temporal {t}");
-    // The largest error: 18.0 µm live, 12.5 µm smoothed (per set 83 µm). The 8 µm is
-    // not reached: the residue is the corner fit's bias of the one camera left during the
-    // two-camera outage, which changes as the tag moves across pixels (docs/control.md).
-    assert!(t.max <= 0.024 && t.max * 3.0 <= p.max, "largest net-deflection error: temporal {t}, per set {p}");
+    // The largest error: 15.6 µm live, 11.8 µm smoothed (per set 84 µm; live 18.0 before the
+    // widening). The 8 µm is not reached: the residue is the corner fit's bias of the
+    // one camera left during the two-camera outage, which changes as the tag moves across
+    // pixels (docs/control.md).
+    assert!(t.max <= 0.021 && t.max * 3.0 <= p.max, "largest net-deflection error: temporal {t}, per set {p}");
     assert!(s.max <= 0.016, "largest net-deflection error smoothed: {s}");
-    // σ: 84 % (temporal) and 87 % (smoothed) of the errors within 2σ on this recording, 63 %
+    // σ: 86 % (temporal) and 87 % (smoothed) of the errors within 2σ on this recording, 66 %
     // on the full one (per set 69 %). The net deflection's σ is the pixel noise of the solve;
     // the errors hold two things it leaves out: the zero reference's own error (common to
     // every line) and the corner fit's bias that changes slowly as a tag moves across pixels
