@@ -183,6 +183,7 @@ fn missing_command(args: &[String]) -> anyhow::Error {
     }
 }
 
+#[cfg(feature = "sim")] // only `demo --control` takes it
 fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
     tagdeflect::sinks::control::parse_addr(s)
 }
