@@ -361,15 +361,18 @@ impl DriftFilter {
             let pred = self.predict_model(&start, dt, MODEL_SCALES[j]);
             let y = z - h * pred.x;
             let hph = h * pred.p * h.transpose();
-            let m2 = {
-                let c = (hph + r).cholesky()?;
-                y.dot(&c.solve(&y))
-            };
+            let symmetric = |s: Matrix6<f64>| 0.5 * (s + s.transpose());
+            let c = symmetric(hph + r).cholesky()?;
+            let m2 = y.dot(&c.solve(&y));
             // Down-weight, so that the innovation sits near the gate.
-            let rr = if m2 > GATE { r * (m2 / GATE) } else { r };
-            let s = hph + rr;
-            let s = 0.5 * (s + s.transpose());
-            let c = s.cholesky()?;
+            let (rr, c, m2_used) = if m2 > GATE {
+                let rr = r * (m2 / GATE);
+                let c = symmetric(hph + rr).cholesky()?;
+                let m2_used = y.dot(&c.solve(&y));
+                (rr, c, m2_used)
+            } else {
+                (r, c, m2)
+            };
             let k = (c.solve(&(h * pred.p))).transpose(); // P Hᵀ S⁻¹ (P, S symmetric)
             let x = pred.x + k * y;
             // Joseph form keeps P symmetric and positive.
@@ -377,7 +380,7 @@ impl DriftFilter {
             let p = ikh * pred.p * ikh.transpose() + k * rr * k.transpose();
             updated[j] = Model { x, p: 0.5 * (p + p.transpose()) };
             let log_det: f64 = c.l().diagonal().iter().map(|v| 2.0 * v.ln()).sum();
-            log_likelihood[j] = -0.5 * (y.dot(&c.solve(&y)) + log_det);
+            log_likelihood[j] = -0.5 * (m2_used + log_det);
             m2_of[j] = m2;
         }
         let best = log_likelihood[0].max(log_likelihood[1]);
