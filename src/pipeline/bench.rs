@@ -246,6 +246,11 @@ pub struct BenchFigures {
     /// recordings with support and midspan tags): the output noise (at rest: the noise).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub net_noise_mm: Option<f64>,
+    /// The same over the lines from [`SETTLE_NS`] after the first line with a net deflection
+    /// on: the estimator's steady state, without its start (a filter started on its first set
+    /// knows no rate yet and averages over the sets it has seen).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub net_noise_settled_mm: Option<f64>,
     /// The response to a step of the net deflection (recordings whose truth holds still, steps
     /// once and holds again: `simulate --rest-frames R --hold-frames H` with no set left for a
     /// ramp).
@@ -417,6 +422,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
         tracked_tags: stats.tracked_tags,
         reused_band_tags: stats.reused_band_tags,
         net_noise_mm: net_noise(&errors),
+        net_noise_settled_mm: net_noise(&net_errors(rec, settled(&lines, SETTLE_NS))),
         step: step_response(&errors),
         net_sigma_mm: {
             let s: Vec<f64> = lines.iter().filter_map(|l| l.net_deflection_sigma_mm).collect();
@@ -453,6 +459,18 @@ fn net_errors(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine]
         }
     }
     out
+}
+
+/// Time after the first line with a net deflection from which the output noise counts as
+/// settled (`net_noise_settled_mm`), ns.
+const SETTLE_NS: i64 = 1_000_000_000;
+
+/// The lines from `after_ns` past the first line with a net deflection on (none when there
+/// is no such line).
+fn settled(lines: &[crate::feed::FeedLine], after_ns: i64) -> &[crate::feed::FeedLine] {
+    let Some(t0) = lines.iter().find(|l| l.net_deflection_mm.is_some()).map(|l| l.t_ns) else { return &[] };
+    let from = lines.iter().position(|l| l.t_ns >= t0 + after_ns).unwrap_or(lines.len());
+    &lines[from..]
 }
 
 /// Standard deviation of the net deflection's error against truth (`net_errors`), mm.
@@ -519,7 +537,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 29] = [
+    let rows: [Row; 30] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -546,6 +564,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("tags tracked without search", |f| f.tracked_tags.to_string()),
         ("  on reused pixels", |f| f.reused_band_tags.to_string()),
         ("net deflection noise µm", |f| f.net_noise_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
+        ("  after the first second µm", |f| f.net_noise_settled_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
         ("net deflection mean σ µm", |f| f.net_sigma_mm.map_or("-".into(), |v| format!("{:.2}", v * 1e3))),
         ("step: errors after, µm", |f| {
             f.step.as_ref().map_or("-".into(), |s| s.errors_after_um.iter().map(|e| format!("{e:.0}")).collect::<Vec<_>>().join(" "))
@@ -619,5 +638,17 @@ mod tests {
         // Never within 10 %: said.
         let slow: Vec<(f64, f64)> = (0..13).map(|k| (truth(k), if k < 6 { 0.0 } else { -0.01 })).collect();
         assert_eq!(step_response(&slow).unwrap().sets_to_10_percent, None);
+    }
+
+    #[test]
+    fn the_settled_noise_counts_from_a_second_after_the_first_net_deflection() {
+        let line = |t_ns: i64, net: Option<f64>| crate::feed::FeedLine { t_ns, net_deflection_mm: net, ..Default::default() };
+        // No net deflection on the first two lines; the first one at 0.5 s.
+        let lines: Vec<_> = (0..10).map(|k| line(k * 250_000_000, (k >= 2).then_some(0.0))).collect();
+        let s = settled(&lines, SETTLE_NS);
+        assert_eq!(s.first().map(|l| l.t_ns), Some(1_500_000_000));
+        assert_eq!(s.len(), 4);
+        assert!(settled(&lines, 10 * SETTLE_NS).is_empty());
+        assert!(settled(&lines[..2], 0).is_empty());
     }
 }
