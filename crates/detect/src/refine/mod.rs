@@ -20,6 +20,12 @@
 //! tilted calibration board, the far side more than the near one, which put fx low by 1.5–2σ
 //! (docs/calibration.md). Adjacent edge lines are then intersected for the corners.
 //!
+//! Every pixel integrates light over its area. While the optics blur more than a pixel, a
+//! Gaussian of fitted width absorbs that (the model above, at the pixel's centre); for edges
+//! sharper than `fit::SHARP_PX` (0.55 px effective blur) `S` is averaged over the pixel's
+//! width across the edge instead, where a Gaussian fitted to the ramp that a sharp edge makes
+//! was biased by the edge's sub-pixel phase (`fit::pixel_step`; figures there).
+//!
 //! Pixels are used at their centres (OpenCV convention) with their own values — no
 //! interpolation, which would smooth and bias. With a [`CameraIntrinsics`] the fit runs in
 //! undistorted ("ideal") pixel coordinates, where the edges are straight, and the corners are
