@@ -131,11 +131,17 @@ fn phi_pdf_in(table: &[[f64; 8]], x: f64) -> (f64, f64) {
 /// ~0.67 px, the box's variance 1/12 px² added), but a sharper edge's profile is a ramp, not
 /// a Gaussian step, and a Gaussian fitted to a ramp sampled at pixel centres is biased by the
 /// edge's sub-pixel phase. Measured (2026-12-05, 3 × 1280x960 renders, tags ~28 px, a 1.5 mm
-/// ramp, per-set net deflection RMS against truth): optical blur 0 px 12.9 → 5.0 µm, 0.3 px
-/// 9.1 → 4.5 µm with the pixel's area; 0.6 px 4.6 → 4.7 µm and 1.2 px 3.6 → 3.6 µm (no
-/// gain), while it costs two table look-ups instead of one per pixel and term (~15 % fewer
-/// frame sets/s on 3 × 1080p): so only sharp edges pay for it.
-pub(crate) const SHARP_PX: f64 = 0.55;
+/// ramp, per-set displacement and net deflection RMS against truth, plain → with the pixel's
+/// area below this threshold): simulated blur 0 px 0.0224 → 0.0030 mm, 12.9 → 0.8 µm; 0.3 px
+/// (effective 0.30) 0.0200 → 0.0033 mm, 9.1 → 0.8 µm; 0.45 px (effective ~0.48) 0.0052 →
+/// 0.0050 mm; 0.5 and 0.6 px the same. The threshold sits below 0.48 because the simulator
+/// blurs with a kernel sampled at whole pixels after its pixels are integrated, a profile
+/// neither model fits, on which the pixel-area model was the worse one from there on (0.45 px:
+/// 0.0063 mm with it on every edge; 0.6 px 0.0107 against 0.0104) — for optics that blur
+/// before the pixel integrates, the pixel-area model is the exact one at any blur. It costs
+/// two table look-ups instead of one per pixel and term (~13 % fewer frame sets/s on
+/// 3 × 1080p when every edge uses it), paid by sharp edges only.
+pub(crate) const SHARP_PX: f64 = 0.4;
 
 /// Variance of one pixel's box across the edge, px².
 const PIXEL_VAR: f64 = 1.0 / 12.0;
