@@ -205,19 +205,21 @@ fn partial_sets_of_a_sharp_scene() {
     // area (`refine::fit`, SHARP_PX), and the corner bias that wanders with the pixel phase
     // on the default scene is gone from the full recording: measured 0.67 µm RMS temporal
     // (largest 1.6 µm), 0.80 per set, 0.54 smoothed (before the pixel's area was fitted: 9.0 /
-    // 9.1 µm); the partial recording's full sets 0.75 µm. What is
-    // left is the two-camera outage: one camera for 2 s, partial sets 3.46 µm RMS, largest
-    // 16.4 µm (16.1 smoothed) — beyond the issue's 8 µm and 2× the full sets (docs/control.md).
-    // 99 % (temporal) and 100 % (smoothed) of the errors within 2σ.
+    // 9.1 µm). The partial recording: full sets 0.76 µm, partial sets 1.91 µm (per set 12.2),
+    // largest 6.7 µm (smoothed 1.06 µm, largest 2.8 µm), 99 % within 2σ (smoothed 100 %) —
+    // the issue's "no line beyond 8 µm" and "≥ 85 % within 2σ" met, "partial within 2× the
+    // full sets" not quite (2.5×; smoothed 1.5×). Before a referred set seen by one camera was
+    // kept from declaring a jump: partial 3.46 µm, largest 16.4 µm (docs/control.md).
     let params = SimParams { frame_sets: 90, fps: 10.0, max_deflection_mm: 1.5, seed: 21, blur_sigma: 0.3, ..SimParams::default() };
     let SceneFigures { full: [ft, fp, fs], partial: [t, p, s] } = partial_scene("blur 0.3 px", &params);
     assert!(
         ft.full_rms <= 0.0009 && fp.full_rms <= 0.0011 && fs.full_rms <= 0.00075 && ft.max <= 0.0025,
         "full sets: temporal {ft}, per set {fp}, smoothed {fs}"
     );
-    assert!(t.full_rms <= 0.0010 && t.partial_rms <= 0.0045, "partial recording: {t}");
-    assert!(t.partial_rms * 3.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
-    assert!(t.max <= 0.021 && s.max <= 0.021, "largest error: temporal {t}, smoothed {s}");
+    assert!(t.full_rms <= 0.0010 && t.partial_rms <= 0.0025 && s.partial_rms <= 0.0014, "partial recording: temporal {t}, smoothed {s}");
+    assert!(t.partial_rms <= 3.0 * t.full_rms && s.partial_rms <= 2.0 * s.full_rms, "partial vs full: temporal {t}, smoothed {s}");
+    assert!(t.partial_rms * 5.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
+    assert!(t.max <= 0.008 && s.max <= 0.008, "no line beyond 8 µm: temporal {t}, smoothed {s}");
     assert!(t.within >= 0.9 && s.within >= 0.9 && ft.within >= 0.9, "within 2σ: temporal {t}, smoothed {s}, full {ft}");
     assert!(t.within < 1.0 || ft.within < 1.0, "σ not all inflated: temporal {t}, full {ft}");
 }

@@ -535,10 +535,16 @@ impl Measurement {
                                 None => (c, sol.centre_covariance),
                             };
                             // A referred set is pixel noise alone, like a full one: the filter
-                            // takes it as such (a jump included); an unreferred partial set is
-                            // taken with its camera poses' part and never as a jump.
+                            // takes it as such (a jump included) when two cameras or more saw
+                            // the tag. Seen by one camera, it keeps that camera's own corner
+                            // bias and a monocular depth: taken as partial (down-weighted
+                            // beyond the gate, never a jump, no adaptation) — as a full set one
+                            // such set moved a sharp scene's net deflection by 16 µm and a 2-s
+                            // one-camera outage drifted by 9 µm (docs/control.md). An
+                            // unreferred partial set is taken with its camera poses' part and
+                            // never as a jump.
                             let u = match history.filter.as_mut() {
-                                Some(f) if referred.is_some() => f.update(set.t_ns, z, &r_partial, &r_partial, false),
+                                Some(f) if referred.is_some() => f.update(set.t_ns, z, &r_partial, &r_partial, used.len() == 1),
                                 Some(f) => f.update(set.t_ns, z, &noise_cov, &r_partial, partial),
                                 None => {
                                     let f = crate::temporal::TagFilter::new(self.config.measure.temporal(), set.t_ns, c, &noise_cov);
