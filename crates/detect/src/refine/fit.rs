@@ -303,7 +303,8 @@ struct NormalSums {
 impl NormalSums {
     /// Adds `samples` with their `values` (all with `white` equal to `WHITE`: the samples are partitioned so
     /// that the loop has no data-dependent branch) at parameters `x` = (angle, offset, B,
-    /// C, σ) of the model I = B + C·(Φ(n/σ) + w·Φ((−n − gap)/σ)),
+    /// C, σ) of the model I = B + C·(S(n/σ) + w·S((−n − gap)/σ)), `S` the blurred step at the
+    /// pixel's centre (Φ) or, when `AREA`, averaged over the pixel ([`pixel_step`]),
     /// n = n₀·cos a + t·sin a − offset, `w` the sample's [`along_white`] (in `aw`, one per
     /// sample when `WHITE`; held fixed during the fit). The Jacobian's B column is 1.
     #[inline(always)]
