@@ -1,6 +1,6 @@
 //! Rendering of the simulated rig's camera images ([`SimRig::render`]): the fixed scene
 //! rendered once per camera pose and cached, the beam's image region re-rendered per
-//! frame, optical and motion blur, noise and 8-bit rounding (on [`crate::render`]).
+//! frame, the optics' blur, motion blur, noise and 8-bit rounding (on [`crate::render`]).
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -8,16 +8,21 @@ use nalgebra::Vector3;
 
 use tagdeflect_core::frame::GrayImage;
 
-use super::render::{blur, motion_blur, quantize, render_rect, CornerRays, PixelRect};
+use super::render::{motion_blur, quantize, render_rect, CornerRays, PixelRect};
 use super::rig::mix;
 use super::trace::BEAM_BIT;
 use super::SimRig;
 
-/// The static image of one camera pose (no beam), before and after optical blur.
+/// The static image of one camera pose (no beam): its sub-box integrals ([`Optics`]) and
+/// the pixel image through the optics.
+///
+/// [`Optics`]: crate::render::Optics
 struct Background {
     /// The pose's cache key (see `pose_key`).
     epoch: u64,
+    /// Sub-box integrals, `w·scale × h·scale`.
     raw: Vec<f32>,
+    /// Pixels, `w × h`.
     blurred: Vec<f32>,
 }
 
@@ -35,8 +40,17 @@ impl CameraState {
 }
 
 impl SimRig {
+    /// The rays through the corners of camera `cam`'s sub-boxes.
     fn rays(&self, cam: usize) -> &CornerRays {
-        self.cams[cam].rays.get_or_init(|| CornerRays::new(&self.layout.intrinsics[cam]))
+        self.cams[cam].rays.get_or_init(|| CornerRays::sub_boxes(&self.layout.intrinsics[cam], self.optics.scale()))
+    }
+
+    /// Sub-box sub-samples per axis: an n-rooks pattern of `n` per axis resolves an edge
+    /// parallel to the grid to `1/n²` of its box, so `⌈subsamples/√scale⌉` keeps the pixel's
+    /// `1/subsamples²` with `scale` sub-boxes across it.
+    fn sub_box_samples(&self) -> usize {
+        let n = self.params.subsamples as f64 / (self.optics.scale() as f64).sqrt();
+        (n.ceil() as usize).max(1)
     }
 
     fn background(&self, cam: usize, t_ns: i64) -> Arc<Background> {
@@ -49,21 +63,21 @@ impl SimRig {
         }
         let pose = self.camera_pose(cam, t_ns);
         let rays = self.rays(cam);
-        let (w, h) = (rays.w, rays.h);
+        let (wf, hf) = (rays.w, rays.h);
         let rot_cw = pose.rotation.inverse();
         let centre = pose.centre();
-        let mut raw = vec![0.0f32; w * h];
+        let mut raw = vec![0.0f32; wf * hf];
         let trace = |d: &Vector3<f64>| self.trace_static(&centre, d);
         let sample = |d: &Vector3<f64>, _: usize, _: usize| self.trace_static(&centre, d).1;
-        let all = PixelRect { x0: 0, y0: 0, x1: w, y1: h };
+        let all = PixelRect { x0: 0, y0: 0, x1: wf, y1: hf };
         let bg_size = self.params.background_tag_mm;
         let flat = |key: u32, x: f64, y: f64| -> f32 {
             let panel = &self.layout.panels[((key >> 16) & 0xff) as usize - 1];
             let tag = &panel.tags[((key >> 8) & 0xff) as usize - 1];
             Self::tag_shade(&tag.bitmap, x, y, bg_size)
         };
-        render_rect(rays, &rot_cw, all, self.params.subsamples as usize, &trace, &sample, None, Some(&flat), &mut raw);
-        let blurred = blur(&raw, w, h, &self.kernel);
+        render_rect(rays, &rot_cw, all, self.sub_box_samples(), &trace, &sample, None, Some(&flat), &mut raw);
+        let blurred = self.optics.apply(&raw, wf, hf);
         let bg = Arc::new(Background { epoch, raw, blurred });
         *slot = Some(bg.clone());
         bg
@@ -72,7 +86,8 @@ impl SimRig {
     /// Renders camera `cam`'s image at `t_ns` (8-bit grey, the camera's size).
     ///
     /// The fixed scene is rendered once per camera pose and cached; each call re-renders
-    /// only the beam's image region, blurs around it, then adds fresh noise (seeded by
+    /// only the beam's image region, passes it and its surroundings through the optics
+    /// ([`crate::render::Optics`]), then adds fresh noise (seeded by
     /// the rig's seed, the camera and `t_ns`, so the same call gives the same image).
     /// Motion blur and a hidden tag apply per the frame set nearest to `t_ns`.
     ///
@@ -81,20 +96,26 @@ impl SimRig {
         let k = self.set_index_at(t_ns);
         let bg = self.background(cam, t_ns);
         let rays = self.rays(cam);
-        let (w, h) = (rays.w, rays.h);
+        let s = self.optics.scale();
+        let (wf, hf) = (rays.w, rays.h);
+        let (w, h) = (wf / s, hf / s);
         let pose = self.camera_pose(cam, t_ns);
         let st = self.beam_state(t_ns, self.hidden_tag(cam, k));
         let rect = self.beam_rect(cam, &pose, &st);
         let mut img = bg.blurred.clone();
         if !rect.is_empty() {
-            let r = self.kernel.len() / 2;
+            // Pixels: the beam's `rect`, what its light reaches (`valid`), and what light
+            // reaches those from (`outer`).
+            let r = self.optics.reach_px();
             let outer = rect.grow(2 * r, w, h);
-            let (ow, oh) = (outer.width(), outer.height());
-            // Unblurred composite over `outer`: background, then the beam region.
+            let valid = rect.grow(r, w, h);
+            // Sub-box integrals over `outer`: the background's, then the beam's over `rect`.
+            let (rect, outer_f) = (rect.scaled(s), outer.scaled(s));
+            let (ow, oh) = (outer_f.width(), outer_f.height());
             let mut comp = vec![0.0f32; ow * oh];
             for (j, row) in comp.chunks_mut(ow).enumerate() {
-                let y = outer.y0 + j;
-                row.copy_from_slice(&bg.raw[y * w + outer.x0..y * w + outer.x1]);
+                let y = outer_f.y0 + j;
+                row.copy_from_slice(&bg.raw[y * wf + outer_f.x0..y * wf + outer_f.x1]);
             }
             let mut beam_px = vec![0.0f32; rect.width() * rect.height()];
             let centre = pose.centre();
@@ -105,10 +126,10 @@ impl SimRig {
             let corner = |d: &Vector3<f64>| self.trace_beam(&st, &centre, d).unwrap_or((0, 0.0, [0.0; 2]));
             let sample = |d: &Vector3<f64>, x: usize, y: usize| match self.trace_beam(&st, &centre, d) {
                 Some(hit) => hit.1,
-                None => bg.raw[y * w + x],
+                None => bg.raw[y * wf + x],
             };
             let not_beam = |l: u32| l & BEAM_BIT == 0;
-            let n = self.params.subsamples as usize;
+            let n = self.sub_box_samples();
             let size = self.params.specimen_tag_mm;
             let flat = |key: u32, x: f64, y: f64| -> f32 {
                 let s = &self.layout.specimen[((key >> 8) & 0xff) as usize - 1];
@@ -117,15 +138,16 @@ impl SimRig {
             let rot = pose.rotation.inverse();
             render_rect(rays, &rot, rect, n, &corner, &sample, Some((&not_beam, &bg.raw)), Some(&flat), &mut beam_px);
             for (j, row) in beam_px.chunks(rect.width()).enumerate() {
-                let y = rect.y0 + j - outer.y0;
-                let x = rect.x0 - outer.x0;
+                let y = rect.y0 + j - outer_f.y0;
+                let x = rect.x0 - outer_f.x0;
                 comp[y * ow + x..y * ow + x + rect.width()].copy_from_slice(row);
             }
-            let blurred = blur(&comp, ow, oh, &self.kernel);
-            // Valid where the whole kernel lay inside `outer` or the image edge: rect grown by r.
-            let valid = rect.grow(r, w, h);
+            // `outer`'s pixels; right wherever the point-spread function lay inside `outer`
+            // or the image edge: over `valid`.
+            let px = self.optics.apply(&comp, ow, oh);
+            let pw = outer.width();
             for y in valid.y0..valid.y1 {
-                let src = &blurred[(y - outer.y0) * ow + valid.x0 - outer.x0..(y - outer.y0) * ow + valid.x1 - outer.x0];
+                let src = &px[(y - outer.y0) * pw + valid.x0 - outer.x0..(y - outer.y0) * pw + valid.x1 - outer.x0];
                 img[y * w + valid.x0..y * w + valid.x1].copy_from_slice(src);
             }
         }

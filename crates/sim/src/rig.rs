@@ -16,7 +16,7 @@ use tagdeflect_io::sync::SyncConfig;
 
 use super::beam::FourPointBeam;
 use super::law::{self, SimTest};
-use super::render::gaussian_kernel;
+use super::render::Optics;
 use super::render_rig::CameraState;
 use super::scene::Layout;
 use super::{SimError, SimParams};
@@ -42,7 +42,7 @@ pub struct SimRig {
     pub(crate) beam: FourPointBeam,
     pub(crate) layout: Layout,
     pub(crate) cams: Vec<CameraState>,
-    pub(crate) kernel: Vec<f32>,
+    pub(crate) optics: Optics,
 }
 
 impl std::fmt::Debug for SimRig {
@@ -74,7 +74,7 @@ impl SimRig {
             },
             layout,
             cams,
-            kernel: gaussian_kernel(params.blur_sigma),
+            optics: Optics::new(params.blur_sigma),
         })
     }
 
