@@ -130,18 +130,17 @@ fn phi_pdf_in(table: &[[f64; 8]], x: f64) -> (f64, f64) {
 /// that while the optics blur more than the pixel (an edge of 0.6 px optical blur fits
 /// ~0.67 px, the box's variance 1/12 px² added), but a sharper edge's profile is a ramp, not
 /// a Gaussian step, and a Gaussian fitted to a ramp sampled at pixel centres is biased by the
-/// edge's sub-pixel phase. Measured (2026-12-05, 3 × 1280x960 renders, tags ~28 px, a 1.5 mm
-/// ramp, per-set displacement and net deflection RMS against truth, plain → with the pixel's
-/// area below this threshold): simulated blur 0 px 0.0224 → 0.0030 mm, 12.9 → 0.8 µm; 0.3 px
-/// (effective 0.30) 0.0200 → 0.0033 mm, 9.1 → 0.8 µm; 0.45 px (effective ~0.48) 0.0052 →
-/// 0.0050 mm; 0.5 and 0.6 px the same. The threshold sits below 0.48 because the simulator
-/// blurs with a kernel sampled at whole pixels after its pixels are integrated, a profile
-/// neither model fits, on which the pixel-area model was the worse one from there on (0.45 px:
-/// 0.0063 mm with it on every edge; 0.6 px 0.0107 against 0.0104) — for optics that blur
-/// before the pixel integrates, the pixel-area model is the exact one at any blur. It costs
-/// two table look-ups instead of one per pixel and term (~13 % fewer frame sets/s on
+/// edge's sub-pixel phase. For optics that blur before the pixel integrates (a Gaussian PSF
+/// of σ, then the pixel box) the plain model's phase error on a straight edge is ±0.011 px
+/// at σ = 0.3 px (effective 0.42), ±0.0023 px at 0.45 (0.53), ±0.0004 px at 0.6 (0.67), and
+/// the pixel-area model's none; hence 0.55. Measured (2026-12-05, 3 × 1280x960 renders, tags
+/// ~28 px, a 1.5 mm ramp; control test's sharp scene, σ = 0.3 px; net deflection against
+/// truth, temporal): threshold 0.40 → 0.55, full sets 1.12 → 0.91 µm RMS, the partial
+/// recording's partial sets 1.92 → 0.81 µm, largest 7.4 → 2.2 µm. (Earlier figures, on a
+/// simulator that blurred after its pixels were integrated, are in docs/accuracy.md.) It
+/// costs two table look-ups instead of one per pixel and term (~13 % fewer frame sets/s on
 /// 3 × 1080p when every edge uses it), paid by sharp edges only.
-pub(crate) const SHARP_PX: f64 = 0.4;
+pub(crate) const SHARP_PX: f64 = 0.55;
 
 /// Variance of one pixel's box across the edge, px².
 const PIXEL_VAR: f64 = 1.0 / 12.0;
