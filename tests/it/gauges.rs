@@ -252,7 +252,10 @@ fn each_gauge_kind_gives_the_known_answer() {
     let (w1, w2): (f64, f64) = (250.0 / 450.0, 200.0 / 450.0);
     let expect = sigma * (1.0 + w1 * w1 + w2 * w2).sqrt();
     assert!((out["net_front"].sigma - expect).abs() < 2e-5, "{} vs {expect}", out["net_front"].sigma);
-    assert!((out["rot"].sigma - 1e-4 * 1e3).abs() < 1e-4, "{}", out["rot"].sigma);
+    // A rotation counts its reference set's noise too and the turn of the corners' edge
+    // lines: 1.5 × (σ_now² + σ_ref²).
+    let expect_rot = (1.5f64 * 2.0).sqrt() * 1e-4 * 1e3;
+    assert!((out["rot"].sigma - expect_rot).abs() < 1e-4, "{} vs {expect_rot}", out["rot"].sigma);
 
     // A gauge whose tag is not solved is absent (never interpolated).
     let without: Vec<GaugeTag> = as_tags(&now).into_iter().filter(|t| t.id != 4 && t.id != 2).collect();
@@ -328,7 +331,10 @@ fn gauge_sigma_matches_monte_carlo() {
         for (name, r) in g.evaluate(&noisy(&now)) {
             let e = within.entry(name.clone()).or_default();
             e.1 += 1;
-            if (r.value - truth[&name].value).abs() <= 2.0 * r.sigma {
+            // A rotation's σ holds 1.5 × the variance the pose covariance gives (the turn of
+            // a tag's edge lines, which poses drawn from that covariance do not carry).
+            let sigma = if name == "rot" { r.sigma / 1.5f64.sqrt() } else { r.sigma };
+            if (r.value - truth[&name].value).abs() <= 2.0 * sigma {
                 e.0 += 1;
             }
         }
@@ -445,9 +451,12 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
         );
         assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
-    // Floors ~1.4 × the figures measured on this seed (0.0028 mm, 0.147 mrad, 0.138 1/km).
+    // Floors ~1.4 × the figures measured on this seed (0.0028 mm, 0.212 mrad, 0.138 1/km;
+    // since the simulated optics blur before the pixels integrate: net 0.0008 mm, curvature
+    // 0.038 1/km, the end rotation 0.212 mrad from 0.147, most of it the reference set's
+    // error, common to every line — see `ROTATION_VARIANCE_FACTOR`).
     assert!(c.rms("net") <= 0.004, "net deflection RMS {} mm", c.rms("net"));
-    assert!(c.rms("rot1") <= 0.21, "end rotation RMS {} mrad", c.rms("rot1"));
+    assert!(c.rms("rot1") <= 0.30, "end rotation RMS {} mrad", c.rms("rot1"));
     assert!(c.rms("curv") <= 0.19, "curvature RMS {} 1/km", c.rms("curv"));
     let (ok, n) = c.within_2sigma();
     println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
