@@ -170,58 +170,51 @@ fn partial_scene(label: &str, params: &SimParams) -> SceneFigures {
 #[test]
 fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_sigma() {
     // Three 1280x960 cameras, tags ~28 px wide, 10 fps, 9 s of slow loading; the simulator's
-    // default blur (0.6 px, a sampled kernel on the rendered pixels).
+    // default optics (a 0.6 px Gaussian before the pixels integrate).
     let params = SimParams { frame_sets: 90, fps: 10.0, max_deflection_mm: 1.5, seed: 21, ..SimParams::default() };
     let SceneFigures { full: [ft, fp, fs], partial: [t, p, s] } = partial_scene("blur 0.6 px", &params);
-    // Full sets: as accurate as solved each on its own but for the lag at the start of
-    // loading (measured 4.81 against 4.60 µm; 5.03 before the prediction was widened along a
-    // surprising innovation); smoothed, 4.73 µm.
-    assert!(ft.full_rms <= fp.full_rms * 1.1, "full sets: temporal {ft}, per set {fp}");
+    // Full sets: no worse than solved each on its own (measured 1.28 against 1.40 µm RMS,
+    // largest 2.3 µm; smoothed 1.18 µm). Floors ~1.4× the figures.
+    assert!(ft.full_rms <= fp.full_rms && ft.full_rms <= 0.0018 && ft.max <= 0.0032, "full sets: temporal {ft}, per set {fp}");
     assert!(fs.full_rms <= ft.full_rms, "full sets: smoothed {fs}, temporal {ft}");
-    // Partial sets about as good as full ones (measured 4.54 against 4.11 µm; per set 7×
-    // worse), referred to the full sets' cameras; smoothed better still.
-    assert!(t.partial_rms <= 1.4 * t.full_rms, "partial vs full: {t}");
+    // The issue's targets on the recording that lacks one or two cameras in a third of its
+    // sets and two cameras for 2 s: partial sets within 2× the full ones (measured 1.86
+    // against 1.32 µm; per set 15.4 µm), smoothed better still (1.02 µm); no line beyond
+    // 8 µm (measured 5.2 µm live, 1.8 µm smoothed; per set 51 µm).
+    assert!(t.partial_rms <= 2.0 * t.full_rms && t.partial_rms <= 0.0026, "partial vs full: {t}");
     assert!(t.partial_rms * 4.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
     assert!(s.partial_rms <= t.partial_rms, "partial sets: smoothed {s}, temporal {t}");
-    // The largest error: 15.6 µm live, 11.1 µm smoothed (per set 84 µm; live 18.0 before the
-    // widening). The issue's 8 µm is not reached: the residue is the corner fit's bias of the
-    // one camera left during the two-camera outage, which changes as the tag moves across
-    // pixels (docs/control.md).
-    assert!(t.max <= 0.021 && t.max * 3.0 <= p.max, "largest net-deflection error: temporal {t}, per set {p}");
-    assert!(s.max <= 0.016, "largest net-deflection error smoothed: {s}");
-    // σ: 84 % (temporal) and 89 % (smoothed) of the errors within 2σ on this recording, 66 %
-    // on the full one (per set 69 %). The net deflection's σ is the pixel noise of the solve;
-    // the errors hold two things it leaves out: the zero reference's own error (common to
-    // every line) and the corner fit's bias that changes slowly as a tag moves across pixels
-    // (±10 µm here, seen on the per-set solve as much). Said in docs/control.md; the floors
-    // keep what is measured from getting worse.
-    assert!(t.within >= 0.80 && s.within >= 0.80, "within 2σ: temporal {t}, smoothed {s}");
-    assert!(ft.within >= 0.58 && fs.within >= 0.58, "within 2σ on the full recording: temporal {ft}, smoothed {fs}");
+    assert!(t.max <= 0.008 && s.max <= 0.008, "no line beyond 8 µm: temporal {t}, smoothed {s}");
+    assert!(t.max * 3.0 <= p.max, "largest net-deflection error: temporal {t}, per set {p}");
+    // σ honest both ways: ≥ 85 % within 2σ (the issue's target) and not every error inside
+    // (measured 92 % live, 94 % smoothed; on the full recording 86 % and 97 %; per set 90 %).
+    assert!((0.85..0.99).contains(&t.within) && (0.85..0.99).contains(&s.within), "within 2σ: temporal {t}, smoothed {s}");
+    assert!(
+        (0.80..0.99).contains(&ft.within) && (0.80..0.99).contains(&fs.within),
+        "within 2σ, full recording: temporal {ft}, smoothed {fs}"
+    );
 }
 
 #[test]
 fn partial_sets_of_a_sharp_scene() {
-    // The same scene with sharp optics (blur 0.3 px): the edges are fitted with the pixel's
-    // area (`refine::fit`, SHARP_PX), and the corner bias that wanders with the pixel phase
-    // on the default scene is gone from the full recording: measured 0.67 µm RMS temporal
-    // (largest 1.6 µm), 0.80 per set, 0.54 smoothed (before the pixel's area was fitted: 9.0 /
-    // 9.1 µm). The partial recording: full sets 0.76 µm, partial sets 1.91 µm (per set 12.2),
-    // largest 6.7 µm (smoothed 1.06 µm, largest 2.8 µm), 99 % within 2σ (smoothed 100 %) —
-    // the issue's "no line beyond 8 µm" and "≥ 85 % within 2σ" met, "partial within 2× the
-    // full sets" not quite (2.5×; smoothed 1.5×). Before a referred set seen by one camera was
-    // kept from declaring a jump: partial 3.46 µm, largest 16.4 µm (docs/control.md).
+    // The same scene with sharp optics (blur 0.3 px, effective 0.42): the edges are fitted
+    // with the pixel's area (`refine::fit`, SHARP_PX). Measured: full recording 0.91 µm RMS
+    // temporal (largest 2.0 µm), 1.00 per set, 0.83 smoothed; the partial recording's full
+    // sets 0.96 µm, partial sets 0.81 µm (per set 9.6), largest 2.2 µm (smoothed 0.63 µm,
+    // largest 1.6 µm); 93 % within 2σ live and smoothed, 90 % on the full recording.
     let params = SimParams { frame_sets: 90, fps: 10.0, max_deflection_mm: 1.5, seed: 21, blur_sigma: 0.3, ..SimParams::default() };
     let SceneFigures { full: [ft, fp, fs], partial: [t, p, s] } = partial_scene("blur 0.3 px", &params);
     assert!(
-        ft.full_rms <= 0.0009 && fp.full_rms <= 0.0011 && fs.full_rms <= 0.00075 && ft.max <= 0.0025,
+        ft.full_rms <= 0.0013 && fp.full_rms <= 0.0014 && fs.full_rms <= 0.0012 && ft.max <= 0.003,
         "full sets: temporal {ft}, per set {fp}, smoothed {fs}"
     );
-    assert!(t.full_rms <= 0.0010 && t.partial_rms <= 0.0025 && s.partial_rms <= 0.0014, "partial recording: temporal {t}, smoothed {s}");
-    assert!(t.partial_rms <= 3.0 * t.full_rms && s.partial_rms <= 2.0 * s.full_rms, "partial vs full: temporal {t}, smoothed {s}");
+    assert!(ft.full_rms <= fp.full_rms && fs.full_rms <= ft.full_rms, "full sets: temporal {ft}, per set {fp}, smoothed {fs}");
+    assert!(t.full_rms <= 0.0014 && t.partial_rms <= 0.0012 && s.partial_rms <= 0.0009, "partial recording: temporal {t}, smoothed {s}");
+    assert!(t.partial_rms <= 2.0 * t.full_rms && s.partial_rms <= 2.0 * s.full_rms, "partial vs full: temporal {t}, smoothed {s}");
     assert!(t.partial_rms * 5.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
-    assert!(t.max <= 0.008 && s.max <= 0.008, "no line beyond 8 µm: temporal {t}, smoothed {s}");
-    assert!(t.within >= 0.9 && s.within >= 0.9 && ft.within >= 0.9, "within 2σ: temporal {t}, smoothed {s}, full {ft}");
-    assert!(t.within < 1.0 || ft.within < 1.0, "σ not all inflated: temporal {t}, full {ft}");
+    assert!(t.max <= 0.0032 && s.max <= 0.0032, "no line beyond 8 µm (floor 3.2 µm): temporal {t}, smoothed {s}");
+    let honest = |f: &NetFigures| (0.85..0.99).contains(&f.within);
+    assert!(honest(&t) && honest(&s) && honest(&ft), "within 2σ: temporal {t}, smoothed {s}, full {ft}");
 }
 
 #[test]
