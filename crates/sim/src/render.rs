@@ -458,11 +458,9 @@ mod tests {
             let mut worst = 0.0f64;
             for x in 3..12 {
                 let m = 200;
-                let expected: f64 = (0..m)
-                    .map(|i| normal_cdf((x as f64 - 7.0 - edge + (i as f64 + 0.5) / m as f64 - 0.5) / sigma))
-                    .sum::<f64>()
-                    * 100.0
-                    / m as f64;
+                let expected: f64 =
+                    (0..m).map(|i| normal_cdf((x as f64 - 7.0 - edge + (i as f64 + 0.5) / m as f64 - 0.5) / sigma)).sum::<f64>() * 100.0
+                        / m as f64;
                 worst = worst.max((img[3 * 16 + x] as f64 - expected).abs());
             }
             // The sub-samples resolve the edge to 1/64 of a box: 100/128 grey levels at most.
