@@ -258,6 +258,14 @@ impl Optics {
         self.scale
     }
 
+    /// Sub-samples per axis of a sub-box for `per_pixel` per axis of a pixel: an n-rooks
+    /// pattern of `n` per axis resolves an edge parallel to the grid to `1/n²` of its box, so
+    /// `⌈per_pixel/√scale⌉` keeps the pixel's `1/per_pixel²` with `scale` sub-boxes across it.
+    pub fn sub_box_samples(&self, per_pixel: usize) -> usize {
+        let n = per_pixel as f64 / (self.scale as f64).sqrt();
+        (n.ceil() as usize).max(1)
+    }
+
     /// Pixels the point-spread function reaches on either side of a pixel.
     pub fn reach_px(&self) -> usize {
         let far = self.origin.max(self.kernel.len() - 1 - self.origin);

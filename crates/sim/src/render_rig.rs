@@ -45,12 +45,9 @@ impl SimRig {
         self.cams[cam].rays.get_or_init(|| CornerRays::sub_boxes(&self.layout.intrinsics[cam], self.optics.scale()))
     }
 
-    /// Sub-box sub-samples per axis: an n-rooks pattern of `n` per axis resolves an edge
-    /// parallel to the grid to `1/n²` of its box, so `⌈subsamples/√scale⌉` keeps the pixel's
-    /// `1/subsamples²` with `scale` sub-boxes across it.
+    /// Sub-box sub-samples per axis ([`crate::render::Optics::sub_box_samples`]).
     fn sub_box_samples(&self) -> usize {
-        let n = self.params.subsamples as f64 / (self.optics.scale() as f64).sqrt();
-        (n.ceil() as usize).max(1)
+        self.optics.sub_box_samples(self.params.subsamples as usize)
     }
 
     fn background(&self, cam: usize, t_ns: i64) -> Arc<Background> {

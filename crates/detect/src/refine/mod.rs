@@ -22,7 +22,7 @@
 //!
 //! Every pixel integrates light over its area. While the optics blur more than a pixel, a
 //! Gaussian of fitted width absorbs that (the model above, at the pixel's centre); for edges
-//! sharper than `fit::SHARP_PX` (0.40 px effective blur) `S` is averaged over the pixel's
+//! sharper than `fit::SHARP_PX` (0.55 px effective blur) `S` is averaged over the pixel's
 //! width across the edge instead, where a Gaussian fitted to the ramp that a sharp edge makes
 //! was biased by the edge's sub-pixel phase (`fit::pixel_step`; figures there).
 //!
