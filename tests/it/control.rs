@@ -173,21 +173,23 @@ fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_s
     // default optics (a 0.6 px Gaussian before the pixels integrate).
     let params = SimParams { frame_sets: 90, fps: 10.0, max_deflection_mm: 1.5, seed: 21, ..SimParams::default() };
     let SceneFigures { full: [ft, fp, fs], partial: [t, p, s] } = partial_scene("blur 0.6 px", &params);
-    // Full sets: no worse than solved each on its own (measured 1.28 against 1.40 µm RMS,
-    // largest 2.3 µm; smoothed 1.18 µm). Floors ~1.4× the figures.
+    // Full sets: no worse than solved each on its own (measured 1.23 against 1.40 µm RMS,
+    // largest 2.3 µm; smoothed 1.15 µm; one filter before the two models: 1.28 µm). Floors
+    // ~1.4× the figures.
     assert!(ft.full_rms <= fp.full_rms && ft.full_rms <= 0.0018 && ft.max <= 0.0032, "full sets: temporal {ft}, per set {fp}");
     assert!(fs.full_rms <= ft.full_rms, "full sets: smoothed {fs}, temporal {ft}");
     // The targets on the recording that lacks one or two cameras in a third of its
-    // sets and two cameras for 2 s: partial sets within 2× the full ones (measured 1.86
-    // against 1.32 µm; per set 15.4 µm), smoothed better still (1.02 µm); no line beyond
-    // 8 µm (measured 5.2 µm live, 1.8 µm smoothed; per set 51 µm).
-    assert!(t.partial_rms <= 2.0 * t.full_rms && t.partial_rms <= 0.0026, "partial vs full: {t}");
+    // sets and two cameras for 2 s: partial sets within 2× the full ones (measured 1.16
+    // against 1.28 µm; one filter before the two models 1.86 µm; per set 15.4 µm), smoothed
+    // better still (0.98 µm); no line beyond 8 µm (measured 3.9 µm live, 1.5 µm smoothed;
+    // one filter 5.2 µm; per set 51 µm).
+    assert!(t.partial_rms <= 2.0 * t.full_rms && t.partial_rms <= 0.0017, "partial vs full: {t}");
     assert!(t.partial_rms * 4.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
     assert!(s.partial_rms <= t.partial_rms, "partial sets: smoothed {s}, temporal {t}");
-    assert!(t.max <= 0.008 && s.max <= 0.008, "no line beyond 8 µm: temporal {t}, smoothed {s}");
+    assert!(t.max <= 0.0055 && s.max <= 0.0055, "no line beyond 8 µm (floor 5.5 µm): temporal {t}, smoothed {s}");
     assert!(t.max * 3.0 <= p.max, "largest net-deflection error: temporal {t}, per set {p}");
     // σ honest both ways: ≥ 85 % within 2σ (the target) and not every error inside
-    // (measured 92 % live, 94 % smoothed; on the full recording 86 % and 97 %; per set 90 %).
+    // (measured 88 % live, 96 % smoothed; on the full recording 86 % and 83 %; per set 90 %).
     assert!((0.85..0.99).contains(&t.within) && (0.85..0.99).contains(&s.within), "within 2σ: temporal {t}, smoothed {s}");
     assert!(
         (0.80..0.99).contains(&ft.within) && (0.80..0.99).contains(&fs.within),
@@ -198,10 +200,10 @@ fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_s
 #[test]
 fn partial_sets_of_a_sharp_scene() {
     // The same scene with sharp optics (blur 0.3 px, effective 0.42): the edges are fitted
-    // with the pixel's area (`refine::fit`, SHARP_PX). Measured: full recording 0.91 µm RMS
-    // temporal (largest 2.0 µm), 1.00 per set, 0.83 smoothed; the partial recording's full
-    // sets 0.96 µm, partial sets 0.81 µm (per set 9.6), largest 2.2 µm (smoothed 0.63 µm,
-    // largest 1.6 µm); 93 % within 2σ live and smoothed, 90 % on the full recording.
+    // with the pixel's area (`refine::fit`, SHARP_PX). Measured: full recording 0.86 µm RMS
+    // temporal (largest 1.8 µm), 1.00 per set, 0.80 smoothed; the partial recording's full
+    // sets 0.91 µm, partial sets 0.74 µm (per set 9.6), largest 2.2 µm (smoothed 0.64 µm,
+    // largest 1.3 µm); 93 % within 2σ live, 97 % smoothed, 93 % on the full recording.
     let params = SimParams { frame_sets: 90, fps: 10.0, max_deflection_mm: 1.5, seed: 21, blur_sigma: 0.3, ..SimParams::default() };
     let SceneFigures { full: [ft, fp, fs], partial: [t, p, s] } = partial_scene("blur 0.3 px", &params);
     assert!(

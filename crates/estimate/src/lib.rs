@@ -12,7 +12,8 @@
 //! * [`tag_pose`]: a specimen tag's 6-DOF pose over all views at once ([`solve_tag`]),
 //!   warm-started, outlier views rejected, σ from the covariance.
 //! * [`temporal`]: each specimen tag's centre and rate carried over frame sets
-//!   ([`temporal::TagFilter`], a Kalman filter with adaptive process noise; RTS smoother).
+//!   ([`temporal::TagFilter`], two Kalman filters mixed as an interacting multiple model,
+//!   steady and changing motion, each with adaptive process noise; RTS smoother).
 //! * [`partial`]: a partial frame set's solve referred to the tag's last full sets, so that
 //!   the subset's camera-pose errors do not throw it.
 //! * [`smooth`]: a fixed-lag RTS smoother over the temporal estimate's lines (replay).

@@ -8,10 +8,18 @@
 //! smoothly (but for the jump of a first crack), so each tag's state is carried from set to
 //! set and every set's views update what they observe.
 //!
-//! Model (per tag, a linear Kalman filter on 6 states): the tag's centre `p` (mm, world)
-//! and its rate `ṗ` (mm/s), white-noise acceleration of spectral density `q`
-//! ([`TemporalConfig::accel_mm_s2`]² per second). Each frame set's multi-view (or
-//! single-view) solve is the measurement `z = p + v`:
+//! Model (per tag, an interacting multiple model of two linear Kalman filters on 6 states):
+//! the tag's centre `p` (mm, world) and its rate `ṗ` (mm/s), white-noise acceleration of
+//! spectral density `q` ([`TemporalConfig::accel_mm_s2`]² per second) in the *changing*
+//! model and [`STEADY_SHARE`] of it in the *steady* one (a tag at rest or at a constant
+//! rate: the held beam, a steady ramp). The models switch with a chance of
+//! `SWITCH_PER_S` per second; each set's centre weighs them by its likelihood under
+//! their predictions, and the output is their moment-matched mixture (mean and covariance,
+//! the spread of the means included). Why two: one density must choose between noise at
+//! rest and following a change of rate; the changing model alone left 0.53–0.61× of the
+//! raw noise at rest on rendered scenes, the mixture 0.36–0.49× (docs/control.md), while a
+//! change of rate is followed as by the changing model alone. Each frame set's multi-view
+//! (or single-view) solve is the measurement `z = p + v`:
 //!
 //! * `v`'s covariance is the solve's pixel-noise covariance while the tag is seen by as many
 //!   cameras as usual (the held camera poses' errors are then common to every set and cancel
@@ -19,9 +27,10 @@
 //!   see it (a partial set: the camera-pose part is no longer the same, and a monocular
 //!   view's line-of-sight uncertainty is large), so such a set moves the state only along
 //!   what its views observe well.
-//! * Adaptive process noise: the normalised innovation squared (NIS) of full sets is
-//!   averaged; while it stays above its expectation the process noise is scaled up (a rate
-//!   change the model did not expect is followed within a few sets), and it relaxes back.
+//! * Adaptive process noise (each model its own): the normalised innovation squared (NIS)
+//!   of full sets is averaged; while it stays above its expectation the process noise is
+//!   scaled up (a rate change the model did not expect is followed within a few sets), and
+//!   it relaxes back.
 //! * A jump (a first crack, a bump of the specimen): a full set's innovation beyond the
 //!   χ² gate widens the predicted position covariance by the innovation itself, so the state
 //!   moves to the measurement at once without throwing the rate. A partial set's innovation
@@ -29,7 +38,9 @@
 //!
 //! σ: the posterior covariance of `p` (pixel noise; the caller adds the camera-pose part for
 //! the feed's absolute `sigma_mm`). A fixed-interval Rauch–Tung–Striebel smoother over a
-//! stored run ([`smooth`]) gives the replay's and the report's best estimate.
+//! stored run ([`smooth`]) gives the replay's and the report's best estimate; it runs on the
+//! mixture's moments (each step's combined prediction and posterior), the usual
+//! approximation of smoothing an interacting multiple model by one Gaussian.
 
 use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3, Vector6};
 
@@ -55,8 +66,9 @@ pub enum Estimator {
 /// Options of the temporal estimator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TemporalConfig {
-    /// Expected size (1 σ) of the unmodelled change of a tag's rate, mm/s per √s (the
-    /// white-noise acceleration's spectral density is its square).
+    /// Expected size (1 σ) of the unmodelled change of a tag's rate while it changes, mm/s
+    /// per √s (the changing model's white-noise acceleration density is its square; the
+    /// steady model's [`STEADY_SHARE`] of it).
     pub accel_mm_s2: f64,
     /// Most the adaptive scale may raise the process noise's density.
     pub max_adapt: f64,
@@ -81,6 +93,13 @@ const SURPRISE: f64 = 4.0;
 const NIS_WEIGHT: f64 = 0.25;
 /// A tag not updated for this long starts afresh, ns.
 const RESTART_NS: i64 = 5_000_000_000;
+/// Share of the configured process-noise density the steady model assumes (a tag at rest or
+/// moving at a constant rate: the held beam, a steady ramp).
+pub const STEADY_SHARE: f64 = 0.01;
+/// Chance per second that a tag switches between steady and changing motion (each way).
+const SWITCH_PER_S: f64 = 0.5;
+/// The models' probabilities when a filter starts: steady, changing.
+const START_MU: [f64; 2] = [0.5, 0.5];
 /// Sets over which the usual number of views of a tag is remembered.
 const VIEWS_MEMORY: u32 = 50;
 
@@ -147,23 +166,166 @@ pub struct Update {
     pub jump: bool,
 }
 
-/// The temporal filter of one tag (see the module docs).
-#[derive(Debug, Clone)]
-pub struct TagFilter {
-    config: TemporalConfig,
-    t_ns: i64,
+/// One motion model's filter: the state, its covariance and the model's own adaptation
+/// (see [`TagFilter`]: two of them, mixed).
+#[derive(Debug, Clone, Copy)]
+struct Mode {
+    /// Share of the configured process-noise density this model assumes.
+    density_share: f64,
     x: V6,
     p: M6,
     /// Adaptive scale of the process noise (≥ 1).
     adapt: f64,
     /// Running mean of the full sets' NIS / 3.
     nis: f64,
+    /// The last full update was a jump.
+    jumped_last: bool,
+}
+
+/// What one mode's update made of a set.
+struct ModeStep {
+    x_pred: V6,
+    p_pred: M6,
+    /// Log-likelihood of the set's centre under the mode's prediction (before any widening),
+    /// up to a constant common to the modes.
+    log_likelihood: f64,
+    jump: bool,
+}
+
+impl Mode {
+    fn new(density_share: f64, x: V6, p: M6) -> Mode {
+        Mode { density_share, x, p, adapt: 1.0, nis: 1.0, jumped_last: false }
+    }
+
+    /// The process noise over `dt` seconds for a white-noise acceleration of density `q`.
+    fn process_noise(&self, config: &TemporalConfig, dt: f64) -> M6 {
+        let q = config.accel_mm_s2.powi(2) * self.density_share * self.adapt;
+        let i = Matrix3::<f64>::identity();
+        let mut qm = M6::zeros();
+        qm.fixed_view_mut::<3, 3>(0, 0).copy_from(&(i * (q * dt.powi(3) / 3.0 + 1e-12)));
+        qm.fixed_view_mut::<3, 3>(0, 3).copy_from(&(i * (q * dt.powi(2) / 2.0)));
+        qm.fixed_view_mut::<3, 3>(3, 0).copy_from(&(i * (q * dt.powi(2) / 2.0)));
+        qm.fixed_view_mut::<3, 3>(3, 3).copy_from(&(i * (q * dt)));
+        qm
+    }
+
+    /// Predicts over `dt` seconds (transition `f`) and updates with one set's centre (see
+    /// [`TagFilter::update`]); `None` when the innovation's covariance is singular (nothing
+    /// changed then).
+    #[allow(clippy::too_many_arguments)]
+    fn update(
+        &mut self,
+        config: &TemporalConfig,
+        f: &M6,
+        dt: f64,
+        centre: Vector3<f64>,
+        noise_cov: &Matrix3<f64>,
+        full_cov: &Matrix3<f64>,
+        partial: bool,
+    ) -> Option<ModeStep> {
+        let q = self.process_noise(config, dt);
+        let x_pred = f * self.x;
+        let mut p_pred = f * self.p * f.transpose() + q;
+        let mut r = if partial { *full_cov } else { *noise_cov };
+        let h = SMatrix::<f64, 3, 6>::identity();
+        let d = centre - x_pred.fixed_rows::<3>(0);
+        let s = p_pred.fixed_view::<3, 3>(0, 0) + r;
+        let s_inv = s.try_inverse()?;
+        let nis = d.dot(&(s_inv * d));
+        let log_likelihood = -0.5 * (nis + s.determinant().max(f64::MIN_POSITIVE).ln());
+        let mut jump = false;
+        let dt_rate = dt.max(1e-3);
+        if nis > GATE {
+            if partial {
+                // Suspect depth: down-weight, never lock out.
+                r *= nis / GATE;
+            } else {
+                // A jump: the position may be anywhere along the innovation (a first crack
+                // moves the tag at once). A second jump in a row says the rate changed (the
+                // start or end of loading, a crack's softening): the rate may then be off by
+                // as much as the innovation over the interval. One jump alone leaves the rate
+                // as it was, so a step is followed in one set without a rate thrown by noise.
+                let widen = d * d.transpose();
+                let mut pp = p_pred.fixed_view_mut::<3, 3>(0, 0);
+                pp += widen;
+                if self.jumped_last {
+                    let mut pv = p_pred.fixed_view_mut::<3, 3>(3, 3);
+                    pv += widen / (dt_rate * dt_rate);
+                }
+                jump = true;
+            }
+        } else if !partial && nis / 3.0 > SURPRISE {
+            // Too large for the model, too small for a jump: the rate is changing (loading
+            // starts, stops or changes speed). Covariance matching at once: this interval's
+            // process noise is scaled so that it explains the innovation, and — since that
+            // noise is tiny over one interval — the prediction is also widened along the
+            // innovation by the covariance that brings its NIS to 3 (`S + α d dᵀ` with
+            // `α = (nis/3 − 1)/nis`, Sherman–Morrison), the rate by the same over the
+            // interval, so position and rate are corrected in this set, not over the next
+            // several (docs/control.md: the start of loading).
+            let scale = (nis / 3.0 - 1.0).min(config.max_adapt);
+            p_pred += q * scale;
+            let alpha = (nis / 3.0 - 1.0) / nis;
+            let widen = d * d.transpose() * alpha;
+            let mut pp = p_pred.fixed_view_mut::<3, 3>(0, 0);
+            pp += widen;
+            let mut pv = p_pred.fixed_view_mut::<3, 3>(3, 3);
+            pv += widen / (dt_rate * dt_rate);
+            self.adapt = (self.adapt * nis / 3.0).min(config.max_adapt);
+        }
+        if !partial {
+            self.nis = (1.0 - NIS_WEIGHT) * self.nis + NIS_WEIGHT * (nis / 3.0).min(GATE);
+            // Covariance matching: raise the process noise while innovations are larger than
+            // the model expects, relax it back while they are not.
+            if self.nis > 2.0 {
+                self.adapt = (self.adapt * 2.0).min(config.max_adapt);
+            } else if self.nis < 1.2 {
+                self.adapt = (self.adapt * 0.8).max(1.0);
+            }
+            self.jumped_last = jump;
+        }
+        let s = h * p_pred * h.transpose() + r;
+        let s_inv = s.try_inverse()?;
+        let k = p_pred * h.transpose() * s_inv;
+        // Joseph form: stays symmetric positive definite.
+        let ikh = M6::identity() - k * h;
+        let p = ikh * p_pred * ikh.transpose() + k * r * k.transpose();
+        self.x = x_pred + k * d;
+        self.p = (p + p.transpose()) * 0.5;
+        Some(ModeStep { x_pred, p_pred, log_likelihood, jump })
+    }
+}
+
+/// Moment-matched mean and covariance of weighted Gaussians.
+fn combine<'a>(parts: impl Iterator<Item = (f64, &'a V6, &'a M6)> + Clone) -> (V6, M6) {
+    let x: V6 = parts.clone().map(|(w, x, _)| x * w).sum();
+    let p: M6 = parts
+        .map(|(w, xi, pi)| {
+            let d = xi - x;
+            (pi + d * d.transpose()) * w
+        })
+        .sum();
+    (x, (p + p.transpose()) * 0.5)
+}
+
+/// The temporal filter of one tag (see the module docs): an interacting multiple model of
+/// two constant-velocity filters, the *steady* one ([`STEADY_SHARE`] of the density) and the
+/// *changing* one (the configured density), mixed by how well each predicted the sets.
+#[derive(Debug, Clone)]
+pub struct TagFilter {
+    config: TemporalConfig,
+    t_ns: i64,
+    /// The steady and the changing model.
+    modes: [Mode; 2],
+    /// Their probabilities.
+    mu: [f64; 2],
+    /// The combined state and covariance.
+    x: V6,
+    p: M6,
     /// The steps so far, when kept for the smoother.
     history: Option<Vec<Step>>,
     /// The latest step (for a fixed-lag smoother outside, `estimate::smooth`).
     last: Step,
-    /// The last full update was a jump.
-    jumped_last: bool,
 }
 
 impl TagFilter {
@@ -171,17 +333,8 @@ impl TagFilter {
     pub fn new(config: TemporalConfig, t_ns: i64, centre: Vector3<f64>, cov: &Matrix3<f64>) -> TagFilter {
         let blank =
             Step { t_ns, x_pred: V6::zeros(), p_pred: M6::zeros(), x: V6::zeros(), p: M6::zeros(), f: M6::identity(), restart: true };
-        let mut f = TagFilter {
-            config,
-            t_ns,
-            x: V6::zeros(),
-            p: M6::zeros(),
-            adapt: 1.0,
-            nis: 1.0,
-            history: None,
-            last: blank,
-            jumped_last: false,
-        };
+        let mode = Mode::new(1.0, V6::zeros(), M6::zeros());
+        let mut f = TagFilter { config, t_ns, modes: [mode; 2], mu: [0.5; 2], x: V6::zeros(), p: M6::zeros(), history: None, last: blank };
         f.start(t_ns, centre, cov);
         f
     }
@@ -205,9 +358,8 @@ impl TagFilter {
         self.p.fixed_view_mut::<3, 3>(0, 0).copy_from(cov);
         // The rate is unknown at start: a few mm/s (a beam in a test moves far less).
         self.p.fixed_view_mut::<3, 3>(3, 3).copy_from(&(Matrix3::identity() * 1.0));
-        self.adapt = 1.0;
-        self.nis = 1.0;
-        self.jumped_last = false;
+        self.modes = [Mode::new(STEADY_SHARE, self.x, self.p), Mode::new(1.0, self.x, self.p)];
+        self.mu = START_MU;
         self.last = Step { t_ns, x_pred: self.x, p_pred: self.p, x: self.x, p: self.p, f: M6::identity(), restart: true };
         if let Some(h) = self.history.as_mut() {
             h.push(self.last);
@@ -241,115 +393,81 @@ impl TagFilter {
 
     /// Centre and covariance predicted at `t_ns` (for a set that did not see the tag).
     pub fn predict_at(&self, t_ns: i64) -> (Vector3<f64>, Matrix3<f64>) {
-        let (f, q) = self.transition(t_ns);
-        let x = f * self.x;
-        let p = f * self.p * f.transpose() + q;
+        let (f, dt) = self.transition(t_ns);
+        let pred: Vec<(V6, M6)> =
+            self.modes.iter().map(|m| (f * m.x, f * m.p * f.transpose() + m.process_noise(&self.config, dt))).collect();
+        let (x, p) = combine(self.mu.iter().zip(&pred).map(|(w, (x, p))| (*w, x, p)));
         (x.fixed_rows::<3>(0).into_owned(), p.fixed_view::<3, 3>(0, 0).into_owned())
     }
 
-    /// The current adaptive scale of the process noise (1 = the configured density).
+    /// The current adaptive scale of the changing model's process noise (1 = the configured
+    /// density).
     pub fn adaptive_scale(&self) -> f64 {
-        self.adapt
+        self.modes[1].adapt
     }
 
-    fn transition(&self, t_ns: i64) -> (M6, M6) {
+    /// The probability that the tag moves steadily (at rest or at a constant rate) rather
+    /// than changing its rate.
+    pub fn steady_probability(&self) -> f64 {
+        self.mu[0]
+    }
+
+    /// The transition to `t_ns` and its interval, s.
+    fn transition(&self, t_ns: i64) -> (M6, f64) {
         let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(0.0);
         let mut f = M6::identity();
         f.fixed_view_mut::<3, 3>(0, 3).copy_from(&(Matrix3::identity() * dt));
-        let q = self.config.accel_mm_s2.powi(2) * self.adapt;
-        let i = Matrix3::<f64>::identity();
-        let mut qm = M6::zeros();
-        qm.fixed_view_mut::<3, 3>(0, 0).copy_from(&(i * (q * dt.powi(3) / 3.0 + 1e-12)));
-        qm.fixed_view_mut::<3, 3>(0, 3).copy_from(&(i * (q * dt.powi(2) / 2.0)));
-        qm.fixed_view_mut::<3, 3>(3, 0).copy_from(&(i * (q * dt.powi(2) / 2.0)));
-        qm.fixed_view_mut::<3, 3>(3, 3).copy_from(&(i * (q * dt)));
-        (f, qm)
+        (f, dt)
     }
 
     /// Updates the state with one set's solve of the tag: `centre` with its pixel-noise
     /// covariance `noise_cov` and its full covariance `full_cov` (camera poses included);
     /// `partial` when fewer cameras than usual saw the tag (see [`UsualViews`]).
+    ///
+    /// Each model is mixed from both by the chance of a switch over the interval, predicts,
+    /// and is updated as one filter would be (the jump and the adaptation of the module docs,
+    /// each model its own); the models' probabilities follow the likelihood of the set's
+    /// centre under their predictions, and the output is their moment-matched mixture.
     pub fn update(&mut self, t_ns: i64, centre: Vector3<f64>, noise_cov: &Matrix3<f64>, full_cov: &Matrix3<f64>, partial: bool) -> Update {
         if t_ns - self.t_ns > RESTART_NS || t_ns < self.t_ns {
             self.start(t_ns, centre, if partial { full_cov } else { noise_cov });
             return self.result(partial, false);
         }
-        let (f, q) = self.transition(t_ns);
-        let x_pred = f * self.x;
-        let mut p_pred = f * self.p * f.transpose() + q;
-        let mut r = if partial { *full_cov } else { *noise_cov };
-        let h = SMatrix::<f64, 3, 6>::identity();
-        let d = centre - x_pred.fixed_rows::<3>(0);
-        let s = p_pred.fixed_view::<3, 3>(0, 0) + r;
-        let Some(s_inv) = s.try_inverse() else {
-            return self.result(partial, false);
-        };
-        let nis = d.dot(&(s_inv * d));
-        let mut jump = false;
-        if nis > GATE {
-            if partial {
-                // Suspect depth: down-weight, never lock out.
-                r *= nis / GATE;
-            } else {
-                // A jump: the position may be anywhere along the innovation (a first crack
-                // moves the tag at once). A second jump in a row says the rate changed (the
-                // start or end of loading, a crack's softening): the rate may then be off by
-                // as much as the innovation over the interval. One jump alone leaves the rate
-                // as it was, so a step is followed in one set without a rate thrown by noise.
-                let widen = d * d.transpose();
-                let mut pp = p_pred.fixed_view_mut::<3, 3>(0, 0);
-                pp += widen;
-                if self.jumped_last {
-                    let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(1e-3);
-                    let mut pv = p_pred.fixed_view_mut::<3, 3>(3, 3);
-                    pv += widen / (dt * dt);
-                }
-                jump = true;
+        let (f, dt) = self.transition(t_ns);
+        // Mixing: the chance of a switch over the interval.
+        let switch = 1.0 - (-SWITCH_PER_S * dt).exp();
+        let stay = 1.0 - switch;
+        let c = [stay * self.mu[0] + switch * self.mu[1], switch * self.mu[0] + stay * self.mu[1]];
+        let mut modes = self.modes;
+        for (j, mode) in modes.iter_mut().enumerate() {
+            if c[j] <= 0.0 {
+                continue;
             }
-        } else if !partial && nis / 3.0 > SURPRISE {
-            // Too large for the model, too small for a jump: the rate is changing (loading
-            // starts, stops or changes speed). Covariance matching at once: this interval's
-            // process noise is scaled so that it explains the innovation, and — since that
-            // noise is tiny over one interval — the prediction is also widened along the
-            // innovation by the covariance that brings its NIS to 3 (`S + α d dᵀ` with
-            // `α = (nis/3 − 1)/nis`, Sherman–Morrison), the rate by the same over the
-            // interval, so position and rate are corrected in this set, not over the next
-            // several (docs/control.md: the start of loading).
-            let scale = (nis / 3.0 - 1.0).min(self.config.max_adapt);
-            p_pred += q * scale;
-            let alpha = (nis / 3.0 - 1.0) / nis;
-            let widen = d * d.transpose() * alpha;
-            let dt = ((t_ns - self.t_ns) as f64 * 1e-9).max(1e-3);
-            let mut pp = p_pred.fixed_view_mut::<3, 3>(0, 0);
-            pp += widen;
-            let mut pv = p_pred.fixed_view_mut::<3, 3>(3, 3);
-            pv += widen / (dt * dt);
-            self.adapt = (self.adapt * nis / 3.0).min(self.config.max_adapt);
+            let w = |i: usize| if i == j { stay } else { switch } * self.mu[i] / c[j];
+            let (x0, p0) = combine((0..2).map(|i| (w(i), &self.modes[i].x, &self.modes[i].p)));
+            mode.x = x0;
+            mode.p = p0;
         }
-        if !partial {
-            self.nis = (1.0 - NIS_WEIGHT) * self.nis + NIS_WEIGHT * (nis / 3.0).min(GATE);
-            // Covariance matching: raise the process noise while innovations are larger than
-            // the model expects, relax it back while they are not.
-            if self.nis > 2.0 {
-                self.adapt = (self.adapt * 2.0).min(self.config.max_adapt);
-            } else if self.nis < 1.2 {
-                self.adapt = (self.adapt * 0.8).max(1.0);
-            }
+        let mut steps = Vec::with_capacity(2);
+        for mode in modes.iter_mut() {
+            let Some(step) = mode.update(&self.config, &f, dt, centre, noise_cov, full_cov, partial) else {
+                return self.result(partial, false);
+            };
+            steps.push(step);
         }
-        if !partial {
-            self.jumped_last = jump;
-        }
-        let s = h * p_pred * h.transpose() + r;
-        let Some(s_inv) = s.try_inverse() else {
+        let best = steps.iter().map(|s| s.log_likelihood).fold(f64::NEG_INFINITY, f64::max);
+        let weights: Vec<f64> = steps.iter().zip(&c).map(|(s, c)| c * (s.log_likelihood - best).exp()).collect();
+        let total: f64 = weights.iter().sum();
+        if !(total > 0.0 && total.is_finite()) {
             return self.result(partial, false);
-        };
-        let k = p_pred * h.transpose() * s_inv;
-        let x = x_pred + k * d;
-        // Joseph form: stays symmetric positive definite.
-        let ikh = M6::identity() - k * h;
-        let p = ikh * p_pred * ikh.transpose() + k * r * k.transpose();
+        }
+        self.mu = [weights[0] / total, weights[1] / total];
+        self.modes = modes;
+        let (x, p) = combine(self.mu.iter().zip(&self.modes).map(|(w, m)| (*w, &m.x, &m.p)));
+        let (x_pred, p_pred) = combine(c.iter().zip(&steps).map(|(w, s)| (*w, &s.x_pred, &s.p_pred)));
+        let jump = steps.iter().any(|s| s.jump);
         self.x = x;
-        self.p = (p + p.transpose()) * 0.5;
+        self.p = p;
         self.t_ns = t_ns;
         self.last = Step { t_ns, x_pred, p_pred, x: self.x, p: self.p, f, restart: false };
         if let Some(hist) = self.history.as_mut() {
@@ -404,7 +522,12 @@ mod tests {
 
     /// Runs a filter over `truth(k)` with noise σ = `sigma` mm; returns (raw errors, filtered errors).
     fn run(truth: impl Fn(usize) -> f64, sets: usize, sigma: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        run_seeded(truth, sets, sigma, 7)
+    }
+
+    /// [`run`] with the noise drawn from `seed`.
+    fn run_seeded(truth: impl Fn(usize) -> f64, sets: usize, sigma: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let n = Normal::new(0.0, sigma).unwrap();
         let mut f: Option<TagFilter> = None;
         let (mut raw, mut est, mut sig) = (Vec::new(), Vec::new(), Vec::new());
@@ -434,7 +557,8 @@ mod tests {
         let (raw, est, sig) = run(|_| 0.0, 600, 0.003);
         let (r, e) = (rms(&raw[100..]), rms(&est[100..]));
         println!("at rest: raw {r:.5} mm, estimated {e:.5} mm, σ {:.5}", sig[500]);
-        assert!(e <= 0.5 * r, "raw {r}, estimated {e}");
+        // Measured 0.31× (one filter of the configured density: 0.43×).
+        assert!(e <= 0.4 * r, "raw {r}, estimated {e}");
         let within = est[100..].iter().zip(&sig[100..]).filter(|(e, s)| e.abs() <= 2.0 * **s).count();
         assert!(within as f64 >= 0.85 * 500.0, "{within} of 500 within 2σ");
     }
@@ -466,17 +590,51 @@ mod tests {
         assert!(e < r, "raw {r}, estimated {e}");
     }
 
-    /// Loading starts from rest at a rate whose first innovations are too large for the model
-    /// and too small for a jump (NIS between 12 and 16.3; 0.011 mm a set against 0.003 mm of
-    /// noise): the rate is learned from the first sets of the ramp, not over the next several.
+    /// Loading starts from rest at a rate whose first innovations are too large for the
+    /// steady model and too small for a jump (0.011 mm a set against 0.003 mm of noise; 20
+    /// mm/min at 30 sets/s, some 200× a flexural test's rate): the changing model takes over
+    /// within a few sets and the rate is learned. The first set of such a ramp is a 3.7σ
+    /// innovation, which no filter quiet at rest tells from noise. Measured over 20 noise
+    /// draws, estimated / raw RMS over the first eight sets 0.81–2.14 (one filter of the
+    /// configured density, before the two models: 0.78–2.18), over the 31 after them
+    /// 0.33–0.96 (0.50–1.04).
     #[test]
     fn the_start_of_loading_is_followed_within_a_few_sets() {
         let truth = |k: usize| if k < 60 { 0.0 } else { (k - 60) as f64 * 0.011 };
-        let (raw, est, _) = run(truth, 80, 0.003);
-        let lag: Vec<f64> = est[61..69].to_vec();
-        let (r, e) = (rms(&raw[61..69]), rms(&lag));
-        println!("start of loading: raw {r:.5} mm, estimated {e:.5} mm, errors {lag:.4?}");
-        assert!(e <= 1.2 * r, "the ramp's first sets: raw {r}, estimated {e} ({lag:?})");
+        let (mut first, mut after) = (Vec::new(), Vec::new());
+        for seed in 0..20 {
+            let (raw, est, _) = run_seeded(truth, 100, 0.003, seed);
+            first.push(rms(&est[61..69]) / rms(&raw[61..69]));
+            after.push(rms(&est[69..100]) / rms(&raw[69..100]));
+        }
+        println!("start of loading, estimated / raw RMS: first eight sets {first:.2?}, after them {after:.2?}");
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        assert!(first.iter().all(|r| *r <= 2.5) && mean(&first) <= 1.8, "the ramp's first sets: {first:?}");
+        assert!(after.iter().all(|r| *r <= 1.1) && mean(&after) <= 0.8, "after the first eight sets: {after:?}");
+    }
+
+    /// The steady model holds a tag at rest; a change of rate hands it to the changing model,
+    /// and a steady ramp back to the steady one.
+    #[test]
+    fn the_models_take_turns_as_the_motion_changes() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let n = Normal::new(0.0, 0.003).unwrap();
+        // Rest for 10 s, then 0.05 mm/s from 10 s on (a fast rate, 3 mm/min).
+        let truth = |t: f64| if t < 10.0 { 0.0 } else { (t - 10.0) * 0.05 };
+        let mut f = TagFilter::new(TemporalConfig::default(), 0, Vector3::zeros(), &iso(0.003));
+        let mut steady = Vec::new();
+        for k in 1..900 {
+            let t = k as f64 * DT as f64 * 1e-9;
+            let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), truth(t) + n.sample(&mut rng));
+            f.update(k as i64 * DT, z, &iso(0.003), &iso(0.003), false);
+            steady.push(f.steady_probability());
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let (rest, change, ramp) = (mean(&steady[150..299]), steady[300..330].iter().copied().fold(1.0, f64::min), mean(&steady[700..]));
+        println!("steady probability: at rest {rest:.2}, least after the change {change:.2}, on the ramp {ramp:.2}");
+        assert!(rest > 0.7, "at rest {rest}");
+        assert!(change < 0.3, "after the change {change}");
+        assert!(ramp > 0.7, "on the ramp {ramp}");
     }
 
     #[test]
