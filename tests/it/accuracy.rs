@@ -19,9 +19,9 @@ fn three_cameras_1280x960_moderate_noise() {
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
     assert_eq!(acc.lines, 16);
     assert_eq!(acc.coverage(), 1.0, "every tag solved in every frame set");
-    assert!(acc.disp_rms_mm <= 0.014, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0098
-    assert!(acc.vertical_rms_mm <= 0.005, "vertical RMS {}", acc.vertical_rms_mm); // 0.0035
-    assert!(acc.net_rms_mm.unwrap() <= 0.005, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0035
+    assert!(acc.disp_rms_mm <= 0.0065, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0046 (0.0098 with the optics blurring after the pixels)
+    assert!(acc.vertical_rms_mm <= 0.0026, "vertical RMS {}", acc.vertical_rms_mm); // 0.0018 (0.0035)
+    assert!(acc.net_rms_mm.unwrap() <= 0.0016, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0011 (0.0035)
     sigma_honest("3 cameras 1280x960", &acc);
     assert_eq!(acc.net_lines, 16);
     // Load is interpolated from the UTM samples: load ∝ midspan deflection in the rig.
@@ -65,9 +65,9 @@ fn hard_case() {
     let rec = simulate(dir.path(), "hard", &p);
     let (acc, lines, recording) = accuracy_of("hard case", &rec, false);
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
-    assert!(acc.disp_rms_mm <= 0.022, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0157
-    assert!(acc.vertical_rms_mm <= 0.0095, "vertical RMS {}", acc.vertical_rms_mm); // 0.0066
-    assert!(acc.net_rms_mm.unwrap() <= 0.0066, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0047
+    assert!(acc.disp_rms_mm <= 0.019, "displacement RMS {}", acc.disp_rms_mm); // measured 0.0135 (0.0157 with the optics blurring after the pixels)
+    assert!(acc.vertical_rms_mm <= 0.0088, "vertical RMS {}", acc.vertical_rms_mm); // 0.0062 (0.0066)
+    assert!(acc.net_rms_mm.unwrap() <= 0.0066, "net deflection RMS {:?}", acc.net_rms_mm); // 0.0053 (0.0047)
     sigma_honest("hard case", &acc);
     // No set lost except where every camera lost the frame.
     let sets_with_frames = (0..p.frame_sets as u64)
@@ -93,13 +93,14 @@ fn one_camera_1920x1080() {
     feedcheck(&lines, &rec.join("tagdeflect.toml"));
     assert_eq!(acc.coverage(), 1.0);
     // Depth from the tag's size alone: the displacement's error is mostly along the view.
-    assert!(acc.disp_rms_mm <= 0.34, "displacement RMS {}", acc.disp_rms_mm); // measured 0.2043 (0.2467 with the optics blurring after the pixels)
-    assert!(acc.vertical_rms_mm <= 0.10, "vertical RMS {}", acc.vertical_rms_mm); // 0.0627 (0.0712)
-                                                                                  // σ: 87.4 % within 2σ, RMS error/σ 1.19 (97.8 % and 0.67 while the simulated optics
-                                                                                  // blurred after the pixels integrated, whose phase error inflated the pooled pixel noise).
-                                                                                  // One camera's tag positions carry its held pose's turn at their lever arm, and a turn's
-                                                                                  // variance is what an independent-corner covariance makes too small (see the gauges'
-                                                                                  // `ROTATION_VARIANCE_FACTOR`): the lower bound here is 85 %, not 90 %.
+    assert!(acc.disp_rms_mm <= 0.29, "displacement RMS {}", acc.disp_rms_mm); // measured 0.2043 (0.2467 with the optics blurring after the pixels)
+    assert!(acc.vertical_rms_mm <= 0.088, "vertical RMS {}", acc.vertical_rms_mm); // 0.0627 (0.0712)
+
+    // σ: 87.8 % within 2σ, RMS error/σ 1.19 (97.8 % and 0.67 while the simulated optics
+    // blurred after the pixels integrated, whose phase error inflated the pooled pixel noise).
+    // One camera's tag positions carry its held pose's turn at their lever arm, and a turn's
+    // variance is what an independent-corner covariance makes too small (see the gauges'
+    // `ROTATION_VARIANCE_FACTOR`): the lower bound here is 85 %, not 90 %.
     sigma_honest_within("1 camera", &acc, 0.85);
     assert!(lines.iter().all(|l| l.tags.iter().all(|t| t.views == 1)));
 }
@@ -131,7 +132,7 @@ fn camera_bumped_mid_run() {
     let after_only = after.disp_rms_mm;
     let acc_after = tagdeflect::accuracy::evaluate(&recording.config, &recording.truth, &lines);
     println!("ACCURACY bump: after the bump displacement RMS {after_only:.4} mm; whole run: {acc_after}");
-    assert!(after_only <= 0.016, "displacement RMS after the bump {after_only}"); // measured 0.0116
+    assert!(after_only <= 0.0056, "displacement RMS after the bump {after_only}"); // measured 0.0039 (0.0116 with the optics blurring after the pixels)
     sigma_honest("bump", &acc_after);
 }
 
