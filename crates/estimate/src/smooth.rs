@@ -11,9 +11,9 @@
 //!
 //! What a smoothed line changes: each tag's `pos_mm`, `disp_mm` (by the same shift) and
 //! `sigma_mm` (the smoothed covariance, floored at [`SMOOTHED_FLOOR_SHARE`] of the filtered
-//! line's floor, plus the camera poses' part);
-//! `net_deflection_mm`, its σ (with the same floor) and its rate. The gauges (`[[gauge]]`, which use the tags'
-//! orientations too) are left as the filter gave them; the line says `"smoothed": true`.
+//! line's floor, plus the camera poses' part); `net_deflection_mm`, its σ (with the same
+//! floor) and its rate. The gauges (`[[gauge]]`, which use the tags' orientations too) are
+//! left as the filter gave them; the line says `"smoothed": true`.
 
 use std::collections::{HashMap, VecDeque};
 

@@ -17,8 +17,8 @@
 //! their predictions, and the output is their moment-matched mixture (mean and covariance,
 //! the spread of the means included). Why two: one density must choose between noise at
 //! rest and following a change of rate; the changing model alone left 0.53–0.61× of the
-//! raw noise at rest on rendered scenes, the mixture 0.36–0.49× (docs/control.md), while a
-//! change of rate is followed as by the changing model alone. Each frame set's multi-view
+//! raw noise at rest on rendered scenes, the mixture 0.30–0.46× once settled
+//! (docs/control.md), while a change of rate is followed as by the changing model alone. Each frame set's multi-view
 //! (or single-view) solve is the measurement `z = p + v`:
 //!
 //! * `v`'s covariance is the solve's pixel-noise covariance while the tag is seen by as many
