@@ -394,8 +394,7 @@ impl TagFilter {
     /// Centre and covariance predicted at `t_ns` (for a set that did not see the tag).
     pub fn predict_at(&self, t_ns: i64) -> (Vector3<f64>, Matrix3<f64>) {
         let (f, dt) = self.transition(t_ns);
-        let pred: Vec<(V6, M6)> =
-            self.modes.iter().map(|m| (f * m.x, f * m.p * f.transpose() + m.process_noise(&self.config, dt))).collect();
+        let pred = self.modes.map(|m| (f * m.x, f * m.p * f.transpose() + m.process_noise(&self.config, dt)));
         let (x, p) = combine(self.mu.iter().zip(&pred).map(|(w, (x, p))| (*w, x, p)));
         (x.fixed_rows::<3>(0).into_owned(), p.fixed_view::<3, 3>(0, 0).into_owned())
     }
@@ -448,16 +447,16 @@ impl TagFilter {
             mode.x = x0;
             mode.p = p0;
         }
-        let mut steps = Vec::with_capacity(2);
-        for mode in modes.iter_mut() {
-            let Some(step) = mode.update(&self.config, &f, dt, centre, noise_cov, full_cov, partial) else {
-                return self.result(partial, false);
-            };
-            steps.push(step);
-        }
-        let best = steps.iter().map(|s| s.log_likelihood).fold(f64::NEG_INFINITY, f64::max);
-        let weights: Vec<f64> = steps.iter().zip(&c).map(|(s, c)| c * (s.log_likelihood - best).exp()).collect();
-        let total: f64 = weights.iter().sum();
+        // Per tag and frame set: fixed-size arrays, no allocation.
+        let [m0, m1] = &mut modes;
+        let update = |m: &mut Mode| m.update(&self.config, &f, dt, centre, noise_cov, full_cov, partial);
+        let (Some(s0), Some(s1)) = (update(m0), update(m1)) else {
+            return self.result(partial, false);
+        };
+        let steps = [s0, s1];
+        let best = steps[0].log_likelihood.max(steps[1].log_likelihood);
+        let weights = [0, 1].map(|j| c[j] * (steps[j].log_likelihood - best).exp());
+        let total = weights[0] + weights[1];
         if !(total > 0.0 && total.is_finite()) {
             return self.result(partial, false);
         }
