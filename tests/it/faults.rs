@@ -1,5 +1,5 @@
 //! Faults found by trying the release binary as a user would, each with the test that failed
-//! before its fix (docs/operations.md, fault table).
+//! before its fix (CHANGELOG.md, the tables of fixes taken out).
 
 use std::fs;
 use std::process::{Command, Output};
