@@ -7,7 +7,7 @@ use anyhow::Result;
 use serde::Serialize;
 use std::path::PathBuf;
 
-use crate::pipeline::replay::{self, ReplayOptions};
+use crate::graph::in_process::{self as replay, ReplayOptions};
 
 /// Options of `tagdeflect bench`.
 #[derive(Debug, Clone, clap::Args)]
@@ -95,18 +95,18 @@ impl std::io::Write for SharedBuf {
     }
 }
 
-fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<RealtimeFigures> {
+fn run_realtime(rec: &crate::config::Recording, full_frame: bool) -> Result<RealtimeFigures> {
     let buf = SharedBuf::default();
-    let sink = crate::sinks::feed::FeedWriter::from_writer("bench", Box::new(buf.clone()));
+    let sink = tagdeflect_core::feed_file::FeedWriter::from_writer("bench", Box::new(buf.clone()));
     // The control output serves the run too (its register is updated on the sinks' thread
     // right after the feed line is written).
     let mut paced = rec.clone();
-    paced.config.output.control = Some(crate::sinks::control::ControlConfig::on("127.0.0.1:0"));
+    paced.config.output.control = Some(tagdeflect_sinks::control::ControlConfig::on("127.0.0.1:0"));
     let started = std::time::Instant::now();
-    crate::graph::run::replay_paced(paced, full_frame, vec![sink])?;
+    crate::graph::entry::replay_paced(paced, full_frame, vec![sink])?;
     let stamps = std::mem::take(&mut *buf.1.lock().expect("feed stamps"));
     let text = String::from_utf8(std::mem::take(&mut *buf.0.lock().expect("feed buffer")))?;
-    let lines: Vec<crate::feed::FeedLine> = text.lines().map(serde_json::from_str).collect::<Result<_, _>>()?;
+    let lines: Vec<tagdeflect_core::feed::FeedLine> = text.lines().map(serde_json::from_str).collect::<Result<_, _>>()?;
     let mut per_camera = std::collections::HashMap::new();
     for f in &rec.frames {
         *per_camera.entry(&f.camera).or_insert(0u64) += 1;
@@ -120,7 +120,7 @@ fn run_realtime(rec: &crate::recording::Recording, full_frame: bool) -> Result<R
     };
     let first_solved = lines.iter().find(|l| !l.tags.is_empty());
     let total_dropped = lines.last().and_then(|l| l.dropped_sets).unwrap_or(0);
-    let dropped_since = |l: Option<&crate::feed::FeedLine>| l.map_or(0, |l| total_dropped - l.dropped_sets.unwrap_or(0));
+    let dropped_since = |l: Option<&tagdeflect_core::feed::FeedLine>| l.map_or(0, |l| total_dropped - l.dropped_sets.unwrap_or(0));
     let mut lat: Vec<f64> = steady.iter().filter_map(|l| l.latency_ms).collect();
     lat.sort_by(f64::total_cmp);
     // Exposure → line written (and register updated): when the line was written after the
@@ -332,9 +332,9 @@ pub fn bench(opts: &BenchOptions) -> Result<()> {
     Ok(())
 }
 
-fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, smooth_lag_sets: Option<usize>) -> Result<BenchFigures> {
+fn run_once(rec: &crate::config::Recording, full_frame: bool, repeat: u32, smooth_lag_sets: Option<usize>) -> Result<BenchFigures> {
     let mut detect = 0.0;
-    let mut parts = crate::pipeline::measure::DetectParts::default();
+    let mut parts = tagdeflect_estimate::measure::DetectParts::default();
     let mut pose = 0.0;
     let mut solve = 0.0;
     let mut output = 0.0;
@@ -392,7 +392,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
     }
     latencies.sort_by(f64::total_cmp);
     let n = sets.max(1) as f64;
-    let stats: crate::pipeline::measure::MeasureStats = stats;
+    let stats: tagdeflect_estimate::measure::MeasureStats = stats;
     let errors = net_errors(rec, &lines);
     Ok(BenchFigures {
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
@@ -434,7 +434,7 @@ fn run_once(rec: &crate::recording::Recording, full_frame: bool, repeat: u32, sm
 
 /// The true net deflection and the feed's error against it, line by line (the first line
 /// with a net deflection is the reference, as the feed's displacements), mm.
-fn net_errors(rec: &crate::recording::Recording, lines: &[crate::feed::FeedLine]) -> Vec<(f64, f64)> {
+fn net_errors(rec: &crate::config::Recording, lines: &[tagdeflect_core::feed::FeedLine]) -> Vec<(f64, f64)> {
     use crate::config::TagRole;
     let up = nalgebra::Vector3::from(rec.config.world.up).normalize();
     let mut first = std::collections::HashMap::new();
@@ -467,7 +467,7 @@ const SETTLE_NS: i64 = 1_000_000_000;
 
 /// The lines from `after_ns` past the first line with a net deflection on (none when there
 /// is no such line).
-fn settled(lines: &[crate::feed::FeedLine], after_ns: i64) -> &[crate::feed::FeedLine] {
+fn settled(lines: &[tagdeflect_core::feed::FeedLine], after_ns: i64) -> &[tagdeflect_core::feed::FeedLine] {
     let Some(t0) = lines.iter().find(|l| l.net_deflection_mm.is_some()).map(|l| l.t_ns) else { return &[] };
     let from = lines.iter().position(|l| l.t_ns >= t0 + after_ns).unwrap_or(lines.len());
     &lines[from..]
@@ -508,7 +508,7 @@ fn step_response(errors: &[(f64, f64)]) -> Option<StepResponse> {
 /// not the disk (a 3 × 1080p PGM stream is ~190 MB/s; a recording larger than the free
 /// memory is read from disk during the run anyway — keep bench recordings small, or on a
 /// RAM disk).
-fn preload(rec: &crate::recording::Recording) {
+fn preload(rec: &crate::config::Recording) {
     let t = std::time::Instant::now();
     let mut bytes = 0u64;
     let mut buf = Vec::new();
@@ -642,7 +642,7 @@ mod tests {
 
     #[test]
     fn the_settled_noise_counts_from_a_second_after_the_first_net_deflection() {
-        let line = |t_ns: i64, net: Option<f64>| crate::feed::FeedLine { t_ns, net_deflection_mm: net, ..Default::default() };
+        let line = |t_ns: i64, net: Option<f64>| tagdeflect_core::feed::FeedLine { t_ns, net_deflection_mm: net, ..Default::default() };
         // No net deflection on the first two lines; the first one at 0.5 s.
         let lines: Vec<_> = (0..10).map(|k| line(k * 250_000_000, (k >= 2).then_some(0.0))).collect();
         let s = settled(&lines, SETTLE_NS);
