@@ -104,7 +104,7 @@ pub(crate) async fn play_utm(rec: Recording, tx: mpsc::Sender<UtmEvent>) {
         return;
     }
     // The cameras' schedule (long pauses capped alike), started within a few ms of theirs.
-    let playhead = tagdeflect_io::sources::recording::Playhead::start_silent(&rec);
+    let playhead = tagdeflect_io::sources::playback::Playhead::start_silent(&rec);
     let t0 = tokio::time::Instant::now();
     for s in &rec.utm {
         tokio::time::sleep_until(t0 + playhead.due(s.t_ns)).await;

@@ -10,7 +10,7 @@ use std::time::Duration;
 use tokio::sync::mpsc::Sender;
 
 use tagdeflect_core::camera_config::CameraSource;
-use tagdeflect_io::sources::recording as player;
+use tagdeflect_io::sources::playback as player;
 use tagdeflect_io::sources::{spawn_capture, spawn_device, Backoff, LiveCamera, LoopTiming, OpenPolicy, SourceError, SourceEvent};
 
 use crate::config::Config;

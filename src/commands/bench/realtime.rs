@@ -96,7 +96,7 @@ pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool) -> 
     // Exposure → line written (and register updated): when the line was written after the
     // playhead's start, less when its frames were due (their recorded time since the first
     // frame: a recording's pauses are short, none capped here).
-    let playhead = tagdeflect_io::sources::recording::last_playhead_start().filter(|p| *p >= started).unwrap_or(started);
+    let playhead = tagdeflect_io::sources::playback::last_playhead_start().filter(|p| *p >= started).unwrap_or(started);
     let mut exposure: Vec<f64> = lines
         .iter()
         .zip(&stamps)
