@@ -185,7 +185,7 @@ fn missing_command(args: &[String]) -> anyhow::Error {
 
 #[cfg(feature = "sim")] // only `demo --control` takes it
 fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    tagdeflect_sinks::control::parse_addr(s)
+    tagdeflect_core::listen::parse_listen_addr(s, tagdeflect_sinks::control_output::EXAMPLE_PORT).map_err(|e| e.to_string())
 }
 
 /// The live page of `demo`: `--http ADDR` must be served (an error if it cannot be);
@@ -419,7 +419,7 @@ fn run(cli: Cli) -> Result<()> {
             // The page by default on loopback; a taken default port only costs the page.
             let mut cfg = cfg;
             if let Some(addr) = control {
-                let c = cfg.output.control.get_or_insert_with(|| tagdeflect_sinks::control::ControlConfig::on(&addr.to_string()));
+                let c = cfg.output.control.get_or_insert_with(|| tagdeflect_sinks::control_output::ControlConfig::on(&addr.to_string()));
                 c.modbus = addr.to_string();
             }
             if no_http {

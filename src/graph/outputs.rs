@@ -13,7 +13,7 @@ use anyhow::{Context, Result};
 use tagdeflect_core::feed_file::FeedWriter;
 use tagdeflect_core::BadInput;
 use tagdeflect_report::config::ReportConfig;
-use tagdeflect_sinks::control::{ControlConfig, ControlSink};
+use tagdeflect_sinks::control_output::{ControlConfig, ControlSink};
 use tagdeflect_sinks::lab_test::{LabTestSink, LabTests};
 use tagdeflect_sinks::recorder::Recorder;
 use tagdeflect_sinks::{FeedFileSink, LineSink};
@@ -126,7 +126,7 @@ impl BuildOutput for Page {
     }
 }
 
-/// `[output.control]`: the gauge as a control signal (`tagdeflect_sinks::control`).
+/// `[output.control]`: the gauge as a control signal (`tagdeflect_sinks::control_output`).
 impl BuildOutput for ControlConfig {
     fn build(&self, _ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
         out.sinks.push(Box::new(ControlSink::start(self).map_err(|e| BadInput::new(e.to_string()))?));

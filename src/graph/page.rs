@@ -16,9 +16,9 @@ use crate::config::Config;
 
 pub use tagdeflect_sinks::http::HttpOptions;
 
-/// `--http ADDR` (IP:PORT; port 0: any free port).
+/// `--http ADDR` (a listen address, `tagdeflect_core::listen`; port 0: any free port).
 pub fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    http::parse_addr(s)
+    tagdeflect_core::listen::parse_listen_addr(s, http::DEFAULT_PORT).map_err(|e| e.to_string())
 }
 
 /// `--http ADDR` as the graph takes it; `required`: a taken address is an error, not a warning.
@@ -66,7 +66,7 @@ impl Page {
     /// Serves the tests' control API; false when no page is served (nowhere to serve it).
     pub fn set_control(&self, tests: Arc<tagdeflect_sinks::lab_test::LabTests>, token: String) -> bool {
         if let (Some(v), true) = (&self.view, self.is_served()) {
-            v.set_control(tests, token);
+            v.set_test_api(tests, token);
             return true;
         }
         false

@@ -18,7 +18,7 @@ use tagdeflect_estimate::temporal::Estimator;
 use tagdeflect_sim::SimParams;
 
 use crate::common::{self, ChildGuard};
-use tagdeflect_sinks::control::ControlConfig;
+use tagdeflect_sinks::control_output::ControlConfig;
 
 /// Net-deflection error against truth of every line that has one: (seq, error mm, σ mm, partial).
 fn net_errors(config: &Config, rec_truth: &[tagdeflect_io::recording::TruthLine], lines: &[FeedLine]) -> Vec<(u64, f64, f64, bool)> {
@@ -370,7 +370,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     use std::time::{Duration, Instant};
     use tagdeflect_estimate::temporal::{TagFilter, TemporalConfig};
     use tagdeflect_sim::machine::{serve_machine, SimMachine};
-    use tagdeflect_sinks::control::ControlOutput;
+    use tagdeflect_sinks::control_output::ControlOutput;
 
     let target = 6.0; // mm/min of net deflection
     let duration_s = 14.0;

@@ -16,6 +16,7 @@ pub mod feed;
 pub mod feed_file;
 pub mod frame;
 pub mod linefile;
+pub mod listen;
 pub mod problem;
 pub mod rig;
 pub mod stats;

@@ -28,8 +28,8 @@ use tagdeflect_core::linefile::LineFile;
 mod frames;
 mod image_file;
 pub use frames::{CameraList, FrameReader, ReadFrame};
-pub use image_file::{decode_gray_bytes, read_gray_into, ImageError};
 pub(crate) use image_file::read_gray_into_checked;
+pub use image_file::{decode_gray_bytes, read_gray_into, ImageError};
 pub use tagdeflect_core::frame::{encode_png, FrameFormat};
 
 /// Name of the config file inside a recording.

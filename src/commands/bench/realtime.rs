@@ -71,7 +71,7 @@ pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool) -> 
     // The control output serves the run too (its register is updated on the sinks' thread
     // right after the feed line is written).
     let mut paced = rec.clone();
-    paced.config.output.control = Some(tagdeflect_sinks::control::ControlConfig::on("127.0.0.1:0"));
+    paced.config.output.control = Some(tagdeflect_sinks::control_output::ControlConfig::on("127.0.0.1:0"));
     let started = std::time::Instant::now();
     crate::graph::entry::replay_paced(paced, full_frame, vec![sink])?;
     let stamps = std::mem::take(&mut *buf.1.lock().expect("feed stamps"));

@@ -173,9 +173,8 @@ pub fn decode_gray_bytes(bytes: &[u8], img: &mut GrayImage, expect: Option<(u32,
         let (w, h, start) = parse_pgm_header(head)?;
         check(w, h)?;
         let n = w as usize * h as usize;
-        let data = bytes
-            .get(start..start + n)
-            .ok_or_else(|| ImageError::TruncatedPgm { got: bytes.len() - start.min(bytes.len()), want: n })?;
+        let data =
+            bytes.get(start..start + n).ok_or_else(|| ImageError::TruncatedPgm { got: bytes.len() - start.min(bytes.len()), want: n })?;
         img.width = w;
         img.height = h;
         img.data.clear();

@@ -289,8 +289,8 @@ impl Session {
                 Err(e) => tracing::warn!(path, fps, error = %e, "cannot set the frame rate; using the device's"),
             }
         }
-        let mut stream =
-            MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS).map_err(|source| V4l2OpenError::Buffers { path: path.into(), source })?;
+        let mut stream = MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS)
+            .map_err(|source| V4l2OpenError::Buffers { path: path.into(), source })?;
         stream.set_timeout(DEQUEUE_TIMEOUT);
         tracing::info!(path, fourcc = %String::from_utf8_lossy(&fmt.fourcc.repr), width = fmt.width, height = fmt.height, stride = fmt.stride, "v4l2 camera open");
         Ok(Session {

@@ -146,7 +146,6 @@ struct Persisted {
     last_line_t_ns: i64,
 }
 
-
 pub(super) fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }

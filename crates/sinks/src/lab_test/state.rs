@@ -15,7 +15,6 @@ use super::{auto, EarlierTest, TestRecord};
 /// Why the report of a stopped test could not be made (the hook's own error).
 pub type ReportError = Box<dyn std::error::Error + Send + Sync>;
 
-
 /// Made by the binary: writes `folder/report/` for a stopped test with a standard.
 pub type ReportHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), ReportError> + Send + Sync>;
 
@@ -62,7 +61,6 @@ pub struct LabTests {
     pub(super) inner: Mutex<Inner>,
     pub(super) written: Condvar,
 }
-
 
 impl LabTests {
     /// Tests kept under `dir` (created); `config_text` is the config in force, written into

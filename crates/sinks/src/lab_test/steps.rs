@@ -8,10 +8,10 @@ use std::sync::Arc;
 use tagdeflect_core::feed::{FeedLine, TestRef};
 use tagdeflect_core::utm_sample::UtmSample;
 
+use super::auto;
 use super::record::push_point;
 use super::state::{Inner, LabTests};
 use super::zero::ZERO_SETS;
-use super::auto;
 
 impl LabTests {
     /// The solver's step: the line gets the pending events, the running test and values
@@ -92,7 +92,6 @@ impl LabTests {
         }
     }
 }
-
 
 /// A line sink that hands every line to [`LabTests::on_line`].
 pub struct LabTestSink(pub Arc<LabTests>);

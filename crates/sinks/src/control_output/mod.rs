@@ -1,6 +1,7 @@
 //! The control output (`[output.control]`, SPEC "Control output"): the configured gauge as
 //! a testing machine's controller or a PLC reads it, from a read-only Modbus TCP server (on
-//! `tagdeflect_io::modbus_server`).
+//! `tagdeflect_io::modbus_server`). Named for what SPEC calls it; the tests' HTTP API (SPEC's
+//! "control API") is another thing, `http::test_api`.
 //!
 //! The measurement never waits for it: the sink ([`ControlSink`], on the sinks' thread)
 //! only writes the latest value into a small shared block, and the server answers every
@@ -36,10 +37,11 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::listen::ListenAddrError;
 use tagdeflect_io::modbus_server::{read_range, Answer, ModbusServer, ServerName};
 use tokio_modbus::{ExceptionCode, Request, Response};
 
-pub use config::{parse_addr, ControlConfig, NET_DEFLECTION};
+pub use config::{ControlConfig, EXAMPLE_PORT, NET_DEFLECTION};
 
 use crate::{Finished, LineSink};
 
@@ -53,7 +55,7 @@ pub const HEARTBEAT: Duration = Duration::from_millis(50);
 pub enum ControlError {
     /// The address is malformed.
     #[error("[output.control] modbus: {0}")]
-    Address(String),
+    Address(ListenAddrError),
     /// The address cannot be bound.
     #[error("[output.control] cannot serve Modbus TCP on {addr}: {source}")]
     Bind {
@@ -168,7 +170,6 @@ impl Shared {
         r[9] = self.heartbeat.load(Ordering::Relaxed);
         r
     }
-
 }
 
 impl Answer for Shared {
