@@ -1,5 +1,6 @@
 //! The control output (`[output.control]`, SPEC "Control output"): the configured gauge as
-//! a testing machine's controller or a PLC reads it, from a read-only Modbus TCP server.
+//! a testing machine's controller or a PLC reads it, from a read-only Modbus TCP server (on
+//! `tagdeflect_io::modbus_server`).
 //!
 //! The measurement never waits for it: the sink ([`ControlSink`], on the sinks' thread)
 //! only writes the latest value into a small shared block, and the server answers every
@@ -27,7 +28,6 @@
 
 pub mod config;
 
-use std::future::ready;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU16, Ordering};
@@ -36,7 +36,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use tagdeflect_core::feed::FeedLine;
-use tokio_modbus::server::tcp::Server;
+use tagdeflect_io::modbus_server::{read_range, Answer, ModbusServer, ServerName};
 use tokio_modbus::{ExceptionCode, Request, Response};
 
 pub use config::{parse_addr, ControlConfig, NET_DEFLECTION};
@@ -169,35 +169,20 @@ impl Shared {
         r
     }
 
+}
+
+impl Answer for Shared {
     fn answer(&self, req: &Request<'_>) -> Result<Response, ExceptionCode> {
         let (start, count) = match *req {
-            Request::ReadInputRegisters(a, n) => (a as usize, n as usize),
+            Request::ReadInputRegisters(a, n) => (a, n),
             _ => {
                 tracing::warn!("control output: refused {:?} (the control output is read-only: input registers 0–11)", req.function_code());
                 return Err(ExceptionCode::IllegalFunction);
             }
         };
-        if count == 0 || count > 125 {
-            return Err(ExceptionCode::IllegalDataValue);
-        }
-        if start + count > REGISTERS {
-            return Err(ExceptionCode::IllegalDataAddress);
-        }
+        let range = read_range(start, count, REGISTERS)?;
         let regs = self.registers(Instant::now(), tagdeflect_core::clock::now_epoch_ns());
-        Ok(Response::ReadInputRegisters(regs[start..start + count].to_vec()))
-    }
-}
-
-struct Service(Arc<Shared>);
-
-impl tokio_modbus::server::Service for Service {
-    type Request = Request<'static>;
-    type Response = Response;
-    type Exception = ExceptionCode;
-    type Future = std::future::Ready<Result<Response, ExceptionCode>>;
-
-    fn call(&self, req: Self::Request) -> Self::Future {
-        ready(self.0.answer(&req))
+        Ok(Response::ReadInputRegisters(regs[range].to_vec()))
     }
 }
 
@@ -297,9 +282,13 @@ impl Drop for ControlOutput {
     }
 }
 
+/// The control output's name in log lines; its clients are logged at INFO.
+const NAME: ServerName = ServerName { name: "control output", clients_at_info: true };
+
 async fn serve(listener: std::net::TcpListener, shared: Arc<Shared>, stop: tokio::sync::oneshot::Receiver<()>) {
-    let listener = match tokio::net::TcpListener::from_std(listener) {
-        Ok(l) => l,
+    let server = tokio::net::TcpListener::from_std(listener).and_then(|l| ModbusServer::serve(l, NAME, shared.clone()));
+    let mut server = match server {
+        Ok(s) => s,
         Err(e) => {
             tracing::error!("control output: cannot serve: {e}");
             return;
@@ -315,21 +304,9 @@ async fn serve(listener: std::net::TcpListener, shared: Arc<Shared>, stop: tokio
             }
         }
     };
-    let server = Server::new(listener);
-    let service = Arc::new(Service(shared));
-    let on_connected = |stream: tokio::net::TcpStream, peer: SocketAddr| {
-        tracing::info!(%peer, "control output: client connected");
-        let _ = stream.set_nodelay(true);
-        ready(Ok(Some((service.clone(), stream))))
-    };
-    let on_error = |e: io::Error| tracing::debug!("control output: connection ended: {e}");
     tokio::select! {
         _ = heartbeat => {}
-        r = server.serve(&on_connected, on_error) => {
-            if let Err(e) = r {
-                tracing::error!("control output: accept failed: {e}");
-            }
-        }
+        _ = server.stopped() => {}
         _ = stop => {}
     }
 }
