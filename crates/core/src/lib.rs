@@ -1,7 +1,8 @@
 //! The building blocks every stage of tagdeflect shares: frames, the camera model, tags and
 //! their roles, the rig as the config describes it (cameras, background, specimen, beam), the
 //! one process clock, reconnect backoff, UTM samples, the feed line (one type, written by the
-//! measurement and read tolerantly by the report) and the line files it goes into.
+//! measurement and read tolerantly by the report), what the measurement observed for the page
+//! and the line files it goes into.
 //!
 //! Nothing here does I/O beyond reading and writing files, and nothing knows the command line.
 
@@ -17,6 +18,7 @@ pub mod feed_file;
 pub mod frame;
 pub mod linefile;
 pub mod listen;
+pub mod observed;
 pub mod problem;
 pub mod rig;
 pub mod stats;

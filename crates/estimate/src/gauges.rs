@@ -309,66 +309,6 @@ impl Gauges {
     }
 }
 
-/// The gauges and the clock check as the measurement uses them: tags are added while a
-/// frame set is solved ([`add_tag`](Self::add_tag)), the feed line is completed at the end
-/// ([`finish_line`](Self::finish_line)).
-#[derive(Debug, Clone)]
-pub struct LineGauges {
-    gauges: Gauges,
-    pending: Vec<GaugeTag>,
-    clock: super::clock_offset::ClockCheck,
-}
-
-impl LineGauges {
-    /// The gauges of `config` (`[[gauge]]`) and its clock check (`[clock_check]`, defaults
-    /// when absent; it only answers when the feed has a net deflection and a UTM stroke).
-    pub fn new(config: &crate::measure::MeasurementConfig) -> LineGauges {
-        LineGauges {
-            gauges: Gauges::new(&config.gauges, config.world.up, &config.specimen),
-            pending: Vec::new(),
-            clock: super::clock_offset::ClockCheck::new(config.clock_check.clone().unwrap_or_default()),
-        }
-    }
-
-    /// A tag solved in the current frame set: its pose as reported (after any monocular
-    /// fusion, whose position covariance is `fused_position_cov`). The gauges use the
-    /// covariance of the pixel noise: the camera poses' part is common to all frame sets
-    /// while the cameras are held still and cancels from the displacements gauges measure.
-    pub fn add_tag(&mut self, id: u32, pose: &Pose, solution: &super::TagSolution, fused_position_cov: Option<nalgebra::Matrix3<f64>>) {
-        if self.gauges.is_empty() {
-            return;
-        }
-        let mut covariance = solution.noise_covariance;
-        if let Some(c) = fused_position_cov {
-            covariance.fixed_view_mut::<3, 3>(3, 3).copy_from(&c);
-            covariance.fixed_view_mut::<3, 3>(0, 3).fill(0.0);
-            covariance.fixed_view_mut::<3, 3>(3, 0).fill(0.0);
-        }
-        self.pending.push(GaugeTag { id, pose: *pose, covariance });
-    }
-
-    /// Fills the line's `gauges` from the tags added since the last line, and its
-    /// `clock_offset_ms` when the clock check reports.
-    pub fn finish_line(
-        &mut self,
-        mut line: tagdeflect_core::feed::FeedLine,
-        utm: &tagdeflect_core::utm_sample::UtmHistory,
-    ) -> tagdeflect_core::feed::FeedLine {
-        let tags = std::mem::take(&mut self.pending);
-        line.gauges = self.gauges.evaluate(&tags);
-        let net = line.net_deflection_mm.or_else(|| {
-            self.gauges.gauges.iter().find(|g| g.kind == GaugeKind::NetDeflection).and_then(|g| line.gauges.get(&g.name)).map(|r| r.value)
-        });
-        line.clock_offset_ms = self.clock.update(line.t_ns, net, line.load_kn, utm);
-        line
-    }
-
-    /// The clock check's latest estimate.
-    pub fn clock_offset(&self) -> Option<super::clock_offset::ClockOffset> {
-        self.clock.latest()
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
