@@ -51,7 +51,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     output.validate(base).map_err(|p| p.within("output"))?;
     check_sim(raw.sim.as_ref(), &cameras)?;
     output.validate_mqtt(base).map_err(|p| p.within("output"))?;
-    let gauges = tagdeflect_estimate::gauges::validate_gauges(&raw.gauge, &specimen)?;
+    let gauges = tagdeflect_core::gauge::validate_gauges(&raw.gauge, &specimen)?;
     if let Some(c) = &output.control {
         let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
         c.validate(&names).map_err(|p| p.within("output.control"))?;

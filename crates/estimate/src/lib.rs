@@ -25,7 +25,6 @@
 pub mod camera_pose;
 pub mod clock_offset;
 pub mod drift;
-pub mod gauge_config;
 pub mod gauges;
 pub mod held_pose;
 pub mod init;

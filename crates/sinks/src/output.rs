@@ -113,7 +113,7 @@ impl OutputConfig {
     pub fn validate_mqtt(&mut self, base: &std::path::Path) -> Result<(), tagdeflect_core::Problem> {
         #[cfg(feature = "mqtt")]
         if let Some(m) = self.mqtt.as_mut() {
-            m.validate(base).map_err(|(k, msg)| tagdeflect_core::Problem::new(format!("mqtt.{k}"), msg))?;
+            m.validate(base).map_err(|p| p.within("mqtt"))?;
         }
         #[cfg(not(feature = "mqtt"))]
         let _ = base;
