@@ -8,7 +8,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use tagdeflect::sim::{render_frame_set, simulate, SimParams, SimRig};
+use tagdeflect::commands::simulate::simulate;
+use tagdeflect_sim::{render_frame_set, SimParams, SimRig};
 
 /// CPU time of this process so far (all threads), seconds.
 fn cpu_s() -> f64 {

@@ -9,7 +9,7 @@
 #                                               change for real cameras)
 #   /usr/share/man/man1/tagdeflect*.1.gz        man pages  } generated from the command line
 #   bash, zsh and fish completions              } (`tagdeflect assets`: clap_mangen, clap_complete)
-#   /usr/share/doc/tagdeflect/                  README, docs/, example configs, copyright
+#   /usr/share/doc/tagdeflect/                  README, CHANGELOG, docs/, example configs, copyright
 #
 # Runtime dependencies are computed by dpkg-shlibdeps from the binary's shared libraries (not
 # listed by hand). The service is not enabled or started on install (postinst only reloads
@@ -82,6 +82,7 @@ install -m 0644 "$work/assets/completions/tagdeflect.fish" "$root/usr/share/fish
 
 # Docs.
 install -m 0644 "$repo/README.md" "$doc/README.md"
+install -m 0644 "$repo/CHANGELOG.md" "$doc/CHANGELOG.md"
 install -m 0644 "$repo"/docs/*.md "$repo"/docs/*.png "$doc/docs/"
 install -m 0644 "$repo"/config/*.toml "$doc/examples/"
 cat > "$doc/copyright" <<COPY

@@ -11,8 +11,8 @@ use serde::Serialize;
 use std::collections::HashMap;
 
 use crate::config::{Config, TagRole};
-use crate::feed::FeedLine;
-use crate::recording::TruthLine;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_io::recording::TruthLine;
 
 /// Accuracy figures of a feed.
 #[derive(Debug, Clone, Default, Serialize)]

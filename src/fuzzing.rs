@@ -7,9 +7,9 @@
 use std::path::Path;
 
 use crate::config::{Config, RegisterConfig, RegisterKind, ValueType, WordOrder};
-use crate::frame::{Frame, GrayImage};
-use crate::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine};
-use crate::utm::{UtmHistory, UtmSample};
+use tagdeflect_core::frame::{Frame, GrayImage};
+use tagdeflect_io::recording::{decode_gray_bytes, read_jsonl_from, FrameEntry, TruthLine};
+use tagdeflect_io::utm::{UtmHistory, UtmSample};
 
 /// The names of the targets, as in `fuzz/fuzz_targets/<name>.rs`.
 pub const TARGETS: &[&str] = &[
@@ -42,7 +42,7 @@ pub fn run(name: &str, data: &[u8]) -> bool {
         "window_detect" => window_detect(data),
         "report_feed" => report_feed(data),
         #[cfg(feature = "archive")]
-        "archive_message" => crate::archive::fuzz_message(data),
+        "archive_message" => tagdeflect_archive::fuzz_message(data),
         _ => return false,
     }
     true
@@ -110,7 +110,7 @@ pub fn calibration(data: &[u8]) {
 /// V4L2 / Aravis buffer conversion (GREY, Y10..Y16, YUYV, MJPEG) with arbitrary sizes,
 /// strides and buffers; a converted image always has `width × height` bytes.
 pub fn convert(data: &[u8]) {
-    use crate::sources::convert::{to_gray8, PixelLayout};
+    use tagdeflect_io::sources::convert::{to_gray8, PixelLayout};
     if data.len() < 9 {
         return;
     }
@@ -140,7 +140,7 @@ pub fn modbus(data: &[u8]) {
     let reg = RegisterConfig { register: 0, kind: RegisterKind::Input, value_type, word_order, scale, offset };
     let words: Vec<u16> =
         data[(data[2] as usize % 4).min(data.len())..].chunks(2).map(|c| u16::from_le_bytes([c[0], *c.get(1).unwrap_or(&0)])).collect();
-    if let Ok(v) = crate::utm::decode(&reg, &words) {
+    if let Ok(v) = tagdeflect_io::utm::decode(&reg, &words) {
         if scale.is_finite() && offset.is_finite() && scale != 0.0 {
             // What the daemon would put in the feed: never NaN from valid integer registers.
             if !matches!(value_type, ValueType::F32) {
@@ -148,10 +148,10 @@ pub fn modbus(data: &[u8]) {
             }
         }
     }
-    let _ = crate::utm::encode(&reg, scale);
+    let _ = tagdeflect_io::utm::encode(&reg, scale);
 }
 
-/// A raw-byte Modbus TCP peer driving the real poller ([`crate::utm::run_poller`]) over
+/// A raw-byte Modbus TCP peer driving the real poller ([`tagdeflect_io::utm::run_poller`]) over
 /// loopback. The input is a script of replies: each chunk is a length byte followed by that
 /// many bytes, written (possibly as a partial or oversized frame) in answer to one request
 /// read from the poller; when the script ends the peer closes the connection and stops
@@ -202,7 +202,7 @@ pub fn modbus_peer(data: &[u8]) {
         };
         let (tx, mut rx) = tokio::sync::mpsc::channel(64);
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let poller = tokio::spawn(crate::utm::run_poller(cfg, tx, stop_rx));
+        let poller = tokio::spawn(tagdeflect_io::utm::run_poller(cfg, tx, stop_rx));
         // Until the poller says the link is down (the script ends with a closed connection,
         // so that always comes).
         let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(5);
@@ -212,12 +212,12 @@ pub fn modbus_peer(data: &[u8]) {
                 _ = tokio::time::sleep_until(deadline) => panic!("the poller did not report the link down within 5 s"),
             };
             match ev {
-                Some(crate::utm::UtmEvent::Sample(s)) => assert!(s.t_ns > 0, "sample without a time"),
-                Some(crate::utm::UtmEvent::Down { reason }) => {
+                Some(tagdeflect_io::utm::UtmEvent::Sample(s)) => assert!(s.t_ns > 0, "sample without a time"),
+                Some(tagdeflect_io::utm::UtmEvent::Down { reason }) => {
                     assert!(reason.contains(&addr.to_string()), "a fault that does not name the address: {reason}");
                     break;
                 }
-                Some(crate::utm::UtmEvent::Up) => {}
+                Some(tagdeflect_io::utm::UtmEvent::Up) => {}
                 None => panic!("the poller stopped on its own"),
             }
         }
@@ -231,7 +231,7 @@ pub fn modbus_peer(data: &[u8]) {
 /// Frame-set assembly and the UTM history with arbitrary times (overflow checks on):
 /// sets come out strictly in time order, each holding at most one frame per camera.
 pub fn assembly(data: &[u8]) {
-    use crate::sync::FrameSetAssembler;
+    use tagdeflect_io::sync::FrameSetAssembler;
     if data.len() < 2 {
         return;
     }
@@ -263,9 +263,9 @@ pub fn assembly(data: &[u8]) {
 /// The ROI rectangle helpers: windows around points, bounding boxes, alignment, clamping,
 /// merging and sweep tiles always give rectangles inside the image.
 pub fn roi(data: &[u8]) {
-    use crate::detect::plan::{merge_rects, sweep_tiles};
-    use crate::detect::Rect;
     use nalgebra::Point2;
+    use tagdeflect_detect::plan::{merge_rects, sweep_tiles};
+    use tagdeflect_detect::Rect;
     if data.len() < 8 {
         return;
     }
@@ -311,10 +311,10 @@ pub fn roi(data: &[u8]) {
 /// Tag detection (the AprilTag library through our wrapper, with sub-pixel refinement) on a
 /// small random image and a random window: no crash, corners finite.
 pub fn window_detect(data: &[u8]) {
-    use crate::detect::apriltag::{Detector, DetectorOptions};
-    use crate::detect::refine::RefineOptions;
-    use crate::detect::Rect;
-    use crate::tags::TagFamily;
+    use tagdeflect_core::tags::TagFamily;
+    use tagdeflect_detect::apriltag::{Detector, DetectorOptions};
+    use tagdeflect_detect::refine::RefineOptions;
+    use tagdeflect_detect::Rect;
     thread_local! {
         static DET: std::cell::RefCell<Option<Detector>> = const { std::cell::RefCell::new(None) };
     }
@@ -365,7 +365,7 @@ pub fn report_feed(data: &[u8]) {
         let Ok(runs) = Feed::parse(text, path, &ReadOptions { allow_restarts, ..Default::default() }) else { continue };
         for feed in &runs {
             // seq increases but where a resumed lab test's line restarts it (a `resume` event).
-            let resumes = |l: &crate::feed::FeedLine| l.events.iter().any(|e| e.kind == "resume");
+            let resumes = |l: &tagdeflect_core::feed::FeedLine| l.events.iter().any(|e| e.kind == "resume");
             assert!(feed.lines.windows(2).all(|w| (w[0].seq < w[1].seq || resumes(&w[1])) && w[0].t_ns < w[1].t_ns));
             let mut csv = Vec::new();
             let _ = tagdeflect_report::csv_out::write_curve_csv(feed, &mut csv);

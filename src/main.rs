@@ -6,14 +6,14 @@ use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use tagdeflect::commands::{self, bench::BenchOptions};
 use tagdeflect::config::Config;
-use tagdeflect::graph::page::HttpOptions;
-use tagdeflect::graph::run::{self as live, LiveOptions};
-use tagdeflect::pipeline::{self, bench::BenchOptions};
+use tagdeflect::graph::entry::{self as live, LiveOptions};
+use tagdeflect::graph::page::{self, http_options, parse_http_addr};
 #[cfg(feature = "sim")]
-use tagdeflect::recording::FrameFormat;
+use tagdeflect_io::recording::FrameFormat;
 #[cfg(feature = "sim")]
-use tagdeflect::sim::SimParams;
+use tagdeflect_sim::SimParams;
 
 /// Non-contact deflection measurement of beams in bending with AprilTags.
 #[derive(Parser)]
@@ -137,21 +137,21 @@ enum Command {
         control: Option<std::net::SocketAddr>,
     },
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
-    Test(pipeline::test_cmd::TestArgs),
+    Test(commands::lab_test::TestArgs),
     /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
     #[cfg(feature = "archive")]
-    Archive(tagdeflect::archive::ArchiveOptions),
+    Archive(tagdeflect_archive::ArchiveOptions),
     /// Measure how many feed lines per second one archive ingests (simulated rigs).
     #[cfg(feature = "archive")]
-    ArchiveBench(tagdeflect::archive::bench::ArchiveBenchOptions),
+    ArchiveBench(tagdeflect_archive::bench::ArchiveBenchOptions),
     /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
     /// FileStorage YAML and reports uncertainties, coverage and outliers.
     #[cfg(feature = "calibrate")]
-    Calibrate(tagdeflect::calibrate::CalibrateOptions),
+    Calibrate(tagdeflect_calibrate::CalibrateOptions),
     /// The test report from a feed: report.html, report.json, curve.csv and plots.
-    Report(pipeline::report_cmd::ReportArgs),
+    Report(commands::report::ReportArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
-    Export(pipeline::report_cmd::ExportArgs),
+    Export(commands::report::ExportArgs),
     /// Write the man pages and shell completions into OUT (for packaging).
     #[command(hide = true)]
     Assets {
@@ -176,49 +176,30 @@ const FEATURE_COMMANDS: &[(&str, &str)] =
 fn missing_command(args: &[String]) -> anyhow::Error {
     let name = args.first().map(String::as_str).unwrap_or("");
     match FEATURE_COMMANDS.iter().find(|(c, _)| *c == name) {
-        Some((c, f)) => anyhow::Error::new(tagdeflect::BadInput::new(format!(
+        Some((c, f)) => anyhow::Error::new(tagdeflect_core::BadInput::new(format!(
             "`tagdeflect {c}` is not in this build: it needs the `{f}` feature (cargo build --release --features {f})"
         ))),
-        None => anyhow::Error::new(tagdeflect::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
+        None => anyhow::Error::new(tagdeflect_core::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
     }
 }
 
 #[cfg(feature = "sim")] // only `demo --control` takes it
 fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    tagdeflect::sinks::control::parse_addr(s)
-}
-
-fn parse_http_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    #[cfg(feature = "http")]
-    return tagdeflect::sinks::http::parse_addr(s);
-    #[cfg(not(feature = "http"))]
-    Err(format!("{s}: this build has no live page (it needs the `http` feature)"))
-}
-
-/// `--http ADDR` as the graph takes it.
-#[cfg_attr(not(feature = "http"), allow(unused_variables))]
-fn http_options(addr: Option<std::net::SocketAddr>, required: bool) -> Option<HttpOptions> {
-    #[cfg(feature = "http")]
-    return addr.map(|addr| HttpOptions { addr, required });
-    #[cfg(not(feature = "http"))]
-    None
+    tagdeflect_core::listen::parse_listen_addr(s, tagdeflect_sinks::control_output::EXAMPLE_PORT).map_err(|e| e.to_string())
 }
 
 /// The live page of `demo`: `--http ADDR` must be served (an error if it cannot be);
 /// without it the config's `[output] http` is used, else [`DEFAULT_ADDR`] on loopback, where
 /// a port another program holds only costs the page (a warning); `--no-http`: none.
 ///
-/// [`DEFAULT_ADDR`]: tagdeflect::sinks::http::DEFAULT_ADDR
+/// [`DEFAULT_ADDR`]: tagdeflect_sinks::http::DEFAULT_ADDR
 #[cfg(feature = "sim")]
-fn demo_http(http: Option<std::net::SocketAddr>, no_http: bool, configured: bool) -> anyhow::Result<Option<HttpOptions>> {
+fn demo_http(http: Option<std::net::SocketAddr>, no_http: bool, configured: bool) -> anyhow::Result<Option<page::HttpOptions>> {
     Ok(match (http, no_http) {
         (_, true) => None,
         (Some(addr), false) => http_options(Some(addr), true),
         (None, false) if configured => None,
-        #[cfg(feature = "http")]
-        (None, false) => http_options(Some(tagdeflect::sinks::http::DEFAULT_ADDR.parse()?), false),
-        #[cfg(not(feature = "http"))]
-        (None, false) => None,
+        (None, false) => http_options(page::default_addr(), false),
     })
 }
 
@@ -270,10 +251,10 @@ fn error_text(e: &anyhow::Error) -> String {
 /// Exit codes, chosen from the error's type: 0 done; 2 bad input — a config, a recording, a
 /// feed, an option, an output path that cannot be used: a restart cannot help, so the unit
 /// says `RestartPreventExitStatus=2`; 1 a failure of the running program that a restart may
-/// cure ([`tagdeflect::RuntimeFailure`], and any error not known as bad input: a thread or
+/// cure ([`tagdeflect_core::RuntimeFailure`], and any error not known as bad input: a thread or
 /// runtime that cannot start, an I/O failure on the way).
 fn exit_code(e: &anyhow::Error) -> u8 {
-    if e.chain().any(|c| c.is::<tagdeflect::RuntimeFailure>()) {
+    if e.chain().any(|c| c.is::<tagdeflect_core::RuntimeFailure>()) {
         return 1;
     }
     if e.chain().any(is_bad_input) {
@@ -286,29 +267,28 @@ fn exit_code(e: &anyhow::Error) -> u8 {
 /// The error types that say the input is at fault.
 fn is_bad_input(c: &(dyn std::error::Error + 'static)) -> bool {
     #[cfg(feature = "sim")]
-    if c.is::<tagdeflect::sim::SimError>() {
+    if c.is::<tagdeflect_sim::SimError>() {
         return true;
     }
-    #[cfg(feature = "http")]
-    if matches!(c.downcast_ref::<tagdeflect::sinks::http::HttpError>(), Some(tagdeflect::sinks::http::HttpError::Bind { .. })) {
+    if page::is_bad_input(c) {
         return true;
     }
-    c.is::<tagdeflect::BadInput>()
+    c.is::<tagdeflect_core::BadInput>()
         || c.is::<tagdeflect::config::ConfigError>()
         || c.is::<tagdeflect::config::CalibrationError>()
-        || c.is::<tagdeflect::recording::RecordingError>()
-        || c.is::<tagdeflect::report::ReportError>()
-        || c.is::<tagdeflect::sources::SourceError>()
+        || c.is::<tagdeflect_io::recording::RecordingError>()
+        || c.is::<tagdeflect_report::ReportError>()
+        || c.is::<tagdeflect_io::sources::SourceError>()
         || c.is::<clap::Error>()
 }
 
 /// An archive error with its exit code (bad options exit 2, a failure of the machine 1).
 #[cfg(feature = "archive")]
-fn archive_error(e: tagdeflect::archive::ArchiveError) -> anyhow::Error {
+fn archive_error(e: tagdeflect_archive::ArchiveError) -> anyhow::Error {
     if e.is_bad_input() {
-        anyhow::Error::new(tagdeflect::BadInput::new(e.to_string()))
+        anyhow::Error::new(tagdeflect_core::BadInput::new(e.to_string()))
     } else {
-        anyhow::Error::new(tagdeflect::RuntimeFailure::new(e.to_string()))
+        anyhow::Error::new(tagdeflect_core::RuntimeFailure::new(e.to_string()))
     }
 }
 
@@ -408,7 +388,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         #[cfg(feature = "sim")]
         Command::Simulate { out, frame_format, params } => {
-            let summary = anyhow::Context::with_context(tagdeflect::sim::simulate_as(&params, &out, frame_format), || {
+            let summary = anyhow::Context::with_context(tagdeflect::commands::simulate::simulate_as(&params, &out, frame_format), || {
                 format!("simulating into {}", out.display())
             })?;
             eprintln!(
@@ -423,13 +403,13 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Check { dir, config } => match (dir, config) {
-            (Some(dir), None) => pipeline::check::check_recording(&dir),
-            (None, Some(cfg)) => pipeline::check::check_config(&cfg),
-            _ => Err(tagdeflect::BadInput::new("check takes either a recording folder or --config FILE").into()),
+            (Some(dir), None) => commands::check::check_recording(&dir),
+            (None, Some(cfg)) => commands::check::check_config(&cfg),
+            _ => Err(tagdeflect_core::BadInput::new("check takes either a recording folder or --config FILE").into()),
         },
-        Command::Cameras { with_fake } => pipeline::cameras::list(with_fake),
-        Command::Test(args) => pipeline::test_cmd::run(&args),
-        Command::Bench(opts) => pipeline::bench::bench(&opts),
+        Command::Cameras { with_fake } => commands::cameras::list(with_fake),
+        Command::Test(args) => commands::lab_test::run(&args),
+        Command::Bench(opts) => commands::bench::bench(&opts),
         #[cfg(feature = "sim")]
         Command::Demo { duration_s, config, http, no_http, tests, control } => {
             let cfg = match config {
@@ -439,7 +419,7 @@ fn run(cli: Cli) -> Result<()> {
             // The page by default on loopback; a taken default port only costs the page.
             let mut cfg = cfg;
             if let Some(addr) = control {
-                let c = cfg.output.control.get_or_insert_with(|| tagdeflect::sinks::control::ControlConfig::on(&addr.to_string()));
+                let c = cfg.output.control.get_or_insert_with(|| tagdeflect_sinks::control_output::ControlConfig::on(&addr.to_string()));
                 c.modbus = addr.to_string();
             }
             if no_http {
@@ -452,14 +432,14 @@ fn run(cli: Cli) -> Result<()> {
             live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
         }
         #[cfg(feature = "archive")]
-        Command::Archive(opts) => tagdeflect::archive::run(opts).map_err(archive_error),
+        Command::Archive(opts) => tagdeflect_archive::run(opts).map_err(archive_error),
         #[cfg(feature = "archive")]
-        Command::ArchiveBench(opts) => tagdeflect::archive::bench::run(&opts).map_err(archive_error),
+        Command::ArchiveBench(opts) => tagdeflect_archive::bench::run(&opts).map_err(archive_error),
         #[cfg(feature = "calibrate")]
-        Command::Calibrate(opts) => pipeline::calibrate_cmd::run(&opts),
-        Command::Report(args) => pipeline::report_cmd::run_cli(&args).map(|_| ()),
-        Command::Export(args) => pipeline::report_cmd::export_cli(&args),
-        Command::Assets { out } => pipeline::assets::write(<Cli as clap::CommandFactory>::command(), &out),
+        Command::Calibrate(opts) => commands::calibrate::run(&opts),
+        Command::Report(args) => commands::report::run_cli(&args).map(|_| ()),
+        Command::Export(args) => commands::report::export_cli(&args),
+        Command::Assets { out } => commands::assets::write(<Cli as clap::CommandFactory>::command(), &out),
         #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
         Command::Missing(args) => Err(missing_command(&args)),
     }

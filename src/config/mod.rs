@@ -28,6 +28,9 @@ mod schema;
 mod validate;
 
 pub use schema::*;
+
+/// A recording opened with the program's whole config.
+pub type Recording = tagdeflect_io::recording::Recording<Config>;
 pub use tagdeflect_core::text_file::{read_text_limited, MAX_CONFIG_BYTES};
 
 // The sections' types, where the rest of the program (and its tests) find them.

@@ -83,8 +83,8 @@ impl Config {
     }
 
     /// What the measurement is built from.
-    pub fn measurement(&self) -> tagdeflect_estimate::measure::MeasurementConfig {
-        tagdeflect_estimate::measure::MeasurementConfig {
+    pub fn measurement(&self) -> tagdeflect_estimate::measure::MeasurementRig {
+        tagdeflect_estimate::measure::MeasurementRig {
             world: self.world.clone(),
             cameras: self.cameras.clone(),
             background: self.background.clone(),

@@ -47,10 +47,9 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
             Some(r)
         }
     };
-    let mut output = raw.output.unwrap_or_default();
-    output.validate(base).map_err(|p| p.within("output"))?;
+    let output = raw.output.unwrap_or_default().resolve(base).map_err(|p| p.within("output"))?;
     check_sim(raw.sim.as_ref(), &cameras)?;
-    output.validate_mqtt(base).map_err(|p| p.within("output"))?;
+    let output = output.resolve_mqtt(base).map_err(|p| p.within("output"))?;
     let gauges = tagdeflect_core::gauge::validate_gauges(&raw.gauge, &specimen)?;
     if let Some(c) = &output.control {
         let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();

@@ -10,14 +10,13 @@ use std::time::Duration;
 use tokio::sync::mpsc::Sender;
 
 use tagdeflect_core::camera_config::CameraSource;
-use tagdeflect_io::sources::recording as player;
+use tagdeflect_io::sources::playback as player;
 use tagdeflect_io::sources::{spawn_capture, spawn_device, Backoff, LiveCamera, LoopTiming, OpenPolicy, SourceError, SourceEvent};
 
 use crate::config::Config;
-use crate::recording::Recording;
+use crate::config::Recording;
 
-#[cfg(feature = "sim")]
-use tagdeflect_sim::live_rig as sim;
+use crate::graph::sim::Rig;
 
 /// Every camera of a config, started.
 #[derive(Debug)]
@@ -26,8 +25,7 @@ pub struct Sources {
     pub cameras: Vec<LiveCamera>,
     /// The simulated rig, when a camera or the UTM is simulated (the simulated UTM server
     /// reads its load from it).
-    #[cfg(feature = "sim")]
-    pub rig: Option<Arc<sim::LiveRig>>,
+    pub rig: Rig,
 }
 
 impl Sources {
@@ -50,18 +48,7 @@ pub fn wants_rig(config: &Config) -> bool {
 /// or, with [`OpenPolicy::Retry`], once each device is open or being retried. The simulated
 /// rig's clock starts now.
 pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<Sources, SourceError> {
-    #[cfg(feature = "sim")]
-    let rig = if wants_rig(config) {
-        let rig = sim::LiveRig::new(config.sim.as_ref(), tagdeflect_core::clock::now_epoch_ns()).map_err(|e| SourceError::Open {
-            camera: 0,
-            name: "sim".into(),
-            spec: "sim".into(),
-            message: format!("cannot build the simulated rig: {e}"),
-        })?;
-        Some(Arc::new(rig))
-    } else {
-        None
-    };
+    let rig = Rig::build(config, wants_rig(config))?;
     let mut recordings: HashMap<PathBuf, (Arc<Recording>, Arc<player::Playhead>)> = HashMap::new();
     let mut cameras = Vec::with_capacity(config.cameras.len());
     let fail = |cameras: Vec<LiveCamera>, stop: &AtomicBool, e: SourceError| {
@@ -74,20 +61,7 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
     for (i, cam) in config.cameras.iter().enumerate() {
         let started = match &cam.source {
             CameraSource::V4l2 { .. } | CameraSource::Aravis { .. } => spawn_device(i, cam, policy, tx.clone(), stop.clone()),
-            #[cfg(not(feature = "sim"))]
-            CameraSource::Sim => Err(SourceError::Open {
-                camera: i,
-                name: cam.name.clone(),
-                spec: "sim".into(),
-                message: "this build has no simulated rig: build with the `sim` feature".into(),
-            }),
-            #[cfg(feature = "sim")]
-            CameraSource::Sim => {
-                let rig = rig.clone().expect("the rig is built when a camera is simulated");
-                let mut session = Some(sim::SimSession::new(rig.clone(), i));
-                let open = move || Ok::<_, String>(session.take().unwrap_or_else(|| sim::SimSession::new(rig.clone(), i)));
-                spawn_capture(i, &cam.name, "sim".into(), open, LoopTiming::for_fps(cam.fps), policy, tx.clone(), stop.clone())
-            }
+            CameraSource::Sim => rig.spawn_camera(i, cam, policy, tx.clone(), stop.clone()),
             CameraSource::Recording { dir } => {
                 let entry = match recordings.get(dir) {
                     Some(e) => Ok(e.clone()),
@@ -119,9 +93,5 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
             Err(e) => return fail(cameras, &stop, e),
         }
     }
-    Ok(Sources {
-        cameras,
-        #[cfg(feature = "sim")]
-        rig,
-    })
+    Ok(Sources { cameras, rig })
 }

@@ -7,7 +7,7 @@
 //! (`cargo test --test it accuracy -- --nocapture`) and kept in docs/accuracy.md.
 
 use crate::common::*;
-use tagdeflect::sim::SimParams;
+use tagdeflect_sim::SimParams;
 
 /// Three cameras, 1280x960, moderate noise.
 #[test]

@@ -5,13 +5,13 @@
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Point2, Vector2};
-use tagdeflect::calibrate::render::{render_target, RenderOptions};
-use tagdeflect::calibrate::solve::view_pnp;
-use tagdeflect::calibrate::target::{aprilgrid_corners, TargetDetector, TargetSpec};
-use tagdeflect::camera::{CameraIntrinsics, Pose};
-use tagdeflect::detect::{Detector, DetectorOptions};
-use tagdeflect::frame::GrayImage;
-use tagdeflect::tags::TagFamily;
+use tagdeflect_calibrate::render::{render_target, RenderOptions};
+use tagdeflect_calibrate::solve::view_pnp;
+use tagdeflect_calibrate::target::{aprilgrid_corners, TargetDetector, TargetSpec};
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_detect::{Detector, DetectorOptions};
 
 const EUROC_GRID: &str = "aprilgrid:6x6:0.088:0.3";
 

@@ -13,10 +13,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tagdeflect::config::CameraConfig;
-use tagdeflect::frame::Frame;
-use tagdeflect::sources::aravis::{spawn, AravisOptions};
-use tagdeflect::sources::clock::now_epoch_ns;
-use tagdeflect::sources::{spawn_camera, DropReason, LiveCamera, SourceError, SourceEvent};
+use tagdeflect_core::clock::now_epoch_ns;
+use tagdeflect_core::frame::Frame;
+use tagdeflect_io::sources::aravis::{spawn, AravisOptions};
+use tagdeflect_io::sources::{spawn_camera, DropReason, LiveCamera, SourceError, SourceEvent};
 use tokio::sync::mpsc::Receiver;
 
 const FAKE_GV: &str = "arv-fake-gv-camera-0.8";

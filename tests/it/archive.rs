@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use tagdeflect::archive::local::{LocalMosquitto, LocalPostgres};
-use tagdeflect::sim::{SimParams, SimRig};
+use tagdeflect_archive::local::{LocalMosquitto, LocalPostgres};
+use tagdeflect_sim::{SimParams, SimRig};
 
 /// A child process killed (and reaped) when dropped.
 struct Proc {
@@ -816,13 +816,13 @@ fn broker_urls_topic_templates_and_config_errors() {
     assert!(!c.to_toml_string().contains("secret"));
 }
 
-/// The broker ACLs of docs/operations.md, as written there (read from the page): with them a
+/// The broker ACLs of docs/archive.md, as written there (read from the page): with them a
 /// rig's feed reaches the archive, and another rig can neither write over its status nor slip a
 /// line into its feed — while that rig's own topics still work.
 #[test]
 fn the_documented_acls_let_each_rig_write_only_its_own_topics() {
     use std::os::unix::fs::PermissionsExt;
-    let docs = fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/operations.md")).unwrap();
+    let docs = fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/archive.md")).unwrap();
     let acl: String = docs
         .lines()
         .skip_while(|l| !l.trim_start().starts_with("# every rig:"))

@@ -5,13 +5,13 @@
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Point2, Vector3};
-use tagdeflect::calibrate::render::{render_target, RenderOptions};
-use tagdeflect::calibrate::report::{opencv_yaml, uncertainty_at, Coverage};
-use tagdeflect::calibrate::solve::{to_vector, SolveOptions, View, PARAM_NAMES};
-use tagdeflect::calibrate::target::{TargetDetector, TargetSpec, CORNER_BIAS_REFERENCE_BIT_PX};
-use tagdeflect::calibrate::{calibrate_target_views, calibrate_views, detect_views, image_files, CalibrationRun};
-use tagdeflect::camera::{CameraIntrinsics, Pose};
 use tagdeflect::config::load_calibration;
+use tagdeflect_calibrate::render::{render_target, RenderOptions};
+use tagdeflect_calibrate::report::{opencv_yaml, uncertainty_at, Coverage};
+use tagdeflect_calibrate::solve::{to_vector, SolveOptions, View, PARAM_NAMES};
+use tagdeflect_calibrate::target::{TargetDetector, TargetSpec, CORNER_BIAS_REFERENCE_BIT_PX};
+use tagdeflect_calibrate::{calibrate_target_views, calibrate_views, detect_views, image_files, CalibrationRun};
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 
 fn realdata() -> PathBuf {
     crate::calibrate_guard::realdata_dir().join("opencv-samples-data")
@@ -342,7 +342,7 @@ fn rendered_corner_bias(spec: &TargetSpec, truth: &CameraIntrinsics, blur_px: f6
                 }
                 let tc = spec.tag_centre_of(&obj[0]).unwrap();
                 let (col, row) = ((tc.x / pitch_mm).round() as u32, (-tc.y / pitch_mm).round() as u32);
-                let bm = tagdeflect::detect::tag_bitmap(family, first_id + row * cols + col).unwrap();
+                let bm = tagdeflect_detect::tag_bitmap(family, first_id + row * cols + col).unwrap();
                 let w = bm.total_width;
                 for edge in 0..4 {
                     // Edge `edge` runs from corner `edge` to the next (SPEC order: bottom, right,
@@ -666,13 +666,13 @@ fn imports_opencv_kalibr_and_ros_files() {
 #[test]
 fn measurement_with_recovered_calibration_within_accuracy_floors() {
     use tagdeflect::accuracy::evaluate;
-    use tagdeflect::pipeline::replay::{replay, ReplayOptions};
-    use tagdeflect::recording::Recording;
-    use tagdeflect::sim::SimParams;
+    use tagdeflect::config::Recording;
+    use tagdeflect::graph::in_process::{replay, ReplayOptions};
+    use tagdeflect_sim::SimParams;
     let dir = tempfile::tempdir().unwrap();
     let p = SimParams { cameras: 3, width: 640, height: 480, frame_sets: 6, seed: 41, ..SimParams::default() };
     let out = dir.path().join("rec");
-    tagdeflect::sim::simulate(&p, &out).unwrap();
+    tagdeflect::commands::simulate::simulate(&p, &out).unwrap();
     let mut rec = Recording::open(&out).unwrap();
     let run_acc = |rec: &Recording| {
         let mut lines = Vec::new();
@@ -718,18 +718,18 @@ fn live_mode_grabs_frames_from_a_sim_camera() {
     let path = dir.path().join("rig.toml");
     std::fs::write(&path, cfg.to_toml_string()).unwrap();
     let spec: TargetSpec = "checkerboard:9x6:25".parse().unwrap();
-    let (views, w, h, skipped) = tagdeflect::pipeline::calibrate_cmd::grab_views(&path, &name, &spec, 5, 2.0).unwrap();
+    let (views, w, h, skipped) = tagdeflect::commands::calibrate::grab_views(&path, &name, &spec, 5, 2.0).unwrap();
     eprintln!("{w}x{h}: {} views, skipped {skipped:?}", views.len());
     assert!(views.is_empty());
     assert!(w > 0 && h > 0, "frames arrived");
     assert!(skipped.iter().any(|r| r.reason.contains("target not found")), "{skipped:?}");
-    let e = tagdeflect::pipeline::calibrate_cmd::grab_views(&path, "nope", &spec, 5, 1.0).unwrap_err().to_string();
+    let e = tagdeflect::commands::calibrate::grab_views(&path, "nope", &spec, 5, 1.0).unwrap_err().to_string();
     assert!(e.contains("no camera named \"nope\""), "{e}");
 }
 
 #[test]
 fn coverage_tracker_keeps_only_frames_that_add_coverage() {
-    use tagdeflect::calibrate::live_views::CoverageTracker;
+    use tagdeflect_calibrate::live_views::CoverageTracker;
     let mut t = CoverageTracker::new(640, 480);
     let view = |x0: f64| View {
         name: "v".into(),
@@ -749,7 +749,7 @@ fn coverage_tracker_keeps_only_frames_that_add_coverage() {
 #[test]
 fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
     use std::sync::Arc;
-    use tagdeflect::frame::{Frame, FrameSet};
+    use tagdeflect_core::frame::{Frame, FrameSet};
     let truth = sim_camera();
     let spec: TargetSpec = "tagboard:tag36h11:6x4:32:44".parse().unwrap();
     let pts = spec.board_points();
@@ -769,7 +769,7 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
     };
     // How many frames the live mode keeps (it grabs until it has that many): its rule, here.
     let kept = {
-        use tagdeflect::calibrate::live_views::{CoverageTracker, MIN_NEW_CELLS};
+        use tagdeflect_calibrate::live_views::{CoverageTracker, MIN_NEW_CELLS};
         let mut det = TargetDetector::new(spec.clone()).unwrap();
         let mut tr = CoverageTracker::new(truth.width, truth.height);
         let mut n = 0;
@@ -783,17 +783,17 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
         }
         n
     };
-    let opts = tagdeflect::calibrate::CalibrateOptions {
+    let opts = tagdeflect_calibrate::CalibrateOptions {
         camera: Some("cam".into()),
         views: kept,
         duration_s: 60.0,
         ..crate::calibrate_guard::plain_options("tagboard:tag36h11:6x4:32:44")
     };
-    let (live, _, _) = tagdeflect::calibrate::calibrate_live(&mut grabber(), "cam", &spec, &opts).unwrap();
+    let (live, _, _) = tagdeflect_calibrate::calibrate_live(&mut grabber(), "cam", &spec, &opts).unwrap();
     // The first pass alone, on the same kept frames.
-    let g = tagdeflect::calibrate::live_views::grab_views_kept(&mut grabber(), "cam", &spec, kept, 60.0).unwrap();
+    let g = tagdeflect_calibrate::live_views::grab_views_kept(&mut grabber(), "cam", &spec, kept, 60.0).unwrap();
     assert!(g.views.len() == kept && kept >= 10, "{} of {} frames kept", g.views.len(), frames.len());
-    let (first, _) = tagdeflect::calibrate::calibrate_guarded(g.views.clone(), g.width, g.height, &[], &[], &spec, &opts).unwrap();
+    let (first, _) = tagdeflect_calibrate::calibrate_guarded(g.views.clone(), g.width, g.height, &[], &[], &spec, &opts).unwrap();
     // The kept frames as PNG files, calibrated as a folder.
     let dir = tempfile::tempdir().unwrap();
     for (i, (_, img)) in g.images.iter().enumerate() {
@@ -802,7 +802,7 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
             .save(dir.path().join(format!("view_{i:02}.png")))
             .unwrap();
     }
-    let (folder, _, _) = tagdeflect::calibrate::calibrate_folder(dir.path(), &spec, &opts).unwrap();
+    let (folder, _, _) = tagdeflect_calibrate::calibrate_folder(dir.path(), &spec, &opts).unwrap();
     let (l, f, p) =
         (to_vector(&live.calibration.intrinsics), to_vector(&folder.calibration.intrinsics), to_vector(&first.calibration.intrinsics));
     eprintln!(

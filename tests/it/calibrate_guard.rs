@@ -7,13 +7,13 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use nalgebra::Vector3;
-use tagdeflect::calibrate::guard::{check_board, split_views, split_views_stats, verdict, Grade};
-use tagdeflect::calibrate::render::{render_target, RenderOptions};
-use tagdeflect::calibrate::report::Coverage;
-use tagdeflect::calibrate::solve::{SolveOptions, View};
-use tagdeflect::calibrate::target::{TargetDetector, TargetSpec};
-use tagdeflect::calibrate::{calibrate_views, detect_views_seen, image_files, CalibrateError};
-use tagdeflect::camera::{CameraIntrinsics, Pose};
+use tagdeflect_calibrate::guard::{check_board, split_views, split_views_stats, verdict, Grade};
+use tagdeflect_calibrate::render::{render_target, RenderOptions};
+use tagdeflect_calibrate::report::Coverage;
+use tagdeflect_calibrate::solve::{SolveOptions, View};
+use tagdeflect_calibrate::target::{TargetDetector, TargetSpec};
+use tagdeflect_calibrate::{calibrate_views, detect_views_seen, image_files, CalibrateError};
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 
 /// `shared/realdata` beside the checkout (or beside a folder above it, for a worktree).
 pub(crate) fn realdata_dir() -> PathBuf {
@@ -27,8 +27,8 @@ pub(crate) fn realdata_dir() -> PathBuf {
 
 /// `calibrate`'s options as the command line's defaults give them, for `target` (no files,
 /// no camera; live mode's 20 views in 1 s).
-pub(crate) fn plain_options(target: &str) -> tagdeflect::calibrate::CalibrateOptions {
-    tagdeflect::calibrate::CalibrateOptions {
+pub(crate) fn plain_options(target: &str) -> tagdeflect_calibrate::CalibrateOptions {
+    tagdeflect_calibrate::CalibrateOptions {
         images: None,
         config: None,
         camera: None,
@@ -204,7 +204,7 @@ fn views_at_another_focus_are_rejected_and_named() {
     assert_eq!(minority.len() + named_as_outliers, 4, "{minority:?}");
     // The guarded calibration rejects them and names them, and recovers the first focus.
     let opts = plain_options("checkerboard:9x6:30");
-    let (guarded, notes) = tagdeflect::calibrate::calibrate_guarded(run.views.clone(), 800, 600, &[], &[], &spec, &opts).unwrap();
+    let (guarded, notes) = tagdeflect_calibrate::calibrate_guarded(run.views.clone(), 800, 600, &[], &[], &spec, &opts).unwrap();
     eprintln!("{notes:?}");
     assert!(notes.iter().any(|n| n.contains("another camera or focus") && n.contains("focus-b-")), "{notes:?}");
     assert!(guarded.views.iter().all(|v| v.name.starts_with("focus-a-")));

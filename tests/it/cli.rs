@@ -55,7 +55,7 @@ fn missing_and_empty_recordings_exit_2() {
     let rec = common::simulate(
         dir.path(),
         "rec",
-        &tagdeflect::sim::SimParams { cameras: 1, width: 320, height: 240, frame_sets: 2, ..Default::default() },
+        &tagdeflect_sim::SimParams { cameras: 1, width: 320, height: 240, frame_sets: 2, ..Default::default() },
     );
     fs::write(rec.join("frames.jsonl"), "").unwrap();
     let o = tagdeflect(&["replay", rec.to_str().unwrap()]);
@@ -105,7 +105,7 @@ fn check_warns_when_a_camera_sees_no_background_tag() {
     let rec = common::simulate(
         dir.path(),
         "rec",
-        &tagdeflect::sim::SimParams { cameras: 2, width: 480, height: 360, frame_sets: 1, ..Default::default() },
+        &tagdeflect_sim::SimParams { cameras: 2, width: 480, height: 360, frame_sets: 1, ..Default::default() },
     );
     // Background ids that no camera sees: no camera can be posed → exit 2 with advice.
     let cfg_path = rec.join("tagdeflect.toml");
@@ -141,8 +141,8 @@ fn bundled_recordings_replay_to_clean_accurate_feeds() {
         assert!(o.status.success(), "{}: {}", dir.display(), stderr(&o));
         let text = String::from_utf8(o.stdout).unwrap();
         common::feedcheck_text(&text, &dir.join("tagdeflect.toml"));
-        let rec = tagdeflect::recording::Recording::open(&dir).unwrap();
-        let lines: Vec<tagdeflect::feed::FeedLine> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        let rec = tagdeflect::config::Recording::open(&dir).unwrap();
+        let lines: Vec<tagdeflect_core::feed::FeedLine> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
         // `replay` is the graph with the recording as its source; it writes exactly the lines
         // of the measurement driven in-process (what bench and the other tests use).
         let (_, in_process, _) = common::replay_lines(&dir, false);

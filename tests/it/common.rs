@@ -10,10 +10,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use tagdeflect::accuracy::{evaluate, Accuracy};
-use tagdeflect::feed::FeedLine;
-use tagdeflect::pipeline::replay::{self, ReplayOptions, ReplaySummary};
-use tagdeflect::recording::Recording;
-use tagdeflect::sim::SimParams;
+use tagdeflect::config::Recording;
+use tagdeflect::graph::in_process::{self as replay, ReplayOptions, ReplaySummary};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_sim::SimParams;
 
 /// The project's root folder.
 pub fn root() -> PathBuf {
@@ -30,7 +30,7 @@ pub fn shared() -> PathBuf {
 /// Simulates `params` into a new folder under `dir`.
 pub fn simulate(dir: &Path, name: &str, params: &SimParams) -> PathBuf {
     let out = dir.join(name);
-    tagdeflect::sim::simulate(params, &out).unwrap_or_else(|e| panic!("simulate {name}: {e}"));
+    tagdeflect::commands::simulate::simulate(params, &out).unwrap_or_else(|e| panic!("simulate {name}: {e}"));
     out
 }
 
@@ -156,7 +156,7 @@ fn try_start_pymodbus(port: u16) -> Option<ChildGuard> {
     let mut guard = ChildGuard(child);
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
-        if tagdeflect::archive::local::process_listens_on(guard.0.id(), port) {
+        if tagdeflect_archive::local::process_listens_on(guard.0.id(), port) {
             return Some(guard);
         }
         if let Ok(Some(status)) = guard.0.try_wait() {

@@ -10,18 +10,18 @@ use std::process::{Command, Stdio};
 
 use nalgebra::Vector3;
 use tagdeflect::accuracy::truth_at;
+use tagdeflect::config::Recording;
 use tagdeflect::config::{Config, TagRole};
-use tagdeflect::feed::FeedLine;
-use tagdeflect::pipeline::replay::{self, ReplayOptions};
-use tagdeflect::recording::Recording;
-use tagdeflect::sim::SimParams;
-use tagdeflect::solve::temporal::Estimator;
+use tagdeflect::graph::in_process::{self as replay, ReplayOptions};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_estimate::temporal::Estimator;
+use tagdeflect_sim::SimParams;
 
 use crate::common::{self, ChildGuard};
-use tagdeflect::sinks::control::ControlConfig;
+use tagdeflect_sinks::control_output::ControlConfig;
 
 /// Net-deflection error against truth of every line that has one: (seq, error mm, σ mm, partial).
-fn net_errors(config: &Config, rec_truth: &[tagdeflect::recording::TruthLine], lines: &[FeedLine]) -> Vec<(u64, f64, f64, bool)> {
+fn net_errors(config: &Config, rec_truth: &[tagdeflect_io::recording::TruthLine], lines: &[FeedLine]) -> Vec<(u64, f64, f64, bool)> {
     let up = Vector3::from(config.world.up).normalize();
     let mut first: HashMap<u32, Vector3<f64>> = HashMap::new();
     let mut out = Vec::new();
@@ -144,7 +144,7 @@ fn partial_scene(label: &str, params: &SimParams) -> SceneFigures {
     let removed = drop_frames(&partial, &names, partial_pattern);
     assert!(removed >= 70, "{removed} frames removed");
 
-    let lag = Some(tagdeflect::solve::smooth::DEFAULT_LAG_SETS);
+    let lag = Some(tagdeflect_estimate::smooth::DEFAULT_LAG_SETS);
     let (rec_full, full_temporal) = replay_with(&full, Estimator::Temporal, None);
     let (_, full_per_set) = replay_with(&full, Estimator::PerSet, None);
     let (_, full_smoothed) = replay_with(&full, Estimator::Temporal, lag);
@@ -368,15 +368,15 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     use rand_distr::{Distribution, Normal};
     use std::sync::Arc;
     use std::time::{Duration, Instant};
-    use tagdeflect::sim::machine::{serve_machine, SimMachine};
-    use tagdeflect::sinks::control::ControlOutput;
-    use tagdeflect::solve::temporal::{TagFilter, TemporalConfig};
+    use tagdeflect_estimate::temporal::{TagFilter, TemporalConfig};
+    use tagdeflect_sim::machine::{serve_machine, SimMachine};
+    use tagdeflect_sinks::control_output::ControlOutput;
 
     let target = 6.0; // mm/min of net deflection
     let duration_s = 14.0;
     let period = Duration::from_millis(50); // 20 frame sets/s
     let sim = SimParams {
-        load_law: tagdeflect::sim::LoadLaw::Softening,
+        load_law: tagdeflect_sim::LoadLaw::Softening,
         stiffness_kn_per_mm: 60.0,
         crack_deflection_mm: 0.4,
         compliance_mm_per_kn: 0.01,
@@ -384,7 +384,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         ..SimParams::default()
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
-    let machine = Arc::new(SimMachine::new(&sim, tagdeflect::clock::now_epoch_ns(), 120.0));
+    let machine = Arc::new(SimMachine::new(&sim, tagdeflect_core::clock::now_epoch_ns(), 120.0));
     let (machine_addr, machine_task) = rt.block_on(serve_machine("127.0.0.1:0".parse().unwrap(), machine.clone())).unwrap();
     let mut control = ControlOutput::start(&ControlConfig::on("127.0.0.1:0")).unwrap();
     let tmp = tempfile::tempdir().unwrap();
@@ -416,7 +416,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         if let Some(wait) = due.checked_duration_since(Instant::now()) {
             std::thread::sleep(wait); // the frame clock of the simulation
         }
-        let t_ns = tagdeflect::clock::now_epoch_ns();
+        let t_ns = tagdeflect_core::clock::now_epoch_ns();
         let s = machine.advance(t_ns);
         let el = started.elapsed().as_secs_f64();
         let lost = (loss_from..loss_to).contains(&el);
@@ -434,7 +434,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
                     let f = TagFilter::new(TemporalConfig::default(), t_ns, z, &cov);
                     let u = (f.centre(), f.covariance(), f.rate());
                     filter = Some(f);
-                    tagdeflect::solve::temporal::Update { centre: u.0, covariance: u.1, rate: u.2, partial: false, jump: false }
+                    tagdeflect_estimate::temporal::Update { centre: u.0, covariance: u.1, rate: u.2, partial: false, jump: false }
                 }
             };
             line.net_deflection_mm = Some(-u.centre.z);

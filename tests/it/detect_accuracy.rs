@@ -11,16 +11,16 @@ use nalgebra::{Matrix3, Point2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use tagdeflect::camera::Lens;
-use tagdeflect::detect::tag_bitmap;
-use tagdeflect::detect::{Detection, Detector, DetectorOptions, Rect};
-use tagdeflect::frame::GrayImage;
-use tagdeflect::tags::TagFamily;
+use tagdeflect_core::camera::Lens;
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_detect::tag_bitmap;
+use tagdeflect_detect::{Detection, Detector, DetectorOptions, Rect};
 
 /// Homography from tag cells (origin top-left of the black square, `nb` cells across, y down)
 /// to image pixels, given the image corners in SPEC order (BL, BR, TR, TL).
 fn homography(corners: &[Point2<f64>; 4], nb: f64) -> Matrix3<f64> {
-    tagdeflect::tags::cell_homography(&corners.map(|c| c.coords), nb).expect("homography")
+    tagdeflect_core::tags::cell_homography(&corners.map(|c| c.coords), nb).expect("homography")
 }
 
 struct Scene {
@@ -329,7 +329,7 @@ fn print_detect_timings() {
     for _ in 0..reps {
         for d in &raw {
             let mut d = d.clone();
-            tagdeflect::detect::refine_corners(&img, &mut d, None);
+            tagdeflect_detect::refine_corners(&img, &mut d, None);
         }
     }
     println!("sub-pixel refinement alone: {:?} per ~60 px tag", t.elapsed() / (reps * raw.len().max(1)) as u32);
@@ -337,8 +337,8 @@ fn print_detect_timings() {
 
 #[test]
 fn intrinsics_without_distortion_change_nothing() {
-    use tagdeflect::camera::CameraIntrinsics;
-    use tagdeflect::detect::refine_corners;
+    use tagdeflect_core::camera::CameraIntrinsics;
+    use tagdeflect_detect::refine_corners;
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let scene = Scene { width: 300, height: 300, blur_sigma: 0.9, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
     let truth = random_corners(&mut rng, 150.0, 150.0, 80.0, 0.04);
@@ -361,7 +361,7 @@ fn intrinsics_without_distortion_change_nothing() {
 /// the wrong tag, the wrong rotation, a place a bit off, or an empty place are refused.
 #[test]
 fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_tags() {
-    use tagdeflect::detect::{ConfirmMiss, Prediction, RefineOptions, TagConfirmer};
+    use tagdeflect_detect::{ConfirmMiss, Prediction, RefineOptions, TagConfirmer};
     let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let fams = [TagFamily::Tag36h11, TagFamily::Tag25h9];
@@ -425,7 +425,7 @@ fn tracking_from_predicted_corners_matches_refined_detections_and_refuses_wrong_
 /// selected anew.
 #[test]
 fn a_tag_that_barely_moved_is_fitted_on_its_last_pixels() {
-    use tagdeflect::detect::{Prediction, RefineOptions, TagConfirmer};
+    use tagdeflect_detect::{Prediction, RefineOptions, TagConfirmer};
     let scene = Scene { width: 300, height: 300, blur_sigma: 1.0, noise_sigma: 3.0, black: 40.0, white: 200.0, background: 90.0 };
     let mut rng = ChaCha8Rng::seed_from_u64(33);
     let tracker = TagConfirmer::default();
@@ -480,7 +480,7 @@ fn a_tag_that_barely_moved_is_fitted_on_its_last_pixels() {
 /// other tag in the tile is still found, and its corners map back to the frame.
 #[test]
 fn masked_sweep_tiles_hide_known_tags_only() {
-    use tagdeflect::detect::plan::masked_tile;
+    use tagdeflect_detect::plan::masked_tile;
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let scene = Scene { width: 400, height: 300, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
     let a = (TagFamily::Tag36h11, 5, random_corners(&mut rng, 110.0, 150.0, 60.0, 0.02));
@@ -512,7 +512,7 @@ fn masked_sweep_tiles_hide_known_tags_only() {
 
 #[test]
 fn parallel_searches_on_shared_family_tables_equal_one_detector() {
-    use tagdeflect::detect::SearchOptions;
+    use tagdeflect_detect::SearchOptions;
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let scene = Scene { width: 480, height: 320, blur_sigma: 0.8, noise_sigma: 2.0, black: 30.0, white: 220.0, background: 120.0 };
     let tags: Vec<_> =

@@ -1,11 +1,11 @@
-//! Detector corners against the synthetic rig's truth (`tagdeflect::sim`): the pixel
+//! Detector corners against the synthetic rig's truth (`tagdeflect_sim`): the pixel
 //! convention (mean offset of the library's converted corners vs projected truth) and the
 //! gain of sub-pixel refinement, per scenario. Figures are printed.
 
 use nalgebra::{Point2, Vector2, Vector3};
-use tagdeflect::detect::{Detection, Detector, DetectorOptions};
-use tagdeflect::sim::{render_frame_set, SimParams, SimRig};
-use tagdeflect::tags::TagFamily;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_detect::{Detection, Detector, DetectorOptions};
+use tagdeflect_sim::{render_frame_set, SimParams, SimRig};
 
 #[derive(Default)]
 struct Acc {
@@ -58,7 +58,7 @@ fn run(params: &SimParams, sets: &[u64]) -> Figures {
             // Truth: every tag whose four corners project well inside the image.
             let mut truth: Vec<(TagFamily, u32, [Point2<f64>; 4])> = Vec::new();
             // The simulator's own lens model (independent of the product's).
-            let lens = tagdeflect::sim::lens::Lens::of(&intr);
+            let lens = tagdeflect_sim::lens::Lens::of(&intr);
             let project = |w: &Vector3<f64>| lens.pixel(&pose.transform(w));
             for (id, corners) in rig.tag_corners_world(t_ns) {
                 let px: Vec<Point2<f64>> = corners.iter().filter_map(project).collect();

@@ -13,12 +13,12 @@ use rand_distr::{Distribution, Normal};
 
 use crate::common::*;
 use tagdeflect::accuracy::{evaluate, evaluate_from, Accuracy};
-use tagdeflect::camera::{CameraIntrinsics, Pose};
-use tagdeflect::feed::FeedLine;
-use tagdeflect::pipeline::replay::{self, ReplayOptions};
-use tagdeflect::recording::Recording;
-use tagdeflect::sim::{SimParams, SimTruthLine, SIM_TRUTH_FILE};
-use tagdeflect::solve::{BackgroundTagObservation, DriftConfig, HeldCameraPose, HeldPoseOptions};
+use tagdeflect::config::Recording;
+use tagdeflect::graph::in_process::{self as replay, ReplayOptions};
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_estimate::{BackgroundTagObservation, DriftConfig, HeldCameraPose, HeldPoseOptions};
+use tagdeflect_sim::{SimParams, SimTruthLine, SIM_TRUTH_FILE};
 
 /// Replays `dir` with drift tracking on or off; prints and returns the figures.
 fn replay_with(label: &str, dir: &std::path::Path, drift: bool) -> (Accuracy, Vec<FeedLine>, Recording) {

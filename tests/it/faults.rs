@@ -1,13 +1,13 @@
 //! Faults found by trying the release binary as a user would, each with the test that failed
-//! before its fix (docs/operations.md, fault table).
+//! before its fix (CHANGELOG.md, the tables of fixes taken out).
 
 use std::fs;
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
 use crate::common;
-use tagdeflect::feed::FeedLine;
-use tagdeflect::sim::SimParams;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_sim::SimParams;
 
 fn tagdeflect(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).env("TAGDEFLECT_LOG", "info").output().unwrap()
@@ -101,7 +101,7 @@ fn a_realtime_replay_does_not_wait_for_a_frame_stamped_far_ahead() {
 fn a_feed_that_takes_no_writes_is_refused_at_start() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 1, width: 320, height: 240, ..SimParams::default() };
-    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     for target in ["/proc/version", "/proc"] {
         cfg.output.feed = Some(target.to_string());
         let path = dir.path().join("rig.toml");
@@ -119,7 +119,7 @@ fn a_feed_that_takes_no_writes_is_refused_at_start() {
 fn a_camera_name_with_markup_is_refused_at_load() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 1, width: 320, height: 240, ..SimParams::default() };
-    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.cameras[0].source = tagdeflect::config::CameraSource::V4l2 { path: "/dev/video0".into() };
     for bad in ["<img src=x onerror=alert(1)>", "a\"b", "left/../x", "cam#1", ".hidden", "a b"] {
         cfg.cameras[0].name = bad.to_string();
@@ -292,7 +292,7 @@ fn poisoning_modbus_device() -> (String, std::sync::Arc<std::sync::atomic::Atomi
 fn run_against_a_utm(dir: &std::path::Path, utm: &str, log: &str, seconds: &str) -> (Option<i32>, Vec<FeedLine>, String) {
     use tagdeflect::config::{Config, RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
     let params = SimParams { cameras: 2, width: 400, height: 300, fps: 5.0, frame_sets: 40, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Some(UtmConfig {
         address: tagdeflect::config::UtmAddress::Tcp(utm.to_string()),
         unit: 1,
@@ -478,9 +478,9 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     // Two small simulated cameras at 5 fps, the demo's simulated UTM, a beam for the report.
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = Some(tagdeflect::report::BeamConfig {
+    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
         width_mm: params.beam_width_mm,
         depth_mm: params.beam_height_mm,
         span_mm: params.span_mm,
@@ -507,7 +507,7 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     assert!(tests_dir.join(".running.json").is_file(), "the running test's state survives the kill");
     // A hole of at least 2 s in the test (a restart takes time; here it is not left to chance).
     let last_t_ns = before.last().unwrap().t_ns;
-    while tagdeflect::clock::now_epoch_ns() < last_t_ns + 2_000_000_000 {
+    while tagdeflect_core::clock::now_epoch_ns() < last_t_ns + 2_000_000_000 {
         std::thread::sleep(Duration::from_millis(50));
     }
 

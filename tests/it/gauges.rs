@@ -13,15 +13,15 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
 use crate::common::*;
-use tagdeflect::camera::Pose;
 use tagdeflect::config::{Config, SpecimenConfig, SpecimenTag, TagRole};
-use tagdeflect::feed::FeedLine;
-use tagdeflect::recording::read_jsonl_file;
-use tagdeflect::sim::{LoadLaw, SimParams, SimRig, SimTest, SimTruthLine, SIM_TRUTH_FILE};
-use tagdeflect::solve::clock_offset::{estimate_from_feed, estimate_from_utm};
-use tagdeflect::solve::gauges::{GaugeConfig, GaugeKind, GaugeTag, Gauges};
-use tagdeflect::solve::lm::retract;
-use tagdeflect::tags::TagFamily;
+use tagdeflect_core::camera::Pose;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_estimate::clock_offset::{estimate_from_feed, estimate_from_utm};
+use tagdeflect_estimate::gauges::{GaugeConfig, GaugeKind, GaugeTag, Gauges};
+use tagdeflect_estimate::lm::retract;
+use tagdeflect_io::recording::read_jsonl_file;
+use tagdeflect_sim::{LoadLaw, SimParams, SimRig, SimTest, SimTruthLine, SIM_TRUTH_FILE};
 
 // ---------------------------------------------------------------------------------------
 // Config validation.

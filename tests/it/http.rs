@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use crate::common::{root, ChildGuard};
 use tagdeflect::config::Config;
-use tagdeflect::feed::FeedLine;
-use tagdeflect::sim::{SimParams, SimRig};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_sim::{SimParams, SimRig};
 
 /// The test venv's Python with selenium and prometheus_client (scripts/setup.sh makes it).
 fn python() -> PathBuf {
@@ -47,7 +47,7 @@ fn small_rig() -> SimParams {
 /// `outage` = (after s, for s).
 fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
     let params = SimParams {
-        load_law: tagdeflect::sim::LoadLaw::Softening,
+        load_law: tagdeflect_sim::LoadLaw::Softening,
         utm_outage_at_s: outage.map(|o| o.0),
         utm_outage_s: outage.map_or(5.0, |o| o.1),
         ..small_rig()
@@ -407,7 +407,7 @@ fn replay_serves_the_page_and_stays_up_until_sigterm() {
 
 #[test]
 fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error() {
-    assert!(tagdeflect::sinks::http::DEFAULT_ADDR.parse::<SocketAddr>().unwrap().ip().is_loopback());
+    assert!(tagdeflect_sinks::http::DEFAULT_ADDR.parse::<SocketAddr>().unwrap().ip().is_loopback());
     // demo's default (127.0.0.1:8080, a taken port costing only the page) is the unit test
     // `demo_serves_the_default_page_on_loopback…` in src/main.rs and
     // `a_taken_address_is_an_error_when_required…` in sinks::http::server: no test here
@@ -505,7 +505,7 @@ fn sockets_of(pid: u32) -> usize {
 /// daemon's descriptors stay bounded and the page answers again once they time out.
 #[test]
 fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
-    use tagdeflect::sinks::http::{HEADER_TIMEOUT, MAX_CONNECTIONS};
+    use tagdeflect_sinks::http::{HEADER_TIMEOUT, MAX_CONNECTIONS};
     let rec = root().join("replay/one-cam");
     let mut d = Daemon::start(&["replay", rec.to_str().unwrap(), "--http", "127.0.0.1:0"]);
     let addr = d.addr();
@@ -551,7 +551,7 @@ fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
         std::thread::sleep(Duration::from_millis(200));
     }
     // The idle ones time out; the page answers again.
-    let deadline = Instant::now() + tagdeflect::sinks::http::IDLE_TIMEOUT + Duration::from_secs(30);
+    let deadline = Instant::now() + tagdeflect_sinks::http::IDLE_TIMEOUT + Duration::from_secs(30);
     loop {
         let head = raw_head(addr, &format!("GET /api/status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"));
         if head.starts_with("HTTP/1.1 200") {
@@ -822,7 +822,7 @@ fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
     let params = SimParams { frame_sets: 30, ..small_rig() };
     let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = Some(tagdeflect::report::BeamConfig {
+    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
         width_mm: params.beam_width_mm,
         depth_mm: params.beam_height_mm,
         span_mm: params.span_mm,
@@ -909,8 +909,8 @@ fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
 fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams {
-        test: tagdeflect::sim::SimTest::ThreePointNotched,
-        load_law: tagdeflect::sim::LoadLaw::Softening,
+        test: tagdeflect_sim::SimTest::ThreePointNotched,
+        load_law: tagdeflect_sim::LoadLaw::Softening,
         drop_prob: 0.15,
         ..small_rig()
     };

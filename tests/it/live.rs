@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use crate::common::{self, start_pymodbus, start_pymodbus_on};
 use tagdeflect::config::{Config, RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
-use tagdeflect::feed::FeedLine;
-use tagdeflect::sim::{SimParams, SimRig};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_sim::{SimParams, SimRig};
 
 /// A live rig: two small simulated cameras at 5 fps, the UTM at `port` (the pymodbus
 /// fixture's f32 12.5 CDAB load at input 0 and i32 −25000 at holding 10 as stroke × 1e-4).
@@ -384,7 +384,7 @@ fn record_then_replay_and_check_a_live_config() {
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(out.stdout.is_empty(), "record writes no feed");
-    let entries: Vec<tagdeflect::recording::FrameEntry> = tagdeflect::recording::read_jsonl_file(&rec.join("frames.jsonl")).unwrap();
+    let entries: Vec<tagdeflect_io::recording::FrameEntry> = tagdeflect_io::recording::read_jsonl_file(&rec.join("frames.jsonl")).unwrap();
     let frames = entries.len();
     assert!(frames >= 4, "{frames} frames recorded");
     // Each camera at its 5 fps: frames 200 ms apart (their stamps, not a count in the run's

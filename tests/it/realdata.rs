@@ -6,10 +6,10 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use tagdeflect::detect::apriltag::LIBRARY_TO_OPENCV;
-use tagdeflect::detect::{Detector, DetectorOptions, Rect};
-use tagdeflect::frame::GrayImage;
-use tagdeflect::tags::TagFamily;
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_detect::apriltag::LIBRARY_TO_OPENCV;
+use tagdeflect_detect::{Detector, DetectorOptions, Rect};
 
 fn data_dir() -> PathBuf {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata");
@@ -254,8 +254,8 @@ fn window_detection_matches_full_frame_on_a_photo() {
 #[test]
 fn a_camera_moved_between_real_photos_is_searched_whole_and_followed_from_there() {
     use std::sync::Arc;
-    use tagdeflect::camera::{CameraIntrinsics, Lens};
-    use tagdeflect::detect::{CameraDetector, ConfirmOptions, RefineOptions, RigDetectors, SearchOptions, TagConfirmer, TagRoles};
+    use tagdeflect_core::camera::{CameraIntrinsics, Lens};
+    use tagdeflect_detect::{CameraDetector, ConfirmOptions, RefineOptions, RigDetectors, SearchOptions, TagConfirmer, TagRoles};
     let dir = data_dir().join("amarburg-apriltags-test");
     let frontal = load_gray(&dir.join("test_36h11_greyscale.jpg"));
     let oblique = load_gray(&dir.join("test_36h11_oblique_greyscale.jpg"));
@@ -286,7 +286,7 @@ fn a_camera_moved_between_real_photos_is_searched_whole_and_followed_from_there(
         ids.sort_unstable();
         (ids, found)
     };
-    let ids = |d: &tagdeflect::detect::CameraDetections| {
+    let ids = |d: &tagdeflect_detect::CameraDetections| {
         let mut v: Vec<u32> = d.background.iter().chain(&d.specimen).map(|d| d.id).collect();
         v.sort_unstable();
         v

@@ -4,13 +4,14 @@
 use crate::common;
 use std::fs;
 use std::path::Path;
-use tagdeflect::frame::GrayImage;
-use tagdeflect::recording::{read_gray_into, FrameEntry, Recording, RecordingError, RecordingWriter, TruthLine, TruthTag};
-use tagdeflect::sim::SimParams;
-use tagdeflect::utm::UtmSample;
+use tagdeflect::config::Recording;
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_io::recording::{read_gray_into, FrameEntry, RecordingError, RecordingWriter, TruthLine, TruthTag};
+use tagdeflect_io::utm::UtmSample;
+use tagdeflect_sim::SimParams;
 
 fn tiny_config() -> tagdeflect::config::Config {
-    let rig = tagdeflect::sim::SimRig::new(&SimParams { cameras: 2, width: 64, height: 48, ..SimParams::default() }).unwrap();
+    let rig = tagdeflect_sim::SimRig::new(&SimParams { cameras: 2, width: 64, height: 48, ..SimParams::default() }).unwrap();
     tagdeflect::config::Config::from_sim(&rig)
 }
 
@@ -117,7 +118,7 @@ fn missing_corrupt_and_wrong_size_frames_are_named() {
     fs::remove_file(&path).unwrap();
     let e = rec.load_image(&f0).unwrap_err().to_string();
     assert!(e.contains(&f0.file), "{e}");
-    let small = tagdeflect::recording::encode_png(&gradient(10, 10)).unwrap();
+    let small = tagdeflect_io::recording::encode_png(&gradient(10, 10)).unwrap();
     fs::write(&path, small).unwrap();
     let e = rec.load_image(&f0).unwrap_err().to_string();
     assert!(e.contains("image is 10x10 but camera"), "{e}");
@@ -155,12 +156,12 @@ fn empty_recording_and_missing_folder_are_errors() {
 /// as a PNG one and replays to the same feed; the writer names its frames `.pgm`.
 #[test]
 fn pgm_recordings_replay_like_png_ones() {
-    use tagdeflect::recording::FrameFormat;
+    use tagdeflect_io::recording::FrameFormat;
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { cameras: 2, width: 320, height: 240, frame_sets: 3, ..SimParams::default() };
     let png = common::simulate(dir.path(), "png", &params);
     let pgm = dir.path().join("pgm");
-    tagdeflect::sim::simulate_as(&params, &pgm, FrameFormat::Pgm).unwrap();
+    tagdeflect::commands::simulate::simulate_as(&params, &pgm, FrameFormat::Pgm).unwrap();
     let (rec_png, lines_png, _) = common::replay_lines(&png, false);
     let (rec_pgm, lines_pgm, _) = common::replay_lines(&pgm, false);
     assert!(rec_pgm.frames.iter().all(|f| f.file.ends_with(".pgm")), "{:?}", rec_pgm.frames[0]);

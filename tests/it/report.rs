@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
-use tagdeflect::report::{c1609, en14651, BeamConfig, Curve, Entry, Quantity};
+use tagdeflect_report::{c1609, en14651, BeamConfig, Curve, Entry, Quantity};
 
 use crate::common;
 
@@ -452,7 +452,7 @@ fn beam_and_report_tables_are_validated_with_file_line_and_key() {
 fn run_writes_the_report_at_its_end() {
     let dir = tempfile::tempdir().unwrap();
     // One simulated 640x480 camera at 5 fps and the simulated UTM (Modbus TCP on loopback).
-    let params = tagdeflect::sim::SimParams {
+    let params = tagdeflect_sim::SimParams {
         cameras: 1,
         width: 640,
         height: 480,
@@ -462,11 +462,11 @@ fn run_writes_the_report_at_its_end() {
         subsamples: 2,
         ..Default::default()
     };
-    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect::sim::SimRig::new(&params).unwrap());
+    let mut cfg = tagdeflect::config::Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = tagdeflect::config::Config::demo().utm;
     cfg.specimen.beam = Some(ASTM_BEAM);
     cfg.output.feed = Some(dir.path().join("feed.jsonl").to_string_lossy().into_owned());
-    cfg.report = Some(tagdeflect::report::ReportConfig::new(tagdeflect::report::Standard::AstmC1609, dir.path().join("reports")));
+    cfg.report = Some(tagdeflect_report::ReportConfig::new(tagdeflect_report::Standard::AstmC1609, dir.path().join("reports")));
     let path = dir.path().join("rig.toml");
     fs::write(&path, cfg.to_toml_string()).unwrap();
     let o = tagdeflect(&["run", "--config", path.to_str().unwrap(), "--duration-s", "4"]);
@@ -481,7 +481,7 @@ fn run_writes_the_report_at_its_end() {
     // Every UTM sample at its own rate beside the feed (50 Hz against 5 frame sets a second),
     // and the report's loads from them.
     let utm = fs::read_to_string(runs[0].join("utm.jsonl")).unwrap();
-    let samples: Vec<tagdeflect::utm::UtmSample> = utm.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let samples: Vec<tagdeflect_io::utm::UtmSample> = utm.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     let lines = j["qc"]["lines"].as_u64().unwrap() as usize;
     assert!(samples.len() > 5 * lines, "{} UTM samples for {lines} feed lines", samples.len());
     assert!(samples.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
@@ -546,13 +546,13 @@ pub fn screenshot(html: &Path, png: &Path, (w, h): (u32, u32)) {
 
 /// A simulated real test: two 960x720 cameras, the law's load from a 50 Hz UTM.
 fn sim_test(
-    test: tagdeflect::sim::SimTest,
-    law: tagdeflect::sim::LoadLaw,
+    test: tagdeflect_sim::SimTest,
+    law: tagdeflect_sim::LoadLaw,
     frame_sets: u32,
     max_deflection_mm: f64,
     seed: u64,
-) -> tagdeflect::sim::SimParams {
-    tagdeflect::sim::SimParams {
+) -> tagdeflect_sim::SimParams {
+    tagdeflect_sim::SimParams {
         cameras: 2,
         width: 960,
         height: 720,
@@ -561,13 +561,13 @@ fn sim_test(
         subsamples: 4,
         test,
         load_law: law,
-        span_mm: if test == tagdeflect::sim::SimTest::ThreePointNotched { 500.0 } else { 450.0 },
+        span_mm: if test == tagdeflect_sim::SimTest::ThreePointNotched { 500.0 } else { 450.0 },
         stiffness_kn_per_mm: 100.0,
         max_deflection_mm,
         // The UTM read at 2 kHz: the first crack (between frame sets) is sampled within 0.3 %.
         utm_hz: 2000.0,
         seed,
-        ..tagdeflect::sim::SimParams::default()
+        ..tagdeflect_sim::SimParams::default()
     }
 }
 
@@ -575,9 +575,9 @@ fn sim_test(
 /// config; returns the report, the truth lines and the feed lines.
 fn simulate_replay_report(
     dir: &Path,
-    p: &tagdeflect::sim::SimParams,
+    p: &tagdeflect_sim::SimParams,
     standard: &str,
-) -> (serde_json::Value, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::sim::SimTruthLine>, Vec<tagdeflect::feed::FeedLine>) {
+) -> (serde_json::Value, Vec<tagdeflect_sim::SimTruthLine>, Vec<tagdeflect_sim::SimTruthLine>, Vec<tagdeflect_core::feed::FeedLine>) {
     let rec = common::simulate(dir, "rec", p);
     let (_, lines, _) = common::replay_lines(&rec, false);
     let feed = dir.join("feed.jsonl");
@@ -599,16 +599,16 @@ fn simulate_replay_report(
         "--no-pdf",
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let truth: Vec<tagdeflect::sim::SimTruthLine> =
-        tagdeflect::recording::read_jsonl_file(&rec.join(tagdeflect::sim::SIM_TRUTH_FILE)).unwrap();
-    let samples: Vec<tagdeflect::utm::UtmSample> = tagdeflect::recording::read_jsonl_file(&utm).unwrap();
+    let truth: Vec<tagdeflect_sim::SimTruthLine> =
+        tagdeflect_io::recording::read_jsonl_file(&rec.join(tagdeflect_sim::SIM_TRUTH_FILE)).unwrap();
+    let samples: Vec<tagdeflect_io::utm::UtmSample> = tagdeflect_io::recording::read_jsonl_file(&utm).unwrap();
     let on_utm = truth_on_utm(&truth, &samples);
     (read_json(&out.join("report.json")), truth, on_utm, lines)
 }
 
 /// The truth at the UTM's samples: the true gauges interpolated from the frame sets' truth at
 /// each sample's time (the simulated UTM reads the law without noise).
-fn truth_on_utm(truth: &[tagdeflect::sim::SimTruthLine], utm: &[tagdeflect::utm::UtmSample]) -> Vec<tagdeflect::sim::SimTruthLine> {
+fn truth_on_utm(truth: &[tagdeflect_sim::SimTruthLine], utm: &[tagdeflect_io::utm::UtmSample]) -> Vec<tagdeflect_sim::SimTruthLine> {
     let (t0, t1) = (truth[0].t_ns, truth[truth.len() - 1].t_ns);
     utm.iter()
         .filter(|s| s.t_ns >= t0 && s.t_ns <= t1)
@@ -628,7 +628,7 @@ fn truth_on_utm(truth: &[tagdeflect::sim::SimTruthLine], utm: &[tagdeflect::utm:
 }
 
 /// The truth's curve: true load against the true gauge `x`, at the frame sets' times.
-fn truth_curve(truth: &[tagdeflect::sim::SimTruthLine], x: &str) -> Curve {
+fn truth_curve(truth: &[tagdeflect_sim::SimTruthLine], x: &str) -> Curve {
     let t: Vec<i64> = truth.iter().map(|l| l.t_ns).collect();
     let p: Vec<f64> = truth.iter().map(|l| l.load_kn).collect();
     let xs: Vec<f64> = truth.iter().map(|l| l.gauges[x]).collect();
@@ -649,7 +649,7 @@ fn against_truth(label: &str, j: &serde_json::Value, truth: &[Entry], checks: &[
 
 #[test]
 fn simulated_softening_test_end_to_end_matches_the_truth() {
-    use tagdeflect::sim::{LoadLaw, SimTest};
+    use tagdeflect_sim::{LoadLaw, SimTest};
     let dir = tempfile::tempdir().unwrap();
     let p = sim_test(SimTest::FourPoint, LoadLaw::Softening, 28, 4.0, 71);
     let (j, _, truth, lines) = simulate_replay_report(dir.path(), &p, "astm-c1609");
@@ -713,7 +713,7 @@ fn simulated_softening_test_end_to_end_matches_the_truth() {
 }
 
 /// ASTM C1609's quantities from the simulator's law in closed form: `P(δ)` (the law of
-/// `tagdeflect::sim::load_at`) against the true net deflection at δ (the simulator's gauge
+/// `tagdeflect_sim::load_at`) against the true net deflection at δ (the simulator's gauge
 /// truth), δ sampled every 0.2 µm; P at L/600 and L/150 interpolated, T150 by the
 /// trapezoid rule up to L/150.
 struct C1609Law {
@@ -724,14 +724,14 @@ struct C1609Law {
     t150: f64,
 }
 
-fn closed_form_c1609(p: &tagdeflect::sim::SimParams, span_mm: f64) -> C1609Law {
-    let rig = tagdeflect::sim::SimRig::new(p).unwrap();
+fn closed_form_c1609(p: &tagdeflect_sim::SimParams, span_mm: f64) -> C1609Law {
+    let rig = tagdeflect_sim::SimRig::new(p).unwrap();
     let n = 20_000;
     let net_at = |d: f64| rig.gauge_truth(d)["net"];
     let pts: Vec<(f64, f64)> = (0..=n)
         .map(|i| {
             let d = p.max_deflection_mm * i as f64 / n as f64;
-            (net_at(d), tagdeflect::sim::load_at(p, d))
+            (net_at(d), tagdeflect_sim::load_at(p, d))
         })
         .collect();
     let at = |x: f64| {
@@ -761,7 +761,7 @@ fn closed_form_c1609(p: &tagdeflect::sim::SimParams, span_mm: f64) -> C1609Law {
 
 #[test]
 fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
-    use tagdeflect::sim::{LoadLaw, SimTest};
+    use tagdeflect_sim::{LoadLaw, SimTest};
     let dir = tempfile::tempdir().unwrap();
     // 200 frame sets: the CMOD moves 0.004 mm per set before the crack, so F_L (the peak in
     // CMOD 0–0.05 mm) is resolved; at 30 sets one set spanned the crack and F_L came out 10.6
@@ -814,7 +814,7 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
     // the simulator's law F(δ) against its own true CMOD at δ, f_R,j = 3·F_j·l / (2·b·h_sp²)
     // written out here (no code of the report).
     // F_L in closed form: the first crack (k·δ_c) opens the notch by less than 0.05 mm.
-    let rig = tagdeflect::sim::SimRig::new(&p).unwrap();
+    let rig = tagdeflect_sim::SimRig::new(&p).unwrap();
     assert!(rig.gauge_truth(p.crack_deflection_mm)["cmod"] < 0.05, "the simulated crack opens inside F_L's interval");
     let fl_law = p.stiffness_kn_per_mm * p.crack_deflection_mm;
     println!("REPORT notched vs the closed-form law FL: {fl:.4} ± {sl:.4} kN (law {fl_law:.4}; error {:+.4})", fl - fl_law);
@@ -828,16 +828,16 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
 }
 
 /// EN 14651's residual flexural strengths f_R,1..4 from the simulator's law in closed form:
-/// the load `F(δ)` of `tagdeflect::sim::load_at` at the δ where the true CMOD (the
+/// the load `F(δ)` of `tagdeflect_sim::load_at` at the δ where the true CMOD (the
 /// simulator's gauge truth, from the rendered tags' poses) reaches 0.5, 1.5, 2.5 and 3.5 mm,
 /// δ sampled every 0.3 µm, then `3·F·l / (2·b·h_sp²)` (kN → N).
-fn closed_form_en14651(p: &tagdeflect::sim::SimParams, span_mm: f64, width_mm: f64, h_sp_mm: f64) -> [f64; 4] {
-    let rig = tagdeflect::sim::SimRig::new(p).unwrap();
+fn closed_form_en14651(p: &tagdeflect_sim::SimParams, span_mm: f64, width_mm: f64, h_sp_mm: f64) -> [f64; 4] {
+    let rig = tagdeflect_sim::SimRig::new(p).unwrap();
     let n = 20_000;
     let pts: Vec<(f64, f64)> = (0..=n)
         .map(|i| {
             let d = p.max_deflection_mm * i as f64 / n as f64;
-            (rig.gauge_truth(d)["cmod"], tagdeflect::sim::load_at(p, d))
+            (rig.gauge_truth(d)["cmod"], tagdeflect_sim::load_at(p, d))
         })
         .collect();
     [0.5, 1.5, 2.5, 3.5].map(|cmod| {

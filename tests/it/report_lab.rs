@@ -9,7 +9,7 @@ use std::process::{Command, Output};
 
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-use tagdeflect::report::{c1609, en14651, BeamConfig, Curve, Entry};
+use tagdeflect_report::{c1609, en14651, BeamConfig, Curve, Entry};
 
 use crate::common;
 
@@ -375,14 +375,14 @@ fn mc_trial(rng: &mut rand_chacha::ChaCha8Rng, cmod: bool) -> (Vec<Entry>, Vec<E
     let x: Vec<f64> = (0..n).map(|k| x_at(k as f64 * 0.1) + ref_err + nx.sample(rng)).collect();
     let p_frames: Vec<f64> = (0..n).map(|k| law(x_at(k as f64 * 0.1))).collect();
     let feed_curve = Curve::new(t_ns, p_frames, x, vec![Some(sx); n], ref_sigma, 5, res, "x").unwrap();
-    let utm: Vec<tagdeflect::utm::UtmSample> = (0..(dur * 100.0) as usize)
+    let utm: Vec<tagdeflect_io::utm::UtmSample> = (0..(dur * 100.0) as usize)
         .map(|j| {
             let t_true = j as f64 * 0.01 + phase;
             let p = law(x_at(t_true)) + np.sample(rng);
             let p = (p / res).round() * res;
             // Stamped on the UTM clock (offset ahead), taken at t_true.
             let stamp = t_true + offset_s + t_err;
-            tagdeflect::utm::UtmSample { t_ns: T0 + (stamp * 1e9).round() as i64, load_kn: p, stroke_mm: None }
+            tagdeflect_io::utm::UtmSample { t_ns: T0 + (stamp * 1e9).round() as i64, load_kn: p, stroke_mm: None }
         })
         .collect();
     let curve = feed_curve.on_utm(&utm, (offset_s * 1e9).round() as i64, offset_sigma_s, res, 2.0).unwrap();

@@ -11,9 +11,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use crate::common;
-use tagdeflect::feed::FeedLine;
-use tagdeflect::sinks::feed::{FeedWriter, SinkState};
-use tagdeflect::sinks::linefile::LineTarget;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::feed_file::{FeedWriter, SinkState};
+use tagdeflect_core::linefile::LineTarget;
 
 fn tagdeflect(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).env("TAGDEFLECT_LOG", "warn").output().expect("run tagdeflect")
@@ -155,7 +155,7 @@ fn image_headers_claiming_huge_images_are_refused_before_allocating() {
     png.extend_from_slice(&60000u32.to_be_bytes());
     png.extend_from_slice(&[8, 0, 0, 0, 0, 0, 0, 0, 0]);
     fs::write(&file, &png).unwrap();
-    let r = tagdeflect::recording::Recording::open(&rec).unwrap();
+    let r = tagdeflect::config::Recording::open(&rec).unwrap();
     let err = r.load_image(&r.frames[0]).unwrap_err().to_string();
     assert!(err.contains("image is 60000x60000 but camera is 320x240"), "{err}");
     // A file far larger than any frame of the camera's size is not read.
@@ -314,9 +314,10 @@ fn dev_full_feed_is_reported_not_fatal() {
 
 #[test]
 fn recorder_retries_after_its_folder_vanishes_and_counts_what_it_dropped() {
-    use tagdeflect::frame::{Frame, GrayImage};
-    use tagdeflect::recording::{Recording, RecordingWriter};
-    use tagdeflect::sinks::recorder::Recorder;
+    use tagdeflect::config::Recording;
+    use tagdeflect_core::frame::{Frame, GrayImage};
+    use tagdeflect_io::recording::RecordingWriter;
+    use tagdeflect_sinks::recorder::Recorder;
     let dir = tempfile::tempdir().unwrap();
     let cfg = tagdeflect::config::Config::load(&common::root().join("config/one-camera.toml")).unwrap();
     let out = dir.path().join("rec");
@@ -447,7 +448,7 @@ fn live_run_reports_recorder_drops_and_stale_state_and_logs_plain_text() {
         assert_eq!(l.cameras.len(), 3);
         assert!(l.cameras.iter().all(|c| c.dropped_frames.is_some()), "seq {}", l.seq);
     }
-    let r = tagdeflect::recording::Recording::open(&rec).unwrap();
+    let r = tagdeflect::config::Recording::open(&rec).unwrap();
     assert!(!r.frames.is_empty() && !r.utm.is_empty(), "frames and UTM samples recorded");
 }
 
@@ -461,7 +462,7 @@ fn record_mode_keeps_utm_samples_and_exits_cleanly() {
     let out = dir.path().join("rec");
     let o = tagdeflect(&["record", "--config", cfg_path.to_str().unwrap(), "--out", out.to_str().unwrap(), "--duration-s", "2"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    let r = tagdeflect::recording::Recording::open(&out).unwrap();
+    let r = tagdeflect::config::Recording::open(&out).unwrap();
     // The samples at the UTM's rate (50 Hz), whatever the machine's load did to the run's
     // length: their median spacing, not a count in a wall-clock window.
     assert!(r.utm.len() >= 10, "{} UTM samples", r.utm.len());
@@ -476,15 +477,15 @@ fn record_mode_keeps_utm_samples_and_exits_cleanly() {
 
 #[test]
 fn a_camera_without_background_tags_reports_a_stale_pose() {
-    use tagdeflect::frame::{FrameSet, GrayImage};
-    use tagdeflect::pipeline::measure::Measurement;
-    let rec = tagdeflect::recording::Recording::open(&common::root().join("replay/three-cam")).unwrap();
+    use tagdeflect_core::frame::{FrameSet, GrayImage};
+    use tagdeflect_estimate::measure::Measurement;
+    let rec = tagdeflect::config::Recording::open(&common::root().join("replay/three-cam")).unwrap();
     let mut m = Measurement::new(&rec.config.measurement(), true).unwrap();
-    let mut asm = tagdeflect::sync::FrameSetAssembler::new(rec.config.cameras.len(), rec.config.sync.tolerance_ms);
+    let mut asm = tagdeflect_io::sync::FrameSetAssembler::new(rec.config.cameras.len(), rec.config.sync.tolerance_ms);
     let mut sets: Vec<FrameSet> = Vec::new();
     for (i, e) in rec.frames.iter().enumerate() {
         let img = rec.load_image(e).unwrap();
-        let f = tagdeflect::frame::Frame {
+        let f = tagdeflect_core::frame::Frame {
             camera: rec.config.camera_index(&e.camera).unwrap(),
             seq: i as u64,
             t_ns: e.t_ns,
@@ -552,16 +553,16 @@ fn a_stale_pose_is_logged_once_when_it_starts_and_once_when_it_ends() {
 
 #[test]
 fn late_frames_are_counted_per_camera() {
-    use tagdeflect::frame::{Frame, GrayImage};
+    use tagdeflect_core::frame::{Frame, GrayImage};
     let img = Arc::new(GrayImage::new(1, 1));
     let f = |camera: usize, t: i64| Frame { camera, seq: 0, t_ns: t, image: img.clone() };
-    let mut a = tagdeflect::sync::FrameSetAssembler::new(2, 1.0);
+    let mut a = tagdeflect_io::sync::FrameSetAssembler::new(2, 1.0);
     a.push(f(0, 0));
     a.push(f(1, 0));
     a.push(f(0, 10_000_000));
     a.push(f(1, -5_000_000)); // camera 1, older than a closed set: late
     assert_eq!(a.late_by_camera(), &[0, 1]);
-    let drops = tagdeflect::pipeline::journal::FrameDrops::new(2);
+    let drops = tagdeflect::graph::journal::FrameDrops::new(2);
     drops.add_source(0, 4);
     drops.set_late(a.late_by_camera());
     let mut line = line(0);
@@ -578,7 +579,7 @@ fn late_frames_are_counted_per_camera() {
 
 #[test]
 fn journal_summary_counts_per_camera_and_logs_stale_changes_once() {
-    use tagdeflect::pipeline::journal::JournalSummary;
+    use tagdeflect::graph::journal::JournalSummary;
     let mut j = JournalSummary::new(vec!["left".into()], Duration::from_secs(3600));
     let mut l = line(0);
     l.cameras = vec![serde_json::from_str("{\"name\":\"left\",\"frame\":true,\"background_tags\":0,\"specimen_tags\":3,\"posed\":true,\"stale_pose\":true,\"dropped_frames\":2}").unwrap()];
@@ -636,7 +637,8 @@ fn mutation_fuzz() {
     let cfg_text = fs::read(root.join("config/one-camera.toml")).unwrap();
     let mut pgm = b"P5\n16 12\n255\n".to_vec();
     pgm.extend((0..192).map(|i| (i * 7) as u8));
-    let png = tagdeflect::recording::encode_png(&tagdeflect::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec() }).unwrap();
+    let png = tagdeflect_io::recording::encode_png(&tagdeflect_core::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec() })
+        .unwrap();
     let frames = fs::read(root.join("replay/three-cam/frames.jsonl")).unwrap()[..600].to_vec();
     let utm = fs::read(root.join("replay/three-cam/utm.jsonl")).unwrap()[..600].to_vec();
     let yaml = b"%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1000., 0., 320., 0., 1000., 240., 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0.1, -0.2, 0., 0., 0. ]\nimage_width: 640\nimage_height: 480\n".to_vec();

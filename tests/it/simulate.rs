@@ -3,14 +3,16 @@
 //! the requested deflection, and the options (bump, hidden tag, drops, shuffle) act.
 
 use nalgebra::{Point2, Vector3};
-use tagdeflect::camera::{CameraIntrinsics, Pose};
+use tagdeflect::commands::simulate::simulate;
+use tagdeflect::config::Recording;
 use tagdeflect::config::{Config, TagRole};
-use tagdeflect::detect::{Detector, DetectorOptions};
-use tagdeflect::frame::GrayImage;
-use tagdeflect::recording::{read_jsonl_file, FrameEntry, Recording, TruthLine};
-use tagdeflect::sim::{simulate, SimParams, SimRig, SimTruthLine, SIM_TRUTH_FILE};
-use tagdeflect::tags::TagFamily;
-use tagdeflect::utm::UtmSample;
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+use tagdeflect_detect::{Detector, DetectorOptions};
+use tagdeflect_io::recording::{read_jsonl_file, FrameEntry, TruthLine};
+use tagdeflect_io::utm::UtmSample;
+use tagdeflect_sim::{SimParams, SimRig, SimTruthLine, SIM_TRUTH_FILE};
 
 fn small(cameras: u32, width: u32, height: u32, frame_sets: u32) -> SimParams {
     SimParams { cameras, width, height, frame_sets, rest_frames: 1, ..SimParams::default() }
@@ -18,7 +20,7 @@ fn small(cameras: u32, width: u32, height: u32, frame_sets: u32) -> SimParams {
 
 fn project(k: &CameraIntrinsics, pose: &Pose, w: &Vector3<f64>) -> Point2<f64> {
     // The simulator's own lens model (independent of the product's).
-    tagdeflect::sim::lens::Lens::of(k).pixel(&pose.transform(w)).expect("in front of the camera")
+    tagdeflect_sim::lens::Lens::of(k).pixel(&pose.transform(w)).expect("in front of the camera")
 }
 
 #[test]

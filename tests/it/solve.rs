@@ -9,9 +9,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-use tagdeflect::camera::{CameraIntrinsics, Pose};
-use tagdeflect::solve::{solve_camera_pose, solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagSolution, TagView};
-use tagdeflect::tags::tag_corners;
+use tagdeflect_core::camera::{CameraIntrinsics, Pose};
+use tagdeflect_core::tags::tag_corners;
+use tagdeflect_estimate::{solve_camera_pose, solve_tag, BackgroundTagObservation, HeldCameraPose, PixelNoisePool, TagSolution, TagView};
 
 const TAG_MM: f64 = 30.0;
 

@@ -3,8 +3,8 @@
 //! figures are compared with full-frame detection of the same recording.
 
 use crate::common::*;
-use tagdeflect::feed::FeedLine;
-use tagdeflect::sim::SimParams;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_sim::SimParams;
 
 /// Views of specimen tag `id` in each feed line (0 when not solved).
 fn views_of(lines: &[FeedLine], id: u32) -> Vec<usize> {
@@ -117,8 +117,8 @@ fn a_lost_tag_is_searched_for_in_the_background_and_replays_the_same() {
 // A camera that moves far (issue 24, item 0): its background tags jump by hundreds of
 // pixels, the windows are placed where they were.
 
-use tagdeflect::camera::Pose;
-use tagdeflect::sim::{SimTruthLine, SIM_TRUTH_FILE};
+use tagdeflect_core::camera::Pose;
+use tagdeflect_sim::{SimTruthLine, SIM_TRUTH_FILE};
 
 fn sim_truth(rec: &std::path::Path) -> Vec<SimTruthLine> {
     let text = std::fs::read_to_string(rec.join(SIM_TRUTH_FILE)).unwrap();
@@ -258,7 +258,7 @@ fn a_one_tag_camera_moved_far_publishes_nothing_from_a_refused_pose() {
     let p = large_move_params(67, bump_at);
     let rec = simulate(dir.path(), "moved-one-tag", &p);
     let truth = sim_truth(&rec);
-    let config = tagdeflect::recording::Recording::open(&rec).unwrap().config;
+    let config = tagdeflect::config::Recording::open(&rec).unwrap().config;
     let (ids, shift) = background_in_view(&config, &true_pose(&truth, 0), &true_pose(&truth, bump_at as usize));
     assert!(!ids.is_empty() && shift >= 150.0, "the scenario: one tag in view before and after, moved {shift:.0} px ({ids:?})");
     keep_one_background_tag(&rec, ids[0]);

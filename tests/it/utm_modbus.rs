@@ -11,7 +11,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tagdeflect::config::{RegisterConfig, RegisterKind, UtmConfig, ValueType, WordOrder};
 
-use tagdeflect::utm::{decode, run_poller, start_sim_utm, UtmEvent, UtmSample};
+use tagdeflect_io::utm::{decode, run_poller, start_sim_utm, UtmEvent, UtmSample};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 
@@ -358,7 +358,7 @@ fn sim_layout() -> UtmConfig {
 async fn sim_server_read_by_our_client_follows_the_model() {
     let t0 = tagdeflect_now();
     // 1 kN/s from t0, stroke 0.1 mm/kN.
-    let model = tagdeflect::utm::sim_server::ramp_model(t0, 1.0, 1000.0, 0.1);
+    let model = tagdeflect_io::utm::sim_server::ramp_model(t0, 1.0, 1000.0, 0.1);
     let (cfg, sim) = start_sim_utm(&sim_layout(), model.clone()).await.unwrap();
     assert_eq!(cfg.address.to_string(), sim.addr.to_string());
     let mut p = Poller::start(cfg);
@@ -389,7 +389,7 @@ async fn sim_server_read_by_our_client_follows_the_model() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sim_server_read_by_pymodbus_client() {
     let py = python();
-    let model: tagdeflect::utm::UtmModel = Arc::new(|_| (12.5, -1.234));
+    let model: tagdeflect_io::utm::UtmModel = Arc::new(|_| (12.5, -1.234));
     let layout = sim_layout();
     let (cfg, sim) = start_sim_utm(&layout, model).await.unwrap();
     let port = sim.addr.port();

@@ -4,11 +4,11 @@
 //! mapping of driver timestamps from CLOCK_MONOTONIC to the Unix epoch.
 //!
 //! Real V4L2 devices cannot be created on the test machine; what only real hardware can
-//! check is listed in the docs of `tagdeflect::sources::v4l2`.
+//! check is listed in the docs of `tagdeflect_io::sources::v4l2`.
 
-use tagdeflect::sources::clock::MonotonicToEpoch;
-use tagdeflect::sources::convert::{ConvertError, PixelLayout};
-use tagdeflect::sources::v4l2::{convert_buffer, fourcc_layout, map_buffer_timestamp, BufferOutcome, TimeSource, BUF_FLAG_ERROR};
+use tagdeflect_core::clock::MonotonicToEpoch;
+use tagdeflect_io::sources::convert::{ConvertError, PixelLayout};
+use tagdeflect_io::sources::v4l2::{convert_buffer, fourcc_layout, map_buffer_timestamp, BufferOutcome, TimeSource, BUF_FLAG_ERROR};
 
 const W: u32 = 37;
 const H: u32 = 23;
@@ -211,8 +211,8 @@ fn driver_timestamps_map_from_monotonic_to_epoch() {
 #[test]
 fn measured_clock_offset_maps_the_current_monotonic_time_to_now() {
     let clock = MonotonicToEpoch::current();
-    let mono = tagdeflect::sources::clock::monotonic_ns();
-    let now = tagdeflect::sources::clock::now_epoch_ns();
+    let mono = tagdeflect_core::clock::monotonic_ns();
+    let now = tagdeflect_core::clock::now_epoch_ns();
     let (t, src) = map_buffer_timestamp(0x2000, mono / 1_000_000_000, (mono % 1_000_000_000) / 1_000, clock, now);
     println!("live monotonic→epoch mapping: {} µs from the realtime clock", (t - now) / 1_000);
     assert_eq!(src, TimeSource::Driver);

@@ -103,7 +103,7 @@ pub(crate) async fn run_until(opts: ArchiveOptions, stats: Arc<ArchiveStats>, mu
     // acknowledgements, and the broker dropped the silent connection (keep-alive) with
     // thousands of lines unacknowledged. What waits here is bounded by the broker: with manual
     // acknowledgements it sends at most `max_inflight_messages` unacknowledged messages (see
-    // docs/operations.md, "Broker settings").
+    // docs/archive.md, "Broker settings").
     let (tx, rx) = mpsc::unbounded_channel::<Publish>();
     let reconnected = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let mqtt_task = tokio::spawn(drive_mqtt(eventloop, client.clone(), subs, tx, reconnected.clone()));

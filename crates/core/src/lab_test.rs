@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::feed::FeedEvent;
+use crate::Problem;
 
 /// What a test is started with (the control API's JSON body).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -32,34 +33,32 @@ pub struct TestMeta {
 /// Standards a test may name.
 pub const STANDARDS: [&str; 3] = ["astm-c1609", "astm-c1856", "en-14651"];
 
-/// What an operator typed that a test cannot be started with (the message says what and why).
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}")]
-pub struct BadTestMeta(pub String);
-
 impl TestMeta {
     /// Checks what an operator typed: the specimen id is a folder name and text on the page.
-    pub fn validate(&self) -> Result<(), BadTestMeta> {
+    /// The problem's key is the field's (`specimen`, `standard`, `operator`, `notes`,
+    /// `measured.NAME`); its message names the field itself, as it is answered to the operator
+    /// as is (`TestError::Bad` of the lab-test sink).
+    pub fn validate(&self) -> Result<(), Problem> {
         let ok = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
         let sp = self.specimen.trim();
         if sp.is_empty() || sp.chars().count() > 64 || sp.starts_with('.') || !sp.chars().all(ok) {
-            return Err(BadTestMeta(format!(
-                "specimen \"{}\": 1 to 64 letters, digits, `_`, `-` and `.` (not first)",
-                self.specimen.escape_debug()
-            )));
+            return Err(Problem::new(
+                "specimen",
+                format!("specimen \"{}\": 1 to 64 letters, digits, `_`, `-` and `.` (not first)", self.specimen.escape_debug()),
+            ));
         }
         if let Some(s) = &self.standard {
             if !STANDARDS.contains(&s.as_str()) {
-                return Err(BadTestMeta(format!("standard \"{}\": one of {}", s.escape_debug(), STANDARDS.join(", "))));
+                return Err(Problem::new("standard", format!("standard \"{}\": one of {}", s.escape_debug(), STANDARDS.join(", "))));
             }
         }
         for (k, text) in [("operator", &self.operator), ("notes", &self.notes)] {
             if text.as_ref().is_some_and(|t| t.len() > 4096 || t.chars().any(|c| c.is_control() && c != '\n')) {
-                return Err(BadTestMeta(format!("{k}: at most 4096 characters, no control characters")));
+                return Err(Problem::new(k, format!("{k}: at most 4096 characters, no control characters")));
             }
         }
         if let Some((k, v)) = self.measured.iter().find(|(k, v)| !v.is_finite() || k.len() > 64) {
-            return Err(BadTestMeta(format!("measured.{k} = {v}: a finite number under a short name")));
+            return Err(Problem::new(format!("measured.{k}"), format!("measured.{k} = {v}: a finite number under a short name")));
         }
         Ok(())
     }

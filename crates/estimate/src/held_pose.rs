@@ -381,6 +381,7 @@ impl HeldCameraPose {
                     status
                 }
                 Err(why) => {
+                    let why = why.to_string();
                     // The held pose stays the reference (with its corner means) but is not
                     // used: the camera is unposed until a re-pose passes or it is back.
                     tracing::warn!(reason = %why, "camera moved and its re-pose failed the checks: not posed (its views are left out)");
@@ -475,12 +476,12 @@ impl HeldCameraPose {
 
     /// A re-pose from this update's corners that passes the checks of the module docs, or
     /// why not.
-    fn checked_repose(&self, tags: &[BackgroundTagObservation], held: &Pose) -> Result<CameraPoseSolution, String> {
-        let sol = solve_camera_pose(&self.intrinsics, tags, Some(held)).map_err(|e| format!("no pose: {e}"))?;
+    fn checked_repose(&self, tags: &[BackgroundTagObservation], held: &Pose) -> Result<CameraPoseSolution, RefusedRepose> {
+        let sol = solve_camera_pose(&self.intrinsics, tags, Some(held)).map_err(RefusedRepose::NoPose)?;
         let noise = self.noise_px().unwrap_or(0.0);
         let limit = REPOSE_MAX_RMS_PX.max(self.options.bump_noise_factor * noise);
         if sol.rms_px.is_nan() || sol.rms_px > limit {
-            return Err(format!("re-pose misfits its corners: RMS {:.2} px > {limit:.2} px", sol.rms_px));
+            return Err(RefusedRepose::Misfit { rms_px: sol.rms_px, limit_px: limit });
         }
         if let Some(why) = self.one_tag_ambiguity(tags, &sol) {
             let consistent = self.one_tag_minima(tags, &sol).map(|m| {
@@ -488,7 +489,7 @@ impl HeldCameraPose {
                 near.len() == 1 && near[0].0.angle_to(&sol.pose) < 0.5f64.to_radians()
             });
             if consistent != Some(true) {
-                return Err(format!("one-tag pose is ambiguous ({why}) and neither minimum is the held pose's"));
+                return Err(RefusedRepose::Ambiguous(why));
             }
             tracing::info!("one-tag re-pose undecided by its corners ({why}); the minimum next to the held pose is taken");
         }
@@ -654,6 +655,26 @@ impl HeldCameraPose {
 /// Finite pixels and world corners.
 fn valid_observation(t: &BackgroundTagObservation) -> bool {
     t.pixels.iter().all(|p| p.x.is_finite() && p.y.is_finite()) && t.world.iter().all(|w| w.iter().all(|v| v.is_finite()))
+}
+
+/// Why the re-pose of a camera that moved failed its checks (the module docs).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+enum RefusedRepose {
+    /// The corners gave no pose.
+    #[error("no pose: {0}")]
+    NoPose(crate::SolveError),
+    /// The re-pose misfits its own corners.
+    #[error("re-pose misfits its corners: RMS {rms_px:.2} px > {limit_px:.2} px")]
+    Misfit {
+        /// The re-pose's RMS reprojection error, px.
+        rms_px: f64,
+        /// The most it may be, px.
+        limit_px: f64,
+    },
+    /// A one-tag pose whose corners do not decide between its two minima, neither of them
+    /// the held pose's (the two fits described).
+    #[error("one-tag pose is ambiguous ({0}) and neither minimum is the held pose's")]
+    Ambiguous(String),
 }
 
 #[cfg(test)]

@@ -16,12 +16,11 @@
 //! | 0–1 | input | load, f32, kN |
 //! | 2–3 | input | stroke, f32, mm |
 
-use std::future::ready;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 
-use tokio_modbus::server::tcp::Server;
+use tagdeflect_io::modbus_server::{Answer, ModbusServer, ServerName};
 use tokio_modbus::{ExceptionCode, Request, Response};
 
 use crate::law::load_at;
@@ -124,7 +123,9 @@ impl SimMachine {
         }
         hi
     }
+}
 
+impl Answer for SimMachine {
     fn answer(&self, req: &Request<'_>) -> Result<Response, ExceptionCode> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let words = |v: f32| {
@@ -158,36 +159,11 @@ impl SimMachine {
     }
 }
 
-struct Service(Arc<SimMachine>);
-
-impl tokio_modbus::server::Service for Service {
-    type Request = Request<'static>;
-    type Response = Response;
-    type Exception = ExceptionCode;
-    type Future = std::future::Ready<Result<Response, ExceptionCode>>;
-
-    fn call(&self, req: Self::Request) -> Self::Future {
-        ready(self.0.answer(&req))
-    }
-}
-
-/// Serves `machine` on `bind` (port 0: a free one) until the returned task is aborted.
+/// Serves `machine` on `bind` (port 0: a free one) until the returned task is aborted (which
+/// also closes its connections).
 pub async fn serve_machine(bind: SocketAddr, machine: Arc<SimMachine>) -> io::Result<(SocketAddr, tokio::task::JoinHandle<()>)> {
-    let listener = tokio::net::TcpListener::bind(bind).await?;
-    let local = listener.local_addr()?;
-    let server = Server::new(listener);
-    let service = Arc::new(Service(machine));
-    let handle = tokio::spawn(async move {
-        let on_connected = |stream: tokio::net::TcpStream, _peer: SocketAddr| {
-            let _ = stream.set_nodelay(true);
-            ready(Ok(Some((service.clone(), stream))))
-        };
-        let on_error = |e: io::Error| tracing::debug!("simulated machine: connection ended: {e}");
-        if let Err(e) = server.serve(&on_connected, on_error).await {
-            tracing::error!("simulated machine on {local}: accept failed: {e}");
-        }
-    });
-    Ok((local, handle))
+    let server = ModbusServer::bind(bind, ServerName { name: "simulated machine", clients_at_info: false }, machine).await?;
+    Ok((server.addr(), server.into_task()))
 }
 
 #[cfg(test)]

@@ -27,15 +27,15 @@ struct Background {
 }
 
 /// Per-camera render state: rays (computed once) and the cached background.
-pub(crate) struct CameraState {
+pub(crate) struct CameraRenderCache {
     rays: OnceLock<CornerRays>,
     background: Mutex<Option<Arc<Background>>>,
 }
 
-impl CameraState {
+impl CameraRenderCache {
     /// No rays and no background yet.
     pub(crate) fn new() -> Self {
-        CameraState { rays: OnceLock::new(), background: Mutex::new(None) }
+        CameraRenderCache { rays: OnceLock::new(), background: Mutex::new(None) }
     }
 }
 

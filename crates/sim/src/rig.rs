@@ -17,7 +17,7 @@ use tagdeflect_io::sync::SyncConfig;
 use super::beam::FourPointBeam;
 use super::law::{self, SimTest};
 use super::render::Optics;
-use super::render_rig::CameraState;
+use super::render_rig::CameraRenderCache;
 use super::scene::Layout;
 use super::{SimError, SimParams};
 
@@ -41,7 +41,7 @@ pub struct SimRig {
     pub(crate) params: SimParams,
     pub(crate) beam: FourPointBeam,
     pub(crate) layout: Layout,
-    pub(crate) cams: Vec<CameraState>,
+    pub(crate) cams: Vec<CameraRenderCache>,
     pub(crate) optics: Optics,
 }
 
@@ -65,7 +65,7 @@ impl SimRig {
     pub fn new(params: &SimParams) -> Result<SimRig, SimError> {
         params.validate()?;
         let layout = Layout::new(params);
-        let cams = layout.names.iter().map(|_| CameraState::new()).collect();
+        let cams = layout.names.iter().map(|_| CameraRenderCache::new()).collect();
         Ok(SimRig {
             params: params.clone(),
             beam: FourPointBeam {

@@ -22,7 +22,7 @@ use std::thread::JoinHandle;
 
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::frame::FrameSet;
-use tagdeflect_estimate::measure::Observed;
+use tagdeflect_core::observed::Observed;
 
 /// Lines queued for the sinks at most.
 pub(crate) const QUEUE_LINES: usize = 10_000;

@@ -1,7 +1,7 @@
 //! Sinks: where feed lines go. Each sink fails on its own: an output that cannot be
 //! written is reported, retried with backoff and never holds the measurement back.
 
-pub mod control;
+pub mod control_output;
 mod fanout;
 #[cfg(feature = "http")]
 pub mod http;

@@ -1,9 +1,12 @@
 //! `[output]`: where `run` and `demo` send what they make.
 
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use tagdeflect_core::frame::FrameFormat;
+#[cfg(feature = "http")]
+use tagdeflect_core::listen::parse_listen_addr;
+use tagdeflect_core::Problem;
 
 /// `[output]`.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -19,13 +22,14 @@ pub struct OutputConfig {
     /// `"pgm"` (raw; no CPU spent encoding — for high frame rates on a small box).
     #[serde(default, skip_serializing_if = "is_default_format")]
     pub record_format: FrameFormat,
-    /// Serve the live page and endpoints on this address (`IP:PORT`; see `sinks::http`).
+    /// Serve the live page and endpoints on this address (a listen address,
+    /// `tagdeflect_core::listen`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http: Option<String>,
     /// `[output.control]`: the configured gauge as a control signal on a read-only Modbus
-    /// TCP server (see `sinks::control`).
+    /// TCP server (see `sinks::control_output`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub control: Option<crate::control::ControlConfig>,
+    pub control: Option<crate::control_output::ControlConfig>,
     /// (extension) Host names the live page answers to besides IP addresses, `localhost` and
     /// this machine's own name (a request naming any other host is refused: DNS rebinding).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -58,40 +62,23 @@ pub type MqttSection = crate::mqtt::MqttConfig;
 pub type MqttSection = serde_json::Value;
 
 impl OutputConfig {
-    /// Checks `[output]` but `[output.mqtt]` (`http`: an address the live page can serve;
-    /// relative `feed` and `record` paths are made relative to `base`); keys relative to
-    /// `[output]`.
-    pub fn validate(&mut self, base: &std::path::Path) -> Result<(), tagdeflect_core::Problem> {
-        use tagdeflect_core::Problem;
+    /// Checks `[output]` but `[output.mqtt]` (`http`: an address the live page can serve) and
+    /// returns it with relative `feed`, `record`, `tests` and `http_token_file` paths made
+    /// relative to `base`; keys relative to `[output]`.
+    pub fn resolve(mut self, base: &Path) -> Result<OutputConfig, Problem> {
         if let Some(h) = &self.http {
             #[cfg(feature = "http")]
-            crate::http::parse_addr(h).map_err(|m| Problem::new("http", m))?;
+            parse_listen_addr(h, crate::http::DEFAULT_PORT).map_err(|e| Problem::new("http", e.to_string()))?;
             #[cfg(not(feature = "http"))]
             return Err(Problem::new("http", format!("\"{h}\": this build has no live page: build with the `http` feature")));
         }
-        for (i, h) in self.http_hosts.iter().enumerate() {
-            let ok = !h.is_empty() && h.len() <= 253 && h.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.');
-            if !ok {
-                return Err(Problem::new(format!("http_hosts[{i}]"), format!("\"{h}\" is not a host name (letters, digits, `-` and `.`)")));
-            }
-        }
+        self.check_http_hosts()?;
         for p in [&mut self.tests, &mut self.http_token_file].into_iter().flatten() {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
         }
-        if let Some(t) = &self.http_token_file {
-            match std::fs::read_to_string(t) {
-                Ok(text) if text.lines().next().is_some_and(|l| l.trim().len() >= 16) => {}
-                Ok(_) => {
-                    return Err(Problem::new(
-                        "http_token_file",
-                        format!("{}: the first line must hold a token of at least 16 characters", t.display()),
-                    ))
-                }
-                Err(e) => return Err(Problem::new("http_token_file", format!("{}: {e}", t.display()))),
-            }
-        }
+        self.check_token_file()?;
         if let Some(a) = &self.auto_test {
             a.validate().map_err(|p| p.within("auto_test"))?;
         }
@@ -101,23 +88,47 @@ impl OutputConfig {
             }
         }
         if let Some(f) = &self.feed {
-            if f != "-" && std::path::Path::new(f).is_relative() {
+            if f != "-" && Path::new(f).is_relative() {
                 self.feed = Some(base.join(f).to_string_lossy().into_owned());
+            }
+        }
+        Ok(self)
+    }
+
+    /// `http_hosts`: host names only.
+    fn check_http_hosts(&self) -> Result<(), Problem> {
+        for (i, h) in self.http_hosts.iter().enumerate() {
+            let ok = !h.is_empty() && h.len() <= 253 && h.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.');
+            if !ok {
+                return Err(Problem::new(format!("http_hosts[{i}]"), format!("\"{h}\" is not a host name (letters, digits, `-` and `.`)")));
             }
         }
         Ok(())
     }
 
-    /// Checks `[output.mqtt]` (the publisher's own checks; files relative to `base`); keys
-    /// relative to `[output]`.
-    pub fn validate_mqtt(&mut self, base: &std::path::Path) -> Result<(), tagdeflect_core::Problem> {
+    /// `http_token_file` (already resolved): readable, a token of 16 characters or more first.
+    fn check_token_file(&self) -> Result<(), Problem> {
+        let Some(t) = &self.http_token_file else { return Ok(()) };
+        match std::fs::read_to_string(t) {
+            Ok(text) if text.lines().next().is_some_and(|l| l.trim().len() >= 16) => Ok(()),
+            Ok(_) => {
+                Err(Problem::new("http_token_file", format!("{}: the first line must hold a token of at least 16 characters", t.display())))
+            }
+            Err(e) => Err(Problem::new("http_token_file", format!("{}: {e}", t.display()))),
+        }
+    }
+
+    /// Checks `[output.mqtt]` (the publisher's own checks) and returns `[output]` with its
+    /// files resolved against `base`; keys relative to `[output]`.
+    #[cfg_attr(not(feature = "mqtt"), allow(unused_mut))]
+    pub fn resolve_mqtt(mut self, base: &Path) -> Result<OutputConfig, Problem> {
         #[cfg(feature = "mqtt")]
         if let Some(m) = self.mqtt.as_mut() {
             m.validate(base).map_err(|p| p.within("mqtt"))?;
         }
         #[cfg(not(feature = "mqtt"))]
         let _ = base;
-        Ok(())
+        Ok(self)
     }
 }
 

@@ -91,7 +91,7 @@ impl LabTestMessage {
         if r.id.is_empty() || r.id.len() > 128 || !r.id.chars().all(ok_id) {
             return Err(WireError::LabTest(format!("test id \"{}\": 1 to 128 letters, digits, `_`, `-`, `.`", r.id.escape_debug())));
         }
-        r.meta.validate().map_err(|e| WireError::LabTest(e.to_string()))?;
+        r.meta.validate().map_err(|p| WireError::LabTest(p.message))?;
         if r.started_t_ns <= 0 {
             return Err(WireError::LabTest(format!("started_t_ns {}: a time after 1970", r.started_t_ns)));
         }

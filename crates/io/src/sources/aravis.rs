@@ -175,12 +175,62 @@ struct Session {
     pop_timeout: Duration,
 }
 
-fn glib_err(what: &str, id: &str, e: impl std::fmt::Display) -> String {
-    format!("aravis:{id}: {what}: {e}")
+/// Why an Aravis camera could not be opened as the config asks.
+#[derive(Debug, thiserror::Error)]
+pub enum AravisOpenError {
+    /// A call into Aravis failed.
+    #[error("aravis:{id}: {what}: {source}")]
+    Call {
+        /// The camera.
+        id: String,
+        /// What was being done.
+        what: String,
+        /// Aravis' error.
+        source: aravis::glib::Error,
+    },
+    /// The camera has no monochrome pixel format.
+    #[error("aravis:{id}: no monochrome pixel format (Mono8/10/12/16) available")]
+    NoMono {
+        /// The camera.
+        id: String,
+    },
+    /// The config's width or height is outside what the camera can give.
+    #[error("aravis:{id}: the config's {what} {want} is outside the camera's range {lo}..={hi}")]
+    OutOfRange {
+        /// The camera.
+        id: String,
+        /// `width` or `height`.
+        what: &'static str,
+        /// The config's, px.
+        want: u32,
+        /// The camera's least, px.
+        lo: i64,
+        /// The camera's most, px.
+        hi: i64,
+    },
+    /// The camera gives another size than the config's.
+    #[error("aravis:{id}: camera gives {got_width}x{got_height}, the config asks for {width}x{height} (the intrinsics are for that size)")]
+    Size {
+        /// The camera.
+        id: String,
+        /// What it gives, px.
+        got_width: i32,
+        /// What it gives, px.
+        got_height: i32,
+        /// What the config asks for, px.
+        width: u32,
+        /// What the config asks for, px.
+        height: u32,
+    },
+}
+
+/// A failed Aravis call, as an [`AravisOpenError`].
+fn glib_err(what: &str, id: &str, source: aravis::glib::Error) -> AravisOpenError {
+    AravisOpenError::Call { id: id.into(), what: what.into(), source }
 }
 
 impl Session {
-    fn open(id: &str, cfg: &CameraConfig, opts: &AravisOptions) -> Result<Session, String> {
+    fn open(id: &str, cfg: &CameraConfig, opts: &AravisOptions) -> Result<Session, AravisOpenError> {
         if is_fake_id(id) {
             enable_fake_interface();
         }
@@ -204,12 +254,12 @@ impl Session {
             Some(f) => f,
             None => camera.pixel_format().map_err(|e| glib_err("cannot read the pixel format", id, e))?,
         };
-        let layout = pixel_layout(format).ok_or_else(|| format!("aravis:{id}: no monochrome pixel format (Mono8/10/12/16) available"))?;
+        let layout = pixel_layout(format).ok_or_else(|| AravisOpenError::NoMono { id: id.into() })?;
         camera.set_acquisition_mode(AcquisitionMode::Continuous).map_err(|e| glib_err("cannot set continuous acquisition", id, e))?;
         for (what, want, bounds) in [("width", cfg.width, camera.width_bounds()), ("height", cfg.height, camera.height_bounds())] {
             if let Ok((lo, hi)) = bounds {
                 if (want as i64) < lo as i64 || want as i64 > hi as i64 {
-                    return Err(format!("aravis:{id}: the config's {what} {want} is outside the camera's range {lo}..={hi}"));
+                    return Err(AravisOpenError::OutOfRange { id: id.into(), what, want, lo: lo as i64, hi: hi as i64 });
                 }
             }
         }
@@ -218,10 +268,7 @@ impl Session {
             .map_err(|e| glib_err(&format!("cannot set the region to {}x{}", cfg.width, cfg.height), id, e))?;
         let (_, _, w, h) = camera.region().map_err(|e| glib_err("cannot read the region", id, e))?;
         if w as u32 != cfg.width || h as u32 != cfg.height {
-            return Err(format!(
-                "aravis:{id}: camera gives {w}x{h}, the config asks for {}x{} (the intrinsics are for that size)",
-                cfg.width, cfg.height
-            ));
+            return Err(AravisOpenError::Size { id: id.into(), got_width: w, got_height: h, width: cfg.width, height: cfg.height });
         }
         if let Some(fps) = cfg.fps.filter(|f| *f > 0.0) {
             if camera.is_frame_rate_available().unwrap_or(false) {

@@ -181,7 +181,7 @@ pub enum OpenPolicy {
 /// back, then [`run_capture_loop`] runs (reopening with `open` after a loss). Returns once
 /// the device is open, or with the error that prevented it.
 #[allow(clippy::too_many_arguments)]
-pub fn spawn_capture<S, F>(
+pub fn spawn_capture<S, F, E>(
     index: usize,
     name: &str,
     source: String,
@@ -193,10 +193,11 @@ pub fn spawn_capture<S, F>(
 ) -> Result<LiveCamera, SourceError>
 where
     S: CaptureSession,
-    F: FnMut() -> Result<S, String> + Send + 'static,
+    F: FnMut() -> Result<S, E> + Send + 'static,
+    E: std::fmt::Display + Send + 'static,
 {
     let stats = Arc::new(CaptureStats::default());
-    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<Result<(), String>>(1);
+    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel::<Result<(), E>>(1);
     let thread_stats = stats.clone();
     let label = source.clone();
     let prefix = source.split(':').next().unwrap_or("camera").to_string();
@@ -226,9 +227,9 @@ where
     let name = name.to_string();
     match ready_rx.recv() {
         Ok(Ok(())) => Ok(LiveCamera { thread, stats }),
-        Ok(Err(message)) => {
+        Ok(Err(e)) => {
             let _ = thread.join();
-            Err(SourceError::Open { camera: index, name, spec: source, message })
+            Err(SourceError::Open { camera: index, name, spec: source, message: e.to_string() })
         }
         Err(_) => {
             let _ = thread.join();
@@ -302,11 +303,11 @@ impl LoopTiming {
 /// and bad buffers, reports the device lost on failure or stall, reopens it with `open`
 /// after backoff delays, and ends when `stop` is set or the channel closes. `label` names the
 /// device in messages. `seq` counts complete frames across reopenings.
-pub(crate) fn run_capture_loop<S: CaptureSession>(
+pub(crate) fn run_capture_loop<S: CaptureSession, E: std::fmt::Display>(
     em: &mut Emitter,
     label: &str,
     session: Option<S>,
-    mut open: impl FnMut() -> Result<S, String>,
+    mut open: impl FnMut() -> Result<S, E>,
     mut timing: LoopTiming,
     stop: &AtomicBool,
 ) {

@@ -27,7 +27,7 @@ pub use tagdeflect_core::clock;
 pub mod capture;
 pub mod convert;
 pub mod list;
-pub mod recording;
+pub mod playback;
 pub mod v4l2;
 
 use std::sync::atomic::AtomicBool;

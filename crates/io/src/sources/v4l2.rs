@@ -178,9 +178,70 @@ struct Session {
     stride: u32,
 }
 
+/// Why a V4L2 device could not be opened as the config asks.
+#[derive(Debug, thiserror::Error)]
+pub enum V4l2OpenError {
+    /// The device cannot be opened.
+    #[error("cannot open {path}: {source}")]
+    Device {
+        /// The device.
+        path: String,
+        /// Why.
+        source: io::Error,
+    },
+    /// The device gives another size than the config's.
+    #[error("{path} offers {got_width}x{got_height} in {fourcc}, the config asks for {width}x{height} (the intrinsics are for that size)")]
+    Size {
+        /// The device.
+        path: String,
+        /// What it gives, px.
+        got_width: u32,
+        /// What it gives, px.
+        got_height: u32,
+        /// In this format.
+        fourcc: String,
+        /// What the config asks for, px.
+        width: u32,
+        /// What the config asks for, px.
+        height: u32,
+    },
+    /// A format the device offers cannot be set.
+    #[error("{path}: cannot set format {fourcc}: {source}")]
+    SetFormat {
+        /// The device.
+        path: String,
+        /// The format.
+        fourcc: String,
+        /// Why.
+        source: io::Error,
+    },
+    /// The device offers none of the formats read.
+    #[error("{path} offers none of GREY, Y16, Y12, Y10, YUYV, MJPG (it offers {offered})")]
+    NoFormat {
+        /// The device.
+        path: String,
+        /// What it offers, comma-separated.
+        offered: String,
+    },
+    /// The format set is not one that can be converted.
+    #[error("{path}: unsupported format")]
+    Unsupported {
+        /// The device.
+        path: String,
+    },
+    /// The capture buffers cannot be mapped.
+    #[error("{path}: cannot map buffers: {source}")]
+    Buffers {
+        /// The device.
+        path: String,
+        /// Why.
+        source: io::Error,
+    },
+}
+
 impl Session {
-    fn open(path: &str, cfg: &CameraConfig) -> Result<Session, String> {
-        let dev = v4l::Device::with_path(path).map_err(|e| format!("cannot open {path}: {e}"))?;
+    fn open(path: &str, cfg: &CameraConfig) -> Result<Session, V4l2OpenError> {
+        let dev = v4l::Device::with_path(path).map_err(|source| V4l2OpenError::Device { path: path.into(), source })?;
         let offered: Vec<[u8; 4]> = match dev.enum_formats() {
             Ok(list) => list.iter().map(|d| d.fourcc.repr).collect(),
             Err(_) => PREFERRED_FOURCCS.to_vec(),
@@ -191,27 +252,29 @@ impl Session {
             match dev.set_format(&req) {
                 Ok(got) if got.fourcc.repr == *want => {
                     if got.width != cfg.width || got.height != cfg.height {
-                        return Err(format!(
-                            "{path} offers {}x{} in {}, the config asks for {}x{} (the intrinsics are for that size)",
-                            got.width,
-                            got.height,
-                            String::from_utf8_lossy(want),
-                            cfg.width,
-                            cfg.height
-                        ));
+                        return Err(V4l2OpenError::Size {
+                            path: path.into(),
+                            got_width: got.width,
+                            got_height: got.height,
+                            fourcc: String::from_utf8_lossy(want).into_owned(),
+                            width: cfg.width,
+                            height: cfg.height,
+                        });
                     }
                     chosen = Some(got);
                     break;
                 }
                 Ok(_) => continue,
-                Err(e) => return Err(format!("{path}: cannot set format {}: {e}", String::from_utf8_lossy(want))),
+                Err(source) => {
+                    return Err(V4l2OpenError::SetFormat { path: path.into(), fourcc: String::from_utf8_lossy(want).into_owned(), source })
+                }
             }
         }
         let fmt = chosen.ok_or_else(|| {
             let names: Vec<String> = offered.iter().map(|f| String::from_utf8_lossy(f).into_owned()).collect();
-            format!("{path} offers none of GREY, Y16, Y12, Y10, YUYV, MJPG (it offers {})", names.join(", "))
+            V4l2OpenError::NoFormat { path: path.into(), offered: names.join(", ") }
         })?;
-        let layout = fourcc_layout(fmt.fourcc.repr).ok_or_else(|| format!("{path}: unsupported format"))?;
+        let layout = fourcc_layout(fmt.fourcc.repr).ok_or_else(|| V4l2OpenError::Unsupported { path: path.into() })?;
         if let Some(fps) = cfg.fps.filter(|f| *f > 0.0) {
             // Frame interval = numerator / denominator seconds.
             let params = v4l::video::capture::Parameters::new(Fraction::new(1000, (fps * 1000.0).round() as u32));
@@ -226,8 +289,8 @@ impl Session {
                 Err(e) => tracing::warn!(path, fps, error = %e, "cannot set the frame rate; using the device's"),
             }
         }
-        let mut stream =
-            MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS).map_err(|e| format!("{path}: cannot map buffers: {e}"))?;
+        let mut stream = MmapStream::with_buffers(&dev, Type::VideoCapture, N_BUFFERS)
+            .map_err(|source| V4l2OpenError::Buffers { path: path.into(), source })?;
         stream.set_timeout(DEQUEUE_TIMEOUT);
         tracing::info!(path, fourcc = %String::from_utf8_lossy(&fmt.fourcc.repr), width = fmt.width, height = fmt.height, stride = fmt.stride, "v4l2 camera open");
         Ok(Session {
@@ -508,7 +571,7 @@ mod tests {
     fn opening_a_missing_device_is_an_error() {
         let cfg_err = Session::open("/dev/video-does-not-exist", &test_cfg());
         assert!(cfg_err.is_err());
-        let msg = cfg_err.err().unwrap_or_default();
+        let msg = cfg_err.err().map(|e| e.to_string()).unwrap_or_default();
         assert!(msg.contains("/dev/video-does-not-exist"), "{msg}");
     }
 

@@ -8,26 +8,20 @@
 //! accept writes from anyone else either.
 
 use super::codec::encode;
+use crate::modbus_server::{read_range, Answer, ModbusServer, ServerName};
 use crate::utm::config::{RegisterConfig, RegisterKind, UtmConfig};
-use std::collections::HashMap;
-use std::future::ready;
 use std::io;
-use std::net::{Shutdown, SocketAddr};
-use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
-use std::task::{Context, Poll};
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-use tokio::net::{TcpListener, TcpStream};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
 use tokio::task::JoinHandle;
-use tokio_modbus::server::tcp::Server;
 use tokio_modbus::{ExceptionCode, Request, Response};
 
 /// The simulated machine: `t_ns` (ns since the Unix epoch) → (load kN, stroke mm).
 pub type UtmModel = Arc<dyn Fn(i64) -> (f64, f64) + Send + Sync>;
 
-/// Most registers one read may ask for (Modbus limit).
-const MAX_READ: u16 = 125;
+/// The simulated UTM's name in log lines.
+const NAME: ServerName = ServerName { name: "simulated UTM", clients_at_info: false };
 
 /// Serves the simulated UTM on `bind` (use port 0 for a free port) until the returned task is
 /// aborted (which also closes every open connection). Returns the bound address.
@@ -44,25 +38,16 @@ pub async fn serve_sim_utm_with_outage(
     model: UtmModel,
     outage: Option<(i64, i64)>,
 ) -> io::Result<(SocketAddr, JoinHandle<()>)> {
-    let listener = TcpListener::bind(bind).await?;
-    let local = listener.local_addr()?;
+    let server = bind_sim_utm(bind, layout, model, outage).await?;
+    Ok((server.addr(), server.into_task()))
+}
+
+/// The simulated UTM's server on `bind`, silent during `outage`.
+async fn bind_sim_utm(bind: SocketAddr, layout: &UtmConfig, model: UtmModel, outage: Option<(i64, i64)>) -> io::Result<ModbusServer> {
     let service = Arc::new(SimService { load: layout.load.clone(), stroke: layout.stroke.clone(), model, outage });
-    let conns = Connections::default();
-    let server = Server::new(listener);
-    let tracker = conns.clone();
-    let handle = tokio::spawn(async move {
-        let _close_all = CloseOnDrop(tracker.clone());
-        let on_connected = |stream: TcpStream, peer: SocketAddr| {
-            tracing::debug!(%peer, "simulated UTM: client connected");
-            ready(tracker.track(stream).map(|s| Some((service.clone(), s))))
-        };
-        let on_error = |e: io::Error| tracing::debug!("simulated UTM: connection ended: {e}");
-        if let Err(e) = server.serve(&on_connected, on_error).await {
-            tracing::error!("simulated UTM on {local}: accept failed: {e}");
-        }
-    });
-    tracing::info!(%local, "simulated UTM serving Modbus TCP");
-    Ok((local, handle))
+    let server = ModbusServer::bind(bind, NAME, service).await?;
+    tracing::info!(local = %server.addr(), "simulated UTM serving Modbus TCP");
+    Ok(server)
 }
 
 /// `cfg` with its address replaced by `addr` (the bound simulated server).
@@ -75,18 +60,12 @@ pub(crate) fn with_address(cfg: &UtmConfig, addr: SocketAddr) -> UtmConfig {
 pub struct SimUtm {
     /// Where it listens.
     pub addr: SocketAddr,
-    handle: JoinHandle<()>,
+    _server: ModbusServer,
 }
 
 impl SimUtm {
     /// Stops the server now (same as dropping it).
     pub fn stop(self) {}
-}
-
-impl Drop for SimUtm {
-    fn drop(&mut self) {
-        self.handle.abort();
-    }
 }
 
 /// Starts the simulated UTM for `cfg` (whose address is `"sim"`, or anything: it is ignored)
@@ -97,7 +76,8 @@ pub async fn start_sim_utm(cfg: &UtmConfig, model: UtmModel) -> io::Result<(UtmC
 
 /// As [`start_sim_utm`], silent during `outage` (see [`serve_sim_utm_with_outage`]).
 pub async fn start_sim_utm_with_outage(cfg: &UtmConfig, model: UtmModel, outage: Option<(i64, i64)>) -> io::Result<(UtmConfig, SimUtm)> {
-    let (addr, handle) = serve_sim_utm_with_outage(SocketAddr::from(([127, 0, 0, 1], 0)), cfg, model, outage).await?;
+    let server = bind_sim_utm(SocketAddr::from(([127, 0, 0, 1], 0)), cfg, model, outage).await?;
+    let addr = server.addr();
     if let Some((a, b)) = outage {
         tracing::info!(
             in_s = (a - tagdeflect_core::clock::now_epoch_ns()) as f64 * 1e-9,
@@ -105,7 +85,7 @@ pub async fn start_sim_utm_with_outage(cfg: &UtmConfig, model: UtmModel, outage:
             "simulated UTM: an outage is scheduled"
         );
     }
-    Ok((with_address(cfg, addr), SimUtm { addr, handle }))
+    Ok((with_address(cfg, addr), SimUtm { addr, _server: server }))
 }
 
 /// A simple loading history for demos: load rises at `kn_per_s` from `start_ns` up to
@@ -127,7 +107,7 @@ struct SimService {
     outage: Option<(i64, i64)>,
 }
 
-impl SimService {
+impl Answer for SimService {
     fn answer(&self, req: &Request<'_>) -> Result<Response, ExceptionCode> {
         let (kind, start, count) = match *req {
             Request::ReadInputRegisters(a, n) => (RegisterKind::Input, a, n),
@@ -137,12 +117,7 @@ impl SimService {
                 return Err(ExceptionCode::IllegalFunction);
             }
         };
-        if count == 0 || count > MAX_READ {
-            return Err(ExceptionCode::IllegalDataValue);
-        }
-        if start as u32 + count as u32 > 65536 {
-            return Err(ExceptionCode::IllegalDataAddress);
-        }
+        read_range(start, count, 1 << 16)?;
         let (load, stroke) = (self.model)(tagdeflect_core::clock::now_epoch_ns());
         let mut words = vec![0u16; count as usize];
         let channels = [(Some(&self.load), load), (self.stroke.as_ref(), stroke)];
@@ -164,100 +139,14 @@ impl SimService {
             RegisterKind::Holding => Response::ReadHoldingRegisters(words),
         })
     }
-}
 
-impl tokio_modbus::server::Service for SimService {
-    type Request = Request<'static>;
-    type Response = Response;
-    type Exception = ExceptionCode;
-    type Future = Pin<Box<dyn std::future::Future<Output = Result<Response, ExceptionCode>> + Send>>;
-
-    fn call(&self, req: Self::Request) -> Self::Future {
+    /// Silent during the outage: the reply comes only after it, long after the client gave up.
+    fn hold(&self) -> Option<Duration> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         match self.outage {
-            Some((a, b)) if now >= a && now < b => {
-                // Silent: the reply comes only after the outage, long after the client gave up.
-                let answer = self.answer(&req);
-                Box::pin(async move {
-                    tokio::time::sleep(std::time::Duration::from_nanos((b - now) as u64)).await;
-                    answer
-                })
-            }
-            _ => Box::pin(ready(self.answer(&req))),
+            Some((a, b)) if now >= a && now < b => Some(Duration::from_nanos((b - now) as u64)),
+            _ => None,
         }
-    }
-}
-
-/// Open connections, so that stopping the server also closes them (tokio-modbus runs each
-/// connection in its own task, which would otherwise outlive the listener).
-#[derive(Clone, Default)]
-struct Connections {
-    next: Arc<AtomicU64>,
-    open: Arc<Mutex<HashMap<u64, std::net::TcpStream>>>,
-}
-
-impl Connections {
-    fn track(&self, stream: TcpStream) -> io::Result<Tracked> {
-        let std = stream.into_std()?;
-        let dup = std.try_clone()?;
-        let inner = TcpStream::from_std(std)?;
-        let id = self.next.fetch_add(1, Ordering::Relaxed);
-        if let Ok(mut open) = self.open.lock() {
-            open.insert(id, dup);
-        }
-        Ok(Tracked { inner, id, conns: self.clone() })
-    }
-
-    fn close_all(&self) {
-        if let Ok(mut open) = self.open.lock() {
-            for (_, s) in open.drain() {
-                let _ = s.shutdown(Shutdown::Both);
-            }
-        }
-    }
-}
-
-/// Closes every tracked connection when the server task ends or is aborted.
-struct CloseOnDrop(Connections);
-
-impl Drop for CloseOnDrop {
-    fn drop(&mut self) {
-        self.0.close_all();
-    }
-}
-
-/// A served connection; forgets its duplicate handle when the connection task ends.
-struct Tracked {
-    inner: TcpStream,
-    id: u64,
-    conns: Connections,
-}
-
-impl Drop for Tracked {
-    fn drop(&mut self) {
-        if let Ok(mut open) = self.conns.open.lock() {
-            open.remove(&self.id);
-        }
-    }
-}
-
-impl AsyncRead for Tracked {
-    fn poll_read(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_read(cx, buf)
-    }
-}
-
-impl AsyncWrite for Tracked {
-    fn poll_write(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.inner).poll_write(cx, buf)
-    }
-
-    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_flush(cx)
-    }
-
-    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }
 

@@ -17,22 +17,22 @@
 //! `EVENT_BUFFER` events and a client that falls further behind skips ahead (counted in
 //! `tagdeflect_http_events_lagged_total`); the solver's send never blocks.
 
-mod control;
 mod metrics;
 mod routes;
 mod server;
 mod snapshot;
 mod status;
 mod tap;
+mod test_api;
 mod view;
 
 use std::net::SocketAddr;
 
-pub use control::{FAILURE_WINDOW, MAX_BODY, MAX_FAILURES};
 pub use server::{
-    parse_addr, serve, wanted, AllowedHosts, HttpOptions, HttpServer, DEFAULT_ADDR, HEADER_TIMEOUT, IDLE_TIMEOUT, MAX_CONNECTIONS,
+    serve, wanted, AllowedHosts, HttpOptions, HttpServer, DEFAULT_ADDR, DEFAULT_PORT, HEADER_TIMEOUT, IDLE_TIMEOUT, MAX_CONNECTIONS,
 };
 pub use tap::SolverTap;
+pub use test_api::{FAILURE_WINDOW, MAX_BODY, MAX_FAILURES};
 pub use view::{observe, LiveView};
 
 /// A problem of the HTTP sink.

@@ -33,11 +33,11 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/status", get(status))
         .route("/camera/{file}", get(camera))
         .route("/metrics", get(metrics))
-        .route("/api/test", get(super::control::status))
-        .route("/api/tests", get(super::control::earlier))
-        .route("/api/test/{command}", axum::routing::post(super::control::command))
+        .route("/api/test", get(super::test_api::status))
+        .route("/api/tests", get(super::test_api::earlier))
+        .route("/api/test/{command}", axum::routing::post(super::test_api::command))
         // Larger bodies are refused before they are read whole (the control API's limit).
-        .layer(axum::extract::DefaultBodyLimit::max(super::control::MAX_BODY))
+        .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_BODY))
         .with_state(view)
 }
 

@@ -1,4 +1,4 @@
-//! The server: where the page is served ([`HttpOptions`], [`parse_addr`], [`wanted`]) and
+//! The server: where the page is served ([`HttpOptions`], [`wanted`]) and
 //! the axum server on the pipeline's runtime ([`serve`], [`HttpServer`]).
 
 use std::future::Future;
@@ -6,10 +6,14 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use tagdeflect_core::listen::parse_listen_addr;
+
 use super::{routes, HttpError, LiveView};
 
 /// Where `demo` serves the page unless told otherwise (and `[output] http`'s usual value).
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
+/// The port of [`DEFAULT_ADDR`] (and of the address examples in messages).
+pub const DEFAULT_PORT: u16 = 8080;
 
 /// Where to serve the page.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,22 +25,10 @@ pub struct HttpOptions {
     pub required: bool,
 }
 
-/// Parses a listen address: `IP:PORT`, `[IPv6]:PORT` or `localhost:PORT`.
-pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
-    let bad = || format!("\"{s}\" is not a listen address: expected IP:PORT, e.g. \"{DEFAULT_ADDR}\" (loopback) or \"0.0.0.0:8080\"");
-    if let Ok(a) = s.parse::<SocketAddr>() {
-        return Ok(a);
-    }
-    match s.rsplit_once(':') {
-        Some(("localhost", port)) => port.parse::<u16>().map(|p| SocketAddr::from(([127, 0, 0, 1], p))).map_err(|_| bad()),
-        _ => Err(bad()),
-    }
-}
-
 /// Where a live run serves the page: `opts` (the command line) first, else `[output] http`
 /// (validated when the config was loaded: a taken address is then an error).
 pub fn wanted(configured: Option<&str>, opts: Option<HttpOptions>) -> Option<HttpOptions> {
-    opts.or_else(|| configured.and_then(|a| parse_addr(a).ok()).map(|addr| HttpOptions { addr, required: true }))
+    opts.or_else(|| configured.and_then(|a| parse_listen_addr(a, DEFAULT_PORT).ok()).map(|addr| HttpOptions { addr, required: true }))
 }
 
 /// Connections served at once at most; one more is closed at once (counted, logged). The
@@ -273,6 +265,7 @@ mod tests {
 
     #[test]
     fn addresses() {
+        let parse_addr = |s: &str| parse_listen_addr(s, DEFAULT_PORT).map_err(|e| e.to_string());
         assert_eq!(parse_addr("127.0.0.1:8080").unwrap(), SocketAddr::from(([127, 0, 0, 1], 8080)));
         assert_eq!(parse_addr("localhost:9000").unwrap(), SocketAddr::from(([127, 0, 0, 1], 9000)));
         assert!(parse_addr("[::1]:0").unwrap().ip().is_loopback());

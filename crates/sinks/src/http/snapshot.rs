@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tagdeflect_core::frame::GrayImage;
-use tagdeflect_estimate::measure::SeenTag;
+use tagdeflect_core::observed::SeenTag;
 
 /// Widest thumbnail, pixels (frames are shrunk by an integer factor to fit).
 pub const THUMB_WIDTH: u32 = 480;

@@ -11,7 +11,7 @@ use serde::Serialize;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use super::view::{CameraState, FeedState, LiveView, RecordingState, UtmState};
+use super::view::{CameraOnPage, FeedState, LiveView, RecordingState, UtmState};
 use crate::status::{RunCamera, RunStatus};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::rig::TagRole;
@@ -309,7 +309,7 @@ fn specimen_tags(specimen: &tagdeflect_core::rig::SpecimenConfig) -> Vec<TagStat
 
 impl Ctx<'_> {
     /// One camera: its counters, rate, staleness, pose and snapshot; its problems.
-    fn source(&mut self, c: &CameraConfig, s: &CameraState, r: &RunCamera) -> SourceStatus {
+    fn source(&mut self, c: &CameraConfig, s: &CameraOnPage, r: &RunCamera) -> SourceStatus {
         let now = self.now;
         let rate = (s.recent.len() >= 2)
             .then(|| {

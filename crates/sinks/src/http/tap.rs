@@ -8,7 +8,7 @@ use super::snapshot::{self, SnapshotJob, SNAPSHOT_INTERVAL};
 use super::{HttpError, LiveView};
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::frame::FrameSet;
-use tagdeflect_estimate::measure::Observed;
+use tagdeflect_core::observed::Observed;
 
 /// The sinks' side of the live view, a [`LineSink`](crate::LineSink) whose `accept` never waits.
 pub struct SolverTap {

@@ -36,7 +36,7 @@ pub(crate) enum Event {
 
 /// Per camera, as the page shows it.
 #[derive(Debug, Default)]
-pub(crate) struct CameraState {
+pub(crate) struct CameraOnPage {
     pub frames: u64,
     pub frames_dropped: u64,
     pub lost: Option<String>,
@@ -77,7 +77,7 @@ pub(crate) struct FeedState {
 
 #[derive(Debug, Default)]
 pub(crate) struct State {
-    pub cameras: Vec<CameraState>,
+    pub cameras: Vec<CameraOnPage>,
     pub utm: UtmState,
     pub recording: RecordingState,
     pub feed: FeedState,
@@ -102,7 +102,7 @@ pub struct LiveView {
     pub(crate) started_ns: i64,
     pub(crate) clients: AtomicU64,
     /// The tests and their control API (`[output] tests`), once set.
-    pub(crate) control: std::sync::OnceLock<super::control::Control>,
+    pub(crate) test_api: std::sync::OnceLock<super::test_api::TestApi>,
     /// The MQTT publisher's counters (`[output.mqtt]`), once set: the archive's lag.
     #[cfg(feature = "mqtt")]
     pub(crate) mqtt: std::sync::OnceLock<Arc<crate::mqtt::MqttStats>>,
@@ -117,13 +117,13 @@ impl LiveView {
             config: config.clone(),
             mode,
             metrics,
-            state: Mutex::new(State { cameras: config.cameras.iter().map(|_| CameraState::default()).collect(), ..State::default() }),
+            state: Mutex::new(State { cameras: config.cameras.iter().map(|_| CameraOnPage::default()).collect(), ..State::default() }),
             events: Mutex::new(Events { backlog: VecDeque::new() }),
             tx,
             started: Instant::now(),
             started_ns: tagdeflect_core::clock::now_epoch_ns(),
             clients: AtomicU64::new(0),
-            control: std::sync::OnceLock::new(),
+            test_api: std::sync::OnceLock::new(),
             #[cfg(feature = "mqtt")]
             mqtt: std::sync::OnceLock::new(),
         };
@@ -145,8 +145,8 @@ impl LiveView {
     }
 
     /// Serves the control API of `tests` (SPEC "Tests"): every POST needs `token`.
-    pub fn set_control(&self, tests: Arc<crate::lab_test::LabTests>, token: String) {
-        let _ = self.control.set(super::control::Control::new(tests, token));
+    pub fn set_test_api(&self, tests: Arc<crate::lab_test::LabTests>, token: String) {
+        let _ = self.test_api.set(super::test_api::TestApi::new(tests, token));
     }
 
     pub(super) fn lock(&self) -> std::sync::MutexGuard<'_, State> {

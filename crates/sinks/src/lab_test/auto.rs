@@ -38,7 +38,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::Problem;
 
-use super::{TestMeta, STANDARDS};
+use super::TestMeta;
 
 /// Lines in a row a condition must hold on before it starts or stops a test.
 pub const CONFIRM_LINES: u32 = 3;
@@ -100,10 +100,7 @@ impl AutoTestConfig {
                 format!("{rearm}: a load from 0 to below start_load_kn ({} kN)", self.start_load_kn),
             ));
         }
-        TestMeta { specimen: self.specimen.clone(), standard: self.standard.clone(), ..TestMeta::default() }.validate().map_err(|e| {
-            let key = if self.standard.as_ref().is_some_and(|s| !STANDARDS.contains(&s.as_str())) { "standard" } else { "specimen" };
-            Problem::new(key, e.to_string())
-        })?;
+        TestMeta { specimen: self.specimen.clone(), standard: self.standard.clone(), ..TestMeta::default() }.validate()?;
         if !(self.end_margin_mm.is_finite() && (0.0..=50.0).contains(&self.end_margin_mm)) {
             return Err(Problem::new("end_margin_mm", format!("{}: from 0 to 50 mm", self.end_margin_mm)));
         }

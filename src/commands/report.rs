@@ -117,7 +117,7 @@ pub struct ExportArgs {
 }
 
 fn bad(msg: impl Into<String>) -> anyhow::Error {
-    crate::BadInput::new(msg.into()).into()
+    tagdeflect_core::BadInput::new(msg.into()).into()
 }
 
 /// The report's options: the config's `[report]` (when present), then the command line.

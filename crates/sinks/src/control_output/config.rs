@@ -2,12 +2,14 @@
 
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
+use tagdeflect_core::listen::{parse_listen_addr, ListenAddrError};
 
 /// `[output.control]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ControlConfig {
-    /// Address of the Modbus TCP server (`IP:PORT`; loopback unless set otherwise).
+    /// Address of the Modbus TCP server (a listen address, `tagdeflect_core::listen`; loopback
+    /// unless set otherwise).
     pub modbus: String,
     /// The value served: `"net_deflection"` (the feed's `net_deflection_mm`) or the name of
     /// a `[[gauge]]`.
@@ -24,6 +26,9 @@ pub struct ControlConfig {
 
 /// The gauge served by default.
 pub const NET_DEFLECTION: &str = "net_deflection";
+
+/// The port of the address examples in messages (SPEC's `127.0.0.1:5020`).
+pub const EXAMPLE_PORT: u16 = 5020;
 
 fn default_gauge() -> String {
     NET_DEFLECTION.to_string()
@@ -47,15 +52,15 @@ impl ControlConfig {
     }
 
     /// The server's address.
-    pub fn addr(&self) -> Result<SocketAddr, String> {
-        parse_addr(&self.modbus)
+    pub fn addr(&self) -> Result<SocketAddr, ListenAddrError> {
+        parse_listen_addr(&self.modbus, EXAMPLE_PORT)
     }
 
     /// Checks the section; `gauges` are the configured `[[gauge]]` names. Keys relative to
     /// `[output.control]`.
     pub fn validate(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
         use tagdeflect_core::Problem;
-        self.addr().map_err(|m| Problem::new("modbus", m))?;
+        self.addr().map_err(|e| Problem::new("modbus", e.to_string()))?;
         if self.gauge != NET_DEFLECTION && !gauges.contains(&self.gauge) {
             return Err(Problem::new(
                 "gauge",
@@ -70,11 +75,6 @@ impl ControlConfig {
         }
         Ok(())
     }
-}
-
-/// `IP:PORT` of the control output's server.
-pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
-    s.parse::<SocketAddr>().map_err(|_| format!("\"{s}\": expected IP:PORT (e.g. 127.0.0.1:5020)"))
 }
 
 #[cfg(test)]

@@ -11,16 +11,16 @@ use tagdeflect_calibrate::target::TargetSpec;
 use tagdeflect_calibrate::{CalibrateError, CalibrateOptions, Rejected};
 
 use crate::config::Config;
-use crate::frame::FrameSet;
+use tagdeflect_core::frame::FrameSet;
 
 /// A calibration error with its exit code: bad input (a bad option, target or image; too
 /// few views) exits 2, a failure of the machine (a camera that delivers nothing, an output
 /// that cannot be written) exits 1.
 fn with_exit_code(e: CalibrateError) -> anyhow::Error {
     if e.is_bad_input() {
-        anyhow::Error::new(crate::BadInput::new(e.to_string()))
+        anyhow::Error::new(tagdeflect_core::BadInput::new(e.to_string()))
     } else {
-        anyhow::Error::new(crate::RuntimeFailure::new(e.to_string()))
+        anyhow::Error::new(tagdeflect_core::RuntimeFailure::new(e.to_string()))
     }
 }
 
@@ -29,9 +29,12 @@ fn one_camera(config_path: &Path, camera: &str) -> Result<Config> {
     let mut cfg = Config::load(config_path)?;
     let Some(i) = cfg.cameras.iter().position(|c| c.name == camera) else {
         let names: Vec<&str> = cfg.cameras.iter().map(|c| c.name.as_str()).collect();
-        return Err(
-            crate::BadInput::new(format!("{}: no camera named {camera:?} (cameras: {})", config_path.display(), names.join(", "))).into()
-        );
+        return Err(tagdeflect_core::BadInput::new(format!(
+            "{}: no camera named {camera:?} (cameras: {})",
+            config_path.display(),
+            names.join(", ")
+        ))
+        .into());
     };
     let cam = cfg.cameras.remove(i);
     cfg.cameras = vec![cam];
@@ -39,7 +42,7 @@ fn one_camera(config_path: &Path, camera: &str) -> Result<Config> {
 }
 
 fn grabber(cfg: Config) -> impl FnMut() -> Result<FrameSet, String> {
-    move || crate::graph::run::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| format!("{e:#}"))
+    move || crate::graph::entry::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| format!("{e:#}"))
 }
 
 /// Live mode: views of the target from the config's camera `camera`, kept when they add

@@ -4,7 +4,7 @@
 
 use std::time::{Duration, Instant};
 
-use crate::feed::FeedLine;
+use tagdeflect_core::feed::FeedLine;
 
 /// How often the INFO summary is logged.
 pub const SUMMARY_INTERVAL: Duration = Duration::from_secs(60);

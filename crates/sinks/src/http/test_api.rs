@@ -1,4 +1,5 @@
-//! The control API of the tests (SPEC "Tests"): `GET /api/test` open to the page's readers,
+//! The tests' HTTP API (SPEC "Tests", there called the control API — not to be mistaken for
+//! the control output, [`crate::control_output`]): `GET /api/test` open to the page's readers,
 //! `POST /api/test/{start,stop,mark,zero}` for whoever holds the token.
 //!
 //! A POST is refused unless all of these hold, in this order: the body is at most
@@ -32,15 +33,15 @@ pub const MAX_FAILURES: u32 = 5;
 pub const FAILURE_WINDOW: Duration = Duration::from_secs(60);
 
 /// The tests behind the API, the token, and the wrong tokens per peer.
-pub(crate) struct Control {
+pub(crate) struct TestApi {
     tests: Arc<LabTests>,
     token: String,
     failures: Mutex<HashMap<IpAddr, (u32, Instant)>>,
 }
 
-impl Control {
+impl TestApi {
     pub(crate) fn new(tests: Arc<LabTests>, token: String) -> Self {
-        Control { tests, token, failures: Mutex::new(HashMap::new()) }
+        TestApi { tests, token, failures: Mutex::new(HashMap::new()) }
     }
 }
 
@@ -50,7 +51,7 @@ fn answer(code: StatusCode, message: impl Into<String>) -> Response {
 
 /// `GET /api/test`.
 pub(crate) async fn status(State(view): State<Arc<LiveView>>) -> Response {
-    match view.control.get() {
+    match view.test_api.get() {
         Some(c) => Json(c.tests.status()).into_response(),
         None => Json(serde_json::json!({"state": "off", "why": "no [output] tests (or --tests DIR) configured"})).into_response(),
     }
@@ -58,7 +59,7 @@ pub(crate) async fn status(State(view): State<Arc<LiveView>>) -> Response {
 
 /// `GET /api/tests`: the day's stopped tests' curves (the page draws them in grey).
 pub(crate) async fn earlier(State(view): State<Arc<LiveView>>) -> Response {
-    let tests = view.control.get().map(|c| c.tests.earlier()).unwrap_or_default();
+    let tests = view.test_api.get().map(|c| c.tests.earlier()).unwrap_or_default();
     Json(serde_json::json!({ "tests": tests })).into_response()
 }
 
@@ -70,7 +71,7 @@ pub(crate) async fn command(
     headers: HeaderMap,
     body: Bytes,
 ) -> Response {
-    let Some(control) = view.control.get() else {
+    let Some(api) = view.test_api.get() else {
         return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
     };
     if body.len() > MAX_BODY {
@@ -85,10 +86,10 @@ pub(crate) async fn command(
     if !body.is_empty() && !json {
         return answer(StatusCode::UNSUPPORTED_MEDIA_TYPE, "the body must be application/json");
     }
-    if let Some(refused) = check_token(control, &headers, peer) {
+    if let Some(refused) = check_token(api, &headers, peer) {
         return refused;
     }
-    let tests = control.tests.clone();
+    let tests = api.tests.clone();
     let run = move || -> Result<serde_json::Value, TestError> {
         let parse = |what: &str| -> Result<serde_json::Value, TestError> {
             if body.is_empty() {
@@ -146,15 +147,15 @@ fn cross_origin(headers: &HeaderMap) -> Option<String> {
 }
 
 /// The token check with its rate limit; `Some(answer)` when refused.
-fn check_token(control: &Control, headers: &HeaderMap, peer: SocketAddr) -> Option<Response> {
-    let mut failures = control.failures.lock().unwrap_or_else(|p| p.into_inner());
+fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr) -> Option<Response> {
+    let mut failures = api.failures.lock().unwrap_or_else(|p| p.into_inner());
     let now = Instant::now();
     failures.retain(|_, (_, since)| now.duration_since(*since) < FAILURE_WINDOW);
     if failures.get(&peer.ip()).is_some_and(|(n, _)| *n >= MAX_FAILURES) {
         return Some(answer(StatusCode::TOO_MANY_REQUESTS, format!("too many wrong tokens from {}: wait a minute", peer.ip())));
     }
     let given = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).map(str::trim);
-    if given.is_some_and(|g| constant_time_eq(g.as_bytes(), control.token.as_bytes())) {
+    if given.is_some_and(|g| constant_time_eq(g.as_bytes(), api.token.as_bytes())) {
         return None;
     }
     let entry = failures.entry(peer.ip()).or_insert((0, now));

@@ -86,7 +86,9 @@ pub fn run(args: &TestArgs) -> Result<()> {
         TestAction::Zero => ("zero", serde_json::json!({})),
     };
     let token_file = args.token_file.as_ref().ok_or_else(|| {
-        crate::BadInput::new("--token-file FILE: the control token (the daemon wrote it to <tests>/.token, or [output] http_token_file)")
+        tagdeflect_core::BadInput::new(
+            "--token-file FILE: the control token (the daemon wrote it to <tests>/.token, or [output] http_token_file)",
+        )
     })?;
     let token = std::fs::read_to_string(token_file).with_context(|| format!("cannot read the token file {}", token_file.display()))?;
     let token = token.lines().next().unwrap_or_default().trim().to_string();
@@ -114,8 +116,8 @@ fn http_error(e: ureq::Error) -> anyhow::Error {
                 .ok()
                 .and_then(|v| v.get("error").and_then(|e| e.as_str()).map(str::to_string))
                 .unwrap_or(text);
-            anyhow::Error::new(crate::BadInput::new(format!("the daemon refused ({code}): {why}")))
+            anyhow::Error::new(tagdeflect_core::BadInput::new(format!("the daemon refused ({code}): {why}")))
         }
-        other => anyhow::Error::new(crate::RuntimeFailure::new(format!("cannot reach the daemon: {other}"))),
+        other => anyhow::Error::new(tagdeflect_core::RuntimeFailure::new(format!("cannot reach the daemon: {other}"))),
     }
 }

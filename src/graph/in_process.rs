@@ -1,8 +1,8 @@
 //! The measurement over a recording, driven in-process on the caller's thread: what `bench`
 //! times stage by stage and what tests read feed lines from.
 //!
-//! `tagdeflect replay` itself is the graph ([`crate::graph::run::replay`]: the recording a
-//! source, [`crate::graph::run::Pacing`] its pacing); this driver gives the same lines as the
+//! `tagdeflect replay` itself is the graph ([`crate::graph::entry::replay`]: the recording a
+//! source, [`crate::graph::playback::Pacing`] its pacing); this driver gives the same lines as the
 //! graph's as-fast replay (`tests/it` checks it line for line), without threads between the
 //! stages, so each stage's time is its own.
 //!
@@ -11,14 +11,15 @@
 //! measurement take them in turn; feed lines go to a callback.
 
 use anyhow::{Context, Result};
-use std::path::Path;
 use std::time::Instant;
 
-use crate::config::Config;
-use crate::feed::FeedLine;
-use crate::pipeline::measure::{MeasureStats, Measurement, StageTimes};
-use crate::recording::Recording;
-use crate::sync::FrameSetAssembler;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_estimate::measure::{MeasureStats, Measurement, StageTimes};
+use tagdeflect_io::sync::FrameSetAssembler;
+
+use crate::config::Recording;
+use crate::graph::playback::progress_bar;
+use crate::graph::smoothing::Smoothing;
 
 /// What a replay did.
 #[derive(Debug, Clone, Default)]
@@ -49,61 +50,38 @@ pub struct ReplayOptions {
     pub smooth_lag_sets: Option<usize>,
 }
 
-/// Opens a recording, with an optional config override.
-pub fn open(dir: &Path, config: Option<Config>) -> Result<Recording> {
-    let rec = match config {
-        Some(c) => Recording::open_with(dir, c),
-        None => Recording::open(dir),
-    };
-    rec.with_context(|| format!("cannot replay {}", dir.display()))
-}
+pub use crate::graph::playback::open;
 
 /// Replays a recording through the measurement; `on_line(line, stage_times, latency_s)`
 /// is called for every frame set in order (latency: frame set complete → line made).
 pub fn replay(rec: &Recording, opts: ReplayOptions, mut on_line: impl FnMut(&FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
-    let Some(lag) = opts.smooth_lag_sets else {
-        return replay_sets(rec, opts, |_, line, times, latency, _| on_line(&line, times, latency));
-    };
-    // As the graph's solver does: each line leaves the smoother `lag` sets later.
-    let mut smoother = None;
-    let summary = replay_sets(rec, opts, |_, line, times, latency, m| {
-        let sm = smoother.get_or_insert_with(|| m.smoother(lag));
-        if let Some(out) = sm.push(line, m.last_steps().to_vec()) {
-            on_line(&out, times, latency);
-        }
-    })?;
-    for line in smoother.as_mut().map(|s| s.finish()).unwrap_or_default() {
-        on_line(&line, &StageTimes::default(), 0.0);
-    }
-    Ok(summary)
+    replay_sets(rec, opts, |line, times, latency| on_line(&line, times, latency))
 }
 
-/// [`replay`] handing over each frame set with its line and the measurement that made it.
-fn replay_sets(
-    rec: &Recording,
-    opts: ReplayOptions,
-    mut on_set: impl FnMut(crate::frame::FrameSet, FeedLine, &StageTimes, f64, &Measurement),
-) -> Result<ReplaySummary> {
+/// [`replay`] handing over each line (smoothed when asked) with its stage times and latency.
+fn replay_sets(rec: &Recording, opts: ReplayOptions, mut on_set: impl FnMut(FeedLine, &StageTimes, f64)) -> Result<ReplaySummary> {
     let start = Instant::now();
     let config = &rec.config;
     let mut measure = Measurement::new(&config.measurement(), !opts.full_frame).context("cannot start the tag detector")?;
-    if opts.smooth_lag_sets.is_some() {
-        measure.keep_steps();
-    }
+    // As the graph's solver does: each line leaves the smoother `lag` sets later.
+    let mut smoothing = opts.smooth_lag_sets.map(|lag| Smoothing::attach(&mut measure, lag));
     for s in &rec.utm {
         measure.utm_mut().push(*s);
     }
     let mut assembler = FrameSetAssembler::new(config.cameras.len(), config.sync.tolerance_ms);
     let mut summary = ReplaySummary::default();
-    let bar = opts.progress.then(|| {
-        let b = indicatif::ProgressBar::new(rec.frames.len() as u64);
-        b.set_style(indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {per_sec}  ETA {eta}").expect("template"));
-        b
-    });
-    let mut process = |set: crate::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
+    let bar = opts.progress.then(|| progress_bar(rec.frames.len() as u64));
+    let mut process = |set: tagdeflect_core::frame::FrameSet, ready: Instant, summary: &mut ReplaySummary| {
         let (line, times) = measure.process(&set);
         summary.sets += 1;
-        on_set(set, line, &times, ready.elapsed().as_secs_f64(), &measure);
+        match smoothing.as_mut() {
+            Some(sm) => {
+                if let Some(out) = sm.push(line, &measure) {
+                    on_set(out, &times, ready.elapsed().as_secs_f64());
+                }
+            }
+            None => on_set(line, &times, ready.elapsed().as_secs_f64()),
+        }
     };
     let (mut bad, mut decode_s) = (0u64, 0.0);
     let mut newest_ready = Instant::now();
@@ -130,6 +108,9 @@ fn replay_sets(
     for set in assembler.flush() {
         process(set, newest_ready, &mut summary);
     }
+    for line in smoothing.as_mut().map(Smoothing::finish).unwrap_or_default() {
+        on_set(line, &StageTimes::default(), 0.0);
+    }
     let reader_result = (bad, decode_s);
     if let Some(b) = bar {
         b.finish_and_clear();
@@ -140,16 +121,7 @@ fn replay_sets(
     summary.stats = measure.stats().clone();
     summary.wall_s = start.elapsed().as_secs_f64();
     if summary.sets == 0 {
-        return Err(crate::BadInput::new(format!("{}: no frame could be read, nothing was solved", rec.dir.display())).into());
+        return Err(tagdeflect_core::BadInput::new(format!("{}: no frame could be read, nothing was solved", rec.dir.display())).into());
     }
     Ok(summary)
-}
-
-/// Keeps the page up after a replay until SIGINT/SIGTERM/SIGHUP (watched since the run
-/// started: one that came during the replay ends this at once).
-#[cfg(feature = "http")]
-pub(crate) async fn linger(signals: &mut crate::graph::run::StopSignals) -> anyhow::Result<()> {
-    tracing::info!("recording consumed; the live page stays up until Ctrl-C (SIGINT) or SIGTERM");
-    signals.recv().await;
-    Ok(())
 }

@@ -1,5 +1,7 @@
 //! The control output (`[output.control]`, SPEC "Control output"): the configured gauge as
-//! a testing machine's controller or a PLC reads it, from a read-only Modbus TCP server.
+//! a testing machine's controller or a PLC reads it, from a read-only Modbus TCP server (on
+//! `tagdeflect_io::modbus_server`). Named for what SPEC calls it; the tests' HTTP API (SPEC's
+//! "control API") is another thing, `http::test_api`.
 //!
 //! The measurement never waits for it: the sink ([`ControlSink`], on the sinks' thread)
 //! only writes the latest value into a small shared block, and the server answers every
@@ -27,7 +29,6 @@
 
 pub mod config;
 
-use std::future::ready;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU16, Ordering};
@@ -36,10 +37,11 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use tagdeflect_core::feed::FeedLine;
-use tokio_modbus::server::tcp::Server;
+use tagdeflect_core::listen::ListenAddrError;
+use tagdeflect_io::modbus_server::{read_range, Answer, ModbusServer, ServerName};
 use tokio_modbus::{ExceptionCode, Request, Response};
 
-pub use config::{parse_addr, ControlConfig, NET_DEFLECTION};
+pub use config::{ControlConfig, EXAMPLE_PORT, NET_DEFLECTION};
 
 use crate::{Finished, LineSink};
 
@@ -53,7 +55,7 @@ pub const HEARTBEAT: Duration = Duration::from_millis(50);
 pub enum ControlError {
     /// The address is malformed.
     #[error("[output.control] modbus: {0}")]
-    Address(String),
+    Address(ListenAddrError),
     /// The address cannot be bound.
     #[error("[output.control] cannot serve Modbus TCP on {addr}: {source}")]
     Bind {
@@ -168,36 +170,20 @@ impl Shared {
         r[9] = self.heartbeat.load(Ordering::Relaxed);
         r
     }
+}
 
+impl Answer for Shared {
     fn answer(&self, req: &Request<'_>) -> Result<Response, ExceptionCode> {
         let (start, count) = match *req {
-            Request::ReadInputRegisters(a, n) => (a as usize, n as usize),
+            Request::ReadInputRegisters(a, n) => (a, n),
             _ => {
                 tracing::warn!("control output: refused {:?} (the control output is read-only: input registers 0–11)", req.function_code());
                 return Err(ExceptionCode::IllegalFunction);
             }
         };
-        if count == 0 || count > 125 {
-            return Err(ExceptionCode::IllegalDataValue);
-        }
-        if start + count > REGISTERS {
-            return Err(ExceptionCode::IllegalDataAddress);
-        }
+        let range = read_range(start, count, REGISTERS)?;
         let regs = self.registers(Instant::now(), tagdeflect_core::clock::now_epoch_ns());
-        Ok(Response::ReadInputRegisters(regs[start..start + count].to_vec()))
-    }
-}
-
-struct Service(Arc<Shared>);
-
-impl tokio_modbus::server::Service for Service {
-    type Request = Request<'static>;
-    type Response = Response;
-    type Exception = ExceptionCode;
-    type Future = std::future::Ready<Result<Response, ExceptionCode>>;
-
-    fn call(&self, req: Self::Request) -> Self::Future {
-        ready(self.0.answer(&req))
+        Ok(Response::ReadInputRegisters(regs[range].to_vec()))
     }
 }
 
@@ -297,9 +283,13 @@ impl Drop for ControlOutput {
     }
 }
 
+/// The control output's name in log lines; its clients are logged at INFO.
+const NAME: ServerName = ServerName { name: "control output", clients_at_info: true };
+
 async fn serve(listener: std::net::TcpListener, shared: Arc<Shared>, stop: tokio::sync::oneshot::Receiver<()>) {
-    let listener = match tokio::net::TcpListener::from_std(listener) {
-        Ok(l) => l,
+    let server = tokio::net::TcpListener::from_std(listener).and_then(|l| ModbusServer::serve(l, NAME, shared.clone()));
+    let mut server = match server {
+        Ok(s) => s,
         Err(e) => {
             tracing::error!("control output: cannot serve: {e}");
             return;
@@ -315,21 +305,9 @@ async fn serve(listener: std::net::TcpListener, shared: Arc<Shared>, stop: tokio
             }
         }
     };
-    let server = Server::new(listener);
-    let service = Arc::new(Service(shared));
-    let on_connected = |stream: tokio::net::TcpStream, peer: SocketAddr| {
-        tracing::info!(%peer, "control output: client connected");
-        let _ = stream.set_nodelay(true);
-        ready(Ok(Some((service.clone(), stream))))
-    };
-    let on_error = |e: io::Error| tracing::debug!("control output: connection ended: {e}");
     tokio::select! {
         _ = heartbeat => {}
-        r = server.serve(&on_connected, on_error) => {
-            if let Err(e) = r {
-                tracing::error!("control output: accept failed: {e}");
-            }
-        }
+        _ = server.stopped() => {}
         _ = stop => {}
     }
 }

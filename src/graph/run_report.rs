@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use crate::config::Config;
-use crate::sinks::feed::FeedWriter;
+use tagdeflect_core::feed_file::FeedWriter;
 use tagdeflect_report::Feed;
 
 /// A report to be written when the run ends.
@@ -20,8 +20,8 @@ impl RunReport {
     /// With `[report]` configured: creates the run's report folder and returns the hook and
     /// the feed writer (a sink of the run) that copies the feed into it.
     /// A folder or file that cannot be written is bad input (`[report] out` names it).
-    pub fn start(config: &Config) -> Result<Option<(RunReport, FeedWriter)>, crate::BadInput> {
-        let bad = |what: String| move |e: std::io::Error| crate::BadInput::new(format!("{what}: {e}"));
+    pub fn start(config: &Config) -> Result<Option<(RunReport, FeedWriter)>, tagdeflect_core::BadInput> {
+        let bad = |what: String| move |e: std::io::Error| tagdeflect_core::BadInput::new(format!("{what}: {e}"));
         let Some(r) = &config.report else { return Ok(None) };
         let dir = r.out.join(chrono::Utc::now().format("%Y%m%dT%H%M%SZ").to_string());
         std::fs::create_dir_all(&dir).map_err(bad(format!("cannot create the report folder {}", dir.display())))?;

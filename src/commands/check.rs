@@ -9,11 +9,11 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use crate::config::Config;
-use crate::feed::FeedLine;
-use crate::frame::FrameSet;
-use crate::pipeline::measure::Measurement;
-use crate::recording::Recording;
-use crate::sync::FrameSetAssembler;
+use crate::config::Recording;
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::frame::FrameSet;
+use tagdeflect_estimate::measure::Measurement;
+use tagdeflect_io::sync::FrameSetAssembler;
 
 /// Frame sets of a recording that `check` looks at (poses settle over a few sets).
 const CHECK_SETS: usize = 3;
@@ -35,7 +35,7 @@ pub fn check_recording(dir: &Path) -> Result<()> {
     // recording written by something else (a counter, a relative clock) and would give a
     // feed whose times mean nothing.
     if let Some(f) = rec.frames.iter().find(|f| !PLAUSIBLE_T_NS.contains(&f.t_ns)) {
-        return Err(crate::BadInput::new(format!(
+        return Err(tagdeflect_core::BadInput::new(format!(
             "{}: frame {} of camera {} has t_ns {}: not a time between 2000 and 2200 in nanoseconds since the Unix epoch (SPEC)",
             dir.join("frames.jsonl").display(),
             f.seq,
@@ -45,7 +45,7 @@ pub fn check_recording(dir: &Path) -> Result<()> {
         .into());
     }
     if let Some(u) = rec.utm.iter().find(|u| !PLAUSIBLE_T_NS.contains(&u.t_ns)) {
-        return Err(crate::BadInput::new(format!(
+        return Err(tagdeflect_core::BadInput::new(format!(
             "{}: a UTM sample has t_ns {}: not a time between 2000 and 2200 in nanoseconds since the Unix epoch (SPEC)",
             dir.join("utm.jsonl").display(),
             u.t_ns
@@ -86,7 +86,7 @@ pub fn check_config(path: &Path) -> Result<()> {
         config.background.tags.len(),
         config.specimen.tags.len()
     );
-    let set = crate::graph::run::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
+    let set = crate::graph::entry::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
     for (i, cam) in config.cameras.iter().enumerate() {
         if !set.frames.iter().any(|f| f.camera == i) {
             println!("  warning: camera {} ({}) delivered no frame within 10 s", cam.name, cam.source);
@@ -105,8 +105,8 @@ const UTM_CHECK_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5)
 
 /// Reads the UTM once through the daemon's own poller; prints the value and the time to the
 /// first reading, or what went wrong.
-fn check_utm(u: &crate::utm::UtmConfig) {
-    use crate::utm::modbus::{run_poller, UtmEvent};
+fn check_utm(u: &tagdeflect_io::utm::UtmConfig) {
+    use tagdeflect_io::utm::modbus::{run_poller, UtmEvent};
     if u.address.is_sim() {
         println!("UTM: simulated (served by `run`/`demo` on loopback; nothing to contact)");
         return;
@@ -163,7 +163,7 @@ fn side_px(c: &[nalgebra::Point2<f64>; 4]) -> f64 {
 /// Runs the measurement over the sets and prints the per-camera summary of the last one.
 fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     if sets.is_empty() {
-        return Err(crate::BadInput::new("no frame could be read: nothing to check").into());
+        return Err(tagdeflect_core::BadInput::new("no frame could be read: nothing to check").into());
     }
     let mut m = Measurement::new(&config.measurement(), false).context("cannot start the tag detector")?;
     let mut last: Option<FeedLine> = None;
@@ -231,7 +231,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
         );
     }
     if posed == 0 {
-        return Err(crate::BadInput::new("no camera could be posed from the background tags: check the [background] tags' ids, family and world corners against what the cameras see").into());
+        return Err(tagdeflect_core::BadInput::new("no camera could be posed from the background tags: check the [background] tags' ids, family and world corners against what the cameras see").into());
     }
     Ok(())
 }

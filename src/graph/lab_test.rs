@@ -16,10 +16,10 @@ use crate::graph::page::Page;
 /// restart (`Restart=on-failure`, an upgrade) does not lock out a client holding it; else made
 /// now and written there (mode 0600). Printed on stderr at every start.
 pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> {
-    let bad = |m: String| crate::BadInput::new(m);
+    let bad = |m: String| tagdeflect_core::BadInput::new(m);
     let report_config = config.clone();
     let hook: tagdeflect_sinks::lab_test::ReportHook =
-        Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record));
+        Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record).map_err(Into::into));
     let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
         .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
     if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {

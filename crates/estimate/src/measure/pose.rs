@@ -1,0 +1,145 @@
+//! Stage 2, pose cameras: each camera's held pose updated from its background tags, a
+//! camera that moved searched whole first (see the module docs of [`super`]).
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use tagdeflect_core::feed::{round_mm, CameraHealth};
+use tagdeflect_core::frame::FrameSet;
+use tagdeflect_detect::{CameraDetections, DetectReport};
+
+use super::detect::Detected;
+use super::Measurement;
+use crate::{BackgroundTagObservation, HeldCameraPose, HeldPoseStatus};
+
+/// What the pose stage made of the cameras: each camera's health for the feed line, in
+/// config order (the poses themselves are held by the cameras).
+pub(super) struct CameraPoses {
+    /// Per camera, in config order.
+    pub(super) health: Vec<CameraHealth>,
+}
+
+impl Measurement {
+    /// Poses every camera from its detections; a camera that moved has its frame searched
+    /// whole first, and `detected` then holds what that search found.
+    pub(super) fn pose_cameras(&mut self, set: &FrameSet, detected: &mut Detected) -> CameraPoses {
+        CameraPoses { health: (0..self.cameras.len()).map(|ci| self.pose_camera(set, ci, detected)).collect() }
+    }
+
+    /// Camera `ci`'s pose from this set, and its health.
+    fn pose_camera(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected) -> CameraHealth {
+        // The frame's observations are made once and posed from, unless a search replaced them.
+        let frame_obs = self.search_if_moved(set, ci, detected);
+        let det = detected.of(ci);
+        let mut h = CameraHealth {
+            name: self.cameras[ci].name.clone(),
+            frame: det.is_some(),
+            background_tags: 0,
+            specimen_tags: 0,
+            pose_reproj_px: None,
+            posed: self.cameras[ci].pose.pose().is_some(),
+            ..CameraHealth::default()
+        };
+        let checked = det.is_some_and(|d| self.update_pose(set, ci, d, frame_obs, &mut h));
+        // A held pose that no background tag confirmed in this set is reported as stale.
+        self.pose_age_sets[ci] = if checked { 0 } else { self.pose_age_sets[ci] + 1 };
+        if h.posed && h.frame && !checked {
+            (h.stale_pose, h.pose_age_sets) = (true, Some(self.pose_age_sets[ci]));
+        }
+        h
+    }
+
+    /// The camera moved (background tags lost or jumped): the same frame searched whole
+    /// before the camera is posed from it. The frame's background observations when they
+    /// are still what the camera is posed from, `None` when a search replaced them (or the
+    /// camera has no frame).
+    fn search_if_moved(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected) -> Option<Vec<BackgroundTagObservation>> {
+        let report = detected.reports[ci]?;
+        let slot = detected.cameras.iter_mut().find(|(i, _)| *i == ci)?;
+        let cam = &mut self.cameras[ci];
+        let threshold = cam.pose.bump_threshold_px();
+        let above = |s: f64| s.is_nan() || s > threshold;
+        let obs = background_observations(&self.background_world, &slot.1);
+        let jumped = cam.pose.preview_shift_px(set.t_ns, &obs).is_some_and(above);
+        let moved_again = report.background.shift_px.is_some_and(above);
+        let search = search_whole(&cam.pose, &report, jumped, moved_again);
+        let Some(frame) = set.frames.iter().find(|f| f.camera == ci).filter(|_| search) else { return Some(obs) };
+        let c0 = Instant::now();
+        let (again, r) = cam.detector.search_again(frame.t_ns, &frame.image, &self.rig);
+        tracing::warn!(
+            camera = %cam.name,
+            seq = set.seq,
+            lost = report.background.lost,
+            jumped,
+            background_tags = again.background.len(),
+            "background tags lost or jumped: the frame searched whole before posing"
+        );
+        self.stats.full_frame_searches += r.full_frame_searches;
+        self.stats.moved_camera_searches += 1;
+        detected.parts.full_frame += c0.elapsed().as_secs_f64();
+        slot.1 = again;
+        None
+    }
+
+    /// Updates camera `ci`'s held pose from its detections `d` (`obs`: their background
+    /// observations when already made) and fills its health; true when a background tag
+    /// checked the pose in this set.
+    fn update_pose(
+        &mut self,
+        set: &FrameSet,
+        ci: usize,
+        d: &CameraDetections,
+        obs: Option<Vec<BackgroundTagObservation>>,
+        h: &mut CameraHealth,
+    ) -> bool {
+        h.background_tags = d.background.len();
+        h.specimen_tags = d.specimen.len();
+        let obs = obs.unwrap_or_else(|| background_observations(&self.background_world, d));
+        let cam = &mut self.cameras[ci];
+        // Every line the held pose logs names its camera (the span's field).
+        let status = tracing::info_span!("pose", camera = %cam.name).in_scope(|| cam.pose.update_at(set.t_ns, &obs));
+        if let Some(d) = status.drift {
+            h.drift_deg = Some((d.angle_deg() * 1e6).round() / 1e6);
+            h.drift_mm = Some(round_mm(d.shift_mm()));
+        }
+        h.posed = status.pose.is_some();
+        h.pose_reproj_px = status.rms_px;
+        h.bumped = status.bumped;
+        self.note_pose_change(ci, set.seq, &status);
+        status.fixed || !status.stale
+    }
+
+    /// Counts and logs a camera's re-pose or refused pose; either starts a new pose epoch.
+    fn note_pose_change(&mut self, ci: usize, seq: u64, status: &HeldPoseStatus) {
+        if status.refused.is_some() || status.bumped {
+            self.pose_epochs[ci] += 1;
+        }
+        let camera = &self.cameras[ci].name;
+        if let Some(why) = &status.refused {
+            self.stats.refused_poses += 1;
+            tracing::warn!(camera = %camera, seq, reason = %why, "camera moved and its pose failed the checks: the frame set is solved without it");
+        } else if status.bumped {
+            self.stats.bumps += 1;
+            tracing::warn!(camera = %camera, seq, "camera moved: background tags shifted in the image; re-posed");
+        }
+    }
+}
+
+/// Whether a camera's frame is searched whole before the camera is posed from it: an
+/// estimated pose (held or refused), no full-frame search in the frame yet, and its
+/// background tags lost or jumped (while a re-pose is refused, only when they moved again).
+fn search_whole(pose: &HeldCameraPose, report: &DetectReport, jumped: bool, moved_again: bool) -> bool {
+    pose.estimated()
+        && (pose.pose().is_some() || pose.refused().is_some())
+        && report.full_frame_searches == 0
+        && (report.background.lost || (jumped && (pose.refused().is_none() || moved_again)))
+}
+
+/// The background tags of one camera's detections with their known world corners.
+fn background_observations(world: &HashMap<u32, [Vector3<f64>; 4]>, d: &CameraDetections) -> Vec<BackgroundTagObservation> {
+    d.background
+        .iter()
+        .filter_map(|det| world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w }))
+        .collect()
+}

@@ -1,0 +1,171 @@
+//! The commands an operator gives (the tests' HTTP API, `tagdeflect test`): start, mark,
+//! zero, stop, and the status and earlier tests the page reads.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use tagdeflect_core::feed::FeedEvent;
+
+use super::record::day_of;
+use super::state::{Inner, LabTests, Running};
+use super::zero::{Zero, ZERO_SETS};
+use super::{EarlierTest, Stopped, TestError, TestMeta, TestRecord, EARLIER_TESTS};
+
+/// How long `stop` waits for the sinks to write the test's last lines.
+pub const STOP_WAIT: Duration = Duration::from_millis(1500);
+
+impl LabTests {
+    /// `GET /api/tests`: today's stopped tests, oldest first.
+    pub fn earlier(&self) -> Vec<EarlierTest> {
+        let today = day_of(tagdeflect_core::clock::now_epoch_ns());
+        self.lock().earlier.iter().filter(|t| day_of(t.started_t_ns) == today).cloned().collect()
+    }
+
+    /// Starts a test (its zero from the next frame sets); refused while one runs.
+    pub fn start(&self, meta: TestMeta) -> Result<serde_json::Value, TestError> {
+        meta.validate()?;
+        let mut g = self.lock();
+        self.open(&mut g, meta, None)?;
+        drop(g);
+        Ok(self.status())
+    }
+
+    /// Opens the test's folder and makes it the running test; `note` goes with its start event.
+    pub(super) fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>) -> Result<String, TestError> {
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
+        let id = format!("{stamp}-{}", meta.specimen.trim());
+        if let Some(r) = &g.running {
+            return Err(TestError::Conflict(format!("test {} is running: stop it first", r.record.id)));
+        }
+        let folder = self.dir.join(&id);
+        if folder.exists() {
+            return Err(TestError::Conflict(format!("{} exists already: wait a second and start again", folder.display())));
+        }
+        let io = |e: std::io::Error| TestError::Io(format!("cannot open the test's folder {}: {e}", folder.display()));
+        std::fs::create_dir_all(&folder).map_err(io)?;
+        let open = |name: &str| std::fs::OpenOptions::new().create_new(true).append(true).open(folder.join(name));
+        let feed = open("feed.jsonl").map_err(io)?;
+        let utm = open("utm.jsonl").map_err(io)?;
+        let start = FeedEvent { kind: "start".into(), t_ns: now, note };
+        g.pending.push(start.clone());
+        let record = TestRecord {
+            id: id.clone(),
+            meta,
+            started_t_ns: now,
+            stopped_t_ns: None,
+            events: vec![start],
+            lines: 0,
+            utm_samples: 0,
+            sha256: BTreeMap::new(),
+        };
+        tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
+        let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
+        self.persist(&r);
+        self.publish(&r.record);
+        g.running = Some(r);
+        Ok(id)
+    }
+
+    /// An operator's note, into the feed and `test.json`.
+    pub fn mark(&self, note: Option<String>) -> Result<serde_json::Value, TestError> {
+        if let Some(n) = &note {
+            if n.len() > 4096 || n.chars().any(|c| c.is_control()) {
+                return Err(TestError::Bad("note: at most 4096 characters, no control characters".into()));
+            }
+        }
+        self.event("mark", note)
+    }
+
+    /// Takes the zero again from the next frame sets.
+    pub fn zero(&self) -> Result<serde_json::Value, TestError> {
+        let v = self.event("zero", None)?;
+        let mut g = self.lock();
+        if let Some(r) = g.running.as_mut() {
+            r.zero = Zero::default();
+            self.persist(r);
+        }
+        Ok(v)
+    }
+
+    fn event(&self, kind: &str, note: Option<String>) -> Result<serde_json::Value, TestError> {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
+        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note };
+        r.record.events.push(ev.clone());
+        self.persist(r);
+        self.publish(&r.record);
+        g.pending.push(ev);
+        drop(g);
+        Ok(self.status())
+    }
+
+    /// Ends the running test: waits until the sinks have written its lines (at most
+    /// [`STOP_WAIT`]), then completes its folder (report included) and answers.
+    pub fn stop(&self) -> Result<Stopped, TestError> {
+        self.stop_with(None)
+    }
+
+    /// [`LabTests::stop`] with a note on the stop event (why it stopped).
+    pub(super) fn stop_with(&self, note: Option<String>) -> Result<Stopped, TestError> {
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let mut g = self.lock();
+        if g.running.is_none() {
+            return Err(TestError::Conflict("no test is running: nothing to stop".into()));
+        }
+        // Every line solved before the stop reaches the folder first (the sinks run behind
+        // the solver by a line or two).
+        let target = g.last_line_t_ns;
+        let (g2, _) = self
+            .written
+            .wait_timeout_while(g, STOP_WAIT, |g| g.running.as_ref().is_some_and(|r| r.written_t_ns < target))
+            .unwrap_or_else(|p| p.into_inner());
+        g = g2;
+        let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note };
+        r.record.events.push(stop.clone());
+        r.record.stopped_t_ns = Some(now);
+        g.pending.push(stop);
+        g.last = Some((r.record.id.clone(), r.folder.clone()));
+        g.earlier.push(EarlierTest::new(&r.record, &r.curve));
+        if g.earlier.len() > EARLIER_TESTS {
+            g.earlier.remove(0);
+        }
+        drop(g);
+        if let Err(e) = std::fs::remove_file(self.state_file()) {
+            tracing::error!("cannot remove {}: {e}", self.state_file().display());
+        }
+        let id = r.record.id.clone();
+        let folder = r.folder.clone();
+        self.complete(r)?;
+        tracing::info!(test = %id, folder = %folder.display(), "test stopped; its folder is complete");
+        Ok(Stopped { id, folder })
+    }
+
+    /// `GET /api/test`.
+    pub fn status(&self) -> serde_json::Value {
+        let g = self.lock();
+        let mut st = match &g.running {
+            Some(r) => serde_json::json!({
+                "state": "running",
+                "id": r.record.id,
+                "specimen": r.record.meta.specimen,
+                "operator": r.record.meta.operator,
+                "standard": r.record.meta.standard,
+                "started_t_ns": r.record.started_t_ns,
+                "events": r.record.events,
+                "lines": r.record.lines,
+                "zeroing": r.zero.n < ZERO_SETS,
+                "folder": r.folder,
+            }),
+            None => serde_json::json!({
+                "state": "idle",
+                "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f})),
+            }),
+        };
+        if let Some(a) = &g.auto {
+            st["auto"] = a.status();
+        }
+        st
+    }
+}

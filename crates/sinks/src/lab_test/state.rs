@@ -1,0 +1,123 @@
+//! The tests of a daemon ([`LabTests`]): the running test, what waits for the next line, the
+//! hooks the binary installs, and the lock they share.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+
+use sha2::Digest;
+use tagdeflect_core::feed::FeedEvent;
+
+use super::folder::hex;
+use super::zero::Zero;
+use super::{auto, EarlierTest, TestRecord};
+
+/// Why the report of a stopped test could not be made (the hook's own error).
+pub type ReportError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Made by the binary: writes `folder/report/` for a stopped test with a standard.
+pub type ReportHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), ReportError> + Send + Sync>;
+
+/// Made by the binary: hands a test's record on (the MQTT publisher's `<topic>/labtest/<id>`)
+/// at its start, every event and its stop. Must not block.
+pub type RecordHook = Box<dyn Fn(&TestRecord) + Send + Sync>;
+
+/// The running test.
+pub(super) struct Running {
+    pub(super) record: TestRecord,
+    pub(super) folder: PathBuf,
+    pub(super) feed: std::fs::File,
+    pub(super) utm: std::fs::File,
+    pub(super) zero: Zero,
+    /// The newest line written to the folder.
+    pub(super) written_t_ns: i64,
+    /// (net deflection, load) of the test's lines, thinned (the page's earlier tests).
+    pub(super) curve: Vec<(f64, f64)>,
+}
+
+#[derive(Default)]
+pub(super) struct Inner {
+    pub(super) running: Option<Running>,
+    /// Events for the next line.
+    pub(super) pending: Vec<FeedEvent>,
+    /// The newest line's time (`stop` waits for the sinks to pass it).
+    pub(super) last_line_t_ns: i64,
+    /// The last test's id and folder (`GET /api/test` after a stop).
+    pub(super) last: Option<(String, PathBuf)>,
+    /// Automatic start and stop (`[output.auto_test]`).
+    pub(super) auto: Option<auto::AutoTest>,
+    /// The tests stopped today, oldest first (at most [`EARLIER_TESTS`](super::EARLIER_TESTS)).
+    pub(super) earlier: Vec<EarlierTest>,
+}
+
+/// The tests of a daemon; see the module doc.
+pub struct LabTests {
+    pub(super) dir: PathBuf,
+    pub(super) config_text: String,
+    /// SHA-256 of each calibration file, by its path, taken when the daemon read its config.
+    pub(super) calibration_sha256: BTreeMap<String, String>,
+    pub(super) report: Option<ReportHook>,
+    pub(super) on_record: std::sync::OnceLock<RecordHook>,
+    pub(super) inner: Mutex<Inner>,
+    pub(super) written: Condvar,
+}
+
+impl LabTests {
+    /// Tests kept under `dir` (created); `config_text` is the config in force, written into
+    /// every test's folder; `calibration_files` (the files the intrinsics in force were read
+    /// from) are hashed now — when the daemon has just read them, not when a test stops an hour
+    /// later and someone may have recalibrated — and the hashes go into every `test.json`. A
+    /// calibration file that cannot be read is an error: a test must not claim an unhashed
+    /// calibration.
+    ///
+    /// A test that was running when the daemon stopped (`TESTS/.running.json`) is resumed.
+    pub fn new(dir: &Path, config_text: String, calibration_files: Vec<PathBuf>, report: Option<ReportHook>) -> std::io::Result<Arc<Self>> {
+        let mut calibration_sha256 = BTreeMap::new();
+        for c in &calibration_files {
+            let bytes = std::fs::read(c).map_err(|e| std::io::Error::new(e.kind(), format!("calibration file {}: {e}", c.display())))?;
+            calibration_sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
+        }
+        std::fs::create_dir_all(dir)?;
+        let tests = LabTests {
+            dir: dir.to_path_buf(),
+            config_text,
+            calibration_sha256,
+            report,
+            on_record: std::sync::OnceLock::new(),
+            inner: Mutex::default(),
+            written: Condvar::new(),
+        };
+        tests.read_earlier();
+        tests.resume()?;
+        Ok(Arc::new(tests))
+    }
+
+    /// The folder tests are kept in.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub(super) fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Hands every record on from now on (the running test's at once); set once.
+    pub fn set_on_record(&self, hook: RecordHook) {
+        let g = self.lock();
+        if let Some(r) = &g.running {
+            hook(&r.record);
+        }
+        let _ = self.on_record.set(hook);
+    }
+
+    pub(super) fn publish(&self, record: &TestRecord) {
+        if let Some(h) = self.on_record.get() {
+            h(record);
+        }
+    }
+
+    /// Starts and stops tests by `rules` from now on (see [`auto`]).
+    pub fn set_auto(&self, rules: auto::AutoRules) {
+        self.lock().auto = Some(auto::AutoTest::new(rules));
+    }
+}

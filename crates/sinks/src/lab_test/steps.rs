@@ -1,0 +1,106 @@
+//! The pipeline's steps: the solver's (events, the running test and values from its zero into
+//! the line, the automatic rules), the sinks' (the test's lines into its folder) and the UTM
+//! forwarder's (the test's samples into its folder).
+
+use std::io::Write;
+use std::sync::Arc;
+
+use tagdeflect_core::feed::{FeedLine, TestRef};
+use tagdeflect_core::utm_sample::UtmSample;
+
+use super::auto;
+use super::record::push_point;
+use super::state::{Inner, LabTests};
+use super::zero::ZERO_SETS;
+
+impl LabTests {
+    /// The solver's step: the line gets the pending events, the running test and values
+    /// counted from the test's zero; the automatic rules see it (a start is made here, at
+    /// once; a stop on a thread of its own, as it waits for the sinks).
+    pub fn apply(self: &Arc<Self>, line: &mut FeedLine) {
+        let mut g = self.lock();
+        g.last_line_t_ns = line.t_ns;
+        if g.running.is_none() {
+            if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
+                match self.open(&mut g, meta, Some(why.clone())) {
+                    Ok(id) => tracing::info!(test = %id, "test started automatically ({why})"),
+                    Err(e) => tracing::error!("the automatic start failed: {e}"),
+                }
+            }
+        }
+        line.events.append(&mut g.pending);
+        if let Some(r) = g.running.as_mut() {
+            let zeroing = r.zero.take(line);
+            if zeroing && r.zero.n == ZERO_SETS {
+                // The zero has formed: a restart from here resumes from it.
+                self.persist(r);
+            }
+            r.zero.apply(line);
+            line.test = Some(TestRef { id: r.record.id.clone(), specimen: r.record.meta.specimen.clone(), zeroing });
+        }
+        let Inner { running, auto, .. } = &mut *g;
+        if let (Some(r), Some(a)) = (running.as_ref(), auto.as_mut()) {
+            let test = auto::RunningTest { standard: r.record.meta.standard.as_deref(), zero_formed: r.zero.n >= ZERO_SETS };
+            if let Some(auto::Action::Stop(why)) = a.step(line, Some(test)) {
+                let id = r.record.id.clone();
+                drop(g);
+                tracing::info!(test = %id, "stopping the test automatically ({why})");
+                let me = self.clone();
+                let spawned = std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why)) {
+                    Ok(s) => tracing::info!(test = %s.id, "the test stopped automatically"),
+                    Err(e) => tracing::warn!(test = %id, "the automatic stop did not go through: {e}"),
+                });
+                if let Err(e) = spawned {
+                    tracing::error!("cannot stop the test automatically: {e}");
+                }
+            }
+        }
+    }
+
+    /// The sinks' step: a line of the running test into its folder.
+    pub fn on_line(&self, line: &FeedLine) {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return };
+        if line.test.as_ref().is_some_and(|t| t.id == r.record.id) {
+            let text = line.to_json() + "\n";
+            if let Err(e) = r.feed.write_all(text.as_bytes()) {
+                tracing::error!(test = %r.record.id, "cannot write the test's feed: {e}");
+            } else {
+                r.record.lines += 1;
+            }
+            if let (Some(n), Some(l)) = (line.net_deflection_mm, line.load_kn) {
+                push_point(&mut r.curve, n, l);
+            }
+        }
+        r.written_t_ns = r.written_t_ns.max(line.t_ns);
+        self.written.notify_all();
+    }
+
+    /// The UTM forwarder's step: a sample of the running test into its folder.
+    pub fn on_utm(&self, s: &UtmSample) {
+        let mut g = self.lock();
+        let Some(r) = g.running.as_mut() else { return };
+        if s.t_ns < r.record.started_t_ns {
+            return;
+        }
+        match serde_json::to_string(s) {
+            Ok(text) => match r.utm.write_all((text + "\n").as_bytes()) {
+                Ok(()) => r.record.utm_samples += 1,
+                Err(e) => tracing::error!(test = %r.record.id, "cannot write the test's UTM samples: {e}"),
+            },
+            Err(e) => tracing::error!("UTM sample: {e}"),
+        }
+    }
+}
+
+/// A line sink that hands every line to [`LabTests::on_line`].
+pub struct LabTestSink(pub Arc<LabTests>);
+
+impl crate::LineSink for LabTestSink {
+    fn name(&self) -> String {
+        format!("tests {}", self.0.dir.display())
+    }
+    fn accept(&mut self, finished: &crate::Finished) {
+        self.0.on_line(&finished.line);
+    }
+}

@@ -1,0 +1,87 @@
+//! The tests' unit tests: a test from start to stop, and one resumed after a restart.
+
+use sha2::Digest;
+use tagdeflect_core::feed::FeedLine;
+
+use super::folder::hex;
+use super::{LabTests, TestError, TestMeta, TestRecord, ZERO_SETS};
+use tagdeflect_core::feed::FeedTag;
+
+fn line(t_ns: i64, z: f64, net: f64) -> FeedLine {
+    let tag = FeedTag { id: 1, pos_mm: [10.0, 0.0, z], disp_mm: [0.0, 0.0, z], views: 2, sigma_mm: Some([0.01; 3]), reproj_px: None };
+    FeedLine { seq: t_ns as u64, t_ns, tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
+}
+
+#[test]
+fn a_test_counts_from_the_mean_of_its_first_sets_and_keeps_its_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests = LabTests::new(dir.path(), "[world]\n".into(), Vec::new(), None).unwrap();
+    assert!(matches!(tests.stop(), Err(TestError::Conflict(_))));
+    tests.start(TestMeta { specimen: "B12".into(), ..TestMeta::default() }).unwrap();
+    assert!(matches!(tests.start(TestMeta { specimen: "B13".into(), ..TestMeta::default() }), Err(TestError::Conflict(_))));
+    // Five sets at rest around z = 5 ± 0.01, then the beam deflects by 1 mm.
+    let rest = [5.01, 4.99, 5.0, 5.02, 4.98];
+    let mut out = Vec::new();
+    for (k, z) in rest.iter().enumerate() {
+        let mut l = line(k as i64, *z, *z * 0.1);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+        out.push(l);
+    }
+    let mut l = line(10, 4.0, 0.4);
+    tests.apply(&mut l);
+    tests.on_line(&l);
+    assert!(out.iter().all(|l| l.test.as_ref().unwrap().zeroing));
+    assert_eq!(out[0].events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start"]);
+    let t = l.test.as_ref().unwrap();
+    assert!(!t.zeroing && t.specimen == "B12");
+    assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
+    assert!((l.net_deflection_mm.unwrap() + 0.1).abs() < 1e-9);
+    tests.mark(Some("first crack seen".into())).unwrap();
+    let stopped = tests.stop().unwrap();
+    let mut after = line(11, 4.0, 0.4);
+    tests.apply(&mut after);
+    assert!(after.test.is_none());
+    assert_eq!(after.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["mark", "stop"]);
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record.lines, 6);
+    assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "mark", "stop"]);
+    for f in ["feed.jsonl", "utm.jsonl", "tagdeflect.toml"] {
+        let want = hex(&sha2::Sha256::digest(std::fs::read(stopped.folder.join(f)).unwrap()));
+        assert_eq!(record.sha256.get(f), Some(&want), "{f}");
+    }
+    assert!(!dir.path().join(".running.json").exists(), "a stopped test leaves no state behind");
+    assert!(TestMeta { specimen: "<b>".into(), ..TestMeta::default() }.validate().is_err());
+    assert!(TestMeta { specimen: "B1".into(), standard: Some("iso".into()), ..TestMeta::default() }.validate().is_err());
+}
+
+#[test]
+fn a_test_running_when_the_daemon_stops_resumes_from_its_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = {
+        let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+        tests.start(TestMeta { specimen: "B7".into(), ..TestMeta::default() }).unwrap();
+        for k in 0..ZERO_SETS {
+            let mut l = line(k as i64, 5.0 + 0.01 * k as f64, 0.5);
+            tests.apply(&mut l);
+            tests.on_line(&l);
+        }
+        tests.status()["id"].as_str().unwrap().to_string()
+        // Dropped without a stop: the daemon died.
+    };
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    let st = tests.status();
+    assert_eq!(st["state"], "running");
+    assert_eq!(st["id"], id.as_str());
+    let mut l = line(100, 4.02, 0.4);
+    tests.apply(&mut l);
+    assert_eq!(l.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["resume"]);
+    assert!(!l.test.as_ref().unwrap().zeroing, "the zero is kept, not taken again");
+    // The zero was the mean of 5.00 .. 5.04 = 5.02.
+    assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
+    tests.on_line(&l);
+    let stopped = tests.stop().unwrap();
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "resume", "stop"]);
+    assert_eq!(std::fs::read_to_string(stopped.folder.join("feed.jsonl")).unwrap().lines().count(), ZERO_SETS + 1);
+}
