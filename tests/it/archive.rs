@@ -764,8 +764,7 @@ fn postgres_down_for_10_s_the_archive_retries_and_loses_nothing() {
 
 #[test]
 fn broker_urls_topic_templates_and_config_errors() {
-    use tagdeflect_archive::{Kind, TopicLayout};
-    use tagdeflect_sinks::mqtt::{check_level_name, check_topic_template, topic_for, BrokerUrl};
+    use tagdeflect_wire::{check_level_name, check_topic_template, topic_for, BrokerUrl, Kind, TopicLayout};
     let u = BrokerUrl::parse("mqtt://127.0.0.1:1884").unwrap();
     assert_eq!((u.tls, u.host.as_str(), u.port), (false, "127.0.0.1", 1884));
     let u = BrokerUrl::parse("mqtts://user:pw@broker.lab").unwrap();

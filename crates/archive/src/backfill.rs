@@ -15,8 +15,10 @@ use std::time::Duration;
 
 use rumqttc::{AsyncClient, Event, Packet, QoS};
 
-use super::db::{Db, LineRow};
-use super::{parse_message, ArchiveError, Parsed, TopicLayout};
+use crate::db::{Db, LineRow};
+use crate::message::{parse_message, Parsed};
+use crate::ArchiveError;
+use tagdeflect_wire::TopicLayout;
 
 /// Options of `tagdeflect archive backfill`.
 #[derive(Debug, Clone)]
@@ -80,35 +82,35 @@ pub fn read_feed(path: &Path, rig: &str, test: &str) -> Result<Vec<LineRow>, Arc
 
 /// Runs a backfill and prints what it did.
 pub fn run(opts: &BackfillOptions) -> Result<(), ArchiveError> {
-    tagdeflect_sinks::mqtt::check_level_name("--rig", &opts.rig).map_err(ArchiveError::BadOption)?;
-    tagdeflect_sinks::mqtt::check_level_name("--test", &opts.test).map_err(ArchiveError::BadOption)?;
+    tagdeflect_wire::check_level_name("--rig", &opts.rig).map_err(|m| ArchiveError::BadOption(m.to_string()))?;
+    tagdeflect_wire::check_level_name("--test", &opts.test).map_err(|m| ArchiveError::BadOption(m.to_string()))?;
     let layout = TopicLayout::new(&opts.topic).map_err(|m| ArchiveError::BadOption(format!("--topic: {m}")))?;
     if let Some(m) = &opts.mqtt {
-        tagdeflect_sinks::mqtt::BrokerUrl::parse(m).map_err(|m| ArchiveError::BadOption(format!("--mqtt: {m}")))?;
+        tagdeflect_wire::BrokerUrl::parse(m).map_err(|m| ArchiveError::BadOption(format!("--mqtt: {m}")))?;
     }
     let _: tokio_postgres::Config =
         opts.postgres.parse().map_err(|e| ArchiveError::BadOption(format!("--postgres \"{}\": {e}", opts.postgres)))?;
     let lines = read_feed(&opts.feed, &opts.rig, &opts.test)?;
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(ArchiveError::Runtime)?;
     let s = rt.block_on(async {
-        let mut db = Db::connect(&opts.postgres, true).await.map_err(|e| ArchiveError::Database(super::chain(&e)))?;
+        let mut db = Db::connect(&opts.postgres, true).await.map_err(|e| ArchiveError::Database(crate::chain(&e)))?;
         let mut sum = BackfillSummary { read: lines.len() as u64, ..BackfillSummary::default() };
         let mut test_id = None;
         for chunk in lines.chunks(1000) {
-            let w = db.write_or_skip(chunk, &[], &[]).await.map_err(|e| ArchiveError::Database(super::chain(&e)))?;
+            let w = db.write_or_skip(chunk, &[], &[]).await.map_err(|e| ArchiveError::Database(crate::chain(&e)))?;
             sum.inserted += w.inserted;
             sum.duplicates += w.duplicates;
             test_id = test_id.or(w.touched.first().map(|t| t.2));
         }
         if let (Some(url), Some(id)) = (&opts.mqtt, test_id) {
             let runs = db.holdings(id).map(|h| h.ack_runs()).unwrap_or_default();
-            let ack = tagdeflect_sinks::mqtt::ArchiveAck {
+            let ack = tagdeflect_wire::ArchiveAck {
                 rig: opts.rig.clone(),
                 test: opts.test.clone(),
                 runs,
                 at_ns: tagdeflect_core::clock::now_epoch_ns(),
             };
-            let topic = format!("{}/{}", layout.topic_of(&opts.rig, &opts.test), tagdeflect_sinks::mqtt::ACK_SUFFIX);
+            let topic = format!("{}/{}", layout.topic_of(&opts.rig, &opts.test), tagdeflect_wire::ACK_SUFFIX);
             publish_once(url, &topic, serde_json::to_vec(&ack).expect("ack serialises")).await?;
         }
         Ok::<_, ArchiveError>(sum)
@@ -128,7 +130,7 @@ pub fn run(opts: &BackfillOptions) -> Result<(), ArchiveError> {
 /// Publishes one retained message at QoS 1 and waits for the broker's acknowledgement.
 async fn publish_once(url: &str, topic: &str, payload: Vec<u8>) -> Result<(), ArchiveError> {
     let id = format!("tagdeflect-backfill-{:08x}", rand::random::<u32>());
-    let mo = tagdeflect_sinks::mqtt::mqtt_options(url, &id, None, None, None).map_err(ArchiveError::BadOption)?;
+    let mo = tagdeflect_wire::mqtt_options(url, &id, None, None, None).map_err(|m| ArchiveError::BadOption(m.to_string()))?;
     let (client, mut el) = AsyncClient::new(mo, 4);
     client.publish(topic, QoS::AtLeastOnce, true, payload).await?;
     let wait = async {

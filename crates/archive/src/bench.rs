@@ -15,7 +15,8 @@ use std::time::{Duration, Instant};
 use rumqttc::{AsyncClient, QoS};
 use tokio::sync::watch;
 
-use super::{ArchiveError, ArchiveOptions, ArchiveStats};
+use crate::service::{run_until, ArchiveStats};
+use crate::{ArchiveError, ArchiveOptions};
 use tagdeflect_core::feed::{CameraHealth, FeedLine, FeedTag};
 
 /// Options of `tagdeflect archive-bench`.
@@ -104,11 +105,11 @@ async fn drive(el: &mut rumqttc::EventLoop, who: &str) {
 /// Runs the benchmark and prints the figures.
 pub fn run(opts: &ArchiveBenchOptions) -> Result<(), ArchiveError> {
     let local_mqtt = match opts.mqtt {
-        None => Some(super::local::LocalMosquitto::start().map_err(|cause| ArchiveError::LocalServer { server: "Mosquitto", cause })?),
+        None => Some(crate::local::LocalMosquitto::start().map_err(|cause| ArchiveError::LocalServer { server: "Mosquitto", cause })?),
         Some(_) => None,
     };
     let local_pg = match opts.postgres {
-        None => Some(super::local::LocalPostgres::start(true).map_err(|cause| ArchiveError::LocalServer { server: "PostgreSQL", cause })?),
+        None => Some(crate::local::LocalPostgres::start(true).map_err(|cause| ArchiveError::LocalServer { server: "PostgreSQL", cause })?),
         Some(_) => None,
     };
     let mqtt = opts.mqtt.clone().or_else(|| local_mqtt.as_ref().map(|m| m.url())).expect("a broker");
@@ -135,11 +136,12 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Re
     };
     let stats = Arc::new(ArchiveStats::default());
     let (stop_tx, stop_rx) = watch::channel(false);
-    let archive = tokio::spawn(super::run_until(archive_opts, stats.clone(), stop_rx));
+    let archive = tokio::spawn(run_until(archive_opts, stats.clone(), stop_rx));
 
     // One line first: the archive is subscribed and the schema in place once it is stored.
     let (probe, mut probe_loop) = AsyncClient::new(
-        tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-probe-{run_id}"), None, None, None).map_err(ArchiveError::BadOption)?,
+        tagdeflect_wire::mqtt_options(&mqtt, &format!("bench-probe-{run_id}"), None, None, None)
+            .map_err(|m| ArchiveError::BadOption(m.to_string()))?,
         16,
     );
     let probe_task = tokio::spawn(async move { drive(&mut probe_loop, "probe").await });
@@ -166,8 +168,8 @@ async fn bench(opts: &ArchiveBenchOptions, mqtt: String, postgres: String) -> Re
     let t0 = Instant::now();
     let mut publishers = Vec::new();
     for r in 0..opts.rigs {
-        let mut mo = tagdeflect_sinks::mqtt::mqtt_options(&mqtt, &format!("bench-rig-{r}-{run_id}"), None, None, None)
-            .map_err(ArchiveError::BadOption)?;
+        let mut mo = tagdeflect_wire::mqtt_options(&mqtt, &format!("bench-rig-{r}-{run_id}"), None, None, None)
+            .map_err(|m| ArchiveError::BadOption(m.to_string()))?;
         mo.set_inflight(100);
         let (client, mut el) = AsyncClient::new(mo, 64);
         let driver = tokio::spawn(async move { drive(&mut el, "rig").await });

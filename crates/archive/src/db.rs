@@ -5,7 +5,7 @@
 
 use std::collections::HashMap;
 
-use tagdeflect_sinks::mqtt::{RunHeld, SeqRanges};
+use tagdeflect_wire::{RunHeld, SeqRanges};
 use tokio_postgres::{Client, NoTls, Statement};
 
 /// The schema migrations in order: (version, name, SQL). Files live in the workspace's
@@ -45,7 +45,7 @@ pub struct StatusRow {
     pub status: serde_json::Value,
 }
 
-/// A lab test's record for the database (checked: [`tagdeflect_sinks::mqtt::LabTestMessage::parse`]).
+/// A lab test's record for the database (checked: [`tagdeflect_wire::LabTestMessage::parse`]).
 #[derive(Debug, Clone)]
 pub struct LabTestRow {
     /// Rig name (from the topic).
@@ -53,7 +53,7 @@ pub struct LabTestRow {
     /// The run it was published in (the topic's test).
     pub run: String,
     /// The record.
-    pub message: tagdeflect_sinks::mqtt::LabTestMessage,
+    pub message: tagdeflect_wire::LabTestMessage,
 }
 
 /// Upserts a lab test; a record with fewer events than the one held is an older version

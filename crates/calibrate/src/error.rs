@@ -3,9 +3,9 @@
 use std::fmt;
 use std::path::PathBuf;
 
+use crate::fit::Rejected;
 use crate::solve::SolveError;
 use crate::target::TargetError;
-use crate::Rejected;
 
 /// Why `tagdeflect calibrate` (or one of its steps) failed.
 ///

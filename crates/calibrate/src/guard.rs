@@ -27,10 +27,11 @@ use std::fmt::Write as _;
 
 use nalgebra::DMatrix;
 
+use crate::error::CalibrateError;
+use crate::fit::CalibrationRun;
 use crate::report::{uncertainty_at, Coverage};
 use crate::solve::{self, SolveOptions, View};
 use crate::target::{BoardSeen, TargetSpec};
-use crate::{CalibrateError, CalibrationRun};
 use tagdeflect_core::camera::CameraIntrinsics;
 
 /// Views below which a calibration is refused without `--force`.

@@ -13,7 +13,8 @@ use std::time::Instant;
 
 use super::solve::View;
 use super::target::{TargetDetector, TargetSpec};
-use super::{CalibrateError, Rejected};
+use crate::error::CalibrateError;
+use crate::fit::Rejected;
 use tagdeflect_core::frame::{FrameSet, GrayImage};
 
 /// New fine-grid cells a frame must cover to be kept.

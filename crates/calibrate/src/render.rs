@@ -1,7 +1,12 @@
 //! Renders calibration targets through a known camera, with the simulator's renderer
-//! (`tagdeflect_sim::render`: exact undistorted rays through every pixel corner, n-rooks area
+//! (`tagdeflect_render`: exact undistorted rays through every pixel corner, n-rooks area
 //! integration of mixed pixels, optical blur, sensor noise, 8-bit rounding) — images with
-//! ground truth for testing [`super::calibrate_views`].
+//! ground truth for testing [`crate::calibrate_views`].
+//!
+//! The renderer is its own crate, below both the simulator and the calibration: the
+//! calibration's test images need the renderer, not the simulated rig, so the calibration
+//! does not depend on the simulator (which stands on the solver, the I/O and the Modbus
+//! machine); the images are a test helper, public because the integration tests use them.
 
 use nalgebra::Vector3;
 
@@ -10,7 +15,7 @@ use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::{TagBitmap, TagFamily};
 use tagdeflect_detect::tag_bitmap;
-use tagdeflect_sim::render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
+use tagdeflect_render::{blur, gaussian_kernel, quantize, render_rect, CornerRays, Hit, PixelRect};
 
 /// How a target image is rendered.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -751,7 +751,7 @@ mod tests {
     #[test]
     fn saddle_refinement_finds_a_rendered_corner() {
         // An anti-aliased saddle at (20.3, 17.8) with a lens's blur (σ 0.8 px).
-        use tagdeflect_sim::render::{blur, gaussian_kernel};
+        use tagdeflect_render::{blur, gaussian_kernel};
         let (w, h) = (41u32, 37u32);
         let (x0, y0) = (20.3, 17.8);
         let mut area = vec![0.0f32; (w * h) as usize];

@@ -2,7 +2,8 @@
 //! their roles, the rig as the config describes it (cameras, background, specimen, beam), the
 //! one process clock, reconnect backoff, UTM samples, the feed line (one type, written by the
 //! measurement and read tolerantly by the report), what the measurement observed for the page
-//! and the line files it goes into.
+//! and the line files it goes into, the virtual gauges' definitions and a lab test's record
+//! (`test.json`).
 //!
 //! Nothing here does I/O beyond reading and writing files, and nothing knows the command line.
 
@@ -16,6 +17,8 @@ pub mod error;
 pub mod feed;
 pub mod feed_file;
 pub mod frame;
+pub mod gauge;
+pub mod lab_test;
 pub mod linefile;
 pub mod listen;
 pub mod observed;

@@ -30,7 +30,7 @@ use tagdeflect_core::camera::Pose;
 use tagdeflect_core::feed::GaugeReading;
 use tagdeflect_core::rig::{SpecimenConfig, TagRole};
 
-pub use crate::gauge_config::{validate_gauges, GaugeConfig, GaugeKind, GaugeSection, STRAIN_UNIT};
+pub use tagdeflect_core::gauge::{validate_gauges, GaugeConfig, GaugeKind, GaugeSection, STRAIN_UNIT};
 
 /// Whether σ adds the reference poses' own covariance. It does not: a tag's errors in
 /// frame sets of one test are strongly correlated (the same held camera poses, lens and
@@ -306,18 +306,5 @@ impl Gauges {
                 vec![(None, per_face.iter().sum::<f64>() / per_face.len() as f64, unit)]
             }
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn kinds_parse_and_have_units() {
-        assert_eq!(GaugeKind::parse("opening"), Some(GaugeKind::Opening));
-        assert_eq!(GaugeKind::parse("cmod"), None);
-        assert_eq!(GaugeKind::Curvature.unit(), "1/km");
-        assert_eq!(GaugeKind::Rotation.unit(), "mrad");
     }
 }

@@ -34,7 +34,6 @@ pub mod camera_pose;
 pub mod clock_offset;
 pub mod drift;
 mod error;
-pub mod gauge_config;
 pub mod gauges;
 pub mod held_pose;
 pub mod init;

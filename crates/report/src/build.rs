@@ -5,10 +5,17 @@
 use std::path::Path;
 
 use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::gauge::GaugeKind;
 use tagdeflect_core::rig::TagRole;
-use tagdeflect_estimate::gauges::GaugeKind;
 
-use crate::{c1609, en14651, qc, validity, Curve, Feed, Report, ReportConfig, ReportError, Standard, TestRig, UtmStream};
+use crate::config::ReportConfig;
+use crate::curve::Curve;
+use crate::error::ReportError;
+use crate::feed_reader::Feed;
+use crate::report::{Report, TestRig};
+use crate::standard::Standard;
+use crate::utm_stream::UtmStream;
+use crate::{c1609, en14651, qc, validity};
 
 /// The statement every report carries about the clauses cited.
 const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow the standards as the authors of this \
@@ -304,7 +311,7 @@ fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result
 /// gauge among `available`, else the gauge named `cmod`, else the only one named like an
 /// opening. `available`: the gauges a feed carries (the report), or all configured ones.
 pub fn choose_cmod_gauge(
-    gauges: &[tagdeflect_estimate::gauges::GaugeConfig],
+    gauges: &[tagdeflect_core::gauge::GaugeConfig],
     available: &[String],
     asked: Option<&str>,
 ) -> Result<String, String> {

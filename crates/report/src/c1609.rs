@@ -12,7 +12,10 @@
 //! followed by a rise without such a fall is not taken as a first peak (the first peak is
 //! then found later, at worst at the peak load).
 
-use super::{BeamConfig, Curve, Entry, Quantity};
+use crate::config::BeamConfig;
+use crate::curve::Curve;
+use crate::quantity::Quantity;
+use crate::report::Entry;
 
 /// Fraction of the maximum load below which maxima are not first peaks (seating, noise).
 const FIRST_PEAK_FLOOR: f64 = 0.10;

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-use super::Standard;
+use crate::standard::Standard;
 
 pub use tagdeflect_core::beam::BeamConfig;
 use tagdeflect_core::Problem;

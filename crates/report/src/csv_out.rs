@@ -5,7 +5,7 @@
 
 use std::io::Write;
 
-use super::Feed;
+use crate::feed_reader::Feed;
 
 /// The header row.
 fn header(feed: &Feed) -> Vec<String> {

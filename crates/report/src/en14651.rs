@@ -5,7 +5,10 @@
 //! Limit of proportionality `F_L`: the largest load in the CMOD interval 0 to 0.05 mm.
 //! Residual loads `F_R,j` at CMOD_j = 0.5, 1.5, 2.5, 3.5 mm.
 
-use super::{BeamConfig, Curve, Entry, Quantity};
+use crate::config::BeamConfig;
+use crate::curve::Curve;
+use crate::quantity::Quantity;
+use crate::report::Entry;
 
 /// Upper end of the CMOD interval of the limit of proportionality, mm.
 pub(crate) const LOP_CMOD_MM: f64 = 0.05;

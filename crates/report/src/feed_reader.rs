@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 
-use crate::ReportError;
+use crate::error::ReportError;
 
 /// Physical ranges of a feed's values (`[report] max_load_kn`, `max_length_mm`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -3,9 +3,11 @@
 
 use std::fmt::Write;
 
-use super::output::InputHash;
-use super::plots::Plot;
-use super::{Quantity, Report, Standard};
+use crate::output::InputHash;
+use crate::plots::Plot;
+use crate::quantity::Quantity;
+use crate::report::Report;
+use crate::standard::Standard;
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")

@@ -3,7 +3,11 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::{csv_out, html, plots, Feed, Report, ReportError, Standard};
+use crate::error::ReportError;
+use crate::feed_reader::Feed;
+use crate::report::Report;
+use crate::standard::Standard;
+use crate::{csv_out, html, plots};
 
 /// Writes a file through a temporary sibling and a rename: a reader never sees half a file,
 /// and an older file of the same name stays whole until the new one is complete.

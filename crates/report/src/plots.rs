@@ -6,7 +6,12 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use std::sync::OnceLock;
 
-use super::{c1609, en14651, Curve, Feed, Report, ReportError, Standard};
+use crate::curve::Curve;
+use crate::error::ReportError;
+use crate::feed_reader::Feed;
+use crate::report::Report;
+use crate::standard::Standard;
+use crate::{c1609, en14651};
 
 /// One plot in both formats.
 #[derive(Debug, Clone)]

@@ -4,8 +4,9 @@ use serde::Serialize;
 use serde_json::Value;
 use std::collections::BTreeMap;
 
-use super::{Curve, Feed};
-use crate::TestRig;
+use crate::curve::Curve;
+use crate::feed_reader::Feed;
+use crate::report::TestRig;
 use tagdeflect_core::rig::TagRole;
 
 /// A time interval with the UTM link down.

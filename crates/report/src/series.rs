@@ -8,7 +8,8 @@ use std::path::{Path, PathBuf};
 
 use plotters::prelude::*;
 
-use crate::{Report, ReportError};
+use crate::error::ReportError;
+use crate::report::Report;
 
 /// Statistics of one quantity over the specimens that have it.
 #[derive(Debug, Clone, PartialEq)]

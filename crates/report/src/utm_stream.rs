@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 
 use tagdeflect_core::utm_sample::UtmSample;
 
+use crate::error::ReportError;
 use crate::feed_reader::Limits;
-use crate::ReportError;
 
 /// A UTM stream read from a file.
 #[derive(Debug, Clone)]

@@ -17,7 +17,11 @@
 //! * No gap longer than `max_gap_s` between feed lines or UTM samples, no UTM outage.
 //! * The load starts near zero: within max(3 σ, 5 % of the peak load).
 
-use crate::{c1609, en14651, BeamConfig, Curve, Feed, Standard};
+use crate::config::BeamConfig;
+use crate::curve::Curve;
+use crate::feed_reader::Feed;
+use crate::standard::Standard;
+use crate::{c1609, en14651};
 
 /// Least points for a rate to be measured over a phase.
 const MIN_RATE_POINTS: usize = 5;
@@ -276,7 +280,7 @@ mod tests {
     //! the fault just inside the rule's tolerance passing.
 
     use super::*;
-    use crate::Response;
+    use crate::config::Response;
     use tagdeflect_core::feed::FeedLine;
 
     const T0: i64 = 1_767_225_600_000_000_000;

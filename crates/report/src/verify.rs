@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
+use crate::error::ReportError;
 use crate::output::sha256_file;
-use crate::ReportError;
 
 /// The state of one input.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -14,13 +14,11 @@
 mod beam;
 mod drift;
 mod law;
-pub mod lens;
 pub mod live_rig;
 mod loading;
 pub mod machine;
 mod params;
 mod record;
-pub mod render;
 mod render_rig;
 mod rig;
 mod scene;
@@ -28,6 +26,9 @@ mod timing;
 mod trace;
 mod truth;
 
+/// The renderer and the lens model the scene is traced through (shared with the
+/// calibration's test images).
+pub use tagdeflect_render::{self as render, lens};
 pub use beam::FourPointBeam;
 pub use law::load_at;
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};

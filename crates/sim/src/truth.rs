@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::camera::Pose;
 use tagdeflect_core::rig::TagRole;
 use tagdeflect_core::tags::tag_corners;
-use tagdeflect_estimate::gauges::GaugeKind;
+use tagdeflect_core::gauge::GaugeKind;
 
 use super::law::SimTest;
 use super::SimRig;

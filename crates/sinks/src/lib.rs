@@ -11,6 +11,7 @@ pub mod mqtt;
 pub mod output;
 pub mod recorder;
 mod rig_info;
+pub mod status;
 
 pub use fanout::{Fanout, FeedFileSink, Finished, LineSink, Overflow};
 pub use rig_info::RigInfo;

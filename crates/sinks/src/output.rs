@@ -124,7 +124,7 @@ impl OutputConfig {
     pub fn resolve_mqtt(mut self, base: &Path) -> Result<OutputConfig, Problem> {
         #[cfg(feature = "mqtt")]
         if let Some(m) = self.mqtt.as_mut() {
-            m.validate(base).map_err(|(k, msg)| Problem::new(k, msg).within("mqtt"))?;
+            m.validate(base).map_err(|p| p.within("mqtt"))?;
         }
         #[cfg(not(feature = "mqtt"))]
         let _ = base;

@@ -1,4 +1,6 @@
-//! `/api/status`: what the run is doing now, as JSON (field list in the README).
+//! `/api/status`: what the run is doing now, as JSON (field list in the README). The run's
+//! identity and its newest line come from the status model the MQTT status reads too
+//! ([`crate::status::RunStatus`]); the rest is the page's own view of the run.
 //!
 //! `problems` lists, in words, everything the page's banner shows: the UTM down, a camera
 //! lost, stale (no frame for [`STALE_FRAME_INTERVALS`] frame intervals) or bumped in the
@@ -9,7 +11,9 @@ use serde::Serialize;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
-use super::view::LiveView;
+use super::view::{CameraOnPage, FeedState, LiveView, RecordingState, UtmState};
+use crate::status::{RunCamera, RunStatus};
+use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::rig::TagRole;
 
 /// A camera (or the feed) is stale after this many frame intervals without a frame (line).
@@ -232,20 +236,81 @@ fn age(t: Option<Instant>, now: Instant) -> Option<f64> {
     t.map(|t| (now.duration_since(t).as_secs_f64() * 1e3).round() / 1e3)
 }
 
+/// What the parts of the status share: the times, the run's model and the problems found.
+struct Ctx<'a> {
+    now: Instant,
+    uptime_s: f64,
+    stale_after: f64,
+    live: bool,
+    finished: bool,
+    run: &'a RunStatus,
+    problems: Vec<String>,
+}
+
 /// The status now.
 pub fn status(view: &LiveView) -> Status {
     let now = Instant::now();
     let cfg = &view.config;
     let max_fps = cfg.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
     let frame_interval_s = (max_fps > 0.0).then(|| 1.0 / max_fps);
-    let stale_after = (STALE_FRAME_INTERVALS * frame_interval_s.unwrap_or(0.2)).max(MIN_STALE_S);
-    let uptime_s = now.duration_since(view.started).as_secs_f64();
     let st = view.lock();
-    let live = view.mode == "live" || view.mode == "realtime";
-    let mut problems = Vec::new();
+    let mut run = RunStatus::new(cfg, st.recording.dir.clone(), view.started_ns);
+    if let Some(l) = &st.feed.last {
+        run.observe(l);
+    }
+    let mut cx = Ctx {
+        now,
+        uptime_s: now.duration_since(view.started).as_secs_f64(),
+        stale_after: (STALE_FRAME_INTERVALS * frame_interval_s.unwrap_or(0.2)).max(MIN_STALE_S),
+        live: view.mode == "live" || view.mode == "realtime",
+        finished: st.finished,
+        run: &run,
+        problems: Vec::new(),
+    };
+    let sources = cfg.cameras.iter().zip(&st.cameras).zip(&run.cameras).map(|((c, s), r)| cx.source(c, s, r)).collect();
+    let utm = cx.utm(cfg.utm.is_some() || st.utm.samples > 0, &st.utm);
+    let (recording, archive) = (cx.recording(&st.recording), cx.archive(view));
+    let feed = cx.feed(&st.feed);
+    Status {
+        version: run.version,
+        mode: view.mode,
+        started_ns: run.started_ns,
+        uptime_s: (cx.uptime_s * 1e3).round() / 1e3,
+        finished: st.finished,
+        world_up: cfg.world.up,
+        frame_interval_s,
+        sources,
+        specimen_tags: specimen_tags(&cfg.specimen),
+        beam: cfg.specimen.beam.clone(),
+        cmod_gauge: cfg.cmod_gauge.clone(),
+        rate_windows: cfg.rate_windows.clone(),
+        utm,
+        recording,
+        archive,
+        feed,
+        http: HttpStatus { clients: view.clients.load(Ordering::Relaxed), lagged_events: view.metrics.http_events_lagged.get() },
+        problems: cx.problems,
+    }
+}
 
-    let mut sources = Vec::new();
-    for (c, s) in cfg.cameras.iter().zip(&st.cameras) {
+fn specimen_tags(specimen: &tagdeflect_core::rig::SpecimenConfig) -> Vec<TagStatus> {
+    specimen
+        .tags
+        .iter()
+        .map(|t| TagStatus {
+            id: t.id,
+            role: t.role.map(|r| match r {
+                TagRole::Support => "support",
+                TagRole::Midspan => "midspan",
+            }),
+        })
+        .collect()
+}
+
+impl Ctx<'_> {
+    /// One camera: its counters, rate, staleness, pose and snapshot; its problems.
+    fn source(&mut self, c: &CameraConfig, s: &CameraOnPage, r: &RunCamera) -> SourceStatus {
+        let now = self.now;
         let rate = (s.recent.len() >= 2)
             .then(|| {
                 let span = s.recent.back()?.duration_since(*s.recent.front()?).as_secs_f64();
@@ -253,24 +318,24 @@ pub fn status(view: &LiveView) -> Status {
             })
             .flatten();
         let last_age = age(s.last_frame, now);
-        let stale = live && !st.finished && last_age.map_or(uptime_s > stale_after, |a| a > stale_after);
+        let stale = self.live && !self.finished && last_age.map_or(self.uptime_s > self.stale_after, |a| a > self.stale_after);
         let bumped_recently = s.last_bump.is_some_and(|t| now.duration_since(t).as_secs_f64() < BUMP_SHOWN_S);
         let h = s.health.as_ref();
         let posed = h.is_some_and(|h| h.posed);
-        if let Some(r) = &s.lost {
-            problems.push(format!("camera {} lost: {r}", c.name));
+        if let Some(why) = &s.lost {
+            self.problems.push(format!("camera {} lost: {why}", r.name));
         } else if stale {
-            problems.push(format!("camera {}: no frame for {:.1} s", c.name, last_age.unwrap_or(uptime_s)));
+            self.problems.push(format!("camera {}: no frame for {:.1} s", r.name, last_age.unwrap_or(self.uptime_s)));
         }
         if bumped_recently {
-            problems.push(format!("camera {} was bumped and re-posed", c.name));
+            self.problems.push(format!("camera {} was bumped and re-posed", r.name));
         }
         if h.is_some() && !posed {
-            problems.push(format!("camera {} has no pose (too few background tags seen)", c.name));
+            self.problems.push(format!("camera {} has no pose (too few background tags seen)", r.name));
         }
-        sources.push(SourceStatus {
-            name: c.name.clone(),
-            source: c.source.to_string(),
+        SourceStatus {
+            name: r.name.clone(),
+            source: r.source.clone(),
             width: c.width,
             height: c.height,
             fps: c.fps,
@@ -291,127 +356,111 @@ pub fn status(view: &LiveView) -> Status {
                 PoseStatus { rvec: p.rvec(), tvec_mm: p.translation.into(), centre_mm: c.into() }
             }),
             snapshot: s.snapshot.as_ref().map(|sn| SnapshotStatus {
-                url: format!("/camera/{}.jpg?seq={}", c.name, sn.seq),
+                url: format!("/camera/{}.jpg?seq={}", r.name, sn.seq),
                 seq: sn.seq,
                 t_ns: sn.t_ns,
                 age_s: age(Some(sn.made), now).unwrap_or(0.0),
             }),
-        });
-    }
-
-    let utm_configured = cfg.utm.is_some() || st.utm.samples > 0;
-    let state = match (utm_configured, st.utm.up) {
-        (false, _) => "none",
-        (true, None) => "waiting",
-        (true, Some(true)) => "ok",
-        (true, Some(false)) => "down",
-    };
-    if state == "down" {
-        problems.push(format!("UTM down: {}", st.utm.last_error.as_deref().unwrap_or("no answer")));
-    } else if state == "waiting" && live && uptime_s > stale_after {
-        problems.push("UTM: no answer yet".to_string());
-    }
-    let utm = UtmStatus {
-        configured: utm_configured,
-        state,
-        address: cfg.utm.as_ref().map(|a| a.to_string()),
-        samples: st.utm.samples,
-        outages: st.utm.outages,
-        last_error: st.utm.last_error.clone(),
-        load_kn: st.utm.last_sample.map(|s| s.load_kn),
-        stroke_mm: st.utm.last_sample.and_then(|s| s.stroke_mm),
-    };
-
-    let dropped_rec = st.recording.drops.as_ref().map_or(0, |d| d.dropped_frames());
-    let failing = st.recording.drops.as_ref().is_some_and(|d| d.state() != tagdeflect_core::feed_file::SinkState::Ok);
-    if let Some(e) = &st.recording.failed {
-        problems.push(format!("recording failed: {e}"));
-    } else if failing && !st.finished {
-        problems.push("recording failing: writes fail, retrying (frames dropped meanwhile are counted)".to_string());
-    }
-    #[cfg(feature = "mqtt")]
-    let archive = view.mqtt.get().map(|m| {
-        use std::sync::atomic::Ordering::Relaxed;
-        let heard = m.archive_high.load(Relaxed) > 0 || m.archive_confirmed.load(Relaxed) > 0;
-        ArchiveStatus {
-            connected: m.connected.load(Relaxed) == 1,
-            heard,
-            lag_lines: heard.then(|| m.archive_lag.load(Relaxed)),
-            confirmed_lines: m.archive_confirmed.load(Relaxed),
-            unconfirmed_lines: m.unconfirmed.load(Relaxed),
-            dropped_lines: m.dropped.load(Relaxed),
-            reconnects: m.reconnects.load(Relaxed),
-        }
-    });
-    #[cfg(not(feature = "mqtt"))]
-    let archive: Option<ArchiveStatus> = None;
-    if let Some(a) = &archive {
-        if !a.connected && uptime_s > 5.0 {
-            problems.push(format!(
-                "MQTT broker unreachable: {} feed lines wait for the archive (kept, sent on reconnecting)",
-                a.unconfirmed_lines
-            ));
         }
     }
-    let recording = RecordingStatus {
-        active: st.recording.dir.is_some() && st.recording.failed.is_none() && !failing && !st.finished,
-        dir: st.recording.dir.clone(),
-        failed: st.recording.failed.clone(),
-        dropped: dropped_rec,
-    };
 
-    let last = st.feed.last.as_ref();
-    let line_age = age(st.feed.last_at, now);
-    let feed_stale = live && !st.finished && line_age.map_or(uptime_s > 2.0 * stale_after, |a| a > stale_after);
-    if feed_stale {
-        problems.push(match line_age {
-            Some(a) => format!("no feed line for {a:.1} s"),
-            None => "no feed line yet".to_string(),
-        });
+    /// The testing machine's link; its problem.
+    fn utm(&mut self, configured: bool, u: &UtmState) -> UtmStatus {
+        let state = match (configured, u.up) {
+            (false, _) => "none",
+            (true, None) => "waiting",
+            (true, Some(true)) => "ok",
+            (true, Some(false)) => "down",
+        };
+        if state == "down" {
+            self.problems.push(format!("UTM down: {}", u.last_error.as_deref().unwrap_or("no answer")));
+        } else if state == "waiting" && self.live && self.uptime_s > self.stale_after {
+            self.problems.push("UTM: no answer yet".to_string());
+        }
+        UtmStatus {
+            configured,
+            state,
+            address: self.run.utm.as_ref().map(|u| u.address.clone()),
+            samples: u.samples,
+            outages: u.outages,
+            last_error: u.last_error.clone(),
+            load_kn: u.last_sample.map(|s| s.load_kn),
+            stroke_mm: u.last_sample.and_then(|s| s.stroke_mm),
+        }
     }
-    let feed = FeedStatus {
-        lines: st.feed.lines,
-        last_seq: last.map(|l| l.seq),
-        last_t_ns: last.map(|l| l.t_ns),
-        last_line_age_s: line_age,
-        stale: feed_stale,
-        dropped_sets: last.and_then(|l| l.dropped_sets).unwrap_or(0),
-        latency_ms: last.and_then(|l| l.latency_ms),
-        net_deflection_mm: last.and_then(|l| l.net_deflection_mm),
-        load_kn: last.and_then(|l| l.load_kn),
-        reproj_px: last.and_then(|l| l.reproj_px),
-        tags_solved: last.map_or(0, |l| l.tags.len()),
-    };
-    let specimen_tags = cfg
-        .specimen
-        .tags
-        .iter()
-        .map(|t| TagStatus {
-            id: t.id,
-            role: t.role.map(|r| match r {
-                TagRole::Support => "support",
-                TagRole::Midspan => "midspan",
-            }),
-        })
-        .collect();
-    Status {
-        version: env!("CARGO_PKG_VERSION"),
-        mode: view.mode,
-        started_ns: view.started_ns,
-        uptime_s: (uptime_s * 1e3).round() / 1e3,
-        finished: st.finished,
-        world_up: cfg.world.up,
-        frame_interval_s,
-        sources,
-        specimen_tags,
-        beam: cfg.specimen.beam.clone(),
-        cmod_gauge: cfg.cmod_gauge.clone(),
-        rate_windows: cfg.rate_windows.clone(),
-        utm,
-        recording,
-        archive,
-        feed,
-        http: HttpStatus { clients: view.clients.load(Ordering::Relaxed), lagged_events: view.metrics.http_events_lagged.get() },
-        problems,
+
+    /// The recording; its problem.
+    fn recording(&mut self, r: &RecordingState) -> RecordingStatus {
+        let dropped = r.drops.as_ref().map_or(0, |d| d.dropped_frames());
+        let failing = r.drops.as_ref().is_some_and(|d| d.state() != tagdeflect_core::feed_file::SinkState::Ok);
+        if let Some(e) = &r.failed {
+            self.problems.push(format!("recording failed: {e}"));
+        } else if failing && !self.finished {
+            self.problems.push("recording failing: writes fail, retrying (frames dropped meanwhile are counted)".to_string());
+        }
+        RecordingStatus {
+            active: self.run.recording.is_some() && r.failed.is_none() && !failing && !self.finished,
+            dir: self.run.recording.clone(),
+            failed: r.failed.clone(),
+            dropped,
+        }
+    }
+
+    /// The feed's delivery to the archive, when published over MQTT; its problem.
+    fn archive(&mut self, view: &LiveView) -> Option<ArchiveStatus> {
+        #[cfg(feature = "mqtt")]
+        let archive = view.mqtt.get().map(|m| {
+            use std::sync::atomic::Ordering::Relaxed;
+            let heard = m.archive_high.load(Relaxed) > 0 || m.archive_confirmed.load(Relaxed) > 0;
+            ArchiveStatus {
+                connected: m.connected.load(Relaxed) == 1,
+                heard,
+                lag_lines: heard.then(|| m.archive_lag.load(Relaxed)),
+                confirmed_lines: m.archive_confirmed.load(Relaxed),
+                unconfirmed_lines: m.unconfirmed.load(Relaxed),
+                dropped_lines: m.dropped.load(Relaxed),
+                reconnects: m.reconnects.load(Relaxed),
+            }
+        });
+        #[cfg(not(feature = "mqtt"))]
+        let archive: Option<ArchiveStatus> = {
+            let _ = view;
+            None
+        };
+        if let Some(a) = &archive {
+            if !a.connected && self.uptime_s > 5.0 {
+                self.problems.push(format!(
+                    "MQTT broker unreachable: {} feed lines wait for the archive (kept, sent on reconnecting)",
+                    a.unconfirmed_lines
+                ));
+            }
+        }
+        archive
+    }
+
+    /// The feed and the newest line; its problem.
+    fn feed(&mut self, f: &FeedState) -> FeedStatus {
+        let last = f.last.as_ref();
+        let line_age = age(f.last_at, self.now);
+        let stale = self.live && !self.finished && line_age.map_or(self.uptime_s > 2.0 * self.stale_after, |a| a > self.stale_after);
+        if stale {
+            self.problems.push(match line_age {
+                Some(a) => format!("no feed line for {a:.1} s"),
+                None => "no feed line yet".to_string(),
+            });
+        }
+        FeedStatus {
+            lines: f.lines,
+            last_seq: self.run.last_seq,
+            last_t_ns: self.run.last_t_ns,
+            last_line_age_s: line_age,
+            stale,
+            dropped_sets: last.and_then(|l| l.dropped_sets).unwrap_or(0),
+            latency_ms: last.and_then(|l| l.latency_ms),
+            net_deflection_mm: last.and_then(|l| l.net_deflection_mm),
+            load_kn: last.and_then(|l| l.load_kn),
+            reproj_px: last.and_then(|l| l.reproj_px),
+            tags_solved: last.map_or(0, |l| l.tags.len()),
+        }
     }
 }

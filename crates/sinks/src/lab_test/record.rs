@@ -1,36 +1,11 @@
 //! A test's record (`test.json`), what `stop` answers, and the stopped tests' curves the page
 //! draws in grey.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
-use tagdeflect_core::feed::FeedEvent;
 
-use super::TestMeta;
-
-/// `test.json` (SPEC "Tests").
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TestRecord {
-    /// The test's id.
-    pub id: String,
-    /// What it was started with.
-    #[serde(flatten)]
-    pub meta: TestMeta,
-    /// When it started and stopped, ns since the Unix epoch.
-    pub started_t_ns: i64,
-    /// When it stopped (absent while it runs).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub stopped_t_ns: Option<i64>,
-    /// Start, marks, zeros, stop.
-    pub events: Vec<FeedEvent>,
-    /// Feed lines and UTM samples in the folder.
-    pub lines: u64,
-    /// UTM samples kept.
-    pub utm_samples: u64,
-    /// SHA-256 (hex) of every file of the folder (but `test.json`) and of the calibration files.
-    pub sha256: BTreeMap<String, String>,
-}
+pub use tagdeflect_core::lab_test::TestRecord;
 
 /// A stopped test's curve for the page (`GET /api/tests`): load over net deflection from its
 /// zero, at most [`EARLIER_POINTS`] points.

@@ -5,7 +5,8 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use super::client::{check_level_name, check_topic_template, hostname, tls_config_for, BrokerUrl};
+use tagdeflect_core::Problem;
+use tagdeflect_wire::{check_level_name, check_topic_template, hostname, tls_config_for, BrokerUrl, WireError};
 
 /// `[output.mqtt]`: publish the feed to an MQTT broker.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -80,40 +81,62 @@ fn default_status_interval() -> f64 {
 
 impl MqttConfig {
     /// Validates the section and resolves TLS file paths against `base` (the config's
-    /// folder). On error: the key (below `output.mqtt`) and what is wrong.
-    pub fn validate(&mut self, base: &Path) -> Result<(), (&'static str, String)> {
-        let url = BrokerUrl::parse(&self.url).map_err(|m| ("url", m))?;
-        check_topic_template(&self.topic).map_err(|m| ("topic", m))?;
-        check_level_name("rig", &self.rig).map_err(|m| ("rig", m))?;
+    /// folder). Keys relative to `[output.mqtt]`.
+    pub fn validate(&mut self, base: &Path) -> Result<(), Problem> {
+        let url = BrokerUrl::parse(&self.url).map_err(|m| Problem::new("url", m.to_string()))?;
+        self.check_names()?;
+        self.check_numbers(&url)?;
+        self.resolve_tls_files(base, &url)?;
+        if url.tls {
+            self.tls_config().map_err(|m| Problem::new("ca_file", m.to_string()))?;
+        }
+        Ok(())
+    }
+
+    /// The topic template, the rig, the test id and the client id.
+    fn check_names(&self) -> Result<(), Problem> {
+        check_topic_template(&self.topic).map_err(|m| Problem::new("topic", m.to_string()))?;
+        check_level_name("rig", &self.rig).map_err(|m| Problem::new("rig", m.to_string()))?;
         if let Some(t) = &self.test {
-            check_level_name("test", t).map_err(|m| ("test", m))?;
+            check_level_name("test", t).map_err(|m| Problem::new("test", m.to_string()))?;
         }
         if self.qos > 2 {
-            return Err(("qos", format!("must be 0, 1 or 2, got {}", self.qos)));
+            return Err(Problem::new("qos", format!("must be 0, 1 or 2, got {}", self.qos)));
         }
         if let Some(id) = &self.client_id {
             if id.is_empty() || id.len() > 256 {
-                return Err(("client_id", "must be 1 to 256 characters".into()));
+                return Err(Problem::new("client_id", "must be 1 to 256 characters"));
             }
         }
+        Ok(())
+    }
+
+    /// The credentials, the buffer, the keep-alive and the status interval.
+    fn check_numbers(&self, url: &BrokerUrl) -> Result<(), Problem> {
         if self.password.is_some() && self.username.is_none() && url.username.is_none() {
-            return Err(("password", "a password needs a `username`".into()));
+            return Err(Problem::new("password", "a password needs a `username`"));
         }
         if self.buffer_lines == 0 {
-            return Err(("buffer_lines", "must be at least 1".into()));
+            return Err(Problem::new("buffer_lines", "must be at least 1"));
         }
         if self.keep_alive_s < 5 || self.keep_alive_s > 3600 {
-            return Err(("keep_alive_s", format!("must be 5..3600 s, got {}", self.keep_alive_s)));
+            return Err(Problem::new("keep_alive_s", format!("must be 5..3600 s, got {}", self.keep_alive_s)));
         }
         if !(self.status_interval_s.is_finite() && self.status_interval_s >= 0.1) {
-            return Err(("status_interval_s", "must be at least 0.1 s".into()));
+            return Err(Problem::new("status_interval_s", "must be at least 0.1 s"));
         }
+        Ok(())
+    }
+
+    /// The TLS files: only with `mqtts://`, a certificate with its key, paths relative to
+    /// `base` made whole and readable.
+    fn resolve_tls_files(&mut self, base: &Path, url: &BrokerUrl) -> Result<(), Problem> {
         let tls_keys = self.ca_file.is_some() || self.client_cert.is_some() || self.client_key.is_some();
         if tls_keys && !url.tls {
-            return Err(("url", "TLS options are set but the URL is not mqtts://".into()));
+            return Err(Problem::new("url", "TLS options are set but the URL is not mqtts://"));
         }
         if self.client_cert.is_some() != self.client_key.is_some() {
-            return Err(("client_cert", "give both `client_cert` and `client_key`, or neither".into()));
+            return Err(Problem::new("client_cert", "give both `client_cert` and `client_key`, or neither"));
         }
         for (key, p) in [("ca_file", &mut self.ca_file), ("client_cert", &mut self.client_cert), ("client_key", &mut self.client_key)] {
             if let Some(path) = p {
@@ -121,18 +144,15 @@ impl MqttConfig {
                     *path = base.join(&*path);
                 }
                 if let Err(e) = std::fs::metadata(&*path) {
-                    return Err((key, format!("cannot read {}: {e}", path.display())));
+                    return Err(Problem::new(key, format!("cannot read {}: {e}", path.display())));
                 }
             }
-        }
-        if url.tls {
-            self.tls_config().map_err(|m| ("ca_file", m))?;
         }
         Ok(())
     }
 
     /// The rustls client configuration of this section's `mqtts://` connection.
-    pub(crate) fn tls_config(&self) -> Result<Arc<rustls::ClientConfig>, String> {
+    pub(crate) fn tls_config(&self) -> Result<Arc<rustls::ClientConfig>, WireError> {
         tls_config_for(self.ca_file.as_deref(), self.client_cert.as_deref(), self.client_key.as_deref())
     }
 }

@@ -1,7 +1,9 @@
 //! The MQTT publisher (`[output.mqtt]`, SPEC "Configuration"): every feed line goes to
 //! `<topic>/feed`, a retained status message to `<topic>/status`, with a last will that
 //! says the rig went offline; each lab test's record, retained, to `<topic>/labtest/<id>`
-//! ([`labtest`]).
+//! ([`lab_test`]). What crosses the broker (topics, the archive's acknowledgement, the lab
+//! test's record, broker URLs) is the wire contract, `tagdeflect_wire`, which the archive
+//! reads too.
 //!
 //! The measurement never waits on the broker. [`MqttPublisher::publish`] only takes a lock
 //! for a few microseconds and hands the serialised line to a bounded buffer; a task on the
@@ -12,7 +14,7 @@
 //! the rig and the archive: a broker restarted without persistence acknowledges lines and
 //! delivers them to nobody until the archive has subscribed again. So the rig keeps every
 //! line until the *archive* has confirmed it. After each commit, an archive publishes,
-//! retained, on `<topic>/archive` what it holds of the test ([`ArchiveAck`]: per run, the
+//! retained, on `<topic>/archive` what it holds of the test ([`tagdeflect_wire::ArchiveAck`]: per run, the
 //! high-water seq and the gaps below it). The rig subscribes to it on every connection,
 //! forgets what the archive holds, and sends again what the broker acknowledged but the
 //! archive lacks below its high water (lines older than a second: the archive's view may
@@ -36,14 +38,21 @@
 //! `evicted_unconfirmed`, `connected` (0/1) and `reconnects`. The retained status carries
 //! `archive_lag` too.
 
-pub mod ack;
-mod client;
-mod config;
-pub mod labtest;
-mod publisher;
+//!
+//! The files: `config` (`[output.mqtt]` and its checks), `publisher` (start, take lines, end
+//! the run), `state` (what is owed and in flight, the broker's and the archive's
+//! acknowledgements), `connection` (the task that drives the connection), `feed_source`
+//! (lines read back from the feed file), `lab_test` (lab tests' records), `stats`; the
+//! status message is the run's status model ([`crate::status`]).
 
-pub use ack::{ArchiveAck, RunHeld, SeqRanges, ACK_SUFFIX};
-pub use client::{check_level_name, check_topic_template, hostname, mqtt_options, tls_config_for, topic_for, BrokerUrl};
+mod config;
+mod connection;
+mod feed_source;
+mod lab_test;
+mod publisher;
+mod state;
+mod stats;
+
 pub use config::MqttConfig;
-pub use labtest::{LabTestMessage, LABTEST_SUFFIX, MAX_LABTEST_BYTES};
-pub use publisher::{MqttPublisher, MqttSink, MqttStats};
+pub use publisher::{MqttPublisher, MqttSink};
+pub use stats::MqttStats;

@@ -1,10 +1,12 @@
-//! The broker client's helpers, shared by the publisher and the archive: broker URLs, topic
-//! templates and levels, TLS and connection options.
+//! The broker client's helpers, shared by the publisher and the archive: broker URLs, TLS
+//! and connection options.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use rumqttc::{MqttOptions, TlsConfiguration, Transport};
+
+use crate::WireError;
 
 /// This machine's host name (`localhost` when unknown).
 pub fn hostname() -> String {
@@ -33,16 +35,17 @@ pub struct BrokerUrl {
 
 impl BrokerUrl {
     /// Parses `mqtt://[user[:password]@]host[:port]` (also `tcp://`; `mqtts://` / `ssl://` for TLS).
-    pub fn parse(url: &str) -> Result<BrokerUrl, String> {
-        let (scheme, rest) = url.split_once("://").ok_or_else(|| format!("\"{url}\" is not a URL like mqtt://host:1883"))?;
+    pub fn parse(url: &str) -> Result<BrokerUrl, WireError> {
+        let (scheme, rest) =
+            url.split_once("://").ok_or_else(|| WireError::Url(format!("\"{url}\" is not a URL like mqtt://host:1883")))?;
         let tls = match scheme {
             "mqtt" | "tcp" => false,
             "mqtts" | "ssl" => true,
-            _ => return Err(format!("unknown scheme \"{scheme}\": expected mqtt:// or mqtts://")),
+            _ => return Err(WireError::Url(format!("unknown scheme \"{scheme}\": expected mqtt:// or mqtts://"))),
         };
         let rest = rest.trim_end_matches('/');
         if rest.contains('/') || rest.contains('?') {
-            return Err(format!("\"{url}\": expected mqtt://host[:port] with no path"));
+            return Err(WireError::Url(format!("\"{url}\": expected mqtt://host[:port] with no path")));
         }
         let (auth, hostport) = match rest.rsplit_once('@') {
             Some((a, h)) => (Some(a), h),
@@ -57,7 +60,7 @@ impl BrokerUrl {
         };
         let (host, port) = if let Some(h) = hostport.strip_prefix('[') {
             // [v6]:port
-            let (h, p) = h.split_once(']').ok_or_else(|| format!("\"{url}\": unclosed [ in the host"))?;
+            let (h, p) = h.split_once(']').ok_or_else(|| WireError::Url(format!("\"{url}\": unclosed [ in the host")))?;
             (h.to_string(), p.strip_prefix(':'))
         } else {
             match hostport.rsplit_once(':') {
@@ -66,43 +69,15 @@ impl BrokerUrl {
             }
         };
         if host.is_empty() {
-            return Err(format!("\"{url}\": no host"));
+            return Err(WireError::Url(format!("\"{url}\": no host")));
         }
         let port = match port {
-            Some(p) => p.parse::<u16>().map_err(|_| format!("\"{url}\": port \"{p}\" is not a number 1..65535"))?,
+            Some(p) => p.parse::<u16>().map_err(|_| WireError::Url(format!("\"{url}\": port \"{p}\" is not a number 1..65535")))?,
             None if tls => 8883,
             None => 1883,
         };
         Ok(BrokerUrl { tls, host, port, username, password })
     }
-}
-
-/// Replaces `{rig}` and `{test}` in a topic template.
-pub fn topic_for(template: &str, rig: &str, test: &str) -> String {
-    template.replace("{rig}", rig).replace("{test}", test)
-}
-
-/// Checks a topic template: no wildcards, `{rig}` and `{test}` each one whole level.
-pub fn check_topic_template(t: &str) -> Result<(), String> {
-    if t.is_empty() || t.contains(['+', '#', '\0']) {
-        return Err(format!("\"{t}\" must be a non-empty topic without the wildcards + and #"));
-    }
-    let levels: Vec<&str> = t.split('/').collect();
-    for ph in ["{rig}", "{test}"] {
-        let whole = levels.iter().filter(|l| **l == ph).count();
-        if whole != 1 || t.matches(ph).count() != 1 {
-            return Err(format!("\"{t}\" must contain {ph} exactly once, as a whole topic level (e.g. \"tagdeflect/{{rig}}/{{test}}\"), so an archive can tell rigs and tests apart"));
-        }
-    }
-    Ok(())
-}
-
-/// Checks a rig or test name used in a topic level.
-pub fn check_level_name(what: &str, v: &str) -> Result<(), String> {
-    if v.is_empty() || v.contains(['/', '+', '#', '\0']) || v.starts_with('$') {
-        return Err(format!("{what} \"{v}\" must be non-empty, without '/', '+', '#' and not start with '$' (it is a topic level)"));
-    }
-    Ok(())
 }
 
 /// Builds the rustls client configuration of a `mqtts://` connection: the CA bundle
@@ -111,31 +86,31 @@ pub fn tls_config_for(
     ca_file: Option<&Path>,
     client_cert: Option<&Path>,
     client_key: Option<&Path>,
-) -> Result<Arc<rustls::ClientConfig>, String> {
+) -> Result<Arc<rustls::ClientConfig>, WireError> {
     use rustls::pki_types::pem::PemObject;
     use rustls::pki_types::{CertificateDer, PrivateKeyDer};
     let ca = ca_file.map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("/etc/ssl/certs/ca-certificates.crt"));
     let mut roots = rustls::RootCertStore::empty();
-    let certs = CertificateDer::pem_file_iter(&ca).map_err(|e| format!("{}: {e}", ca.display()))?;
+    let certs = CertificateDer::pem_file_iter(&ca).map_err(|e| WireError::Tls(format!("{}: {e}", ca.display())))?;
     for c in certs {
-        let c = c.map_err(|e| format!("{}: {e}", ca.display()))?;
-        roots.add(c).map_err(|e| format!("{}: {e}", ca.display()))?;
+        let c = c.map_err(|e| WireError::Tls(format!("{}: {e}", ca.display())))?;
+        roots.add(c).map_err(|e| WireError::Tls(format!("{}: {e}", ca.display())))?;
     }
     if roots.is_empty() {
-        return Err(format!("{}: no CA certificate in it", ca.display()));
+        return Err(WireError::Tls(format!("{}: no CA certificate in it", ca.display())));
     }
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let builder = rustls::ClientConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()
-        .map_err(|e| e.to_string())?
+        .map_err(|e| WireError::Tls(e.to_string()))?
         .with_root_certificates(roots);
     let config = match (client_cert, client_key) {
         (Some(cert), Some(key)) => {
             let chain: Vec<CertificateDer<'static>> = CertificateDer::pem_file_iter(cert)
                 .and_then(|it| it.collect::<Result<Vec<_>, _>>())
-                .map_err(|e| format!("{}: {e}", cert.display()))?;
-            let key = PrivateKeyDer::from_pem_file(key).map_err(|e| format!("{}: {e}", key.display()))?;
-            builder.with_client_auth_cert(chain, key).map_err(|e| format!("client certificate: {e}"))?
+                .map_err(|e| WireError::Tls(format!("{}: {e}", cert.display())))?;
+            let key = PrivateKeyDer::from_pem_file(key).map_err(|e| WireError::Tls(format!("{}: {e}", key.display())))?;
+            builder.with_client_auth_cert(chain, key).map_err(|e| WireError::Tls(format!("client certificate: {e}")))?
         }
         _ => builder.with_no_client_auth(),
     };
@@ -149,7 +124,7 @@ pub fn mqtt_options(
     username: Option<&str>,
     password: Option<&str>,
     tls: Option<Arc<rustls::ClientConfig>>,
-) -> Result<MqttOptions, String> {
+) -> Result<MqttOptions, WireError> {
     let u = BrokerUrl::parse(url)?;
     let mut o = MqttOptions::new(client_id, u.host.clone(), u.port);
     if u.tls {

@@ -1,13 +1,11 @@
 //! The end-to-end acknowledgement between an archive and a rig: what the archive holds of
-//! a (rig, test), published retained on `<topic>/archive` (see the module doc of [`super`]),
-//! and the sets of frame-set numbers both sides keep.
+//! a (rig, test), published retained on `<topic>/archive` ([`crate::ACK_SUFFIX`]; how the
+//! publisher uses it: `tagdeflect_sinks::mqtt`), and the sets of frame-set numbers both sides
+//! keep.
 
 use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
-
-/// The suffix of the acknowledgement topic: `<topic>/archive`.
-pub const ACK_SUFFIX: &str = "archive";
 
 /// At most this many gaps per run in one acknowledgement; beyond them `high` is lowered to
 /// the last gap listed, so the message never claims a line it does not list.

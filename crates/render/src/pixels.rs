@@ -37,23 +37,23 @@ pub struct PixelRect {
 
 impl PixelRect {
     /// Width in pixels.
-    pub(crate) fn width(&self) -> usize {
+    pub fn width(&self) -> usize {
         self.x1 - self.x0
     }
     /// Height in pixels.
-    pub(crate) fn height(&self) -> usize {
+    pub fn height(&self) -> usize {
         self.y1 - self.y0
     }
     /// True when it holds no pixel.
-    pub(crate) fn is_empty(&self) -> bool {
+    pub fn is_empty(&self) -> bool {
         self.x1 <= self.x0 || self.y1 <= self.y0
     }
     /// The same area counted in sub-boxes of `1/scale` pixel.
-    pub(crate) fn scaled(&self, scale: usize) -> PixelRect {
+    pub fn scaled(&self, scale: usize) -> PixelRect {
         PixelRect { x0: self.x0 * scale, y0: self.y0 * scale, x1: self.x1 * scale, y1: self.y1 * scale }
     }
     /// Grown by `m` pixels on every side, clipped to `w × h`.
-    pub(crate) fn grow(&self, m: usize, w: usize, h: usize) -> PixelRect {
+    pub fn grow(&self, m: usize, w: usize, h: usize) -> PixelRect {
         PixelRect { x0: self.x0.saturating_sub(m), y0: self.y0.saturating_sub(m), x1: (self.x1 + m).min(w), y1: (self.y1 + m).min(h) }
     }
 }
@@ -347,7 +347,7 @@ pub fn blur(img: &[f32], w: usize, h: usize, kernel: &[f32]) -> Vec<f32> {
 
 /// Motion blur (camera shake): the mean of the image shifted along a straight streak of
 /// `length` pixels at angle `angle`, centred on zero shift (the centroid does not move).
-pub(crate) fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> Vec<f32> {
+pub fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> Vec<f32> {
     let steps = (length.ceil() as usize * 2).max(2) + 1;
     let (dx, dy) = (angle.cos() * length, angle.sin() * length);
     let offsets: Vec<(f64, f64)> = (0..steps)

@@ -1,11 +1,12 @@
-//! `[[gauge]]`: the virtual gauges' config section and its validation (the computation is
-//! [`crate::gauges`]).
+//! `[[gauge]]`: the virtual gauges' definitions — the config section and its validation —
+//! read by the solver (`tagdeflect_estimate::gauges` computes them), the simulator's truth and
+//! the report (which gauge is the net deflection, which the CMOD).
 
 use std::collections::{HashMap, HashSet};
 
+use crate::rig::{SpecimenConfig, TagRole};
+use crate::Problem;
 use serde::{Deserialize, Serialize};
-use tagdeflect_core::rig::{SpecimenConfig, TagRole};
-use tagdeflect_core::Problem;
 
 /// What a gauge measures.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -26,7 +27,8 @@ pub enum GaugeKind {
 impl GaugeKind {
     const NAMES: &'static str = "\"net_deflection\", \"distance\", \"opening\", \"rotation\" or \"curvature\"";
 
-    pub(crate) fn parse(s: &str) -> Option<GaugeKind> {
+    /// The kind named in a config (`"opening"`), or `None`.
+    pub fn parse(s: &str) -> Option<GaugeKind> {
         Some(match s {
             "net_deflection" => GaugeKind::NetDeflection,
             "distance" => GaugeKind::Distance,
@@ -214,5 +216,18 @@ fn kind_name(kind: GaugeKind) -> &'static str {
         GaugeKind::Opening => "opening",
         GaugeKind::Rotation => "rotation",
         GaugeKind::Curvature => "curvature",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_parse_and_have_units() {
+        assert_eq!(GaugeKind::parse("opening"), Some(GaugeKind::Opening));
+        assert_eq!(GaugeKind::parse("cmod"), None);
+        assert_eq!(GaugeKind::Curvature.unit(), "1/km");
+        assert_eq!(GaugeKind::Rotation.unit(), "mrad");
     }
 }

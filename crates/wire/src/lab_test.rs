@@ -5,20 +5,20 @@
 //! resume) and when it stops (then with the SHA-256 of the folder's files); again on every
 //! connection to the broker (a broker restarted without persistence forgets retained
 //! messages), and the end of a run waits for the broker's acknowledgement. The record is
-//! `test.json`'s ([`TestRecord`]) with the rig and the run (the MQTT test id of the topic).
+//! `test.json`'s ([`TestRecord`], in `tagdeflect_core::lab_test`) with the rig and the run (the MQTT test id of the topic).
 //!
-//! What the archive takes is checked here, for both sides: at most [`MAX_LABTEST_BYTES`],
+//! What the archive takes is checked here, for both sides: at most [`MAX_LAB_TEST_BYTES`],
 //! the rig, run and test id of the topic, the control API's own limits on what an operator
 //! types, no NUL (PostgreSQL's text refuses it), a stop not before the start, bounded lists.
 
 use serde::{Deserialize, Serialize};
 
-use crate::lab_test::TestRecord;
+use tagdeflect_core::lab_test::TestRecord;
 
-/// The last level of a lab test's topic, before its id.
-pub const LABTEST_SUFFIX: &str = "labtest";
+use crate::WireError;
+
 /// The largest lab test message taken (a record with a day's marks is a few kB).
-pub const MAX_LABTEST_BYTES: usize = 64 * 1024;
+pub const MAX_LAB_TEST_BYTES: usize = 64 * 1024;
 /// Events of one test at most.
 pub const MAX_EVENTS: usize = 10_000;
 /// Hashed files of one test at most.
@@ -43,64 +43,90 @@ impl LabTestMessage {
     }
 
     /// Reads and checks a message that came on the topic of `rig`, `run` and lab test `id`.
-    pub fn parse(payload: &[u8], rig: &str, run: &str, id: &str) -> Result<LabTestMessage, String> {
-        if payload.len() > MAX_LABTEST_BYTES {
-            return Err(format!("{} bytes, more than the {MAX_LABTEST_BYTES} a lab test record may have", payload.len()));
-        }
-        // PostgreSQL's text and jsonb refuse NUL; a record never has one.
-        if payload.windows(6).any(|w| w == b"\\u0000") || payload.contains(&0) {
-            return Err("a NUL character in a lab test record".into());
-        }
-        let m: LabTestMessage = serde_json::from_slice(payload).map_err(|e| format!("not a lab test record: {e}"))?;
+    pub fn parse(payload: &[u8], rig: &str, run: &str, id: &str) -> Result<LabTestMessage, WireError> {
+        let m = Self::read(payload)?;
         m.check(rig, run, id)?;
         Ok(m)
     }
 
+    /// The message read from its bytes (size, NUL, JSON shape), not yet checked.
+    fn read(payload: &[u8]) -> Result<LabTestMessage, WireError> {
+        if payload.len() > MAX_LAB_TEST_BYTES {
+            return Err(WireError::LabTest(format!(
+                "{} bytes, more than the {MAX_LAB_TEST_BYTES} a lab test record may have",
+                payload.len()
+            )));
+        }
+        // PostgreSQL's text and jsonb refuse NUL; a record never has one.
+        if payload.windows(6).any(|w| w == b"\\u0000") || payload.contains(&0) {
+            return Err(WireError::LabTest("a NUL character in a lab test record".to_string()));
+        }
+        serde_json::from_slice(payload).map_err(|e| WireError::LabTest(format!("not a lab test record: {e}")))
+    }
+
     /// The checks of [`LabTestMessage::parse`] on a message read.
-    pub fn check(&self, rig: &str, run: &str, id: &str) -> Result<(), String> {
+    pub fn check(&self, rig: &str, run: &str, id: &str) -> Result<(), WireError> {
+        self.check_topic(rig, run, id)?;
+        self.check_record()
+    }
+
+    /// The rig, run and test id against the topic's.
+    fn check_topic(&self, rig: &str, run: &str, id: &str) -> Result<(), WireError> {
         for (key, got, want) in [("rig", &self.rig, rig), ("test", &self.test, run), ("id", &self.record.id, id)] {
             if got != want {
-                return Err(format!(
+                return Err(WireError::LabTest(format!(
                     "a lab test record with {key} \"{}\" on the topic of {key} \"{}\" (rejected: it would write over another's test)",
                     got.escape_debug(),
                     want.escape_debug()
-                ));
+                )));
             }
         }
+        Ok(())
+    }
+
+    /// The record's own limits: what an operator types, times, lists.
+    fn check_record(&self) -> Result<(), WireError> {
         let ok_id = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
         let r = &self.record;
         if r.id.is_empty() || r.id.len() > 128 || !r.id.chars().all(ok_id) {
-            return Err(format!("test id \"{}\": 1 to 128 letters, digits, `_`, `-`, `.`", r.id.escape_debug()));
+            return Err(WireError::LabTest(format!("test id \"{}\": 1 to 128 letters, digits, `_`, `-`, `.`", r.id.escape_debug())));
         }
-        r.meta.validate().map_err(|p| p.message)?;
+        r.meta.validate().map_err(|p| WireError::LabTest(p.message))?;
         if r.started_t_ns <= 0 {
-            return Err(format!("started_t_ns {}: a time after 1970", r.started_t_ns));
+            return Err(WireError::LabTest(format!("started_t_ns {}: a time after 1970", r.started_t_ns)));
         }
         if let Some(s) = r.stopped_t_ns {
             if s < r.started_t_ns {
-                return Err(format!("stopped_t_ns {s} is before started_t_ns {}", r.started_t_ns));
+                return Err(WireError::LabTest(format!("stopped_t_ns {s} is before started_t_ns {}", r.started_t_ns)));
             }
         }
         if r.events.len() > MAX_EVENTS {
-            return Err(format!("{} events, more than {MAX_EVENTS}", r.events.len()));
+            return Err(WireError::LabTest(format!("{} events, more than {MAX_EVENTS}", r.events.len())));
         }
         for e in &r.events {
             if e.kind.is_empty() || e.kind.len() > 32 || !e.kind.chars().all(|c| c.is_ascii_lowercase() || c == '_') {
-                return Err(format!("event kind \"{}\": 1 to 32 lowercase letters", e.kind.escape_debug()));
+                return Err(WireError::LabTest(format!("event kind \"{}\": 1 to 32 lowercase letters", e.kind.escape_debug())));
             }
             if e.note.as_ref().is_some_and(|n| n.len() > 4096 || n.chars().any(|c| c.is_control() && c != '\n')) {
-                return Err("an event's note: at most 4096 characters, no control characters".into());
+                return Err(WireError::LabTest("an event's note: at most 4096 characters, no control characters".to_string()));
             }
         }
         if r.sha256.len() > MAX_HASHES {
-            return Err(format!("{} hashes, more than {MAX_HASHES}", r.sha256.len()));
+            return Err(WireError::LabTest(format!("{} hashes, more than {MAX_HASHES}", r.sha256.len())));
         }
         for (file, h) in &r.sha256 {
             if file.is_empty() || file.len() > 4096 || file.chars().any(char::is_control) {
-                return Err(format!("hashed file name \"{}\": 1 to 4096 characters, no control characters", file.escape_debug()));
+                return Err(WireError::LabTest(format!(
+                    "hashed file name \"{}\": 1 to 4096 characters, no control characters",
+                    file.escape_debug()
+                )));
             }
             if h.len() != 64 || !h.chars().all(|c| c.is_ascii_hexdigit()) {
-                return Err(format!("the SHA-256 of {}: 64 hex digits, got \"{}\"", file.escape_debug(), h.escape_debug()));
+                return Err(WireError::LabTest(format!(
+                    "the SHA-256 of {}: 64 hex digits, got \"{}\"",
+                    file.escape_debug(),
+                    h.escape_debug()
+                )));
             }
         }
         Ok(())
@@ -110,8 +136,8 @@ impl LabTestMessage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lab_test::TestMeta;
     use tagdeflect_core::feed::FeedEvent;
+    use tagdeflect_core::lab_test::TestMeta;
 
     fn record() -> TestRecord {
         TestRecord {
@@ -139,15 +165,16 @@ mod tests {
         let v: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
         assert_eq!(v["specimen"], "B12", "test.json's fields at the top: {v}");
         assert_eq!(v["rig"], "rig1");
-        let e = LabTestMessage::parse(&bytes, "rig2", "run7", "20261202T101500Z-B12").unwrap_err();
+        let e = LabTestMessage::parse(&bytes, "rig2", "run7", "20261202T101500Z-B12").unwrap_err().to_string();
         assert!(e.contains("rig") && e.contains("rig2"), "{e}");
-        assert!(LabTestMessage::parse(&bytes, "rig1", "run7", "other").unwrap_err().contains("id"));
+        assert!(LabTestMessage::parse(&bytes, "rig1", "run7", "other").unwrap_err().to_string().contains("id"));
         let bad = |f: &dyn Fn(&mut TestRecord)| {
             let mut r = record();
             f(&mut r);
             let id = r.id.clone();
             LabTestMessage::parse(&serde_json::to_vec(&LabTestMessage::from_record("rig1", "run7", &r)).unwrap(), "rig1", "run7", &id)
                 .unwrap_err()
+                .to_string()
         };
         assert!(bad(&|r| r.meta.specimen = "<script>".into()).contains("specimen"));
         assert!(bad(&|r| r.stopped_t_ns = Some(1)).contains("before"));
@@ -157,7 +184,7 @@ mod tests {
             r.sha256.insert("x".into(), "zz".into());
         })
         .contains("64 hex"));
-        assert!(LabTestMessage::parse(&vec![b' '; MAX_LABTEST_BYTES + 1], "rig1", "run7", "x").unwrap_err().contains("bytes"));
-        assert!(LabTestMessage::parse(b"{\"rig\": 1}", "rig1", "run7", "x").unwrap_err().contains("not a lab test record"));
+        assert!(LabTestMessage::parse(&vec![b' '; MAX_LAB_TEST_BYTES + 1], "rig1", "run7", "x").unwrap_err().to_string().contains("bytes"));
+        assert!(LabTestMessage::parse(b"{\"rig\": 1}", "rig1", "run7", "x").unwrap_err().to_string().contains("not a lab test record"));
     }
 }

@@ -1,0 +1,88 @@
+//! A lab test's record, `test.json` (SPEC "Tests"): what it was started with ([`TestMeta`]),
+//! its events, counts and file hashes ([`TestRecord`]). Written by the lab-test sink, sent to
+//! the broker inside the lab-test message (`tagdeflect_wire::lab_test`) and read back by the
+//! archive.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::feed::FeedEvent;
+use crate::Problem;
+
+/// What a test is started with (the control API's JSON body).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TestMeta {
+    /// The specimen's id (required; letters, digits, `_`, `-`, `.`).
+    pub specimen: String,
+    /// Who runs the test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<String>,
+    /// `astm-c1609`, `astm-c1856` or `en-14651`: the report made at stop.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub standard: Option<String>,
+    /// Free text.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notes: Option<String>,
+    /// Measured dimensions and other values the lab records (`{"width_mm": 150.2}`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub measured: BTreeMap<String, f64>,
+}
+
+/// Standards a test may name.
+pub const STANDARDS: [&str; 3] = ["astm-c1609", "astm-c1856", "en-14651"];
+
+impl TestMeta {
+    /// Checks what an operator typed: the specimen id is a folder name and text on the page.
+    /// The problem's key is the field's (`specimen`, `standard`, `operator`, `notes`,
+    /// `measured.NAME`); its message names the field itself, as it is answered to the operator
+    /// as is (`TestError::Bad` of the lab-test sink).
+    pub fn validate(&self) -> Result<(), Problem> {
+        let ok = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
+        let sp = self.specimen.trim();
+        if sp.is_empty() || sp.chars().count() > 64 || sp.starts_with('.') || !sp.chars().all(ok) {
+            return Err(Problem::new(
+                "specimen",
+                format!("specimen \"{}\": 1 to 64 letters, digits, `_`, `-` and `.` (not first)", self.specimen.escape_debug()),
+            ));
+        }
+        if let Some(s) = &self.standard {
+            if !STANDARDS.contains(&s.as_str()) {
+                return Err(Problem::new("standard", format!("standard \"{}\": one of {}", s.escape_debug(), STANDARDS.join(", "))));
+            }
+        }
+        for (k, text) in [("operator", &self.operator), ("notes", &self.notes)] {
+            if text.as_ref().is_some_and(|t| t.len() > 4096 || t.chars().any(|c| c.is_control() && c != '\n')) {
+                return Err(Problem::new(k, format!("{k}: at most 4096 characters, no control characters")));
+            }
+        }
+        if let Some((k, v)) = self.measured.iter().find(|(k, v)| !v.is_finite() || k.len() > 64) {
+            return Err(Problem::new(format!("measured.{k}"), format!("measured.{k} = {v}: a finite number under a short name")));
+        }
+        Ok(())
+    }
+}
+
+/// `test.json` (SPEC "Tests").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TestRecord {
+    /// The test's id.
+    pub id: String,
+    /// What it was started with.
+    #[serde(flatten)]
+    pub meta: TestMeta,
+    /// When it started and stopped, ns since the Unix epoch.
+    pub started_t_ns: i64,
+    /// When it stopped (absent while it runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopped_t_ns: Option<i64>,
+    /// Start, marks, zeros, stop.
+    pub events: Vec<FeedEvent>,
+    /// Feed lines and UTM samples in the folder.
+    pub lines: u64,
+    /// UTM samples kept.
+    pub utm_samples: u64,
+    /// SHA-256 (hex) of every file of the folder (but `test.json`) and of the calibration files.
+    pub sha256: BTreeMap<String, String>,
+}

@@ -1,0 +1,13 @@
+//! The pixel renderer of synthetic camera images, shared by the simulated rig
+//! (`tagdeflect_sim`, which traces its scene through it) and the calibration's test images
+//! (`tagdeflect_calibrate::render`, targets with ground truth): each camera's exact
+//! undistorted rays through every pixel corner ([`CornerRays`], on the simulator's own lens
+//! model, [`lens`]), area integration of mixed pixels ([`render_rect`]), optical and motion
+//! blur, sensor noise and 8-bit rounding ([`quantize`]).
+//!
+//! Its own crate so that the calibration does not stand on the simulator: both stand on it.
+
+pub mod lens;
+mod pixels;
+
+pub use pixels::{blur, gaussian_kernel, motion_blur, quantize, render_rect, CornerRays, Flat, Hit, Keep, Optics, PixelRect};

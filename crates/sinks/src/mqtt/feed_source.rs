@@ -1,0 +1,150 @@
+//! This run's part of the feed file (`[output] feed`), read back for lines that left the
+//! memory buffer before the archive confirmed them, by a task of its own, off the lock.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::state::Shared;
+
+/// Lines read back from the feed file (seq, bytes), and the largest seq the file holds so far.
+type ReadBack = (Vec<(u64, Vec<u8>)>, Option<u64>);
+
+/// This run's lines in the feed file (`[output] feed`): read back for lines that left the
+/// memory buffer before the archive confirmed them.
+pub(super) struct FeedSource {
+    pub(super) path: PathBuf,
+    /// Where this run's lines start (the file's length when the run started: the feed file
+    /// is appended to, earlier runs' lines come before).
+    pub(super) start: u64,
+    /// Where the last read stopped, and the seq of the last line read before it.
+    pub(super) pos: u64,
+    pub(super) last_seq: Option<u64>,
+}
+
+impl FeedSource {
+    /// Reads the lines of `wanted` (ascending) from the file; also says the largest seq the
+    /// file holds so far (a wanted seq below it that was not found is not in the file).
+    pub(super) fn read(&mut self, wanted: &[u64]) -> std::io::Result<ReadBack> {
+        use std::io::{BufRead, Seek, SeekFrom};
+        #[derive(serde::Deserialize)]
+        struct SeqOnly {
+            seq: u64,
+        }
+        let Some(&first) = wanted.first() else { return Ok((Vec::new(), self.last_seq)) };
+        let last_wanted = *wanted.last().expect("non-empty");
+        if self.last_seq.is_none_or(|l| first <= l) {
+            self.pos = self.start;
+            self.last_seq = None;
+        }
+        let mut f = std::io::BufReader::new(std::fs::File::open(&self.path)?);
+        f.seek(SeekFrom::Start(self.pos))?;
+        let want: std::collections::HashSet<u64> = wanted.iter().copied().collect();
+        let mut out = Vec::new();
+        let mut buf = Vec::new();
+        let mut max_seen = self.last_seq;
+        loop {
+            buf.clear();
+            let n = f.read_until(b'\n', &mut buf)?;
+            if n == 0 || buf.last() != Some(&b'\n') {
+                break; // the end, or a line still being written
+            }
+            let line = &buf[..buf.len() - 1];
+            let Ok(SeqOnly { seq }) = serde_json::from_slice::<SeqOnly>(line) else {
+                self.pos += n as u64;
+                continue;
+            };
+            max_seen = Some(max_seen.map_or(seq, |m| m.max(seq)));
+            if want.contains(&seq) {
+                out.push((seq, line.to_vec()));
+            }
+            self.pos += n as u64;
+            self.last_seq = Some(seq);
+            if seq >= last_wanted {
+                break;
+            }
+        }
+        Ok((out, max_seen))
+    }
+}
+
+/// Reads lines the memory no longer holds back from the feed file when [`Shared::pump`]
+/// asks, a window at a time, off the lock.
+pub(super) async fn load_loop(shared: Arc<Shared>) {
+    loop {
+        shared.load.notified().await;
+        loop {
+            let wanted: Vec<u64> = {
+                let mut st = shared.state.lock().expect("mqtt state");
+                if !st.want_load {
+                    break;
+                }
+                st.want_load = false;
+                let mut w = Vec::new();
+                for (a, b) in st.todo.iter() {
+                    for seq in a..=b {
+                        if !st.mem.contains_key(&seq) && !st.loaded.contains_key(&seq) {
+                            w.push(seq);
+                        }
+                        if w.len() >= shared.window {
+                            break;
+                        }
+                    }
+                    if w.len() >= shared.window {
+                        break;
+                    }
+                }
+                w
+            };
+            if wanted.is_empty() {
+                break;
+            }
+            let sh = shared.clone();
+            let w = wanted.clone();
+            let read =
+                tokio::task::spawn_blocking(move || sh.feed.as_ref().expect("a feed file").lock().expect("feed source").read(&w)).await;
+            // How long to wait before trying again (nothing found yet, or a read error).
+            let retry_in = {
+                let mut st = shared.state.lock().expect("mqtt state");
+                let retry = match read {
+                    Ok(Ok((lines, max_seen))) => {
+                        let found: std::collections::HashSet<u64> = lines.iter().map(|l| l.0).collect();
+                        for (seq, bytes) in lines {
+                            if st.todo.contains(seq) {
+                                st.loaded.insert(seq, bytes);
+                            }
+                        }
+                        // Not in the file though the file went past it: the feed file lost it.
+                        let mut lost = 0;
+                        for seq in wanted.iter().filter(|s| !found.contains(s) && max_seen.is_some_and(|m| m > **s)) {
+                            if st.todo.contains(*seq) {
+                                shared.forget(&mut st, *seq);
+                                lost += 1;
+                            }
+                        }
+                        if lost > 0 {
+                            tracing::warn!(lines = lost, "MQTT: feed lines the archive lacks are not in the feed file; counted as dropped");
+                        }
+                        // Nothing found: not written yet (the feed output is failing?).
+                        (found.is_empty() && lost == 0).then_some(Duration::from_millis(500))
+                    }
+                    Ok(Err(e)) => {
+                        tracing::warn!("MQTT: cannot read the feed file back ({e}); retrying");
+                        Some(Duration::from_secs(1))
+                    }
+                    Err(_) => return,
+                };
+                if retry.is_none() {
+                    shared.pump(&mut st);
+                }
+                retry
+            };
+            if let Some(d) = retry_in {
+                tokio::time::sleep(d).await;
+                let mut st = shared.state.lock().expect("mqtt state");
+                st.want_load = true;
+                shared.pump(&mut st);
+            }
+        }
+    }
+}
