@@ -6,9 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::gauge::GaugeConfig;
 use tagdeflect_core::rig::{BackgroundConfig, SpecimenConfig, TagRole, WorldConfig};
 use tagdeflect_estimate::clock_offset::ClockCheckConfig;
-use tagdeflect_core::gauge::GaugeConfig;
 use tagdeflect_estimate::measure_config::MeasureConfig;
 use tagdeflect_io::sync::SyncConfig;
 use tagdeflect_io::utm::config::UtmConfig;

@@ -600,7 +600,17 @@ fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_
 fn two_tests_through_the_control_api_with_its_refusals() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
-    let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    // The demo's rig with its beam at rest through the whole test: the zero is checked on a
+    // still beam. (A zero formed while the beam moves averages the running mean over the sets
+    // so far, so its lines' mean displacement is about one set's motion: ~0.05-0.17 mm at the
+    // demo's 5 fps once its ramp has started, which a slow start up on a busy machine reached.)
+    let params = SimParams { frame_sets: 3000, rest_frames: 2500, ..tagdeflect_sim::live_rig::demo_params() };
+    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = tagdeflect::config::Config::demo().utm;
+    let cfg_path = dir.path().join("rest.toml");
+    std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     let token_file = tests_dir.join(".token");
     let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
