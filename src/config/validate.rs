@@ -50,7 +50,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     let output = raw.output.unwrap_or_default().resolve(base).map_err(|p| p.within("output"))?;
     check_sim(raw.sim.as_ref(), &cameras)?;
     let output = output.resolve_mqtt(base).map_err(|p| p.within("output"))?;
-    let gauges = tagdeflect_core::gauge::validate_gauges(&raw.gauge, &specimen)?;
+    let gauges = tagdeflect_core::gauge::resolve_gauges(&raw.gauge, &specimen)?;
     if let Some(c) = &output.control {
         let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
         c.validate(&names).map_err(|p| p.within("output.control"))?;

@@ -79,7 +79,7 @@ pub struct GaugeConfig {
 }
 
 /// A `[[gauge]]` as written (the kind as a string, vectors of any length), checked by
-/// [`validate_gauges`].
+/// [`resolve_gauges`].
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GaugeSection {
@@ -109,9 +109,10 @@ fn unit_vector(x: &[f64], key: &str) -> Result<[f64; 3], Problem> {
     Ok([x[0] / n, x[1] / n, x[2] / n])
 }
 
-/// Validates every `[[gauge]]` against the specimen tags (ids, roles).
-/// Keys are whole paths (`gauge[1].tags`).
-pub fn validate_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Result<Vec<GaugeConfig>, Problem> {
+/// Checks every `[[gauge]]` against the specimen tags (ids, roles) and returns the gauges.
+/// `[[gauge]]` is an array of the file's root table, so its keys start there (`gauge[1].tags`),
+/// as `[[camera]]`'s do.
+pub fn resolve_gauges(raw: &[GaugeSection], specimen: &SpecimenConfig) -> Result<Vec<GaugeConfig>, Problem> {
     let mut names = HashSet::new();
     let mut out = Vec::new();
     let roles: HashMap<u32, Option<TagRole>> = specimen.tags.iter().map(|t| (t.id, t.role)).collect();

@@ -30,7 +30,7 @@ use tagdeflect_core::camera::Pose;
 use tagdeflect_core::feed::GaugeReading;
 use tagdeflect_core::rig::{SpecimenConfig, TagRole};
 
-pub use tagdeflect_core::gauge::{validate_gauges, GaugeConfig, GaugeKind, GaugeSection, STRAIN_UNIT};
+pub use tagdeflect_core::gauge::{resolve_gauges, GaugeConfig, GaugeKind, GaugeSection, STRAIN_UNIT};
 
 /// Whether σ adds the reference poses' own covariance. It does not: a tag's errors in
 /// frame sets of one test are strongly correlated (the same held camera poses, lens and

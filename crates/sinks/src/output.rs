@@ -123,8 +123,8 @@ impl OutputConfig {
     #[cfg_attr(not(feature = "mqtt"), allow(unused_mut))]
     pub fn resolve_mqtt(mut self, base: &Path) -> Result<OutputConfig, Problem> {
         #[cfg(feature = "mqtt")]
-        if let Some(m) = self.mqtt.as_mut() {
-            m.validate(base).map_err(|p| p.within("mqtt"))?;
+        if let Some(m) = self.mqtt.take() {
+            self.mqtt = Some(m.resolve(base).map_err(|p| p.within("mqtt"))?);
         }
         #[cfg(not(feature = "mqtt"))]
         let _ = base;

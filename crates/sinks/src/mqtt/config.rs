@@ -80,9 +80,9 @@ fn default_status_interval() -> f64 {
 }
 
 impl MqttConfig {
-    /// Validates the section and resolves TLS file paths against `base` (the config's
-    /// folder). Keys relative to `[output.mqtt]`.
-    pub fn validate(&mut self, base: &Path) -> Result<(), Problem> {
+    /// Checks the section and returns it with its TLS file paths resolved against `base`
+    /// (the config's folder). Keys relative to `[output.mqtt]`.
+    pub fn resolve(mut self, base: &Path) -> Result<MqttConfig, Problem> {
         let url = BrokerUrl::parse(&self.url).map_err(|m| Problem::new("url", m.to_string()))?;
         self.check_names()?;
         self.check_numbers(&url)?;
@@ -90,7 +90,7 @@ impl MqttConfig {
         if url.tls {
             self.tls_config().map_err(|m| Problem::new("ca_file", m.to_string()))?;
         }
-        Ok(())
+        Ok(self)
     }
 
     /// The topic template, the rig, the test id and the client id.
