@@ -26,13 +26,13 @@ mod timing;
 mod trace;
 mod truth;
 
-/// The renderer and the lens model the scene is traced through (shared with the
-/// calibration's test images).
-pub use tagdeflect_render::{self as render, lens};
 pub use beam::FourPointBeam;
 pub use law::load_at;
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimRigSections};
+/// The renderer and the lens model the scene is traced through (shared with the
+/// calibration's test images).
+pub use tagdeflect_render::{self as render, lens};
 pub use truth::{SimTruthCamera, SimTruthLine, SimTruthTag};
 
 // The parameters of the rig are config (`[sim]`, checked when the config is read); the

@@ -9,9 +9,9 @@
 use tagdeflect_core::beam::BeamConfig;
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 use tagdeflect_core::camera_config::CameraConfig;
+use tagdeflect_core::gauge::{GaugeConfig, GaugeKind};
 use tagdeflect_core::rig::{BackgroundConfig, BackgroundTag, SpecimenConfig, SpecimenTag, TagRole, WorldConfig};
 use tagdeflect_core::tags::TagFamily;
-use tagdeflect_core::gauge::{GaugeConfig, GaugeKind};
 use tagdeflect_io::sync::SyncConfig;
 
 use super::beam::FourPointBeam;

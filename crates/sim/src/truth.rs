@@ -5,9 +5,9 @@ use nalgebra::{Rotation3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 use tagdeflect_core::camera::Pose;
+use tagdeflect_core::gauge::GaugeKind;
 use tagdeflect_core::rig::TagRole;
 use tagdeflect_core::tags::tag_corners;
-use tagdeflect_core::gauge::GaugeKind;
 
 use super::law::SimTest;
 use super::SimRig;
