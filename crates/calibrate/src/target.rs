@@ -53,8 +53,6 @@
 //! squares would have needed a second quad finder; the library's is already tested on every
 //! lens and blur the product sees.
 
-use std::fmt::Write as _;
-
 use nalgebra::{Point2, Vector3};
 
 use super::solve::View;
@@ -457,13 +455,13 @@ impl TargetDetector {
 
     /// Finds the target in `image`: board points and their sub-pixel pixels. `Err` says
     /// why nothing usable was found.
-    pub fn detect(&mut self, image: &GrayImage, name: &str) -> Result<View, String> {
+    pub fn detect(&mut self, image: &GrayImage, name: &str) -> Result<View, TargetNotFound> {
         self.detect_seen(image, name).map(|(v, _)| v)
     }
 
     /// [`detect`](Self::detect), plus what the detector saw of the board beyond the points
     /// used (for [`crate::guard::check_board`]).
-    pub fn detect_seen(&mut self, image: &GrayImage, name: &str) -> Result<(View, BoardSeen), String> {
+    pub fn detect_seen(&mut self, image: &GrayImage, name: &str) -> Result<(View, BoardSeen), TargetNotFound> {
         match self.spec.clone() {
             TargetSpec::Checkerboard { cols, rows, square_mm } => detect_checkerboard(image, name, cols, rows, square_mm),
             TargetSpec::TagBoard { cols, rows, size_mm, pitch_mm, first_id, .. } => {
@@ -490,17 +488,13 @@ impl TargetDetector {
                     }
                 }
                 if found < 2 {
-                    let mut m = format!("{found} board tags found (need at least 2)");
-                    if !seen.outside_ids.is_empty() {
-                        seen.outside_ids.sort_unstable();
-                        let _ = write!(
-                            m,
-                            "; tags {:?} of the family seen, outside the board's ids {first_id}..{}",
-                            seen.outside_ids,
-                            first_id + cols * rows - 1
-                        );
-                    }
-                    return Err(m);
+                    seen.outside_ids.sort_unstable();
+                    return Err(TargetNotFound::TooFewBoardTags {
+                        found,
+                        outside: seen.outside_ids,
+                        first_id,
+                        last_id: first_id + cols * rows - 1,
+                    });
                 }
                 seen.outside_ids.sort_unstable();
                 seen.ids.sort_unstable();
@@ -522,11 +516,11 @@ impl TargetDetector {
                     }
                 }
                 if seen.ids.len() < 2 {
-                    let mut m = format!("{} AprilGrid tags found (need at least 2)", seen.ids.len());
-                    if !seen.outside_ids.is_empty() {
-                        let _ = write!(m, "; tag36h11 tags {:?} seen, outside the grid's ids 0..{}", seen.outside_ids, cols * rows - 1);
-                    }
-                    return Err(m);
+                    return Err(TargetNotFound::TooFewGridTags {
+                        found: seen.ids.len(),
+                        outside: seen.outside_ids,
+                        last_id: cols * rows - 1,
+                    });
                 }
                 Ok((View { name: name.to_string(), object, image: pixels }, seen))
             }
@@ -542,6 +536,67 @@ impl TargetDetector {
             Vec::new()
         }
     }
+}
+
+/// Why the target was not found in an image (a view's `reason` in the report).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TargetNotFound {
+    /// Fewer than two tags of a tag board (`last_id` its last id), with the family's tags
+    /// seen outside the board's ids.
+    #[error("{found} board tags found (need at least 2){}", outside_board(.outside, *.first_id, *.last_id))]
+    TooFewBoardTags {
+        /// Board tags found.
+        found: usize,
+        /// Ids of the family seen outside the board's, sorted.
+        outside: Vec<u32>,
+        /// The board's first id.
+        first_id: u32,
+        /// The board's last id.
+        last_id: u32,
+    },
+    /// Fewer than two tags of an AprilGrid, with the tag36h11 tags seen outside its ids.
+    #[error("{found} AprilGrid tags found (need at least 2){}", outside_grid(.outside, *.last_id))]
+    TooFewGridTags {
+        /// Grid tags found.
+        found: usize,
+        /// Ids seen outside the grid's.
+        outside: Vec<u32>,
+        /// The grid's last id.
+        last_id: u32,
+    },
+    /// The checkerboard detector refused its parameters.
+    #[error("chessboard detector: {0}")]
+    ChessboardDetector(calib_targets_chessboard::ChessboardParamsError),
+    /// No checkerboard among the X-junctions found.
+    #[error("no checkerboard found ({junctions} X-junctions)")]
+    NoCheckerboard {
+        /// X-junctions found.
+        junctions: usize,
+    },
+    /// Too few checkerboard corners labelled.
+    #[error("only {found} checkerboard corners labelled (need {need})")]
+    TooFewCorners {
+        /// Corners labelled (after trimming to the board).
+        found: usize,
+        /// Corners needed.
+        need: usize,
+    },
+}
+
+/// `; tags [..] of the family seen, outside the board's ids F..L`, or nothing.
+fn outside_board(outside: &[u32], first_id: u32, last_id: u32) -> String {
+    if outside.is_empty() {
+        return String::new();
+    }
+    format!("; tags {outside:?} of the family seen, outside the board's ids {first_id}..{last_id}")
+}
+
+/// `; tag36h11 tags [..] seen, outside the grid's ids 0..L`, or nothing.
+fn outside_grid(outside: &[u32], last_id: u32) -> String {
+    if outside.is_empty() {
+        return String::new();
+    }
+    format!("; tag36h11 tags {outside:?} seen, outside the grid's ids 0..{last_id}")
 }
 
 /// What the detector saw of the board in one view, beyond the points it used: the evidence
@@ -561,12 +616,12 @@ pub struct BoardSeen {
 
 /// Checkerboard corners: ChESS + grid labelling (`calib-targets-chessboard`), trimmed to
 /// the board's size, refined by [`refine_saddle`].
-fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, square_mm: f64) -> Result<(View, BoardSeen), String> {
+fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, square_mm: f64) -> Result<(View, BoardSeen), TargetNotFound> {
     use calib_targets_chessboard as ct;
     let view = ct::GrayImageView { width: image.width as usize, height: image.height as usize, data: &image.data };
     let corners = ct::detect_corners(&view, &ct::default_chess_config());
-    let detector = ct::ChessboardDetector::new(ct::ChessboardParams::default()).map_err(|e| format!("chessboard detector: {e}"))?;
-    let det = detector.detect(&corners).ok_or_else(|| format!("no checkerboard found ({} X-junctions)", corners.len()))?;
+    let detector = ct::ChessboardDetector::new(ct::ChessboardParams::default()).map_err(TargetNotFound::ChessboardDetector)?;
+    let det = detector.detect(&corners).ok_or(TargetNotFound::NoCheckerboard { junctions: corners.len() })?;
     let mut pts: Vec<(i32, i32, Point2<f64>)> =
         det.corners.iter().map(|c| (c.grid.u, c.grid.v, Point2::new(c.position.x as f64, c.position.y as f64))).collect();
     // The labelling may be the board transposed (cols along v): pick the orientation whose
@@ -628,7 +683,7 @@ fn detect_checkerboard(image: &GrayImage, name: &str, cols: u32, rows: u32, squa
     }
     let min_points = ((cols * rows) as usize / 3).max(6);
     if pts.len() < min_points {
-        return Err(format!("only {} checkerboard corners labelled (need {min_points})", pts.len()));
+        return Err(TargetNotFound::TooFewCorners { found: pts.len(), need: min_points });
     }
     let (umin, _, vmin, _) = extent(&pts);
     let spacing = det.cell_size.map(|c| c as f64).unwrap_or(20.0);
