@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::Result;
 use tagdeflect_calibrate::solve::View;
 use tagdeflect_calibrate::target::TargetSpec;
-use tagdeflect_calibrate::{CalibrateError, CalibrateOptions, Rejected};
+use tagdeflect_calibrate::{CalibrateError, CalibrateOptions, GrabError, Rejected};
 
 use crate::config::Config;
 use tagdeflect_core::frame::FrameSet;
@@ -41,8 +41,8 @@ fn one_camera(config_path: &Path, camera: &str) -> Result<Config> {
     Ok(cfg)
 }
 
-fn grabber(cfg: Config) -> impl FnMut() -> Result<FrameSet, String> {
-    move || crate::graph::entry::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| format!("{e:#}"))
+fn grabber(cfg: Config) -> impl FnMut() -> Result<FrameSet, GrabError> {
+    move || crate::graph::entry::grab_frame_set(&cfg, Duration::from_secs(5)).map_err(|e| GrabError { message: format!("{e:#}") })
 }
 
 /// Live mode: views of the target from the config's camera `camera`, kept when they add

@@ -166,7 +166,7 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
         }
     }
     // The same checks as `[report]` in a config, the key named as the flag.
-    tagdeflect_report::config::validate_report(&o, config.specimen.beam.as_ref())
+    o.validate_with(config.specimen.beam.as_ref())
         .map_err(|p| bad(format!("--{}: {}", p.key.replace(['_', '.'], "-").trim_start_matches("lab-"), p.message)))?;
     Ok(o)
 }

@@ -40,7 +40,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     let report = match raw.report {
         None => None,
         Some(mut r) => {
-            tagdeflect_report::config::validate_report(&r, specimen.beam.as_ref()).map_err(|p| p.within("report"))?;
+            r.validate_with(specimen.beam.as_ref()).map_err(|p| p.within("report"))?;
             if r.out.is_relative() {
                 r.out = base.join(&r.out);
             }

@@ -765,7 +765,7 @@ fn live_calibration_of_a_tag_board_makes_the_second_pass_as_the_folder_does() {
         .collect();
     let grabber = || {
         let mut it = frames.clone().into_iter();
-        move || it.next().ok_or_else(|| "no more frames".to_string())
+        move || it.next().ok_or_else(|| tagdeflect_calibrate::GrabError { message: "no more frames".to_string() })
     };
     // How many frames the live mode keeps (it grabs until it has that many): its rule, here.
     let kept = {

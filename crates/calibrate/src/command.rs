@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use crate::error::CalibrateError;
+use crate::error::{CalibrateError, GrabError};
 use crate::fit::{calibrate_target_views, CalibrationRun, Rejected};
 use crate::options::{check_options, CalibrateOptions};
 use crate::outputs::write_outputs;
@@ -16,10 +16,10 @@ use tagdeflect_core::frame::FrameSet;
 /// `tagdeflect calibrate`: from a folder of images (`--images`) or live (`--config FILE
 /// --camera NAME`), then writes the outputs and prints the report.
 ///
-/// Live mode needs `grab`: the next frame set of that one camera (`Err` with the message
+/// Live mode needs `grab`: the next frame set of that one camera ([`GrabError`] with the message
 /// when none arrives in time), which the caller builds from the config's camera and its
 /// source; see [`live_views::grab_views`]. With `--images`, `grab` must be `None`.
-pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, String>>) -> Result<(), CalibrateError> {
+pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<FrameSet, GrabError>>) -> Result<(), CalibrateError> {
     let spec = check_options(opts)?;
     let (run, notes, not_found) = match (&opts.images, &opts.camera, grab) {
         (Some(dir), None, None) => calibrate_folder(dir, &spec, opts)?,
@@ -58,7 +58,7 @@ pub fn calibrate_folder(
 /// again, exactly as [`calibrate_folder`] does with files (the same frames give the same
 /// result either way).
 pub fn calibrate_live(
-    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
+    grab: &mut dyn FnMut() -> Result<FrameSet, GrabError>,
     camera: &str,
     spec: &TargetSpec,
     opts: &CalibrateOptions,

@@ -7,6 +7,15 @@ use crate::fit::Rejected;
 use crate::solve::SolveError;
 use crate::target::TargetError;
 
+/// Why the caller's grab delivered no frame set (live mode): the frame source's message —
+/// the source is the caller's, its errors are not this crate's types.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct GrabError {
+    /// What the frame source said.
+    pub message: String,
+}
+
 /// Why `tagdeflect calibrate` (or one of its steps) failed.
 ///
 /// **Bad input or runtime failure.** [`CalibrateError::is_bad_input`] tells the two apart:

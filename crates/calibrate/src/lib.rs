@@ -35,7 +35,7 @@ pub mod target;
 mod views;
 
 pub use command::{calibrate_folder, calibrate_guarded, calibrate_live, run};
-pub use error::CalibrateError;
+pub use error::{CalibrateError, GrabError};
 pub use fit::{calibrate_target_views, calibrate_views, tag_corner_bias, CalibrationRun, Rejected};
 pub use options::{check_options, CalibrateOptions};
 pub use views::{detect_views, detect_views_seen, detect_views_seen_with, image_files, Detected};

@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use super::solve::View;
 use super::target::{TargetDetector, TargetSpec};
-use crate::error::CalibrateError;
+use crate::error::{CalibrateError, GrabError};
 use crate::fit::Rejected;
 use tagdeflect_core::frame::{FrameSet, GrayImage};
 
@@ -74,13 +74,13 @@ impl CoverageTracker {
 
 /// Grabs views of `spec` from camera `camera`: at most `views` frames that add coverage,
 /// within `duration_s`. `grab` returns the next frame set of that one camera (its first frame
-/// is used; the command line grabs through its sources with a 5 s timeout), or the message
-/// of why none came, which ends the grab with [`CalibrateError::Grab`] (`camera <camera>:
+/// is used; the command line grabs through its sources with a 5 s timeout), or a
+/// [`GrabError`] with the message of why none came, which ends the grab with [`CalibrateError::Grab`] (`camera <camera>:
 /// <message>`). `camera` names the camera in messages and logs. Returns the views, the image
 /// size and the frames not used (with the reason) — the last only summarised, frames arrive
 /// continuously.
 pub fn grab_views(
-    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
+    grab: &mut dyn FnMut() -> Result<FrameSet, GrabError>,
     camera: &str,
     spec: &TargetSpec,
     views: usize,
@@ -107,7 +107,7 @@ pub struct Grabbed {
 
 /// [`grab_views`], keeping the kept views' frames too.
 pub fn grab_views_kept(
-    grab: &mut dyn FnMut() -> Result<FrameSet, String>,
+    grab: &mut dyn FnMut() -> Result<FrameSet, GrabError>,
     camera: &str,
     spec: &TargetSpec,
     views: usize,
@@ -122,7 +122,7 @@ pub fn grab_views_kept(
     let mut last_reason = String::new();
     let mut size = (0, 0);
     while kept.len() < views && t0.elapsed().as_secs_f64() < duration_s {
-        let set = grab().map_err(|message| CalibrateError::Grab { camera: camera.to_string(), message })?;
+        let set = grab().map_err(|e| CalibrateError::Grab { camera: camera.to_string(), message: e.message })?;
         let Some(frame) = set.frames.first() else { continue };
         frames += 1;
         let img = &frame.image;
@@ -149,7 +149,7 @@ pub fn grab_views_kept(
             }
             Err(reason) => {
                 no_target += 1;
-                last_reason = reason;
+                last_reason = reason.to_string();
             }
         }
     }
@@ -184,7 +184,7 @@ mod tests {
             FrameSet::new(seq, vec![Frame { camera: 0, seq, t_ns: 0, image: Arc::new(image) }])
         };
         let mut frames = vec![frame(0, -110.0), frame(1, -110.0), frame(2, 110.0)].into_iter();
-        let mut grab = || frames.next().ok_or_else(|| "no more frames".to_string());
+        let mut grab = || frames.next().ok_or_else(|| GrabError { message: "no more frames".to_string() });
         let (views, w, h, skipped) = grab_views(&mut grab, "left", &spec, 2, 60.0).unwrap();
         assert_eq!((w, h), (640, 480));
         assert_eq!(views.len(), 2, "{skipped:?}");
@@ -193,7 +193,7 @@ mod tests {
         assert_eq!(skipped, vec![Rejected { name: "1 of 3 frames".into(), reason: "added no coverage".into() }]);
 
         // No frame at all: the camera is named with the source's message, a runtime failure.
-        let mut grab = || Err::<FrameSet, _>("no camera delivered a frame within 5 s".to_string());
+        let mut grab = || Err::<FrameSet, _>(GrabError { message: "no camera delivered a frame within 5 s".to_string() });
         let e = grab_views(&mut grab, "left", &spec, 2, 60.0).unwrap_err();
         assert_eq!(e.to_string(), "camera left: no camera delivered a frame within 5 s");
         assert!(!e.is_bad_input());

@@ -98,7 +98,7 @@ pub fn detect_views_seen_with(
                 views.push(v);
                 seen.push((name, s));
             }
-            Err(reason) => failed.push(Rejected { name, reason }),
+            Err(e) => failed.push(Rejected { name, reason: e.to_string() }),
         }
     }
     let (width, height, _) = size.expect("at least one image");

@@ -9,7 +9,7 @@ use tagdeflect_core::gauge::GaugeKind;
 use tagdeflect_core::rig::TagRole;
 
 use crate::config::ReportConfig;
-use crate::curve::Curve;
+use crate::curve::{Curve, CurveError};
 use crate::error::ReportError;
 use crate::feed_reader::Feed;
 use crate::report::{Report, TestRig};
@@ -22,6 +22,50 @@ const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow
      software know them; the text of the standards was not at hand when this was written, so \
      the clause numbers and the definitions have not been checked against it. Check them \
      against your copy before relying on this report.";
+
+/// Why the curve a standard needs cannot be taken from a feed (a [`ReportError::Data`] of
+/// the feed).
+#[derive(Debug, thiserror::Error)]
+pub enum CurveChoiceError {
+    /// The deflection gauge asked for (or configured) is in no line of the feed.
+    #[error("no line carries the gauge `{gauge}` (gauges in the feed: {available:?})")]
+    NoGauge {
+        /// The gauge asked for.
+        gauge: String,
+        /// The gauges the feed carries.
+        available: Vec<String>,
+    },
+    /// Neither roles nor a deflection gauge give the net deflection.
+    #[error(
+        "no line carries net_deflection_mm: give the specimen tags roles (support and midspan) in the config, or a deflection gauge (--deflection-gauge)"
+    )]
+    NoNetDeflection,
+    /// The CMOD gauge asked for is not among the available gauges.
+    #[error("no line carries the CMOD gauge `{gauge}` (gauges in the feed: {available:?})")]
+    NoCmodGauge {
+        /// The gauge asked for.
+        gauge: String,
+        /// The gauges available.
+        available: Vec<String>,
+    },
+    /// No gauge looks like the CMOD.
+    #[error(
+        "EN 14651 needs the CMOD: no gauge named `cmod` in the feed (gauges: {available:?}); configure an `opening` gauge across the notch or name one with --cmod-gauge"
+    )]
+    NoCmod {
+        /// The gauges available.
+        available: Vec<String>,
+    },
+    /// Several gauges look like the CMOD.
+    #[error("several gauges could be the CMOD ({candidates:?}): name one with --cmod-gauge")]
+    SeveralCmod {
+        /// The gauges named like an opening.
+        candidates: Vec<String>,
+    },
+    /// The gathered columns do not make a curve.
+    #[error(transparent)]
+    Curve(#[from] CurveError),
+}
 
 /// Builds the report of a feed, with the load-based values from the UTM's own samples when
 /// `utm` is given (SPEC "Report").
@@ -38,7 +82,7 @@ pub fn build(
             "the report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm (and notch_mm for EN 14651)"
                 .into(),
     })?;
-    let data_err = |message: String| ReportError::Data { path: feed.path.clone(), message };
+    let data_err = |e: CurveChoiceError| ReportError::Data { path: feed.path.clone(), message: e.to_string() };
     let (feed_curve, x_name, x_axis, x_source) = match opts.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => deflection_curve(feed, config, opts).map_err(data_err)?,
         Standard::En14651 => {
@@ -219,20 +263,20 @@ fn gauge_columns(feed: &Feed, name: &str) -> Columns {
     c
 }
 
-fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportConfig, what: &'static str) -> Result<Curve, String> {
-    Curve::new(c.t, c.p, c.x, c.sx, ref_sigma, opts.smooth_points, opts.load_resolution_kn.unwrap_or(0.0), what).map_err(|e| e.to_string())
+fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportConfig, what: &'static str) -> Result<Curve, CurveError> {
+    Curve::new(c.t, c.p, c.x, c.sx, ref_sigma, opts.smooth_points, opts.load_resolution_kn.unwrap_or(0.0), what)
 }
 
 /// Load against net deflection: a gauge when asked for, else the feed's `net_deflection_mm`
 /// with σ propagated from the role tags' `sigma_mm` along `world.up`.
-fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
+fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), CurveChoiceError> {
     // Asked for, else the config's `net_deflection` gauge when the feed carries it (its σ
     // comes from the tags' covariance), else the feed's net_deflection_mm.
     let configured =
         config.gauges.iter().find(|g| g.kind == GaugeKind::NetDeflection && feed.gauge_names().contains(&g.name)).map(|g| g.name.clone());
     if let Some(g) = opts.deflection_gauge.as_ref().or(configured.as_ref()) {
         if !feed.gauge_names().contains(g) {
-            return Err(format!("no line carries the gauge `{g}` (gauges in the feed: {:?})", feed.gauge_names()));
+            return Err(CurveChoiceError::NoGauge { gauge: g.clone(), available: feed.gauge_names() });
         }
         let (ref_sigma, ref_text) = gauge_reference_sigma(feed, g);
         let curve = curve_of(gauge_columns(feed, g), ref_sigma, opts, "deflection")?;
@@ -264,7 +308,7 @@ fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Resul
         c.sx.push(role_sigma(l, config, &down_sigma));
     }
     if !any_net {
-        return Err("no line carries net_deflection_mm: give the specimen tags roles (support and midspan) in the config, or a deflection gauge (--deflection-gauge)".into());
+        return Err(CurveChoiceError::NoNetDeflection);
     }
     // Reference σ: the roles' first-line σ combined like the net deflection itself.
     let group =
@@ -301,7 +345,7 @@ fn role_sigma(l: &FeedLine, config: &TestRig, down_sigma: &dyn Fn([f64; 3]) -> f
 }
 
 /// The CMOD gauge of `feed`: [`choose_cmod_gauge`] among the gauges the feed carries.
-fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result<String, String> {
+fn cmod_gauge_name(feed: &Feed, config: &TestRig, asked: Option<&str>) -> Result<String, CurveChoiceError> {
     choose_cmod_gauge(&config.gauges, &feed.gauge_names(), asked)
 }
 
@@ -314,7 +358,7 @@ pub fn choose_cmod_gauge(
     gauges: &[tagdeflect_core::gauge::GaugeConfig],
     available: &[String],
     asked: Option<&str>,
-) -> Result<String, String> {
+) -> Result<String, CurveChoiceError> {
     let names = available;
     let openings: Vec<&str> =
         gauges.iter().filter(|g| g.kind == GaugeKind::Opening && names.contains(&g.name)).map(|g| g.name.as_str()).collect();
@@ -325,7 +369,7 @@ pub fn choose_cmod_gauge(
         return if names.iter().any(|n| n == a) {
             Ok(a.to_string())
         } else {
-            Err(format!("no line carries the CMOD gauge `{a}` (gauges in the feed: {names:?})"))
+            Err(CurveChoiceError::NoCmodGauge { gauge: a.to_string(), available: names.to_vec() })
         };
     }
     if let Some(n) = names.iter().find(|n| n.eq_ignore_ascii_case("cmod")) {
@@ -334,14 +378,12 @@ pub fn choose_cmod_gauge(
     let like: Vec<&String> = names.iter().filter(|n| n.to_lowercase().contains("cmod") || n.to_lowercase().contains("opening")).collect();
     match like.as_slice() {
         [one] => Ok((*one).clone()),
-        [] => Err(format!(
-            "EN 14651 needs the CMOD: no gauge named `cmod` in the feed (gauges: {names:?}); configure an `opening` gauge across the notch or name one with --cmod-gauge"
-        )),
-        more => Err(format!("several gauges could be the CMOD ({more:?}): name one with --cmod-gauge")),
+        [] => Err(CurveChoiceError::NoCmod { available: names.to_vec() }),
+        more => Err(CurveChoiceError::SeveralCmod { candidates: more.iter().map(|n| (*n).clone()).collect() }),
     }
 }
 
-fn cmod_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), String> {
+fn cmod_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), CurveChoiceError> {
     let name = cmod_gauge_name(feed, config, opts.cmod_gauge.as_deref())?;
     let (ref_sigma, ref_text) = gauge_reference_sigma(feed, &name);
     let curve = curve_of(gauge_columns(feed, &name), ref_sigma, opts, "CMOD")?;

@@ -1,6 +1,6 @@
 //! The report's section of the config: `[report]` (what `run` writes at its end), checked
 //! against the specimen's geometry (`[specimen.beam]`, [`BeamConfig`]) when the config is
-//! loaded ([`validate_report`]).
+//! loaded ([`ReportConfig::validate_with`]).
 
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -196,6 +196,42 @@ impl ReportConfig {
     pub fn limits(&self) -> crate::feed_reader::Limits {
         crate::feed_reader::Limits { max_load_kn: self.max_load_kn, max_length_mm: self.max_length_mm }
     }
+
+    /// Checks `[report]` (keys relative to it) against the specimen's geometry. It needs the
+    /// beam because a report computes stresses from `[specimen.beam]`, which lives outside
+    /// `[report]`: without it there is no report, and EN 14651 needs the beam's notch.
+    pub fn validate_with(&self, beam: Option<&BeamConfig>) -> Result<(), Problem> {
+        let Some(beam) = beam else {
+            return Err(Problem::new(
+                "standard",
+                "a report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm",
+            ));
+        };
+        if self.standard == Standard::En14651 && beam.notch_mm.is_none() {
+            return Err(Problem::new("standard", "EN 14651 tests notched beams: give [specimen.beam] notch_mm"));
+        }
+        if self.out.as_os_str().is_empty() {
+            return Err(Problem::new("out", "must name a folder"));
+        }
+        if self.smooth_points == 0 || self.smooth_points.is_multiple_of(2) || self.smooth_points > 101 {
+            return Err(Problem::new(
+                "smooth_points",
+                format!("must be an odd number of points from 1 to 101, got {}", self.smooth_points),
+            ));
+        }
+        if let Some(q) = self.load_resolution_kn {
+            if !(q.is_finite() && q >= 0.0) {
+                return Err(Problem::new("load_resolution_kn", format!("must be a non-negative load in kN, got {q}")));
+            }
+        }
+        for (k, v) in [("max_load_kn", self.max_load_kn), ("max_length_mm", self.max_length_mm), ("max_gap_s", self.max_gap_s)] {
+            if !(v.is_finite() && v > 0.0 && v <= 1e9) {
+                return Err(Problem::new(k, format!("must be a positive number up to 1e9, got {v}")));
+            }
+        }
+        self.lab.validate().map_err(|p| p.within("lab"))?;
+        Ok(())
+    }
 }
 
 /// Default smoothing window (points).
@@ -205,36 +241,4 @@ pub fn default_smooth() -> usize {
 
 fn is_default_smooth(n: &usize) -> bool {
     *n == default_smooth()
-}
-
-/// Checks `[report]` against the beam it will need.
-/// Keys are relative to `[report]`.
-pub fn validate_report(r: &ReportConfig, beam: Option<&BeamConfig>) -> Result<(), Problem> {
-    let Some(beam) = beam else {
-        return Err(Problem::new(
-            "standard",
-            "a report needs the specimen's geometry: add [specimen.beam] with width_mm, depth_mm, span_mm",
-        ));
-    };
-    if r.standard == Standard::En14651 && beam.notch_mm.is_none() {
-        return Err(Problem::new("standard", "EN 14651 tests notched beams: give [specimen.beam] notch_mm"));
-    }
-    if r.out.as_os_str().is_empty() {
-        return Err(Problem::new("out", "must name a folder"));
-    }
-    if r.smooth_points == 0 || r.smooth_points.is_multiple_of(2) || r.smooth_points > 101 {
-        return Err(Problem::new("smooth_points", format!("must be an odd number of points from 1 to 101, got {}", r.smooth_points)));
-    }
-    if let Some(q) = r.load_resolution_kn {
-        if !(q.is_finite() && q >= 0.0) {
-            return Err(Problem::new("load_resolution_kn", format!("must be a non-negative load in kN, got {q}")));
-        }
-    }
-    for (k, v) in [("max_load_kn", r.max_load_kn), ("max_length_mm", r.max_length_mm), ("max_gap_s", r.max_gap_s)] {
-        if !(v.is_finite() && v > 0.0 && v <= 1e9) {
-            return Err(Problem::new(k, format!("must be a positive number up to 1e9, got {v}")));
-        }
-    }
-    r.lab.validate().map_err(|p| p.within("lab"))?;
-    Ok(())
 }

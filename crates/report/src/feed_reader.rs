@@ -134,7 +134,7 @@ impl Feed {
                     return Err(bad(no, e.to_string()));
                 }
             };
-            check_values(&l, &opts.limits).map_err(|m| bad(no, m))?;
+            check_values(&l, &opts.limits).map_err(|e| bad(no, e.to_string()))?;
             if let (Some(prev), Some(&prev_no)) = (cur.lines.last(), cur.line_numbers.last()) {
                 // A resumed test: a new segment of this run, not a new run (module doc).
                 let same_test = match (&l.test, &prev.test) {
@@ -266,31 +266,56 @@ fn text_line_of(bytes: &[u8]) -> usize {
     bytes.iter().filter(|&&b| b == b'\n').count() + 1
 }
 
+/// A value of a feed line that is not finite or not within the limits; the message names
+/// the field.
+#[derive(Debug, thiserror::Error)]
+enum ValueError {
+    #[error("t_ns {t_ns} is not a time between 1970 and 2200 (ns since the Unix epoch)")]
+    Time { t_ns: i64 },
+    #[error("seq {seq} is beyond 2^53 (not a frame-set count)")]
+    Seq { seq: u64 },
+    #[error("{what} = {} mm is outside ±{max_mm} mm (max_length_mm)", g(*.value))]
+    Length { what: String, value: f64, max_mm: f64 },
+    #[error("{what} = {} is not a σ between 0 and {max_mm} mm", g(*.value))]
+    Sigma { what: String, value: f64, max_mm: f64 },
+    #[error("load_kN = {} is outside ±{max_kn} kN (max_load_kn)", g(*.value))]
+    Load { value: f64, max_kn: f64 },
+    #[error("gauge {name} = {} {unit} is not a finite reading within ±1e9", g(*.value))]
+    Gauge { name: String, value: f64, unit: String },
+    #[error("gauge {name} sigma = {sigma} is not a finite, non-negative σ")]
+    GaugeSigma { name: String, sigma: f64 },
+    #[error("clock_offset_ms = {value} ± {sigma} is not an offset within ±10^7 ms")]
+    ClockOffset { value: f64, sigma: f64 },
+    #[error("camera {camera} {field} = {value} is not finite")]
+    CameraDrift { camera: String, field: &'static str, value: f64 },
+}
+
 /// Every value of a line finite and within the limits; the message names the field.
-fn check_values(l: &FeedLine, lim: &Limits) -> Result<(), String> {
+fn check_values(l: &FeedLine, lim: &Limits) -> Result<(), ValueError> {
     if !(0..=MAX_T_NS).contains(&l.t_ns) {
-        return Err(format!("t_ns {} is not a time between 1970 and 2200 (ns since the Unix epoch)", l.t_ns));
+        return Err(ValueError::Time { t_ns: l.t_ns });
     }
     if l.seq > (1u64 << 53) {
-        return Err(format!("seq {} is beyond 2^53 (not a frame-set count)", l.seq));
+        return Err(ValueError::Seq { seq: l.seq });
     }
-    let len = |what: &str, v: f64| -> Result<(), String> {
-        if v.is_finite() && v.abs() <= lim.max_length_mm {
+    let max_mm = lim.max_length_mm;
+    let len = |what: &str, v: f64| -> Result<(), ValueError> {
+        if v.is_finite() && v.abs() <= max_mm {
             Ok(())
         } else {
-            Err(format!("{what} = {} mm is outside ±{} mm (max_length_mm)", g(v), lim.max_length_mm))
+            Err(ValueError::Length { what: what.to_string(), value: v, max_mm })
         }
     };
-    let sig = |what: &str, v: f64| -> Result<(), String> {
-        if v.is_finite() && (0.0..=lim.max_length_mm).contains(&v) {
+    let sig = |what: &str, v: f64| -> Result<(), ValueError> {
+        if v.is_finite() && (0.0..=max_mm).contains(&v) {
             Ok(())
         } else {
-            Err(format!("{what} = {} is not a σ between 0 and {} mm", g(v), lim.max_length_mm))
+            Err(ValueError::Sigma { what: what.to_string(), value: v, max_mm })
         }
     };
     if let Some(p) = l.load_kn {
         if !(p.is_finite() && p.abs() <= lim.max_load_kn) {
-            return Err(format!("load_kN = {} is outside ±{} kN (max_load_kn)", g(p), lim.max_load_kn));
+            return Err(ValueError::Load { value: p, max_kn: lim.max_load_kn });
         }
     }
     if let Some(s) = l.stroke_mm {
@@ -312,24 +337,24 @@ fn check_values(l: &FeedLine, lim: &Limits) -> Result<(), String> {
         if g.unit == "mm" || g.unit.is_empty() {
             len(&format!("gauge {name}"), g.value)?;
         } else if !(g.value.is_finite() && g.value.abs() <= MAX_OTHER_GAUGE) {
-            return Err(format!("gauge {name} = {} {} is not a finite reading within ±1e9", fmt_g(g.value), g.unit));
+            return Err(ValueError::Gauge { name: name.clone(), value: g.value, unit: g.unit.clone() });
         }
         if let Some(s) = g.known_sigma() {
             if !(s.is_finite() && s >= 0.0 && (g.unit != "mm" || s <= lim.max_length_mm)) {
-                return Err(format!("gauge {name} sigma = {s} is not a finite, non-negative σ"));
+                return Err(ValueError::GaugeSigma { name: name.clone(), sigma: s });
             }
         }
     }
     if let Some(c) = &l.clock_offset_ms {
         if !(c.value.is_finite() && c.value.abs() <= 1e7 && c.sigma.is_finite() && (0.0..=1e7).contains(&c.sigma)) {
-            return Err(format!("clock_offset_ms = {} ± {} is not an offset within ±10^7 ms", c.value, c.sigma));
+            return Err(ValueError::ClockOffset { value: c.value, sigma: c.sigma });
         }
     }
     for c in &l.cameras {
         for (k, v) in [("drift_deg", c.drift_deg), ("drift_mm", c.drift_mm)] {
             if let Some(v) = v {
                 if !(v.is_finite() && v.abs() <= 360.0 * 1e3) {
-                    return Err(format!("camera {} {k} = {v} is not finite", c.name));
+                    return Err(ValueError::CameraDrift { camera: c.name.clone(), field: k, value: v });
                 }
             }
         }

@@ -5,8 +5,9 @@ use std::fmt::Write;
 
 use crate::output::InputHash;
 use crate::plots::Plot;
+use crate::qc::Qc;
 use crate::quantity::Quantity;
-use crate::report::Report;
+use crate::report::{Entry, Report};
 use crate::standard::Standard;
 
 fn esc(s: &str) -> String {
@@ -83,15 +84,35 @@ tr.informative td { color: var(--muted); }
 }
 "#;
 
-/// The HTML page of a report.
+/// The HTML page of a report: its sections in order, each written by its own function.
 pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     let mut h = String::with_capacity(64 * 1024);
-    let std_short = match report.standard {
+    let std_short = standard_short(report.standard);
+    head(&mut h, report, std_short);
+    header(&mut h, report, std_short);
+    validity_banner(&mut h, report, std_short);
+    identification(&mut h, report, std_short);
+    results(&mut h, report);
+    specimen(&mut h, report);
+    curves(&mut h, plots);
+    method(&mut h, report);
+    quality_control(&mut h, report);
+    inputs_table(&mut h, inputs);
+    footer(&mut h);
+    h
+}
+
+/// The standard's short name in the page's titles.
+fn standard_short(standard: Standard) -> &'static str {
+    match standard {
         Standard::AstmC1609 => "ASTM C1609",
         Standard::AstmC1856 => "ASTM C1856 (flexure per ASTM C1609)",
         Standard::En14651 => "EN 14651",
-    };
-    let qc = &report.qc;
+    }
+}
+
+/// `<head>`: the title, the style and the printed page's running head.
+fn head(h: &mut String, report: &Report, std_short: &str) {
     let lab = &report.lab;
     let head_text =
         format!("{} — specimen {} — {}", std_short, lab.specimen.as_deref().unwrap_or("(no id)"), lab.test_date.as_deref().unwrap_or(""));
@@ -102,12 +123,17 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         esc(std_short),
         css_string(&head_text)
     );
+}
+
+/// The page's header: the standard, the feed and its time span.
+fn header(h: &mut String, report: &Report, std_short: &str) {
+    let qc = &report.qc;
     let _ = write!(
         h,
         "<header><h1>Flexural test report — {}</h1><p class=\"sub\">{}{}</p><p class=\"sub\">Feed <code>{}</code>: {} lines, {} to {} ({:.1} s). Measured without contact by tagdeflect {}.</p></header>",
         esc(std_short),
         esc(report.standard.title()),
-        lab.edition.as_ref().map_or(String::new(), |e| format!(" — edition {}", esc(e))),
+        report.lab.edition.as_ref().map_or(String::new(), |e| format!(" — edition {}", esc(e))),
         esc(&report.feed_path.display().to_string()),
         qc.lines,
         time_utc(qc.first_t_ns),
@@ -115,24 +141,29 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         qc.duration_s,
         env!("CARGO_PKG_VERSION")
     );
+}
 
-    // Validity, first.
+/// The validity banner, first: valid, or why not.
+fn validity_banner(h: &mut String, report: &Report, std_short: &str) {
     let v = &report.validity;
     if v.valid {
         let _ = write!(h, "<div class=\"banner good\"><b>Valid test of {}</b>: every rule checked holds.</div>", esc(std_short));
-    } else {
-        let _ = write!(
-            h,
-            "<div class=\"banner bad\"><b>Not a valid test of {}</b> — the values below are for information only, not for a test report:<ul>",
-            esc(std_short)
-        );
-        for r in &v.reasons {
-            let _ = write!(h, "<li>{}</li>", esc(r));
-        }
-        h.push_str("</ul></div>");
+        return;
     }
+    let _ = write!(
+        h,
+        "<div class=\"banner bad\"><b>Not a valid test of {}</b> — the values below are for information only, not for a test report:<ul>",
+        esc(std_short)
+    );
+    for r in &v.reasons {
+        let _ = write!(h, "<li>{}</li>", esc(r));
+    }
+    h.push_str("</ul></div>");
+}
 
-    // Identification.
+/// The identification table: specimen, dates, machine, standard, laboratory.
+fn identification(h: &mut String, report: &Report, std_short: &str) {
+    let lab = &report.lab;
     let opt = |o: &Option<String>| o.as_deref().map_or("—".to_string(), esc);
     let standard_note = lab.edition.as_ref().map_or(String::new(), |e| format!(" ({})", esc(e)))
         + if report.options.response == crate::Response::Hardening { "; deflection-hardening response stated" } else { "" };
@@ -155,39 +186,13 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         opt(&lab.laboratory),
         if report.curve.load_from_utm { "UTM samples (own rate)" } else { "feed (frame rate)" }
     );
+}
 
-    // Results.
+/// The results table: every entry with its σ, or why it was not determined.
+fn results(h: &mut String, report: &Report) {
     h.push_str("<h2>Results</h2><table><tr><th>Quantity</th><th>Symbol</th><th class=\"num\">Value</th><th class=\"num\">± σ</th><th>Unit</th><th>Key</th><th>Definition</th></tr>");
     for e in &report.entries {
-        match &e.result {
-            Ok(q) => {
-                let d = decimals(q);
-                let q = &q.rounded();
-                let _ = write!(
-                    h,
-                    "<tr{}><td>{}</td><td>{}</td><td class=\"num\">{:.d$}</td><td class=\"num\">{:.d$}</td><td>{}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
-                    if report.validity.valid { "" } else { " class=\"informative\"" },
-                    esc(e.name),
-                    esc(e.symbol),
-                    q.value,
-                    q.sigma,
-                    esc(&q.unit),
-                    e.key,
-                    esc(e.clause)
-                );
-            }
-            Err(why) => {
-                let _ = write!(
-                    h,
-                    "<tr class=\"undetermined\"><td>{}</td><td>{}</td><td colspan=\"3\">not determined: {}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
-                    esc(e.name),
-                    esc(e.symbol),
-                    esc(why),
-                    e.key,
-                    esc(e.clause)
-                );
-            }
-        }
+        result_row(h, e, report.validity.valid);
     }
     let _ = write!(
         h,
@@ -195,8 +200,43 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         esc(&report.x_axis),
         esc(&report.load_source)
     );
+}
 
-    // Specimen.
+/// One row of the results table (informative when the test is not valid).
+fn result_row(h: &mut String, e: &Entry, valid: bool) {
+    match &e.result {
+        Ok(q) => {
+            let d = decimals(q);
+            let q = &q.rounded();
+            let _ = write!(
+                h,
+                "<tr{}><td>{}</td><td>{}</td><td class=\"num\">{:.d$}</td><td class=\"num\">{:.d$}</td><td>{}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                if valid { "" } else { " class=\"informative\"" },
+                esc(e.name),
+                esc(e.symbol),
+                q.value,
+                q.sigma,
+                esc(&q.unit),
+                e.key,
+                esc(e.clause)
+            );
+        }
+        Err(why) => {
+            let _ = write!(
+                h,
+                "<tr class=\"undetermined\"><td>{}</td><td>{}</td><td colspan=\"3\">not determined: {}</td><td class=\"key\">{}</td><td class=\"clause\">{}</td></tr>",
+                esc(e.name),
+                esc(e.symbol),
+                esc(why),
+                e.key,
+                esc(e.clause)
+            );
+        }
+    }
+}
+
+/// The specimen's dimensions, then the report's notes.
+fn specimen(h: &mut String, report: &Report) {
     let b = &report.beam;
     h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
     let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>| {
@@ -214,8 +254,10 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     for n in &report.notes {
         let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
     }
+}
 
-    // Plots.
+/// The plots, inline SVG.
+fn curves(h: &mut String, plots: &[Plot]) {
     h.push_str("<h2>Curves</h2>");
     for p in plots {
         let svg = p.svg.trim_start_matches(|c| c != '<');
@@ -229,10 +271,29 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
             p.name
         );
     }
+}
 
-    // Method.
-    let c = &report.curve;
+/// The method: how the curve, its σ and the values are determined, then every entry's method.
+fn method(h: &mut String, report: &Report) {
     h.push_str("<h2>Method</h2><ul>");
+    method_curve(h, report);
+    let _ = write!(h, "<li><b>Loads:</b> {}.</li>", esc(&report.load_source));
+    for (phase, r, (lo, hi)) in &report.validity.rates {
+        let _ = write!(h, "<li><b>Rate {}:</b> {:.3} mm/min (the standard: {lo} to {hi} mm/min).</li>", esc(phase), r);
+    }
+    for u in &report.validity.unchecked {
+        let _ = write!(h, "<li><b>Not checked:</b> {}</li>", esc(u));
+    }
+    h.push_str("</ul><table><tr><th>Key</th><th>How it is determined</th></tr>");
+    for e in &report.entries {
+        let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
+    }
+    h.push_str("</table>");
+}
+
+/// The method's items on the curve: its points, smoothing, load σ, interpolation, first peak.
+fn method_curve(h: &mut String, report: &Report) {
+    let c = &report.curve;
     let _ = write!(
         h,
         "<li><b>Curve:</b> load against {}, {} points in time order. {}: {}.</li>",
@@ -258,20 +319,12 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     if report.standard != Standard::En14651 {
         h.push_str("<li><b>First peak:</b> C1609 defines it as the first point where the slope of the curve is zero. Here: the first local maximum of the load (smoothed like the deflection) above 10 % of the maximum load after which the smoothed load falls by max(3·σ_load, 0.5 % of the maximum load) before exceeding it; P1 is the largest measured load within the smoothing window there. A flat stretch without such a fall is not taken as the first peak.</li>");
     }
-    let _ = write!(h, "<li><b>Loads:</b> {}.</li>", esc(&report.load_source));
-    for (phase, r, (lo, hi)) in &report.validity.rates {
-        let _ = write!(h, "<li><b>Rate {}:</b> {:.3} mm/min (the standard: {lo} to {hi} mm/min).</li>", esc(phase), r);
-    }
-    for u in &report.validity.unchecked {
-        let _ = write!(h, "<li><b>Not checked:</b> {}</li>", esc(u));
-    }
-    h.push_str("</ul><table><tr><th>Key</th><th>How it is determined</th></tr>");
-    for e in &report.entries {
-        let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
-    }
-    h.push_str("</table>");
+}
 
-    // QC.
+/// The quality control section: warnings, the checks, then the tables of outages, cameras,
+/// drift and coverage.
+fn quality_control(h: &mut String, report: &Report) {
+    let qc = &report.qc;
     h.push_str("<h2>Quality control</h2>");
     if qc.warnings.is_empty() {
         h.push_str("<p>No warnings.</p>");
@@ -282,6 +335,16 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         }
         h.push_str("</ul>");
     }
+    qc_checks(h, report);
+    utm_outages(h, qc);
+    cameras(h, qc);
+    drift_and_stale(h, qc);
+    tag_coverage(h, qc);
+}
+
+/// The table of the QC's checks.
+fn qc_checks(h: &mut String, report: &Report) {
+    let qc = &report.qc;
     h.push_str("<table><tr><th>Check</th><th class=\"num\">Value</th></tr>");
     let mut kv = |k: &str, v: String| {
         let _ = write!(h, "<tr><td>{}</td><td class=\"num\">{}</td></tr>", esc(k), esc(&v));
@@ -300,48 +363,65 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     kv("load scatter (robust)", format!("{:.4} kN", qc.load_noise_kn));
     kv("clock offset (as the feed reports it)", qc.clock_offset.as_ref().map_or("not in the feed".into(), clock_text));
     h.push_str("</table>");
-    if !qc.utm_outages.is_empty() {
-        h.push_str("<h3>UTM outages</h3><table><tr><th>from</th><th>to</th><th class=\"num\">duration</th></tr>");
-        for o in &qc.utm_outages {
-            let _ = write!(
-                h,
-                "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.2} s</td></tr>",
-                time_utc(o.from_t_ns),
-                time_utc(o.to_t_ns),
-                o.duration_s
-            );
-        }
-        h.push_str("</table>");
+}
+
+/// The UTM's outages, when there were any.
+fn utm_outages(h: &mut String, qc: &Qc) {
+    if qc.utm_outages.is_empty() {
+        return;
     }
-    if !qc.cameras.is_empty() {
-        h.push_str("<h3>Cameras</h3><table><tr><th>camera</th><th class=\"num\">bumps</th><th class=\"num\">lines without frame</th><th class=\"num\">lines without pose</th></tr>");
-        for c in &qc.cameras {
-            let _ = write!(
-                h,
-                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
-                esc(&c.camera),
-                c.bumps,
-                c.lines_without_frame,
-                c.lines_unposed
-            );
-        }
-        h.push_str("</table>");
-    }
-    if !qc.drift_and_stale.is_empty() {
-        h.push_str(
-            "<h3>Drift and stale poses</h3><table><tr><th>field</th><th class=\"num\">lines</th><th class=\"num\">largest</th></tr>",
+    h.push_str("<h3>UTM outages</h3><table><tr><th>from</th><th>to</th><th class=\"num\">duration</th></tr>");
+    for o in &qc.utm_outages {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.2} s</td></tr>",
+            time_utc(o.from_t_ns),
+            time_utc(o.to_t_ns),
+            o.duration_s
         );
-        for f in &qc.drift_and_stale {
-            let _ = write!(
-                h,
-                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
-                esc(&f.field),
-                f.lines,
-                f.max_abs.map_or(String::new(), |m| format!("{m:.4}"))
-            );
-        }
-        h.push_str("</table>");
     }
+    h.push_str("</table>");
+}
+
+/// The cameras' bumps and missing frames and poses, when the feed names cameras.
+fn cameras(h: &mut String, qc: &Qc) {
+    if qc.cameras.is_empty() {
+        return;
+    }
+    h.push_str("<h3>Cameras</h3><table><tr><th>camera</th><th class=\"num\">bumps</th><th class=\"num\">lines without frame</th><th class=\"num\">lines without pose</th></tr>");
+    for c in &qc.cameras {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+            esc(&c.camera),
+            c.bumps,
+            c.lines_without_frame,
+            c.lines_unposed
+        );
+    }
+    h.push_str("</table>");
+}
+
+/// The drift and stale-pose fields, when the feed has any.
+fn drift_and_stale(h: &mut String, qc: &Qc) {
+    if qc.drift_and_stale.is_empty() {
+        return;
+    }
+    h.push_str("<h3>Drift and stale poses</h3><table><tr><th>field</th><th class=\"num\">lines</th><th class=\"num\">largest</th></tr>");
+    for f in &qc.drift_and_stale {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+            esc(&f.field),
+            f.lines,
+            f.max_abs.map_or(String::new(), |m| format!("{m:.4}"))
+        );
+    }
+    h.push_str("</table>");
+}
+
+/// Coverage per tag.
+fn tag_coverage(h: &mut String, qc: &Qc) {
     h.push_str("<h3>Coverage per tag</h3><table><tr><th>tag</th><th>role</th><th class=\"num\">lines</th><th class=\"num\">coverage</th><th class=\"num\">mean views</th><th class=\"num\">median σ (up)</th></tr>");
     for t in &qc.tags {
         let _ = write!(
@@ -356,6 +436,10 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         );
     }
     h.push_str("</table>");
+}
+
+/// The inputs with their SHA-256.
+fn inputs_table(h: &mut String, inputs: &[InputHash]) {
     h.push_str("<h2>Inputs</h2><table><tr><th>role</th><th>file</th><th>SHA-256</th></tr>");
     for i in inputs {
         let _ = write!(
@@ -367,11 +451,14 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
         );
     }
     h.push_str("</table>");
+}
+
+/// The footer: the files beside the page, the version and the time of writing.
+fn footer(h: &mut String) {
     let _ = write!(
         h,
         "<footer>Files beside this page: <code>report.json</code> (every value with σ and unit), <code>curve.csv</code> (the feed as a table), the plots as PNG and SVG. Generated by tagdeflect {} on {}.</footer></body></html>",
         env!("CARGO_PKG_VERSION"),
         chrono::Utc::now().format("%Y-%m-%d %H:%M UTC")
     );
-    h
 }

@@ -36,7 +36,7 @@ mod utm_stream;
 pub mod validity;
 pub mod verify;
 
-pub use build::{build, choose_cmod_gauge};
+pub use build::{build, choose_cmod_gauge, CurveChoiceError};
 pub use config::{BeamConfig, LabInfo, ReportConfig, Response};
 pub use curve::{Curve, CurveError};
 pub use error::ReportError;

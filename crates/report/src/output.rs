@@ -67,7 +67,7 @@ fn chromium() -> Option<PathBuf> {
 
 /// Prints `html` to `pdf` with headless Chromium (A4, the page's own header and footer with
 /// page numbers); `Ok(false)` when there is no Chromium. The browser is killed after 120 s.
-fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
+fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, PdfError> {
     let Some(bin) = chromium() else { return Ok(false) };
     let profile = std::env::temp_dir().join(format!(
         "tagdeflect-pdf-{}-{}",
@@ -75,7 +75,7 @@ fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
         chrono::Utc::now().timestamp_nanos_opt().unwrap_or(0)
     ));
     let tmp = pdf.with_file_name(".report.pdf.tmp");
-    let url = format!("file://{}", std::path::absolute(html).map_err(|e| e.to_string())?.display());
+    let url = format!("file://{}", std::path::absolute(html).map_err(PdfError::Io)?.display());
     let mut child = std::process::Command::new(&bin)
         .args([
             "--headless",
@@ -94,7 +94,7 @@ fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
-        .map_err(|e| format!("{}: {e}", bin.display()))?;
+        .map_err(|source| PdfError::Spawn { bin: bin.clone(), source })?;
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
     let status = loop {
         match child.try_wait() {
@@ -103,19 +103,36 @@ fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, String> {
             Ok(None) => {
                 let _ = child.kill();
                 let _ = child.wait();
-                break Err("Chromium did not finish within 120 s".to_string());
+                break Err(PdfError::Timeout);
             }
-            Err(e) => break Err(e.to_string()),
+            Err(e) => break Err(PdfError::Io(e)),
         }
     };
     let _ = std::fs::remove_dir_all(&profile);
     let status = status?;
     if !status.success() || !tmp.is_file() {
         let _ = std::fs::remove_file(&tmp);
-        return Err(format!("{} exited with {status} without a PDF", bin.display()));
+        return Err(PdfError::NoPdf { bin, status });
     }
-    std::fs::rename(&tmp, pdf).map_err(|e| e.to_string())?;
+    std::fs::rename(&tmp, pdf).map_err(PdfError::Io)?;
     Ok(true)
+}
+
+/// Why Chromium did not print the PDF.
+#[derive(Debug, thiserror::Error)]
+enum PdfError {
+    /// Making the HTML's path absolute, waiting for the browser or moving the PDF failed.
+    #[error(transparent)]
+    Io(std::io::Error),
+    /// The browser could not be started.
+    #[error("{}: {source}", bin.display())]
+    Spawn { bin: PathBuf, source: std::io::Error },
+    /// The browser ran past its deadline and was killed.
+    #[error("Chromium did not finish within 120 s")]
+    Timeout,
+    /// The browser ended without writing the PDF.
+    #[error("{} exited with {status} without a PDF", bin.display())]
+    NoPdf { bin: PathBuf, status: std::process::ExitStatus },
 }
 
 /// One input of a report with its SHA-256.

@@ -40,7 +40,7 @@ const FONT_PATHS: [&str; 5] = [
 
 /// Registers a TrueType font for plot text once per process.
 pub(crate) fn ensure_font() -> Result<(), ReportError> {
-    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
+    static DONE: OnceLock<Result<(), NoFont>> = OnceLock::new();
     DONE.get_or_init(|| {
         let mut tried: Vec<String> = Vec::new();
         let from_env = std::env::var("TAGDEFLECT_FONT").ok();
@@ -54,17 +54,37 @@ pub(crate) fn ensure_font() -> Result<(), ReportError> {
                 return Ok(());
             }
         }
-        Err(format!(
-            "no TrueType font for the plots' text (tried {}): install Debian's fonts-dejavu-core (scripts/setup.sh does) or set TAGDEFLECT_FONT",
-            tried.join(", ")
-        ))
+        Err(NoFont { tried: tried.join(", ") })
     })
     .clone()
-    .map_err(|message| ReportError::Plot { name: "font".into(), message })
+    .map_err(|e| ReportError::Plot { name: "font".into(), message: e.to_string() })
 }
 
-fn err<E: std::fmt::Display>(e: E) -> String {
-    e.to_string()
+/// No font file of the list could be read and registered.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error(
+    "no TrueType font for the plots' text (tried {tried}): install Debian's fonts-dejavu-core (scripts/setup.sh does) or set TAGDEFLECT_FONT"
+)]
+struct NoFont {
+    /// The paths tried, comma-separated.
+    tried: String,
+}
+
+/// Why drawing a plot failed.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum PlotError {
+    /// The drawing backend failed: its message (the error type differs per backend, SVG or
+    /// bitmap).
+    #[error("{0}")]
+    Draw(String),
+    /// The PNG could not be encoded.
+    #[error(transparent)]
+    Png(#[from] png::EncodingError),
+}
+
+/// A drawing backend's error as a [`PlotError`].
+pub(crate) fn err<E: std::fmt::Display>(e: E) -> PlotError {
+    PlotError::Draw(e.to_string())
 }
 
 /// A marked point on the curve.
@@ -130,7 +150,7 @@ fn range(v: impl Iterator<Item = f64>) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
-fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, title: &str) -> Result<(), String> {
+fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, title: &str) -> Result<(), PlotError> {
     let c: &Curve = &report.curve;
     let d = decor(report);
     root.fill(&WHITE).map_err(err)?;
@@ -210,7 +230,7 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
     Ok(())
 }
 
-fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, feed: &Feed, title: &str) -> Result<(), String> {
+fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, feed: &Feed, title: &str) -> Result<(), PlotError> {
     let c = &report.feed_curve;
     let t0 = feed.lines[0].t_ns;
     let ts = |t: i64| (t - t0) as f64 * 1e-9;
@@ -268,7 +288,7 @@ fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report,
 fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
     chart: &mut ChartContext<'a, DB, CT>,
     position: SeriesLabelPosition,
-) -> Result<(), String> {
+) -> Result<(), PlotError> {
     chart
         .configure_series_labels()
         .position(position)
@@ -279,14 +299,14 @@ fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
         .map_err(err)
 }
 
-fn encode_png(rgb: &[u8]) -> Result<Vec<u8>, String> {
+fn encode_png(rgb: &[u8]) -> Result<Vec<u8>, PlotError> {
     let mut out = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut out, W, H);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header().map_err(err)?;
-        w.write_image_data(rgb).map_err(err)?;
+        let mut w = enc.write_header()?;
+        w.write_image_data(rgb)?;
     }
     Ok(out)
 }
@@ -301,7 +321,7 @@ pub fn draw_all(report: &Report, feed: &Feed) -> Result<Vec<Plot>, ReportError> 
     let time_title = format!("Load and {} over time", report.x_axis);
     let mut plots = Vec::new();
     for (name, title, which) in [(curve_name, curve_title, 0), ("time", time_title, 1)] {
-        let plot_err = |message: String| ReportError::Plot { name: name.to_string(), message };
+        let plot_err = |e: PlotError| ReportError::Plot { name: name.to_string(), message: e.to_string() };
         let mut svg = String::new();
         {
             let root = SVGBackend::with_string(&mut svg, (W, H)).into_drawing_area();

@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use plotters::prelude::*;
 
 use crate::error::ReportError;
+use crate::plots::{err, PlotError};
 use crate::report::Report;
 
 /// Statistics of one quantity over the specimens that have it.
@@ -114,7 +115,7 @@ pub fn write(reports: &[Report], dir: &Path) -> Result<Vec<PathBuf>, ReportError
     };
     put("series.json", serde_json::to_string_pretty(&doc).expect("json").as_bytes())?;
     crate::plots::ensure_font()?;
-    let svg = overlay_svg(reports, &names).map_err(|message| ReportError::Plot { name: "series_curves".into(), message })?;
+    let svg = overlay_svg(reports, &names).map_err(|e| ReportError::Plot { name: "series_curves".into(), message: e.to_string() })?;
     put("series_curves.svg", svg.as_bytes())?;
 
     let mut h = String::new();
@@ -163,12 +164,11 @@ pub fn write(reports: &[Report], dir: &Path) -> Result<Vec<PathBuf>, ReportError
     Ok(files)
 }
 
-fn overlay_svg(reports: &[Report], names: &[String]) -> Result<String, String> {
-    let e = |e: &dyn std::fmt::Display| e.to_string();
+fn overlay_svg(reports: &[Report], names: &[String]) -> Result<String, PlotError> {
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (960, 560)).into_drawing_area();
-        root.fill(&WHITE).map_err(|x| e(&x))?;
+        root.fill(&WHITE).map_err(err)?;
         let xmax = reports.iter().flat_map(|r| r.curve.xs.iter().cloned()).filter(|v| v.is_finite()).fold(0.0f64, f64::max).max(1e-3);
         let pmax = reports.iter().flat_map(|r| r.curve.load.iter().cloned()).filter(|v| v.is_finite()).fold(0.0f64, f64::max).max(1e-3);
         let x_axis = reports.first().map_or("x".to_string(), |r| r.x_axis.clone());
@@ -177,20 +177,20 @@ fn overlay_svg(reports: &[Report], names: &[String]) -> Result<String, String> {
             .x_label_area_size(44)
             .y_label_area_size(60)
             .build_cartesian_2d(0.0..xmax * 1.05, 0.0..pmax * 1.1)
-            .map_err(|x| e(&x))?;
-        chart.configure_mesh().x_desc(format!("{x_axis} [mm]")).y_desc("load [kN]").draw().map_err(|x| e(&x))?;
+            .map_err(err)?;
+        chart.configure_mesh().x_desc(format!("{x_axis} [mm]")).y_desc("load [kN]").draw().map_err(err)?;
         for (k, (r, n)) in reports.iter().zip(names).enumerate() {
             let color = Palette99::pick(k).to_rgba();
             let step = (r.curve.len() / 2000).max(1);
             let pts: Vec<(f64, f64)> = r.curve.xs.iter().zip(&r.curve.load).step_by(step).map(|(&x, &p)| (x, p)).collect();
             chart
                 .draw_series(LineSeries::new(pts, color.stroke_width(2)))
-                .map_err(|x| e(&x))?
+                .map_err(err)?
                 .label(n.clone())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
         }
-        chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(|x| e(&x))?;
-        root.present().map_err(|x| e(&x))?;
+        chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(err)?;
+        root.present().map_err(err)?;
     }
     Ok(svg)
 }
