@@ -6,14 +6,10 @@ use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use tagdeflect::commands::{self, bench::BenchOptions};
+use tagdeflect::commands::{self, bench::BenchOptions, optional, parse_duration_s};
 use tagdeflect::config::Config;
 use tagdeflect::graph::entry::{self as live, LiveOptions};
 use tagdeflect::graph::page::{self, http_options, parse_http_addr};
-#[cfg(feature = "sim")]
-use tagdeflect_io::recording::FrameFormat;
-#[cfg(feature = "sim")]
-use tagdeflect_sim::SimParams;
 
 /// Non-contact deflection measurement of beams in bending with AprilTags.
 #[derive(Parser)]
@@ -80,18 +76,9 @@ enum Command {
         #[arg(long, value_parser = parse_duration_s)]
         duration_s: Option<f64>,
     },
-    /// Write a synthetic recording with ground truth (`truth.jsonl`).
-    #[cfg(feature = "sim")]
-    Simulate {
-        /// The new recording folder.
-        #[arg(long)]
-        out: PathBuf,
-        /// How the frames are written (PGM: raw pixels, no decoding cost on replay).
-        #[arg(long, value_enum, default_value_t = FrameFormat::Png)]
-        frame_format: FrameFormat,
-        #[command(flatten)]
-        params: SimParams,
-    },
+    /// `simulate`, `demo` (the `sim` feature).
+    #[command(flatten)]
+    Sim(optional::sim::SimCommand),
     /// Validate a config (and open its sources) or a recording; print each camera's pose,
     /// reprojection error and the tags it sees.
     Check {
@@ -111,43 +98,14 @@ enum Command {
     /// Replay a recording as fast as possible and print throughput, stage times, latency
     /// and peak memory.
     Bench(BenchOptions),
-    /// The live pipeline on the built-in simulated rig (simulated cameras, simulated UTM
-    /// over real Modbus TCP on loopback); the feed goes to stdout.
-    #[cfg(feature = "sim")]
-    Demo {
-        /// Stop after this many seconds (default: until SIGTERM/SIGINT).
-        #[arg(long, value_parser = parse_duration_s)]
-        duration_s: Option<f64>,
-        /// Use this config instead of the built-in demo rig.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Serve the live page on ADDR (IP:PORT, port 0 = any free port) instead of
-        /// 127.0.0.1:8080; the bound address is printed on stderr as http://ADDR/.
-        #[arg(long, value_name = "ADDR", value_parser = parse_http_addr, conflicts_with = "no_http")]
-        http: Option<std::net::SocketAddr>,
-        /// Do not serve the live page.
-        #[arg(long)]
-        no_http: bool,
-        /// Keep each test in its own folder here (as `[output] tests`; enables the control API).
-        #[arg(long, value_name = "DIR")]
-        tests: Option<PathBuf>,
-        /// Serve the net deflection (or `[output.control] gauge`) as a control signal on a
-        /// read-only Modbus TCP server at ADDR (IP:PORT; see docs/control.md).
-        #[arg(long, value_name = "ADDR", value_parser = parse_control_addr)]
-        control: Option<std::net::SocketAddr>,
-    },
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
     Test(commands::lab_test::TestArgs),
-    /// Subscribe to the feeds rigs publish over MQTT and keep them in PostgreSQL.
-    #[cfg(feature = "archive")]
-    Archive(tagdeflect_archive::ArchiveOptions),
-    /// Measure how many feed lines per second one archive ingests (simulated rigs).
-    #[cfg(feature = "archive")]
-    ArchiveBench(tagdeflect_archive::bench::ArchiveBenchOptions),
-    /// Camera intrinsics from views of a target (images or a live camera); writes an OpenCV
-    /// FileStorage YAML and reports uncertainties, coverage and outliers.
-    #[cfg(feature = "calibrate")]
-    Calibrate(tagdeflect_calibrate::CalibrateOptions),
+    /// `archive`, `archive-bench` (the `archive` feature).
+    #[command(flatten)]
+    Archive(optional::archive::ArchiveCommand),
+    /// `calibrate` (the `calibrate` feature).
+    #[command(flatten)]
+    Calibrate(optional::calibrate::CalibrateCommand),
     /// The test report from a feed: report.html, report.json, curve.csv and plots.
     Report(commands::report::ReportArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
@@ -159,48 +117,9 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// A command this build was made without (its feature is named in the error); only in a
-    /// build without some feature, so a full build keeps clap's own error for a typo.
-    #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
-    #[command(external_subcommand)]
-    Missing(Vec<String>),
-}
-
-/// The commands that need a cargo feature, and the feature.
-#[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
-const FEATURE_COMMANDS: &[(&str, &str)] =
-    &[("simulate", "sim"), ("demo", "sim"), ("archive", "archive"), ("archive-bench", "archive"), ("calibrate", "calibrate")];
-
-/// The error for a command this build does not have.
-#[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
-fn missing_command(args: &[String]) -> anyhow::Error {
-    let name = args.first().map(String::as_str).unwrap_or("");
-    match FEATURE_COMMANDS.iter().find(|(c, _)| *c == name) {
-        Some((c, f)) => anyhow::Error::new(tagdeflect_core::BadInput::new(format!(
-            "`tagdeflect {c}` is not in this build: it needs the `{f}` feature (cargo build --release --features {f})"
-        ))),
-        None => anyhow::Error::new(tagdeflect_core::BadInput::new(format!("unknown command \"{name}\" (see `tagdeflect --help`)"))),
-    }
-}
-
-#[cfg(feature = "sim")] // only `demo --control` takes it
-fn parse_control_addr(s: &str) -> Result<std::net::SocketAddr, String> {
-    tagdeflect_core::listen::parse_listen_addr(s, tagdeflect_sinks::control_output::EXAMPLE_PORT).map_err(|e| e.to_string())
-}
-
-/// The live page of `demo`: `--http ADDR` must be served (an error if it cannot be);
-/// without it the config's `[output] http` is used, else [`DEFAULT_ADDR`] on loopback, where
-/// a port another program holds only costs the page (a warning); `--no-http`: none.
-///
-/// [`DEFAULT_ADDR`]: tagdeflect_sinks::http::DEFAULT_ADDR
-#[cfg(feature = "sim")]
-fn demo_http(http: Option<std::net::SocketAddr>, no_http: bool, configured: bool) -> anyhow::Result<Option<page::HttpOptions>> {
-    Ok(match (http, no_http) {
-        (_, true) => None,
-        (Some(addr), false) => http_options(Some(addr), true),
-        (None, false) if configured => None,
-        (None, false) => http_options(page::default_addr(), false),
-    })
+    /// A command this build lacks (only in a build without some feature).
+    #[command(flatten)]
+    Missing(optional::missing::MissingCommand),
 }
 
 fn main() -> ExitCode {
@@ -266,8 +185,7 @@ fn exit_code(e: &anyhow::Error) -> u8 {
 
 /// The error types that say the input is at fault.
 fn is_bad_input(c: &(dyn std::error::Error + 'static)) -> bool {
-    #[cfg(feature = "sim")]
-    if c.is::<tagdeflect_sim::SimError>() {
+    if optional::sim::is_bad_input(c) {
         return true;
     }
     if page::is_bad_input(c) {
@@ -280,16 +198,6 @@ fn is_bad_input(c: &(dyn std::error::Error + 'static)) -> bool {
         || c.is::<tagdeflect_report::ReportError>()
         || c.is::<tagdeflect_io::sources::SourceError>()
         || c.is::<clap::Error>()
-}
-
-/// An archive error with its exit code (bad options exit 2, a failure of the machine 1).
-#[cfg(feature = "archive")]
-fn archive_error(e: tagdeflect_archive::ArchiveError) -> anyhow::Error {
-    if e.is_bad_input() {
-        anyhow::Error::new(tagdeflect_core::BadInput::new(e.to_string()))
-    } else {
-        anyhow::Error::new(tagdeflect_core::RuntimeFailure::new(e.to_string()))
-    }
 }
 
 fn init_logging() {
@@ -343,19 +251,6 @@ where
     }
 }
 
-/// Longest `--duration-s` accepted (about 115 days).
-const MAX_DURATION_S: f64 = 1e7;
-
-/// `--duration-s`: a finite number of seconds in (0, 1e7].
-fn parse_duration_s(s: &str) -> Result<f64, String> {
-    let v: f64 = s.trim().parse().map_err(|_| format!("\"{s}\" is not a number of seconds"))?;
-    if v.is_finite() && v > 0.0 && v <= MAX_DURATION_S {
-        Ok(v)
-    } else {
-        Err(format!("{s}: expected more than 0 and at most {MAX_DURATION_S} seconds (about 115 days)"))
-    }
-}
-
 fn load_config(path: &std::path::Path) -> Result<Config> {
     Ok(Config::load(path)?)
 }
@@ -386,22 +281,6 @@ fn run(cli: Cli) -> Result<()> {
             let cfg = load_config(&config)?;
             live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
-        #[cfg(feature = "sim")]
-        Command::Simulate { out, frame_format, params } => {
-            let summary = anyhow::Context::with_context(tagdeflect::commands::simulate::simulate_as(&params, &out, frame_format), || {
-                format!("simulating into {}", out.display())
-            })?;
-            eprintln!(
-                "simulated {} frame sets ({} frames, {} dropped, {} UTM samples) into {}; final midspan deflection {:.3} mm",
-                summary.frame_sets,
-                summary.frames,
-                summary.dropped,
-                summary.utm_samples,
-                summary.dir.display(),
-                summary.final_deflection_mm
-            );
-            Ok(())
-        }
         Command::Check { dir, config } => match (dir, config) {
             (Some(dir), None) => commands::check::check_recording(&dir),
             (None, Some(cfg)) => commands::check::check_config(&cfg),
@@ -410,56 +289,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::Cameras { with_fake } => commands::cameras::list(with_fake),
         Command::Test(args) => commands::lab_test::run(&args),
         Command::Bench(opts) => commands::bench::bench(&opts),
-        #[cfg(feature = "sim")]
-        Command::Demo { duration_s, config, http, no_http, tests, control } => {
-            let cfg = match config {
-                Some(p) => load_config(&p)?,
-                None => Config::demo(),
-            };
-            // The page by default on loopback; a taken default port only costs the page.
-            let mut cfg = cfg;
-            if let Some(addr) = control {
-                let c = cfg.output.control.get_or_insert_with(|| tagdeflect_sinks::control_output::ControlConfig::on(&addr.to_string()));
-                c.modbus = addr.to_string();
-            }
-            if no_http {
-                cfg.output.http = None;
-            }
-            if tests.is_some() {
-                cfg.output.tests = tests;
-            }
-            let http = demo_http(http, no_http, cfg.output.http.is_some())?;
-            live::run(cfg, LiveOptions { duration_s, feed_to_stdout: true, http, ..LiveOptions::default() })
-        }
-        #[cfg(feature = "archive")]
-        Command::Archive(opts) => tagdeflect_archive::run(opts).map_err(archive_error),
-        #[cfg(feature = "archive")]
-        Command::ArchiveBench(opts) => tagdeflect_archive::bench::run(&opts).map_err(archive_error),
-        #[cfg(feature = "calibrate")]
-        Command::Calibrate(opts) => commands::calibrate::run(&opts),
+        Command::Sim(command) => command.run(),
+        Command::Archive(command) => command.run(),
+        Command::Calibrate(command) => command.run(),
         Command::Report(args) => commands::report::run_cli(&args).map(|_| ()),
         Command::Export(args) => commands::report::export_cli(&args),
         Command::Assets { out } => commands::assets::write(<Cli as clap::CommandFactory>::command(), &out),
-        #[cfg(not(all(feature = "sim", feature = "archive", feature = "calibrate")))]
-        Command::Missing(args) => Err(missing_command(&args)),
-    }
-}
-
-#[cfg(all(test, feature = "sim", feature = "http"))]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn demo_serves_the_default_page_on_loopback_and_only_warns_when_its_port_is_taken() {
-        let default = demo_http(None, false, false).unwrap().unwrap();
-        assert_eq!(default.addr, std::net::SocketAddr::from(([127, 0, 0, 1], 8080)));
-        assert!(default.addr.ip().is_loopback());
-        assert!(!default.required, "a taken default port costs only the page");
-        let given: std::net::SocketAddr = "127.0.0.1:0".parse().unwrap();
-        let asked = demo_http(Some(given), false, false).unwrap().unwrap();
-        assert_eq!((asked.addr, asked.required), (given, true), "--http ADDR must be served");
-        assert!(demo_http(None, true, false).unwrap().is_none());
-        assert!(demo_http(Some(given), true, false).unwrap().is_none());
-        assert!(demo_http(None, false, true).unwrap().is_none(), "the config's [output] http is served by the graph");
+        Command::Missing(command) => command.run(),
     }
 }

@@ -132,33 +132,56 @@ fn apply_measured(rig: &mut tagdeflect_report::TestRig, measured: &std::collecti
 }
 
 /// The report of a stopped test with a standard, into `folder/report/`.
-fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), String> {
+fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), TestReportError> {
     let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
     let out = folder.join("report");
     let std: tagdeflect_report::Standard =
-        serde_json::from_value(serde_json::json!(standard)).map_err(|e| format!("standard {standard}: {e}"))?;
+        serde_json::from_value(serde_json::json!(standard)).map_err(|source| TestReportError::Standard { standard: standard.to_string(), source })?;
     let mut rc = match &config.report {
         Some(r) => r.clone(),
-        None => serde_json::from_value(serde_json::json!({"standard": standard, "out": out})).map_err(|e| format!("[report]: {e}"))?,
+        None => serde_json::from_value(serde_json::json!({"standard": standard, "out": out})).map_err(TestReportError::Section)?,
     };
     rc.standard = std;
-    let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl")).map_err(|e| e.to_string())?;
+    let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl"))?;
     let mut rig = config.test_rig();
     let measured = apply_measured(&mut rig, &record.meta.measured);
     let cfg_path = folder.join("tagdeflect.toml");
     // The load-based values from the test's own UTM samples (SPEC "Report").
     let utm_path = folder.join("utm.jsonl");
     let utm = match std::fs::metadata(&utm_path) {
-        Ok(m) if m.len() > 0 => Some(tagdeflect_report::UtmStream::read(&utm_path, &rc.limits()).map_err(|e| e.to_string())?),
+        Ok(m) if m.len() > 0 => Some(tagdeflect_report::UtmStream::read(&utm_path, &rc.limits())?),
         _ => None,
     };
-    let mut rep = tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, &rc).map_err(|e| e.to_string())?;
+    let mut rep = tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, &rc)?;
     rep.inputs = vec![("config".into(), cfg_path)];
     if !measured.is_empty() {
         rep.beam_source = format!("the test's measured dimensions ({}), else config [specimen.beam]", measured.join(", "));
         rep.notes
             .push(format!("The test's measured dimensions (test.json `measured`) replace [specimen.beam]'s: {}.", measured.join(", ")));
     }
-    std::fs::create_dir_all(&out).map_err(|e| e.to_string())?;
-    tagdeflect_report::write(&rep, &feed, &out).map(|_| ()).map_err(|e| e.to_string())
+    std::fs::create_dir_all(&out)?;
+    tagdeflect_report::write(&rep, &feed, &out)?;
+    Ok(())
+}
+
+/// Why the report of a stopped test could not be made (logged by the tests' sink).
+#[derive(Debug, thiserror::Error)]
+enum TestReportError {
+    /// The test's standard is not one the report knows.
+    #[error("standard {standard}: {source}")]
+    Standard {
+        /// The standard as the test named it.
+        standard: String,
+        /// Why it is not known.
+        source: serde_json::Error,
+    },
+    /// No `[report]` section, and none could be made from the standard.
+    #[error("[report]: {0}")]
+    Section(serde_json::Error),
+    /// The report's own error (the feed, the UTM samples, the build, the files).
+    #[error("{0}")]
+    Report(#[from] tagdeflect_report::ReportError),
+    /// The report's folder could not be made.
+    #[error("{0}")]
+    Folder(#[from] std::io::Error),
 }

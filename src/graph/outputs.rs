@@ -60,7 +60,7 @@ impl Outputs {
     /// Every output of a run (see the module doc); `feeds` are the caller's own (a replay's stdout).
     pub(crate) fn build(ctx: &OutputContext, feeds: Vec<FeedWriter>) -> Result<Outputs> {
         let out_cfg = &ctx.config.output;
-        let feed = FeedOutput { spec: out_cfg.feed.as_deref(), feeds: std::cell::RefCell::new(feeds) };
+        let feed = FeedOutput { spec: out_cfg.feed.as_deref() };
         let tests = TestsOutput(out_cfg.tests.as_deref());
         let record = RecordOutput(ctx.record_dir);
         let sections: [Option<&dyn BuildOutput>; 7] = [
@@ -72,7 +72,8 @@ impl Outputs {
             Some(&tests),
             Some(&record),
         ];
-        let mut out = Outputs::default();
+        // The caller's own feeds come first: the feed's sinks, before its section's.
+        let mut out = Outputs { sinks: feeds.into_iter().map(feed_sink).collect(), ..Outputs::default() };
         for section in sections.into_iter().flatten() {
             section.build(ctx, &mut out)?;
         }
@@ -80,15 +81,19 @@ impl Outputs {
     }
 }
 
-/// `[output] feed` (a file, or `-` for stdout), `--feed`-to-stdout, and the caller's feeds.
+/// `[output] feed` (a file, or `-` for stdout) and `--feed`-to-stdout.
 struct FeedOutput<'a> {
     spec: Option<&'a str>,
-    feeds: std::cell::RefCell<Vec<FeedWriter>>,
+}
+
+/// A feed writer as a line sink.
+fn feed_sink(writer: FeedWriter) -> Box<dyn LineSink> {
+    Box::new(FeedFileSink(writer))
 }
 
 impl BuildOutput for FeedOutput<'_> {
     fn build(&self, ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
-        let mut feeds = self.feeds.take();
+        let mut feeds = Vec::new();
         let to_stdout = ctx.opts.feed_to_stdout;
         if to_stdout {
             feeds.push(FeedWriter::stdout());
@@ -99,7 +104,7 @@ impl BuildOutput for FeedOutput<'_> {
             Some(spec) => feeds
                 .push(FeedWriter::append(Path::new(spec)).map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?),
         }
-        out.sinks.extend(feeds.into_iter().map(|f| Box::new(FeedFileSink(f)) as Box<dyn LineSink>));
+        out.sinks.extend(feeds.into_iter().map(feed_sink));
         Ok(())
     }
 }

@@ -121,7 +121,9 @@ impl DetectorOptions {
         self
     }
 
-    /// Checks every option; the detector is built only from valid options.
+    /// Checks every option; the detector is built only from valid options. A library's
+    /// options, not a config section: the error is typed ([`DetectError::BadOption`] names
+    /// the option), and `[measure]`'s check turns it into a located config problem.
     pub fn validate(&self) -> Result<(), DetectError> {
         if self.families.is_empty() {
             return Err(DetectError::NoFamily);

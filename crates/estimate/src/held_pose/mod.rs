@@ -47,106 +47,22 @@
 //! the predicted drift: slow drift never adds up to a bump, a jump is still caught in the
 //! update it happens.
 
+mod bump;
+mod corners;
+mod options;
+mod still;
+
 use std::collections::HashMap;
 
-use nalgebra::{Matrix6, Point2, Vector2, Vector3};
+use nalgebra::Matrix6;
 
-use super::camera_pose::{single_tag_minima, solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
-use super::drift::{DriftConfig, DriftEstimate, DriftFilter};
-use super::lm::median;
+use crate::camera_pose::{solve_camera_pose, BackgroundTagObservation};
+use crate::drift::{DriftEstimate, DriftFilter};
+use crate::lm::median;
+use corners::CornerStats;
+use options::SANITY_CHECK_UPDATES;
+pub use options::{HeldPoseOptions, HeldPoseStatus, AMBIGUITY_FLOOR_PX, AMBIGUITY_RATIO, HELD_CONSISTENT_DEG, REPOSE_MAX_RMS_PX};
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
-
-/// Tuning of a [`HeldCameraPose`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HeldPoseOptions {
-    /// Fewest background corners to pose (or test) the camera in an update (4 = one tag).
-    pub min_corners: usize,
-    /// Smallest median corner shift (px) taken as a bump.
-    pub bump_floor_px: f64,
-    /// A bump is a median shift above this many times the corner noise (px, per axis).
-    pub bump_noise_factor: f64,
-    /// Updates whose corners are averaged into the pose after the first posing (1 = hold
-    /// the first pose; see the module docs).
-    pub average_updates_initial: usize,
-    /// Updates whose corners are averaged into the pose after a bump's re-posing.
-    pub average_updates_after_bump: usize,
-    /// Slow-drift tracking while the pose is held (only in [`HeldCameraPose::update_at`]).
-    pub drift: DriftConfig,
-}
-
-impl Default for HeldPoseOptions {
-    fn default() -> Self {
-        Self {
-            min_corners: 4,
-            bump_floor_px: 1.0,
-            bump_noise_factor: 6.0,
-            average_updates_initial: 1,
-            average_updates_after_bump: 10,
-            drift: DriftConfig::default(),
-        }
-    }
-}
-
-/// What one [`HeldCameraPose::update`] found.
-#[derive(Debug, Clone, PartialEq)]
-pub struct HeldPoseStatus {
-    /// The pose to use for this frame set (world → camera); `None` while the camera has
-    /// never been posed, or after a bump it could not be re-posed from.
-    pub pose: Option<Pose>,
-    /// Covariance of `pose` in the step parameters `(ω, v)`; `None` for a fixed pose.
-    pub covariance: Option<Matrix6<f64>>,
-    /// The camera moved in this update (detected and, if `pose` is `Some`, re-posed).
-    pub bumped: bool,
-    /// Too few background corners this update: the pose was kept from before, unchecked.
-    pub stale: bool,
-    /// The pose is the configured one (never estimated).
-    pub fixed: bool,
-    /// True in the update that first posed the camera.
-    pub first_pose: bool,
-    /// Reprojection RMS (px, per axis) of this update's background corners against `pose`.
-    pub rms_px: Option<f64>,
-    /// Median distance (px) between this update's corners and the previous pose's
-    /// projections: the bump statistic.
-    pub shift_px: Option<f64>,
-    /// The bump threshold in force, px.
-    pub bump_threshold_px: f64,
-    /// Background corners observed in this update.
-    pub corners: usize,
-    /// Background tags left out this update (outliers against the pose).
-    pub rejected_tags: Vec<u32>,
-    /// Pooled corner noise (px, per axis) while static; `None` until measured.
-    pub noise_px: Option<f64>,
-    /// A human-readable note on anything unusual (too few tags, failed re-pose).
-    pub message: Option<String>,
-    /// The camera moved and no re-pose passed the checks (see the module docs): why. `pose`
-    /// is `None`; nothing is to be measured from this camera in this update.
-    pub refused: Option<String>,
-    /// The camera's estimated slow drift since its pose was last fixed (first posing or
-    /// re-posing after a bump); `None` while not tracked (configured pose, no times, disabled).
-    pub drift: Option<DriftEstimate>,
-}
-
-/// Static updates after which a held pose is checked once against the averaged corners.
-const SANITY_CHECK_UPDATES: usize = 10;
-/// Largest reprojection RMS (px, per axis) of a re-pose's own corners (or the bump factor ×
-/// the corner noise, if larger) for it to replace the held pose.
-pub const REPOSE_MAX_RMS_PX: f64 = 3.0;
-/// A one-tag pose is decided by its corners when the other minimum's RMS is above this many
-/// times the best one's...
-pub const AMBIGUITY_RATIO: f64 = 4.0;
-/// ...and above this (px) and 3 × the corner noise.
-pub const AMBIGUITY_FLOOR_PX: f64 = 1.0;
-/// An undecided one-tag pose is taken when exactly one of its minima is within this angle
-/// of the held pose (a small bump; the mirror solution is tens of degrees away).
-pub const HELD_CONSISTENT_DEG: f64 = 3.0;
-
-#[derive(Debug, Clone, Copy)]
-struct CornerStats {
-    world: Vector3<f64>,
-    n: f64,
-    mean: Vector2<f64>,
-    m2: f64,
-}
 
 /// Keeps one camera's pose across frame sets. See the module docs for the policy.
 #[derive(Debug, Clone)]
@@ -268,12 +184,6 @@ impl HeldCameraPose {
         self.covariance
     }
 
-    /// Pooled per-axis scatter (px) of the background corners around their running means.
-    pub fn noise_px(&self) -> Option<f64> {
-        let (m2, dof) = self.corners.values().fold((self.archived_m2, self.archived_dof), |(m, d), c| (m + c.m2, d + (c.n - 1.0).max(0.0)));
-        (dof >= 10.0).then(|| (m2 / (2.0 * dof)).sqrt())
-    }
-
     /// The bump threshold now in force, px.
     pub fn bump_threshold_px(&self) -> f64 {
         let noise = self.noise_px().unwrap_or(0.0);
@@ -297,31 +207,15 @@ impl HeldCameraPose {
 
     fn update_inner(&mut self, tags: &[BackgroundTagObservation]) -> HeldPoseStatus {
         let tags: Vec<BackgroundTagObservation> = tags.iter().filter(|t| valid_observation(t)).copied().collect();
-        let corners = tags.len() * 4;
         let threshold = self.bump_threshold_px();
-        let mut status = HeldPoseStatus {
-            pose: self.pose(),
-            covariance: self.covariance,
-            bumped: false,
-            stale: false,
-            fixed: self.fixed,
-            first_pose: false,
-            rms_px: None,
-            shift_px: None,
-            bump_threshold_px: threshold,
-            corners,
-            rejected_tags: Vec::new(),
-            noise_px: self.noise_px(),
-            message: None,
-            refused: self.refused.clone(),
-            drift: self.drift(),
-        };
+        let mut status = self.status_before(tags.len() * 4, threshold);
         if self.fixed {
             status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
             return status;
         }
-        if corners < self.options.min_corners.max(4) {
-            let msg = format!("{} background corners seen, {} needed: pose kept from before", corners, self.options.min_corners.max(4));
+        if status.corners < self.options.min_corners.max(4) {
+            let msg =
+                format!("{} background corners seen, {} needed: pose kept from before", status.corners, self.options.min_corners.max(4));
             tracing::debug!("{msg}");
             status.stale = self.raw.is_some();
             status.message = Some(msg);
@@ -335,7 +229,6 @@ impl HeldCameraPose {
             (Some(f), Some(t)) => f.predicted_pose(t),
             _ => pose,
         };
-
         // Bump test: each corner against its running mean while static (immune to model
         // errors such as an imperfect calibration), or the held pose's projection for a
         // corner not yet averaged.
@@ -347,177 +240,38 @@ impl HeldCameraPose {
             tracing::warn!(
                 shift_px = shift,
                 threshold_px = threshold,
-                corners,
+                corners = status.corners,
                 "camera bumped: background tags moved in the image; re-posing"
             );
-            status.bumped = true;
-            return match self.checked_repose(&tags, &pose) {
-                Ok(sol) => {
-                    // Keep the reported pose continuous: the camera's motion is measured
-                    // between the averaged corners before the bump and those after it, so the
-                    // held pose's own error carries over instead of a new single-frame error
-                    // replacing it.
-                    if self.period_updates >= 2 {
-                        if let Ok(before) = solve_camera_pose(&self.intrinsics, &self.averaged_observations(), Some(&pose)) {
-                            self.fix = before.pose.inverse().compose(&pose).compose(&self.fix);
-                        }
-                    }
-                    self.archive_noise();
-                    self.corners.clear();
-                    self.period_updates = 0;
-                    self.refused = None;
-                    self.raw = Some(sol.pose);
-                    self.covariance = Some(sol.covariance);
-                    self.hold();
-                    self.averaged_updates = 1;
-                    self.average_limit = self.options.average_updates_after_bump.max(1);
-                    self.accumulate(&tags, &sol.rejected_tags);
-                    status.pose = self.pose();
-                    status.covariance = Some(sol.covariance);
-                    status.rms_px = Some(sol.rms_px);
-                    status.rejected_tags = sol.rejected_tags;
-                    status.refused = None;
-                    status.drift = self.drift();
-                    status
-                }
-                Err(why) => {
-                    let why = why.to_string();
-                    // The held pose stays the reference (with its corner means) but is not
-                    // used: the camera is unposed until a re-pose passes or it is back.
-                    tracing::warn!(reason = %why, "camera moved and its re-pose failed the checks: not posed (its views are left out)");
-                    self.refused = Some(why.clone());
-                    status.pose = None;
-                    status.covariance = None;
-                    status.rms_px = None;
-                    status.drift = None;
-                    status.message = Some(format!("moved, re-pose refused: {why}"));
-                    status.refused = Some(why);
-                    status
-                }
-            };
+            return self.on_bump(&tags, pose, status);
         }
         if let Some(why) = self.refused.take() {
             tracing::info!(shift_px = shift, "camera back at its held pose: posed again");
             status.message = Some(format!("back at the held pose (was refused: {why})"));
             status.refused = None;
         }
-
-        // Static: tags that disagree with the pose stay out of the running means.
-        let mut rejected = Vec::new();
-        for t in &tags {
-            let d: Vec<f64> = (0..4).map(|k| self.corner_shift(&pose, &predicted, t, k)).collect();
-            if median(&d).unwrap_or(f64::INFINITY) > threshold {
-                tracing::debug!(tag = t.id, "background tag disagrees with the held pose; left out");
-                rejected.push(t.id);
-            }
-        }
-        let averaging = self.averaged_updates < self.average_limit;
-        if !averaging {
-            self.measure_drift(&tags, &rejected, &predicted);
-        }
-        self.accumulate(&tags, &rejected);
-        if averaging {
-            self.averaged_updates += 1;
-            let averaged = self.averaged_observations();
-            match solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)) {
-                Ok(sol) => {
-                    self.raw = Some(sol.pose);
-                    self.covariance = Some(sol.covariance);
-                    self.hold();
-                }
-                Err(e) => tracing::debug!(error = %e, "pose refinement from averaged corners failed; pose kept"),
-            }
-        } else if self.period_updates == SANITY_CHECK_UPDATES {
-            // Safety net: a held pose from a poor first frame (blur) that does not fit the
-            // averaged corners is re-fitted to them once.
-            let averaged = self.averaged_observations();
-            let misfit: Vec<f64> = averaged
-                .iter()
-                .flat_map(|t| (0..4).map(move |k| (t, k)))
-                .map(|(t, k)| self.intrinsics.project(&pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm()))
-                .collect();
-            let misfit = median(&misfit).unwrap_or(0.0);
-            if misfit > threshold {
-                let refit = solve_camera_pose(&self.intrinsics, &averaged, Some(&pose)).ok().filter(|sol| {
-                    let d: Vec<f64> = averaged
-                        .iter()
-                        .flat_map(|t| (0..4).map(move |k| (t, k)))
-                        .map(|(t, k)| {
-                            self.intrinsics.project(&sol.pose.transform(&t.world[k])).map_or(f64::INFINITY, |p| (p - t.pixels[k]).norm())
-                        })
-                        .collect();
-                    // Only when the re-fit really explains the corners better (a calibration
-                    // error would misfit any pose alike).
-                    median(&d).unwrap_or(f64::INFINITY) < 0.5 * misfit
-                });
-                if let Some(sol) = refit {
-                    let msg = format!("held pose misfit the averaged background corners by {misfit:.2} px; re-fitted");
-                    tracing::warn!("{msg}");
-                    self.raw = Some(sol.pose);
-                    self.covariance = Some(sol.covariance);
-                    // The re-fit is of the held pose's moment (de-drifted means): the drift
-                    // so far stays, only the held pose's own error is new.
-                    if let Some(f) = self.drift.as_mut() {
-                        f.rebase(sol.pose, Some(&sol.covariance));
-                    }
-                    status.bumped = true;
-                    status.message = Some(msg);
-                }
-            }
-        }
-        status.pose = self.pose();
-        status.covariance = self.covariance;
-        status.rms_px = self.raw.and_then(|p| self.rms(&p, &tags));
-        status.rejected_tags = rejected;
-        status.noise_px = self.noise_px();
-        status.drift = self.drift();
-        status
+        self.on_still(&tags, pose, predicted, threshold, status)
     }
 
-    /// A re-pose from this update's corners that passes the checks of the module docs, or
-    /// why not.
-    fn checked_repose(&self, tags: &[BackgroundTagObservation], held: &Pose) -> Result<CameraPoseSolution, RefusedRepose> {
-        let sol = solve_camera_pose(&self.intrinsics, tags, Some(held)).map_err(RefusedRepose::NoPose)?;
-        let noise = self.noise_px().unwrap_or(0.0);
-        let limit = REPOSE_MAX_RMS_PX.max(self.options.bump_noise_factor * noise);
-        if sol.rms_px.is_nan() || sol.rms_px > limit {
-            return Err(RefusedRepose::Misfit { rms_px: sol.rms_px, limit_px: limit });
+    /// An update's status before it is looked at: the pose and figures as they stand.
+    fn status_before(&self, corners: usize, threshold_px: f64) -> HeldPoseStatus {
+        HeldPoseStatus {
+            pose: self.pose(),
+            covariance: self.covariance,
+            bumped: false,
+            stale: false,
+            fixed: self.fixed,
+            first_pose: false,
+            rms_px: None,
+            shift_px: None,
+            bump_threshold_px: threshold_px,
+            corners,
+            rejected_tags: Vec::new(),
+            noise_px: self.noise_px(),
+            message: None,
+            refused: self.refused.clone(),
+            drift: self.drift(),
         }
-        if let Some(why) = self.one_tag_ambiguity(tags, &sol) {
-            let consistent = self.one_tag_minima(tags, &sol).map(|m| {
-                let near: Vec<&(Pose, f64)> = m.iter().filter(|(p, _)| p.angle_to(held) < HELD_CONSISTENT_DEG.to_radians()).collect();
-                near.len() == 1 && near[0].0.angle_to(&sol.pose) < 0.5f64.to_radians()
-            });
-            if consistent != Some(true) {
-                return Err(RefusedRepose::Ambiguous(why));
-            }
-            tracing::info!("one-tag re-pose undecided by its corners ({why}); the minimum next to the held pose is taken");
-        }
-        Ok(sol)
-    }
-
-    /// The minima of `sol`'s pose when it rests on one tag, else `None`.
-    fn one_tag_minima(&self, tags: &[BackgroundTagObservation], sol: &CameraPoseSolution) -> Option<Vec<(Pose, f64)>> {
-        let used: Vec<&BackgroundTagObservation> = tags.iter().filter(|t| !sol.rejected_tags.contains(&t.id)).collect();
-        (used.len() == 1).then(|| single_tag_minima(&self.intrinsics, used[0]))
-    }
-
-    /// When `sol` rests on one tag whose corners do not decide between its two minima (see
-    /// the module docs), a description of the two fits.
-    fn one_tag_ambiguity(&self, tags: &[BackgroundTagObservation], sol: &CameraPoseSolution) -> Option<String> {
-        let minima = self.one_tag_minima(tags, sol)?;
-        if minima.len() < 2 {
-            return None;
-        }
-        let (best, other) = (minima[0].1, minima[1].1);
-        let floor = AMBIGUITY_FLOOR_PX.max(3.0 * self.noise_px().unwrap_or(0.0));
-        let decided = other > AMBIGUITY_RATIO * best && other > floor;
-        (!decided).then(|| {
-            format!(
-                "its mirror pose fits with RMS {other:.2} px against {best:.2} px, {:.1}° away",
-                minima[0].0.angle_to(&minima[1].0).to_degrees()
-            )
-        })
     }
 
     fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: HeldPoseStatus) -> HeldPoseStatus {
@@ -551,105 +305,6 @@ impl HeldCameraPose {
         }
         status
     }
-
-    /// Distance (px) of an observed corner from its running mean moved by the drift
-    /// (`held` → `now`; when averaged over ≥ 3 updates) or else from `now`'s projection.
-    fn corner_shift(&self, held: &Pose, now: &Pose, tag: &BackgroundTagObservation, k: usize) -> f64 {
-        let px = tag.pixels[k];
-        match self.corners.get(&(tag.id, k)) {
-            Some(c) if c.n >= 3.0 && (c.world - tag.world[k]).norm() < 1e-9 => {
-                (Vector2::new(px.x, px.y) - c.mean - self.drift_motion(held, now, &tag.world[k])).norm()
-            }
-            _ => self.intrinsics.project(&now.transform(&tag.world[k])).map_or(f64::INFINITY, |p| (p - px).norm()),
-        }
-    }
-
-    /// Image motion (px) of a world point between poses `held` and `now` (zero when equal).
-    fn drift_motion(&self, held: &Pose, now: &Pose, world: &Vector3<f64>) -> Vector2<f64> {
-        if held == now {
-            return Vector2::zeros();
-        }
-        match (self.intrinsics.project(&now.transform(world)), self.intrinsics.project(&held.transform(world))) {
-            (Some(a), Some(b)) => a - b,
-            _ => Vector2::zeros(),
-        }
-    }
-
-    /// Solves this update's pose from its own corners (warm-started at the predicted
-    /// pose) and feeds it to the drift filter.
-    fn measure_drift(&mut self, tags: &[BackgroundTagObservation], skip: &[u32], predicted: &Pose) {
-        let (Some(t), Some(_)) = (self.now_ns, self.drift.as_ref()) else { return };
-        let used: Vec<BackgroundTagObservation> = tags.iter().filter(|t| !skip.contains(&t.id)).copied().collect();
-        if used.len() * 4 < self.options.min_corners.max(4) {
-            return;
-        }
-        match solve_camera_pose(&self.intrinsics, &used, Some(predicted)) {
-            Ok(sol) => {
-                if let Some(f) = self.drift.as_mut() {
-                    if let Some(m2) = f.update(t, &sol.pose, &sol.covariance) {
-                        tracing::trace!(m2, "drift filter updated");
-                    }
-                }
-            }
-            Err(e) => tracing::debug!(error = %e, "drift measurement failed; drift predicted only"),
-        }
-    }
-
-    fn rms(&self, pose: &Pose, tags: &[BackgroundTagObservation]) -> Option<f64> {
-        let mut s = 0.0;
-        let mut n = 0;
-        for t in tags {
-            for k in 0..4 {
-                let p = self.intrinsics.project(&pose.transform(&t.world[k]))?;
-                s += (p - t.pixels[k]).norm_squared();
-                n += 2;
-            }
-        }
-        (n > 0).then(|| (s / n as f64).sqrt())
-    }
-
-    fn accumulate(&mut self, tags: &[BackgroundTagObservation], skip: &[u32]) {
-        self.period_updates += 1;
-        // De-drifted: each corner as it would be seen from the held pose.
-        let (held, now) = match (self.raw, self.current_raw()) {
-            (Some(h), Some(n)) => (h, n),
-            _ => (Pose::identity(), Pose::identity()),
-        };
-        for t in tags.iter().filter(|t| !skip.contains(&t.id)) {
-            for k in 0..4 {
-                let px = Vector2::new(t.pixels[k].x, t.pixels[k].y) - self.drift_motion(&held, &now, &t.world[k]);
-                let c = self.corners.entry((t.id, k)).or_insert(CornerStats { world: t.world[k], n: 0.0, mean: px, m2: 0.0 });
-                c.world = t.world[k];
-                c.n += 1.0;
-                let d = px - c.mean;
-                c.mean += d / c.n;
-                c.m2 += d.dot(&(px - c.mean));
-            }
-        }
-    }
-
-    fn archive_noise(&mut self) {
-        for c in self.corners.values() {
-            self.archived_m2 += c.m2;
-            self.archived_dof += (c.n - 1.0).max(0.0);
-        }
-    }
-
-    fn averaged_observations(&self) -> Vec<BackgroundTagObservation> {
-        let mut ids: Vec<u32> = self.corners.keys().map(|(id, _)| *id).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        ids.into_iter()
-            .filter_map(|id| {
-                let c: Vec<&CornerStats> = (0..4).map(|k| self.corners.get(&(id, k))).collect::<Option<_>>()?;
-                Some(BackgroundTagObservation {
-                    id,
-                    pixels: [0, 1, 2, 3].map(|k| Point2::new(c[k].mean.x, c[k].mean.y)),
-                    world: [0, 1, 2, 3].map(|k| c[k].world),
-                })
-            })
-            .collect()
-    }
 }
 
 /// Finite pixels and world corners.
@@ -657,29 +312,11 @@ fn valid_observation(t: &BackgroundTagObservation) -> bool {
     t.pixels.iter().all(|p| p.x.is_finite() && p.y.is_finite()) && t.world.iter().all(|w| w.iter().all(|v| v.is_finite()))
 }
 
-/// Why the re-pose of a camera that moved failed its checks (the module docs).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-enum RefusedRepose {
-    /// The corners gave no pose.
-    #[error("no pose: {0}")]
-    NoPose(crate::SolveError),
-    /// The re-pose misfits its own corners.
-    #[error("re-pose misfits its corners: RMS {rms_px:.2} px > {limit_px:.2} px")]
-    Misfit {
-        /// The re-pose's RMS reprojection error, px.
-        rms_px: f64,
-        /// The most it may be, px.
-        limit_px: f64,
-    },
-    /// A one-tag pose whose corners do not decide between its two minima, neither of them
-    /// the held pose's (the two fits described).
-    #[error("one-tag pose is ambiguous ({0}) and neither minimum is the held pose's")]
-    Ambiguous(String),
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera_pose::single_tag_minima;
+    use nalgebra::{Point2, Vector3};
 
     fn setup() -> (CameraIntrinsics, Pose, Vec<[Vector3<f64>; 4]>) {
         let intr =
