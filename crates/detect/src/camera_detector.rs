@@ -29,13 +29,14 @@
 //! a quarter of the time and no tag is lost to the decimation.
 //!
 //! **A camera that moved** ([`CameraDetector::search_again`]): when the background tags of
-//! a frame were lost or jumped ([`DetectReport::background`], or the pose tracker's bump
-//! statistic), the measurement has the same frame searched whole at the configured
+//! a frame were mostly lost or jumped ([`DetectReport::background`], or the pose tracker's
+//! bump statistic), the measurement has the same frame searched whole at the configured
 //! resolution, in the frame set, before it poses the camera — the windows were placed where
 //! the tags no longer are, and a background search would deliver them half a second late
 //! at places the camera may have left again. Its tags replace the frame's detections and
 //! their sightings; a background search under way is abandoned (its tags are of the old
-//! view).
+//! view). A background tag lost while the others stay put (occluded, blurred) costs no
+//! search in the frame: the camera keeps its pose and the sweeps look for the tag.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc;

@@ -141,6 +141,11 @@ pub(crate) enum Plan {
 pub struct BackgroundCheck {
     /// A followed background tag was searched for and not seen (first miss).
     pub lost: bool,
+    /// Background tags seen in the frame.
+    pub seen: usize,
+    /// Followed background tags searched for in the frame and not seen (first misses and
+    /// tags already missing).
+    pub missing: usize,
     /// Median shift (px) of the background tags seen against their predicted places.
     pub shift_px: Option<f64>,
 }
@@ -360,7 +365,7 @@ impl RoiPlanner {
                 }
             }
         }
-        let mut check = BackgroundCheck::default();
+        let mut check = BackgroundCheck { seen: background.len(), ..BackgroundCheck::default() };
         if !bg_shifts.is_empty() {
             bg_shifts.sort_by(f64::total_cmp);
             let shift = bg_shifts[bg_shifts.len() / 2];
@@ -376,6 +381,7 @@ impl RoiPlanner {
                 return true;
             }
             tr.missed += 1;
+            check.missing += tr.background as usize;
             if tr.missed == 1 {
                 lost_now = true;
                 check.lost |= tr.background;

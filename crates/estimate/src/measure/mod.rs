@@ -16,15 +16,19 @@
 //! filter), the pooled corner noise and the UTM history.
 //!
 //! **A camera that moved** (see `estimate::held_pose`, `detect::plan`): before a camera is
-//! posed from a frame, its background tags are checked — a followed one lost (searched, not
-//! seen) or the bump statistic above its threshold (an infinite shift included: the held
-//! pose cannot even project them) — and if so that same frame, still at hand in the frame
+//! posed from a frame, its background tags are checked — most of the followed ones lost
+//! (searched, not seen: fewer than two left, or fewer left than missing) or the bump
+//! statistic above its threshold (an infinite shift included: the held pose cannot even
+//! project them) — and if so that same frame, still at hand in the frame
 //! set, is searched whole at the configured resolution ([`CameraDetector::search_again`](tagdeflect_detect::CameraDetector::search_again)) and
 //! the camera is posed (and its specimen tags measured) from what that search found; the
 //! windows had been placed where the tags were. While a re-pose is refused the search is
 //! repeated only when the tags moved again in the image. A camera whose pose failed its
 //! checks (`pose` refused by the held pose) has no pose: the frame set is solved without
-//! its views, its health says `posed: false` (with `bumped`), and a WARN names it.
+//! its views, its health says `posed: false` (with `bumped`), and a WARN names it. One
+//! background tag lost while the others are seen where they were (occluded, blurred) costs
+//! no search in the frame: the held pose stands, checked by the tags left, and the
+//! detector's sweeps and background searches look for the missing tag.
 
 mod camera;
 mod detect;

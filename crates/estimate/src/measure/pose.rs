@@ -7,6 +7,7 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use tagdeflect_core::feed::{round_mm, CameraHealth};
 use tagdeflect_core::frame::FrameSet;
+use tagdeflect_detect::plan::BackgroundCheck;
 use tagdeflect_detect::{CameraDetections, DetectReport};
 
 use super::detect::Detected;
@@ -50,7 +51,7 @@ impl Measurement {
         h
     }
 
-    /// The camera moved (background tags lost or jumped): the same frame searched whole
+    /// The camera moved (background tags mostly lost or jumped): the same frame searched whole
     /// before the camera is posed from it. The frame's background observations when they
     /// are still what the camera is posed from, `None` when a search replaced them (or the
     /// camera has no frame).
@@ -73,7 +74,7 @@ impl Measurement {
             lost = report.background.lost,
             jumped,
             background_tags = again.background.len(),
-            "background tags lost or jumped: the frame searched whole before posing"
+            "background tags mostly lost or jumped: the frame searched whole before posing"
         );
         self.stats.full_frame_searches += r.full_frame_searches;
         self.stats.moved_camera_searches += 1;
@@ -126,14 +127,28 @@ impl Measurement {
     }
 }
 
+/// Background tags a camera keeps its held pose on when others are lost: fewer left (or
+/// fewer left than lost) and the loss may be the camera's own move.
+const MIN_BACKGROUND_TAGS_LEFT: usize = 2;
+
 /// Whether a camera's frame is searched whole before the camera is posed from it: an
 /// estimated pose (held or refused), no full-frame search in the frame yet, and its
-/// background tags lost or jumped (while a re-pose is refused, only when they moved again).
+/// background tags jumped (while a re-pose is refused, only when they moved again) or
+/// mostly lost. A background tag lost while the others stay where they were (occluded,
+/// blurred, a person walking past) costs no search in the frame: the camera keeps its held
+/// pose, checked by the tags left, and the planner's sweeps and background searches look
+/// for the missing tag (see [`tagdeflect_detect::CameraDetector`]).
 fn search_whole(pose: &HeldCameraPose, report: &DetectReport, jumped: bool, moved_again: bool) -> bool {
     pose.estimated()
         && (pose.pose().is_some() || pose.refused().is_some())
         && report.full_frame_searches == 0
-        && (report.background.lost || (jumped && (pose.refused().is_none() || moved_again)))
+        && (mostly_lost(&report.background) || (jumped && (pose.refused().is_none() || moved_again)))
+}
+
+/// A background tag was lost in the frame and too few are left to tell a lost tag from a
+/// moved camera: fewer than [`MIN_BACKGROUND_TAGS_LEFT`], or fewer seen than missing.
+fn mostly_lost(check: &BackgroundCheck) -> bool {
+    check.lost && (check.seen < MIN_BACKGROUND_TAGS_LEFT || check.seen < check.missing)
 }
 
 /// The background tags of one camera's detections with their known world corners.
@@ -142,4 +157,27 @@ fn background_observations(world: &HashMap<u32, [Vector3<f64>; 4]>, d: &CameraDe
         .iter()
         .filter_map(|det| world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w }))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check(lost: bool, seen: usize, missing: usize) -> BackgroundCheck {
+        BackgroundCheck { lost, seen, missing, shift_px: None }
+    }
+
+    #[test]
+    fn one_tag_lost_among_several_is_no_move() {
+        assert!(!mostly_lost(&check(true, 3, 1)));
+        assert!(!mostly_lost(&check(true, 2, 2)));
+        assert!(!mostly_lost(&check(false, 0, 4)), "a tag already missing is not lost again");
+    }
+
+    #[test]
+    fn most_or_all_tags_lost_is_searched() {
+        assert!(mostly_lost(&check(true, 0, 4)));
+        assert!(mostly_lost(&check(true, 1, 1)), "one tag left cannot tell a lost tag from a moved camera");
+        assert!(mostly_lost(&check(true, 2, 3)));
+    }
 }
