@@ -292,6 +292,34 @@ fn bump_moves_the_camera_and_hide_covers_the_tag() {
     assert!(mean_abs_diff(&hidden, &seen, c.x, c.y, 8.0) > 30.0);
 }
 
+/// `hide_background_tag` covers a background tag with a flat grey card in one camera over
+/// the hide window only (a person walking past a reference tag).
+#[test]
+fn hide_background_tag_covers_it_in_one_camera() {
+    let p = SimParams { noise_sigma: 0.0, hide_background_tag: Some(2), hide_camera: 0, hide_from: 1, hide_count: 1, ..small(2, 400, 300, 4) };
+    let rig = SimRig::new(&p).unwrap();
+    let cams = rig.cameras();
+    let b = rig.background_tags().into_iter().find(|b| b.id == 2).unwrap();
+    let centre = b.corners_mm.iter().map(|c| Vector3::from(*c)).sum::<Vector3<f64>>() / 4.0;
+    let (t0, t1, t2) = (rig.set_time_ns(0), rig.set_time_ns(1), rig.set_time_ns(2));
+    let c = project(&cams[0].intrinsics, &rig.camera_pose(0, t1), &centre);
+    let hidden = rig.render(0, t1);
+    let (mut lo, mut hi) = (255u8, 0u8);
+    for dy in -3..=3 {
+        for dx in -3..=3 {
+            let v = hidden.get((c.x.round() as i32 + dx) as u32, (c.y.round() as i32 + dy) as u32);
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    assert!(hi - lo <= 2 && (110..=126).contains(&lo), "the card is flat grey: {lo}..{hi}");
+    assert!(mean_abs_diff(&hidden, &rig.render(0, t0), c.x, c.y, 6.0) > 30.0, "the tag is seen before the card");
+    assert!(mean_abs_diff(&rig.render(0, t0), &rig.render(0, t2), c.x, c.y, 6.0) < 1.0, "and after it");
+    // The other camera is not covered.
+    let c1 = project(&cams[1].intrinsics, &rig.camera_pose(1, t1), &centre);
+    assert!(mean_abs_diff(&rig.render(1, t1), &rig.render(1, t0), c1.x, c1.y, 6.0) < 1.0);
+}
+
 #[test]
 fn every_tag_is_in_view_for_common_rigs() {
     for cameras in 1..=3 {

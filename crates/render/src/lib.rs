@@ -3,10 +3,13 @@
 //! (`tagdeflect_calibrate::render`, targets with ground truth): each camera's exact
 //! undistorted rays through every pixel corner ([`CornerRays`], on the simulator's own lens
 //! model, [`lens`]), area integration of mixed pixels ([`render_rect`]), optical and motion
-//! blur, sensor noise and 8-bit rounding ([`quantize`]).
+//! blur, the camera's processing after the pixels ([`formation`]: a discrete Gaussian, a 3×3
+//! sharpening kernel, a colour sensor's demosaic), sensor noise and 8-bit rounding
+//! ([`quantize`]).
 //!
 //! Its own crate so that the calibration does not stand on the simulator: both stand on it.
 
+pub mod formation;
 pub mod lens;
 mod pixels;
 

@@ -87,6 +87,21 @@ pub struct SimParams {
     /// Optical blur, standard deviation of a Gaussian in pixels (0 = none).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.6))]
     pub blur_sigma: f64,
+    /// Discrete Gaussian kernel over the integrated pixels (the camera's processing after
+    /// the pixel, not the optics), standard deviation in pixels (0 = none).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub post_blur_px: f64,
+    /// Amount of a 3×3 sharpening kernel over the integrated pixels (0 = none, 1 = the
+    /// identity plus the image minus its 4-neighbour mean).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub sharpen: f64,
+    /// A colour (RGGB Bayer) sensor: the grey scene's mosaic demosaiced bilinearly and
+    /// converted back to grey.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub bayer: bool,
     /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub motion_blur_every: u32,
@@ -137,7 +152,12 @@ pub struct SimParams {
     /// Specimen tag id hidden (covered by a grey card) from one camera for a while; none by default.
     #[cfg_attr(feature = "clap", arg(long))]
     pub hide_tag: Option<u32>,
-    /// Camera (index from 0) that loses sight of `hide_tag`.
+    /// Background tag id (tag25h9) hidden (covered by a grey card, as by a person walking
+    /// past) from `hide_camera` over the same frame sets as `hide_tag`; none by default.
+    #[cfg_attr(feature = "clap", arg(long))]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hide_background_tag: Option<u32>,
+    /// Camera (index from 0) that loses sight of `hide_tag` and `hide_background_tag`.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub hide_camera: u32,
     /// First frame set in which the tag is hidden.
@@ -319,6 +339,9 @@ impl Default for SimParams {
             blur_sigma: 0.6,
             motion_blur_every: 0,
             motion_blur_px: 3.0,
+            post_blur_px: 0.0,
+            sharpen: 0.0,
+            bayer: false,
             jitter_ms: 1.0,
             drop_prob: 0.0,
             bump_camera: None,
@@ -331,6 +354,7 @@ impl Default for SimParams {
             drift_start_set: 0,
             drift_sets: 0,
             hide_tag: None,
+            hide_background_tag: None,
             hide_camera: 0,
             hide_from: 10,
             hide_count: 10,
@@ -419,6 +443,13 @@ mod tests {
         assert!(bad.validate().unwrap_err().to_string().contains("drift_camera"));
         let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
+        let bad = SimParams { post_blur_px: -1.0, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("post_blur_px"));
+        let bad = SimParams { sharpen: f64::NAN, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("sharpen"));
+        let bad = SimParams { hide_background_tag: Some(11), ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("hide_background_tag"));
+        assert!(SimParams { hide_background_tag: Some(10), ..SimParams::default() }.validate().is_ok());
         assert!(toml::from_str::<SimParams>("colour = 3").is_err());
     }
 }

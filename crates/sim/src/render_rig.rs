@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 
 use tagdeflect_core::frame::GrayImage;
 
-use super::render::{motion_blur, quantize, render_rect, CornerRays, PixelRect};
+use super::render::{formation, motion_blur, quantize, render_rect, CornerRays, PixelRect};
 use super::rig::mix;
 use super::trace::BEAM_BIT;
 use super::SimRig;
@@ -51,7 +51,8 @@ impl SimRig {
     }
 
     fn background(&self, cam: usize, t_ns: i64) -> Arc<Background> {
-        let epoch = self.pose_key(cam, t_ns);
+        let hidden = self.hidden_background_tag(cam, self.set_index_at(t_ns));
+        let epoch = self.pose_key(cam, t_ns) | (hidden.is_some() as u64) << 48;
         let mut slot = self.cams[cam].background.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(bg) = slot.as_ref() {
             if bg.epoch == epoch {
@@ -64,8 +65,8 @@ impl SimRig {
         let rot_cw = pose.rotation.inverse();
         let centre = pose.centre();
         let mut raw = vec![0.0f32; wf * hf];
-        let trace = |d: &Vector3<f64>| self.trace_static(&centre, d);
-        let sample = |d: &Vector3<f64>, _: usize, _: usize| self.trace_static(&centre, d).1;
+        let trace = |d: &Vector3<f64>| self.trace_static(&centre, d, hidden);
+        let sample = |d: &Vector3<f64>, _: usize, _: usize| self.trace_static(&centre, d, hidden).1;
         let all = PixelRect { x0: 0, y0: 0, x1: wf, y1: hf };
         let bg_size = self.params.background_tag_mm;
         let flat = |key: u32, x: f64, y: f64| -> f32 {
@@ -80,13 +81,29 @@ impl SimRig {
         bg
     }
 
+    /// The camera's processing of the integrated pixels (`bayer`, `post_blur_px`,
+    /// `sharpen`, in that order; see [`crate::render::formation`]).
+    fn after_pixels(&self, mut img: Vec<f32>, w: usize, h: usize) -> Vec<f32> {
+        let p = &self.params;
+        if p.bayer {
+            img = formation::bayer_demosaic_bilinear(&img, w, h);
+        }
+        if p.post_blur_px > 0.0 {
+            img = formation::blur_after_pixels(&img, w, h, p.post_blur_px);
+        }
+        if p.sharpen > 0.0 {
+            img = formation::convolve3x3(&img, w, h, &formation::sharpen_kernel(p.sharpen));
+        }
+        img
+    }
+
     /// Renders camera `cam`'s image at `t_ns` (8-bit grey, the camera's size).
     ///
     /// The fixed scene is rendered once per camera pose and cached; each call re-renders
     /// only the beam's image region, passes it and its surroundings through the optics
     /// ([`crate::render::Optics`]), then adds fresh noise (seeded by
     /// the rig's seed, the camera and `t_ns`, so the same call gives the same image).
-    /// Motion blur and a hidden tag apply per the frame set nearest to `t_ns`.
+    /// Motion blur and hidden tags apply per the frame set nearest to `t_ns`.
     ///
     /// Panics if `cam >= camera_count()`.
     pub fn render(&self, cam: usize, t_ns: i64) -> GrayImage {
@@ -152,6 +169,7 @@ impl SimRig {
             let angle = (mix(self.params.seed, k as u64) % 360) as f64 * std::f64::consts::PI / 180.0;
             img = motion_blur(&img, w, h, self.params.motion_blur_px, angle);
         }
+        img = self.after_pixels(img, w, h);
         let seed = mix(mix(self.params.seed, 0x4015e), mix(cam as u64, t_ns as u64));
         quantize(&img, w, h, self.params.noise_sigma, seed)
     }

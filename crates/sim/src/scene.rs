@@ -121,6 +121,10 @@ pub(crate) mod shade {
     pub const FAR: f32 = 58.0;
 }
 
+/// Background tags of the simulated rig (tag25h9 ids `0..BACKGROUND_TAGS`): five on the
+/// frame's top row, two beside the beam, four on the bench.
+pub(crate) const BACKGROUND_TAGS: u32 = 11;
+
 /// A tag printed on a panel, upright in the panel's `(u, v)` axes.
 #[derive(Debug, Clone)]
 pub(crate) struct PanelTag {
@@ -381,7 +385,10 @@ impl Layout {
             poses,
             bumped,
             panels: vec![back, bench],
-            background_ids: vec![ids, bench_ids],
+            background_ids: {
+                debug_assert_eq!(next, BACKGROUND_TAGS);
+                vec![ids, bench_ids]
+            },
             specimen,
             face_texture,
             top_texture,

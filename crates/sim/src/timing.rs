@@ -44,8 +44,17 @@ impl SimRig {
 
     /// The specimen tag hidden from camera `cam` in set `k`, if any.
     pub(crate) fn hidden_tag(&self, cam: usize, k: i64) -> Option<u32> {
+        self.params.hide_tag.filter(|_| self.hides(cam, k))
+    }
+
+    /// The background tag hidden from camera `cam` in set `k`, if any.
+    pub(crate) fn hidden_background_tag(&self, cam: usize, k: i64) -> Option<u32> {
+        self.params.hide_background_tag.filter(|_| self.hides(cam, k))
+    }
+
+    /// Whether camera `cam` has its hidden tags covered in set `k`.
+    fn hides(&self, cam: usize, k: i64) -> bool {
         let p = &self.params;
-        let id = p.hide_tag?;
-        (cam == p.hide_camera as usize && k >= p.hide_from as i64 && k < p.hide_from as i64 + p.hide_count as i64).then_some(id)
+        cam == p.hide_camera as usize && k >= p.hide_from as i64 && k < p.hide_from as i64 + p.hide_count as i64
     }
 }

@@ -65,8 +65,9 @@ impl SimRig {
         }
     }
 
-    /// The fixed scene (panels with background tags), without the beam.
-    pub(crate) fn trace_static(&self, c: &Vector3<f64>, d: &Vector3<f64>) -> Hit {
+    /// The fixed scene (panels with background tags), without the beam; background tag
+    /// `hidden` (an id) covered by a grey card.
+    pub(crate) fn trace_static(&self, c: &Vector3<f64>, d: &Vector3<f64>, hidden: Option<u32>) -> Hit {
         let mut best_t = f64::INFINITY;
         let mut hit = (0u32, shade::FAR, [0.0; 2]);
         let size = self.params.background_tag_mm;
@@ -89,6 +90,14 @@ impl SimRig {
             hit = base;
             for (k, tag) in p.tags.iter().enumerate() {
                 let (tx, ty) = (u - tag.centre.0, v - tag.centre.1);
+                if hidden == Some(tag.bitmap.id) {
+                    let half = 0.5 * tag.bitmap.printed_mm(size) + 3.0;
+                    if tx.abs() <= half && ty.abs() <= half {
+                        hit = (base.0 | ((k as u32 + 1) << 8) | CARD_CELL, shade::CARD, [tx, ty]);
+                        break;
+                    }
+                    continue;
+                }
                 if let Some((col, row)) = tag.bitmap.cell_at(tx, ty, size) {
                     // One label per colour of a tag (not per cell): a pixel smaller than a cell
                     // whose corners all see one colour lies wholly in that colour.

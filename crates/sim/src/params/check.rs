@@ -4,6 +4,7 @@
 use tagdeflect_core::Problem;
 
 use super::{SimParams, SimTest};
+use crate::scene::BACKGROUND_TAGS;
 
 /// The problem of `option` (its key in `[sim]`).
 fn bad(option: &'static str, message: impl Into<String>) -> Result<(), Problem> {
@@ -40,6 +41,12 @@ impl SimParams {
         }
         if !finite_nonneg(self.blur_sigma) || self.blur_sigma > 10.0 {
             return bad("blur_sigma", format!("{}: expected 0 to 10 pixels", self.blur_sigma));
+        }
+        if !finite_nonneg(self.post_blur_px) || self.post_blur_px > 10.0 {
+            return bad("post_blur_px", format!("{}: expected 0 to 10 pixels", self.post_blur_px));
+        }
+        if !finite_nonneg(self.sharpen) || self.sharpen > 4.0 {
+            return bad("sharpen", format!("{}: expected an amount from 0 to 4", self.sharpen));
         }
         if !finite_nonneg(self.motion_blur_px) || self.motion_blur_px > 50.0 {
             return bad("motion_blur_px", format!("{}: expected 0 to 50 pixels", self.motion_blur_px));
@@ -81,6 +88,11 @@ impl SimParams {
         if let Some(id) = self.hide_tag {
             if id >= self.specimen_tags {
                 return bad("hide_tag", format!("specimen tag {id} does not exist: expected 0..{}", self.specimen_tags));
+            }
+        }
+        if let Some(id) = self.hide_background_tag {
+            if id >= BACKGROUND_TAGS {
+                return bad("hide_background_tag", format!("background tag {id} does not exist: expected 0..{BACKGROUND_TAGS}"));
             }
         }
         if !self.k1.is_finite() || self.k1.abs() > 0.5 || !self.strong_k1.is_finite() || self.strong_k1.abs() > 0.5 {
