@@ -37,7 +37,7 @@ pub use truth::{SimTruthCamera, SimTruthLine, SimTruthTag};
 
 // The parameters of the rig are config (`[sim]`, checked when the config is read); the
 // simulator uses them from there and the config never imports the simulator.
-pub use crate::params::{camera_names, LoadLaw, SimParamError, SimParams, SimTest};
+pub use crate::params::{camera_names, LoadLaw, SimParams, SimTest};
 
 /// An invalid simulation option or a failure while writing the simulated recording.
 #[derive(Debug, thiserror::Error)]
@@ -46,7 +46,7 @@ pub enum SimError {
     #[error("simulation option `{option}`: {message}")]
     Param {
         /// The option (as in `[sim]` and `--<option>`).
-        option: &'static str,
+        option: String,
         /// What is wrong and what is expected.
         message: String,
     },
@@ -63,8 +63,8 @@ pub enum SimError {
     },
 }
 
-impl From<SimParamError> for SimError {
-    fn from(e: SimParamError) -> Self {
-        SimError::Param { option: e.option, message: e.message }
+impl From<tagdeflect_core::Problem> for SimError {
+    fn from(p: tagdeflect_core::Problem) -> Self {
+        SimError::Param { option: p.key, message: p.message }
     }
 }
