@@ -115,6 +115,10 @@ impl Curve {
         let spikes = LoadSpikes::find(&load);
         let load_outliers = spikes.readings(&t_ns, &load);
         let (t_ns, load, x, sx) = (spikes.without(t_ns), spikes.without(load), spikes.without(x), spikes.without(sx));
+        let n = t_ns.len();
+        if n < 2 {
+            return Err(CurveError::TooShort(n, what));
+        }
         let t0 = t_ns[0];
         let t_s: Vec<f64> = t_ns.iter().map(|&t| (t - t0) as f64 * 1e-9).collect();
         let x_noise = robust_noise(&t_s, &x);
