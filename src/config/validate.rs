@@ -53,7 +53,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     let gauges = tagdeflect_core::gauge::resolve_gauges(&raw.gauge, &specimen)?;
     if let Some(c) = &output.control {
         let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
-        c.validate(&names).map_err(|p| p.within("output.control"))?;
+        c.validate_against(&names).map_err(|p| p.within("output.control"))?;
     }
     if let Some(c) = &raw.clock_check {
         c.validate().map_err(|p| p.within("clock_check"))?;
@@ -82,7 +82,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
 #[cfg(feature = "sim")]
 fn check_sim(sim: Option<&SimSection>, cameras: &[CameraConfig]) -> Result<(), Problem> {
     if let Some(sim) = sim {
-        sim.validate().map_err(|e| Problem::new(format!("sim.{}", e.option), e.message))?;
+        sim.validate().map_err(|p| p.within("sim"))?;
     }
     if !cameras.iter().any(|c| c.source.is_sim()) {
         return Ok(());

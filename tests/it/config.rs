@@ -307,7 +307,7 @@ fn camera_sources_are_parsed_once_and_written_back_as_given() {
         assert_eq!(got.to_string(), text);
     }
     for bad_source in ["v4l2:", "aravis:  ", "usb0", "recording:"] {
-        let e = CameraSource::parse(bad_source).unwrap_err();
+        let e = CameraSource::parse(bad_source).unwrap_err().to_string();
         assert!(e.contains("expected"), "{bad_source}: {e}");
     }
     // A recording folder is relative to the config's folder.

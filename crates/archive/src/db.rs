@@ -1,189 +1,20 @@
-//! The archive's PostgreSQL side: schema migrations (applied on connect, versioned,
-//! idempotent, serialised between several archives by an advisory lock) and the batched
-//! upsert of feed lines, with what the archive holds of every test it has written to
-//! (runs, held seqs: for the gap log and the acknowledgement the rigs read).
+//! The archive's PostgreSQL side: the connection and the batched upsert of feed lines, status
+//! messages and lab tests in one transaction. The schema's migrations are in `migrate`, the
+//! rows in `rows`, what the archive holds of every test (runs, held seqs) in `holdings`.
+
+mod batch;
+mod holdings;
+mod migrate;
+mod rows;
 
 use std::collections::HashMap;
 
-use tagdeflect_wire::{RunHeld, SeqRanges};
 use tokio_postgres::{Client, NoTls, Statement};
 
-/// The schema migrations in order: (version, name, SQL). Files live in the workspace's
-/// `migrations/`.
-pub const MIGRATIONS: &[(i32, &str, &str)] = &[
-    (1, "init", include_str!("../../../migrations/0001_init.sql")),
-    (2, "runs_and_gaps", include_str!("../../../migrations/0002_runs_and_gaps.sql")),
-    (3, "lab_tests", include_str!("../../../migrations/0003_lab_tests.sql")),
-];
-
-/// Advisory lock key held while migrating ("tagdefle" in ASCII).
-const MIGRATION_LOCK: i64 = 0x7461_6764_6566_6c65;
-
-/// One feed line ready for the database.
-#[derive(Debug, Clone)]
-pub struct LineRow {
-    /// Rig name (from the topic).
-    pub rig: String,
-    /// Test id (from the topic).
-    pub test: String,
-    /// Frame-set number.
-    pub seq: i64,
-    /// The line's `t_ns`.
-    pub t_ns: i64,
-    /// The line as published.
-    pub line: serde_json::Value,
-}
-
-/// A status message for the database.
-#[derive(Debug, Clone)]
-pub struct StatusRow {
-    /// Rig name (from the topic).
-    pub rig: String,
-    /// Test id (from the topic).
-    pub test: String,
-    /// The message (JSON object).
-    pub status: serde_json::Value,
-}
-
-/// A lab test's record for the database (checked: [`tagdeflect_wire::LabTestMessage::parse`]).
-#[derive(Debug, Clone)]
-pub struct LabTestRow {
-    /// Rig name (from the topic).
-    pub rig: String,
-    /// The run it was published in (the topic's test).
-    pub run: String,
-    /// The record.
-    pub message: tagdeflect_wire::LabTestMessage,
-}
-
-/// Upserts a lab test; a record with fewer events than the one held is an older version
-/// (a redelivery after a newer one) and leaves it as it is.
-const LAB_TEST_SQL: &str = r#"
-INSERT INTO lab_tests (rig_id, id, run_test_id, specimen, operator, standard, notes, measured,
-                       started_t_ns, stopped_t_ns, events, sha256, record)
-VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)
-ON CONFLICT (rig_id, id) DO UPDATE SET
-    run_test_id = EXCLUDED.run_test_id, specimen = EXCLUDED.specimen, operator = EXCLUDED.operator,
-    standard = EXCLUDED.standard, notes = EXCLUDED.notes, measured = EXCLUDED.measured,
-    started_t_ns = EXCLUDED.started_t_ns, stopped_t_ns = EXCLUDED.stopped_t_ns, events = EXCLUDED.events,
-    sha256 = EXCLUDED.sha256, record = EXCLUDED.record, updated_at = now()
-WHERE jsonb_array_length(EXCLUDED.events) >= jsonb_array_length(lab_tests.events)
-"#;
-
-/// What one committed batch did.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Written {
-    /// Feed lines inserted (new).
-    pub inserted: u64,
-    /// Feed lines already stored (redelivered), left as they were.
-    pub duplicates: u64,
-    /// Tag samples inserted.
-    pub tags: u64,
-    /// Gauge samples inserted.
-    pub gauges: u64,
-    /// Rows refused by the database as bad data (logged, skipped).
-    pub rejected: u64,
-    /// Lab test records upserted.
-    pub lab_tests: u64,
-    /// The tests written to (also by duplicates only): (rig, test, test row id).
-    pub touched: Vec<(String, String, i64)>,
-}
-
-impl Written {
-    fn add(&mut self, w: Written) {
-        self.inserted += w.inserted;
-        self.duplicates += w.duplicates;
-        self.tags += w.tags;
-        self.gauges += w.gauges;
-        self.rejected += w.rejected;
-        self.lab_tests += w.lab_tests;
-        for t in w.touched {
-            if !self.touched.contains(&t) {
-                self.touched.push(t);
-            }
-        }
-    }
-}
-
-/// What the archive holds of one run of a test.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RunState {
-    /// The run's number (1, 2, ... in the order met).
-    pub run: i32,
-    /// Smallest `t_ns` held.
-    pub min_t: i64,
-    /// Largest `t_ns` held.
-    pub max_t: i64,
-    /// The seqs held.
-    pub held: SeqRanges,
-}
-
-/// What the archive holds of one test: its runs.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Holdings {
-    /// The runs, by number.
-    pub runs: Vec<RunState>,
-}
-
-impl Holdings {
-    /// The run a line belongs to (see migrations/0002): the run whose time span holds its
-    /// `t_ns`; else the run just after it in time if the seq comes before all of that run's,
-    /// or the run just before it if the seq comes after all of that run's; else a new run
-    /// (a test id used again, a run restarted). Returns the run and whether it is new.
-    pub fn assign(&mut self, seq: u64, t: i64) -> (i32, bool) {
-        let idx = if let Some(i) = self.runs.iter().position(|r| r.min_t <= t && t <= r.max_t) {
-            Some(i)
-        } else {
-            let next = self.runs.iter().enumerate().filter(|(_, r)| r.min_t > t).min_by_key(|(_, r)| r.min_t).map(|(i, _)| i);
-            let prev = self.runs.iter().enumerate().filter(|(_, r)| r.max_t < t).max_by_key(|(_, r)| r.max_t).map(|(i, _)| i);
-            let fits_next = next.filter(|&i| self.runs[i].held.bounds().is_none_or(|(lo, _)| seq < lo));
-            let fits_prev = prev.filter(|&i| self.runs[i].held.bounds().is_none_or(|(_, hi)| seq > hi));
-            fits_next.or(fits_prev)
-        };
-        match idx {
-            Some(i) => {
-                let r = &mut self.runs[i];
-                r.min_t = r.min_t.min(t);
-                r.max_t = r.max_t.max(t);
-                r.held.insert(seq);
-                (r.run, false)
-            }
-            None => (self.new_run(seq, t), true),
-        }
-    }
-
-    /// Starts a new run with one line.
-    pub fn new_run(&mut self, seq: u64, t: i64) -> i32 {
-        let run = self.runs.iter().map(|r| r.run).max().unwrap_or(0) + 1;
-        let mut held = SeqRanges::new();
-        held.insert(seq);
-        self.runs.push(RunState { run, min_t: t, max_t: t, held });
-        run
-    }
-
-    /// The run with this number.
-    pub fn run(&self, run: i32) -> Option<&RunState> {
-        self.runs.iter().find(|r| r.run == run)
-    }
-
-    /// What a rig reads: every run's high water and gaps.
-    pub fn ack_runs(&self) -> Vec<RunHeld> {
-        self.runs.iter().filter_map(|r| RunHeld::from_held(r.run, r.min_t, r.max_t, &r.held)).collect()
-    }
-
-    /// The missing seqs of a run below its high water.
-    pub fn missing(&self, run: i32) -> SeqRanges {
-        let mut m = SeqRanges::new();
-        if let Some(r) = self.run(run) {
-            if let Some((_, hi)) = r.held.bounds() {
-                for (a, b) in r.held.gaps_up_to(hi) {
-                    m.insert_range(a, b);
-                }
-            }
-        }
-        m
-    }
-}
+pub use holdings::Holdings;
+use holdings::{load_holdings, log_gaps};
+pub use migrate::{migrate, MIGRATIONS};
+pub use rows::{LabTestRow, LineKey, LineRow, NewRun, StatusRow, Written};
 
 /// A connection to the archive database.
 pub struct Db {
@@ -228,38 +59,6 @@ SELECT (SELECT count(*) FROM tags), (SELECT count(*) FROM gauges),
        (SELECT coalesce(array_agg(seq), '{}') FROM ins)
 "#;
 
-/// The held seqs of a test as islands, per run.
-const HOLDINGS_SQL: &str = r#"
-SELECT run, min(seq), max(seq), min(t_ns), max(t_ns)
-FROM (SELECT run, seq, t_ns, seq - row_number() OVER (PARTITION BY run ORDER BY seq) AS grp
-      FROM frame_sets WHERE test_id = $1) s
-GROUP BY run, grp ORDER BY run, 2
-"#;
-
-/// A line's key (test row, run, seq) and what the archive did with it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct LineKey {
-    /// The test's row id.
-    pub test_id: i64,
-    /// The run.
-    pub run: i32,
-    /// The seq.
-    pub seq: i64,
-}
-
-/// A new run the archive began: a (rig, test, seq) held already with another `t_ns`.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct NewRun {
-    /// Rig.
-    pub rig: String,
-    /// Test id as published.
-    pub test: String,
-    /// The run's number.
-    pub run: i32,
-    /// The seq that began it.
-    pub seq: i64,
-}
-
 /// True for errors that say the data is bad (SQLSTATE classes 22 and 23), as opposed to
 /// the connection or the server going away.
 pub fn is_data_error(e: &tokio_postgres::Error) -> bool {
@@ -303,48 +102,11 @@ impl Db {
         labs: &[LabTestRow],
     ) -> Result<Written, tokio_postgres::Error> {
         let tx = self.client.transaction().await?;
-        let mut new_ids = Vec::new();
-        let mut ids: HashMap<(String, String), i64> = HashMap::new();
         let mut w = Written::default();
-        for (rig, test) in lines
-            .iter()
-            .map(|l| (&l.rig, &l.test))
-            .chain(statuses.iter().map(|s| (&s.rig, &s.test)))
-            .chain(labs.iter().map(|l| (&l.rig, &l.run)))
-        {
-            let key = (rig.clone(), test.clone());
-            if ids.contains_key(&key) {
-                continue;
-            }
-            let id = match self.tests.get(&key) {
-                Some(id) => *id,
-                None => {
-                    let rig_id: i32 = tx
-                        .query_one(
-                            "INSERT INTO rigs (name) VALUES ($1) ON CONFLICT (name) DO UPDATE SET name = EXCLUDED.name RETURNING id",
-                            &[rig],
-                        )
-                        .await?
-                        .get(0);
-                    let id: i64 = tx
-                        .query_one(
-                            "INSERT INTO tests (rig_id, name) VALUES ($1, $2) ON CONFLICT (rig_id, name) DO UPDATE SET name = EXCLUDED.name RETURNING id",
-                            &[&rig_id, test],
-                        )
-                        .await?
-                        .get(0);
-                    new_ids.push((key.clone(), id));
-                    id
-                }
-            };
-            ids.insert(key.clone(), id);
-            if lines.iter().any(|l| l.rig == key.0 && l.test == key.1) {
-                w.touched.push((key.0, key.1, id));
-            }
-        }
+        let (ids, new_ids) = batch::test_ids(&tx, &self.tests, lines, statuses, labs, &mut w).await?;
         // What is held of every test the lines go to, and the run of every line.
-        let mut work: HashMap<i64, Holdings> = HashMap::new();
         let mut old: HashMap<i64, Holdings> = HashMap::new();
+        let mut work: HashMap<i64, Holdings> = HashMap::new();
         for (_, _, id) in &w.touched {
             let h = match (self.shared, self.holdings.get(id)) {
                 (false, Some(h)) => h.clone(),
@@ -354,113 +116,14 @@ impl Db {
             work.insert(*id, h);
         }
         let mut new_runs: Vec<NewRun> = Vec::new();
-        let mut keys: Vec<LineKey> = Vec::with_capacity(lines.len());
-        for l in lines {
-            let id = ids[&(l.rig.clone(), l.test.clone())];
-            let h = work.get_mut(&id).expect("loaded");
-            let (run, new) = h.assign(l.seq as u64, l.t_ns);
-            if new && run > 1 {
-                new_runs.push(NewRun { rig: l.rig.clone(), test: l.test.clone(), run, seq: l.seq });
-            }
-            keys.push(LineKey { test_id: id, run, seq: l.seq });
-        }
         if !lines.is_empty() {
-            let inserted = insert_rows(&tx, &self.insert, lines, &keys, &mut w).await?;
-            // Lines not inserted: a redelivery (same t_ns), or a line of another run that
-            // fell into this run's span (a different t_ns): that one goes to a new run.
-            let missed: Vec<usize> = (0..lines.len()).filter(|i| !inserted.contains(&keys[*i])).collect();
-            let mut again: Vec<usize> = Vec::new();
-            if !missed.is_empty() {
-                let t_ids: Vec<i64> = missed.iter().map(|&i| keys[i].test_id).collect();
-                let runs: Vec<i32> = missed.iter().map(|&i| keys[i].run).collect();
-                let seqs: Vec<i64> = missed.iter().map(|&i| keys[i].seq).collect();
-                let rows = tx
-                    .query(
-                        "SELECT f.test_id, f.run, f.seq, f.t_ns FROM frame_sets f
-                         JOIN unnest($1::bigint[], $2::int[], $3::bigint[]) AS k(test_id, run, seq)
-                           ON f.test_id = k.test_id AND f.run = k.run AND f.seq = k.seq",
-                        &[&t_ids, &runs, &seqs],
-                    )
-                    .await?;
-                let stored: HashMap<LineKey, i64> =
-                    rows.iter().map(|r| (LineKey { test_id: r.get(0), run: r.get(1), seq: r.get(2) }, r.get::<_, i64>(3))).collect();
-                let mut moved: HashMap<i64, i32> = HashMap::new();
-                for i in missed {
-                    if stored.get(&keys[i]).is_some_and(|t| *t != lines[i].t_ns) {
-                        let h = work.get_mut(&keys[i].test_id).expect("loaded");
-                        let run = match moved.get(&keys[i].test_id) {
-                            Some(&r) if h.run(r).is_some_and(|x| !x.held.contains(lines[i].seq as u64)) => {
-                                let x = h.runs.iter_mut().find(|x| x.run == r).expect("run");
-                                x.held.insert(lines[i].seq as u64);
-                                x.min_t = x.min_t.min(lines[i].t_ns);
-                                x.max_t = x.max_t.max(lines[i].t_ns);
-                                r
-                            }
-                            _ => {
-                                let r = h.new_run(lines[i].seq as u64, lines[i].t_ns);
-                                new_runs.push(NewRun { rig: lines[i].rig.clone(), test: lines[i].test.clone(), run: r, seq: lines[i].seq });
-                                moved.insert(keys[i].test_id, r);
-                                r
-                            }
-                        };
-                        keys[i].run = run;
-                        again.push(i);
-                    } else {
-                        w.duplicates += 1;
-                    }
-                }
-            }
-            if !again.is_empty() {
-                let rows: Vec<LineRow> = again.iter().map(|&i| lines[i].clone()).collect();
-                let k: Vec<LineKey> = again.iter().map(|&i| keys[i]).collect();
-                let inserted = insert_rows(&tx, &self.insert, &rows, &k, &mut w).await?;
-                w.duplicates += (rows.len() - inserted.len()) as u64;
-            }
+            batch::insert_lines(&tx, &self.insert, lines, &ids, &mut work, &mut new_runs, &mut w).await?;
         }
-        for s in statuses {
-            let id = ids[&(s.rig.clone(), s.test.clone())];
-            tx.execute("UPDATE tests SET status = $2, status_at = now() WHERE id = $1", &[&id, &s.status]).await?;
-            tx.execute(
-                "UPDATE rigs SET status = $2, status_at = now() WHERE id = (SELECT rig_id FROM tests WHERE id = $1)",
-                &[&id, &s.status],
-            )
-            .await?;
-        }
-        for l in labs {
-            let run_id = ids[&(l.rig.clone(), l.run.clone())];
-            let r = &l.message.record;
-            let json = |v: serde_json::Result<serde_json::Value>| v.unwrap_or(serde_json::Value::Null);
-            let rig_id: i32 = tx.query_one("SELECT rig_id FROM tests WHERE id = $1", &[&run_id]).await?.get(0);
-            tx.execute(
-                LAB_TEST_SQL,
-                &[
-                    &rig_id,
-                    &r.id,
-                    &run_id,
-                    &r.meta.specimen,
-                    &r.meta.operator,
-                    &r.meta.standard,
-                    &r.meta.notes,
-                    &json(serde_json::to_value(&r.meta.measured)),
-                    &r.started_t_ns,
-                    &r.stopped_t_ns,
-                    &json(serde_json::to_value(&r.events)),
-                    &json(serde_json::to_value(&r.sha256)),
-                    &json(serde_json::to_value(&l.message)),
-                ],
-            )
-            .await?;
-            w.lab_tests += 1;
-        }
+        batch::write_statuses(&tx, statuses, &ids).await?;
+        w.lab_tests += batch::write_lab_tests(&tx, labs, &ids).await?;
         tx.commit().await?;
         self.tests.extend(new_ids);
-        for r in &new_runs {
-            tracing::warn!(
-                rig = %r.rig, test = %r.test, run = r.run, seq = r.seq,
-                "archive: seq {} of rig {} test {} arrived again with another t_ns: a new run {} (feed_lines shows it as test \"{}#{}\")",
-                r.seq, r.rig, r.test, r.run, r.test, r.run
-            );
-        }
+        batch::log_new_runs(&new_runs);
         for (rig, test, id) in &w.touched {
             if let (Some(before), Some(after)) = (old.get(id), work.get(id)) {
                 log_gaps(rig, test, before, after);
@@ -516,162 +179,8 @@ impl Db {
     }
 }
 
-/// Inserts rows with their keys; returns the keys inserted (new).
-async fn insert_rows(
-    tx: &tokio_postgres::Transaction<'_>,
-    insert: &Statement,
-    lines: &[LineRow],
-    keys: &[LineKey],
-    w: &mut Written,
-) -> Result<std::collections::HashSet<LineKey>, tokio_postgres::Error> {
-    let test_ids: Vec<i64> = keys.iter().map(|k| k.test_id).collect();
-    let runs: Vec<i32> = keys.iter().map(|k| k.run).collect();
-    let seqs: Vec<i64> = keys.iter().map(|k| k.seq).collect();
-    let jsons: Vec<&serde_json::Value> = lines.iter().map(|l| &l.line).collect();
-    let row = tx.query_one(insert, &[&test_ids, &runs, &seqs, &jsons]).await?;
-    w.tags += row.get::<_, i64>(0) as u64;
-    w.gauges += row.get::<_, i64>(1) as u64;
-    let (t, r, s): (Vec<i64>, Vec<i32>, Vec<i64>) = (row.get(2), row.get(3), row.get(4));
-    w.inserted += t.len() as u64;
-    Ok(t.into_iter().zip(r).zip(s).map(|((test_id, run), seq)| LineKey { test_id, run, seq }).collect())
-}
-
-/// Reads what is held of a test.
-async fn load_holdings(tx: &tokio_postgres::Transaction<'_>, test_id: i64) -> Result<Holdings, tokio_postgres::Error> {
-    let mut h = Holdings::default();
-    for r in tx.query(HOLDINGS_SQL, &[&test_id]).await? {
-        let (run, lo, hi, t0, t1): (i32, i64, i64, i64, i64) = (r.get(0), r.get(1), r.get(2), r.get(3), r.get(4));
-        match h.runs.iter_mut().find(|x| x.run == run) {
-            Some(x) => {
-                x.held.insert_range(lo as u64, hi as u64);
-                x.min_t = x.min_t.min(t0);
-                x.max_t = x.max_t.max(t1);
-            }
-            None => {
-                let mut held = SeqRanges::new();
-                held.insert_range(lo as u64, hi as u64);
-                h.runs.push(RunState { run, min_t: t0, max_t: t1, held });
-            }
-        }
-    }
-    Ok(h)
-}
-
-/// Logs the gaps (missing seqs below a run's high water) that opened and those filled.
-fn log_gaps(rig: &str, test: &str, before: &Holdings, after: &Holdings) {
-    let mut logged = 0;
-    for r in &after.runs {
-        let was = before.missing(r.run);
-        let now = after.missing(r.run);
-        let mut opened = now.clone();
-        for (a, b) in was.iter() {
-            opened.remove_range(a, b);
-        }
-        let mut filled = was.clone();
-        for (a, b) in now.iter() {
-            filled.remove_range(a, b);
-        }
-        for (a, b) in opened.iter() {
-            if logged < 20 {
-                tracing::warn!(
-                    rig,
-                    test,
-                    run = r.run,
-                    first = a,
-                    last = b,
-                    "archive: gap opened: rig {rig} test {test} run {} lacks seq {a}..={b} ({} lines)",
-                    r.run,
-                    b - a + 1
-                );
-            }
-            logged += 1;
-        }
-        for (a, b) in filled.iter() {
-            if logged < 20 {
-                tracing::info!(
-                    rig,
-                    test,
-                    run = r.run,
-                    first = a,
-                    last = b,
-                    "archive: gap filled: rig {rig} test {test} run {} seq {a}..={b} ({} lines)",
-                    r.run,
-                    b - a + 1
-                );
-            }
-            logged += 1;
-        }
-    }
-    if logged > 20 {
-        tracing::info!(rig, test, "archive: {} more gap changes not logged", logged - 20);
-    }
-}
-
 impl Drop for Db {
     fn drop(&mut self) {
         self.conn.abort();
-    }
-}
-
-/// Applies the missing migrations in one transaction under an advisory lock (several
-/// archives may start at once). A database newer than this program is used as it is.
-pub async fn migrate(client: &mut Client) -> Result<(), tokio_postgres::Error> {
-    let tx = client.transaction().await?;
-    tx.execute("SELECT pg_advisory_xact_lock($1)", &[&MIGRATION_LOCK]).await?;
-    tx.batch_execute(
-        "CREATE TABLE IF NOT EXISTS tagdeflect_migrations (
-            version integer PRIMARY KEY, name text NOT NULL, applied_at timestamptz NOT NULL DEFAULT now())",
-    )
-    .await?;
-    let current: i32 = tx.query_one("SELECT coalesce(max(version), 0) FROM tagdeflect_migrations", &[]).await?.get(0);
-    let newest = MIGRATIONS.last().map_or(0, |m| m.0);
-    if current > newest {
-        tracing::warn!(
-            "archive: the database schema is at version {current}, newer than this program's {newest}; going on (migrations only add)"
-        );
-    }
-    for (version, name, sql) in MIGRATIONS {
-        if *version <= current {
-            continue;
-        }
-        tracing::info!(version, name, "archive: applying schema migration");
-        tx.batch_execute(sql).await?;
-        tx.execute("INSERT INTO tagdeflect_migrations (version, name) VALUES ($1, $2)", &[version, name]).await?;
-    }
-    tx.commit().await
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn lines_join_their_run_and_a_seq_again_later_starts_a_new_one() {
-        let mut h = Holdings::default();
-        // Run 1: seq 0..=9 at t 100..=109, seq 5 arriving late.
-        for s in (0..10).filter(|s| *s != 5) {
-            assert_eq!(h.assign(s, 100 + s as i64), (1, s == 0));
-        }
-        assert_eq!(h.missing(1).iter().collect::<Vec<_>>(), vec![(5, 5)]);
-        assert_eq!(h.assign(5, 105), (1, false), "a late line inside the run's span");
-        assert!(h.missing(1).is_empty());
-        assert_eq!(h.assign(3, 103), (1, false), "a redelivery");
-        // A restart: seq 0 again, later.
-        assert_eq!(h.assign(0, 500), (2, true));
-        assert_eq!(h.assign(1, 501), (2, false));
-        // A trailing line of run 1 that arrives now still fits run 1 (before run 2 in time).
-        assert_eq!(h.assign(10, 110), (1, false));
-        // Run 2's line that arrives after a later one of it: before run 2's span in time
-        // and seq, after run 1's span but not after all of run 1's seqs: run 2.
-        let mut g = Holdings::default();
-        for s in 0..10 {
-            g.assign(s, 100 + s as i64);
-        }
-        assert_eq!(g.assign(4, 504), (2, true));
-        assert_eq!(g.assign(2, 502), (2, false));
-        assert_eq!(
-            g.ack_runs().iter().map(|r| (r.run, r.high, r.gaps.clone())).collect::<Vec<_>>(),
-            vec![(1, 9, vec![]), (2, 4, vec![(0, 1), (3, 3)])]
-        );
     }
 }

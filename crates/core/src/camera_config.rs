@@ -69,15 +69,36 @@ pub enum CameraSource {
     },
 }
 
+/// A `source` string that names no camera source.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CameraSourceError {
+    /// A known kind with nothing after its `kind:` prefix.
+    #[error("\"{text}\" names no {what}: {EXPECTED_SOURCES}")]
+    NamesNothing {
+        /// The (trimmed) `source` text.
+        text: String,
+        /// What the kind needs after its prefix (`device path`, `device id`, `folder`).
+        what: &'static str,
+    },
+    /// Not one of the known kinds.
+    #[error("\"{text}\" is not a camera source: {EXPECTED_SOURCES}")]
+    NotASource {
+        /// The (trimmed) `source` text.
+        text: String,
+    },
+}
+
+/// What a `source` may be, as the errors say it.
+const EXPECTED_SOURCES: &str = "expected \"v4l2:/dev/videoN\", \"aravis:<device id>\", \"sim\" or \"recording:<folder>\"";
+
 impl CameraSource {
     /// Parses a `source` string; the error says what is expected.
-    pub fn parse(text: &str) -> Result<CameraSource, String> {
+    pub fn parse(text: &str) -> Result<CameraSource, CameraSourceError> {
         let t = text.trim();
-        let expected = "expected \"v4l2:/dev/videoN\", \"aravis:<device id>\", \"sim\" or \"recording:<folder>\"";
-        let nonempty = |rest: &str, what: &str| {
+        let nonempty = |rest: &str, what: &'static str| {
             let r = rest.trim();
             if r.is_empty() {
-                Err(format!("\"{t}\" names no {what}: {expected}"))
+                Err(CameraSourceError::NamesNothing { text: t.to_string(), what })
             } else {
                 Ok(r.to_string())
             }
@@ -91,7 +112,7 @@ impl CameraSource {
         } else if let Some(d) = t.strip_prefix("recording:") {
             Ok(CameraSource::Recording { dir: PathBuf::from(nonempty(d, "folder")?) })
         } else {
-            Err(format!("\"{t}\" is not a camera source: {expected}"))
+            Err(CameraSourceError::NotASource { text: t.to_string() })
         }
     }
 
@@ -208,7 +229,7 @@ impl CameraSection {
                 format!("\"{name}\" is the name of a recording's own file ({f}): the camera's folder would collide with it; choose another name"),
             ));
         }
-        let mut source = CameraSource::parse(&self.source).map_err(|m| Problem::new("source", m))?;
+        let mut source = CameraSource::parse(&self.source).map_err(|e| Problem::new("source", e.to_string()))?;
         if let CameraSource::Recording { dir } = &mut source {
             if dir.is_relative() {
                 *dir = base.join(&*dir);

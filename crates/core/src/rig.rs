@@ -161,7 +161,7 @@ pub fn resolve_tag_sets(
 }
 
 fn parse_family(f: &str) -> Result<TagFamily, crate::Problem> {
-    f.parse::<TagFamily>().map_err(|e| crate::Problem::new("family", e))
+    f.parse::<TagFamily>().map_err(|e| crate::Problem::new("family", e.to_string()))
 }
 
 fn check_size(v: f64) -> Result<f64, crate::Problem> {
@@ -205,39 +205,41 @@ fn resolve_background(bg: &BackgroundSection) -> Result<BackgroundConfig, crate:
             ));
         }
         let p: Vec<[f64; 3]> = c.iter().map(|p| [p[0], p[1], p[2]]).collect();
-        check_square(&p, size_mm).map_err(|m| Problem::new(format!("{key}.corners_mm"), m))?;
+        check_square(&p, size_mm).map_err(|e| e.within(&key))?;
         tags.push(BackgroundTag { id, corners_mm: [p[0], p[1], p[2], p[3]] });
     }
     Ok(BackgroundConfig { family, size_mm, tags })
 }
 
 /// Checks that four world corners form a planar square whose edge matches `size_mm`
-/// (within 2 %, so measured positions with small survey errors pass).
-fn check_square(p: &[[f64; 3]], size_mm: f64) -> Result<(), String> {
+/// (within 2 %, so measured positions with small survey errors pass). The problem's key is
+/// `corners_mm` (relative to the tag).
+fn check_square(p: &[[f64; 3]], size_mm: f64) -> Result<(), crate::Problem> {
+    let problem = |m: String| crate::Problem::new("corners_mm", m);
     let v = |a: usize, b: usize| nalgebra::Vector3::new(p[b][0] - p[a][0], p[b][1] - p[a][1], p[b][2] - p[a][2]);
     if p.iter().flatten().any(|x| !x.is_finite()) {
-        return Err("corners must be finite numbers".into());
+        return Err(problem("corners must be finite numbers".into()));
     }
     let edges = [v(0, 1), v(1, 2), v(2, 3), v(3, 0)];
     let lens: Vec<f64> = edges.iter().map(|e| e.norm()).collect();
     if lens.iter().any(|&l| l < 1e-6) {
-        return Err("degenerate square: two corners coincide".into());
+        return Err(problem("degenerate square: two corners coincide".into()));
     }
     let mean = lens.iter().sum::<f64>() / 4.0;
     if lens.iter().any(|&l| (l - mean).abs() > 0.02 * mean) {
-        return Err(format!("not a square: edge lengths {:.2?} mm differ", lens));
+        return Err(problem(format!("not a square: edge lengths {:.2?} mm differ", lens)));
     }
     let d1 = v(0, 2).norm();
     let d2 = v(1, 3).norm();
     if (d1 - d2).abs() > 0.02 * d1 || (d1 - mean * 2f64.sqrt()).abs() > 0.03 * d1 {
-        return Err(format!("not a square: diagonals {d1:.2} and {d2:.2} mm (edges {mean:.2} mm)"));
+        return Err(problem(format!("not a square: diagonals {d1:.2} and {d2:.2} mm (edges {mean:.2} mm)")));
     }
     let n = edges[0].cross(&edges[1]).normalize();
     if n.dot(&v(0, 3)).abs() > 0.02 * mean {
-        return Err("the four corners are not in one plane".into());
+        return Err(problem("the four corners are not in one plane".into()));
     }
     if (mean - size_mm).abs() > 0.02 * size_mm {
-        return Err(format!("edge {mean:.2} mm does not match background.size_mm = {size_mm}"));
+        return Err(problem(format!("edge {mean:.2} mm does not match background.size_mm = {size_mm}")));
     }
     Ok(())
 }

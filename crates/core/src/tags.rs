@@ -80,19 +80,21 @@ impl fmt::Display for TagFamily {
     }
 }
 
+/// A family name that is not one of the supported families.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown tag family \"{0}\": expected one of tag36h11, tag25h9, tag16h5")]
+pub struct UnknownTagFamily(pub String);
+
 impl FromStr for TagFamily {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        TagFamily::ALL
-            .into_iter()
-            .find(|f| f.name() == s)
-            .ok_or_else(|| format!("unknown tag family \"{s}\": expected one of tag36h11, tag25h9, tag16h5"))
+    type Err = UnknownTagFamily;
+    fn from_str(s: &str) -> Result<Self, UnknownTagFamily> {
+        TagFamily::ALL.into_iter().find(|f| f.name() == s).ok_or_else(|| UnknownTagFamily(s.to_string()))
     }
 }
 
 impl TryFrom<String> for TagFamily {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
+    type Error = UnknownTagFamily;
+    fn try_from(s: String) -> Result<Self, UnknownTagFamily> {
         s.parse()
     }
 }

@@ -183,12 +183,27 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
     }
     let mut problem = TagProblem { views: usable, corners: tag_corners(size_mm) };
     let mut iterations = 0;
-    let mut warm_started = false;
+    let (best, warm_started) = first_fit(&problem, warm, pooled, &mut iterations)?;
+    let (best, rejected) = reject_outlier_views(&mut problem, best, warm, pooled, &mut iterations)?;
+    // A view left out: the solution is no longer the warm start's.
+    let warm_started = warm_started && rejected.is_empty();
+    tag_solution(&problem, best, pooled, rejected, iterations, warm_started)
+}
 
+/// The fit over every view: from the warm start when it fits (RMS within 4 × the pooled
+/// noise, at least 0.5 px; 1 px without a pooled noise), else the best of the warm and the
+/// closed-form starts; and whether the warm start won.
+fn first_fit(
+    problem: &TagProblem<'_>,
+    warm: Option<&Pose>,
+    pooled: Option<f64>,
+    iterations: &mut usize,
+) -> Result<(LmOutcome, bool), SolveError> {
+    let mut warm_started = false;
     let mut best: Option<LmOutcome> = None;
     if let Some(w) = warm {
-        if let Some(out) = minimize(&problem, w, &LmOptions::default()) {
-            iterations += out.iterations;
+        if let Some(out) = minimize(problem, w, &LmOptions::default()) {
+            *iterations += out.iterations;
             let rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
             let good = rms <= pooled.map_or(1.0, |s| (4.0 * s).max(0.5));
             if good {
@@ -199,7 +214,7 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
     }
     if !warm_started {
         let starts = problem.cold_starts();
-        if let Some(cold) = problem.solve_from(&starts, 4, &mut iterations) {
+        if let Some(cold) = problem.solve_from(&starts, 4, iterations) {
             if best.as_ref().is_none_or(|b| cold.evaluation.ssr < b.evaluation.ssr) {
                 best = Some(cold);
             } else {
@@ -207,59 +222,33 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
             }
         }
     }
-    let mut best = best.ok_or_else(|| SolveError::Degenerate {
+    let best = best.ok_or_else(|| SolveError::Degenerate {
         what: "specimen tag: no start converged (corners degenerate or behind a camera)".into(),
     })?;
+    Ok((best, warm_started))
+}
 
-    // Outlier views. Suspicious when the joint residual is too large for the pooled noise
-    // (χ² test) — or, without a pooled noise, always with ≥ 3 views. The culprit is found by
-    // leaving each view out in turn (a bad view drags the joint fit, so its own residual in
-    // the joint fit understates it): the view whose removal leaves the most consistent
-    // remainder is dropped if its residual against that remainder is far above it.
+/// Outlier views. Suspicious when the joint residual is too large for the pooled noise (χ²
+/// test) — or, without a pooled noise, always with ≥ 3 views. The culprit is found by leaving
+/// each view out in turn (a bad view drags the joint fit, so its own residual in the joint fit
+/// understates it): the view whose removal leaves the most consistent remainder is dropped if
+/// its residual against that remainder is far above it. Returns the fit over the views kept
+/// and the (sorted) indices of those dropped.
+fn reject_outlier_views(
+    problem: &mut TagProblem<'_>,
+    mut best: LmOutcome,
+    warm: Option<&Pose>,
+    pooled: Option<f64>,
+    iterations: &mut usize,
+) -> Result<(LmOutcome, Vec<usize>), SolveError> {
     let mut rejected = Vec::new();
-    while problem.views.len() >= 2 {
-        let dof_now = best.evaluation.residuals.saturating_sub(6) as f64;
+    while problem.views.len() >= 2 && suspicious(&best, problem.views.len(), pooled) {
         let joint_rms = (best.evaluation.ssr / best.evaluation.residuals as f64).sqrt();
-        let suspicious = match pooled {
-            Some(s) => {
-                best.evaluation.ssr / (s * s) > dof_now + 4.0 * (2.0 * dof_now).sqrt() + 4.0
-                    && (problem.views.len() >= 3 || joint_rms > 2.5 * s)
-            }
-            None => problem.views.len() >= 3 || joint_rms > 1.0,
-        };
-        if !suspicious {
-            break;
-        }
         let (victim, remainder) = if problem.views.len() >= 3 {
-            let mut pick: Option<(usize, LmOutcome, f64)> = None;
-            for v in 0..problem.views.len() {
-                let sub = TagProblem {
-                    views: problem.views.iter().enumerate().filter(|(i, _)| *i != v).map(|(_, x)| *x).collect(),
-                    corners: problem.corners,
-                };
-                let Some(out) = minimize(&sub, &best.pose, &LmOptions::default()) else { continue };
-                iterations += out.iterations;
-                let score = out.evaluation.ssr / out.evaluation.residuals.saturating_sub(6).max(1) as f64;
-                if pick.as_ref().is_none_or(|p| score < p.2) {
-                    pick = Some((v, out, score));
-                }
-            }
-            let Some((v, out, _)) = pick else { break };
-            let single = TagProblem { views: vec![problem.views[v]], corners: problem.corners };
-            let out_rms = single.group_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
-            let rest_rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
-            // Without a noise estimate only the ratio is known, and a ratio of small numbers is
-            // noisy: demand more, and an absolute floor.
-            let limit = match pooled {
-                Some(s) => (3.0 * rest_rms).max(3.0 * s),
-                None => (4.0 * rest_rms).max(NO_NOISE_REJECT_FLOOR_PX),
-            };
-            if out_rms <= limit {
-                break;
-            }
+            let Some((v, out)) = worst_of_many(problem, &best, pooled, iterations) else { break };
             (v, Some(out))
         } else {
-            (pick_two_view_outlier(&problem, warm, &mut iterations), None)
+            (pick_two_view_outlier(problem, warm, iterations), None)
         };
         let (index, _) = problem.views[victim];
         tracing::debug!(view = index, joint_rms_px = joint_rms, views = problem.views.len(), "specimen tag: view rejected as an outlier");
@@ -273,14 +262,66 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
                     starts.push(*w);
                 }
                 problem
-                    .solve_from(&starts, 3, &mut iterations)
+                    .solve_from(&starts, 3, iterations)
                     .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: re-solve after rejecting a view failed".into() })?
             }
         };
-        warm_started = false;
     }
     rejected.sort_unstable();
+    Ok((best, rejected))
+}
 
+/// Whether the joint fit over `views` views is too poor for the pooled noise (see
+/// [`reject_outlier_views`]).
+fn suspicious(best: &LmOutcome, views: usize, pooled: Option<f64>) -> bool {
+    let dof_now = best.evaluation.residuals.saturating_sub(6) as f64;
+    let joint_rms = (best.evaluation.ssr / best.evaluation.residuals as f64).sqrt();
+    match pooled {
+        Some(s) => best.evaluation.ssr / (s * s) > dof_now + 4.0 * (2.0 * dof_now).sqrt() + 4.0 && (views >= 3 || joint_rms > 2.5 * s),
+        None => views >= 3 || joint_rms > 1.0,
+    }
+}
+
+/// With three or more views: the view whose removal leaves the most consistent remainder,
+/// and the remainder's fit — `None` when no remainder converges or the view's residual
+/// against it is not far above the remainder's own.
+fn worst_of_many(problem: &TagProblem<'_>, best: &LmOutcome, pooled: Option<f64>, iterations: &mut usize) -> Option<(usize, LmOutcome)> {
+    let mut pick: Option<(usize, LmOutcome, f64)> = None;
+    for v in 0..problem.views.len() {
+        let sub = TagProblem {
+            views: problem.views.iter().enumerate().filter(|(i, _)| *i != v).map(|(_, x)| *x).collect(),
+            corners: problem.corners,
+        };
+        let Some(out) = minimize(&sub, &best.pose, &LmOptions::default()) else { continue };
+        *iterations += out.iterations;
+        let score = out.evaluation.ssr / out.evaluation.residuals.saturating_sub(6).max(1) as f64;
+        if pick.as_ref().is_none_or(|p| score < p.2) {
+            pick = Some((v, out, score));
+        }
+    }
+    let (v, out, _) = pick?;
+    let single = TagProblem { views: vec![problem.views[v]], corners: problem.corners };
+    let out_rms = single.group_rms(&out.pose).and_then(|r| r.first().copied()).unwrap_or(f64::INFINITY);
+    let rest_rms = (out.evaluation.ssr / out.evaluation.residuals as f64).sqrt();
+    // Without a noise estimate only the ratio is known, and a ratio of small numbers is
+    // noisy: demand more, and an absolute floor.
+    let limit = match pooled {
+        Some(s) => (3.0 * rest_rms).max(3.0 * s),
+        None => (4.0 * rest_rms).max(NO_NOISE_REJECT_FLOOR_PX),
+    };
+    (out_rms > limit).then_some((v, out))
+}
+
+/// The solution of the fit `best` over the views kept: its σ from the residual variance and
+/// the camera poses' covariances.
+fn tag_solution(
+    problem: &TagProblem<'_>,
+    best: LmOutcome,
+    pooled: Option<f64>,
+    rejected: Vec<usize>,
+    iterations: usize,
+    warm_started: bool,
+) -> Result<TagSolution, SolveError> {
     let n = best.evaluation.residuals;
     let ssr = best.evaluation.ssr;
     let dof = n.saturating_sub(6);
@@ -296,19 +337,8 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
         .jtj
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: singular normal equations".into() })?;
-    let mut cov = h_inv * s2;
-    let noise_cov = cov;
-    for (_, view) in &problem.views {
-        let Some(cam_cov) = view.camera_pose_covariance else { continue };
-        let mut b = Matrix6::zeros();
-        for k in 0..4 {
-            if let Some((_, jt, jc)) = tag_corner_terms(view, &best.pose, &problem.corners[k], &view.corners[k]) {
-                b += jt.transpose() * jc;
-            }
-        }
-        let a = h_inv * b;
-        cov += a * cam_cov * a.transpose();
-    }
+    let noise_cov = h_inv * s2;
+    let cov = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
     let centre_cov: Matrix3<f64> = cov.fixed_view::<3, 3>(3, 3).into_owned();
     let sigma = Vector3::new(centre_cov[(0, 0)].max(0.0).sqrt(), centre_cov[(1, 1)].max(0.0).sqrt(), centre_cov[(2, 2)].max(0.0).sqrt());
     Ok(TagSolution {
@@ -326,6 +356,24 @@ pub fn solve_tag(views: &[TagView], size_mm: f64, warm: Option<&Pose>, pooled_si
         iterations,
         warm_started,
     })
+}
+
+/// The tag's covariance: the pixel noise's `noise_cov` plus each view's camera pose
+/// covariance carried through the fit (`A Σ_cam Aᵀ`, `A = H⁻¹ Σ_k J_tagᵀ J_cam`).
+fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>) -> Matrix6<f64> {
+    let mut cov = noise_cov;
+    for (_, view) in &problem.views {
+        let Some(cam_cov) = view.camera_pose_covariance else { continue };
+        let mut b = Matrix6::zeros();
+        for k in 0..4 {
+            if let Some((_, jt, jc)) = tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]) {
+                b += jt.transpose() * jc;
+            }
+        }
+        let a = h_inv * b;
+        cov += a * cam_cov * a.transpose();
+    }
+    cov
 }
 
 /// With two inconsistent views, which one to drop: each view is solved alone; with a warm

@@ -49,7 +49,7 @@ impl std::str::FromStr for TargetSpec {
                 if !(5..=6).contains(&parts.len()) {
                     return Err(err("expected tagboard:FAMILY:COLSxROWS:SIZE_MM:PITCH_MM[:FIRST_ID], e.g. tagboard:tag36h11:6x4:30:40"));
                 }
-                let family: TagFamily = parts[1].parse().map_err(|e: String| err(&e))?;
+                let family: TagFamily = parts[1].parse().map_err(|e: tagdeflect_core::tags::UnknownTagFamily| err(&e.to_string()))?;
                 let (cols, rows) = parse_dims(parts[2]).ok_or_else(|| err("COLSxROWS must be two positive numbers of tags, e.g. 6x4"))?;
                 let size_mm = parse_mm(parts[3]).ok_or_else(|| err("SIZE_MM (black-square edge) must be a positive length in mm"))?;
                 let pitch_mm = parse_mm(parts[4]).ok_or_else(|| err("PITCH_MM must be a positive length in mm"))?;

@@ -56,9 +56,10 @@ impl ControlConfig {
         parse_listen_addr(&self.modbus, EXAMPLE_PORT)
     }
 
-    /// Checks the section; `gauges` are the configured `[[gauge]]` names. Keys relative to
-    /// `[output.control]`.
-    pub fn validate(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
+    /// Checks the section against the configured `[[gauge]]` names `gauges` (the served
+    /// `gauge` must be one of them, so the check needs that other section: not a plain
+    /// `validate`). Keys relative to `[output.control]`.
+    pub fn validate_against(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
         use tagdeflect_core::Problem;
         self.addr().map_err(|e| Problem::new("modbus", e.to_string()))?;
         if self.gauge != NET_DEFLECTION && !gauges.contains(&self.gauge) {
@@ -84,15 +85,15 @@ mod tests {
     #[test]
     fn checks_name_the_key() {
         let c = ControlConfig::on("127.0.0.1:5020");
-        assert!(c.validate(&[]).is_ok());
+        assert!(c.validate_against(&[]).is_ok());
         let bad = ControlConfig { modbus: "localhost".into(), ..c.clone() };
-        assert_eq!(bad.validate(&[]).unwrap_err().key, "modbus");
+        assert_eq!(bad.validate_against(&[]).unwrap_err().key, "modbus");
         let bad = ControlConfig { gauge: "cmod".into(), ..c.clone() };
-        assert_eq!(bad.validate(&[]).unwrap_err().key, "gauge");
-        assert!(bad.validate(&["cmod".into()]).is_ok());
+        assert_eq!(bad.validate_against(&[]).unwrap_err().key, "gauge");
+        assert!(bad.validate_against(&["cmod".into()]).is_ok());
         let bad = ControlConfig { max_sigma_mm: 0.0, ..c.clone() };
-        assert_eq!(bad.validate(&[]).unwrap_err().key, "max_sigma_mm");
+        assert_eq!(bad.validate_against(&[]).unwrap_err().key, "max_sigma_mm");
         let bad = ControlConfig { stale_sets: 0, ..c };
-        assert_eq!(bad.validate(&[]).unwrap_err().key, "stale_sets");
+        assert_eq!(bad.validate_against(&[]).unwrap_err().key, "stale_sets");
     }
 }
