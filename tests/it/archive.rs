@@ -600,7 +600,13 @@ fn backfill_loads_a_feed_file_once_and_the_gap_view_shows_what_is_missing() {
             })
         })
     };
-    assert_eq!(gaps_of(pg.url()), vec![(first, last, 5)], "feed_gaps");
+    // On a failure, the seqs and the rig's own drops of the lines say which hole the view saw.
+    let seqs_and_drops: Vec<(i64, i64)> = lines
+        .iter()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|v| (v["seq"].as_i64().unwrap(), v["dropped_sets"].as_i64().unwrap_or(-1)))
+        .collect();
+    assert_eq!(gaps_of(pg.url()), vec![(first, last, 5)], "feed_gaps; the feed's (seq, dropped_sets): {seqs_and_drops:?}");
     let out = backfill(&feed_path);
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     let said = String::from_utf8_lossy(&out.stdout).to_string();

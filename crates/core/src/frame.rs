@@ -142,7 +142,7 @@ impl FrameFormat {
     }
 
     /// Encodes an image in this format.
-    pub fn encode(self, img: &GrayImage) -> Result<Vec<u8>, String> {
+    pub fn encode(self, img: &GrayImage) -> Result<Vec<u8>, png::EncodingError> {
         match self {
             FrameFormat::Png => encode_png(img),
             FrameFormat::Pgm => {
@@ -157,15 +157,15 @@ impl FrameFormat {
 }
 
 /// Encodes an image as an 8-bit grey PNG (fast compression).
-pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, String> {
+pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, png::EncodingError> {
     let mut out = Vec::with_capacity(img.data.len() / 2);
     {
         let mut enc = png::Encoder::new(&mut out, img.width, img.height);
         enc.set_color(png::ColorType::Grayscale);
         enc.set_depth(png::BitDepth::Eight);
         enc.set_compression(png::Compression::Fast);
-        let mut w = enc.write_header().map_err(|e| e.to_string())?;
-        w.write_image_data(&img.data).map_err(|e| e.to_string())?;
+        let mut w = enc.write_header()?;
+        w.write_image_data(&img.data)?;
     }
     Ok(out)
 }

@@ -340,7 +340,7 @@ impl RecordingWriter {
     pub fn write_frame(&mut self, camera: &str, seq: u64, t_ns: i64, image: &GrayImage) -> Result<(), RecordingError> {
         let file = format!("{camera}/{seq:06}.{}", self.format.extension());
         let path = self.dir.join(&file);
-        let bytes = self.format.encode(image).map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
+        let bytes = self.format.encode(image).map_err(|m| RecordingError::BadImage { path: path.clone(), message: m.to_string() })?;
         let tmp = self.dir.join(format!("{camera}/.{seq:06}.{}.part", self.format.extension()));
         if let Err(e) = fs::write(&tmp, bytes).and_then(|_| fs::rename(&tmp, &path)) {
             let _ = fs::remove_file(&tmp);

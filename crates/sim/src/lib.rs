@@ -13,6 +13,7 @@
 
 mod beam;
 mod drift;
+mod error;
 mod law;
 pub mod live_rig;
 mod loading;
@@ -27,6 +28,7 @@ mod trace;
 mod truth;
 
 pub use beam::FourPointBeam;
+pub use error::SimError;
 pub use law::load_at;
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimRigSections};
@@ -38,33 +40,3 @@ pub use truth::{SimTruthCamera, SimTruthLine, SimTruthTag};
 // The parameters of the rig are config (`[sim]`, checked when the config is read); the
 // simulator uses them from there and the config never imports the simulator.
 pub use crate::params::{camera_names, LoadLaw, SimParams, SimTest};
-
-/// An invalid simulation option or a failure while writing the simulated recording.
-#[derive(Debug, thiserror::Error)]
-pub enum SimError {
-    /// An option is out of range.
-    #[error("simulation option `{option}`: {message}")]
-    Param {
-        /// The option (as in `[sim]` and `--<option>`).
-        option: String,
-        /// What is wrong and what is expected.
-        message: String,
-    },
-    /// Writing the recording failed.
-    #[error("writing the simulated recording: {0}")]
-    Recording(#[from] tagdeflect_io::recording::RecordingError),
-    /// Writing an extra truth file failed.
-    #[error("writing {path}: {source}")]
-    Io {
-        /// The file.
-        path: std::path::PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-}
-
-impl From<tagdeflect_core::Problem> for SimError {
-    fn from(p: tagdeflect_core::Problem) -> Self {
-        SimError::Param { option: p.key, message: p.message }
-    }
-}

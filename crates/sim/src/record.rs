@@ -79,7 +79,7 @@ pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat, config: 
         for (c, name, t, bytes) in encoded {
             let file = format!("{name}/{:06}.{}", seqs[c], format.extension());
             let path = out.join(&file);
-            let bytes = bytes.map_err(|m| RecordingError::BadImage { path: path.clone(), message: m })?;
+            let bytes = bytes.map_err(|m| RecordingError::BadImage { path: path.clone(), message: m.to_string() })?;
             std::fs::write(&path, bytes).map_err(io_err(&path))?;
             entries.push(FrameEntry { camera: name.clone(), seq: seqs[c], t_ns: t, file });
             seqs[c] += 1;
