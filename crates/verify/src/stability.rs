@@ -7,6 +7,9 @@ use crate::series::{line_fit, sd, Series};
 /// The averaging times of the Allan deviation reported, s.
 pub const ALLAN_TAUS_S: [f64; 3] = [1.0, 10.0, 100.0];
 
+/// The shortest record at rest whose least-squares slope is given as a drift per hour, s.
+pub const DRIFT_MIN_S: f64 = 60.0;
+
 /// Clusters of τ a record must hold for the Allan deviation at τ to be given.
 pub const ALLAN_MIN_CLUSTERS: usize = 3;
 
@@ -31,7 +34,8 @@ pub struct Stability {
     pub duration_s: f64,
     /// Standard deviation of one reading (the noise), mm.
     pub sd_mm: Option<f64>,
-    /// Slope of the least-squares line through the readings, mm per hour.
+    /// Slope of the least-squares line through the readings, mm per hour (`None` for a
+    /// record shorter than [`DRIFT_MIN_S`]: not enough data).
     pub drift_mm_per_h: Option<f64>,
     /// Allan deviation at [`ALLAN_TAUS_S`].
     pub allan: Vec<AllanPoint>,
@@ -43,7 +47,7 @@ pub fn stability(s: &Series) -> Stability {
         (Some(a), Some(b)) => b - a,
         _ => 0.0,
     };
-    let drift = line_fit(&s.t_s, &s.value_mm).map(|(_, b)| b * 3600.0);
+    let drift = line_fit(&s.t_s, &s.value_mm).map(|(_, b)| b * 3600.0).filter(|_| duration_s >= DRIFT_MIN_S);
     let allan = ALLAN_TAUS_S
         .iter()
         .map(|&tau| {
@@ -109,6 +113,8 @@ mod tests {
     #[test]
     fn drift_per_hour_and_notes() {
         let t: Vec<f64> = (0..100).map(|k| k as f64).collect();
+        let short = Series { t_s: t[..30].to_vec(), value_mm: vec![0.0; 30] };
+        assert_eq!(stability(&short).drift_mm_per_h, None, "29 s: not enough data for a drift per hour");
         let s = Series { value_mm: t.iter().map(|t| 1e-4 * t).collect(), t_s: t };
         let st = stability(&s);
         assert!((st.drift_mm_per_h.unwrap() - 0.36).abs() < 1e-9);

@@ -177,8 +177,9 @@ fn verdict(class: &ClassResult, known: &KnownFigures, u: &Uncertainty, st: &Stat
         um(u.expanded_mm)
     ));
     reasons.push(format!("largest step error {}, bias {}", um(known.max_error_mm), um(known.bias_mm)));
-    if let Some(d) = st.displacement.drift_mm_per_h {
-        reasons.push(format!("drift at rest {} per hour over {:.0} s", um(d), st.displacement.duration_s));
+    match st.displacement.drift_mm_per_h {
+        Some(d) => reasons.push(format!("drift at rest {} per hour over {:.0} s", um(d), st.displacement.duration_s)),
+        None => reasons.push(format!("drift at rest: not enough data ({:.1} s at rest, 60 s needed)", st.displacement.duration_s)),
     }
     Verdict { passed: class.class.is_some(), reasons }
 }
