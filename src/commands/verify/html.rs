@@ -116,10 +116,10 @@ fn stability_row(h: &mut String, name: &str, s: &Stability) {
         s.allan.iter().map(|a| a.adev_mm.map_or_else(|| "not enough data".into(), |v| format!("{:.3}", v * 1e3))).collect();
     let _ = write!(
         h,
-        "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{}</td><td>{}</td></tr>",
+        "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
         esc(name),
         um(s.sd_mm),
-        s.drift_mm_per_h.unwrap_or(f64::NAN) * 1e3,
+        s.drift_mm_per_h.map_or_else(|| "not enough data".into(), |d| format!("{:.3}", d * 1e3)),
         allan.join("</td><td>"),
         s.samples
     );
