@@ -39,7 +39,7 @@ venv=target/test-venv
 if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import pymodbus' >/dev/null 2>&1; then
   echo "setup: creating $venv with pymodbus" >&2
   python3 -m venv "$venv"
-  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'pymodbus>=3.6,<4'
+  "$venv/bin/python" -m pip install --quiet --disable-pip-version-check 'pymodbus>=3.16,<3.17'
 fi
 # The live page's tests: selenium (drives Debian's chromium-driver) and the Prometheus
 # text parser of the official Python client; matplotlib for scripts/plot_control_loop.py.

@@ -170,12 +170,17 @@ fn error_text(e: &anyhow::Error) -> String {
     text
 }
 
-/// Exit codes, chosen from the error's type: 0 done; 2 bad input — a config, a recording, a
+/// Exit codes, chosen from the error's type: 0 done; 3 done, but the result is not fit to
+/// measure with ([`tagdeflect_core::NotFit`]: a POOR calibration, a `check` over its pose
+/// limit); 2 bad input — a config, a recording, a
 /// feed, an option, an output path that cannot be used: a restart cannot help, so the unit
 /// says `RestartPreventExitStatus=2`; 1 a failure of the running program that a restart may
 /// cure ([`tagdeflect_core::RuntimeFailure`], and any error not known as bad input: a thread or
 /// runtime that cannot start, an I/O failure on the way).
 fn exit_code(e: &anyhow::Error) -> u8 {
+    if e.chain().any(|c| c.is::<tagdeflect_core::NotFit>()) {
+        return 3;
+    }
     if e.chain().any(|c| c.is::<tagdeflect_core::RuntimeFailure>()) {
         return 1;
     }

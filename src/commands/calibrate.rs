@@ -15,8 +15,11 @@ use tagdeflect_core::frame::FrameSet;
 
 /// A calibration error with its exit code: bad input (a bad option, target or image; too
 /// few views) exits 2, a failure of the machine (a camera that delivers nothing, an output
-/// that cannot be written) exits 1.
+/// that cannot be written) exits 1, a calibration written with a POOR verdict exits 3.
 fn with_exit_code(e: CalibrateError) -> anyhow::Error {
+    if matches!(e, CalibrateError::Poor { .. }) {
+        return anyhow::Error::new(tagdeflect_core::NotFit::new(e.to_string()));
+    }
     if e.is_bad_input() {
         anyhow::Error::new(tagdeflect_core::BadInput::new(e.to_string()))
     } else {

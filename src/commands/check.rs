@@ -2,7 +2,9 @@
 //! camera's pose and reprojection error from the background tags and the tags it sees.
 //!
 //! A camera that sees too few background tags to be posed gets a clear warning; when no
-//! camera at all can be posed, `check` fails (exit 2): such a rig cannot measure.
+//! camera at all can be posed, `check` fails (exit 2): such a rig cannot measure. A camera
+//! whose background tags fit its pose worse than [`MAX_POSE_RMS_PX`] is warned of and `check`
+//! exits 3 (not fit to measure).
 
 use anyhow::{Context, Result};
 use std::fmt::Write as _;
@@ -152,6 +154,11 @@ fn check_utm(u: &tagdeflect_io::utm::UtmConfig) {
     }
 }
 
+/// The background reprojection RMS a camera's pose may have in `check` (a good calibration
+/// gives 0.1–0.5 px; a calibration of another image size gave 11.4 px): above it `check`
+/// warns and exits 3.
+pub const MAX_POSE_RMS_PX: f64 = 2.0;
+
 /// The side a specimen tag should have in the image at least (docs/rig-setup.md).
 const MIN_TAG_PX: f64 = 25.0;
 
@@ -174,6 +181,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     let poses = m.camera_poses();
     let seen = m.observed().seen;
     let mut posed = 0;
+    let mut poor: Vec<String> = Vec::new();
     for (i, h) in line.cameras.iter().enumerate() {
         println!("camera {}:", h.name);
         println!(
@@ -191,6 +199,11 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
                 println!("  pose: rvec [{:.5}, {:.5}, {:.5}]  tvec_mm [{:.2}, {:.2}, {:.2}]", r[0], r[1], r[2], p.translation.x, p.translation.y, p.translation.z);
                 println!("  camera centre (world, mm): [{:.1}, {:.1}, {:.1}]", c.x, c.y, c.z);
                 match h.pose_reproj_px {
+                    Some(e) if e > MAX_POSE_RMS_PX => {
+                        println!("  background reprojection RMS: {e:.3} px");
+                        println!("  warning: camera {}: the background tags fit its pose to {e:.2} px RMS, above {MAX_POSE_RMS_PX} px: its calibration or the background's world corners are wrong, and it measures wrongly", h.name);
+                        poor.push(format!("{} {e:.2} px", h.name));
+                    }
                     Some(e) => println!("  background reprojection RMS: {e:.3} px"),
                     None => println!("  background reprojection RMS: n/a (fixed pose from the config)"),
                 }
@@ -232,6 +245,13 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     }
     if posed == 0 {
         return Err(tagdeflect_core::BadInput::new("no camera could be posed from the background tags: check the [background] tags' ids, family and world corners against what the cameras see").into());
+    }
+    if !poor.is_empty() {
+        return Err(tagdeflect_core::NotFit::new(format!(
+            "background reprojection RMS above {MAX_POSE_RMS_PX} px ({}): recalibrate at the camera's resolution, check the background's world corners",
+            poor.join(", ")
+        ))
+        .into());
     }
     Ok(())
 }

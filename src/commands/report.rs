@@ -248,8 +248,8 @@ pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
         for (k, (report, feed)) in groups.iter().enumerate() {
             let mut name = match feed.run {
                 Some((i, _)) if args.series.is_empty() => format!("run-{i}"),
-                Some((i, _)) => format!("{}-run-{i}", tagdeflect_report::series::specimen_name(report)),
-                None => tagdeflect_report::series::specimen_name(report),
+                Some((i, _)) => format!("{}-run-{i}", series_folder(report)),
+                None => series_folder(report),
             };
             if name.is_empty() || !used.insert(name.clone()) {
                 name = format!("{name}-{}", k + 1);
@@ -267,6 +267,16 @@ pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
     }
     tracing::info!("report written into {} ({} files)", out.display(), files.len());
     Ok(files)
+}
+
+/// The folder of one specimen of a series under `--out`: a safe name, with a warning when
+/// the specimen's name had to be changed for it.
+fn series_folder(report: &Report) -> String {
+    let (name, folder) = (tagdeflect_report::series::specimen_name(report), tagdeflect_report::series::folder_name(report));
+    if name != folder {
+        tracing::warn!("{}: specimen {:?} is not a safe folder name: reported into {folder}", report.feed_path.display(), name);
+    }
+    folder
 }
 
 fn log_values(report: &Report) {

@@ -2,7 +2,7 @@
 //! path relative to the section, prefixed here), then the checks that span sections. The
 //! tables are checked in a fixed order (world, sync, cameras — each camera's intrinsics taken
 //! inline or imported from its calibration file —, background, specimen, utm, measure,
-//! report, output, sim, sim camera names, output.mqtt, gauges, output.control, clock_check); the first problem
+//! report, output, sim, sim camera names, output.mqtt, gauges, output.control, output.analog, clock_check); the first problem
 //! found is the one reported.
 
 use std::path::Path;
@@ -54,6 +54,11 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     if let Some(c) = &output.control {
         let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
         c.validate_against(&names).map_err(|p| p.within("output.control"))?;
+    }
+    if let Some(a) = &output.analog {
+        let names: Vec<String> = gauges.iter().map(|g| g.name.clone()).collect();
+        let utm = raw.utm.as_ref().map(|u| u.address.to_string());
+        a.validate(&names, utm.as_deref()).map_err(|p| p.within("output.analog"))?;
     }
     if let Some(c) = &raw.clock_check {
         c.validate().map_err(|p| p.within("clock_check"))?;

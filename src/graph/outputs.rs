@@ -1,6 +1,6 @@
 //! What a run writes to, each output built by its own config section (as Vector's
 //! `SinkConfig::build`): the feed files and stdout (`[output] feed`), the report's copy of the
-//! feed (`[report]`), the live page, the control registers (`[output.control]`), the MQTT
+//! feed (`[report]`), the live page, the control registers (`[output.control]`), the analog output (`[output.analog]`), the MQTT
 //! publisher (`[output.mqtt]`), the tests (`[output] tests`) and the recorder
 //! (`[output] record`, `--record`). [`Outputs::build`] loops over the sections in that order;
 //! the order is the order of the line sinks. An output that cannot be opened stops the run
@@ -13,6 +13,7 @@ use anyhow::{Context, Result};
 use tagdeflect_core::feed_file::FeedWriter;
 use tagdeflect_core::BadInput;
 use tagdeflect_report::config::ReportConfig;
+use tagdeflect_sinks::analog_output::{AnalogConfig, AnalogOutput, AnalogSink};
 use tagdeflect_sinks::control_output::{ControlConfig, ControlSink};
 use tagdeflect_sinks::lab_test::{LabTestSink, LabTests};
 use tagdeflect_sinks::recorder::Recorder;
@@ -63,11 +64,12 @@ impl Outputs {
         let feed = FeedOutput { spec: out_cfg.feed.as_deref() };
         let tests = TestsOutput(out_cfg.tests.as_deref());
         let record = RecordOutput(ctx.record_dir);
-        let sections: [Option<&dyn BuildOutput>; 7] = [
+        let sections: [Option<&dyn BuildOutput>; 8] = [
             Some(&feed),
             ctx.config.report.as_ref().map(|r| r as &dyn BuildOutput),
             Some(ctx.page as &dyn BuildOutput),
             out_cfg.control.as_ref().map(|c| c as &dyn BuildOutput),
+            out_cfg.analog.as_ref().map(|a| a as &dyn BuildOutput),
             Some(&BrokerOutput),
             Some(&tests),
             Some(&record),
@@ -135,6 +137,19 @@ impl BuildOutput for Page {
 impl BuildOutput for ControlConfig {
     fn build(&self, _ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
         out.sinks.push(Box::new(ControlSink::start(self).map_err(|e| BadInput::new(e.to_string()))?));
+        Ok(())
+    }
+}
+
+/// `[output.analog]`: the gauge as a voltage on a networked DAQ (`tagdeflect_sinks::analog_output`);
+/// live runs only: a replay never drives the machine.
+impl BuildOutput for AnalogConfig {
+    fn build(&self, ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
+        if ctx.replaying {
+            tracing::info!("[output.analog]: not written on a replay");
+            return Ok(());
+        }
+        out.sinks.push(Box::new(AnalogSink(AnalogOutput::start(self).map_err(|e| BadInput::new(e.to_string()))?)));
         Ok(())
     }
 }

@@ -654,6 +654,8 @@ fn imports_opencv_kalibr_and_ros_files() {
         .filter(|l| !["fx =", "fy =", "cx =", "cy =", "dist ="].iter().any(|k| l.starts_with(k)))
         .map(|l| format!("{l}\n"))
         .collect();
+    // The camera at the camchain's resolution (a calibration of another size is refused).
+    let text = text.replacen("width = 1920\nheight = 1080", "width = 752\nheight = 480", 1);
     std::fs::write(&cfg, text.replacen("[[camera]]\n", "[[camera]]\ncalibration = \"camchain.yaml#cam0\"\n", 1)).unwrap();
     let config = tagdeflect::config::Config::load(&cfg).unwrap();
     assert_eq!(config.calibration_files, [dir.path().join("camchain.yaml")]);

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use nalgebra::Vector3;
-use tagdeflect_calibrate::guard::{check_board, split_views, split_views_stats, verdict, Grade};
+use tagdeflect_calibrate::guard::{check_board, sigma_text, split_views, split_views_stats, verdict, Grade};
 use tagdeflect_calibrate::render::{render_target, RenderOptions};
 use tagdeflect_calibrate::report::Coverage;
 use tagdeflect_calibrate::solve::{SolveOptions, View};
@@ -97,11 +97,18 @@ fn too_few_views_refused_with_the_reason_unless_forced() {
     assert!(err.contains("every image showed the target"), "{err}");
     assert!(!err.contains("()"), "no empty brackets: {err}");
     assert!(!dir.path().join("cam.yaml").exists(), "nothing written");
-    // --force calibrates, and the verdict says poor.
-    let (o, out, _) = calibrate_cmd(dir.path(), "checkerboard:9x6:25", &["--force", "--fix-k3"]);
-    assert_eq!(o.status.code(), Some(0));
+    // --force calibrates, and the verdict says poor: written, but exit 3 so a script stops.
+    let (o, out, err) = calibrate_cmd(dir.path(), "checkerboard:9x6:25", &["--force", "--fix-k3"]);
+    assert_eq!(o.status.code(), Some(3), "{err}");
     assert!(out.contains("verdict: POOR") && out.contains("3 views (good from 15"), "{out}");
     assert!(out.contains("WARNING --force: calibrated from 3 views"), "{out}");
+    assert!(err.contains("calibration verdict POOR (3 views"), "{err}");
+    assert!(dir.path().join("cam.yaml").is_file(), "written all the same");
+    // No σ larger than the figure it qualifies is printed as a number.
+    for l in out.lines().filter(|l| l.contains("deflection")) {
+        let um: Vec<f64> = l.split("± ").skip(1).filter_map(|t| t.split(" µm").next()?.parse().ok()).collect();
+        assert!(um.iter().all(|v| *v <= 10_000.0), "a σ over the 10 mm it qualifies: {l}");
+    }
     // Two views, forced: the absolute minimum is three; the message is complete.
     let dir = folder(&files[..2]);
     let (o, _, err) = calibrate_cmd(dir.path(), "checkerboard:9x6:25", &["--force"]);
@@ -310,4 +317,43 @@ fn verdict_on_the_opencv_samples_names_k3_and_the_corners() {
     let v = verdict(&run, &Coverage::new(800, 600, &pts), 500.0);
     eprintln!("{}", v.text());
     assert!(v.grade <= Grade::Usable, "{}", v.text());
+}
+
+#[test]
+fn an_undetermined_sigma_says_so_instead_of_a_number() {
+    assert_eq!(sigma_text(181.5857, 10.0, 1e3, 1, "µm"), "undetermined", "181 mm on a 10 mm deflection");
+    assert_eq!(sigma_text(f64::NAN, 10.0, 1e3, 1, "µm"), "undetermined");
+    assert_eq!(sigma_text(f64::INFINITY, 0.5, 1e6, 0, "ppm"), "undetermined");
+    assert_eq!(sigma_text(0.0123, 10.0, 1e3, 1, "µm"), "± 12.3 µm");
+    assert_eq!(sigma_text(0.00044 / 533.7, 0.5, 1e6, 0, "ppm"), "± 1 ppm");
+}
+
+/// A valid 8-bit grey PNG of `width`x`height` black pixels, streamed by Python's zlib (a
+/// 20000² image is ~400 KB of file for 400 Mpx).
+fn black_png(path: &Path, width: u32, height: u32) {
+    let script = r#"
+import struct, sys, zlib
+w, h, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+def chunk(kind, data):
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xffffffff)
+z = zlib.compressobj(9)
+row = b"\0" * (w + 1)
+idat = b"".join(z.compress(row) for _ in range(h)) + z.flush()
+with open(out, "wb") as f:
+    f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)) + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+"#;
+    let o = Command::new(crate::common::python()).args(["-c", script, &width.to_string(), &height.to_string()]).arg(path).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn images_of_absurd_size_are_refused_from_their_header_before_decoding() {
+    for (w, h, why) in [(1, 100_000, "a side under 32 px"), (20_000, 20_000, "more than 268435456 pixels")] {
+        let dir = tempfile::tempdir().unwrap();
+        black_png(&dir.path().join("view.png"), w, h);
+        let (o, _, err) = calibrate_cmd(dir.path(), "checkerboard:9x6:25", &[]);
+        assert_eq!(o.status.code(), Some(2), "{w}x{h}: {err}");
+        assert!(err.contains(&format!("is {w}x{h} (from its header; nothing decoded): {why}")), "{err}");
+        assert!(err.lines().count() < 20, "one error, not a flood: {err}");
+    }
 }

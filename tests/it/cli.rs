@@ -195,3 +195,53 @@ fn bench_prints_figures_as_json_fast_and_paced() {
     assert!(r["latency_p50_ms"].as_f64().is_some_and(|x| x > 0.0), "{r}");
     assert!(r["recorded_s"].as_f64().is_some_and(|x| x > 0.5), "{r}");
 }
+
+/// A rig that would measure wrongly: a calibration made for another image size is refused
+/// (exit 2, naming the file and both sizes); intrinsics whose poses fit the background tags
+/// worse than `MAX_POSE_RMS_PX` make `check` warn and exit 3.
+#[test]
+fn check_refuses_a_calibration_of_another_size_and_exits_3_on_a_poor_pose_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = common::simulate(
+        dir.path(),
+        "rec",
+        &tagdeflect_sim::SimParams { cameras: 2, width: 480, height: 360, frame_sets: 1, ..Default::default() },
+    );
+    let cfg_path = rec.join("tagdeflect.toml");
+    let good = fs::read_to_string(&cfg_path).unwrap();
+    let o = tagdeflect(&["check", rec.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    // The true intrinsics, but in a file made for 640x480 on a 480x360 camera.
+    let cfg = tagdeflect::config::Config::from_toml_str(&good, &cfg_path).unwrap();
+    let c = &cfg.cameras[0];
+    let cal = serde_json::json!({
+        "image_width": 640, "image_height": 480,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": [c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0]},
+        "distortion_coefficients": {"rows": 1, "cols": 5, "data": c.dist},
+    });
+    fs::write(rec.join("cam640.json"), cal.to_string()).unwrap();
+    let mut table: toml::Table = good.parse().unwrap();
+    let cam = table["camera"].as_array_mut().unwrap()[0].as_table_mut().unwrap();
+    for k in ["fx", "fy", "cx", "cy", "dist"] {
+        cam.remove(k);
+    }
+    cam.insert("calibration".into(), toml::Value::String("cam640.json".into()));
+    fs::write(&cfg_path, toml::to_string(&table).unwrap()).unwrap();
+    for args in [vec!["check", rec.to_str().unwrap()], vec!["check", "--config", cfg_path.to_str().unwrap()]] {
+        let o = tagdeflect(&args);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {}", stderr(&o));
+        assert!(stderr(&o).contains("cam640.json was made for 640x480") && stderr(&o).contains("480x360"), "{}", stderr(&o));
+    }
+
+    // Wrong intrinsics of the right size: a focal length 30 % off and a strong distortion.
+    let mut cfg = tagdeflect::config::Config::from_toml_str(&good, &cfg_path).unwrap();
+    cfg.cameras[0].fx *= 1.3;
+    cfg.cameras[0].dist = [-0.6, 0.4, 0.0, 0.0, 0.0];
+    fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let o = tagdeflect(&["check", rec.to_str().unwrap()]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(3), "{out}\n{}", stderr(&o));
+    assert!(out.contains("warning: camera") && out.contains("above 2 px"), "{out}");
+    assert!(stderr(&o).contains("background reprojection RMS above 2 px"), "{}", stderr(&o));
+}

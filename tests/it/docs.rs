@@ -74,6 +74,13 @@ rig = "frame1"
 [output.control]
 modbus = "127.0.0.1:5020"
 
+[output.analog]
+device = "127.0.0.1:5021"
+map = "labjack-t"
+volts_per_mm = 0.5
+min_v = 0.0
+max_v = 5.0
+
 [output.auto_test]
 start_load_kn = 2.0
 
@@ -158,6 +165,7 @@ const TABLES: &[&str] = &[
     "output",
     "output.mqtt",
     "output.control",
+    "output.analog",
     "output.auto_test",
     "measure",
     "report",

@@ -630,6 +630,16 @@ fn two_tests_through_the_control_api_with_its_refusals() {
     assert_eq!(post(addr, "/api/test/start", &[json, ("Authorization", &bearer)], &huge).0, 413);
     assert_eq!(post(addr, "/api/test/start", &[("Content-Type", "text/plain"), ("Authorization", &bearer)], start).0, 415);
     assert_eq!(get(addr, "/api/test/start").0, 405, "no state change on a GET");
+    // Measured dimensions out of any beam's range: 400 naming the field and its range.
+    for (body, field) in [
+        (&br#"{"specimen": "B1", "measured": {"span_mm": 0.001}}"#[..], "measured.span_mm = 0.001"),
+        (br#"{"specimen": "B1", "measured": {"width_mm": 1e308}}"#, "measured.width_mm = 1e308"),
+        (br#"{"specimen": "B1", "measured": {"depth_mm": 150, "notch_mm": 150}}"#, "measured.notch_mm = 150"),
+    ] {
+        let (code, answer) = post(addr, "/api/test/start", &[json, ("Authorization", &bearer)], body);
+        assert_eq!(code, 400, "{answer}");
+        assert!(answer.contains(field) && answer.contains("mm"), "{answer}");
+    }
     assert_eq!(serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"], "idle");
     d.wait_stderr("control API: a POST with a wrong token refused", Duration::from_secs(10), "logged with the peer");
     assert!(d.stderr.lock().unwrap().lines().any(|l| l.contains("wrong token refused") && l.contains("peer=127.0.0.1")), "the peer named");

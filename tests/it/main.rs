@@ -4,6 +4,7 @@
 mod common;
 
 mod accuracy;
+mod analog;
 mod aprilgrid;
 mod aravis_fake;
 mod archive;

@@ -223,6 +223,51 @@ fn clean(cmod: bool, seed: u64) -> Synth {
     }
 }
 
+/// One line of `text` (JSON lines) with its `load_kN` set to `kn`.
+fn with_load_at(text: &str, line: usize, kn: f64) -> String {
+    let mut out = String::new();
+    for (i, l) in text.lines().enumerate() {
+        let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
+        if i == line {
+            v["load_kN"] = serde_json::json!(kn);
+        }
+        out.push_str(&v.to_string());
+        out.push('\n');
+    }
+    out
+}
+
+#[test]
+fn one_glitched_load_sample_is_flagged_and_never_the_peak() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    let feed = clean(false, 5).write(&dir.path().join("t"));
+    let utm = dir.path().join("t").join("utm.jsonl");
+    let clean_utm = fs::read_to_string(&utm).unwrap();
+    let clean_feed = fs::read_to_string(&feed).unwrap();
+    // 999 kN in one UTM sample well after the first peak (about 5 s + 37.5 s in).
+    fs::write(&utm, with_load_at(&clean_utm, 20 * 50, 999.0)).unwrap();
+    // and, for the feed's own loads, in one feed line (the report without utm.jsonl).
+    let alone = dir.path().join("alone");
+    fs::create_dir_all(&alone).unwrap();
+    fs::write(alone.join("feed.jsonl"), with_load_at(&clean_feed, 2 * 60, 999.0)).unwrap();
+    for (what, f) in [("UTM sample", feed.clone()), ("feed line", alone.join("feed.jsonl"))] {
+        let out = dir.path().join(format!("r-{}", what.replace(' ', "-")));
+        let o = report(&f, &cfg, "astm-c1609", &out, &[]);
+        assert!(o.status.success(), "{what}: {}", stderr(&o));
+        let j = read_json(&out.join("report.json"));
+        let (p1, _) = value(&j, "P1");
+        let (pp, _) = value(&j, "Pp");
+        let (f1, _) = value(&j, "f1");
+        println!("REPORT a 999 kN {what}: P1 {p1} Pp {pp} kN f1 {f1} MPa, valid {}", j["valid"]);
+        assert!((p1 - 40.0).abs() < 1.0 && (pp - 40.0).abs() < 1.0, "{what}: P1 {p1} Pp {pp} (truth 40 kN)");
+        assert!((f1 - 40e3 * 450.0 / 150.0f64.powi(3)).abs() < 0.2, "{what}: f1 {f1}");
+        assert_eq!(j["valid"], true, "{what}: {}", j["invalid_reasons"]);
+        let w = j["qc"]["warnings"].to_string();
+        assert!(w.contains("glitched load of 999 kN") && w.contains(what), "{what}: {w}");
+    }
+}
+
 #[test]
 fn a_clean_test_of_each_kind_is_valid_without_qc_warnings() {
     let dir = tempfile::tempdir().unwrap();
@@ -675,6 +720,52 @@ fn a_series_of_three_specimens_with_mean_sd_and_cov() {
 }
 
 #[test]
+fn a_series_names_its_folders_safely_whatever_test_json_says() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), C1609_BEAM);
+    let abs = dir.path().join("abs");
+    let mut folders = Vec::new();
+    for (k, name) in ["../../x", abs.to_str().unwrap(), ".."].iter().enumerate() {
+        let mut s = clean(false, 20 + k as u64);
+        s.dt_s = 1.0;
+        s.utm_hz = 5.0;
+        let d = dir.path().join("in").join(format!("t{k}"));
+        s.write(&d);
+        fs::write(d.join("test.json"), serde_json::json!({"id": format!("t{k}"), "specimen": name}).to_string()).unwrap();
+        folders.push(d);
+    }
+    let out = dir.path().join("a").join("b").join("series");
+    let mut a = vec!["report", "--series"];
+    a.extend(folders.iter().map(|f| f.to_str().unwrap()));
+    a.extend(["--config", cfg.to_str().unwrap(), "--standard", "astm-c1609", "--out", out.to_str().unwrap(), "--no-pdf"]);
+    let o = tagdeflect(&a);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("not a safe folder name"), "{}", stderr(&o));
+    assert!(!dir.path().join("a").join("x").exists() && !abs.exists(), "nothing written outside --out");
+    let mut made: Vec<String> = fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap())
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    made.sort();
+    assert_eq!(made.len(), 3, "{made:?}");
+    for m in &made {
+        assert!(!m.starts_with('.') && !m.contains('/'), "{m}");
+        assert!(out.join(m).join("report.html").is_file(), "{m}");
+    }
+    assert!(made.contains(&"___.._x".to_string()), "{made:?}");
+    // The series still names each specimen as test.json does.
+    let names: Vec<String> = read_json(&out.join("series.json"))["specimens"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["specimen"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(names[0], "../../x");
+}
+
+#[test]
 fn report_json_lists_its_inputs_and_verify_says_what_changed() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = config_with_beam(dir.path(), C1609_BEAM);
@@ -1106,6 +1197,8 @@ fn calibration_files_the_config_names_are_hashed_inputs() {
             .filter(|l| !["fx =", "fy =", "cx =", "cy =", "dist ="].iter().any(|k| l.starts_with(k)))
             .map(|l| format!("{l}\n"))
             .collect();
+        // The camera at the calibration's own image size (a calibration of another size is refused).
+        let text = if name == "kalibr" { text.replacen("width = 1920\nheight = 1080", "width = 752\nheight = 480", 1) } else { text };
         fs::write(&cfg, text.replacen("[[camera]]\n", &format!("[[camera]]\ncalibration = \"{value}\"\n"), 1)).unwrap();
         let out = d.join("r");
         let o = report(&feed, &cfg, "astm-c1609", &out, &[]);

@@ -9,7 +9,7 @@ use rumqttc::{AsyncClient, Publish, QoS};
 use tagdeflect_wire::TopicLayout;
 use tokio::sync::{mpsc, watch};
 
-use crate::db::{Db, LabTestRow, StatusRow};
+use crate::db::{Db, LabTestRow, LineRow, StatusRow};
 use crate::message::{parse_message, Parsed};
 use crate::service::{chain, connect_db, retry_backoff, stopped, ArchiveStats};
 
@@ -73,6 +73,10 @@ impl Acks {
     }
 }
 
+/// Takes the subscription's messages in batches (up to `ctx.batch`), commits each batch and
+/// only then acknowledges its messages; publishes the archive's acknowledgements and logs
+/// the throughput every 10 s. Returns when stopping (an uncommitted batch stays
+/// unacknowledged, to be redelivered).
 pub(crate) async fn write_loop(
     ctx: &WriteCtx,
     client: &AsyncClient,
@@ -101,11 +105,7 @@ pub(crate) async fn write_loop(
                 continue;
             }
             _ = report.tick() => {
-                let n = stats.inserted.load(Ordering::Relaxed);
-                if n != last_inserted {
-                    tracing::info!(inserted = n, duplicates = stats.duplicates.load(Ordering::Relaxed), malformed = stats.malformed.load(Ordering::Relaxed), "archive: {} feed lines in the last 10 s", n - last_inserted);
-                    last_inserted = n;
-                }
+                log_throughput(stats, &mut last_inserted);
                 continue;
             }
         };
@@ -117,83 +117,9 @@ pub(crate) async fn write_loop(
                 Err(_) => break,
             }
         }
-        let mut lines = Vec::with_capacity(batch.len());
-        let mut statuses: Vec<StatusRow> = Vec::new();
-        let mut labs: Vec<LabTestRow> = Vec::new();
-        let mut seen = std::collections::HashSet::new();
-        for p in &batch {
-            match parse_message(&ctx.layout, &p.topic, &p.payload) {
-                Ok(Parsed::Line(l)) => {
-                    if seen.insert((l.rig.clone(), l.test.clone(), l.seq, l.t_ns)) {
-                        lines.push(l);
-                    } else {
-                        stats.duplicates.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-                Ok(Parsed::Status(s)) => {
-                    statuses.retain(|x| !(x.rig == s.rig && x.test == s.test));
-                    statuses.push(s);
-                }
-                Ok(Parsed::LabTest(l)) => labs.push(*l),
-                Ok(Parsed::Skip) => {}
-                Err(why) => {
-                    stats.malformed.fetch_add(1, Ordering::Relaxed);
-                    let head: String = String::from_utf8_lossy(&p.payload[..p.payload.len().min(80)]).chars().take(80).collect();
-                    // MQTT 3.1.1 does not say who published a message: the topic is all there is.
-                    tracing::warn!(
-                        topic = %p.topic, bytes = p.payload.len(), retained = p.retain,
-                        "archive: malformed message skipped: {why} (topic {}, publisher unknown to the archive: MQTT 3.1.1 does not name it; payload starts {head:?})",
-                        p.topic
-                    );
-                }
-            }
-        }
-        // Commit, retrying through database outages; nothing is acknowledged before.
-        let mut backoff = retry_backoff();
-        let mut logged = false;
-        loop {
-            if db.is_closed() {
-                match connect_db(&ctx.postgres, ctx.shared, stats, stop).await {
-                    Some(d) => {
-                        *db = d;
-                        tracing::info!("archive: database back");
-                    }
-                    None => return, // stopping: the batch stays unacknowledged
-                }
-            }
-            match db.write_or_skip(&lines, &statuses, &labs).await {
-                Ok(w) => {
-                    stats.inserted.fetch_add(w.inserted, Ordering::Relaxed);
-                    stats.duplicates.fetch_add(w.duplicates, Ordering::Relaxed);
-                    stats.malformed.fetch_add(w.rejected, Ordering::Relaxed);
-                    stats.statuses.fetch_add(statuses.len() as u64, Ordering::Relaxed);
-                    stats.batches.fetch_add(1, Ordering::Relaxed);
-                    acks.touch(&w.touched);
-                    break;
-                }
-                Err(e) => {
-                    stats.db_retries.fetch_add(1, Ordering::Relaxed);
-                    if !logged {
-                        tracing::warn!("archive: cannot commit {} feed lines ({}); retrying, nothing acknowledged", lines.len(), chain(&e));
-                        logged = true;
-                    }
-                    tokio::select! {
-                        _ = tokio::time::sleep(backoff.next_delay()) => {}
-                        _ = stopped(stop) => return,
-                    }
-                    if !db.is_closed() {
-                        // A failed transaction on a live connection: start afresh.
-                        if let Some(d) = connect_db(&ctx.postgres, ctx.shared, stats, stop).await {
-                            *db = d;
-                        } else {
-                            return;
-                        }
-                    }
-                }
-            }
-        }
-        if logged {
-            tracing::info!("archive: committed after the database came back");
+        let rows = parse_batch(&ctx.layout, &batch, stats);
+        if !commit(ctx, db, &rows, stats, stop, &mut acks).await {
+            return; // stopping: the batch stays unacknowledged
         }
         for p in &batch {
             if client.ack(p).await.is_err() {
@@ -202,4 +128,123 @@ pub(crate) async fn write_loop(
         }
         acks.publish(&ctx.layout, client, db);
     }
+}
+
+/// The feed lines inserted in the last 10 s, when any.
+fn log_throughput(stats: &ArchiveStats, last_inserted: &mut u64) {
+    let n = stats.inserted.load(Ordering::Relaxed);
+    if n != *last_inserted {
+        tracing::info!(
+            inserted = n,
+            duplicates = stats.duplicates.load(Ordering::Relaxed),
+            malformed = stats.malformed.load(Ordering::Relaxed),
+            "archive: {} feed lines in the last 10 s",
+            n - *last_inserted
+        );
+        *last_inserted = n;
+    }
+}
+
+/// One batch's rows: its feed lines (a line repeated within the batch once), the newest
+/// status of each test, its lab-test records.
+struct BatchRows {
+    lines: Vec<LineRow>,
+    statuses: Vec<StatusRow>,
+    labs: Vec<LabTestRow>,
+}
+
+/// A batch's messages parsed into rows; a malformed one is counted and logged, not kept.
+fn parse_batch(layout: &TopicLayout, batch: &[Publish], stats: &ArchiveStats) -> BatchRows {
+    let mut rows = BatchRows { lines: Vec::with_capacity(batch.len()), statuses: Vec::new(), labs: Vec::new() };
+    let mut seen = std::collections::HashSet::new();
+    for p in batch {
+        match parse_message(layout, &p.topic, &p.payload) {
+            Ok(Parsed::Line(l)) => {
+                if seen.insert((l.rig.clone(), l.test.clone(), l.seq, l.t_ns)) {
+                    rows.lines.push(l);
+                } else {
+                    stats.duplicates.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            Ok(Parsed::Status(s)) => {
+                rows.statuses.retain(|x| !(x.rig == s.rig && x.test == s.test));
+                rows.statuses.push(s);
+            }
+            Ok(Parsed::LabTest(l)) => rows.labs.push(*l),
+            Ok(Parsed::Skip) => {}
+            Err(why) => {
+                stats.malformed.fetch_add(1, Ordering::Relaxed);
+                let head: String = String::from_utf8_lossy(&p.payload[..p.payload.len().min(80)]).chars().take(80).collect();
+                // MQTT 3.1.1 does not say who published a message: the topic is all there is.
+                tracing::warn!(
+                    topic = %p.topic, bytes = p.payload.len(), retained = p.retain,
+                    "archive: malformed message skipped: {why} (topic {}, publisher unknown to the archive: MQTT 3.1.1 does not name it; payload starts {head:?})",
+                    p.topic
+                );
+            }
+        }
+    }
+    rows
+}
+
+/// Commits a batch, retrying through database outages (reconnecting; one warning per
+/// outage); false when stopping before it is committed.
+async fn commit(
+    ctx: &WriteCtx,
+    db: &mut Db,
+    rows: &BatchRows,
+    stats: &ArchiveStats,
+    stop: &mut watch::Receiver<bool>,
+    acks: &mut Acks,
+) -> bool {
+    let mut backoff = retry_backoff();
+    let mut logged = false;
+    loop {
+        if db.is_closed() {
+            match connect_db(&ctx.postgres, ctx.shared, stats, stop).await {
+                Some(d) => {
+                    *db = d;
+                    tracing::info!("archive: database back");
+                }
+                None => return false,
+            }
+        }
+        match db.write_or_skip(&rows.lines, &rows.statuses, &rows.labs).await {
+            Ok(w) => {
+                stats.inserted.fetch_add(w.inserted, Ordering::Relaxed);
+                stats.duplicates.fetch_add(w.duplicates, Ordering::Relaxed);
+                stats.malformed.fetch_add(w.rejected, Ordering::Relaxed);
+                stats.statuses.fetch_add(rows.statuses.len() as u64, Ordering::Relaxed);
+                stats.batches.fetch_add(1, Ordering::Relaxed);
+                acks.touch(&w.touched);
+                break;
+            }
+            Err(e) => {
+                stats.db_retries.fetch_add(1, Ordering::Relaxed);
+                if !logged {
+                    tracing::warn!(
+                        "archive: cannot commit {} feed lines ({}); retrying, nothing acknowledged",
+                        rows.lines.len(),
+                        chain(&e)
+                    );
+                    logged = true;
+                }
+                tokio::select! {
+                    _ = tokio::time::sleep(backoff.next_delay()) => {}
+                    _ = stopped(stop) => return false,
+                }
+                if !db.is_closed() {
+                    // A failed transaction on a live connection: start afresh.
+                    match connect_db(&ctx.postgres, ctx.shared, stats, stop).await {
+                        Some(d) => *db = d,
+                        None => return false,
+                    }
+                }
+            }
+        }
+    }
+    if logged {
+        tracing::info!("archive: committed after the database came back");
+    }
+    true
 }

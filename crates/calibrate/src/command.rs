@@ -26,9 +26,17 @@ pub fn run(opts: &CalibrateOptions, grab: Option<&mut dyn FnMut() -> Result<Fram
         (None, Some(cam), Some(grab)) => calibrate_live(grab, cam, &spec, opts)?,
         _ => return Err(CalibrateError::BadOption("calibrate takes either --images DIR or --config FILE --camera NAME".into())),
     };
-    let text = write_outputs(&run, &not_found, &spec, opts, &notes)?;
-    print!("{text}");
-    Ok(())
+    match write_outputs(&run, &not_found, &spec, opts, &notes) {
+        Ok(text) => {
+            print!("{text}");
+            Ok(())
+        }
+        Err(CalibrateError::Poor { text, why }) => {
+            print!("{text}");
+            Err(CalibrateError::Poor { text: String::new(), why })
+        }
+        Err(e) => Err(e),
+    }
 }
 
 /// A folder of images calibrated as `calibrate --images DIR` does: detected, calibrated with

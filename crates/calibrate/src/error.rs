@@ -69,6 +69,19 @@ pub enum CalibrateError {
         /// Why.
         cause: image::ImageError,
     },
+    /// An image's header claims a size no calibration image has (bad input): refused before
+    /// its pixels are decoded.
+    #[error("image {} is {width}x{height} (from its header; nothing decoded): {why}", .path.display())]
+    ImageSize {
+        /// The image file.
+        path: PathBuf,
+        /// Its width, px.
+        width: u32,
+        /// Its height, px.
+        height: u32,
+        /// The limit it breaks.
+        why: String,
+    },
     /// Two images differ in size: they cannot come from one camera at one resolution (bad input).
     #[error(
         "image {} is {}x{} but {} is {}x{}: all views must come from one camera at one resolution",
@@ -131,6 +144,15 @@ pub enum CalibrateError {
         /// Why.
         cause: std::io::Error,
     },
+    /// The calibration was made and written, but its verdict is POOR: not fit for a test (the
+    /// command line exits 3, [`tagdeflect_core::NotFit`]).
+    #[error("calibration verdict POOR ({why}): not fit for a test; calibrate again (see the hints above)")]
+    Poor {
+        /// The report printed (the command prints it before the error).
+        text: String,
+        /// The criteria graded poor.
+        why: String,
+    },
     /// An output file (the FileStorage YAML, the coverage map) cannot be written (runtime failure).
     #[error("cannot write {}: {}", .path.display(), Chain(.cause))]
     Write {
@@ -151,13 +173,16 @@ impl CalibrateError {
             | CalibrateError::ReadFolder { .. }
             | CalibrateError::NoImages(_)
             | CalibrateError::Decode { .. }
+            | CalibrateError::ImageSize { .. }
             | CalibrateError::SizeMismatch { .. }
             | CalibrateError::TooFewViews { .. }
             | CalibrateError::BoardMismatch(_)
             | CalibrateError::MixedViews(_)
             | CalibrateError::Solve(_) => true,
             CalibrateError::Detector(e) => !matches!(e, tagdeflect_detect::DetectError::Create(_)),
-            CalibrateError::Grab { .. } | CalibrateError::CreateDir { .. } | CalibrateError::Write { .. } => false,
+            CalibrateError::Grab { .. } | CalibrateError::CreateDir { .. } | CalibrateError::Write { .. } | CalibrateError::Poor { .. } => {
+                false
+            }
         }
     }
 }

@@ -62,6 +62,20 @@ pub const SPLIT_F_LIMIT: f64 = 25.0;
 /// The fraction of the residual sum of squares two sets of intrinsics must remove.
 pub const SPLIT_SSR_DROP: f64 = 0.2;
 
+/// A relative σ (of a focal length, a scale) above which the figure is said "undetermined".
+pub const UNDETERMINED_RELATIVE: f64 = 0.5;
+
+/// `± σ` in `unit` (`sigma` times `scale`, `decimals` places), or `undetermined` when σ is not
+/// finite or larger than `of` (the figure it is the σ of, in `sigma`'s unit): a σ of 181 mm on
+/// a 10 mm deflection says that the views do not determine it, not a number to read.
+pub fn sigma_text(sigma: f64, of: f64, scale: f64, decimals: usize, unit: &str) -> String {
+    if sigma.is_finite() && sigma <= of {
+        format!("± {:.*} {unit}", decimals, scale * sigma)
+    } else {
+        "undetermined".into()
+    }
+}
+
 fn list(names: &[&str], max: usize) -> String {
     if names.len() <= max {
         names.join(", ")
@@ -404,10 +418,10 @@ pub fn verdict(run: &CalibrationRun, coverage: &Coverage, distance_mm: f64) -> V
     reasons.push((
         g,
         format!(
-            "a {VERDICT_DEFLECTION_MM:.0} mm deflection at {distance_mm:.0} mm in the image corner ± {:.1} µm from the parameters' σ \
-             (fx ± {:.0} ppm; good up to {:.0} µm, usable up to {:.0} µm)",
-            1e3 * corner,
-            1e6 * s[0] / k.fx,
+            "a {VERDICT_DEFLECTION_MM:.0} mm deflection at {distance_mm:.0} mm in the image corner {} from the parameters' σ \
+             (fx {}; good up to {:.0} µm, usable up to {:.0} µm)",
+            sigma_text(corner, VERDICT_DEFLECTION_MM, 1e3, 1, "µm"),
+            sigma_text(s[0] / k.fx, UNDETERMINED_RELATIVE, 1e6, 0, "ppm"),
             1e3 * DEFLECTION_GOOD_MM,
             1e3 * DEFLECTION_USABLE_MM
         ),

@@ -82,15 +82,16 @@ pub(crate) fn report_text(
     for u in uncertainty_at(k, &c.covariance, distance_mm, disp) {
         let _ = writeln!(
             out,
-            "  {:<6} (pixel {:>6.1}, {:>6.1}): position ± {:.4} mm, a {disp:.0} mm deflection ± {:.2} µm",
+            "  {:<6} (pixel {:>6.1}, {:>6.1}): position {}, a {disp:.0} mm deflection {}",
             u.place,
             u.pixel.x,
             u.pixel.y,
-            u.lateral_mm,
-            1000.0 * u.displacement_error_mm
+            guard::sigma_text(u.lateral_mm, distance_mm, 1.0, 4, "mm"),
+            guard::sigma_text(u.displacement_error_mm, disp, 1e3, 2, "µm")
         );
     }
-    let _ = writeln!(out, "  focal length ±{:.0} ppm: distances from tag size and displacements scale by that much", 1e6 * s[1] / k.fy);
+    let fy = guard::sigma_text(s[1] / k.fy, guard::UNDETERMINED_RELATIVE, 1e6, 0, "ppm");
+    let _ = writeln!(out, "  focal length {fy}: distances from tag size and displacements scale by that much");
     for n in notes {
         let _ = writeln!(out, "WARNING {n}");
     }
@@ -148,5 +149,9 @@ pub(crate) fn write_outputs(
     let _ = writeln!(text, "wrote {} and the coverage map {}", opts.out.display(), cov_path.display());
     let _ = writeln!(text, "config snippet (in the camera's [[camera]] section, instead of fx/fy/cx/cy/dist):");
     let _ = writeln!(text, "  calibration = \"{}\"", opts.out.display());
+    if verdict.grade == guard::Grade::Poor {
+        let why: Vec<&str> = verdict.reasons.iter().filter(|(g, _)| *g == guard::Grade::Poor).map(|(_, r)| r.as_str()).collect();
+        return Err(CalibrateError::Poor { text, why: why.join("; ") });
+    }
     Ok(text)
 }

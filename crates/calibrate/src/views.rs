@@ -10,9 +10,26 @@ use crate::target::{BoardSeen, TargetDetector, TargetSpec};
 use tagdeflect_core::camera::CameraIntrinsics;
 use tagdeflect_core::frame::GrayImage;
 
-/// Decodes an image file to 8-bit grey (BT.601 luma, as OpenCV's `cvtColor` and JPEG's Y).
+/// Largest calibration image, pixels: 256 Mpx, the cap of every image the product reads
+/// without a known camera size (docs/operations.md, the fault table).
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 28;
+/// Smallest side of a calibration image, pixels: no target's corners fit in less.
+pub const MIN_IMAGE_SIDE_PX: u32 = 32;
+
+/// Decodes an image file to 8-bit grey (BT.601 luma, as OpenCV's `cvtColor` and JPEG's Y);
+/// its size is read from the header first and checked against [`MAX_IMAGE_PIXELS`] and
+/// [`MIN_IMAGE_SIDE_PX`] before any pixel is decoded.
 pub(crate) fn load_gray(path: &Path) -> Result<GrayImage, CalibrateError> {
-    let img = image::open(path).map_err(|cause| CalibrateError::Decode { path: path.to_path_buf(), cause })?;
+    let decode = |cause| CalibrateError::Decode { path: path.to_path_buf(), cause };
+    let (width, height) = image::image_dimensions(path).map_err(decode)?;
+    let refuse = |why: String| Err(CalibrateError::ImageSize { path: path.to_path_buf(), width, height, why });
+    if width as u64 * height as u64 > MAX_IMAGE_PIXELS {
+        return refuse(format!("more than {MAX_IMAGE_PIXELS} pixels (256 Mpx)"));
+    }
+    if width.min(height) < MIN_IMAGE_SIDE_PX {
+        return refuse(format!("a side under {MIN_IMAGE_SIDE_PX} px holds no target"));
+    }
+    let img = image::open(path).map_err(decode)?;
     let rgb = img.to_rgb8();
     let data = rgb
         .pixels()

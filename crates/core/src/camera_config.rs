@@ -258,6 +258,17 @@ impl CameraSection {
             return Err(Problem::new("width", "width and height must be positive"));
         }
         let intr = match intr {
+            Some(i) if i.width > 0 && i.height > 0 && (i.width, i.height) != (width, height) => {
+                return Err(Problem::new(
+                    "calibration",
+                    format!(
+                        "{} was made for {}x{} px images; this camera is {width}x{height}: intrinsics of another image size measure wrongly. Calibrate at the camera's resolution",
+                        self.calibration.as_deref().unwrap_or_default(),
+                        i.width,
+                        i.height
+                    ),
+                ));
+            }
             Some(mut i) => {
                 i.width = width;
                 i.height = height;

@@ -1,4 +1,4 @@
-//! The two kinds of failure the command line tells apart by exit code.
+//! The kinds of failure the command line tells apart by exit code.
 
 /// Bad input — a config value a component cannot take, a recording that cannot be read:
 /// the command line exits 2 with this message (as for config and recording errors), and
@@ -22,6 +22,20 @@ pub struct RuntimeFailure(String);
 
 impl RuntimeFailure {
     /// A runtime failure with its message.
+    pub fn new(message: impl Into<String>) -> Self {
+        Self(message.into())
+    }
+}
+
+/// A result not fit to measure with, though the command did its work: a calibration whose
+/// verdict is POOR, a `check` whose camera poses fit worse than stated. The command line exits
+/// 3, so a script stops on it; what was written stays written.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct NotFit(String);
+
+impl NotFit {
+    /// A not-fit verdict with its message (what, by how much, against which limit).
     pub fn new(message: impl Into<String>) -> Self {
         Self(message.into())
     }

@@ -30,6 +30,20 @@ pub struct TestMeta {
     pub measured: BTreeMap<String, f64>,
 }
 
+/// The measured dimensions the report computes with and their accepted ranges, mm (a beam of
+/// 10 mm to 1 m in section, 50 mm to 6 m in span; a notch up to 500 mm).
+pub const MEASURED_RANGES_MM: [(&str, f64, f64); 4] =
+    [("width_mm", 10.0, 1000.0), ("depth_mm", 10.0, 1000.0), ("span_mm", 50.0, 6000.0), ("notch_mm", 0.0, 500.0)];
+
+/// `v` as typed: plain, or in exponent form when very large or small (`1e308`, not 309 digits).
+fn short(v: f64) -> String {
+    if v != 0.0 && !(1e-3..1e7).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 /// Standards a test may name.
 pub const STANDARDS: [&str; 3] = ["astm-c1609", "astm-c1856", "en-14651"];
 
@@ -59,6 +73,31 @@ impl TestMeta {
         }
         if let Some((k, v)) = self.measured.iter().find(|(k, v)| !v.is_finite() || k.len() > 64) {
             return Err(Problem::new(format!("measured.{k}"), format!("measured.{k} = {v}: a finite number under a short name")));
+        }
+        self.validate_dimensions()
+    }
+
+    /// The beam's measured dimensions within [`MEASURED_RANGES_MM`], the notch shallower than
+    /// the depth: a typing slip (`0.001`, `1e308`, metres for millimetres) is refused here
+    /// rather than computed into the report.
+    fn validate_dimensions(&self) -> Result<(), Problem> {
+        for (k, lo, hi) in MEASURED_RANGES_MM {
+            if let Some(&v) = self.measured.get(k) {
+                if !(lo..=hi).contains(&v) {
+                    return Err(Problem::new(
+                        format!("measured.{k}"),
+                        format!("measured.{k} = {}: a beam's {k} is {lo} to {hi} mm", short(v)),
+                    ));
+                }
+            }
+        }
+        if let (Some(&n), Some(&d)) = (self.measured.get("notch_mm"), self.measured.get("depth_mm")) {
+            if n >= d {
+                return Err(Problem::new(
+                    "measured.notch_mm",
+                    format!("measured.notch_mm = {n}: the notch must be shallower than depth_mm = {d}"),
+                ));
+            }
         }
         Ok(())
     }

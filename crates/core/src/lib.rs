@@ -29,5 +29,5 @@ pub mod tags;
 pub mod text_file;
 pub mod utm_sample;
 
-pub use error::{BadInput, RuntimeFailure};
+pub use error::{BadInput, NotFit, RuntimeFailure};
 pub use problem::Problem;

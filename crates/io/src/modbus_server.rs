@@ -8,7 +8,9 @@
 //! connection too (tokio-modbus runs each connection in a task of its own, which would
 //! otherwise outlive the listener); Nagle is off on every connection (a register read is a
 //! few bytes); malformed frames are tokio-modbus's to refuse (the connection ends, logged at
-//! DEBUG). A read's range is checked by [`read_range`] (count 1 to [`MAX_READ`], inside the
+//! DEBUG); at most [`MAX_CONNECTIONS`] are open at once (more are closed at once, logged once
+//! per 10 s); an accept error (out of file descriptors) is logged and retried with backoff
+//! instead of ending the server. A read's range is checked by [`read_range`] (count 1 to [`MAX_READ`], inside the
 //! served block) where a server serves a block of registers.
 
 use std::collections::HashMap;
@@ -30,6 +32,37 @@ use tokio_modbus::{ExceptionCode, Request, Response};
 
 /// Most registers one read may ask for (the Modbus limit).
 pub const MAX_READ: u16 = 125;
+
+/// Connections a server keeps open at once; more are closed at once (a flood of clients
+/// would otherwise take every file descriptor of the daemon).
+pub const MAX_CONNECTIONS: usize = 64;
+
+/// The first wait after a failed accept; doubled after each failure up to
+/// [`ACCEPT_RETRY_MAX`].
+const ACCEPT_RETRY_MIN: Duration = Duration::from_millis(100);
+/// The longest wait after a failed accept.
+const ACCEPT_RETRY_MAX: Duration = Duration::from_secs(5);
+/// Refused connections and accept errors are logged at most once per this time.
+const LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// Counts events and says when to log them: the first, then once per [`LOG_EVERY`] (with the
+/// count since the last line).
+#[derive(Default)]
+struct Throttle(Mutex<(Option<std::time::Instant>, u64)>);
+
+impl Throttle {
+    /// Counts one event; `Some(count)` when it is to be logged.
+    fn hit(&self) -> Option<u64> {
+        let mut g = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        g.1 += 1;
+        let now = std::time::Instant::now();
+        if g.0.is_some_and(|t| now.duration_since(t) < LOG_EVERY) {
+            return None;
+        }
+        g.0 = Some(now);
+        Some(std::mem::take(&mut g.1))
+    }
+}
 
 /// How a server answers: one request, its response or an exception.
 pub trait Answer: Send + Sync + 'static {
@@ -88,7 +121,15 @@ impl ModbusServer {
         let handle = tokio::spawn(async move {
             let conns = Connections::default();
             let _close_all = CloseOnDrop(conns.clone());
+            let refused = Throttle::default();
             let on_connected = |stream: TcpStream, peer: SocketAddr| {
+                if conns.count() >= MAX_CONNECTIONS {
+                    // Dropped: closed at once. Logged once per `LOG_EVERY`, with the count.
+                    if let Some(n) = refused.hit() {
+                        tracing::warn!(%peer, "{}: {MAX_CONNECTIONS} connections open: {n} connection(s) refused", name.name);
+                    }
+                    return ready(Ok(None));
+                }
                 if name.clients_at_info {
                     tracing::info!(%peer, "{}: client connected", name.name);
                 } else {
@@ -99,8 +140,16 @@ impl ModbusServer {
             };
             let label = name.name;
             let on_error = move |e: io::Error| tracing::debug!("{label}: connection ended: {e}");
-            if let Err(e) = Server::new(listener).serve(&on_connected, on_error).await {
-                tracing::error!("{} on {addr}: accept failed: {e}", name.name);
+            let server = Server::new(listener);
+            let (failed, mut wait) = (Throttle::default(), ACCEPT_RETRY_MIN);
+            // An accept error (out of file descriptors, a connection aborted before it was
+            // taken) ends tokio-modbus's loop: logged, waited out with backoff, and served on.
+            while let Err(e) = server.serve(&on_connected, on_error).await {
+                if let Some(n) = failed.hit() {
+                    tracing::error!("{} on {addr}: accept failed ({n} time(s)): {e}; retrying", name.name);
+                }
+                tokio::time::sleep(wait).await;
+                wait = (wait * 2).min(ACCEPT_RETRY_MAX);
             }
         });
         Ok(ModbusServer { addr, handle: Some(handle) })
@@ -173,6 +222,10 @@ impl Connections {
             open.insert(id, dup);
         }
         Ok(Tracked { inner, id, conns: self.clone() })
+    }
+
+    fn count(&self) -> usize {
+        self.open.lock().map_or(0, |o| o.len())
     }
 
     fn close_all(&self) {
@@ -263,5 +316,85 @@ mod tests {
         drop(server);
         tokio::time::sleep(Duration::from_millis(50)).await;
         assert!(ctx.read_input_registers(0, 1).await.is_err(), "the connection is closed with the server");
+    }
+
+    #[tokio::test]
+    async fn connections_over_the_cap_are_closed_and_the_first_ones_served() {
+        use tokio::io::AsyncReadExt;
+        use tokio_modbus::client::Reader;
+        let name = ServerName { name: "test server", clients_at_info: false };
+        let server = ModbusServer::bind(SocketAddr::from(([127, 0, 0, 1], 0)), name, Arc::new(Fixed)).await.unwrap();
+        let mut first = tokio_modbus::client::tcp::connect(server.addr()).await.unwrap();
+        assert_eq!(first.read_input_registers(0, 1).await.unwrap(), Ok(vec![7]));
+        let mut held = Vec::new();
+        for _ in 1..MAX_CONNECTIONS {
+            let mut c = tokio_modbus::client::tcp::connect(server.addr()).await.unwrap();
+            assert_eq!(c.read_input_registers(0, 1).await.unwrap(), Ok(vec![7]), "served up to the cap");
+            held.push(c);
+        }
+        // One more: closed by the server at once (end of stream, not a hang).
+        let mut extra = TcpStream::connect(server.addr()).await.unwrap();
+        let mut buf = [0u8; 8];
+        let n = tokio::time::timeout(Duration::from_secs(30), extra.read(&mut buf)).await.expect("closed, not left hanging");
+        assert!(matches!(n, Ok(0) | Err(_)), "{n:?}");
+        assert_eq!(first.read_input_registers(1, 2).await.unwrap(), Ok(vec![7; 2]), "the open ones are still served");
+        // A connection closed makes room again.
+        drop(held.pop());
+        let mut again = None;
+        for _ in 0..100 {
+            let mut c = tokio_modbus::client::tcp::connect(server.addr()).await.unwrap();
+            if let Ok(Ok(v)) = c.read_input_registers(0, 1).await {
+                again = Some(v);
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        assert_eq!(again, Some(vec![7]));
+    }
+
+    /// Run in a child process under `prlimit --nofile` (see the next test): out of file
+    /// descriptors, the server's accept fails; it is retried, and the client waiting in the
+    /// backlog is served once descriptors are free again.
+    #[tokio::test]
+    async fn child_accept_errors_are_retried() {
+        use tokio_modbus::client::Reader;
+        if std::env::var_os("MODBUS_SERVER_CHILD").is_none() {
+            return;
+        }
+        let name = ServerName { name: "test server", clients_at_info: false };
+        let server = ModbusServer::bind(SocketAddr::from(([127, 0, 0, 1], 0)), name, Arc::new(Fixed)).await.unwrap();
+        let addr = server.addr();
+        // Take every descriptor, then free one for the client's own socket.
+        let mut files = Vec::new();
+        while let Ok(f) = std::fs::File::open("/dev/null") {
+            files.push(f);
+        }
+        files.pop();
+        let client = tokio::spawn(async move {
+            let mut c = tokio_modbus::client::tcp::connect(addr).await.unwrap();
+            c.read_input_registers(0, 2).await.unwrap()
+        });
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        assert!(!client.is_finished(), "not served while the server has no descriptor");
+        drop(files);
+        let got = tokio::time::timeout(Duration::from_secs(60), client).await.expect("served after the retry").unwrap();
+        assert_eq!(got, Ok(vec![7; 2]));
+        println!("CHILD OK");
+    }
+
+    #[test]
+    fn accept_errors_are_retried_not_the_end_of_the_server() {
+        let exe = std::env::current_exe().unwrap();
+        let o = std::process::Command::new("prlimit")
+            .arg("--nofile=64:64")
+            .arg("--")
+            .arg(exe)
+            .args(["--exact", "modbus_server::tests::child_accept_errors_are_retried", "--nocapture", "--test-threads=1"])
+            .env("MODBUS_SERVER_CHILD", "1")
+            .env("TAGDEFLECT_LOG", "debug")
+            .output()
+            .expect("prlimit (util-linux)");
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success() && out.contains("CHILD OK"), "{out}\n{}", String::from_utf8_lossy(&o.stderr));
     }
 }

@@ -183,6 +183,10 @@ pub fn build(
                 .push(format!("the UTM stream {} does not cover the whole feed: the ends of the curve have no load", u.path.display()));
         }
     }
+    qc.warnings.extend(glitch_warnings(&feed_curve, "feed line"));
+    if utm.is_some() {
+        qc.warnings.extend(glitch_warnings(&curve, "UTM sample"));
+    }
     let utm_outages_s: f64 = qc.utm_outages.iter().map(|o| o.duration_s).sum();
     let validity = validity::check(&validity::Input {
         standard: opts.standard,
@@ -240,6 +244,27 @@ fn fill_from_test_json(lab: &mut crate::config::LabInfo, feed: &Path) {
     if lab.operator.is_none() {
         lab.operator = get("operator");
     }
+}
+
+/// One QC warning per glitched load reading left out of `curve` (at most 10, then a count).
+fn glitch_warnings(curve: &Curve, what: &str) -> Vec<String> {
+    let t0 = curve.t_ns.first().copied().unwrap_or(0);
+    let mut out: Vec<String> = curve
+        .load_outliers
+        .iter()
+        .take(10)
+        .map(|&(t, p)| {
+            format!(
+                "a glitched load of {} kN ({what} at {:.3} s) left out: a jump no testing machine makes within one sample and back; never the peak",
+                crate::feed_reader::fmt_g(p),
+                (t - t0) as f64 * 1e-9
+            )
+        })
+        .collect();
+    if curve.load_outliers.len() > 10 {
+        out.push(format!("{} glitched loads ({what}s) left out in all", curve.load_outliers.len()));
+    }
+    out
 }
 
 /// The curve's columns as they are gathered from the feed.

@@ -32,6 +32,8 @@
 //! its two neighbours (in time), normalised to unit variance for white noise; σ̂ = 1.4826 ·
 //! median absolute deviation. Ramps cancel; sharp corners are outliers the median ignores.
 
+use crate::load_spikes::{robust_noise, LoadSpikes};
+
 /// A curve in time order: load against `x` (net deflection or CMOD), with σ.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Curve {
@@ -70,6 +72,9 @@ pub struct Curve {
     /// True when the load comes from the UTM's own samples (`utm.jsonl`), false when it is the
     /// feed's load sampled at the frame rate.
     pub load_from_utm: bool,
+    /// Load readings left out as glitches (`(t_ns, load_kN)`): a jump no machine makes within
+    /// one sample and back ([`crate::load_spikes`]).
+    pub load_outliers: Vec<(i64, f64)>,
 }
 
 /// Errors building a curve.
@@ -107,6 +112,13 @@ impl Curve {
         if load.iter().chain(&x).any(|v| !v.is_finite()) {
             return Err(CurveError::Input("a load or x value is not finite".into()));
         }
+        let spikes = LoadSpikes::find(&load);
+        let load_outliers = spikes.readings(&t_ns, &load);
+        let (t_ns, load, x, sx) = (spikes.without(t_ns), spikes.without(load), spikes.without(x), spikes.without(sx));
+        let n = t_ns.len();
+        if n < 2 {
+            return Err(CurveError::TooShort(n, what));
+        }
         let t0 = t_ns[0];
         let t_s: Vec<f64> = t_ns.iter().map(|&t| (t - t0) as f64 * 1e-9).collect();
         let x_noise = robust_noise(&t_s, &x);
@@ -141,6 +153,7 @@ impl Curve {
             x_corr_points: m as f64,
             load_period_s,
             load_from_utm: false,
+            load_outliers,
         })
     }
 
@@ -191,6 +204,10 @@ impl Curve {
             sx.push(((sig * sig - ref2).max(0.0) + st * st).sqrt());
             sxs.push((sig * sig + st * st).sqrt());
         }
+        let spikes = LoadSpikes::find(&load);
+        let load_outliers = spikes.readings(&t_ns, &load);
+        let (t_ns, load, x, sx, sxs) =
+            (spikes.without(t_ns), spikes.without(load), spikes.without(x), spikes.without(sx), spikes.without(sxs));
         if t_ns.len() < 2 {
             return Err(CurveError::TooShort(t_ns.len(), "UTM samples within the feed's time"));
         }
@@ -217,6 +234,7 @@ impl Curve {
             x_corr_points: self.x_corr_points * per_feed_point,
             load_period_s,
             load_from_utm: true,
+            load_outliers,
         })
     }
 
@@ -486,31 +504,6 @@ fn fit_weights_sigma(t: &[f64], s: &[f64], at: f64) -> Vec<f64> {
     let tm = w.iter().zip(t).map(|(w, t)| w * t).sum::<f64>() / sw;
     let stt: f64 = w.iter().zip(t).map(|(w, t)| w * (t - tm) * (t - tm)).sum();
     w.iter().zip(t).map(|(w, t)| if stt > 0.0 { w / sw + (at - tm) * w * (t - tm) / stt } else { w / sw }).collect()
-}
-
-/// Robust noise of `y(t)`: 1.4826 · MAD of each interior point's deviation from the line
-/// through its neighbours, normalised to the σ of white noise. 0 with fewer than 5 points.
-fn robust_noise(t: &[f64], y: &[f64]) -> f64 {
-    if y.len() < 5 {
-        return 0.0;
-    }
-    let mut r: Vec<f64> = (1..y.len() - 1)
-        .filter_map(|i| {
-            let span = t[i + 1] - t[i - 1];
-            if span <= 0.0 {
-                return None;
-            }
-            let a = (t[i + 1] - t[i]) / span;
-            let b = (t[i] - t[i - 1]) / span;
-            Some((y[i] - (a * y[i - 1] + b * y[i + 1])) / (1.0 + a * a + b * b).sqrt())
-        })
-        .collect();
-    if r.len() < 3 {
-        return 0.0;
-    }
-    let med = median(&mut r);
-    let mut dev: Vec<f64> = r.iter().map(|v| (v - med).abs()).collect();
-    1.4826 * median(&mut dev)
 }
 
 pub(crate) use tagdeflect_core::stats::median_in_place as median;

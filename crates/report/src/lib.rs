@@ -25,6 +25,7 @@ pub mod en14651;
 mod error;
 mod feed_reader;
 mod html;
+mod load_spikes;
 mod output;
 mod plots;
 pub mod qc;

@@ -66,6 +66,26 @@ pub fn specimen_name(r: &Report) -> String {
     }
 }
 
+/// The folder a specimen's report goes into under `--out`: its [`specimen_name`] made a safe
+/// file name, as `test.json`'s `specimen` is not trusted (`../../x`, `/abs/path`). Every
+/// character but letters, digits, `_`, `-` and `.` becomes `_`, a leading `.` too (so `..` and
+/// hidden names cannot be made), at most 64 characters; an empty name is `specimen`.
+pub fn folder_name(r: &Report) -> String {
+    safe_file_name(&specimen_name(r))
+}
+
+/// `name` as one safe path component (see [`folder_name`]).
+pub fn safe_file_name(name: &str) -> String {
+    let ok = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
+    let mut out: String = name.trim().chars().take(64).map(|c| if ok(c) { c } else { '_' }).collect();
+    let dots = out.chars().take_while(|&c| c == '.').count();
+    out.replace_range(..dots, &"_".repeat(dots));
+    if out.is_empty() {
+        out = "specimen".into();
+    }
+    out
+}
+
 fn num(v: f64, d: usize) -> String {
     if v.is_finite() {
         format!("{v:.d$}")

@@ -30,6 +30,10 @@ pub struct OutputConfig {
     /// TCP server (see `sinks::control_output`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub control: Option<crate::control_output::ControlConfig>,
+    /// `[output.analog]`: the same signal as a voltage on a networked DAQ's analog output,
+    /// written over Modbus TCP (see `sinks::analog_output`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub analog: Option<crate::analog_output::AnalogConfig>,
     /// (extension) Host names the live page answers to besides IP addresses, `localhost` and
     /// this machine's own name (a request naming any other host is refused: DNS rebinding).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

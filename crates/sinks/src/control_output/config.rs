@@ -24,8 +24,8 @@ pub struct ControlConfig {
     pub stale_sets: u32,
 }
 
-/// The gauge served by default.
-pub const NET_DEFLECTION: &str = "net_deflection";
+use crate::signal::SignalRule;
+pub use crate::signal::NET_DEFLECTION;
 
 /// The port of the address examples in messages (SPEC's `127.0.0.1:5020`).
 pub const EXAMPLE_PORT: u16 = 5020;
@@ -62,19 +62,12 @@ impl ControlConfig {
     pub fn validate_against(&self, gauges: &[String]) -> Result<(), tagdeflect_core::Problem> {
         use tagdeflect_core::Problem;
         self.addr().map_err(|e| Problem::new("modbus", e.to_string()))?;
-        if self.gauge != NET_DEFLECTION && !gauges.contains(&self.gauge) {
-            return Err(Problem::new(
-                "gauge",
-                format!("\"{}\" is neither \"{NET_DEFLECTION}\" nor a configured [[gauge]] (have: {gauges:?})", self.gauge),
-            ));
-        }
-        if !(self.max_sigma_mm.is_finite() && self.max_sigma_mm > 0.0) {
-            return Err(Problem::new("max_sigma_mm", format!("{}: expected a positive number of mm", self.max_sigma_mm)));
-        }
-        if self.stale_sets == 0 || self.stale_sets > 1000 {
-            return Err(Problem::new("stale_sets", format!("{}: expected 1 to 1000 frame sets", self.stale_sets)));
-        }
-        Ok(())
+        self.rule().validate(gauges)
+    }
+
+    /// The signal's rule of this section (`crate::signal`).
+    pub fn rule(&self) -> SignalRule {
+        SignalRule { gauge: self.gauge.clone(), max_sigma_mm: self.max_sigma_mm, stale_sets: self.stale_sets }
     }
 }
 

@@ -22,7 +22,7 @@
 //! | 9 | heartbeat, u16, incremented every 50 ms while the daemon runs |
 //! | 10–11 | the value's rate, f32, mm/min |
 //!
-//! Valid drops to 0 when the gauge's tags were not solved in `stale_sets` consecutive
+//! Valid follows the signal's rule (`crate::signal`, shared with the analog output): it drops to 0 when the gauge's tags were not solved in `stale_sets` consecutive
 //! frame sets, when no frame set arrived for `stale_sets + ½` frame periods (a stalled
 //! pipeline), when σ exceeds `max_sigma_mm`, and for good when the daemon stops (the
 //! heartbeat stops with it).
@@ -43,6 +43,7 @@ use tokio_modbus::{ExceptionCode, Request, Response};
 
 pub use config::{ControlConfig, EXAMPLE_PORT, NET_DEFLECTION};
 
+use crate::signal::{SignalRule, SignalState};
 use crate::{Finished, LineSink};
 
 /// Input registers served.
@@ -69,33 +70,16 @@ pub enum ControlError {
     Start(io::Error),
 }
 
-/// The value served, as taken from one feed line.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Sample {
-    value: f64,
-    sigma: f64,
-    seq: u64,
-    t_ns: i64,
-    rate_mm_per_min: f64,
-}
-
 #[derive(Debug)]
 struct State {
-    sample: Option<Sample>,
-    /// The last lines say: fresh and σ small enough.
-    valid: bool,
-    /// Consecutive lines without the gauge.
-    missing: u32,
-    /// When the last line arrived, and its time.
-    last_line: Option<(Instant, i64)>,
-    /// Frame period, s (running mean of the lines' spacing).
-    period_s: Option<f64>,
+    /// The signal (`crate::signal`: the rule shared with the analog output).
+    signal: SignalState,
     /// Exposure → register latencies seen, ms.
     latencies_ms: Vec<f32>,
 }
 
 struct Shared {
-    config: ControlConfig,
+    rule: SignalRule,
     state: Mutex<State>,
     heartbeat: AtomicU16,
     stopped: AtomicBool,
@@ -105,55 +89,27 @@ struct Shared {
 const MAX_LATENCIES: usize = 1 << 20;
 
 impl Shared {
-    fn take_line(&self, line: &FeedLine, arrived: Instant, now_ns: i64) {
-        let reading = if let Some(g) = line.gauges.get(&self.config.gauge) {
-            g.known_sigma().map(|s| (g.value, s, None))
-        } else if self.config.gauge == NET_DEFLECTION {
-            line.net_deflection_mm.zip(line.net_deflection_sigma_mm).map(|(v, s)| (v, s, line.net_deflection_rate_mm_per_min))
-        } else {
-            None
-        };
-        let mut st = self.state.lock().expect("control state");
-        if let Some((_, t_prev)) = st.last_line {
-            let dt = (line.t_ns - t_prev) as f64 * 1e-9;
-            if dt > 0.0 && dt < 10.0 {
-                st.period_s = Some(st.period_s.map_or(dt, |p| 0.9 * p + 0.1 * dt));
-            }
+    fn new(config: &ControlConfig, heartbeat: u16) -> Shared {
+        Shared {
+            rule: config.rule(),
+            state: Mutex::new(State { signal: SignalState::default(), latencies_ms: Vec::new() }),
+            heartbeat: AtomicU16::new(heartbeat),
+            stopped: AtomicBool::new(false),
         }
-        st.last_line = Some((arrived, line.t_ns));
-        match reading.filter(|(v, s, _)| v.is_finite() && s.is_finite()) {
-            Some((value, sigma, rate)) => {
-                let rate_mm_per_min = match (rate, st.sample) {
-                    (Some(r), _) => r,
-                    (None, Some(p)) if line.t_ns > p.t_ns => (value - p.value) / ((line.t_ns - p.t_ns) as f64 * 1e-9) * 60.0,
-                    _ => 0.0,
-                };
-                st.sample = Some(Sample { value, sigma, seq: line.seq, t_ns: line.t_ns, rate_mm_per_min });
-                st.missing = 0;
-                st.valid = sigma <= self.config.max_sigma_mm;
-                if st.latencies_ms.len() < MAX_LATENCIES {
-                    st.latencies_ms.push(((now_ns - line.t_ns) as f64 * 1e-6) as f32);
-                }
-            }
-            None => {
-                st.missing += 1;
-                if st.missing >= self.config.stale_sets {
-                    st.valid = false;
-                }
-            }
+    }
+
+    fn take_line(&self, line: &FeedLine, arrived: Instant, now_ns: i64) {
+        let mut st = self.state.lock().expect("control state");
+        if st.signal.take_line(&self.rule, line, arrived).is_some() && st.latencies_ms.len() < MAX_LATENCIES {
+            st.latencies_ms.push(((now_ns - line.t_ns) as f64 * 1e-6) as f32);
         }
     }
 
     fn registers(&self, now: Instant, now_ns: i64) -> [u16; REGISTERS] {
         let st = self.state.lock().expect("control state");
         let mut r = [0u16; REGISTERS];
-        let fresh = match (st.last_line, st.period_s) {
-            (Some((at, _)), Some(p)) => now.saturating_duration_since(at).as_secs_f64() <= (self.config.stale_sets as f64 + 0.5) * p,
-            (Some(_), None) => true,
-            _ => false,
-        };
-        let valid = st.valid && fresh && !self.stopped.load(Ordering::Relaxed);
-        if let Some(s) = st.sample {
+        let valid = st.signal.valid_at(&self.rule, now) && !self.stopped.load(Ordering::Relaxed);
+        if let Some(s) = st.signal.sample {
             let put32 = |r: &mut [u16; REGISTERS], at: usize, bits: u32| {
                 r[at] = (bits >> 16) as u16;
                 r[at + 1] = bits as u16;
@@ -216,12 +172,7 @@ impl ControlOutput {
         let listener = std::net::TcpListener::bind(addr).map_err(|source| ControlError::Bind { addr, source })?;
         let local = listener.local_addr().map_err(ControlError::Start)?;
         listener.set_nonblocking(true).map_err(ControlError::Start)?;
-        let shared = Arc::new(Shared {
-            config: config.clone(),
-            state: Mutex::new(State { sample: None, valid: false, missing: 0, last_line: None, period_s: None, latencies_ms: Vec::new() }),
-            heartbeat: AtomicU16::new(0),
-            stopped: AtomicBool::new(false),
-        });
+        let shared = Arc::new(Shared::new(config, 0));
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(ControlError::Start)?;
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let s = shared.clone();
@@ -372,12 +323,7 @@ mod tests {
     use tagdeflect_core::feed::GaugeReading;
 
     fn shared(gauge: &str) -> Shared {
-        Shared {
-            config: ControlConfig { gauge: gauge.into(), ..ControlConfig::on("127.0.0.1:0") },
-            state: Mutex::new(State { sample: None, valid: false, missing: 0, last_line: None, period_s: None, latencies_ms: Vec::new() }),
-            heartbeat: AtomicU16::new(7),
-            stopped: AtomicBool::new(false),
-        }
+        Shared::new(&ControlConfig { gauge: gauge.into(), ..ControlConfig::on("127.0.0.1:0") }, 7)
     }
 
     fn line(seq: u64, net: Option<(f64, f64)>) -> FeedLine {

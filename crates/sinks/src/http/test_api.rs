@@ -6,9 +6,13 @@
 //! [`MAX_BODY`] bytes (413); it does not come from another site — an `Origin` header must name
 //! this server's own `Host`, and `Sec-Fetch-Site`, when sent, must not be `cross-site` (403);
 //! a body, when there is one, is `application/json` (415: a form of another site cannot send
-//! that without a preflight, which this server never grants); the peer has not failed the
-//! token [`MAX_FAILURES`] times in the last minute (429); `Authorization: Bearer <token>`
-//! matches (401, compared in constant time, logged with the peer's address). No GET changes
+//! that without a preflight, which this server never grants); `Authorization: Bearer <token>`
+//! matches (compared in constant time). The right token is never refused, whatever others
+//! sent before it: a client behind the lab's reverse proxy (one address for everyone) cannot be
+//! locked out by someone else's wrong tokens. A wrong one is answered 401 (logged with the
+//! peer's address) until its address sent [`MAX_FAILURES`] wrong tokens within
+//! [`FAILURE_WINDOW`], or all addresses together [`MAX_FAILURES_ALL`] (rotating addresses): then
+//! 429 with `Retry-After`, and one log line per window instead of one per guess. No GET changes
 //! anything.
 
 use std::collections::HashMap;
@@ -32,16 +36,29 @@ pub const MAX_FAILURES: u32 = 5;
 /// The window of [`MAX_FAILURES`].
 pub const FAILURE_WINDOW: Duration = Duration::from_secs(60);
 
-/// The tests behind the API, the token, and the wrong tokens per peer.
+/// Wrong tokens from all addresses together within [`FAILURE_WINDOW`] before every wrong one is
+/// answered 429.
+pub const MAX_FAILURES_ALL: u32 = 20;
+/// Addresses whose wrong tokens are counted at most (the oldest window is dropped first).
+const MAX_TRACKED_PEERS: usize = 4096;
+
+/// Wrong tokens per address and from all together, each counted in a window from its first.
+#[derive(Default)]
+struct Failures {
+    per_peer: HashMap<IpAddr, (u32, Instant)>,
+    all: (u32, Option<Instant>),
+}
+
+/// The tests behind the API, the token, and the wrong tokens per peer and in all.
 pub(crate) struct TestApi {
     tests: Arc<LabTests>,
     token: String,
-    failures: Mutex<HashMap<IpAddr, (u32, Instant)>>,
+    failures: Mutex<Failures>,
 }
 
 impl TestApi {
     pub(crate) fn new(tests: Arc<LabTests>, token: String) -> Self {
-        TestApi { tests, token, failures: Mutex::new(HashMap::new()) }
+        TestApi { tests, token, failures: Mutex::new(Failures::default()) }
     }
 }
 
@@ -148,19 +165,36 @@ fn cross_origin(headers: &HeaderMap) -> Option<String> {
 
 /// The token check with its rate limit; `Some(answer)` when refused.
 fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr) -> Option<Response> {
-    let mut failures = api.failures.lock().unwrap_or_else(|p| p.into_inner());
-    let now = Instant::now();
-    failures.retain(|_, (_, since)| now.duration_since(*since) < FAILURE_WINDOW);
-    if failures.get(&peer.ip()).is_some_and(|(n, _)| *n >= MAX_FAILURES) {
-        return Some(answer(StatusCode::TOO_MANY_REQUESTS, format!("too many wrong tokens from {}: wait a minute", peer.ip())));
-    }
     let given = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).map(str::trim);
     if given.is_some_and(|g| constant_time_eq(g.as_bytes(), api.token.as_bytes())) {
         return None;
     }
-    let entry = failures.entry(peer.ip()).or_insert((0, now));
-    entry.0 += 1;
-    tracing::warn!(%peer, failures = entry.0, "control API: a POST with {} token refused", if given.is_some() { "a wrong" } else { "no" });
+    let mut f = api.failures.lock().unwrap_or_else(|p| p.into_inner());
+    let now = Instant::now();
+    f.per_peer.retain(|_, (_, since)| now.duration_since(*since) < FAILURE_WINDOW);
+    if f.all.1.is_some_and(|since| now.duration_since(since) >= FAILURE_WINDOW) {
+        f.all = (0, None);
+    }
+    if f.per_peer.len() >= MAX_TRACKED_PEERS && !f.per_peer.contains_key(&peer.ip()) {
+        let oldest = f.per_peer.iter().min_by_key(|(_, (_, t))| *t).map(|(ip, _)| *ip);
+        oldest.map(|ip| f.per_peer.remove(&ip));
+    }
+    let mine = f.per_peer.entry(peer.ip()).or_insert((0, now));
+    mine.0 += 1;
+    let n_peer = mine.0;
+    let all = f.all.0 + 1;
+    f.all = (all, Some(f.all.1.unwrap_or(now)));
+    let what = if given.is_some() { "a wrong" } else { "no" };
+    if n_peer > MAX_FAILURES || all > MAX_FAILURES_ALL {
+        // Logged at the first refusal of a window (per address, and for all), not per guess.
+        if n_peer == MAX_FAILURES + 1 || all == MAX_FAILURES_ALL + 1 {
+            tracing::warn!(%peer, failures = n_peer, failures_all = all, "control API: too many wrong tokens: answered 429 for a minute (the right token still passes)");
+        }
+        let mut r = answer(StatusCode::TOO_MANY_REQUESTS, "too many wrong tokens: wait a minute (the right token is always taken)");
+        r.headers_mut().insert(header::RETRY_AFTER, header::HeaderValue::from_static("60"));
+        return Some(r);
+    }
+    tracing::warn!(%peer, failures = n_peer, "control API: a POST with {what} token refused");
     Some(answer(
         StatusCode::UNAUTHORIZED,
         "a POST needs Authorization: Bearer <token> (the daemon printed it at start, or see http_token_file)",
@@ -193,5 +227,38 @@ mod tests {
         h.insert("sec-fetch-site", "cross-site".parse().unwrap());
         assert!(cross_origin(&h).is_some());
         assert!(constant_time_eq(b"abc", b"abc") && !constant_time_eq(b"abc", b"abd") && !constant_time_eq(b"ab", b"abc"));
+    }
+
+    #[test]
+    fn the_right_token_is_never_refused_and_wrong_ones_are_limited_per_address_and_in_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+        let api = TestApi::new(tests, "right".into());
+        let with = |token: &str| {
+            let mut h = HeaderMap::new();
+            h.insert(header::AUTHORIZATION, format!("Bearer {token}").parse().unwrap());
+            h
+        };
+        let code = |token: &str, ip: [u8; 4]| {
+            check_token(&api, &with(token), SocketAddr::from((ip, 40000))).map_or(StatusCode::OK, |r| r.status())
+        };
+        // One address (a reverse proxy): 5 wrong tokens answered 401, then 429; the right one passes.
+        let proxy = [10, 0, 0, 1];
+        for _ in 0..MAX_FAILURES {
+            assert_eq!(code("wrong", proxy), StatusCode::UNAUTHORIZED);
+        }
+        assert_eq!(code("wrong", proxy), StatusCode::TOO_MANY_REQUESTS);
+        assert_eq!(code("right", proxy), StatusCode::OK, "the operator's stop passes the lockout");
+        // Rotating addresses: one wrong token each; past the budget of all, 429 for every wrong one.
+        let mut unauthorized = 0;
+        for k in 0..100u8 {
+            if code("guess", [127, 0, 1, k]) == StatusCode::UNAUTHORIZED {
+                unauthorized += 1;
+            }
+        }
+        // The proxy's 6 wrong tokens count in all too: 20 in all within the window.
+        assert_eq!(unauthorized, MAX_FAILURES_ALL - MAX_FAILURES - 1, "at most {MAX_FAILURES_ALL} wrong tokens get a 401 within a window");
+        assert_eq!(code("right", [127, 0, 2, 1]), StatusCode::OK);
+        assert_eq!(code("right", proxy), StatusCode::OK);
     }
 }

@@ -69,15 +69,44 @@ impl LabTests {
     }
 
     /// Resumes the test of `TESTS/.running.json`, if there is one.
+    /// A state that cannot be resumed (unreadable, not a state, its folder gone) is moved aside
+    /// to `.running.json.stale-<UTC time>` with a warning naming it, and the daemon starts
+    /// idle: a stale file must not keep the rig down (the unit does not restart on exit 2).
     pub(super) fn resume(&self) -> std::io::Result<()> {
         let path = self.state_file();
-        let text = match std::fs::read_to_string(&path) {
-            Ok(t) => t,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-            Err(e) => return Err(e),
-        };
-        let p: Persisted = serde_json::from_str(&text)
-            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{}: {e}", path.display())))?;
+        if std::fs::symlink_metadata(&path).is_err() {
+            return Ok(());
+        }
+        let Err(e) = self.resume_from(&path) else { return Ok(()) };
+        let stamp = chrono::DateTime::from_timestamp_nanos(tagdeflect_core::clock::now_epoch_ns()).format("%Y%m%dT%H%M%SZ");
+        let mut aside = path.with_file_name(format!(".running.json.stale-{stamp}"));
+        for k in 2.. {
+            if std::fs::symlink_metadata(&aside).is_err() {
+                break;
+            }
+            aside = path.with_file_name(format!(".running.json.stale-{stamp}-{k}"));
+        }
+        std::fs::rename(&path, &aside).map_err(|r| {
+            std::io::Error::new(
+                r.kind(),
+                format!("{}: cannot be resumed ({e}) nor moved aside to {}: {r}", path.display(), aside.display()),
+            )
+        })?;
+        tracing::warn!(
+            "the running test's state {} cannot be resumed: {e}; moved aside to {}, starting without a running test",
+            path.display(),
+            aside.display()
+        );
+        Ok(())
+    }
+
+    fn resume_from(&self, path: &Path) -> std::io::Result<()> {
+        let text = std::fs::read_to_string(path)?;
+        let p: Persisted = serde_json::from_str(&text).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e.to_string()))?;
+        if !p.folder.is_dir() {
+            let message = format!("its test folder {} is gone", p.folder.display());
+            return Err(std::io::Error::new(std::io::ErrorKind::NotFound, message));
+        }
         // A crash may have cut the last line of the test's files: cut back to whole lines.
         for name in ["feed.jsonl", "utm.jsonl"] {
             tagdeflect_core::linefile::LineFile::open_append(&p.folder.join(name))?;

@@ -1,5 +1,7 @@
 //! The tests' unit tests: a test from start to stop, and one resumed after a restart.
 
+use std::path::{Path, PathBuf};
+
 use sha2::Digest;
 use tagdeflect_core::feed::FeedLine;
 
@@ -84,4 +86,34 @@ fn a_test_running_when_the_daemon_stops_resumes_from_its_zero() {
     let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
     assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "resume", "stop"]);
     assert_eq!(std::fs::read_to_string(stopped.folder.join("feed.jsonl")).unwrap().lines().count(), ZERO_SETS + 1);
+}
+
+#[test]
+fn a_stale_running_state_is_moved_aside_and_the_daemon_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = {
+        let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+        tests.start(TestMeta { specimen: "B8".into(), ..TestMeta::default() }).unwrap();
+        PathBuf::from(tests.status()["folder"].as_str().unwrap())
+        // Dropped without a stop: the daemon died.
+    };
+    let aside = |d: &Path| -> Vec<String> {
+        std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with(".running.json.stale-"))
+            .collect()
+    };
+    // Its folder deleted meanwhile, then a state that is not JSON: each moved aside, each start idle.
+    std::fs::remove_dir_all(&folder).unwrap();
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).expect("a stale state does not stop the start");
+    assert_eq!(tests.status()["state"], "idle");
+    assert!(!dir.path().join(".running.json").exists());
+    assert_eq!(aside(dir.path()).len(), 1, "kept, under another name");
+    tests.start(TestMeta { specimen: "B9".into(), ..TestMeta::default() }).unwrap();
+    drop(tests);
+    std::fs::write(dir.path().join(".running.json"), "{\"rec").unwrap();
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).expect("an unreadable state does not stop the start");
+    assert_eq!(tests.status()["state"], "idle");
+    assert_eq!(aside(dir.path()).len(), 2);
 }
