@@ -108,6 +108,9 @@ enum Command {
     Calibrate(optional::calibrate::CalibrateCommand),
     /// The test report from a feed: report.html, report.json, curve.csv and plots.
     Report(commands::report::ReportArgs),
+    /// Verify the rig from a recording of a rigid target at rest and at known positions: the
+    /// ISO 9513 class, VDI/VDE 2626 figures, the expanded uncertainty, a certificate.
+    Verify(commands::verify::VerifyArgs),
     /// The feed as CSV for spreadsheets (the columns of the report's curve.csv).
     Export(commands::report::ExportArgs),
     /// Write the man pages and shell completions into OUT (for packaging).
@@ -298,6 +301,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Archive(command) => command.run(),
         Command::Calibrate(command) => command.run(),
         Command::Report(args) => commands::report::run_cli(&args).map(|_| ()),
+        Command::Verify(args) => commands::verify::run(&args).map(|_| ()),
         Command::Export(args) => commands::report::export_cli(&args),
         Command::Assets { out } => commands::assets::write(<Cli as clap::CommandFactory>::command(), &out),
         Command::Missing(command) => command.run(),

@@ -16,5 +16,6 @@ pub mod optional;
 pub mod report;
 #[cfg(feature = "sim")]
 pub mod simulate;
+pub mod verify;
 
 pub use args::parse_duration_s;

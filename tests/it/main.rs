@@ -33,3 +33,4 @@ mod systemd_unit;
 mod tracking;
 mod utm_modbus;
 mod v4l2_convert;
+mod verify;

@@ -67,7 +67,7 @@ fn chromium() -> Option<PathBuf> {
 
 /// Prints `html` to `pdf` with headless Chromium (A4, the page's own header and footer with
 /// page numbers); `Ok(false)` when there is no Chromium. The browser is killed after 120 s.
-fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, PdfError> {
+pub fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, PdfError> {
     let Some(bin) = chromium() else { return Ok(false) };
     let profile = std::env::temp_dir().join(format!(
         "tagdeflect-pdf-{}-{}",
@@ -120,19 +120,29 @@ fn print_pdf(html: &Path, pdf: &Path) -> Result<bool, PdfError> {
 
 /// Why Chromium did not print the PDF.
 #[derive(Debug, thiserror::Error)]
-enum PdfError {
+pub enum PdfError {
     /// Making the HTML's path absolute, waiting for the browser or moving the PDF failed.
     #[error(transparent)]
     Io(std::io::Error),
     /// The browser could not be started.
     #[error("{}: {source}", bin.display())]
-    Spawn { bin: PathBuf, source: std::io::Error },
+    Spawn {
+        /// The browser.
+        bin: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
     /// The browser ran past its deadline and was killed.
     #[error("Chromium did not finish within 120 s")]
     Timeout,
     /// The browser ended without writing the PDF.
     #[error("{} exited with {status} without a PDF", bin.display())]
-    NoPdf { bin: PathBuf, status: std::process::ExitStatus },
+    NoPdf {
+        /// The browser.
+        bin: PathBuf,
+        /// How it ended.
+        status: std::process::ExitStatus,
+    },
 }
 
 /// One input of a report with its SHA-256.

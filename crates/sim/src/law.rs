@@ -100,6 +100,8 @@ pub struct BeamMotion {
     pub notch: Option<(f64, f64)>,
     /// Half the beam height, mm.
     pub half_height: f64,
+    /// A verification run's rigid motion: the whole beam moved down by this, mm (0 in a test).
+    pub rigid_drop_mm: f64,
 }
 
 impl BeamMotion {
@@ -107,14 +109,14 @@ impl BeamMotion {
     pub fn new(p: &SimParams, beam: &FourPointBeam, d: f64) -> BeamMotion {
         let hh = 0.5 * p.beam_height_mm;
         if p.test == SimTest::FourPoint {
-            return BeamMotion { beam: *beam, elastic: d, hinge: None, notch: None, half_height: hh };
+            return BeamMotion { beam: *beam, elastic: d, hinge: None, notch: None, half_height: hh, rigid_drop_mm: 0.0 };
         }
         let k = p.stiffness_kn_per_mm;
         let elastic = if p.load_law == LoadLaw::Elastic || k <= 0.0 { d } else { (load_at(p, d) / k).clamp(0.0, d.max(0.0)) };
         let drop = d - elastic;
         let notch = Some((0.5 * p.notch_width_mm, p.notch_mm));
         if drop <= 0.0 {
-            return BeamMotion { beam: *beam, elastic, hinge: None, notch, half_height: hh };
+            return BeamMotion { beam: *beam, elastic, hinge: None, notch, half_height: hh, rigid_drop_mm: 0.0 };
         }
         let tip = crack_tip_height(p);
         let half = 0.5 * beam.span;
@@ -122,7 +124,21 @@ impl BeamMotion {
         for _ in 0..6 {
             phi = ((drop - tip * (1.0 - phi.cos())) / half).clamp(-1.0, 1.0).asin();
         }
-        BeamMotion { beam: *beam, elastic, hinge: Some(Hinge { phi, drop, zeta: tip - hh, elastic }), notch, half_height: hh }
+        BeamMotion {
+            beam: *beam,
+            elastic,
+            hinge: Some(Hinge { phi, drop, zeta: tip - hh, elastic }),
+            notch,
+            half_height: hh,
+            rigid_drop_mm: 0.0,
+        }
+    }
+
+    /// A verification run's motion law: the beam, undeformed and unloaded, moved down as one
+    /// by `drop_mm` (a rigid bar on a stage).
+    pub fn rigid(p: &SimParams, beam: &FourPointBeam, drop_mm: f64) -> BeamMotion {
+        let notch = (p.test == SimTest::ThreePointNotched).then_some((0.5 * p.notch_width_mm, p.notch_mm));
+        BeamMotion { beam: *beam, elastic: 0.0, hinge: None, notch, half_height: 0.5 * p.beam_height_mm, rigid_drop_mm: drop_mm }
     }
 
     /// Side of a material point: −1 left of the notch, +1 right (midspan counts right).
@@ -140,11 +156,11 @@ impl BeamMotion {
     pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64, f64) {
         let (dx, dz, rot) = self.beam.displace(x, zeta, self.elastic);
         match &self.hinge {
-            None => (dx, dz, rot),
+            None => (dx, dz - self.rigid_drop_mm, rot),
             Some(h) => {
                 let side = Self::side(x);
                 let (nx, nz) = h.apply(side, x + dx, zeta + dz);
-                (nx - x, nz - zeta, rot + side * h.phi)
+                (nx - x, nz - zeta - self.rigid_drop_mm, rot + side * h.phi)
             }
         }
     }
@@ -174,12 +190,13 @@ impl DeformedShape {
     #[inline]
     pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64) {
         let (dx, dz) = self.table.displace(x, zeta);
+        let rigid = self.motion.rigid_drop_mm;
         match &self.motion.hinge {
-            None => (dx, dz),
+            None => (dx, dz - rigid),
             Some(h) => {
                 let side = BeamMotion::side(x);
                 let (nx, nz) = h.apply(side, x + dx, zeta + dz);
-                (nx - x, nz - zeta)
+                (nx - x, nz - zeta - rigid)
             }
         }
     }
@@ -188,6 +205,7 @@ impl DeformedShape {
     /// material (the notch, the open crack).
     #[inline]
     pub fn material_point(&self, px: f64, pz: f64) -> (f64, f64) {
+        let pz = pz + self.motion.rigid_drop_mm;
         let (mx, mz) = match &self.motion.hinge {
             None => self.table.material_point(px, pz),
             Some(h) => {
@@ -215,7 +233,8 @@ impl DeformedShape {
     #[inline]
     pub fn fibre_point(&self, px: f64, zeta: f64) -> (f64, f64) {
         if self.motion.hinge.is_none() {
-            return self.table.fibre_point(px, zeta);
+            let (x, dz) = self.table.fibre_point(px, zeta);
+            return (x, dz - self.motion.rigid_drop_mm);
         }
         let mut x = px;
         for _ in 0..4 {

@@ -11,8 +11,15 @@ impl SimRig {
     /// sets, then a linear ramp reaching `max_deflection_mm` `hold_frames` sets before the
     /// last (held after it, or repeated down and up again with `cyclic`); a step at set
     /// `rest_frames` (half a frame period before it) when no set is left for the ramp.
+    ///
+    /// In a verification run (`verify_steps`) it is the rigid bar's drop instead: each step's
+    /// position held for an equal share of the frame sets, moved half a frame period before
+    /// the step's first set.
     pub fn midspan_deflection(&self, t_ns: i64) -> f64 {
         let p = &self.params;
+        if !self.verify_steps_mm.is_empty() {
+            return self.verify_step_at(t_ns).map_or(0.0, |i| self.verify_steps_mm[i]);
+        }
         let s = (t_ns - p.start_ns) as f64 * 1e-9;
         let period = 1.0 / p.fps;
         let rest = p.rest_frames as f64 * period;
@@ -36,9 +43,42 @@ impl SimRig {
         }
     }
 
-    /// The beam's deformation at midspan deflection `d` (mm).
+    /// The beam's deformation at midspan deflection `d` (mm); in a verification run, the
+    /// rigid bar moved down by `d`.
     pub(crate) fn motion_at(&self, d: f64) -> BeamMotion {
-        BeamMotion::new(&self.params, &self.beam, d)
+        if self.verify_steps_mm.is_empty() {
+            BeamMotion::new(&self.params, &self.beam, d)
+        } else {
+            BeamMotion::rigid(&self.params, &self.beam, d)
+        }
+    }
+
+    /// The first frame set of verification step `i` (of `n`).
+    fn verify_step_start(&self, i: usize) -> u64 {
+        let n = self.verify_steps_mm.len() as u64;
+        i as u64 * self.params.frame_sets as u64 / n
+    }
+
+    /// The verification step held at `t_ns` (by frame set, changing half a period before
+    /// the step's first set); `None` outside a verification run.
+    pub(crate) fn verify_step_at(&self, t_ns: i64) -> Option<usize> {
+        let half = 0.5e9 / self.params.fps;
+        (0..self.verify_steps_mm.len()).rev().find(|&i| i == 0 || t_ns as f64 >= self.set_time_ns(self.verify_step_start(i)) as f64 - half)
+    }
+
+    /// The steps of a verification run with their windows `[start, end)` in ns (the moves
+    /// half a frame period before each step's first set); empty for a test.
+    pub fn verify_windows(&self) -> Vec<(f64, i64, i64)> {
+        let half = (0.5e9 / self.params.fps).round() as i64;
+        let n = self.verify_steps_mm.len();
+        let edge = |i: usize| {
+            if i == n {
+                self.set_time_ns(self.params.frame_sets as u64 - 1) + half
+            } else {
+                self.set_time_ns(self.verify_step_start(i)) - half
+            }
+        };
+        (0..n).map(|i| (self.verify_steps_mm[i], edge(i), edge(i + 1))).collect()
     }
 
     /// The UTM's reading at true time `t_ns`: load = the load law at the midspan deflection
@@ -46,6 +86,10 @@ impl SimRig {
     /// loading points + machine compliance × load.
     pub fn utm_sample(&self, t_ns: i64) -> UtmSample {
         let d = self.midspan_deflection(t_ns);
+        if !self.verify_steps_mm.is_empty() {
+            // The crosshead carries the rigid bar: no load, the stroke is the bar's drop.
+            return UtmSample { t_ns, load_kn: 0.0, stroke_mm: Some(d) };
+        }
         let load = law::load_at(&self.params, d);
         let under_load = self.beam.deflection(0.5 * self.beam.load_span, d);
         UtmSample { t_ns, load_kn: load, stroke_mm: Some(under_load + self.params.compliance_mm_per_kn * load) }
@@ -110,5 +154,26 @@ mod tests {
         let d = deflections(SimParams { rest_frames: 4, hold_frames: 6, ..base.clone() });
         assert!(d[..4].iter().all(|&v| v == 0.0) && d[4..].iter().all(|&v| v == 1.0), "{d:?}");
         assert!(SimParams { hold_frames: 1, cyclic: true, ..base }.validate().unwrap_err().to_string().contains("hold_frames"));
+    }
+
+    #[test]
+    fn a_verification_run_moves_the_bar_rigidly_through_its_steps() {
+        let p = SimParams { cameras: 1, width: 320, height: 240, frame_sets: 9, verify_steps: "0, 0.5,1".into(), ..SimParams::default() };
+        assert_eq!(deflections(p.clone()), vec![0.0, 0.0, 0.0, 0.5, 0.5, 0.5, 1.0, 1.0, 1.0]);
+        let rig = SimRig::new(&p).unwrap();
+        let rest = rig.truth_line(0);
+        let moved = rig.truth_line(7);
+        assert!(moved.net_deflection_mm.unwrap().abs() < 1e-12, "a rigid bar does not bend");
+        for (a, b) in rest.tags.iter().zip(&moved.tags) {
+            assert!((a.center_mm[2] - b.center_mm[2] - 1.0).abs() < 1e-12 && a.center_mm[0] == b.center_mm[0]);
+        }
+        assert_eq!(rig.utm_sample(rig.set_time_ns(4)).stroke_mm, Some(0.5));
+        let w = rig.verify_windows();
+        let half = 50_000_000;
+        assert_eq!(w[1], (0.5, rig.set_time_ns(3) - half, rig.set_time_ns(6) - half));
+        assert_eq!(w[2].2, rig.set_time_ns(8) + half);
+        let bad = SimParams { verify_steps: "0,x".into(), ..p.clone() };
+        assert!(bad.validate().unwrap_err().to_string().contains("verify_steps"));
+        assert!(SimParams { verify_steps: "0,7".into(), ..p }.validate().is_err(), "beyond max_deflection_mm");
     }
 }

@@ -5,6 +5,7 @@
 //! and imports them from here; the config never imports the simulator.
 
 use serde::{Deserialize, Serialize};
+use tagdeflect_core::Problem;
 
 mod check;
 
@@ -188,6 +189,14 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     #[serde(skip_serializing_if = "is_default")]
     pub hold_frames: u32,
+    /// A verification run instead of a test (docs/verification.md): the beam is a rigid bar,
+    /// moved as one (no bending, no load) by these vertical displacements, mm downward,
+    /// comma-separated (e.g. "0,0.5,1,2,1,0.5,0"), each held for an equal share of
+    /// `frame_sets`; the steps and their time windows are written to `verify_steps.json`.
+    /// Empty: a test.
+    #[cfg_attr(feature = "clap", arg(long, default_value = ""))]
+    #[serde(skip_serializing_if = "String::is_empty")]
+    pub verify_steps: String,
     /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
     /// after the ramp (for long live demos).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
@@ -326,6 +335,23 @@ fn is_default_notch_width(v: &f64) -> bool {
     *v == 3.0
 }
 
+impl SimParams {
+    /// The positions of a verification run (`verify_steps`), mm downward; empty for a test.
+    pub fn verify_positions_mm(&self) -> Result<Vec<f64>, Problem> {
+        let text = self.verify_steps.trim();
+        if text.is_empty() {
+            return Ok(Vec::new());
+        }
+        text.split(',')
+            .map(|v| {
+                v.trim().parse::<f64>().ok().filter(|p| p.is_finite()).ok_or_else(|| {
+                    Problem::new("verify_steps", format!("{v:?} is not a number: expected positions in mm, comma-separated"))
+                })
+            })
+            .collect()
+    }
+}
+
 impl Default for SimParams {
     fn default() -> Self {
         Self {
@@ -364,6 +390,7 @@ impl Default for SimParams {
             max_deflection_mm: 6.0,
             rest_frames: 3,
             hold_frames: 0,
+            verify_steps: String::new(),
             cyclic: false,
             beam_length_mm: 550.0,
             beam_height_mm: 150.0,

@@ -104,6 +104,7 @@ pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat, config: 
         writer.write_utm(s)?;
     }
     sim_truth.flush().map_err(io_err(&truth_path))?;
+    write_verify_steps(&rig, out)?;
     writer.finish()?;
     let last = rig.set_time_ns(params.frame_sets as u64 - 1);
     Ok(SimSummary {
@@ -114,6 +115,22 @@ pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat, config: 
         utm_samples: utm.len() as u64,
         final_deflection_mm: rig.midspan_deflection(last),
     })
+}
+
+/// A verification run's steps with their windows ([`tagdeflect_verify::VERIFY_STEPS_FILE`]);
+/// nothing for a test.
+fn write_verify_steps(rig: &SimRig, out: &Path) -> Result<(), SimError> {
+    let windows = rig.verify_windows();
+    if windows.is_empty() {
+        return Ok(());
+    }
+    let mut plan = tagdeflect_verify::StepPlan::from_positions(&windows.iter().map(|w| w.0).collect::<Vec<_>>());
+    for (s, &(_, a, b)) in plan.steps.iter_mut().zip(&windows) {
+        (s.start_ns, s.end_ns) = (Some(a), Some(b));
+    }
+    let path = out.join(tagdeflect_verify::VERIFY_STEPS_FILE);
+    let text = serde_json::to_string_pretty(&plan).map_err(|e| SimError::Io { path: path.clone(), source: e.into() })?;
+    std::fs::write(&path, text + "\n").map_err(io_err(&path))
 }
 
 /// Renders frame set `k` of every camera in parallel threads (used by benchmarks): returns

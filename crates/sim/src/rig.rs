@@ -43,6 +43,8 @@ pub struct SimRig {
     pub(crate) layout: Layout,
     pub(crate) cams: Vec<CameraRenderCache>,
     pub(crate) optics: Optics,
+    /// A verification run's positions (`verify_steps`), mm; empty for a test.
+    pub(crate) verify_steps_mm: Vec<f64>,
 }
 
 impl std::fmt::Debug for SimRig {
@@ -75,6 +77,7 @@ impl SimRig {
             layout,
             cams,
             optics: Optics::new(params.blur_sigma),
+            verify_steps_mm: params.verify_positions_mm()?,
         })
     }
 

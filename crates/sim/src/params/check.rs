@@ -101,6 +101,16 @@ impl SimParams {
         if !finite_nonneg(self.max_deflection_mm) || self.max_deflection_mm > 0.1 * self.span_mm {
             return bad("max_deflection_mm", format!("{}: expected 0 to span/10", self.max_deflection_mm));
         }
+        let steps = self.verify_positions_mm()?;
+        if steps.iter().any(|p| p.abs() > self.max_deflection_mm) {
+            return bad(
+                "verify_steps",
+                format!("a step beyond max_deflection_mm ({} mm): the scene is framed for it", self.max_deflection_mm),
+            );
+        }
+        if !steps.is_empty() && (self.frame_sets as usize) < steps.len() || (!steps.is_empty() && self.cyclic) {
+            return bad("verify_steps", format!("{} steps: expected at least one frame set each and no cyclic load", steps.len()));
+        }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }

@@ -1,0 +1,154 @@
+//! `tagdeflect verify DIR`: the verification of the rig from a recording of a rigid target
+//! at rest and at known positions (docs/verification.md). The recording is replayed
+//! in-process, the figures computed by `tagdeflect-verify`, and the certificate written into
+//! `verify/<date>/`: `verification.json`, `verification.html` (and `verification.pdf` when
+//! Chromium prints it) and the raw recording (hard links, else copies).
+
+mod certificate;
+mod html;
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::BadInput;
+use tagdeflect_verify::{StepPlan, VerifyOptions, VERIFY_STEPS_FILE};
+
+use crate::graph::in_process::{self, ReplayOptions};
+
+pub use certificate::{Certificate, Equipment};
+
+/// The options of `tagdeflect verify`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct VerifyArgs {
+    /// The recording of the verification (a rigid target at rest, then at known positions).
+    pub dir: PathBuf,
+    /// The known positions: `verify_steps.json` (`{"steps": [{"position_mm", "start_ns",
+    /// "end_ns"}]}`, or a bare array of positions in mm held for equal times); default: the
+    /// recording's own `verify_steps.json`.
+    #[arg(long, value_name = "FILE")]
+    pub steps: Option<PathBuf>,
+    /// Who ran the verification (printed on the certificate).
+    #[arg(long, value_name = "NAME")]
+    pub operator: Option<String>,
+    /// The reference equipment's identification (micrometer stage, height gauge, ...), as typed.
+    #[arg(long, value_name = "TEXT")]
+    pub equipment: Option<String>,
+    /// The date of the reference equipment's own calibration, as typed.
+    #[arg(long, value_name = "DATE")]
+    pub equipment_calibrated: Option<String>,
+    /// The expanded uncertainty of the reference's positions (k = 2), µm, from its certificate.
+    #[arg(long, value_name = "UM", default_value_t = 0.0)]
+    pub reference_u_um: f64,
+    /// The certificate's folder (new or empty); default `verify/<date>/` (a time is added
+    /// when that folder is taken).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Do not print verification.pdf.
+    #[arg(long)]
+    pub no_pdf: bool,
+}
+
+/// Runs `tagdeflect verify`; returns the certificate's folder.
+pub fn run(args: &VerifyArgs) -> Result<PathBuf> {
+    if !args.reference_u_um.is_finite() || args.reference_u_um < 0.0 {
+        return Err(BadInput::new(format!("--reference-u-um {}: expected a non-negative number of µm", args.reference_u_um)).into());
+    }
+    let plan = read_plan(args)?;
+    let out = out_dir(args.out.as_deref())?;
+    let rec = in_process::open(&args.dir, None)?;
+    let mut lines: Vec<FeedLine> = Vec::new();
+    let summary = in_process::replay(&rec, ReplayOptions { progress: true, ..Default::default() }, |l, _, _| lines.push(l.clone()))?;
+    let opts = VerifyOptions { up: rec.config.world.up, reference_u_mm: args.reference_u_um * 1e-3, reference_k: 2.0 };
+    let verification =
+        tagdeflect_verify::verify(&lines, &plan, &opts).map_err(|e| BadInput::new(format!("{}: {e}", args.dir.display())))?;
+    let equipment = Equipment {
+        description: args.equipment.clone(),
+        calibrated: args.equipment_calibrated.clone(),
+        reference_u_um: args.reference_u_um,
+    };
+    let cert = Certificate::new(&rec, &plan, summary.sets, args.operator.clone(), equipment, verification)?;
+    write(&cert, &lines, &args.dir, &out, !args.no_pdf)?;
+    tracing::info!(
+        "{}: class {}, U (k = 2) {:.2} µm — {}",
+        out.display(),
+        cert.verification.iso9513.class.as_deref().unwrap_or("none"),
+        cert.verification.uncertainty.expanded_mm * 1e3,
+        if cert.verification.verdict.passed { "passed" } else { "NOT passed" }
+    );
+    Ok(out)
+}
+
+/// The step plan: `--steps`, else the recording's `verify_steps.json`.
+fn read_plan(args: &VerifyArgs) -> Result<StepPlan> {
+    let path = args.steps.clone().unwrap_or_else(|| args.dir.join(VERIFY_STEPS_FILE));
+    if !path.is_file() {
+        return Err(BadInput::new(format!(
+            "{}: no step plan (give --steps FILE or put {VERIFY_STEPS_FILE} in the recording)",
+            path.display()
+        ))
+        .into());
+    }
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let plan = StepPlan::from_json(&text).map_err(|e| BadInput::new(format!("{}: {e}", path.display())))?;
+    plan.windows(0, 1).map_err(|e| BadInput::new(format!("{}: {e}", path.display())))?;
+    Ok(plan)
+}
+
+/// The certificate's folder: `out` (new or empty), else `verify/<date>` (or `<date>T<time>`
+/// when taken).
+fn out_dir(out: Option<&Path>) -> Result<PathBuf> {
+    let now = chrono::Utc::now();
+    let dir = match out {
+        Some(d) => d.to_path_buf(),
+        None => {
+            let day = PathBuf::from("verify").join(now.format("%Y-%m-%d").to_string());
+            if day.exists() {
+                PathBuf::from("verify").join(now.format("%Y-%m-%dT%H%M%S").to_string())
+            } else {
+                day
+            }
+        }
+    };
+    if dir.exists() && std::fs::read_dir(&dir).map(|mut d| d.next().is_some()).unwrap_or(true) {
+        return Err(
+            BadInput::new(format!("{}: the certificate's folder exists and is not empty (nothing is overwritten)", dir.display())).into()
+        );
+    }
+    Ok(dir)
+}
+
+/// Writes the certificate, its page (and PDF), the feed it was computed from and the raw recording.
+fn write(cert: &Certificate, lines: &[FeedLine], recording: &Path, out: &Path, pdf: bool) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let json = serde_json::to_string_pretty(cert).context("the certificate as JSON")? + "\n";
+    tagdeflect_report::write_atomic(&out.join("verification.json"), json.as_bytes())?;
+    let feed: String = lines.iter().map(|l| l.to_json() + "\n").collect();
+    tagdeflect_report::write_atomic(&out.join("feed.jsonl"), feed.as_bytes())?;
+    let page = out.join("verification.html");
+    tagdeflect_report::write_atomic(&page, html::page(cert).as_bytes())?;
+    if pdf {
+        match tagdeflect_report::print_pdf(&page, &out.join("verification.pdf")) {
+            Ok(true) => {}
+            Ok(false) => tracing::info!("no Chromium found: verification.pdf not printed (print verification.html from a browser)"),
+            Err(e) => tracing::warn!("verification.pdf could not be printed: {e}"),
+        }
+    }
+    link_or_copy_tree(recording, &out.join("recording"))
+        .with_context(|| format!("keeping the recording {} in {}", recording.display(), out.display()))
+}
+
+/// Hard-links (else copies) every file of `from` into `to`, keeping the tree.
+fn link_or_copy_tree(from: &Path, to: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(to)?;
+    for entry in std::fs::read_dir(from)? {
+        let entry = entry?;
+        let (src, dst) = (entry.path(), to.join(entry.file_name()));
+        if entry.file_type()?.is_dir() {
+            link_or_copy_tree(&src, &dst)?;
+        } else if std::fs::hard_link(&src, &dst).is_err() {
+            std::fs::copy(&src, &dst)?;
+        }
+    }
+    Ok(())
+}
