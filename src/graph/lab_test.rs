@@ -135,8 +135,8 @@ fn apply_measured(rig: &mut tagdeflect_report::TestRig, measured: &std::collecti
 fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), TestReportError> {
     let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
     let out = folder.join("report");
-    let std: tagdeflect_report::Standard =
-        serde_json::from_value(serde_json::json!(standard)).map_err(|source| TestReportError::Standard { standard: standard.to_string(), source })?;
+    let std: tagdeflect_report::Standard = serde_json::from_value(serde_json::json!(standard))
+        .map_err(|source| TestReportError::Standard { standard: standard.to_string(), source })?;
     let mut rc = match &config.report {
         Some(r) => r.clone(),
         None => serde_json::from_value(serde_json::json!({"standard": standard, "out": out})).map_err(TestReportError::Section)?,

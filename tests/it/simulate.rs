@@ -296,7 +296,8 @@ fn bump_moves_the_camera_and_hide_covers_the_tag() {
 /// the hide window only (a person walking past a reference tag).
 #[test]
 fn hide_background_tag_covers_it_in_one_camera() {
-    let p = SimParams { noise_sigma: 0.0, hide_background_tag: Some(2), hide_camera: 0, hide_from: 1, hide_count: 1, ..small(2, 400, 300, 4) };
+    let p =
+        SimParams { noise_sigma: 0.0, hide_background_tag: Some(2), hide_camera: 0, hide_from: 1, hide_count: 1, ..small(2, 400, 300, 4) };
     let rig = SimRig::new(&p).unwrap();
     let cams = rig.cameras();
     let b = rig.background_tags().into_iter().find(|b| b.id == 2).unwrap();
