@@ -120,9 +120,6 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// A command this build lacks (only in a build without some feature).
-    #[command(flatten)]
-    Missing(optional::missing::MissingCommand),
 }
 
 fn main() -> ExitCode {
@@ -304,6 +301,5 @@ fn run(cli: Cli) -> Result<()> {
         Command::Verify(args) => commands::verify::run(&args).map(|_| ()),
         Command::Export(args) => commands::report::export_cli(&args),
         Command::Assets { out } => commands::assets::write(<Cli as clap::CommandFactory>::command(), &out),
-        Command::Missing(command) => command.run(),
     }
 }

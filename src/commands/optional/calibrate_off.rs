@@ -1,16 +1,27 @@
-//! A build without the `calibrate` feature: no `calibrate` command (`calibrate.rs` stands
-//! here with the feature).
+//! A build without the `calibrate` feature: `calibrate` says which feature it needs
+//! (`calibrate.rs` stands here with the feature).
 
 use anyhow::Result;
 use clap::Subcommand;
 
-/// No calibration command in this build.
+/// The feature's commands, hidden: each names the feature it needs.
 #[derive(Subcommand)]
-pub enum CalibrateCommand {}
+pub enum CalibrateCommand {
+    /// `tagdeflect calibrate`: not in this build.
+    #[command(hide = true, disable_help_flag = true)]
+    Calibrate {
+        /// Whatever was given after the command.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+}
 
 impl CalibrateCommand {
-    /// Nothing to run: the enum has no value.
+    /// The error: the command needs the `calibrate` feature (exit 2).
     pub fn run(self) -> Result<()> {
-        match self {}
+        let name = match self {
+            CalibrateCommand::Calibrate { .. } => "calibrate",
+        };
+        Err(super::not_in_this_build(name, "calibrate"))
     }
 }

@@ -1,17 +1,36 @@
-//! A build without the `sim` feature: no `simulate` or `demo` command (`sim.rs` stands here
-//! with the feature).
+//! A build without the `sim` feature: `simulate` and `demo` say which feature they need
+//! (`sim.rs` stands here with the feature).
 
 use anyhow::Result;
 use clap::Subcommand;
 
-/// No simulator commands in this build.
+/// The feature's commands, hidden: each names the feature it needs.
 #[derive(Subcommand)]
-pub enum SimCommand {}
+pub enum SimCommand {
+    /// `tagdeflect simulate`: not in this build.
+    #[command(hide = true, disable_help_flag = true)]
+    Simulate {
+        /// Whatever was given after the command.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// `tagdeflect demo`: not in this build.
+    #[command(hide = true, disable_help_flag = true)]
+    Demo {
+        /// Whatever was given after the command.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+}
 
 impl SimCommand {
-    /// Nothing to run: the enum has no value.
+    /// The error: the command needs the `sim` feature (exit 2).
     pub fn run(self) -> Result<()> {
-        match self {}
+        let name = match self {
+            SimCommand::Simulate { .. } => "simulate",
+            SimCommand::Demo { .. } => "demo",
+        };
+        Err(super::not_in_this_build(name, "sim"))
     }
 }
 
