@@ -117,7 +117,9 @@ pub fn simulate_as(params: &SimParams, out: &Path, format: FrameFormat, config: 
     })
 }
 
-/// A verification run's steps with their windows ([`tagdeflect_verify::VERIFY_STEPS_FILE`]);
+/// A verification run's steps: SPEC's reference file ([`tagdeflect_verify::REFERENCE_FILE`],
+/// one `{"t_ns", "displacement_mm"}` line per frame set, the position the stage held at that
+/// set's time) and the step plan with its windows ([`tagdeflect_verify::VERIFY_STEPS_FILE`]);
 /// nothing for a test.
 fn write_verify_steps(rig: &SimRig, out: &Path) -> Result<(), SimError> {
     let windows = rig.verify_windows();
@@ -130,7 +132,16 @@ fn write_verify_steps(rig: &SimRig, out: &Path) -> Result<(), SimError> {
     }
     let path = out.join(tagdeflect_verify::VERIFY_STEPS_FILE);
     let text = serde_json::to_string_pretty(&plan).map_err(|e| SimError::Io { path: path.clone(), source: e.into() })?;
-    std::fs::write(&path, text + "\n").map_err(io_err(&path))
+    std::fs::write(&path, text + "\n").map_err(io_err(&path))?;
+    let mut reference = String::new();
+    for k in 0..rig.params.frame_sets as u64 {
+        let t_ns = rig.set_time_ns(k);
+        if let Some(&(p, _, _)) = windows.iter().find(|&&(_, a, b)| t_ns >= a && t_ns < b) {
+            reference += &format!("{{\"t_ns\":{t_ns},\"displacement_mm\":{p}}}\n");
+        }
+    }
+    let path = out.join(tagdeflect_verify::REFERENCE_FILE);
+    std::fs::write(&path, reference).map_err(io_err(&path))
 }
 
 /// Renders frame set `k` of every camera in parallel threads (used by benchmarks): returns

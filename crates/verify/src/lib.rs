@@ -8,12 +8,17 @@
 //! * [`iso9513`]: the class by ISO 9513's table (bias and resolution against the limits);
 //! * [`uncertainty`]: the expanded uncertainty (k = 2) of a deflection over the verified
 //!   range (GUM, the components as typed);
+//! * [`reference`]: SPEC's reference file (`{"t_ns", "displacement_mm"}` lines) grouped into
+//!   holds, the step plan of a verification;
+//! * [`Quantity`]: the verified quantity (net deflection, a gauge, a tag);
 //! * [`verify()`]: all of it, VDI/VDE 2626's ZS/ZD/D figures and a verdict with its reasons.
 //!
 //! The crate does arithmetic only: it reads no files and knows no command line.
 
 pub mod iso9513;
 mod plan;
+mod quantity;
+pub mod reference;
 mod series;
 pub mod stability;
 pub mod steps;
@@ -21,6 +26,8 @@ pub mod uncertainty;
 mod verify;
 
 pub use plan::{StepPlan, StepWindow, VERIFY_STEPS_FILE};
+pub use quantity::Quantity;
+pub use reference::{Hold, ReferencePoint, REFERENCE_FILE};
 pub use series::Series;
 pub use verify::{verify, VdiFigures, Verdict, Verification, VerifyOptions};
 

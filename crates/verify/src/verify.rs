@@ -4,6 +4,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 
 use crate::iso9513::{classify, resolution_mm, ClassResult};
+use crate::quantity::Quantity;
 use crate::series::{down_displacement, tag_down_displacement, Series};
 use crate::stability::{stability, Stability};
 use crate::steps::{known_figures, step_result, KnownFigures, StepResult};
@@ -11,8 +12,10 @@ use crate::uncertainty::{budget, Inputs, Uncertainty};
 use crate::{StepPlan, VerifyError};
 
 /// What the figures need besides the feed and the plan.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct VerifyOptions {
+    /// The verified quantity: what the plan's positions are compared with.
+    pub quantity: Quantity,
     /// The world's up direction (config `world.up`): displacements count downward along it.
     pub up: [f64; 3],
     /// The reference's expanded uncertainty as typed, mm.
@@ -24,6 +27,8 @@ pub struct VerifyOptions {
 /// The static hold (the first step): noise, drift and Allan deviation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StaticFigures {
+    /// The verified quantity (its SD gives the resolution).
+    pub quantity: Stability,
     /// The mean downward displacement of the tags.
     pub displacement: Stability,
     /// The net deflection.
@@ -61,6 +66,8 @@ pub struct Verdict {
 /// Everything a certificate states.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Verification {
+    /// The verified quantity.
+    pub quantity: Quantity,
     /// Feed lines read.
     pub lines: usize,
     /// The static hold.
@@ -87,20 +94,24 @@ pub fn verify(lines: &[FeedLine], plan: &StepPlan, opts: &VerifyOptions) -> Resu
         _ => return Err(VerifyError::Feed("no feed lines".into())),
     };
     let windows = plan.windows(first, last)?;
-    let holds: Vec<Vec<&FeedLine>> = windows.iter().map(|&(_, a, b)| settled(lines, a, b, plan.settle_fraction)).collect();
+    let readings = opts.quantity.readings(lines, opts.up);
+    let holds: Vec<Vec<usize>> = windows.iter().map(|&(_, a, b)| settled(lines, a, b, plan.settle_fraction)).collect();
     let mut steps = Vec::new();
     for (i, (&(position, _, _), hold)) in windows.iter().zip(&holds).enumerate() {
-        let disp = Series::from_feed(hold, first, |l| down_displacement(l, opts.up));
-        let net = Series::from_feed(hold, first, |l| l.net_deflection_mm);
+        let values: Vec<f64> = hold.iter().filter_map(|&k| readings[k]).filter(|v| v.is_finite()).collect();
+        let net: Vec<f64> = hold.iter().filter_map(|&k| lines[k].net_deflection_mm).collect();
         let previous = i.checked_sub(1).map(|j| windows[j].0);
         // The feed's displacements count from the first frame set, held at the first step.
-        let r = step_result(i + 1, position, windows[0].0, previous, &disp.value_mm, &net.value_mm)
-            .ok_or_else(|| VerifyError::Feed(format!("step {} ({position} mm): no line with a solved tag in its hold", i + 1)))?;
+        let r = step_result(i + 1, position, windows[0].0, previous, &values, &net).ok_or_else(|| {
+            VerifyError::Feed(format!("step {} ({position} mm): no line with the {} in its hold", i + 1, opts.quantity.describe()))
+        })?;
         steps.push(r);
     }
-    let static_figures = static_figures(&holds[0], first, opts.up);
+    let rest: Vec<&FeedLine> = holds[0].iter().map(|&k| &lines[k]).collect();
+    let quantity_at_rest = quantity_series(lines, &readings, &holds[0], first);
+    let static_figures = static_figures(&rest, stability(&quantity_at_rest), first, opts.up);
     let known = known_figures(&steps);
-    let noise = static_figures.displacement.sd_mm.unwrap_or(0.0);
+    let noise = static_figures.quantity.sd_mm.unwrap_or(0.0);
     let iso9513 = classify(&steps, resolution_mm(noise));
     let uncertainty = budget(&Inputs {
         max_error_mm: known.max_error_mm,
@@ -110,24 +121,38 @@ pub fn verify(lines: &[FeedLine], plan: &StepPlan, opts: &VerifyOptions) -> Resu
         reference_k: opts.reference_k,
         range_mm: known.range_mm,
     });
-    let vdi2626 = vdi(&static_figures, &steps, &known, &holds[0], opts.up);
+    let vdi2626 = vdi(&static_figures, &steps, &known, &rest, opts.up);
     let verdict = verdict(&iso9513, &known, &uncertainty, &static_figures);
-    Ok(Verification { lines: lines.len(), static_figures, steps, known, iso9513, vdi2626, uncertainty, verdict })
+    let quantity = opts.quantity.clone();
+    Ok(Verification { quantity, lines: lines.len(), static_figures, steps, known, iso9513, vdi2626, uncertainty, verdict })
 }
 
-/// The lines of `[a, b)` after the settling fraction.
-fn settled(lines: &[FeedLine], a: i64, b: i64, settle_fraction: f64) -> Vec<&FeedLine> {
-    let hold: Vec<&FeedLine> = lines.iter().filter(|l| l.t_ns >= a && l.t_ns < b).collect();
+/// The indices of the lines of `[a, b)` after the settling fraction.
+fn settled(lines: &[FeedLine], a: i64, b: i64, settle_fraction: f64) -> Vec<usize> {
+    let hold: Vec<usize> = (0..lines.len()).filter(|&k| lines[k].t_ns >= a && lines[k].t_ns < b).collect();
     let skip = (hold.len() as f64 * settle_fraction).floor() as usize;
     hold[skip.min(hold.len())..].to_vec()
 }
 
-fn static_figures(hold: &[&FeedLine], t0: i64, up: [f64; 3]) -> StaticFigures {
+/// The verified quantity's series over the lines `hold` (times from `t0`).
+fn quantity_series(lines: &[FeedLine], readings: &[Option<f64>], hold: &[usize], t0: i64) -> Series {
+    let mut s = Series::default();
+    for &k in hold {
+        if let Some(v) = readings[k].filter(|v| v.is_finite()) {
+            s.t_s.push((lines[k].t_ns - t0) as f64 * 1e-9);
+            s.value_mm.push(v);
+        }
+    }
+    s
+}
+
+fn static_figures(hold: &[&FeedLine], quantity: Stability, t0: i64, up: [f64; 3]) -> StaticFigures {
     let mut ids: Vec<u32> = hold.iter().flat_map(|l| l.tags.iter().map(|t| t.id)).collect();
     ids.sort_unstable();
     ids.dedup();
     let net = Series::from_feed(hold, t0, |l| l.net_deflection_mm);
     StaticFigures {
+        quantity,
         displacement: stability(&Series::from_feed(hold, t0, |l| down_displacement(l, up))),
         net_deflection: (!net.is_empty()).then(|| stability(&net)),
         tags: ids.into_iter().map(|id| (id, stability(&Series::from_feed(hold, t0, |l| tag_down_displacement(l, id, up))))).collect(),
@@ -177,9 +202,9 @@ fn verdict(class: &ClassResult, known: &KnownFigures, u: &Uncertainty, st: &Stat
         um(u.expanded_mm)
     ));
     reasons.push(format!("largest step error {}, bias {}", um(known.max_error_mm), um(known.bias_mm)));
-    match st.displacement.drift_mm_per_h {
-        Some(d) => reasons.push(format!("drift at rest {} per hour over {:.0} s", um(d), st.displacement.duration_s)),
-        None => reasons.push(format!("drift at rest: not enough data ({:.1} s at rest, 60 s needed)", st.displacement.duration_s)),
+    match st.quantity.drift_mm_per_h {
+        Some(d) => reasons.push(format!("drift at rest {} per hour over {:.0} s", um(d), st.quantity.duration_s)),
+        None => reasons.push(format!("drift at rest: not enough data ({:.1} s at rest, 60 s needed)", st.quantity.duration_s)),
     }
     Verdict { passed: class.class.is_some(), reasons }
 }
@@ -221,7 +246,7 @@ mod tests {
     #[test]
     fn a_rigid_target_through_its_steps_gives_the_class_its_errors_allow() {
         let positions = [0.0, 0.5, 1.0, 2.0, 1.0, 0.5, 0.0];
-        let opts = VerifyOptions { up: [0.0, 0.0, 1.0], reference_u_mm: 0.0, reference_k: 2.0 };
+        let opts = VerifyOptions { quantity: Quantity::TagsMean, up: [0.0, 0.0, 1.0], reference_u_mm: 0.0, reference_k: 2.0 };
         let plan = StepPlan::from_positions(&positions);
         let good = verify(&feed(&positions, usize::MAX, 0.0), &plan, &opts).unwrap();
         assert_eq!(good.steps.len(), 7);

@@ -1,10 +1,16 @@
-//! The certificate of a verification (`verification.json`): who, with what, on which rig,
-//! and the figures.
+//! The certificate of a verification (`verification.json`): SPEC's keys (`class_iso9513`,
+//! `bias_um`, `resolution_um`, `u_k2_mm`, `steps`, `inputs`, `date`) first, then who, with
+//! what, on which rig, and the figures.
+
+use std::collections::BTreeMap;
+use std::path::Path;
 
 use serde::Serialize;
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::rig::SpecimenTag;
 use tagdeflect_verify::{StepPlan, Verification};
+
+use super::Source;
 
 use crate::config::Recording;
 
@@ -46,11 +52,46 @@ pub struct Rig {
     pub world_up: [f64; 3],
 }
 
+/// One hold as SPEC's `steps` give it: the reference value, the measured mean on the
+/// reference's scale and the error.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SpecStep {
+    /// The reference's displacement held, mm.
+    pub reference_mm: f64,
+    /// The verified quantity's mean over the hold (after settling), on the reference's
+    /// scale (counted from the first hold's reference value), mm.
+    pub measured_mm: f64,
+    /// `measured − reference`, µm.
+    pub error_um: f64,
+    /// Feed lines averaged.
+    pub lines: usize,
+    /// SD of one reading in the hold, µm.
+    pub sd_um: Option<f64>,
+}
+
 /// Everything `verification.json` holds.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Certificate {
     /// [`CERTIFICATE_FORMAT`].
     pub format: &'static str,
+    /// The ISO 9513 class reached: "0.2", "0.5", "1", "2" or "none".
+    pub class_iso9513: String,
+    /// The largest |error| of a hold, µm.
+    pub bias_um: f64,
+    /// The resolution used for the class, µm.
+    pub resolution_um: f64,
+    /// The expanded uncertainty (k = 2) of the verified quantity, mm.
+    pub u_k2_mm: f64,
+    /// Each hold: reference value, measured mean, error.
+    pub steps: Vec<SpecStep>,
+    /// SHA-256 of each input, by path.
+    pub inputs: BTreeMap<String, String>,
+    /// The date of the verification (UTC, `YYYY-MM-DD`).
+    pub date: String,
+    /// The verified quantity, in words.
+    pub quantity: String,
+    /// The file the known displacements came from.
+    pub reference: String,
     /// When it was computed (UTC, RFC 3339).
     pub issued_utc: String,
     /// The tagdeflect version that computed it.
@@ -65,7 +106,7 @@ pub struct Certificate {
     pub frame_sets: u64,
     /// The rig.
     pub rig: Rig,
-    /// The step plan used.
+    /// The step plan used (from the reference's holds: each window and the settling fraction).
     pub plan: StepPlan,
     /// The figures, the class, the uncertainty and the verdict.
     pub verification: Verification,
@@ -75,6 +116,7 @@ impl Certificate {
     /// The certificate of `verification` computed from `rec`.
     pub fn new(
         rec: &Recording,
+        source: &Source,
         plan: &StepPlan,
         frame_sets: u64,
         operator: Option<String>,
@@ -87,9 +129,20 @@ impl Certificate {
         for p in config.calibration_files.iter().filter(|p| p.is_file()) {
             calibration_files.push(hashed(p)?);
         }
+        let now = chrono::Utc::now();
+        let v = &verification;
         Ok(Certificate {
             format: CERTIFICATE_FORMAT,
-            issued_utc: chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
+            class_iso9513: v.iso9513.class.clone().unwrap_or_else(|| "none".into()),
+            bias_um: v.known.max_error_mm * 1e3,
+            resolution_um: v.iso9513.resolution_mm * 1e3,
+            u_k2_mm: v.uncertainty.expanded_mm,
+            steps: v.steps.iter().map(spec_step).collect(),
+            inputs: inputs(rec, source.path())?,
+            date: now.format("%Y-%m-%d").to_string(),
+            quantity: v.quantity.describe(),
+            reference: source.path().display().to_string(),
+            issued_utc: now.to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
             version: env!("CARGO_PKG_VERSION"),
             operator,
             equipment,
@@ -106,6 +159,33 @@ impl Certificate {
             verification,
         })
     }
+}
+
+/// SPEC's view of a step: on the reference's scale, the error in µm.
+fn spec_step(s: &tagdeflect_verify::steps::StepResult) -> SpecStep {
+    let first_mm = s.position_mm - s.nominal_mm;
+    SpecStep {
+        reference_mm: s.position_mm,
+        measured_mm: s.measured_mm + first_mm,
+        error_um: s.error_mm * 1e3,
+        lines: s.lines,
+        sd_um: s.sd_mm.map(|v| v * 1e3),
+    }
+}
+
+/// The SHA-256 of each input: the reference (or step plan), every file at the top of the
+/// recording (its index, UTM samples, config, ...) and the calibration files.
+fn inputs(rec: &Recording, reference: &Path) -> anyhow::Result<BTreeMap<String, String>> {
+    let mut files = vec![reference.to_path_buf()];
+    let top = std::fs::read_dir(&rec.dir).map_err(|e| anyhow::anyhow!("listing {}: {e}", rec.dir.display()))?;
+    for entry in top {
+        let path = entry.map_err(|e| anyhow::anyhow!("listing {}: {e}", rec.dir.display()))?.path();
+        if path.is_file() {
+            files.push(path);
+        }
+    }
+    files.extend(rec.config.calibration_files.iter().filter(|p| p.is_file()).cloned());
+    files.into_iter().map(|p| hashed(&p).map(|h| (h.path, h.sha256))).collect()
 }
 
 fn hashed(path: &std::path::Path) -> anyhow::Result<HashedFile> {

@@ -41,6 +41,8 @@ pub fn page(c: &Certificate) -> String {
         None => "<p class=\"fail\"><b>No ISO 9513 class reached</b></p>".into(),
     };
     h.push_str(&verdict);
+    let _ =
+        write!(h, "<p>Verified quantity: <b>{}</b>; known displacements from <code>{}</code>.</p>", esc(&c.quantity), esc(&c.reference));
     h.push_str("<ul>");
     for r in &v.verdict.reasons {
         let _ = write!(h, "<li>{}</li>", esc(r));
@@ -48,6 +50,7 @@ pub fn page(c: &Certificate) -> String {
     h.push_str("</ul>");
     who(&mut h, c);
     procedure(&mut h);
+    inputs(&mut h, c);
     rig(&mut h, c);
     stability(&mut h, c);
     steps(&mut h, c);
@@ -77,12 +80,20 @@ fn who(h: &mut String, c: &Certificate) {
     );
 }
 
+fn inputs(h: &mut String, c: &Certificate) {
+    h.push_str("<h2>Inputs</h2><table><tr><th>file</th><th>SHA-256</th></tr>");
+    for (path, sha) in &c.inputs {
+        let _ = write!(h, "<tr><td>{}</td><td><code>{}</code></td></tr>", esc(path), esc(sha));
+    }
+    h.push_str("</table>");
+}
+
 fn procedure(h: &mut String) {
     h.push_str(
-        "<h2>Procedure</h2><p>A rigid target carrying the tags was held at rest, then moved to known vertical positions \
+        "<h2>Procedure</h2><p>A target carrying the tags was held at rest, then moved to known displacements \
          by the reference equipment and held at each. The recording was replayed by tagdeflect; the first hold gives the \
-         noise, drift and Allan deviation at rest; each hold's mean displacement (after its first 30 % of readings) is \
-         compared with the reference. The class follows ISO 9513's table; the figures of VDI/VDE 2626 (ZS, ZD, D) and the \
+         noise, drift and Allan deviation at rest; each hold's mean of the verified quantity (after its first 30 % of \
+         readings) is compared with the reference. The class follows ISO 9513's table; the figures of VDI/VDE 2626 (ZS, ZD, D) and the \
          expanded uncertainty (GUM, k = 2) follow docs/verification.md.</p>",
     );
 }
@@ -128,6 +139,7 @@ fn stability_row(h: &mut String, name: &str, s: &Stability) {
 fn stability(h: &mut String, c: &Certificate) {
     let st = &c.verification.static_figures;
     h.push_str("<h2>At rest</h2><table><tr><th>reading</th><th>SD (µm)</th><th>drift (µm/h)</th><th>Allan 1 s (µm)</th><th>10 s</th><th>100 s</th><th>readings</th></tr>");
+    stability_row(h, "verified quantity", &st.quantity);
     stability_row(h, "mean displacement", &st.displacement);
     if let Some(n) = &st.net_deflection {
         stability_row(h, "net deflection", n);

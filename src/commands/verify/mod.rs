@@ -1,33 +1,48 @@
-//! `tagdeflect verify DIR`: the verification of the rig from a recording of a rigid target
-//! at rest and at known positions (docs/verification.md). The recording is replayed
+//! `tagdeflect verify DIR --reference FILE --out OUT`: the verification of the rig from a
+//! recording of a target at rest and at known displacements (docs/verification.md). The recording is replayed
 //! in-process, the figures computed by `tagdeflect-verify`, and the certificate written into
 //! `verify/<date>/`: `verification.json`, `verification.html` (and `verification.pdf` when
 //! Chromium prints it) and the raw recording (hard links, else copies).
 
 mod certificate;
 mod html;
+mod source;
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::BadInput;
-use tagdeflect_verify::{StepPlan, VerifyOptions, VERIFY_STEPS_FILE};
+use tagdeflect_verify::VerifyOptions;
 
 use crate::graph::in_process::{self, ReplayOptions};
 
 pub use certificate::{Certificate, Equipment};
+pub use source::Source;
 
 /// The options of `tagdeflect verify`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct VerifyArgs {
     /// The recording of the verification (a rigid target at rest, then at known positions).
     pub dir: PathBuf,
-    /// The known positions: `verify_steps.json` (`{"steps": [{"position_mm", "start_ns",
-    /// "end_ns"}]}`, or a bare array of positions in mm held for equal times); default: the
-    /// recording's own `verify_steps.json`.
+    /// The known displacements (SPEC): JSON Lines `{"t_ns": ..., "displacement_mm": ...}`,
+    /// consecutive equal values one hold; default: the recording's own `reference.jsonl`.
+    #[arg(long, value_name = "FILE", conflicts_with = "steps")]
+    pub reference: Option<PathBuf>,
+    /// (extension) A step plan instead: `verify_steps.json` (`{"steps": [{"position_mm",
+    /// "start_ns", "end_ns"}]}`, or a bare array of positions in mm held for equal times).
     #[arg(long, value_name = "FILE")]
     pub steps: Option<PathBuf>,
+    /// Verify this `[[gauge]]`'s value instead of the net deflection.
+    #[arg(long, value_name = "NAME", conflicts_with_all = ["tag", "all_tags"])]
+    pub gauge: Option<String>,
+    /// Verify this specimen tag's vertical displacement (downward positive) instead of the
+    /// net deflection.
+    #[arg(long, value_name = "ID", conflicts_with = "all_tags")]
+    pub tag: Option<u32>,
+    /// (extension) Verify the mean downward displacement of the specimen tags.
+    #[arg(long)]
+    pub all_tags: bool,
     /// Who ran the verification (printed on the certificate).
     #[arg(long, value_name = "NAME")]
     pub operator: Option<String>,
@@ -54,12 +69,14 @@ pub fn run(args: &VerifyArgs) -> Result<PathBuf> {
     if !args.reference_u_um.is_finite() || args.reference_u_um < 0.0 {
         return Err(BadInput::new(format!("--reference-u-um {}: expected a non-negative number of µm", args.reference_u_um)).into());
     }
-    let plan = read_plan(args)?;
+    let source = Source::read(args)?;
+    let quantity = source::quantity(args);
     let out = out_dir(args.out.as_deref())?;
     let rec = in_process::open(&args.dir, None)?;
     let mut lines: Vec<FeedLine> = Vec::new();
     let summary = in_process::replay(&rec, ReplayOptions { progress: true, ..Default::default() }, |l, _, _| lines.push(l.clone()))?;
-    let opts = VerifyOptions { up: rec.config.world.up, reference_u_mm: args.reference_u_um * 1e-3, reference_k: 2.0 };
+    let plan = source.plan(&lines);
+    let opts = VerifyOptions { quantity, up: rec.config.world.up, reference_u_mm: args.reference_u_um * 1e-3, reference_k: 2.0 };
     let verification =
         tagdeflect_verify::verify(&lines, &plan, &opts).map_err(|e| BadInput::new(format!("{}: {e}", args.dir.display())))?;
     let equipment = Equipment {
@@ -67,32 +84,17 @@ pub fn run(args: &VerifyArgs) -> Result<PathBuf> {
         calibrated: args.equipment_calibrated.clone(),
         reference_u_um: args.reference_u_um,
     };
-    let cert = Certificate::new(&rec, &plan, summary.sets, args.operator.clone(), equipment, verification)?;
+    let cert = Certificate::new(&rec, &source, &plan, summary.sets, args.operator.clone(), equipment, verification)?;
     write(&cert, &lines, &args.dir, &out, !args.no_pdf)?;
     tracing::info!(
-        "{}: class {}, U (k = 2) {:.2} µm — {}",
+        "{}: {} class {}, U (k = 2) {:.2} µm — {}",
         out.display(),
-        cert.verification.iso9513.class.as_deref().unwrap_or("none"),
-        cert.verification.uncertainty.expanded_mm * 1e3,
+        cert.quantity,
+        cert.class_iso9513,
+        cert.u_k2_mm * 1e3,
         if cert.verification.verdict.passed { "passed" } else { "NOT passed" }
     );
     Ok(out)
-}
-
-/// The step plan: `--steps`, else the recording's `verify_steps.json`.
-fn read_plan(args: &VerifyArgs) -> Result<StepPlan> {
-    let path = args.steps.clone().unwrap_or_else(|| args.dir.join(VERIFY_STEPS_FILE));
-    if !path.is_file() {
-        return Err(BadInput::new(format!(
-            "{}: no step plan (give --steps FILE or put {VERIFY_STEPS_FILE} in the recording)",
-            path.display()
-        ))
-        .into());
-    }
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let plan = StepPlan::from_json(&text).map_err(|e| BadInput::new(format!("{}: {e}", path.display())))?;
-    plan.windows(0, 1).map_err(|e| BadInput::new(format!("{}: {e}", path.display())))?;
-    Ok(plan)
 }
 
 /// The certificate's folder: `out` (new or empty), else `verify/<date>` (or `<date>T<time>`
