@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use tagdeflect::commands::verify::{self, VerifyArgs};
 use tagdeflect::config::Recording;
 use tagdeflect_core::feed::FeedLine;
+use tagdeflect_core::rig::TagRole;
 use tagdeflect_sim::SimParams;
 use tagdeflect_verify::{iso9513, reference, Quantity, StepPlan, Verification, REFERENCE_FILE};
 
@@ -111,8 +112,9 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
     let reference_text = std::fs::read_to_string(&reference_file).unwrap();
     assert_eq!(reference::holds(&reference::parse_reference(&reference_text).unwrap()).len(), 7);
     let rec = Recording::open(&rec_dir).unwrap();
-    // The simulated bar moves all tags as one: its net deflection stays ~0, so the tag is verified.
-    let id = rec.config.specimen.tags[0].id;
+    // The simulated bar moves all tags as one: its net deflection stays ~0, so a tag is
+    // verified — the first midspan tag, the one a deflection is about.
+    let id = rec.config.specimen.tags.iter().find(|t| t.role == Some(TagRole::Midspan)).unwrap().id;
     let out = verify::run(&args(&rec_dir, dir.path().join("cert"), Some(reference_file.clone()), Some(id))).unwrap();
     let (cert, v) = read_verification(&out);
     assert_spec_keys(&cert, &reference_file);
@@ -159,7 +161,9 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
         s.error_mm = mean;
     }
     assert_eq!(iso9513::classify(&truth_steps, v.iso9513.resolution_mm).class, v.iso9513.class);
-    assert!(v.iso9513.class.is_some(), "the simulated rig reaches a class: {:?}", v.iso9513);
+    for (tag, st) in &v.static_figures.tags {
+        println!("VERIFY tag {tag} at rest: SD {:.3} µm", st.sd_mm.unwrap_or(0.0) * 1e3);
+    }
     assert!(v.vdi2626.zs_net_deflection_mm.unwrap() < 0.005, "a rigid bar shows no net deflection: {:?}", v.vdi2626);
     // U (k = 2) covers a single reading's truth error about 95 % of the time.
     let all: Vec<f64> = errors.concat();
@@ -167,20 +171,37 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
     println!("VERIFY {:.0} % of {} readings within U of the truth", within * 100.0, all.len());
     assert!(within >= 0.9, "{within}");
 
-    // A reference that is off at one hold: the class moves as the table says. 14 µm at
-    // 1 mm is beyond class 1's 10 µm and within class 2's 20 µm; 25 µm beyond class 2.
+    // A reference that is off at one hold moves the tag's error by as much and its class
+    // as the table says.
+    let file = dir.path().join("shifted-tag.jsonl");
+    std::fs::write(&file, shifted_reference(&reference_text, 2, 0.025)).unwrap();
+    let (cert2, v2) = read_verification(&verify::run(&args(&rec_dir, dir.path().join("cert-tag"), Some(file.clone()), Some(id))).unwrap());
+    assert_spec_keys(&cert2, &file);
+    let mut expected = v.steps.clone();
+    (expected[2].error_mm, expected[2].nominal_mm) = (expected[2].error_mm - 0.025, expected[2].nominal_mm + 0.025);
+    assert!((v2.steps[2].error_mm - expected[2].error_mm).abs() < 1e-9);
+    assert!((cert2["steps"][2]["error_um"].as_f64().unwrap() - expected[2].error_mm * 1e3).abs() < 1e-6);
+    assert_eq!(v2.iso9513.class, iso9513::classify(&expected, v.iso9513.resolution_mm).class);
+    assert!(v2.uncertainty.expanded_mm > v.uncertainty.expanded_mm);
+
+    // The mean of the tags (extension --all-tags) reaches a class on this rig; 14 µm injected
+    // at 1 mm is beyond class 1's 10 µm and within class 2's 20 µm; 25 µm beyond class 2.
+    let all_tags = |out: &str, reference: PathBuf| {
+        let mut a = args(&rec_dir, dir.path().join(out), Some(reference), None);
+        a.all_tags = true;
+        read_verification(&verify::run(&a).unwrap())
+    };
+    let (_, base) = all_tags("cert-all", reference_file.clone());
+    println!("VERIFY mean of the tags: class {:?}, U {:.2} µm", base.iso9513.class, base.uncertainty.expanded_mm * 1e3);
+    assert!(base.iso9513.class.is_some(), "the mean of the simulated rig's tags reaches a class: {:?}", base.iso9513);
     for (shift_mm, class) in [(0.014, Some("2")), (0.025, None)] {
         let file = dir.path().join(format!("shifted-{shift_mm}.jsonl"));
         std::fs::write(&file, shifted_reference(&reference_text, 2, shift_mm)).unwrap();
-        let out2 = verify::run(&args(&rec_dir, dir.path().join(format!("cert-{shift_mm}")), Some(file.clone()), Some(id))).unwrap();
-        let (cert2, v2) = read_verification(&out2);
-        assert_spec_keys(&cert2, &file);
-        let mut expected = v.steps.clone();
-        expected[2].error_mm -= shift_mm;
-        expected[2].nominal_mm += shift_mm;
+        let (cert2, v2) = all_tags(&format!("cert-{shift_mm}"), file);
+        let mut expected = base.steps.clone();
+        (expected[2].error_mm, expected[2].nominal_mm) = (expected[2].error_mm - shift_mm, expected[2].nominal_mm + shift_mm);
         assert!((v2.steps[2].error_mm - expected[2].error_mm).abs() < 1e-9);
-        assert!((cert2["steps"][2]["error_um"].as_f64().unwrap() - expected[2].error_mm * 1e3).abs() < 1e-6);
-        assert_eq!(v2.iso9513.class, iso9513::classify(&expected, v.iso9513.resolution_mm).class);
+        assert_eq!(v2.iso9513.class, iso9513::classify(&expected, base.iso9513.resolution_mm).class);
         println!(
             "VERIFY with {} µm injected at step 3: class {:?}, U {:.2} µm",
             shift_mm * 1e3,
@@ -189,7 +210,7 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
         );
         assert_eq!(v2.iso9513.class.as_deref(), class);
         assert_eq!(cert2["class_iso9513"], class.unwrap_or("none"));
-        assert!(v2.uncertainty.expanded_mm > v.uncertainty.expanded_mm);
+        assert!(v2.uncertainty.expanded_mm > base.uncertainty.expanded_mm);
     }
 
     // The default quantity, the net deflection, against a reference of zero over the whole
