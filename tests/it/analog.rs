@@ -441,7 +441,7 @@ fn analog_config_errors_name_their_key_and_line() {
         ("range_v = [0.0, 5.0]", "range_v = [0.0, 10.0]", "output.analog.range_v", "0 to 5 V"),
         ("range_v = [0.0, 5.0]", "range_v = [6.0, 5.0]", "output.analog.range_v", "0 to 5 V"),
         ("volts_per_mm = 0.5", "volts_per_mm = 0.0", "output.analog.volts_per_mm", "non-zero"),
-        ("device = \"labjack-t\"", "device = \"labjack-t\"\non_invalid = \"safe\"", "output.analog.on_invalid", "safe voltage"),
+        ("device = \"labjack-t\"", "device = \"labjack-t\"\non_invalid = \"safe\"", "on_invalid", "safe voltage"),
         ("device = \"labjack-t\"", "device = \"labjack-t\"\non_invalid = 7.0", "output.analog.on_invalid", "outside"),
         ("device = \"labjack-t\"", "device = \"holding-registers\"\nrange_v = [-10.0, 10.0]", "output.analog.register", "holding register"),
         (
