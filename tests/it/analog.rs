@@ -200,10 +200,9 @@ fn labjack_gets_each_value_scaled_and_clamped_then_the_valid_line() {
 
 #[test]
 fn invalid_values_drop_the_line_then_hold_or_go_safe() {
-    for on_invalid in [OnInvalid::Hold, OnInvalid::Safe] {
+    for on_invalid in [OnInvalid::Hold, OnInvalid::Volts(0.25)] {
         let dac = Dac::start("labjack", None);
-        let safe_v = (on_invalid == OnInvalid::Safe).then_some(0.25);
-        let cfg = AnalogConfig { on_invalid, safe_v, ..AnalogConfig::labjack(&dac.addr(), 1.0) };
+        let cfg = AnalogConfig { on_invalid, ..AnalogConfig::labjack(&dac.addr(), 1.0) };
         let mut out = AnalogOutput::start(&never_stale(cfg)).unwrap();
         feed_one_by_one(&out, &dac, &[2.0], is_dac);
         dac.wait_for("valid high", fio0(1));
@@ -213,7 +212,7 @@ fn invalid_values_drop_the_line_then_hold_or_go_safe() {
         out.take_line(&l);
         dac.wait_until("valid low on the invalid value", |w| count(w, fio0(0)) >= 2);
         let w = match on_invalid {
-            OnInvalid::Safe => dac.wait_for("the safe value", |w| is_dac(w) && f32_abcd(w) == 0.25),
+            OnInvalid::Volts(_) => dac.wait_for("the safe value", |w| is_dac(w) && f32_abcd(w) == 0.25),
             OnInvalid::Hold => {
                 // Nothing more is written while invalid; the stop writes the line low again.
                 out.shutdown();
@@ -224,7 +223,7 @@ fn invalid_values_drop_the_line_then_hold_or_go_safe() {
         let dac_after: Vec<f32> = w[drop_at..].iter().filter(|w| is_dac(w)).map(f32_abcd).collect();
         match on_invalid {
             OnInvalid::Hold => assert!(dac_after.is_empty(), "hold writes nothing: {w:?}"),
-            OnInvalid::Safe => assert_eq!(dac_after, vec![0.25], "the line drops first, then the safe value: {w:?}"),
+            OnInvalid::Volts(_) => assert_eq!(dac_after, vec![0.25], "the line drops first, then the safe value: {w:?}"),
         }
         assert!(!w.iter().any(|w| is_dac(w) && f32_abcd(w) == 3.0), "the invalid value is never written: {w:?}");
         out.shutdown();
@@ -281,13 +280,12 @@ fn generic_modules_get_counts_in_their_type_and_word_order() {
     let dac = Dac::start("generic", None);
     // ±10 V module as i16 counts (3276.7 counts/V), valid on coil 3.
     let cfg = AnalogConfig {
-        map: DeviceMap::Generic,
+        device: DeviceMap::Generic,
         register: Some(8),
         data_type: Some(ValueType::I16),
         scale: 3276.7,
         offset: 0.0,
-        min_v: -10.0,
-        max_v: 10.0,
+        range_v: Some([-10.0, 10.0]),
         valid_output: Some(DigitalOutput::Coil(3)),
         ..AnalogConfig::labjack(&dac.addr(), 2.0)
     };
@@ -306,13 +304,12 @@ fn generic_modules_get_counts_in_their_type_and_word_order() {
     // f32 volts, low word first, a u16 line register.
     let dac = Dac::start("generic", None);
     let cfg = AnalogConfig {
-        map: DeviceMap::Generic,
+        device: DeviceMap::Generic,
         register: Some(20),
         data_type: Some(ValueType::F32),
         word_order: WordOrder::Cdab,
         scale: 1.0,
-        min_v: 0.0,
-        max_v: 10.0,
+        range_v: Some([0.0, 10.0]),
         valid_output: Some(DigitalOutput::Register(40)),
         ..AnalogConfig::labjack(&dac.addr(), 0.5)
     };
@@ -424,11 +421,10 @@ address = "192.0.2.10:502"
 register = 4
 
 [output.analog]
-device = "192.0.2.20:502"
-map = "labjack-t"
+address = "192.0.2.20:502"
+device = "labjack-t"
 volts_per_mm = 0.5
-min_v = 0.0
-max_v = 5.0
+range_v = [0.0, 5.0]
 "#;
 
 fn parse(text: &str) -> Result<Config, tagdeflect::config::ConfigError> {
@@ -440,24 +436,28 @@ fn analog_config_errors_name_their_key_and_line() {
     let c = parse(BASE).expect("the base config loads");
     assert_eq!(c.output.analog.as_ref().unwrap().valid_line(), Some(DigitalOutput::Register(2000)));
     let cases = [
-        ("device = \"192.0.2.20:502\"", "device = \"192.0.2.10:502\"", "output.analog.device", "UTM"),
-        ("device = \"192.0.2.20:502\"", "device = \"dac.lab\"", "output.analog.device", "IP:PORT"),
-        ("max_v = 5.0", "max_v = 10.0", "output.analog.max_v", "0 to 5 V"),
-        ("min_v = 0.0", "min_v = 6.0", "output.analog.min_v", "0 to 5 V"),
+        ("address = \"192.0.2.20:502\"", "address = \"192.0.2.10:502\"", "output.analog.address", "UTM"),
+        ("address = \"192.0.2.20:502\"", "address = \"dac.lab\"", "output.analog.address", "IP:PORT"),
+        ("range_v = [0.0, 5.0]", "range_v = [0.0, 10.0]", "output.analog.range_v", "0 to 5 V"),
+        ("range_v = [0.0, 5.0]", "range_v = [6.0, 5.0]", "output.analog.range_v", "0 to 5 V"),
         ("volts_per_mm = 0.5", "volts_per_mm = 0.0", "output.analog.volts_per_mm", "non-zero"),
-        ("map = \"labjack-t\"", "map = \"labjack-t\"\non_invalid = \"safe\"", "output.analog.safe_v", "safe value"),
-        ("map = \"labjack-t\"", "map = \"labjack-t\"\non_invalid = \"safe\"\nsafe_v = 7.0", "output.analog.safe_v", "outside"),
-        ("map = \"labjack-t\"", "map = \"generic\"", "output.analog.register", "holding register"),
+        ("device = \"labjack-t\"", "device = \"labjack-t\"\non_invalid = \"safe\"", "on_invalid", "safe voltage"),
+        ("device = \"labjack-t\"", "device = \"labjack-t\"\non_invalid = 7.0", "output.analog.on_invalid", "outside"),
+        ("device = \"labjack-t\"", "device = \"holding-registers\"\nrange_v = [-10.0, 10.0]", "output.analog.register", "holding register"),
         (
-            "map = \"labjack-t\"",
-            "map = \"generic\"\nregister = 0\ndata_type = \"u16\"\nscale = 20000.0",
+            "device = \"labjack-t\"",
+            "device = \"holding-registers\"\nregister = 0\ndata_type = \"u16\"\nscale = 20000.0\nrange_v = [0.0, 10.0]",
             "output.analog.scale",
             "outside the range",
         ),
-        ("map = \"labjack-t\"", "map = \"labjack-t\"\ngauge = \"cmod\"", "output.analog.gauge", "[[gauge]]"),
+        ("device = \"labjack-t\"", "device = \"labjack-t\"\ngauge = \"cmod\"", "output.analog.gauge", "[[gauge]]"),
     ];
     for (from, to, key, msg) in cases {
-        let text = BASE.replacen(from, to, 1);
+        let text = if to.contains("range_v") && from != "range_v = [0.0, 5.0]" {
+            BASE.replacen("range_v = [0.0, 5.0]\n", "", 1).replacen(from, to, 1)
+        } else {
+            BASE.replacen(from, to, 1)
+        };
         let e = parse(&text).expect_err(to);
         assert!(e.key.as_deref().is_some_and(|k| k.ends_with(key)), "{to}: key {:?} ({e})", e.key);
         assert!(e.message.contains(msg), "{to}: {e}");

@@ -587,7 +587,10 @@ fn command_line_on_the_left_samples() {
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
     eprintln!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
-    assert!(o.status.success());
+    // OpenCV's 13 left views leave the image's corners empty: verdict POOR, the files written
+    // and exit 3 (not fit for a test), so a script stops on it.
+    assert_eq!(o.status.code(), Some(3));
+    assert!(stdout.contains("verdict: POOR"));
     assert!(stdout.contains("fx  =") && stdout.contains("(1σ)") && stdout.contains("calibration = \"") && stdout.contains("deflection ±"));
     let k = load_calibration(&out).unwrap();
     assert!((k.fx / 535.9157 - 1.0).abs() < 0.005);

@@ -75,11 +75,10 @@ rig = "frame1"
 modbus = "127.0.0.1:5020"
 
 [output.analog]
-device = "127.0.0.1:5021"
-map = "labjack-t"
+address = "127.0.0.1:5021"
+device = "labjack-t"
 volts_per_mm = 0.5
-min_v = 0.0
-max_v = 5.0
+range_v = [0.0, 5.0]
 
 [output.auto_test]
 start_load_kn = 2.0

@@ -16,30 +16,68 @@ pub const LABJACK_DAC0: u16 = 1000;
 pub const LABJACK_FIO0: u16 = 2000;
 /// Output range of the T-series DACs, V.
 pub const LABJACK_RANGE_V: (f64, f64) = (0.0, 5.0);
-/// Largest |voltage| accepted for a generic module, V.
+/// Largest |voltage| accepted for a holding-register module, V.
 pub const MAX_ABS_V: f64 = 100.0;
+/// A holding-register module's output range when `range_v` is not given, V.
+pub const HOLDING_RANGE_V: (f64, f64) = (-10.0, 10.0);
 
-/// The device's register map.
+/// The device's register map (SPEC `device`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum DeviceMap {
-    /// LabJack T4/T7/T8: DAC`dac` as FLOAT32 volts; the valid line on FIO0 by default.
+    /// LabJack T4/T7/T8: DAC`channel` as FLOAT32 volts; the valid line on FIO0 by default.
     #[serde(rename = "labjack-t")]
     LabjackT,
     /// A holding-register module (ADAM-6224, WAGO 750-5xx, ioLogik ...): `register`,
     /// `data_type`, `scale` (counts per volt), `offset` (counts), `word_order`.
-    #[serde(rename = "generic")]
+    #[serde(rename = "holding-registers")]
     Generic,
 }
 
-/// What the analog output does while the value is invalid or stale.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// What the analog output does while the value is invalid or stale, and at stop (SPEC
+/// `on_invalid`: `"hold"` or a safe voltage).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum OnInvalid {
-    /// Keep the last value written (the valid line tells the controller).
+    /// `"hold"`: keep the last value written (the valid line tells the controller).
     #[default]
     Hold,
-    /// Write `safe_v`.
-    Safe,
+    /// A number: go to this safe voltage, V.
+    Volts(f64),
+}
+
+impl OnInvalid {
+    /// The safe voltage, when one is configured.
+    pub fn safe_v(self) -> Option<f64> {
+        match self {
+            OnInvalid::Hold => None,
+            OnInvalid::Volts(v) => Some(v),
+        }
+    }
+}
+
+impl Serialize for OnInvalid {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            OnInvalid::Hold => s.serialize_str("hold"),
+            OnInvalid::Volts(v) => s.serialize_f64(*v),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for OnInvalid {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Word(String),
+            Volts(f64),
+        }
+        let bad = || serde::de::Error::custom("expected \"hold\" or a safe voltage (a number of volts)");
+        match Raw::deserialize(d).map_err(|_| bad())? {
+            Raw::Volts(v) => Ok(OnInvalid::Volts(v)),
+            Raw::Word(w) if w == "hold" => Ok(OnInvalid::Hold),
+            Raw::Word(_) => Err(bad()),
+        }
+    }
 }
 
 /// The digital "data valid" line: a holding register written 0/1 (function 6) or a coil
@@ -74,15 +112,15 @@ pub struct RegisterWrite {
 #[serde(deny_unknown_fields)]
 pub struct AnalogConfig {
     /// The device, `IP:PORT` (never the UTM's address).
-    pub device: String,
+    pub address: String,
     /// Modbus unit id.
     #[serde(default = "default_unit")]
     pub unit_id: u8,
-    /// `"labjack-t"` or `"generic"`.
-    pub map: DeviceMap,
+    /// `"labjack-t"` or `"holding-registers"`.
+    pub device: DeviceMap,
     /// LabJack: the DAC (0 or 1).
     #[serde(default)]
-    pub dac: u8,
+    pub channel: u8,
     /// Generic: the first holding register of the value.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub register: Option<u16>,
@@ -107,24 +145,22 @@ pub struct AnalogConfig {
     /// Frame sets without the value before it is stale (the control output's rule).
     #[serde(default = "default_stale_sets")]
     pub stale_sets: u32,
-    /// Volts per mm of the value.
+    /// Volts per mm of the value (1 by default).
+    #[serde(default = "one")]
     pub volts_per_mm: f64,
     /// Volts at a value of 0.
     #[serde(default)]
     pub offset_v: f64,
-    /// Lowest voltage written (the output is clamped).
-    pub min_v: f64,
-    /// Highest voltage written.
-    pub max_v: f64,
+    /// The lowest and highest voltage written (the output is clamped); the device's range
+    /// when absent (LabJack 0–5 V, a holding-register module ±10 V).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub range_v: Option<[f64; 2]>,
     /// The valid line (LabJack: FIO0 when absent; generic: none when absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub valid_output: Option<DigitalOutput>,
-    /// `"hold"` (default) or `"safe"`.
+    /// `"hold"` (default) or a safe voltage (also written at stop).
     #[serde(default)]
     pub on_invalid: OnInvalid,
-    /// The safe value, V (with `on_invalid = "safe"`; also written at stop).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub safe_v: Option<f64>,
     /// Per-request timeout, ms.
     #[serde(default = "default_timeout_ms")]
     pub timeout_ms: f64,
@@ -153,13 +189,13 @@ fn default_timeout_ms() -> f64 {
 }
 
 impl AnalogConfig {
-    /// A LabJack T-series on `device` at `volts_per_mm`, 0–5 V, every other key at its default.
-    pub fn labjack(device: &str, volts_per_mm: f64) -> AnalogConfig {
+    /// A LabJack T-series at `address` at `volts_per_mm`, 0–5 V, every other key at its default.
+    pub fn labjack(address: &str, volts_per_mm: f64) -> AnalogConfig {
         AnalogConfig {
-            device: device.to_string(),
+            address: address.to_string(),
             unit_id: default_unit(),
-            map: DeviceMap::LabjackT,
-            dac: 0,
+            device: DeviceMap::LabjackT,
+            channel: 0,
             register: None,
             data_type: None,
             scale: 1.0,
@@ -170,11 +206,9 @@ impl AnalogConfig {
             stale_sets: default_stale_sets(),
             volts_per_mm,
             offset_v: 0.0,
-            min_v: LABJACK_RANGE_V.0,
-            max_v: LABJACK_RANGE_V.1,
+            range_v: None,
             valid_output: None,
             on_invalid: OnInvalid::Hold,
-            safe_v: None,
             timeout_ms: default_timeout_ms(),
             watchdog_writes: Vec::new(),
         }
@@ -182,7 +216,7 @@ impl AnalogConfig {
 
     /// The device's address.
     pub fn addr(&self) -> Result<SocketAddr, Problem> {
-        self.device.parse().map_err(|_| Problem::new("device", format!("\"{}\" is not IP:PORT (e.g. \"192.0.2.20:502\")", self.device)))
+        self.address.parse().map_err(|_| Problem::new("address", format!("\"{}\" is not IP:PORT (e.g. \"192.0.2.20:502\")", self.address)))
     }
 
     /// The signal's rule of this section (`crate::signal`, the control output's).
@@ -192,8 +226,8 @@ impl AnalogConfig {
 
     /// The value's register(s): address, type, word order (raw = volts × scale + offset).
     pub fn value_register(&self) -> RegisterConfig {
-        let (register, value_type, word_order) = match self.map {
-            DeviceMap::LabjackT => (LABJACK_DAC0 + 2 * self.dac as u16, ValueType::F32, WordOrder::Abcd),
+        let (register, value_type, word_order) = match self.device {
+            DeviceMap::LabjackT => (LABJACK_DAC0 + 2 * self.channel as u16, ValueType::F32, WordOrder::Abcd),
             DeviceMap::Generic => (self.register.unwrap_or(0), self.data_type.unwrap_or_default(), self.word_order),
         };
         RegisterConfig { register, kind: RegisterKind::Holding, value_type, word_order, scale: 1.0, offset: 0.0 }
@@ -201,20 +235,30 @@ impl AnalogConfig {
 
     /// Raw counts of `volts` as written (LabJack: volts).
     pub fn raw_of(&self, volts: f64) -> f64 {
-        match self.map {
+        match self.device {
             DeviceMap::LabjackT => volts,
             DeviceMap::Generic => volts * self.scale + self.offset,
         }
     }
 
+    /// The output range, V: `range_v`, else the device's.
+    pub fn range(&self) -> (f64, f64) {
+        match (self.range_v, self.device) {
+            (Some([lo, hi]), _) => (lo, hi),
+            (None, DeviceMap::LabjackT) => LABJACK_RANGE_V,
+            (None, DeviceMap::Generic) => HOLDING_RANGE_V,
+        }
+    }
+
     /// The volts written for a value: `offset_v + volts_per_mm × value`, clamped.
     pub fn volts_of(&self, value: f64) -> f64 {
-        (self.offset_v + self.volts_per_mm * value).clamp(self.min_v, self.max_v)
+        let (lo, hi) = self.range();
+        (self.offset_v + self.volts_per_mm * value).clamp(lo, hi)
     }
 
     /// The valid line (LabJack's FIO0 by default).
     pub fn valid_line(&self) -> Option<DigitalOutput> {
-        match (self.valid_output, self.map) {
+        match (self.valid_output, self.device) {
             (Some(d), _) => Some(d),
             (None, DeviceMap::LabjackT) => Some(DigitalOutput::Register(LABJACK_FIO0)),
             (None, DeviceMap::Generic) => None,
@@ -227,7 +271,7 @@ impl AnalogConfig {
         let addr = self.addr()?;
         if let Some(u) = utm.filter(|u| same_device(addr, u)) {
             return Err(Problem::new(
-                "device",
+                "address",
                 format!("{addr} is the UTM's address ({u}): nothing is ever written to the testing machine"),
             ));
         }
@@ -253,26 +297,26 @@ impl AnalogConfig {
 
     /// The map's own keys.
     fn check_map(&self) -> Result<(), Problem> {
-        match self.map {
+        match self.device {
             DeviceMap::LabjackT => {
                 for (key, set) in [("register", self.register.is_some()), ("data_type", self.data_type.is_some())] {
                     if set {
                         return Err(Problem::new(
                             key,
-                            "the LabJack T-series map writes DAC0/DAC1 as FLOAT32 volts: choose the DAC with `dac`",
+                            "the LabJack T-series map writes DAC0/DAC1 as FLOAT32 volts: choose the DAC with `channel`",
                         ));
                     }
                 }
-                if self.dac > 1 {
-                    return Err(Problem::new("dac", format!("{}: the T-series have DAC0 and DAC1", self.dac)));
+                if self.channel > 1 {
+                    return Err(Problem::new("channel", format!("{}: the T-series have DAC0 and DAC1", self.channel)));
                 }
             }
             DeviceMap::Generic => {
                 if self.register.is_none() {
-                    return Err(Problem::new("register", "a generic module needs the value's holding register"));
+                    return Err(Problem::new("register", "a holding-register module needs the value's holding register"));
                 }
                 if self.data_type.is_none() {
-                    return Err(Problem::new("data_type", "a generic module needs the value's type (u16, i16 or f32)"));
+                    return Err(Problem::new("data_type", "a holding-register module needs the value's type (u16, i16 or f32)"));
                 }
                 if !(self.scale.is_finite() && self.scale != 0.0 && self.offset.is_finite()) {
                     return Err(Problem::new("scale", "counts per volt must be a non-zero finite number and offset finite"));
@@ -290,24 +334,23 @@ impl AnalogConfig {
         if !self.offset_v.is_finite() {
             return Err(Problem::new("offset_v", "expected a finite number of volts"));
         }
-        let (lo, hi) = if self.map == DeviceMap::LabjackT { LABJACK_RANGE_V } else { (-MAX_ABS_V, MAX_ABS_V) };
-        for (key, v) in [("min_v", self.min_v), ("max_v", self.max_v)] {
+        let (lo, hi) = if self.device == DeviceMap::LabjackT { LABJACK_RANGE_V } else { (-MAX_ABS_V, MAX_ABS_V) };
+        let (min_v, max_v) = self.range();
+        for v in [min_v, max_v] {
             if !(v.is_finite() && (lo..=hi).contains(&v)) {
-                return Err(Problem::new(key, format!("{v} V: the {:?} map outputs {lo} to {hi} V", self.map)));
+                return Err(Problem::new("range_v", format!("{v} V: the {:?} map outputs {lo} to {hi} V", self.device)));
             }
         }
-        if self.min_v >= self.max_v {
-            return Err(Problem::new("max_v", format!("{} V is not above min_v = {} V", self.max_v, self.min_v)));
+        if min_v >= max_v {
+            return Err(Problem::new("range_v", format!("[{min_v}, {max_v}]: the lowest voltage must be below the highest")));
         }
-        match (self.on_invalid, self.safe_v) {
-            (OnInvalid::Safe, None) => return Err(Problem::new("safe_v", "on_invalid = \"safe\" needs the safe value in volts")),
-            (_, Some(s)) if !(s.is_finite() && (self.min_v..=self.max_v).contains(&s)) => {
-                return Err(Problem::new("safe_v", format!("{s} V is outside min_v..max_v = {}..{} V", self.min_v, self.max_v)));
+        if let Some(s) = self.on_invalid.safe_v() {
+            if !(s.is_finite() && (min_v..=max_v).contains(&s)) {
+                return Err(Problem::new("on_invalid", format!("{s} V is outside range_v = [{min_v}, {max_v}] V")));
             }
-            _ => {}
         }
         let reg = self.value_register();
-        for v in [self.min_v, self.max_v] {
+        for v in [min_v, max_v] {
             encode(&reg, self.raw_of(v)).map_err(|e| Problem::new("scale", format!("{v} V: {e}")))?;
         }
         Ok(())
@@ -333,32 +376,30 @@ mod tests {
         let c = AnalogConfig::labjack("192.0.2.20:502", 0.5);
         assert!(c.validate(&[], Some("192.0.2.10:502")).is_ok());
         let key = |c: &AnalogConfig| c.validate(&[], Some("192.0.2.10:502")).unwrap_err().key;
-        assert_eq!(key(&AnalogConfig { device: "192.0.2.10:502".into(), ..c.clone() }), "device");
-        assert_eq!(key(&AnalogConfig { device: "dac.lab".into(), ..c.clone() }), "device");
+        assert_eq!(key(&AnalogConfig { address: "192.0.2.10:502".into(), ..c.clone() }), "address");
+        assert_eq!(key(&AnalogConfig { address: "dac.lab".into(), ..c.clone() }), "address");
         assert_eq!(c.validate(&[], Some("localhost:502")).map(|_| ()), Ok(()));
-        let local = AnalogConfig { device: "127.0.0.1:502".into(), ..c.clone() };
-        assert_eq!(local.validate(&[], Some("localhost:502")).unwrap_err().key, "device");
-        assert_eq!(key(&AnalogConfig { max_v: 10.0, ..c.clone() }), "max_v");
-        assert_eq!(key(&AnalogConfig { min_v: 4.0, max_v: 3.0, ..c.clone() }), "max_v");
-        assert_eq!(key(&AnalogConfig { on_invalid: OnInvalid::Safe, ..c.clone() }), "safe_v");
-        assert_eq!(key(&AnalogConfig { on_invalid: OnInvalid::Safe, safe_v: Some(6.0), ..c.clone() }), "safe_v");
+        let local = AnalogConfig { address: "127.0.0.1:502".into(), ..c.clone() };
+        assert_eq!(local.validate(&[], Some("localhost:502")).unwrap_err().key, "address");
+        assert_eq!(key(&AnalogConfig { range_v: Some([0.0, 10.0]), ..c.clone() }), "range_v");
+        assert_eq!(key(&AnalogConfig { range_v: Some([4.0, 3.0]), ..c.clone() }), "range_v");
+        assert_eq!(key(&AnalogConfig { on_invalid: OnInvalid::Volts(6.0), ..c.clone() }), "on_invalid");
         assert_eq!(key(&AnalogConfig { volts_per_mm: 0.0, ..c.clone() }), "volts_per_mm");
         assert_eq!(key(&AnalogConfig { gauge: "cmod".into(), ..c.clone() }), "gauge");
-        assert_eq!(key(&AnalogConfig { dac: 2, ..c.clone() }), "dac");
+        assert_eq!(key(&AnalogConfig { channel: 2, ..c.clone() }), "channel");
         assert_eq!(key(&AnalogConfig { register: Some(3), ..c.clone() }), "register");
         let g = AnalogConfig {
-            map: DeviceMap::Generic,
+            device: DeviceMap::Generic,
             register: Some(0),
             data_type: Some(ValueType::U16),
             scale: 3276.7,
             offset: 0.0,
-            min_v: 0.0,
-            max_v: 10.0,
+            range_v: Some([0.0, 10.0]),
             ..c.clone()
         };
         assert!(g.validate(&[], None).is_ok());
         // -1 V is -3277 counts: outside u16.
-        assert_eq!(key(&AnalogConfig { min_v: -1.0, ..g.clone() }), "scale");
+        assert_eq!(key(&AnalogConfig { range_v: Some([-1.0, 10.0]), ..g.clone() }), "scale");
         assert_eq!(key(&AnalogConfig { data_type: None, ..g.clone() }), "data_type");
         assert_eq!(key(&AnalogConfig { register: None, ..g }), "register");
     }

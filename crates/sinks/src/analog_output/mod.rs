@@ -5,11 +5,11 @@
 //!
 //! The value and its validity follow the control output's rule (`crate::signal`): valid
 //! while fresh and its σ at most `max_sigma_mm`. Every frame set's value is written
-//! (`offset_v + volts_per_mm × value`, clamped to `min_v..max_v`), then the valid line is
+//! (`offset_v + volts_per_mm × value`, clamped to `range_v`), then the valid line is
 //! raised. When the value turns invalid or stale (checked every [`TICK`], well within a
 //! frame period), the valid line drops first, then the output holds its last value
-//! (`on_invalid = "hold"`) or goes to `safe_v` (`"safe"`). At stop the line drops (and
-//! `safe_v` is written when set). If tagdeflect dies, the device's own watchdog takes over
+//! (`on_invalid = "hold"`) or goes to the safe voltage (`on_invalid = 0.0`, a number). At
+//! stop the line drops (and the safe voltage is written when set). If tagdeflect dies, the device's own watchdog takes over
 //! (set up by `watchdog_writes`).
 //!
 //! One task per device, on a thread of its own: the measurement never waits for it.
@@ -125,8 +125,8 @@ impl Shared {
     }
 
     fn invalid_level(&self) -> Level {
-        match (self.config.on_invalid, self.config.safe_v) {
-            (OnInvalid::Safe, Some(v)) => Level::Safe(v),
+        match self.config.on_invalid.safe_v() {
+            Some(v) => Level::Safe(v),
             _ => Level::Hold,
         }
     }
@@ -227,7 +227,7 @@ impl Task {
 
     /// Logs a fault once per outage and schedules the reconnect; logs the device's return.
     fn after(&mut self, result: Result<(), DeviceFault>) {
-        let addr = self.shared.config.device.clone();
+        let addr = self.shared.config.address.clone();
         match result {
             Ok(()) => {
                 self.backoff.reset();
@@ -268,7 +268,7 @@ impl Task {
             // Low at stop whatever was written before.
             self.written.valid = None;
             self.set_line(false).await?;
-            if let Some(v) = self.shared.config.safe_v {
+            if let Some(v) = self.shared.config.on_invalid.safe_v() {
                 self.write_level(Level::Safe(v)).await?;
             }
             Ok::<(), DeviceFault>(())
@@ -319,7 +319,7 @@ impl AnalogOutput {
             .name("analog-output".into())
             .spawn(move || runtime.block_on(task.run(w, rx)))
             .map_err(AnalogError::Start)?;
-        tracing::info!(device = %addr, map = ?config.map, gauge = %config.gauge, "analog output writing to the device (Modbus TCP client)");
+        tracing::info!(device = %addr, map = ?config.device, gauge = %config.gauge, "analog output writing to the device (Modbus TCP client)");
         Ok(AnalogOutput { shared, wake, stop: Some(tx), thread: Some(thread) })
     }
 
@@ -339,7 +339,7 @@ impl AnalogOutput {
         s
     }
 
-    /// Stops: the valid line drops (and `safe_v` is written when set), the task ends.
+    /// Stops: the valid line drops (and the safe voltage is written when set), the task ends.
     pub fn shutdown(&mut self) {
         self.shared.stopped.store(true, Ordering::Relaxed);
         if let Some(tx) = self.stop.take() {
@@ -362,7 +362,7 @@ pub struct AnalogSink(pub AnalogOutput);
 
 impl LineSink for AnalogSink {
     fn name(&self) -> String {
-        format!("analog output on {}", self.0.shared.config.device)
+        format!("analog output on {}", self.0.shared.config.address)
     }
 
     fn accept(&mut self, finished: &Finished) {
