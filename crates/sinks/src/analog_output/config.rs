@@ -188,6 +188,20 @@ fn default_timeout_ms() -> f64 {
     500.0
 }
 
+impl RegisterWrite {
+    /// The holding register(s) this write goes to, the value written as it is.
+    pub fn register_config(&self) -> RegisterConfig {
+        RegisterConfig {
+            register: self.register,
+            kind: RegisterKind::Holding,
+            value_type: self.data_type,
+            word_order: self.word_order,
+            scale: 1.0,
+            offset: 0.0,
+        }
+    }
+}
+
 impl AnalogConfig {
     /// A LabJack T-series at `address` at `volts_per_mm`, 0–5 V, every other key at its default.
     pub fn labjack(address: &str, volts_per_mm: f64) -> AnalogConfig {
@@ -282,15 +296,7 @@ impl AnalogConfig {
             return Err(Problem::new("timeout_ms", format!("{}: expected 1 to 60000 ms", self.timeout_ms)));
         }
         for (i, w) in self.watchdog_writes.iter().enumerate() {
-            let reg = RegisterConfig {
-                register: w.register,
-                kind: RegisterKind::Holding,
-                value_type: w.data_type,
-                word_order: w.word_order,
-                scale: 1.0,
-                offset: 0.0,
-            };
-            encode(&reg, w.value).map_err(|e| Problem::new(format!("watchdog_writes[{i}].value"), e.to_string()))?;
+            encode(&w.register_config(), w.value).map_err(|e| Problem::new(format!("watchdog_writes[{i}].value"), e.to_string()))?;
         }
         Ok(())
     }

@@ -12,7 +12,7 @@ use tokio_modbus::client::{tcp, Client, Context};
 use tokio_modbus::{Request, Response, Slave};
 
 use tagdeflect_io::utm::codec::encode;
-use tagdeflect_io::utm::config::{RegisterConfig, RegisterKind};
+use tagdeflect_io::utm::config::RegisterConfig;
 
 use super::config::{AnalogConfig, DigitalOutput};
 
@@ -123,15 +123,7 @@ impl Device {
     /// The `[output.analog] watchdog_writes`, in order.
     pub(super) async fn set_up(&mut self, config: &AnalogConfig) -> Result<(), DeviceFault> {
         for w in &config.watchdog_writes {
-            let reg = RegisterConfig {
-                register: w.register,
-                kind: RegisterKind::Holding,
-                value_type: w.data_type,
-                word_order: w.word_order,
-                scale: 1.0,
-                offset: 0.0,
-            };
-            self.write_value(&reg, w.value).await?;
+            self.write_value(&w.register_config(), w.value).await?;
         }
         Ok(())
     }
