@@ -88,6 +88,7 @@ pub fn check_config(path: &Path) -> Result<()> {
         config.background.tags.len(),
         config.specimen.tags.len()
     );
+    check_verification(&config)?;
     let set = crate::graph::entry::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
     for (i, cam) in config.cameras.iter().enumerate() {
         if !set.frames.iter().any(|f| f.camera == i) {
@@ -252,6 +253,19 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
             poor.join(", ")
         ))
         .into());
+    }
+    Ok(())
+}
+
+/// The verification in force (`[verification]`): its class, date and id, and why it is stale
+/// if it is (a warning: the rig still measures; exit 0). A certificate that cannot be read is
+/// bad input (exit 2), named.
+fn check_verification(config: &Config) -> Result<()> {
+    match config.verification_in_force() {
+        Ok(None) => println!("verification: none configured ([verification] certificate)"),
+        Ok(Some(v)) if v.stale.is_empty() => println!("{}", v.describe()),
+        Ok(Some(v)) => println!("  warning: {}", v.describe()),
+        Err(e) => return Err(tagdeflect_core::BadInput::new(format!("[verification] {e}")).into()),
     }
     Ok(())
 }

@@ -32,6 +32,7 @@ pub mod stats;
 pub mod tags;
 pub mod text_file;
 pub mod utm_sample;
+pub mod verification;
 
 pub use error::{BadInput, NotFit, RuntimeFailure};
 pub use problem::Problem;
