@@ -169,9 +169,7 @@ pub fn assess(path: &Path, valid_days: u32, now: &RigNow, now_ns: i64) -> Result
     let mut stale = calibration_changes(&head.rig.calibration_files, &now.calibration_files);
     match &head.rig.geometry_sha256 {
         None => stale.push("the certificate does not record the rig's geometry (made before that was recorded)".into()),
-        Some(g) if *g != now.geometry_sha256 => {
-            stale.push("the rig's geometry changed (tags, cameras or intrinsics in the config)".into())
-        }
+        Some(g) if *g != now.geometry_sha256 => stale.push("the rig's geometry changed (tags, cameras or intrinsics in the config)".into()),
         Some(_) => {}
     }
     for (camera, t_ns) in now.bumps.iter().filter(|(_, t)| *t > issued_ns) {
