@@ -115,10 +115,9 @@ impl Pacer<'_> {
     fn until_line(&mut self, value: Option<f64>, on: bool, since: Instant) -> Result<Instant> {
         let deadline = Instant::now() + Duration::from_secs_f64(WAIT_S);
         loop {
-            if let Some((o, at)) = self.out.status().valid_line {
-                if o == on && at >= since {
-                    return Ok(at);
-                }
+            let st = self.out.status();
+            if let Some(at) = (if on { st.line_high_at } else { st.line_low_at }).filter(|at| *at >= since) {
+                return Ok(at);
             }
             if Instant::now() > deadline {
                 return Err(anyhow!("the valid line was not acknowledged {} within {WAIT_S} s", if on { "high" } else { "low" }));
@@ -132,7 +131,7 @@ impl Pacer<'_> {
 fn line_low_after(out: &AnalogOutput, since: Instant) -> Result<Instant> {
     let deadline = Instant::now() + Duration::from_secs_f64(WAIT_S);
     while Instant::now() < deadline {
-        if let Some((false, at)) = out.status().valid_line.filter(|(_, at)| *at >= since) {
+        if let Some(at) = out.status().line_low_at.filter(|at| *at >= since) {
             return Ok(at);
         }
         std::thread::sleep(Duration::from_micros(200));
@@ -187,7 +186,7 @@ pub fn valid_line_figures(device: &str) -> Result<ValidLineFigures> {
 /// The device fault: 1 s cut while frame sets keep coming, then back.
 fn device_fault(p: &mut Pacer<'_>, relay: &Relay) -> Result<ValidLineFigures> {
     p.until_line(Some(0.1), true, Instant::now())?;
-    let high_before = p.out.status().valid_line;
+    let low_before = p.out.status().line_low_at;
     let cut_at = Instant::now();
     relay.set_cut(true);
     let mut detected = None;
@@ -197,7 +196,7 @@ fn device_fault(p: &mut Pacer<'_>, relay: &Relay) -> Result<ValidLineFigures> {
             detected = Some(Instant::now());
         }
     }
-    let unchanged = p.out.status().valid_line == high_before;
+    let unchanged = p.out.status().line_low_at == low_before;
     let back_at = Instant::now();
     relay.set_cut(false);
     let low = p.until_line(Some(0.1), false, back_at)?;

@@ -78,8 +78,10 @@ pub struct AnalogStatus {
     pub outages: u64,
     /// The last fault, if the device is not answering now.
     pub fault: Option<String>,
-    /// The valid line as the device last acknowledged it (high or low), and when.
-    pub valid_line: Option<(bool, Instant)>,
+    /// When the device last acknowledged the valid line written low.
+    pub line_low_at: Option<Instant>,
+    /// When the device last acknowledged the valid line written high.
+    pub line_high_at: Option<Instant>,
     /// Exposure → write-acknowledged latencies, ms.
     latencies_ms: Vec<f32>,
     /// When each value was acknowledged: (feed seq, instant).
@@ -238,7 +240,8 @@ impl Task {
         if self.written.valid != Some(on) {
             self.device.write_line(line, on).await?;
             self.written.valid = Some(on);
-            self.shared.status().valid_line = Some((on, Instant::now()));
+            let mut st = self.shared.status();
+            *(if on { &mut st.line_high_at } else { &mut st.line_low_at }) = Some(Instant::now());
         }
         Ok(())
     }
