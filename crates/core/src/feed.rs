@@ -180,6 +180,10 @@ pub struct FeedEvent {
     /// The operator's note (a mark's text), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
+    /// Who did it (a user of `[output] users_file`, `shared-token`, or absent: the daemon
+    /// itself, or a test written before users existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub user: Option<String>,
 }
 
 /// One gauge's reading in a feed line.

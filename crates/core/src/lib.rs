@@ -28,6 +28,7 @@ pub mod rig;
 pub mod stats;
 pub mod tags;
 pub mod text_file;
+pub mod users;
 pub mod utm_sample;
 
 pub use error::{BadInput, NotFit, RuntimeFailure};
