@@ -171,9 +171,9 @@ pub struct TestRef {
 }
 
 /// An event of a test: `start`, `stop`, `mark` or `zero`, with its time and an optional note.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct FeedEvent {
-    /// `start`, `stop`, `mark` or `zero`.
+    /// `start`, `stop`, `mark`, `zero`, `resume`, `crack` or `preload`.
     pub kind: String,
     /// When it happened, ns since the Unix epoch.
     pub t_ns: i64,

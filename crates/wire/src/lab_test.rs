@@ -154,6 +154,10 @@ mod tests {
             lines: 3000,
             utm_samples: 30000,
             sha256: [("feed.jsonl".to_string(), "ab".repeat(32))].into_iter().collect(),
+            method: None,
+            specimen_info: None,
+            crack: None,
+            preload: None,
         }
     }
 

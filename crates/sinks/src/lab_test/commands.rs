@@ -63,6 +63,10 @@ impl LabTests {
             lines: 0,
             utm_samples: 0,
             sha256: BTreeMap::new(),
+            method: None,
+            specimen_info: None,
+            crack: None,
+            preload: None,
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
