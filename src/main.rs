@@ -104,6 +104,8 @@ enum Command {
     Bench(BenchOptions),
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
     Test(commands::lab_test::TestArgs),
+    /// The control API's users and roles (`[output] users_file`): add, list, remove.
+    User(commands::user::UserArgs),
     /// `archive`, `archive-bench` (the `archive` feature).
     #[command(flatten)]
     Archive(optional::archive::ArchiveCommand),
@@ -297,6 +299,7 @@ fn run(cli: Cli) -> Result<()> {
         },
         Command::Cameras { with_fake } => commands::cameras::list(with_fake),
         Command::Test(args) => commands::lab_test::run(&args),
+        Command::User(args) => commands::user::run(&args),
         Command::Bench(opts) => commands::bench::bench(&opts),
         Command::Sim(command) => command.run(),
         Command::Archive(command) => command.run(),

@@ -30,6 +30,44 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         );
         tests.set_auto(rules);
     }
+    let auth = match &config.output.users_file {
+        Some(f) => {
+            let users = tagdeflect_core::users::Users::read(f).map_err(|e| bad(format!("[output] users_file {e}")))?;
+            warn_if_shared(f);
+            tracing::info!(users = users.users.len(), "control API: each user's own token and role ({})", f.display());
+            tagdeflect_core::users::Credentials::Users(users)
+        }
+        None => tagdeflect_core::users::Credentials::Shared(shared_token(config, dir)?),
+    };
+    if !page.set_control(tests.clone(), auth) {
+        return Err(bad(format!(
+            "[output] tests = {}: the tests are driven through the control API, which needs the live page: set [output] http (or --http ADDR)",
+            dir.display()
+        ))
+        .into());
+    }
+    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero|sign|reanalyse", dir.display());
+    Ok(tests)
+}
+
+/// Warns when the users file is readable or writable by others than its owner (its hashes
+/// let anyone who reads them try tokens offline; who can write it can make themselves admin).
+pub fn warn_if_shared(path: &Path) {
+    use std::os::unix::fs::MetadataExt;
+    if let Ok(m) = std::fs::metadata(path) {
+        if m.mode() & 0o077 != 0 {
+            tracing::warn!(
+                "users file {}: readable or writable by others than its owner (mode {:o}): chmod 600",
+                path.display(),
+                m.mode() & 0o777
+            );
+        }
+    }
+}
+
+/// The one shared token: `[output] http_token_file`'s first line, else `dir/.token`'s (see [`start`]).
+fn shared_token(config: &Config, dir: &Path) -> Result<String> {
+    let bad = |m: String| tagdeflect_core::BadInput::new(m);
     let token = match &config.output.http_token_file {
         Some(f) => std::fs::read_to_string(f)
             .map_err(|e| bad(format!("[output] http_token_file {}: {e}", f.display())))?
@@ -59,15 +97,7 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
             token
         }
     };
-    if !page.set_control(tests.clone(), token) {
-        return Err(bad(format!(
-            "[output] tests = {}: the tests are driven through the control API, which needs the live page: set [output] http (or --http ADDR)",
-            dir.display()
-        ))
-        .into());
-    }
-    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero", dir.display());
-    Ok(tests)
+    Ok(token)
 }
 
 /// The token an earlier start wrote to `path`, if the file is still fit to hold one: a regular

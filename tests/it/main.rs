@@ -8,6 +8,7 @@ mod analog;
 mod aprilgrid;
 mod aravis_fake;
 mod archive;
+mod audit;
 mod calibrate;
 mod calibrate_guard;
 mod cli;

@@ -31,6 +31,7 @@ pub mod specimen;
 pub mod stats;
 pub mod tags;
 pub mod text_file;
+pub mod users;
 pub mod utm_sample;
 pub mod verification;
 
