@@ -25,6 +25,7 @@ mod package;
 mod realdata;
 mod recording;
 mod report;
+mod report_folder;
 mod report_lab;
 mod robustness;
 mod simulate;
