@@ -119,6 +119,7 @@ impl LabTests {
             kind: "resume".into(),
             t_ns: now,
             note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
+            user: None,
         };
         let mut record = p.record;
         record.events.push(ev.clone());
