@@ -114,7 +114,10 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     assert_eq!(at_stop["test_notes"], "cast in mould 3");
     assert!(at_stop["method_statement"].as_str().unwrap().starts_with("No test method was named"), "{}", at_stop["method_statement"]);
     let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
-    assert!(html.contains("Test record") && html.contains("first crack seen") && html.contains("cast in mould 3"), "the record in the HTML");
+    assert!(
+        html.contains("Test record") && html.contains("first crack seen") && html.contains("cast in mould 3"),
+        "the record in the HTML"
+    );
     assert!(html.contains("<td>A. Tester</td>") && html.contains("<td>B7</td>"), "specimen and operator in the HTML");
     let curve_svg = std::fs::read_to_string(folder.join("report/load_deflection.svg")).unwrap_or_default();
     assert!(curve_svg.contains("first crack seen"), "the mark drawn on the load–deflection curve");
@@ -157,7 +160,11 @@ fn report_verify_checks_the_copied_folder_it_is_given() {
     let id = folder.file_name().unwrap().to_str().unwrap().to_string();
     let tests_copy = dir.path().join("elsewhere").join("tests");
     std::fs::create_dir_all(tests_copy.parent().unwrap()).unwrap();
-    assert!(Command::new("cp").args(["-r", folder.parent().unwrap().to_str().unwrap(), tests_copy.to_str().unwrap()]).status().unwrap().success());
+    assert!(Command::new("cp")
+        .args(["-r", folder.parent().unwrap().to_str().unwrap(), tests_copy.to_str().unwrap()])
+        .status()
+        .unwrap()
+        .success());
     let copy = tests_copy.join(&id);
     let (code, out) = verify(&copy);
     println!("VERIFY clean copy:\n{out}");

@@ -1255,7 +1255,12 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
         m
     };
     let cases = [
-        ("inside", false, "astm-c1609", serde_json::json!({"crack": {"position_mm": 20.0, "inside_middle_third": true}, "method": method(true)})),
+        (
+            "inside",
+            false,
+            "astm-c1609",
+            serde_json::json!({"crack": {"position_mm": 20.0, "inside_middle_third": true}, "method": method(true)}),
+        ),
         ("outside", false, "astm-c1609", serde_json::json!({"crack": {"position_mm": -110.0}, "method": method(false)})),
         ("none", false, "astm-c1609", serde_json::json!({})),
         ("en", true, "en-14651", serde_json::json!({"crack": {"position_mm": 120.0, "inside_middle_third": false}})),
@@ -1264,7 +1269,15 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
         let folder = test_folder(&dir.path().join(name), cmod, standard, extra);
         let cfg = config_with_beam(dir.path(), if cmod { EN_BEAM } else { C1609_BEAM });
         let out = dir.path().join(format!("{name}-r"));
-        let o = tagdeflect(&["report", folder.to_str().unwrap(), "--config", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf"]);
+        let o = tagdeflect(&[
+            "report",
+            folder.to_str().unwrap(),
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--no-pdf",
+        ]);
         assert!(o.status.success(), "{name}: {}", stderr(&o));
         let j = read_json(&out.join("report.json"));
         let html = fs::read_to_string(out.join("report.html")).unwrap();
@@ -1278,7 +1291,10 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
         match name {
             "inside" => {
                 assert_eq!(j["valid"], true, "{reasons:?}");
-                assert_eq!(statement, "Method C1609-19 v2, reviewed by J. Reviewer on 2026-12-06 (checked against the lab's copy of C1609-19).");
+                assert_eq!(
+                    statement,
+                    "Method C1609-19 v2, reviewed by J. Reviewer on 2026-12-06 (checked against the lab's copy of C1609-19)."
+                );
                 assert_eq!(j["method"]["name"], "C1609-19");
                 assert!(j["specimen"]["fracture"].as_str().unwrap().starts_with("inside the middle third"), "{}", j["specimen"]);
             }
@@ -1300,4 +1316,78 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
             }
         }
     }
+}
+
+/// An EN 14651 series as the standard needs it: a specimen the lab excludes (`--exclude`) and
+/// one that is not a valid test are listed with their reasons and left out; n used; fR1…fR4
+/// means with their characteristic values f_Rk = f_Rm − k_n·s (EN 1990 Table D1, k_3 = 3.37)
+/// and the fib Model Code 2010 class; `series.csv`; reported as EN 14651. A series mixing
+/// standards is refused, naming the folders of each, unless --standard picks one.
+#[test]
+fn an_en_14651_series_with_exclusions_characteristic_values_and_its_class() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), EN_BEAM);
+    let mut folders = Vec::new();
+    for (k, name) in ["E1", "E2", "E3", "E4", "E5"].iter().enumerate() {
+        let d = dir.path().join(name);
+        let mut s = clean(true, 30 + k as u64);
+        s.dt_s = 1.0;
+        s.utm_hz = 5.0;
+        s.law = [|x| 0.9 * notched(x), notched, |x| 1.1 * notched(x), notched, notched][k];
+        if k == 4 {
+            s.x_end = 2.0;
+        }
+        s.write(&d);
+        fs::write(d.join("test.json"), serde_json::json!({"id": name, "specimen": name, "standard": "en-14651"}).to_string()).unwrap();
+        folders.push(d);
+    }
+    let out = dir.path().join("series");
+    let mut a = vec!["report", "--series"];
+    a.extend(folders.iter().map(|f| f.to_str().unwrap()));
+    a.extend(["--config", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf", "--exclude", "E4=cast with a void"]);
+    let o = tagdeflect(&a);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("series.json"));
+    println!(
+        "SERIES EN: excluded {} statistics fR1 {} characteristic {} class {}",
+        j["excluded"], j["statistics"]["fR1"], j["characteristic"], j["fib_class"]
+    );
+    assert_eq!(j["standard"], "en-14651");
+    assert_eq!((j["n_total"].as_u64(), j["n_used"].as_u64()), (Some(5), Some(3)));
+    let excluded = j["excluded"].as_array().unwrap();
+    assert_eq!(excluded[0]["specimen"], "E4");
+    assert_eq!(excluded[0]["reason"], "excluded by the lab: cast with a void");
+    assert_eq!(excluded[1]["specimen"], "E5");
+    assert!(excluded[1]["reason"].as_str().unwrap().starts_with("not a valid test: "), "{}", excluded[1]);
+    let ck = |k: &str| j["characteristic"][k]["value"].as_f64().unwrap();
+    for key in ["fR1", "fR3"] {
+        let st = &j["statistics"][key];
+        let (mean, sd) = (st["mean"].as_f64().unwrap(), st["sd"].as_f64().unwrap());
+        assert_eq!(st["n"], 3);
+        assert!((ck(&format!("{key}k")) - (mean - 3.37 * sd)).abs() < 1e-12, "{key}: {} vs {mean} − 3.37·{sd}", ck(&format!("{key}k")));
+        assert_eq!(j["characteristic"][format!("{key}k")]["k_n"], 3.37);
+    }
+    let class = tagdeflect_report::series_stats::fib_class(ck("fR1k"), ck("fR3k"));
+    assert_eq!(j["fib_class"]["class"].as_str(), class.as_deref());
+    assert!(j["fib_class"]["source"].as_str().unwrap().contains("fib Model Code 2010 §5.6.3"));
+    assert!(j["characteristic_source"].as_str().unwrap().contains("EN 1990"));
+    let csv = fs::read_to_string(out.join("series.csv")).unwrap();
+    assert!(csv.starts_with("specimen,used,excluded_reason,") && csv.contains("fR1 [MPa]"), "{csv}");
+    assert!(csv.contains("\nE4,no,excluded by the lab: cast with a void,"), "{csv}");
+    let html = fs::read_to_string(out.join("series.html")).unwrap();
+    assert!(html.contains("Characteristic values") && html.contains("cast with a void"));
+
+    // A C1609 specimen among them: refused, naming the folders of each standard.
+    let c = dir.path().join("C1");
+    clean(false, 50).write(&c);
+    fs::write(c.join("test.json"), serde_json::json!({"id": "C1", "specimen": "C1", "standard": "astm-c1609"}).to_string()).unwrap();
+    let out2 = dir.path().join("mixed");
+    let mut a = vec!["report", "--series", folders[0].to_str().unwrap(), c.to_str().unwrap()];
+    a.extend(["--config", cfg.to_str().unwrap(), "--out", out2.to_str().unwrap(), "--no-pdf"]);
+    let o = tagdeflect(&a);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(e.contains("mixes standards") && e.contains(&format!("astm-c1609: {}", c.display())), "{e}");
+    assert!(e.contains(&format!("en-14651: {}", folders[0].display())), "{e}");
+    assert!(!out2.join("series.json").exists(), "nothing written");
 }

@@ -35,18 +35,30 @@ const C1609: [RuleSource; 8] = [
 /// EN 14651:2005+A1:2007, Test method for metallic fibred concrete — Measuring the flexural
 /// tensile strength (limit of proportionality (LOP), residual).
 const EN14651: [RuleSource; 6] = [
-    r("three-point loading of a beam notched at mid-span; the CMOD across the notch", "EN 14651:2005+A1:2007 §5 Principle, §6 Apparatus, §7 Test specimens"),
+    r(
+        "three-point loading of a beam notched at mid-span; the CMOD across the notch",
+        "EN 14651:2005+A1:2007 §5 Principle, §6 Apparatus, §7 Test specimens",
+    ),
     r("F_L: the largest load up to CMOD 0.05 mm; f_L = 3·F_L·l/(2·b·h_sp²)", "EN 14651:2005+A1:2007 §9.1, Eq. 1"),
     r("F_R,j at CMOD 0.5, 1.5, 2.5, 3.5 mm; f_R,j = 3·F_R,j·l/(2·b·h_sp²)", "EN 14651:2005+A1:2007 §9.2, Eq. 2"),
     r("rate of CMOD: 0.05 mm/min up to CMOD 0.1 mm, then 0.2 mm/min", "EN 14651:2005+A1:2007 §8 Procedure"),
     r("the test carried to a CMOD of at least 3.5 mm", "EN 14651:2005+A1:2007 §8 Procedure"),
-    r("the crack entry is not a validity rule (the notch fixes where the beam cracks)", "EN 14651:2005+A1:2007 §7 Test specimens (notching)"),
+    r(
+        "the crack entry is not a validity rule (the notch fixes where the beam cracks)",
+        "EN 14651:2005+A1:2007 §7 Test specimens (notching)",
+    ),
 ];
 
 /// ASTM C1856/C1856M-17, Fabricating and Testing Specimens of Ultra-High Performance Concrete.
 const C1856: [RuleSource; 2] = [
-    r("flexural performance of UHPC prisms tested by ASTM C1609 (its rules below)", "ASTM C1856-17 §1.1 Scope and its flexural-test clause, which refers to ASTM C1609"),
-    r("deflection-hardening response accepted when stated (first peak may lie beyond L/150)", "ASTM C1856-17 (UHPC) with ASTM C1609-19 §3 Terminology"),
+    r(
+        "flexural performance of UHPC prisms tested by ASTM C1609 (its rules below)",
+        "ASTM C1856-17 §1.1 Scope and its flexural-test clause, which refers to ASTM C1609",
+    ),
+    r(
+        "deflection-hardening response accepted when stated (first peak may lie beyond L/150)",
+        "ASTM C1856-17 (UHPC) with ASTM C1609-19 §3 Terminology",
+    ),
 ];
 
 /// Every rule the report applies for `standard`, with its public source.

@@ -234,7 +234,13 @@ fn series_csv(reports: &[Report], names: &[String], sel: &Selection, f: &Figures
         c.push('\n');
     }
     for ch in &f.characteristic {
-        let _ = writeln!(c, "{}k,,{},{}", ch.key, csv_field(&format!("k_n = {}", ch.k_n.map_or("—".into(), |k| k.to_string()))), ch.value.map_or("not determined (n < 3)".into(), |v| v.to_string()));
+        let _ = writeln!(
+            c,
+            "{}k,,{},{}",
+            ch.key,
+            csv_field(&format!("k_n = {}", ch.k_n.map_or("—".into(), |k| k.to_string()))),
+            ch.value.map_or("not determined (n < 3)".into(), |v| v.to_string())
+        );
     }
     c
 }
@@ -283,7 +289,8 @@ fn series_html(reports: &[Report], names: &[String], sel: &Selection, f: &Figure
     h.push_str("</tr>");
     for (i, (r, n)) in reports.iter().zip(names).enumerate() {
         let used = sel.used.contains(&i);
-        let _ = write!(h, "<tr><td>{}</td><td class=\"{}\">{}</td>", esc(n), if used { "" } else { "bad" }, if used { "yes" } else { "no" });
+        let _ =
+            write!(h, "<tr><td>{}</td><td class=\"{}\">{}</td>", esc(n), if used { "" } else { "bad" }, if used { "yes" } else { "no" });
         for s in &f.stats {
             let cell = r.entries.iter().find(|e| e.key == s.key).and_then(|e| e.result.as_ref().ok()).map_or("—".to_string(), |q| {
                 let d = q.decimals();
@@ -313,7 +320,13 @@ fn series_html(reports: &[Report], names: &[String], sel: &Selection, f: &Figure
         h.push_str("<h2>Characteristic values</h2><table><tr><th>quantity</th><th>n</th><th>k_n</th><th>value [MPa]</th></tr>");
         for c in &f.characteristic {
             let v = c.value.map_or("not determined (n &lt; 3)".to_string(), |v| format!("{v:.2}"));
-            let _ = write!(h, "<tr><td>{}k</td><td>{}</td><td>{}</td><td>{v}</td></tr>", c.key, c.n, c.k_n.map_or("—".into(), |k| k.to_string()));
+            let _ = write!(
+                h,
+                "<tr><td>{}k</td><td>{}</td><td>{}</td><td>{v}</td></tr>",
+                c.key,
+                c.n,
+                c.k_n.map_or("—".into(), |k| k.to_string())
+            );
         }
         let _ = write!(
             h,

@@ -48,7 +48,8 @@ pub fn mean_sd(v: &[f64]) -> (f64, f64) {
 }
 
 /// EN 1990:2002 Annex D, Table D1: k_n for the 5 % characteristic value, V_X unknown, by n.
-pub const KN_TABLE_D1: [(usize, f64); 9] = [(3, 3.37), (4, 2.63), (5, 2.33), (6, 2.18), (8, 2.00), (10, 1.92), (20, 1.76), (30, 1.73), (usize::MAX, 1.64)];
+pub const KN_TABLE_D1: [(usize, f64); 9] =
+    [(3, 3.37), (4, 2.63), (5, 2.33), (6, 2.18), (8, 2.00), (10, 1.92), (20, 1.76), (30, 1.73), (usize::MAX, 1.64)];
 
 /// k_n of EN 1990 Annex D, Table D1 (5 % fractile, variance unknown) for `n` specimens: the
 /// table's value at `n`, between its columns the value of the next smaller n tabulated (the

@@ -121,7 +121,8 @@ pub struct TestView {
 impl TestView {
     /// Reads `test.json` and range-checks it; an error names the file and the key.
     pub fn read(path: &Path) -> Result<TestView, ReportError> {
-        let text = std::fs::read_to_string(path).map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
         let view: TestView = serde_json::from_str(&text)
             .map_err(|e| ReportError::Data { path: path.to_path_buf(), message: format!("not a test record: {e}") })?;
         view.checked(path)

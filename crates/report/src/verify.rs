@@ -132,7 +132,8 @@ fn inputs(v: &serde_json::Value, f: &Folders, p: &Path) -> Result<Vec<Checked>, 
         let (Some(role), Some(path), Some(sha)) = (file["role"].as_str(), file["path"].as_str(), file["sha256"].as_str()) else {
             return Err(ReportError::Data { path: p.to_path_buf(), message: format!("an input without role, path or sha256: {file}") });
         };
-        let name = file["name"].as_str().map(PathBuf::from).unwrap_or_else(|| Path::new(path).file_name().map(PathBuf::from).unwrap_or_default());
+        let name =
+            file["name"].as_str().map(PathBuf::from).unwrap_or_else(|| Path::new(path).file_name().map(PathBuf::from).unwrap_or_default());
         let here = f.base.join(&name);
         out.push(Checked { role: role.to_string(), path: here.display().to_string(), state: state_of(&here, sha) });
     }
@@ -162,8 +163,8 @@ fn test_record(t: &Path) -> Result<Vec<Checked>, ReportError> {
     let text = std::fs::read_to_string(&p).map_err(|e| ReportError::Io { path: p.clone(), message: e.to_string() })?;
     let v: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| ReportError::Data { path: p.clone(), message: format!("not a test record: {e}") })?;
-    let map: BTreeMap<String, String> = serde_json::from_value(v["sha256"].clone())
-        .map_err(|e| ReportError::Data { path: p.clone(), message: format!("sha256: {e}") })?;
+    let map: BTreeMap<String, String> =
+        serde_json::from_value(v["sha256"].clone()).map_err(|e| ReportError::Data { path: p.clone(), message: format!("sha256: {e}") })?;
     let mut out: Vec<Checked> = map
         .iter()
         .map(|(name, sha)| {
@@ -185,14 +186,13 @@ fn test_record(t: &Path) -> Result<Vec<Checked>, ReportError> {
 /// edit of it shows here.
 fn record_vs_report(t: &Path, report: &serde_json::Value) -> Vec<Checked> {
     let p = t.join("test.json");
-    let Ok(rec) = std::fs::read_to_string(&p).map_err(|_| ()).and_then(|s| serde_json::from_str::<serde_json::Value>(&s).map_err(|_| ())) else {
+    let Ok(rec) = std::fs::read_to_string(&p).map_err(|_| ()).and_then(|s| serde_json::from_str::<serde_json::Value>(&s).map_err(|_| ()))
+    else {
         return Vec::new();
     };
     let spec = &report["specimen"];
-    let mut pairs = vec![
-        ("specimen", rec["specimen"].clone(), spec["id"].clone()),
-        ("operator", rec["operator"].clone(), report["operator"].clone()),
-    ];
+    let mut pairs =
+        vec![("specimen", rec["specimen"].clone(), spec["id"].clone()), ("operator", rec["operator"].clone(), report["operator"].clone())];
     if report.get("events").is_some() {
         pairs.push(("events", rec["events"].clone(), report["events"].clone()));
     }
@@ -208,7 +208,11 @@ fn record_vs_report(t: &Path, report: &serde_json::Value) -> Vec<Checked> {
         .filter(|(_, a, b)| !a.is_null() || !b.is_null())
         .map(|(key, in_record, in_report)| {
             let same = in_record == in_report || (in_record.as_f64().is_some() && in_record.as_f64() == in_report.as_f64());
-            let path = if same { format!("{} `{key}` as the report took it", p.display()) } else { format!("{} `{key}` is {in_record}, the report took {in_report}", p.display()) };
+            let path = if same {
+                format!("{} `{key}` as the report took it", p.display())
+            } else {
+                format!("{} `{key}` is {in_record}, the report took {in_report}", p.display())
+            };
             Checked { role: "test.json".into(), path, state: if same { InputState::Same } else { InputState::Changed } }
         })
         .collect()
