@@ -38,7 +38,7 @@ fn python() -> PathBuf {
 }
 
 /// Two 480x360 cameras at 5 fps, 60 frame sets (a cycle of 24 s in a live demo).
-fn small_rig() -> SimParams {
+pub(crate) fn small_rig() -> SimParams {
     SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() }
 }
 
@@ -582,7 +582,7 @@ pub(crate) fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body:
     (code, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_string())
 }
 
-fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
+pub(crate) fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
     let url = format!("http://{addr}");
     let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
     all.extend_from_slice(args);

@@ -26,6 +26,7 @@ mod package;
 mod realdata;
 mod recording;
 mod report;
+mod report_folder;
 mod report_lab;
 mod robustness;
 mod simulate;
