@@ -100,6 +100,8 @@ enum Command {
     Bench(BenchOptions),
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
     Test(commands::lab_test::TestArgs),
+    /// The test methods: list them, show one, record the lab's review of one.
+    Method(commands::method::MethodArgs),
     /// `archive`, `archive-bench` (the `archive` feature).
     #[command(flatten)]
     Archive(optional::archive::ArchiveCommand),
@@ -293,6 +295,7 @@ fn run(cli: Cli) -> Result<()> {
         },
         Command::Cameras { with_fake } => commands::cameras::list(with_fake),
         Command::Test(args) => commands::lab_test::run(&args),
+        Command::Method(args) => commands::method::run(&args),
         Command::Bench(opts) => commands::bench::bench(&opts),
         Command::Sim(command) => command.run(),
         Command::Archive(command) => command.run(),

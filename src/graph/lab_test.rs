@@ -22,6 +22,10 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record).map_err(Into::into));
     let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
         .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
+    if let Some(b) = &config.specimen.beam {
+        let dims = [("width_mm", Some(b.width_mm)), ("depth_mm", Some(b.depth_mm)), ("span_mm", Some(b.span_mm)), ("notch_mm", b.notch_mm)];
+        tests.set_beam(dims.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))).collect());
+    }
     if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {
         tracing::info!(
             start_load_kn = rules.config.start_load_kn,
@@ -66,7 +70,7 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         ))
         .into());
     }
-    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero", dir.display());
+    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero|crack, /api/specimens", dir.display());
     Ok(tests)
 }
 
@@ -111,8 +115,12 @@ fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
 
 /// The beam dimensions a test was started with (`measured`: `width_mm`, `depth_mm`, `span_mm`,
 /// `notch_mm`, each specimen measured by the lab) replace the config's for its report; the
-/// names and values replaced. Other measured values are only recorded.
+/// names and values replaced. Other measured values are only recorded. A config without
+/// `[specimen.beam]` takes the beam from them whole (width, depth and span measured).
 fn apply_measured(rig: &mut tagdeflect_report::TestRig, measured: &std::collections::BTreeMap<String, f64>) -> Vec<String> {
+    if rig.specimen.beam.is_none() && ["width_mm", "depth_mm", "span_mm"].iter().all(|k| measured.get(*k).is_some_and(|v| *v > 0.0)) {
+        rig.specimen.beam = Some(tagdeflect_report::BeamConfig::default());
+    }
     let Some(beam) = rig.specimen.beam.as_mut() else { return Vec::new() };
     let mut used = Vec::new();
     for (key, v) in measured {

@@ -36,6 +36,12 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/test", get(super::test_api::status))
         .route("/api/tests", get(super::test_api::earlier))
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
+        .route(
+            "/api/specimens",
+            get(super::test_api::specimens)
+                .post(super::test_api::import_specimens)
+                .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_SPECIMENS_BODY)),
+        )
         // Larger bodies are refused before they are read whole (the control API's limit).
         .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_BODY))
         .with_state(view)

@@ -27,7 +27,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::LiveView;
-use crate::lab_test::{LabTests, TestError, TestMeta};
+use crate::lab_test::{CrackRequest, LabTests, TestError};
 
 /// Largest POST body taken, bytes.
 pub const MAX_BODY: usize = 16 * 1024;
@@ -115,11 +115,9 @@ pub(crate) async fn command(
             serde_json::from_slice(&body).map_err(|e| TestError::Bad(format!("{what}: the body is not JSON: {e}")))
         };
         match cmd.as_str() {
-            "start" => {
-                let meta: TestMeta = serde_json::from_value(parse("start")?).map_err(|e| TestError::Bad(format!("start: {e}")))?;
-                tests.start(meta)
-            }
-            "stop" => tests.stop().map(|s| serde_json::json!({"id": s.id, "folder": s.folder})),
+            "start" => tests.start_request(parse("start")?),
+            "stop" => stop(&tests, parse("stop")?),
+            "crack" => tests.crack(serde_json::from_value(parse("crack")?).map_err(|e| TestError::Bad(format!("crack: {e}")))?),
             "mark" => {
                 let v = parse("mark")?;
                 let note = match v.get("note") {
@@ -130,11 +128,16 @@ pub(crate) async fn command(
                 tests.mark(note)
             }
             "zero" => tests.zero(),
-            other => Err(TestError::Bad(format!("no command \"{}\": start, stop, mark or zero", other.escape_debug()))),
+            other => Err(TestError::Bad(format!("no command \"{}\": start, stop, mark, zero or crack", other.escape_debug()))),
         }
     };
     // `stop` waits for the sinks and writes the folder: never on the server's threads.
-    match tokio::task::spawn_blocking(run).await {
+    respond(tokio::task::spawn_blocking(run).await)
+}
+
+/// The answer to a command run on a blocking thread.
+fn respond(done: Result<Result<serde_json::Value, TestError>, tokio::task::JoinError>) -> Response {
+    match done {
         Ok(Ok(v)) => Json(v).into_response(),
         Ok(Err(TestError::Conflict(m))) => answer(StatusCode::CONFLICT, m),
         Ok(Err(TestError::Bad(m))) => answer(StatusCode::BAD_REQUEST, m),
@@ -144,6 +147,64 @@ pub(crate) async fn command(
         }
         Err(e) => answer(StatusCode::INTERNAL_SERVER_ERROR, format!("the command failed: {e}")),
     }
+}
+
+/// `POST /api/test/stop`: the body may hold the operator's crack entry (`{"crack": {...}}`,
+/// entered before the stop); the answer says when the report could not be made.
+fn stop(tests: &LabTests, body: serde_json::Value) -> Result<serde_json::Value, TestError> {
+    let serde_json::Value::Object(mut fields) = body else { return Err(TestError::Bad("stop: the body is a JSON object".into())) };
+    let crack = fields.remove("crack");
+    if let Some(k) = fields.keys().next() {
+        return Err(TestError::Bad(format!("stop: unknown field `{k}`, expected `crack`")));
+    }
+    if let Some(c) = crack.filter(|c| !c.is_null()) {
+        let c: CrackRequest = serde_json::from_value(c).map_err(|e| TestError::Bad(format!("stop: crack: {e}")))?;
+        tests.crack(c)?;
+    }
+    tests.stop().map(|s| serde_json::json!({"id": s.id, "folder": s.folder, "report_error": s.report_error}))
+}
+
+/// Largest specimen table taken, bytes (`POST /api/specimens`).
+pub const MAX_SPECIMENS_BODY: usize = 256 * 1024;
+
+/// `GET /api/specimens`: the table entered beforehand, each row tested or not, and the next.
+pub(crate) async fn specimens(State(view): State<Arc<LiveView>>) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    let tests = api.tests.clone();
+    respond(tokio::task::spawn_blocking(move || tests.specimens()).await)
+}
+
+/// `POST /api/specimens`: imports a table, `text/csv` or `application/json`, token-guarded like
+/// the test commands, at most [`MAX_SPECIMENS_BODY`] bytes; every row checked, the first bad
+/// one named by row and column (400).
+pub(crate) async fn import_specimens(
+    State(view): State<Arc<LiveView>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    if body.len() > MAX_SPECIMENS_BODY {
+        return answer(StatusCode::PAYLOAD_TOO_LARGE, format!("a table of at most {MAX_SPECIMENS_BODY} bytes"));
+    }
+    if let Some(why) = cross_origin(&headers) {
+        tracing::warn!(%peer, "control API: a cross-origin request refused ({why})");
+        return answer(StatusCode::FORBIDDEN, format!("cross-origin request refused: {why}"));
+    }
+    let kind = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").trim_start().to_ascii_lowercase();
+    let csv = kind.starts_with("text/csv");
+    if !csv && !kind.starts_with("application/json") {
+        return answer(StatusCode::UNSUPPORTED_MEDIA_TYPE, "the table must be text/csv or application/json");
+    }
+    if let Some(refused) = check_token(api, &headers, peer) {
+        return refused;
+    }
+    let tests = api.tests.clone();
+    respond(tokio::task::spawn_blocking(move || tests.import_specimens(crate::lab_test::parse_specimens(&body, csv)?)).await)
 }
 
 /// Why a request comes from another site, if it does.
