@@ -3,10 +3,12 @@
 //! one process clock, reconnect backoff, UTM samples, the feed line (one type, written by the
 //! measurement and read tolerantly by the report), what the measurement observed for the page
 //! and the line files it goes into, the virtual gauges' definitions, a lab test's record
-//! (`test.json`), test methods and the specimens entered before their tests.
+//! (`test.json`), test methods, the specimens entered before their tests, and the hash-chained
+//! audit log of a tests folder (`audit.jsonl`).
 //!
 //! Nothing here does I/O beyond reading and writing files, and nothing knows the command line.
 
+pub mod audit;
 pub mod backoff;
 pub mod beam;
 pub mod calibration_file;
