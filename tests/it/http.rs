@@ -17,7 +17,7 @@ use tagdeflect_core::feed::FeedLine;
 use tagdeflect_sim::{SimParams, SimRig};
 
 /// The test venv's Python with selenium and prometheus_client (scripts/setup.sh makes it).
-fn python() -> PathBuf {
+pub(crate) fn python() -> PathBuf {
     let candidates: Vec<PathBuf> = std::env::var_os("TAGDEFLECT_PYTHON")
         .map(PathBuf::from)
         .into_iter()
@@ -61,14 +61,14 @@ fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
 
 /// `tagdeflect` with the live page: stdout (feed lines, with arrival times) and stderr
 /// collected by threads; killed on drop.
-struct Daemon {
+pub(crate) struct Daemon {
     child: Child,
     lines: Arc<Mutex<Vec<(Instant, FeedLine)>>>,
-    stderr: Arc<Mutex<String>>,
+    pub(crate) stderr: Arc<Mutex<String>>,
 }
 
 impl Daemon {
-    fn start(args: &[&str]) -> Daemon {
+    pub(crate) fn start(args: &[&str]) -> Daemon {
         let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
             .args(args)
             .env("TAGDEFLECT_LOG", "info")
@@ -99,7 +99,7 @@ impl Daemon {
     }
 
     /// The address printed as `http://ADDR/` on stderr.
-    fn addr(&self) -> SocketAddr {
+    pub(crate) fn addr(&self) -> SocketAddr {
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
             if let Some(a) = page_addr(&self.stderr.lock().unwrap()) {
@@ -110,7 +110,7 @@ impl Daemon {
         }
     }
 
-    fn lines(&self) -> Vec<(Instant, FeedLine)> {
+    pub(crate) fn lines(&self) -> Vec<(Instant, FeedLine)> {
         self.lines.lock().unwrap().clone()
     }
 
@@ -133,7 +133,7 @@ impl Daemon {
     }
 
     /// SIGTERM and the exit code.
-    fn stop(&mut self) -> Option<i32> {
+    pub(crate) fn stop(&mut self) -> Option<i32> {
         let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
         let deadline = Instant::now() + Duration::from_secs(20);
         loop {
@@ -160,7 +160,7 @@ fn page_addr(stderr: &str) -> Option<SocketAddr> {
 }
 
 /// GET `path` (HTTP/1.1, `Connection: close`): status, content type, body.
-fn get(addr: SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
+pub(crate) fn get(addr: SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     write!(s, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
@@ -474,11 +474,14 @@ fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error
 /// `<img src=x onerror=...>` must show as those characters, not run).
 #[test]
 fn the_page_script_puts_no_data_in_as_markup() {
-    let js = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/sinks/src/http/assets/app.js")).unwrap();
-    for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write"] {
-        assert!(!js.contains(sink), "app.js uses {sink}");
+    for file in ["app.js", "start_form.js"] {
+        let js = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/sinks/src/http/assets").join(file))
+            .unwrap();
+        for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write"] {
+            assert!(!js.contains(sink), "{file} uses {sink}");
+        }
+        assert!(js.contains("textContent"), "{file} writes text with textContent");
     }
-    assert!(js.contains("textContent"), "app.js writes text with textContent");
 }
 
 /// Raw request on a fresh connection: the response's head (status line and headers).
@@ -565,7 +568,7 @@ fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
 }
 
 /// A raw POST to the control API: status code and body.
-fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> (u16, String) {
+pub(crate) fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> (u16, String) {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let mut req = format!("POST {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
@@ -582,7 +585,7 @@ fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> 
     (code, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_string())
 }
 
-fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
+pub(crate) fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
     let url = format!("http://{addr}");
     let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
     all.extend_from_slice(args);

@@ -15,6 +15,7 @@ use super::view::{ClientGuard, Event, LiveView};
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const APP_JS: &str = include_str!("assets/app.js");
+const START_FORM_JS: &str = include_str!("assets/start_form.js");
 const APP_CSS: &str = include_str!("assets/app.css");
 const UPLOT_JS: &str = include_str!("assets/vendor/uplot/uPlot.iife.min.js");
 const UPLOT_CSS: &str = include_str!("assets/vendor/uplot/uPlot.min.css");
@@ -36,6 +37,8 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/test", get(super::test_api::status))
         .route("/api/tests", get(super::test_api::earlier))
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
+        .route("/api/methods", get(super::test_api::methods))
+        .route("/assets/start_form.js", get(|| async { asset("text/javascript; charset=utf-8", START_FORM_JS) }))
         .route(
             "/api/specimens",
             get(super::test_api::specimens)

@@ -164,6 +164,15 @@ fn stop(tests: &LabTests, body: serde_json::Value) -> Result<serde_json::Value, 
     tests.stop().map(|s| serde_json::json!({"id": s.id, "folder": s.folder, "report_error": s.report_error}))
 }
 
+/// `GET /api/methods`: the test methods (shipped and the lab's) and the config's beam.
+pub(crate) async fn methods(State(view): State<Arc<LiveView>>) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    let tests = api.tests.clone();
+    respond(tokio::task::spawn_blocking(move || Ok(tests.methods())).await)
+}
+
 /// Largest specimen table taken, bytes (`POST /api/specimens`).
 pub const MAX_SPECIMENS_BODY: usize = 256 * 1024;
 

@@ -75,6 +75,25 @@ impl LabTests {
         Ok(self.status())
     }
 
+    /// `GET /api/methods`: every method (a file that does not pass with its error) and the
+    /// config's beam, for the page's start form and its rate window.
+    pub fn methods(&self) -> serde_json::Value {
+        let methods: Vec<serde_json::Value> = library::list(&self.dir)
+            .into_iter()
+            .map(|m| match m {
+                Ok(m) => {
+                    let mut v = serde_json::to_value(&m.method).unwrap_or_default();
+                    v["origin"] = m.origin().into();
+                    v["sha256"] = m.sha256.clone().into();
+                    v["review"] = serde_json::to_value(&m.review).unwrap_or_default();
+                    v
+                }
+                Err(e) => serde_json::json!({"error": e.to_string()}),
+            })
+            .collect();
+        serde_json::json!({"methods": methods, "beam_mm": self.lock().beam_mm})
+    }
+
     /// The method `name`, or why it cannot be used (400).
     fn method(&self, name: &str) -> Result<library::Loaded, TestError> {
         library::find(&self.dir, name).map_err(|e| match e {
