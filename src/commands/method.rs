@@ -1,7 +1,8 @@
 //! `tagdeflect method list|show|review`: the test methods a tests folder offers (the shipped
 //! ones and the lab's own in `<tests>/methods/`), one method's file as used, and the lab's
 //! review of a method file (`<tests>/methods/NAME.review.json`, naming the file's SHA-256; a
-//! file changed since voids it). See docs/methods.md.
+//! file changed since voids it), appended to the folder's audit log as a `method` action. See
+//! docs/methods.md.
 
 use std::path::PathBuf;
 
@@ -72,6 +73,19 @@ pub fn run(args: &MethodArgs) -> Result<()> {
             let at = chrono::Utc::now().format("%Y-%m-%dT%H:%M:%SZ").to_string();
             let review = MethodReview { by: by.trim().to_string(), at, meaning: meaning.trim().to_string() };
             let file = library::review(&args.tests, name, review).map_err(located)?;
+            // The review is an action of the tests folder's audit log (whoever may write the
+            // folder is its admin).
+            let action = tagdeflect_core::audit::AuditAction {
+                t_ns: tagdeflect_core::clock::now_epoch_ns(),
+                user: file.review.by.clone(),
+                role: "admin".into(),
+                action: "method".into(),
+                test: None,
+                detail: serde_json::json!({"reviewed": file.name, "version": file.version, "sha256": file.sha256, "meaning": file.review.meaning}),
+            };
+            let log = args.tests.join("audit.jsonl");
+            tagdeflect_core::audit::append(&log, action)
+                .map_err(|e| tagdeflect_core::RuntimeFailure::new(format!("{}: the review was written, its audit entry not: {e}", log.display())))?;
             println!("{}", serde_json::to_string_pretty(&file)?);
             Ok(())
         }

@@ -85,7 +85,10 @@ function stopBody() {
   const v = parseFloat($("f-crack").value);
   return Number.isFinite(v) ? { crack: { position_mm: v } } : {};
 }
-for (const id of ["f-method", "f-standard", "f-specimen", "f-width", "f-depth", "f-span", "f-notch"]) $(id).addEventListener("input", showRequires);
+for (const id of ["f-method", "f-standard", "f-specimen", "f-width", "f-depth", "f-span", "f-notch"]) {
+  $(id).addEventListener("input", showRequires);
+  $(id).addEventListener("change", showRequires);
+}
 loadMethods();
 loadSpecimens();
 setInterval(loadSpecimens, 5000);
