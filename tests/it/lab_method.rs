@@ -73,8 +73,9 @@ fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
     let addr = d.addr();
     let token_file = tests_dir.join(".token");
     let deadline = Instant::now() + Duration::from_secs(60);
-    while !token_file.is_file() {
-        assert!(Instant::now() < deadline, "no token file");
+    // The token is written before the control API is served: wait for the API itself.
+    while !token_file.is_file() || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
+        assert!(Instant::now() < deadline, "no control API within 60 s");
         std::thread::sleep(Duration::from_millis(100));
     }
 
@@ -165,8 +166,9 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     let addr = d.addr();
     let token_file = tests_dir.join(".token");
     let deadline = Instant::now() + Duration::from_secs(60);
-    while !token_file.is_file() {
-        assert!(Instant::now() < deadline, "no token file");
+    // The token is written before the control API is served: wait for the API itself.
+    while !token_file.is_file() || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
+        assert!(Instant::now() < deadline, "no control API within 60 s");
         std::thread::sleep(Duration::from_millis(100));
     }
     let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
