@@ -84,8 +84,9 @@ pub fn run(args: &MethodArgs) -> Result<()> {
                 detail: serde_json::json!({"reviewed": file.name, "version": file.version, "sha256": file.sha256, "meaning": file.review.meaning}),
             };
             let log = args.tests.join("audit.jsonl");
-            tagdeflect_core::audit::append(&log, action)
-                .map_err(|e| tagdeflect_core::RuntimeFailure::new(format!("{}: the review was written, its audit entry not: {e}", log.display())))?;
+            tagdeflect_core::audit::append(&log, action).map_err(|e| {
+                tagdeflect_core::RuntimeFailure::new(format!("{}: the review was written, its audit entry not: {e}", log.display()))
+            })?;
             println!("{}", serde_json::to_string_pretty(&file)?);
             Ok(())
         }
