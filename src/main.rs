@@ -106,6 +106,8 @@ enum Command {
     Test(commands::lab_test::TestArgs),
     /// The control API's users and roles (`[output] users_file`): add, list, remove.
     User(commands::user::UserArgs),
+    /// The test methods: list them, show one, record the lab's review of one.
+    Method(commands::method::MethodArgs),
     /// `archive`, `archive-bench` (the `archive` feature).
     #[command(flatten)]
     Archive(optional::archive::ArchiveCommand),
@@ -300,6 +302,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Cameras { with_fake } => commands::cameras::list(with_fake),
         Command::Test(args) => commands::lab_test::run(&args),
         Command::User(args) => commands::user::run(&args),
+        Command::Method(args) => commands::method::run(&args),
         Command::Bench(opts) => commands::bench::bench(&opts),
         Command::Sim(command) => command.run(),
         Command::Archive(command) => command.run(),

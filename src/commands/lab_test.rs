@@ -1,5 +1,6 @@
-//! `tagdeflect test start|stop|mark|zero`: a thin client of a running daemon's control API
-//! (SPEC "Tests"); prints the daemon's JSON answer.
+//! `tagdeflect test start|stop|mark|zero|crack|specimens`: a thin client of a running daemon's
+//! control API (SPEC "Tests", docs/methods.md); prints the daemon's JSON answer. `test stop`
+//! exits 3 when the daemon says the report could not be made (the folder is complete).
 
 use anyhow::{Context, Result};
 use std::path::PathBuf;
@@ -24,9 +25,12 @@ pub struct TestArgs {
 pub enum TestAction {
     /// Start a test (its zero is taken at its first frame sets).
     Start {
-        /// The specimen's id.
+        /// The specimen's id; `next` takes the next untested specimen of the imported table.
         #[arg(long)]
         specimen: String,
+        /// The test method (`C1609-19`, `EN14651-05`, or the lab's own; `tagdeflect method list`).
+        #[arg(long)]
+        method: Option<String>,
         /// Who runs the test.
         #[arg(long)]
         operator: Option<String>,
@@ -41,8 +45,29 @@ pub enum TestAction {
         #[arg(long, value_name = "NAME=NUMBER", value_parser = parse_measured)]
         measured: Vec<(String, f64)>,
     },
-    /// Stop the running test; answers once its folder (report included) is complete.
-    Stop,
+    /// Stop the running test; answers once its folder (report included) is complete; exits 3
+    /// when the report could not be made.
+    Stop {
+        /// The crack's position from mid-span, mm (signed), entered with the stop.
+        #[arg(long, value_name = "MM", allow_hyphen_values = true)]
+        crack_mm: Option<f64>,
+    },
+    /// Enter where the beam cracked (from mid-span, mm, signed); inside the middle third or not
+    /// is computed from the span.
+    Crack {
+        /// The crack's position from mid-span, mm.
+        #[arg(allow_hyphen_values = true)]
+        position_mm: f64,
+        /// Say inside (`true`) or outside (`false`) the middle third (required when the span is not known).
+        #[arg(long)]
+        inside_middle_third: Option<bool>,
+    },
+    /// The specimens entered beforehand.
+    Specimens {
+        /// Import a table or list it.
+        #[command(subcommand)]
+        action: SpecimensAction,
+    },
     /// Put a note into the feed and the test's record ("first crack seen").
     Mark {
         /// The note.
@@ -52,6 +77,19 @@ pub enum TestAction {
     Zero,
     /// Print the test's state (no token needed).
     Status,
+}
+
+/// `tagdeflect test specimens ...`.
+#[derive(Debug, clap::Subcommand)]
+pub enum SpecimensAction {
+    /// Import a CSV table (`id,width_mm,width_mm,depth_mm,span_mm,cast_date,...`) into the
+    /// running daemon's tests folder (`POST /api/specimens`).
+    Import {
+        /// The CSV file.
+        file: PathBuf,
+    },
+    /// Print the table, each row tested or not (no token needed).
+    List,
 }
 
 /// `--measured width_mm=150.2`.
@@ -74,24 +112,25 @@ pub fn run(args: &TestArgs) -> Result<()> {
             println!("{text}");
             return Ok(());
         }
-        TestAction::Start { specimen, operator, standard, notes, measured } => {
-            let measured: serde_json::Map<String, serde_json::Value> = measured.iter().map(|(k, v)| (k.clone(), (*v).into())).collect();
-            (
-                "start",
-                serde_json::json!({"specimen": specimen, "operator": operator, "standard": standard, "notes": notes, "measured": measured}),
-            )
+        TestAction::Specimens { action: SpecimensAction::List } => {
+            let text = agent.get(&format!("{base}/api/specimens")).call().map_err(http_error)?.into_string()?;
+            println!("{text}");
+            return Ok(());
         }
-        TestAction::Stop => ("stop", serde_json::json!({})),
+        TestAction::Specimens { action: SpecimensAction::Import { file } } => return import(args, &agent, file),
+        TestAction::Start { specimen, method, operator, standard, notes, measured } => {
+            let measured: serde_json::Map<String, serde_json::Value> = measured.iter().map(|(k, v)| (k.clone(), (*v).into())).collect();
+            let body = serde_json::json!({"specimen": specimen, "method": method, "operator": operator, "standard": standard, "notes": notes, "measured": measured});
+            ("start", body)
+        }
+        TestAction::Stop { crack_mm } => ("stop", serde_json::json!({"crack": crack_mm.map(|x| serde_json::json!({"position_mm": x}))})),
+        TestAction::Crack { position_mm, inside_middle_third } => {
+            ("crack", serde_json::json!({"position_mm": position_mm, "inside_middle_third": inside_middle_third}))
+        }
         TestAction::Mark { note } => ("mark", serde_json::json!({"note": note})),
         TestAction::Zero => ("zero", serde_json::json!({})),
     };
-    let token_file = args.token_file.as_ref().ok_or_else(|| {
-        tagdeflect_core::BadInput::new(
-            "--token-file FILE: the control token (the daemon wrote it to <tests>/.token, or [output] http_token_file)",
-        )
-    })?;
-    let token = std::fs::read_to_string(token_file).with_context(|| format!("cannot read the token file {}", token_file.display()))?;
-    let token = token.lines().next().unwrap_or_default().trim().to_string();
+    let token = token(args)?;
     // Drop nulls: the API takes absent fields, not nulls.
     let body = match body {
         serde_json::Value::Object(m) => serde_json::Value::Object(m.into_iter().filter(|(_, v)| !v.is_null()).collect()),
@@ -102,6 +141,37 @@ pub fn run(args: &TestArgs) -> Result<()> {
         .set("Authorization", &format!("Bearer {token}"))
         .send_json(body)
         .map_err(http_error)?
+        .into_string()?;
+    println!("{answer}");
+    let report_error = serde_json::from_str::<serde_json::Value>(&answer).ok().and_then(|v| v["report_error"].as_str().map(str::to_string));
+    if let Some(why) = report_error {
+        return Err(tagdeflect_core::NotFit::new(format!("the test stopped and its folder is complete, but {why}")).into());
+    }
+    Ok(())
+}
+
+/// The control token from `--token-file`.
+fn token(args: &TestArgs) -> Result<String> {
+    let token_file = args.token_file.as_ref().ok_or_else(|| {
+        tagdeflect_core::BadInput::new(
+            "--token-file FILE: the control token (the daemon wrote it to <tests>/.token, or [output] http_token_file)",
+        )
+    })?;
+    let token = std::fs::read_to_string(token_file).with_context(|| format!("cannot read the token file {}", token_file.display()))?;
+    Ok(token.lines().next().unwrap_or_default().trim().to_string())
+}
+
+/// `test specimens import FILE`: the CSV as it is, to `POST /api/specimens` (the daemon checks
+/// every row and names the first bad one by row and column).
+fn import(args: &TestArgs, agent: &ureq::Agent, file: &std::path::Path) -> Result<()> {
+    let text = std::fs::read_to_string(file).map_err(|e| tagdeflect_core::BadInput::new(format!("{}: {e}", file.display())))?;
+    let token = token(args)?;
+    let answer = agent
+        .post(&format!("{}/api/specimens", args.url.trim_end_matches('/')))
+        .set("Authorization", &format!("Bearer {token}"))
+        .set("Content-Type", "text/csv")
+        .send_string(&text)
+        .map_err(|e| http_error(e).context(format!("{}", file.display())))?
         .into_string()?;
     println!("{answer}");
     Ok(())

@@ -140,6 +140,13 @@ impl Config {
         let rig = tagdeflect_sim::SimRig::new(&params).expect("demo parameters are valid");
         let mut config = Config::from_sim(&rig);
         config.utm = Some(tagdeflect_sim::live_rig::demo_utm());
+        // What a report needs: the simulated beam (a start's measured dimensions replace it).
+        config.specimen.beam.get_or_insert(BeamConfig {
+            width_mm: params.beam_width_mm,
+            depth_mm: params.beam_height_mm,
+            span_mm: params.span_mm,
+            ..BeamConfig::default()
+        });
         config.checked("<demo>").expect("the demo config is valid")
     }
 }

@@ -22,6 +22,10 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record).map_err(Into::into));
     let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
         .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
+    if let Some(b) = &config.specimen.beam {
+        let dims = [("width_mm", Some(b.width_mm)), ("depth_mm", Some(b.depth_mm)), ("span_mm", Some(b.span_mm)), ("notch_mm", b.notch_mm)];
+        tests.set_beam(dims.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))).collect());
+    }
     if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {
         tracing::info!(
             start_load_kn = rules.config.start_load_kn,
@@ -46,7 +50,10 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         ))
         .into());
     }
-    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero|sign|reanalyse", dir.display());
+    tracing::info!(
+        "tests are kept in {}; control API: POST /api/test/start|stop|mark|zero|crack|sign|reanalyse, /api/specimens",
+        dir.display()
+    );
     Ok(tests)
 }
 

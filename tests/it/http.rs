@@ -17,7 +17,7 @@ use tagdeflect_core::feed::FeedLine;
 use tagdeflect_sim::{SimParams, SimRig};
 
 /// The test venv's Python with selenium and prometheus_client (scripts/setup.sh makes it).
-fn python() -> PathBuf {
+pub(crate) fn python() -> PathBuf {
     let candidates: Vec<PathBuf> = std::env::var_os("TAGDEFLECT_PYTHON")
         .map(PathBuf::from)
         .into_iter()
@@ -474,11 +474,14 @@ fn the_page_is_on_loopback_unless_configured_and_a_bad_address_is_a_config_error
 /// `<img src=x onerror=...>` must show as those characters, not run).
 #[test]
 fn the_page_script_puts_no_data_in_as_markup() {
-    let js = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/sinks/src/http/assets/app.js")).unwrap();
-    for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write"] {
-        assert!(!js.contains(sink), "app.js uses {sink}");
+    for file in ["app.js", "start_form.js"] {
+        let js = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("crates/sinks/src/http/assets").join(file))
+            .unwrap();
+        for sink in ["innerHTML", "outerHTML", "insertAdjacentHTML", "document.write"] {
+            assert!(!js.contains(sink), "{file} uses {sink}");
+        }
+        assert!(js.contains("textContent"), "{file} writes text with textContent");
     }
-    assert!(js.contains("textContent"), "app.js writes text with textContent");
 }
 
 /// Raw request on a fresh connection: the response's head (status line and headers).

@@ -21,6 +21,7 @@ mod drift;
 mod faults;
 mod gauges;
 mod http;
+mod lab_method;
 mod live;
 mod package;
 mod realdata;

@@ -15,6 +15,7 @@ use super::view::{ClientGuard, Event, LiveView};
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const APP_JS: &str = include_str!("assets/app.js");
+const START_FORM_JS: &str = include_str!("assets/start_form.js");
 const APP_CSS: &str = include_str!("assets/app.css");
 const UPLOT_JS: &str = include_str!("assets/vendor/uplot/uPlot.iife.min.js");
 const UPLOT_CSS: &str = include_str!("assets/vendor/uplot/uPlot.min.css");
@@ -37,6 +38,14 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/tests", get(super::test_api::earlier))
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
         .route("/api/audit", get(super::test_api::audit))
+        .route("/api/methods", get(super::test_api::methods))
+        .route("/assets/start_form.js", get(|| async { asset("text/javascript; charset=utf-8", START_FORM_JS) }))
+        .route(
+            "/api/specimens",
+            get(super::test_api::specimens)
+                .post(super::test_api::import_specimens)
+                .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_SPECIMENS_BODY)),
+        )
         // Larger bodies are refused before they are read whole (the control API's limit).
         .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_BODY))
         .with_state(view)

@@ -34,7 +34,7 @@ use axum::Json;
 use tagdeflect_core::users::{Actor, Credentials};
 
 use super::LiveView;
-use crate::lab_test::{LabTests, TestError, TestMeta};
+use crate::lab_test::{CrackRequest, LabTests, Stopped, TestError};
 
 /// Largest POST body taken, bytes.
 pub const MAX_BODY: usize = 16 * 1024;
@@ -157,14 +157,20 @@ pub(crate) async fn command(
         };
         match cmd.as_str() {
             "start" => {
-                let meta: TestMeta = serde_json::from_value(parse("start")?).map_err(|e| TestError::Bad(format!("start: {e}")))?;
-                let detail = serde_json::to_value(&meta).unwrap_or_default();
-                logged(tests.start_by(meta, by())?, "start", detail)
+                let body = parse("start")?;
+                let detail = body.clone();
+                logged(tests.start_request(body, by())?, "start", detail)
             }
             "stop" => {
-                let s = tests.stop_by(by())?;
+                let s = stop(&tests, parse("stop")?, by())?;
                 tests.audit_stop(&actor, &s)?;
-                Ok(serde_json::json!({"id": s.id, "folder": s.folder}))
+                Ok(serde_json::json!({"id": s.id, "folder": s.folder, "report_error": s.report_error}))
+            }
+            "crack" => {
+                let body = parse("crack")?;
+                let detail = body.clone();
+                let c = serde_json::from_value(body).map_err(|e| TestError::Bad(format!("crack: {e}")))?;
+                logged(tests.crack(c)?, "crack", detail)
             }
             "sign" | "reanalyse" => {
                 let v = parse(&cmd)?;
@@ -186,11 +192,18 @@ pub(crate) async fn command(
                 logged(tests.mark_by(note, by())?, "mark", detail)
             }
             "zero" => logged(tests.zero_by(by())?, "zero", serde_json::json!({})),
-            other => Err(TestError::Bad(format!("no command \"{}\": start, stop, mark, zero, sign or reanalyse", other.escape_debug()))),
+            other => {
+                Err(TestError::Bad(format!("no command \"{}\": start, stop, mark, zero, crack, sign or reanalyse", other.escape_debug())))
+            }
         }
     };
     // `stop` waits for the sinks and writes the folder: never on the server's threads.
-    match tokio::task::spawn_blocking(run).await {
+    respond(tokio::task::spawn_blocking(run).await)
+}
+
+/// The answer to a command run on a blocking thread.
+fn respond(done: Result<Result<serde_json::Value, TestError>, tokio::task::JoinError>) -> Response {
+    match done {
         Ok(Ok(v)) => Json(v).into_response(),
         Ok(Err(TestError::Conflict(m))) => answer(StatusCode::CONFLICT, m),
         Ok(Err(TestError::Bad(m))) => answer(StatusCode::BAD_REQUEST, m),
@@ -200,6 +213,87 @@ pub(crate) async fn command(
         }
         Err(e) => answer(StatusCode::INTERNAL_SERVER_ERROR, format!("the command failed: {e}")),
     }
+}
+
+/// `POST /api/test/stop`: the body may hold the operator's crack entry (`{"crack": {...}}`,
+/// entered before the stop); the answer says when the report could not be made.
+fn stop(tests: &LabTests, body: serde_json::Value, user: Option<String>) -> Result<Stopped, TestError> {
+    let serde_json::Value::Object(mut fields) = body else { return Err(TestError::Bad("stop: the body is a JSON object".into())) };
+    let crack = fields.remove("crack");
+    if let Some(k) = fields.keys().next() {
+        return Err(TestError::Bad(format!("stop: unknown field `{k}`, expected `crack`")));
+    }
+    if let Some(c) = crack.filter(|c| !c.is_null()) {
+        let c: CrackRequest = serde_json::from_value(c).map_err(|e| TestError::Bad(format!("stop: crack: {e}")))?;
+        tests.crack(c)?;
+    }
+    tests.stop_by(user)
+}
+
+/// `GET /api/methods`: the test methods (shipped and the lab's) and the config's beam.
+pub(crate) async fn methods(State(view): State<Arc<LiveView>>) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    let tests = api.tests.clone();
+    respond(tokio::task::spawn_blocking(move || Ok(tests.methods())).await)
+}
+
+/// Largest specimen table taken, bytes (`POST /api/specimens`).
+pub const MAX_SPECIMENS_BODY: usize = 256 * 1024;
+
+/// `GET /api/specimens`: the table entered beforehand, each row tested or not, and the next.
+pub(crate) async fn specimens(State(view): State<Arc<LiveView>>) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    let tests = api.tests.clone();
+    respond(tokio::task::spawn_blocking(move || tests.specimens()).await)
+}
+
+/// `POST /api/specimens`: imports a table, `text/csv` or `application/json`, token-guarded like
+/// the test commands, at most [`MAX_SPECIMENS_BODY`] bytes; every row checked, the first bad
+/// one named by row and column (400).
+pub(crate) async fn import_specimens(
+    State(view): State<Arc<LiveView>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    if body.len() > MAX_SPECIMENS_BODY {
+        return answer(StatusCode::PAYLOAD_TOO_LARGE, format!("a table of at most {MAX_SPECIMENS_BODY} bytes"));
+    }
+    if let Some(why) = cross_origin(&headers) {
+        tracing::warn!(%peer, "control API: a cross-origin request refused ({why})");
+        return answer(StatusCode::FORBIDDEN, format!("cross-origin request refused: {why}"));
+    }
+    let kind = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").trim_start().to_ascii_lowercase();
+    let csv = kind.starts_with("text/csv");
+    if !csv && !kind.starts_with("application/json") {
+        return answer(StatusCode::UNSUPPORTED_MEDIA_TYPE, "the table must be text/csv or application/json");
+    }
+    let actor = match check_token(api, &headers, peer, "POST") {
+        Ok(actor) => actor,
+        Err(refused) => return refused,
+    };
+    if let Err(why) = actor.role.may("specimens") {
+        tracing::warn!(%peer, user = %actor.user, "control API: {why}");
+        return answer(StatusCode::FORBIDDEN, why);
+    }
+    let tests = api.tests.clone();
+    respond(
+        tokio::task::spawn_blocking(move || {
+            let rows = crate::lab_test::parse_specimens(&body, csv)?;
+            let ids: Vec<String> = rows.iter().map(|r| r.id.clone()).collect();
+            let v = tests.import_specimens(rows)?;
+            tests.audit(&actor, "specimens", None, serde_json::json!({ "ids": ids }))?;
+            Ok(v)
+        })
+        .await,
+    )
 }
 
 /// Why a request comes from another site, if it does.

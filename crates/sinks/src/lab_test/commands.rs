@@ -161,9 +161,10 @@ impl LabTests {
         }
         let id = r.record.id.clone();
         let folder = r.folder.clone();
-        self.complete(r)?;
+        let report_error = self.complete(r)?;
+        self.lock().last_report_error = report_error.clone();
         tracing::info!(test = %id, folder = %folder.display(), "test stopped; its folder is complete");
-        Ok(Stopped { id, folder })
+        Ok(Stopped { id, folder, report_error })
     }
 
     /// `GET /api/test`.
@@ -176,6 +177,8 @@ impl LabTests {
                 "specimen": r.record.meta.specimen,
                 "operator": r.record.meta.operator,
                 "standard": r.record.meta.standard,
+                "method": r.record.method,
+                "measured": r.record.meta.measured,
                 "started_t_ns": r.record.started_t_ns,
                 "events": r.record.events,
                 "lines": r.record.lines,
@@ -184,7 +187,7 @@ impl LabTests {
             }),
             None => serde_json::json!({
                 "state": "idle",
-                "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f})),
+                "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f, "report_error": g.last_report_error})),
             }),
         };
         if let Some(a) = &g.auto {

@@ -139,17 +139,20 @@ impl LabTests {
         Ok(())
     }
 
-    /// Writes the config, the report and `test.json` of a stopped test.
-    pub(super) fn complete(&self, r: Running) -> Result<(), TestError> {
+    /// Writes the config, the report and `test.json` of a stopped test; answers why the report
+    /// could not be made, if it could not.
+    pub(super) fn complete(&self, r: Running) -> Result<Option<String>, TestError> {
         let Running { mut record, folder, feed, utm, .. } = r;
         let io = |what: &str, e: std::io::Error| TestError::Io(format!("{}: {what}: {e}", folder.display()));
         feed.sync_all().map_err(|e| io("feed.jsonl", e))?;
         utm.sync_all().map_err(|e| io("utm.jsonl", e))?;
         std::fs::write(folder.join("tagdeflect.toml"), &self.config_text).map_err(|e| io("tagdeflect.toml", e))?;
+        let mut report_error = None;
         if record.meta.standard.is_some() {
             if let Some(hook) = &self.report {
                 if let Err(e) = hook(&folder, &record) {
                     tracing::error!(test = %record.id, "the test's report could not be made: {e}");
+                    report_error = Some(format!("the report could not be made: {e}"));
                 }
             }
         }
@@ -160,7 +163,7 @@ impl LabTests {
         std::fs::write(&tmp, text + "\n").map_err(|e| io("test.json", e))?;
         std::fs::rename(&tmp, folder.join("test.json")).map_err(|e| io("test.json", e))?;
         self.publish(&record);
-        Ok(())
+        Ok(report_error)
     }
 }
 

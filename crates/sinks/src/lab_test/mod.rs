@@ -41,23 +41,33 @@
 //! tests' curves, `state` the tests and their lock, `commands` what an operator does,
 //! `steps` what the pipeline's threads do, `folder` the files on disk, `zero` the test's zero,
 //! [`audit`] the audit log, sign-off and re-analysis.
+//! `start` a start with its method and specimen (refused when its report could not be made),
+//! [`specimens`] the table entered beforehand, `crack` the operator's crack entry.
 
 pub mod audit;
 pub mod auto;
 mod commands;
+mod crack;
 mod folder;
 pub mod meta;
 pub mod record;
+pub mod specimens;
+mod start;
 mod state;
 mod steps;
 mod zero;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_method;
 
 pub use commands::STOP_WAIT;
+pub use crack::CrackRequest;
 pub use meta::{TestError, TestMeta, STANDARDS};
 pub use record::{EarlierTest, Stopped, TestRecord, EARLIER_POINTS, EARLIER_TESTS};
+pub use specimens::parse_specimens;
+pub use start::{standard_requires, NEXT};
 pub use state::{LabTests, RecordHook, ReportError, ReportHook};
 pub use steps::LabTestSink;
 pub use zero::ZERO_SETS;

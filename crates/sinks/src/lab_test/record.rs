@@ -87,4 +87,7 @@ pub struct Stopped {
     pub id: String,
     /// Its folder.
     pub folder: PathBuf,
+    /// Why its report could not be made (a standard was set, the report failed).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub report_error: Option<String>,
 }

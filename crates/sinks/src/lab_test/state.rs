@@ -48,6 +48,12 @@ pub(super) struct Inner {
     pub(super) auto: Option<auto::AutoTest>,
     /// The tests stopped today, oldest first (at most [`EARLIER_TESTS`](super::EARLIER_TESTS)).
     pub(super) earlier: Vec<EarlierTest>,
+    /// The config's `[specimen.beam]` dimensions, mm (`width_mm`, ...).
+    pub(super) beam_mm: BTreeMap<String, f64>,
+    /// The newest UTM load and its time (kN, ns): a start under load is refused by its method.
+    pub(super) last_load: Option<(f64, i64)>,
+    /// Why the last test's report could not be made, if it could not.
+    pub(super) last_report_error: Option<String>,
 }
 
 /// The tests of a daemon; see the module doc.

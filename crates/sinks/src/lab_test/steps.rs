@@ -5,7 +5,8 @@
 use std::io::Write;
 use std::sync::Arc;
 
-use tagdeflect_core::feed::{FeedLine, TestRef};
+use tagdeflect_core::feed::{FeedEvent, FeedLine, TestRef};
+use tagdeflect_core::lab_test::{Preload, TestRecord};
 use tagdeflect_core::utm_sample::UtmSample;
 
 use super::auto;
@@ -36,6 +37,8 @@ impl LabTests {
             let zeroing = r.zero.take(line);
             if zeroing && r.zero.n == ZERO_SETS {
                 // The zero has formed: a restart from here resumes from it.
+                let ev = preload(&mut r.record, line);
+                line.events.extend(ev);
                 self.persist(r);
             }
             r.zero.apply(line);
@@ -85,6 +88,7 @@ impl LabTests {
     /// The UTM forwarder's step: a sample of the running test into its folder.
     pub fn on_utm(&self, s: &UtmSample) {
         let mut g = self.lock();
+        g.last_load = Some((s.load_kn, s.t_ns));
         let Some(r) = g.running.as_mut() else { return };
         if s.t_ns < r.record.started_t_ns {
             return;
@@ -97,6 +101,17 @@ impl LabTests {
             Err(e) => tracing::error!("UTM sample: {e}"),
         }
     }
+}
+
+/// The load at which the test's zero formed (`preload`), from the line that completed it; a
+/// test with a method gets a `preload` event too (its tare and preload step).
+fn preload(record: &mut TestRecord, line: &FeedLine) -> Option<FeedEvent> {
+    let load_kn = line.load_kn?;
+    record.preload = Some(Preload { load_kn, t_ns: line.t_ns });
+    record.method.as_ref()?;
+    let ev = FeedEvent { kind: "preload".into(), t_ns: line.t_ns, note: Some(format!("zero taken at {load_kn:.3} kN")), user: None };
+    record.events.push(ev.clone());
+    Some(ev)
 }
 
 /// A line sink that hands every line to [`LabTests::on_line`].

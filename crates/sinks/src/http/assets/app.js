@@ -385,6 +385,7 @@ async function command(cmd, body) {
   if (r.status === 401) sessionStorage.removeItem("tagdeflect-token");
   if (!r.ok) { testMessage(cmd + " refused (" + r.status + "): " + (answer.error || ""), true); return; }
   testMessage(cmd === "stop" ? "stopped; folder " + (answer.folder || "") : cmd + " done", false);
+  if (cmd === "stop" || cmd === "start") $("t-report").textContent = answer.report_error ? "no report: " + answer.report_error : "";
   await pollTest();
 }
 function onTest(st) {
@@ -394,6 +395,8 @@ function onTest(st) {
   if (running && T.id !== st.id) { T.lastRate = null; T.rate = null; T.outSince = null; T.rateAlarm = null; }
   T.id = running ? st.id : null;
   T.standard = running ? st.standard || null : null;
+  T.method = running ? st.method || null : null;
+  T.measured = running ? st.measured || {} : {};
   if (wasRunning && !running) { T.rateAlarm = null; T.outSince = null; fetchEarlier(); }
   $("t-state").textContent = running ? "running: " + st.id + (st.zeroing ? " (taking its zero)" : "") : st.state;
   $("t-specimen").textContent = running ? st.specimen : "–";
@@ -402,6 +405,7 @@ function onTest(st) {
   $("b-start").disabled = running || st.state === "off";
   for (const id of ["b-mark", "b-zero", "b-stop"]) $(id).disabled = !running;
   $("t-auto").textContent = st.auto ? "automatic (" + st.auto.state + "): waiting for " + st.auto.waiting_for : "";
+  if (!running && st.last) $("t-report").textContent = st.last.report_error ? "no report: " + st.last.report_error : "";
   if (st.state === "off") testMessage("tests are off: start the daemon with --tests DIR or [output] tests", false);
 }
 // The rate of the standard's controlled quantity (CMOD for EN 14651, else the net deflection)
@@ -415,10 +419,10 @@ function controlled(line) {
 function judgeRate(line, q) {
   const box = $("t-rate");
   const windows = S.status && S.status.rate_windows ? S.status.rate_windows : {};
-  const w = T.standard ? windows[T.standard] : undefined;
+  const w = (T.standard && methodWindow(T.standard, T.method, T.measured)) || (T.standard ? windows[T.standard] : undefined);
   if (!w) {
     box.dataset.window = "none";
-    $("t-rate-window").textContent = T.standard ? "no window: the rig has no [specimen.beam]" : "no standard: no window";
+    $("t-rate-window").textContent = T.standard ? "no window: no span (measured, the specimen's row or [specimen.beam])" : "no standard: no window";
     return;
   }
   const below = q.v === undefined || q.v < w.split_mm;
@@ -462,19 +466,15 @@ async function pollTest() {
 $("t-form").addEventListener("submit", (e) => {
   e.preventDefault();
   const body = { specimen: $("f-specimen").value.trim() };
-  for (const k of ["operator", "standard", "notes"]) { const v = $("f-" + k).value.trim(); if (v) body[k] = v; }
+  for (const k of ["operator", "standard", "notes", "method"]) { const v = $("f-" + k).value.trim(); if (v) body[k] = v; }
   // The specimen's measured dimensions: the report computes with them.
-  const measured = {};
-  for (const [id, key] of [["f-width", "width_mm"], ["f-depth", "depth_mm"]]) {
-    const v = parseFloat($(id).value);
-    if (Number.isFinite(v) && v > 0) measured[key] = v;
-  }
+  const measured = typed();
   if (Object.keys(measured).length) body.measured = measured;
   command("start", body);
 });
 $("b-mark").addEventListener("click", () => { const note = window.prompt("Mark (e.g. first crack seen):"); if (note !== null) command("mark", { note }); });
 $("b-zero").addEventListener("click", () => command("zero"));
-$("b-stop").addEventListener("click", () => { if (window.confirm("Stop the test and complete its folder?")) command("stop"); });
+$("b-stop").addEventListener("click", () => { if (window.confirm("Stop the test and complete its folder?")) command("stop", stopBody()); });
 
 // Gauges (and the net deflection) with their 1-σ, as the line gives them.
 const DECIMALS = { "mm": 3, "mrad": 3, "1/km": 2 };
