@@ -29,6 +29,7 @@ mod report_lab;
 mod robustness;
 mod simulate;
 mod solve;
+mod test_folder;
 mod systemd_unit;
 mod tracking;
 mod utm_modbus;

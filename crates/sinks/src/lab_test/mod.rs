@@ -39,7 +39,8 @@
 //!
 //! Files by job: [`meta`] what a test is started with, [`record`] `test.json` and the earlier
 //! tests' curves, `state` the tests and their lock, `commands` what an operator does,
-//! `steps` what the pipeline's threads do, `folder` the files on disk, `zero` the test's zero.
+//! `steps` what the pipeline's threads do, `folder` the files on disk, `stopping` a stop that
+//! survives a crash, `zero` the test's zero.
 
 pub mod auto;
 mod commands;
@@ -48,6 +49,7 @@ pub mod meta;
 pub mod record;
 mod state;
 mod steps;
+mod stopping;
 mod zero;
 
 #[cfg(test)]
