@@ -171,15 +171,18 @@ pub struct TestRef {
 }
 
 /// An event of a test: `start`, `stop`, `mark` or `zero`, with its time and an optional note.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct FeedEvent {
-    /// `start`, `stop`, `mark` or `zero`.
+    /// `start`, `stop`, `mark`, `zero`, `resume`, `crack` or `preload`.
     pub kind: String,
     /// When it happened, ns since the Unix epoch.
     pub t_ns: i64,
     /// The operator's note (a mark's text), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
+    /// The user who did it, when users are configured (absent: not known).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub user: Option<String>,
 }
 
 /// One gauge's reading in a feed line.

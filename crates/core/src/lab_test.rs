@@ -8,6 +8,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::feed::FeedEvent;
+use crate::method::MethodRef;
+use crate::specimen::SpecimenInfo;
 use crate::Problem;
 
 /// What a test is started with (the control API's JSON body).
@@ -124,4 +126,73 @@ pub struct TestRecord {
     pub utm_samples: u64,
     /// SHA-256 (hex) of every file of the folder (but `test.json`) and of the calibration files.
     pub sha256: BTreeMap<String, String>,
+    /// The method the test was run with (absent: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<MethodRef>,
+    /// The specimen's row from the table entered beforehand (absent: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub specimen_info: Option<SpecimenInfo>,
+    /// The operator's crack entry.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crack: Option<CrackEntry>,
+    /// The load at which the test's zero was taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preload: Option<Preload>,
+}
+
+/// The operator's crack entry: where the beam cracked.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CrackEntry {
+    /// From mid-span, signed, mm.
+    pub position_mm: f64,
+    /// Whether the crack is inside the middle third of the span (from the position and the
+    /// span when the operator does not say).
+    pub inside_middle_third: bool,
+    /// When it was entered, ns since the Unix epoch.
+    pub t_ns: i64,
+}
+
+/// The load at which a test's zero was taken (tare and preload).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Preload {
+    /// The UTM's load, kN.
+    pub load_kn: f64,
+    /// When, ns since the Unix epoch.
+    pub t_ns: i64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A test.json written before methods, specimens, cracks and preloads existed.
+    const OLD: &str = r#"{
+  "id": "20261202T013000Z-B12",
+  "specimen": "B12",
+  "operator": "Ann",
+  "standard": "astm-c1609",
+  "measured": {"width_mm": 150.2},
+  "started_t_ns": 1764639000000000000,
+  "stopped_t_ns": 1764639600000000000,
+  "events": [{"kind": "start", "t_ns": 1764639000000000000}, {"kind": "mark", "t_ns": 1764639100000000000, "note": "first crack seen"}],
+  "lines": 12,
+  "utm_samples": 40,
+  "sha256": {"feed.jsonl": "00"}
+}"#;
+
+    #[test]
+    fn an_old_test_json_reads_back_unchanged_and_the_new_keys_round_trip() {
+        let old: TestRecord = serde_json::from_str(OLD).unwrap();
+        assert!(old.method.is_none() && old.specimen_info.is_none() && old.crack.is_none() && old.preload.is_none());
+        assert!(old.events.iter().all(|e| e.user.is_none()));
+        let again: serde_json::Value = serde_json::to_value(&old).unwrap();
+        assert_eq!(again, serde_json::from_str::<serde_json::Value>(OLD).unwrap(), "written back as it was");
+        let mut new = old.clone();
+        new.crack = Some(CrackEntry { position_mm: -12.0, inside_middle_third: true, t_ns: 5 });
+        new.preload = Some(Preload { load_kn: 0.52, t_ns: 4 });
+        new.events[1].user = Some("ann".into());
+        let text = serde_json::to_string(&new).unwrap();
+        assert_eq!(serde_json::from_str::<TestRecord>(&text).unwrap(), new);
+    }
 }

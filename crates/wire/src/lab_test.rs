@@ -150,10 +150,14 @@ mod tests {
             },
             started_t_ns: 1_700_000_000_000_000_000,
             stopped_t_ns: Some(1_700_000_600_000_000_000),
-            events: vec![FeedEvent { kind: "start".into(), t_ns: 1_700_000_000_000_000_000, note: None }],
+            events: vec![FeedEvent { kind: "start".into(), t_ns: 1_700_000_000_000_000_000, note: None, user: None }],
             lines: 3000,
             utm_samples: 30000,
             sha256: [("feed.jsonl".to_string(), "ab".repeat(32))].into_iter().collect(),
+            method: None,
+            specimen_info: None,
+            crack: None,
+            preload: None,
         }
     }
 

@@ -47,7 +47,7 @@ impl LabTests {
         let io = |e: std::io::Error| TestError::Io(format!("cannot open the test's folder {}: {e}", folder.display()));
         std::fs::create_dir_all(&folder).map_err(io)?;
         let (feed, utm) = Self::open_files(&folder).map_err(io)?;
-        let start = FeedEvent { kind: "start".into(), t_ns: now, note };
+        let start = FeedEvent { kind: "start".into(), t_ns: now, note, user: None };
         g.pending.push(start.clone());
         let record = TestRecord {
             id: id.clone(),
@@ -58,6 +58,10 @@ impl LabTests {
             lines: 0,
             utm_samples: 0,
             sha256: BTreeMap::new(),
+            method: None,
+            specimen_info: None,
+            crack: None,
+            preload: None,
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
@@ -93,7 +97,7 @@ impl LabTests {
     fn event(&self, kind: &str, note: Option<String>) -> Result<serde_json::Value, TestError> {
         let mut g = self.lock();
         let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
-        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note };
+        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note, user: None };
         r.record.events.push(ev.clone());
         let kept = self.persist_as(r, Phase::Running);
         self.publish(&r.record);
@@ -128,7 +132,7 @@ impl LabTests {
             .unwrap_or_else(|p| p.into_inner());
         g = g2;
         let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
-        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note };
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user: None };
         r.record.events.push(stop.clone());
         r.record.stopped_t_ns = Some(now);
         g.pending.push(stop);

@@ -133,6 +133,7 @@ impl LabTests {
             kind: "resume".into(),
             t_ns: now,
             note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
+            user: None,
         };
         r.record.events.push(ev.clone());
         tracing::warn!(test = %r.record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");

@@ -134,7 +134,7 @@ fn a_test_stopping_when_the_daemon_dies_is_completed_at_the_next_start() {
         }
         // The stop's first half: the test taken off and its state saying "stopping".
         let mut r = tests.lock().running.take().unwrap();
-        r.record.events.push(tagdeflect_core::feed::FeedEvent { kind: "stop".into(), t_ns: 99, note: None });
+        r.record.events.push(tagdeflect_core::feed::FeedEvent { kind: "stop".into(), t_ns: 99, note: None, user: None });
         r.record.stopped_t_ns = Some(99);
         tests.persist_as(&r, super::folder::Phase::Stopping).unwrap();
         r.folder.clone()
