@@ -203,3 +203,40 @@ fn a_full_disk_under_the_tests_folder_holds_the_lines_back_and_the_stop_says_so(
     assert!(lost.is_empty(), "lines of the test lost from its folder: {lost:?}");
     assert_eq!(d.terminate(), Some(0), "{}", d.log());
 }
+
+/// A stale `TESTS/.running.json` — its test folder deleted, or not a state at all — does not
+/// keep the daemon down (exit 2 under `RestartPreventExitStatus=2` kept the rig down): one
+/// WARN naming the file and where it was moved, the daemon up, idle, and tests start.
+#[test]
+fn a_stale_running_state_is_moved_aside_and_the_daemon_starts_and_tests_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = rig(dir.path(), None);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let tests_dir = dir.path().join("tests");
+    fs::create_dir_all(&tests_dir).unwrap();
+    let state = tests_dir.join(".running.json");
+    let gone = tests_dir.join("20261201T000000Z-GONE").display().to_string();
+    let deleted = format!(
+        r#"{{"record":{{"id":"x","specimen":"GONE","started_t_ns":1,"events":[],"lines":0,"utm_samples":0,"sha256":{{}}}},"folder":"{gone}","zero_n":0,"tags":{{}},"net":[0,[],[]],"gauges":{{}},"last_line_t_ns":0}}"#
+    );
+    let deadline = Instant::now() + Duration::from_secs(240);
+    for (k, text) in [deleted.as_str(), "{\"rec\u{0}garbage"].into_iter().enumerate() {
+        fs::write(&state, text).unwrap();
+        let mut d = LoggedDaemon::start(&args);
+        let addr = d.addr(deadline);
+        d.wait_for("the control token", deadline, |d| d.log().contains("control token: "));
+        let log = d.log();
+        assert!(log.contains(&format!("{} cannot be resumed", state.display())) && log.contains(".running.json.stale-"), "{log}");
+        assert!(!state.exists());
+        assert!(k == 1 || log.contains("is gone"), "the deleted folder named:\n{log}");
+        let aside = fs::read_dir(&tests_dir)
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with(".running.json.stale-"))
+            .count();
+        assert_eq!(aside, k + 1, "kept under another name");
+        let st = tagdeflect_test(&addr, &tests_dir.join(".token"), &["start", "--specimen", &format!("S{k}")]);
+        assert_eq!(st["state"], "running", "{st}");
+        tagdeflect_test(&addr, &tests_dir.join(".token"), &["stop"]);
+        assert_eq!(d.terminate(), Some(0), "{}", d.log());
+    }
+}
