@@ -377,17 +377,28 @@ fn modbus_debug_lines_are_demoted_and_a_library_panic_is_a_log_line() {
 }
 
 /// A daemon of a test, its stderr collected by a thread; killed (SIGKILL) and reaped on drop.
-struct LoggedDaemon {
-    child: common::ChildGuard,
+pub(crate) struct LoggedDaemon {
+    pub(crate) child: common::ChildGuard,
     stderr: std::sync::Arc<std::sync::Mutex<String>>,
 }
 
 impl LoggedDaemon {
     /// `tagdeflect args` (feed on stdout dropped, log at INFO on stderr).
-    fn start(args: &[&str]) -> LoggedDaemon {
+    pub(crate) fn start(args: &[&str]) -> LoggedDaemon {
+        Self::start_with(args, &[])
+    }
+
+    /// [`LoggedDaemon::start`] with `envs` set.
+    pub(crate) fn start_with(args: &[&str], envs: &[(&str, &std::path::Path)]) -> LoggedDaemon {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_tagdeflect"));
+        cmd.args(args).envs(envs.iter().copied());
+        Self::spawn(cmd)
+    }
+
+    /// `cmd` (the daemon, or a command that execs it) as [`LoggedDaemon::start`] starts it.
+    pub(crate) fn spawn(mut cmd: Command) -> LoggedDaemon {
         use std::io::BufRead;
-        let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
-            .args(args)
+        let mut child = cmd
             .env("TAGDEFLECT_LOG", "info")
             .env_remove("JOURNAL_STREAM")
             .stdin(std::process::Stdio::null())
@@ -408,13 +419,13 @@ impl LoggedDaemon {
         LoggedDaemon { child: common::ChildGuard(child), stderr }
     }
 
-    fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         self.stderr.lock().unwrap().clone()
     }
 
     /// Waits (at most until `deadline`) for `what` to hold; fails with the log when the daemon
     /// exits or the deadline passes.
-    fn wait_for(&mut self, what: &str, deadline: Instant, mut cond: impl FnMut(&Self) -> bool) {
+    pub(crate) fn wait_for(&mut self, what: &str, deadline: Instant, mut cond: impl FnMut(&Self) -> bool) {
         while !cond(self) {
             if let Ok(Some(status)) = self.child.0.try_wait() {
                 panic!("tagdeflect exited ({status}) while waiting for {what}:\n{}", self.log());
@@ -425,7 +436,7 @@ impl LoggedDaemon {
     }
 
     /// The live page's address, printed on stderr as `http://ADDR/`.
-    fn addr(&mut self, deadline: Instant) -> String {
+    pub(crate) fn addr(&mut self, deadline: Instant) -> String {
         let find = |log: &str| -> Option<String> {
             let rest = &log[log.find("http://")? + 7..];
             Some(rest[..rest.find('/')?].to_string())
@@ -435,7 +446,7 @@ impl LoggedDaemon {
     }
 
     /// SIGTERM; the exit code.
-    fn terminate(&mut self) -> Option<i32> {
+    pub(crate) fn terminate(&mut self) -> Option<i32> {
         // SAFETY: kill(2) on the pid of a child this test started and has not reaped.
         unsafe { libc::kill(self.child.0.id() as i32, libc::SIGTERM) };
         let deadline = Instant::now() + Duration::from_secs(30);
@@ -450,7 +461,7 @@ impl LoggedDaemon {
 }
 
 /// `tagdeflect test ARGS` against the daemon at `addr`; its JSON answer.
-fn tagdeflect_test(addr: &str, token_file: &std::path::Path, args: &[&str]) -> serde_json::Value {
+pub(crate) fn tagdeflect_test(addr: &str, token_file: &std::path::Path, args: &[&str]) -> serde_json::Value {
     let url = format!("http://{addr}");
     let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
     all.extend_from_slice(args);
@@ -460,7 +471,7 @@ fn tagdeflect_test(addr: &str, token_file: &std::path::Path, args: &[&str]) -> s
 }
 
 /// The whole lines of a test's feed (a line being written is left out).
-fn whole_feed_lines(path: &std::path::Path) -> Vec<FeedLine> {
+pub(crate) fn whole_feed_lines(path: &std::path::Path) -> Vec<FeedLine> {
     let text = fs::read_to_string(path).unwrap_or_default();
     let whole = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
     whole.lines().map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{}: {l}: {e}", path.display()))).collect()

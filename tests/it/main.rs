@@ -33,6 +33,7 @@ mod robustness;
 mod simulate;
 mod solve;
 mod systemd_unit;
+mod test_folder;
 mod tracking;
 mod utm_modbus;
 mod v4l2_convert;

@@ -150,11 +150,16 @@ impl FeedWriter {
     /// output starts failing (once per outage) or turns off; while it fails, lines are held
     /// back and retried with backoff.
     pub fn write(&mut self, line: &FeedLine) -> io::Result<()> {
+        self.write_text(line.to_json())
+    }
+
+    /// [`FeedWriter::write`] of a line already made (any JSON text without its newline: a
+    /// test's UTM samples).
+    pub fn write_text(&mut self, mut text: String) -> io::Result<()> {
         if matches!(self.out, Out::Off) {
             self.dropped += 1;
             return Ok(());
         }
-        let mut text = line.to_json();
         text.push('\n');
         self.backlog.push_back(text);
         if self.backlog.len() > BACKLOG_LINES {
@@ -169,19 +174,8 @@ impl FeedWriter {
 
     /// Writes the backlog; see [`FeedWriter::write`].
     fn drain(&mut self) -> io::Result<()> {
-        while let Some(text) = self.backlog.front() {
-            let res = match &mut self.out {
-                Out::File(f) => f.write_line(text.as_bytes()),
-                Out::Stream(w) => w.write_all(text.as_bytes()).and_then(|_| w.flush()),
-                Out::Off => return Ok(()),
-            };
-            match res {
-                Ok(()) => {
-                    self.backlog.pop_front();
-                    self.written += 1;
-                }
-                Err(e) => return self.failed(e),
-            }
+        if let Err(e) = self.write_backlog() {
+            return self.failed(e);
         }
         if let Some(since) = self.failing_since.take() {
             tracing::info!(output = %self.target, after_s = since.elapsed().as_secs(), dropped = self.dropped, "feed output writes again");
@@ -191,6 +185,20 @@ impl FeedWriter {
             if let Err(e) = f.sync_if_due() {
                 tracing::warn!(output = %self.target, "fdatasync failed: {e}");
             }
+        }
+        Ok(())
+    }
+
+    /// Writes the held-back lines in order until one fails (its error).
+    fn write_backlog(&mut self) -> io::Result<()> {
+        while let Some(text) = self.backlog.front() {
+            match &mut self.out {
+                Out::File(f) => f.write_line(text.as_bytes())?,
+                Out::Stream(w) => w.write_all(text.as_bytes()).and_then(|_| w.flush())?,
+                Out::Off => return Ok(()),
+            }
+            self.backlog.pop_front();
+            self.written += 1;
         }
         Ok(())
     }
@@ -221,6 +229,22 @@ impl FeedWriter {
         }
         tracing::debug!(output = %self.target, retry_in_s = wait.as_secs_f64(), "feed output still failing: {e}");
         Ok(())
+    }
+
+    /// Writes what is held back now (whatever the backoff) and syncs; an error when lines stay
+    /// held back (they are kept for a later try) or the sync fails. Nothing is dropped.
+    pub fn flush_held(&mut self) -> io::Result<()> {
+        if let Err(e) = self.write_backlog() {
+            let held = self.backlog.len();
+            let _ = self.failed(io::Error::new(e.kind(), e.to_string()));
+            return Err(io::Error::new(e.kind(), format!("{}: {e}; {held} line(s) held back, not written yet", self.target)));
+        }
+        self.drain()?;
+        match &mut self.out {
+            Out::File(f) => f.sync(),
+            Out::Stream(w) => w.flush(),
+            Out::Off => Ok(()),
+        }
     }
 
     /// Writes what is held back (one last try) and syncs (shutdown).

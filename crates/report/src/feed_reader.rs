@@ -93,120 +93,49 @@ impl Feed {
         Ok(runs.remove(0))
     }
 
-    /// Reads a feed into its runs (one unless `allow_restarts`).
+    /// Reads a feed into its runs (one unless `allow_restarts`). The file is read line by
+    /// line, never whole: only the parsed lines are held (a long test's feed is gigabytes of
+    /// text).
     pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
-        let text =
-            std::fs::read(path).map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") })?;
-        let text = String::from_utf8(text).map_err(|e| ReportError::BadLine {
-            path: path.to_path_buf(),
-            line: text_line_of(&e.as_bytes()[..e.utf8_error().valid_up_to()]),
-            message: "not a feed line: not UTF-8 text".into(),
-        })?;
-        Self::parse(&text, path, opts)
+        use std::io::BufRead;
+        let io = |e: std::io::Error| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") };
+        let mut reader = std::io::BufReader::with_capacity(1 << 16, std::fs::File::open(path).map_err(io)?);
+        let mut runs = Runs::new(path, opts);
+        let mut buf = Vec::new();
+        let mut no = 0;
+        loop {
+            buf.clear();
+            if reader.read_until(b'\n', &mut buf).map_err(io)? == 0 {
+                break;
+            }
+            no += 1;
+            let unterminated = buf.last() != Some(&b'\n');
+            let text = std::str::from_utf8(&buf).map_err(|_| ReportError::BadLine {
+                path: path.to_path_buf(),
+                line: no,
+                message: "not a feed line: not UTF-8 text".into(),
+            })?;
+            let text = text.strip_suffix('\n').map_or(text, |t| t.strip_suffix('\r').unwrap_or(t));
+            runs.line(no, text, unterminated)?;
+        }
+        runs.finish(no)
     }
 
     /// Parses feed text; `path` names the file in errors.
     pub fn parse(text: &str, path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
-        let bad = |line: usize, message: String| ReportError::BadLine {
-            path: path.to_path_buf(),
-            line,
-            message: format!("not a feed line: {message}"),
-        };
         let ends_with_newline = text.ends_with('\n');
-        let raw: Vec<&str> = text.lines().collect();
-        let mut runs: Vec<Feed> = Vec::new();
-        let mut cur = Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None };
-        let mut warnings = Vec::new();
-        for (i, line) in raw.iter().enumerate() {
-            let no = i + 1;
-            if line.trim().is_empty() {
-                continue;
-            }
-            let l = match serde_json::from_str::<FeedLine>(line) {
-                Ok(l) => l,
-                Err(e) => {
-                    if no == raw.len() && !ends_with_newline && e.is_eof() {
-                        let msg = format!("{}:{no}: truncated last line skipped", path.display());
-                        tracing::warn!("{msg}");
-                        warnings.push(msg);
-                        continue;
-                    }
-                    return Err(bad(no, e.to_string()));
-                }
-            };
-            check_values(&l, &opts.limits).map_err(|e| bad(no, e.to_string()))?;
-            if let (Some(prev), Some(&prev_no)) = (cur.lines.last(), cur.line_numbers.last()) {
-                // A resumed test: a new segment of this run, not a new run (module doc).
-                let same_test = match (&l.test, &prev.test) {
-                    (Some(a), Some(b)) => a.id == b.id,
-                    _ => true,
-                };
-                let resumed = resumes(&l) && same_test;
-                if resumed {
-                    if l.t_ns <= prev.t_ns {
-                        return Err(bad(
-                            no,
-                            format!(
-                                "t_ns {} is not after t_ns {} of line {prev_no}: a resumed test's time must go on after the restart",
-                                l.t_ns, prev.t_ns
-                            ),
-                        ));
-                    }
-                    let msg = format!(
-                        "{}:{no}: the daemon restarted during the test (a `resume` event): no lines for {:.1} s after line {prev_no} \
-                         (a gap in time), seq {} after seq {}; read as one test, which went on from its kept zero",
-                        path.display(),
-                        (l.t_ns - prev.t_ns) as f64 * 1e-9,
-                        l.seq,
-                        prev.seq
-                    );
-                    tracing::warn!("{msg}");
-                    cur.warnings.push(msg);
-                } else if l.seq <= prev.seq {
-                    if !opts.allow_restarts {
-                        let what = if l.seq == prev.seq { "repeats" } else { "goes back from" };
-                        return Err(bad(
-                            no,
-                            format!(
-                                "seq {} {what} seq {} of line {prev_no}: a feed holds one run in order (two runs appended to one file, or a repeated line?); \
-                                 split the file, or give --allow-restarts to report each run on its own \
-                                 (a daemon that resumed a test after a restart marks the line with a `resume` event: this one has none)",
-                                l.seq, prev.seq
-                            ),
-                        ));
-                    }
-                    runs.push(std::mem::replace(
-                        &mut cur,
-                        Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None },
-                    ));
-                } else if l.t_ns <= prev.t_ns {
-                    return Err(bad(
-                        no,
-                        format!(
-                            "t_ns {} is not after t_ns {} of line {prev_no}: the feed's time must increase with seq",
-                            l.t_ns, prev.t_ns
-                        ),
-                    ));
-                }
-            }
-            cur.lines.push(l);
-            cur.line_numbers.push(no);
+        let mut runs = Runs::new(path, opts);
+        let mut lines = text.lines().peekable();
+        let mut no = 0;
+        while let Some(line) = lines.next() {
+            no += 1;
+            runs.line(no, line, lines.peek().is_none() && !ends_with_newline)?;
         }
-        if !cur.lines.is_empty() {
-            runs.push(cur);
-        }
-        if runs.is_empty() {
-            return Err(bad(raw.len().max(1), "the feed has no lines".into()));
-        }
-        let n = runs.len();
-        for (k, r) in runs.iter_mut().enumerate() {
-            // The run's own warnings (its resumes) in line order, then the file's.
-            r.warnings.extend(warnings.iter().cloned());
-            if n > 1 {
-                r.run = Some((k + 1, n));
-            }
-        }
-        Ok(runs)
+        runs.finish(no)
+    }
+
+    fn empty(path: &Path) -> Feed {
+        Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None }
     }
 
     /// Gauge names in order of first appearance.
@@ -250,6 +179,140 @@ impl Feed {
     }
 }
 
+/// The runs of a feed being read, line by line (see [`Feed::read_runs`]).
+struct Runs<'a> {
+    path: &'a Path,
+    opts: &'a ReadOptions,
+    runs: Vec<Feed>,
+    cur: Feed,
+    /// The file's warnings (a truncated last line).
+    warnings: Vec<String>,
+}
+
+impl<'a> Runs<'a> {
+    fn new(path: &'a Path, opts: &'a ReadOptions) -> Self {
+        Runs { path, opts, runs: Vec::new(), cur: Feed::empty(path), warnings: Vec::new() }
+    }
+
+    fn bad(&self, line: usize, message: String) -> ReportError {
+        ReportError::BadLine { path: self.path.to_path_buf(), line, message: format!("not a feed line: {message}") }
+    }
+
+    /// Line `no` of the file (without its newline); `unterminated` when no newline ended it.
+    fn line(&mut self, no: usize, line: &str, unterminated: bool) -> Result<(), ReportError> {
+        if line.trim().is_empty() {
+            return Ok(());
+        }
+        let mut l = match serde_json::from_str::<FeedLine>(line) {
+            Ok(l) => l,
+            Err(e) => {
+                if unterminated && e.is_eof() {
+                    let msg = format!("{}:{no}: truncated last line skipped", self.path.display());
+                    tracing::warn!("{msg}");
+                    self.warnings.push(msg);
+                    return Ok(());
+                }
+                return Err(self.bad(no, e.to_string()));
+            }
+        };
+        check_values(&l, &self.opts.limits).map_err(|e| self.bad(no, e.to_string()))?;
+        self.follow(no, &l)?;
+        compact(&mut l);
+        self.cur.lines.push(l);
+        self.cur.line_numbers.push(no);
+        Ok(())
+    }
+
+    /// Checks line `no` against the line before it: a resumed test's new segment (a warning), a
+    /// new run (`allow_restarts`) or an error naming the line.
+    fn follow(&mut self, no: usize, l: &FeedLine) -> Result<(), ReportError> {
+        let (mut warning, mut new_run) = (None, false);
+        if let (Some(prev), Some(&prev_no)) = (self.cur.lines.last(), self.cur.line_numbers.last()) {
+            // A resumed test: a new segment of this run, not a new run (module doc).
+            let same_test = match (&l.test, &prev.test) {
+                (Some(a), Some(b)) => a.id == b.id,
+                _ => true,
+            };
+            let resumed = resumes(l) && same_test;
+            if resumed {
+                if l.t_ns <= prev.t_ns {
+                    return Err(self.bad(
+                        no,
+                        format!(
+                            "t_ns {} is not after t_ns {} of line {prev_no}: a resumed test's time must go on after the restart",
+                            l.t_ns, prev.t_ns
+                        ),
+                    ));
+                }
+                let msg = format!(
+                    "{}:{no}: the daemon restarted during the test (a `resume` event): no lines for {:.1} s after line {prev_no} \
+                     (a gap in time), seq {} after seq {}; read as one test, which went on from its kept zero",
+                    self.path.display(),
+                    (l.t_ns - prev.t_ns) as f64 * 1e-9,
+                    l.seq,
+                    prev.seq
+                );
+                tracing::warn!("{msg}");
+                warning = Some(msg);
+            } else if l.seq <= prev.seq {
+                if !self.opts.allow_restarts {
+                    let what = if l.seq == prev.seq { "repeats" } else { "goes back from" };
+                    return Err(self.bad(
+                        no,
+                        format!(
+                            "seq {} {what} seq {} of line {prev_no}: a feed holds one run in order (two runs appended to one file, or a repeated line?); \
+                             split the file, or give --allow-restarts to report each run on its own \
+                             (a daemon that resumed a test after a restart marks the line with a `resume` event: this one has none)",
+                            l.seq, prev.seq
+                        ),
+                    ));
+                }
+                new_run = true;
+            } else if l.t_ns <= prev.t_ns {
+                return Err(self.bad(
+                    no,
+                    format!("t_ns {} is not after t_ns {} of line {prev_no}: the feed's time must increase with seq", l.t_ns, prev.t_ns),
+                ));
+            }
+        }
+        if let Some(msg) = warning {
+            self.cur.warnings.push(msg);
+        }
+        if new_run {
+            let next = Feed::empty(self.path);
+            self.runs.push(std::mem::replace(&mut self.cur, next));
+        }
+        Ok(())
+    }
+
+    fn finish(mut self, lines: usize) -> Result<Vec<Feed>, ReportError> {
+        if !self.cur.lines.is_empty() {
+            let cur = std::mem::replace(&mut self.cur, Feed::empty(self.path));
+            self.runs.push(cur);
+        }
+        if self.runs.is_empty() {
+            return Err(self.bad(lines.max(1), "the feed has no lines".into()));
+        }
+        let n = self.runs.len();
+        for (k, r) in self.runs.iter_mut().enumerate() {
+            r.warnings.extend(self.warnings.iter().cloned());
+            r.lines.shrink_to_fit();
+            r.line_numbers.shrink_to_fit();
+            if n > 1 {
+                r.run = Some((k + 1, n));
+            }
+        }
+        Ok(self.runs)
+    }
+}
+
+/// A parsed line held for the whole report: its lists without spare capacity.
+fn compact(l: &mut FeedLine) {
+    l.tags.shrink_to_fit();
+    l.cameras.shrink_to_fit();
+    l.events.shrink_to_fit();
+}
+
 /// A number for a message: scientific beyond ordinary magnitudes.
 pub(crate) fn fmt_g(v: f64) -> String {
     if v != 0.0 && (v.abs() >= 1e7 || v.abs() < 1e-4) {
@@ -260,11 +323,6 @@ pub(crate) fn fmt_g(v: f64) -> String {
 }
 
 use fmt_g as g;
-
-/// 1-based line of the end of `bytes`.
-fn text_line_of(bytes: &[u8]) -> usize {
-    bytes.iter().filter(|&&b| b == b'\n').count() + 1
-}
 
 /// A value of a feed line that is not finite or not within the limits; the message names
 /// the field.
@@ -512,5 +570,25 @@ mod tests {
             let e = parse(&format!("{line}\n")).unwrap_err().to_string();
             assert!(e.starts_with("f.jsonl:1: not a feed line") && e.contains(want), "{line}: {e}");
         }
+    }
+
+    /// Read line by line as parsed whole (a `\r\n`, a cut last line); a non-UTF-8 line named.
+    #[test]
+    fn a_feed_read_line_by_line_is_the_feed_parsed_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = [resumed_test_feed(true).replacen('\n', "\r\n", 2), "\n{\"seq\":99,\"t_ns\":9".into()].concat();
+        let path = dir.path().join("f.jsonl");
+        std::fs::write(&path, &text).unwrap();
+        let (streamed, whole) =
+            (Feed::read_runs(&path, &ReadOptions::default()).unwrap(), Feed::parse(&text, &path, &ReadOptions::default()).unwrap());
+        assert_eq!((streamed.len(), streamed[0].lines.len()), (1, 15));
+        assert_eq!(
+            (&streamed[0].lines, &streamed[0].line_numbers, &streamed[0].warnings),
+            (&whole[0].lines, &whole[0].line_numbers, &whole[0].warnings)
+        );
+        assert!(streamed[0].warnings.iter().any(|w| w.contains(":17: truncated last line skipped")), "{:?}", streamed[0].warnings);
+        std::fs::write(&path, [&b"{\"seq\":0,\"t_ns\":1}\n\xff\n"[..], text.as_bytes()].concat()).unwrap();
+        let e = Feed::read_runs(&path, &ReadOptions::default()).unwrap_err().to_string();
+        assert!(e.contains("f.jsonl:2: not a feed line: not UTF-8"), "{e}");
     }
 }

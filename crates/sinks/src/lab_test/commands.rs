@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use tagdeflect_core::feed::FeedEvent;
 
+use super::folder::Phase;
 use super::record::day_of;
 use super::state::{Inner, LabTests, Running};
 use super::zero::{Zero, ZERO_SETS};
@@ -43,15 +44,14 @@ impl LabTests {
         if let Some(r) = &g.running {
             return Err(TestError::Conflict(format!("test {} is running: stop it first", r.record.id)));
         }
+        self.refuse_if_unfinished(g)?;
         let folder = self.dir.join(&id);
         if folder.exists() {
             return Err(TestError::Conflict(format!("{} exists already: wait a second and start again", folder.display())));
         }
         let io = |e: std::io::Error| TestError::Io(format!("cannot open the test's folder {}: {e}", folder.display()));
         std::fs::create_dir_all(&folder).map_err(io)?;
-        let open = |name: &str| std::fs::OpenOptions::new().create_new(true).append(true).open(folder.join(name));
-        let feed = open("feed.jsonl").map_err(io)?;
-        let utm = open("utm.jsonl").map_err(io)?;
+        let (feed, utm) = Self::open_files(&folder).map_err(io)?;
         let start = FeedEvent { kind: "start".into(), t_ns: now, note, user };
         g.pending.push(start.clone());
         let record = TestRecord {
@@ -98,13 +98,15 @@ impl LabTests {
 
     /// [`LabTests::zero`] by `user`.
     pub fn zero_by(&self, user: Option<String>) -> Result<serde_json::Value, TestError> {
-        let v = self.event("zero", None, user)?;
+        // The zero is taken again even when its state could not be kept (the event is in
+        // the feed); the answer then says so.
+        let v = self.event("zero", None, user);
         let mut g = self.lock();
-        if let Some(r) = g.running.as_mut() {
+        if let (Some(r), true) = (g.running.as_mut(), !matches!(v, Err(TestError::Conflict(_)))) {
             r.zero = Zero::default();
             self.persist(r);
         }
-        Ok(v)
+        v
     }
 
     fn event(&self, kind: &str, note: Option<String>, user: Option<String>) -> Result<serde_json::Value, TestError> {
@@ -112,10 +114,13 @@ impl LabTests {
         let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
         let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note, user };
         r.record.events.push(ev.clone());
-        self.persist(r);
+        let kept = self.persist_as(r, Phase::Running);
         self.publish(&r.record);
         g.pending.push(ev);
         drop(g);
+        kept.map_err(|e| {
+            TestError::Io(format!("the {kind} is in the feed and goes into test.json, but {e}: a restart now would lose it"))
+        })?;
         Ok(self.status())
     }
 
@@ -135,7 +140,8 @@ impl LabTests {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let mut g = self.lock();
         if g.running.is_none() {
-            return Err(TestError::Conflict("no test is running: nothing to stop".into()));
+            drop(g);
+            return self.retry_unfinished().unwrap_or_else(|| Err(TestError::Conflict("no test is running: nothing to stop".into())));
         }
         // Every line solved before the stop reaches the folder first (the sinks run behind
         // the solver by a line or two).
@@ -155,14 +161,11 @@ impl LabTests {
         if g.earlier.len() > EARLIER_TESTS {
             g.earlier.remove(0);
         }
+        Self::being_completed(&mut g, &r.record.id);
         drop(g);
-        if let Err(e) = std::fs::remove_file(self.state_file()) {
-            tracing::error!("cannot remove {}: {e}", self.state_file().display());
-        }
         let id = r.record.id.clone();
         let folder = r.folder.clone();
-        let report_error = self.complete(r)?;
-        self.lock().last_report_error = report_error.clone();
+        let report_error = self.finish_stop(r)?;
         tracing::info!(test = %id, folder = %folder.display(), "test stopped; its folder is complete");
         Ok(Stopped { id, folder, report_error })
     }

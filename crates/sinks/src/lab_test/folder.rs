@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::Digest;
 use tagdeflect_core::feed::FeedEvent;
+use tagdeflect_core::feed_file::FeedWriter;
 
 use super::record::{day_of, read_curve};
 use super::state::{LabTests, Running};
@@ -22,7 +23,16 @@ impl LabTests {
 
     /// Keeps the running test's state on disk (see the module doc); a failure is logged.
     pub(super) fn persist(&self, r: &Running) {
+        if let Err(e) = self.persist_as(r, Phase::Running) {
+            tracing::error!(test = %r.record.id, "{e}");
+        }
+    }
+
+    /// Writes the test's state as `phase` (a temporary file, synced, renamed over the state,
+    /// the folder synced): the state on disk is always a whole one, the old or the new.
+    pub(super) fn persist_as(&self, r: &Running, phase: Phase) -> std::io::Result<()> {
         let p = Persisted {
+            phase,
             record: r.record.clone(),
             folder: r.folder.clone(),
             zero_n: r.zero.n,
@@ -32,18 +42,9 @@ impl LabTests {
             last_line_t_ns: r.written_t_ns,
         };
         let path = self.state_file();
-        let tmp = path.with_extension("json.tmp");
-        let result = serde_json::to_vec(&p)
-            .map_err(std::io::Error::other)
-            .and_then(|bytes| {
-                let mut f = std::fs::File::create(&tmp)?;
-                f.write_all(&bytes)?;
-                f.sync_all()
-            })
-            .and_then(|()| std::fs::rename(&tmp, &path));
-        if let Err(e) = result {
-            tracing::error!(test = %r.record.id, "cannot keep the running test's state in {}: {e}", path.display());
-        }
+        let bytes = serde_json::to_vec(&p).map_err(std::io::Error::other)?;
+        write_durably(&path, &bytes)
+            .map_err(|e| std::io::Error::new(e.kind(), format!("cannot keep the running test's state in {}: {e}", path.display())))
     }
 
     /// The curves of today's stopped tests in the folder (once, at start).
@@ -72,12 +73,18 @@ impl LabTests {
     /// A state that cannot be resumed (unreadable, not a state, its folder gone) is moved aside
     /// to `.running.json.stale-<UTC time>` with a warning naming it, and the daemon starts
     /// idle: a stale file must not keep the rig down (the unit does not restart on exit 2).
-    pub(super) fn resume(&self) -> std::io::Result<()> {
+    ///
+    /// A state that says "stopping" (the daemon stopped while the test's folder was being
+    /// completed) is not resumed: the stopped test is returned, for its folder to be completed.
+    pub(super) fn resume(&self) -> std::io::Result<Option<Running>> {
         let path = self.state_file();
         if std::fs::symlink_metadata(&path).is_err() {
-            return Ok(());
+            return Ok(None);
         }
-        let Err(e) = self.resume_from(&path) else { return Ok(()) };
+        let e = match self.resume_from(&path) {
+            Ok(stopping) => return Ok(stopping),
+            Err(e) => e,
+        };
         let stamp = chrono::DateTime::from_timestamp_nanos(tagdeflect_core::clock::now_epoch_ns()).format("%Y%m%dT%H%M%SZ");
         let mut aside = path.with_file_name(format!(".running.json.stale-{stamp}"));
         for k in 2.. {
@@ -97,10 +104,10 @@ impl LabTests {
             path.display(),
             aside.display()
         );
-        Ok(())
+        Ok(None)
     }
 
-    fn resume_from(&self, path: &Path) -> std::io::Result<()> {
+    fn resume_from(&self, path: &Path) -> std::io::Result<Option<Running>> {
         let text = std::fs::read_to_string(path)?;
         let p: Persisted = serde_json::from_str(&text).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e.to_string()))?;
         if !p.folder.is_dir() {
@@ -108,68 +115,143 @@ impl LabTests {
             return Err(std::io::Error::new(std::io::ErrorKind::NotFound, message));
         }
         // A crash may have cut the last line of the test's files: cut back to whole lines.
-        for name in ["feed.jsonl", "utm.jsonl"] {
-            tagdeflect_core::linefile::LineFile::open_append(&p.folder.join(name))?;
-        }
-        let open = |name: &str| std::fs::OpenOptions::new().append(true).open(p.folder.join(name));
-        let (feed, utm) = (open("feed.jsonl")?, open("utm.jsonl")?);
-        let now = tagdeflect_core::clock::now_epoch_ns();
-        let gap_s = if p.last_line_t_ns > i64::MIN { (now as i128 - p.last_line_t_ns as i128) as f64 * 1e-9 } else { f64::NAN };
-        let ev = FeedEvent {
-            kind: "resume".into(),
-            t_ns: now,
-            note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
-            user: None,
-        };
-        let mut record = p.record;
-        record.events.push(ev.clone());
+        let (feed, utm) = Self::open_files(&p.folder)?;
         let zero = Zero {
             n: p.zero_n,
             tags: p.tags.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
             net: Mean::from_parts(&p.net),
             gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
         };
-        tracing::warn!(test = %record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
         let curve = read_curve(&p.folder.join("feed.jsonl")).unwrap_or_default();
-        let r = Running { record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve };
+        let mut r = Running { record: p.record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve };
+        if p.phase == Phase::Stopping {
+            return Ok(Some(r));
+        }
+        let now = tagdeflect_core::clock::now_epoch_ns();
+        let gap_s = if r.written_t_ns > i64::MIN { (now as i128 - r.written_t_ns as i128) as f64 * 1e-9 } else { f64::NAN };
+        let ev = FeedEvent {
+            kind: "resume".into(),
+            t_ns: now,
+            note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
+            user: None,
+        };
+        r.record.events.push(ev.clone());
+        tracing::warn!(test = %r.record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
         self.persist(&r);
         let mut g = self.lock();
         g.pending.push(ev);
         g.running = Some(r);
-        Ok(())
+        Ok(None)
     }
 
-    /// Writes the config, the report and `test.json` of a stopped test; answers why the report
-    /// could not be made, if it could not.
-    pub(super) fn complete(&self, r: Running) -> Result<Option<String>, TestError> {
-        let Running { mut record, folder, feed, utm, .. } = r;
+    /// The test's `feed.jsonl` and `utm.jsonl` in `folder`, opened to append (made when absent,
+    /// a partial last line cut off).
+    pub(super) fn open_files(folder: &Path) -> std::io::Result<(FeedWriter, FeedWriter)> {
+        Ok((FeedWriter::append(&folder.join("feed.jsonl"))?, FeedWriter::append(&folder.join("utm.jsonl"))?))
+    }
+
+    /// Writes the config, the report and `test.json` of a stopped test (`test.json` last, under
+    /// a temporary name, synced and renamed: a folder with `test.json` is complete); answers why the
+    /// report could not be made, if it could not.
+    pub(super) fn complete(&self, r: &mut Running) -> Result<Option<String>, TestError> {
+        let Running { record, folder, feed, utm, .. } = r;
         let io = |what: &str, e: std::io::Error| TestError::Io(format!("{}: {what}: {e}", folder.display()));
-        feed.sync_all().map_err(|e| io("feed.jsonl", e))?;
-        utm.sync_all().map_err(|e| io("utm.jsonl", e))?;
-        std::fs::write(folder.join("tagdeflect.toml"), &self.config_text).map_err(|e| io("tagdeflect.toml", e))?;
+        // Every line held back (a full disk) written first; else the stop says so and keeps them.
+        feed.flush_held().map_err(|e| io("feed.jsonl", e))?;
+        utm.flush_held().map_err(|e| io("utm.jsonl", e))?;
+        record.lines = count_lines(&folder.join("feed.jsonl")).map_err(|e| io("feed.jsonl", e))?;
+        record.utm_samples = count_lines(&folder.join("utm.jsonl")).map_err(|e| io("utm.jsonl", e))?;
+        write_durably(&folder.join("tagdeflect.toml"), self.config_text.as_bytes()).map_err(|e| io("tagdeflect.toml", e))?;
         let mut report_error = None;
         if record.meta.standard.is_some() {
             if let Some(hook) = &self.report {
-                if let Err(e) = hook(&folder, &record) {
+                hold_before_report(&record.id);
+                if let Err(e) = hook(folder, record) {
                     tracing::error!(test = %record.id, "the test's report could not be made: {e}");
                     report_error = Some(format!("the report could not be made: {e}"));
                 }
             }
         }
-        record.sha256 = hash_folder(&folder).map_err(|e| io("hashing", e))?;
+        record.sha256 = hash_folder(folder).map_err(|e| io("hashing", e))?;
         record.sha256.extend(self.calibration_sha256.clone());
-        let text = serde_json::to_string_pretty(&record).map_err(|e| TestError::Io(e.to_string()))?;
-        let tmp = folder.join("test.json.tmp");
-        std::fs::write(&tmp, text + "\n").map_err(|e| io("test.json", e))?;
-        std::fs::rename(&tmp, folder.join("test.json")).map_err(|e| io("test.json", e))?;
-        self.publish(&record);
+        let text = serde_json::to_string_pretty(&*record).map_err(|e| TestError::Io(e.to_string()))? + "\n";
+        write_durably(&folder.join("test.json"), text.as_bytes()).map_err(|e| io("test.json", e))?;
+        self.publish(record);
         Ok(report_error)
     }
+}
+
+/// Lines in a file (whole lines: the writers leave no partial one).
+fn count_lines(path: &Path) -> std::io::Result<u64> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path)?;
+    let mut buf = vec![0u8; 1 << 16];
+    let mut n = 0u64;
+    loop {
+        match f.read(&mut buf)? {
+            0 => return Ok(n),
+            k => n += buf[..k].iter().filter(|&&b| b == b'\n').count() as u64,
+        }
+    }
+}
+
+/// Writes `path` whole or not at all: a temporary file beside it, synced, renamed over it, and
+/// the folder synced (the rename itself survives a power cut).
+pub(super) fn write_durably(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".tmp");
+    let tmp = path.with_file_name(name);
+    let written = std::fs::File::create(&tmp).and_then(|mut f| {
+        f.write_all(bytes)?;
+        f.sync_all()
+    });
+    if let Err(e) = written.and_then(|()| std::fs::rename(&tmp, path)) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    sync_dir(path.parent().unwrap_or(Path::new(".")))
+}
+
+/// `fsync` of a folder: the names made, renamed or removed in it survive a power cut.
+pub(super) fn sync_dir(dir: &Path) -> std::io::Result<()> {
+    std::fs::File::open(dir)?.sync_all()
+}
+
+/// The fault-injection hold of [`HOLD_REPORT_ENV`]: waits (at most 10 min) until the file it
+/// names exists, having logged that it waits.
+fn hold_before_report(id: &str) {
+    let Some(file) = std::env::var_os(HOLD_REPORT_ENV) else { return };
+    let file = PathBuf::from(file);
+    tracing::warn!(test = %id, "{HOLD_REPORT_ENV}: the report waits until {} exists", file.display());
+    let until = std::time::Instant::now() + std::time::Duration::from_secs(600);
+    while !file.exists() && std::time::Instant::now() < until {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+/// Fault injection for the tests of a crash during a stop: when set to a file's path, a
+/// stopped test's report is made only once that file exists (the daemon's state says
+/// "stopping" meanwhile). Never set in service.
+const HOLD_REPORT_ENV: &str = "TAGDEFLECT_HOLD_REPORT";
+
+/// What the state on disk says of its test.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub(super) enum Phase {
+    /// The test runs: a daemon started resumes it.
+    #[default]
+    Running,
+    /// The test was stopped (`record.stopped_t_ns`, its stop event in `record.events`) and its
+    /// folder is being completed: a daemon started completes it.
+    Stopping,
 }
 
 /// The running test's state on disk (`TESTS/.running.json`).
 #[derive(Serialize, Deserialize)]
 struct Persisted {
+    /// Absent in a state written before stops were kept: running.
+    #[serde(default, rename = "state")]
+    phase: Phase,
     record: TestRecord,
     folder: PathBuf,
     zero_n: usize,

@@ -39,8 +39,8 @@
 //!
 //! Files by job: [`meta`] what a test is started with, [`record`] `test.json` and the earlier
 //! tests' curves, `state` the tests and their lock, `commands` what an operator does,
-//! `steps` what the pipeline's threads do, `folder` the files on disk, `zero` the test's zero,
-//! [`audit`] the audit log, sign-off and re-analysis.
+//! `steps` what the pipeline's threads do, `folder` the files on disk, `stopping` a stop that
+//! survives a crash, `zero` the test's zero, [`audit`] the audit log, sign-off and re-analysis,
 //! `start` a start with its method and specimen (refused when its report could not be made),
 //! [`specimens`] the table entered beforehand, `crack` the operator's crack entry.
 
@@ -55,6 +55,7 @@ pub mod specimens;
 mod start;
 mod state;
 mod steps;
+mod stopping;
 mod zero;
 
 #[cfg(test)]

@@ -7,6 +7,7 @@ use std::sync::{Arc, Condvar, Mutex};
 
 use sha2::Digest;
 use tagdeflect_core::feed::FeedEvent;
+use tagdeflect_core::feed_file::FeedWriter;
 
 use super::folder::hex;
 use super::zero::Zero;
@@ -26,8 +27,10 @@ pub type RecordHook = Box<dyn Fn(&TestRecord) + Send + Sync>;
 pub(super) struct Running {
     pub(super) record: TestRecord,
     pub(super) folder: PathBuf,
-    pub(super) feed: std::fs::File,
-    pub(super) utm: std::fs::File,
+    /// `feed.jsonl` and `utm.jsonl`: whole lines only, held back and retried while the disk
+    /// is full (the main feed's writer, [`tagdeflect_core::feed_file`]).
+    pub(super) feed: FeedWriter,
+    pub(super) utm: FeedWriter,
     pub(super) zero: Zero,
     /// The newest line written to the folder.
     pub(super) written_t_ns: i64,
@@ -54,6 +57,8 @@ pub(super) struct Inner {
     pub(super) last_load: Option<(f64, i64)>,
     /// Why the last test's report could not be made, if it could not.
     pub(super) last_report_error: Option<String>,
+    /// A stopped test whose folder is not complete yet.
+    pub(super) unfinished: Option<super::stopping::Unfinished>,
 }
 
 /// The tests of a daemon; see the module doc.
@@ -78,7 +83,8 @@ impl LabTests {
     /// calibration file that cannot be read is an error: a test must not claim an unhashed
     /// calibration.
     ///
-    /// A test that was running when the daemon stopped (`TESTS/.running.json`) is resumed.
+    /// A test that was running when the daemon stopped (`TESTS/.running.json`) is resumed; one
+    /// that was being stopped has its folder completed.
     pub fn new(dir: &Path, config_text: String, calibration_files: Vec<PathBuf>, report: Option<ReportHook>) -> std::io::Result<Arc<Self>> {
         let mut calibration_sha256 = BTreeMap::new();
         for c in &calibration_files {
@@ -98,8 +104,12 @@ impl LabTests {
             audit: Mutex::new(audit),
         };
         tests.read_earlier();
-        tests.resume()?;
-        Ok(Arc::new(tests))
+        let stopping = tests.resume()?;
+        let tests = Arc::new(tests);
+        if let Some(r) = stopping {
+            tests.complete_at_start(r);
+        }
+        Ok(tests)
     }
 
     /// The folder tests are kept in.

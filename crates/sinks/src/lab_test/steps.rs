@@ -2,7 +2,6 @@
 //! the line, the automatic rules), the sinks' (the test's lines into its folder) and the UTM
 //! forwarder's (the test's samples into its folder).
 
-use std::io::Write;
 use std::sync::Arc;
 
 use tagdeflect_core::feed::{FeedEvent, FeedLine, TestRef};
@@ -71,12 +70,11 @@ impl LabTests {
         let mut g = self.lock();
         let Some(r) = g.running.as_mut() else { return };
         if line.test.as_ref().is_some_and(|t| t.id == r.record.id) {
-            let text = line.to_json() + "\n";
-            if let Err(e) = r.feed.write_all(text.as_bytes()) {
-                tracing::error!(test = %r.record.id, "cannot write the test's feed: {e}");
-            } else {
-                r.record.lines += 1;
+            // A full disk: the line is held back and retried (one error per outage).
+            if let Err(e) = r.feed.write(line) {
+                tracing::error!(test = %r.record.id, "the test's feed: {e}");
             }
+            r.record.lines += 1;
             if let (Some(n), Some(l)) = (line.net_deflection_mm, line.load_kn) {
                 push_point(&mut r.curve, n, l);
             }
@@ -94,10 +92,12 @@ impl LabTests {
             return;
         }
         match serde_json::to_string(s) {
-            Ok(text) => match r.utm.write_all((text + "\n").as_bytes()) {
-                Ok(()) => r.record.utm_samples += 1,
-                Err(e) => tracing::error!(test = %r.record.id, "cannot write the test's UTM samples: {e}"),
-            },
+            Ok(text) => {
+                if let Err(e) = r.utm.write_text(text) {
+                    tracing::error!(test = %r.record.id, "the test's UTM samples: {e}");
+                }
+                r.record.utm_samples += 1;
+            }
             Err(e) => tracing::error!("UTM sample: {e}"),
         }
     }

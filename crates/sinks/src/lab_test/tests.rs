@@ -117,3 +117,41 @@ fn a_stale_running_state_is_moved_aside_and_the_daemon_starts() {
     assert_eq!(tests.status()["state"], "idle");
     assert_eq!(aside(dir.path()).len(), 2);
 }
+
+/// The state of a test whose stop was under way when the daemon died says "stopping": the
+/// next start completes its folder (`test.json` with the stop) on a thread, does not resume it,
+/// refuses a start meanwhile only, and removes the state once the folder is complete.
+#[test]
+fn a_test_stopping_when_the_daemon_dies_is_completed_at_the_next_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = {
+        let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+        tests.start(TestMeta { specimen: "B5".into(), ..TestMeta::default() }).unwrap();
+        for k in 0..ZERO_SETS + 2 {
+            let mut l = line(k as i64, 5.0, 0.5);
+            tests.apply(&mut l);
+            tests.on_line(&l);
+        }
+        // The stop's first half: the test taken off and its state saying "stopping".
+        let mut r = tests.lock().running.take().unwrap();
+        r.record.events.push(tagdeflect_core::feed::FeedEvent { kind: "stop".into(), t_ns: 99, note: None, user: None });
+        r.record.stopped_t_ns = Some(99);
+        tests.persist_as(&r, super::folder::Phase::Stopping).unwrap();
+        r.folder.clone()
+        // Dropped before the folder was complete: the daemon died.
+    };
+    assert!(std::fs::read_to_string(dir.path().join(".running.json")).unwrap().contains(r#""state":"stopping""#));
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    assert_eq!(tests.status()["state"], "idle", "completed, not resumed");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while dir.path().join(".running.json").exists() {
+        assert!(std::time::Instant::now() < deadline, "the folder was not completed");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record.stopped_t_ns, Some(99));
+    assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "stop"]);
+    assert_eq!(record.lines as usize, ZERO_SETS + 2, "counted from the file");
+    assert_eq!(tests.status()["last"]["id"], record.id.as_str());
+    tests.start(TestMeta { specimen: "B6".into(), ..TestMeta::default() }).expect("tests start again");
+}
