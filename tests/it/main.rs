@@ -18,6 +18,7 @@ mod detect_sim;
 mod docs;
 mod drift;
 mod faults;
+mod formations;
 mod gauges;
 mod http;
 mod live;
