@@ -4,12 +4,21 @@ controller would: it reads the net deflection over Modbus TCP (tagdeflect's read
 registers, SPEC "Control output") and commands the actuator's stroke rate of a (simulated)
 testing machine so that the net deflection rises at a constant rate (ASTM C1609 style).
 
-Usage: pi_controller.py --control HOST:PORT --machine HOST:PORT --rate MM_PER_MIN
+Usage: pi_controller.py (--control HOST:PORT | --analog HOST:PORT [--volts-per-mm V]
+                        [--offset-v V]) --machine HOST:PORT --rate MM_PER_MIN
                         --duration S [--hz 50] [--kp 300] [--ki 300] [--log FILE]
 
-Safety behaviour (docs/control.md): while valid = 0, or the heartbeat has not moved for
-200 ms, or a read fails, the actuator is *held* (rate 0) and the setpoint's clock stops; at
-the end the actuator is held. The machine's actuator rate is holding registers 0-1 (f32,
+The value comes from one of two sources:
+  --control  tagdeflect's control output (input registers 0-1 value, 6 valid, 9 heartbeat);
+  --analog   the analog output's DAQ, read as a controller reads its analog input: the DAC's
+             volts (LabJack T-series DAC0, holding registers 1000-1001, FLOAT32 high word
+             first) converted back with --volts-per-mm and --offset-v, and the valid line
+             (FIO0, holding register 2000). tagdeflect writes these registers
+             (`[output.analog]`); nothing of tagdeflect's own registers is read.
+
+Safety behaviour (docs/control.md): while valid = 0, or (control output) the heartbeat has
+not moved for 200 ms, or a read fails, the actuator is *held* (rate 0) and the setpoint's
+clock stops; at the end the actuator is held. The machine's actuator rate is holding registers 0-1 (f32,
 mm/min, high word first) of the simulated machine (crates/sim/src/machine.rs).
 Logs one JSON line per cycle: t, valid, value, setpoint, command.
 """
@@ -41,9 +50,40 @@ def connect(addr, deadline):
     return c
 
 
+def control_reader(client):
+    """The control output's value, valid flag and heartbeat (None when the read failed)."""
+
+    def read():
+        r = client.read_input_registers(0, count=12)
+        if r.isError():
+            return None
+        regs = r.registers
+        return f32(regs, 0), regs[6] == 1, regs[9]
+
+    return read
+
+
+def analog_reader(client, volts_per_mm, offset_v):
+    """The DAQ's DAC0 volts back in mm and its valid line (no heartbeat: the line is it)."""
+
+    def read():
+        dac = client.read_holding_registers(1000, count=2)
+        line = client.read_holding_registers(2000, count=1)
+        if dac.isError() or line.isError():
+            return None
+        volts = f32(dac.registers, 0)
+        return (volts - offset_v) / volts_per_mm, line.registers[0] == 1, None
+
+    return read
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--control", required=True)
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--control")
+    source.add_argument("--analog")
+    ap.add_argument("--volts-per-mm", type=float, default=1.0)
+    ap.add_argument("--offset-v", type=float, default=0.0)
     ap.add_argument("--machine", required=True)
     ap.add_argument("--rate", type=float, required=True, help="target net-deflection rate, mm/min")
     ap.add_argument("--duration", type=float, required=True)
@@ -54,7 +94,8 @@ def main():
     a = ap.parse_args()
     log = open(a.log, "w") if a.log else None
     deadline = time.time() + 60
-    ctl = connect(a.control, deadline)
+    ctl = connect(a.control or a.analog, deadline)
+    read = control_reader(ctl) if a.control else analog_reader(ctl, a.volts_per_mm, a.offset_v)
     mach = connect(a.machine, deadline)
     period = 1.0 / a.hz
     t0 = time.time()
@@ -67,11 +108,10 @@ def main():
         last = now
         value, valid = float("nan"), False
         try:
-            r = ctl.read_input_registers(0, count=12)
-            if not r.isError():
-                regs = r.registers
-                value, valid, beat = f32(regs, 0), regs[6] == 1, regs[9]
-                if beat != last_beat:
+            got = read()
+            if got is not None:
+                value, valid, beat = got
+                if beat is None or beat != last_beat:
                     last_beat, beat_at = beat, now
         except Exception:
             pass

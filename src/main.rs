@@ -87,6 +87,10 @@ enum Command {
         /// A config file.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// With --config: also write the analog output's safe state to its device (the valid
+        /// line low, then the safe voltage) and read it back. Never written otherwise.
+        #[arg(long, requires = "config")]
+        write_test: bool,
     },
     /// List the cameras this machine sees: V4L2 devices by their stable /dev/v4l/by-id paths
     /// with formats, sizes and frame rates, and GigE/USB3 Vision devices (Aravis) by id.
@@ -100,6 +104,8 @@ enum Command {
     Bench(BenchOptions),
     /// Drive the test of a running daemon through its control API (start, stop, mark, zero).
     Test(commands::lab_test::TestArgs),
+    /// The control API's users and roles (`[output] users_file`): add, list, remove.
+    User(commands::user::UserArgs),
     /// `archive`, `archive-bench` (the `archive` feature).
     #[command(flatten)]
     Archive(optional::archive::ArchiveCommand),
@@ -286,13 +292,14 @@ fn run(cli: Cli) -> Result<()> {
             let cfg = load_config(&config)?;
             live::run(cfg, LiveOptions { record: Some(out), duration_s, record_only: true, ..LiveOptions::default() })
         }
-        Command::Check { dir, config } => match (dir, config) {
+        Command::Check { dir, config, write_test } => match (dir, config) {
             (Some(dir), None) => commands::check::check_recording(&dir),
-            (None, Some(cfg)) => commands::check::check_config(&cfg),
+            (None, Some(cfg)) => commands::check::check_config(&cfg, write_test),
             _ => Err(tagdeflect_core::BadInput::new("check takes either a recording folder or --config FILE").into()),
         },
         Command::Cameras { with_fake } => commands::cameras::list(with_fake),
         Command::Test(args) => commands::lab_test::run(&args),
+        Command::User(args) => commands::user::run(&args),
         Command::Bench(opts) => commands::bench::bench(&opts),
         Command::Sim(command) => command.run(),
         Command::Archive(command) => command.run(),

@@ -78,8 +78,9 @@ pub fn check_recording(dir: &Path) -> Result<()> {
     report(&rec.config, &sets)
 }
 
-/// `check --config FILE`: validates the config, opens every source, grabs one frame set.
-pub fn check_config(path: &Path) -> Result<()> {
+/// `check --config FILE`: validates the config, reads the analog output's device (and with
+/// `write_test` writes its safe state), opens every source, grabs one frame set.
+pub fn check_config(path: &Path, write_test: bool) -> Result<()> {
     let config = Config::load(path)?;
     println!(
         "config {}: valid ({} cameras, {} background tags, {} specimen tags)",
@@ -88,6 +89,12 @@ pub fn check_config(path: &Path) -> Result<()> {
         config.background.tags.len(),
         config.specimen.tags.len()
     );
+    check_verification(&config)?;
+    if let Some(a) = &config.output.analog {
+        check_analog(a, write_test);
+    } else if write_test {
+        println!("  warning: --write-test: the config has no [output.analog]; nothing written");
+    }
     let set = crate::graph::entry::grab_frame_set(&config, std::time::Duration::from_secs(10))?;
     for (i, cam) in config.cameras.iter().enumerate() {
         if !set.frames.iter().any(|f| f.camera == i) {
@@ -100,6 +107,33 @@ pub fn check_config(path: &Path) -> Result<()> {
         check_utm(u);
     }
     report(&config, &[set])
+}
+
+/// Reads the analog output's device once (its identity) and, with `write_test`, writes its
+/// safe state: the valid line low, then the safe voltage, read back. A device that does not
+/// answer is a warning (exit 0), as a silent UTM is.
+fn check_analog(a: &tagdeflect_sinks::analog_output::AnalogConfig, write_test: bool) {
+    let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+        Ok(rt) => rt,
+        Err(e) => return println!("  warning: analog output {}: cannot start the async runtime: {e}", a.address),
+    };
+    match rt.block_on(tagdeflect_sinks::analog_output::probe(a, write_test)) {
+        Ok(p) => {
+            println!("analog output {}: reachable; {}", a.address, p.identity);
+            match p.write_test {
+                Some(w) if w.matches => println!(
+                    "  test write: valid line low, then the safe value {:.4} V written and read back ({:?})",
+                    w.volts, w.read_back
+                ),
+                Some(w) => println!(
+                    "  warning: test write: {:.4} V written but the register reads back {:?}: the map or word order does not match the device",
+                    w.volts, w.read_back
+                ),
+                None => println!("  nothing written (`check --write-test` writes the valid line low and the safe value)"),
+            }
+        }
+        Err(e) => println!("  warning: {e}"),
+    }
 }
 
 /// How long `check --config` waits for the UTM's first reading.
@@ -252,6 +286,19 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
             poor.join(", ")
         ))
         .into());
+    }
+    Ok(())
+}
+
+/// The verification in force (`[verification]`): its class, date and id, and why it is stale
+/// if it is (a warning: the rig still measures; exit 0). A certificate that cannot be read is
+/// bad input (exit 2), named.
+fn check_verification(config: &Config) -> Result<()> {
+    match config.verification_in_force() {
+        Ok(None) => println!("verification: none configured ([verification] certificate)"),
+        Ok(Some(v)) if v.stale.is_empty() => println!("{}", v.describe()),
+        Ok(Some(v)) => println!("  warning: {}", v.describe()),
+        Err(e) => return Err(tagdeflect_core::BadInput::new(format!("[verification] {e}")).into()),
     }
     Ok(())
 }

@@ -1,5 +1,5 @@
 //! One module per command around the graph ([`crate::graph`]): assets, bench, calibrate,
-//! cameras, check, the lab tests' `test` client, report and export, and the simulator's
+//! cameras, check, the lab tests' `test` client, the control API's users, report and export, and the simulator's
 //! recordings. `run`, `record`, `demo` and `replay` are the graph itself
 //! ([`crate::graph::entry`]); [`optional`] holds the command-line faces of the commands a
 //! feature brings, [`args`] the parsers the command line shares.
@@ -16,6 +16,7 @@ pub mod optional;
 pub mod report;
 #[cfg(feature = "sim")]
 pub mod simulate;
+pub mod user;
 pub mod verify;
 
 pub use args::parse_duration_s;

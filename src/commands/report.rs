@@ -23,11 +23,11 @@ pub struct ReportArgs {
     #[arg(long, num_args = 1.., conflicts_with = "feed")]
     pub series: Vec<PathBuf>,
     /// The config of the test (its `[specimen.beam]` gives the geometry; its `[report]`, when
-    /// present, the report's options).
-    #[arg(long, required = true)]
+    /// present, the report's options); default for a test folder: its `tagdeflect.toml`.
+    #[arg(long)]
     pub config: Option<PathBuf>,
-    /// The standard.
-    #[arg(long, value_enum, required = true)]
+    /// The standard; default for a test folder: its `test.json`'s.
+    #[arg(long, value_enum)]
     pub standard: Option<Standard>,
     /// Output folder (created; existing report files in it are replaced).
     #[arg(long, required = true)]
@@ -93,6 +93,18 @@ pub struct ReportArgs {
     /// Laboratory name.
     #[arg(long)]
     pub laboratory: Option<String>,
+    /// A specimen of the series the lab excludes, with the reason (`B3="cast with a void"`):
+    /// listed with it, left out of the statistics. Repeat for each.
+    #[arg(long, value_parser = parse_exclude)]
+    pub exclude: Vec<(String, String)>,
+}
+
+/// `ID=REASON` of `--exclude`.
+fn parse_exclude(s: &str) -> Result<(String, String), String> {
+    match s.split_once('=') {
+        Some((id, why)) if !id.trim().is_empty() && !why.trim().is_empty() => Ok((id.trim().to_string(), why.trim().to_string())),
+        _ => Err(format!("{s:?}: give ID=REASON (the specimen's id or folder, and why it is excluded)")),
+    }
 }
 
 /// `tagdeflect report` sub-commands.
@@ -120,8 +132,10 @@ fn bad(msg: impl Into<String>) -> anyhow::Error {
     tagdeflect_core::BadInput::new(msg.into()).into()
 }
 
-/// The report's options: the config's `[report]` (when present), then the command line.
-fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -> anyhow::Result<ReportConfig> {
+/// The report's options: the config's `[report]` (when present), then the command line
+/// (the geometry is checked once the test's measured dimensions are in, [`check_geometry`]).
+fn options(args: &ReportArgs, config: &Config, out: &Path) -> anyhow::Result<ReportConfig> {
+    let standard = args.standard.or(config.report.as_ref().map(|r| r.standard)).unwrap_or(Standard::AstmC1609);
     let mut o = config.report.clone().unwrap_or_else(|| ReportConfig::new(standard, out.to_path_buf()));
     o.standard = standard;
     o.out = out.to_path_buf();
@@ -150,7 +164,14 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
     if args.no_pdf {
         o.pdf = false;
     }
-    let lab = &mut o.lab;
+    lab_flags(args, &mut o.lab);
+    // The same checks as `[report]` in a config, the key named as the flag.
+    o.validate_options().map_err(|p| bad(format!("--{}: {}", p.key.replace(['_', '.'], "-").trim_start_matches("lab-"), p.message)))?;
+    Ok(o)
+}
+
+/// The identification given on the command line, over the config's and `test.json`'s.
+fn lab_flags(args: &ReportArgs, lab: &mut tagdeflect_report::LabInfo) {
     for (dst, src) in [
         (&mut lab.specimen, &args.specimen),
         (&mut lab.operator, &args.operator),
@@ -165,10 +186,11 @@ fn options(args: &ReportArgs, config: &Config, standard: Standard, out: &Path) -
             *dst = src.clone();
         }
     }
-    // The same checks as `[report]` in a config, the key named as the flag.
-    o.validate_with(config.specimen.beam.as_ref())
-        .map_err(|p| bad(format!("--{}: {}", p.key.replace(['_', '.'], "-").trim_start_matches("lab-"), p.message)))?;
-    Ok(o)
+}
+
+/// The geometry the report computes with, checked as `[report]` checks it.
+fn check_geometry(opts: &ReportConfig, rig: &tagdeflect_report::TestRig, config_path: &Path) -> anyhow::Result<()> {
+    opts.validate_with(rig.specimen.beam.as_ref()).map_err(|p| bad(format!("{}: {}", config_path.display(), p.message)))
 }
 
 /// The calibration files a config names (`[[camera]] calibration`, resolved against its
@@ -192,26 +214,62 @@ fn feed_of(p: &Path) -> PathBuf {
     }
 }
 
-/// Builds the reports of one feed file (one per run).
-fn reports_of(
-    feed_path: &Path,
-    args: &ReportArgs,
-    config: &Config,
-    config_path: &Path,
-    opts: &ReportConfig,
-) -> anyhow::Result<Vec<(Report, Feed)>> {
+/// The config of a feed: `--config`, else the `tagdeflect.toml` of its test folder.
+fn config_path_of(args: &ReportArgs, feed_path: &Path) -> anyhow::Result<PathBuf> {
+    if let Some(c) = &args.config {
+        return Ok(c.clone());
+    }
+    let folder = feed_path.parent().map(|d| d.join("tagdeflect.toml")).filter(|p| p.is_file());
+    folder.ok_or_else(|| bad(format!("{}: not a test folder's feed (no tagdeflect.toml beside it): give --config", feed_path.display())))
+}
+
+/// Builds the reports of one feed file (one per run). A feed with `test.json` beside it is a
+/// test folder's: its inputs are built as the report made at the test's stop builds them
+/// ([`tagdeflect_report::test_folder::prepare`]).
+fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result<Vec<(Report, Feed)>> {
+    use tagdeflect_report::test_folder::{build_test, prepare, read_streams, record_of, TestView};
+    let config_path = config_path_of(args, feed_path)?;
+    let config = Config::load(&config_path)?;
+    let opts = options(args, &config, out)?;
+    let dir = feed_path.parent().unwrap_or(Path::new("."));
+    let record = record_of(dir).filter(|_| feed_path.file_name().is_some_and(|n| n == "feed.jsonl"));
+    let mut inputs = vec![("config".to_string(), config_path.clone())];
+    if args.config.is_some() {
+        inputs.extend(calibration_files(&config).into_iter().map(|p| ("calibration".to_string(), p)));
+    }
+    let mut out = Vec::new();
+    if let Some(record_path) = record {
+        let view = TestView::read(&record_path)?;
+        let mut prepared = prepare(&view, &config.test_rig(), &opts, args.standard, &record_path, &config_path)?;
+        lab_flags(args, &mut prepared.opts.lab);
+        if args.standard.is_none() && view.standard.is_none() && config.report.is_none() {
+            return Err(bad(format!("{}: names no standard: give --standard", record_path.display())));
+        }
+        check_geometry(&prepared.opts, &prepared.rig, &config_path)?;
+        let (runs, mut utm) = read_streams(dir, &prepared.opts, args.allow_restarts)?;
+        if let Some(u) = args.utm.as_ref().filter(|_| args.series.is_empty()) {
+            utm = Some(UtmStream::read(u, &prepared.opts.limits())?);
+        }
+        for feed in runs {
+            let mut r = build_test(&feed, utm.as_ref(), &prepared, &view, &config_path)?;
+            r.inputs = inputs.clone();
+            out.push((r, feed));
+        }
+        return Ok(out);
+    }
+    if args.standard.is_none() && config.report.is_none() {
+        return Err(bad(format!("{}: not a test folder's feed (no test.json beside it): give --standard", feed_path.display())));
+    }
+    check_geometry(&opts, &config.test_rig(), &config_path)?;
     let runs = Feed::read_runs(feed_path, &ReadOptions { limits: opts.limits(), allow_restarts: args.allow_restarts })?;
     let utm_path = match &args.utm {
         Some(p) if args.series.is_empty() => Some(p.clone()),
         _ => feed_path.parent().map(|d| d.join("utm.jsonl")).filter(|p| p.is_file()),
     };
     let utm = utm_path.map(|p| UtmStream::read(&p, &opts.limits())).transpose()?;
-    let mut inputs = vec![("config".to_string(), config_path.to_path_buf())];
-    inputs.extend(calibration_files(config).into_iter().map(|p| ("calibration".to_string(), p)));
     let rig = config.test_rig();
-    let mut out = Vec::new();
     for feed in runs {
-        let mut r = build(&feed, utm.as_ref(), &rig, config_path, opts)?;
+        let mut r = build(&feed, utm.as_ref(), &rig, &config_path, &opts)?;
         r.inputs = inputs.clone();
         out.push((r, feed));
     }
@@ -224,19 +282,20 @@ pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
     if let Some(ReportAction::Verify { dir }) = &args.action {
         return verify_cli(dir).map(|_| Vec::new());
     }
-    let (Some(config_path), Some(standard), Some(out)) = (&args.config, args.standard, &args.out) else {
-        return Err(bad("report needs --config, --standard and --out"));
+    let Some(out) = &args.out else {
+        return Err(bad("report needs --out"));
     };
-    let config = Config::load(config_path)?;
-    let opts = options(args, &config, standard, out)?;
     // Everything is read and computed before anything is written.
     let mut groups: Vec<(Report, Feed)> = Vec::new();
     let feeds: Vec<PathBuf> = match &args.feed {
-        Some(f) => vec![f.clone()],
+        Some(f) => vec![feed_of(f)],
         None => args.series.iter().map(|p| feed_of(p)).collect(),
     };
     for f in &feeds {
-        groups.extend(reports_of(f, args, &config, config_path, &opts)?);
+        groups.extend(reports_of(f, args, out)?);
+    }
+    if args.standard.is_none() {
+        one_standard(&groups)?;
     }
     let mut files = Vec::new();
     if groups.len() == 1 {
@@ -260,13 +319,27 @@ pub fn run_cli(args: &ReportArgs) -> anyhow::Result<Vec<PathBuf>> {
             tracing::info!("{name}: {}", if report.validity.valid { "valid" } else { "NOT VALID" });
         }
         let reports: Vec<Report> = groups.into_iter().map(|(r, _)| r).collect();
-        files.extend(tagdeflect_report::series::write(&reports, out)?);
+        files.extend(tagdeflect_report::series::write(&reports, &args.exclude, out)?);
         if args.series.is_empty() {
             tracing::warn!("{} holds {} runs: each reported on its own under {}", feeds[0].display(), reports.len(), out.display());
         }
     }
     tracing::info!("report written into {} ({} files)", out.display(), files.len());
     Ok(files)
+}
+
+/// A series of one standard, or an error naming the folders of each (`--standard` picks one).
+fn one_standard(groups: &[(Report, Feed)]) -> anyhow::Result<()> {
+    let mut by: std::collections::BTreeMap<&str, Vec<String>> = Default::default();
+    for (r, _) in groups {
+        let folder = r.feed_path.parent().unwrap_or(&r.feed_path).display().to_string();
+        by.entry(r.standard.id()).or_default().push(folder);
+    }
+    if by.len() < 2 {
+        return Ok(());
+    }
+    let list: Vec<String> = by.iter().map(|(s, f)| format!("{s}: {}", f.join(", "))).collect();
+    Err(bad(format!("the series mixes standards ({}): give --standard to report it as one", list.join("; "))))
 }
 
 /// The folder of one specimen of a series under `--out`: a safe name, with a warning when
@@ -293,34 +366,53 @@ fn log_values(report: &Report) {
     }
 }
 
-/// `tagdeflect report verify DIR`.
+/// `tagdeflect report verify DIR`: the folder as it lies (`tagdeflect_report::verify`) and
+/// the tests folder's audit chain; exit 0 when nothing changed, 1 naming every change.
 fn verify_cli(dir: &Path) -> anyhow::Result<()> {
-    use tagdeflect_report::verify::InputState;
-    let (checked, version) = tagdeflect_report::verify::verify(dir)?;
-    let mut changed = Vec::new();
-    for c in &checked {
-        match &c.state {
-            InputState::Same => println!("same     {} {}", c.role, c.path),
-            InputState::Changed => {
-                println!("CHANGED  {} {}", c.role, c.path);
-                changed.push(format!("{} {} changed", c.role, c.path));
-            }
-            InputState::Missing(e) => {
-                println!("MISSING  {} {} ({e})", c.role, c.path);
-                changed.push(format!("{} {} missing", c.role, c.path));
-            }
+    use tagdeflect_report::verify::{audit_log_of, chain_checked, InputState};
+    let mut v = tagdeflect_report::verify::verify(dir)?;
+    if let Some(t) = v.folders.test.clone() {
+        let log = audit_log_of(&t);
+        if log.is_file() {
+            v.checked.push(chain_checked(&log, audit_chain(&log)));
         }
     }
-    let here = env!("CARGO_PKG_VERSION");
-    if version != here {
-        println!("software: the report was made by tagdeflect {version}, this is {here}");
+    for c in &v.checked {
+        let (word, why) = match &c.state {
+            InputState::Same => ("same    ", String::new()),
+            InputState::Changed => ("CHANGED ", String::new()),
+            InputState::Missing(e) => ("MISSING ", format!(" ({e})")),
+            InputState::Extra => ("EXTRA   ", " (not in test.json)".to_string()),
+        };
+        println!("{word} {} {}{why}", c.role, c.path);
     }
-    if changed.is_empty() {
-        println!("{}: every input as when the report was made ({} files)", dir.display(), checked.len());
+    let here = env!("CARGO_PKG_VERSION");
+    if v.version != here {
+        println!("software: the report was made by tagdeflect {}, this is {here}", v.version);
+    }
+    let changes: Vec<String> = v
+        .changes()
+        .iter()
+        .map(|c| {
+            let what = match c.state {
+                InputState::Missing(_) => "missing",
+                InputState::Extra => "extra",
+                _ => "changed",
+            };
+            format!("{} {} {what}", c.role, c.path)
+        })
+        .collect();
+    if changes.is_empty() {
+        println!("{}: every file as recorded ({} checked)", dir.display(), v.checked.len());
         Ok(())
     } else {
-        Err(bad(format!("{}: {} input(s) differ from the report's: {}", dir.display(), changed.len(), changed.join("; "))))
+        Err(anyhow::anyhow!("{}: {} change(s): {}", dir.display(), changes.len(), changes.join("; ")))
     }
+}
+
+/// The audit chain of a tests folder, whole (its entries) or where it is broken.
+fn audit_chain(log: &Path) -> tagdeflect_report::verify::Chain {
+    tagdeflect_core::audit::verify_chain(log).map(|s| s.entries).map_err(|e| e.to_string())
 }
 
 /// `tagdeflect export`: the feed as CSV.

@@ -127,6 +127,7 @@ impl Config {
             sim: Some(params.clone()),
             gauges: s.gauges,
             clock_check: None,
+            verification: None,
             calibration_files: Vec::new(),
         };
         config.checked("<simulated rig>").expect("the simulated rig's config is valid")

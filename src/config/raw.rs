@@ -7,6 +7,7 @@ use std::path::Path;
 
 use tagdeflect_core::camera_config::CameraSection;
 use tagdeflect_core::rig::{BackgroundSection, SpecimenSection, WorldConfig};
+use tagdeflect_core::verification::VerificationConfig;
 use tagdeflect_estimate::clock_offset::ClockCheckConfig;
 use tagdeflect_estimate::gauges::GaugeSection;
 use tagdeflect_estimate::measure_config::MeasureConfig;
@@ -43,6 +44,8 @@ pub(super) struct RawConfig {
     pub(super) gauge: Vec<GaugeSection>,
     #[serde(default)]
     pub(super) clock_check: Option<ClockCheckConfig>,
+    #[serde(default)]
+    pub(super) verification: Option<VerificationConfig>,
 }
 
 /// Parses the text into its raw form; a TOML syntax or type error is located by line and key.

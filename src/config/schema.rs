@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::gauge::GaugeConfig;
 use tagdeflect_core::rig::{BackgroundConfig, SpecimenConfig, TagRole, WorldConfig};
+use tagdeflect_core::verification::VerificationConfig;
 use tagdeflect_estimate::clock_offset::ClockCheckConfig;
 use tagdeflect_estimate::measure_config::MeasureConfig;
 use tagdeflect_io::sync::SyncConfig;
@@ -63,6 +64,10 @@ pub struct Config {
     /// The live clock check (`[clock_check]`, extension; see `tagdeflect_estimate::clock_offset`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clock_check: Option<ClockCheckConfig>,
+    /// The verification in force (`[verification]`, extension; see
+    /// `tagdeflect_core::verification`): its certificate, resolved against the config's folder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verification: Option<VerificationConfig>,
     /// The calibration files the cameras' intrinsics were imported from (`[[camera]]
     /// calibration`, the file part of `file.yaml#cam1`), resolved against the config's folder;
     /// hashed into every test's `test.json`. Not written back: a written config carries the
@@ -127,6 +132,29 @@ impl Config {
         let names: Vec<String> = self.gauges.iter().map(|g| g.name.clone()).collect();
         let asked = self.report.as_ref().and_then(|r| r.cmod_gauge.as_deref());
         tagdeflect_report::choose_cmod_gauge(&self.gauges, &names, asked).ok()
+    }
+
+    /// [`tagdeflect_core::verification::geometry_sha256`] of this config: what a verification
+    /// certificate records and a later run compares.
+    pub fn geometry_sha256(&self) -> String {
+        tagdeflect_core::verification::geometry_sha256(self.world.up, &self.background, &self.specimen, &self.cameras)
+    }
+
+    /// The rig as the verification in force is compared with (`bumps` added by whoever saw them).
+    pub fn rig_now(&self) -> anyhow::Result<tagdeflect_core::verification::RigNow> {
+        let mut calibration_files = Vec::new();
+        for p in self.calibration_files.iter().filter(|p| p.is_file()) {
+            let sha256 = tagdeflect_report::sha256_file(p).map_err(|e| anyhow::anyhow!("hashing {}: {e}", p.display()))?;
+            calibration_files.push(tagdeflect_core::verification::HashedPath { path: p.display().to_string(), sha256 });
+        }
+        Ok(tagdeflect_core::verification::RigNow { calibration_files, geometry_sha256: self.geometry_sha256(), bumps: Vec::new() })
+    }
+
+    /// The verification in force now (`None` without `[verification]`).
+    pub fn verification_in_force(&self) -> anyhow::Result<Option<tagdeflect_core::verification::InForce>> {
+        let Some(v) = &self.verification else { return Ok(None) };
+        let now_ns = tagdeflect_core::clock::now_epoch_ns();
+        Ok(Some(tagdeflect_core::verification::assess(&v.certificate, v.valid_days, &self.rig_now()?, now_ns)?))
     }
 
     /// What the report needs of the rig.

@@ -2,7 +2,8 @@
 //! path relative to the section, prefixed here), then the checks that span sections. The
 //! tables are checked in a fixed order (world, sync, cameras — each camera's intrinsics taken
 //! inline or imported from its calibration file —, background, specimen, utm, measure,
-//! report, output, sim, sim camera names, output.mqtt, gauges, output.control, output.analog, clock_check); the first problem
+//! report, output, sim, sim camera names, output.mqtt, gauges, output.control, output.analog, clock_check,
+//! verification); the first problem
 //! found is the one reported.
 
 use std::path::Path;
@@ -63,6 +64,14 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
     if let Some(c) = &raw.clock_check {
         c.validate().map_err(|p| p.within("clock_check"))?;
     }
+    let verification = match raw.verification {
+        None => None,
+        Some(mut v) => {
+            v.validate().map_err(|p| p.within("verification"))?;
+            v.certificate = base.join(&v.certificate);
+            Some(v)
+        }
+    };
     let config = Config {
         world,
         sync,
@@ -76,6 +85,7 @@ pub(super) fn config(raw: RawConfig, base: &Path) -> Result<Config, Problem> {
         sim: raw.sim,
         gauges,
         clock_check: raw.clock_check,
+        verification,
         calibration_files,
     };
     config.auto_rules()?;

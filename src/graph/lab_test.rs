@@ -30,6 +30,44 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         );
         tests.set_auto(rules);
     }
+    let auth = match &config.output.users_file {
+        Some(f) => {
+            let users = tagdeflect_core::users::Users::read(f).map_err(|e| bad(format!("[output] users_file {e}")))?;
+            warn_if_shared(f);
+            tracing::info!(users = users.users.len(), "control API: each user's own token and role ({})", f.display());
+            tagdeflect_core::users::Credentials::Users(users)
+        }
+        None => tagdeflect_core::users::Credentials::Shared(shared_token(config, dir)?),
+    };
+    if !page.set_control(tests.clone(), auth) {
+        return Err(bad(format!(
+            "[output] tests = {}: the tests are driven through the control API, which needs the live page: set [output] http (or --http ADDR)",
+            dir.display()
+        ))
+        .into());
+    }
+    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero|sign|reanalyse", dir.display());
+    Ok(tests)
+}
+
+/// Warns when the users file is readable or writable by others than its owner (its hashes
+/// let anyone who reads them try tokens offline; who can write it can make themselves admin).
+pub fn warn_if_shared(path: &Path) {
+    use std::os::unix::fs::MetadataExt;
+    if let Ok(m) = std::fs::metadata(path) {
+        if m.mode() & 0o077 != 0 {
+            tracing::warn!(
+                "users file {}: readable or writable by others than its owner (mode {:o}): chmod 600",
+                path.display(),
+                m.mode() & 0o777
+            );
+        }
+    }
+}
+
+/// The one shared token: `[output] http_token_file`'s first line, else `dir/.token`'s (see [`start`]).
+fn shared_token(config: &Config, dir: &Path) -> Result<String> {
+    let bad = |m: String| tagdeflect_core::BadInput::new(m);
     let token = match &config.output.http_token_file {
         Some(f) => std::fs::read_to_string(f)
             .map_err(|e| bad(format!("[output] http_token_file {}: {e}", f.display())))?
@@ -59,15 +97,7 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
             token
         }
     };
-    if !page.set_control(tests.clone(), token) {
-        return Err(bad(format!(
-            "[output] tests = {}: the tests are driven through the control API, which needs the live page: set [output] http (or --http ADDR)",
-            dir.display()
-        ))
-        .into());
-    }
-    tracing::info!("tests are kept in {}; control API: POST /api/test/start|stop|mark|zero", dir.display());
-    Ok(tests)
+    Ok(token)
 }
 
 /// The token an earlier start wrote to `path`, if the file is still fit to hold one: a regular
@@ -109,56 +139,27 @@ fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
     f.sync_all()
 }
 
-/// The beam dimensions a test was started with (`measured`: `width_mm`, `depth_mm`, `span_mm`,
-/// `notch_mm`, each specimen measured by the lab) replace the config's for its report; the
-/// names and values replaced. Other measured values are only recorded.
-fn apply_measured(rig: &mut tagdeflect_report::TestRig, measured: &std::collections::BTreeMap<String, f64>) -> Vec<String> {
-    let Some(beam) = rig.specimen.beam.as_mut() else { return Vec::new() };
-    let mut used = Vec::new();
-    for (key, v) in measured {
-        let slot = match key.as_str() {
-            "width_mm" => &mut beam.width_mm,
-            "depth_mm" => &mut beam.depth_mm,
-            "span_mm" => &mut beam.span_mm,
-            "notch_mm" => beam.notch_mm.get_or_insert(0.0),
-            _ => continue,
-        };
-        if *v > 0.0 {
-            *slot = *v;
-            used.push(format!("{key} = {v}"));
-        }
-    }
-    used
-}
-
-/// The report of a stopped test with a standard, into `folder/report/`.
+/// The report of a stopped test with a standard, into `folder/report/`: its inputs built
+/// from the folder and the record by [`tagdeflect_report::test_folder::prepare`], the one
+/// function `report DIR` and `report --series` use, so every route gives the same values.
 fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), TestReportError> {
+    use tagdeflect_report::test_folder::{build_test, prepare, read_streams, TestView};
     let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
     let out = folder.join("report");
     let std: tagdeflect_report::Standard = serde_json::from_value(serde_json::json!(standard))
         .map_err(|source| TestReportError::Standard { standard: standard.to_string(), source })?;
-    let mut rc = match &config.report {
-        Some(r) => r.clone(),
-        None => serde_json::from_value(serde_json::json!({"standard": standard, "out": out})).map_err(TestReportError::Section)?,
-    };
-    rc.standard = std;
-    let feed = tagdeflect_report::Feed::read(&folder.join("feed.jsonl"))?;
-    let mut rig = config.test_rig();
-    let measured = apply_measured(&mut rig, &record.meta.measured);
-    let cfg_path = folder.join("tagdeflect.toml");
-    // The load-based values from the test's own UTM samples (SPEC "Report").
-    let utm_path = folder.join("utm.jsonl");
-    let utm = match std::fs::metadata(&utm_path) {
-        Ok(m) if m.len() > 0 => Some(tagdeflect_report::UtmStream::read(&utm_path, &rc.limits())?),
-        _ => None,
-    };
-    let mut rep = tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, &rc)?;
+    let base = config.report.clone().unwrap_or_else(|| tagdeflect_report::ReportConfig::new(std, out.clone()));
+    let (cfg_path, record_path) = (folder.join("tagdeflect.toml"), folder.join("test.json"));
+    let view = TestView::of_record(record, &record_path)?;
+    let prepared = prepare(&view, &config.test_rig(), &base, None, &record_path, &cfg_path)?;
+    prepared
+        .opts
+        .validate_with(prepared.rig.specimen.beam.as_ref())
+        .map_err(|p| TestReportError::Section(format!("{}: {}", p.key, p.message)))?;
+    let (mut feeds, utm) = read_streams(folder, &prepared.opts, false)?;
+    let feed = feeds.remove(0);
+    let mut rep = build_test(&feed, utm.as_ref(), &prepared, &view, &cfg_path)?;
     rep.inputs = vec![("config".into(), cfg_path)];
-    if !measured.is_empty() {
-        rep.beam_source = format!("the test's measured dimensions ({}), else config [specimen.beam]", measured.join(", "));
-        rep.notes
-            .push(format!("The test's measured dimensions (test.json `measured`) replace [specimen.beam]'s: {}.", measured.join(", ")));
-    }
     std::fs::create_dir_all(&out)?;
     tagdeflect_report::write(&rep, &feed, &out)?;
     Ok(())
@@ -175,9 +176,10 @@ enum TestReportError {
         /// Why it is not known.
         source: serde_json::Error,
     },
-    /// No `[report]` section, and none could be made from the standard.
+    /// The report's options or geometry cannot make a report (no `[specimen.beam]` nor
+    /// measured dimensions, no notch for EN 14651).
     #[error("[report]: {0}")]
-    Section(serde_json::Error),
+    Section(String),
     /// The report's own error (the feed, the UTM samples, the build, the files).
     #[error("{0}")]
     Report(#[from] tagdeflect_report::ReportError),

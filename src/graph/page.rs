@@ -64,9 +64,9 @@ impl Page {
     }
 
     /// Serves the tests' control API; false when no page is served (nowhere to serve it).
-    pub fn set_control(&self, tests: Arc<tagdeflect_sinks::lab_test::LabTests>, token: String) -> bool {
+    pub fn set_control(&self, tests: Arc<tagdeflect_sinks::lab_test::LabTests>, auth: tagdeflect_core::users::Credentials) -> bool {
         if let (Some(v), true) = (&self.view, self.is_served()) {
-            v.set_test_api(tests, token);
+            v.set_test_api(tests, auth);
             return true;
         }
         false

@@ -57,7 +57,7 @@ impl Page {
     }
 
     /// No page to serve the tests' control API on.
-    pub fn set_control(&self, _tests: Arc<tagdeflect_sinks::lab_test::LabTests>, _token: String) -> bool {
+    pub fn set_control(&self, _tests: Arc<tagdeflect_sinks::lab_test::LabTests>, _auth: tagdeflect_core::users::Credentials) -> bool {
         false
     }
 

@@ -27,7 +27,7 @@ struct Write {
 }
 
 /// A pymodbus device and the writes it recorded.
-struct Dac {
+pub(crate) struct Dac {
     _server: ChildGuard,
     port: u16,
     writes: Arc<Mutex<Vec<Write>>>,
@@ -39,7 +39,7 @@ fn fixture() -> PathBuf {
 
 impl Dac {
     /// The device of `map` on a free loopback port.
-    fn start(map: &str, refuse: Option<u16>) -> Dac {
+    pub(crate) fn start(map: &str, refuse: Option<u16>) -> Dac {
         for _ in 0..5 {
             if let Some(d) = Dac::try_on(map, unused_port(), refuse) {
                 return d;
@@ -93,7 +93,7 @@ impl Dac {
         }
     }
 
-    fn addr(&self) -> String {
+    pub(crate) fn addr(&self) -> String {
         format!("127.0.0.1:{}", self.port)
     }
 
@@ -463,4 +463,76 @@ fn analog_config_errors_name_their_key_and_line() {
         assert!(e.message.contains(msg), "{to}: {e}");
         assert!(e.line.is_some(), "{to}: no line ({e})");
     }
+}
+
+/// Item 3 of issue 46: the loop closed in simulation on the *voltage*. The same loop as the
+/// register loop (`control::a_pi_controller_…`: the simulated machine, a C1609-like crack,
+/// the camera lost for 1 s), the PI controller reading the LabJack's DAC0 volts (converted
+/// back with volts_per_mm/offset_v) and its valid line FIO0 instead of the control output's
+/// registers: the rate within ±10 % outside the first second after the crack and the loss,
+/// the stroke held and the valid line low through the loss.
+#[test]
+fn a_pi_controller_on_the_dac_voltage_holds_the_rate_through_a_crack_and_a_lost_camera() {
+    crate::control::closed_loop(crate::control::LoopSource::Analog);
+}
+
+/// `tagdeflect check --config` on the demo rig with `[output.analog]` set to `analog`.
+fn check_with(analog: AnalogConfig, write_test: bool) -> (Option<i32>, String) {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cfg = Config::demo();
+    cfg.output.analog = Some(analog);
+    let path = tmp.path().join("rig.toml");
+    std::fs::write(&path, cfg.to_toml_string()).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_tagdeflect"));
+    cmd.args(["check", "--config"]).arg(&path);
+    if write_test {
+        cmd.arg("--write-test");
+    }
+    let o = cmd.output().expect("run tagdeflect check");
+    let text = format!("{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    (o.status.code(), text)
+}
+
+/// `check` reports the analog device: reachable and its identity (the LabJack's product ID and
+/// serial number from LabJack's map; a generic module's configured register), writes nothing
+/// unless asked, and with `--write-test` writes the valid line low then the safe value and
+/// reads it back; a device that is not there is a warning naming it.
+#[test]
+fn check_reports_the_analog_device_and_writes_only_when_asked() {
+    let dac = Dac::start("labjack", None);
+    let lj = AnalogConfig { on_invalid: OnInvalid::Volts(0.5), ..AnalogConfig::labjack(&dac.addr(), 1.0) };
+    let (code, out) = check_with(lj.clone(), false);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains(&format!("analog output {}: reachable; LabJack T7, serial number 470012345", dac.addr())), "{out}");
+    assert!(out.contains("nothing written"), "{out}");
+    let (code, out) = check_with(lj, true);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("safe value 0.5000 V written and read back"), "{out}");
+    // Only the second run wrote, and only the line low then the safe value (all writes
+    // arrive in order, so none came from the first run).
+    let w = dac.wait_until("the test write", |w| w.iter().any(is_dac));
+    assert_eq!(w.len(), 2, "{w:?}");
+    assert!(fio0(0)(&w[0]) && is_dac(&w[1]) && f32_abcd(&w[1]) == 0.5, "{w:?}");
+
+    let generic = Dac::start("generic", None);
+    let g = AnalogConfig {
+        device: DeviceMap::Generic,
+        register: Some(8),
+        data_type: Some(ValueType::I16),
+        scale: 3276.7,
+        range_v: Some([-10.0, 10.0]),
+        ..AnalogConfig::labjack(&generic.addr(), 1.0)
+    };
+    let (code, out) = check_with(g, true);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("reachable; holding register 8 reads [0]"), "{out}");
+    // "hold": the test write is a zero value's voltage (offset_v = 0 V: 0 counts).
+    assert!(out.contains("safe value 0.0000 V written and read back ([0])"), "{out}");
+    let w = generic.wait_until("the test write", |w| w.iter().any(|w| w.fc == 16 && w.address == 8));
+    assert_eq!(w.len(), 1, "no valid line configured, one write: {w:?}");
+
+    let gone = format!("127.0.0.1:{}", unused_port());
+    let (code, out) = check_with(AnalogConfig::labjack(&gone, 1.0), false);
+    assert_eq!(code, Some(0), "a silent device is a warning: {out}");
+    assert!(out.contains(&format!("warning: analog output {gone}: cannot connect")), "{out}");
 }

@@ -18,6 +18,7 @@ use tagdeflect_estimate::temporal::Estimator;
 use tagdeflect_sim::SimParams;
 
 use crate::common::{self, ChildGuard};
+use tagdeflect_sinks::analog_output::{AnalogConfig, AnalogOutput};
 use tagdeflect_sinks::control_output::ControlConfig;
 
 /// Net-deflection error against truth of every line that has one: (seq, error mm, σ mm, partial).
@@ -364,6 +365,28 @@ fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
 /// rendered-camera pipeline is not in this loop); the camera is lost for 1 s mid-test.
 #[test]
 fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_holds_the_stroke_when_invalid() {
+    closed_loop(LoopSource::Registers);
+}
+
+/// Where the simulated machine's controller reads the net deflection.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum LoopSource {
+    /// The control output's input registers (value, valid, heartbeat).
+    Registers,
+    /// The analog output's DAQ (a pymodbus LabJack T-series): DAC0's volts converted back
+    /// with `volts_per_mm`/`offset_v`, and the valid line FIO0.
+    Analog,
+}
+
+/// The analog output of the loop on the voltage: 2 V/mm from 0.5 V, inside the LabJack's
+/// 0–5 V over the test's ~1.4 mm.
+const LOOP_VOLTS_PER_MM: f64 = 2.0;
+const LOOP_OFFSET_V: f64 = 0.5;
+
+/// The closed loop (see the test above) with the controller reading `source`; both outputs
+/// take every line, only the source differs. With the analog source the controller's own
+/// log must show the valid line low through the camera loss.
+pub(crate) fn closed_loop(source: LoopSource) {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
     use std::sync::Arc;
@@ -387,11 +410,23 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     let machine = Arc::new(SimMachine::new(&sim, tagdeflect_core::clock::now_epoch_ns(), 120.0));
     let (machine_addr, machine_task) = rt.block_on(serve_machine("127.0.0.1:0".parse().unwrap(), machine.clone())).unwrap();
     let mut control = ControlOutput::start(&ControlConfig::on("127.0.0.1:0")).unwrap();
+    let dac = (source == LoopSource::Analog).then(|| crate::analog::Dac::start("labjack", None));
+    let mut analog = dac.as_ref().map(|d| {
+        let c = AnalogConfig { offset_v: LOOP_OFFSET_V, ..AnalogConfig::labjack(&d.addr(), LOOP_VOLTS_PER_MM) };
+        AnalogOutput::start(&c).unwrap()
+    });
+    let source_args: Vec<String> = match &dac {
+        None => vec!["--control".into(), control.addr().to_string()],
+        Some(d) => ["--analog", &d.addr(), "--volts-per-mm", &LOOP_VOLTS_PER_MM.to_string(), "--offset-v", &LOOP_OFFSET_V.to_string()]
+            .map(String::from)
+            .to_vec(),
+    };
     let tmp = tempfile::tempdir().unwrap();
     let log_path = tmp.path().join("pi.jsonl");
     let pi = Command::new(common::python())
         .arg(common::root().join("scripts/pi_controller.py"))
-        .args(["--control", &control.addr().to_string(), "--machine", &machine_addr.to_string()])
+        .args(&source_args)
+        .args(["--machine", &machine_addr.to_string()])
         .args(["--rate", &target.to_string(), "--duration", &duration_s.to_string()])
         .arg("--log")
         .arg(&log_path)
@@ -442,6 +477,9 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
             line.net_deflection_rate_mm_per_min = Some(-u.rate.z * 60.0);
         }
         control.take_line(&line);
+        if let Some(a) = &analog {
+            a.take_line(&line);
+        }
         if lost {
             assert_eq!(control.registers()[6], 0, "invalid at the first frame set without the tags");
         }
@@ -453,7 +491,14 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     std::io::Read::read_to_string(pi.0.stderr.as_mut().unwrap(), &mut err).unwrap();
     assert!(status.success(), "the PI controller failed: {err}");
     control.shutdown();
+    if let Some(a) = analog.as_mut() {
+        a.shutdown();
+    }
     machine_task.abort();
+    let cycles = controller_log(&log_path);
+    if source == LoopSource::Analog {
+        valid_line_low_through(&cycles, loss_ns);
+    }
 
     let h = machine.history();
     let at = |t: i64| {
@@ -494,10 +539,11 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
         }
         t += 250_000_000;
     }
+    let stem = if source == LoopSource::Analog { "control-loop-analog" } else { "control-loop" };
     let (windows_csv, sets_csv, png) = (
-        common::root().join("target/control-loop.csv"),
-        common::root().join("target/control-loop-sets.csv"),
-        common::root().join("target/control-loop.png"),
+        common::root().join(format!("target/{stem}.csv")),
+        common::root().join(format!("target/{stem}-sets.csv")),
+        common::root().join(format!("target/{stem}.png")),
     );
     fs::write(&windows_csv, &csv).unwrap();
     let mut per_set = String::from("t_s,valid,load_kN,stroke_mm,net_mm\n");
@@ -521,7 +567,7 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     let has = |c: [u8; 3]| img.pixels().any(|p| p.0 == c);
     assert!(has([0xf4, 0xc7, 0xc3]) && has([0x1c, 0x45, 0x87]), "the PNG lacks the invalid span or the rate line");
     println!(
-        "CLOSED LOOP: {checked} windows of 1 s, {} beyond ±10 % of {target} mm/min; crack at {:.1} s; camera lost {:.1}..{:.1} s\n{csv}",
+        "CLOSED LOOP ({source:?}): {checked} windows of 1 s, {} beyond ±10 % of {target} mm/min; crack at {:.1} s; camera lost {:.1}..{:.1} s\n{csv}",
         off.len(),
         (crack - moving) as f64 * 1e-9,
         (loss_ns.0 - moving) as f64 * 1e-9,
@@ -529,6 +575,37 @@ fn a_pi_controller_on_the_control_output_holds_the_rate_through_a_crack_and_hold
     );
     assert!(off.is_empty(), "achieved rate off target: {off:?}");
     assert!(checked >= 20, "{checked} windows checked");
+}
+
+/// The PI controller's cycles: (time ns, valid as it read it, value mm).
+fn controller_log(path: &Path) -> Vec<(i64, bool, f64)> {
+    fs::read_to_string(path)
+        .expect("the controller's log")
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).expect("a JSON line of the controller's log");
+            let t_ns = (v["t"].as_f64().expect("t") * 1e9) as i64;
+            (t_ns, v["valid"].as_bool().expect("valid"), v["value"].as_f64().unwrap_or(f64::NAN))
+        })
+        .collect()
+}
+
+/// The valid line, as the controller read it from the DAQ, is low in every cycle from 0.2 s
+/// after the camera was lost (the controller's cycle and a loaded machine's slack) to its
+/// return, and high in most cycles before the loss.
+fn valid_line_low_through(cycles: &[(i64, bool, f64)], (lost_ns, back_ns): (i64, i64)) {
+    let during: Vec<_> = cycles.iter().filter(|c| (lost_ns + 200_000_000..=back_ns).contains(&c.0)).collect();
+    assert!(during.len() >= 10, "{} controller cycles during the camera loss", during.len());
+    let high: Vec<f64> = during.iter().filter(|c| c.1).map(|c| (c.0 - lost_ns) as f64 * 1e-9).collect();
+    assert!(high.is_empty(), "the valid line read high {} s after the camera was lost", format!("{high:.3?}"));
+    let before: Vec<_> = cycles.iter().filter(|c| c.0 < lost_ns && c.0 > lost_ns - 3_000_000_000).collect();
+    let valid_before = before.iter().filter(|c| c.1).count();
+    assert!(valid_before * 10 >= before.len() * 9, "valid in {valid_before} of {} cycles before the loss", before.len());
+    println!(
+        "VALID LINE (DAQ): low in all {} controller cycles of the camera loss after 0.2 s; high in {valid_before} of {} in the 3 s before",
+        during.len(),
+        before.len()
+    );
 }
 
 /// The port the control output logged (`control output serving Modbus TCP … addr=IP:PORT`),

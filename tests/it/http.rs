@@ -38,14 +38,14 @@ fn python() -> PathBuf {
 }
 
 /// Two 480x360 cameras at 5 fps, 60 frame sets (a cycle of 24 s in a live demo).
-fn small_rig() -> SimParams {
+pub(crate) fn small_rig() -> SimParams {
     SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() }
 }
 
 /// A small simulated rig (two 480x360 cameras at 5 fps, the simulated UTM over Modbus TCP; a
 /// softening beam, so the config has `[specimen.beam]` and gauges) whose UTM goes silent
 /// `outage` = (after s, for s).
-fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
+pub(crate) fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
     let params = SimParams {
         load_law: tagdeflect_sim::LoadLaw::Softening,
         utm_outage_at_s: outage.map(|o| o.0),
@@ -61,14 +61,14 @@ fn rig_config(dir: &Path, outage: Option<(f64, f64)>) -> PathBuf {
 
 /// `tagdeflect` with the live page: stdout (feed lines, with arrival times) and stderr
 /// collected by threads; killed on drop.
-struct Daemon {
+pub(crate) struct Daemon {
     child: Child,
     lines: Arc<Mutex<Vec<(Instant, FeedLine)>>>,
-    stderr: Arc<Mutex<String>>,
+    pub(crate) stderr: Arc<Mutex<String>>,
 }
 
 impl Daemon {
-    fn start(args: &[&str]) -> Daemon {
+    pub(crate) fn start(args: &[&str]) -> Daemon {
         let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
             .args(args)
             .env("TAGDEFLECT_LOG", "info")
@@ -99,7 +99,7 @@ impl Daemon {
     }
 
     /// The address printed as `http://ADDR/` on stderr.
-    fn addr(&self) -> SocketAddr {
+    pub(crate) fn addr(&self) -> SocketAddr {
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
             if let Some(a) = page_addr(&self.stderr.lock().unwrap()) {
@@ -110,7 +110,7 @@ impl Daemon {
         }
     }
 
-    fn lines(&self) -> Vec<(Instant, FeedLine)> {
+    pub(crate) fn lines(&self) -> Vec<(Instant, FeedLine)> {
         self.lines.lock().unwrap().clone()
     }
 
@@ -124,7 +124,7 @@ impl Daemon {
         }
     }
 
-    fn wait_lines(&self, n: usize, timeout: Duration) {
+    pub(crate) fn wait_lines(&self, n: usize, timeout: Duration) {
         let deadline = Instant::now() + timeout;
         while self.lines.lock().unwrap().len() < n {
             assert!(Instant::now() < deadline, "fewer than {n} feed lines within {timeout:?}:\n{}", self.stderr.lock().unwrap());
@@ -133,7 +133,7 @@ impl Daemon {
     }
 
     /// SIGTERM and the exit code.
-    fn stop(&mut self) -> Option<i32> {
+    pub(crate) fn stop(&mut self) -> Option<i32> {
         let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
         let deadline = Instant::now() + Duration::from_secs(20);
         loop {
@@ -160,7 +160,7 @@ fn page_addr(stderr: &str) -> Option<SocketAddr> {
 }
 
 /// GET `path` (HTTP/1.1, `Connection: close`): status, content type, body.
-fn get(addr: SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
+pub(crate) fn get(addr: SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     write!(s, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").unwrap();
@@ -565,7 +565,7 @@ fn the_server_refuses_other_hosts_sends_a_csp_and_caps_idle_connections() {
 }
 
 /// A raw POST to the control API: status code and body.
-fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> (u16, String) {
+pub(crate) fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> (u16, String) {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let mut req = format!("POST {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
@@ -582,7 +582,7 @@ fn post(addr: SocketAddr, path: &str, headers: &[(&str, &str)], body: &[u8]) -> 
     (code, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_string())
 }
 
-fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
+pub(crate) fn tagdeflect_test(addr: SocketAddr, token_file: &Path, args: &[&str]) -> serde_json::Value {
     let url = format!("http://{addr}");
     let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
     all.extend_from_slice(args);

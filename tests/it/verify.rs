@@ -263,4 +263,43 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
     let taken = std::process::Command::new(bin).args(["verify", rec_arg, "--out", out.to_str().unwrap()]).output().unwrap();
     assert_eq!(taken.status.code(), Some(2));
     assert!(out.join("verification.json").is_file());
+    verification_in_force_is_checked(&rec_dir, &out.join("verification.json"), dir.path());
+}
+
+/// `check --config` names the verification in force (class, date, id), and says it is stale
+/// once the config's geometry changed since the certificate; a certificate that cannot be read
+/// is bad input (exit 2) naming it.
+fn verification_in_force_is_checked(rec_dir: &Path, certificate: &Path, dir: &Path) {
+    let bin = env!("CARGO_BIN_EXE_tagdeflect");
+    let mut cfg: toml::Table = std::fs::read_to_string(rec_dir.join("tagdeflect.toml")).unwrap().parse().unwrap();
+    let mut section = toml::Table::new();
+    section.insert("certificate".into(), certificate.display().to_string().into());
+    section.insert("valid_days".into(), 30.into());
+    cfg.insert("verification".into(), section.into());
+    // The live simulated rig runs a test's load, not the recorded verification's steps.
+    cfg["sim"].as_table_mut().unwrap().remove("verify_steps");
+    let check = |cfg: &toml::Table, name: &str| {
+        let path = dir.join(name);
+        std::fs::write(&path, toml::to_string(cfg).unwrap()).unwrap();
+        let o = std::process::Command::new(bin).args(["check", "--config", path.to_str().unwrap()]).output().unwrap();
+        (o.status.code(), String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr))
+    };
+    let (code, out) = check(&cfg, "in-force.toml");
+    assert_eq!(code, Some(0), "{out}");
+    let cert: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(certificate).unwrap()).unwrap();
+    let line = out.lines().find(|l| l.contains("verification ")).unwrap_or_else(|| panic!("no verification line: {out}"));
+    assert!(line.contains("in force") && line.contains(&format!("class {}", cert["class_iso9513"].as_str().unwrap())), "{line}");
+    // A specimen tag added to the config: the geometry the certificate was made on is gone.
+    let specimen = cfg["specimen"].as_table_mut().unwrap();
+    let mut extra = toml::Table::new();
+    extra.insert("id".into(), 586.into());
+    specimen["tag"].as_array_mut().unwrap().push(extra.into());
+    let (code, out) = check(&cfg, "changed.toml");
+    assert_eq!(code, Some(0), "a stale verification is a warning: {out}");
+    assert!(out.contains("STALE") && out.contains("geometry changed"), "{out}");
+    // An unreadable certificate: exit 2, named.
+    cfg["verification"].as_table_mut().unwrap().insert("certificate".into(), dir.join("none.json").display().to_string().into());
+    let (code, out) = check(&cfg, "missing.toml");
+    assert_eq!(code, Some(2), "{out}");
+    assert!(out.contains("none.json"), "{out}");
 }

@@ -180,7 +180,8 @@ pub struct FeedEvent {
     /// The operator's note (a mark's text), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
-    /// The user who did it, when users are configured (absent: not known).
+    /// Who did it (a user of `[output] users_file`, `shared-token`, or absent: the daemon
+    /// itself, or a test written before users existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub user: Option<String>,
 }

@@ -31,7 +31,9 @@ pub mod specimen;
 pub mod stats;
 pub mod tags;
 pub mod text_file;
+pub mod users;
 pub mod utm_sample;
+pub mod verification;
 
 pub use error::{BadInput, NotFit, RuntimeFailure};
 pub use problem::Problem;

@@ -17,11 +17,9 @@ use crate::standard::Standard;
 use crate::utm_stream::UtmStream;
 use crate::{c1609, en14651, qc, validity};
 
-/// The statement every report carries about the clauses cited.
-const CLAUSES_UNCHECKED: &str = "The definitions and clause numbers cited follow the standards as the authors of this \
-     software know them; the text of the standards was not at hand when this was written, so \
-     the clause numbers and the definitions have not been checked against it. Check them \
-     against your copy before relying on this report.";
+/// Where the geometry comes from outside a test folder, as the notes say it (a test folder's
+/// report names its own sources in its place, `test_folder`).
+pub(crate) const GEOMETRY_FROM_CONFIG: &str = "the config ([specimen.beam])";
 
 /// Why the curve a standard needs cannot be taken from a feed (a [`ReportError::Data`] of
 /// the feed).
@@ -138,15 +136,15 @@ pub fn build(
     let tol = |t: Option<f64>| t.map_or(String::new(), |t| format!(" ± {t}"));
     match opts.standard {
         Standard::AstmC1609 => notes.push(format!(
-            "Geometry from the config ([specimen.beam]): b = {}{} mm, d = {}{} mm, L = {}{} mm; third-point loading assumed (four-point bending, loads at L/3).",
+            "Geometry from {GEOMETRY_FROM_CONFIG}: b = {}{} mm, d = {}{} mm, L = {}{} mm; third-point loading assumed (four-point bending, loads at L/3).",
             beam.width_mm, tol(beam.width_tol_mm), beam.depth_mm, tol(beam.depth_tol_mm), beam.span_mm, tol(beam.span_tol_mm)
         )),
         Standard::AstmC1856 => notes.push(format!(
-            "ASTM C1856 refers the flexural test to ASTM C1609 with specimens of its own; the quantities below are C1609's, computed with the geometry of the config ([specimen.beam]): b = {}{} mm, d = {}{} mm, L = {}{} mm. Whether these dimensions are the ones C1856 calls for was not checked.",
+            "ASTM C1856 refers the flexural test to ASTM C1609 with specimens of its own; the quantities below are C1609's, computed with the geometry of {GEOMETRY_FROM_CONFIG}: b = {}{} mm, d = {}{} mm, L = {}{} mm. Whether these dimensions are the ones C1856 calls for was not checked.",
             beam.width_mm, tol(beam.width_tol_mm), beam.depth_mm, tol(beam.depth_tol_mm), beam.span_mm, tol(beam.span_tol_mm)
         )),
         Standard::En14651 => notes.push(format!(
-            "Geometry from the config ([specimen.beam]): b = {}{} mm, depth {}{} mm, notch {}{} mm, h_sp = {} mm, l = {}{} mm; three-point loading of a notched beam assumed.",
+            "Geometry from {GEOMETRY_FROM_CONFIG}: b = {}{} mm, depth {}{} mm, notch {}{} mm, h_sp = {} mm, l = {}{} mm; three-point loading of a notched beam assumed.",
             beam.width_mm,
             tol(beam.width_tol_mm),
             beam.depth_mm,
@@ -161,7 +159,6 @@ pub fn build(
     if [beam.width_tol_mm, beam.depth_tol_mm, beam.span_tol_mm].iter().all(Option::is_none) {
         notes.push("No tolerances of the dimensions in the config (width_tol_mm, depth_tol_mm, span_tol_mm): the stresses' σ take the dimensions as exact.".into());
     }
-    notes.push(CLAUSES_UNCHECKED.to_string());
     let utm_gaps: Vec<(f64, f64)> = utm.map_or(Vec::new(), |u| {
         let t0 = feed.lines[0].t_ns;
         let off = clock.map_or(0, |c| (c.value * 1e6).round() as i64);
@@ -201,7 +198,6 @@ pub fn build(
         utm_outages_s,
     });
     let mut lab = opts.lab.clone();
-    fill_from_test_json(&mut lab, &feed.path);
     if lab.test_date.is_none() {
         lab.test_date = Some(chrono::DateTime::from_timestamp_nanos(feed.lines[0].t_ns).format("%Y-%m-%d").to_string());
     }
@@ -228,22 +224,9 @@ pub fn build(
         utm_path: utm.map(|u| u.path.clone()),
         options: opts.clone(),
         inputs: Vec::new(),
+        test: None,
+        dimension_sources: Default::default(),
     })
-}
-
-/// `test.json` beside the feed (SPEC "Tests") gives the specimen and the operator when the
-/// config does not.
-fn fill_from_test_json(lab: &mut crate::config::LabInfo, feed: &Path) {
-    let Some(dir) = feed.parent() else { return };
-    let Ok(text) = std::fs::read_to_string(dir.join("test.json")) else { return };
-    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else { return };
-    let get = |k: &str| v.get(k).and_then(|x| x.as_str()).filter(|s| !s.is_empty()).map(str::to_string);
-    if lab.specimen.is_none() {
-        lab.specimen = get("specimen");
-    }
-    if lab.operator.is_none() {
-        lab.operator = get("operator");
-    }
 }
 
 /// One QC warning per glitched load reading left out of `curve` (at most 10, then a count).

@@ -210,6 +210,12 @@ impl ReportConfig {
         if self.standard == Standard::En14651 && beam.notch_mm.is_none() {
             return Err(Problem::new("standard", "EN 14651 tests notched beams: give [specimen.beam] notch_mm"));
         }
+        self.validate_options()
+    }
+
+    /// Checks `[report]`'s own options (keys relative to it), the geometry aside: a test
+    /// folder's report checks the geometry once the test's measured dimensions are in.
+    pub fn validate_options(&self) -> Result<(), Problem> {
         if self.out.as_os_str().is_empty() {
             return Err(Problem::new("out", "must name a folder"));
         }

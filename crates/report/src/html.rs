@@ -91,7 +91,10 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     head(&mut h, report, std_short);
     header(&mut h, report, std_short);
     validity_banner(&mut h, report, std_short);
+    let in_force = report.test.as_ref().and_then(|t| t.method.as_ref());
+    let _ = write!(h, "<p class=\"method-statement\"><b>{}</b></p>", esc(&crate::method_statement::statement(in_force, report.standard)));
     identification(&mut h, report, std_short);
+    test_record(&mut h, report);
     results(&mut h, report);
     specimen(&mut h, report);
     curves(&mut h, plots);
@@ -188,6 +191,32 @@ fn identification(h: &mut String, report: &Report, std_short: &str) {
     );
 }
 
+/// The test's record: the operator's notes and the events (start, marks, zeros, crack,
+/// stop) with their times from the start; marks and cracks are also drawn on the curve.
+fn test_record(h: &mut String, report: &Report) {
+    let Some(t) = &report.test else { return };
+    h.push_str("<h2>Test record</h2>");
+    if let Some(n) = t.notes.as_deref().filter(|n| !n.trim().is_empty()) {
+        let _ = write!(h, "<p><b>Notes:</b> {}</p>", esc(n));
+    }
+    if t.events.is_empty() {
+        return;
+    }
+    let t0 = t.events.iter().find(|e| e.kind == "start").map_or(t.events[0].t_ns, |e| e.t_ns);
+    h.push_str("<table class=\"events\"><tr><th>Event</th><th>Time (UTC)</th><th class=\"num\">From the start [s]</th><th>Note</th></tr>");
+    for e in &t.events {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.1}</td><td>{}</td></tr>",
+            esc(&e.kind),
+            time_utc(e.t_ns),
+            (e.t_ns - t0) as f64 * 1e-9,
+            e.note.as_deref().map_or(String::new(), esc)
+        );
+    }
+    h.push_str("</table>");
+}
+
 /// The results table: every entry with its σ, or why it was not determined.
 fn results(h: &mut String, report: &Report) {
     h.push_str("<h2>Results</h2><table><tr><th>Quantity</th><th>Symbol</th><th class=\"num\">Value</th><th class=\"num\">± σ</th><th>Unit</th><th>Key</th><th>Definition</th></tr>");
@@ -238,17 +267,18 @@ fn result_row(h: &mut String, e: &Entry, valid: bool) {
 /// The specimen's dimensions, then the report's notes.
 fn specimen(h: &mut String, report: &Report) {
     let b = &report.beam;
-    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th></tr>");
-    let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>| {
+    h.push_str("<h2>Specimen</h2><table><tr><th>Dimension</th><th>Symbol</th><th class=\"num\">Value</th><th>From</th></tr>");
+    let src = |k: &str| report.dimension_sources.get(k).cloned().unwrap_or_else(|| "config".into());
+    let mut row = |name: &str, sym: &str, v: f64, tol: Option<f64>, from: String| {
         let t = tol.map_or(String::new(), |t| format!(" ± {t}"));
-        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v}{t} mm</td></tr>");
+        let _ = write!(h, "<tr><td>{name}</td><td>{sym}</td><td class=\"num\">{v}{t} mm</td><td>{}</td></tr>", esc(&from));
     };
-    row("width", "b", b.width_mm, b.width_tol_mm);
-    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm, b.depth_tol_mm);
-    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm, b.span_tol_mm);
+    row("width", "b", b.width_mm, b.width_tol_mm, src("width_mm"));
+    row("depth", if report.standard == Standard::En14651 { "h" } else { "d" }, b.depth_mm, b.depth_tol_mm, src("depth_mm"));
+    row("span", if report.standard == Standard::En14651 { "l" } else { "L" }, b.span_mm, b.span_tol_mm, src("span_mm"));
     if let Some(n) = b.notch_mm {
-        row("notch depth", "a₀", n, b.notch_tol_mm);
-        row("height above the notch tip", "h_sp", b.ligament_mm(), None);
+        row("notch depth", "a₀", n, b.notch_tol_mm, src("notch_mm"));
+        row("height above the notch tip", "h_sp", b.ligament_mm(), None, "depth − notch".into());
     }
     h.push_str("</table>");
     for n in &report.notes {
@@ -287,6 +317,10 @@ fn method(h: &mut String, report: &Report) {
     h.push_str("</ul><table><tr><th>Key</th><th>How it is determined</th></tr>");
     for e in &report.entries {
         let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
+    }
+    h.push_str("</table><h3>Rules and their sources</h3><table class=\"rules\"><tr><th>Rule</th><th>Source</th></tr>");
+    for r in crate::method_statement::rules(report.standard) {
+        let _ = write!(h, "<tr><td>{}</td><td>{}</td></tr>", esc(r.rule), esc(r.source));
     }
     h.push_str("</table>");
 }

@@ -41,9 +41,7 @@ pub fn write(report: &Report, feed: &Feed, dir: &Path) -> Result<Vec<PathBuf>, R
         put(&format!("{}.svg", p.name), p.svg.as_bytes())?;
         put(&format!("{}.png", p.name), &p.png)?;
     }
-    let inputs = input_hashes(report)?;
-    let json = serde_json::to_string_pretty(&to_json(report, &inputs)).expect("report serialises");
-    put("report.json", json.as_bytes())?;
+    let inputs = input_hashes(report, dir)?;
     put("report.html", html::render(report, &plots, &inputs).as_bytes())?;
     if report.options.pdf {
         match print_pdf(&dir.join("report.html"), &dir.join("report.pdf")) {
@@ -52,7 +50,34 @@ pub fn write(report: &Report, feed: &Feed, dir: &Path) -> Result<Vec<PathBuf>, R
             Err(e) => tracing::warn!("report.pdf could not be printed: {e}"),
         }
     }
+    // report.json last, with the SHA-256 of every other output (`report verify`).
+    let mut outputs = serde_json::Map::new();
+    for f in &files {
+        let sha = sha256_file(f).map_err(|e| ReportError::Io { path: f.clone(), message: format!("cannot hash the output: {e}") })?;
+        outputs.insert(f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(), serde_json::json!(sha));
+    }
+    let mut json = to_json(report, &inputs);
+    json["outputs"] = serde_json::Value::Object(outputs);
+    let p = dir.join("report.json");
+    write_atomic(&p, serde_json::to_string_pretty(&json).expect("report serialises").as_bytes())?;
+    files.push(p);
     Ok(files)
+}
+
+/// `path` relative to `base` (both made absolute; `..` where they part), as `report verify`
+/// finds an input from the report folder's parent.
+fn relative_to(path: &Path, base: &Path) -> PathBuf {
+    let (Ok(p), Ok(b)) = (std::path::absolute(path), std::path::absolute(base)) else { return path.to_path_buf() };
+    let (pc, bc): (Vec<_>, Vec<_>) = (p.components().collect(), b.components().collect());
+    let common = pc.iter().zip(&bc).take_while(|(a, b)| a == b).count();
+    let mut out = PathBuf::new();
+    for _ in common..bc.len() {
+        out.push("..");
+    }
+    for c in &pc[common..] {
+        out.push(c);
+    }
+    out
 }
 
 /// The Chromium to print with: `$TAGDEFLECT_CHROMIUM`, else `chromium` / `chromium-browser`
@@ -150,6 +175,8 @@ pub enum PdfError {
 pub struct InputHash {
     /// What it is (`feed`, `utm`, `config`, `calibration`).
     pub role: String,
+    /// Its path relative to the report folder's parent (where `report verify` looks).
+    pub name: PathBuf,
     /// Its path, absolute when it could be made so.
     pub path: PathBuf,
     /// SHA-256, lower-case hex.
@@ -174,7 +201,8 @@ pub fn sha256_file(path: &Path) -> Result<String, std::io::Error> {
 }
 
 /// Every input of the report hashed (feed, UTM stream, then the caller's: config, calibration files).
-fn input_hashes(report: &Report) -> Result<Vec<InputHash>, ReportError> {
+fn input_hashes(report: &Report, dir: &Path) -> Result<Vec<InputHash>, ReportError> {
+    let base = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let mut list: Vec<(String, PathBuf)> = vec![("feed".into(), report.feed_path.clone())];
     if let Some(u) = &report.utm_path {
         list.push(("utm".into(), u.clone()));
@@ -184,8 +212,9 @@ fn input_hashes(report: &Report) -> Result<Vec<InputHash>, ReportError> {
         .map(|(role, path)| {
             let sha256 =
                 sha256_file(&path).map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
+            let name = relative_to(&path, base);
             let path = std::path::absolute(&path).unwrap_or(path);
-            Ok(InputHash { role, path, sha256 })
+            Ok(InputHash { role, name, path, sha256 })
         })
         .collect()
 }
@@ -252,11 +281,12 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     if let Some(a) = lab.age_days() {
         spec["age_days"] = json!(a);
     }
+    test_keys(report, &mut root, &mut spec);
     root.insert("specimen".into(), spec);
     root.insert(
         "inputs".into(),
         json!({
-            "files": inputs.iter().map(|i| json!({"role": i.role, "path": i.path.display().to_string(), "sha256": i.sha256})).collect::<Vec<_>>(),
+            "files": inputs.iter().map(|i| json!({"role": i.role, "name": i.name.display().to_string(), "path": i.path.display().to_string(), "sha256": i.sha256})).collect::<Vec<_>>(),
             "software": {"name": "tagdeflect", "version": env!("CARGO_PKG_VERSION")},
         }),
     );
@@ -272,7 +302,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
                 undetermined.insert(e.key.into(), json!(why));
             }
         }
-        defs.insert(e.key.into(), json!({"name": e.name, "method": e.method, "clause": e.clause, "checked_against_text": false}));
+        defs.insert(e.key.into(), json!({"name": e.name, "method": e.method, "clause": e.clause}));
     }
     root.insert("undetermined".into(), Value::Object(undetermined));
     root.insert("definitions".into(), Value::Object(defs));
@@ -291,12 +321,42 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
         }),
     );
     root.insert("notes".into(), json!(report.notes));
+    let method = report.test.as_ref().and_then(|t| t.method.as_ref());
+    root.insert("method_statement".into(), json!(crate::method_statement::statement(method, report.standard)));
+    root.insert("rules".into(), json!(crate::method_statement::rules(report.standard)));
     root.insert("feed".into(), json!(report.feed_path.display().to_string()));
     if let Some((k, n)) = report_run(report) {
         root.insert("run".into(), json!({"index": k, "of": n}));
     }
     root.insert("qc".into(), serde_json::to_value(&report.qc).expect("qc"));
     Value::Object(root)
+}
+
+/// What a test folder's record adds (SPEC "Report"): `operator`, `method`, `events`, the
+/// operator's `test_notes` and `crack`; in `specimen` where each dimension came from
+/// (`dimension_sources`) and the specimen's row (`info`).
+fn test_keys(report: &Report, root: &mut serde_json::Map<String, serde_json::Value>, spec: &mut serde_json::Value) {
+    use serde_json::json;
+    if let Some(op) = &report.lab.operator {
+        root.insert("operator".into(), json!(op));
+    }
+    if !report.dimension_sources.is_empty() {
+        spec["dimension_sources"] = json!(report.dimension_sources);
+    }
+    let Some(t) = &report.test else { return };
+    if let Some(info) = &t.specimen_info {
+        spec["info"] = serde_json::Value::Object(info.clone());
+    }
+    if let Some(m) = &t.method {
+        root.insert("method".into(), serde_json::to_value(m).expect("method"));
+    }
+    root.insert("events".into(), serde_json::to_value(&t.events).expect("events"));
+    if let Some(n) = &t.notes {
+        root.insert("test_notes".into(), json!(n));
+    }
+    if let Some(c) = &t.crack {
+        root.insert("crack".into(), serde_json::to_value(c).expect("crack"));
+    }
 }
 
 fn report_run(report: &Report) -> Option<(usize, usize)> {

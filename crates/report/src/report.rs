@@ -89,4 +89,9 @@ pub struct Report {
     pub run: Option<(usize, usize)>,
     /// Report options used.
     pub options: ReportConfig,
+    /// The test's record when the feed is a test folder's (`test.json`: events, notes,
+    /// method, specimen row, crack entry).
+    pub test: Option<crate::test_folder::TestView>,
+    /// Where each dimension came from (`test.json` or `config`; empty outside a test folder).
+    pub dimension_sources: crate::test_folder::DimensionSources,
 }

@@ -46,6 +46,10 @@ pub struct OutputConfig {
     /// token is made at start, printed once and written to `<tests>/.token` (mode 0600).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub http_token_file: Option<PathBuf>,
+    /// (extension, docs/audit.md) The control API's users, each with their own token and role
+    /// (`tagdeflect user add`); without it the one shared token of `http_token_file` is taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub users_file: Option<PathBuf>,
     /// `[output.auto_test]`: start and stop tests from the load and the standard's end
     /// (see `sinks::lab_test::auto`; off without the table).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -77,12 +81,15 @@ impl OutputConfig {
             return Err(Problem::new("http", format!("\"{h}\": this build has no live page: build with the `http` feature")));
         }
         self.check_http_hosts()?;
-        for p in [&mut self.tests, &mut self.http_token_file].into_iter().flatten() {
+        for p in [&mut self.tests, &mut self.http_token_file, &mut self.users_file].into_iter().flatten() {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
         }
         self.check_token_file()?;
+        if let Some(u) = &self.users_file {
+            tagdeflect_core::users::Users::read(u).map_err(|e| Problem::new("users_file", e.to_string()))?;
+        }
         if let Some(a) = &self.auto_test {
             a.validate().map_err(|p| p.within("auto_test"))?;
         }

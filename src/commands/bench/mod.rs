@@ -3,7 +3,8 @@
 //! the same recording is replayed a second time with full-frame detection on every
 //! frame, and both runs are printed side by side with the speed-up. `--realtime` plays the
 //! recording at its pace through the live graph instead (`realtime.rs`); figures against a
-//! synthetic recording's truth (output noise, step response) are `truth.rs`'s.
+//! synthetic recording's truth (output noise, step response) are `truth.rs`'s; the control
+//! signal's dynamics (`--dynamics`, with `--analog ADDR` the DAQ's) are `dynamics.rs`'s.
 
 use anyhow::Result;
 use serde::Serialize;
@@ -11,10 +12,13 @@ use std::path::PathBuf;
 
 use crate::graph::in_process::{self as replay, ReplayOptions};
 
+mod dynamics;
+mod dynamics_valid;
 mod memory;
 mod realtime;
 mod truth;
 
+pub use dynamics::ControlDynamics;
 pub use memory::{peak_rss_mb, rss_mb};
 pub use realtime::RealtimeFigures;
 use realtime::{print_realtime, run_realtime};
@@ -46,6 +50,18 @@ pub struct BenchOptions {
     /// (accuracy and net-deflection noise against truth).
     #[arg(long)]
     pub estimators: bool,
+    /// The control signal's dynamics (docs/control.md "Dynamics"): DIR played at its pace
+    /// as `--realtime` (exposure → register, and with `--analog` exposure → DAC write
+    /// acknowledged), the temporal estimate's gain and phase lag at 0.1, 0.5 and 2 Hz and
+    /// its step response, and with `--analog` the valid line's timings on a lost camera, a
+    /// stalled pipeline and a device fault.
+    #[arg(long)]
+    pub dynamics: bool,
+    /// With `--dynamics`: the analog output's device, IP:PORT (a LabJack T-series map: a
+    /// real DAQ, or `tests/fixtures/analog_device.py labjack PORT`); DAC0 and FIO0 are
+    /// written.
+    #[arg(long, value_name = "ADDR", requires = "dynamics")]
+    pub analog: Option<String>,
 }
 
 /// Figures of one bench run.
@@ -133,8 +149,11 @@ pub struct BenchFigures {
 /// Runs the bench and prints the figures.
 pub fn bench(opts: &BenchOptions) -> Result<()> {
     let rec = replay::open(&opts.dir, None)?;
+    if opts.dynamics {
+        return dynamics::bench_dynamics(&rec, opts);
+    }
     if opts.realtime {
-        let r = run_realtime(&rec, opts.full_frame)?;
+        let r = run_realtime(&rec, opts.full_frame, None)?;
         if opts.json {
             println!("{}", serde_json::to_string(&r)?);
         } else {

@@ -4,6 +4,8 @@
 use anyhow::Result;
 use serde::Serialize;
 
+use tagdeflect_sinks::analog_output::{AnalogConfig, AnalogOutput};
+
 use super::{peak_rss_mb, percentile};
 
 /// Figures of a paced run of a recording through the live pipeline (`bench --realtime`).
@@ -35,6 +37,16 @@ pub struct RealtimeFigures {
     pub exposure_to_register_p50_ms: f64,
     /// The same, 99th percentile, ms.
     pub exposure_to_register_p99_ms: f64,
+    /// Exposure → the analog output's DAC write acknowledged by the device, steady state,
+    /// median, ms (`bench --dynamics --analog`; counted as the register's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exposure_to_dac_p50_ms: Option<f64>,
+    /// The same, 99th percentile, ms.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exposure_to_dac_p99_ms: Option<f64>,
+    /// Values written to the DAC / superseded by a newer one before their write.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dac_written_superseded: Option<(u64, u64)>,
     /// Peak resident memory, MB.
     pub peak_rss_mb: f64,
     /// From the first frame played (sources open) to the first feed line with a solved
@@ -46,13 +58,33 @@ pub struct RealtimeFigures {
     pub dropped_after_1s: u64,
 }
 
-/// An in-memory feed sink shared with the bench; it notes when each line was written.
+/// An in-memory feed sink shared with the bench; it notes when each line was written and
+/// gives each line to the analog output when there is one.
 #[derive(Clone, Default)]
-struct SharedBuf(std::sync::Arc<std::sync::Mutex<Vec<u8>>>, std::sync::Arc<std::sync::Mutex<Vec<std::time::Instant>>>);
+struct SharedBuf(
+    std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+    std::sync::Arc<std::sync::Mutex<Vec<std::time::Instant>>>,
+    Option<std::sync::Arc<AnalogOutput>>,
+);
 
 impl std::io::Write for SharedBuf {
     fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
-        self.0.lock().expect("feed buffer").extend_from_slice(b);
+        let mut text = self.0.lock().expect("feed buffer");
+        let start = text.len();
+        text.extend_from_slice(b);
+        if let Some(analog) = &self.2 {
+            // The lines completed by this write (a line's start is after the last newline before it).
+            let from = text[..start].iter().rposition(|&c| c == b'\n').map_or(0, |i| i + 1);
+            let end = text.iter().rposition(|&c| c == b'\n').map_or(0, |i| i + 1);
+            if end > from {
+                for l in text[from..end].split(|&c| c == b'\n').filter(|l| !l.is_empty()) {
+                    if let Ok(line) = serde_json::from_slice::<tagdeflect_core::feed::FeedLine>(l) {
+                        analog.take_line(&line);
+                    }
+                }
+            }
+        }
+        drop(text);
         let lines = b.iter().filter(|&&c| c == b'\n').count();
         if lines > 0 {
             let now = std::time::Instant::now();
@@ -65,8 +97,11 @@ impl std::io::Write for SharedBuf {
     }
 }
 
-pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool) -> Result<RealtimeFigures> {
-    let buf = SharedBuf::default();
+/// Plays `rec` at its pace through the live graph; with `analog`, the lines also go to that
+/// analog output (its DAC writes are timed from exposure as the register is).
+pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool, analog: Option<AnalogConfig>) -> Result<RealtimeFigures> {
+    let analog = analog.map(|c| AnalogOutput::start(&c).map(std::sync::Arc::new)).transpose()?;
+    let buf = SharedBuf(Default::default(), Default::default(), analog.clone());
     let sink = tagdeflect_core::feed_file::FeedWriter::from_writer("bench", Box::new(buf.clone()));
     // The control output serves the run too (its register is updated on the sinks' thread
     // right after the feed line is written).
@@ -104,7 +139,23 @@ pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool) -> 
         .map(|(l, at)| (at.saturating_duration_since(playhead).as_secs_f64() - (l.t_ns - t0) as f64 * 1e-9) * 1e3)
         .collect();
     exposure.sort_by(f64::total_cmp);
+    let dac = analog.map(|a| {
+        let status = a.status();
+        let t_of: std::collections::HashMap<u64, i64> = lines.iter().skip(warm).map(|l| (l.seq, l.t_ns)).collect();
+        let mut ms: Vec<f64> = status
+            .acknowledged()
+            .iter()
+            .filter_map(|(seq, at)| {
+                t_of.get(seq).map(|t| (at.saturating_duration_since(playhead).as_secs_f64() - (t - t0) as f64 * 1e-9) * 1e3)
+            })
+            .collect();
+        ms.sort_by(f64::total_cmp);
+        (percentile(&ms, 0.5), percentile(&ms, 0.99), (status.values_written, status.superseded))
+    });
     Ok(RealtimeFigures {
+        exposure_to_dac_p50_ms: dac.map(|d| d.0),
+        exposure_to_dac_p99_ms: dac.map(|d| d.1),
+        dac_written_superseded: dac.map(|d| d.2),
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         recorded_sets: per_camera.values().copied().max().unwrap_or(0),
         recorded_s: (t1 - t0) as f64 * 1e-9,
@@ -146,6 +197,13 @@ pub(super) fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
     println!("{:<36}{:>12.1}", "latency max ms (steady)", r.latency_max_ms);
     println!("{:<36}{:>12.1}", "exposure → register p50 ms", r.exposure_to_register_p50_ms);
     println!("{:<36}{:>12.1}", "exposure → register p99 ms", r.exposure_to_register_p99_ms);
+    if let (Some(p50), Some(p99)) = (r.exposure_to_dac_p50_ms, r.exposure_to_dac_p99_ms) {
+        println!("{:<36}{:>12.1}", "exposure → DAC acknowledged p50 ms", p50);
+        println!("{:<36}{:>12.1}", "exposure → DAC acknowledged p99 ms", p99);
+    }
+    if let Some((w, s)) = r.dac_written_superseded {
+        println!("{:<36}{:>12}", "DAC values written / superseded", format!("{w} / {s}"));
+    }
     println!("{:<36}{:>12.1}", "peak RSS MB", r.peak_rss_mb);
     println!("{:<36}{:>12.3}", "first solved set after s", r.first_solved_s);
     println!("{:<36}{:>12}", "dropped after the first solved set", r.dropped_after_first_solved);

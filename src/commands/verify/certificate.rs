@@ -50,6 +50,9 @@ pub struct Rig {
     pub tags: Vec<SpecimenTag>,
     /// The world's up direction.
     pub world_up: [f64; 3],
+    /// The rig's geometry as a later run compares it (`[verification]`: a test under a
+    /// changed geometry says the verification is stale; `tagdeflect_core::verification`).
+    pub geometry_sha256: String,
 }
 
 /// One hold as SPEC's `steps` give it: the reference value, the measured mean on the
@@ -154,6 +157,7 @@ impl Certificate {
                 calibration_files,
                 tags: config.specimen.tags.clone(),
                 world_up: config.world.up,
+                geometry_sha256: config.geometry_sha256(),
             },
             plan: plan.clone(),
             verification,

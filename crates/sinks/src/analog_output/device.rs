@@ -8,7 +8,7 @@ use std::net::SocketAddr;
 use std::time::Duration;
 
 use tokio::time::timeout;
-use tokio_modbus::client::{tcp, Client, Context};
+use tokio_modbus::client::{tcp, Client, Context, Reader};
 use tokio_modbus::{Request, Response, Slave};
 
 use tagdeflect_io::utm::codec::encode;
@@ -117,6 +117,24 @@ impl Device {
             DigitalOutput::Coil(c) => {
                 self.call(Request::WriteSingleCoil(c, on), &format!("writing the valid line (coil {c}) {}", on as u8)).await
             }
+        }
+    }
+
+    /// Reads `count` holding registers from `register` (function 3; `check` only).
+    pub(super) async fn read_holding(&mut self, register: u16, count: u16) -> Result<Vec<u16>, DeviceFault> {
+        let addr = self.addr;
+        let what = format!("reading holding registers {register}..{}", register as u32 + count as u32 - 1);
+        let ctx = self.ctx.as_mut().ok_or_else(|| DeviceFault::Connect { addr, detail: "not connected".into() })?;
+        let reply = timeout(self.timeout, ctx.read_holding_registers(register, count)).await.map_err(|_| DeviceFault::Timeout {
+            addr,
+            what: what.clone(),
+            ms: self.timeout_ms,
+        })?;
+        match reply {
+            Err(e) => Err(DeviceFault::Transport { addr, what, detail: e.to_string() }),
+            Ok(Err(code)) => Err(DeviceFault::Exception { addr, what, code: format!("{code:?} ({})", u8::from(code)) }),
+            Ok(Ok(words)) if words.len() == count as usize => Ok(words),
+            Ok(Ok(words)) => Err(DeviceFault::Transport { addr, what, detail: format!("{} registers in the reply", words.len()) }),
         }
     }
 

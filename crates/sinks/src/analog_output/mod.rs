@@ -22,6 +22,7 @@
 
 pub mod config;
 mod device;
+mod probe;
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -35,6 +36,7 @@ use tokio::sync::{watch, Notify};
 
 pub use config::{AnalogConfig, DeviceMap, DigitalOutput, OnInvalid, RegisterWrite};
 pub use device::DeviceFault;
+pub use probe::{probe, Identity, Probe, WriteTest, LABJACK_PRODUCT_ID, LABJACK_SERIAL_NUMBER};
 
 use crate::signal::{SignalRule, SignalState};
 use crate::{Finished, LineSink};
@@ -49,6 +51,8 @@ pub const BACKOFF_MIN: Duration = Duration::from_millis(200);
 pub const BACKOFF_MAX: Duration = Duration::from_secs(5);
 /// Most latencies kept for the summary.
 const MAX_LATENCIES: usize = 1 << 20;
+/// Most acknowledgement times kept (the first 36 min at 30 fps; for `bench`).
+const MAX_ACKS: usize = 1 << 16;
 
 /// Why the analog output did not start.
 #[derive(Debug, thiserror::Error)]
@@ -74,8 +78,14 @@ pub struct AnalogStatus {
     pub outages: u64,
     /// The last fault, if the device is not answering now.
     pub fault: Option<String>,
+    /// When the device last acknowledged the valid line written low.
+    pub line_low_at: Option<Instant>,
+    /// When the device last acknowledged the valid line written high.
+    pub line_high_at: Option<Instant>,
     /// Exposure → write-acknowledged latencies, ms.
     latencies_ms: Vec<f32>,
+    /// When each value was acknowledged: (feed seq, instant).
+    acks: Vec<(u64, Instant)>,
 }
 
 impl AnalogStatus {
@@ -88,6 +98,12 @@ impl AnalogStatus {
         v.sort_by(f32::total_cmp);
         let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize] as f64;
         Some((v.len(), q(0.5), q(0.99), q(1.0)))
+    }
+
+    /// When the device acknowledged each value written: (feed `seq`, instant), the first
+    /// 65 536 values (`bench` times exposure → acknowledged on a replay's clock with them).
+    pub fn acknowledged(&self) -> &[(u64, Instant)] {
+        &self.acks
     }
 }
 
@@ -207,8 +223,11 @@ impl Task {
         self.device.write_value(&config.value_register(), config.raw_of(volts)).await?;
         self.written.level = Some(level);
         let mut st = self.shared.status();
-        if let Level::Value { t_ns, .. } = level {
+        if let Level::Value { t_ns, seq, .. } = level {
             st.values_written += 1;
+            if st.acks.len() < MAX_ACKS {
+                st.acks.push((seq, Instant::now()));
+            }
             if st.latencies_ms.len() < MAX_LATENCIES {
                 st.latencies_ms.push(((tagdeflect_core::clock::now_epoch_ns() - t_ns) as f64 * 1e-6) as f32);
             }
@@ -221,6 +240,8 @@ impl Task {
         if self.written.valid != Some(on) {
             self.device.write_line(line, on).await?;
             self.written.valid = Some(on);
+            let mut st = self.shared.status();
+            *(if on { &mut st.line_high_at } else { &mut st.line_low_at }) = Some(Instant::now());
         }
         Ok(())
     }

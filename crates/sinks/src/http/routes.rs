@@ -36,6 +36,7 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/test", get(super::test_api::status))
         .route("/api/tests", get(super::test_api::earlier))
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
+        .route("/api/audit", get(super::test_api::audit))
         // Larger bodies are refused before they are read whole (the control API's limit).
         .layer(axum::extract::DefaultBodyLimit::max(super::test_api::MAX_BODY))
         .with_state(view)

@@ -1,13 +1,18 @@
 //! The tests' HTTP API (SPEC "Tests", there called the control API — not to be mistaken for
 //! the control output, [`crate::control_output`]): `GET /api/test` open to the page's readers,
-//! `POST /api/test/{start,stop,mark,zero}` for whoever holds the token.
+//! `POST /api/test/{start,stop,mark,zero,sign,reanalyse}` for whoever holds a token whose role
+//! may do it (the one shared token: every action; `[output] users_file`: each user's own token
+//! and role, [`tagdeflect_core::users`]; a role that may not: 403 naming the role needed), and
+//! `GET /api/audit?test=ID` (the audit trail names users: any user's token). Each action done is
+//! appended to the tests folder's audit log with the user and role (`crate::lab_test::audit`).
 //!
 //! A POST is refused unless all of these hold, in this order: the body is at most
 //! [`MAX_BODY`] bytes (413); it does not come from another site — an `Origin` header must name
 //! this server's own `Host`, and `Sec-Fetch-Site`, when sent, must not be `cross-site` (403);
 //! a body, when there is one, is `application/json` (415: a form of another site cannot send
 //! that without a preflight, which this server never grants); `Authorization: Bearer <token>`
-//! matches (compared in constant time). The right token is never refused, whatever others
+//! is a known token (the shared token compared in constant time; a user's token hashed once
+//! and compared with every user's hash, without stopping at a match). The right token is never refused, whatever others
 //! sent before it: a client behind the lab's reverse proxy (one address for everyone) cannot be
 //! locked out by someone else's wrong tokens. A wrong one is answered 401 (logged with the
 //! peer's address) until its address sent [`MAX_FAILURES`] wrong tokens within
@@ -25,6 +30,8 @@ use axum::extract::{ConnectInfo, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+
+use tagdeflect_core::users::{Actor, Credentials};
 
 use super::LiveView;
 use crate::lab_test::{LabTests, TestError, TestMeta};
@@ -49,16 +56,41 @@ struct Failures {
     all: (u32, Option<Instant>),
 }
 
-/// The tests behind the API, the token, and the wrong tokens per peer and in all.
+/// The tests behind the API, whose tokens it takes, and the wrong tokens per peer and in all.
 pub(crate) struct TestApi {
     tests: Arc<LabTests>,
-    token: String,
+    auth: Credentials,
     failures: Mutex<Failures>,
 }
 
 impl TestApi {
-    pub(crate) fn new(tests: Arc<LabTests>, token: String) -> Self {
-        TestApi { tests, token, failures: Mutex::new(Failures::default()) }
+    pub(crate) fn new(tests: Arc<LabTests>, auth: Credentials) -> Self {
+        TestApi { tests, auth, failures: Mutex::new(Failures::default()) }
+    }
+}
+
+/// The POSTs of the control API (a role is checked for these; another name is answered 400).
+const COMMANDS: [&str; 9] = ["start", "stop", "mark", "zero", "crack", "method", "specimens", "sign", "reanalyse"];
+
+/// `GET /api/audit?test=ID`: the audit log's chain state and entries (of one test, or all).
+/// The trail names users: any user's token is needed (the wrong-token limits apply).
+pub(crate) async fn audit(
+    State(view): State<Arc<LiveView>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    axum::extract::Query(q): axum::extract::Query<HashMap<String, String>>,
+) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    if let Err(refused) = check_token(api, &headers, peer, "GET") {
+        return refused;
+    }
+    let tests = api.tests.clone();
+    match tokio::task::spawn_blocking(move || tests.audit_entries(q.get("test").map(String::as_str))).await {
+        Ok(Ok(v)) => Json(v).into_response(),
+        Ok(Err(e)) => answer(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
+        Err(e) => answer(StatusCode::INTERNAL_SERVER_ERROR, format!("reading the audit log failed: {e}")),
     }
 }
 
@@ -103,8 +135,13 @@ pub(crate) async fn command(
     if !body.is_empty() && !json {
         return answer(StatusCode::UNSUPPORTED_MEDIA_TYPE, "the body must be application/json");
     }
-    if let Some(refused) = check_token(api, &headers, peer) {
-        return refused;
+    let actor = match check_token(api, &headers, peer, "POST") {
+        Ok(actor) => actor,
+        Err(refused) => return refused,
+    };
+    if let (true, Err(why)) = (COMMANDS.contains(&cmd.as_str()), actor.role.may(&cmd)) {
+        tracing::warn!(%peer, user = %actor.user, "control API: {why}");
+        return answer(StatusCode::FORBIDDEN, why);
     }
     let tests = api.tests.clone();
     let run = move || -> Result<serde_json::Value, TestError> {
@@ -114,12 +151,30 @@ pub(crate) async fn command(
             }
             serde_json::from_slice(&body).map_err(|e| TestError::Bad(format!("{what}: the body is not JSON: {e}")))
         };
+        let by = || Some(actor.user.clone());
+        let logged = |v: serde_json::Value, action: &str, detail: serde_json::Value| {
+            tests.audit(&actor, action, v.get("id").and_then(|i| i.as_str()), detail).map(|_| v)
+        };
         match cmd.as_str() {
             "start" => {
                 let meta: TestMeta = serde_json::from_value(parse("start")?).map_err(|e| TestError::Bad(format!("start: {e}")))?;
-                tests.start(meta)
+                let detail = serde_json::to_value(&meta).unwrap_or_default();
+                logged(tests.start_by(meta, by())?, "start", detail)
             }
-            "stop" => tests.stop().map(|s| serde_json::json!({"id": s.id, "folder": s.folder})),
+            "stop" => {
+                let s = tests.stop_by(by())?;
+                tests.audit_stop(&actor, &s)?;
+                Ok(serde_json::json!({"id": s.id, "folder": s.folder}))
+            }
+            "sign" | "reanalyse" => {
+                let v = parse(&cmd)?;
+                let text =
+                    |k: &str| v.get(k).and_then(|t| t.as_str()).ok_or_else(|| TestError::Bad(format!("{cmd}: \"{k}\" (text) is needed")));
+                match cmd.as_str() {
+                    "sign" => tests.sign(&actor, text("test")?, text("meaning")?),
+                    _ => tests.reanalyse(&actor, text("test")?, text("reason")?),
+                }
+            }
             "mark" => {
                 let v = parse("mark")?;
                 let note = match v.get("note") {
@@ -127,10 +182,11 @@ pub(crate) async fn command(
                     Some(serde_json::Value::String(s)) => Some(s.clone()),
                     Some(other) => return Err(TestError::Bad(format!("mark: \"note\" must be text, not {other}"))),
                 };
-                tests.mark(note)
+                let detail = serde_json::json!({ "note": note });
+                logged(tests.mark_by(note, by())?, "mark", detail)
             }
-            "zero" => tests.zero(),
-            other => Err(TestError::Bad(format!("no command \"{}\": start, stop, mark or zero", other.escape_debug()))),
+            "zero" => logged(tests.zero_by(by())?, "zero", serde_json::json!({})),
+            other => Err(TestError::Bad(format!("no command \"{}\": start, stop, mark, zero, sign or reanalyse", other.escape_debug()))),
         }
     };
     // `stop` waits for the sinks and writes the folder: never on the server's threads.
@@ -163,12 +219,17 @@ fn cross_origin(headers: &HeaderMap) -> Option<String> {
     None
 }
 
-/// The token check with its rate limit; `Some(answer)` when refused.
-fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr) -> Option<Response> {
+/// The token check with its rate limit: who holds the token, or the answer when refused.
+fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr, method: &str) -> Result<Actor, Response> {
     let given = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).map(str::trim);
-    if given.is_some_and(|g| constant_time_eq(g.as_bytes(), api.token.as_bytes())) {
-        return None;
+    if let Some(actor) = given.and_then(|g| api.auth.find(g)) {
+        return Ok(actor);
     }
+    Err(refuse(api, given.is_some(), peer, method))
+}
+
+/// Counts a wrong (or missing) token of `peer` and answers it: 401, or 429 past the limits.
+fn refuse(api: &TestApi, given: bool, peer: SocketAddr, method: &str) -> Response {
     let mut f = api.failures.lock().unwrap_or_else(|p| p.into_inner());
     let now = Instant::now();
     f.per_peer.retain(|_, (_, since)| now.duration_since(*since) < FAILURE_WINDOW);
@@ -184,7 +245,7 @@ fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr) -> Option<R
     let n_peer = mine.0;
     let all = f.all.0 + 1;
     f.all = (all, Some(f.all.1.unwrap_or(now)));
-    let what = if given.is_some() { "a wrong" } else { "no" };
+    let what = if given { "a wrong" } else { "no" };
     if n_peer > MAX_FAILURES || all > MAX_FAILURES_ALL {
         // Logged at the first refusal of a window (per address, and for all), not per guess.
         if n_peer == MAX_FAILURES + 1 || all == MAX_FAILURES_ALL + 1 {
@@ -192,20 +253,13 @@ fn check_token(api: &TestApi, headers: &HeaderMap, peer: SocketAddr) -> Option<R
         }
         let mut r = answer(StatusCode::TOO_MANY_REQUESTS, "too many wrong tokens: wait a minute (the right token is always taken)");
         r.headers_mut().insert(header::RETRY_AFTER, header::HeaderValue::from_static("60"));
-        return Some(r);
+        return r;
     }
-    tracing::warn!(%peer, failures = n_peer, "control API: a POST with {what} token refused");
-    Some(answer(
+    tracing::warn!(%peer, failures = n_peer, "control API: a {method} with {what} token refused");
+    answer(
         StatusCode::UNAUTHORIZED,
-        "a POST needs Authorization: Bearer <token> (the daemon printed it at start, or see http_token_file)",
-    ))
-}
-
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    if a.len() != b.len() {
-        return false;
-    }
-    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+        "a POST needs Authorization: Bearer <token> (the daemon printed it at start, or see http_token_file; with users_file: your own token)",
+    )
 }
 
 #[cfg(test)]
@@ -226,21 +280,20 @@ mod tests {
         let mut h = HeaderMap::new();
         h.insert("sec-fetch-site", "cross-site".parse().unwrap());
         assert!(cross_origin(&h).is_some());
-        assert!(constant_time_eq(b"abc", b"abc") && !constant_time_eq(b"abc", b"abd") && !constant_time_eq(b"ab", b"abc"));
     }
 
     #[test]
     fn the_right_token_is_never_refused_and_wrong_ones_are_limited_per_address_and_in_all() {
         let dir = tempfile::tempdir().unwrap();
         let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
-        let api = TestApi::new(tests, "right".into());
+        let api = TestApi::new(tests, Credentials::Shared("right".into()));
         let with = |token: &str| {
             let mut h = HeaderMap::new();
             h.insert(header::AUTHORIZATION, format!("Bearer {token}").parse().unwrap());
             h
         };
         let code = |token: &str, ip: [u8; 4]| {
-            check_token(&api, &with(token), SocketAddr::from((ip, 40000))).map_or(StatusCode::OK, |r| r.status())
+            check_token(&api, &with(token), SocketAddr::from((ip, 40000)), "POST").map_or_else(|r| r.status(), |_| StatusCode::OK)
         };
         // One address (a reverse proxy): 5 wrong tokens answered 401, then 429; the right one passes.
         let proxy = [10, 0, 0, 1];

@@ -144,9 +144,9 @@ impl LiveView {
         let _ = self.mqtt.set(stats);
     }
 
-    /// Serves the control API of `tests` (SPEC "Tests"): every POST needs `token`.
-    pub fn set_test_api(&self, tests: Arc<crate::lab_test::LabTests>, token: String) {
-        let _ = self.test_api.set(super::test_api::TestApi::new(tests, token));
+    /// Serves the control API of `tests` (SPEC "Tests"): every POST needs a token `auth` knows.
+    pub fn set_test_api(&self, tests: Arc<crate::lab_test::LabTests>, auth: tagdeflect_core::users::Credentials) {
+        let _ = self.test_api.set(super::test_api::TestApi::new(tests, auth));
     }
 
     pub(super) fn lock(&self) -> std::sync::MutexGuard<'_, State> {

@@ -23,15 +23,20 @@ impl LabTests {
 
     /// Starts a test (its zero from the next frame sets); refused while one runs.
     pub fn start(&self, meta: TestMeta) -> Result<serde_json::Value, TestError> {
+        self.start_by(meta, None)
+    }
+
+    /// [`LabTests::start`] by `user` (named on the start event).
+    pub fn start_by(&self, meta: TestMeta, user: Option<String>) -> Result<serde_json::Value, TestError> {
         meta.validate()?;
         let mut g = self.lock();
-        self.open(&mut g, meta, None)?;
+        self.open(&mut g, meta, None, user)?;
         drop(g);
         Ok(self.status())
     }
 
     /// Opens the test's folder and makes it the running test; `note` goes with its start event.
-    pub(super) fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>) -> Result<String, TestError> {
+    pub(super) fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>, user: Option<String>) -> Result<String, TestError> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
         let id = format!("{stamp}-{}", meta.specimen.trim());
@@ -47,7 +52,7 @@ impl LabTests {
         let open = |name: &str| std::fs::OpenOptions::new().create_new(true).append(true).open(folder.join(name));
         let feed = open("feed.jsonl").map_err(io)?;
         let utm = open("utm.jsonl").map_err(io)?;
-        let start = FeedEvent { kind: "start".into(), t_ns: now, note, user: None };
+        let start = FeedEvent { kind: "start".into(), t_ns: now, note, user };
         g.pending.push(start.clone());
         let record = TestRecord {
             id: id.clone(),
@@ -73,17 +78,27 @@ impl LabTests {
 
     /// An operator's note, into the feed and `test.json`.
     pub fn mark(&self, note: Option<String>) -> Result<serde_json::Value, TestError> {
+        self.mark_by(note, None)
+    }
+
+    /// [`LabTests::mark`] by `user`.
+    pub fn mark_by(&self, note: Option<String>, user: Option<String>) -> Result<serde_json::Value, TestError> {
         if let Some(n) = &note {
             if n.len() > 4096 || n.chars().any(|c| c.is_control()) {
                 return Err(TestError::Bad("note: at most 4096 characters, no control characters".into()));
             }
         }
-        self.event("mark", note)
+        self.event("mark", note, user)
     }
 
     /// Takes the zero again from the next frame sets.
     pub fn zero(&self) -> Result<serde_json::Value, TestError> {
-        let v = self.event("zero", None)?;
+        self.zero_by(None)
+    }
+
+    /// [`LabTests::zero`] by `user`.
+    pub fn zero_by(&self, user: Option<String>) -> Result<serde_json::Value, TestError> {
+        let v = self.event("zero", None, user)?;
         let mut g = self.lock();
         if let Some(r) = g.running.as_mut() {
             r.zero = Zero::default();
@@ -92,10 +107,10 @@ impl LabTests {
         Ok(v)
     }
 
-    fn event(&self, kind: &str, note: Option<String>) -> Result<serde_json::Value, TestError> {
+    fn event(&self, kind: &str, note: Option<String>, user: Option<String>) -> Result<serde_json::Value, TestError> {
         let mut g = self.lock();
         let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
-        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note, user: None };
+        let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note, user };
         r.record.events.push(ev.clone());
         self.persist(r);
         self.publish(&r.record);
@@ -107,11 +122,16 @@ impl LabTests {
     /// Ends the running test: waits until the sinks have written its lines (at most
     /// [`STOP_WAIT`]), then completes its folder (report included) and answers.
     pub fn stop(&self) -> Result<Stopped, TestError> {
-        self.stop_with(None)
+        self.stop_with(None, None)
+    }
+
+    /// [`LabTests::stop`] by `user`.
+    pub fn stop_by(&self, user: Option<String>) -> Result<Stopped, TestError> {
+        self.stop_with(None, user)
     }
 
     /// [`LabTests::stop`] with a note on the stop event (why it stopped).
-    pub(super) fn stop_with(&self, note: Option<String>) -> Result<Stopped, TestError> {
+    pub(super) fn stop_with(&self, note: Option<String>, user: Option<String>) -> Result<Stopped, TestError> {
         let now = tagdeflect_core::clock::now_epoch_ns();
         let mut g = self.lock();
         if g.running.is_none() {
@@ -126,7 +146,7 @@ impl LabTests {
             .unwrap_or_else(|p| p.into_inner());
         g = g2;
         let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
-        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user: None };
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user };
         r.record.events.push(stop.clone());
         r.record.stopped_t_ns = Some(now);
         g.pending.push(stop);

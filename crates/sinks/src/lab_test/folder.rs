@@ -180,8 +180,9 @@ pub(super) fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// SHA-256 of every file under `folder` (but `test.json`), by path relative to it.
-fn hash_folder(folder: &Path) -> std::io::Result<BTreeMap<String, String>> {
+/// SHA-256 of every file under `folder` (but `test.json` and `signatures.jsonl`), by path
+/// relative to it.
+pub(super) fn hash_folder(folder: &Path) -> std::io::Result<BTreeMap<String, String>> {
     let mut out = BTreeMap::new();
     let mut stack = vec![folder.to_path_buf()];
     while let Some(d) = stack.pop() {
@@ -193,7 +194,8 @@ fn hash_folder(folder: &Path) -> std::io::Result<BTreeMap<String, String>> {
                 continue;
             }
             let rel = p.strip_prefix(folder).unwrap_or(&p).to_string_lossy().into_owned();
-            if rel == "test.json" || rel.ends_with(".tmp") {
+            // Signatures are added after the stop, each linked to its audit line.
+            if rel == "test.json" || rel == super::audit::SIGNATURES_FILE || rel.ends_with(".tmp") {
                 continue;
             }
             out.insert(rel, hex(&sha2::Sha256::digest(std::fs::read(&p)?)));

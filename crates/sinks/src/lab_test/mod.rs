@@ -39,8 +39,10 @@
 //!
 //! Files by job: [`meta`] what a test is started with, [`record`] `test.json` and the earlier
 //! tests' curves, `state` the tests and their lock, `commands` what an operator does,
-//! `steps` what the pipeline's threads do, `folder` the files on disk, `zero` the test's zero.
+//! `steps` what the pipeline's threads do, `folder` the files on disk, `zero` the test's zero,
+//! [`audit`] the audit log, sign-off and re-analysis.
 
+pub mod audit;
 pub mod auto;
 mod commands;
 mod folder;

@@ -60,6 +60,8 @@ pub struct LabTests {
     pub(super) on_record: std::sync::OnceLock<RecordHook>,
     pub(super) inner: Mutex<Inner>,
     pub(super) written: Condvar,
+    /// `<dir>/audit.jsonl`, its tail kept (see [`super::audit`]).
+    pub(super) audit: Mutex<tagdeflect_core::audit::AuditLog>,
 }
 
 impl LabTests {
@@ -78,6 +80,7 @@ impl LabTests {
             calibration_sha256.insert(c.display().to_string(), hex(&sha2::Sha256::digest(&bytes)));
         }
         std::fs::create_dir_all(dir)?;
+        let audit = tagdeflect_core::audit::AuditLog::open(&dir.join(super::audit::AUDIT_FILE)).map_err(std::io::Error::other)?;
         let tests = LabTests {
             dir: dir.to_path_buf(),
             config_text,
@@ -86,6 +89,7 @@ impl LabTests {
             on_record: std::sync::OnceLock::new(),
             inner: Mutex::default(),
             written: Condvar::new(),
+            audit: Mutex::new(audit),
         };
         tests.read_earlier();
         tests.resume()?;

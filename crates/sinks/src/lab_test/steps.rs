@@ -22,8 +22,11 @@ impl LabTests {
         g.last_line_t_ns = line.t_ns;
         if g.running.is_none() {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
-                match self.open(&mut g, meta, Some(why.clone())) {
-                    Ok(id) => tracing::info!(test = %id, "test started automatically ({why})"),
+                match self.open(&mut g, meta, Some(why.clone()), None) {
+                    Ok(id) => {
+                        tracing::info!(test = %id, "test started automatically ({why})");
+                        self.audit_auto_start(id, why);
+                    }
                     Err(e) => tracing::error!("the automatic start failed: {e}"),
                 }
             }
@@ -46,8 +49,11 @@ impl LabTests {
                 drop(g);
                 tracing::info!(test = %id, "stopping the test automatically ({why})");
                 let me = self.clone();
-                let spawned = std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why)) {
-                    Ok(s) => tracing::info!(test = %s.id, "the test stopped automatically"),
+                let spawned = std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why), None) {
+                    Ok(s) => {
+                        tracing::info!(test = %s.id, "the test stopped automatically");
+                        let _ = me.audit_stop(&super::audit::auto_actor(), &s);
+                    }
                     Err(e) => tracing::warn!(test = %id, "the automatic stop did not go through: {e}"),
                 });
                 if let Err(e) = spawned {

@@ -1,0 +1,223 @@
+//! A test folder's report whatever the route (issue "the test a lab signs"): the report made
+//! at the test's stop by the daemon equals `report DIR`'s to the last digit; test.json's
+//! measured dimensions, specimen, operator, notes and marks win over the config; a test.json
+//! with a value out of range is one error naming the file and key.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use tagdeflect::config::Config;
+use tagdeflect_sim::{SimParams, SimRig};
+
+use crate::http::{post, small_rig, tagdeflect_test, Daemon};
+
+fn tagdeflect(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).output().expect("run tagdeflect")
+}
+
+pub(crate) fn read_json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
+}
+
+/// A test of a softening beam run through the control API of `demo` (start with measured
+/// dimensions, notes and a standard; a mark; stop): its folder, and the beam of the config.
+fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::BeamConfig) {
+    let params = SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
+    let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    let beam = tagdeflect_report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    };
+    cfg.specimen.beam = Some(beam.clone());
+    let cfg_path = dir.join("rig.toml");
+    std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let tests_dir = dir.join("tests");
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let token_file = tests_dir.join(".token");
+    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
+    let body = serde_json::json!({
+        "specimen": specimen, "operator": "A. Tester", "standard": "astm-c1609", "notes": "cast in mould 3",
+        "measured": {"width_mm": beam.width_mm + 0.4, "depth_mm": beam.depth_mm - 0.3},
+    });
+    let auth = format!("Bearer {token}");
+    let (code, answer) =
+        post(addr, "/api/test/start", &[("Content-Type", "application/json"), ("Authorization", &auth)], body.to_string().as_bytes());
+    assert_eq!(code, 200, "{answer}");
+    let id = serde_json::from_str::<serde_json::Value>(&answer).unwrap()["id"].as_str().unwrap().to_string();
+    let of_test = |d: &Daemon| d.lines().iter().filter(|(_, l)| l.test.as_ref().is_some_and(|t| t.id == id)).count();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    for want in [10, 20] {
+        while of_test(&d) < want {
+            assert!(Instant::now() < deadline, "the test's lines did not come");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        if want == 10 {
+            tagdeflect_test(addr, &token_file, &["mark", "first crack seen"]);
+        }
+    }
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert_eq!(d.stop(), Some(0));
+    (PathBuf::from(stopped["folder"].as_str().unwrap()), beam)
+}
+
+/// report.json without what differs by where and when the report was written: the hashes of
+/// its own output files (the PDF carries its printing time) and where its inputs are named
+/// from (the report folder's parent); every value, note and input hash compared.
+fn comparable(mut j: serde_json::Value) -> serde_json::Value {
+    j.as_object_mut().unwrap().remove("outputs");
+    for f in j["inputs"]["files"].as_array_mut().unwrap() {
+        f.as_object_mut().unwrap().remove("name");
+    }
+    j
+}
+
+fn report_dir(folder: &Path, out: &Path) -> serde_json::Value {
+    let o = tagdeflect(&["report", folder.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    read_json(&out.join("report.json"))
+}
+
+fn values(j: &serde_json::Value) -> Vec<(String, serde_json::Value)> {
+    ["P1", "delta1", "f1", "Pp", "deltap", "fp", "P600", "P150", "f600", "f150", "T150", "RT150"]
+        .iter()
+        .filter_map(|k| j.get(*k).map(|v| (k.to_string(), v.clone())))
+        .collect()
+}
+
+#[test]
+fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let (folder, beam) = a_test_folder(dir.path(), "B7");
+    let at_stop = read_json(&folder.join("report/report.json"));
+    let again = report_dir(&folder, &dir.path().join("again"));
+    assert!(!values(&at_stop).is_empty(), "{at_stop}");
+    assert!(at_stop["outputs"].as_object().is_some_and(|o| o.contains_key("report.html")), "{}", at_stop["outputs"]);
+    assert_eq!(comparable(at_stop.clone()), comparable(again), "the report made at the stop and `report DIR` differ");
+
+    // What the record gives the report.
+    let s = &at_stop["specimen"];
+    assert_eq!(s["id"], "B7");
+    assert_eq!(at_stop["operator"], "A. Tester");
+    assert_eq!(s["width_mm"].as_f64().unwrap(), beam.width_mm + 0.4);
+    assert_eq!(s["depth_mm"].as_f64().unwrap(), beam.depth_mm - 0.3);
+    assert_eq!(s["span_mm"].as_f64().unwrap(), beam.span_mm);
+    assert_eq!(s["dimension_sources"], serde_json::json!({"width_mm": "test.json", "depth_mm": "test.json", "span_mm": "config"}));
+    let kinds: Vec<&str> = at_stop["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+    assert_eq!(kinds, ["start", "mark", "stop"]);
+    assert_eq!(at_stop["events"][1]["note"], "first crack seen");
+    assert_eq!(at_stop["test_notes"], "cast in mould 3");
+    assert!(at_stop["method_statement"].as_str().unwrap().starts_with("No test method was named"), "{}", at_stop["method_statement"]);
+    let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
+    assert!(
+        html.contains("Test record") && html.contains("first crack seen") && html.contains("cast in mould 3"),
+        "the record in the HTML"
+    );
+    assert!(html.contains("<td>A. Tester</td>") && html.contains("<td>B7</td>"), "specimen and operator in the HTML");
+    let curve_svg = std::fs::read_to_string(folder.join("report/load_deflection.svg")).unwrap_or_default();
+    assert!(curve_svg.contains("first crack seen"), "the mark drawn on the load–deflection curve");
+
+    // A mistyped width in the config changes nothing when test.json has the width.
+    let copy = dir.path().join("copy");
+    assert!(Command::new("cp").args(["-r", folder.to_str().unwrap(), copy.to_str().unwrap()]).status().unwrap().success());
+    let toml_path = copy.join("tagdeflect.toml");
+    let mut t: toml::Table = std::fs::read_to_string(&toml_path).unwrap().parse().unwrap();
+    t["specimen"]["beam"].as_table_mut().unwrap().insert("width_mm".into(), toml::Value::Float(15.0));
+    std::fs::write(&toml_path, toml::to_string(&t).unwrap()).unwrap();
+    let mistyped = report_dir(&copy, &dir.path().join("mistyped"));
+    assert_eq!(values(&mistyped), values(&at_stop), "the config's width does not reach the values");
+    assert_eq!(mistyped["specimen"]["width_mm"], at_stop["specimen"]["width_mm"]);
+
+    // A width out of any beam's range in test.json: one error naming the file and the key.
+    let rec_path = copy.join("test.json");
+    let mut rec = read_json(&rec_path);
+    rec["measured"]["width_mm"] = serde_json::json!(0.001);
+    std::fs::write(&rec_path, rec.to_string()).unwrap();
+    let o = tagdeflect(&["report", copy.to_str().unwrap(), "--out", dir.path().join("bad").to_str().unwrap(), "--no-pdf"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("test.json") && err.contains("measured.width_mm"), "{err}");
+    assert!(!dir.path().join("bad").join("report.json").exists(), "nothing written");
+}
+
+fn verify(dir: &Path) -> (Option<i32>, String) {
+    let o = tagdeflect(&["report", "verify", dir.to_str().unwrap()]);
+    (o.status.code(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
+}
+
+/// `report verify DIR` checks the folder it is given: a copy elsewhere verifies clean (its
+/// inputs found by name, the outputs, test.json's hashes, the audit chain); an edited
+/// report.json, a deleted PDF and a changed test.json are each caught and named, exit 1.
+#[test]
+fn report_verify_checks_the_copied_folder_it_is_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let (folder, _) = a_test_folder(dir.path(), "V1");
+    let id = folder.file_name().unwrap().to_str().unwrap().to_string();
+    let tests_copy = dir.path().join("elsewhere").join("tests");
+    std::fs::create_dir_all(tests_copy.parent().unwrap()).unwrap();
+    assert!(Command::new("cp")
+        .args(["-r", folder.parent().unwrap().to_str().unwrap(), tests_copy.to_str().unwrap()])
+        .status()
+        .unwrap()
+        .success());
+    let copy = tests_copy.join(&id);
+    let (code, out) = verify(&copy);
+    println!("VERIFY clean copy:\n{out}");
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains(&copy.join("feed.jsonl").display().to_string()), "the copy's own files checked: {out}");
+    assert!(!out.contains(&folder.join("feed.jsonl").display().to_string()), "not the original's: {out}");
+    assert!(out.contains("output") && out.contains("report.html"), "{out}");
+    let (code, out) = verify(&copy.join("report"));
+    assert_eq!(code, Some(0), "the report folder verifies as its test folder: {out}");
+
+    // An edited report.json.
+    let rj = copy.join("report/report.json");
+    let text = std::fs::read_to_string(&rj).unwrap();
+    std::fs::write(&rj, text.replacen("\"valid\"", "\"valid\" ", 1)).unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("CHANGED  test.json") && out.contains("report/report.json changed"), "{out}");
+    std::fs::write(&rj, text).unwrap();
+    assert_eq!(verify(&copy).0, Some(0));
+
+    // A deleted PDF (or, without Chromium, the HTML).
+    let gone = ["report.pdf", "report.html"].iter().map(|n| copy.join("report").join(n)).find(|p| p.is_file()).unwrap();
+    let bytes = std::fs::read(&gone).unwrap();
+    std::fs::remove_file(&gone).unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains(&format!("MISSING  output {}", gone.display())), "{out}");
+    std::fs::write(&gone, bytes).unwrap();
+    assert_eq!(verify(&copy).0, Some(0));
+
+    // A changed feed: named as the report's input and through test.json's hashes.
+    let feed = copy.join("feed.jsonl");
+    let feed_text = std::fs::read_to_string(&feed).unwrap();
+    std::fs::write(&feed, feed_text.replacen("\"seq\"", "\"seq\" ", 1)).unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains(&format!("CHANGED  feed {}", feed.display())) && out.contains("test.json"), "{out}");
+    std::fs::write(&feed, feed_text).unwrap();
+    let tj = copy.join("test.json");
+    let original = std::fs::read_to_string(&tj).unwrap();
+    let mut rec = read_json(&tj);
+    rec["operator"] = serde_json::json!("Someone Else");
+    std::fs::write(&tj, rec.to_string()).unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("`operator` is \"Someone Else\", the report took \"A. Tester\""), "{out}");
+    std::fs::write(&tj, original).unwrap();
+    let mut rec = read_json(&tj);
+    rec["sha256"]["utm.jsonl"] = serde_json::json!("0".repeat(64));
+    std::fs::write(&tj, rec.to_string()).unwrap();
+    std::fs::write(copy.join("added.txt"), "slipped in\n").unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains(&format!("CHANGED  test.json {}", copy.join("utm.jsonl").display())), "{out}");
+    assert!(out.contains(&format!("EXTRA    test.json {}", copy.join("added.txt").display())), "{out}");
+}
