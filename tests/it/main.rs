@@ -19,6 +19,7 @@ mod detect_sim;
 mod docs;
 mod drift;
 mod faults;
+mod formations;
 mod gauges;
 mod http;
 mod lab_method;

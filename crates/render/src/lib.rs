@@ -2,15 +2,18 @@
 //! (`tagdeflect_sim`, which traces its scene through it) and the calibration's test images
 //! (`tagdeflect_calibrate::render`, targets with ground truth): each camera's exact
 //! undistorted rays through every pixel corner ([`CornerRays`], on the simulator's own lens
-//! model, [`lens`]), area integration of mixed pixels ([`render_rect`]), optical and motion
-//! blur, the camera's processing after the pixels ([`formation`]: a discrete Gaussian, a 3×3
-//! sharpening kernel, a colour sensor's demosaic), sensor noise and 8-bit rounding
-//! ([`quantize`]).
+//! model, [`lens`]), area integration of mixed pixels ([`render_rect`]), the optics before
+//! the pixels ([`Optics`]: a Gaussian, a defocus disk, an astigmatic blur, the pixel's fill
+//! factor), motion blur, the camera's processing after the pixels ([`formation`]: a discrete
+//! Gaussian, a 3×3 sharpening kernel, a colour sensor's demosaic, JPEG), sensor noise and the
+//! sensor's bit depth, stored at 8 bits ([`quantize_bits`]).
 //!
 //! Its own crate so that the calibration does not stand on the simulator: both stand on it.
 
 pub mod formation;
 pub mod lens;
+mod optics;
 mod pixels;
 
-pub use pixels::{blur, gaussian_kernel, motion_blur, quantize, render_rect, CornerRays, Flat, Hit, Keep, Optics, PixelRect};
+pub use optics::{Astigmatism, Optics, OpticsSpec};
+pub use pixels::{blur, gaussian_kernel, motion_blur, quantize, quantize_bits, render_rect, CornerRays, Flat, Hit, Keep, PixelRect};

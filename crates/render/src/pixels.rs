@@ -1,5 +1,5 @@
-//! The renderer: area integration of a traced scene over pixels, optical and motion blur,
-//! sensor noise and 8-bit rounding.
+//! The renderer: area integration of a traced scene over pixels, motion blur, sensor noise
+//! and rounding (the optics before the pixels: [`crate::Optics`]).
 //!
 //! Each camera's undistorted ray through every pixel *corner* (OpenCV convention: pixel
 //! centres at integers, so corners at half-integers) is computed once from the intrinsics.
@@ -208,101 +208,6 @@ pub fn render_rect<C, S>(
     });
 }
 
-/// The camera's optics: a Gaussian point-spread function of `sigma` pixels that acts on the
-/// light *before* the pixels integrate it, as a lens does.
-///
-/// A sampled Gaussian applied to an image already integrated over pixels (what an image
-/// editor's blur does) is not that: its effective point-spread function is the pixel box
-/// times a comb of weights one pixel apart, whose edge profiles have kinks at the pixel
-/// phase. A blurred-step edge fit then finds every straight edge off by up to ±0.024 px at
-/// σ = 0.6 px depending on where it falls within its pixel, an error no lens and sensor
-/// make, and a moving tag's position wanders with it.
-///
-/// Here the scene is integrated over `scale × scale` sub-boxes of every pixel; `scale`
-/// consecutive sub-boxes sum to the exact pixel box, and those sums are taken at every
-/// sub-box offset (the light integrated over a 1-px box, sampled every `1/scale` px). That is
-/// convolved with the Gaussian sampled every `1/scale` px and taken at the pixel centres. A
-/// kernel sampled every `1/scale` px has the periodic spectrum `Σₙ Ĝ(f + n·scale)`, wrong by
-/// at most `Ĝ(scale/2) = exp(−π²σ²·scale²/2)` of the image's content there: `scale =
-/// ⌈1.2/σ⌉` keeps that below `exp(−π²·1.44/2)` ≈ 8e-4 (capped at 4 sub-boxes: below
-/// σ = 0.3 px it grows, 0.04 at σ = 0.2 px); an edge fit's phase error scales with it, from
-/// 0.024 px at one sub-box and σ = 0.6 px to ~1e-4 px. With no blur the sub-box grid is the
-/// pixel grid and the image is the exact pixel integral.
-#[derive(Debug, Clone)]
-pub struct Optics {
-    scale: usize,
-    /// Taps on the sub-box grid: the `scale`-tap pixel box convolved with the sampled
-    /// Gaussian.
-    kernel: Vec<f32>,
-    /// The tap at offset 0: output sub-box `I` reads sub-boxes `I + k − origin`.
-    origin: usize,
-}
-
-impl Optics {
-    /// The optics of a Gaussian point-spread function of `sigma_px` pixels (0 = none).
-    pub fn new(sigma_px: f64) -> Optics {
-        let scale = if sigma_px > 0.0 { ((1.2 / sigma_px).ceil() as usize).clamp(1, 4) } else { 1 };
-        let g = gaussian_kernel(sigma_px * scale as f64);
-        let r = g.len() / 2;
-        let mut kernel = vec![0.0f32; g.len() + scale - 1];
-        for (j, gj) in g.iter().enumerate() {
-            for m in 0..scale {
-                kernel[j + m] += gj / scale as f32;
-            }
-        }
-        Optics { scale, kernel, origin: r }
-    }
-
-    /// Sub-boxes per pixel along each axis.
-    pub fn scale(&self) -> usize {
-        self.scale
-    }
-
-    /// Sub-samples per axis of a sub-box for `per_pixel` per axis of a pixel: an n-rooks
-    /// pattern of `n` per axis resolves an edge parallel to the grid to `1/n²` of its box, so
-    /// `⌈per_pixel/√scale⌉` keeps the pixel's `1/per_pixel²` with `scale` sub-boxes across it.
-    pub fn sub_box_samples(&self, per_pixel: usize) -> usize {
-        let n = per_pixel as f64 / (self.scale as f64).sqrt();
-        (n.ceil() as usize).max(1)
-    }
-
-    /// Pixels the point-spread function reaches on either side of a pixel.
-    pub fn reach_px(&self) -> usize {
-        let far = self.origin.max(self.kernel.len() - 1 - self.origin);
-        far.div_ceil(self.scale)
-    }
-
-    /// The pixel image (`wf/scale × hf/scale`) of a `wf × hf` image of sub-box integrals
-    /// (each the scene's mean over its sub-box), edges clamped.
-    pub fn apply(&self, fine: &[f32], wf: usize, hf: usize) -> Vec<f32> {
-        let s = self.scale;
-        let (w, h) = (wf / s, hf / s);
-        if w == 0 || h == 0 {
-            return Vec::new();
-        }
-        let at = |i: usize, k: usize, n: usize| (i as isize + k as isize - self.origin as isize).clamp(0, n as isize - 1) as usize;
-        // Along rows, at the pixel centres' columns.
-        let mut tmp = vec![0.0f32; w * hf];
-        tmp.par_chunks_mut(w).enumerate().for_each(|(yf, row)| {
-            let src = &fine[yf * wf..(yf + 1) * wf];
-            for (x, o) in row.iter_mut().enumerate() {
-                *o = self.kernel.iter().enumerate().map(|(k, kv)| kv * src[at(x * s, k, wf)]).sum();
-            }
-        });
-        // Along columns, at the pixel centres' rows.
-        let mut out = vec![0.0f32; w * h];
-        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (k, kv) in self.kernel.iter().enumerate() {
-                let src = &tmp[at(y * s, k, hf) * w..(at(y * s, k, hf) + 1) * w];
-                for (o, v) in row.iter_mut().zip(src) {
-                    *o += kv * v;
-                }
-            }
-        });
-        out
-    }
-}
-
 /// A normalised Gaussian kernel of standard deviation `sigma` (radius 3 sigma).
 pub fn gaussian_kernel(sigma: f64) -> Vec<f32> {
     if sigma <= 0.0 {
@@ -379,6 +284,13 @@ pub fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> 
 
 /// Adds Gaussian noise of `sigma` grey levels (seeded per row) and rounds to 8 bits.
 pub fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -> GrayImage {
+    quantize_bits(img, w, h, sigma, seed, 8)
+}
+
+/// Adds Gaussian noise of `sigma` grey levels (seeded per row), digitises to a sensor of
+/// `bits` bits ([`crate::formation::sensor_levels`]) and stores the result at 8 bits (the
+/// recording's frames are 8-bit: deeper levels are rounded to the nearest 8-bit one).
+pub fn quantize_bits(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64, bits: u32) -> GrayImage {
     let mut data = vec![0u8; w * h];
     data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ (y as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
@@ -390,7 +302,8 @@ pub fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -> GrayI
             } else {
                 0.0
             };
-            *o = (v + noise).round().clamp(0.0, 255.0) as u8;
+            let level = if bits == 8 { v + noise } else { crate::formation::sensor_levels(v + noise, bits) };
+            *o = level.round().clamp(0.0, 255.0) as u8;
         }
     });
     GrayImage { width: w as u32, height: h as u32, data }
@@ -408,6 +321,7 @@ fn rook_weights(a: usize, b: usize, nf: f64) -> (f64, f64, f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::Optics;
 
     #[test]
     fn kernel_is_normalised_and_blur_keeps_the_mean() {

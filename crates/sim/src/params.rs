@@ -103,6 +103,40 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
     #[serde(skip_serializing_if = "is_default")]
     pub bayer: bool,
+    /// Radius of a defocus disk before the pixel (the optics: a lens focused off the target
+    /// plane spreads a point's light uniformly over a disk), pixels (0 = none).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub defocus_radius_px: f64,
+    /// An elliptical (astigmatic) Gaussian blur before the pixel: σ along its major axis,
+    /// pixels (0 = none; with `astig_minor_px` and `astig_angle_deg`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub astig_major_px: f64,
+    /// σ of the elliptical blur across its major axis, pixels (0 < minor ≤ major).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub astig_minor_px: f64,
+    /// Angle of the elliptical blur's major axis from the image's x axis towards its y axis
+    /// (down), degrees.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0, allow_hyphen_values = true))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub astig_angle_deg: f64,
+    /// Fraction of each pixel's area that integrates the light (a centred square; 1 = the
+    /// whole pixel).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
+    #[serde(skip_serializing_if = "is_default_fill")]
+    pub fill_factor: f64,
+    /// JPEG compression of every stored frame at this quality (1 to 100; none by default):
+    /// the frame is encoded and decoded as a camera that sends JPEG would.
+    #[cfg_attr(feature = "clap", arg(long))]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub jpeg_quality: Option<u8>,
+    /// Bit depth of the sensor's digitisation (8 to 16): noise is added to the light, which
+    /// is digitised to this many bits, then stored at 8 bits (recordings hold 8-bit frames).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 8))]
+    #[serde(skip_serializing_if = "is_default_bits")]
+    pub bit_depth: u32,
     /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub motion_blur_every: u32,
@@ -316,6 +350,12 @@ fn is_default_drift_rot(v: &f64) -> bool {
 fn is_default_drift_trans(v: &f64) -> bool {
     *v == 0.3
 }
+fn is_default_fill(v: &f64) -> bool {
+    *v == 1.0
+}
+fn is_default_bits(v: &u32) -> bool {
+    *v == 8
+}
 fn is_default_outage(v: &f64) -> bool {
     *v == 5.0
 }
@@ -368,6 +408,13 @@ impl Default for SimParams {
             post_blur_px: 0.0,
             sharpen: 0.0,
             bayer: false,
+            defocus_radius_px: 0.0,
+            astig_major_px: 0.0,
+            astig_minor_px: 0.0,
+            astig_angle_deg: 0.0,
+            fill_factor: 1.0,
+            jpeg_quality: None,
+            bit_depth: 8,
             jitter_ms: 1.0,
             drop_prob: 0.0,
             bump_camera: None,
@@ -474,6 +521,41 @@ mod tests {
         assert!(bad.validate().unwrap_err().to_string().contains("post_blur_px"));
         let bad = SimParams { sharpen: f64::NAN, ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("sharpen"));
+        for (bad, key) in [
+            (SimParams { defocus_radius_px: -0.5, ..SimParams::default() }, "defocus_radius_px"),
+            (SimParams { astig_major_px: 1.0, astig_minor_px: 1.5, ..SimParams::default() }, "astig_minor_px"),
+            (SimParams { astig_major_px: 1.0, ..SimParams::default() }, "astig_minor_px"),
+            (SimParams { astig_angle_deg: f64::INFINITY, ..SimParams::default() }, "astig_angle_deg"),
+            (SimParams { fill_factor: 0.0, ..SimParams::default() }, "fill_factor"),
+            (SimParams { jpeg_quality: Some(0), ..SimParams::default() }, "jpeg_quality"),
+            (SimParams { bit_depth: 17, ..SimParams::default() }, "bit_depth"),
+        ] {
+            assert!(matches!(bad.validate(), Err(Problem { key: k, .. }) if k == key), "{key}");
+        }
+        let cli = Cli::try_parse_from([
+            "x",
+            "--defocus-radius-px",
+            "1.5",
+            "--astig-major-px",
+            "1",
+            "--astig-minor-px",
+            "0.4",
+            "--astig-angle-deg",
+            "-30",
+            "--fill-factor",
+            "0.5",
+            "--jpeg-quality",
+            "90",
+            "--bit-depth",
+            "12",
+        ])
+        .unwrap();
+        let p = &cli.params;
+        assert_eq!((p.defocus_radius_px, p.astig_major_px, p.astig_minor_px, p.astig_angle_deg), (1.5, 1.0, 0.4, -30.0));
+        assert_eq!((p.fill_factor, p.jpeg_quality, p.bit_depth), (0.5, Some(90), 12));
+        p.validate().unwrap();
+        let text = toml::to_string(&SimParams::default()).unwrap();
+        assert!(!text.contains("fill_factor") && !text.contains("bit_depth") && !text.contains("jpeg"), "{text}");
         let bad = SimParams { hide_background_tag: Some(11), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_background_tag"));
         assert!(SimParams { hide_background_tag: Some(10), ..SimParams::default() }.validate().is_ok());

@@ -1,6 +1,7 @@
 //! Rendering of the simulated rig's camera images ([`SimRig::render`]): the fixed scene
 //! rendered once per camera pose and cached, the beam's image region re-rendered per
-//! frame, the optics' blur, motion blur, noise and 8-bit rounding (on [`crate::render`]).
+//! frame, the optics' blur, motion blur, the camera's processing, noise, the sensor's bit
+//! depth, 8-bit storage and JPEG (on [`crate::render`]).
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -8,7 +9,7 @@ use nalgebra::Vector3;
 
 use tagdeflect_core::frame::GrayImage;
 
-use super::render::{formation, motion_blur, quantize, render_rect, CornerRays, PixelRect};
+use super::render::{formation, motion_blur, quantize_bits, render_rect, CornerRays, PixelRect};
 use super::rig::mix;
 use super::trace::BEAM_BIT;
 use super::SimRig;
@@ -97,7 +98,8 @@ impl SimRig {
         img
     }
 
-    /// Renders camera `cam`'s image at `t_ns` (8-bit grey, the camera's size).
+    /// Renders camera `cam`'s image at `t_ns` (8-bit grey, the camera's size): digitised at
+    /// the sensor's `bit_depth`, stored at 8 bits, through JPEG when `jpeg_quality` is set.
     ///
     /// The fixed scene is rendered once per camera pose and cached; each call re-renders
     /// only the beam's image region, passes it and its surroundings through the optics
@@ -171,6 +173,11 @@ impl SimRig {
         }
         img = self.after_pixels(img, w, h);
         let seed = mix(mix(self.params.seed, 0x4015e), mix(cam as u64, t_ns as u64));
-        quantize(&img, w, h, self.params.noise_sigma, seed)
+        let stored = quantize_bits(&img, w, h, self.params.noise_sigma, seed, self.params.bit_depth);
+        match self.params.jpeg_quality {
+            // Validated sizes (at most 8192 px a side) are within JPEG's 65535.
+            Some(q) => formation::jpeg_round_trip(&stored, q).expect("an 8-bit grey image of a validated size encodes as JPEG"),
+            None => stored,
+        }
     }
 }

@@ -16,7 +16,7 @@ use tagdeflect_io::sync::SyncConfig;
 
 use super::beam::FourPointBeam;
 use super::law::{self, SimTest};
-use super::render::Optics;
+use super::render::{Astigmatism, Optics, OpticsSpec};
 use super::render_rig::CameraRenderCache;
 use super::scene::Layout;
 use super::{SimError, SimParams};
@@ -62,6 +62,21 @@ pub(crate) fn mix(a: u64, b: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The optics before the pixels of `params` (Gaussian, defocus disk, astigmatism, fill
+/// factor).
+fn optics_spec(params: &SimParams) -> OpticsSpec {
+    OpticsSpec {
+        gaussian_sigma_px: params.blur_sigma,
+        defocus_radius_px: params.defocus_radius_px,
+        astigmatism: (params.astig_major_px > 0.0).then_some(Astigmatism {
+            major_px: params.astig_major_px,
+            minor_px: params.astig_minor_px,
+            angle_deg: params.astig_angle_deg,
+        }),
+        fill_factor: params.fill_factor,
+    }
+}
+
 impl SimRig {
     /// Builds the rig; fails when a parameter is out of range.
     pub fn new(params: &SimParams) -> Result<SimRig, SimError> {
@@ -76,7 +91,7 @@ impl SimRig {
             },
             layout,
             cams,
-            optics: Optics::new(params.blur_sigma),
+            optics: Optics::of(&optics_spec(params)),
             verify_steps_mm: params.verify_positions_mm()?,
         })
     }

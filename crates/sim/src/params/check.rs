@@ -48,6 +48,7 @@ impl SimParams {
         if !finite_nonneg(self.sharpen) || self.sharpen > 4.0 {
             return bad("sharpen", format!("{}: expected an amount from 0 to 4", self.sharpen));
         }
+        self.validate_formation()?;
         if !finite_nonneg(self.motion_blur_px) || self.motion_blur_px > 50.0 {
             return bad("motion_blur_px", format!("{}: expected 0 to 50 pixels", self.motion_blur_px));
         }
@@ -160,6 +161,36 @@ impl SimParams {
             return bad("utm_outage_at_s", "expected an outage start ≥ 0 s and a positive utm_outage_s");
         }
         self.validate_test()
+    }
+
+    /// Checks the image formations before the pixel (defocus, astigmatism, fill factor) and
+    /// after it (JPEG, bit depth).
+    fn validate_formation(&self) -> Result<(), Problem> {
+        let finite_nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        if !finite_nonneg(self.defocus_radius_px) || self.defocus_radius_px > 10.0 {
+            return bad("defocus_radius_px", format!("{}: expected 0 to 10 pixels", self.defocus_radius_px));
+        }
+        if !finite_nonneg(self.astig_major_px) || self.astig_major_px > 10.0 {
+            return bad("astig_major_px", format!("{}: expected 0 to 10 pixels", self.astig_major_px));
+        }
+        let (major, minor) = (self.astig_major_px, self.astig_minor_px);
+        let minor_ok = if major > 0.0 { minor.is_finite() && minor >= 0.05 && minor <= major } else { minor == 0.0 };
+        if !minor_ok {
+            return bad("astig_minor_px", format!("{minor}: expected 0.05 px up to astig_major_px ({major}), or 0 with no astig_major_px"));
+        }
+        if !(self.astig_angle_deg.is_finite() && self.astig_angle_deg.abs() <= 360.0) {
+            return bad("astig_angle_deg", format!("{}: expected -360 to 360 degrees", self.astig_angle_deg));
+        }
+        if !(self.fill_factor.is_finite() && (0.1..=1.0).contains(&self.fill_factor)) {
+            return bad("fill_factor", format!("{}: expected 0.1 to 1 of the pixel's area", self.fill_factor));
+        }
+        if self.jpeg_quality.is_some_and(|q| !(1..=100).contains(&q)) {
+            return bad("jpeg_quality", format!("{}: expected 1 to 100", self.jpeg_quality.unwrap_or_default()));
+        }
+        if !(8..=16).contains(&self.bit_depth) {
+            return bad("bit_depth", format!("{} bits: expected 8 to 16", self.bit_depth));
+        }
+        Ok(())
     }
 
     /// Checks the options of real tests (load law, notched beam, UTM clock).

@@ -1,0 +1,68 @@
+//! Accuracy per image formation (docs/accuracy.md, "Today's figures per formation"): the
+//! three-camera 1280x960 scene of `accuracy::three_cameras_1280x960_moderate_noise` (noise
+//! σ 2, tags ~28 px, 16 frame sets, seed 11) with no blur, then with one formation each.
+//! The table is a measurement, not a pass/fail: it is printed by
+//! `cargo test --test it formations:: -- --ignored --nocapture` (11 scenes, several minutes).
+//! The formations cheap enough to assert run in `accuracy::` with floors.
+
+use crate::common::*;
+use tagdeflect_sim::SimParams;
+
+/// The three-camera scene with sharp optics (no blur before or after the pixels).
+pub fn sharp_scene() -> SimParams {
+    SimParams { cameras: 3, width: 1280, height: 960, frame_sets: 16, noise_sigma: 2.0, blur_sigma: 0.0, seed: 11, ..SimParams::default() }
+}
+
+/// The scenes of the table: (formation, its `simulate` options, parameters).
+pub fn formation_scenes() -> Vec<(&'static str, &'static str, SimParams)> {
+    let s = sharp_scene;
+    vec![
+        ("sharp", "--blur-sigma 0", s()),
+        ("Gaussian 0.7 px before the pixel (optics)", "--blur-sigma 0.7", SimParams { blur_sigma: 0.7, ..s() }),
+        ("Gaussian 0.7 px after the pixel", "--post-blur-px 0.7", SimParams { post_blur_px: 0.7, ..s() }),
+        ("3×3 sharpening, amount 1", "--sharpen 1", SimParams { sharpen: 1.0, ..s() }),
+        ("Bayer RGGB, bilinear demosaic", "--bayer", SimParams { bayer: true, ..s() }),
+        ("defocus disk r = 1.5 px", "--defocus-radius-px 1.5", SimParams { defocus_radius_px: 1.5, ..s() }),
+        (
+            "elliptical 1.0/0.4 px at 30°",
+            "--astig-major-px 1 --astig-minor-px 0.4 --astig-angle-deg 30",
+            SimParams { astig_major_px: 1.0, astig_minor_px: 0.4, astig_angle_deg: 30.0, ..s() },
+        ),
+        ("fill factor 0.5", "--fill-factor 0.5", SimParams { fill_factor: 0.5, ..s() }),
+        ("JPEG quality 90", "--jpeg-quality 90", SimParams { jpeg_quality: Some(90), ..s() }),
+        ("10-bit sensor (stored 8-bit)", "--bit-depth 10", SimParams { bit_depth: 10, ..s() }),
+        ("12-bit sensor (stored 8-bit)", "--bit-depth 12", SimParams { bit_depth: 12, ..s() }),
+    ]
+}
+
+/// Prints the table of docs/accuracy.md: each scene rendered, replayed (tracking mode) and
+/// compared with truth.
+#[test]
+#[ignore = "a measurement of several minutes: run with --ignored --nocapture"]
+fn accuracy_per_formation_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rows = Vec::new();
+    let mut sharp_rms = None;
+    for (k, (name, options, p)) in formation_scenes().into_iter().enumerate() {
+        let rec = simulate(dir.path(), &format!("f{k}"), &p);
+        let (acc, _, _) = accuracy_of(name, &rec, false);
+        let rms = acc.disp_rms_mm;
+        let base = *sharp_rms.get_or_insert(rms);
+        rows.push(format!(
+            "| {name} | `{options}` | {rms:.4} mm | {:.2} | {:.4} mm | {} | {:.1} % | {} | {} |",
+            rms / base,
+            acc.vertical_rms_mm,
+            acc.net_rms_mm.map_or("—".into(), |v| format!("{v:.4} mm")),
+            100.0 * acc.coverage(),
+            acc.within_2sigma.map_or("—".into(), |v| format!("{:.1} %", 100.0 * v)),
+            acc.z_rms.map_or("—".into(), |v| format!("{v:.2}")),
+        ));
+        std::fs::remove_dir_all(&rec).ok();
+    }
+    println!("| formation | `simulate` options | displacement RMS | × sharp | vertical RMS | net deflection RMS | coverage | within 2σ | RMS error/σ |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    for r in &rows {
+        println!("{r}");
+    }
+    assert_eq!(rows.len(), formation_scenes().len());
+}
