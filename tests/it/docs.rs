@@ -74,6 +74,9 @@ rig = "frame1"
 [output.control]
 modbus = "127.0.0.1:5020"
 
+[verification]
+certificate = "verify/2026-12-06/verification.json"
+
 [output.analog]
 address = "127.0.0.1:5021"
 device = "labjack-t"
@@ -171,6 +174,7 @@ const TABLES: &[&str] = &[
     "report.lab",
     "gauge",
     "clock_check",
+    "verification",
     "sim",
 ];
 
