@@ -36,6 +36,11 @@ impl LabTests {
             let zeroing = r.zero.take(line);
             if zeroing && r.zero.n == ZERO_SETS {
                 // The zero has formed: a restart from here resumes from it.
+                self.persist(r);
+            }
+            // The preload: the load of the line that completed the zero, else of the first
+            // line after it that carries one (a UTM sample may not have reached that line).
+            if r.zero.n >= ZERO_SETS && r.record.preload.is_none() && line.load_kn.is_some() {
                 let ev = preload(&mut r.record, line);
                 line.events.extend(ev);
                 self.persist(r);
@@ -103,7 +108,8 @@ impl LabTests {
     }
 }
 
-/// The load at which the test's zero formed (`preload`), from the line that completed it; a
+/// The load at which the test's zero formed (`preload`), from the line that completed it (or
+/// the first one after it with a load); a
 /// test with a method gets a `preload` event too (its tare and preload step).
 fn preload(record: &mut TestRecord, line: &FeedLine) -> Option<FeedEvent> {
     let load_kn = line.load_kn?;
