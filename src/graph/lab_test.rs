@@ -26,6 +26,16 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
         let dims = [("width_mm", Some(b.width_mm)), ("depth_mm", Some(b.depth_mm)), ("span_mm", Some(b.span_mm)), ("notch_mm", b.notch_mm)];
         tests.set_beam(dims.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))).collect());
     }
+    if config.verification.is_some() {
+        let cfg = config.clone();
+        match cfg.verification_in_force() {
+            Ok(Some(v)) if v.stale.is_empty() => tracing::info!("{}", v.describe()),
+            Ok(Some(v)) => tracing::warn!("{}", v.describe()),
+            Ok(None) => {}
+            Err(e) => tracing::error!("[verification] {e}: tests name no verification"),
+        }
+        tests.set_verification(Box::new(move |bumps| verification_for(&cfg, bumps)));
+    }
     if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {
         tracing::info!(
             start_load_kn = rules.config.start_load_kn,
@@ -193,4 +203,25 @@ enum TestReportError {
     /// The report's folder could not be made.
     #[error("{0}")]
     Folder(#[from] std::io::Error),
+}
+
+/// The verification in force for a test (`[verification]`) with the bumps the daemon saw;
+/// `None` (logged) when its certificate or a calibration file cannot be read.
+fn verification_for(config: &Config, bumps: &[(String, i64)]) -> Option<tagdeflect_core::verification::InForce> {
+    let v = config.verification.as_ref()?;
+    let mut now = match config.rig_now() {
+        Ok(now) => now,
+        Err(e) => {
+            tracing::error!("[verification]: {e}");
+            return None;
+        }
+    };
+    now.bumps = bumps.to_vec();
+    match tagdeflect_core::verification::assess(&v.certificate, v.valid_days, &now, tagdeflect_core::clock::now_epoch_ns()) {
+        Ok(f) => Some(f),
+        Err(e) => {
+            tracing::error!("[verification] {e}");
+            None
+        }
+    }
 }

@@ -138,6 +138,9 @@ pub struct TestRecord {
     /// The load at which the test's zero was taken.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub preload: Option<Preload>,
+    /// The verification in force (`[verification]`): assessed at the start, again at the stop.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verification: Option<crate::verification::InForce>,
 }
 
 /// The operator's crack entry: where the beam cracked.

@@ -196,6 +196,10 @@ fn identification(h: &mut String, report: &Report, std_short: &str) {
 fn test_record(h: &mut String, report: &Report) {
     let Some(t) = &report.test else { return };
     h.push_str("<h2>Test record</h2>");
+    if let Some(v) = &t.verification {
+        let class = if v.stale.is_empty() { "" } else { " class=\"warn\"" };
+        let _ = write!(h, "<p{class}><b>Verification:</b> {}</p>", esc(&v.describe()));
+    }
     if let Some(n) = t.notes.as_deref().filter(|n| !n.trim().is_empty()) {
         let _ = write!(h, "<p><b>Notes:</b> {}</p>", esc(n));
     }

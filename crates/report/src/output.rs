@@ -333,7 +333,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
 }
 
 /// What a test folder's record adds (SPEC "Report"): `operator`, `method`, `events`, the
-/// operator's `test_notes` and `crack`; in `specimen` where each dimension came from
+/// operator's `test_notes`, `crack` and the `verification` in force; in `specimen` where each dimension came from
 /// (`dimension_sources`) and the specimen's row (`info`).
 fn test_keys(report: &Report, root: &mut serde_json::Map<String, serde_json::Value>, spec: &mut serde_json::Value) {
     use serde_json::json;
@@ -356,6 +356,9 @@ fn test_keys(report: &Report, root: &mut serde_json::Map<String, serde_json::Val
     }
     if let Some(c) = &t.crack {
         root.insert("crack".into(), serde_json::to_value(c).expect("crack"));
+    }
+    if let Some(v) = &t.verification {
+        root.insert("verification".into(), serde_json::to_value(v).expect("verification"));
     }
 }
 

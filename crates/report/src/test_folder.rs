@@ -116,6 +116,9 @@ pub struct TestView {
     /// The operator's crack entry.
     #[serde(default)]
     pub crack: Option<CrackInfo>,
+    /// The verification in force when the test ran (`[verification]`).
+    #[serde(default)]
+    pub verification: Option<tagdeflect_core::verification::InForce>,
 }
 
 impl TestView {
@@ -274,6 +277,9 @@ pub fn build_test(
         r.beam_source = text;
     }
     apply_crack(&mut r, view.crack.as_ref());
+    if let Some(v) = view.verification.as_ref().filter(|v| !v.stale.is_empty()) {
+        r.qc.warnings.push(format!("the verification in force is stale: {}", v.stale.join("; ")));
+    }
     r.test = Some(view.clone());
     Ok(r)
 }

@@ -158,6 +158,7 @@ mod tests {
             specimen_info: None,
             crack: None,
             preload: None,
+            verification: None,
         }
     }
 

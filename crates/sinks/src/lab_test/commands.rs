@@ -67,6 +67,7 @@ impl LabTests {
             specimen_info: None,
             crack: None,
             preload: None,
+            verification: self.verification_now(g),
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
@@ -155,6 +156,10 @@ impl LabTests {
         let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user };
         r.record.events.push(stop.clone());
         r.record.stopped_t_ns = Some(now);
+        // Assessed again: a bump (or the validity's end) during the test makes it stale.
+        if let Some(v) = self.verification_now(&g) {
+            r.record.verification = Some(v);
+        }
         g.pending.push(stop);
         g.last = Some((r.record.id.clone(), r.folder.clone()));
         g.earlier.push(EarlierTest::new(&r.record, &r.curve));
@@ -181,6 +186,7 @@ impl LabTests {
                 "operator": r.record.meta.operator,
                 "standard": r.record.meta.standard,
                 "method": r.record.method,
+                "verification": r.record.verification,
                 "measured": r.record.meta.measured,
                 "started_t_ns": r.record.started_t_ns,
                 "events": r.record.events,

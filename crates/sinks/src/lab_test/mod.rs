@@ -56,6 +56,7 @@ mod start;
 mod state;
 mod steps;
 mod stopping;
+mod verification;
 mod zero;
 
 #[cfg(test)]
@@ -71,4 +72,5 @@ pub use specimens::parse_specimens;
 pub use start::{standard_requires, NEXT};
 pub use state::{LabTests, RecordHook, ReportError, ReportHook};
 pub use steps::LabTestSink;
+pub use verification::VerificationCheck;
 pub use zero::ZERO_SETS;

@@ -59,6 +59,8 @@ pub(super) struct Inner {
     pub(super) last_report_error: Option<String>,
     /// A stopped test whose folder is not complete yet.
     pub(super) unfinished: Option<super::stopping::Unfinished>,
+    /// Cameras bumped while this daemon ran (camera, when): a verification made before is stale.
+    pub(super) bumps: Vec<(String, i64)>,
 }
 
 /// The tests of a daemon; see the module doc.
@@ -73,6 +75,8 @@ pub struct LabTests {
     pub(super) written: Condvar,
     /// `<dir>/audit.jsonl`, its tail kept (see [`super::audit`]).
     pub(super) audit: Mutex<tagdeflect_core::audit::AuditLog>,
+    /// The check of the verification in force (`[verification]`), if one is configured.
+    pub(super) verification: std::sync::OnceLock<super::verification::VerificationCheck>,
 }
 
 impl LabTests {
@@ -102,6 +106,7 @@ impl LabTests {
             inner: Mutex::default(),
             written: Condvar::new(),
             audit: Mutex::new(audit),
+            verification: std::sync::OnceLock::new(),
         };
         tests.read_earlier();
         let stopping = tests.resume()?;

@@ -20,6 +20,7 @@ impl LabTests {
     pub fn apply(self: &Arc<Self>, line: &mut FeedLine) {
         let mut g = self.lock();
         g.last_line_t_ns = line.t_ns;
+        Self::note_bumps(&mut g, line);
         if g.running.is_none() {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
                 match self.open(&mut g, meta, Some(why.clone()), None) {

@@ -155,3 +155,40 @@ fn a_test_stopping_when_the_daemon_dies_is_completed_at_the_next_start() {
     assert_eq!(tests.status()["last"]["id"], record.id.as_str());
     tests.start(TestMeta { specimen: "B6".into(), ..TestMeta::default() }).expect("tests start again");
 }
+
+#[test]
+fn a_test_names_the_verification_in_force_and_a_bump_seen_makes_it_stale() {
+    use tagdeflect_core::feed::CameraHealth;
+    use tagdeflect_core::verification::InForce;
+    let dir = tempfile::tempdir().unwrap();
+    let tests = LabTests::new(dir.path(), "[world]\n".into(), Vec::new(), None).unwrap();
+    tests.set_verification(Box::new(|bumps: &[(String, i64)]| {
+        Some(InForce {
+            id: "ab".repeat(32),
+            file: "verification.json".into(),
+            class_iso9513: "0.5".into(),
+            date: "2026-12-01".into(),
+            valid_until: "2027-11-30".into(),
+            u_k2_mm: 0.002,
+            stale: bumps.iter().map(|(c, t)| format!("camera {c} bumped at {t}")).collect(),
+        })
+    }));
+    tests.start(TestMeta { specimen: "B1".into(), ..TestMeta::default() }).unwrap();
+    assert_eq!(tests.status()["verification"]["class_iso9513"], "0.5");
+    assert!(tests.status()["verification"].get("stale").is_none(), "in force at the start");
+    // A camera bumped during the test: flagged on three lines, one bump.
+    for t in 1..=3 {
+        let mut l = line(t, 5.0, 0.5);
+        l.cameras = vec![CameraHealth { name: "left".into(), bumped: true, ..CameraHealth::default() }];
+        tests.apply(&mut l);
+        tests.on_line(&l);
+    }
+    let stopped = tests.stop().unwrap();
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+    let v = record.verification.expect("test.json names the verification");
+    assert_eq!(v.stale, vec!["camera left bumped at 1".to_string()], "one bump, said once");
+    // The next test starts under the stale verification and says so from its start.
+    tests.start(TestMeta { specimen: "B2".into(), ..TestMeta::default() }).unwrap();
+    assert_eq!(tests.status()["verification"]["stale"][0], "camera left bumped at 1");
+    tests.stop().unwrap();
+}
