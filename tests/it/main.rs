@@ -23,6 +23,7 @@ mod formations;
 mod gauges;
 mod http;
 mod lab_method;
+mod modes;
 mod live;
 mod package;
 mod realdata;

@@ -104,6 +104,10 @@ pub struct DetectReport {
     /// Full-frame searches run in the frame (0, 1, or 2 when the decimated start-up search
     /// was repeated at full resolution).
     pub full_frame_searches: u64,
+    /// The whole frame was searched at the configured resolution in the frame (a
+    /// full-frame search, not only the decimated start-up one): a whole-frame search again
+    /// would find nothing new.
+    pub searched_whole: bool,
     /// Whole-frame searches started in the background.
     pub background_searches: u64,
     /// Window and sweep-tile searches run.
@@ -275,8 +279,9 @@ impl CameraDetector {
     }
 
     /// The in-frame search of the whole `image` (see the module docs for the decimated
-    /// start-up search); returns the tags and the number of searches run.
-    fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64) {
+    /// start-up search); returns the tags, the number of searches run and whether one was
+    /// at the configured resolution.
+    fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64, bool) {
         let configured = SearchOptions::of(rig.library.options());
         self.prepare_pixel_map(image);
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
@@ -286,16 +291,16 @@ impl CameraDetector {
             let found = rig.library.search(image, None, &options, lens);
             let seen: HashSet<u32> = found.iter().filter(|d| d.family == rig.roles.specimen_family).map(|d| d.id).collect();
             if rig.roles.specimen.iter().all(|id| seen.contains(id)) {
-                return (found, 1);
+                return (found, 1, false);
             }
             tracing::debug!(
                 found = seen.len(),
                 specimen_tags = rig.roles.specimen.len(),
                 "decimated start-up search missed specimen tags: searching at full resolution"
             );
-            return (rig.library.search(image, None, &configured, lens), 2);
+            return (rig.library.search(image, None, &configured, lens), 2, true);
         }
-        (rig.library.search(image, None, &configured, lens), 1)
+        (rig.library.search(image, None, &configured, lens), 1, true)
     }
 
     /// Detects the tags of the frame at `t_ns`: the tags followed are confirmed where they
@@ -315,8 +320,9 @@ impl CameraDetector {
             }
             Plan::FullFrame => {
                 let c0 = Instant::now();
-                let (found, searches) = self.search_whole_frame(image, rig);
+                let (found, searches, searched_whole) = self.search_whole_frame(image, rig);
                 report.full_frame_searches = searches;
+                report.searched_whole = searched_whole;
                 report.parts.full_frame = c0.elapsed().as_secs_f64();
                 found
             }
@@ -359,6 +365,7 @@ impl CameraDetector {
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let found = rig.library.search(image, None, &configured, lens);
         report.full_frame_searches = 1;
+        report.searched_whole = true;
         report.parts.full_frame = c0.elapsed().as_secs_f64();
         self.pending = None;
         let dets = rig.roles.classify(found);
