@@ -172,8 +172,9 @@ fn three_cameras_sharpened() {
     let rec = simulate(dir.path(), "sharpen", &p);
     let (acc, _, _) = accuracy_of("3 cameras, 3×3 sharpening", &rec, false);
     assert_eq!(acc.coverage(), 1.0, "every tag solved in every frame set");
-    assert!(acc.disp_rms_mm <= 0.0070, "displacement RMS {}", acc.disp_rms_mm); // SHARPEN_MEASURED
-    sigma_honest("3×3 sharpening", &acc); // SHARPEN_SIGMA
+    // Measured 0.0064 (0.0358 with the parametric edge model alone; sharp scene 0.0033).
+    assert!(acc.disp_rms_mm <= 0.0090, "displacement RMS {}", acc.disp_rms_mm);
+    sigma_honest("3×3 sharpening", &acc); // 97.5 % within 2σ, RMS error/σ 0.87
 }
 
 /// The three-camera scene on a colour sensor (RGGB Bayer, bilinear demosaic, converted to
@@ -185,8 +186,11 @@ fn three_cameras_bayer() {
     let rec = simulate(dir.path(), "bayer", &p);
     let (acc, _, _) = accuracy_of("3 cameras, Bayer demosaic", &rec, false);
     assert_eq!(acc.coverage(), 1.0, "every tag solved in every frame set");
-    assert!(acc.disp_rms_mm <= 0.0070, "displacement RMS {}", acc.disp_rms_mm); // BAYER_MEASURED
-    sigma_honest("Bayer demosaic", &acc); // BAYER_SIGMA
+    // Measured 0.0242 (0.0303 with the parametric edge model alone): a bilinear demosaic is
+    // periodic over 2 pixels, not shift-invariant, so one profile per camera takes only part
+    // of its bias (docs/accuracy.md); this floor guards the figure, it does not tell the two apart.
+    assert!(acc.disp_rms_mm <= 0.034, "displacement RMS {}", acc.disp_rms_mm);
+    sigma_honest("Bayer demosaic", &acc); // 97.7 % within 2σ, RMS error/σ 0.73
 }
 
 /// σ honest both ways: ≈ 95 % of the per-axis errors within 2σ (not all of them: an
