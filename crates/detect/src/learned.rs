@@ -137,7 +137,13 @@ impl CameraProfile {
 
 /// `d` fitted again from its corners (one pass) with `profile` (or the parametric model):
 /// the refitted tag (corners that fail keep their value) and what the fit left.
-fn fit(image: &GrayImage, d: &Detection, lens: Lens<'_>, one_pass: &RefineOptions, profile: Option<&Arc<EdgeProfile>>) -> (Detection, EdgeMemory) {
+fn fit(
+    image: &GrayImage,
+    d: &Detection,
+    lens: Lens<'_>,
+    one_pass: &RefineOptions,
+    profile: Option<&Arc<EdgeProfile>>,
+) -> (Detection, EdgeMemory) {
     let mut memory = EdgeMemory::default().with_profile(profile.cloned());
     let mut refit = d.clone();
     refine_corners_warm(image, &mut refit, lens, one_pass, &mut memory);

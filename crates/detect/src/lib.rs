@@ -22,6 +22,6 @@ pub use self::error::DetectError;
 pub use self::family::tag_bitmap;
 pub use self::rect::Rect;
 pub use self::refine::{
-    refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, EdgeProfile, ProfileLearner, RefineOptions, RefineReport,
-    RefineStats,
+    refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, EdgeProfile, ProfileLearner, RefineOptions,
+    RefineReport, RefineStats,
 };
