@@ -10,7 +10,7 @@
 //! frame period), the valid line drops first, then the output holds its last value
 //! (`on_invalid = "hold"`) or goes to the safe voltage (`on_invalid = 0.0`, a number). At
 //! stop the line drops (and the safe voltage is written when set). If tagdeflect dies, the device's own watchdog takes over
-//! (set up by `watchdog_writes`).
+//! (LabJack: `labjack_watchdog_s`, see `labjack_watchdog`; another module: `watchdog_writes`).
 //!
 //! One task per device, on a thread of its own: the measurement never waits for it.
 //! Overflow policy: the queue between the sinks' thread and the task holds only the newest
@@ -22,6 +22,7 @@
 
 pub mod config;
 mod device;
+pub mod labjack_watchdog;
 mod probe;
 
 use std::net::SocketAddr;
