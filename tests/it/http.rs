@@ -707,7 +707,7 @@ fn two_tests_through_the_control_api_with_its_refusals() {
     let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
     assert!(PathBuf::from(stopped["folder"].as_str().unwrap()).join("test.json").is_file());
     assert_ne!(id1, id2);
-    // The daemon's own feed carries every event (the stop in the line after it).
+    // The daemon's own feed carries every event (the stop on the test's last line).
     let events = |d: &Daemon| -> Vec<String> { d.lines().iter().flat_map(|(_, l)| l.events.iter().map(|e| e.kind.clone())).collect() };
     while events(&d).len() < 6 {
         assert!(Instant::now() < deadline, "the events did not reach the feed: {:?}", events(&d));
