@@ -575,3 +575,24 @@ fn check_reports_the_analog_device_and_writes_only_when_asked() {
     assert_eq!(code, Some(0), "a silent device is a warning: {out}");
     assert!(out.contains(&format!("warning: analog output {gone}: cannot connect")), "{out}");
 }
+
+/// Lines that arrive every 20 ms but carry values exposed 1.18 s before (the sinks' thread held
+/// up) never raise the valid line: the analog output ages its value from exposure, as the
+/// control output does (issue 45, item 8); the same values exposed just now raise it.
+#[test]
+fn values_exposed_long_before_they_arrive_never_raise_the_valid_line() {
+    let dac = Dac::start("labjack", None);
+    let out = AnalogOutput::start(&AnalogConfig::labjack(&dac.addr(), 1.0)).unwrap();
+    dac.wait_for("valid low at connect", fio0(0));
+    for seq in 0..50u64 {
+        let mut l = line(seq, Some(0.5));
+        l.t_ns = tagdeflect_core::clock::now_epoch_ns() - 1_180_000_000;
+        out.take_line(&l);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let w = dac.writes();
+    assert_eq!(count(&w, fio0(1)), 0, "the valid line went high for values 1.18 s old: {w:?}");
+    let mut seq = 50;
+    feed_until(&out, &dac, &mut seq, 0.5, |w| w.iter().any(fio0(1)));
+}

@@ -132,9 +132,9 @@ enum Level {
 
 impl Shared {
     /// The level and the valid line at `now`.
-    fn target(&self, now: Instant) -> (Level, bool) {
+    fn target(&self, now: Instant, now_ns: i64) -> (Level, bool) {
         let st = self.signal.lock().expect("analog state");
-        let valid = st.valid_at(&self.rule, now) && !self.stopped.load(Ordering::Relaxed);
+        let valid = st.valid_at(&self.rule, now, now_ns) && !self.stopped.load(Ordering::Relaxed);
         match (valid, st.sample) {
             (true, Some(s)) => (Level::Value { seq: s.seq, volts: self.config.volts_of(s.value), t_ns: s.t_ns }, true),
             _ => (self.invalid_level(), false),
@@ -203,7 +203,7 @@ impl Task {
             self.device.set_up(&self.shared.config).await?;
         }
         self.shared.pending.store(false, Ordering::Relaxed);
-        let (level, valid) = self.shared.target(Instant::now());
+        let (level, valid) = self.shared.target(Instant::now(), tagdeflect_core::clock::now_epoch_ns());
         if !valid {
             self.set_line(false).await?;
         }
