@@ -19,6 +19,7 @@
 
 mod metrics;
 mod routes;
+mod report_files;
 mod server;
 mod snapshot;
 mod status;
