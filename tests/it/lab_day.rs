@@ -114,7 +114,6 @@ fn a_lab_day_through_the_page_in_chromium() {
         let id = t["id"].as_str().unwrap();
         assert!(links.contains(&format!("http://{addr}/reports/{id}/report.html").as_str()), "{links:?}");
     }
-    let _ = span;
     // The second test's crack was entered outside the middle third: invalid, said so.
     assert_eq!(tests[1]["verdict"], "invalid", "{}", tests[1]);
     assert!(tests[1]["verdict_text"].as_str().unwrap().contains("fracture outside the middle third"), "{}", tests[1]);
@@ -134,13 +133,21 @@ fn a_lab_day_through_the_page_in_chromium() {
         let at_stop = read_json(&folder.join(at_stop_dir).join("report.json"));
         let again = report_dir(folder, &dir.path().join(format!("again-{k}")));
         assert!(!values(&at_stop).is_empty(), "{at_stop}");
-        assert_eq!(comparable(at_stop.clone()), comparable(again), "test {k}: the report at stop and `report DIR` differ");
+        if k == 2 {
+            // test.json has the re-analysis since (an event, new hashes): the same values.
+            assert_eq!(values(&at_stop), values(&again), "test {k}: the report at stop and `report DIR` differ");
+        } else {
+            assert_eq!(comparable(at_stop.clone()), comparable(again), "test {k}: the report at stop and `report DIR` differ");
+        }
         assert_eq!(at_stop["specimen"]["id"], format!("D{}", k + 1));
         assert_eq!(at_stop["operator"], "ana");
         assert_eq!(at_stop["specimen"]["width_mm"], record["measured"]["width_mm"]);
         assert_eq!(at_stop["specimen"]["depth_mm"], record["measured"]["depth_mm"]);
         assert_eq!(at_stop["specimen"]["span_mm"].as_f64(), Some(span));
         assert!(at_stop["events"].as_array().unwrap().iter().any(|e| e["note"] == "first crack seen"), "{}", at_stop["events"]);
+        if let Some(p1) = at_stop["P1"]["value"].as_f64() {
+            assert_eq!(tests[k]["p1_report_drawn"].as_f64(), Some(p1), "the report's P1 drawn on the curve after the stop");
+        }
         assert_eq!(record["specimen_info"]["client"], "ACME");
         assert_eq!(record["method"]["name"], "C1609-19");
     }

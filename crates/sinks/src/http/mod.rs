@@ -18,8 +18,8 @@
 //! `tagdeflect_http_events_lagged_total`); the solver's send never blocks.
 
 mod metrics;
-mod routes;
 mod report_files;
+mod routes;
 mod server;
 mod snapshot;
 mod status;

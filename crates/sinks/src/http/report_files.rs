@@ -1,4 +1,4 @@
-//! `GET /reports/{id}/{file}`: a stopped test's report files (`TESTS/<id>/report/`), read-only,
+//! `GET /reports/{id}/{file}`: a stopped test's report files (`GET /reports/{id}`: which) (`TESTS/<id>/report/`), read-only,
 //! for the page's link after a stop. Both path parts are hostile input: the test id must be one
 //! folder name of the tests folder (letters, digits, `_`, `-`, `.`, not first; no separator),
 //! the file one name of the report folder with a known extension; the folders on the way must
@@ -61,6 +61,35 @@ fn report_path(tests: &Path, id: &str, file: &str) -> Result<PathBuf, String> {
     }
 }
 
+/// The report files of the test `id` under `tests` (none when its report was not made), or
+/// why not (an id that names no test folder).
+fn report_files(tests: &Path, id: &str) -> Result<Vec<String>, String> {
+    let folder = tests.join(id);
+    if !plain_name(id) || !std::fs::symlink_metadata(&folder).is_ok_and(|m| m.is_dir()) {
+        return Err(format!("no test \"{}\" here", id.escape_debug()));
+    }
+    let mut files: Vec<String> = std::fs::read_dir(folder.join("report"))
+        .map(|d| d.filter_map(|e| e.ok()).filter_map(|e| e.file_name().into_string().ok()).collect())
+        .unwrap_or_default();
+    files.retain(|f| report_path(tests, id, f).is_ok());
+    files.sort();
+    Ok(files)
+}
+
+/// `GET /reports/{id}`: `{"id", "files": [...]}`, the report files served (empty: no report),
+/// so the page asks for report.json only when there is one.
+pub(crate) async fn report_index(State(view): State<Arc<LiveView>>, axum::extract::Path(id): axum::extract::Path<String>) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return (StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)").into_response();
+    };
+    let tests = api.tests_dir().to_path_buf();
+    match tokio::task::spawn_blocking(move || report_files(&tests, &id).map(|f| (id, f))).await {
+        Ok(Ok((id, files))) => axum::Json(serde_json::json!({"id": id, "files": files})).into_response(),
+        Ok(Err(why)) => (StatusCode::NOT_FOUND, why).into_response(),
+        Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, format!("reading the report folder failed: {e}")).into_response(),
+    }
+}
+
 /// `GET /reports/{id}/{file}`.
 pub(crate) async fn report_file(
     State(view): State<Arc<LiveView>>,
@@ -70,7 +99,8 @@ pub(crate) async fn report_file(
         return (StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)").into_response();
     };
     let tests = api.tests_dir().to_path_buf();
-    let read = move || report_path(&tests, &id, &file).and_then(|p| std::fs::read(&p).map_err(|e| format!("{file}: {e}")).map(|b| (b, file)));
+    let read =
+        move || report_path(&tests, &id, &file).and_then(|p| std::fs::read(&p).map_err(|e| format!("{file}: {e}")).map(|b| (b, file)));
     match tokio::task::spawn_blocking(read).await {
         Ok(Ok((bytes, file))) => {
             let mut resp = ([(header::CONTENT_TYPE, content_type(&file).unwrap_or("application/octet-stream"))], bytes).into_response();
@@ -99,6 +129,8 @@ mod tests {
         std::fs::write(dir.path().join("secret.json"), "{}").unwrap();
         std::os::unix::fs::symlink(dir.path(), tests.join("link")).unwrap();
         assert_eq!(report_path(&tests, "20261206T100000Z-B1", "report.html").unwrap(), report.join("report.html"));
+        assert_eq!(report_files(&tests, "20261206T100000Z-B1").unwrap(), ["report.html"]);
+        assert!(report_files(&tests, "..").is_err() && report_files(&tests, "link").is_err());
         for (id, file) in [
             ("..", "report.html"),
             ("../tests/20261206T100000Z-B1", "report.html"),

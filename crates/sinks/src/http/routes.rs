@@ -42,6 +42,7 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
         .route("/api/audit", get(super::test_api::audit))
         .route("/api/user", get(super::test_api::user))
+        .route("/reports/{id}", get(super::report_files::report_index))
         .route("/reports/{id}/{file}", get(super::report_files::report_file))
         .route("/api/methods", get(super::test_api::methods))
         .route("/assets/start_form.js", get(|| async { asset("text/javascript; charset=utf-8", START_FORM_JS) }))

@@ -5,7 +5,7 @@
 // sign-off (POST /api/test/sign: the reviewer is the token's user, the meaning typed),
 // re-analysis with its reason (POST /api/test/reanalyse) and the audit trail of the test
 // (GET /api/audit?test=ID, with the chain's state). Text only through textContent.
-const R = { id: null, folder: null, user: null, reportSha: null };
+const R = { id: null, folder: null, user: null, retries: 0 };
 
 function reviewMessage(text, bad) { const m = $("r-message"); m.textContent = text; m.className = bad ? "bad" : "muted"; }
 
@@ -26,10 +26,13 @@ async function showVerdict(id, reportError) {
     return;
   }
   const base = `/reports/${encodeURIComponent(id)}/`;
-  let report = null;
+  let report = null, files = [];
   try {
-    const r = await fetch(base + "report.json", { cache: "no-store" });
-    if (r.ok) report = await r.json();
+    // Which report files there are first: a test without a standard has none (no 404 asked for).
+    const i = await fetch(base.slice(0, -1), { cache: "no-store" });
+    files = i.ok ? (await i.json()).files || [] : [];
+    const r = files.includes("report.json") ? await fetch(base + "report.json", { cache: "no-store" }) : null;
+    if (r && r.ok) report = await r.json();
   } catch (e) { /* no report: said below */ }
   if (!report) {
     box.dataset.verdict = "none";
@@ -55,7 +58,7 @@ async function showVerdict(id, reportError) {
   links.id = "t-report-links";
   const outputs = Object.keys(report.outputs || {});
   links.append("report: ", link(base + "report.html", "HTML"));
-  if (outputs.includes("report.pdf")) links.append(" · ", link(base + "report.pdf", "PDF"));
+  if (outputs.includes("report.pdf") || files.includes("report.pdf")) links.append(" · ", link(base + "report.pdf", "PDF"));
   links.append(" · ", link(base + "report.json", "JSON"));
   box.replaceChildren(head, reasons, results, links);
 }
@@ -133,7 +136,10 @@ $("b-crack").addEventListener("click", async () => {
 TEST_LISTENERS.push((st) => {
   $("b-crack").disabled = st.state !== "running";
   const last = st.state === "idle" && st.last ? st.last : null;
+  // A report still being written when first asked for is asked for again (a few polls).
+  if (last && last.id === R.id && $("t-verdict").dataset.verdict === "none" && R.retries > 0) { R.retries--; showVerdict(last.id, last.report_error); }
   if (!last || last.id === R.id) return;
+  R.retries = 5;
   R.id = last.id;
   R.folder = last.folder;
   $("r-test").textContent = last.id;
