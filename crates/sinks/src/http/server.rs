@@ -199,7 +199,8 @@ fn guarded(router: axum::Router, hosts: AllowedHosts, view: Arc<LiveView>) -> ax
                 _ => next.run(req).await,
             };
             let hd = resp.headers_mut();
-            hd.insert(header::CONTENT_SECURITY_POLICY, HeaderValue::from_static(CSP));
+            // A route with a policy of its own (a report's page) keeps it.
+            hd.entry(header::CONTENT_SECURITY_POLICY).or_insert(HeaderValue::from_static(CSP));
             hd.insert(header::X_CONTENT_TYPE_OPTIONS, HeaderValue::from_static("nosniff"));
             hd.insert(header::REFERRER_POLICY, HeaderValue::from_static("no-referrer"));
             resp
