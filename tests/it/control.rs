@@ -363,8 +363,12 @@ fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
     spacing.sort_unstable();
     let period_s = spacing[spacing.len() / 2] as f64 * 1e-9;
     let max_age_s = 3.5 * period_s + tagdeflect_sinks::signal::LATENCY_ALLOWANCE_MS * 1e-3;
-    let too_old: Vec<u64> =
-        reads.iter().filter(|r| r["valid"] == 1).map(|r| r["age_ms"].as_u64().unwrap()).filter(|&a| a as f64 > max_age_s * 1e3 + 1.0).collect();
+    let too_old: Vec<u64> = reads
+        .iter()
+        .filter(|r| r["valid"] == 1)
+        .map(|r| r["age_ms"].as_u64().unwrap())
+        .filter(|&a| a as f64 > max_age_s * 1e3 + 1.0)
+        .collect();
     assert!(too_old.is_empty(), "valid reads of values older than {max_age_s} s: {too_old:?} ms");
     // The reads after the demo stopped measuring (its last frame set older than the rule
     // allows), if any, say invalid.
@@ -675,18 +679,27 @@ fn pymodbus_never_reads_valid_a_value_exposed_long_before_it_arrived() {
         }
         let late_ns = if k < 40 { 10_000_000 } else { 1_180_000_000 };
         let t_ns = tagdeflect_core::clock::now_epoch_ns() - late_ns;
-        let line =
-            FeedLine { seq: k, t_ns, net_deflection_mm: Some(0.01 * k as f64), net_deflection_sigma_mm: Some(0.001), ..FeedLine::default() };
+        let line = FeedLine {
+            seq: k,
+            t_ns,
+            net_deflection_mm: Some(0.01 * k as f64),
+            net_deflection_sigma_mm: Some(0.001),
+            ..FeedLine::default()
+        };
         control.take_line(&line);
     }
     control.shutdown();
     let reads: Vec<serde_json::Value> = reader.join().unwrap().iter().map(|l| serde_json::from_str(l).unwrap()).collect();
     let _ = monitor.0.wait();
-    let with_seq = |early: bool| reads.iter().filter(move |r| (r["seq"].as_u64().unwrap() < 40) == early && r["sigma"].as_f64().unwrap() > 0.0);
+    let with_seq =
+        |early: bool| reads.iter().filter(move |r| (r["seq"].as_u64().unwrap() < 40) == early && r["sigma"].as_f64().unwrap() > 0.0);
     let (early, late) = (with_seq(true).count(), with_seq(false).count());
     let early_valid = with_seq(true).filter(|r| r["valid"] == 1).count();
     let late_valid: Vec<u64> = with_seq(false).filter(|r| r["valid"] == 1).map(|r| r["age_ms"].as_u64().unwrap()).collect();
-    println!("LATE LINES: {early_valid} of {early} reads of fresh values valid; {} of {late} reads of 1.18 s old values valid", late_valid.len());
+    println!(
+        "LATE LINES: {early_valid} of {early} reads of fresh values valid; {} of {late} reads of 1.18 s old values valid",
+        late_valid.len()
+    );
     assert!(early >= 20 && late >= 20, "{early} and {late} reads");
     assert!(early_valid * 2 >= early, "fresh values valid in {early_valid} of {early} reads");
     assert!(late_valid.is_empty(), "values exposed 1.18 s before were read valid (ages {late_valid:?} ms)");
@@ -757,7 +770,8 @@ fn a_test_zeroed_while_the_beam_moves_keeps_the_control_output_valid() {
     cfg.output.control = Some(ControlConfig { max_sigma_mm: 0.05, stale_sets: 3, ..ControlConfig::on("127.0.0.1:0") });
     let cfg_path = tmp.path().join("demo.toml");
     fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
-    let mut d = Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     d.wait_stderr("control output serving Modbus TCP", Duration::from_secs(60), "the control output");
     let log = d.stderr.lock().unwrap().clone();
@@ -790,7 +804,8 @@ fn a_test_zeroed_while_the_beam_moves_keeps_the_control_output_valid() {
     let moved = zero.last().zip(zero.first()).map_or(0.0, |(a, b)| (a - b).abs());
     let after: HashMap<u16, &FeedLine> =
         test_lines.iter().filter(|l| !l.test.as_ref().unwrap().zeroing).map(|l| ((l.seq % 65_536) as u16, *l)).collect();
-    let reads: Vec<serde_json::Value> = String::from_utf8_lossy(&monitor.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let reads: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&monitor.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     let of_test: Vec<&serde_json::Value> = reads.iter().filter(|r| after.contains_key(&(r["seq"].as_u64().unwrap() as u16))).collect();
     let valid = of_test.iter().filter(|r| r["valid"] == 1).count();
     let sigmas: Vec<f64> = after.values().filter_map(|l| l.net_deflection_sigma_mm).collect();

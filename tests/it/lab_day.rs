@@ -74,7 +74,8 @@ fn a_lab_day_through_the_page_in_chromium() {
     let (cfg, params) = day_config(dir.path());
     let csv = dir.path().join("batch-12.csv");
     std::fs::write(&csv, table(&params)).unwrap();
-    let mut d = Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     let deadline = Instant::now() + Duration::from_secs(60);
     while serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
@@ -175,8 +176,11 @@ fn a_lab_day_through_the_page_in_chromium() {
     let whole = verify_chain(&log).unwrap();
     let text = std::fs::read_to_string(&log).unwrap();
     let n = text.lines().position(|l| l.contains("\"action\":\"stop\"")).unwrap();
-    let edited: Vec<String> =
-        text.lines().enumerate().map(|(i, l)| if i == n { l.replace("\"user\":\"ana\"", "\"user\":\"eve\"") } else { l.to_string() }).collect();
+    let edited: Vec<String> = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| if i == n { l.replace("\"user\":\"ana\"", "\"user\":\"eve\"") } else { l.to_string() })
+        .collect();
     std::fs::write(&log, edited.join("\n") + "\n").unwrap();
     let broken = verify_chain(&log).unwrap_err();
     assert!(matches!(broken, ChainBroken::HashMismatch { line, .. } if line == n as u64 + 1), "{broken} ({} entries whole)", whole.entries);
