@@ -90,6 +90,9 @@ pub fn check_config(path: &Path, write_test: bool) -> Result<()> {
         config.specimen.tags.len()
     );
     check_verification(&config)?;
+    if let Some(w) = config.output.token_file_warning() {
+        println!("  warning: {w}");
+    }
     if let Some(a) = &config.output.analog {
         check_analog(a, write_test);
     } else if write_test {

@@ -22,6 +22,7 @@ mod faults;
 mod formations;
 mod gauges;
 mod http;
+mod lab_day;
 mod lab_method;
 mod modes;
 mod live;

@@ -112,6 +112,13 @@ impl SimParams {
         if !steps.is_empty() && (self.frame_sets as usize) < steps.len() || (!steps.is_empty() && self.cyclic) {
             return bad("verify_steps", format!("{} steps: expected at least one frame set each and no cyclic load", steps.len()));
         }
+        let stage = self.verify_stage_half_width_mm;
+        if !finite_nonneg(stage) || stage >= 0.5 * self.span_mm || (stage > 0.0 && steps.is_empty()) {
+            return bad(
+                "verify_stage_half_width_mm",
+                format!("{stage}: expected 0 (the whole bar moves), or below half the span with verify_steps"),
+            );
+        }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }

@@ -36,6 +36,22 @@ pub(super) struct Running {
     pub(super) written_t_ns: i64,
     /// (net deflection, load) of the test's lines, thinned (the page's earlier tests).
     pub(super) curve: Vec<(f64, f64)>,
+    /// The test's first and last lines: a resume's gap, the stop's own line.
+    pub(super) ends: Ends,
+}
+
+/// What the running test's first line after a resume and its last line carry.
+#[derive(Debug, Default)]
+pub(super) struct Ends {
+    /// The stop pressed: the next line is the test's last and carries it.
+    pub(super) stop: Option<FeedEvent>,
+    /// The time of the line that carries the stop (later lines are no test's).
+    pub(super) stop_line_t_ns: Option<i64>,
+    /// The sinks wrote that line into the folder.
+    pub(super) stop_written: bool,
+    /// Resumed: the time of the last line written before the daemon stopped (the resume
+    /// event's gap runs from it to the first line after).
+    pub(super) resumed_after_t_ns: Option<i64>,
 }
 
 #[derive(Default)]
