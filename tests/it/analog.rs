@@ -390,7 +390,13 @@ fn a_device_that_disappears_is_reconnected_with_the_line_low_first() {
     assert!(fio0(0)(&w[0]), "the line low before anything else: {w:?}");
     let w = dac.wait_for("valid high again", fio0(1));
     assert!(w.iter().position(is_dac) < w.iter().position(fio0(1)), "{w:?}");
-    let s = out.status();
+    // The device logs a write before it answers: the status follows once the answer is read.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut s = out.status();
+    while !(s.connected && s.fault.is_none()) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+        s = out.status();
+    }
     assert!(s.connected && s.fault.is_none(), "{s:?}");
     assert_eq!(s.outages, 1, "retries within one outage count once: {s:?}");
     out.shutdown();
