@@ -35,7 +35,12 @@ pub fn install(tests: &Arc<LabTests>, config: &Config, outputs: Vec<TestSummarie
 }
 
 /// The test's control figures, when an output served it.
-fn summary(id: &str, outputs: &[TestSummaries], temporal: &tagdeflect_estimate::temporal::TemporalConfig, record: &TestRecord) -> Option<ControlSummary> {
+fn summary(
+    id: &str,
+    outputs: &[TestSummaries],
+    temporal: &tagdeflect_estimate::temporal::TemporalConfig,
+    record: &TestRecord,
+) -> Option<ControlSummary> {
     let outputs: Vec<_> = outputs.iter().filter_map(|f| f(id)).collect();
     if outputs.is_empty() {
         return None;

@@ -70,8 +70,12 @@ impl Dac {
             for line in BufReader::new(out).lines().map_while(Result::ok) {
                 let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) else { continue };
                 let values = v["values"].as_array().expect("values").iter().map(|x| x.as_u64().expect("value") as u16).collect();
-                let write =
-                    Write { t: v["t"].as_f64().expect("t"), fc: v["fc"].as_u64().expect("fc") as u8, address: v["address"].as_u64().expect("address") as u16, values };
+                let write = Write {
+                    t: v["t"].as_f64().expect("t"),
+                    fc: v["fc"].as_u64().expect("fc") as u8,
+                    address: v["address"].as_u64().expect("address") as u16,
+                    values,
+                };
                 w.lock().unwrap().push(write);
             }
         });
@@ -618,15 +622,22 @@ fn a_test_under_the_analog_output_reports_its_control_figures_as_the_device_saw_
     let params = tagdeflect_sim::SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
     let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
-    let beam = tagdeflect_report::BeamConfig { width_mm: params.beam_width_mm, depth_mm: params.beam_height_mm, span_mm: params.span_mm, ..Default::default() };
+    let beam = tagdeflect_report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    };
     cfg.specimen.beam = Some(beam);
     // The small rig's σ is tens of µm: valid up to 1 mm.
-    let analog = AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };
+    let analog =
+        AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };
     cfg.output.analog = Some(analog);
     let cfg_path = dir.path().join("rig.toml");
     std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let tests_dir = dir.path().join("tests");
-    let mut d = Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr(); // once it serves: the token is written by then
     let token_file = tests_dir.join(".token");
     let auth = format!("Bearer {}", std::fs::read_to_string(&token_file).unwrap().trim());
@@ -684,9 +695,17 @@ fn check_the_control_figures(folder: &Path, dac: &Dac, id: &str) {
     assert_eq!(lat["values"].as_u64(), Some(written), "{lat}");
     assert!(f("p50_ms") >= received_ms[received_ms.len() / 2] - 5.0, "{lat} against the device's receipts {received_ms:?}");
     assert!(f("p50_ms") > 0.0 && f("p50_ms") <= f("p99_ms") && f("p99_ms") <= f("max_ms"), "{lat}");
-    println!("test under control: {} sets, valid {:.1} %, exposure → acknowledged {lat}; the device's receipts p50 {:.1} ms", feed.len(), valid as f64 / feed.len() as f64 * 1e2, received_ms[received_ms.len() / 2]);
+    println!(
+        "test under control: {} sets, valid {:.1} %, exposure → acknowledged {lat}; the device's receipts p50 {:.1} ms",
+        feed.len(),
+        valid as f64 / feed.len() as f64 * 1e2,
+        received_ms[received_ms.len() / 2]
+    );
     let dyn_ = &control["dynamics"];
-    assert_eq!(dyn_["sines"].as_array().map(|s| s.iter().map(|s| s["freq_hz"].as_f64().unwrap()).collect::<Vec<_>>()), Some(vec![0.1, 0.5, 2.0]));
+    assert_eq!(
+        dyn_["sines"].as_array().map(|s| s.iter().map(|s| s["freq_hz"].as_f64().unwrap()).collect::<Vec<_>>()),
+        Some(vec![0.1, 0.5, 2.0])
+    );
     // The report prints the section, and `report DIR` gives the same.
     let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
     let share_text = format!("{:.1} % of the test's frame sets", valid as f64 / feed.len() as f64 * 1e2);

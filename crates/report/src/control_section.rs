@@ -75,7 +75,10 @@ fn output(h: &mut String, o: &OutputSummary) {
     row(h, "Signal", &format!("{} → {}", o.gauge, o.target));
     if let Some(s) = &o.scaling {
         let safe = s.safe_v.map_or("holds its last value".to_string(), |v| format!("goes to {v:.3} V"));
-        let scaling = format!("{:.4} V/mm from {:.3} V, clamped to {:.2}–{:.2} V; while invalid and at stop the output {safe}", s.volts_per_mm, s.offset_v, s.range_v[0], s.range_v[1]);
+        let scaling = format!(
+            "{:.4} V/mm from {:.3} V, clamped to {:.2}–{:.2} V; while invalid and at stop the output {safe}",
+            s.volts_per_mm, s.offset_v, s.range_v[0], s.range_v[1]
+        );
         row(h, "Scaling", &scaling);
     }
     row(h, "Valid while", &format!("σ ≤ {} mm and fresh (stale after {} frame set(s) without the value)", o.max_sigma_mm, o.stale_sets));
@@ -101,7 +104,11 @@ fn dynamics(h: &mut String, d: &Dynamics, p50_ms: Option<f64>) {
     h.push_str("<h3>Dynamics of the signal</h3><table class=\"control\"><tr><th class=\"num\">Frequency [Hz]</th><th class=\"num\">Gain</th><th class=\"num\">Phase lag of the estimate [°]</th><th class=\"num\">With the pipeline's latency [°]</th></tr>");
     for s in &d.sines {
         let total = p50_ms.map_or("–".into(), |l| format!("{:.1}", s.phase_lag_deg + 360.0 * s.freq_hz * l * 1e-3));
-        let _ = write!(h, "<tr><td class=\"num\">{}</td><td class=\"num\">{:.3}</td><td class=\"num\">{:.1}</td><td class=\"num\">{total}</td></tr>", s.freq_hz, s.gain, s.phase_lag_deg);
+        let _ = write!(
+            h,
+            "<tr><td class=\"num\">{}</td><td class=\"num\">{:.3}</td><td class=\"num\">{:.1}</td><td class=\"num\">{total}</td></tr>",
+            s.freq_hz, s.gain, s.phase_lag_deg
+        );
     }
     let st = &d.step;
     let _ = write!(

@@ -72,9 +72,14 @@ impl TestFigures {
     /// Ends the open stretch at `t_ns`.
     fn close(&mut self, t_ns: i64) {
         let Some(o) = self.open.take() else { return };
-        let s = InvalidStretch { from_t_ns: o.from_t_ns, duration_ms: (t_ns - o.from_t_ns) as f64 * 1e-6, frame_sets: o.sets, cause: o.cause };
+        let s =
+            InvalidStretch { from_t_ns: o.from_t_ns, duration_ms: (t_ns - o.from_t_ns) as f64 * 1e-6, frame_sets: o.sets, cause: o.cause };
         self.stretches += 1;
-        if self.longest.as_ref().is_none_or(|l| s.duration_ms > l.duration_ms || (s.duration_ms == l.duration_ms && s.frame_sets > l.frame_sets)) {
+        if self
+            .longest
+            .as_ref()
+            .is_none_or(|l| s.duration_ms > l.duration_ms || (s.duration_ms == l.duration_ms && s.frame_sets > l.frame_sets))
+        {
             self.longest = Some(s);
         }
     }

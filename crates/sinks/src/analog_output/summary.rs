@@ -65,6 +65,7 @@ fn summary_of(shared: &Shared, id: &str) -> Option<OutputSummary> {
     s.gauge = c.gauge.clone();
     s.max_sigma_mm = c.max_sigma_mm;
     s.stale_sets = c.stale_sets;
-    s.scaling = Some(AnalogScaling { volts_per_mm: c.volts_per_mm, offset_v: c.offset_v, range_v: [low, high], safe_v: c.on_invalid.safe_v() });
+    s.scaling =
+        Some(AnalogScaling { volts_per_mm: c.volts_per_mm, offset_v: c.offset_v, range_v: [low, high], safe_v: c.on_invalid.safe_v() });
     Some(s)
 }
