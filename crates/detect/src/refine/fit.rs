@@ -4,8 +4,8 @@
 
 use nalgebra::{Matrix5, Vector2, Vector5};
 
-use super::lm::{minimize, EdgeModel};
 use super::band::{band_values, reference_levels, BandPixel, EdgeBand};
+use super::lm::{minimize, EdgeModel};
 use tagdeflect_core::frame::GrayImage;
 
 /// A line `normal · p = rho` in ideal coordinates (unit normal).

@@ -18,6 +18,12 @@
 //! an edge's phase (the 50 % crossing would need the white plateau, which the band's 1.5 px
 //! outside the tag does not always reach). Between nodes the profile is a Catmull–Rom cubic
 //! (continuous slope, the LM's Jacobian); beyond them it is constant.
+//!
+//! **Pixel classes.** Samples are also accumulated per [class](CLASSES) (the edge's
+//! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
+//! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it), and a
+//! class with samples enough is fitted with its own profile, the others with the pooled one.
+//! Which classes are used is [`class_mode`]'s (by default none: one pooled profile).
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
@@ -173,24 +179,34 @@ fn node_d(k: usize) -> f64 {
 /// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
 pub const CLASSES: usize = 8;
 
-/// How pixels are classed (measured variants, see docs/accuracy.md): 0 one pooled profile,
-/// 1 by orientation, 2 by orientation and mosaic parity.
+/// How pixels are classed: 0 one pooled profile (the default), 1 by edge orientation, 2 by
+/// orientation and mosaic parity. Measured on the formations' scenes (docs/accuracy.md, "A
+/// profile per pixel class"): the classes, learned from a few frames' samples, cost the
+/// scenes one profile describes more than they gain (parity: Bayer 0.0242 → 0.0099 mm, the
+/// sharp scene 0.0033 → 0.0051 mm), so they are chosen by `TAGDEFLECT_PROFILE_CLASSES`
+/// (`orientation` or `parity`) for measurements only, until a class is used only where its
+/// profile differs from the pooled one by more than its sampling noise.
 fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
-        Ok("none") => 0,
-        Ok("orient") => 1,
-        _ => 2,
+        Ok("orientation") => 1,
+        Ok("parity") => 2,
+        _ => 0,
     })
 }
 
 /// The [class](CLASSES) of the pixel at `index` of an image `width` pixels wide on an edge of
 /// outward `normal` (ideal pixels; their axes are the image's); [`CLASSES`] when pixels are
-/// not classed.
+/// not classed (see [`class_mode`]).
 #[inline]
 pub(super) fn pixel_class(normal: &Vector2<f64>, index: usize, width: u32) -> usize {
+    class_in_mode(class_mode(), normal, index, width)
+}
+
+/// [`pixel_class`] in classing mode `mode`.
+fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> usize {
     let orient = usize::from(normal.y.abs() > normal.x.abs());
-    match class_mode() {
+    match mode {
         0 => CLASSES,
         1 => 4 * orient,
         _ => {
@@ -403,9 +419,11 @@ mod tests {
     fn each_pixel_class_learns_its_own_profile_and_falls_back_to_the_pooled_one() {
         // Pixels are classed by the edge's orientation and their mosaic parity.
         let (vertical_edge, horizontal_edge) = (Vector2::new(-1.0, 0.05), Vector2::new(0.1, 1.0));
-        assert_eq!(pixel_class(&vertical_edge, 2 * 10 + 3, 10), 1);
-        assert_eq!(pixel_class(&vertical_edge, 3 * 10 + 4, 10), 2);
-        assert_eq!(pixel_class(&horizontal_edge, 3 * 10 + 3, 10), 7);
+        assert_eq!(class_in_mode(2, &vertical_edge, 2 * 10 + 3, 10), 1);
+        assert_eq!(class_in_mode(2, &vertical_edge, 3 * 10 + 4, 10), 2);
+        assert_eq!(class_in_mode(2, &horizontal_edge, 3 * 10 + 3, 10), 7);
+        assert_eq!(class_in_mode(1, &horizontal_edge, 3 * 10 + 3, 10), 4);
+        assert_eq!(class_in_mode(0, &horizontal_edge, 3 * 10 + 3, 10), CLASSES);
         // Class 0 sees a sharp edge, class 1 a blurred one, the others none.
         let (sharp, wide) = (gaussian_esf(0.45, 0.0), gaussian_esf(0.9, 0.0));
         let mut learner = ProfileLearner::default();
