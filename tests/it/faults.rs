@@ -644,3 +644,83 @@ fn a_stop_signal_during_start_up_stops_the_daemon_cleanly() {
         assert!(log.contains(said), "signal {signal}: no `{said}` in the log:\n{log}");
     }
 }
+
+/// A stop the killed daemon left unfinished, completed by the next daemon at its start (issue
+/// 45), goes to the broker like any other stop: with a real Mosquitto, the record retained on
+/// `<topic>/labtest/<id>` is the stopped one — its stop time, its events, the report's hash —
+/// not the running record the first daemon sent at the start. (The deterministic check of the
+/// hand-over is the unit test `lab_test::tests_stop::a_stop_completed_before_the_publisher_is_set_is_handed_to_it`:
+/// here the completion may or may not finish before the publisher is set.)
+#[test]
+fn a_stop_completed_at_the_next_start_goes_to_the_broker() {
+    use tagdeflect::config::Config;
+    let dir = tempfile::tempdir().unwrap();
+    let broker = tagdeflect_archive::local::LocalMosquitto::start().unwrap();
+    let params =
+        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    });
+    let mut text = cfg.to_toml_string();
+    text.push_str(&format!("\n[output.mqtt]\nurl = \"{}\"\nrig = \"lab-s\"\ntest = \"day\"\nstatus_interval_s = 1.0\n", broker.url()));
+    let rig = dir.path().join("rig.toml");
+    fs::write(&rig, text).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let args = ["demo", "--config", rig.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
+    let token_file = tests_dir.join(".token");
+    let hold = dir.path().join("never-made");
+    let deadline = Instant::now() + Duration::from_secs(240);
+
+    // The first daemon: a test with a standard, killed while its stop's report is held.
+    let mut first = LoggedDaemon::start_with(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_path())]);
+    let addr = first.addr(deadline);
+    first.wait_for("the control token", deadline, |d| d.log().contains("control token: "));
+    let st = tagdeflect_test(&addr, &token_file, &["start", "--specimen", "Q1", "--standard", "astm-c1609"]);
+    let id = st["id"].as_str().unwrap().to_string();
+    let feed = tests_dir.join(&id).join("feed.jsonl");
+    first.wait_for("8 lines of the test", deadline, |_| whole_feed_lines(&feed).len() >= 8);
+    let stop = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["test", "--url", &format!("http://{addr}"), "--token-file", token_file.to_str().unwrap(), "stop"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let stop = common::ChildGuard(stop);
+    first.wait_for("the stop to reach the report", deadline, |d| d.log().contains("the report waits until"));
+    first.child.0.kill().unwrap();
+    first.child.0.wait().unwrap();
+    drop(stop);
+    let state: serde_json::Value = serde_json::from_str(&fs::read_to_string(tests_dir.join(".running.json")).unwrap()).unwrap();
+    let stop_t_ns = state["record"]["stopped_t_ns"].as_i64().expect("the stop's time in the state");
+
+    // The next daemon completes the stop and hands its record to the broker.
+    let mut second = LoggedDaemon::start(&args);
+    second.wait_for("the stopped test's folder completed", deadline, |d| d.log().contains("the stopped test's folder is complete"));
+    assert_eq!(second.terminate(), Some(0), "{}", second.log());
+
+    // The retained record of the test, read by a client of the broker.
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let topic = format!("tagdeflect/lab-s/+/labtest/{id}");
+    let record: serde_json::Value = rt.block_on(async {
+        let (c, mut el) = rumqttc::AsyncClient::new(rumqttc::MqttOptions::new("reader", "127.0.0.1", broker.port()), 16);
+        c.subscribe(topic.as_str(), rumqttc::QoS::AtLeastOnce).await.unwrap();
+        let read = async {
+            loop {
+                if let rumqttc::Event::Incoming(rumqttc::Packet::Publish(p)) = el.poll().await.unwrap() {
+                    return serde_json::from_slice(&p.payload).unwrap();
+                }
+            }
+        };
+        tokio::time::timeout(Duration::from_secs(20), read).await.expect("no retained record of the test within 20 s")
+    });
+    assert_eq!(record["id"], id.as_str());
+    assert_eq!(record["stopped_t_ns"].as_i64(), Some(stop_t_ns), "the broker has the completed stop: {record}");
+    let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
+    assert_eq!(kinds, ["start", "stop"], "{record}");
+    assert!(record["sha256"]["report/report.json"].is_string(), "with the report's hash: {record}");
+}

@@ -69,8 +69,14 @@ pub(crate) struct Daemon {
 
 impl Daemon {
     pub(crate) fn start(args: &[&str]) -> Daemon {
+        Self::start_with_env(args, &[])
+    }
+
+    /// [`Daemon::start`] with these variables in its environment.
+    pub(crate) fn start_with_env(args: &[&str], envs: &[(&str, &std::ffi::OsStr)]) -> Daemon {
         let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
             .args(args)
+            .envs(envs.iter().copied())
             .env("TAGDEFLECT_LOG", "info")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -994,28 +1000,117 @@ fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     assert_eq!(d.stop(), Some(0));
 }
 
-/// A crowd of `/events` streams — as many as the server has connection slots — never shuts
-/// out the control API (issue 45, item 14): a new connection closes the oldest stream, so a
-/// `mark` and a `stop` are answered (409: no test runs), `/api/status` too, and the oldest
-/// stream's connection is the one closed.
+/// The lab day's third start (issue 44): a start pressed right after a stop — here while that
+/// stop's report is held (`TAGDEFLECT_HOLD_REPORT`) and from another client, as after a stop
+/// from the command line, an automatic stop or a client that gave up waiting — waits for that
+/// stop and starts (200) instead of answering 409 ("its folder is being completed"); then
+/// start, stop and start again at once, five times over: every answer 200, every stopped
+/// folder complete.
+#[test]
+fn a_start_right_after_a_stop_starts_once_that_stop_is_through() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let hold = dir.path().join("the-report-may-go");
+    let args = ["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
+    let mut d = Daemon::start_with_env(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
+    let addr = d.addr();
+    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
+    let command = move |cmd: &str, body: String| {
+        let bearer = format!("Bearer {token}");
+        let (code, text) = post(
+            addr,
+            &format!("/api/test/{cmd}"),
+            &[("Content-Type", "application/json"), ("Authorization", bearer.as_str())],
+            body.as_bytes(),
+        );
+        (code, serde_json::from_str::<serde_json::Value>(&text).unwrap_or_else(|e| panic!("{cmd}: {e}: {code} {text}")))
+    };
+    let start = |specimen: &str| {
+        format!(
+            r#"{{"specimen": "{specimen}", "standard": "astm-c1609", "measured": {{"width_mm": 150, "depth_mm": 150, "span_mm": 450}}}}"#
+        )
+    };
+    let (code, st) = command("start", start("H1"));
+    assert_eq!(code, 200, "{st}");
+    let c = command.clone();
+    let stop = std::thread::spawn(move || c("stop", "{}".into()));
+    d.wait_stderr("the report waits until", Duration::from_secs(60), "the stop reached its report");
+    let (c, body) = (command.clone(), start("H2"));
+    let second = std::thread::spawn(move || c("start", body));
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(!second.is_finished(), "the start waits while the stop's report is made: {:?}", second.join());
+    std::fs::write(&hold, "").unwrap();
+    let (code, stopped) = stop.join().unwrap();
+    assert_eq!(code, 200, "{stopped}");
+    let (code, st) = second.join().unwrap();
+    assert_eq!((code, st["state"].as_str()), (200, Some("running")), "{st}");
+    assert!(st["id"].as_str().unwrap().ends_with("-H2"), "{st}");
+    assert!(Path::new(stopped["folder"].as_str().unwrap()).join("test.json").is_file(), "the first folder complete first");
+    let (code, st) = command("stop", "{}".into());
+    assert_eq!(code, 200, "{st}");
+    // Start, stop, start at once, as the page's day does.
+    for k in 0..5 {
+        let (code, st) = command("start", start(&format!("R{k}")));
+        assert_eq!(code, 200, "start {k} right after a stop: {st}");
+        let (code, stopped) = command("stop", "{}".into());
+        assert_eq!(code, 200, "stop {k}: {stopped}");
+        assert!(Path::new(stopped["folder"].as_str().unwrap()).join("test.json").is_file(), "{stopped}");
+    }
+    assert!(!tests_dir.join(".running.json").exists(), "no test left running or stopping");
+    assert_eq!(d.stop(), Some(0));
+}
+
+/// An `/events` stream opened from the loopback address `ip` (127.x.y.z: every one of them
+/// is this machine's), its answer's status line read.
+fn open_stream_from(addr: SocketAddr, ip: [u8; 4]) -> TcpStream {
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let s = rt.block_on(async {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind(SocketAddr::from((ip, 0))).unwrap();
+        socket.connect(addr).await.expect("connect").into_std().unwrap()
+    });
+    s.set_nonblocking(false).unwrap();
+    let mut s = s;
+    s.write_all(format!("GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes()).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    let mut head = [0u8; 12];
+    s.read_exact(&mut head).expect("the stream's answer");
+    assert_eq!(&head, b"HTTP/1.1 200", "a stream is served");
+    s
+}
+
+/// Whether the server closed the stream: read until its end (closed) or `open_for` of data
+/// without one (open: lines keep coming).
+fn stream_closed(s: &mut TcpStream, open_for: Duration) -> bool {
+    s.set_read_timeout(Some(Duration::from_millis(500))).unwrap();
+    let until = Instant::now() + open_for;
+    let mut buf = [0u8; 65536];
+    while Instant::now() < until {
+        match s.read(&mut buf) {
+            Ok(0) => return true,
+            Ok(_) => {}
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
+            Err(_) => return true,
+        }
+    }
+    false
+}
+
+/// A crowd of `/events` streams — as many as the server has connection slots, from eight
+/// addresses — never shuts out the control API (issue 45, item 14): a new connection closes
+/// the oldest stream of the address holding the most, so a `mark` and a `stop` are answered
+/// (409: no test runs), `/api/status` too, and the oldest stream's connection is the one closed.
 #[test]
 fn a_crowd_of_event_streams_leaves_room_for_the_control_api() {
-    use tagdeflect_sinks::http::MAX_CONNECTIONS;
+    use tagdeflect_sinks::http::{MAX_CONNECTIONS, MAX_STREAMS_PER_ADDRESS};
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
-    let open_stream = || {
-        let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("connect");
-        s.write_all(format!("GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes()).unwrap();
-        s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
-        let mut head = [0u8; 12];
-        s.read_exact(&mut head).expect("the stream's answer");
-        assert_eq!(&head, b"HTTP/1.1 200", "a stream is served");
-        s
-    };
-    let streams: Vec<TcpStream> = (0..MAX_CONNECTIONS).map(|_| open_stream()).collect();
+    let per = MAX_STREAMS_PER_ADDRESS / 2;
+    let streams: Vec<TcpStream> = (0..MAX_CONNECTIONS).map(|k| open_stream_from(addr, [127, 0, 1, 1 + (k / per) as u8])).collect();
     let bearer = format!("Bearer {token}");
     let auth = [("Content-Type", "application/json"), ("Authorization", bearer.as_str())];
     let (code, body) = post(addr, "/api/test/mark", &auth, br#"{"note": "crowded"}"#);
@@ -1026,10 +1121,33 @@ fn a_crowd_of_event_streams_leaves_room_for_the_control_api() {
     assert!(head.starts_with("HTTP/1.1 200"), "{head}");
     // The oldest streams were closed for them (read to their end: the server closed them).
     let mut oldest = streams.into_iter().next().unwrap();
-    oldest.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    let mut rest = Vec::new();
-    let r = oldest.read_to_end(&mut rest);
-    assert!(r.is_ok(), "the oldest stream was closed by the server: {r:?}");
-    d.wait_stderr("the oldest /events stream was closed to make room", Duration::from_secs(10), "the eviction logged");
+    assert!(stream_closed(&mut oldest, Duration::from_secs(30)), "the oldest stream was closed by the server");
+    d.wait_stderr("was closed to make room", Duration::from_secs(10), "the eviction logged");
+    assert_eq!(d.stop(), Some(0));
+}
+
+/// One address cannot close everyone else's `/events` streams (issue 45, item 14): it holds at
+/// most [`MAX_STREAMS_PER_ADDRESS`](tagdeflect_sinks::http::MAX_STREAMS_PER_ADDRESS) of them,
+/// and each new one beyond that closes its own oldest. Four viewers on other addresses keep
+/// their streams while 127.0.0.1 opens as many streams as the server has connection slots;
+/// of those, the newest share stays open and the rest were closed.
+#[test]
+fn one_address_cannot_close_the_event_streams_of_others() {
+    use tagdeflect_sinks::http::{MAX_CONNECTIONS, MAX_STREAMS_PER_ADDRESS};
+    let mut d = Daemon::start(&["demo", "--http", "127.0.0.1:0"]);
+    let addr = d.addr();
+    let mut others: Vec<TcpStream> = (2..6).map(|k| open_stream_from(addr, [127, 0, 0, k])).collect();
+    let mut crowd: Vec<TcpStream> = (0..MAX_CONNECTIONS).map(|_| open_stream_from(addr, [127, 0, 0, 1])).collect();
+    let head = raw_head(addr, &format!("GET /api/status HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"));
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    for (k, s) in others.iter_mut().enumerate() {
+        assert!(!stream_closed(s, Duration::from_secs(2)), "viewer {k} on another address kept its stream");
+    }
+    let kept = MAX_CONNECTIONS - MAX_STREAMS_PER_ADDRESS;
+    assert!(stream_closed(&mut crowd[0], Duration::from_secs(30)), "the crowd's oldest stream was closed");
+    assert!(stream_closed(&mut crowd[kept - 1], Duration::from_secs(30)), "the crowd's streams beyond its share were closed");
+    assert!(!stream_closed(&mut crowd[kept], Duration::from_secs(2)), "the crowd's newest {MAX_STREAMS_PER_ADDRESS} stay open");
+    assert!(!stream_closed(crowd.last_mut().unwrap(), Duration::from_secs(2)));
+    d.wait_stderr("its oldest was closed for its new one", Duration::from_secs(10), "the share logged");
     assert_eq!(d.stop(), Some(0));
 }

@@ -64,7 +64,6 @@ fn tagdeflect(args: &[&str]) -> (Option<i32>, String) {
 }
 
 #[test]
-#[ignore = "fails about one run in two: the third start, right after a stop, can answer 409 while that stop finishes (issue 44 note); run with -- --ignored"]
 fn a_lab_day_through_the_page_in_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
@@ -100,6 +99,12 @@ fn a_lab_day_through_the_page_in_chromium() {
     let refused = seen["import_refused"].as_str().unwrap();
     assert!(refused.contains("(400)") && refused.contains("row 2, column depth_mm"), "{refused}");
     assert!(seen["imported"].as_str().unwrap().starts_with("imported 4 specimens; next: D1"), "{seen}");
+    // The simulated beam is loaded and unloaded in a cycle whatever the tests do: a start
+    // pressed while it is loaded is refused by the method (409 "unload the specimen first") and
+    // pressed again once it is not, as an operator does. No other refusal is taken.
+    for r in seen["start_refusals"].as_array().into_iter().flatten() {
+        assert!(r.as_str().unwrap().starts_with("start refused (409): start refused: the load is"), "{r}");
+    }
     let start_refused = seen["start_refused"].as_str().unwrap();
     assert!(start_refused.contains("(400)") && start_refused.contains("method C1609-19 needs span_mm"), "{start_refused}");
     assert_eq!(seen["specimens_tested"], "(3 of 4 tested)");

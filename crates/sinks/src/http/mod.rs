@@ -31,6 +31,7 @@ use std::net::SocketAddr;
 
 pub use server::{
     serve, wanted, AllowedHosts, HttpOptions, HttpServer, DEFAULT_ADDR, DEFAULT_PORT, HEADER_TIMEOUT, IDLE_TIMEOUT, MAX_CONNECTIONS,
+    MAX_STREAMS_PER_ADDRESS,
 };
 pub use tap::SolverTap;
 pub use test_api::{FAILURE_WINDOW, MAX_BODY, MAX_FAILURES};

@@ -99,8 +99,8 @@ async fn camera(State(view): State<Arc<LiveView>>, Path(file): Path<String>) -> 
 
 /// `/events`: the backlog of feed lines, then every new line and snapshot notice. A client
 /// that falls more than the broadcast's capacity behind skips ahead (counted).
-/// Its connection is marked as a stream: the oldest stream is closed when a new connection
-/// finds every slot taken (`server::Streams`).
+/// Its connection is marked as a stream: one address holds at most its share of streams, and
+/// a stream is closed when a new connection finds every slot taken (`server::Streams`).
 async fn events(State(view): State<Arc<LiveView>>, ext: axum::http::Extensions) -> Sse<impl Stream<Item = Result<SseEvent, Infallible>>> {
     if let Some(conn) = ext.get::<super::server::Conn>() {
         conn.streaming();

@@ -1,9 +1,9 @@
 //! The server: where the page is served ([`HttpOptions`], [`wanted`]) and
 //! the axum server on the pipeline's runtime ([`serve`], [`HttpServer`]).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -39,28 +39,62 @@ pub fn wanted(configured: Option<&str>, opts: Option<HttpOptions>) -> Option<Htt
 /// page needs two per viewer (`/events` and the fetches): 64 viewers, and the daemon's own
 /// files — recorder, feed, cameras — keep their room under the unit's `LimitNOFILE`.
 pub const MAX_CONNECTIONS: usize = 128;
-/// Connections that serve `/events` streams, oldest first. When every connection slot is
-/// taken, a new connection closes the oldest stream's (its page's `EventSource` reconnects)
-/// instead of being refused: a crowd of streams — 128 tabs, or someone opening them on
-/// purpose — never shuts out the control API or the page's own fetches.
+/// `/events` streams one address may hold at most: a quarter of [`MAX_CONNECTIONS`]. A new
+/// stream beyond it closes that address's own oldest stream; so one client (a script, a
+/// browser with dozens of tabs) cannot close everyone else's streams. Behind a reverse proxy
+/// every viewer has the proxy's address: 32 viewers then share it.
+pub const MAX_STREAMS_PER_ADDRESS: usize = MAX_CONNECTIONS / 4;
+
+/// Connections that serve `/events` streams, oldest first, with their peer's address. A
+/// stream beyond its address's share ([`MAX_STREAMS_PER_ADDRESS`]) closes that address's
+/// oldest; when every connection slot is taken, a new connection closes the oldest stream of
+/// the address holding the most (its page's `EventSource` reconnects) instead of being
+/// refused: a crowd of streams — 128 tabs, or someone opening them on purpose — never shuts
+/// out the control API or the page's own fetches, nor another viewer's stream.
 #[derive(Default)]
 pub(super) struct Streams {
     next: AtomicU64,
-    open: Mutex<BTreeMap<u64, Arc<Notify>>>,
+    open: Mutex<BTreeMap<u64, (IpAddr, Arc<Notify>)>>,
     evicted: AtomicU64,
 }
 
 impl Streams {
-    /// Closes the oldest stream's connection; false when no stream is open.
+    fn open(&self) -> std::sync::MutexGuard<'_, BTreeMap<u64, (IpAddr, Arc<Notify>)>> {
+        self.open.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Closes the oldest stream of the address holding the most streams (the oldest such
+    /// address's on a tie); false when no stream is open.
     fn evict_oldest(&self) -> bool {
-        let oldest = self.open.lock().unwrap_or_else(|e| e.into_inner()).pop_first();
-        let Some((_, close)) = oldest else { return false };
+        let mut open = self.open();
+        let mut held: HashMap<IpAddr, (usize, u64)> = HashMap::new();
+        for (k, (ip, _)) in open.iter() {
+            held.entry(*ip).or_insert((0, *k)).0 += 1;
+        }
+        // The most streams; among equals, the one whose oldest stream is oldest.
+        let Some((_, (_, key))) = held.into_iter().max_by_key(|(_, (n, first))| (*n, std::cmp::Reverse(*first))) else { return false };
+        let Some((ip, close)) = open.remove(&key) else { return false };
+        drop(open);
         close.notify_one();
         let n = self.evicted.fetch_add(1, Ordering::Relaxed) + 1;
         if n.is_power_of_two() {
-            tracing::warn!(evicted = n, "live page: {MAX_CONNECTIONS} connections open; the oldest /events stream was closed to make room");
+            tracing::warn!(evicted = n, %ip, "live page: {MAX_CONNECTIONS} connections open; the oldest /events stream of the address holding the most was closed to make room");
         }
         true
+    }
+
+    /// Makes room for one more stream of `ip` within its share: closes its oldest beyond it.
+    fn within_share(open: &mut BTreeMap<u64, (IpAddr, Arc<Notify>)>, ip: IpAddr, evicted: &AtomicU64) {
+        let mine: Vec<u64> = open.iter().filter(|(_, (i, _))| *i == ip).map(|(k, _)| *k).collect();
+        for k in mine.iter().take((mine.len() + 1).saturating_sub(MAX_STREAMS_PER_ADDRESS)) {
+            if let Some((_, close)) = open.remove(k) {
+                close.notify_one();
+                let n = evicted.fetch_add(1, Ordering::Relaxed) + 1;
+                if n.is_power_of_two() {
+                    tracing::warn!(evicted = n, %ip, "live page: {ip} holds {MAX_STREAMS_PER_ADDRESS} /events streams, its share; its oldest was closed for its new one");
+                }
+            }
+        }
     }
 }
 
@@ -71,20 +105,25 @@ pub(super) struct Conn {
     streams: Arc<Streams>,
     close: Arc<Notify>,
     key: Arc<Mutex<Option<u64>>>,
+    peer: IpAddr,
 }
 
 impl Conn {
-    /// This connection now serves a stream of events.
+    /// This connection now serves a stream of events (its address's oldest closed when it
+    /// already holds its share).
     pub fn streaming(&self) {
         let k = self.streams.next.fetch_add(1, Ordering::Relaxed);
-        self.streams.open.lock().unwrap_or_else(|e| e.into_inner()).insert(k, self.close.clone());
+        let mut open = self.streams.open();
+        Streams::within_share(&mut open, self.peer, &self.streams.evicted);
+        open.insert(k, (self.peer, self.close.clone()));
+        drop(open);
         *self.key.lock().unwrap_or_else(|e| e.into_inner()) = Some(k);
     }
 
     /// The connection ended: no longer a stream.
     fn ended(&self) {
         if let Some(k) = self.key.lock().unwrap_or_else(|e| e.into_inner()).take() {
-            self.streams.open.lock().unwrap_or_else(|e| e.into_inner()).remove(&k);
+            self.streams.open().remove(&k);
         }
     }
 }
@@ -209,7 +248,8 @@ fn guarded(router: axum::Router, hosts: AllowedHosts, view: Arc<LiveView>) -> ax
 }
 
 /// Accepts connections while fewer than [`MAX_CONNECTIONS`] are open (when all are, the
-/// oldest `/events` stream is closed to make room, else the new one is refused); serves each
+/// oldest `/events` stream of the address holding the most is closed to make room, else the
+/// new one is refused); serves each
 /// with the header and idle timeouts.
 async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view: Arc<LiveView>) {
     let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
@@ -236,7 +276,7 @@ async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view:
             drop(stream);
             continue;
         };
-        let conn = Conn { streams: streams.clone(), close: Arc::new(Notify::new()), key: Arc::default() };
+        let conn = Conn { streams: streams.clone(), close: Arc::new(Notify::new()), key: Arc::default(), peer: peer.ip() };
         tokio::spawn(serve_connection(stream, peer, app.clone(), conn, slot));
     }
 }

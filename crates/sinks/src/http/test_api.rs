@@ -19,6 +19,11 @@
 //! [`FAILURE_WINDOW`], or all addresses together [`MAX_FAILURES_ALL`] (rotating addresses): then
 //! 429 with `Retry-After`, and one log line per window instead of one per guess. No GET changes
 //! anything.
+//!
+//! A start pressed while the previous test is still being stopped (its last line, folder and
+//! report) waits for that stop, at most [`START_WAIT`](crate::lab_test::START_WAIT), and then
+//! starts; a stop still not through by then answers the start 409 with `Retry-After` (the
+//! page's start button waits and presses again by itself).
 
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
@@ -223,6 +228,11 @@ fn respond(done: Result<Result<serde_json::Value, TestError>, tokio::task::JoinE
     match done {
         Ok(Ok(v)) => Json(v).into_response(),
         Ok(Err(TestError::Conflict(m))) => answer(StatusCode::CONFLICT, m),
+        Ok(Err(TestError::Stopping(m))) => {
+            let mut r = answer(StatusCode::CONFLICT, m);
+            r.headers_mut().insert(header::RETRY_AFTER, header::HeaderValue::from(crate::lab_test::START_RETRY_AFTER_S));
+            r
+        }
         Ok(Err(TestError::Bad(m))) => answer(StatusCode::BAD_REQUEST, m),
         Ok(Err(TestError::Io(m))) => {
             tracing::error!("control API: {m}");

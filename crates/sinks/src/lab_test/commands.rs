@@ -2,6 +2,7 @@
 //! zero, stop, and the status and earlier tests the page reads.
 
 use std::collections::BTreeMap;
+use std::sync::MutexGuard;
 use std::time::Duration;
 
 use tagdeflect_core::feed::FeedEvent;
@@ -15,6 +16,14 @@ use super::{EarlierTest, Stopped, TestError, TestMeta, TestRecord, EARLIER_TESTS
 /// How long `stop` waits for the line that carries the stop (the next frame set's) to be
 /// written: a few frame intervals at the slowest rates a rig runs.
 pub const STOP_WAIT: Duration = Duration::from_millis(3000);
+
+/// How long a start waits for the previous test's stop to end — its last line written, its
+/// folder and report complete — before it is refused ([`TestError::Stopping`]): a report with
+/// its PDF takes 2–3 s on a lab PC, much longer only on a machine far too busy.
+pub const START_WAIT: Duration = Duration::from_secs(20);
+
+/// The `Retry-After` (s) of a start refused because the previous test is still being stopped.
+pub const START_RETRY_AFTER_S: u64 = 5;
 
 impl LabTests {
     /// `GET /api/tests`: today's stopped tests, oldest first.
@@ -31,10 +40,25 @@ impl LabTests {
     /// [`LabTests::start`] by `user` (named on the start event).
     pub fn start_by(&self, meta: TestMeta, user: Option<String>) -> Result<serde_json::Value, TestError> {
         meta.validate()?;
-        let mut g = self.lock();
+        let mut g = self.after_stop(self.lock(), START_WAIT)?;
         self.open(&mut g, meta, None, user)?;
         drop(g);
         Ok(self.status())
+    }
+
+    /// Waits (at most `wait`) while the previous test is being stopped — its stop pressed and
+    /// its last line not written yet, or its folder and report being completed — and gives the
+    /// lock back; still stopping after `wait`: [`TestError::Stopping`]. A start pressed right
+    /// after a stop from another client (or after an automatic stop, or by a client that gave
+    /// up waiting for its stop's answer) so starts once that stop is through.
+    pub(super) fn after_stop<'a>(&'a self, g: MutexGuard<'a, Inner>, wait: Duration) -> Result<MutexGuard<'a, Inner>, TestError> {
+        let (g, _) = self.written.wait_timeout_while(g, wait, |g| stopping(g).is_some()).unwrap_or_else(|p| p.into_inner());
+        match stopping(&g) {
+            Some(id) => Err(TestError::Stopping(format!(
+                "test {id} is still being stopped (its last line, folder and report): start again in a few seconds"
+            ))),
+            None => Ok(g),
+        }
     }
 
     /// Opens the test's folder and makes it the running test; `note` goes with its start event.
@@ -195,8 +219,10 @@ impl LabTests {
         Ok(Stopped { id, folder, report_error })
     }
 
-    /// `GET /api/test`.
+    /// `GET /api/test`: the running test, or idle with the last one (and `stopping`, its id,
+    /// while its folder is being completed); the verification in force either way.
     pub fn status(&self) -> serde_json::Value {
+        let idle_verification = if self.lock().running.is_none() { self.verification_idle() } else { None };
         let g = self.lock();
         let mut st = match &g.running {
             Some(r) => serde_json::json!({
@@ -217,13 +243,29 @@ impl LabTests {
             None => serde_json::json!({
                 "state": "idle",
                 "last": g.last.as_ref().map(|(id, f)| serde_json::json!({"id": id, "folder": f, "report_error": g.last_report_error})),
+                "verification": idle_verification,
             }),
         };
+        // Taken off and its folder (report, test.json) being completed: `last` is not complete
+        // yet (the page reads its verdict once `stopping` is gone).
+        if let (None, Some(u)) = (&g.running, g.unfinished.as_ref().filter(|u| u.test.is_none())) {
+            st["stopping"] = u.id.clone().into();
+        }
         if let Some(a) = &g.auto {
             st["auto"] = a.status();
         }
         st
     }
+}
+
+/// The test being stopped, if one is: its stop pressed (its last line not written yet), or
+/// taken off and its folder being completed (not one whose completion failed: that waits for
+/// the next `stop`).
+fn stopping(g: &Inner) -> Option<String> {
+    if let Some(r) = g.running.as_ref().filter(|r| r.ends.stop.is_some() || r.ends.stop_line_t_ns.is_some()) {
+        return Some(r.record.id.clone());
+    }
+    g.unfinished.as_ref().filter(|u| u.test.is_none()).map(|u| u.id.clone())
 }
 
 /// An operator's event `ev` fits the running test's record within the limits the archive

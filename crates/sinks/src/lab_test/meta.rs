@@ -11,6 +11,11 @@ pub enum TestError {
     /// The command does not fit the state (start while running, stop while idle): HTTP 409.
     #[error("{0}")]
     Conflict(String),
+    /// The previous test is still being stopped (its last line, folder and report) after a
+    /// start waited [`START_WAIT`](super::START_WAIT) for it: HTTP 409 with `Retry-After`
+    /// ([`START_RETRY_AFTER_S`](super::START_RETRY_AFTER_S)).
+    #[error("{0}")]
+    Stopping(String),
     /// The request is malformed: HTTP 400.
     #[error("{0}")]
     Bad(String),

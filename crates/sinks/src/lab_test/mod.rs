@@ -64,8 +64,10 @@ mod zero;
 mod tests;
 #[cfg(test)]
 mod tests_method;
+#[cfg(test)]
+mod tests_stop;
 
-pub use commands::STOP_WAIT;
+pub use commands::{START_RETRY_AFTER_S, START_WAIT, STOP_WAIT};
 pub use crack::CrackRequest;
 pub use meta::{TestError, TestMeta, STANDARDS};
 pub use record::{EarlierTest, Stopped, TestRecord, EARLIER_POINTS, EARLIER_TESTS};

@@ -62,7 +62,7 @@ impl LabTests {
         meta.validate()?;
         self.check_start(&meta, method.as_ref())?;
         let in_table = row.as_ref().map(|r| r.id.clone());
-        let mut g = self.lock();
+        let mut g = self.after_stop(self.lock(), super::START_WAIT)?;
         let id = self.open(&mut g, meta, None, user)?;
         if let Some(r) = g.running.as_mut() {
             r.record.method = method.as_ref().map(library::Loaded::reference);

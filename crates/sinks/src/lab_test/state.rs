@@ -91,6 +91,9 @@ pub struct LabTests {
     pub(super) calibration_sha256: BTreeMap<String, String>,
     pub(super) report: Option<ReportHook>,
     pub(super) on_record: std::sync::OnceLock<RecordHook>,
+    /// Records made before the hook was set (a stop completed at start, a resumed test), the
+    /// newest of each test: handed on when it is set.
+    pub(super) unsent: Mutex<Vec<TestRecord>>,
     pub(super) inner: Mutex<Inner>,
     pub(super) written: Condvar,
     /// `<dir>/audit.jsonl`, its tail kept (see [`super::audit`]).
@@ -99,6 +102,8 @@ pub struct LabTests {
     pub(super) verification: std::sync::OnceLock<super::verification::VerificationCheck>,
     /// The binary's own files of a stopped test ([`FolderHook`]).
     pub(super) folder_files: std::sync::OnceLock<FolderHook>,
+    /// The verification `GET /api/test` names while no test runs.
+    pub(super) idle_verification: super::verification::IdleVerification,
 }
 
 impl LabTests {
@@ -125,11 +130,13 @@ impl LabTests {
             calibration_sha256,
             report,
             on_record: std::sync::OnceLock::new(),
+            unsent: Mutex::default(),
             inner: Mutex::default(),
             written: Condvar::new(),
             audit: Mutex::new(audit),
             verification: std::sync::OnceLock::new(),
             folder_files: std::sync::OnceLock::new(),
+            idle_verification: Default::default(),
         };
         tests.read_earlier();
         let stopping = tests.resume()?;
@@ -155,18 +162,35 @@ impl LabTests {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Hands every record on from now on (the running test's at once); set once.
+    /// Hands every record on from now on: first those made before (a stop the last daemon
+    /// left unfinished and this one completed, a resumed test's), then the running test's;
+    /// set once.
     pub fn set_on_record(&self, hook: RecordHook) {
         let g = self.lock();
+        let mut unsent = self.unsent.lock().unwrap_or_else(|p| p.into_inner());
+        for r in unsent.drain(..) {
+            hook(&r);
+        }
         if let Some(r) = &g.running {
             hook(&r.record);
         }
         let _ = self.on_record.set(hook);
     }
 
+    /// Hands `record` on, or keeps it (the newest of each test, at most
+    /// [`EARLIER_TESTS`](super::EARLIER_TESTS) tests) until the hook is set.
     pub(super) fn publish(&self, record: &TestRecord) {
+        // Under the lock `set_on_record` takes: a record is handed on or kept, never lost
+        // between the two.
+        let mut unsent = self.unsent.lock().unwrap_or_else(|p| p.into_inner());
         if let Some(h) = self.on_record.get() {
             h(record);
+            return;
+        }
+        unsent.retain(|r| r.id != record.id);
+        unsent.push(record.clone());
+        if unsent.len() > super::EARLIER_TESTS {
+            unsent.remove(0);
         }
     }
 

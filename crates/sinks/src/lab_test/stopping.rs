@@ -31,11 +31,15 @@ impl LabTests {
         }
         match self.complete(&mut r) {
             Ok(report_error) => {
+                // The state goes before a start may write its own (a start waits while the
+                // test is unfinished).
+                self.drop_state();
                 let mut g = self.lock();
                 g.unfinished = None;
                 g.last_report_error = report_error.clone();
                 drop(g);
-                self.drop_state();
+                // A start waiting for this stop goes on.
+                self.written.notify_all();
                 Ok(report_error)
             }
             Err(e) => {
@@ -43,6 +47,7 @@ impl LabTests {
                 let why =
                     format!("test {} stopped, but its folder could not be completed ({e}): stop again once it can be written", r.record.id);
                 self.lock().unfinished = Some(Unfinished { id: r.record.id.clone(), test: Some(r), why });
+                self.written.notify_all();
                 Err(e)
             }
         }

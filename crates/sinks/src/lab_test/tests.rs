@@ -15,14 +15,14 @@ pub(super) fn t(k: i64) -> i64 {
     *BASE.get_or_init(|| tagdeflect_core::clock::now_epoch_ns() + 3_600_000_000_000) + k
 }
 
-fn line(k: i64, z: f64, net: f64) -> FeedLine {
+pub(super) fn line(k: i64, z: f64, net: f64) -> FeedLine {
     let tag = FeedTag { id: 1, pos_mm: [10.0, 0.0, z], disp_mm: [0.0, 0.0, z], views: 2, sigma_mm: Some([0.01; 3]), reproj_px: None };
     FeedLine { seq: k as u64, t_ns: t(k), tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
 }
 
 /// Stops the running test while lines `from..` keep coming (the stop's line is the next one,
 /// as in a running daemon); the stop and the lines given.
-fn stop_fed(tests: &std::sync::Arc<LabTests>, from: i64) -> (super::Stopped, Vec<FeedLine>) {
+pub(super) fn stop_fed(tests: &std::sync::Arc<LabTests>, from: i64) -> (super::Stopped, Vec<FeedLine>) {
     let me = tests.clone();
     let stop = std::thread::spawn(move || me.stop());
     while !stop.is_finished() && !tests.lock().running.as_ref().is_some_and(|r| r.ends.stop.is_some()) {

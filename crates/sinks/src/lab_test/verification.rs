@@ -1,7 +1,7 @@
 //! The verification in force for each test (`[verification]`, see
 //! `tagdeflect_core::verification`): assessed when a test starts and again when it stops, with
 //! the camera bumps this daemon has seen, into `test.json` `verification` and the control
-//! API's status. The check itself (reading the certificate, hashing the calibration files,
+//! API's status — there also while no test runs, so the page names it always. The check itself (reading the certificate, hashing the calibration files,
 //! the config's geometry) is the binary's, handed in as a [`VerificationCheck`].
 
 use tagdeflect_core::feed::FeedLine;
@@ -22,10 +22,34 @@ const MAX_BUMPS: usize = 32;
 /// that camera is the same bump.
 const SAME_BUMP_NS: i64 = 2_000_000_000;
 
+/// How long the idle status's verification is kept before it is assessed again (the page asks
+/// every second; the check reads the certificate and hashes the calibration files).
+const IDLE_CHECK: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// The idle status's verification: when it was assessed, with how many bumps, and what it was.
+pub(super) type IdleVerification = std::sync::Mutex<Option<(std::time::Instant, usize, Option<InForce>)>>;
+
 impl LabTests {
     /// Sets the check of the verification in force (once; later calls are ignored).
     pub fn set_verification(&self, check: VerificationCheck) {
         let _ = self.verification.set(check);
+    }
+
+    /// The verification in force while no test runs (`GET /api/test`, so the page names it
+    /// always): assessed again at most every [`IDLE_CHECK`] or when a camera was bumped, not
+    /// under the tests' lock, not logged (the log has it at every start and stop).
+    pub(super) fn verification_idle(&self) -> Option<InForce> {
+        let check = self.verification.get()?;
+        let bumps = self.lock().bumps.clone();
+        let mut cache = self.idle_verification.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((at, n, v)) = cache.as_ref() {
+            if at.elapsed() < IDLE_CHECK && *n == bumps.len() {
+                return v.clone();
+            }
+        }
+        let v = check(&bumps);
+        *cache = Some((std::time::Instant::now(), bumps.len(), v.clone()));
+        v
     }
 
     /// The verification in force now, with the bumps seen so far.

@@ -375,16 +375,26 @@ function token() {
   }
   return t;
 }
+// A start refused because the previous test is still being stopped (409 with Retry-After) is
+// pressed again by the page after the time it is told, at most this many times.
+const START_RETRIES = 6;
 async function command(cmd, body) {
   const t = token();
   if (!t) { testMessage("no token given", true); return; }
-  const r = await fetch("/api/test/" + cmd, {
-    method: "POST", cache: "no-store",
-    headers: { "Content-Type": "application/json", "Authorization": "Bearer " + t },
-    body: JSON.stringify(body || {}),
-  });
-  let answer = {};
-  try { answer = await r.json(); } catch (e) { answer = {}; }
+  let r, answer;
+  for (let attempt = 0; ; attempt++) {
+    r = await fetch("/api/test/" + cmd, {
+      method: "POST", cache: "no-store",
+      headers: { "Content-Type": "application/json", "Authorization": "Bearer " + t },
+      body: JSON.stringify(body || {}),
+    });
+    answer = {};
+    try { answer = await r.json(); } catch (e) { answer = {}; }
+    const after = Number(r.headers.get("Retry-After"));
+    if (cmd !== "start" || r.status !== 409 || !(after > 0) || attempt >= START_RETRIES) break;
+    testMessage(`start waits: ${answer.error || "the previous test is still being stopped"} (again in ${after} s)`, false);
+    await new Promise((done) => setTimeout(done, after * 1000));
+  }
   if (r.status === 401) sessionStorage.removeItem("tagdeflect-token");
   if (!r.ok) { testMessage(cmd + " refused (" + r.status + "): " + (answer.error || ""), true); return; }
   testMessage(cmd === "stop" ? "stopped; folder " + (answer.folder || "") : cmd + " done", false);
@@ -401,11 +411,12 @@ function onTest(st) {
   T.method = running ? st.method || null : null;
   T.measured = running ? st.measured || {} : {};
   if (wasRunning && !running) { T.rateAlarm = null; T.outSince = null; fetchEarlier(); }
-  $("t-state").textContent = running ? "running: " + st.id + (st.zeroing ? " (taking its zero)" : "") : st.state;
+  $("t-state").textContent = running ? "running: " + st.id + (st.zeroing ? " (taking its zero)" : "") : st.stopping ? "stopping: " + st.stopping : st.state;
   $("t-specimen").textContent = running ? st.specimen : "–";
   T.startedNs = running ? st.started_t_ns : null;
   if (!running) T.peak = null;
-  $("b-start").disabled = running || st.state === "off";
+  // While a stopped test's folder is completed (`stopping`) a start would wait for it.
+  $("b-start").disabled = running || st.state === "off" || Boolean(st.stopping);
   for (const id of ["b-mark", "b-zero", "b-stop"]) $(id).disabled = !running;
   $("t-auto").textContent = st.auto ? "automatic (" + st.auto.state + "): waiting for " + st.auto.waiting_for : "";
   if (!running && st.last) $("t-report").textContent = st.last.report_error ? "no report: " + st.last.report_error : "";

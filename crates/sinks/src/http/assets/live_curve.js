@@ -130,7 +130,8 @@ function showEvents() {
   $("t-events").replaceChildren(...rows);
 }
 
-// The verification in force for the test: class, date, id; stale: highlighted, with why.
+// The verification in force (the test's, or the rig's when idle): class, date, id; stale:
+// highlighted, with why.
 function showVerification(v) {
   const box = $("t-verification");
   if (!v) { box.textContent = "verification: none named"; box.className = "muted"; box.dataset.state = "none"; return; }
@@ -145,6 +146,10 @@ TEST_LISTENERS.push((st) => {
   if (st.state === "running") {
     if (C.id !== st.id) { C.id = st.id; C.reportP1 = null; }
     C.events = st.events || [];
+  }
+  // The verification in force: the running test's, else the rig's now (GET /api/test gives it
+  // idle too).
+  if (st.state !== "off") {
     C.verification = st.verification || null;
     showVerification(C.verification);
   }

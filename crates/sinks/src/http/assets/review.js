@@ -135,7 +135,8 @@ $("b-crack").addEventListener("click", async () => {
 // The last stopped test: its verdict, once per stop (also a stop made elsewhere: the CLI, auto).
 TEST_LISTENERS.push((st) => {
   $("b-crack").disabled = st.state !== "running";
-  const last = st.state === "idle" && st.last ? st.last : null;
+  // Not while its folder is still being completed (`stopping`): its report is not there yet.
+  const last = st.state === "idle" && st.last && !st.stopping ? st.last : null;
   // A report still being written when first asked for is asked for again (a few polls).
   if (last && last.id === R.id && $("t-verdict").dataset.verdict === "none" && R.retries > 0) { R.retries--; showVerdict(last.id, last.report_error); }
   if (!last || last.id === R.id) return;
