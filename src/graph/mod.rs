@@ -6,7 +6,8 @@
 //!   solver thread, the assembler, the shutdown — each a part of its own below;
 //! * [`outputs`]: every output built by its own config section; [`page`] (the live page),
 //!   `broker` (MQTT), [`lab_test`] (the tests), [`run_report`] (the report at the end),
-//!   [`utm_file`] (the UTM's own rate) are those outputs' graph-side parts;
+//!   [`utm_file`] (the UTM's own rate), [`control_file`] (a test's `control.json`) are those
+//!   outputs' graph-side parts;
 //! * [`sources`] (the cameras), [`playback`] (a recording as the source), [`utm`] (the UTM's
 //!   events and their forwarder), [`queue`] (the solver's queue), [`solver`] (its thread),
 //!   [`smoothing`] (`replay --smooth`), [`journal`] (the run's summaries in the log),
@@ -25,6 +26,7 @@ mod broker;
 pub mod entry;
 pub mod in_process;
 pub mod journal;
+pub mod control_file;
 pub mod lab_test;
 mod outputs;
 #[cfg(feature = "http")]

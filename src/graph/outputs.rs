@@ -17,6 +17,7 @@ use tagdeflect_sinks::analog_output::{AnalogConfig, AnalogOutput, AnalogSink};
 use tagdeflect_sinks::control_output::{ControlConfig, ControlSink};
 use tagdeflect_sinks::lab_test::{LabTestSink, LabTests};
 use tagdeflect_sinks::recorder::Recorder;
+use tagdeflect_sinks::signal_log::TestSummaries;
 use tagdeflect_sinks::{FeedFileSink, LineSink};
 
 use crate::config::Config;
@@ -50,6 +51,8 @@ pub(crate) struct Outputs {
     pub(crate) run_report: Option<RunReport>,
     pub(crate) tests: Option<Arc<LabTests>>,
     pub(crate) recorder: Option<Recorder>,
+    /// The control outputs' figures per test, for each stopped test's `control.json`.
+    pub(crate) test_summaries: Vec<TestSummaries>,
 }
 
 /// An output of a run, built from its config section into [`Outputs`].
@@ -136,7 +139,11 @@ impl BuildOutput for Page {
 /// `[output.control]`: the gauge as a control signal (`tagdeflect_sinks::control_output`).
 impl BuildOutput for ControlConfig {
     fn build(&self, _ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
-        out.sinks.push(Box::new(ControlSink::start(self).map_err(|e| BadInput::new(e.to_string()))?));
+        let sink = ControlSink::start(self).map_err(|e| BadInput::new(e.to_string()))?;
+        if let Ok(c) = sink.0.lock() {
+            out.test_summaries.push(c.test_summaries());
+        }
+        out.sinks.push(Box::new(sink));
         Ok(())
     }
 }
@@ -149,7 +156,9 @@ impl BuildOutput for AnalogConfig {
             tracing::info!("[output.analog]: not written on a replay");
             return Ok(());
         }
-        out.sinks.push(Box::new(AnalogSink(AnalogOutput::start(self).map_err(|e| BadInput::new(e.to_string()))?)));
+        let analog = AnalogOutput::start(self).map_err(|e| BadInput::new(e.to_string()))?;
+        out.test_summaries.push(analog.test_summaries());
+        out.sinks.push(Box::new(AnalogSink(analog)));
         Ok(())
     }
 }
@@ -186,7 +195,12 @@ impl BuildOutput for TestsOutput<'_> {
             }
             return Ok(());
         };
-        let t = crate::graph::lab_test::start(ctx.config, dir, ctx.page)?;
+        let placed = crate::graph::lab_test::PlacementWatch::new(ctx.config);
+        let t = crate::graph::lab_test::start(ctx.config, dir, ctx.page, placed.clone())?;
+        crate::graph::control_file::install(&t, ctx.config, out.test_summaries.clone());
+        if ctx.config.verification.is_some() {
+            out.sinks.push(Box::new(placed));
+        }
         out.sinks.push(Box::new(LabTestSink(t.clone())));
         if let Some(b) = &out.broker {
             b.publish_lab_tests(&t);

@@ -21,6 +21,8 @@ use crate::common::{python, unused_port, ChildGuard};
 /// One write the device received.
 #[derive(Debug, Clone, PartialEq)]
 struct Write {
+    /// When the device received it, s since the epoch.
+    t: f64,
     fc: u8,
     address: u16,
     values: Vec<u16>,
@@ -68,8 +70,12 @@ impl Dac {
             for line in BufReader::new(out).lines().map_while(Result::ok) {
                 let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) else { continue };
                 let values = v["values"].as_array().expect("values").iter().map(|x| x.as_u64().expect("value") as u16).collect();
-                let write =
-                    Write { fc: v["fc"].as_u64().expect("fc") as u8, address: v["address"].as_u64().expect("address") as u16, values };
+                let write = Write {
+                    t: v["t"].as_f64().expect("t"),
+                    fc: v["fc"].as_u64().expect("fc") as u8,
+                    address: v["address"].as_u64().expect("address") as u16,
+                    values,
+                };
                 w.lock().unwrap().push(write);
             }
         });
@@ -601,4 +607,110 @@ fn values_exposed_long_before_they_arrive_never_raise_the_valid_line() {
     assert_eq!(count(&w, fio0(1)), 0, "the valid line went high for values 1.18 s old: {w:?}");
     let mut seq = 50;
     feed_until(&out, &dac, &mut seq, 0.5, |w| w.iter().any(fio0(1)));
+}
+
+/// A lab test run under `[output.analog]` (the pymodbus LabJack) carries its control figures
+/// into its folder (`control.json`) and its report prints them ("Control output", report.json's
+/// `control`), as the device saw them: every line of the test's feed counted, each value the
+/// device acknowledged found among the device's DAC writes of the test's values, the latency's
+/// median not below the device's own receipt times from exposure; `report DIR` gives the same.
+#[test]
+fn a_test_under_the_analog_output_reports_its_control_figures_as_the_device_saw_them() {
+    use crate::http::{post, small_rig, tagdeflect_test, Daemon};
+    let dac = Dac::start("labjack", None);
+    let dir = tempfile::tempdir().unwrap();
+    let params = tagdeflect_sim::SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    let beam = tagdeflect_report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    };
+    cfg.specimen.beam = Some(beam);
+    // The small rig's σ is tens of µm: valid up to 1 mm.
+    let analog =
+        AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };
+    cfg.output.analog = Some(analog);
+    let cfg_path = dir.path().join("rig.toml");
+    std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr(); // once it serves: the token is written by then
+    let token_file = tests_dir.join(".token");
+    let auth = format!("Bearer {}", std::fs::read_to_string(&token_file).unwrap().trim());
+    let body = serde_json::json!({"specimen": "A1", "operator": "A. Tester", "standard": "astm-c1609"});
+    let headers = [("Content-Type", "application/json"), ("Authorization", auth.as_str())];
+    let (code, answer) = post(addr, "/api/test/start", &headers, body.to_string().as_bytes());
+    assert_eq!(code, 200, "{answer}");
+    let id = serde_json::from_str::<serde_json::Value>(&answer).unwrap()["id"].as_str().unwrap().to_string();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while d.lines().iter().filter(|(_, l)| l.test.as_ref().is_some_and(|t| t.id == id)).count() < 40 {
+        assert!(Instant::now() < deadline, "the test's lines did not come");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert_eq!(d.stop(), Some(0));
+    let folder = PathBuf::from(stopped["folder"].as_str().unwrap());
+    check_the_control_figures(&folder, &dac, &id);
+}
+
+/// The checks of the test above on its stopped folder.
+fn check_the_control_figures(folder: &Path, dac: &Dac, id: &str) {
+    let control = crate::report_folder::read_json(&folder.join("control.json"));
+    assert_eq!(control["test"], id, "{control}");
+    let o = &control["outputs"][0];
+    assert_eq!((o["kind"].as_str(), o["gauge"].as_str()), (Some("analog"), Some("net_deflection")), "{o}");
+    assert_eq!(o["scaling"], serde_json::json!({"volts_per_mm": 2.0, "offset_v": 1.0, "range_v": [0.0, 5.0], "safe_v": 0.5}), "{o}");
+    // Every line of the test reached the output.
+    let feed: Vec<FeedLine> =
+        std::fs::read_to_string(folder.join("feed.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let n = |k: &str| o[k].as_u64().unwrap_or_else(|| panic!("{k}: {o}"));
+    assert_eq!(n("frame_sets"), feed.len() as u64, "{o}");
+    // The values acknowledged are among the device's writes of the test's values (2 V/mm from
+    // 1 V) received from the test's first exposure to 2 s after its last; a value outside the
+    // test (not counted from the test's zero) may equal one of them to the nanometre by chance,
+    // rarely: a few such are allowed.
+    let volts_of: std::collections::HashMap<u32, i64> =
+        feed.iter().filter_map(|l| l.net_deflection_mm.map(|v| ((1.0 + 2.0 * v) as f32).to_bits()).zip(Some(l.t_ns))).collect();
+    let (first_s, last_s) = (feed[0].t_ns as f64 * 1e-9, feed[feed.len() - 1].t_ns as f64 * 1e-9 + 2.0);
+    let in_test = |w: &&Write| is_dac(w) && w.t >= first_s && w.t <= last_s;
+    let seen: Vec<(f64, i64)> =
+        dac.writes().iter().filter(in_test).filter_map(|w| volts_of.get(&f32_abcd(w).to_bits()).map(|t_ns| (w.t, *t_ns))).collect();
+    let (valid, written) = (n("valid_sets"), n("values_written"));
+    assert!(written >= 20, "{o}");
+    assert!(written <= seen.len() as u64 && seen.len() as u64 <= written + 3, "{} device writes of the test's values: {o}", seen.len());
+    // A value is written only when valid (a valid one may be replaced, or found stale by the
+    // time the device's task runs on a loaded machine).
+    assert!(written <= valid + 1, "{o}");
+    let share = crate::report_folder::read_json(&folder.join("report/report.json"))["control"]["outputs"][0]["valid_share"].as_f64();
+    assert_eq!(share, Some(valid as f64 / feed.len() as f64));
+    // The latency: acknowledged after the device received the write.
+    let mut received_ms: Vec<f64> = seen.iter().map(|(t, t_ns)| t * 1e3 - *t_ns as f64 * 1e-6).collect();
+    received_ms.sort_by(f64::total_cmp);
+    let lat = &o["latency"];
+    let f = |k: &str| lat[k].as_f64().unwrap_or_else(|| panic!("{k}: {lat}"));
+    assert_eq!(lat["values"].as_u64(), Some(written), "{lat}");
+    assert!(f("p50_ms") >= received_ms[received_ms.len() / 2] - 5.0, "{lat} against the device's receipts {received_ms:?}");
+    assert!(f("p50_ms") > 0.0 && f("p50_ms") <= f("p99_ms") && f("p99_ms") <= f("max_ms"), "{lat}");
+    println!(
+        "test under control: {} sets, valid {:.1} %, exposure → acknowledged {lat}; the device's receipts p50 {:.1} ms",
+        feed.len(),
+        valid as f64 / feed.len() as f64 * 1e2,
+        received_ms[received_ms.len() / 2]
+    );
+    let dyn_ = &control["dynamics"];
+    assert_eq!(
+        dyn_["sines"].as_array().map(|s| s.iter().map(|s| s["freq_hz"].as_f64().unwrap()).collect::<Vec<_>>()),
+        Some(vec![0.1, 0.5, 2.0])
+    );
+    // The report prints the section, and `report DIR` gives the same.
+    let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
+    let share_text = format!("{:.1} % of the test's frame sets", valid as f64 / feed.len() as f64 * 1e2);
+    assert!(html.contains("<h2>Control output</h2>") && html.contains("Exposure → write acknowledged (live)"), "no section in report.html");
+    assert!(html.contains(&share_text), "the valid share {share_text}");
+    let again = crate::report_folder::report_dir(folder, &folder.parent().unwrap().join("again"));
+    assert_eq!(again["control"], crate::report_folder::read_json(&folder.join("report/report.json"))["control"]);
 }

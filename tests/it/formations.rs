@@ -4,6 +4,8 @@
 //! The table is a measurement, not a pass/fail: it is printed by
 //! `cargo test --test it formations:: -- --ignored --nocapture` (11 scenes, several minutes).
 //! The formations cheap enough to assert run in `accuracy::` with floors.
+//! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
+//! only those besides the sharp scene.
 
 use crate::common::*;
 use tagdeflect_sim::SimParams;
@@ -43,7 +45,11 @@ fn accuracy_per_formation_table() {
     let dir = tempfile::tempdir().unwrap();
     let mut rows = Vec::new();
     let mut sharp_rms = None;
-    for (k, (name, options, p)) in formation_scenes().into_iter().enumerate() {
+    let only: Vec<String> = std::env::var("TAGDEFLECT_FORMATIONS")
+        .map(|v| v.split(',').map(|s| s.trim().to_lowercase()).filter(|s| !s.is_empty()).collect())
+        .unwrap_or_default();
+    let chosen = |k: usize, name: &str| k == 0 || only.is_empty() || only.iter().any(|o| name.to_lowercase().contains(o.as_str()));
+    for (k, (name, options, p)) in formation_scenes().into_iter().enumerate().filter(|(k, (name, _, _))| chosen(*k, name)) {
         let rec = simulate(dir.path(), &format!("f{k}"), &p);
         let (acc, _, _) = accuracy_of(name, &rec, false);
         let rms = acc.disp_rms_mm;
@@ -64,5 +70,6 @@ fn accuracy_per_formation_table() {
     for r in &rows {
         println!("{r}");
     }
-    assert_eq!(rows.len(), formation_scenes().len());
+    let expected = formation_scenes().iter().enumerate().filter(|(k, (name, _, _))| chosen(*k, name)).count();
+    assert_eq!(rows.len(), expected);
 }

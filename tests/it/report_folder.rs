@@ -98,6 +98,10 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     let again = report_dir(&folder, &dir.path().join("again"));
     assert!(!values(&at_stop).is_empty(), "{at_stop}");
     assert!(at_stop["outputs"].as_object().is_some_and(|o| o.contains_key("report.html")), "{}", at_stop["outputs"]);
+    // No control output in this run: no control.json, no "Control output" section.
+    assert!(!folder.join("control.json").exists() && at_stop.get("control").is_none(), "{}", at_stop["control"]);
+    let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
+    assert!(!html.contains("Control output"), "a test without control outputs has no such section");
     assert_eq!(comparable(at_stop.clone()), comparable(again), "the report made at the stop and `report DIR` differ");
 
     // What the record gives the report.

@@ -15,6 +15,7 @@ pub mod calibration_file;
 pub mod camera;
 pub mod camera_config;
 pub mod clock;
+pub mod control_summary;
 pub mod error;
 pub mod feed;
 pub mod feed_file;

@@ -22,6 +22,8 @@
 //!   the subset's camera-pose errors do not throw it; [`motion`]: the per-set estimator's
 //!   depth of a monocular view from the recent multi-view motion.
 //! * [`smooth`]: a fixed-lag RTS smoother over the temporal estimate's lines (replay).
+//! * [`temporal_response`]: the temporal estimate's gain, phase lag and step response (the
+//!   control signal's dynamics, docs/control.md).
 //! * [`gauges`]: the virtual gauges (`[[gauge]]`) with their σ;
 //!   [`clock_offset`]: the clock check of the UTM's clock against the cameras'
 //!   (`[clock_check]`).
@@ -45,6 +47,7 @@ pub mod partial;
 pub mod smooth;
 pub mod tag_pose;
 pub mod temporal;
+pub mod temporal_response;
 
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 pub use drift::{DriftConfig, DriftEstimate, DriftFilter};

@@ -225,6 +225,7 @@ pub fn build(
         options: opts.clone(),
         inputs: Vec::new(),
         test: None,
+        control: None,
         dimension_sources: Default::default(),
     })
 }

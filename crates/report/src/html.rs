@@ -10,7 +10,7 @@ use crate::quantity::Quantity;
 use crate::report::{Entry, Report};
 use crate::standard::Standard;
 
-fn esc(s: &str) -> String {
+pub(crate) fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
@@ -24,7 +24,7 @@ fn css_string(s: &str) -> String {
     s.chars().filter(|c| !c.is_control() && *c != '<' && *c != '>').map(|c| if c == '"' || c == '\\' { ' ' } else { c }).collect()
 }
 
-fn time_utc(t_ns: i64) -> String {
+pub(crate) fn time_utc(t_ns: i64) -> String {
     chrono::DateTime::from_timestamp_nanos(t_ns).format("%Y-%m-%d %H:%M:%S%.3f UTC").to_string()
 }
 
@@ -99,6 +99,7 @@ pub fn render(report: &Report, plots: &[Plot], inputs: &[InputHash]) -> String {
     specimen(&mut h, report);
     curves(&mut h, plots);
     method(&mut h, report);
+    crate::control_section::html(&mut h, report);
     quality_control(&mut h, report);
     inputs_table(&mut h, inputs);
     footer(&mut h);

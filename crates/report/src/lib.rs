@@ -19,6 +19,7 @@
 mod build;
 pub mod c1609;
 pub mod config;
+mod control_section;
 pub mod csv_out;
 mod curve;
 pub mod en14651;

@@ -329,6 +329,9 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
         root.insert("run".into(), json!({"index": k, "of": n}));
     }
     root.insert("qc".into(), serde_json::to_value(&report.qc).expect("qc"));
+    if let Some(c) = crate::control_section::json(report) {
+        root.insert("control".into(), c);
+    }
     Value::Object(root)
 }
 

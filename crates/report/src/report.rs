@@ -92,6 +92,9 @@ pub struct Report {
     /// The test's record when the feed is a test folder's (`test.json`: events, notes,
     /// method, specimen row, crack entry).
     pub test: Option<crate::test_folder::TestView>,
+    /// The test's control outputs (`control.json` of a test run under control; `Err`: the
+    /// file could not be read), printed as the "Control output" section.
+    pub control: Option<Result<tagdeflect_core::control_summary::ControlSummary, String>>,
     /// Where each dimension came from (`test.json` or `config`; empty outside a test folder).
     pub dimension_sources: crate::test_folder::DimensionSources,
 }

@@ -281,6 +281,7 @@ pub fn build_test(
         r.qc.warnings.push(format!("the verification in force is stale: {}", v.stale.join("; ")));
     }
     r.test = Some(view.clone());
+    r.control = r.feed_path.parent().and_then(crate::control_section::read);
     Ok(r)
 }
 

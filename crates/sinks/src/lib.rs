@@ -13,6 +13,7 @@ pub mod output;
 pub mod recorder;
 mod rig_info;
 pub mod signal;
+pub mod signal_log;
 pub mod status;
 
 pub use fanout::{Fanout, FeedFileSink, Finished, LineSink, Overflow};

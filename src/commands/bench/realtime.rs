@@ -44,6 +44,12 @@ pub struct RealtimeFigures {
     /// The same, 99th percentile, ms.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub exposure_to_dac_p99_ms: Option<f64>,
+    /// The same, worst, ms.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exposure_to_dac_max_ms: Option<f64>,
+    /// Values timed from exposure to the DAC write acknowledged (steady state).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exposure_to_dac_values: Option<usize>,
     /// Values written to the DAC / superseded by a newer one before their write.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dac_written_superseded: Option<(u64, u64)>,
@@ -150,12 +156,15 @@ pub(super) fn run_realtime(rec: &crate::config::Recording, full_frame: bool, ana
             })
             .collect();
         ms.sort_by(f64::total_cmp);
-        (percentile(&ms, 0.5), percentile(&ms, 0.99), (status.values_written, status.superseded))
+        let max = ms.last().copied().unwrap_or(f64::NAN);
+        (percentile(&ms, 0.5), percentile(&ms, 0.99), (status.values_written, status.superseded), max, ms.len())
     });
     Ok(RealtimeFigures {
         exposure_to_dac_p50_ms: dac.map(|d| d.0),
         exposure_to_dac_p99_ms: dac.map(|d| d.1),
         dac_written_superseded: dac.map(|d| d.2),
+        exposure_to_dac_max_ms: dac.map(|d| d.3),
+        exposure_to_dac_values: dac.map(|d| d.4),
         mode: if full_frame { "full-frame" } else { "roi-tracking" }.into(),
         recorded_sets: per_camera.values().copied().max().unwrap_or(0),
         recorded_s: (t1 - t0) as f64 * 1e-9,
@@ -200,6 +209,10 @@ pub(super) fn print_realtime(dir: &std::path::Path, r: &RealtimeFigures) {
     if let (Some(p50), Some(p99)) = (r.exposure_to_dac_p50_ms, r.exposure_to_dac_p99_ms) {
         println!("{:<36}{:>12.1}", "exposure → DAC acknowledged p50 ms", p50);
         println!("{:<36}{:>12.1}", "exposure → DAC acknowledged p99 ms", p99);
+    }
+    if let (Some(max), Some(n)) = (r.exposure_to_dac_max_ms, r.exposure_to_dac_values) {
+        println!("{:<36}{:>12.1}", "exposure → DAC acknowledged max ms", max);
+        println!("{:<36}{:>12}", "  values timed (steady state)", n);
     }
     if let Some((w, s)) = r.dac_written_superseded {
         println!("{:<36}{:>12}", "DAC values written / superseded", format!("{w} / {s}"));

@@ -291,6 +291,18 @@ pub(super) fn select_band(
     Some(EdgeBand { a, dir, normal, len, bit_px, refs, bounds, white_cells: white, pixels, black })
 }
 
+/// The grey level of the pixel at `index` of `image`: the one place the edge fits and the
+/// profile's samples read pixel values (a full-depth frame would be read here).
+#[inline(always)]
+pub(super) fn pixel_value(image: &GrayImage, index: usize) -> f64 {
+    image.data[index] as f64
+}
+
+/// The values of `band`'s pixels in `image` (see [`pixel_value`]).
+pub(super) fn band_values(image: &GrayImage, band: &EdgeBand) -> Vec<f64> {
+    band.pixels.iter().map(|p| pixel_value(image, p.index)).collect()
+}
+
 /// Mean grey level of the white ring and of the black border at `refs` (one pair per bit
 /// along the edge, distorted pixels).
 pub(super) fn reference_levels(image: &GrayImage, refs: &[[Vector2<f64>; 2]]) -> (f64, f64) {
@@ -305,6 +317,25 @@ pub(super) fn reference_levels(image: &GrayImage, refs: &[[Vector2<f64>; 2]]) ->
 
 fn sample_at(image: &GrayImage, p: Vector2<f64>) -> f64 {
     image.sample(p.x, p.y)
+}
+
+/// Test support: a band of one pixel at `(t, n)` from the edge (beside a white bit when
+/// `white`), on an edge along x with its outward normal y, bits 4 px wide.
+#[cfg(test)]
+pub(super) fn one_pixel_band(t: f64, n: f64, white: bool) -> EdgeBand {
+    let pixel = BandPixel { t, n, index: 0, gap: 4.0, white, cell: (t / 4.0) as u32, weight: 0.8 };
+    EdgeBand {
+        a: Vector2::zeros(),
+        dir: Vector2::new(1.0, 0.0),
+        normal: Vector2::new(0.0, 1.0),
+        len: 20.0,
+        bit_px: 4.0,
+        refs: Vec::new(),
+        bounds: vec![0.0, 4.0, 8.0, 12.0, 16.0, 20.0],
+        white_cells: vec![false, true, true, false, true],
+        pixels: vec![pixel],
+        black: usize::from(!white),
+    }
 }
 
 #[cfg(test)]

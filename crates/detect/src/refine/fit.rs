@@ -4,7 +4,8 @@
 
 use nalgebra::{Matrix5, Vector2, Vector5};
 
-use super::band::{reference_levels, BandPixel, EdgeBand};
+use super::band::{band_values, reference_levels, BandPixel, EdgeBand};
+use super::lm::{minimize, EdgeModel};
 use tagdeflect_core::frame::GrayImage;
 
 /// A line `normal · p = rho` in ideal coordinates (unit normal).
@@ -187,7 +188,7 @@ pub(super) fn fit_band(image: &GrayImage, band: &EdgeBand, warm: Option<[f64; 3]
     if contrast0.abs() < 4.0 {
         return None;
     }
-    let values: Vec<f64> = band.pixels.iter().map(|p| image.data[p.index] as f64).collect();
+    let values = band_values(image, band);
     let [bl, c, eff] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
     let table: &[[f64; 8]] = &PHI_TABLE;
     // The white bits' inner edge along the edge, at the blur the fit starts from (the edge's
@@ -230,69 +231,52 @@ struct FitData<'a> {
 impl FitData<'_> {
     /// Levenberg–Marquardt over (angle, offset, B, C, σ) from `x`, with the pixel's area
     /// modelled when `AREA`: the parameters and the weighted cost.
-    fn lm<const AREA: bool>(&self, mut x: Vector5<f64>) -> (Vector5<f64>, f64) {
-        let (len, bit_px) = (self.band.len, self.band.bit_px);
+    fn lm<const AREA: bool>(&self, x: Vector5<f64>) -> (Vector5<f64>, f64) {
+        minimize(&StepModel::<AREA>(self), x)
+    }
+
+    /// The weighted cost and normal equations at `x` (one pass over the samples,
+    /// [`NormalSums`]; JᵀWJ is symmetric: only its upper triangle is accumulated).
+    fn normal_equations<const AREA: bool>(&self, x: &Vector5<f64>) -> (f64, Matrix5<f64>, Vector5<f64>) {
         let (plain, beside_white) = self.band.pixels.split_at(self.band.black);
         let (plain_values, beside_white_values) = self.values.split_at(self.band.black);
-        // One pass over the samples gives the cost and the normal equations (`NormalSums`);
-        // JᵀWJ is symmetric: only its upper triangle is accumulated, written out.
-        let normal_eq = |x: &Vector5<f64>| -> (f64, Matrix5<f64>, Vector5<f64>) {
-            let mut sums = NormalSums::default();
-            sums.add::<false, AREA>(plain, plain_values, &[], x, self.table);
-            sums.add::<true, AREA>(beside_white, beside_white_values, self.aw, x, self.table);
-            let u = &sums.u;
-            let mut jtj = Matrix5::<f64>::zeros();
-            let mut k = 0;
-            for a in 0..5 {
-                for b in a..5 {
-                    jtj[(a, b)] = u[k];
-                    jtj[(b, a)] = u[k];
-                    k += 1;
-                }
-            }
-            (sums.cost, jtj, Vector5::from(sums.g))
-        };
-        let (mut current, mut jtj, mut jtr) = normal_eq(&x);
-        let mut lambda = 1e-6;
-        for _ in 0..40 {
-            let mut damped = jtj;
-            for d in 0..5 {
-                damped[(d, d)] += lambda * jtj[(d, d)].max(1e-9);
-            }
-            let Some(step) = damped.cholesky().map(|c| c.solve(&(-jtr))) else {
-                lambda *= 10.0;
-                if lambda > 1e8 {
-                    break;
-                }
-                continue;
-            };
-            let moved = step[0].abs() * len + step[1].abs();
-            let mut cand = x + step;
-            cand[4] = cand[4].clamp(0.05, 3.0 * bit_px + 5.0);
-            // Converged when the step would move the edge by less than 1e-3 px (a tenth of the
-            // corner noise; Gauss–Newton converges quadratically here, so what remains after
-            // this step is far smaller; the 3 × 1080p benches, clean and noisy, give the same
-            // figures to the last digit as with 1e-4 px, for a quarter fewer evaluations) and
-            // the blur has settled: the last, tiny step is taken without evaluating the cost.
-            if moved < 1e-3 && step[4].abs() < 1e-2 {
-                x = cand;
-                break;
-            }
-            let (c, j2, r2) = normal_eq(&cand);
-            if c.is_finite() && c <= current {
-                x = cand;
-                current = c;
-                jtj = j2;
-                jtr = r2;
-                lambda = (lambda * 0.1).max(1e-9);
-            } else {
-                lambda *= 10.0;
-                if lambda > 1e8 {
-                    break;
-                }
+        let mut sums = NormalSums::default();
+        sums.add::<false, AREA>(plain, plain_values, &[], x, self.table);
+        sums.add::<true, AREA>(beside_white, beside_white_values, self.aw, x, self.table);
+        let u = &sums.u;
+        let mut jtj = Matrix5::<f64>::zeros();
+        let mut k = 0;
+        for a in 0..5 {
+            for b in a..5 {
+                jtj[(a, b)] = u[k];
+                jtj[(b, a)] = u[k];
+                k += 1;
             }
         }
-        (x, current)
+        (sums.cost, jtj, Vector5::from(sums.g))
+    }
+}
+
+/// The blurred-step model (at the pixel's centre, or over its area when `AREA`) as an
+/// [`EdgeModel`].
+struct StepModel<'a, const AREA: bool>(&'a FitData<'a>);
+
+impl<const AREA: bool> EdgeModel<5> for StepModel<'_, AREA> {
+    fn normal_equations(&self, x: &Vector5<f64>) -> (f64, Matrix5<f64>, Vector5<f64>) {
+        self.0.normal_equations::<AREA>(x)
+    }
+
+    fn step_to(&self, x: &Vector5<f64>, step: &Vector5<f64>) -> Vector5<f64> {
+        let mut cand = x + step;
+        cand[4] = cand[4].clamp(0.05, 3.0 * self.0.band.bit_px + 5.0);
+        cand
+    }
+
+    /// Converged when the step would move the edge by less than 1e-3 px (a tenth of the
+    /// corner noise; the 3 × 1080p benches, clean and noisy, give the same figures to the
+    /// last digit as with 1e-4 px, for a quarter fewer evaluations) and the blur has settled.
+    fn converged(&self, step: &Vector5<f64>) -> bool {
+        step[0].abs() * self.0.band.len + step[1].abs() < 1e-3 && step[4].abs() < 1e-2
     }
 }
 
@@ -408,6 +392,7 @@ pub(super) fn finish(
 
 #[cfg(test)]
 mod tests {
+    use super::super::lm::check_one_pixel_jacobian;
     use super::*;
 
     #[test]
@@ -470,6 +455,38 @@ mod tests {
         assert_eq!(phi_pdf(-9.0), (0.0, 0.0));
         for x in [0.3, 1.7, 4.0] {
             assert!((phi(x) + phi(-x) - 1.0).abs() < 1e-15, "antisymmetry at {x}");
+        }
+    }
+
+    #[test]
+    fn the_step_models_jacobians_match_finite_differences() {
+        let table: &[[f64; 8]] = &PHI_TABLE;
+        for (t, n, white) in [(6.0, -0.4, true), (9.3, 0.7, true), (14.0, -1.2, false), (2.5, 0.3, false)] {
+            let band = super::super::band::one_pixel_band(t, n, white);
+            let aw = if white { vec![0.83] } else { vec![] };
+            let values = [250.0];
+            let data = FitData { band: &band, values: &values, aw: &aw, table };
+            for x in [Vector5::<f64>::new(0.03, 0.2, 40.0, 150.0, 0.7), Vector5::new(-0.05, -0.3, 35.0, 160.0, 0.4)] {
+                let p = band.pixels[0];
+                let nn = p.n * x[0].cos() + p.t * x[0].sin() - x[1];
+                let (sharp, mid) = (data.normal_equations::<false>(&x), data.normal_equations::<true>(&x));
+                // The residual from the cost (one pixel: cost = w r²), its sign from the model.
+                for (model_cost, area) in [(sharp.0, false), (mid.0, true)] {
+                    let (step, _, _) = if area { pixel_step(table, nn / x[4], 0.5 / x[4]) } else { point_step(table, nn / x[4]) };
+                    let mut val = step;
+                    if white {
+                        let z2 = (-nn - p.gap) / x[4];
+                        val += aw[0] * if area { pixel_step(table, z2, 0.5 / x[4]).0 } else { point_step(table, z2).0 };
+                    }
+                    let r = x[2] + x[3] * val - values[0];
+                    assert!((model_cost - p.weight * r * r).abs() < 1e-9 * (1.0 + model_cost), "cost at {t} {n}");
+                    if area {
+                        check_one_pixel_jacobian(&StepModel::<true>(&data), &x, p.weight, r, 1e-4);
+                    } else {
+                        check_one_pixel_jacobian(&StepModel::<false>(&data), &x, p.weight, r, 1e-4);
+                    }
+                }
+            }
         }
     }
 }

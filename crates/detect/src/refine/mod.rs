@@ -70,6 +70,7 @@ use tagdeflect_core::tags::cell_homography;
 
 mod band;
 mod fit;
+mod lm;
 mod profile;
 mod profile_fit;
 

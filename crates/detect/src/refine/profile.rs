@@ -18,9 +18,16 @@
 //! an edge's phase (the 50 % crossing would need the white plateau, which the band's 1.5 px
 //! outside the tag does not always reach). Between nodes the profile is a Catmull–Rom cubic
 //! (continuous slope, the LM's Jacobian); beyond them it is constant.
+//!
+//! **Pixel classes.** Samples are also accumulated per [class](CLASSES) (the edge's
+//! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
+//! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it), and a
+//! class with samples enough is fitted with its own profile, the others with the pooled one.
+//! Which classes are used is [`class_mode`]'s (by default none: one pooled profile).
 
-use super::band::EdgeBand;
+use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
+use nalgebra::Vector2;
 use tagdeflect_core::frame::GrayImage;
 
 /// Spacing of the profile's nodes, pixels.
@@ -32,6 +39,9 @@ pub const CENTRE_HALF_WIDTH_PX: f64 = 1.25;
 const NODES: usize = (2.0 * RANGE_PX / NODE_PX) as usize + 1;
 /// A node is known once its samples' tent weights reach this.
 const MIN_NODE_WEIGHT: f64 = 20.0;
+/// A pixel class's node is known once its samples' tent weights reach this (a class has an
+/// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
+const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
@@ -47,19 +57,23 @@ const MAX_NODE_WEIGHT: f64 = 2.0e6;
 const WHITE_EDGE_CLEARANCE_PX: f64 = 2.0;
 
 /// A camera's learned edge-spread function (see the module docs): `P(d)` with `d` the signed
-/// distance (pixels, towards the white side) of a pixel centre from the edge line.
+/// distance (pixels, towards the white side) of a pixel centre from the edge line; pooled over
+/// every edge, and per [pixel class](pixel_class) where that class had samples enough.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EdgeProfile {
-    /// `P` at `d = −RANGE_PX + k · NODE_PX`.
+    /// `P` at `d = −RANGE_PX + k · NODE_PX`, pooled over every class.
     values: Vec<f64>,
+    /// Per pixel class ([`CLASSES`]), its own `P` at the same nodes, or `None`: the pooled one.
+    classes: Vec<Option<Vec<f64>>>,
     /// Edges whose samples built it.
     edges: u64,
 }
 
 impl EdgeProfile {
-    /// A profile tabulated from `f` (e.g. a model ESF; tests and comparisons).
+    /// A profile tabulated from `f` (e.g. a model ESF; tests and comparisons), the same for
+    /// every class.
     pub fn from_fn(f: impl Fn(f64) -> f64) -> Self {
-        Self { values: (0..NODES).map(|k| f(node_d(k))).collect(), edges: 0 }
+        Self { values: (0..NODES).map(|k| f(node_d(k))).collect(), classes: vec![None; CLASSES], edges: 0 }
     }
 
     /// Edges whose samples built this profile.
@@ -67,64 +81,91 @@ impl EdgeProfile {
         self.edges
     }
 
-    /// `P(d)` and `dP/dd` (Catmull–Rom between nodes, constant beyond them).
-    #[inline(always)]
-    pub fn value_slope(&self, d: f64) -> (f64, f64) {
-        let u = (d + RANGE_PX) / NODE_PX;
-        if !(u > 0.0) {
-            return (self.values[0], 0.0);
-        }
-        if u >= (NODES - 1) as f64 {
-            return (self.values[NODES - 1], 0.0);
-        }
-        // 0 < u < NODES − 1: truncation is the floor.
-        let i = u as usize;
-        let t = u - i as f64;
-        let v = &self.values;
-        let p1 = v[i];
-        let p2 = v[i + 1];
-        let p0 = if i > 0 { v[i - 1] } else { p1 };
-        let p3 = if i + 2 < NODES { v[i + 2] } else { p2 };
-        let (m1, m2) = (0.5 * (p2 - p0), 0.5 * (p3 - p1));
-        let (t2, t3) = (t * t, t * t * t);
-        let value = (2.0 * t3 - 3.0 * t2 + 1.0) * p1 + (t3 - 2.0 * t2 + t) * m1 + (-2.0 * t3 + 3.0 * t2) * p2 + (t3 - t2) * m2;
-        let slope = (6.0 * t2 - 6.0 * t) * p1 + (3.0 * t2 - 4.0 * t + 1.0) * m1 + (-6.0 * t2 + 6.0 * t) * p2 + (3.0 * t2 - 2.0 * t) * m2;
-        (value, slope / NODE_PX)
+    /// How many pixel classes have a profile of their own (the others use the pooled one).
+    pub fn own_classes(&self) -> usize {
+        self.classes.iter().filter(|c| c.is_some()).count()
     }
 
-    /// `P(d)`.
+    /// The pooled `P(d)` and `dP/dd` (Catmull–Rom between nodes, constant beyond them).
+    #[inline(always)]
+    pub fn value_slope(&self, d: f64) -> (f64, f64) {
+        interpolate(&self.values, d)
+    }
+
+    /// `P(d)` and `dP/dd` of pixel class `class` (its own profile, else the pooled one).
+    #[inline(always)]
+    pub fn class_value_slope(&self, class: usize, d: f64) -> (f64, f64) {
+        match self.classes.get(class) {
+            Some(Some(v)) => interpolate(v, d),
+            _ => interpolate(&self.values, d),
+        }
+    }
+
+    /// The pooled `P(d)`.
     pub fn value(&self, d: f64) -> f64 {
         self.value_slope(d).0
     }
 
-    /// The centroid (pixels) of the line-spread function `P′` within ±[`CENTRE_HALF_WIDTH_PX`]
-    /// of it: the `c` where `∫ (d − c) P′(d) dd` over `[c − w, c + w]` vanishes.
+    /// The centroid (pixels) of the pooled line-spread function `P′` within
+    /// ±[`CENTRE_HALF_WIDTH_PX`] of it: the `c` where `∫ (d − c) P′(d) dd` over
+    /// `[c − w, c + w]` vanishes.
     pub fn centroid_px(&self) -> f64 {
-        let w = CENTRE_HALF_WIDTH_PX;
-        // −∫(d − c)P′ = ∫P − w (P(c + w) + P(c − w)) over the window: decreasing in c for a
-        // rising edge; bisection on ±0.75 px.
-        let g = |c: f64| {
-            let steps = 160;
-            let h = 2.0 * w / steps as f64;
-            let mut s = 0.5 * (self.value(c - w) + self.value(c + w));
-            for k in 1..steps {
-                s += self.value(c - w + k as f64 * h);
-            }
-            s * h - w * (self.value(c + w) + self.value(c - w))
-        };
-        let (mut lo, mut hi) = (-0.75, 0.75);
-        // g rises through its root for a dark-to-bright profile.
-        let falling = g(lo) > g(hi);
-        for _ in 0..40 {
-            let mid = 0.5 * (lo + hi);
-            if (g(mid) > 0.0) == falling {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        0.5 * (lo + hi)
+        centroid_px(&self.values)
     }
+}
+
+/// `P(d)` and `dP/dd` of the tabulated `values` (Catmull–Rom between nodes, constant beyond).
+#[inline(always)]
+fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
+    let u = (d + RANGE_PX) / NODE_PX;
+    if !(u > 0.0) {
+        return (v[0], 0.0);
+    }
+    if u >= (NODES - 1) as f64 {
+        return (v[NODES - 1], 0.0);
+    }
+    // 0 < u < NODES − 1: truncation is the floor.
+    let i = u as usize;
+    let t = u - i as f64;
+    let p1 = v[i];
+    let p2 = v[i + 1];
+    let p0 = if i > 0 { v[i - 1] } else { p1 };
+    let p3 = if i + 2 < NODES { v[i + 2] } else { p2 };
+    let (m1, m2) = (0.5 * (p2 - p0), 0.5 * (p3 - p1));
+    let (t2, t3) = (t * t, t * t * t);
+    let value = (2.0 * t3 - 3.0 * t2 + 1.0) * p1 + (t3 - 2.0 * t2 + t) * m1 + (-2.0 * t3 + 3.0 * t2) * p2 + (t3 - t2) * m2;
+    let slope = (6.0 * t2 - 6.0 * t) * p1 + (3.0 * t2 - 4.0 * t + 1.0) * m1 + (-6.0 * t2 + 6.0 * t) * p2 + (3.0 * t2 - 2.0 * t) * m2;
+    (value, slope / NODE_PX)
+}
+
+/// The centroid of the tabulated profile's line-spread function (see
+/// [`EdgeProfile::centroid_px`]).
+fn centroid_px(values: &[f64]) -> f64 {
+    let w = CENTRE_HALF_WIDTH_PX;
+    let value = |d: f64| interpolate(values, d).0;
+    // −∫(d − c)P′ = ∫P − w (P(c + w) + P(c − w)) over the window: decreasing in c for a
+    // rising edge; bisection on ±0.75 px.
+    let g = |c: f64| {
+        let steps = 160;
+        let h = 2.0 * w / steps as f64;
+        let mut s = 0.5 * (value(c - w) + value(c + w));
+        for k in 1..steps {
+            s += value(c - w + k as f64 * h);
+        }
+        s * h - w * (value(c + w) + value(c - w))
+    };
+    let (mut lo, mut hi) = (-0.75, 0.75);
+    // g rises through its root for a dark-to-bright profile.
+    let falling = g(lo) > g(hi);
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if (g(mid) > 0.0) == falling {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// The distance of node `k` from the edge, pixels.
@@ -132,17 +173,124 @@ fn node_d(k: usize) -> f64 {
     -RANGE_PX + k as f64 * NODE_PX
 }
 
-/// A camera's accumulation of edge samples (see the module docs).
+/// Pixel classes with a profile each: the edge's orientation (its normal nearer the image's
+/// x or y axis) × the pixel's place in a 2 × 2 mosaic (column and row parity). An astigmatic
+/// blur spreads a near-vertical edge differently from a near-horizontal one, and a colour
+/// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
+pub const CLASSES: usize = 8;
+
+/// How pixels are classed: 0 one pooled profile (the default), 1 by edge orientation, 2 by
+/// orientation and mosaic parity. Measured on the formations' scenes (docs/accuracy.md, "A
+/// profile per pixel class"): the classes, learned from a few frames' samples, cost the
+/// scenes one profile describes more than they gain (parity: Bayer 0.0242 → 0.0099 mm, the
+/// sharp scene 0.0033 → 0.0051 mm), so they are chosen by `TAGDEFLECT_PROFILE_CLASSES`
+/// (`orientation` or `parity`) for measurements only, until a class is used only where its
+/// profile differs from the pooled one by more than its sampling noise.
+fn class_mode() -> u8 {
+    static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
+    *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
+        Ok("orientation") => 1,
+        Ok("parity") => 2,
+        _ => 0,
+    })
+}
+
+/// The [class](CLASSES) of the pixel at `index` of an image `width` pixels wide on an edge of
+/// outward `normal` (ideal pixels; their axes are the image's); [`CLASSES`] when pixels are
+/// not classed (see [`class_mode`]).
+#[inline]
+pub(super) fn pixel_class(normal: &Vector2<f64>, index: usize, width: u32) -> usize {
+    class_in_mode(class_mode(), normal, index, width)
+}
+
+/// [`pixel_class`] in classing mode `mode`.
+fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> usize {
+    let orient = usize::from(normal.y.abs() > normal.x.abs());
+    match mode {
+        0 => CLASSES,
+        1 => 4 * orient,
+        _ => {
+            let w = width.max(1) as usize;
+            4 * orient + (index % w) % 2 + 2 * ((index / w) % 2)
+        }
+    }
+}
+
+/// Tent-weighted sums of profile samples on the nodes.
 #[derive(Debug, Clone)]
-pub struct ProfileLearner {
+struct Nodes {
     weight: Vec<f64>,
     sum: Vec<f64>,
+}
+
+impl Default for Nodes {
+    fn default() -> Self {
+        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES] }
+    }
+}
+
+impl Nodes {
+    /// The mean of node `k`'s samples once it has `min_weight`.
+    fn mean(&self, k: usize, min_weight: f64) -> Option<f64> {
+        (self.weight[k] >= min_weight).then(|| self.sum[k] / self.weight[k])
+    }
+
+    /// Adds value `v` at node coordinate `x` (0 ≤ x < NODES − 1) with tent weights.
+    fn add(&mut self, x: f64, v: f64) {
+        let k = x as usize;
+        let f = x - k as f64;
+        for (node, w) in [(k, 1.0 - f), (k + 1, f)] {
+            self.weight[node] += w;
+            self.sum[node] += w * v;
+        }
+        if self.weight[k].max(self.weight[k + 1]) > MAX_NODE_WEIGHT {
+            self.weight.iter_mut().for_each(|w| *w *= 0.5);
+            self.sum.iter_mut().for_each(|s| *s *= 0.5);
+        }
+    }
+
+    /// The profile of these samples (see the module docs) — its black side pinned to 0, its
+    /// white end to 1, re-centred on its line-spread centroid — or `None` while a node from
+    /// 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`] outside it has less than
+    /// `min_weight`.
+    fn curve(&self, min_weight: f64) -> Option<Vec<f64>> {
+        let known = |k: usize| self.weight[k] >= min_weight;
+        let centre = (RANGE_PX / NODE_PX) as usize;
+        let first = centre - (2.5 / NODE_PX) as usize;
+        let need_last = centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize;
+        if !(first..=need_last).all(known) {
+            return None;
+        }
+        let lo = (0..=first).rev().take_while(|&k| known(k)).last().unwrap_or(first);
+        let hi = (need_last..NODES).take_while(|&k| known(k)).last().unwrap_or(need_last);
+        let mean = |k: usize| self.sum[k] / self.weight[k];
+        let values: Vec<f64> = (0..NODES).map(|k| mean(k.clamp(lo, hi))).collect();
+        // Black side: the nodes 2.25 px and more inside the edge.
+        let black_nodes = lo..=centre - (2.25 / NODE_PX) as usize;
+        let black = black_nodes.clone().map(|k| values[k]).sum::<f64>() / black_nodes.count() as f64;
+        let white = values[hi];
+        if !(white - black > 0.5) {
+            return None;
+        }
+        let raw: Vec<f64> = values.iter().map(|v| (v - black) / (white - black)).collect();
+        let c = centroid_px(&raw);
+        // Re-centred: the table's node k takes the raw profile at node k's distance + c.
+        Some((0..NODES).map(|k| interpolate(&raw, node_d(k) + c).0).collect())
+    }
+}
+
+/// A camera's accumulation of edge samples (see the module docs): pooled, and per pixel
+/// class.
+#[derive(Debug, Clone)]
+pub struct ProfileLearner {
+    pooled: Nodes,
+    classes: Vec<Nodes>,
     edges: u64,
 }
 
 impl Default for ProfileLearner {
     fn default() -> Self {
-        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES], edges: 0 }
+        Self { pooled: Nodes::default(), classes: vec![Nodes::default(); CLASSES], edges: 0 }
     }
 }
 
@@ -184,59 +332,39 @@ impl ProfileLearner {
             if p.white && d + p.gap < WHITE_EDGE_CLEARANCE_PX {
                 continue;
             }
-            let x = (d + RANGE_PX) / NODE_PX;
-            if !(x >= 0.0 && x < (NODES - 1) as f64) {
-                continue;
-            }
-            let v = (image.data[p.index] as f64 - black) / contrast;
-            let k = x as usize;
-            let f = x - k as f64;
-            let near = if f < 0.5 { k } else { k + 1 };
-            if self.weight[near] >= MIN_NODE_WEIGHT && (v - self.sum[near] / self.weight[near]).abs() > MAX_DEVIATION {
-                continue;
-            }
-            // Unweighted: the band's tapers keep the fit continuous; every pixel's value is
-            // as good a sample of the profile.
-            for (node, w) in [(k, 1.0 - f), (k + 1, f)] {
-                self.weight[node] += w;
-                self.sum[node] += w * v;
-            }
+            let v = (pixel_value(image, p.index) - black) / contrast;
+            self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }
-        if self.weight.iter().any(|&w| w > MAX_NODE_WEIGHT) {
-            self.weight.iter_mut().for_each(|w| *w *= 0.5);
-            self.sum.iter_mut().for_each(|s| *s *= 0.5);
+    }
+
+    /// Adds one sample `(d, v)` of a pixel of class `class` (unweighted: the band's tapers
+    /// keep the fit continuous; every pixel's value is as good a sample of the profile).
+    fn add_sample(&mut self, class: usize, d: f64, v: f64) {
+        let x = (d + RANGE_PX) / NODE_PX;
+        if !(x >= 0.0 && x < (NODES - 1) as f64) {
+            return;
+        }
+        let near = if x.fract() < 0.5 { x as usize } else { x as usize + 1 };
+        if self.pooled.mean(near, MIN_NODE_WEIGHT).is_some_and(|m| (v - m).abs() > MAX_DEVIATION) {
+            return;
+        }
+        self.pooled.add(x, v);
+        if let Some(nodes) = self.classes.get_mut(class) {
+            nodes.add(x, v);
         }
     }
 
     /// The profile of the samples so far (see the module docs), or `None` while too few
     /// edges or nodes are known: the nodes from 2.5 px inside the edge to
-    /// [`CENTRE_HALF_WIDTH_PX`] outside it must all be.
+    /// [`CENTRE_HALF_WIDTH_PX`] outside it must all be. A class whose nodes have fewer
+    /// samples ([`MIN_CLASS_NODE_WEIGHT`]) uses the pooled profile.
     pub fn build(&self) -> Option<EdgeProfile> {
         if self.edges < MIN_EDGES {
             return None;
         }
-        let known = |k: usize| self.weight[k] >= MIN_NODE_WEIGHT;
-        let centre = (RANGE_PX / NODE_PX) as usize;
-        let first = centre - (2.5 / NODE_PX) as usize;
-        let need_last = centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize;
-        if !(first..=need_last).all(known) {
-            return None;
-        }
-        let lo = (0..=first).rev().take_while(|&k| known(k)).last().unwrap_or(first);
-        let hi = (need_last..NODES).take_while(|&k| known(k)).last().unwrap_or(need_last);
-        let mean = |k: usize| self.sum[k] / self.weight[k];
-        let values: Vec<f64> = (0..NODES).map(|k| mean(k.clamp(lo, hi))).collect();
-        // Black side: the nodes 2.25 px and more inside the edge.
-        let black_nodes = lo..=centre - (2.25 / NODE_PX) as usize;
-        let black = black_nodes.clone().map(|k| values[k]).sum::<f64>() / black_nodes.count() as f64;
-        let white = values[hi];
-        if !(white - black > 0.5) {
-            return None;
-        }
-        let raw = EdgeProfile { values: values.iter().map(|v| (v - black) / (white - black)).collect(), edges: self.edges };
-        let c = raw.centroid_px();
-        // Re-centred: the table's node k takes the raw profile at node k's distance + c.
-        Some(EdgeProfile { values: (0..NODES).map(|k| raw.value(node_d(k) + c)).collect(), edges: self.edges })
+        let values = self.pooled.curve(MIN_NODE_WEIGHT)?;
+        let classes = self.classes.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect();
+        Some(EdgeProfile { values, classes, edges: self.edges })
     }
 }
 
@@ -284,6 +412,35 @@ mod tests {
             let (a, b) = (gaussian_esf(0.4, shift), gaussian_esf(0.9, shift));
             let s = EdgeProfile::from_fn(|d| 2.0 * a(d) - b(d));
             assert!((s.centroid_px() - shift).abs() < 2e-3, "sharpened, shifted {shift}: {}", s.centroid_px());
+        }
+    }
+
+    #[test]
+    fn each_pixel_class_learns_its_own_profile_and_falls_back_to_the_pooled_one() {
+        // Pixels are classed by the edge's orientation and their mosaic parity.
+        let (vertical_edge, horizontal_edge) = (Vector2::new(-1.0, 0.05), Vector2::new(0.1, 1.0));
+        assert_eq!(class_in_mode(2, &vertical_edge, 2 * 10 + 3, 10), 1);
+        assert_eq!(class_in_mode(2, &vertical_edge, 3 * 10 + 4, 10), 2);
+        assert_eq!(class_in_mode(2, &horizontal_edge, 3 * 10 + 3, 10), 7);
+        assert_eq!(class_in_mode(1, &horizontal_edge, 3 * 10 + 3, 10), 4);
+        assert_eq!(class_in_mode(0, &horizontal_edge, 3 * 10 + 3, 10), CLASSES);
+        // Class 0 sees a sharp edge, class 1 a blurred one, the others none.
+        let (sharp, wide) = (gaussian_esf(0.45, 0.0), gaussian_esf(0.9, 0.0));
+        let mut learner = ProfileLearner::default();
+        for k in 0..6000 {
+            let d = -2.99 + 5.98 * ((k as f64 * 0.618_034) % 1.0);
+            learner.add_sample(0, d, sharp(d));
+            learner.add_sample(1, d, wide(d));
+        }
+        learner.edges = MIN_EDGES;
+        let p = learner.build().expect("enough samples");
+        assert_eq!(p.own_classes(), 2);
+        for d in [-1.0, -0.3, 0.2, 0.8] {
+            assert!((p.class_value_slope(0, d).0 - sharp(d)).abs() < 5e-3, "class 0 at {d}");
+            assert!((p.class_value_slope(1, d).0 - wide(d)).abs() < 5e-3, "class 1 at {d}");
+            assert_eq!(p.class_value_slope(5, d), p.value_slope(d), "class 5 falls back at {d}");
+            let pooled = 0.5 * (sharp(d) + wide(d));
+            assert!((p.value(d) - pooled).abs() < 1e-2, "pooled at {d}: {} against {pooled}", p.value(d));
         }
     }
 }

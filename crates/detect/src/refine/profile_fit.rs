@@ -12,9 +12,10 @@
 
 use nalgebra::{Matrix4, Vector4, Vector5};
 
-use super::band::{reference_levels, BandPixel, EdgeBand};
+use super::band::{band_values, reference_levels, BandPixel, EdgeBand};
 use super::fit::{finish, Line};
-use super::profile::EdgeProfile;
+use super::lm::{minimize, EdgeModel};
+use super::profile::{pixel_class, EdgeProfile};
 use tagdeflect_core::frame::GrayImage;
 
 /// The along-edge factor of the white data bits' inner edge (see `fit::along_white`) through
@@ -39,30 +40,37 @@ pub(super) fn fit_band_profile(image: &GrayImage, band: &EdgeBand, warm: Option<
     if contrast0.abs() < 4.0 {
         return None;
     }
-    let values: Vec<f64> = band.pixels.iter().map(|p| image.data[p.index] as f64).collect();
+    let values = band_values(image, band);
     let [bl, c, blur] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
     let aw: Vec<f64> = band.pixels.iter().map(|p| if p.white { along_white(profile, band, p.t, p.cell as usize) } else { 0.0 }).collect();
-    let (x, cost) = lm(band, &values, &aw, profile, Vector4::new(0.0, 0.0, bl, c));
+    let classes: Vec<usize> = band.pixels.iter().map(|p| pixel_class(&band.normal, p.index, image.width)).collect();
+    let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &classes, profile };
+    let (x, cost) = lm(band, &data, Vector4::new(0.0, 0.0, bl, c));
     let EdgeBand { a, dir, normal, bit_px, .. } = *band;
     finish(&Vector5::new(x[0], x[1], x[2], x[3], blur), &band.pixels, cost, contrast0, bit_px, a, dir, normal)
 }
 
+/// What a profile fit runs on: the band's pixels, their values, along-edge white factors and
+/// pixel classes, and the profile.
+struct ProfileData<'a> {
+    pixels: &'a [BandPixel],
+    values: &'a [f64],
+    aw: &'a [f64],
+    classes: &'a [usize],
+    profile: &'a EdgeProfile,
+}
+
 /// The weighted cost, JᵀWJ and JᵀWr of the model at `x` = (angle, offset, B, C).
-fn normal_equations(
-    pixels: &[BandPixel],
-    values: &[f64],
-    aw: &[f64],
-    profile: &EdgeProfile,
-    x: &Vector4<f64>,
-) -> (f64, Matrix4<f64>, Vector4<f64>) {
+fn normal_equations(data: &ProfileData<'_>, x: &Vector4<f64>) -> (f64, Matrix4<f64>, Vector4<f64>) {
     let (sn, cs) = x[0].sin_cos();
     let (off, bl, c) = (x[1], x[2], x[3]);
     let (mut cost, mut jtj, mut jtr) = (0.0, Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
-    for ((s, &value), &wa) in pixels.iter().zip(values).zip(aw) {
+    let profile = data.profile;
+    for (((s, &value), &wa), &class) in data.pixels.iter().zip(data.values).zip(data.aw).zip(data.classes) {
         let n = s.n * cs + s.t * sn - off;
-        let (mut val, mut slope) = profile.value_slope(n);
+        let (mut val, mut slope) = profile.class_value_slope(class, n);
         if wa > 0.0 {
-            let (v2, s2) = profile.value_slope(-n - s.gap);
+            let (v2, s2) = profile.class_value_slope(class, -n - s.gap);
             val += wa * v2;
             slope -= wa * s2;
         }
@@ -78,38 +86,51 @@ fn normal_equations(
 }
 
 /// Levenberg–Marquardt over (angle, offset, B, C) from `x`: the parameters and the cost.
-fn lm(band: &EdgeBand, values: &[f64], aw: &[f64], profile: &EdgeProfile, mut x: Vector4<f64>) -> (Vector4<f64>, f64) {
-    let eq = |x: &Vector4<f64>| normal_equations(&band.pixels, values, aw, profile, x);
-    let (mut current, mut jtj, mut jtr) = eq(&x);
-    let mut lambda = 1e-6;
-    for _ in 0..40 {
-        let mut damped = jtj;
-        for d in 0..4 {
-            damped[(d, d)] += lambda * jtj[(d, d)].max(1e-9);
-        }
-        let Some(step) = damped.cholesky().map(|ch| ch.solve(&(-jtr))) else {
-            lambda *= 10.0;
-            if lambda > 1e8 {
-                break;
-            }
-            continue;
-        };
-        let cand = x + step;
-        // Converged as the parametric fit is (see `fit::FitData::lm`).
-        if step[0].abs() * band.len + step[1].abs() < 1e-3 {
-            x = cand;
-            break;
-        }
-        let (cost, j2, r2) = eq(&cand);
-        if cost.is_finite() && cost <= current {
-            (x, current, jtj, jtr) = (cand, cost, j2, r2);
-            lambda = (lambda * 0.1).max(1e-9);
-        } else {
-            lambda *= 10.0;
-            if lambda > 1e8 {
-                break;
+fn lm(band: &EdgeBand, data: &ProfileData<'_>, x: Vector4<f64>) -> (Vector4<f64>, f64) {
+    minimize(&ProfileModel { data, len: band.len }, x)
+}
+
+/// The profile model as an [`EdgeModel`]; `len` the edge's length (px).
+struct ProfileModel<'a> {
+    data: &'a ProfileData<'a>,
+    len: f64,
+}
+
+impl EdgeModel<4> for ProfileModel<'_> {
+    fn normal_equations(&self, x: &Vector4<f64>) -> (f64, Matrix4<f64>, Vector4<f64>) {
+        normal_equations(self.data, x)
+    }
+
+    /// Converged as the parametric fit is (see `fit::StepModel`).
+    fn converged(&self, step: &Vector4<f64>) -> bool {
+        step[0].abs() * self.len + step[1].abs() < 1e-3
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::band::one_pixel_band;
+    use super::super::lm::check_one_pixel_jacobian;
+    use super::*;
+
+    #[test]
+    fn the_profile_models_jacobian_matches_finite_differences() {
+        // A sharpened edge's profile (it overshoots), tabulated.
+        let esf = |d: f64, s: f64| 1.0 / (1.0 + (-d / s).exp());
+        let profile = EdgeProfile::from_fn(|d| 2.0 * esf(d, 0.3) - esf(d, 0.6));
+        for (t, n, white) in [(6.0, -0.4, true), (9.3, 0.7, true), (14.0, -1.2, false), (2.5, 0.3, false)] {
+            let band = one_pixel_band(t, n, white);
+            let aw = [if white { 0.83 } else { 0.0 }];
+            let values = [250.0];
+            let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[3], profile: &profile };
+            let model = ProfileModel { data: &data, len: band.len };
+            for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
+                let p = band.pixels[0];
+                let nn = p.n * x[0].cos() + p.t * x[0].sin() - x[1];
+                let val = profile.value(nn) + aw[0] * profile.value(-nn - p.gap);
+                let r = x[2] + x[3] * val - values[0];
+                check_one_pixel_jacobian(&model, &x, p.weight, r, 1e-4);
             }
         }
     }
-    (x, current)
 }

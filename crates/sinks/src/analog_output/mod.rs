@@ -24,6 +24,7 @@ pub mod config;
 mod device;
 pub mod labjack_watchdog;
 mod probe;
+mod summary;
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -40,6 +41,7 @@ pub use device::DeviceFault;
 pub use probe::{probe, Identity, Probe, WriteTest, LABJACK_PRODUCT_ID, LABJACK_SERIAL_NUMBER};
 
 use crate::signal::{SignalRule, SignalState};
+use crate::signal_log::SignalLog;
 use crate::{Finished, LineSink};
 use device::Device;
 
@@ -117,6 +119,8 @@ struct Shared {
     superseded: AtomicU64,
     stopped: AtomicBool,
     status: Mutex<AnalogStatus>,
+    /// The tests served so far (`control.json`).
+    log: Mutex<SignalLog>,
 }
 
 /// What the device should show now.
@@ -229,9 +233,12 @@ impl Task {
             if st.acks.len() < MAX_ACKS {
                 st.acks.push((seq, Instant::now()));
             }
+            let latency_ms = (tagdeflect_core::clock::now_epoch_ns() - t_ns) as f64 * 1e-6;
             if st.latencies_ms.len() < MAX_LATENCIES {
-                st.latencies_ms.push(((tagdeflect_core::clock::now_epoch_ns() - t_ns) as f64 * 1e-6) as f32);
+                st.latencies_ms.push(latency_ms as f32);
             }
+            drop(st);
+            self.shared.log().written(seq, latency_ms);
         }
         Ok(())
     }
@@ -268,6 +275,7 @@ impl Task {
                 if self.outage.is_none() {
                     tracing::error!(retry_in_ms = delay.as_millis() as u64, "{reason} (retrying with backoff; logged once per outage)");
                     self.shared.status().outages += 1;
+                    self.shared.log().outage();
                 } else {
                     tracing::debug!(retry_in_ms = delay.as_millis() as u64, "{reason}");
                 }
@@ -324,6 +332,7 @@ impl AnalogOutput {
             superseded: AtomicU64::new(0),
             stopped: AtomicBool::new(false),
             status: Mutex::new(AnalogStatus::default()),
+            log: Mutex::new(SignalLog::default()),
         });
         let task = Task {
             shared: shared.clone(),
@@ -347,9 +356,10 @@ impl AnalogOutput {
 
     /// Takes one feed line (never waits for the device).
     pub fn take_line(&self, line: &FeedLine) {
-        let taken = self.shared.signal.lock().expect("analog state").take_line(&self.shared.rule, line, Instant::now());
-        if taken.is_some() && self.shared.pending.swap(true, Ordering::Relaxed) {
+        let taken = self.shared.take_and_log(line);
+        if taken && self.shared.pending.swap(true, Ordering::Relaxed) {
             self.shared.superseded.fetch_add(1, Ordering::Relaxed);
+            self.shared.log().superseded();
         }
         self.wake.notify_one();
     }

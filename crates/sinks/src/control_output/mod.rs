@@ -29,6 +29,7 @@
 //! heartbeat stops with it).
 
 pub mod config;
+mod summary;
 
 use std::io;
 use std::net::SocketAddr;
@@ -81,6 +82,10 @@ struct State {
 
 struct Shared {
     rule: SignalRule,
+    /// Where it serves, in words (`control.json`).
+    target: String,
+    /// The tests served so far (`control.json`).
+    log: Mutex<crate::signal_log::SignalLog>,
     state: Mutex<State>,
     heartbeat: AtomicU16,
     stopped: AtomicBool,
@@ -93,6 +98,8 @@ impl Shared {
     fn new(config: &ControlConfig, heartbeat: u16) -> Shared {
         Shared {
             rule: config.rule(),
+            target: format!("Modbus TCP input registers served on {}", config.modbus),
+            log: Mutex::default(),
             state: Mutex::new(State { signal: SignalState::default(), latencies_ms: Vec::new() }),
             heartbeat: AtomicU16::new(heartbeat),
             stopped: AtomicBool::new(false),
@@ -101,9 +108,12 @@ impl Shared {
 
     fn take_line(&self, line: &FeedLine, arrived: Instant, now_ns: i64) {
         let mut st = self.state.lock().expect("control state");
-        if st.signal.take_line(&self.rule, line, arrived).is_some() && st.latencies_ms.len() < MAX_LATENCIES {
-            st.latencies_ms.push(((now_ns - line.t_ns) as f64 * 1e-6) as f32);
+        let taken = st.signal.take_line(&self.rule, line, arrived).is_some();
+        let latency_ms = (now_ns - line.t_ns) as f64 * 1e-6;
+        if taken && st.latencies_ms.len() < MAX_LATENCIES {
+            st.latencies_ms.push(latency_ms as f32);
         }
+        self.log_line(&st.signal, line, taken, latency_ms);
     }
 
     fn registers(&self, now: Instant, now_ns: i64) -> [u16; REGISTERS] {

@@ -176,6 +176,9 @@ impl LabTests {
         record.lines = count_lines(&folder.join("feed.jsonl")).map_err(|e| io("feed.jsonl", e))?;
         record.utm_samples = count_lines(&folder.join("utm.jsonl")).map_err(|e| io("utm.jsonl", e))?;
         write_durably(&folder.join("tagdeflect.toml"), self.config_text.as_bytes()).map_err(|e| io("tagdeflect.toml", e))?;
+        if let Some(Err(e)) = self.folder_files.get().map(|hook| hook(folder, record)) {
+            tracing::error!(test = %record.id, "{e}");
+        }
         let mut report_error = None;
         if record.meta.standard.is_some() {
             if let Some(hook) = &self.report {

@@ -71,7 +71,7 @@ pub use meta::{TestError, TestMeta, STANDARDS};
 pub use record::{EarlierTest, Stopped, TestRecord, EARLIER_POINTS, EARLIER_TESTS};
 pub use specimens::parse_specimens;
 pub use start::{standard_requires, NEXT};
-pub use state::{LabTests, RecordHook, ReportError, ReportHook};
+pub use state::{FolderHook, LabTests, RecordHook, ReportError, ReportHook};
 pub use steps::LabTestSink;
 pub use verification::VerificationCheck;
 pub use zero::ZERO_SETS;

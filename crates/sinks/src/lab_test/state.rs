@@ -19,6 +19,10 @@ pub type ReportError = Box<dyn std::error::Error + Send + Sync>;
 /// Made by the binary: writes `folder/report/` for a stopped test with a standard.
 pub type ReportHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), ReportError> + Send + Sync>;
 
+/// Made by the binary: writes its own files into a stopped test's folder before the report
+/// and the hashes (the control outputs' `control.json`). An error is logged, never fatal.
+pub type FolderHook = Box<dyn Fn(&Path, &TestRecord) -> Result<(), ReportError> + Send + Sync>;
+
 /// Made by the binary: hands a test's record on (the MQTT publisher's `<topic>/labtest/<id>`)
 /// at its start, every event and its stop. Must not block.
 pub type RecordHook = Box<dyn Fn(&TestRecord) + Send + Sync>;
@@ -93,6 +97,8 @@ pub struct LabTests {
     pub(super) audit: Mutex<tagdeflect_core::audit::AuditLog>,
     /// The check of the verification in force (`[verification]`), if one is configured.
     pub(super) verification: std::sync::OnceLock<super::verification::VerificationCheck>,
+    /// The binary's own files of a stopped test ([`FolderHook`]).
+    pub(super) folder_files: std::sync::OnceLock<FolderHook>,
 }
 
 impl LabTests {
@@ -123,6 +129,7 @@ impl LabTests {
             written: Condvar::new(),
             audit: Mutex::new(audit),
             verification: std::sync::OnceLock::new(),
+            folder_files: std::sync::OnceLock::new(),
         };
         tests.read_earlier();
         let stopping = tests.resume()?;
@@ -131,6 +138,12 @@ impl LabTests {
             tests.complete_at_start(r);
         }
         Ok(tests)
+    }
+
+    /// Installs the hook that writes the binary's own files into each stopped test's folder
+    /// (the first one set stays).
+    pub fn set_folder_files(&self, hook: FolderHook) {
+        let _ = self.folder_files.set(hook);
     }
 
     /// The folder tests are kept in.
