@@ -10,7 +10,7 @@ use tagdeflect_calibrate::render::{render_target, RenderOptions};
 use tagdeflect_calibrate::report::{opencv_yaml, uncertainty_at, Coverage};
 use tagdeflect_calibrate::solve::{to_vector, SolveOptions, View, PARAM_NAMES};
 use tagdeflect_calibrate::target::{TargetDetector, TargetSpec, CORNER_BIAS_REFERENCE_BIT_PX};
-use tagdeflect_calibrate::{calibrate_target_views, calibrate_views, detect_views, image_files, CalibrationRun};
+use tagdeflect_calibrate::{calibrate_target_views, calibrate_views, detect_views, image_files, view_spread, CalibrationRun};
 use tagdeflect_core::camera::{CameraIntrinsics, Pose};
 
 fn realdata() -> PathBuf {
@@ -134,6 +134,23 @@ fn opencv_left_samples_fx_depends_on_the_views_beyond_its_sigma() {
     // several times the stated σ, and the policy's shift lies within ~2 jackknife σ.
     assert!(jack > 2.0 * sigma_kept, "jackknife ± {jack} vs the fit's ± {sigma_kept}");
     assert!((fx_all - fx_kept).abs() < 2.5 * jack, "the policy's shift {} vs jackknife ± {jack}", fx_all - fx_kept);
+    // `calibrate` prints the same spread (ViewSpread) and says when σ understates. With every
+    // point it is the jackknife above, to the digit, and it says so for fx.
+    let every = view_spread(&all, &o).expect("13 views give a spread");
+    eprint!("every point: {}", every.text());
+    assert_eq!(every.fits, views.len());
+    assert!((every.spread_px[0] - jack).abs() < 1e-9, "{} vs {jack}", every.spread_px[0]);
+    assert!(every.understated().contains(&"fx"), "{:?}", every.understated());
+    assert!(every.text().contains("WARNING the views disagree on fx"), "{}", every.text());
+    // Over the views the outlier policy kept (what `calibrate` prints by default), left02's off
+    // corners are gone: the views agree on fx to ~1.3σ, and on the principal point they do not
+    // (measured cx 3.4σ, cy 1.9σ), which is said.
+    let kept_spread = view_spread(&kept, &o).expect("13 views give a spread");
+    eprint!("outlier policy: {}", kept_spread.text());
+    assert_eq!(kept_spread.sigma_px[0], sigma_kept);
+    assert!(kept_spread.ratio(0).is_some_and(|r| r < 2.0), "fx {:?}", kept_spread.ratio(0));
+    assert!(kept_spread.understated().contains(&"cx"), "{:?}", kept_spread.understated());
+    assert!(kept_spread.text().contains("WARNING the views disagree on cx"), "{}", kept_spread.text());
 }
 
 /// The right views against the stereo sample's M2/D2 (informative: that file comes from a
@@ -637,6 +654,8 @@ fn command_line_on_the_left_samples() {
     assert_eq!(o.status.code(), Some(3));
     assert!(stdout.contains("verdict: POOR"));
     assert!(stdout.contains("fx  =") && stdout.contains("(1σ)") && stdout.contains("calibration = \"") && stdout.contains("deflection ±"));
+    // The spread across views beside σ, and the warning that σ understates fx (issue 45, 16).
+    assert!(stdout.contains("across views (each of 13 views") && stdout.contains("WARNING the views disagree on cx"), "{stdout}");
     let k = load_calibration(&out).unwrap();
     assert!((k.fx / 535.9157 - 1.0).abs() < 0.005);
     let png = dir.path().join("left.yaml.coverage.png");

@@ -451,18 +451,19 @@ fn softening_four_point_test_replays_with_gauges_and_clock_offset() {
         );
         assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
-    // Floors ~1.4 × the figures measured on this seed (0.0028 mm, 0.212 mrad, 0.138 1/km;
-    // since the simulated optics blur before the pixels integrate: net 0.0008 mm, curvature
-    // 0.038 1/km, the end rotation 0.212 mrad from 0.147, most of it the reference set's
-    // error, common to every line — see `ROTATION_VARIANCE_FACTOR`).
-    assert!(c.rms("net") <= 0.004, "net deflection RMS {} mm", c.rms("net"));
+    // Floors ~1.4 × the worst of three runs on this seed (2026-12-06, load 14–20 on 2 cores:
+    // net 0.00119 mm, curvature 0.0336 1/km, the end rotation 0.228 mrad — every run the same
+    // figures); the rotation's floor stays at 1.3 ×: most of its error is the reference set's,
+    // common to every line — see `ROTATION_VARIANCE_FACTOR`. docs/accuracy.md.
+    assert!(c.rms("net") <= 0.0017, "net deflection RMS {} mm", c.rms("net"));
     assert!(c.rms("rot1") <= 0.30, "end rotation RMS {} mrad", c.rms("rot1"));
-    assert!(c.rms("curv") <= 0.19, "curvature RMS {} 1/km", c.rms("curv"));
+    assert!(c.rms("curv") <= 0.047, "curvature RMS {} 1/km", c.rms("curv"));
     let (ok, n) = c.within_2sigma();
     println!("GAUGES softening 4-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
-    // σ honest both ways (measured 70 of 72, RMS error/σ 0.85; a doubled σ gives ~0.43).
+    // σ honest both ways (measured 65 of 72, RMS error/σ 1.20, 2026-12-06; a doubled σ gives 0.60,
+    // under the 0.75 asserted).
     assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
-    assert!((0.6..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
+    assert!((0.75..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
 
     // Clock: the UTM is stamped 80 ms ahead.
     let from_utm = estimate_from_utm(&lines, &recording.utm, 1000.0);
@@ -508,10 +509,11 @@ fn notched_three_point_test_replays_with_cmod() {
         println!("GAUGES notched 3-point {name}: RMS {:.5}, max {:.5} over {} lines", c.rms(name), c.max(name), c.errors[name].len());
         assert_eq!(c.errors[name].len(), lines.len(), "{name} in every line");
     }
-    // Floors ~1.4 × the figures measured on this seed (0.0058 mm, 0.0068 mm, 0.103 mrad).
-    assert!(c.rms("net") <= 0.0082, "net deflection RMS {} mm", c.rms("net"));
-    assert!(c.rms("cmod") <= 0.0095, "CMOD RMS {} mm", c.rms("cmod"));
-    assert!(c.rms("rot1") <= 0.145, "end rotation RMS {} mrad", c.rms("rot1"));
+    // Floors ~1.4 × the worst of three runs on this seed (2026-12-06, load 14–20 on 2 cores:
+    // net 0.00207 mm, CMOD 0.00412 mm, end rotation 0.0826 mrad — every run the same figures).
+    assert!(c.rms("net") <= 0.0029, "net deflection RMS {} mm", c.rms("net"));
+    assert!(c.rms("cmod") <= 0.0058, "CMOD RMS {} mm", c.rms("cmod"));
+    assert!(c.rms("rot1") <= 0.116, "end rotation RMS {} mrad", c.rms("rot1"));
     // Against the physical mouth opening of the truth file, line by line.
     let worst =
         lines.iter().map(|l| (l.gauges["cmod"].value - rig.cmod_at(rig.midspan_deflection(l.t_ns)).unwrap()).abs()).fold(0.0, f64::max);
@@ -519,9 +521,9 @@ fn notched_three_point_test_replays_with_cmod() {
     assert!(worst <= 0.06, "{worst}");
     let (ok, n) = c.within_2sigma();
     println!("GAUGES notched 3-point: {ok} of {n} errors within 2σ, RMS error/σ {:.2}", c.z_rms());
-    // σ honest both ways (measured 47 of 48, RMS error/σ 0.98).
+    // σ honest both ways (measured 43 of 48, RMS error/σ 1.12, 2026-12-06; a doubled σ gives 0.56).
     assert!(ok as f64 >= 0.85 * n as f64, "σ honest: {ok} of {n} within 2σ");
-    assert!((0.6..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
+    assert!((0.75..=1.3).contains(&c.z_rms()), "RMS error/σ {:.3}", c.z_rms());
     // No clock check here: this test cracks on its second loaded frame set (two points
     // before the peak), too few for the pre-peak fit; the clock check is asserted on the
     // four-point test above (80 ms), where the ramp has 13 points.

@@ -4,7 +4,8 @@
 //! [`target`] parses `--target` and finds the target in an image; [`solve`] runs Zhang's
 //! closed-form start and the Levenberg–Marquardt fit over all views with the product's camera
 //! model; [`calibrate_views`] adds the outlier policy, [`calibrate_target_views`] the tag
-//! corners' systematic bias to the σ; [`report`] makes the coverage map, the
+//! corners' systematic bias to the σ; [`spread`] the spread of the intrinsics across the views
+//! (each left out in turn) beside that σ; [`report`] makes the coverage map, the
 //! uncertainty at a distance and the OpenCV FileStorage file; [`live_views`] grabs views from a
 //! camera whose frames the caller supplies; [`render`] renders targets with known intrinsics
 //! for tests. Errors are [`CalibrateError`]s, which tell bad input from runtime failures.
@@ -31,6 +32,7 @@ mod outputs;
 pub mod render;
 pub mod report;
 pub mod solve;
+pub mod spread;
 pub mod target;
 mod views;
 
@@ -38,4 +40,5 @@ pub use command::{calibrate_folder, calibrate_guarded, calibrate_live, run};
 pub use error::{CalibrateError, GrabError};
 pub use fit::{calibrate_target_views, calibrate_views, tag_corner_bias, CalibrationRun, Rejected};
 pub use options::{check_options, CalibrateOptions};
+pub use spread::{view_spread, ViewSpread};
 pub use views::{detect_views, detect_views_seen, detect_views_seen_with, image_files, Detected};

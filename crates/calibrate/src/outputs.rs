@@ -11,10 +11,12 @@ use crate::fit::{CalibrationRun, Rejected};
 use crate::options::CalibrateOptions;
 use crate::report::{uncertainty_at, Coverage};
 use crate::solve::{Calibration, View, PARAM_NAMES};
+use crate::spread::{view_spread, ViewSpread};
 use crate::target::TargetSpec;
 use crate::{guard, report, solve};
 
 /// The text report of a calibration (what `tagdeflect calibrate` prints).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn report_text(
     run: &CalibrationRun,
     not_found: &[Rejected],
@@ -23,6 +25,7 @@ pub(crate) fn report_text(
     target: &str,
     verdict: &guard::Verdict,
     notes: &[String],
+    spread: Option<&ViewSpread>,
 ) -> String {
     let c = &run.calibration;
     let k = &c.intrinsics;
@@ -46,6 +49,9 @@ pub(crate) fn report_text(
             st[0],
             sy[0]
         );
+    }
+    if let Some(sp) = spread {
+        out.push_str(&sp.text());
     }
     let _ = writeln!(
         out,
@@ -145,7 +151,8 @@ pub(crate) fn write_outputs(
     });
     let per_view: Vec<Vec<Point2<f64>>> = run.views.iter().map(|v| v.image.clone()).collect();
     coverage.write_png(&cov_path, k.width, k.height, &per_view).map_err(|cause| CalibrateError::Write { path: cov_path.clone(), cause })?;
-    let mut text = report_text(run, not_found, &coverage, distance, &spec.describe(), &verdict, notes);
+    let spread = view_spread(run, &opts.solve_options());
+    let mut text = report_text(run, not_found, &coverage, distance, &spec.describe(), &verdict, notes, spread.as_ref());
     let _ = writeln!(text, "wrote {} and the coverage map {}", opts.out.display(), cov_path.display());
     let _ = writeln!(text, "config snippet (in the camera's [[camera]] section, instead of fx/fy/cx/cy/dist):");
     let _ = writeln!(text, "  calibration = \"{}\"", opts.out.display());

@@ -25,6 +25,7 @@ use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 
 use crate::error::ReportError;
+use crate::feed_summary::LineSummary;
 
 /// Physical ranges of a feed's values (`[report] max_load_kn`, `max_length_mm`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -82,6 +83,10 @@ pub struct Feed {
     pub warnings: Vec<String>,
     /// `(index from 1, runs in the file)` when the file held several runs.
     pub run: Option<(usize, usize)>,
+    /// What the lines said that is kept only in sum: the cameras' health, the gauges' units
+    /// (the held lines carry no `cameras` and no unit equal to their gauge's first; see
+    /// [`crate::feed_summary`]).
+    pub summary: LineSummary,
 }
 
 impl Feed {
@@ -135,7 +140,14 @@ impl Feed {
     }
 
     fn empty(path: &Path) -> Feed {
-        Feed { path: path.to_path_buf(), lines: Vec::new(), line_numbers: Vec::new(), warnings: Vec::new(), run: None }
+        Feed {
+            path: path.to_path_buf(),
+            lines: Vec::new(),
+            line_numbers: Vec::new(),
+            warnings: Vec::new(),
+            run: None,
+            summary: LineSummary::default(),
+        }
     }
 
     /// Gauge names in order of first appearance.
@@ -154,7 +166,7 @@ impl Feed {
 
     /// The unit of a gauge (from its first reading that names one).
     pub(crate) fn gauge_unit(&self, name: &str) -> Option<String> {
-        self.lines.iter().find_map(|l| l.gauges.get(name).filter(|g| !g.unit.is_empty()).map(|g| g.unit.clone()))
+        self.summary.gauge_units.get(name).cloned()
     }
 
     /// Tag ids seen, sorted.
@@ -217,7 +229,7 @@ impl<'a> Runs<'a> {
         };
         check_values(&l, &self.opts.limits).map_err(|e| self.bad(no, e.to_string()))?;
         self.follow(no, &l)?;
-        compact(&mut l);
+        compact(&mut l, &mut self.cur.summary);
         self.cur.lines.push(l);
         self.cur.line_numbers.push(no);
         Ok(())
@@ -306,10 +318,11 @@ impl<'a> Runs<'a> {
     }
 }
 
-/// A parsed line held for the whole report: its lists without spare capacity.
-fn compact(l: &mut FeedLine) {
+/// A parsed line held for the whole report: what is kept only in sum folded into `summary`
+/// and dropped, its lists without spare capacity.
+fn compact(l: &mut FeedLine, summary: &mut LineSummary) {
+    summary.fold(l);
     l.tags.shrink_to_fit();
-    l.cameras.shrink_to_fit();
     l.events.shrink_to_fit();
 }
 
@@ -443,7 +456,8 @@ mod tests {
         assert_eq!(feed.gauge_names(), vec!["cmod".to_string()]);
         assert_eq!(feed.gauge_unit("cmod").as_deref(), Some("mm"), "from the first line that names one");
         assert_eq!(feed.lines[1].gauges["cmod"].known_sigma(), None);
-        assert!(feed.lines[1].cameras[0].frame && feed.lines[1].cameras[0].posed);
+        assert_eq!(feed.summary.cameras["left"], crate::feed_summary::CameraTally::default(), "framed and posed by default");
+        assert!(feed.lines.iter().all(|l| l.cameras.is_empty() && l.gauges.values().all(|g| g.unit.is_empty())), "kept in sum only");
         assert_eq!(feed.tag_ids(), vec![4]);
         let e = parse("{\"seq\":0,\"t_ns\":\"soon\"}\n").unwrap_err();
         assert!(e.to_string().starts_with("f.jsonl:1: not a feed line"), "{e}");

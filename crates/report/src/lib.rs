@@ -25,6 +25,7 @@ mod curve;
 pub mod en14651;
 mod error;
 mod feed_reader;
+pub mod feed_summary;
 mod html;
 mod load_spikes;
 pub mod method_statement;

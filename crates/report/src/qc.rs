@@ -112,23 +112,6 @@ pub struct Qc {
     pub warnings: Vec<String>,
 }
 
-/// Lines where a field is present and non-zero, and its largest absolute value.
-type Presence = BTreeMap<String, (usize, Option<f64>)>;
-
-/// A numeric drift field present in a line.
-fn count_value(map: &mut Presence, field: String, x: f64) {
-    let e = map.entry(field).or_insert((0, None));
-    if x != 0.0 {
-        e.0 += 1;
-    }
-    e.1 = Some(e.1.unwrap_or(0.0).max(x.abs()));
-}
-
-/// A flag present (true) in a line.
-fn count_flag(map: &mut Presence, field: String) {
-    map.entry(field).or_insert((0, None)).0 += 1;
-}
-
 impl Qc {
     /// The QC of a feed and the curve made from it.
     pub(crate) fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str, opts: &crate::ReportConfig) -> Qc {
@@ -171,35 +154,27 @@ impl Qc {
             utm_outages.push(Outage { from_t_ns: f, to_t_ns: last_t_ns, duration_s: (last_t_ns - f) as f64 * 1e-9 });
         }
 
-        let mut cams: BTreeMap<String, CameraEvents> = BTreeMap::new();
-        let mut fields = Presence::new();
-        let mut clock_offset = None;
-        for l in lines {
-            for c in &l.cameras {
-                let e = cams.entry(c.name.clone()).or_insert(CameraEvents {
-                    camera: c.name.clone(),
-                    bumps: 0,
-                    lines_without_frame: 0,
-                    lines_unposed: 0,
-                });
-                e.bumps += c.bumped as usize;
-                e.lines_without_frame += (!c.frame) as usize;
-                e.lines_unposed += (!c.posed) as usize;
-                let field = |k: &str| format!("camera.{}.{k}", c.name);
-                if let Some(x) = c.drift_deg {
-                    count_value(&mut fields, field("drift_deg"), x);
-                }
-                if let Some(x) = c.drift_mm {
-                    count_value(&mut fields, field("drift_mm"), x);
-                }
-                if c.stale_pose {
-                    count_flag(&mut fields, field("stale_pose"));
-                }
-            }
-            if let Some(c) = &l.clock_offset_ms {
-                clock_offset = Some(serde_json::json!({ "field": "clock_offset_ms", "value": c }));
-            }
-        }
+        // The cameras' health was counted as the lines were read (crate::feed_summary).
+        let cams: BTreeMap<String, CameraEvents> = feed
+            .summary
+            .cameras
+            .iter()
+            .map(|(name, t)| {
+                let e = CameraEvents {
+                    camera: name.clone(),
+                    bumps: t.bumps,
+                    lines_without_frame: t.lines_without_frame,
+                    lines_unposed: t.lines_unposed,
+                };
+                (name.clone(), e)
+            })
+            .collect();
+        let fields = feed.summary.camera_fields.clone();
+        let clock_offset = lines
+            .iter()
+            .rev()
+            .find_map(|l| l.clock_offset_ms.as_ref())
+            .map(|c| serde_json::json!({ "field": "clock_offset_ms", "value": c }));
         let drift_and_stale: Vec<FieldSummary> =
             fields.into_iter().map(|(field, (lines, max_abs))| FieldSummary { field, lines, max_abs }).collect();
 

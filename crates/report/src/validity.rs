@@ -378,6 +378,7 @@ mod tests {
                 line_numbers: (1..=n).collect(),
                 warnings: Vec::new(),
                 run: None,
+                summary: Default::default(),
             };
             let x_name = if self.standard == Standard::En14651 { "CMOD" } else { "net deflection" };
             check(&Input {
