@@ -187,7 +187,7 @@ pub(super) fn fit_band(image: &GrayImage, band: &EdgeBand, warm: Option<[f64; 3]
     if contrast0.abs() < 4.0 {
         return None;
     }
-    let values: Vec<f64> = band.pixels.iter().map(|p| image.data[p.index] as f64).collect();
+    let values: Vec<f64> = band.pixels.iter().map(|p| f64::from(image.level(p.index))).collect();
     let [bl, c, eff] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
     let table: &[[f64; 8]] = &PHI_TABLE;
     // The white bits' inner edge along the edge, at the blur the fit starts from (the edge's

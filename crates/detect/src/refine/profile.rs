@@ -188,7 +188,7 @@ impl ProfileLearner {
             if !(x >= 0.0 && x < (NODES - 1) as f64) {
                 continue;
             }
-            let v = (image.data[p.index] as f64 - black) / contrast;
+            let v = (f64::from(image.level(p.index)) - black) / contrast;
             let k = x as usize;
             let f = x - k as f64;
             let near = if f < 0.5 { k } else { k + 1 };

@@ -39,7 +39,7 @@ pub(super) fn fit_band_profile(image: &GrayImage, band: &EdgeBand, warm: Option<
     if contrast0.abs() < 4.0 {
         return None;
     }
-    let values: Vec<f64> = band.pixels.iter().map(|p| image.data[p.index] as f64).collect();
+    let values: Vec<f64> = band.pixels.iter().map(|p| f64::from(image.level(p.index))).collect();
     let [bl, c, blur] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
     let aw: Vec<f64> = band.pixels.iter().map(|p| if p.white { along_white(profile, band, p.t, p.cell as usize) } else { 0.0 }).collect();
     let (x, cost) = lm(band, &values, &aw, profile, Vector4::new(0.0, 0.0, bl, c));
