@@ -304,3 +304,27 @@ fn pgm_recordings_replay_like_png_ones() {
     let text = cfg2.to_toml_string();
     assert!(text.contains("record_format = \"pgm\""), "{text}");
 }
+
+/// The recorder keeps the depth: `record` from a live (simulated) 12-bit camera writes 16-bit
+/// PNG frames with sBIT 12, which replay at full depth.
+#[test]
+fn the_recorder_keeps_the_full_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, bit_depth: 12, noise_sigma: 0.5, ..SimParams::default() };
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, tagdeflect::config::Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap()).to_toml_string()).unwrap();
+    let rec_dir = dir.path().join("rec");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["record", "--config", cfg_path.to_str().unwrap(), "--out", rec_dir.to_str().unwrap(), "--duration-s", "1.5"])
+        .env("TAGDEFLECT_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rec = Recording::open(&rec_dir).unwrap();
+    assert!(!rec.frames.is_empty());
+    for f in &rec.frames {
+        assert_eq!(png_depth_and_sbit(&fs::read(rec_dir.join(&f.file)).unwrap()), (16, 0, Some(12)), "{}", f.file);
+        let img = rec.load_image(f).unwrap();
+        assert_eq!(img.deep.as_ref().map(|d| d.bits), Some(12), "{}", f.file);
+    }
+}
