@@ -15,6 +15,7 @@ use crate::config::Config;
 use crate::config::Recording;
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::frame::FrameSet;
+use tagdeflect_core::verification::CameraPlacement;
 use tagdeflect_estimate::measure::Measurement;
 use tagdeflect_io::sync::FrameSetAssembler;
 
@@ -90,7 +91,6 @@ pub fn check_config(path: &Path, write_test: bool) -> Result<()> {
         config.background.tags.len(),
         config.specimen.tags.len()
     );
-    check_verification(&config)?;
     if let Some(w) = config.output.token_file_warning() {
         println!("  warning: {w}");
     }
@@ -110,7 +110,12 @@ pub fn check_config(path: &Path, write_test: bool) -> Result<()> {
     if let Some(u) = &config.utm {
         check_utm(u);
     }
-    report(&config, &[set])
+    // The verification in force is judged with the cameras where they are now (a camera
+    // moved since it was verified makes it stale), whatever the pose check below says.
+    let mut placed = Vec::new();
+    let fit = report_placing(&config, &[set], &mut placed);
+    check_verification(&config, &placed)?;
+    fit
 }
 
 /// Reads the analog output's device once (its identity) and, with `write_test`, writes its
@@ -207,6 +212,11 @@ fn side_px(c: &[nalgebra::Point2<f64>; 4]) -> f64 {
 
 /// Runs the measurement over the sets and prints the per-camera summary of the last one.
 fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
+    report_placing(config, sets, &mut Vec::new())
+}
+
+/// [`report`], leaving the posed cameras' placements in `placed` (for the verification in force).
+fn report_placing(config: &Config, sets: &[FrameSet], placed: &mut Vec<CameraPlacement>) -> Result<()> {
     if sets.is_empty() {
         return Err(tagdeflect_core::BadInput::new("no frame could be read: nothing to check").into());
     }
@@ -217,6 +227,7 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     }
     let line = last.expect("one set at least");
     let poses = m.camera_poses();
+    *placed = config.camera_placements(&poses);
     let seen = m.observed().seen;
     let mut posed = 0;
     let mut poor: Vec<String> = Vec::new();
@@ -303,11 +314,11 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
     Ok(())
 }
 
-/// The verification in force (`[verification]`): its class, date and id, and why it is stale
-/// if it is (a warning: the rig still measures; exit 0). A certificate that cannot be read is
+/// The verification in force (`[verification]`) with the cameras `placed` where they are now:
+/// its class, date and id, and why it is stale if it is (a warning: the rig still measures; exit 0). A certificate that cannot be read is
 /// bad input (exit 2), named.
-fn check_verification(config: &Config) -> Result<()> {
-    match config.verification_in_force() {
+fn check_verification(config: &Config, placed: &[CameraPlacement]) -> Result<()> {
+    match config.verification_in_force_placed(placed) {
         Ok(None) => println!("verification: none configured ([verification] certificate)"),
         Ok(Some(v)) if v.stale.is_empty() => println!("{}", v.describe()),
         Ok(Some(v)) => println!("  warning: {}", v.describe()),

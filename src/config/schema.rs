@@ -140,21 +140,44 @@ impl Config {
         tagdeflect_core::verification::geometry_sha256(self.world.up, &self.background, &self.specimen, &self.cameras)
     }
 
-    /// The rig as the verification in force is compared with (`bumps` added by whoever saw them).
+    /// The rig as the verification in force is compared with (`bumps` and `camera_poses` added
+    /// by whoever saw them).
     pub fn rig_now(&self) -> anyhow::Result<tagdeflect_core::verification::RigNow> {
         let mut calibration_files = Vec::new();
         for p in self.calibration_files.iter().filter(|p| p.is_file()) {
             let sha256 = tagdeflect_report::sha256_file(p).map_err(|e| anyhow::anyhow!("hashing {}: {e}", p.display()))?;
             calibration_files.push(tagdeflect_core::verification::HashedPath { path: p.display().to_string(), sha256 });
         }
-        Ok(tagdeflect_core::verification::RigNow { calibration_files, geometry_sha256: self.geometry_sha256(), bumps: Vec::new() })
+        Ok(tagdeflect_core::verification::RigNow { calibration_files, geometry_sha256: self.geometry_sha256(), ..Default::default() })
+    }
+
+    /// The posed cameras' placements, by name (`poses` in the config's camera order).
+    pub fn camera_placements(
+        &self,
+        poses: &[Option<tagdeflect_core::camera::Pose>],
+    ) -> Vec<tagdeflect_core::verification::CameraPlacement> {
+        let placed = |(c, p): (&tagdeflect_core::camera_config::CameraConfig, &Option<tagdeflect_core::camera::Pose>)| {
+            p.as_ref().map(|p| tagdeflect_core::verification::CameraPlacement::from_pose(&c.name, p))
+        };
+        self.cameras.iter().zip(poses).filter_map(placed).collect()
     }
 
     /// The verification in force now (`None` without `[verification]`).
     pub fn verification_in_force(&self) -> anyhow::Result<Option<tagdeflect_core::verification::InForce>> {
+        self.verification_in_force_placed(&[])
+    }
+
+    /// [`Config::verification_in_force`] with the cameras posed now at `placed` (compared with
+    /// where they were when verified).
+    pub fn verification_in_force_placed(
+        &self,
+        placed: &[tagdeflect_core::verification::CameraPlacement],
+    ) -> anyhow::Result<Option<tagdeflect_core::verification::InForce>> {
         let Some(v) = &self.verification else { return Ok(None) };
         let now_ns = tagdeflect_core::clock::now_epoch_ns();
-        Ok(Some(tagdeflect_core::verification::assess(&v.certificate, v.valid_days, &self.rig_now()?, now_ns)?))
+        let mut now = self.rig_now()?;
+        now.camera_poses = placed.to_vec();
+        Ok(Some(tagdeflect_core::verification::assess(&v.certificate, v.valid_days, &now, now_ns)?))
     }
 
     /// What the report needs of the rig.

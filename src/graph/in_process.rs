@@ -36,6 +36,8 @@ pub struct ReplaySummary {
     pub wall_s: f64,
     /// Seconds spent decoding images (reader thread).
     pub decode_s: f64,
+    /// Each camera's pose at the end (`None`: never posed), in the config's order.
+    pub camera_poses: Vec<Option<tagdeflect_core::camera::Pose>>,
 }
 
 /// Options of a replay.
@@ -119,6 +121,7 @@ fn replay_sets(rec: &Recording, opts: ReplayOptions, mut on_set: impl FnMut(Feed
     summary.decode_s = reader_result.1;
     summary.late_frames = assembler.late_frames();
     summary.stats = measure.stats().clone();
+    summary.camera_poses = measure.camera_poses();
     summary.wall_s = start.elapsed().as_secs_f64();
     if summary.sets == 0 {
         return Err(tagdeflect_core::BadInput::new(format!("{}: no frame could be read, nothing was solved", rec.dir.display())).into());

@@ -5,7 +5,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::Result;
+use tagdeflect_core::verification::CameraPlacement;
 use tagdeflect_sinks::lab_test::{LabTests, TestRecord};
+use tagdeflect_sinks::{Finished, LineSink};
 
 use crate::config::Config;
 use crate::graph::page::Page;
@@ -15,7 +17,9 @@ use crate::graph::page::Page;
 /// start when that file is still private (mode 0600, owned by the folder's owner, 48 hex digits), so a
 /// restart (`Restart=on-failure`, an upgrade) does not lock out a client holding it; else made
 /// now and written there (mode 0600). Printed on stderr at every start.
-pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> {
+/// `placed` follows where the cameras are posed (a [`PlacementWatch`] among the run's sinks):
+/// the verification in force is judged with them at each test's start and stop.
+pub fn start(config: &Config, dir: &Path, page: &Page, placed: PlacementWatch) -> Result<Arc<LabTests>> {
     let bad = |m: String| tagdeflect_core::BadInput::new(m);
     let report_config = config.clone();
     let hook: tagdeflect_sinks::lab_test::ReportHook =
@@ -34,7 +38,7 @@ pub fn start(config: &Config, dir: &Path, page: &Page) -> Result<Arc<LabTests>> 
             Ok(None) => {}
             Err(e) => tracing::error!("[verification] {e}: tests name no verification"),
         }
-        tests.set_verification(Box::new(move |bumps| verification_for(&cfg, bumps)));
+        tests.set_verification(Box::new(move |bumps| verification_for(&cfg, bumps, &placed.now())));
     }
     if let Some(rules) = config.auto_rules().map_err(|p| bad(format!("{}: {}", p.key, p.message)))? {
         tracing::info!(
@@ -208,9 +212,51 @@ enum TestReportError {
     Folder(#[from] std::io::Error),
 }
 
-/// The verification in force for a test (`[verification]`) with the bumps the daemon saw;
-/// `None` (logged) when its certificate or a calibration file cannot be read.
-fn verification_for(config: &Config, bumps: &[(String, i64)]) -> Option<tagdeflect_core::verification::InForce> {
+/// Where the cameras are posed now, as the last finished frame set left them: a line sink
+/// (clones share the placements).
+#[derive(Clone, Default)]
+pub struct PlacementWatch {
+    names: Arc<Vec<String>>,
+    placed: Arc<std::sync::Mutex<Vec<CameraPlacement>>>,
+}
+
+impl PlacementWatch {
+    /// A watch of `config`'s cameras.
+    pub fn new(config: &Config) -> Self {
+        PlacementWatch { names: Arc::new(config.cameras.iter().map(|c| c.name.clone()).collect()), ..Default::default() }
+    }
+
+    /// The placements of the last frame set (cameras never posed left out).
+    pub fn now(&self) -> Vec<CameraPlacement> {
+        self.placed.lock().map(|p| p.clone()).unwrap_or_default()
+    }
+}
+
+impl LineSink for PlacementWatch {
+    fn name(&self) -> String {
+        "camera placements".into()
+    }
+    fn accept(&mut self, finished: &Finished) {
+        let placed = self
+            .names
+            .iter()
+            .zip(&finished.observed.camera_poses)
+            .filter_map(|(n, p)| p.as_ref().map(|p| CameraPlacement::from_pose(n, p)))
+            .collect();
+        if let Ok(mut g) = self.placed.lock() {
+            *g = placed;
+        }
+    }
+}
+
+/// The verification in force for a test (`[verification]`) with the bumps the daemon saw and
+/// the cameras where they are posed now; `None` (logged) when its certificate or a
+/// calibration file cannot be read.
+fn verification_for(
+    config: &Config,
+    bumps: &[(String, i64)],
+    placed: &[CameraPlacement],
+) -> Option<tagdeflect_core::verification::InForce> {
     let v = config.verification.as_ref()?;
     let mut now = match config.rig_now() {
         Ok(now) => now,
@@ -220,6 +266,7 @@ fn verification_for(config: &Config, bumps: &[(String, i64)]) -> Option<tagdefle
         }
     };
     now.bumps = bumps.to_vec();
+    now.camera_poses = placed.to_vec();
     match tagdeflect_core::verification::assess(&v.certificate, v.valid_days, &now, tagdeflect_core::clock::now_epoch_ns()) {
         Ok(f) => Some(f),
         Err(e) => {

@@ -186,7 +186,11 @@ impl BuildOutput for TestsOutput<'_> {
             }
             return Ok(());
         };
-        let t = crate::graph::lab_test::start(ctx.config, dir, ctx.page)?;
+        let placed = crate::graph::lab_test::PlacementWatch::new(ctx.config);
+        let t = crate::graph::lab_test::start(ctx.config, dir, ctx.page, placed.clone())?;
+        if ctx.config.verification.is_some() {
+            out.sinks.push(Box::new(placed));
+        }
         out.sinks.push(Box::new(LabTestSink(t.clone())));
         if let Some(b) = &out.broker {
             b.publish_lab_tests(&t);

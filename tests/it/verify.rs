@@ -173,7 +173,13 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
     for (tag, st) in &v.static_figures.tags {
         println!("VERIFY tag {tag} at rest: SD {:.3} µm", st.sd_mm.unwrap_or(0.0) * 1e3);
     }
-    assert!(v.vdi2626.zs_net_deflection_mm.unwrap() < 0.005, "a rigid bar shows no net deflection: {:?}", v.vdi2626);
+    assert!(
+        v.vdi2626.zs_applies && v.vdi2626.zs_net_deflection_mm.unwrap() < 0.005,
+        "a rigid bar shows no net deflection: {:?}",
+        v.vdi2626
+    );
+    let page = std::fs::read_to_string(out.join("verification.html")).unwrap();
+    assert!(page.contains("ZS: net deflection of the rigid target") && page.contains("<table class=\"files\">"), "{page}");
     // U (k = 2) covers a single reading's truth error about 95 % of the time.
     let all: Vec<f64> = errors.concat();
     let within = all.iter().filter(|e| e.abs() <= v.uncertainty.expanded_mm).count() as f64 / all.len() as f64;
@@ -335,10 +341,14 @@ fn the_net_deflection_and_a_gauge_are_verified_against_the_stroke_on_a_staged_ta
         by_gauge.iso9513.class,
         by_gauge.uncertainty.expanded_mm * 1e3
     );
-    // The class is the table's for the errors found (each the truth's, above).
+    // The class is the table's for the errors found (each the truth's, above). ZS (a rigid
+    // target's zero net deflection) does not apply where the net deflection is what is verified.
     for v in [&by_stroke, &by_gauge] {
         assert_eq!(iso9513::classify(&v.steps, v.iso9513.resolution_mm).class, v.iso9513.class);
+        assert!(!v.vdi2626.zs_applies && v.vdi2626.zs_net_deflection_mm.is_none(), "{:?}", v.vdi2626);
     }
+    let page = std::fs::read_to_string(dir.path().join("cert-stroke/verification.html")).unwrap();
+    assert!(page.contains("ZS: not applicable") && !page.contains("ZS: net deflection of the rigid target"), "{page}");
     // No stroke recorded: exit 2 naming the UTM file.
     let bin = env!("CARGO_BIN_EXE_tagdeflect");
     let flat = dir.path().join("flat");
@@ -426,6 +436,21 @@ fn verification_in_force_is_checked(rec_dir: &Path, certificate: &Path, dir: &Pa
     let cert: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(certificate).unwrap()).unwrap();
     let line = out.lines().find(|l| l.contains("verification ")).unwrap_or_else(|| panic!("no verification line: {out}"));
     assert!(line.contains("in force") && line.contains(&format!("class {}", cert["class_iso9513"].as_str().unwrap())), "{line}");
+    // The first camera turned 0.3° while no daemon ran (the config unchanged): `check` poses it
+    // where it is now, away from where the certificate recorded it.
+    let placed = cert["rig"]["camera_poses"].as_array().unwrap();
+    assert_eq!(placed.len(), cfg["camera"].as_array().unwrap().len(), "every camera's placement recorded: {placed:?}");
+    let mut turned = cfg.clone();
+    let sim = turned["sim"].as_table_mut().unwrap();
+    sim.insert("bump_camera".into(), 0.into());
+    sim.insert("bump_at".into(), 0.into());
+    sim.insert("bump_rot_deg".into(), 0.3.into());
+    sim.insert("bump_trans_mm".into(), 0.0.into());
+    let (code, out) = check(&turned, "turned.toml");
+    assert_eq!(code, Some(0), "a stale verification is a warning: {out}");
+    let name = cfg["camera"][0]["name"].as_str().unwrap();
+    let moved = out.lines().find(|l| l.contains("STALE")).unwrap_or_else(|| panic!("not stale: {out}"));
+    assert!(moved.contains(&format!("camera {name} is")) && !moved.contains("geometry changed"), "{moved}");
     // A specimen tag added to the config: the geometry the certificate was made on is gone.
     let specimen = cfg["specimen"].as_table_mut().unwrap();
     let mut extra = toml::Table::new();

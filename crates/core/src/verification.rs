@@ -10,8 +10,12 @@
 //!   intrinsics, fixed pose) — compared through [`geometry_sha256`], which the certificate
 //!   records (a certificate without it, from before this rule, is stale with that reason);
 //! - a camera was bumped (re-posed after its background tags jumped) after the certificate was
-//!   issued — as seen by the running daemon (a camera moved while no daemon ran is caught only
-//!   when it changes the geometry or calibration above; docs/verification.md says so);
+//!   issued — as seen by the running daemon;
+//! - a camera is no longer where it was when verified: its pose from the background tags now
+//!   (the daemon's held pose at a test's start and stop, `check`'s pose) differs from the pose
+//!   the certificate records by more than [`MOVED_CENTRE_MM`] or [`MOVED_ANGLE_DEG`] — this
+//!   catches a camera moved while no daemon ran (certificates made before poses were recorded
+//!   are not compared);
 //! - its validity period (`valid_days`, default [`DEFAULT_VALID_DAYS`]) is over.
 //!
 //! The certificate's own identity is the SHA-256 of its `verification.json`: a certificate
@@ -22,6 +26,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::camera::Pose;
 use crate::camera_config::CameraConfig;
 use crate::rig::{BackgroundConfig, SpecimenConfig};
 use crate::Problem;
@@ -87,6 +92,61 @@ pub struct CertificateRig {
     /// [`geometry_sha256`] of the rig when verified (absent in certificates made before it).
     #[serde(default)]
     pub geometry_sha256: Option<String>,
+    /// Where each posed camera was during the verification (absent in certificates made before
+    /// poses were recorded: nothing compared).
+    #[serde(default)]
+    pub camera_poses: Vec<CameraPlacement>,
+}
+
+/// A camera's centre moved more than this (mm) from where it was verified: the verification is
+/// stale. Poses from the background tags repeat to a few hundredths of a millimetre on the
+/// simulated rigs; a millimetre is far beyond that and well under what a knock does.
+pub const MOVED_CENTRE_MM: f64 = 1.0;
+
+/// A camera turned more than this (degrees) from its verified orientation: the verification is
+/// stale (0.05° is ≈ 1.2 px at f = 1400 px, the size of the daemon's own bump floor, 1 px).
+pub const MOVED_ANGLE_DEG: f64 = 0.05;
+
+/// Where a camera was, as a certificate records it and a later run compares (world → camera).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraPlacement {
+    /// The camera's name in the config.
+    pub camera: String,
+    /// Rotation world → camera as a rotation vector (axis × angle), rad.
+    pub rvec: [f64; 3],
+    /// The camera's centre in the world, mm.
+    pub centre_mm: [f64; 3],
+}
+
+impl CameraPlacement {
+    /// The placement of camera `camera` posed at `pose`.
+    pub fn from_pose(camera: &str, pose: &Pose) -> Self {
+        let c = pose.centre();
+        CameraPlacement { camera: camera.to_string(), rvec: pose.rvec(), centre_mm: [c.x, c.y, c.z] }
+    }
+
+    /// How far `other` is from this: the centres' distance (mm) and the rotation between (degrees).
+    pub fn moved_from(&self, other: &CameraPlacement) -> (f64, f64) {
+        let d = (0..3).map(|k| (self.centre_mm[k] - other.centre_mm[k]).powi(2)).sum::<f64>().sqrt();
+        let pose = |p: &CameraPlacement| Pose::from_rvec_tvec(p.rvec, [0.0; 3]);
+        (d, pose(self).angle_to(&pose(other)).to_degrees())
+    }
+}
+
+/// Cameras placed now farther from where the certificate recorded them than the limits.
+fn moved_cameras(then: &[CameraPlacement], now: &[CameraPlacement]) -> Vec<String> {
+    let mut out = Vec::new();
+    for t in then {
+        let Some(n) = now.iter().find(|n| n.camera == t.camera) else { continue };
+        let (mm, deg) = n.moved_from(t);
+        if mm > MOVED_CENTRE_MM || deg > MOVED_ANGLE_DEG {
+            out.push(format!(
+                "camera {} is {mm:.2} mm and {deg:.3}° from where it was when verified (limits {MOVED_CENTRE_MM} mm, {MOVED_ANGLE_DEG}°)",
+                t.camera
+            ));
+        }
+    }
+    out
 }
 
 /// A file named with its SHA-256.
@@ -107,6 +167,8 @@ pub struct RigNow {
     pub geometry_sha256: String,
     /// Cameras bumped since the daemon started: (camera, when, ns since the Unix epoch).
     pub bumps: Vec<(String, i64)>,
+    /// Where the cameras posed now are (empty: not known, nothing compared).
+    pub camera_poses: Vec<CameraPlacement>,
 }
 
 /// The verification in force, as `test.json`, `check`, the page and the report give it.
@@ -172,6 +234,7 @@ pub fn assess(path: &Path, valid_days: u32, now: &RigNow, now_ns: i64) -> Result
         Some(g) if *g != now.geometry_sha256 => stale.push("the rig's geometry changed (tags, cameras or intrinsics in the config)".into()),
         Some(_) => {}
     }
+    stale.extend(moved_cameras(&head.rig.camera_poses, &now.camera_poses));
     for (camera, t_ns) in now.bumps.iter().filter(|(_, t)| *t > issued_ns) {
         stale.push(format!("camera {camera} was bumped at {} after the verification", utc_date_time(*t_ns)));
     }

@@ -40,6 +40,12 @@ pub struct StaticFigures {
 /// VDI/VDE 2626's checks of an optical system with a rigid piece.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VdiFigures {
+    /// ZS applies: the verified quantity is a rigid target's displacement (a tag or the tags'
+    /// mean), so its net deflection must stay zero. When the verified quantity is the net
+    /// deflection or a gauge, the target deforms by design (a staged target, docs/verification.md)
+    /// and ZS is not applicable: its figures are then absent.
+    #[serde(default = "zs_applies_default")]
+    pub zs_applies: bool,
     /// ZS (zero strain): the net deflection of the rigid piece over every hold, largest |mean of a hold|, mm.
     pub zs_net_deflection_mm: Option<f64>,
     /// ZS: SD of one net-deflection reading at rest, mm.
@@ -52,6 +58,11 @@ pub struct VdiFigures {
     pub d_max_error_mm: f64,
     /// D: scale error of the best-fit line, % (`(slope − 1) × 100`).
     pub d_scale_error_pct: Option<f64>,
+}
+
+/// Certificates made before `zs_applies` existed verified a rigid target.
+fn zs_applies_default() -> bool {
+    true
 }
 
 /// The verdict and why.
@@ -121,7 +132,7 @@ pub fn verify(lines: &[FeedLine], plan: &StepPlan, opts: &VerifyOptions) -> Resu
         reference_k: opts.reference_k,
         range_mm: known.range_mm,
     });
-    let vdi2626 = vdi(&static_figures, &steps, &known, &rest, opts.up);
+    let vdi2626 = vdi(&static_figures, &steps, &known, &rest, opts);
     let verdict = verdict(&iso9513, &known, &uncertainty, &static_figures);
     let quantity = opts.quantity.clone();
     Ok(Verification { quantity, lines: lines.len(), static_figures, steps, known, iso9513, vdi2626, uncertainty, verdict })
@@ -159,12 +170,14 @@ fn static_figures(hold: &[&FeedLine], quantity: Stability, t0: i64, up: [f64; 3]
     }
 }
 
-fn vdi(st: &StaticFigures, steps: &[StepResult], known: &KnownFigures, hold: &[&FeedLine], up: [f64; 3]) -> VdiFigures {
-    let rest = Series::from_feed(hold, 0, |l| down_displacement(l, up)).value_mm;
+fn vdi(st: &StaticFigures, steps: &[StepResult], known: &KnownFigures, hold: &[&FeedLine], opts: &VerifyOptions) -> VdiFigures {
+    let rest = Series::from_feed(hold, 0, |l| down_displacement(l, opts.up)).value_mm;
     let mean = crate::series::mean(&rest);
+    let zs_applies = matches!(opts.quantity, Quantity::Tag(_) | Quantity::TagsMean);
     VdiFigures {
-        zs_net_deflection_mm: steps.iter().filter_map(|s| s.net_deflection_mm.map(f64::abs)).reduce(f64::max),
-        zs_net_deflection_sd_mm: st.net_deflection.as_ref().and_then(|s| s.sd_mm),
+        zs_applies,
+        zs_net_deflection_mm: steps.iter().filter_map(|s| s.net_deflection_mm.map(f64::abs)).reduce(f64::max).filter(|_| zs_applies),
+        zs_net_deflection_sd_mm: st.net_deflection.as_ref().and_then(|s| s.sd_mm).filter(|_| zs_applies),
         zd_sd_mm: st.displacement.sd_mm,
         zd_max_mm: mean.map(|m| rest.iter().map(|v| (v - m).abs()).fold(0.0, f64::max)),
         d_max_error_mm: known.max_error_mm,

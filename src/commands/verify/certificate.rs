@@ -8,6 +8,9 @@ use std::path::Path;
 use serde::Serialize;
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::rig::SpecimenTag;
+use tagdeflect_core::verification::CameraPlacement;
+
+use crate::graph::in_process::ReplaySummary;
 use tagdeflect_verify::{StepPlan, Verification};
 
 use super::Source;
@@ -53,6 +56,9 @@ pub struct Rig {
     /// The rig's geometry as a later run compares it (`[verification]`: a test under a
     /// changed geometry says the verification is stale; `tagdeflect_core::verification`).
     pub geometry_sha256: String,
+    /// Where each posed camera was at the recording's end (a later run whose camera is not
+    /// there any more says the verification is stale; `tagdeflect_core::verification`).
+    pub camera_poses: Vec<CameraPlacement>,
 }
 
 /// One hold as SPEC's `steps` give it: the reference value, the measured mean on the
@@ -121,7 +127,7 @@ impl Certificate {
         rec: &Recording,
         source: &Source,
         plan: &StepPlan,
-        frame_sets: u64,
+        replayed: &ReplaySummary,
         operator: Option<String>,
         equipment: Equipment,
         verification: Verification,
@@ -150,7 +156,7 @@ impl Certificate {
             operator,
             equipment,
             recording: rec.dir.display().to_string(),
-            frame_sets,
+            frame_sets: replayed.sets,
             rig: Rig {
                 cameras: config.cameras.clone(),
                 config: toml.is_file().then(|| hashed(&toml)).transpose()?,
@@ -158,6 +164,7 @@ impl Certificate {
                 tags: config.specimen.tags.clone(),
                 world_up: config.world.up,
                 geometry_sha256: config.geometry_sha256(),
+                camera_poses: config.camera_placements(&replayed.camera_poses),
             },
             plan: plan.clone(),
             verification,

@@ -18,7 +18,9 @@ fn um(v: Option<f64>) -> String {
 
 const STYLE: &str = "body{font-family:sans-serif;max-width:48em;margin:2em auto;font-size:11pt}\
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #999;padding:2px 6px;text-align:right}\
-th:first-child,td:first-child{text-align:left}.pass{color:#060}.fail{color:#a00}@page{size:A4;margin:15mm}";
+th:first-child,td:first-child{text-align:left}\
+table.files{width:100%;table-layout:fixed}table.files td{text-align:left;word-break:break-all}table.files col.sha{width:58%}\
+table.files code{font-size:8.5pt}.pass{color:#060}.fail{color:#a00}@page{size:A4;margin:15mm}";
 
 /// The page of `c`.
 pub fn page(c: &Certificate) -> String {
@@ -81,7 +83,7 @@ fn who(h: &mut String, c: &Certificate) {
 }
 
 fn inputs(h: &mut String, c: &Certificate) {
-    h.push_str("<h2>Inputs</h2><table><tr><th>file</th><th>SHA-256</th></tr>");
+    h.push_str("<h2>Inputs</h2><table class=\"files\"><col><col class=\"sha\"><tr><th>file</th><th>SHA-256</th></tr>");
     for (path, sha) in &c.inputs {
         let _ = write!(h, "<tr><td>{}</td><td><code>{}</code></td></tr>", esc(path), esc(sha));
     }
@@ -99,11 +101,18 @@ fn procedure(h: &mut String) {
 }
 
 fn rig(h: &mut String, c: &Certificate) {
-    h.push_str("<h2>Rig</h2><table><tr><th>camera</th><th>size</th><th>fx, fy (px)</th><th>cx, cy (px)</th></tr>");
+    h.push_str(
+        "<h2>Rig</h2><table><tr><th>camera</th><th>size</th><th>fx, fy (px)</th><th>cx, cy (px)</th><th>centre in the world (mm)</th></tr>",
+    );
     for cam in &c.rig.cameras {
+        let centre =
+            c.rig.camera_poses.iter().find(|p| p.camera == cam.name).map_or_else(
+                || "not posed".to_string(),
+                |p| format!("{:.1}, {:.1}, {:.1}", p.centre_mm[0], p.centre_mm[1], p.centre_mm[2]),
+            );
         let _ = write!(
             h,
-            "<tr><td>{}</td><td>{}×{}</td><td>{:.1}, {:.1}</td><td>{:.1}, {:.1}</td></tr>",
+            "<tr><td>{}</td><td>{}×{}</td><td>{:.1}, {:.1}</td><td>{:.1}, {:.1}</td><td>{centre}</td></tr>",
             esc(&cam.name),
             cam.width,
             cam.height,
@@ -113,7 +122,7 @@ fn rig(h: &mut String, c: &Certificate) {
             cam.cy
         );
     }
-    h.push_str("</table><table><tr><th>file</th><th>SHA-256</th></tr>");
+    h.push_str("</table><table class=\"files\"><col><col class=\"sha\"><tr><th>file</th><th>SHA-256</th></tr>");
     for f in c.rig.config.iter().chain(&c.rig.calibration_files) {
         let _ = write!(h, "<tr><td>{}</td><td><code>{}</code></td></tr>", esc(&f.path), &f.sha256);
     }
@@ -147,15 +156,33 @@ fn stability(h: &mut String, c: &Certificate) {
     for (id, s) in &st.tags {
         stability_row(h, &format!("tag {id}"), s);
     }
+    vdi(h, c);
+}
+
+/// VDI/VDE 2626's table; ZS only where the verified quantity is a rigid target's displacement.
+fn vdi(h: &mut String, c: &Certificate) {
     let d = &c.verification.vdi2626;
+    h.push_str("</table><h2>VDI/VDE 2626</h2><table>");
+    if d.zs_applies {
+        let _ = write!(
+            h,
+            "<tr><td>ZS: net deflection of the rigid target, largest hold mean</td><td>{} µm</td></tr>\
+             <tr><td>ZS: SD of the net deflection at rest</td><td>{} µm</td></tr>",
+            um(d.zs_net_deflection_mm),
+            um(d.zs_net_deflection_sd_mm)
+        );
+    } else {
+        let _ = write!(
+            h,
+            "<tr><td>ZS: not applicable — the verified quantity ({}) is the target's own deformation (a staged target)</td><td>—</td></tr>",
+            esc(&c.quantity)
+        );
+    }
     let _ = write!(
         h,
-        "</table><h2>VDI/VDE 2626</h2><table><tr><td>ZS: net deflection of the rigid target, largest hold mean</td><td>{} µm</td></tr>\
-         <tr><td>ZS: SD of the net deflection at rest</td><td>{} µm</td></tr><tr><td>ZD: SD of the displacement at rest</td><td>{} µm</td></tr>\
+        "<tr><td>ZD: SD of the displacement at rest</td><td>{} µm</td></tr>\
          <tr><td>ZD: largest deviation at rest</td><td>{} µm</td></tr><tr><td>D: largest step error</td><td>{} µm</td></tr>\
          <tr><td>D: scale error</td><td>{:.4} %</td></tr></table>",
-        um(d.zs_net_deflection_mm),
-        um(d.zs_net_deflection_sd_mm),
         um(d.zd_sd_mm),
         um(d.zd_max_mm),
         um(Some(d.d_max_error_mm)),

@@ -129,7 +129,7 @@ pub fn run(args: &VerifyArgs) -> Result<PathBuf> {
         calibrated: args.equipment_calibrated.clone(),
         reference_u_um: args.reference_u_um,
     };
-    let cert = Certificate::new(&rec, &source, &plan, summary.sets, args.operator.clone(), equipment, verification)?;
+    let cert = Certificate::new(&rec, &source, &plan, &summary, args.operator.clone(), equipment, verification)?;
     write(&cert, &lines, (!recorded_here).then_some(dir.as_path()), &out, !args.no_pdf)?;
     tracing::info!(
         "{}: {} class {}, U (k = 2) {:.2} µm — {}",

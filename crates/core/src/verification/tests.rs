@@ -50,7 +50,7 @@ fn a_certificate_of_this_rig_within_its_period_is_in_force() {
     let g = geometry_sha256([0.0, 0.0, 1.0], &bg, &sp, &cams);
     let dir = scratch("ok");
     let path = certificate(&dir, "verification.json", Some(&g), "aa");
-    let now = RigNow { calibration_files: calibration("/other/place/left.yaml", "aa"), geometry_sha256: g, bumps: vec![] };
+    let now = RigNow { calibration_files: calibration("/other/place/left.yaml", "aa"), geometry_sha256: g, ..RigNow::default() };
     let f = assess(&path, 30, &now, ns("2026-12-30T23:00:00Z")).unwrap();
     assert!(f.stale.is_empty(), "{:?}", f.stale);
     assert_eq!((f.class_iso9513.as_str(), f.date.as_str(), f.valid_until.as_str()), ("0.5", "2026-12-01", "2026-12-30"));
@@ -68,7 +68,7 @@ fn each_change_since_the_verification_makes_it_stale_with_its_reason() {
     let g = geometry_sha256([0.0, 0.0, 1.0], &bg, &sp, &cams);
     let dir = scratch("stale");
     let path = certificate(&dir, "verification.json", Some(&g), "aa");
-    let now = RigNow { calibration_files: calibration("left.yaml", "aa"), geometry_sha256: g.clone(), bumps: vec![] };
+    let now = RigNow { calibration_files: calibration("left.yaml", "aa"), geometry_sha256: g.clone(), ..RigNow::default() };
     let in_period = ns("2026-12-05T00:00:00Z");
     let reasons = |n: &RigNow, t: i64| assess(&path, 30, n, t).unwrap().stale;
     // Recalibrated.
@@ -92,6 +92,40 @@ fn each_change_since_the_verification_makes_it_stale_with_its_reason() {
     // A certificate that does not record the geometry cannot be matched: stale, said why.
     let old = certificate(&dir, "old.json", None, "aa");
     assert!(assess(&old, 30, &now, in_period).unwrap().stale.iter().any(|r| r.contains("does not record")));
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn a_camera_away_from_its_verified_pose_makes_it_stale_and_pose_noise_does_not() {
+    let (bg, sp, cams) = rig();
+    let g = geometry_sha256([0.0, 0.0, 1.0], &bg, &sp, &cams);
+    let dir = scratch("moved");
+    let path = certificate(&dir, "verification.json", Some(&g), "aa");
+    let pose = Pose::from_rvec_tvec([0.1, -0.2, 0.05], [10.0, -40.0, 2000.0]);
+    let placed = CameraPlacement::from_pose("left", &pose);
+    let mut doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    doc["rig"]["camera_poses"] = serde_json::to_value(vec![placed.clone()]).unwrap();
+    std::fs::write(&path, doc.to_string()).unwrap();
+    let now = |p: &Pose| RigNow {
+        calibration_files: calibration("left.yaml", "aa"),
+        geometry_sha256: g.clone(),
+        camera_poses: vec![CameraPlacement::from_pose("left", p)],
+        ..RigNow::default()
+    };
+    let reasons = |p: &Pose| assess(&path, 30, &now(p), ns("2026-12-05T00:00:00Z")).unwrap().stale;
+    // Posed again with the noise of a pose (0.01°, 0.1 mm): in force.
+    let jitter = Pose::from_rvec_tvec([0.0, 0.01f64.to_radians(), 0.0], [0.1, 0.0, 0.0]).compose(&pose);
+    assert!(reasons(&jitter).is_empty(), "{:?}", reasons(&jitter));
+    // Turned 0.2° while no daemon ran: stale, with the figures.
+    let turned = Pose::from_rvec_tvec([0.2f64.to_radians(), 0.0, 0.0], [0.0; 3]).compose(&pose);
+    let r = reasons(&turned);
+    assert!(r.iter().any(|r| r.contains("camera left is") && r.contains("0.200°")), "{r:?}");
+    // Shifted 3 mm: stale.
+    let shifted = Pose { translation: pose.translation + nalgebra::Vector3::new(3.0, 0.0, 0.0), ..pose };
+    assert!(reasons(&shifted).iter().any(|r| r.contains("3.00 mm")), "{:?}", reasons(&shifted));
+    // A camera not posed now is not compared.
+    let unknown = RigNow { camera_poses: vec![], ..now(&turned) };
+    assert!(assess(&path, 30, &unknown, ns("2026-12-05T00:00:00Z")).unwrap().stale.is_empty());
     std::fs::remove_dir_all(dir).unwrap();
 }
 
