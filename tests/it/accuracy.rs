@@ -207,3 +207,37 @@ fn sigma_honest_within(label: &str, acc: &tagdeflect::accuracy::Accuracy, low: f
     assert!((low..=0.997).contains(&w), "{label}: {:.1} % of the errors within 2σ", 100.0 * w);
     assert!((0.6..=1.3).contains(&z), "{label}: RMS error/σ {z:.3}");
 }
+
+/// High bit depth end to end (issue 42, item 3): the sharp three-camera scene with little
+/// noise (σ 0.3 grey levels, where 8-bit rounding, σ 0.29, is as large as the noise) rendered at
+/// 8 and at 12 bits; the 12-bit recording (16-bit PNG frames, sBIT 12) is measured at full
+/// depth. Measured: 0.00236 mm at 8 bits, 0.00238 mm at 12 bits (and 0.00375/0.00376 mm with
+/// no noise at all, 0.00435/0.00437 at noise σ 2): the edge fit's model error, not the
+/// rounding, sets the figure today, so 12 bits do not beat 8 (docs/accuracy.md); asserted:
+/// both within their floor, σ covering the errors, and 12 bits no worse than 8.
+#[test]
+fn twelve_bit_frames_measure_at_full_depth_on_the_sharp_scene() {
+    let mut rms = Vec::new();
+    for bits in [8u32, 12] {
+        let dir = tempfile::tempdir().unwrap();
+        let p = SimParams { frame_sets: 16, noise_sigma: 0.3, blur_sigma: 0.0, bit_depth: bits, seed: 11, ..SimParams::default() };
+        let rec = simulate(dir.path(), "sharp", &p);
+        let label = format!("sharp, noise 0.3, {bits}-bit");
+        let (acc, lines, _) = accuracy_of(&label, &rec, false);
+        feedcheck(&lines, &rec.join("tagdeflect.toml"));
+        assert_eq!(acc.coverage(), 1.0, "{label}: every tag solved in every frame set");
+        println!(
+            "BITS {label}: displacement RMS {:.5} mm, vertical {:.5} mm, net {:?}, within 2σ {:?}",
+            acc.disp_rms_mm, acc.vertical_rms_mm, acc.net_rms_mm, acc.within_2sigma
+        );
+        assert!(acc.disp_rms_mm <= 0.0033, "{label}: displacement RMS {}", acc.disp_rms_mm); // measured 0.00236 (8-bit), 0.00238 (12-bit)
+        // σ covers the errors (99.1 % within 2σ at both depths) but is on the safe side at this
+        // low noise (RMS error/σ 0.54 at 8 bits, below `sigma_honest`'s 0.6: item 4's concern,
+        // the same at both depths), so only the coverage is asserted here.
+        let (w, z) = (acc.within_2sigma.expect("σ on the tags"), acc.z_rms.expect("σ on the tags"));
+        println!("SIGMA {label}: {:.1} % within 2σ, RMS error/σ {z:.3}", 100.0 * w);
+        assert!((0.90..=0.997).contains(&w), "{label}: {:.1} % of the errors within 2σ", 100.0 * w);
+        rms.push(acc.disp_rms_mm);
+    }
+    assert!(rms[1] <= 1.05 * rms[0], "12-bit displacement RMS {} worse than the 8-bit one {}", rms[1], rms[0]);
+}

@@ -31,7 +31,7 @@ fn euroc_cam(cam: u32) -> CameraIntrinsics {
 
 fn load_gray(path: &Path) -> GrayImage {
     let img = image::open(path).unwrap_or_else(|e| panic!("cannot decode {}: {e}", path.display())).to_luma8();
-    GrayImage { width: img.width(), height: img.height(), data: img.into_raw() }
+    GrayImage { width: img.width(), height: img.height(), data: img.into_raw(), deep: None }
 }
 
 /// Checks that the ids sit where Kalibr's numbering puts them in these frames (the board is

@@ -196,6 +196,43 @@ fn in_process_fake_camera_streams_checked_frames() {
     assert_eq!(c.lost, 0);
 }
 
+/// With `full_depth` the fake camera streams Mono16 (it offers Mono8 and Mono16): every
+/// frame keeps its 16-bit samples beside the 8-bit plane rounded from them, and the
+/// full-depth samples are the camera's ramp.
+#[test]
+fn in_process_fake_camera_in_mono16_keeps_the_full_depth() {
+    let mut cfg = camera_cfg("aravis:Fake_1", 160, 120, 20.0);
+    cfg.full_depth = true;
+    let (tx, mut rx) = tokio::sync::mpsc::channel(32);
+    let stop = Arc::new(AtomicBool::new(false));
+    let started = now_epoch_ns();
+    let cam = spawn_camera(0, &cfg, tx, stop.clone()).expect("in-process fake camera opens");
+    let c = collect(&mut rx, 4, Duration::from_secs(10));
+    stop_and_join(cam, &stop);
+    assert!(c.frames.len() >= 4, "only {} frames in 10 s", c.frames.len());
+    check_frames(&c.frames, 160, 120, started);
+    for f in &c.frames {
+        let deep = f.image.deep.as_ref().expect("a Mono16 frame keeps its full depth");
+        assert_eq!((deep.bits, deep.data.len()), (16, 160 * 120));
+        let rounded: Vec<u8> = deep.data.iter().map(|&v| tagdeflect_core::frame::DeepPlane::to_8bit(16, v)).collect();
+        assert!(rounded == f.image.data, "the 8-bit plane is not the full depth rounded");
+        let (w, d) = (160usize, &deep.data);
+        assert!((1..120).all(|y| (0..w - 1).all(|x| d[y * w + x] == d[(y - 1) * w + x + 1])), "not the fake camera's ramp");
+        let distinct: std::collections::BTreeSet<u16> = d.iter().copied().collect();
+        let low_bits_used = d.iter().any(|v| v & 0xff != 0);
+        println!("Mono16 frame {}: {} distinct values, {}..={}, low byte used: {low_bits_used}", f.seq, distinct.len(), d.iter().min().unwrap(), d.iter().max().unwrap());
+        assert!(distinct.len() > 100, "a 16-bit ramp has many levels: {}", distinct.len());
+    }
+    // Without `full_depth` the same camera gives Mono8: no full-depth copy.
+    let cfg8 = camera_cfg("aravis:Fake_1", 160, 120, 20.0);
+    let (tx, mut rx) = tokio::sync::mpsc::channel(32);
+    let stop = Arc::new(AtomicBool::new(false));
+    let cam = spawn_camera(0, &cfg8, tx, stop.clone()).expect("in-process fake camera opens");
+    let c = collect(&mut rx, 2, Duration::from_secs(10));
+    stop_and_join(cam, &stop);
+    assert!(c.frames.len() >= 2 && c.frames.iter().all(|f| f.image.deep.is_none()), "Mono8 frames carry no full-depth plane");
+}
+
 #[test]
 fn a_full_channel_drops_frames_and_counts_them() {
     let cfg = camera_cfg("aravis:Fake_1", 64, 48, 50.0);

@@ -112,7 +112,7 @@ fn render(scene: &Scene, tags: &[(TagFamily, u32, [Point2<f64>; 4])], rng: &mut 
     let noise = Normal::new(0.0, scene.noise_sigma.max(1e-12)).unwrap();
     let data =
         img.iter().map(|v| (v + if scene.noise_sigma > 0.0 { noise.sample(rng) } else { 0.0 }).round().clamp(0.0, 255.0) as u8).collect();
-    GrayImage { width: scene.width, height: scene.height, data }
+    GrayImage { width: scene.width, height: scene.height, data, deep: None }
 }
 
 /// Random tag corners: centre, edge (px), rotation, perspective jitter (fraction of the edge).

@@ -32,8 +32,8 @@ pub fn formation_scenes() -> Vec<(&'static str, &'static str, SimParams)> {
         ),
         ("fill factor 0.5", "--fill-factor 0.5", SimParams { fill_factor: 0.5, ..s() }),
         ("JPEG quality 90", "--jpeg-quality 90", SimParams { jpeg_quality: Some(90), ..s() }),
-        ("10-bit sensor (stored 8-bit)", "--bit-depth 10", SimParams { bit_depth: 10, ..s() }),
-        ("12-bit sensor (stored 8-bit)", "--bit-depth 12", SimParams { bit_depth: 12, ..s() }),
+        ("10-bit sensor", "--bit-depth 10", SimParams { bit_depth: 10, ..s() }),
+        ("12-bit sensor", "--bit-depth 12", SimParams { bit_depth: 12, ..s() }),
     ]
 }
 

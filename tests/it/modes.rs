@@ -81,7 +81,7 @@ fn half_photo(name: &str) -> GrayImage {
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .map(|(x, y)| ((px(2 * x, 2 * y) + px(2 * x + 1, 2 * y) + px(2 * x, 2 * y + 1) + px(2 * x + 1, 2 * y + 1) + 2) / 4) as u8)
         .collect();
-    GrayImage { width: w, height: h, data }
+    GrayImage { width: w, height: h, data, deep: None }
 }
 
 fn centre(d: &Detection) -> Vector2<f64> {

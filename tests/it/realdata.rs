@@ -29,7 +29,7 @@ fn load_gray(path: &Path) -> GrayImage {
         .pixels()
         .map(|p| (0.299 * p.0[0] as f64 + 0.587 * p.0[1] as f64 + 0.114 * p.0[2] as f64).round().clamp(0.0, 255.0) as u8)
         .collect();
-    GrayImage { width: img.width(), height: img.height(), data }
+    GrayImage { width: img.width(), height: img.height(), data, deep: None }
 }
 
 /// A tag image from apriltag-imgs (1 px = 1 bit, RGBA), scaled by `scale` (nearest neighbour)
@@ -38,7 +38,7 @@ fn render_tag_png(path: &Path, scale: u32, pad: u32) -> (GrayImage, u32) {
     let tag = image::open(path).unwrap_or_else(|e| panic!("cannot decode {}: {e}", path.display())).to_luma8();
     let n = tag.width();
     let size = n * scale + 2 * pad;
-    let mut img = GrayImage { width: size, height: size, data: vec![255; (size * size) as usize] };
+    let mut img = GrayImage { width: size, height: size, data: vec![255; (size * size) as usize], deep: None };
     for y in 0..n * scale {
         for x in 0..n * scale {
             let v = tag.get_pixel(x / scale, y / scale).0[0];

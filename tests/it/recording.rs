@@ -5,7 +5,7 @@ use crate::common;
 use std::fs;
 use std::path::Path;
 use tagdeflect::config::Recording;
-use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::frame::{DeepPlane, GrayImage};
 use tagdeflect_io::recording::{read_gray_into, FrameEntry, RecordingError, RecordingWriter, TruthLine, TruthTag};
 use tagdeflect_io::utm::UtmSample;
 use tagdeflect_sim::SimParams;
@@ -16,7 +16,7 @@ fn tiny_config() -> tagdeflect::config::Config {
 }
 
 fn gradient(w: u32, h: u32) -> GrayImage {
-    GrayImage { width: w, height: h, data: (0..w * h).map(|i| (i * 7 % 251) as u8).collect() }
+    GrayImage { width: w, height: h, data: (0..w * h).map(|i| (i * 7 % 251) as u8).collect(), deep: None }
 }
 
 #[test]
@@ -59,9 +59,127 @@ fn binary_pgm_frames_are_read() {
     fs::write(&p, &bytes[..bytes.len() - 4]).unwrap();
     let e = read_gray_into(&p, &mut out, &mut Vec::new()).unwrap_err().to_string();
     assert!(e.contains("f.pgm") && e.contains("truncated PGM"), "{e}");
-    fs::write(&p, b"P5\n5 3\n65535\n").unwrap();
+    fs::write(&p, b"P5\n5 3\n70000\n").unwrap();
     let e = read_gray_into(&p, &mut out, &mut Vec::new()).unwrap_err().to_string();
-    assert!(e.contains("8-bit"), "{e}");
+    assert!(e.contains("f.pgm") && e.contains("maxval 70000"), "{e}");
+    // A 16-bit PGM (maxval 1023: 10 significant bits, big-endian samples) keeps its depth.
+    let deep: Vec<u16> = (0..15u16).map(|i| i * 73).collect();
+    let mut bytes = b"P5\n5 3\n1023\n".to_vec();
+    bytes.extend(deep.iter().flat_map(|v| v.to_be_bytes()));
+    fs::write(&p, &bytes).unwrap();
+    read_gray_into(&p, &mut out, &mut Vec::new()).unwrap();
+    assert_eq!(out.deep.as_ref().map(|d| (d.bits, d.data.clone())), Some((10, deep.clone())));
+    assert_eq!(out.data, deep.iter().map(|&v| DeepPlane::to_8bit(10, v)).collect::<Vec<_>>());
+    fs::write(&p, &bytes[..bytes.len() - 1]).unwrap();
+    let e = read_gray_into(&p, &mut out, &mut Vec::new()).unwrap_err().to_string();
+    assert!(e.contains("truncated PGM: 29 of 30"), "{e}");
+}
+
+/// A 10-bit image: a ramp over the full depth, the 8-bit plane rounded from it.
+fn deep_gradient(w: u32, h: u32, bits: u8) -> GrayImage {
+    let max = (1u32 << bits) - 1;
+    let mut img = GrayImage::new(w, h);
+    img.deep = Some(DeepPlane { bits, data: (0..w * h).map(|i| (i * 37 % (max + 1)) as u16).collect() });
+    img.fill_8bit_from_deep();
+    img
+}
+
+/// The bits of a PNG's IHDR (depth, colour type) and its sBIT chunk, if any.
+fn png_depth_and_sbit(bytes: &[u8]) -> (u8, u8, Option<u8>) {
+    let sbit = bytes.windows(4).position(|w| w == b"sBIT").map(|i| bytes[i + 4]);
+    (bytes[24], bytes[25], sbit)
+}
+
+/// Frames with a full-depth plane are written as 16-bit PNG (sBIT = the significant bits) or
+/// 16-bit PGM (maxval 2^bits − 1) and read back at full depth, both planes equal.
+#[test]
+fn full_depth_frames_are_written_and_read_at_16_bits() {
+    use tagdeflect_io::recording::FrameFormat;
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config();
+    for (format, bits) in [(FrameFormat::Png, 10u8), (FrameFormat::Png, 16), (FrameFormat::Pgm, 12)] {
+        let out = dir.path().join(format!("{format:?}{bits}"));
+        let img = deep_gradient(64, 48, bits);
+        let mut w = RecordingWriter::create(&out, &cfg).unwrap().with_format(format);
+        w.write_frame(&cfg.cameras[0].name, 1, 1_000, &img).unwrap();
+        w.finish().unwrap();
+        let rec = Recording::open(&out).unwrap();
+        let bytes = fs::read(out.join(&rec.frames[0].file)).unwrap();
+        match format {
+            FrameFormat::Png => assert_eq!(png_depth_and_sbit(&bytes), (16, 0, Some(bits))),
+            FrameFormat::Pgm => assert!(bytes.starts_with(format!("P5\n64 48\n{}\n", (1u32 << bits) - 1).as_bytes())),
+        }
+        let back = rec.load_image(&rec.frames[0]).unwrap();
+        assert_eq!(back, img, "{format:?} at {bits} bits");
+        // Other tools read the PNG as 16-bit grey with the samples in the high bits.
+        if format == FrameFormat::Png {
+            let other = image::load_from_memory(&bytes).unwrap().into_luma16();
+            let shift = 16 - bits;
+            assert!(other.as_raw().iter().zip(&img.deep.as_ref().unwrap().data).all(|(a, b)| *a == *b << shift));
+        }
+    }
+}
+
+/// `simulate --bit-depth 12` stores 16-bit PNGs (sBIT 12) holding the sensor's values; the
+/// recording replays at full depth (the edge fit reads the 12-bit levels) to a valid feed,
+/// and its 8-bit plane is the 8-bit render's within one grey level (the same light and
+/// noise, rounded once or twice).
+#[test]
+fn twelve_bit_recordings_store_16_bit_pngs_and_replay_at_full_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 2, width: 320, height: 240, frame_sets: 3, noise_sigma: 0.5, ..SimParams::default() };
+    let rec8 = common::simulate(dir.path(), "rec8", &params);
+    let rec12 = common::simulate(dir.path(), "rec12", &SimParams { bit_depth: 12, ..params.clone() });
+    let (r8, lines8, _) = common::replay_lines(&rec8, false);
+    let (r12, lines12, summary) = common::replay_lines(&rec12, false);
+    assert_eq!(summary.bad_frames, 0);
+    assert_eq!((lines8.len(), lines12.len()), (3, 3));
+    common::feedcheck(&lines12, &rec12.join("tagdeflect.toml"));
+    for (a, b) in r8.frames.iter().zip(&r12.frames) {
+        let bytes = fs::read(rec12.join(&b.file)).unwrap();
+        assert_eq!(png_depth_and_sbit(&bytes), (16, 0, Some(12)), "{}", b.file);
+        let (i8, i12) = (r8.load_image(a).unwrap(), r12.load_image(b).unwrap());
+        let deep = i12.deep.as_ref().expect("a 12-bit frame keeps its depth");
+        assert_eq!(deep.bits, 12);
+        assert!(deep.data.iter().all(|&v| v <= 4095));
+        assert!(deep.data.iter().any(|&v| v % 16 != 0), "the 12-bit values are not 8-bit ones scaled");
+        assert!(i8.deep.is_none());
+        let worst = i8.data.iter().zip(&i12.data).map(|(x, y)| (*x as i32 - *y as i32).abs()).max().unwrap();
+        assert!(worst <= 1, "8-bit plane differs from the 8-bit render by {worst}");
+    }
+}
+
+/// A 16-bit frame whose PNG header is malformed (an impossible depth for grey) is refused
+/// before decoding, naming the file; with no other frame `check` exits 2.
+#[test]
+fn a_malformed_16_bit_png_header_is_refused_with_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, frame_sets: 1, bit_depth: 12, ..SimParams::default() };
+    let rec_dir = common::simulate(dir.path(), "rec", &params);
+    let rec = Recording::open(&rec_dir).unwrap();
+    let f0 = rec.frames[0].clone();
+    let path = rec_dir.join(&f0.file);
+    let mut bytes = fs::read(&path).unwrap();
+    assert_eq!(bytes[24], 16);
+    bytes[24] = 12; // not a PNG depth
+    fs::write(&path, &bytes).unwrap();
+    let e = rec.load_image(&f0).unwrap_err().to_string();
+    assert!(e.contains(&f0.file) && e.contains("at 12 bits") && e.contains("8- or 16-bit grayscale"), "{e}");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["check", rec_dir.to_str().unwrap()])
+        .env("TAGDEFLECT_LOG", "warn")
+        .output()
+        .unwrap();
+    let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(2), "{out}{err}");
+    assert!(out.contains(&f0.file) && out.contains("8- or 16-bit grayscale"), "{out}");
+    assert!(err.contains("no frame could be read"), "{err}");
+    // A 16-bit header that claims a huge image: refused from the header, nothing decoded.
+    bytes[24] = 16;
+    bytes[16..20].copy_from_slice(&100_000u32.to_be_bytes());
+    fs::write(&path, &bytes).unwrap();
+    let e = rec.load_image(&f0).unwrap_err().to_string();
+    assert!(e.contains(&f0.file) && e.contains("image is 100000x240 but camera is 320x240"), "{e}");
 }
 
 fn small_recording(dir: &Path) -> std::path::PathBuf {
@@ -126,7 +244,7 @@ fn missing_corrupt_and_wrong_size_frames_are_named() {
     let rgb = image::RgbImage::new(320, 240);
     rgb.save(&path).unwrap();
     let e = rec.load_image(&f0).unwrap_err().to_string();
-    assert!(e.contains("8-bit grayscale"), "{e}");
+    assert!(e.contains("8- or 16-bit grayscale"), "{e}");
 }
 
 #[test]
@@ -185,4 +303,28 @@ fn pgm_recordings_replay_like_png_ones() {
     cfg2.output.record_format = FrameFormat::Pgm;
     let text = cfg2.to_toml_string();
     assert!(text.contains("record_format = \"pgm\""), "{text}");
+}
+
+/// The recorder keeps the depth: `record` from a live (simulated) 12-bit camera writes 16-bit
+/// PNG frames with sBIT 12, which replay at full depth.
+#[test]
+fn the_recorder_keeps_the_full_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { cameras: 1, width: 320, height: 240, fps: 5.0, bit_depth: 12, noise_sigma: 0.5, ..SimParams::default() };
+    let cfg_path = dir.path().join("rig.toml");
+    fs::write(&cfg_path, tagdeflect::config::Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap()).to_toml_string()).unwrap();
+    let rec_dir = dir.path().join("rec");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["record", "--config", cfg_path.to_str().unwrap(), "--out", rec_dir.to_str().unwrap(), "--duration-s", "1.5"])
+        .env("TAGDEFLECT_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rec = Recording::open(&rec_dir).unwrap();
+    assert!(!rec.frames.is_empty());
+    for f in &rec.frames {
+        assert_eq!(png_depth_and_sbit(&fs::read(rec_dir.join(&f.file)).unwrap()), (16, 0, Some(12)), "{}", f.file);
+        let img = rec.load_image(f).unwrap();
+        assert_eq!(img.deep.as_ref().map(|d| d.bits), Some(12), "{}", f.file);
+    }
 }

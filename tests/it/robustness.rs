@@ -501,7 +501,7 @@ fn a_camera_without_background_tags_reports_a_stale_pose() {
         if (3..6).contains(&k) {
             // Camera 0 looks at a grey wall: no background tag, no specimen tag.
             for f in set.frames.iter_mut().filter(|f| f.camera == 0) {
-                f.image = Arc::new(GrayImage { width: w, height: h, data: vec![128; (w * h) as usize] });
+                f.image = Arc::new(GrayImage { width: w, height: h, data: vec![128; (w * h) as usize], deep: None });
             }
         }
         let (line, _) = m.process(set);
@@ -637,7 +637,7 @@ fn mutation_fuzz() {
     let cfg_text = fs::read(root.join("config/one-camera.toml")).unwrap();
     let mut pgm = b"P5\n16 12\n255\n".to_vec();
     pgm.extend((0..192).map(|i| (i * 7) as u8));
-    let png = tagdeflect_io::recording::encode_png(&tagdeflect_core::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec() })
+    let png = tagdeflect_io::recording::encode_png(&tagdeflect_core::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec(), deep: None })
         .unwrap();
     let frames = fs::read(root.join("replay/three-cam/frames.jsonl")).unwrap()[..600].to_vec();
     let utm = fs::read(root.join("replay/three-cam/utm.jsonl")).unwrap()[..600].to_vec();

@@ -35,7 +35,7 @@ pub(crate) fn load_gray(path: &Path) -> Result<GrayImage, CalibrateError> {
         .pixels()
         .map(|p| (0.299 * p.0[0] as f64 + 0.587 * p.0[1] as f64 + 0.114 * p.0[2] as f64).round().clamp(0.0, 255.0) as u8)
         .collect();
-    Ok(GrayImage { width: rgb.width(), height: rgb.height(), data })
+    Ok(GrayImage { width: rgb.width(), height: rgb.height(), data, deep: None })
 }
 
 /// The image files of a folder (PNG, JPEG), sorted by name.

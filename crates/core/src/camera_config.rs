@@ -41,6 +41,12 @@ pub struct CameraConfig {
     /// Optional fixed pose: translation in mm.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tvec_mm: Option<[f64; 3]>,
+    /// Live cameras: ask for the deepest monochrome format the camera offers (V4L2
+    /// `Y16`/`Y12`/`Y10`, GenICam `Mono16`/`Mono12`/`Mono10`) before the 8-bit one, so the
+    /// edge fit reads the full depth and recordings keep it (16-bit PNG). Off by default
+    /// (8-bit formats first: half the bandwidth).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub full_depth: bool,
 }
 
 /// Where a camera's frames come from (`[[camera]] source`). Written back as the same string.
@@ -201,6 +207,9 @@ pub struct CameraSection {
     /// Fixed pose: translation, mm.
     #[serde(default)]
     pub tvec_mm: Option<[f64; 3]>,
+    /// Deepest monochrome format first (see [`CameraConfig::full_depth`]).
+    #[serde(default)]
+    pub full_depth: bool,
 }
 
 impl CameraSection {
@@ -316,6 +325,7 @@ impl CameraSection {
             dist: intr.dist,
             rvec: self.rvec,
             tvec_mm: self.tvec_mm,
+            full_depth: self.full_depth,
         })
     }
 }

@@ -3,7 +3,9 @@
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
-/// An 8-bit grayscale image, row-major, `stride == width`.
+/// An 8-bit grayscale image, row-major, `stride == width`, with the camera's full-depth
+/// samples beside it when the camera gives more than 8 bits ([`DeepPlane`]): detection reads
+/// the 8-bit plane, the edge fit the full-depth one ([`GrayImage::level`]).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct GrayImage {
     /// Width in pixels.
@@ -12,12 +14,67 @@ pub struct GrayImage {
     pub height: u32,
     /// `width * height` bytes, row after row.
     pub data: Vec<u8>,
+    /// The full-depth samples when the image has more than 8 significant bits (`None` for an
+    /// 8-bit camera: nothing is copied).
+    pub deep: Option<DeepPlane>,
+}
+
+/// The full-depth samples of an image deeper than 8 bits: `width * height` values, row after
+/// row, LSB-aligned (`0 ..= 2^bits − 1`, as V4L2 `Y10`/`Y12`/`Y16` and GenICam
+/// `Mono10`/`Mono12`/`Mono16` deliver them).
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct DeepPlane {
+    /// Significant bits per sample, 9 to 16.
+    pub bits: u8,
+    /// The samples.
+    pub data: Vec<u16>,
+}
+
+impl DeepPlane {
+    /// The 8-bit level of a sample: `v / 2^(bits − 8)`, rounded to the nearest grey level.
+    #[inline]
+    pub fn to_8bit(bits: u8, v: u16) -> u8 {
+        let shift = u32::from(bits.saturating_sub(8));
+        let half = (1u32 << shift) >> 1;
+        ((u32::from(v) + half) >> shift).min(255) as u8
+    }
 }
 
 impl GrayImage {
     /// A black image.
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, data: vec![0; width as usize * height as usize] }
+        Self { width, height, data: vec![0; width as usize * height as usize], deep: None }
+    }
+
+    /// An 8-bit image of `data` (`width * height` bytes).
+    pub fn from_8bit(width: u32, height: u32, data: Vec<u8>) -> Self {
+        Self { width, height, data, deep: None }
+    }
+
+    /// Makes the 8-bit plane from the full-depth one ([`DeepPlane::to_8bit`]), reusing
+    /// `data`'s buffer; `deep` must hold `width * height` samples.
+    pub fn fill_8bit_from_deep(&mut self) {
+        if let Some(deep) = &self.deep {
+            let bits = deep.bits;
+            self.data.clear();
+            self.data.extend(deep.data.iter().map(|&v| DeepPlane::to_8bit(bits, v)));
+        }
+    }
+
+    /// Significant bits per sample: the full-depth plane's, else 8.
+    pub fn bits(&self) -> u8 {
+        self.deep.as_ref().map_or(8, |d| d.bits)
+    }
+
+    /// The grey level of pixel `index` (row-major) on the 8-bit scale (0–255) at the image's
+    /// full depth: the full-depth sample divided by `2^(bits − 8)` when there is one, else
+    /// the 8-bit value. What the edge fit reads.
+    #[inline]
+    pub fn level(&self, index: usize) -> f32 {
+        match &self.deep {
+            Some(d) => f32::from(d.data[index]) / (1u32 << d.bits.saturating_sub(8)) as f32,
+            None => f32::from(self.data[index]),
+        }
     }
 
     /// Pixel at integer coordinates (no bounds check beyond the slice's).
@@ -141,10 +198,13 @@ impl FrameFormat {
         }
     }
 
-    /// Encodes an image in this format.
+    /// Encodes an image in this format: at 16 bits when it has a full-depth plane (PNG:
+    /// samples scaled to the 16-bit range with an `sBIT` chunk giving the significant bits;
+    /// PGM: maxval `2^bits − 1`, big-endian samples), else at 8 bits.
     pub fn encode(self, img: &GrayImage) -> Result<Vec<u8>, png::EncodingError> {
         match self {
             FrameFormat::Png => encode_png(img),
+            FrameFormat::Pgm if img.deep.is_some() => Ok(encode_pgm16(img)),
             FrameFormat::Pgm => {
                 let header = format!("P5\n{} {}\n255\n", img.width, img.height);
                 let mut out = Vec::with_capacity(header.len() + img.data.len());
@@ -156,8 +216,12 @@ impl FrameFormat {
     }
 }
 
-/// Encodes an image as an 8-bit grey PNG (fast compression).
+/// Encodes an image as a grey PNG (fast compression): 8-bit, or 16-bit with an `sBIT`
+/// chunk when it has a full-depth plane.
 pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, png::EncodingError> {
+    if let Some(deep) = &img.deep {
+        return encode_png16(img.width, img.height, deep);
+    }
     let mut out = Vec::with_capacity(img.data.len() / 2);
     {
         let mut enc = png::Encoder::new(&mut out, img.width, img.height);
@@ -170,9 +234,48 @@ pub fn encode_png(img: &GrayImage) -> Result<Vec<u8>, png::EncodingError> {
     Ok(out)
 }
 
+/// A 16-bit grey PNG of `deep`: each sample shifted into the high bits (the PNG rule for
+/// fewer significant bits than the sample depth) and `sBIT` = `deep.bits`.
+fn encode_png16(width: u32, height: u32, deep: &DeepPlane) -> Result<Vec<u8>, png::EncodingError> {
+    let shift = 16 - u32::from(deep.bits.clamp(1, 16));
+    let bytes: Vec<u8> = deep.data.iter().flat_map(|&v| (v << shift).to_be_bytes()).collect();
+    let mut out = Vec::with_capacity(bytes.len() / 2);
+    {
+        let mut enc = png::Encoder::new(&mut out, width, height);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Sixteen);
+        enc.set_compression(png::Compression::Fast);
+        let mut w = enc.write_header()?;
+        w.write_chunk(png::chunk::sBIT, &[deep.bits])?;
+        w.write_image_data(&bytes)?;
+    }
+    Ok(out)
+}
+
+/// A binary 16-bit PGM of the full-depth plane: maxval `2^bits − 1`, big-endian samples.
+fn encode_pgm16(img: &GrayImage) -> Vec<u8> {
+    let deep = img.deep.as_ref().expect("called with a full-depth plane");
+    let maxval = (1u32 << deep.bits) - 1;
+    let header = format!("P5\n{} {}\n{maxval}\n", img.width, img.height);
+    let mut out = Vec::with_capacity(header.len() + 2 * deep.data.len());
+    out.extend_from_slice(header.as_bytes());
+    out.extend(deep.data.iter().flat_map(|v| v.to_be_bytes()));
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_level_reads_the_full_depth_on_the_8bit_scale() {
+        let mut img = GrayImage::new(3, 1);
+        assert_eq!((img.level(0), img.bits()), (0.0, 8));
+        img.deep = Some(DeepPlane { bits: 12, data: vec![0x0ABC, 4095, 8] });
+        img.fill_8bit_from_deep();
+        assert_eq!(img.data, vec![0xAC, 255, 1], "rounded to the nearest 8-bit level");
+        assert_eq!((img.level(0), img.level(2), img.bits()), (0x0ABC as f32 / 16.0, 0.5, 12));
+    }
 
     #[test]
     fn pool_reuses_buffers_once_released() {

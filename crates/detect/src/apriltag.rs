@@ -553,7 +553,7 @@ mod tests {
         assert!(d.detect(&img).is_empty());
         let img = GrayImage::new(100, 100);
         assert!(d.detect_window(&img, Rect { x: 200, y: 0, width: 50, height: 50 }).is_empty());
-        let broken = GrayImage { width: 100, height: 100, data: vec![0; 10] };
+        let broken = GrayImage { width: 100, height: 100, data: vec![0; 10], deep: None };
         assert!(d.detect(&broken).is_empty());
     }
 

@@ -6,7 +6,7 @@
 //! the pixels ([`Optics`]: a Gaussian, a defocus disk, an astigmatic blur, the pixel's fill
 //! factor), motion blur, the camera's processing after the pixels ([`formation`]: a discrete
 //! Gaussian, a 3×3 sharpening kernel, a colour sensor's demosaic, JPEG), sensor noise and the
-//! sensor's bit depth, stored at 8 bits ([`quantize_bits`]).
+//! sensor's bit depth, kept at full depth beside an 8-bit plane when deeper ([`quantize_bits`]).
 //!
 //! Its own crate so that the calibration does not stand on the simulator: both stand on it.
 

@@ -20,7 +20,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 use tagdeflect_core::camera::CameraIntrinsics;
-use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::frame::{DeepPlane, GrayImage};
 
 /// A rectangle of pixels `x0..x1`, `y0..y1` (exclusive ends).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -287,12 +287,16 @@ pub fn quantize(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64) -> GrayI
     quantize_bits(img, w, h, sigma, seed, 8)
 }
 
-/// Adds Gaussian noise of `sigma` grey levels (seeded per row), digitises to a sensor of
-/// `bits` bits ([`crate::formation::sensor_levels`]) and stores the result at 8 bits (the
-/// recording's frames are 8-bit: deeper levels are rounded to the nearest 8-bit one).
+/// Adds Gaussian noise of `sigma` grey levels (seeded per row) and digitises to a sensor of
+/// `bits` bits ([`crate::formation::sensor_levels`]): at 8 bits the image is the rounded
+/// levels; deeper, the sensor's values (`level · 2^(bits − 8)`) are kept as the image's
+/// full-depth plane ([`tagdeflect_core::frame::DeepPlane`]) and the 8-bit plane is rounded
+/// from them.
 pub fn quantize_bits(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64, bits: u32) -> GrayImage {
-    let mut data = vec![0u8; w * h];
-    data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+    let per_grey = (1u32 << bits.saturating_sub(8)) as f32;
+    let max = ((1u32 << bits.max(8)) - 1) as f32;
+    let mut values = vec![0u16; w * h];
+    values.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ (y as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
         let src = &img[y * w..(y + 1) * w];
         for (o, &v) in row.iter_mut().zip(src) {
@@ -302,11 +306,16 @@ pub fn quantize_bits(img: &[f32], w: usize, h: usize, sigma: f64, seed: u64, bit
             } else {
                 0.0
             };
-            let level = if bits == 8 { v + noise } else { crate::formation::sensor_levels(v + noise, bits) };
-            *o = level.round().clamp(0.0, 255.0) as u8;
+            *o = ((v + noise) * per_grey).round().clamp(0.0, max) as u16;
         }
     });
-    GrayImage { width: w as u32, height: h as u32, data }
+    if bits <= 8 {
+        return GrayImage::from_8bit(w as u32, h as u32, values.into_iter().map(|v| v as u8).collect());
+    }
+    let mut out = GrayImage::new(w as u32, h as u32);
+    out.deep = Some(DeepPlane { bits: bits as u8, data: values });
+    out.fill_8bit_from_deep();
+    out
 }
 
 /// Bilinear weights of the four pixel-corner rays for sub-sample (`a`, `b`) of an `nf`×`nf`

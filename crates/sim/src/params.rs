@@ -133,7 +133,8 @@ pub struct SimParams {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub jpeg_quality: Option<u8>,
     /// Bit depth of the sensor's digitisation (8 to 16): noise is added to the light, which
-    /// is digitised to this many bits, then stored at 8 bits (recordings hold 8-bit frames).
+    /// is digitised to this many bits and kept at that depth (above 8: recordings hold 16-bit
+    /// PNG frames with an `sBIT` chunk; with `jpeg_quality` the frames are 8-bit JPEG).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 8))]
     #[serde(skip_serializing_if = "is_default_bits")]
     pub bit_depth: u32,

@@ -98,8 +98,10 @@ impl SimRig {
         img
     }
 
-    /// Renders camera `cam`'s image at `t_ns` (8-bit grey, the camera's size): digitised at
-    /// the sensor's `bit_depth`, stored at 8 bits, through JPEG when `jpeg_quality` is set.
+    /// Renders camera `cam`'s image at `t_ns` (grey, the camera's size): digitised at the
+    /// sensor's `bit_depth` (deeper than 8 bits: kept at full depth beside the 8-bit plane,
+    /// so recordings store 16-bit PNGs), through JPEG when `jpeg_quality` is set (JPEG
+    /// frames are 8-bit: the full depth is dropped).
     ///
     /// The fixed scene is rendered once per camera pose and cached; each call re-renders
     /// only the beam's image region, passes it and its surroundings through the optics

@@ -163,6 +163,7 @@ impl SimRig {
                     dist: k.dist,
                     rvec: None,
                     tvec_mm: None,
+                    full_depth: false,
                 }
             })
             .collect();

@@ -165,7 +165,7 @@ mod tests {
             }
         }
         let blurred = blur(&area, w as usize, h as usize, &gaussian_kernel(0.8));
-        let img = GrayImage { width: w, height: h, data: blurred.iter().map(|v| v.round() as u8).collect() };
+        let img = GrayImage { width: w, height: h, data: blurred.iter().map(|v| v.round() as u8).collect(), deep: None };
         // From where the ChESS detector leaves a corner (within half a pixel).
         for start in [Point2::new(20.0, 18.0), Point2::new(20.6, 17.4)] {
             let q = refine_saddle(&img, start, 6).unwrap();

@@ -297,5 +297,5 @@ fn shrink_black(image: &GrayImage, size: u32) -> GrayImage {
             out[y * w + x] = (a..=b).map(|j| rows[j * w + x]).max().unwrap_or(0);
         }
     }
-    GrayImage { width: image.width, height: image.height, data: out }
+    GrayImage { width: image.width, height: image.height, data: out, deep: None }
 }

@@ -292,10 +292,10 @@ pub(super) fn select_band(
 }
 
 /// The grey level of the pixel at `index` of `image`: the one place the edge fits and the
-/// profile's samples read pixel values (a full-depth frame would be read here).
+/// profile's samples read pixel values: a full-depth frame's level scaled to 0–255.
 #[inline(always)]
 pub(super) fn pixel_value(image: &GrayImage, index: usize) -> f64 {
-    image.data[index] as f64
+    f64::from(image.level(index))
 }
 
 /// The values of `band`'s pixels in `image` (see [`pixel_value`]).

@@ -396,7 +396,7 @@ mod tests {
 
     #[test]
     fn flat_image_keeps_corners() {
-        let img = GrayImage { width: 100, height: 100, data: vec![128; 10_000] };
+        let img = GrayImage { width: 100, height: 100, data: vec![128; 10_000], deep: None };
         let mut det = Detection {
             family: TagFamily::Tag36h11,
             id: 0,

@@ -215,6 +215,7 @@ mod tests {
             dist: [0.0; 5],
             rvec: None,
             tvec_mm: None,
+            full_depth: false,
         };
         let config = CameraList(vec![camera("left"), camera("right")]);
         let mut w = RecordingWriter::create(&dir.path().join("rec"), &config).unwrap();

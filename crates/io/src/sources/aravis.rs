@@ -5,8 +5,9 @@
 //! in-process fake camera (`Fake_1`, `Aravis-Fake-GV01`; any id starting with `Fake` or
 //! `Aravis-Fake` enables Aravis's "Fake" interface first).
 //!
-//! Opening sets Mono8 when the camera offers it, else Mono16/Mono12/Mono10 (converted to
-//! 8 bits in software), the configured size as the region of interest, continuous
+//! Opening sets Mono8 when the camera offers it, else Mono16/Mono12/Mono10 (with the
+//! camera's `full_depth`, the deep formats first; kept at full depth beside an 8-bit plane,
+//! see [`crate::sources::convert`]), the configured size as the region of interest, continuous
 //! acquisition and the configured frame rate when the camera supports setting it. The
 //! stream gets [`AravisOptions::n_buffers`] buffers of the camera's payload size; on GigE
 //! packet resend is enabled. Every popped buffer's status is checked: only
@@ -239,7 +240,11 @@ impl Session {
             Camera::new(Some(id)).map_err(|e| glib_err("cannot open the camera", id, e))?
         };
         let formats: Vec<i64> = camera.dup_available_pixel_formats().unwrap_or_default();
-        let candidates = [PixelFormat::MONO_8, PixelFormat::MONO_16, PixelFormat::MONO_12, PixelFormat::MONO_10];
+        let mut candidates = [PixelFormat::MONO_8, PixelFormat::MONO_16, PixelFormat::MONO_12, PixelFormat::MONO_10];
+        if cfg.full_depth {
+            // The deepest first: the edge fit reads the full depth.
+            candidates.rotate_left(1);
+        }
         let mut chosen = None;
         for f in candidates {
             if !formats.is_empty() && !formats.contains(&(f.raw() as i64)) {

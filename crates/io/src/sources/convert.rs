@@ -1,4 +1,5 @@
-//! Pixel-format conversion of captured buffers to the product's 8-bit grey image.
+//! Pixel-format conversion of captured buffers to the product's grey image (8-bit, with the
+//! full-depth samples beside it for 10- to 16-bit layouts).
 //!
 //! Pure functions over byte slices: the live sources (V4L2, Aravis) hand in the bytes the
 //! driver says are valid (`bytesused`, never the whole mapped buffer) and get a
@@ -14,7 +15,8 @@ pub enum PixelLayout {
     Gray8,
     /// 16-bit little-endian grey containers holding `bits` significant bits, LSB-aligned
     /// (V4L2 `Y16` is `bits = 16`, `Y10`/`Y12` are 10/12; GenICam `Mono16`, `Mono12`,
-    /// `Mono10`). Converted by keeping the top 8 significant bits.
+    /// `Mono10`). Kept at full depth ([`tagdeflect_core::frame::DeepPlane`]) beside an
+    /// 8-bit plane rounded from it.
     Gray16Le {
         /// Significant bits per sample, 9..=16.
         bits: u8,
@@ -87,7 +89,8 @@ pub enum ConvertError {
     BitDepth(u8),
 }
 
-/// Converts one captured buffer to 8-bit grey.
+/// Converts one captured buffer to grey: 8-bit, plus the full-depth plane for
+/// [`PixelLayout::Gray16Le`].
 ///
 /// `data` is the valid part of the buffer (`bytesused`); `stride` is the bytes per row
 /// (V4L2 `bytesperline`; 0 means tightly packed). Rows may be padded beyond the pixels, and
@@ -125,27 +128,41 @@ pub(crate) fn to_gray8_into(
     if data.len() < needed {
         return Err(ConvertError::Truncated { layout, width, height, stride, needed, got: data.len() });
     }
-    let shift = match layout {
-        PixelLayout::Gray16Le { bits } if (9..=16).contains(&bits) => bits - 8,
-        PixelLayout::Gray16Le { bits } => return Err(ConvertError::BitDepth(bits)),
-        _ => 0,
-    };
     let w = width as usize;
     out.width = width;
     out.height = height;
+    if let PixelLayout::Gray16Le { bits } = layout {
+        if !(9..=16).contains(&bits) {
+            return Err(ConvertError::BitDepth(bits));
+        }
+        fill_deep(out, bits, w, data.chunks(stride).take(height as usize).map(|row| &row[..row_bytes]));
+        return Ok(());
+    }
+    out.deep = None;
     out.data.resize(w * height as usize, 0);
     for (dst, row) in out.data.chunks_exact_mut(w).zip(data.chunks(stride)) {
         let row = &row[..row_bytes];
         match layout {
             PixelLayout::Gray8 => dst.copy_from_slice(row),
             PixelLayout::Yuyv => dst.iter_mut().zip(row.chunks_exact(2)).for_each(|(d, p)| *d = p[0]),
-            PixelLayout::Gray16Le { .. } => {
-                dst.iter_mut().zip(row.chunks_exact(2)).for_each(|(d, p)| *d = (u16::from_le_bytes([p[0], p[1]]) >> shift).min(255) as u8)
-            }
-            PixelLayout::Mjpeg => {}
+            PixelLayout::Gray16Le { .. } | PixelLayout::Mjpeg => {}
         }
     }
     Ok(())
+}
+
+/// Keeps 16-bit little-endian rows at full depth (`bits` significant, LSB-aligned; a value
+/// above `2^bits − 1`, which a camera should not send, is clamped to it) and makes the 8-bit plane from them,
+/// reusing `out`'s buffers.
+fn fill_deep<'a>(out: &mut GrayImage, bits: u8, w: usize, rows: impl Iterator<Item = &'a [u8]>) {
+    let deep = out.deep.get_or_insert_with(Default::default);
+    deep.bits = bits;
+    deep.data.clear();
+    let max = ((1u32 << bits) - 1) as u16;
+    for row in rows {
+        deep.data.extend(row.chunks_exact(2).take(w).map(|p| u16::from_le_bytes([p[0], p[1]]).min(max)));
+    }
+    out.fill_8bit_from_deep();
 }
 
 /// Decodes one MJPEG frame. A frame must start with the start-of-image marker and end
@@ -172,7 +189,7 @@ fn decode_mjpeg(width: u32, height: u32, data: &[u8]) -> Result<GrayImage, Conve
     if luma.width() != width || luma.height() != height {
         return Err(ConvertError::JpegSize { width, height, got_w: luma.width(), got_h: luma.height() });
     }
-    Ok(GrayImage { width, height, data: luma.into_raw() })
+    Ok(GrayImage::from_8bit(width, height, luma.into_raw()))
 }
 
 #[cfg(test)]
@@ -180,11 +197,16 @@ mod tests {
     use super::*;
 
     #[test]
-    fn sixteen_bit_depths_keep_top_bits() {
+    fn sixteen_bit_depths_keep_the_full_depth_beside_8_bits() {
         let px: u16 = 0x0ABC; // 12-bit value
         let data = px.to_le_bytes();
-        assert_eq!(to_gray8(PixelLayout::Gray16Le { bits: 12 }, 1, 1, 0, &data).unwrap().data, vec![0xAB]);
-        assert_eq!(to_gray8(PixelLayout::Gray16Le { bits: 16 }, 1, 1, 0, &data).unwrap().data, vec![0x0A]);
+        let img = to_gray8(PixelLayout::Gray16Le { bits: 12 }, 1, 1, 0, &data).unwrap();
+        assert_eq!(img.data, vec![0xAC], "the 8-bit plane is the nearest level");
+        assert_eq!(img.deep.as_ref().map(|d| (d.bits, d.data.clone())), Some((12, vec![0x0ABC])));
+        assert_eq!(img.level(0), 0x0ABC as f32 / 16.0);
+        assert_eq!(to_gray8(PixelLayout::Gray16Le { bits: 16 }, 1, 1, 0, &data).unwrap().data, vec![0x0B]);
+        let eight = to_gray8(PixelLayout::Gray8, 1, 1, 0, &[7]).unwrap();
+        assert!(eight.deep.is_none(), "no full-depth copy of an 8-bit frame");
         assert!(matches!(to_gray8(PixelLayout::Gray16Le { bits: 8 }, 1, 1, 0, &data), Err(ConvertError::BitDepth(8))));
     }
 

@@ -2,7 +2,8 @@
 //!
 //! The device is opened, set to the configured size and the first pixel format it offers
 //! among GREY, Y16, Y12, Y10, YUYV and MJPEG (in that order of preference: no decoding
-//! beats decoding), and the configured frame rate when given; frames are streamed from
+//! beats decoding; with the camera's `full_depth`, Y16, Y12, Y10 before GREY, kept at full
+//! depth beside an 8-bit plane), and the configured frame rate when given; frames are streamed from
 //! memory-mapped buffers. Of each buffer only `bytesused` bytes are read, buffers flagged
 //! `V4L2_BUF_FLAG_ERROR` are counted as incomplete and never delivered, and the driver's
 //! timestamp is mapped from CLOCK_MONOTONIC to the Unix epoch ([`map_buffer_timestamp`]).
@@ -65,6 +66,16 @@ pub const BUF_FLAG_ERROR: u32 = 0x0000_0040;
 const N_BUFFERS: u32 = 4;
 /// How long one dequeue waits before checking the stop flag.
 const DEQUEUE_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// The formats in the order a camera is asked for them: [`PREFERRED_FOURCCS`], or with
+/// `full_depth` the 16-bit grey ones first (`Y16`, `Y12`, `Y10`, then `GREY`, ...).
+pub(crate) fn preference(full_depth: bool) -> [[u8; 4]; 6] {
+    let mut order = PREFERRED_FOURCCS;
+    if full_depth {
+        order[..4].rotate_left(1);
+    }
+    order
+}
 
 /// The converter for a V4L2 fourcc, if supported.
 pub fn fourcc_layout(fourcc: [u8; 4]) -> Option<PixelLayout> {
@@ -247,7 +258,7 @@ impl Session {
             Err(_) => PREFERRED_FOURCCS.to_vec(),
         };
         let mut chosen = None;
-        for want in PREFERRED_FOURCCS.iter().filter(|f| offered.contains(f)) {
+        for want in preference(cfg.full_depth).iter().filter(|f| offered.contains(f)) {
             let req = Format::new(cfg.width, cfg.height, FourCC::new(want));
             match dev.set_format(&req) {
                 Ok(got) if got.fourcc.repr == *want => {
@@ -725,6 +736,12 @@ mod tests {
             let got = ring_next(&mut Gone, &mut state, 4, Duration::from_millis(1), |_| ());
             assert!(matches!(got, RingNext::Failed(e) if e.raw_os_error() == Some(libc::ENODEV)), "{state:?}");
         }
+    }
+
+    #[test]
+    fn full_depth_asks_for_the_deep_formats_first() {
+        assert_eq!(preference(false), PREFERRED_FOURCCS);
+        assert_eq!(preference(true), [*b"Y16 ", *b"Y12 ", *b"Y10 ", *b"GREY", *b"YUYV", *b"MJPG"]);
     }
 
     fn test_cfg() -> CameraConfig {
