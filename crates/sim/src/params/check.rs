@@ -112,6 +112,9 @@ impl SimParams {
         if !steps.is_empty() && (self.frame_sets as usize) < steps.len() || (!steps.is_empty() && self.cyclic) {
             return bad("verify_steps", format!("{} steps: expected at least one frame set each and no cyclic load", steps.len()));
         }
+        if !self.rate_phases()?.is_empty() && !steps.is_empty() {
+            return bad("rates", "a verification run (verify_steps) has no loading rates");
+        }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }

@@ -70,7 +70,7 @@ impl LabTests {
             verification: self.verification_now(g),
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
-        let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new() };
+        let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new(), preload_kn: None };
         self.persist(&r);
         self.publish(&r.record);
         g.running = Some(r);
@@ -192,6 +192,7 @@ impl LabTests {
                 "events": r.record.events,
                 "lines": r.record.lines,
                 "zeroing": r.zero.n < ZERO_SETS,
+                "preloading": r.preloading_status(),
                 "folder": r.folder,
             }),
             None => serde_json::json!({

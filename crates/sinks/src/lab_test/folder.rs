@@ -123,7 +123,8 @@ impl LabTests {
             gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
         };
         let curve = read_curve(&p.folder.join("feed.jsonl")).unwrap_or_default();
-        let mut r = Running { record: p.record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve };
+        let mut r =
+            Running { record: p.record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve, preload_kn: None };
         if p.phase == Phase::Stopping {
             return Ok(Some(r));
         }

@@ -50,6 +50,7 @@ mod commands;
 mod crack;
 mod folder;
 pub mod meta;
+mod preload;
 pub mod record;
 pub mod specimens;
 mod start;

@@ -36,6 +36,9 @@ pub(super) struct Running {
     pub(super) written_t_ns: i64,
     /// (net deflection, load) of the test's lines, thinned (the page's earlier tests).
     pub(super) curve: Vec<(f64, f64)>,
+    /// The preload its method asks for, kN, until the load reaches it: no zero is taken
+    /// below it ([`super::preload`]).
+    pub(super) preload_kn: Option<f64>,
 }
 
 #[derive(Default)]

@@ -25,6 +25,7 @@ impl LabTests {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
                 match self.open(&mut g, meta, Some(why.clone()), None) {
                     Ok(id) => {
+                        self.auto_method(&mut g);
                         tracing::info!(test = %id, "test started automatically ({why})");
                         self.audit_auto_start(id, why);
                     }
@@ -33,7 +34,9 @@ impl LabTests {
             }
         }
         line.events.append(&mut g.pending);
-        if let Some(r) = g.running.as_mut() {
+        if g.running.as_ref().is_some_and(|r| r.wait_for_preload(line)) {
+            // Below the method's preload: the test's lines (and its zero) start at the preload.
+        } else if let Some(r) = g.running.as_mut() {
             let zeroing = r.zero.take(line);
             if zeroing && r.zero.n == ZERO_SETS {
                 // The zero has formed: a restart from here resumes from it.
