@@ -79,7 +79,10 @@ impl SimCommand {
                 if !(speed.is_finite() && speed > 0.0 && speed <= 1000.0) {
                     return Err(tagdeflect_core::BadInput::new(format!("--speed {speed}: a factor above 0, at most 1000")).into());
                 }
-                let http = demo_http(http, no_http, false)?;
+                // The tests' control API lives on the page: without one asked for, a free
+                // loopback port serves it.
+                let any_port = std::net::SocketAddr::from(([127, 0, 0, 1], 0));
+                let http = demo_http(http, no_http, false)?.or_else(|| http_options(Some(any_port), true));
                 DemoTest { speed, small, root }.run(http).map(|_| ())
             }
             SimCommand::Demo { duration_s, config, http, no_http, tests, control, .. } => {
