@@ -61,7 +61,7 @@ pub enum SimCommand {
         c1609: Option<PathBuf>,
         /// With --c1609: play the simulated test this many times faster than recorded (the
         /// feed keeps the simulated times).
-        #[arg(long, default_value_t = 20.0, requires = "c1609")]
+        #[arg(long, default_value_t = 5.0, requires = "c1609")]
         speed: f64,
         /// With --c1609: two cameras with 2x2 sub-samples per pixel instead of three with 4x4
         /// (quicker to simulate).
@@ -83,7 +83,7 @@ impl SimCommand {
                 // loopback port serves it.
                 let any_port = std::net::SocketAddr::from(([127, 0, 0, 1], 0));
                 let http = demo_http(http, no_http, false)?.or_else(|| http_options(Some(any_port), true));
-                DemoTest { speed, small, root }.run(http).map(|_| ())
+                DemoTest { speed, small, root }.run(http, !no_http).map(|_| ())
             }
             SimCommand::Demo { duration_s, config, http, no_http, tests, control, .. } => {
                 let mut cfg = match config {

@@ -96,7 +96,8 @@ impl DemoTest {
 
     /// Simulates the test into `root/recording` and plays it (see the module doc); returns
     /// the test's folder once its report is made.
-    pub fn run(&self, http: Option<HttpOptions>) -> Result<PathBuf> {
+    /// `linger`: the page stays up after the test until a signal.
+    pub fn run(&self, http: Option<HttpOptions>, linger: bool) -> Result<PathBuf> {
         std::fs::create_dir_all(&self.root).with_context(|| format!("cannot create {}", self.root.display()))?;
         let params = self.params();
         let rig = SimRig::new(&params)?;
@@ -112,7 +113,7 @@ impl DemoTest {
         eprintln!("simulated in {:.0} s; playing it {}× faster than recorded", started.elapsed().as_secs_f64(), self.speed);
         tagdeflect_io::sources::playback::set_playback_speed(self.speed);
         let config = self.config(&rig);
-        crate::graph::entry::replay_as_test(&rec, config, http)?;
+        crate::graph::entry::replay_as_test(&rec, config, http, linger)?;
         let folder = wait_for_report(&self.root.join("tests"), Duration::from_secs(120))?;
         print_verdict(&folder)?;
         Ok(folder)
