@@ -66,6 +66,9 @@ sed -e 's|/usr/local/bin/tagdeflect|/usr/bin/tagdeflect|g' \
     -e '/^# Install:$/,/^#   systemctl daemon-reload/c\# Installed by the tagdeflect package (not enabled, not started):\n#   systemctl enable --now tagdeflect' \
     "$repo/systemd/tagdeflect.service" > "$root/lib/systemd/system/tagdeflect.service"
 chmod 0644 "$root/lib/systemd/system/tagdeflect.service"
+# The lab's group and folder (the unit's SupplementaryGroups=tagdeflect, ReadWritePaths=).
+install -D -m 0644 "$repo/systemd/tagdeflect.sysusers" "$root/usr/lib/sysusers.d/tagdeflect.conf"
+install -D -m 0644 "$repo/systemd/tagdeflect.tmpfiles" "$root/usr/lib/tmpfiles.d/tagdeflect.conf"
 grep -q '^ExecStart=/usr/bin/tagdeflect run --config /etc/tagdeflect/tagdeflect.toml$' "$root/lib/systemd/system/tagdeflect.service" \
   || { echo "package: the unit's ExecStart is not as expected" >&2; exit 1; }
 
@@ -106,6 +109,9 @@ depends=$(cd "$work/shlibs" && dpkg-shlibdeps -O "$root/usr/bin/tagdeflect" 2>/d
 cat > "$root/DEBIAN/postinst" <<'SH'
 #!/bin/sh
 set -e
+# The lab's group and folder before the unit can start (it names the group).
+systemd-sysusers tagdeflect.conf >/dev/null 2>&1 || getent group tagdeflect >/dev/null || addgroup --system tagdeflect >/dev/null
+systemd-tmpfiles --create tagdeflect.conf >/dev/null 2>&1 || true
 if [ -d /run/systemd/system ]; then
   systemctl daemon-reload >/dev/null 2>&1 || true
 fi

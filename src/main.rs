@@ -134,17 +134,20 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging();
     // A panic anywhere (a library's, caught or not) is one ERROR log line with its place,
-    // with the journal's priority, rather than the default hook's raw text on stderr.
+    // with the journal's priority, rather than the default hook's raw text on stderr; the
+    // same place again within 10 s is counted, not logged (a client sending a frame that
+    // panics a library's decoder 1 000 times gets a line per 10 s).
     std::panic::set_hook(Box::new(|info| {
         let thread = std::thread::current().name().unwrap_or("unnamed").to_string();
         let place = info.location().map(|l| format!("{}:{}", l.file(), l.line())).unwrap_or_default();
+        let Some(repeats) = panic_throttle(&place) else { return };
         let what = info
             .payload()
             .downcast_ref::<&str>()
             .map(|s| s.to_string())
             .or_else(|| info.payload().downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "(no message)".into());
-        tracing::error!(thread = %thread, at = %place, "panic: {what}");
+        tracing::error!(thread = %thread, at = %place, repeats, "panic: {what}");
     }));
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
@@ -153,6 +156,25 @@ fn main() -> ExitCode {
             ExitCode::from(exit_code(&e))
         }
     }
+}
+
+/// Whether a panic at `place` is logged now: the first, then once per 10 s per place, with
+/// the count of the panics there since the last line (`Some(count)`).
+fn panic_throttle(place: &str) -> Option<u64> {
+    use std::collections::HashMap;
+    use std::sync::Mutex;
+    use std::time::{Duration, Instant};
+    static SEEN: Mutex<Option<HashMap<String, (Option<Instant>, u64)>>> = Mutex::new(None);
+    let mut g = SEEN.lock().unwrap_or_else(|p| p.into_inner());
+    let seen = g.get_or_insert_with(HashMap::new);
+    let now = Instant::now();
+    let entry = seen.entry(place.to_string()).or_insert((None, 0));
+    entry.1 += 1;
+    if entry.0.is_some_and(|t| now.duration_since(t) < Duration::from_secs(10)) {
+        return None;
+    }
+    entry.0 = Some(now);
+    Some(std::mem::take(&mut entry.1))
 }
 
 /// The error and its causes in one line, each said once: a cause whose text its error

@@ -3,7 +3,8 @@
 //!
 //! A camera that sees too few background tags to be posed gets a clear warning; when no
 //! camera at all can be posed, `check` fails (exit 2): such a rig cannot measure. A camera
-//! whose background tags fit its pose worse than [`MAX_POSE_RMS_PX`] is warned of and `check`
+//! whose background tags fit its pose worse than [`MAX_POSE_RMS_PX`] — or that sees several
+//! background tags and still cannot be posed (they fit no one pose) — is warned of and `check`
 //! exits 3 (not fit to measure).
 
 use anyhow::{Context, Result};
@@ -90,6 +91,9 @@ pub fn check_config(path: &Path, write_test: bool) -> Result<()> {
         config.specimen.tags.len()
     );
     check_verification(&config)?;
+    if let Some(w) = config.output.token_file_warning() {
+        println!("  warning: {w}");
+    }
     if let Some(a) = &config.output.analog {
         check_analog(a, write_test);
     } else if write_test {
@@ -241,6 +245,15 @@ fn report(config: &Config, sets: &[FrameSet]) -> Result<()> {
                     Some(e) => println!("  background reprojection RMS: {e:.3} px"),
                     None => println!("  background reprojection RMS: n/a (fixed pose from the config)"),
                 }
+            }
+            // Several background tags seen and still no pose: they fit no one pose (a first
+            // pose must fit each tag), so the calibration or the world corners are wrong.
+            None if h.background_tags >= 2 => {
+                println!(
+                    "  warning: camera {}: its {} background tags fit no one pose (each must fit within 3 px; so above {MAX_POSE_RMS_PX} px RMS): its calibration or the background's world corners are wrong; it is not posed and measures nothing",
+                    h.name, h.background_tags
+                );
+                poor.push(format!("{} fits no pose", h.name));
             }
             None => println!(
                 "  warning: camera {} cannot be posed: it sees {} background tag(s); it needs at least one whole background tag (better several, on two planes) in view",

@@ -85,6 +85,9 @@ pub fn warn_if_shared(path: &Path) {
 /// The one shared token: `[output] http_token_file`'s first line, else `dir/.token`'s (see [`start`]).
 fn shared_token(config: &Config, dir: &Path) -> Result<String> {
     let bad = |m: String| tagdeflect_core::BadInput::new(m);
+    if let Some(w) = config.output.token_file_warning() {
+        tracing::warn!("{w}");
+    }
     let token = match &config.output.http_token_file {
         Some(f) => std::fs::read_to_string(f)
             .map_err(|e| bad(format!("[output] http_token_file {}: {e}", f.display())))?

@@ -198,6 +198,45 @@ fn labjack_gets_each_value_scaled_and_clamped_then_the_valid_line() {
     println!("feed time → DAC write acknowledged over {n} values: p50 {p50:.1} ms, p99 {p99:.1} ms (lines of a made-up clock)");
 }
 
+/// `labjack_watchdog_s`: after connect the device's own watchdog is set up (disabled first,
+/// the timeout, no reset, only FIO0 driven — low — on a trip, DAC0 to the safe voltage,
+/// enabled last); a second connect finds it set and writes none of it (flash registers).
+#[test]
+fn the_labjack_watchdog_is_set_up_after_connect_and_left_alone_when_it_holds() {
+    let dac = Dac::start("labjack", None);
+    let cfg = never_stale(AnalogConfig {
+        labjack_watchdog_s: Some(2),
+        on_invalid: OnInvalid::Volts(0.25),
+        ..AnalogConfig::labjack(&dac.addr(), 1.0)
+    });
+    let mut out = AnalogOutput::start(&cfg).unwrap();
+    let writes = dac.wait_for("the watchdog enabled", |w| w.address == 61600 && w.values == [0, 1]);
+    let watchdog: Vec<(u16, Vec<u16>)> = writes.iter().filter(|w| w.address >= 61600).map(|w| (w.address, w.values.clone())).collect();
+    let quarter = 0.25f32.to_bits();
+    assert_eq!(
+        watchdog,
+        vec![
+            (61600, vec![0, 0]),
+            (61604, vec![0, 2]),
+            (61620, vec![0, 0]),
+            (61630, vec![0, 1]),
+            (61632, vec![0, 0]),
+            (61634, vec![0, 1]),
+            (61636, vec![0x7F, 0xFFFE]),
+            (61640, vec![0, 1]),
+            (61642, vec![(quarter >> 16) as u16, quarter as u16]),
+            (61600, vec![0, 1]),
+        ]
+    );
+    out.shutdown();
+    let before = dac.writes().len();
+    let mut again = AnalogOutput::start(&cfg).unwrap();
+    let after = feed_one_by_one(&again, &dac, &[0.5], is_dac);
+    again.shutdown();
+    assert!(after[before..].iter().any(is_dac), "{after:?}");
+    assert!(after[before..].iter().all(|w| w.address < 61600), "the watchdog held its set-up: nothing rewritten {:?}", &after[before..]);
+}
+
 #[test]
 fn invalid_values_drop_the_line_then_hold_or_go_safe() {
     for on_invalid in [OnInvalid::Hold, OnInvalid::Volts(0.25)] {
@@ -351,7 +390,13 @@ fn a_device_that_disappears_is_reconnected_with_the_line_low_first() {
     assert!(fio0(0)(&w[0]), "the line low before anything else: {w:?}");
     let w = dac.wait_for("valid high again", fio0(1));
     assert!(w.iter().position(is_dac) < w.iter().position(fio0(1)), "{w:?}");
-    let s = out.status();
+    // The device logs a write before it answers: the status follows once the answer is read.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut s = out.status();
+    while !(s.connected && s.fault.is_none()) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+        s = out.status();
+    }
     assert!(s.connected && s.fault.is_none(), "{s:?}");
     assert_eq!(s.outages, 1, "retries within one outage count once: {s:?}");
     out.shutdown();
@@ -535,4 +580,25 @@ fn check_reports_the_analog_device_and_writes_only_when_asked() {
     let (code, out) = check_with(AnalogConfig::labjack(&gone, 1.0), false);
     assert_eq!(code, Some(0), "a silent device is a warning: {out}");
     assert!(out.contains(&format!("warning: analog output {gone}: cannot connect")), "{out}");
+}
+
+/// Lines that arrive every 20 ms but carry values exposed 1.18 s before (the sinks' thread held
+/// up) never raise the valid line: the analog output ages its value from exposure, as the
+/// control output does (issue 45, item 8); the same values exposed just now raise it.
+#[test]
+fn values_exposed_long_before_they_arrive_never_raise_the_valid_line() {
+    let dac = Dac::start("labjack", None);
+    let out = AnalogOutput::start(&AnalogConfig::labjack(&dac.addr(), 1.0)).unwrap();
+    dac.wait_for("valid low at connect", fio0(0));
+    for seq in 0..50u64 {
+        let mut l = line(seq, Some(0.5));
+        l.t_ns = tagdeflect_core::clock::now_epoch_ns() - 1_180_000_000;
+        out.take_line(&l);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let w = dac.writes();
+    assert_eq!(count(&w, fio0(1)), 0, "the valid line went high for values 1.18 s old: {w:?}");
+    let mut seq = 50;
+    feed_until(&out, &dac, &mut seq, 0.5, |w| w.iter().any(fio0(1)));
 }

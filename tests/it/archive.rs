@@ -912,3 +912,97 @@ fn a_burst_of_four_rigs_at_full_speed_is_committed_whole() {
     assert!(o.status.success(), "{out}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.contains("all 12000 lines committed") && out.contains(", 0 duplicates)"), "{out}");
 }
+
+/// Publishes `(topic, payload)`s at QoS 1, retained, as a rig (or a forger) would, each acknowledged.
+fn publish_all(port: u16, client: &str, messages: &[(String, Vec<u8>)]) {
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let mut mo = rumqttc::MqttOptions::new(client, "127.0.0.1", port);
+        mo.set_max_packet_size(4 << 20, 4 << 20);
+        let (c, mut el) = rumqttc::AsyncClient::new(mo, 64);
+        for (topic, payload) in messages {
+            c.publish(topic.clone(), rumqttc::QoS::AtLeastOnce, true, payload.clone()).await.unwrap();
+            loop {
+                if let rumqttc::Event::Incoming(rumqttc::Packet::PubAck(_)) = el.poll().await.unwrap() {
+                    break;
+                }
+            }
+        }
+    });
+}
+
+/// One set of limits for the control API and the archive (`core::limits`), and the archive's
+/// rule for a test's versions keyed on its stop and time: a test whose specimen is 32 four-byte
+/// letters with marks until the API refuses one (a record of ~250 KB) reaches `lab_tests` whole;
+/// a forged record with more events published before and after the genuine stop record never
+/// replaces it; an older version neither; each refused version is one log line naming the test.
+#[test]
+fn the_archive_takes_what_the_api_took_and_keeps_the_stop_record_against_forgeries() {
+    use tagdeflect_core::lab_test::{TestMeta, TestRecord};
+    use tagdeflect_sinks::lab_test::LabTests;
+    let dir = tempfile::tempdir().unwrap();
+    let broker = LocalMosquitto::start().unwrap();
+    let pg = LocalPostgres::start(false).unwrap();
+    let alog = dir.path().join("archive.log");
+    let mut archive = start_archive(&broker.url(), &pg.url(), "archive-versions", &alog);
+    // The records as the control API made them (the daemon's own lab tests, in-process).
+    let tests = LabTests::new(&dir.path().join("tests"), String::new(), Vec::new(), None).unwrap();
+    let records = std::sync::Arc::new(std::sync::Mutex::new(Vec::<TestRecord>::new()));
+    let r = records.clone();
+    tests.set_on_record(Box::new(move |rec: &TestRecord| r.lock().unwrap().push(rec.clone())));
+    let mut meta = TestMeta { specimen: format!(" {}", "𝐁".repeat(32)), ..TestMeta::default() };
+    meta.measured.insert("mass_kg".into(), 25.0);
+    tests.start(meta).unwrap();
+    let note = "\"".repeat(4000);
+    while tests.mark(Some(note.clone())).is_ok() {}
+    let stopped = tests.stop().unwrap();
+    let all = records.lock().unwrap().clone();
+    let (running, stop) = (all[all.len() - 2].clone(), all.last().unwrap().clone());
+    assert!(stop.stopped_t_ns.is_some() && running.stopped_t_ns.is_none());
+    assert_eq!(stop.id, stopped.id);
+    let id = stop.id.clone();
+    let topic = format!("tagdeflect/lab-v/day/labtest/{id}");
+    let msg = |rec: &TestRecord| serde_json::to_vec(&tagdeflect_wire::LabTestMessage::from_record("lab-v", "day", rec)).unwrap();
+    println!("the largest record the API let through: {} bytes, {} events", msg(&running).len(), running.events.len());
+    assert!(msg(&running).len() > 200_000, "the marks filled the record");
+    // A forgery: the running version with more (later) events.
+    let mut forged = running.clone();
+    for k in 0..5 {
+        let t = stop.stopped_t_ns.unwrap() + 1_000_000_000 * (k + 1);
+        forged.events.push(tagdeflect_core::feed::FeedEvent { kind: "mark".into(), t_ns: t, note: Some("forged".into()), user: None });
+    }
+    let first = all[0].clone();
+    publish_all(
+        broker.port(),
+        "rig-and-forger",
+        &[(topic.clone(), msg(&forged)), (topic.clone(), msg(&stop)), (topic.clone(), msg(&forged)), (topic.clone(), msg(&first))],
+    );
+    let held = || {
+        let i = id.clone();
+        query(&pg.url(), move |c| {
+            Box::pin(async move {
+                c.query_opt("SELECT stopped_t_ns, events, specimen FROM lab_tests WHERE id = $1", &[&i]).await.unwrap().map(|r| {
+                    let v: (Option<i64>, serde_json::Value, String) = (r.get(0), r.get(1), r.get(2));
+                    v
+                })
+            })
+        })
+    };
+    let until = Instant::now() + Duration::from_secs(30);
+    loop {
+        let log = fs::read_to_string(&alog).unwrap();
+        if log.matches(&format!("lab test {id} of rig lab-v: version refused")).count() >= 2 {
+            break;
+        }
+        assert!(Instant::now() < until, "the refusals were not logged:\n{log}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (stopped_t_ns, events, specimen) = held().expect("the test reached lab_tests");
+    assert_eq!(stopped_t_ns, stop.stopped_t_ns, "the genuine stop record is held");
+    assert_eq!(events, serde_json::to_value(&stop.events).unwrap());
+    assert_eq!(specimen, "𝐁".repeat(32), "trimmed");
+    let log = fs::read_to_string(&alog).unwrap();
+    assert!(log.contains("a running version") && log.contains("after the test's stop record"), "{log}");
+    assert!(!log.contains("more than the"), "nothing the API took is too large: {log}");
+    assert!(archive.alive());
+}

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use tagdeflect::commands::optional::sim::DemoTest;
+use tagdeflect::commands::optional::sim::{DemoTest, RATE_AFTER_L900_MM_PER_MIN, RATE_TO_L900_MM_PER_MIN};
 use tagdeflect_sim::load_at;
 
 fn read_json(p: &Path) -> serde_json::Value {
@@ -51,7 +51,7 @@ fn the_demo_c1609_test_gives_a_valid_report_with_the_law_s_strengths() {
     // The rates measured are the ones simulated, each inside its window.
     let rates = j["rates"].as_array().unwrap();
     assert_eq!(rates.len(), 2, "{rates:?}");
-    for (r, want) in rates.iter().zip([0.075, 0.25]) {
+    for (r, want) in rates.iter().zip([RATE_TO_L900_MM_PER_MIN, RATE_AFTER_L900_MM_PER_MIN]) {
         let got = r["mm_per_min"].as_f64().unwrap();
         assert!((got - want).abs() < 0.1 * want, "{r}: simulated {want} mm/min");
     }

@@ -553,6 +553,20 @@ fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
     let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
     assert_eq!(kinds, ["start", "resume", "stop"], "{record}");
     assert!(!tests_dir.join(".running.json").exists(), "a stopped test leaves no state behind");
+    // test.json's counts are the files' lines; the resume's gap is the real one, from the last
+    // line before the kill to the first after; no line exposed before the start; the test's own
+    // stop on its last line, and only there.
+    assert_eq!(record["lines"].as_u64(), Some(lines.len() as u64), "{record}");
+    let utm_lines = fs::read_to_string(folder.join("utm.jsonl")).unwrap().lines().count() as u64;
+    assert_eq!(record["utm_samples"].as_u64(), Some(utm_lines));
+    let gap_s = (lines[r].t_ns - lines[r - 1].t_ns) as f64 * 1e-9;
+    let note = lines[r].events.iter().find(|e| e.kind == "resume").and_then(|e| e.note.clone()).unwrap();
+    assert!(note.ends_with(&format!("(no lines for {gap_s:.1} s)")), "{note} against a gap of {gap_s:.3} s");
+    assert_eq!(record["events"][1]["note"].as_str(), Some(note.as_str()), "test.json's resume note is the feed's");
+    let started = record["started_t_ns"].as_i64().unwrap();
+    assert!(lines.iter().all(|l| l.t_ns >= started), "a line exposed before the start");
+    assert!(lines.last().unwrap().events.iter().any(|e| e.kind == "stop"), "the test's own stop on its last line");
+    assert_eq!(lines.iter().filter(|l| l.events.iter().any(|e| e.kind == "stop")).count(), 1);
 
     // The report: made, one test, the restart's hole counted as a gap and named.
     let report_json = folder.join("report/report.json");

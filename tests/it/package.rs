@@ -35,6 +35,9 @@ fn package_holds_binary_unit_conffile_man_pages_and_completions() {
     for f in [
         "./usr/bin/tagdeflect",
         "./lib/systemd/system/tagdeflect.service",
+        // The lab's group and folder the unit names.
+        "./usr/lib/sysusers.d/tagdeflect.conf",
+        "./usr/lib/tmpfiles.d/tagdeflect.conf",
         "./etc/tagdeflect/tagdeflect.toml",
         "./usr/share/man/man1/tagdeflect.1.gz",
         "./usr/share/man/man1/tagdeflect-calibrate.1.gz",
@@ -58,6 +61,10 @@ fn package_holds_binary_unit_conffile_man_pages_and_completions() {
     assert!(!unit.contains("/usr/local/bin"), "the package's paths only");
     assert_eq!(std::fs::read_to_string(x.join("DEBIAN/conffiles")).unwrap().trim(), "/etc/tagdeflect/tagdeflect.toml");
     let postinst = std::fs::read_to_string(x.join("DEBIAN/postinst")).unwrap();
+    assert!(
+        postinst.contains("systemd-sysusers tagdeflect.conf") && postinst.contains("systemd-tmpfiles --create tagdeflect.conf"),
+        "{postinst}"
+    );
     let commands: Vec<&str> = postinst.lines().map(str::trim).filter(|l| l.starts_with("systemctl")).collect();
     assert!(
         !commands.is_empty() && commands.iter().all(|l| l.starts_with("systemctl daemon-reload")),

@@ -22,7 +22,8 @@ fn a_start_below_the_preload_waits_for_it_and_one_above_the_limit_is_refused() {
     let body =
         serde_json::json!({"method": "C1609-19", "specimen": "P1", "measured": {"width_mm": 150.0, "depth_mm": 150.0, "span_mm": 450.0}});
     let params = SimParams { load_law: LoadLaw::Softening, stiffness_kn_per_mm: 500.0, crack_deflection_mm: 0.07, ..SimParams::default() };
-    let t0 = 1_767_225_600_000_000_000_i64;
+    // Lines from a minute after the start on (a manual start takes the clock's time).
+    let t0 = tagdeflect_core::clock::now_epoch_ns() + 60_000_000_000;
     // A machine at rest far above the limit: a start is refused, naming the load (409).
     let loaded = SimMachine::new(&params, t0, 10.0);
     loaded.command(t0, 6.0);

@@ -69,7 +69,7 @@ fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::Bea
 /// report.json without what differs by where and when the report was written: the hashes of
 /// its own output files (the PDF carries its printing time) and where its inputs are named
 /// from (the report folder's parent); every value, note and input hash compared.
-fn comparable(mut j: serde_json::Value) -> serde_json::Value {
+pub(crate) fn comparable(mut j: serde_json::Value) -> serde_json::Value {
     j.as_object_mut().unwrap().remove("outputs");
     for f in j["inputs"]["files"].as_array_mut().unwrap() {
         f.as_object_mut().unwrap().remove("name");
@@ -77,13 +77,13 @@ fn comparable(mut j: serde_json::Value) -> serde_json::Value {
     j
 }
 
-fn report_dir(folder: &Path, out: &Path) -> serde_json::Value {
+pub(crate) fn report_dir(folder: &Path, out: &Path) -> serde_json::Value {
     let o = tagdeflect(&["report", folder.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     read_json(&out.join("report.json"))
 }
 
-fn values(j: &serde_json::Value) -> Vec<(String, serde_json::Value)> {
+pub(crate) fn values(j: &serde_json::Value) -> Vec<(String, serde_json::Value)> {
     ["P1", "delta1", "f1", "Pp", "deltap", "fp", "P600", "P150", "f600", "f150", "T150", "RT150"]
         .iter()
         .filter_map(|k| j.get(*k).map(|v| (k.to_string(), v.clone())))
@@ -145,7 +145,7 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     assert!(!dir.path().join("bad").join("report.json").exists(), "nothing written");
 }
 
-fn verify(dir: &Path) -> (Option<i32>, String) {
+pub(crate) fn verify(dir: &Path) -> (Option<i32>, String) {
     let o = tagdeflect(&["report", "verify", dir.to_str().unwrap()]);
     (o.status.code(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
 }
@@ -175,25 +175,7 @@ fn report_verify_checks_the_copied_folder_it_is_given() {
     let (code, out) = verify(&copy.join("report"));
     assert_eq!(code, Some(0), "the report folder verifies as its test folder: {out}");
 
-    // An edited report.json.
-    let rj = copy.join("report/report.json");
-    let text = std::fs::read_to_string(&rj).unwrap();
-    std::fs::write(&rj, text.replacen("\"valid\"", "\"valid\" ", 1)).unwrap();
-    let (code, out) = verify(&copy);
-    assert_eq!(code, Some(1), "{out}");
-    assert!(out.contains("CHANGED  test.json") && out.contains("report/report.json changed"), "{out}");
-    std::fs::write(&rj, text).unwrap();
-    assert_eq!(verify(&copy).0, Some(0));
-
-    // A deleted PDF (or, without Chromium, the HTML).
-    let gone = ["report.pdf", "report.html"].iter().map(|n| copy.join("report").join(n)).find(|p| p.is_file()).unwrap();
-    let bytes = std::fs::read(&gone).unwrap();
-    std::fs::remove_file(&gone).unwrap();
-    let (code, out) = verify(&copy);
-    assert_eq!(code, Some(1), "{out}");
-    assert!(out.contains(&format!("MISSING  output {}", gone.display())), "{out}");
-    std::fs::write(&gone, bytes).unwrap();
-    assert_eq!(verify(&copy).0, Some(0));
+    tampering_caught(&copy);
 
     // A changed feed: named as the report's input and through test.json's hashes.
     let feed = copy.join("feed.jsonl");
@@ -204,14 +186,6 @@ fn report_verify_checks_the_copied_folder_it_is_given() {
     assert!(out.contains(&format!("CHANGED  feed {}", feed.display())) && out.contains("test.json"), "{out}");
     std::fs::write(&feed, feed_text).unwrap();
     let tj = copy.join("test.json");
-    let original = std::fs::read_to_string(&tj).unwrap();
-    let mut rec = read_json(&tj);
-    rec["operator"] = serde_json::json!("Someone Else");
-    std::fs::write(&tj, rec.to_string()).unwrap();
-    let (code, out) = verify(&copy);
-    assert_eq!(code, Some(1), "{out}");
-    assert!(out.contains("`operator` is \"Someone Else\", the report took \"A. Tester\""), "{out}");
-    std::fs::write(&tj, original).unwrap();
     let mut rec = read_json(&tj);
     rec["sha256"]["utm.jsonl"] = serde_json::json!("0".repeat(64));
     std::fs::write(&tj, rec.to_string()).unwrap();
@@ -220,4 +194,42 @@ fn report_verify_checks_the_copied_folder_it_is_given() {
     assert_eq!(code, Some(1), "{out}");
     assert!(out.contains(&format!("CHANGED  test.json {}", copy.join("utm.jsonl").display())), "{out}");
     assert!(out.contains(&format!("EXTRA    test.json {}", copy.join("added.txt").display())), "{out}");
+}
+
+/// `report verify` on a test folder `copy` catches, each named (exit 1) and undone after: an
+/// edited report.json, a deleted PDF (or, without Chromium, the HTML), a changed operator in
+/// test.json. The folder verifies clean before and after.
+pub(crate) fn tampering_caught(copy: &Path) {
+    assert_eq!(verify(copy).0, Some(0), "{}", verify(copy).1);
+    // An edited report.json.
+    let rj = copy.join("report/report.json");
+    let text = std::fs::read_to_string(&rj).unwrap();
+    std::fs::write(&rj, text.replacen("\"valid\"", "\"valid\" ", 1)).unwrap();
+    let (code, out) = verify(copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("CHANGED  test.json") && out.contains("report/report.json changed"), "{out}");
+    std::fs::write(&rj, text).unwrap();
+    assert_eq!(verify(copy).0, Some(0));
+
+    // A deleted PDF (or, without Chromium, the HTML).
+    let gone = ["report.pdf", "report.html"].iter().map(|n| copy.join("report").join(n)).find(|p| p.is_file()).unwrap();
+    let bytes = std::fs::read(&gone).unwrap();
+    std::fs::remove_file(&gone).unwrap();
+    let (code, out) = verify(copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains(&format!("MISSING  output {}", gone.display())), "{out}");
+    std::fs::write(&gone, bytes).unwrap();
+    assert_eq!(verify(copy).0, Some(0));
+
+    let tj = copy.join("test.json");
+    let original = std::fs::read_to_string(&tj).unwrap();
+    let mut rec = read_json(&tj);
+    let operator = rec["operator"].as_str().unwrap().to_string();
+    rec["operator"] = serde_json::json!("Someone Else");
+    std::fs::write(&tj, rec.to_string()).unwrap();
+    let (code, out) = verify(copy);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains(&format!("`operator` is \"Someone Else\", the report took \"{operator}\"")), "{out}");
+    std::fs::write(&tj, original).unwrap();
+    assert_eq!(verify(copy).0, Some(0));
 }

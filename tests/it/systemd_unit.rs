@@ -101,7 +101,10 @@ fn unit_has_the_directives_the_daemon_relies_on() {
         "NotifyAccess=main",
         "Restart=on-failure",
         "DynamicUser=yes",
-        "SupplementaryGroups=video",
+        // The lab's group owns its folder; what the daemon writes there is the group's to read.
+        "SupplementaryGroups=video tagdeflect",
+        "ReadWritePaths=-/var/lib/tagdeflect-lab",
+        "UMask=0027",
         "DeviceAllow=char-video4linux rw",
         "ProtectSystem=strict",
         "ProtectHome=yes",
@@ -122,6 +125,13 @@ fn unit_has_the_directives_the_daemon_relies_on() {
         assert!(lines.contains(&want), "the unit lacks `{want}`");
     }
     assert!(lines.iter().any(|l| l.starts_with("WatchdogSec=")), "no WatchdogSec");
+    // The group and the folder the unit names are made by the files the package installs.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("systemd");
+    let sysusers = std::fs::read_to_string(root.join("tagdeflect.sysusers")).unwrap();
+    assert!(sysusers.lines().any(|l| l.split_whitespace().collect::<Vec<_>>() == ["g", "tagdeflect", "-"]), "{sysusers}");
+    let tmpfiles = std::fs::read_to_string(root.join("tagdeflect.tmpfiles")).unwrap();
+    let folder = ["d", "/var/lib/tagdeflect-lab", "2770", "root", "tagdeflect", "-"];
+    assert!(tmpfiles.lines().any(|l| l.split_whitespace().collect::<Vec<_>>() == folder), "{tmpfiles}");
     assert!(lines.iter().any(|l| l.starts_with("SystemCallFilter=@system-service")), "no system call filter");
     // Modbus TCP and GigE Vision need IP sockets; sd_notify and journald need Unix sockets.
     let families = lines.iter().find(|l| l.starts_with("RestrictAddressFamilies=")).expect("RestrictAddressFamilies");

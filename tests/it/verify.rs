@@ -16,9 +16,18 @@ use crate::common::simulate;
 
 fn args(rec: &Path, out: PathBuf, reference: Option<PathBuf>, tag: Option<u32>) -> VerifyArgs {
     VerifyArgs {
-        dir: rec.to_path_buf(),
+        dir: Some(rec.to_path_buf()),
+        live: false,
+        config: None,
+        duration_s: None,
+        type_positions: false,
+        hold_s: 10.0,
         reference,
         steps: None,
+        reference_from_stroke: false,
+        stroke_tolerance_um: 2.0,
+        stroke_min_hold_s: 1.0,
+        stroke_sign: 1.0,
         gauge: None,
         tag,
         all_tags: false,
@@ -266,6 +275,134 @@ fn a_simulated_verification_run_gets_the_class_and_uncertainty_its_truth_support
     verification_in_force_is_checked(&rec_dir, &out.join("verification.json"), dir.path());
 }
 
+/// A two-part target (the midspan block on a stage, the supports' blocks still): the net
+/// deflection and the `net` gauge follow the stage's steps, verified against the UTM's stroke
+/// (the crosshead carries the stage) as against the reference file; each step's error is what
+/// the truth says.
+#[test]
+fn the_net_deflection_and_a_gauge_are_verified_against_the_stroke_on_a_staged_target() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = SimParams {
+        cameras: 2,
+        width: 800,
+        height: 600,
+        frame_sets: 70,
+        verify_steps: "0,0.5,1,2,1,0.5,0".into(),
+        verify_stage_half_width_mm: 100.0,
+        seed: 47,
+        ..SimParams::default()
+    };
+    let rec_dir = simulate(dir.path(), "staged-run", &p);
+    let rec = Recording::open(&rec_dir).unwrap();
+    assert!(rec.config.gauges.iter().any(|g| g.name == "net"), "a staged run's config has the net gauge");
+    let run = |out: &str, stroke: bool, gauge: Option<&str>| {
+        let mut a = args(&rec_dir, dir.path().join(out), None, None);
+        a.reference_from_stroke = stroke;
+        // Each step is held 1 s (10 frame sets at 10 fps): the stroke's samples within one
+        // span a little less, so the shortest hold is set below it.
+        a.stroke_min_hold_s = 0.5;
+        a.gauge = gauge.map(String::from);
+        read_verification(&verify::run(&a).unwrap())
+    };
+    let (cert_file, by_file) = run("cert-file", false, None);
+    let (cert_stroke, by_stroke) = run("cert-stroke", true, None);
+    let (_, by_gauge) = run("cert-gauge", true, Some("net"));
+    assert!(cert_stroke["reference"].as_str().unwrap().ends_with("utm.jsonl"), "{}", cert_stroke["reference"]);
+    assert!(cert_file["reference"].as_str().unwrap().ends_with(REFERENCE_FILE));
+    assert_eq!(by_stroke.quantity, Quantity::NetDeflection);
+    assert_eq!(by_gauge.quantity, Quantity::Gauge("net".into()));
+    for v in [&by_file, &by_stroke, &by_gauge] {
+        let nominal: Vec<f64> = v.steps.iter().map(|s| s.nominal_mm).collect();
+        assert_eq!(nominal.len(), 7, "{:?}", v.steps);
+        for (got, want) in nominal.iter().zip([0.0, 0.5, 1.0, 2.0, 1.0, 0.5, 0.0]) {
+            assert!((got - want).abs() < 1e-9, "{nominal:?}");
+        }
+    }
+    // The truth's net deflection per step gives the same errors (within the lines the two
+    // windows share), and the stroke's holds the same figures as the file's to a micrometre.
+    let truth = net_truth_errors(&rec, &dir.path().join("cert-stroke/feed.jsonl"), &cert_stroke);
+    for ((s, f), t) in by_stroke.steps.iter().zip(&by_file.steps).zip(&truth) {
+        assert!((s.error_mm - f.error_mm).abs() < 1e-3, "step {}: stroke {} vs file {}", s.step, s.error_mm, f.error_mm);
+        assert!((s.error_mm - t).abs() < 1e-6, "step {}: verify {} mm, truth {t} mm", s.step, s.error_mm);
+    }
+    for (g, s) in by_gauge.steps.iter().zip(&by_stroke.steps) {
+        assert!((g.error_mm - s.error_mm).abs() < 2e-3, "step {}: gauge {} vs net {}", g.step, g.error_mm, s.error_mm);
+    }
+    println!(
+        "VERIFY staged net deflection vs stroke: class {:?}, U {:.2} µm; gauge net: class {:?}, U {:.2} µm",
+        by_stroke.iso9513.class,
+        by_stroke.uncertainty.expanded_mm * 1e3,
+        by_gauge.iso9513.class,
+        by_gauge.uncertainty.expanded_mm * 1e3
+    );
+    // The class is the table's for the errors found (each the truth's, above).
+    for v in [&by_stroke, &by_gauge] {
+        assert_eq!(iso9513::classify(&v.steps, v.iso9513.resolution_mm).class, v.iso9513.class);
+    }
+    // No stroke recorded: exit 2 naming the UTM file.
+    let bin = env!("CARGO_BIN_EXE_tagdeflect");
+    let flat = dir.path().join("flat");
+    copy_dir(&rec_dir, &flat);
+    let utm = std::fs::read_to_string(flat.join("utm.jsonl")).unwrap();
+    let no_stroke: String =
+        utm.lines().map(|l| format!("{{\"t_ns\": {}, \"load_kN\": 0}}\n", l.split(['"', ':', ',']).nth(3).unwrap().trim())).collect();
+    std::fs::write(flat.join("utm.jsonl"), no_stroke).unwrap();
+    let o = std::process::Command::new(bin)
+        .args(["verify", flat.to_str().unwrap(), "--reference-from-stroke", "--no-pdf", "--out"])
+        .arg(dir.path().join("cert-none"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("utm.jsonl: no UTM sample with a stroke"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// Per step of `cert`'s plan, the mean over the lines its windows take (after the settle
+/// fraction) of the feed's net deflection minus the truth's: the midspan tags' mean true drop
+/// minus the support tags' (the truth holds tag centres only).
+fn net_truth_errors(rec: &Recording, feed: &Path, cert: &serde_json::Value) -> Vec<f64> {
+    let plan: StepPlan = serde_json::from_value(cert["plan"].clone()).unwrap();
+    let lines: Vec<FeedLine> = std::fs::read_to_string(feed).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let ids = |role: TagRole| -> Vec<u32> { rec.config.specimen.tags.iter().filter(|t| t.role == Some(role)).map(|t| t.id).collect() };
+    let (mid, sup) = (ids(TagRole::Midspan), ids(TagRole::Support));
+    let rest: HashMap<u32, f64> = rec.truth[0].tags.iter().map(|t| (t.id, t.center_mm[2])).collect();
+    let mean_drop = |t: &tagdeflect_io::recording::TruthLine, of: &[u32]| {
+        of.iter().map(|id| rest[id] - t.tags.iter().find(|x| x.id == *id).unwrap().center_mm[2]).sum::<f64>() / of.len() as f64
+    };
+    let windows = plan.windows(lines[0].t_ns, lines.last().unwrap().t_ns).unwrap();
+    windows
+        .iter()
+        .map(|&(_, start, end)| {
+            let inside: Vec<&FeedLine> =
+                lines.iter().filter(|l| l.t_ns >= start && l.t_ns < end && l.net_deflection_mm.is_some()).collect();
+            let kept = &inside[(inside.len() as f64 * plan.settle_fraction).floor() as usize..];
+            let e: Vec<f64> = kept
+                .iter()
+                .map(|l| {
+                    let t = rec.truth.iter().min_by_key(|t| (t.t_ns - l.t_ns).abs()).unwrap();
+                    l.net_deflection_mm.unwrap() - (mean_drop(t, &mid) - mean_drop(t, &sup))
+                })
+                .collect();
+            e.iter().sum::<f64>() / e.len() as f64
+        })
+        .collect()
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
 /// `check --config` names the verification in force (class, date, id), and says it is stale
 /// once the config's geometry changed since the certificate; a certificate that cannot be read
 /// is bad input (exit 2) naming it.
@@ -302,4 +439,57 @@ fn verification_in_force_is_checked(rec_dir: &Path, certificate: &Path, dir: &Pa
     let (code, out) = check(&cfg, "missing.toml");
     assert_eq!(code, Some(2), "{out}");
     assert!(out.contains("none.json"), "{out}");
+}
+
+/// `verify --live`: the simulated rig (a staged target stepped 0, 0.5, 1 mm, the simulated UTM
+/// over Modbus carrying it) recorded for a stated time into the certificate's folder and
+/// verified against the stroke the UTM reported — the whole procedure as on a lab's rig.
+#[test]
+fn verify_live_records_the_rig_and_verifies_it_against_the_utm_stroke() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams {
+        cameras: 2,
+        width: 640,
+        height: 480,
+        fps: 5.0,
+        frame_sets: 45,
+        verify_steps: "0,0.5,1".into(),
+        verify_stage_half_width_mm: 100.0,
+        subsamples: 2,
+        ..SimParams::default()
+    };
+    let rig = tagdeflect_sim::SimRig::new(&params).unwrap();
+    let mut config = tagdeflect::config::Config::from_sim(&rig);
+    config.utm = Some(tagdeflect_sim::live_rig::demo_utm());
+    let cfg = dir.path().join("rig.toml");
+    std::fs::write(&cfg, config.to_toml_string()).unwrap();
+    let out = dir.path().join("cert");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["verify", "--live", "--config", cfg.to_str().unwrap(), "--duration-s", "11", "--reference-from-stroke", "--no-pdf"])
+        .args(["--stroke-min-hold-s", "1.5", "--operator", "A. Tester", "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{stderr}");
+    assert!(out.join("recording/frames.jsonl").is_file() && out.join("recording/utm.jsonl").is_file());
+    let (cert, v) = read_verification(&out);
+    assert!(cert["reference"].as_str().unwrap().ends_with("recording/utm.jsonl"), "{}", cert["reference"]);
+    let nominal: Vec<f64> = v.steps.iter().map(|s| s.nominal_mm).collect();
+    assert_eq!(nominal.len(), 3, "{:?}\n{stderr}", v.steps);
+    for (got, want) in nominal.iter().zip([0.0, 0.5, 1.0]) {
+        assert!((got - want).abs() < 1e-6, "{nominal:?}");
+    }
+    // Each step's error is the rig's: a few micrometres on this scene, never a missed step
+    // (a busy machine renders fewer frame sets live: a step needs one).
+    for s in &v.steps {
+        assert!(s.lines >= 1, "step {} has {} lines", s.step, s.lines);
+        assert!(s.error_mm.abs() < 0.02, "step {}: error {} mm", s.step, s.error_mm);
+    }
+    println!("VERIFY live: class {:?}, U {:.2} µm, bias {} µm", v.iso9513.class, v.uncertainty.expanded_mm * 1e3, cert["bias_um"]);
+    // --live without --duration-s, and a DIR with --live, are refused before anything runs.
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["verify", "--live", "--config", cfg.to_str().unwrap(), "--reference-from-stroke"])
+        .output()
+        .unwrap();
+    assert_eq!(bad.status.code(), Some(2), "{}", String::from_utf8_lossy(&bad.stderr));
 }

@@ -1,11 +1,13 @@
 //! The archive's PostgreSQL side: the connection and the batched upsert of feed lines, status
 //! messages and lab tests in one transaction. The schema's migrations are in `migrate`, the
-//! rows in `rows`, what the archive holds of every test (runs, held seqs) in `holdings`.
+//! rows in `rows`, what the archive holds of every test (runs, held seqs) in `holdings`, which
+//! version of a lab test's record is kept in `versions`.
 
 mod batch;
 mod holdings;
 mod migrate;
 mod rows;
+mod versions;
 
 use std::collections::HashMap;
 
@@ -120,10 +122,12 @@ impl Db {
             batch::insert_lines(&tx, &self.insert, lines, &ids, &mut work, &mut new_runs, &mut w).await?;
         }
         batch::write_statuses(&tx, statuses, &ids).await?;
-        w.lab_tests += batch::write_lab_tests(&tx, labs, &ids).await?;
+        let (lab_tests, refused) = batch::write_lab_tests(&tx, labs, &ids).await?;
+        w.lab_tests += lab_tests;
         tx.commit().await?;
         self.tests.extend(new_ids);
         batch::log_new_runs(&new_runs);
+        batch::log_refused(&refused);
         for (rig, test, id) in &w.touched {
             if let (Some(before), Some(after)) = (old.get(id), work.get(id)) {
                 log_gaps(rig, test, before, after);

@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use crate::feed::FeedEvent;
+use crate::limits;
 use crate::method::MethodRef;
 use crate::specimen::SpecimenInfo;
 use crate::Problem;
@@ -50,31 +51,48 @@ fn short(v: f64) -> String {
 pub const STANDARDS: [&str; 3] = ["astm-c1609", "astm-c1856", "en-14651"];
 
 impl TestMeta {
-    /// Checks what an operator typed: the specimen id is a folder name and text on the page.
+    /// What an operator typed, as it is kept: the specimen id and the operator's name without
+    /// the blanks around them (`" B12"` is `B12`).
+    pub fn trimmed(mut self) -> TestMeta {
+        let trim = |s: &mut String| {
+            if s.trim().len() != s.len() {
+                *s = s.trim().to_string();
+            }
+        };
+        trim(&mut self.specimen);
+        if let Some(o) = self.operator.as_mut() {
+            trim(o);
+        }
+        self
+    }
+
+    /// Checks what an operator typed, within [`limits`](crate::limits): the specimen id is a
+    /// folder name and text on the page.
     /// The problem's key is the field's (`specimen`, `standard`, `operator`, `notes`,
     /// `measured.NAME`); its message names the field itself, as it is answered to the operator
     /// as is (`TestError::Bad` of the lab-test sink).
     pub fn validate(&self) -> Result<(), Problem> {
-        let ok = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
-        let sp = self.specimen.trim();
-        if sp.is_empty() || sp.chars().count() > 64 || sp.starts_with('.') || !sp.chars().all(ok) {
-            return Err(Problem::new(
-                "specimen",
-                format!("specimen \"{}\": 1 to 64 letters, digits, `_`, `-` and `.` (not first)", self.specimen.escape_debug()),
-            ));
-        }
+        // Blanks around the id are taken off when it is kept ([`TestMeta::trimmed`]).
+        limits::check_specimen(self.specimen.trim())?;
         if let Some(s) = &self.standard {
             if !STANDARDS.contains(&s.as_str()) {
                 return Err(Problem::new("standard", format!("standard \"{}\": one of {}", s.escape_debug(), STANDARDS.join(", "))));
             }
         }
-        for (k, text) in [("operator", &self.operator), ("notes", &self.notes)] {
-            if text.as_ref().is_some_and(|t| t.len() > 4096 || t.chars().any(|c| c.is_control() && c != '\n')) {
-                return Err(Problem::new(k, format!("{k}: at most 4096 characters, no control characters")));
-            }
+        if let Some(o) = &self.operator {
+            limits::check_text("operator", o, true)?;
         }
-        if let Some((k, v)) = self.measured.iter().find(|(k, v)| !v.is_finite() || k.len() > 64) {
-            return Err(Problem::new(format!("measured.{k}"), format!("measured.{k} = {v}: a finite number under a short name")));
+        if let Some(n) = &self.notes {
+            limits::check_text("notes", n, true)?;
+        }
+        if self.measured.len() > limits::MEASURED_MAX {
+            return Err(Problem::new("measured", format!("measured: at most {} values", limits::MEASURED_MAX)));
+        }
+        for (k, v) in &self.measured {
+            limits::check_measured_key(k)?;
+            if !v.is_finite() {
+                return Err(Problem::new(format!("measured.{k}"), format!("measured.{k} = {v}: a finite number")));
+            }
         }
         self.validate_dimensions()
     }

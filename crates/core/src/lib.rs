@@ -21,6 +21,7 @@ pub mod feed_file;
 pub mod frame;
 pub mod gauge;
 pub mod lab_test;
+pub mod limits;
 pub mod linefile;
 pub mod listen;
 pub mod method;

@@ -47,6 +47,7 @@ use rayon::prelude::*;
 
 use super::apriltag::{Detector, SearchOptions};
 use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
+use super::learned::{CameraProfile, TagKey};
 use super::plan::{masked_tile, merge_rects, BackgroundCheck, Plan, PlannedTag, RoiPlanner};
 use super::refine::{refine_corners_warm, EdgeMemory};
 use super::{Detection, Rect};
@@ -104,6 +105,10 @@ pub struct DetectReport {
     /// Full-frame searches run in the frame (0, 1, or 2 when the decimated start-up search
     /// was repeated at full resolution).
     pub full_frame_searches: u64,
+    /// The whole frame was searched at the configured resolution in the frame (a
+    /// full-frame search, not only the decimated start-up one): a whole-frame search again
+    /// would find nothing new.
+    pub searched_whole: bool,
     /// Whole-frame searches started in the background.
     pub background_searches: u64,
     /// Window and sweep-tile searches run.
@@ -190,6 +195,8 @@ pub struct CameraDetector {
     planner: RoiPlanner,
     /// What each followed tag's last fit left for its next (see [`EdgeMemory`]).
     edge_memory: HashMap<(TagFamily, u32), EdgeMemory>,
+    /// The camera's learned edge profile (see [`super::learned`]).
+    profile: CameraProfile,
     /// Contrast (grey levels) of the weakest tag confirmed in the last frame that confirmed any.
     tag_contrast: Option<f64>,
     /// The sweep's masked copy of a tile (reused).
@@ -215,6 +222,7 @@ impl CameraDetector {
             intrinsics,
             planner: RoiPlanner::new(intrinsics, roi_tracking, full_search_interval_s).with_phase(phase),
             edge_memory: HashMap::new(),
+            profile: CameraProfile::default(),
             tag_contrast: None,
             tile: GrayImage::new(0, 0),
             pixel_map: None,
@@ -275,8 +283,9 @@ impl CameraDetector {
     }
 
     /// The in-frame search of the whole `image` (see the module docs for the decimated
-    /// start-up search); returns the tags and the number of searches run.
-    fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64) {
+    /// start-up search); returns the tags, the number of searches run and whether one was
+    /// at the configured resolution.
+    fn search_whole_frame(&mut self, image: &GrayImage, rig: &RigDetectors) -> (Vec<Detection>, u64, bool) {
         let configured = SearchOptions::of(rig.library.options());
         self.prepare_pixel_map(image);
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
@@ -286,16 +295,16 @@ impl CameraDetector {
             let found = rig.library.search(image, None, &options, lens);
             let seen: HashSet<u32> = found.iter().filter(|d| d.family == rig.roles.specimen_family).map(|d| d.id).collect();
             if rig.roles.specimen.iter().all(|id| seen.contains(id)) {
-                return (found, 1);
+                return (found, 1, false);
             }
             tracing::debug!(
                 found = seen.len(),
                 specimen_tags = rig.roles.specimen.len(),
                 "decimated start-up search missed specimen tags: searching at full resolution"
             );
-            return (rig.library.search(image, None, &configured, lens), 2);
+            return (rig.library.search(image, None, &configured, lens), 2, true);
         }
-        (rig.library.search(image, None, &configured, lens), 1)
+        (rig.library.search(image, None, &configured, lens), 1, true)
     }
 
     /// Detects the tags of the frame at `t_ns`: the tags followed are confirmed where they
@@ -306,7 +315,8 @@ impl CameraDetector {
         let mut report = DetectReport::default();
         report.parts.background_wait = self.take_background_result(t_ns, rig);
         let background = self.background && self.searched_once;
-        let found = match self.planner.plan(t_ns, image) {
+        let mut confirmed_keys = HashSet::new();
+        let mut found = match self.planner.plan(t_ns, image) {
             Plan::FullFrame if background && self.planner.is_empty() => {
                 if self.start_background_search(t_ns, image, SearchOptions::of(rig.library.options()), rig) {
                     report.background_searches = 1;
@@ -315,8 +325,9 @@ impl CameraDetector {
             }
             Plan::FullFrame => {
                 let c0 = Instant::now();
-                let (found, searches) = self.search_whole_frame(image, rig);
+                let (found, searches, searched_whole) = self.search_whole_frame(image, rig);
                 report.full_frame_searches = searches;
+                report.searched_whole = searched_whole;
                 report.parts.full_frame = c0.elapsed().as_secs_f64();
                 found
             }
@@ -332,6 +343,7 @@ impl CameraDetector {
                 report.parts.tracking = cpu;
                 report.confirmed_tags = confirmed.tags.len() as u64;
                 report.reused_bands = confirmed.reused_bands;
+                confirmed_keys.extend(confirmed.tags.iter().map(|d| (d.family, d.id)));
                 let mut found = confirmed.tags;
                 let c0 = Instant::now();
                 let more = self.search(rig, image, &windows, &sweep, &found, decimate, sweep_decimate);
@@ -343,6 +355,7 @@ impl CameraDetector {
             }
         };
         self.searched_once = true;
+        self.learn_profile(image, &mut found, &confirmed_keys, rig);
         let dets = rig.roles.classify(found);
         report.background = self.planner.observe(t_ns, &dets.background, &dets.specimen);
         (dets, report)
@@ -357,8 +370,10 @@ impl CameraDetector {
         let configured = SearchOptions::of(rig.library.options());
         self.prepare_pixel_map(image);
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
-        let found = rig.library.search(image, None, &configured, lens);
+        let mut found = rig.library.search(image, None, &configured, lens);
+        self.learn_profile(image, &mut found, &HashSet::new(), rig);
         report.full_frame_searches = 1;
+        report.searched_whole = true;
         report.parts.full_frame = c0.elapsed().as_secs_f64();
         self.pending = None;
         let dets = rig.roles.classify(found);
@@ -367,6 +382,15 @@ impl CameraDetector {
         }
         self.planner.refound(t_ns, &dets.background, &dets.specimen);
         (dets, report)
+    }
+
+    /// The frame's tags teach the camera's edge profile and are fitted with it (see
+    /// [`super::learned`]); `confirmed`: the tags confirmed at their predicted place.
+    fn learn_profile(&mut self, image: &GrayImage, found: &mut [Detection], confirmed: &HashSet<TagKey>, rig: &RigDetectors) {
+        let Some(opts) = rig.library.options().subpixel.as_ref() else { return };
+        self.prepare_pixel_map(image);
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
+        self.profile.after_frame(image, found, confirmed, &mut self.edge_memory, lens, opts);
     }
 
     /// Makes the camera's pixel map fit `image` (a new one when the frame size changed).
@@ -382,10 +406,11 @@ impl CameraDetector {
         let refine = rig.library.options().subpixel.as_ref();
         self.prepare_pixel_map(image);
         let memories = &self.edge_memory;
+        let profile = self.profile.profile();
         let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
         let one = |t: &PlannedTag| {
             let c0 = tagdeflect_core::clock::thread_cpu_s();
-            let memory = memories.get(&(t.family, t.id)).cloned().unwrap_or_default();
+            let memory = memories.get(&(t.family, t.id)).cloned().unwrap_or_default().with_profile(profile.clone());
             let prediction = Prediction { family: t.family, id: t.id, corners: t.predicted, memory };
             let result = match refine {
                 Some(opts) => rig.confirmer.confirm(image, &prediction, lens, opts),

@@ -9,6 +9,7 @@ mod confirm;
 mod detection;
 mod error;
 mod family;
+mod learned;
 pub mod plan;
 mod rect;
 pub mod refine;
@@ -21,5 +22,6 @@ pub use self::error::DetectError;
 pub use self::family::tag_bitmap;
 pub use self::rect::Rect;
 pub use self::refine::{
-    refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, RefineOptions, RefineReport, RefineStats,
+    refine_corners, refine_corners_warm, refine_corners_with, EdgeLevels, EdgeMemory, EdgeProfile, ProfileLearner, RefineOptions,
+    RefineReport, RefineStats,
 };

@@ -49,6 +49,6 @@ pub mod temporal;
 pub use camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 pub use drift::{DriftConfig, DriftEstimate, DriftFilter};
 pub use error::SolveError;
-pub use held_pose::{HeldCameraPose, HeldPoseOptions, HeldPoseStatus};
+pub use held_pose::{FirstPoseRefused, HeldCameraPose, HeldPoseOptions, HeldPoseStatus};
 pub use motion::TagMotion;
 pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};

@@ -8,7 +8,10 @@
 //! connection too (tokio-modbus runs each connection in a task of its own, which would
 //! otherwise outlive the listener); Nagle is off on every connection (a register read is a
 //! few bytes); malformed frames are tokio-modbus's to refuse (the connection ends, logged at
-//! DEBUG); at most [`MAX_CONNECTIONS`] are open at once (more are closed at once, logged once
+//! DEBUG; a frame that panics tokio-modbus's codec — function 0x0F with quantity 65 535
+//! and no bytes — ends only its connection, its panic logged by the binary's hook at most
+//! once per 10 s per place); clients' connections are logged once per 10 s with their count;
+//! at most [`MAX_CONNECTIONS`] are open at once (more are closed at once, logged once
 //! per 10 s); an accept error (out of file descriptors) is logged and retried with backoff
 //! instead of ending the server. A read's range is checked by [`read_range`] (count 1 to [`MAX_READ`], inside the
 //! served block) where a server serves a block of registers.
@@ -121,7 +124,7 @@ impl ModbusServer {
         let handle = tokio::spawn(async move {
             let conns = Connections::default();
             let _close_all = CloseOnDrop(conns.clone());
-            let refused = Throttle::default();
+            let (refused, connected) = (Throttle::default(), Throttle::default());
             let on_connected = |stream: TcpStream, peer: SocketAddr| {
                 if conns.count() >= MAX_CONNECTIONS {
                     // Dropped: closed at once. Logged once per `LOG_EVERY`, with the count.
@@ -131,7 +134,11 @@ impl ModbusServer {
                     return ready(Ok(None));
                 }
                 if name.clients_at_info {
-                    tracing::info!(%peer, "{}: client connected", name.name);
+                    // The first, then one line per `LOG_EVERY` with the count: 1 000 clients
+                    // (a scan, a flood of malformed frames) are not 1 000 lines.
+                    if let Some(n) = connected.hit() {
+                        tracing::info!(%peer, "{}: client connected ({n} since the last such line)", name.name);
+                    }
                 } else {
                     tracing::debug!(%peer, "{}: client connected", name.name);
                 }

@@ -102,6 +102,9 @@ pub struct BeamMotion {
     pub half_height: f64,
     /// A verification run's rigid motion: the whole beam moved down by this, mm (0 in a test).
     pub rigid_drop_mm: f64,
+    /// With a stage (`verify_stage_half_width_mm`): only material within this half width of
+    /// midspan moves by `rigid_drop_mm`, the rest holds still; `None`: all of it.
+    pub stage_half_width_mm: Option<f64>,
 }
 
 impl BeamMotion {
@@ -109,14 +112,22 @@ impl BeamMotion {
     pub fn new(p: &SimParams, beam: &FourPointBeam, d: f64) -> BeamMotion {
         let hh = 0.5 * p.beam_height_mm;
         if p.test == SimTest::FourPoint {
-            return BeamMotion { beam: *beam, elastic: d, hinge: None, notch: None, half_height: hh, rigid_drop_mm: 0.0 };
+            return BeamMotion {
+                beam: *beam,
+                elastic: d,
+                hinge: None,
+                notch: None,
+                half_height: hh,
+                rigid_drop_mm: 0.0,
+                stage_half_width_mm: None,
+            };
         }
         let k = p.stiffness_kn_per_mm;
         let elastic = if p.load_law == LoadLaw::Elastic || k <= 0.0 { d } else { (load_at(p, d) / k).clamp(0.0, d.max(0.0)) };
         let drop = d - elastic;
         let notch = Some((0.5 * p.notch_width_mm, p.notch_mm));
         if drop <= 0.0 {
-            return BeamMotion { beam: *beam, elastic, hinge: None, notch, half_height: hh, rigid_drop_mm: 0.0 };
+            return BeamMotion { beam: *beam, elastic, hinge: None, notch, half_height: hh, rigid_drop_mm: 0.0, stage_half_width_mm: None };
         }
         let tip = crack_tip_height(p);
         let half = 0.5 * beam.span;
@@ -131,6 +142,7 @@ impl BeamMotion {
             notch,
             half_height: hh,
             rigid_drop_mm: 0.0,
+            stage_half_width_mm: None,
         }
     }
 
@@ -138,7 +150,26 @@ impl BeamMotion {
     /// by `drop_mm` (a rigid bar on a stage).
     pub fn rigid(p: &SimParams, beam: &FourPointBeam, drop_mm: f64) -> BeamMotion {
         let notch = (p.test == SimTest::ThreePointNotched).then_some((0.5 * p.notch_width_mm, p.notch_mm));
-        BeamMotion { beam: *beam, elastic: 0.0, hinge: None, notch, half_height: 0.5 * p.beam_height_mm, rigid_drop_mm: drop_mm }
+        let stage_half_width_mm = (p.verify_stage_half_width_mm > 0.0).then_some(p.verify_stage_half_width_mm);
+        BeamMotion {
+            beam: *beam,
+            elastic: 0.0,
+            hinge: None,
+            notch,
+            half_height: 0.5 * p.beam_height_mm,
+            rigid_drop_mm: drop_mm,
+            stage_half_width_mm,
+        }
+    }
+
+    /// The rigid drop of the material at `x` (mm along the beam from midspan): all of it, or
+    /// only the stage's block.
+    #[inline]
+    fn drop_at(&self, x: f64) -> f64 {
+        match self.stage_half_width_mm {
+            Some(w) if x.abs() >= w => 0.0,
+            _ => self.rigid_drop_mm,
+        }
     }
 
     /// Side of a material point: −1 left of the notch, +1 right (midspan counts right).
@@ -156,11 +187,11 @@ impl BeamMotion {
     pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64, f64) {
         let (dx, dz, rot) = self.beam.displace(x, zeta, self.elastic);
         match &self.hinge {
-            None => (dx, dz - self.rigid_drop_mm, rot),
+            None => (dx, dz - self.drop_at(x), rot),
             Some(h) => {
                 let side = Self::side(x);
                 let (nx, nz) = h.apply(side, x + dx, zeta + dz);
-                (nx - x, nz - zeta - self.rigid_drop_mm, rot + side * h.phi)
+                (nx - x, nz - zeta - self.drop_at(x), rot + side * h.phi)
             }
         }
     }
@@ -190,7 +221,7 @@ impl DeformedShape {
     #[inline]
     pub fn displace(&self, x: f64, zeta: f64) -> (f64, f64) {
         let (dx, dz) = self.table.displace(x, zeta);
-        let rigid = self.motion.rigid_drop_mm;
+        let rigid = self.motion.drop_at(x);
         match &self.motion.hinge {
             None => (dx, dz - rigid),
             Some(h) => {
@@ -205,7 +236,8 @@ impl DeformedShape {
     /// material (the notch, the open crack).
     #[inline]
     pub fn material_point(&self, px: f64, pz: f64) -> (f64, f64) {
-        let pz = pz + self.motion.rigid_drop_mm;
+        // A rigid motion moves nothing along the beam: the material's x is the face's px.
+        let pz = pz + self.motion.drop_at(px);
         let (mx, mz) = match &self.motion.hinge {
             None => self.table.material_point(px, pz),
             Some(h) => {
@@ -234,7 +266,7 @@ impl DeformedShape {
     pub fn fibre_point(&self, px: f64, zeta: f64) -> (f64, f64) {
         if self.motion.hinge.is_none() {
             let (x, dz) = self.table.fibre_point(px, zeta);
-            return (x, dz - self.motion.rigid_drop_mm);
+            return (x, dz - self.motion.drop_at(x));
         }
         let mut x = px;
         for _ in 0..4 {

@@ -26,12 +26,14 @@ pub struct LiveRig {
 
 impl LiveRig {
     /// Builds the rig from the config's `[sim]` section (defaults when absent), with its
-    /// clock starting at `start_ns` and a cyclic load history. The config's `sim` cameras are
+    /// clock starting at `start_ns` and a cyclic load history (a verification run holds its last
+    /// step instead). The config's `sim` cameras are
     /// the rig's cameras (same names, in order): checked when the config is read.
     pub fn new(sim: Option<&SimParams>, start_ns: i64) -> Result<LiveRig, SimError> {
         let mut params = sim.cloned().unwrap_or_default();
         params.start_ns = start_ns;
-        params.cyclic = true;
+        // A verification run holds its last position; a test cycles so a demo can run for hours.
+        params.cyclic = params.verify_steps.trim().is_empty();
         let rig = SimRig::new(&params)?;
         Ok(LiveRig { rig })
     }

@@ -239,6 +239,13 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value = ""))]
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub rates: String,
+    /// With `verify_steps`: the half width (mm, along the beam from midspan) of the block a
+    /// stage moves, the rest of the bar held still — a two-part verification target whose
+    /// midspan tags drop by the steps while the support tags stay, so the net deflection (and
+    /// the `net` gauge, added to the config) follows the steps. 0: the whole bar moves.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub verify_stage_half_width_mm: f64,
     /// Repeat the load history (rest, ramp up, ramp down) instead of holding at the maximum
     /// after the ramp (for long live demos).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
@@ -475,6 +482,7 @@ impl Default for SimParams {
             hold_frames: 0,
             verify_steps: String::new(),
             rates: String::new(),
+            verify_stage_half_width_mm: 0.0,
             cyclic: false,
             beam_length_mm: 550.0,
             beam_height_mm: 150.0,

@@ -187,7 +187,13 @@ impl SimRig {
                     ..Default::default()
                 }),
             },
-            gauges: if self.real_test() { self.gauges() } else { Vec::new() },
+            gauges: if self.real_test() {
+                self.gauges()
+            } else if p.verify_stage_half_width_mm > 0.0 {
+                self.gauges().into_iter().filter(|g| g.name == "net").collect()
+            } else {
+                Vec::new()
+            },
         }
     }
 

@@ -117,6 +117,21 @@ impl OutputConfig {
         Ok(())
     }
 
+    /// A warning when `http_token_file` may be read or written by every user of the machine
+    /// (mode `o+r` or `o+w`, e.g. 0644): the file and its mode. Read by the group (0640, the
+    /// lab's group under the unit) is how lab users get the token, and is not warned of.
+    pub fn token_file_warning(&self) -> Option<String> {
+        use std::os::unix::fs::PermissionsExt;
+        let t = self.http_token_file.as_ref()?;
+        let mode = std::fs::metadata(t).ok()?.permissions().mode() & 0o7777;
+        (mode & 0o006 != 0).then(|| {
+            format!(
+                "[output] http_token_file {}: mode {mode:04o} lets every user of this machine read (or write) the control token: `chmod 640` (the lab's group) or `chmod 600`",
+                t.display()
+            )
+        })
+    }
+
     /// `http_token_file` (already resolved): readable, a token of 16 characters or more first.
     fn check_token_file(&self) -> Result<(), Problem> {
         let Some(t) = &self.http_token_file else { return Ok(()) };
@@ -145,4 +160,26 @@ impl OutputConfig {
 
 fn is_default_format(f: &FrameFormat) -> bool {
     *f == FrameFormat::default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_token_file_every_user_may_read_is_warned_of_naming_file_and_mode() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let t = dir.path().join("token");
+        std::fs::write(&t, "0123456789abcdef0123\n").unwrap();
+        let out = OutputConfig { http_token_file: Some(t.clone()), ..OutputConfig::default() };
+        for (mode, warned) in [(0o600, false), (0o640, false), (0o644, true), (0o602, true)] {
+            std::fs::set_permissions(&t, std::fs::Permissions::from_mode(mode)).unwrap();
+            let w = out.token_file_warning();
+            assert_eq!(w.is_some(), warned, "{mode:o}: {w:?}");
+            if let Some(w) = w {
+                assert!(w.contains(&t.display().to_string()) && w.contains(&format!("mode {mode:04o}")), "{w}");
+            }
+        }
+    }
 }

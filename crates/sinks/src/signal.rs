@@ -3,14 +3,25 @@
 //! feed line is the signal (the net deflection or a `[[gauge]]`), and when it is *valid*.
 //!
 //! The value is valid while its σ is at most `max_sigma_mm` and it is fresh: it turns
-//! invalid once its tags were not solved in `stale_sets` consecutive frame sets, or when no
+//! invalid once its tags were not solved in `stale_sets` consecutive frame sets, when no
 //! frame set arrived for `stale_sets + ½` frame periods (a stalled pipeline; the period is a
-//! running mean of the lines' spacing).
+//! running mean of the lines' spacing), and when the value's age *since its frames were
+//! exposed* exceeds `stale_sets + ½` frame periods plus [`LATENCY_ALLOWANCE_MS`] — lines
+//! that arrive on time but late (the sinks' thread held up, e.g. by a report made
+//! in-process) carry old values and are not fresh. Lines whose times are not this
+//! computer's clock (a replayed recording: more than [`FOREIGN_CLOCK_S`] from now) are aged
+//! by their arrival alone.
 
 use std::time::Instant;
 
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::Problem;
+
+/// Exposure → line latency allowed on top of the frame periods before a value is stale, ms
+/// (the pipeline's own is ~17 ms p50, docs/control.md; a loaded machine's a few times that).
+pub const LATENCY_ALLOWANCE_MS: f64 = 250.0;
+/// A line time this far from the computer's clock is a recording's, s.
+pub const FOREIGN_CLOCK_S: f64 = 3600.0;
 
 /// The gauge served by default: the feed's `net_deflection_mm`.
 pub const NET_DEFLECTION: &str = "net_deflection";
@@ -114,19 +125,68 @@ impl SignalState {
         Some(sample)
     }
 
-    /// Valid at `now`: the last lines say so and a frame set came within `stale_sets + ½`
-    /// frame periods.
-    pub fn valid_at(&self, rule: &SignalRule, now: Instant) -> bool {
-        let fresh = match (self.last_line, self.period_s) {
-            (Some((at, _)), Some(p)) => now.saturating_duration_since(at).as_secs_f64() <= (rule.stale_sets as f64 + 0.5) * p,
+    /// Valid at `now` (`now_ns` the same instant on the feed's clock, ns since the epoch): the
+    /// last lines say so, a frame set came within `stale_sets + ½` frame periods, and the
+    /// value was exposed no longer ago than that plus [`LATENCY_ALLOWANCE_MS`].
+    pub fn valid_at(&self, rule: &SignalRule, now: Instant, now_ns: i64) -> bool {
+        let slack_s = self.period_s.map(|p| (rule.stale_sets as f64 + 0.5) * p);
+        let arrived_in_time = match (self.last_line, slack_s) {
+            (Some((at, _)), Some(slack)) => now.saturating_duration_since(at).as_secs_f64() <= slack,
             (Some(_), None) => true,
             _ => false,
         };
-        self.valid && fresh
+        self.valid && arrived_in_time && self.sample.is_some_and(|s| exposed_in_time(s.t_ns, now_ns, slack_s.unwrap_or(0.0)))
+    }
+
+    /// The value's age since exposure at `now_ns`, s (negative: a clock ahead of this one).
+    pub fn age_s(&self, now_ns: i64) -> Option<f64> {
+        self.sample.map(|s| (now_ns - s.t_ns) as f64 * 1e-9)
     }
 
     /// The frame period seen so far, s.
     pub fn period_s(&self) -> Option<f64> {
         self.period_s
+    }
+}
+
+/// A value exposed at `t_ns` is fresh at `now_ns`: its age is at most `slack_s` plus the
+/// latency allowance, unless its clock is a recording's (then its arrival alone counts).
+fn exposed_in_time(t_ns: i64, now_ns: i64, slack_s: f64) -> bool {
+    let age_s = (now_ns - t_ns) as f64 * 1e-9;
+    age_s.abs() > FOREIGN_CLOCK_S || age_s <= slack_s + LATENCY_ALLOWANCE_MS * 1e-3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn line(seq: u64, t_ns: i64) -> FeedLine {
+        FeedLine { seq, t_ns, net_deflection_mm: Some(0.1), net_deflection_sigma_mm: Some(0.001), ..FeedLine::default() }
+    }
+
+    /// Lines that arrive on time but carry values exposed 1.18 s ago (the sinks' thread was
+    /// held up) are not fresh: the age counts from exposure, not arrival.
+    #[test]
+    fn a_value_is_aged_from_its_exposure_not_its_arrival() {
+        let rule = SignalRule { gauge: NET_DEFLECTION.into(), max_sigma_mm: 0.01, stale_sets: 1 };
+        let mut st = SignalState::default();
+        let (t0, ns0) = (Instant::now(), 1_800_000_000_000_000_000i64);
+        let period_ns = 100_000_000;
+        for k in 0..10u64 {
+            let t_ns = ns0 + k as i64 * period_ns;
+            st.take_line(&rule, &line(k, t_ns), t0 + Duration::from_millis(100 * k));
+            // Read 20 ms after each arrival, 30 ms after exposure: fresh.
+            let now = t0 + Duration::from_millis(100 * k + 20);
+            assert!(st.valid_at(&rule, now, t_ns + 30_000_000), "set {k}");
+        }
+        // The next line arrives on time but was exposed 1.18 s before.
+        let t_ns = ns0 + 10 * period_ns;
+        st.take_line(&rule, &line(10, t_ns), t0 + Duration::from_millis(1000));
+        let now = t0 + Duration::from_millis(1010);
+        assert!(!st.valid_at(&rule, now, t_ns + 1_180_000_000), "a value 1.18 s old is stale");
+        assert!(st.valid_at(&rule, now, t_ns + 50_000_000), "a value 50 ms old is fresh");
+        // A replayed recording's clock (days from now): its arrival alone counts.
+        assert!(st.valid_at(&rule, now, t_ns + 86_400_000_000_000));
     }
 }

@@ -9,7 +9,7 @@
 //! * [`uncertainty`]: the expanded uncertainty (k = 2) of a deflection over the verified
 //!   range (GUM, the components as typed);
 //! * [`reference`]: SPEC's reference file (`{"t_ns", "displacement_mm"}` lines) grouped into
-//!   holds, the step plan of a verification;
+//!   holds, the step plan of a verification; [`stroke`]: holds read from the UTM's stroke;
 //! * [`Quantity`]: the verified quantity (net deflection, a gauge, a tag);
 //! * [`verify()`]: all of it, VDI/VDE 2626's ZS/ZD/D figures and a verdict with its reasons.
 //!
@@ -22,6 +22,7 @@ pub mod reference;
 mod series;
 pub mod stability;
 pub mod steps;
+pub mod stroke;
 pub mod uncertainty;
 mod verify;
 
@@ -29,6 +30,7 @@ pub use plan::{StepPlan, StepWindow, VERIFY_STEPS_FILE};
 pub use quantity::Quantity;
 pub use reference::{Hold, ReferencePoint, REFERENCE_FILE};
 pub use series::Series;
+pub use stroke::{holds_from_stroke, StrokeHolds};
 pub use verify::{verify, VdiFigures, Verdict, Verification, VerifyOptions};
 
 /// What keeps a verification from being computed.

@@ -14,13 +14,15 @@
 use serde::{Deserialize, Serialize};
 
 use tagdeflect_core::lab_test::TestRecord;
+use tagdeflect_core::limits;
 
 use crate::WireError;
 
-/// The largest lab test message taken (a record with a day's marks is a few kB).
-pub const MAX_LAB_TEST_BYTES: usize = 64 * 1024;
+/// The largest lab test message taken: the rig's control API keeps a record well within it
+/// (`tagdeflect_core::limits`), so a record the API accepted is never refused here.
+pub const MAX_LAB_TEST_BYTES: usize = limits::ARCHIVE_RECORD_MAX_BYTES;
 /// Events of one test at most.
-pub const MAX_EVENTS: usize = 10_000;
+pub const MAX_EVENTS: usize = limits::ARCHIVE_EVENTS_MAX;
 /// Hashed files of one test at most.
 pub const MAX_HASHES: usize = 10_000;
 
@@ -88,8 +90,12 @@ impl LabTestMessage {
     fn check_record(&self) -> Result<(), WireError> {
         let ok_id = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.');
         let r = &self.record;
-        if r.id.is_empty() || r.id.len() > 128 || !r.id.chars().all(ok_id) {
-            return Err(WireError::LabTest(format!("test id \"{}\": 1 to 128 letters, digits, `_`, `-`, `.`", r.id.escape_debug())));
+        if r.id.is_empty() || r.id.len() > limits::TEST_ID_MAX_BYTES || !r.id.chars().all(ok_id) {
+            return Err(WireError::LabTest(format!(
+                "test id \"{}\": 1 to {} bytes of letters, digits, `_`, `-`, `.`",
+                r.id.escape_debug(),
+                limits::TEST_ID_MAX_BYTES
+            )));
         }
         r.meta.validate().map_err(|p| WireError::LabTest(p.message))?;
         if r.started_t_ns <= 0 {
@@ -107,8 +113,8 @@ impl LabTestMessage {
             if e.kind.is_empty() || e.kind.len() > 32 || !e.kind.chars().all(|c| c.is_ascii_lowercase() || c == '_') {
                 return Err(WireError::LabTest(format!("event kind \"{}\": 1 to 32 lowercase letters", e.kind.escape_debug())));
             }
-            if e.note.as_ref().is_some_and(|n| n.len() > 4096 || n.chars().any(|c| c.is_control() && c != '\n')) {
-                return Err(WireError::LabTest("an event's note: at most 4096 characters, no control characters".to_string()));
+            if let Some(n) = &e.note {
+                limits::check_text("an event's note", n, true).map_err(|p| WireError::LabTest(p.message))?;
             }
         }
         if r.sha256.len() > MAX_HASHES {

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 mod demo_test;
-pub use demo_test::DemoTest;
+pub use demo_test::{DemoTest, RATE_AFTER_L900_MM_PER_MIN, RATE_TO_L900_MM_PER_MIN};
 
 use anyhow::Result;
 use clap::Subcommand;

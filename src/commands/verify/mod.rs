@@ -2,10 +2,12 @@
 //! recording of a target at rest and at known displacements (docs/verification.md). The recording is replayed
 //! in-process, the figures computed by `tagdeflect-verify`, and the certificate written into
 //! `verify/<date>/`: `verification.json`, `verification.html` (and `verification.pdf` when
-//! Chromium prints it) and the raw recording (hard links, else copies).
+//! Chromium prints it) and the raw recording (hard links, else copies). With `--live` the rig
+//! itself is recorded first, into the certificate's folder (`live`).
 
 mod certificate;
 mod html;
+pub mod live;
 mod source;
 
 use std::path::{Path, PathBuf};
@@ -23,8 +25,27 @@ pub use source::Source;
 /// The options of `tagdeflect verify`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct VerifyArgs {
-    /// The recording of the verification (a rigid target at rest, then at known positions).
-    pub dir: PathBuf,
+    /// The recording of the verification (a rigid target at rest, then at known positions);
+    /// not with `--live`.
+    #[arg(required_unless_present = "live", conflicts_with = "live")]
+    pub dir: Option<PathBuf>,
+    /// (extension) Record the rig of `--config` for `--duration-s` first (into the
+    /// certificate's `recording/`), then verify that recording.
+    #[arg(long, requires_all = ["config", "duration_s"])]
+    pub live: bool,
+    /// With `--live`: the rig's config.
+    #[arg(long, value_name = "FILE", requires = "live")]
+    pub config: Option<PathBuf>,
+    /// With `--live`: how long to record, s.
+    #[arg(long, value_name = "S", requires = "live")]
+    pub duration_s: Option<f64>,
+    /// With `--live`: the positions typed on standard input while it records (each held from
+    /// its Enter for `--hold-s`), instead of a reference file or the stroke.
+    #[arg(long, requires = "live", conflicts_with_all = ["reference", "steps", "reference_from_stroke"])]
+    pub type_positions: bool,
+    /// With `--type-positions`: how long each typed position is held, s.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    pub hold_s: f64,
     /// The known displacements (SPEC): JSON Lines `{"t_ns": ..., "displacement_mm": ...}`,
     /// consecutive equal values one hold; default: the recording's own `reference.jsonl`.
     #[arg(long, value_name = "FILE", conflicts_with = "steps")]
@@ -33,6 +54,20 @@ pub struct VerifyArgs {
     /// "start_ns", "end_ns"}]}`, or a bare array of positions in mm held for equal times).
     #[arg(long, value_name = "FILE")]
     pub steps: Option<PathBuf>,
+    /// (extension) The known displacements from the UTM's stroke in the recording: each
+    /// position the crosshead holds is a hold of the reference (the crosshead carries the target).
+    #[arg(long, conflicts_with_all = ["reference", "steps"])]
+    pub reference_from_stroke: bool,
+    /// With `--reference-from-stroke`: the largest range of the stroke within a hold, µm.
+    #[arg(long, value_name = "UM", default_value_t = 2.0)]
+    pub stroke_tolerance_um: f64,
+    /// With `--reference-from-stroke`: the shortest hold, s.
+    #[arg(long, value_name = "S", default_value_t = 1.0)]
+    pub stroke_min_hold_s: f64,
+    /// With `--reference-from-stroke`: 1 when the stroke grows as the target moves down, −1
+    /// when it grows as it rises.
+    #[arg(long, value_name = "SIGN", default_value_t = 1.0, allow_negative_numbers = true)]
+    pub stroke_sign: f64,
     /// Verify this `[[gauge]]`'s value instead of the net deflection.
     #[arg(long, value_name = "NAME", conflicts_with_all = ["tag", "all_tags"])]
     pub gauge: Option<String>,
@@ -69,23 +104,33 @@ pub fn run(args: &VerifyArgs) -> Result<PathBuf> {
     if !args.reference_u_um.is_finite() || args.reference_u_um < 0.0 {
         return Err(BadInput::new(format!("--reference-u-um {}: expected a non-negative number of µm", args.reference_u_um)).into());
     }
-    let source = Source::read(args)?;
-    let quantity = source::quantity(args);
+    if !args.hold_s.is_finite() || args.hold_s <= 0.0 {
+        return Err(BadInput::new(format!("--hold-s {}: expected a positive number of seconds", args.hold_s)).into());
+    }
     let out = out_dir(args.out.as_deref())?;
-    let rec = in_process::open(&args.dir, None)?;
+    let (dir, recorded_here) = match (&args.dir, args.live) {
+        (_, true) => {
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+            (live::record(args, &out)?, true)
+        }
+        (Some(dir), false) => (dir.clone(), false),
+        (None, false) => return Err(BadInput::new("verify needs a recording DIR, or --live --config FILE --duration-s S").into()),
+    };
+    let rec = in_process::open(&dir, None)?;
+    let source = Source::read(args, &rec)?;
+    let quantity = source::quantity(args);
     let mut lines: Vec<FeedLine> = Vec::new();
     let summary = in_process::replay(&rec, ReplayOptions { progress: true, ..Default::default() }, |l, _, _| lines.push(l.clone()))?;
     let plan = source.plan(&lines);
     let opts = VerifyOptions { quantity, up: rec.config.world.up, reference_u_mm: args.reference_u_um * 1e-3, reference_k: 2.0 };
-    let verification =
-        tagdeflect_verify::verify(&lines, &plan, &opts).map_err(|e| BadInput::new(format!("{}: {e}", args.dir.display())))?;
+    let verification = tagdeflect_verify::verify(&lines, &plan, &opts).map_err(|e| BadInput::new(format!("{}: {e}", dir.display())))?;
     let equipment = Equipment {
         description: args.equipment.clone(),
         calibrated: args.equipment_calibrated.clone(),
         reference_u_um: args.reference_u_um,
     };
     let cert = Certificate::new(&rec, &source, &plan, summary.sets, args.operator.clone(), equipment, verification)?;
-    write(&cert, &lines, &args.dir, &out, !args.no_pdf)?;
+    write(&cert, &lines, (!recorded_here).then_some(dir.as_path()), &out, !args.no_pdf)?;
     tracing::info!(
         "{}: {} class {}, U (k = 2) {:.2} µm — {}",
         out.display(),
@@ -120,8 +165,9 @@ fn out_dir(out: Option<&Path>) -> Result<PathBuf> {
     Ok(dir)
 }
 
-/// Writes the certificate, its page (and PDF), the feed it was computed from and the raw recording.
-fn write(cert: &Certificate, lines: &[FeedLine], recording: &Path, out: &Path, pdf: bool) -> Result<()> {
+/// Writes the certificate, its page (and PDF), the feed it was computed from and the raw
+/// recording (`None`: it was recorded into `out` already).
+fn write(cert: &Certificate, lines: &[FeedLine], recording: Option<&Path>, out: &Path, pdf: bool) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let json = serde_json::to_string_pretty(cert).context("the certificate as JSON")? + "\n";
     tagdeflect_report::write_atomic(&out.join("verification.json"), json.as_bytes())?;
@@ -136,6 +182,7 @@ fn write(cert: &Certificate, lines: &[FeedLine], recording: &Path, out: &Path, p
             Err(e) => tracing::warn!("verification.pdf could not be printed: {e}"),
         }
     }
+    let Some(recording) = recording else { return Ok(()) };
     link_or_copy_tree(recording, &out.join("recording"))
         .with_context(|| format!("keeping the recording {} in {}", recording.display(), out.display()))
 }

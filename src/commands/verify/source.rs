@@ -1,7 +1,8 @@
 //! Where the known displacements come from: SPEC's `--reference FILE` (JSON Lines grouped
-//! into holds), the extension `--steps FILE` (a step plan), or the recording's own
-//! `reference.jsonl` (else `verify_steps.json`) when neither is given; and which quantity
-//! they are compared with.
+//! into holds), the extensions `--steps FILE` (a step plan) and `--reference-from-stroke`
+//! (the holds of the UTM's stroke in the recording's `utm.jsonl`: the crosshead carries the
+//! target), or the recording's own `reference.jsonl` (else `verify_steps.json`) when none is
+//! given; and which quantity they are compared with.
 
 use std::path::{Path, PathBuf};
 
@@ -9,7 +10,9 @@ use anyhow::{Context, Result};
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::BadInput;
 use tagdeflect_verify::reference::{holds, parse_reference, plan_from_holds};
-use tagdeflect_verify::{Hold, Quantity, StepPlan, REFERENCE_FILE, VERIFY_STEPS_FILE};
+use tagdeflect_verify::{holds_from_stroke, Hold, Quantity, StepPlan, StrokeHolds, REFERENCE_FILE, VERIFY_STEPS_FILE};
+
+use crate::config::Recording;
 
 use super::VerifyArgs;
 
@@ -26,6 +29,13 @@ pub enum Source {
         /// Its holds.
         holds: Vec<Hold>,
     },
+    /// The holds of the UTM's stroke (extension); `path` is the recording's `utm.jsonl`.
+    Stroke {
+        /// The recording's UTM file.
+        path: PathBuf,
+        /// Its holds.
+        holds: Vec<Hold>,
+    },
     /// A step plan (extension).
     Steps {
         /// The file.
@@ -36,15 +46,18 @@ pub enum Source {
 }
 
 impl Source {
-    /// Reads `--reference`, `--steps`, or the recording's own file.
-    pub fn read(args: &VerifyArgs) -> Result<Source> {
+    /// Reads `--reference`, `--steps`, `--reference-from-stroke`, or the recording's own file.
+    pub fn read(args: &VerifyArgs, rec: &Recording) -> Result<Source> {
+        if args.reference_from_stroke {
+            return from_stroke(args, rec);
+        }
         if let Some(path) = &args.reference {
             return read_reference(path);
         }
         if let Some(path) = &args.steps {
             return read_steps(path);
         }
-        let (reference, steps) = (args.dir.join(REFERENCE_FILE), args.dir.join(VERIFY_STEPS_FILE));
+        let (reference, steps) = (rec.dir.join(REFERENCE_FILE), rec.dir.join(VERIFY_STEPS_FILE));
         if reference.is_file() {
             return read_reference(&reference);
         }
@@ -53,7 +66,7 @@ impl Source {
         }
         Err(BadInput::new(format!(
             "{}: no known displacements (give --reference FILE, or put {REFERENCE_FILE} in the recording)",
-            args.dir.display()
+            rec.dir.display()
         ))
         .into())
     }
@@ -61,7 +74,7 @@ impl Source {
     /// The file the known displacements came from.
     pub fn path(&self) -> &Path {
         match self {
-            Source::Reference { path, .. } | Source::Steps { path, .. } => path,
+            Source::Reference { path, .. } | Source::Stroke { path, .. } | Source::Steps { path, .. } => path,
         }
     }
 
@@ -70,7 +83,7 @@ impl Source {
     pub fn plan(&self, lines: &[FeedLine]) -> StepPlan {
         match self {
             Source::Steps { plan, .. } => plan.clone(),
-            Source::Reference { holds, .. } => {
+            Source::Reference { holds, .. } | Source::Stroke { holds, .. } => {
                 let gaps: Vec<f64> = lines.windows(2).map(|w| (w[1].t_ns - w[0].t_ns) as f64).collect();
                 let spacing_ns = tagdeflect_core::stats::median(&gaps).unwrap_or(0.0).round() as i64;
                 plan_from_holds(holds, spacing_ns, SETTLE_FRACTION)
@@ -100,6 +113,37 @@ fn read_reference(path: &Path) -> Result<Source> {
     let text = read_text(path)?;
     let points = parse_reference(&text).map_err(|e| BadInput::new(format!("{}:{}: {}", path.display(), e.line, e.message)))?;
     Ok(Source::Reference { path: path.to_path_buf(), holds: holds(&points) })
+}
+
+/// The holds of the recording's UTM stroke (`--stroke-tolerance-um`, `--stroke-min-hold-s`,
+/// `--stroke-sign`); at least two are needed (the zero and one displacement).
+fn from_stroke(args: &VerifyArgs, rec: &Recording) -> Result<Source> {
+    let path = rec.dir.join(tagdeflect_io::recording::UTM_FILE);
+    let bad = |what: String| -> anyhow::Error { BadInput::new(format!("{}: {what}", path.display())).into() };
+    let samples: Vec<(i64, f64)> = rec.utm.iter().filter_map(|s| s.stroke_mm.map(|v| (s.t_ns, v))).collect();
+    if samples.is_empty() {
+        return Err(bad("no UTM sample with a stroke (--reference-from-stroke needs the stroke recorded)".into()));
+    }
+    let ok = |v: f64| v.is_finite() && v > 0.0;
+    if !ok(args.stroke_tolerance_um) || !ok(args.stroke_min_hold_s) || args.stroke_sign.abs() != 1.0 {
+        return Err(BadInput::new("--stroke-tolerance-um and --stroke-min-hold-s must be positive, --stroke-sign 1 or -1").into());
+    }
+    let rule = StrokeHolds {
+        tolerance_mm: args.stroke_tolerance_um * 1e-3,
+        min_hold_ns: (args.stroke_min_hold_s * 1e9).round() as i64,
+        scale: args.stroke_sign,
+    };
+    let holds = holds_from_stroke(&samples, &rule);
+    if holds.len() < 2 {
+        return Err(bad(format!(
+            "{} hold(s) of the stroke found ({} samples; a hold stays within {} µm for {} s): expected the zero and at least one displacement",
+            holds.len(),
+            samples.len(),
+            args.stroke_tolerance_um,
+            args.stroke_min_hold_s
+        )));
+    }
+    Ok(Source::Stroke { path, holds })
 }
 
 fn read_steps(path: &Path) -> Result<Source> {

@@ -1,25 +1,29 @@
 //! The steps of one batch's transaction ([`super::Db::write`]): the tests' row ids, the lines
 //! inserted (a line that lands in another run's span goes to a new run), the statuses, the
-//! lab tests.
+//! lab tests (each version judged against the one held).
 
 use std::collections::HashMap;
 
 use tokio_postgres::{Error, Statement, Transaction};
 
+use super::versions::{judge, Verdict};
 use super::{Holdings, LabTestRow, LineKey, LineRow, NewRun, StatusRow, Written};
 
-/// Upserts a lab test; a record with fewer events than the one held is an older version
-/// (a redelivery after a newer one) and leaves it as it is.
-const LAB_TEST_SQL: &str = r#"
+/// A lab test seen for the first time (two archives of a group may race: the second one
+/// judges again against the first one's, [`super::versions`]).
+const LAB_TEST_INSERT_SQL: &str = r#"
 INSERT INTO lab_tests (rig_id, id, run_test_id, specimen, operator, standard, notes, measured,
                        started_t_ns, stopped_t_ns, events, sha256, record)
 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)
-ON CONFLICT (rig_id, id) DO UPDATE SET
-    run_test_id = EXCLUDED.run_test_id, specimen = EXCLUDED.specimen, operator = EXCLUDED.operator,
-    standard = EXCLUDED.standard, notes = EXCLUDED.notes, measured = EXCLUDED.measured,
-    started_t_ns = EXCLUDED.started_t_ns, stopped_t_ns = EXCLUDED.stopped_t_ns, events = EXCLUDED.events,
-    sha256 = EXCLUDED.sha256, record = EXCLUDED.record, updated_at = now()
-WHERE jsonb_array_length(EXCLUDED.events) >= jsonb_array_length(lab_tests.events)
+ON CONFLICT (rig_id, id) DO NOTHING
+"#;
+
+/// A lab test's newer version (judged by [`super::versions::judge`]).
+const LAB_TEST_UPDATE_SQL: &str = r#"
+UPDATE lab_tests SET
+    run_test_id = $3, specimen = $4, operator = $5, standard = $6, notes = $7, measured = $8,
+    started_t_ns = $9, stopped_t_ns = $10, events = $11, sha256 = $12, record = $13, updated_at = now()
+WHERE rig_id = $1 AND id = $2
 "#;
 
 /// The row id of every (rig, test) of the batch — known ones from `known`, new ones inserted
@@ -203,34 +207,88 @@ pub(super) async fn write_statuses(
     Ok(())
 }
 
-/// The lab test records, upserted ([`LAB_TEST_SQL`]); how many.
-pub(super) async fn write_lab_tests(tx: &Transaction<'_>, labs: &[LabTestRow], ids: &HashMap<(String, String), i64>) -> Result<u64, Error> {
+/// A lab test version refused (logged after the commit).
+pub(super) struct Refused {
+    rig: String,
+    id: String,
+    why: String,
+    older: bool,
+}
+
+/// The lab test records, each judged against the version held ([`super::versions`]) and
+/// written when it is newer; how many were written, and the versions refused.
+pub(super) async fn write_lab_tests(
+    tx: &Transaction<'_>,
+    labs: &[LabTestRow],
+    ids: &HashMap<(String, String), i64>,
+) -> Result<(u64, Vec<Refused>), Error> {
+    let (mut written, mut refused) = (0u64, Vec::new());
     for l in labs {
         let run_id = ids[&(l.rig.clone(), l.run.clone())];
         let r = &l.message.record;
-        let json = |v: serde_json::Result<serde_json::Value>| v.unwrap_or(serde_json::Value::Null);
         let rig_id: i32 = tx.query_one("SELECT rig_id FROM tests WHERE id = $1", &[&run_id]).await?.get(0);
-        tx.execute(
-            LAB_TEST_SQL,
-            &[
-                &rig_id,
-                &r.id,
-                &run_id,
-                &r.meta.specimen,
-                &r.meta.operator,
-                &r.meta.standard,
-                &r.meta.notes,
-                &json(serde_json::to_value(&r.meta.measured)),
-                &r.started_t_ns,
-                &r.stopped_t_ns,
-                &json(serde_json::to_value(&r.events)),
-                &json(serde_json::to_value(&r.sha256)),
-                &json(serde_json::to_value(&l.message)),
-            ],
-        )
-        .await?;
+        // Twice at most: a row another archive inserted meanwhile is judged as held.
+        for _ in 0..2 {
+            let held: Option<serde_json::Value> = tx
+                .query_opt("SELECT record FROM lab_tests WHERE rig_id = $1 AND id = $2 FOR UPDATE", &[&rig_id, &r.id])
+                .await?
+                .map(|row| row.get(0));
+            // A held record this archive cannot read (an older schema's) is replaced.
+            let held = held.and_then(|v| serde_json::from_value::<tagdeflect_wire::LabTestMessage>(v).ok());
+            let verdict = held.as_ref().map_or(Verdict::Replace, |h| judge(&h.record, r));
+            match verdict {
+                Verdict::Same => break,
+                Verdict::Refuse { why, older } => {
+                    refused.push(Refused { rig: l.rig.clone(), id: r.id.clone(), why, older });
+                    break;
+                }
+                Verdict::Replace => {
+                    let sql = if held.is_some() { LAB_TEST_UPDATE_SQL } else { LAB_TEST_INSERT_SQL };
+                    if upsert_lab_test(tx, sql, rig_id, run_id, l).await? == 1 {
+                        written += 1;
+                        break;
+                    }
+                }
+            }
+        }
     }
-    Ok(labs.len() as u64)
+    Ok((written, refused))
+}
+
+/// One lab test row written by `sql` (insert or update); the rows it wrote.
+async fn upsert_lab_test(tx: &Transaction<'_>, sql: &str, rig_id: i32, run_id: i64, l: &LabTestRow) -> Result<u64, Error> {
+    let r = &l.message.record;
+    let json = |v: serde_json::Result<serde_json::Value>| v.unwrap_or(serde_json::Value::Null);
+    tx.execute(
+        sql,
+        &[
+            &rig_id,
+            &r.id,
+            &run_id,
+            &r.meta.specimen,
+            &r.meta.operator,
+            &r.meta.standard,
+            &r.meta.notes,
+            &json(serde_json::to_value(&r.meta.measured)),
+            &r.started_t_ns,
+            &r.stopped_t_ns,
+            &json(serde_json::to_value(&r.events)),
+            &json(serde_json::to_value(&r.sha256)),
+            &json(serde_json::to_value(&l.message)),
+        ],
+    )
+    .await
+}
+
+/// One line for every lab test version refused, naming the test and why.
+pub(super) fn log_refused(refused: &[Refused]) {
+    for r in refused {
+        if r.older {
+            tracing::info!(rig = %r.rig, test = %r.id, "archive: lab test {} of rig {}: version refused: {}", r.id, r.rig, r.why);
+        } else {
+            tracing::warn!(rig = %r.rig, test = %r.id, "archive: lab test {} of rig {}: version refused: {}", r.id, r.rig, r.why);
+        }
+    }
 }
 
 /// A warning for every line that started a new run (it arrived again with another t_ns).

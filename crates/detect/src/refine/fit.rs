@@ -14,9 +14,16 @@ pub(super) struct Line {
     rho: f64,
     /// Fitted black level, contrast and blur (warm start of the next pass).
     pub(super) levels: [f64; 3],
+    /// Weighted RMS residual of the fit, grey levels.
+    pub(super) rms: f64,
 }
 
 impl Line {
+    /// Signed distance (pixels, outwards positive) of the ideal point `p` from the line.
+    pub(super) fn distance(&self, p: &Vector2<f64>) -> f64 {
+        self.normal.dot(p) - self.rho
+    }
+
     pub(super) fn intersect(&self, other: &Line) -> Option<Vector2<f64>> {
         let det = self.normal.x * other.normal.y - self.normal.y * other.normal.x;
         if det.abs() < 0.1 {
@@ -369,7 +376,7 @@ impl NormalSums {
 
 /// Checks a fitted edge and turns it into a line.
 #[allow(clippy::too_many_arguments)]
-fn finish(
+pub(super) fn finish(
     x: &Vector5<f64>,
     samples: &[BandPixel],
     cost: f64,
@@ -396,7 +403,7 @@ fn finish(
     let (sn, cs) = ang.sin_cos();
     // n = (p − a)·(cs·normal + sn·dir) − off = 0.
     let nrm = normal * cs + dir * sn;
-    Some(Line { normal: nrm, rho: nrm.dot(&a) + off, levels: [x[2], c, sg] })
+    Some(Line { normal: nrm, rho: nrm.dot(&a) + off, levels: [x[2], c, sg], rms })
 }
 
 #[cfg(test)]

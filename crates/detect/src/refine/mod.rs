@@ -70,9 +70,13 @@ use tagdeflect_core::tags::cell_homography;
 
 mod band;
 mod fit;
+mod profile;
+mod profile_fit;
 
 use band::{select_band, EdgeBand, TagBands};
 use fit::{fit_band, Line};
+pub use profile::{EdgeProfile, ProfileLearner};
+use profile_fit::fit_band_profile;
 
 /// The blur σ (pixels) an edge's fit starts from when no earlier fit of it is known.
 pub(crate) const DEFAULT_BLUR_PX: f64 = 0.8;
@@ -267,8 +271,9 @@ pub fn refine_corners_warm(
                 (Some(b), true) => Some(&b.edges[e]),
                 _ => fresh[e].as_ref(),
             };
-            *line = band.and_then(|b| fit_band(image, b, memory.levels[e]));
+            *line = band.and_then(|b| fit_edge(image, b, memory.levels[e], memory.profile.as_deref()));
         }
+        memory.lines = lines;
         memory.levels = lines.map(|l| l.map(|l| l.levels));
         memory.reused |= reuse;
         if !reuse {
@@ -314,14 +319,24 @@ pub fn refine_corners_warm(
     report
 }
 
+/// An edge's fit: with the camera's learned profile when there is one and it fits, else
+/// with the parametric model (the fallback, and the model the profile is first learned from).
+fn fit_edge(image: &GrayImage, band: &EdgeBand, warm: Option<[f64; 3]>, profile: Option<&EdgeProfile>) -> Option<Line> {
+    profile.and_then(|p| fit_band_profile(image, band, warm, p)).or_else(|| fit_band(image, band, warm))
+}
+
 /// What a tag's fit in one frame leaves for the same tag's fit in the next frame of the
-/// same camera: each edge's levels (the LM's warm start) and the pixels it used.
+/// same camera: each edge's levels (the LM's warm start) and the pixels it used; and the
+/// camera's learned edge profile its fits use (see [`EdgeMemory::with_profile`]).
 #[derive(Debug, Clone, Default)]
 pub struct EdgeMemory {
     /// Each edge's fitted levels.
     pub levels: EdgeLevels,
     bands: Option<std::sync::Arc<TagBands>>,
+    /// The last pass's fitted lines (on `bands`): the samples of a [`ProfileLearner`].
+    lines: [Option<Line>; 4],
     reused: bool,
+    profile: Option<std::sync::Arc<EdgeProfile>>,
 }
 
 impl PartialEq for EdgeMemory {
@@ -332,11 +347,34 @@ impl PartialEq for EdgeMemory {
             (None, None) => true,
             _ => false,
         };
-        self.levels == other.levels && self.reused == other.reused && same_bands
+        let same_profile = match (&self.profile, &other.profile) {
+            (Some(a), Some(b)) => std::sync::Arc::ptr_eq(a, b) || a == b,
+            (None, None) => true,
+            _ => false,
+        };
+        self.levels == other.levels && self.reused == other.reused && same_bands && same_profile
     }
 }
 
 impl EdgeMemory {
+    /// This memory with the camera's learned edge profile: the tag's next fits use it
+    /// instead of the parametric model (`None`: the parametric model).
+    pub fn with_profile(mut self, profile: Option<std::sync::Arc<EdgeProfile>>) -> Self {
+        self.profile = profile;
+        self
+    }
+
+    /// The profile this memory's fits use.
+    pub fn profile(&self) -> Option<&std::sync::Arc<EdgeProfile>> {
+        self.profile.as_ref()
+    }
+
+    /// The largest of the four edges' RMS residuals of the last fit (grey levels), when every
+    /// edge was fitted.
+    pub fn worst_edge_rms(&self) -> Option<f64> {
+        self.lines.iter().try_fold(0.0f64, |m, l| l.map(|l| m.max(l.rms)))
+    }
+
     /// Whether the fit that left this memory reused the pixels selected in an earlier frame.
     pub fn reused_bands(&self) -> bool {
         self.reused

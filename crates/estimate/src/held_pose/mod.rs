@@ -33,9 +33,18 @@
 //! [`HeldPoseStatus::refused`] with the reason) until a later update passes the checks (more
 //! tags in view) or shows the camera back where it was held (the bump test passes again,
 //! against the corner means kept from before the bump); its old pose is never used while
-//! refused, so no position is measured from a pose that failed its checks. The first posing
-//! has nothing to check a one-tag pose against: it takes the best minimum and says in
-//! `message` when the mirror fits as well.
+//! refused, so no position is measured from a pose that failed its checks.
+//!
+//! The first posing has no held pose to decide a one-tag pose by, so it passes the same
+//! checks without it ([`HeldCameraPose::first_pose_check`]): a pose from several tags must
+//! fit every one of them (each tag's RMS ≤ [`REPOSE_MAX_RMS_PX`]: a spurious detection — a
+//! misread id, a tag printed twice — fits no pose together with the real ones, and a tag
+//! the outlier test drops leaves a one-tag pose); a pose resting on one tag must be decided
+//! by its corners. Otherwise the camera stays unposed ([`HeldPoseStatus::refused`], no
+//! pose, nothing measured from it) until an update brings a tag that decides — the same
+//! rule whether the frame was tracked or searched whole, so both modes publish the same
+//! positions. The measurement searches a camera's frame whole for such a tag while the
+//! first pose is undecided (see `measure::pose`).
 //!
 //! Slow drift (see [`super::drift`]): when updates carry their time
 //! ([`HeldCameraPose::update_at`]) and [`HeldPoseOptions::drift`] is enabled, each static
@@ -56,7 +65,7 @@ use std::collections::HashMap;
 
 use nalgebra::Matrix6;
 
-use crate::camera_pose::{solve_camera_pose, BackgroundTagObservation};
+use crate::camera_pose::{solve_camera_pose, BackgroundTagObservation, CameraPoseSolution};
 use crate::drift::{DriftEstimate, DriftFilter};
 use crate::lm::median;
 use corners::CornerStats;
@@ -275,36 +284,81 @@ impl HeldCameraPose {
     }
 
     fn first_posing(&mut self, tags: Vec<BackgroundTagObservation>, mut status: HeldPoseStatus) -> HeldPoseStatus {
-        match solve_camera_pose(&self.intrinsics, &tags, None) {
-            Ok(sol) => {
-                tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
-                if let Some(why) = self.one_tag_ambiguity(&tags, &sol) {
-                    tracing::warn!(
-                        "first pose rests on one tag whose mirror pose fits as well ({why}); taken (nothing to check it against)"
-                    );
-                    status.message = Some(format!("first pose from one ambiguous tag: {why}"));
-                }
-                // `fix` is kept: identity at start, the last correction after a failed re-pose.
-                self.raw = Some(sol.pose);
-                self.covariance = Some(sol.covariance);
-                self.hold();
-                self.averaged_updates = 1;
-                self.average_limit = self.options.average_updates_initial.max(1);
-                self.accumulate(&tags, &sol.rejected_tags);
-                status.pose = self.pose();
-                status.covariance = Some(sol.covariance);
-                status.first_pose = true;
-                status.rms_px = Some(sol.rms_px);
-                status.rejected_tags = sol.rejected_tags;
-                status.drift = self.drift();
+        let sol = match self.first_pose_check(&tags) {
+            Ok(sol) => sol,
+            Err(why) => {
+                tracing::debug!(reason = %why, "first pose refused: waiting for a background tag that decides");
+                status.message = Some(format!("first pose refused: {why}"));
+                status.refused = Some(why.to_string());
+                return status;
             }
-            Err(e) => {
-                tracing::warn!(error = %e, "camera could not be posed from background tags");
-                status.message = Some(format!("could not be posed: {e}"));
-            }
-        }
+        };
+        tracing::info!(rms_px = sol.rms_px, corners = sol.corners, "camera posed from background tags");
+        // `fix` is kept: identity at start, the last correction after a failed re-pose.
+        self.raw = Some(sol.pose);
+        self.covariance = Some(sol.covariance);
+        self.hold();
+        self.averaged_updates = 1;
+        self.average_limit = self.options.average_updates_initial.max(1);
+        self.accumulate(&tags, &sol.rejected_tags);
+        status.pose = self.pose();
+        status.covariance = Some(sol.covariance);
+        status.first_pose = true;
+        status.rms_px = Some(sol.rms_px);
+        status.rejected_tags = sol.rejected_tags;
+        status.refused = None;
+        status.drift = self.drift();
         status
     }
+
+    /// The first pose these background tags give when it passes the checks of the module
+    /// docs (every tag used fits it; one tag alone decides by its corners), or why not. Changes
+    /// nothing: the measurement also asks it before posing, to know whether to search the
+    /// frame whole for a tag that decides.
+    pub fn first_pose_check(&self, tags: &[BackgroundTagObservation]) -> Result<CameraPoseSolution, FirstPoseRefused> {
+        let tags: Vec<BackgroundTagObservation> = tags.iter().filter(|t| valid_observation(t)).copied().collect();
+        if tags.len() * 4 < self.options.min_corners.max(4) {
+            return Err(FirstPoseRefused::TooFewTags { corners: tags.len() * 4 });
+        }
+        let sol = solve_camera_pose(&self.intrinsics, &tags, None).map_err(FirstPoseRefused::NoPose)?;
+        if let Some(&(id, rms_px)) = sol.tag_rms_px.iter().find(|(_, rms)| !(*rms <= REPOSE_MAX_RMS_PX)) {
+            return Err(FirstPoseRefused::Misfit { id, rms_px });
+        }
+        if let Some(why) = self.one_tag_ambiguity(&tags, &sol) {
+            return Err(FirstPoseRefused::Ambiguous(why));
+        }
+        Ok(sol)
+    }
+
+    /// True once the camera has had a pose (configured, or a first pose that passed).
+    pub fn ever_posed(&self) -> bool {
+        self.raw.is_some()
+    }
+}
+
+/// Why a camera's first pose was refused (see the module docs).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FirstPoseRefused {
+    /// Fewer background corners than the pose needs.
+    #[error("{corners} background corners seen")]
+    TooFewTags {
+        /// Corners seen.
+        corners: usize,
+    },
+    /// The corners gave no pose.
+    #[error("no pose: {0}")]
+    NoPose(crate::SolveError),
+    /// A tag the pose rests on does not fit it (a spurious detection or a moved tag).
+    #[error("background tag {id} misfits the pose from the tags seen: RMS {rms_px:.2} px > {REPOSE_MAX_RMS_PX} px")]
+    Misfit {
+        /// The tag.
+        id: u32,
+        /// Its reprojection RMS against the pose, px.
+        rms_px: f64,
+    },
+    /// One tag whose corners do not decide between its two minima (the fits described).
+    #[error("one-tag pose is ambiguous ({0}); waiting for a background tag that decides")]
+    Ambiguous(String),
 }
 
 /// Finite pixels and world corners.
@@ -440,6 +494,46 @@ mod tests {
         let st = t.update(&observe(&intr, &pose, &tags, 0.1, 2));
         assert!(!st.bumped && st.refused.is_none(), "{st:?}");
         assert_eq!(st.pose, Some(held));
+    }
+
+    #[test]
+    fn an_ambiguous_one_tag_first_pose_is_refused_until_a_tag_decides() {
+        let (intr, pose, tags) = setup();
+        let mut t = HeldCameraPose::new(intr, None);
+        let one = observe(&intr, &pose, &[far_tag()], 0.1, 0);
+        let minima = single_tag_minima(&intr, &one[0]);
+        assert!(minima.len() == 2 && minima[1].1 < AMBIGUITY_FLOOR_PX, "ambiguous scenario: {minima:?}");
+        for step in 0..3 {
+            let st = t.update(&observe(&intr, &pose, &[far_tag()], 0.1, step));
+            assert!(st.pose.is_none() && t.pose().is_none() && !t.ever_posed(), "an ambiguous first pose is never published");
+            assert!(st.refused.as_deref().is_some_and(|m| m.contains("ambiguous")), "{:?}", st.refused);
+        }
+        // A second tag decides: posed, near the truth, nothing refused.
+        let st = t.update(&observe(&intr, &pose, &tags[..2], 0.1, 3));
+        assert!(st.first_pose && st.refused.is_none(), "{st:?}");
+        let got = st.pose.expect("posed from two tags");
+        assert!(got.angle_to(&pose).to_degrees() < 0.2, "{:.3}°", got.angle_to(&pose).to_degrees());
+    }
+
+    #[test]
+    fn a_spurious_second_tag_does_not_decide_a_first_pose() {
+        let (intr, pose, tags) = setup();
+        let mut t = HeldCameraPose::new(intr, None);
+        // The far tag seen where it is, and a misread "tag 1" at a place the layout does
+        // not put it (a misdecoded patch of the scene).
+        let mut obs = observe(&intr, &pose, &[far_tag(), tags[1]], 0.1, 0);
+        for p in obs[1].pixels.iter_mut() {
+            p.x -= 230.0;
+            p.y += 140.0;
+        }
+        let why = t.first_pose_check(&obs).expect_err("a spurious tag decides nothing");
+        println!("refused: {why}");
+        let st = t.update(&obs);
+        assert!(st.pose.is_none() && st.refused.is_some() && !t.ever_posed(), "{st:?}");
+        // The real second tag where the layout puts it decides.
+        let st = t.update(&observe(&intr, &pose, &[far_tag(), tags[1]], 0.1, 1));
+        let got = st.pose.expect("posed");
+        assert!(got.angle_to(&pose).to_degrees() < 0.2, "{:.3}°", got.angle_to(&pose).to_degrees());
     }
 
     #[test]

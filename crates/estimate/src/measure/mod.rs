@@ -101,6 +101,8 @@ pub struct Measurement {
     last_steps: Option<Vec<crate::smooth::TagStep>>,
     /// Virtual gauges and the clock check (`estimate::gauges`, `estimate::clock_offset`).
     gauges: LineGauges,
+    /// Time of the run's first frame set (the first-pose search's window, `pose`).
+    first_set_t_ns: Option<i64>,
 }
 
 impl Measurement {
@@ -127,6 +129,7 @@ impl Measurement {
             pose_epochs: vec![0; n],
             last_steps: None,
             gauges: LineGauges::new(config),
+            first_set_t_ns: None,
         })
     }
 

@@ -1,5 +1,20 @@
 //! Stage 2, pose cameras: each camera's held pose updated from its background tags, a
-//! camera that moved searched whole first (see the module docs of [`super`]).
+//! camera that moved, or whose first pose is still undecided, searched whole first.
+//!
+//! **The first-pose search** (why and its budget): a camera's first pose passes the checks
+//! of `held_pose` (several tags that all fit it, or one tag whose corners decide), else
+//! nothing is measured from the camera. Full-frame mode searches every frame whole at the
+//! configured resolution, so it sees every background tag that could decide; tracking mode
+//! starts from a decimated search and then follows what it found. So that both modes give
+//! the same answer, a frame whose background tags do not give a first pose that passes is
+//! searched whole at the configured resolution in the frame set before the camera is posed
+//! from it — within a budget: at most one camera's first-pose search per frame set (the
+//! cameras take turns, starting at the set's number), and only during the first
+//! [`FIRST_POSE_SEARCH_WINDOW_NS`] of frame time of the run (a live run's start-up, where a
+//! lost set is allowed). After that an undecided camera costs no frame set: the detector's
+//! periodic sweep (the whole frame once per `full_search_interval_s`) looks for the tag that
+//! decides, beside the measurement. A posed camera that loses background tags keeps its held
+//! pose and costs no search either (see [`search_whole`]).
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -25,13 +40,23 @@ impl Measurement {
     /// Poses every camera from its detections; a camera that moved has its frame searched
     /// whole first, and `detected` then holds what that search found.
     pub(super) fn pose_cameras(&mut self, set: &FrameSet, detected: &mut Detected) -> CameraPoses {
-        CameraPoses { health: (0..self.cameras.len()).map(|ci| self.pose_camera(set, ci, detected)).collect() }
+        let n = self.cameras.len();
+        let t0 = *self.first_set_t_ns.get_or_insert(set.t_ns);
+        // One first-pose search per set, the cameras taking turns (see the module docs).
+        let mut budget = u32::from(set.t_ns.saturating_sub(t0) < FIRST_POSE_SEARCH_WINDOW_NS);
+        let mut health: Vec<Option<CameraHealth>> = vec![None; n];
+        for k in 0..n {
+            let ci = (set.seq as usize + k) % n;
+            health[ci] = Some(self.pose_camera(set, ci, detected, &mut budget));
+        }
+        CameraPoses { health: health.into_iter().flatten().collect() }
     }
 
-    /// Camera `ci`'s pose from this set, and its health.
-    fn pose_camera(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected) -> CameraHealth {
+    /// Camera `ci`'s pose from this set, and its health (`first_pose_budget`: first-pose
+    /// searches left in this set).
+    fn pose_camera(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected, first_pose_budget: &mut u32) -> CameraHealth {
         // The frame's observations are made once and posed from, unless a search replaced them.
-        let frame_obs = self.search_if_moved(set, ci, detected);
+        let frame_obs = self.search_if_moved(set, ci, detected, first_pose_budget);
         let det = detected.of(ci);
         let mut h = CameraHealth {
             name: self.cameras[ci].name.clone(),
@@ -55,29 +80,47 @@ impl Measurement {
     /// before the camera is posed from it. The frame's background observations when they
     /// are still what the camera is posed from, `None` when a search replaced them (or the
     /// camera has no frame).
-    fn search_if_moved(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected) -> Option<Vec<BackgroundTagObservation>> {
+    fn search_if_moved(
+        &mut self,
+        set: &FrameSet,
+        ci: usize,
+        detected: &mut Detected,
+        first_pose_budget: &mut u32,
+    ) -> Option<Vec<BackgroundTagObservation>> {
         let report = detected.reports[ci]?;
         let slot = detected.cameras.iter_mut().find(|(i, _)| *i == ci)?;
         let cam = &mut self.cameras[ci];
         let threshold = cam.pose.bump_threshold_px();
         let above = |s: f64| s.is_nan() || s > threshold;
         let obs = background_observations(&self.background_world, &slot.1);
+        let first = *first_pose_budget > 0 && first_pose_search(&cam.pose, &report, &obs);
         let jumped = cam.pose.preview_shift_px(set.t_ns, &obs).is_some_and(above);
         let moved_again = report.background.shift_px.is_some_and(above);
-        let search = search_whole(&cam.pose, &report, jumped, moved_again);
+        let search = first || search_whole(&cam.pose, &report, jumped, moved_again);
         let Some(frame) = set.frames.iter().find(|f| f.camera == ci).filter(|_| search) else { return Some(obs) };
         let c0 = Instant::now();
         let (again, r) = cam.detector.search_again(frame.t_ns, &frame.image, &self.rig);
-        tracing::warn!(
-            camera = %cam.name,
-            seq = set.seq,
-            lost = report.background.lost,
-            jumped,
-            background_tags = again.background.len(),
-            "background tags mostly lost or jumped: the frame searched whole before posing"
-        );
+        if first {
+            *first_pose_budget -= 1;
+            self.stats.first_pose_searches += 1;
+            tracing::info!(
+                camera = %cam.name,
+                seq = set.seq,
+                background_tags = again.background.len(),
+                "first pose undecided by the background tags followed: the frame searched whole for one that decides"
+            );
+        } else {
+            self.stats.moved_camera_searches += 1;
+            tracing::warn!(
+                camera = %cam.name,
+                seq = set.seq,
+                lost = report.background.lost,
+                jumped,
+                background_tags = again.background.len(),
+                "background tags mostly lost or jumped: the frame searched whole before posing"
+            );
+        }
         self.stats.full_frame_searches += r.full_frame_searches;
-        self.stats.moved_camera_searches += 1;
         detected.parts.full_frame += c0.elapsed().as_secs_f64();
         slot.1 = again;
         None
@@ -119,12 +162,28 @@ impl Measurement {
         let camera = &self.cameras[ci].name;
         if let Some(why) = &status.refused {
             self.stats.refused_poses += 1;
-            tracing::warn!(camera = %camera, seq, reason = %why, "camera moved and its pose failed the checks: the frame set is solved without it");
+            if self.cameras[ci].pose.ever_posed() {
+                tracing::warn!(camera = %camera, seq, reason = %why, "camera moved and its pose failed the checks: the frame set is solved without it");
+            } else {
+                tracing::debug!(camera = %camera, seq, reason = %why, "camera not posed yet: its first pose failed the checks");
+            }
         } else if status.bumped {
             self.stats.bumps += 1;
             tracing::warn!(camera = %camera, seq, "camera moved: background tags shifted in the image; re-posed");
         }
     }
+}
+
+/// Frame time from the run's first frame set during which an undecided first pose is
+/// searched for in the frame set (see the module docs): the first second, a live run's
+/// start-up.
+pub const FIRST_POSE_SEARCH_WINDOW_NS: i64 = 1_000_000_000;
+
+/// Whether a camera never posed has its frame searched whole for a background tag that
+/// decides its first pose: an estimated pose, no search of the whole frame at the configured
+/// resolution in the frame yet, and the tags followed give no first pose that passes.
+fn first_pose_search(pose: &HeldCameraPose, report: &DetectReport, obs: &[BackgroundTagObservation]) -> bool {
+    pose.estimated() && !pose.ever_posed() && !report.searched_whole && pose.first_pose_check(obs).is_err()
 }
 
 /// Background tags a camera keeps its held pose on when others are lost: fewer left (or
@@ -151,10 +210,14 @@ fn mostly_lost(check: &BackgroundCheck) -> bool {
     check.lost && (check.seen < MIN_BACKGROUND_TAGS_LEFT || check.seen < check.missing)
 }
 
-/// The background tags of one camera's detections with their known world corners.
+/// The background tags of one camera's detections with their known world corners. An id
+/// detected more than once in the frame is left out (the layout has it once: at most one of
+/// them is the tag, and nothing tells which), whichever way the frame was searched.
 fn background_observations(world: &HashMap<u32, [Vector3<f64>; 4]>, d: &CameraDetections) -> Vec<BackgroundTagObservation> {
+    let once = |id: u32| d.background.iter().filter(|x| x.id == id).count() == 1;
     d.background
         .iter()
+        .filter(|det| once(det.id))
         .filter_map(|det| world.get(&det.id).map(|w| BackgroundTagObservation { id: det.id, pixels: det.corners, world: *w }))
         .collect()
 }

@@ -37,7 +37,11 @@ pub struct MeasureStats {
     /// Whole-frame searches of a frame whose background tags were lost or jumped (in
     /// `full_frame_searches` too).
     pub moved_camera_searches: u64,
-    /// Frame-set views of cameras left out because their re-pose failed its checks.
+    /// Whole-frame searches of a frame whose camera's first pose was undecided (in
+    /// `full_frame_searches` too; see `measure::pose`).
+    pub first_pose_searches: u64,
+    /// Frame-set views of cameras left out because their re-pose (or first pose) failed
+    /// its checks.
     pub refused_poses: u64,
     /// Tag solutions of partial sets referred to the tag's last full sets (temporal
     /// estimator, `estimate::partial`).

@@ -115,6 +115,13 @@ impl SimParams {
         if !self.rate_phases()?.is_empty() && !steps.is_empty() {
             return bad("rates", "a verification run (verify_steps) has no loading rates");
         }
+        let stage = self.verify_stage_half_width_mm;
+        if !finite_nonneg(stage) || stage >= 0.5 * self.span_mm || (stage > 0.0 && steps.is_empty()) {
+            return bad(
+                "verify_stage_half_width_mm",
+                format!("{stage}: expected 0 (the whole bar moves), or below half the span with verify_steps"),
+            );
+        }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }

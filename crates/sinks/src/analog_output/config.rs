@@ -167,6 +167,10 @@ pub struct AnalogConfig {
     /// Registers written once after each connect: the device's watchdog (none by default).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub watchdog_writes: Vec<RegisterWrite>,
+    /// LabJack: set the device's own watchdog up to trip after this many seconds without a
+    /// write (valid line low, the safe voltage when set; `labjack_watchdog`). None: not set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labjack_watchdog_s: Option<u32>,
 }
 
 fn default_unit() -> u8 {
@@ -225,6 +229,7 @@ impl AnalogConfig {
             on_invalid: OnInvalid::Hold,
             timeout_ms: default_timeout_ms(),
             watchdog_writes: Vec::new(),
+            labjack_watchdog_s: None,
         }
     }
 
@@ -298,7 +303,16 @@ impl AnalogConfig {
         for (i, w) in self.watchdog_writes.iter().enumerate() {
             encode(&w.register_config(), w.value).map_err(|e| Problem::new(format!("watchdog_writes[{i}].value"), e.to_string()))?;
         }
-        Ok(())
+        match (self.labjack_watchdog_s, self.device) {
+            (Some(_), DeviceMap::Generic) => Err(Problem::new(
+                "labjack_watchdog_s",
+                "a LabJack key: a holding-register module's watchdog is set up with watchdog_writes",
+            )),
+            (Some(s), _) if !(1..=86_400).contains(&s) => {
+                Err(Problem::new("labjack_watchdog_s", format!("{s}: expected 1 to 86400 s (the device counts whole seconds)")))
+            }
+            _ => Ok(()),
+        }
     }
 
     /// The map's own keys.

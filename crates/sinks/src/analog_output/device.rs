@@ -15,6 +15,7 @@ use tagdeflect_io::utm::codec::encode;
 use tagdeflect_io::utm::config::RegisterConfig;
 
 use super::config::{AnalogConfig, DigitalOutput};
+use super::labjack_watchdog;
 
 /// Why a write (or the connect) failed; the connection is dropped after any of them.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -138,11 +139,27 @@ impl Device {
         }
     }
 
-    /// The `[output.analog] watchdog_writes`, in order.
+    /// The `[output.analog] watchdog_writes`, in order, then the LabJack watchdog's plan
+    /// when the device does not hold it already (`labjack_watchdog`).
     pub(super) async fn set_up(&mut self, config: &AnalogConfig) -> Result<(), DeviceFault> {
         for w in &config.watchdog_writes {
             self.write_value(&w.register_config(), w.value).await?;
         }
+        let Some(plan) = labjack_watchdog::plan(config) else { return Ok(()) };
+        let words = self.read_holding(labjack_watchdog::BLOCK.0, labjack_watchdog::BLOCK.1).await?;
+        if labjack_watchdog::already_set(&plan, &words) {
+            tracing::debug!("[output.analog] {}: the LabJack watchdog is set up already", self.addr);
+            return Ok(());
+        }
+        for w in &plan {
+            self.write_value(&w.register_config(), w.value).await?;
+        }
+        tracing::info!(
+            "[output.analog] {}: LabJack watchdog set up: {} s without a write → valid line low{}",
+            self.addr,
+            config.labjack_watchdog_s.unwrap_or_default(),
+            config.on_invalid.safe_v().map(|v| format!(", DAC at {v} V")).unwrap_or_default()
+        );
         Ok(())
     }
 

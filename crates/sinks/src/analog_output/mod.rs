@@ -10,7 +10,7 @@
 //! frame period), the valid line drops first, then the output holds its last value
 //! (`on_invalid = "hold"`) or goes to the safe voltage (`on_invalid = 0.0`, a number). At
 //! stop the line drops (and the safe voltage is written when set). If tagdeflect dies, the device's own watchdog takes over
-//! (set up by `watchdog_writes`).
+//! (LabJack: `labjack_watchdog_s`, see `labjack_watchdog`; another module: `watchdog_writes`).
 //!
 //! One task per device, on a thread of its own: the measurement never waits for it.
 //! Overflow policy: the queue between the sinks' thread and the task holds only the newest
@@ -22,6 +22,7 @@
 
 pub mod config;
 mod device;
+pub mod labjack_watchdog;
 mod probe;
 
 use std::net::SocketAddr;
@@ -131,9 +132,9 @@ enum Level {
 
 impl Shared {
     /// The level and the valid line at `now`.
-    fn target(&self, now: Instant) -> (Level, bool) {
+    fn target(&self, now: Instant, now_ns: i64) -> (Level, bool) {
         let st = self.signal.lock().expect("analog state");
-        let valid = st.valid_at(&self.rule, now) && !self.stopped.load(Ordering::Relaxed);
+        let valid = st.valid_at(&self.rule, now, now_ns) && !self.stopped.load(Ordering::Relaxed);
         match (valid, st.sample) {
             (true, Some(s)) => (Level::Value { seq: s.seq, volts: self.config.volts_of(s.value), t_ns: s.t_ns }, true),
             _ => (self.invalid_level(), false),
@@ -202,7 +203,7 @@ impl Task {
             self.device.set_up(&self.shared.config).await?;
         }
         self.shared.pending.store(false, Ordering::Relaxed);
-        let (level, valid) = self.shared.target(Instant::now());
+        let (level, valid) = self.shared.target(Instant::now(), tagdeflect_core::clock::now_epoch_ns());
         if !valid {
             self.set_line(false).await?;
         }

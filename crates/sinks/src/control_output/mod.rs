@@ -24,7 +24,8 @@
 //!
 //! Valid follows the signal's rule (`crate::signal`, shared with the analog output): it drops to 0 when the gauge's tags were not solved in `stale_sets` consecutive
 //! frame sets, when no frame set arrived for `stale_sets + ½` frame periods (a stalled
-//! pipeline), when σ exceeds `max_sigma_mm`, and for good when the daemon stops (the
+//! pipeline), when the value was exposed longer ago than that plus
+//! `signal::LATENCY_ALLOWANCE_MS` (lines that come late), when σ exceeds `max_sigma_mm`, and for good when the daemon stops (the
 //! heartbeat stops with it).
 
 pub mod config;
@@ -108,7 +109,7 @@ impl Shared {
     fn registers(&self, now: Instant, now_ns: i64) -> [u16; REGISTERS] {
         let st = self.state.lock().expect("control state");
         let mut r = [0u16; REGISTERS];
-        let valid = st.signal.valid_at(&self.rule, now) && !self.stopped.load(Ordering::Relaxed);
+        let valid = st.signal.valid_at(&self.rule, now, now_ns) && !self.stopped.load(Ordering::Relaxed);
         if let Some(s) = st.signal.sample {
             let put32 = |r: &mut [u16; REGISTERS], at: usize, bits: u32| {
                 r[at] = (bits >> 16) as u16;

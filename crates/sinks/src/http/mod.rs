@@ -18,6 +18,7 @@
 //! `tagdeflect_http_events_lagged_total`); the solver's send never blocks.
 
 mod metrics;
+mod report_files;
 mod routes;
 mod server;
 mod snapshot;

@@ -16,6 +16,9 @@ use super::view::{ClientGuard, Event, LiveView};
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const APP_JS: &str = include_str!("assets/app.js");
 const START_FORM_JS: &str = include_str!("assets/start_form.js");
+const SPECIMENS_JS: &str = include_str!("assets/specimens.js");
+const REVIEW_JS: &str = include_str!("assets/review.js");
+const LIVE_CURVE_JS: &str = include_str!("assets/live_curve.js");
 const APP_CSS: &str = include_str!("assets/app.css");
 const UPLOT_JS: &str = include_str!("assets/vendor/uplot/uPlot.iife.min.js");
 const UPLOT_CSS: &str = include_str!("assets/vendor/uplot/uPlot.min.css");
@@ -38,8 +41,14 @@ pub fn router(view: Arc<LiveView>) -> Router {
         .route("/api/tests", get(super::test_api::earlier))
         .route("/api/test/{command}", axum::routing::post(super::test_api::command))
         .route("/api/audit", get(super::test_api::audit))
+        .route("/api/user", get(super::test_api::user))
+        .route("/reports/{id}", get(super::report_files::report_index))
+        .route("/reports/{id}/{file}", get(super::report_files::report_file))
         .route("/api/methods", get(super::test_api::methods))
         .route("/assets/start_form.js", get(|| async { asset("text/javascript; charset=utf-8", START_FORM_JS) }))
+        .route("/assets/live_curve.js", get(|| async { asset("text/javascript; charset=utf-8", LIVE_CURVE_JS) }))
+        .route("/assets/specimens.js", get(|| async { asset("text/javascript; charset=utf-8", SPECIMENS_JS) }))
+        .route("/assets/review.js", get(|| async { asset("text/javascript; charset=utf-8", REVIEW_JS) }))
         .route(
             "/api/specimens",
             get(super::test_api::specimens)
@@ -90,7 +99,12 @@ async fn camera(State(view): State<Arc<LiveView>>, Path(file): Path<String>) -> 
 
 /// `/events`: the backlog of feed lines, then every new line and snapshot notice. A client
 /// that falls more than the broadcast's capacity behind skips ahead (counted).
-async fn events(State(view): State<Arc<LiveView>>) -> Sse<impl Stream<Item = Result<SseEvent, Infallible>>> {
+/// Its connection is marked as a stream: the oldest stream is closed when a new connection
+/// finds every slot taken (`server::Streams`).
+async fn events(State(view): State<Arc<LiveView>>, ext: axum::http::Extensions) -> Sse<impl Stream<Item = Result<SseEvent, Infallible>>> {
+    if let Some(conn) = ext.get::<super::server::Conn>() {
+        conn.streaming();
+    }
     let (backlog, rx) = view.subscribe();
     let guard = ClientGuard::new(view);
     let first = stream::iter(backlog.into_iter().map(|l| Ok(SseEvent::default().data(&*l))));

@@ -1,10 +1,14 @@
 //! The server: where the page is served ([`HttpOptions`], [`wanted`]) and
 //! the axum server on the pipeline's runtime ([`serve`], [`HttpServer`]).
 
+use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
+
+use tokio::sync::{Notify, OwnedSemaphorePermit, Semaphore};
 
 use tagdeflect_core::listen::parse_listen_addr;
 
@@ -35,6 +39,56 @@ pub fn wanted(configured: Option<&str>, opts: Option<HttpOptions>) -> Option<Htt
 /// page needs two per viewer (`/events` and the fetches): 64 viewers, and the daemon's own
 /// files — recorder, feed, cameras — keep their room under the unit's `LimitNOFILE`.
 pub const MAX_CONNECTIONS: usize = 128;
+/// Connections that serve `/events` streams, oldest first. When every connection slot is
+/// taken, a new connection closes the oldest stream's (its page's `EventSource` reconnects)
+/// instead of being refused: a crowd of streams — 128 tabs, or someone opening them on
+/// purpose — never shuts out the control API or the page's own fetches.
+#[derive(Default)]
+pub(super) struct Streams {
+    next: AtomicU64,
+    open: Mutex<BTreeMap<u64, Arc<Notify>>>,
+    evicted: AtomicU64,
+}
+
+impl Streams {
+    /// Closes the oldest stream's connection; false when no stream is open.
+    fn evict_oldest(&self) -> bool {
+        let oldest = self.open.lock().unwrap_or_else(|e| e.into_inner()).pop_first();
+        let Some((_, close)) = oldest else { return false };
+        close.notify_one();
+        let n = self.evicted.fetch_add(1, Ordering::Relaxed) + 1;
+        if n.is_power_of_two() {
+            tracing::warn!(evicted = n, "live page: {MAX_CONNECTIONS} connections open; the oldest /events stream was closed to make room");
+        }
+        true
+    }
+}
+
+/// A connection as its requests see it (in their extensions): `/events` marks it as a
+/// stream, which a new connection may close when all slots are taken.
+#[derive(Clone)]
+pub(super) struct Conn {
+    streams: Arc<Streams>,
+    close: Arc<Notify>,
+    key: Arc<Mutex<Option<u64>>>,
+}
+
+impl Conn {
+    /// This connection now serves a stream of events.
+    pub fn streaming(&self) {
+        let k = self.streams.next.fetch_add(1, Ordering::Relaxed);
+        self.streams.open.lock().unwrap_or_else(|e| e.into_inner()).insert(k, self.close.clone());
+        *self.key.lock().unwrap_or_else(|e| e.into_inner()) = Some(k);
+    }
+
+    /// The connection ended: no longer a stream.
+    fn ended(&self) {
+        if let Some(k) = self.key.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            self.streams.open.lock().unwrap_or_else(|e| e.into_inner()).remove(&k);
+        }
+    }
+}
+
 /// A client has this long to send a request's headers (a connection that sends nothing, or
 /// half a header, is closed: `slowloris`).
 pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
@@ -145,7 +199,8 @@ fn guarded(router: axum::Router, hosts: AllowedHosts, view: Arc<LiveView>) -> ax
                 _ => next.run(req).await,
             };
             let hd = resp.headers_mut();
-            hd.insert(header::CONTENT_SECURITY_POLICY, HeaderValue::from_static(CSP));
+            // A route with a policy of its own (a report's page) keeps it.
+            hd.entry(header::CONTENT_SECURITY_POLICY).or_insert(HeaderValue::from_static(CSP));
             hd.insert(header::X_CONTENT_TYPE_OPTIONS, HeaderValue::from_static("nosniff"));
             hd.insert(header::REFERRER_POLICY, HeaderValue::from_static("no-referrer"));
             resp
@@ -153,10 +208,12 @@ fn guarded(router: axum::Router, hosts: AllowedHosts, view: Arc<LiveView>) -> ax
     }))
 }
 
-/// Accepts connections while fewer than [`MAX_CONNECTIONS`] are open; serves each with the
-/// header and idle timeouts.
+/// Accepts connections while fewer than [`MAX_CONNECTIONS`] are open (when all are, the
+/// oldest `/events` stream is closed to make room, else the new one is refused); serves each
+/// with the header and idle timeouts.
 async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view: Arc<LiveView>) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let streams = Arc::new(Streams::default());
     let mut accept_errors = 0u64;
     loop {
         let (stream, peer) = match listener.accept().await {
@@ -171,7 +228,7 @@ async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view:
                 continue;
             }
         };
-        let Ok(slot) = slots.clone().try_acquire_owned() else {
+        let Some(slot) = slot_for(&slots, &streams).await else {
             let n = view.metrics.http_refused.inc() + 1;
             if n.is_power_of_two() {
                 tracing::warn!(%peer, refused = n, "live page: {MAX_CONNECTIONS} connections open; a new one was closed");
@@ -179,22 +236,45 @@ async fn accept_loop(listener: tokio::net::TcpListener, app: axum::Router, view:
             drop(stream);
             continue;
         };
-        // The peer's address for the handlers (a refused token is logged with it).
-        let with_peer = tower::util::MapRequestLayer::new(move |mut req: axum::extract::Request<hyper::body::Incoming>| {
-            req.extensions_mut().insert(axum::extract::ConnectInfo(peer));
-            req
-        });
-        let service = hyper_util::service::TowerToHyperService::new(tower::Layer::layer(&with_peer, app.clone()));
-        tokio::spawn(async move {
-            let _slot = slot;
-            let io = IdleTimeout::new(stream, IDLE_TIMEOUT);
-            let mut http = hyper::server::conn::http1::Builder::new();
-            http.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT).keep_alive(true);
-            if let Err(e) = http.serve_connection(hyper_util::rt::TokioIo::new(io), service).await {
+        let conn = Conn { streams: streams.clone(), close: Arc::new(Notify::new()), key: Arc::default() };
+        tokio::spawn(serve_connection(stream, peer, app.clone(), conn, slot));
+    }
+}
+
+/// A connection slot: a free one, else the one the oldest stream held (closed for it).
+async fn slot_for(slots: &Arc<Semaphore>, streams: &Streams) -> Option<OwnedSemaphorePermit> {
+    if let Ok(s) = slots.clone().try_acquire_owned() {
+        return Some(s);
+    }
+    if !streams.evict_oldest() {
+        return None;
+    }
+    tokio::time::timeout(Duration::from_secs(2), slots.clone().acquire_owned()).await.ok()?.ok()
+}
+
+/// Serves one connection until it ends or, when it is a stream, is closed for a newer one.
+async fn serve_connection(stream: tokio::net::TcpStream, peer: SocketAddr, app: axum::Router, conn: Conn, slot: OwnedSemaphorePermit) {
+    let _slot = slot;
+    // The peer's address (a refused token is logged with it) and the connection's handle.
+    let ext = conn.clone();
+    let with_peer = tower::util::MapRequestLayer::new(move |mut req: axum::extract::Request<hyper::body::Incoming>| {
+        req.extensions_mut().insert(axum::extract::ConnectInfo(peer));
+        req.extensions_mut().insert(ext.clone());
+        req
+    });
+    let service = hyper_util::service::TowerToHyperService::new(tower::Layer::layer(&with_peer, app));
+    let io = IdleTimeout::new(stream, IDLE_TIMEOUT);
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT).keep_alive(true);
+    tokio::select! {
+        r = http.serve_connection(hyper_util::rt::TokioIo::new(io), service) => {
+            if let Err(e) = r {
                 tracing::debug!(%peer, "live page connection: {e}");
             }
-        });
+        }
+        _ = conn.close.notified() => tracing::debug!(%peer, "live page: stream closed to make room for a new connection"),
     }
+    conn.ended();
 }
 
 /// A connection that fails (and so is closed) when nothing has been read or written for

@@ -67,6 +67,11 @@ impl TestApi {
     pub(crate) fn new(tests: Arc<LabTests>, auth: Credentials) -> Self {
         TestApi { tests, auth, failures: Mutex::new(Failures::default()) }
     }
+
+    /// The folder the tests are kept in.
+    pub(crate) fn tests_dir(&self) -> &std::path::Path {
+        self.tests.dir()
+    }
 }
 
 /// The POSTs of the control API (a role is checked for these; another name is answered 400).
@@ -91,6 +96,18 @@ pub(crate) async fn audit(
         Ok(Ok(v)) => Json(v).into_response(),
         Ok(Err(e)) => answer(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
         Err(e) => answer(StatusCode::INTERNAL_SERVER_ERROR, format!("reading the audit log failed: {e}")),
+    }
+}
+
+/// `GET /api/user`: who holds the token given (`{"user", "role"}`): the page names the
+/// reviewer who signs. Any user's token (the wrong-token limits apply).
+pub(crate) async fn user(State(view): State<Arc<LiveView>>, ConnectInfo(peer): ConnectInfo<SocketAddr>, headers: HeaderMap) -> Response {
+    let Some(api) = view.test_api.get() else {
+        return answer(StatusCode::NOT_FOUND, "no tests here: configure [output] tests (or run with --tests DIR)");
+    };
+    match check_token(api, &headers, peer, "GET") {
+        Ok(actor) => Json(serde_json::json!({"user": actor.user, "role": actor.role})).into_response(),
+        Err(refused) => refused,
     }
 }
 

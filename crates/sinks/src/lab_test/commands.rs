@@ -12,8 +12,9 @@ use super::state::{Inner, LabTests, Running};
 use super::zero::{Zero, ZERO_SETS};
 use super::{EarlierTest, Stopped, TestError, TestMeta, TestRecord, EARLIER_TESTS};
 
-/// How long `stop` waits for the sinks to write the test's last lines.
-pub const STOP_WAIT: Duration = Duration::from_millis(1500);
+/// How long `stop` waits for the line that carries the stop (the next frame set's) to be
+/// written: a few frame intervals at the slowest rates a rig runs.
+pub const STOP_WAIT: Duration = Duration::from_millis(3000);
 
 impl LabTests {
     /// `GET /api/tests`: today's stopped tests, oldest first.
@@ -38,9 +39,10 @@ impl LabTests {
 
     /// Opens the test's folder and makes it the running test; `note` goes with its start event.
     pub(super) fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>, user: Option<String>) -> Result<String, TestError> {
+        let meta = meta.trimmed();
         let now = tagdeflect_core::clock::now_epoch_ns();
         let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
-        let id = format!("{stamp}-{}", meta.specimen.trim());
+        let id = format!("{stamp}-{}", meta.specimen);
         if let Some(r) = &g.running {
             return Err(TestError::Conflict(format!("test {} is running: stop it first", r.record.id)));
         }
@@ -70,7 +72,17 @@ impl LabTests {
             verification: self.verification_now(g),
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
-        let r = Running { record, folder, feed, utm, zero: Zero::default(), written_t_ns: i64::MIN, curve: Vec::new(), preload_kn: None };
+        let r = Running {
+            record,
+            folder,
+            feed,
+            utm,
+            zero: Zero::default(),
+            written_t_ns: i64::MIN,
+            curve: Vec::new(),
+            ends: Default::default(),
+            preload_kn: None,
+        };
         self.persist(&r);
         self.publish(&r.record);
         g.running = Some(r);
@@ -85,9 +97,7 @@ impl LabTests {
     /// [`LabTests::mark`] by `user`.
     pub fn mark_by(&self, note: Option<String>, user: Option<String>) -> Result<serde_json::Value, TestError> {
         if let Some(n) = &note {
-            if n.len() > 4096 || n.chars().any(|c| c.is_control()) {
-                return Err(TestError::Bad("note: at most 4096 characters, no control characters".into()));
-            }
+            tagdeflect_core::limits::check_text("note", n, false)?;
         }
         self.event("mark", note, user)
     }
@@ -113,7 +123,11 @@ impl LabTests {
     fn event(&self, kind: &str, note: Option<String>, user: Option<String>) -> Result<serde_json::Value, TestError> {
         let mut g = self.lock();
         let Some(r) = g.running.as_mut() else { return Err(TestError::Conflict(format!("no test is running: nothing to {kind}"))) };
+        if r.ends.stop.is_some() || r.ends.stop_line_t_ns.is_some() {
+            return Err(TestError::Conflict(format!("the test is being stopped: no {kind}")));
+        }
         let ev = FeedEvent { kind: kind.into(), t_ns: tagdeflect_core::clock::now_epoch_ns(), note, user };
+        room_for(&r.record, &ev)?;
         r.record.events.push(ev.clone());
         let kept = self.persist_as(r, Phase::Running);
         self.publish(&r.record);
@@ -144,23 +158,30 @@ impl LabTests {
             drop(g);
             return self.retry_unfinished().unwrap_or_else(|| Err(TestError::Conflict("no test is running: nothing to stop".into())));
         }
-        // Every line solved before the stop reaches the folder first (the sinks run behind
-        // the solver by a line or two).
-        let target = g.last_line_t_ns;
+        if g.running.as_ref().is_some_and(|r| r.ends.stop.is_some() || r.ends.stop_line_t_ns.is_some()) {
+            return Err(TestError::Conflict("the test is being stopped".into()));
+        }
+        // The stop goes onto the next line, the test's last; the stop answers once the sinks
+        // have written it (every line solved before it is then in the folder too).
+        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user };
+        if let Some(r) = g.running.as_mut() {
+            r.ends.stop = Some(stop.clone());
+        }
         let (g2, _) = self
             .written
-            .wait_timeout_while(g, STOP_WAIT, |g| g.running.as_ref().is_some_and(|r| r.written_t_ns < target))
+            .wait_timeout_while(g, STOP_WAIT, |g| g.running.as_ref().is_some_and(|r| !r.ends.stop_written))
             .unwrap_or_else(|p| p.into_inner());
         g = g2;
         let Some(mut r) = g.running.take() else { return Err(TestError::Conflict("the test was stopped meanwhile".into())) };
-        let stop = FeedEvent { kind: "stop".into(), t_ns: now, note, user };
-        r.record.events.push(stop.clone());
+        if !r.ends.stop_written {
+            tracing::warn!(test = %r.record.id, "no line came within {STOP_WAIT:?} of the stop: its stop event is in test.json, not in the feed");
+        }
+        r.record.events.push(stop);
         r.record.stopped_t_ns = Some(now);
         // Assessed again: a bump (or the validity's end) during the test makes it stale.
         if let Some(v) = self.verification_now(&g) {
             r.record.verification = Some(v);
         }
-        g.pending.push(stop);
         g.last = Some((r.record.id.clone(), r.folder.clone()));
         g.earlier.push(EarlierTest::new(&r.record, &r.curve));
         if g.earlier.len() > EARLIER_TESTS {
@@ -205,4 +226,24 @@ impl LabTests {
         }
         st
     }
+}
+
+/// An operator's event `ev` fits the running test's record within the limits the archive
+/// takes ([`tagdeflect_core::limits`]): at most [`OPERATOR_EVENTS_MAX`] of them, the record at
+/// most [`RECORD_MAX_BYTES`] with it; else 400 naming the note.
+pub(super) fn room_for(record: &TestRecord, ev: &FeedEvent) -> Result<(), TestError> {
+    use tagdeflect_core::limits::{OPERATOR_EVENTS_MAX, RECORD_MAX_BYTES};
+    let daemons = ["start", "stop", "resume", "preload"];
+    let operators = record.events.iter().filter(|e| !daemons.contains(&e.kind.as_str())).count();
+    if operators >= OPERATOR_EVENTS_MAX {
+        return Err(TestError::Bad(format!("{}: a test takes at most {OPERATOR_EVENTS_MAX} marks, zeros and cracks", ev.kind)));
+    }
+    let bytes = serde_json::to_vec(record).map_or(0, |v| v.len()) + serde_json::to_vec(ev).map_or(0, |v| v.len()) + 1;
+    if bytes > RECORD_MAX_BYTES {
+        return Err(TestError::Bad(format!(
+            "note: the test's record would be {bytes} bytes with this {}, over the {RECORD_MAX_BYTES} a test's record may have: a shorter note",
+            ev.kind
+        )));
+    }
+    Ok(())
 }

@@ -32,8 +32,9 @@ impl LabTests {
         let inside = inside_middle_third(&c, span)?;
         let now = tagdeflect_core::clock::now_epoch_ns();
         let note = format!("crack at {} mm from mid-span, {} the middle third", c.position_mm, if inside { "inside" } else { "outside" });
-        r.record.crack = Some(CrackEntry { position_mm: c.position_mm, inside_middle_third: inside, t_ns: now });
         let ev = FeedEvent { kind: "crack".into(), t_ns: now, note: Some(note), user: None };
+        super::commands::room_for(&r.record, &ev)?;
+        r.record.crack = Some(CrackEntry { position_mm: c.position_mm, inside_middle_third: inside, t_ns: now });
         r.record.events.push(ev.clone());
         self.persist(r);
         self.publish(&r.record);

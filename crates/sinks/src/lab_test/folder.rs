@@ -123,21 +123,35 @@ impl LabTests {
             gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
         };
         let curve = read_curve(&p.folder.join("feed.jsonl")).unwrap_or_default();
-        let mut r =
-            Running { record: p.record, folder: p.folder, feed, utm, zero, written_t_ns: p.last_line_t_ns, curve, preload_kn: None };
+        let mut r = Running {
+            record: p.record,
+            folder: p.folder,
+            feed,
+            utm,
+            zero,
+            written_t_ns: p.last_line_t_ns,
+            curve,
+            ends: Default::default(),
+            preload_kn: None,
+        };
         if p.phase == Phase::Stopping {
             return Ok(Some(r));
         }
+        // The counts are the files' (the state was kept at the last event, lines later), and
+        // the gap runs from the last line written before the stop to the first one after
+        // (its note is completed there, `steps`).
+        let feed_path = r.folder.join("feed.jsonl");
+        r.record.lines = count_lines(&feed_path)?;
+        r.record.utm_samples = count_lines(&r.folder.join("utm.jsonl"))?;
+        if let Some(t) = last_line_t_ns(&feed_path) {
+            r.written_t_ns = t;
+        }
+        r.ends.resumed_after_t_ns = (r.written_t_ns > i64::MIN).then_some(r.written_t_ns);
         let now = tagdeflect_core::clock::now_epoch_ns();
-        let gap_s = if r.written_t_ns > i64::MIN { (now as i128 - r.written_t_ns as i128) as f64 * 1e-9 } else { f64::NAN };
-        let ev = FeedEvent {
-            kind: "resume".into(),
-            t_ns: now,
-            note: Some(format!("the daemon restarted; the test goes on from its zero (no lines for {gap_s:.1} s)")),
-            user: None,
-        };
+        let ev = FeedEvent { kind: "resume".into(), t_ns: now, note: Some(RESUME_NOTE.into()), user: None };
         r.record.events.push(ev.clone());
-        tracing::warn!(test = %r.record.id, gap_s = format!("{gap_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
+        let away_s = r.ends.resumed_after_t_ns.map_or(f64::NAN, |t| (now as i128 - t as i128) as f64 * 1e-9);
+        tracing::warn!(test = %r.record.id, away_s = format!("{away_s:.1}"), "a test was running when the daemon stopped: resumed from its zero");
         self.persist(&r);
         let mut g = self.lock();
         g.pending.push(ev);
@@ -180,6 +194,22 @@ impl LabTests {
         self.publish(record);
         Ok(report_error)
     }
+}
+
+/// The resume event's note; the first line after the resume adds the gap (`(no lines for N s)`).
+pub(super) const RESUME_NOTE: &str = "the daemon restarted; the test goes on from its zero";
+
+/// The `t_ns` of the last whole line of a feed file (read from its last MiB), if any.
+fn last_line_t_ns(path: &Path) -> Option<i64> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut f = std::fs::File::open(path).ok()?;
+    let len = f.metadata().ok()?.len();
+    f.seek(SeekFrom::Start(len.saturating_sub(1 << 20))).ok()?;
+    let mut tail = Vec::new();
+    f.read_to_end(&mut tail).ok()?;
+    let text = String::from_utf8_lossy(&tail);
+    let last = text.lines().rev().find(|l| !l.trim().is_empty())?;
+    serde_json::from_str::<serde_json::Value>(last).ok()?.get("t_ns")?.as_i64()
 }
 
 /// Lines in a file (whole lines: the writers leave no partial one).

@@ -14,8 +14,9 @@
 //! gauge — and every later value counts from it (lines taken while the zero forms are marked
 //! `zeroing` and count from the mean so far; the zero's σ, the spread of those sets over √n,
 //! goes into every σ). `zero` takes it again from the next sets. `mark` puts an operator's
-//! note into the feed and `test.json`. `stop` waits (at most [`STOP_WAIT`]) until the sinks
-//! have written every line up to the stop, then completes the folder: `tagdeflect.toml` (the
+//! note into the feed and `test.json`. A test's feed holds its own lines only: none exposed
+//! before its start; `stop` puts its event on the next line — the test's last — and waits (at
+//! most [`STOP_WAIT`]) until the sinks have written it, then completes the folder: `tagdeflect.toml` (the
 //! config in force), `test.json` (metadata, events, the SHA-256 of every file of the folder
 //! and of the calibration files) and, through the hook the binary installs, `report/`.
 //!
@@ -62,6 +63,8 @@ mod zero;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_auto_start;
 #[cfg(test)]
 mod tests_method;
 

@@ -41,8 +41,9 @@ impl LabTests {
             Some(serde_json::Value::String(m)) => Some(self.method(&m)?),
             Some(other) => return Err(TestError::Bad(format!("start: \"method\" is a method's name, not {other}"))),
         };
-        let mut meta: TestMeta =
-            serde_json::from_value(serde_json::Value::Object(fields)).map_err(|e| TestError::Bad(format!("start: {e}")))?;
+        let mut meta: TestMeta = serde_json::from_value::<TestMeta>(serde_json::Value::Object(fields))
+            .map_err(|e| TestError::Bad(format!("start: {e}")))?
+            .trimmed();
         if let Some(m) = &method {
             match &meta.standard {
                 Some(s) if *s != m.method.standard => {

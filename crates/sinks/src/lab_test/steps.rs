@@ -9,8 +9,9 @@ use tagdeflect_core::lab_test::{Preload, TestRecord};
 use tagdeflect_core::utm_sample::UtmSample;
 
 use super::auto;
+use super::folder::RESUME_NOTE;
 use super::record::push_point;
-use super::state::{Inner, LabTests};
+use super::state::{Inner, LabTests, Running};
 use super::zero::ZERO_SETS;
 
 impl LabTests {
@@ -25,7 +26,7 @@ impl LabTests {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
                 match self.open(&mut g, meta, Some(why.clone()), None) {
                     Ok(id) => {
-                        self.auto_method(&mut g);
+                        self.auto_started(&mut g, line);
                         tracing::info!(test = %id, "test started automatically ({why})");
                         self.audit_auto_start(id, why);
                     }
@@ -33,10 +34,17 @@ impl LabTests {
                 }
             }
         }
-        line.events.append(&mut g.pending);
-        if g.running.as_ref().is_some_and(|r| r.wait_for_preload(line)) {
-            // Below the method's preload: the test's lines (and its zero) start at the preload.
-        } else if let Some(r) = g.running.as_mut() {
+        // A line exposed before the running test's start, or after the line that carried its
+        // stop, or below the preload its method waits for, is no line of the test: the test's
+        // events wait for its first line (its lines and its zero start at the preload).
+        let of_test = g.running.as_ref().map(|r| {
+            line.t_ns >= r.record.started_t_ns && r.ends.stop_line_t_ns.is_none() && !r.wait_for_preload(line)
+        });
+        if of_test != Some(false) {
+            line.events.append(&mut g.pending);
+        }
+        if let Some(r) = g.running.as_mut().filter(|_| of_test == Some(true)) {
+            self.resumed_gap(r, line);
             let zeroing = r.zero.take(line);
             if zeroing && r.zero.n == ZERO_SETS {
                 // The zero has formed: a restart from here resumes from it.
@@ -51,6 +59,11 @@ impl LabTests {
             }
             r.zero.apply(line);
             line.test = Some(TestRef { id: r.record.id.clone(), specimen: r.record.meta.specimen.clone(), zeroing });
+            if let Some(stop) = r.ends.stop.take() {
+                // The stop's own line: the test's last.
+                line.events.push(stop);
+                r.ends.stop_line_t_ns = Some(line.t_ns);
+            }
         }
         let Inner { running, auto, .. } = &mut *g;
         if let (Some(r), Some(a)) = (running.as_ref(), auto.as_mut()) {
@@ -74,6 +87,20 @@ impl LabTests {
         }
     }
 
+    /// The first line of a resumed test: its `resume` event's note gets the gap, from the last
+    /// line written before the daemon stopped to this one (in the line and in the record).
+    fn resumed_gap(&self, r: &mut Running, line: &mut FeedLine) {
+        let Some(before) = r.ends.resumed_after_t_ns.take() else { return };
+        let note = format!("{RESUME_NOTE} (no lines for {:.1} s)", (line.t_ns as i128 - before as i128) as f64 * 1e-9);
+        for ev in line.events.iter_mut().filter(|e| e.kind == "resume") {
+            if let Some(kept) = r.record.events.iter_mut().rev().find(|e| e.kind == "resume" && e.t_ns == ev.t_ns) {
+                kept.note = Some(note.clone());
+            }
+            ev.note = Some(note.clone());
+        }
+        self.persist(r);
+    }
+
     /// The sinks' step: a line of the running test into its folder.
     pub fn on_line(&self, line: &FeedLine) {
         let mut g = self.lock();
@@ -87,6 +114,7 @@ impl LabTests {
             if let (Some(n), Some(l)) = (line.net_deflection_mm, line.load_kn) {
                 push_point(&mut r.curve, n, l);
             }
+            r.ends.stop_written |= r.ends.stop_line_t_ns == Some(line.t_ns);
         }
         r.written_t_ns = r.written_t_ns.max(line.t_ns);
         self.written.notify_all();
@@ -96,10 +124,18 @@ impl LabTests {
     pub fn on_utm(&self, s: &UtmSample) {
         let mut g = self.lock();
         g.last_load = Some((s.load_kn, s.t_ns));
-        let Some(r) = g.running.as_mut() else { return };
+        let Some(r) = g.running.as_mut() else {
+            Self::keep_recent_utm(&mut g, s);
+            return;
+        };
         if s.t_ns < r.record.started_t_ns {
             return;
         }
+        Self::write_utm(r, s);
+    }
+
+    /// A UTM sample into the running test's folder.
+    pub(super) fn write_utm(r: &mut Running, s: &UtmSample) {
         match serde_json::to_string(s) {
             Ok(text) => {
                 if let Err(e) = r.utm.write_text(text) {

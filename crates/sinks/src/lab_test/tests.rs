@@ -9,9 +9,37 @@ use super::folder::hex;
 use super::{LabTests, TestError, TestMeta, TestRecord, ZERO_SETS};
 use tagdeflect_core::feed::FeedTag;
 
-fn line(t_ns: i64, z: f64, net: f64) -> FeedLine {
+/// The time of the `k`-th line: an hour after the tests began, so after every start here.
+pub(super) fn t(k: i64) -> i64 {
+    static BASE: std::sync::OnceLock<i64> = std::sync::OnceLock::new();
+    *BASE.get_or_init(|| tagdeflect_core::clock::now_epoch_ns() + 3_600_000_000_000) + k
+}
+
+fn line(k: i64, z: f64, net: f64) -> FeedLine {
     let tag = FeedTag { id: 1, pos_mm: [10.0, 0.0, z], disp_mm: [0.0, 0.0, z], views: 2, sigma_mm: Some([0.01; 3]), reproj_px: None };
-    FeedLine { seq: t_ns as u64, t_ns, tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
+    FeedLine { seq: k as u64, t_ns: t(k), tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
+}
+
+/// Stops the running test while lines `from..` keep coming (the stop's line is the next one,
+/// as in a running daemon); the stop and the lines given.
+fn stop_fed(tests: &std::sync::Arc<LabTests>, from: i64) -> (super::Stopped, Vec<FeedLine>) {
+    let me = tests.clone();
+    let stop = std::thread::spawn(move || me.stop());
+    while !stop.is_finished() && !tests.lock().running.as_ref().is_some_and(|r| r.ends.stop.is_some()) {
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let mut lines = Vec::new();
+    for k in from.. {
+        if stop.is_finished() {
+            break;
+        }
+        let mut l = line(k, 4.0, 0.4);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+        lines.push(l);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    (stop.join().unwrap().unwrap(), lines)
 }
 
 #[test]
@@ -40,13 +68,12 @@ fn a_test_counts_from_the_mean_of_its_first_sets_and_keeps_its_folder() {
     assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
     assert!((l.net_deflection_mm.unwrap() + 0.1).abs() < 1e-9);
     tests.mark(Some("first crack seen".into())).unwrap();
-    let stopped = tests.stop().unwrap();
-    let mut after = line(11, 4.0, 0.4);
-    tests.apply(&mut after);
-    assert!(after.test.is_none());
-    assert_eq!(after.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["mark", "stop"]);
+    let (stopped, after) = stop_fed(&tests, 11);
+    // The mark and the stop go onto the next line, the test's last; later lines are no test's.
+    assert_eq!(after[0].events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["mark", "stop"]);
+    assert!(after[0].test.is_some() && after[1..].iter().all(|l| l.test.is_none() && l.events.is_empty()));
     let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
-    assert_eq!(record.lines, 6);
+    assert_eq!(record.lines, 7);
     assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "mark", "stop"]);
     for f in ["feed.jsonl", "utm.jsonl", "tagdeflect.toml"] {
         let want = hex(&sha2::Sha256::digest(std::fs::read(stopped.folder.join(f)).unwrap()));
@@ -82,10 +109,10 @@ fn a_test_running_when_the_daemon_stops_resumes_from_its_zero() {
     // The zero was the mean of 5.00 .. 5.04 = 5.02.
     assert!((l.tags[0].disp_mm[2] + 1.0).abs() < 1e-9, "{:?}", l.tags[0].disp_mm);
     tests.on_line(&l);
-    let stopped = tests.stop().unwrap();
+    let (stopped, _) = stop_fed(&tests, 101);
     let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
     assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "resume", "stop"]);
-    assert_eq!(std::fs::read_to_string(stopped.folder.join("feed.jsonl")).unwrap().lines().count(), ZERO_SETS + 1);
+    assert_eq!(std::fs::read_to_string(stopped.folder.join("feed.jsonl")).unwrap().lines().count(), ZERO_SETS + 2);
 }
 
 #[test]
@@ -183,12 +210,116 @@ fn a_test_names_the_verification_in_force_and_a_bump_seen_makes_it_stale() {
         tests.apply(&mut l);
         tests.on_line(&l);
     }
-    let stopped = tests.stop().unwrap();
+    let (stopped, _) = stop_fed(&tests, 10);
     let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
     let v = record.verification.expect("test.json names the verification");
-    assert_eq!(v.stale, vec!["camera left bumped at 1".to_string()], "one bump, said once");
+    assert_eq!(v.stale, vec![format!("camera left bumped at {}", t(1))], "one bump, said once");
     // The next test starts under the stale verification and says so from its start.
     tests.start(TestMeta { specimen: "B2".into(), ..TestMeta::default() }).unwrap();
-    assert_eq!(tests.status()["verification"]["stale"][0], "camera left bumped at 1");
-    tests.stop().unwrap();
+    assert_eq!(tests.status()["verification"]["stale"][0], format!("camera left bumped at {}", t(1)).as_str());
+    stop_fed(&tests, 100);
+}
+
+/// What the control API takes, the archive takes (one set of limits, `core::limits`): marks
+/// until the record is full are refused with 400 naming the note, never published beyond what
+/// the archive reads; a specimen of 64 four-byte letters or a NUL in a measured key is a 400,
+/// not a 500 or a record the archive refuses; the blanks around an id are not kept.
+#[test]
+fn what_the_api_takes_the_archive_takes_and_ids_are_trimmed() {
+    use tagdeflect_wire::LabTestMessage;
+    let dir = tempfile::tempdir().unwrap();
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    let published = std::sync::Arc::new(std::sync::Mutex::new(Vec::<TestRecord>::new()));
+    let p = published.clone();
+    tests.set_on_record(Box::new(move |r: &TestRecord| p.lock().unwrap().push(r.clone())));
+    let bad = |m: TestMeta| match tests.start(m) {
+        Err(TestError::Bad(e)) => e,
+        other => panic!("not a 400: {other:?}"),
+    };
+    let wide = "𝐁".repeat(64);
+    assert!(bad(TestMeta { specimen: wide, ..TestMeta::default() }).contains("specimen"));
+    let mut nul = TestMeta { specimen: "B1".into(), ..TestMeta::default() };
+    nul.measured.insert("a\u{0}b".into(), 1.0);
+    assert!(bad(nul).contains("measured"));
+    tests.start(TestMeta { specimen: " B12 ".into(), operator: Some(" Ann ".into()), ..TestMeta::default() }).unwrap();
+    let st = tests.status();
+    assert_eq!((st["specimen"].as_str(), st["operator"].as_str()), (Some("B12"), Some("Ann")));
+    assert!(st["id"].as_str().unwrap().ends_with("Z-B12"), "{st}");
+    // Marks of 4 KB notes (quotes: twice that in JSON) until the record is full.
+    let note = "\"".repeat(4000);
+    let mut marks = 0;
+    let refusal = loop {
+        match tests.mark(Some(note.clone())) {
+            Ok(_) => marks += 1,
+            Err(e) => break e,
+        }
+        assert!(marks < 1000, "never refused");
+    };
+    assert!(matches!(&refusal, TestError::Bad(m) if m.starts_with("note:")), "{refusal}");
+    assert!(marks > 20, "{marks} marks");
+    let (_, _) = stop_fed(&tests, 0);
+    let records = published.lock().unwrap().clone();
+    let last = records.last().unwrap();
+    assert!(last.stopped_t_ns.is_some());
+    for r in [&records[records.len() - 2], last] {
+        let bytes = serde_json::to_vec(&LabTestMessage::from_record("rig1", "run1", r)).unwrap();
+        LabTestMessage::parse(&bytes, "rig1", "run1", &r.id).expect("the archive takes what the API accepted");
+    }
+}
+
+/// A test's feed holds its own lines only: none exposed before its start, its own stop event
+/// on its last line and the previous test's stop not at all; after a resume the counts are the
+/// files' and the resume's gap runs from the last line before to the first line after.
+#[test]
+fn a_tests_feed_holds_its_own_lines_and_events_and_a_resume_says_the_real_gap() {
+    let dir = tempfile::tempdir().unwrap();
+    let read = |folder: &Path| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(folder.join("feed.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    };
+    let kinds = |l: &serde_json::Value| -> Vec<String> {
+        l["events"].as_array().map_or(Vec::new(), |a| a.iter().map(|e| e["kind"].as_str().unwrap().to_string()).collect())
+    };
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    tests.start(TestMeta { specimen: "A1".into(), ..TestMeta::default() }).unwrap();
+    // A line exposed before the start (solved late) is no line of the test.
+    let mut early = line(0, 5.0, 0.5);
+    early.t_ns = tagdeflect_core::clock::now_epoch_ns() - 120_000_000;
+    tests.apply(&mut early);
+    tests.on_line(&early);
+    assert!(early.test.is_none() && early.events.is_empty());
+    for k in 1..=6 {
+        let mut l = line(k, 5.0, 0.5);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+    }
+    let (first, _) = stop_fed(&tests, 7);
+    tests.start(TestMeta { specimen: "A2".into(), ..TestMeta::default() }).unwrap();
+    for k in 1000..1006 {
+        let mut l = line(k, 5.0, 0.5);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+    }
+    drop(tests);
+    // The daemon died; the state was kept at the start, five lines before the last.
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    assert_eq!(tests.status()["lines"], 6, "counted from the file");
+    let mut l = line(3000, 5.0, 0.5);
+    tests.apply(&mut l);
+    tests.on_line(&l);
+    let (second, _) = stop_fed(&tests, 3001);
+    let a = read(&first.folder);
+    assert_eq!(a.len(), 7, "six lines and the stop's");
+    assert!(a.iter().all(|l| l["t_ns"].as_i64().unwrap() >= t(1)));
+    assert_eq!(kinds(&a[0]), ["start"]);
+    assert_eq!(kinds(a.last().unwrap()), ["stop"], "its own stop on its last line");
+    let b = read(&second.folder);
+    assert_eq!(kinds(&b[0]), ["start"], "not the previous test's stop");
+    assert_eq!(b.iter().filter(|l| kinds(l).contains(&"stop".to_string())).count(), 1);
+    assert_eq!(kinds(b.last().unwrap()), ["stop"]);
+    let resume = b.iter().find(|l| kinds(l) == ["resume"]).unwrap();
+    let gap_s = (t(3000) - t(1005)) as f64 * 1e-9;
+    assert!(resume["events"][0]["note"].as_str().unwrap().ends_with(&format!("(no lines for {gap_s:.1} s)")), "{resume}");
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(second.folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record.lines as usize, b.len());
+    assert_eq!(record.events.iter().find(|e| e.kind == "resume").unwrap().note, resume["events"][0]["note"].as_str().map(String::from));
 }

@@ -50,8 +50,13 @@ fn a_start_takes_its_method_and_the_next_specimen_and_is_refused_when_its_report
     assert!((st["measured"]["width_mm"].as_f64().unwrap() - 150.3).abs() < 1e-9, "{st}");
     assert_eq!(st["measured"]["span_mm"], 450.0);
     for k in 0..ZERO_SETS as i64 + 1 {
-        let mut l =
-            FeedLine { seq: k as u64, t_ns: k, load_kn: Some(0.5 + 0.01 * k as f64), net_deflection_mm: Some(0.0), ..FeedLine::default() };
+        let mut l = FeedLine {
+            seq: k as u64,
+            t_ns: super::tests::t(k),
+            load_kn: Some(0.5 + 0.01 * k as f64),
+            net_deflection_mm: Some(0.0),
+            ..FeedLine::default()
+        };
         tests.apply(&mut l);
         tests.on_line(&l);
     }
@@ -103,7 +108,7 @@ fn a_table_is_checked_row_by_row_and_a_test_without_a_method_works_as_before() {
     tests.set_beam(beam);
     start(&tests, serde_json::json!({"specimen": "B1", "standard": "astm-c1609"})).unwrap();
     for k in 0..ZERO_SETS as i64 {
-        let mut l = FeedLine { seq: k as u64, t_ns: k, load_kn: Some(0.1), ..FeedLine::default() };
+        let mut l = FeedLine { seq: k as u64, t_ns: super::tests::t(k), load_kn: Some(0.1), ..FeedLine::default() };
         tests.apply(&mut l);
     }
     tests.crack(serde_json::from_str(r#"{"position_mm": 20}"#).unwrap()).unwrap();

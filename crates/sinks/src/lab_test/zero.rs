@@ -1,5 +1,12 @@
 //! A test's zero: the mean of its first [`ZERO_SETS`] frame sets, per quantity, and the
 //! line's values counted from it.
+//!
+//! The zero's σ (added to every later line's) is the scatter of those sets *about a straight
+//! line fitted through them*, over √n: a zero taken while the beam moves (a mid-test `zero`,
+//! or a start during loading) counts the motion in its mean, which is the fitted line's value
+//! at the zero's middle set, and not in its σ — the plain scatter about the mean took the
+//! motion for noise and raised σ ~14× (issue 45). From fewer than three sets no trend can
+//! be told from noise: the plain scatter is kept.
 
 use std::collections::BTreeMap;
 
@@ -76,7 +83,8 @@ impl Zero {
     }
 }
 
-/// A [`Mean`] as stored: count, sums, sums of squares.
+/// A [`Mean`] as stored: count, sums (then the sums of each value times its index, for the
+/// trend; absent in records of earlier versions), sums of squares.
 pub(super) type MeanParts = (usize, Vec<f64>, Vec<f64>);
 
 /// A running mean of `N` values with the standard deviation of the mean.
@@ -85,17 +93,19 @@ pub(super) struct Mean<const N: usize> {
     n: usize,
     sum: [f64; N],
     sum_sq: [f64; N],
+    /// Σ k·x, k the value's index (0, 1, ...): the trend.
+    sum_kx: [f64; N],
 }
 
 impl<const N: usize> Default for Mean<N> {
     fn default() -> Self {
-        Mean { n: 0, sum: [0.0; N], sum_sq: [0.0; N] }
+        Mean { n: 0, sum: [0.0; N], sum_sq: [0.0; N], sum_kx: [0.0; N] }
     }
 }
 
 impl<const N: usize> Mean<N> {
     pub(super) fn to_parts(self) -> MeanParts {
-        (self.n, self.sum.to_vec(), self.sum_sq.to_vec())
+        (self.n, self.sum.iter().chain(&self.sum_kx).copied().collect(), self.sum_sq.to_vec())
     }
     pub(super) fn from_parts(p: &MeanParts) -> Self {
         let mut m = Mean { n: p.0, ..Mean::default() };
@@ -103,26 +113,43 @@ impl<const N: usize> Mean<N> {
             *sum = p.1.get(k).copied().unwrap_or(0.0);
             *sq = p.2.get(k).copied().unwrap_or(0.0);
         }
+        // A record without the trend's sums: no trend (Σ k·x = k̄·Σx).
+        let mid = m.n.saturating_sub(1) as f64 / 2.0;
+        for k in 0..N {
+            m.sum_kx[k] = p.1.get(N + k).copied().unwrap_or(mid * m.sum[k]);
+        }
         m
     }
     fn add(&mut self, v: [f64; N]) {
+        let index = self.n as f64;
         self.n += 1;
-        for ((sum, sq), x) in self.sum.iter_mut().zip(self.sum_sq.iter_mut()).zip(v) {
-            *sum += x;
-            *sq += x * x;
+        for k in 0..N {
+            self.sum[k] += v[k];
+            self.sum_sq[k] += v[k] * v[k];
+            self.sum_kx[k] += index * v[k];
         }
     }
-    /// Mean, and the standard deviation of the mean (0 from one value).
+    /// Mean, and its standard deviation: the scatter about the values' straight-line trend
+    /// over √n from three values on (the plain scatter from two, 0 from one).
     fn get(&self) -> ([f64; N], [f64; N]) {
         let n = self.n.max(1) as f64;
+        let k_mean = (n - 1.0) / 2.0;
+        // Σ (k − k̄)² for k = 0..n−1.
+        let s_kk = n * (n * n - 1.0) / 12.0;
         let mut mean = [0.0; N];
         let mut sd = [0.0; N];
         for k in 0..N {
             mean[k] = self.sum[k] / n;
-            if self.n > 1 {
-                let var = ((self.sum_sq[k] - n * mean[k] * mean[k]) / (n - 1.0)).max(0.0);
-                sd[k] = (var / n).sqrt();
-            }
+            let s_xx = (self.sum_sq[k] - n * mean[k] * mean[k]).max(0.0);
+            let var = match self.n {
+                0 | 1 => 0.0,
+                2 => s_xx,
+                _ => {
+                    let s_kx = self.sum_kx[k] - n * k_mean * mean[k];
+                    (s_xx - s_kx * s_kx / s_kk).max(0.0) / (n - 2.0)
+                }
+            };
+            sd[k] = (var / n).sqrt();
         }
         (mean, sd)
     }
@@ -130,4 +157,37 @@ impl<const N: usize> Mean<N> {
 
 fn round_um(v: f64) -> f64 {
     (v * 1e6).round() / 1e6
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A zero taken while the beam moves 0.1 mm a set with 2 µm of noise: its mean is the
+    /// middle set's value and its σ the noise's over √n, not the motion's (which the plain
+    /// scatter about the mean gave: ~70 µm, ~45× the noise's 1.5 µm).
+    #[test]
+    fn a_zero_taken_while_the_beam_moves_has_the_noise_sigma_not_the_motion() {
+        let noise = [0.002, -0.001, -0.002, 0.003, -0.002];
+        let mut m = Mean::<1>::default();
+        for (k, e) in noise.iter().enumerate() {
+            m.add([0.1 * k as f64 + e]);
+        }
+        let (mean, sd) = m.get();
+        assert!((mean[0] - 0.2).abs() < 0.001, "{mean:?}");
+        assert!(sd[0] > 0.0005 && sd[0] < 0.003, "σ of the zero {} mm", sd[0]);
+        // Stored and read back (a resumed test), and a record of an earlier version (no
+        // trend's sums): the plain scatter then.
+        let back = Mean::<1>::from_parts(&m.to_parts());
+        assert_eq!(back.get(), m.get());
+        let (n, sums, sq) = m.to_parts();
+        let old = Mean::<1>::from_parts(&(n, sums[..1].to_vec(), sq));
+        assert!(old.get().1[0] > 0.05, "no trend known: the plain scatter {}", old.get().1[0]);
+        // At rest the two agree to the degrees of freedom.
+        let mut rest = Mean::<1>::default();
+        for e in noise {
+            rest.add([e]);
+        }
+        assert!(rest.get().1[0] < 0.003);
+    }
 }

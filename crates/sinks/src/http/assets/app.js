@@ -71,12 +71,15 @@ function makeCurve(el, earlier, xLabel, sigma) {
     mode: 2,
     ...size(el),
     height: 340,
-    scales: { x: { time: false }, y: {} },
+    // The live curve's x axis reaches L/150 once the test's span is known (live_curve.js).
+    scales: { x: sigma ? { time: false, range: (u, lo, hi) => (typeof curveXRange === "function" ? curveXRange(lo, hi) : [lo ?? 0, hi ?? 1]) } : { time: false }, y: {} },
     axes: [axis(xLabel), axis("load [kN]")],
     series: [{}, ...Array.from({ length: earlier }, () => ({ ...grey })),
       { label: "load vs " + xLabel, stroke: "#ff8c00", width: 2, paths: uPlot.paths.linear(), points: { show: false }, facets }, ...extra],
     legend: { show: false },
     cursor: { drag: { x: false, y: false }, points: { show: false } },
+    // The live curve's marks, L/600, L/150 and P1 (live_curve.js) drawn over it.
+    hooks: sigma ? { draw: [(u) => { if (typeof drawCurveMarks === "function") drawCurveMarks(u); }] } : {},
   };
   return new uPlot(opts, [null, ...Array.from({ length: earlier + 1 + extra.length }, () => [[], []])], el);
 }
@@ -407,6 +410,21 @@ function onTest(st) {
   $("t-auto").textContent = st.auto ? "automatic (" + st.auto.state + "): waiting for " + st.auto.waiting_for : "";
   if (!running && st.last) $("t-report").textContent = st.last.report_error ? "no report: " + st.last.report_error : "";
   if (st.state === "off") testMessage("tests are off: start the daemon with --tests DIR or [output] tests", false);
+  for (const f of TEST_LISTENERS) f(st);
+}
+// The page's other parts that follow the test's state (live_curve.js, review.js).
+const TEST_LISTENERS = [];
+// A request with the token (asked once, as for the commands): the answer as
+// {ok, status, body}; a 401 drops the token.
+async function authed(path, init) {
+  const t = token();
+  if (!t) return { ok: false, status: 0, body: { error: "no token given" } };
+  const headers = Object.assign({ "Authorization": "Bearer " + t }, (init && init.headers) || {});
+  const r = await fetch(path, Object.assign({ cache: "no-store" }, init || {}, { headers }));
+  let body = {};
+  try { body = await r.json(); } catch (e) { body = {}; }
+  if (r.status === 401) sessionStorage.removeItem("tagdeflect-token");
+  return { ok: r.ok, status: r.status, body };
 }
 // The rate of the standard's controlled quantity (CMOD for EN 14651, else the net deflection)
 // against the standard's window for this beam (/api/status rate_windows; the report's): green

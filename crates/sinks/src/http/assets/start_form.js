@@ -78,6 +78,7 @@ async function loadSpecimens() {
     F.next = a.next || null;
     if (F.next && !$("f-specimen").value) $("f-specimen").value = "next";
     showRequires();
+    if (typeof renderSpecimenTable === "function") renderSpecimenTable();
   } catch (e) { /* as above */ }
 }
 // The stop's body: the crack entry typed beside the stop button, if any.

@@ -1,0 +1,151 @@
+//! A camera's learned edge profile through the frames ([`CameraProfile`]): when it is learned,
+//! how every tag of the camera is fitted with it, and how it is kept up to date (see
+//! [`crate::refine::EdgeProfile`] for what it is, docs/accuracy.md for the figures).
+//!
+//! **Start.** The first frames' tags are fitted with the parametric model, as before, and
+//! give their samples. As soon as they suffice (24 well-fitted edges and every node from
+//! 2.5 px inside the edge to 1.25 px outside it — in the first frame of a camera that sees
+//! ten tags), the profile is learned in that very frame by two rounds of the effective-PSF
+//! iteration (fit the frame's tags with the profile, learn it again from those fits), and
+//! the frame's tags are fitted with it before they leave the detector: from the first
+//! measured frame on, every corner comes from the same model, so the switch makes no step
+//! in the feed (a switch later in a test would move every edge by its old phase bias at once).
+//!
+//! **Running.** Every frame's fits add their samples; the profile is rebuilt after 1, 2, 4,
+//! …, 64 frames and then every 64 frames, from sums that forget slowly (see
+//! `refine::profile`): a rebuild changes the profile by its sampling noise only, far below
+//! a pixel's noise, so it makes no step either, while a slow change of the optics is
+//! followed. Tags found by a search (fitted by the library's refinement with the
+//! parametric model) are fitted again with the profile; tags confirmed at their predicted
+//! place are fitted with it directly. An edge the profile does not fit falls back to the
+//! parametric model.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+use super::refine::{refine_corners_warm, EdgeMemory, EdgeProfile, ProfileLearner, RefineOptions};
+use super::Detection;
+use tagdeflect_core::camera::Lens;
+use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::tags::TagFamily;
+
+/// Frames between rebuilds once the schedule 1, 2, 4, … has reached it.
+const MAX_REBUILD_INTERVAL: u64 = 64;
+
+/// A tag's key in a camera's memories.
+pub(crate) type TagKey = (TagFamily, u32);
+
+/// One camera's learned edge profile and its accumulation (see the module docs).
+#[derive(Debug, Default)]
+pub(crate) struct CameraProfile {
+    learner: ProfileLearner,
+    profile: Option<Arc<EdgeProfile>>,
+    /// Frames since the profile was first learned.
+    frames: u64,
+    /// The frame count at which it is next rebuilt.
+    next_build: u64,
+}
+
+impl CameraProfile {
+    /// The profile, once learned.
+    pub(crate) fn profile(&self) -> Option<Arc<EdgeProfile>> {
+        self.profile.clone()
+    }
+
+    /// After a frame's detection: learns from its tags (`confirmed`: those fitted at their
+    /// predicted place, whose fits are in `memories`), fits the searched ones with the
+    /// profile, and learns or rebuilds the profile when due (see the module docs).
+    pub(crate) fn after_frame(
+        &mut self,
+        image: &GrayImage,
+        found: &mut [Detection],
+        confirmed: &HashSet<TagKey>,
+        memories: &mut HashMap<TagKey, EdgeMemory>,
+        lens: Lens<'_>,
+        opts: &RefineOptions,
+    ) {
+        let one_pass = RefineOptions { passes: 1, ..opts.clone() };
+        let Some(profile) = self.profile.clone() else {
+            for d in found.iter() {
+                match memories.get(&(d.family, d.id)).filter(|_| confirmed.contains(&(d.family, d.id))) {
+                    Some(m) => self.learner.add_tag(image, m),
+                    None => self.learner.add_tag(image, &fit(image, d, lens, &one_pass, None).1),
+                }
+            }
+            if let Some(first) = self.learner.build() {
+                self.start(image, found, confirmed, memories, lens, &one_pass, first);
+            }
+            return;
+        };
+        for d in found.iter_mut() {
+            let key = (d.family, d.id);
+            match memories.get(&key).filter(|_| confirmed.contains(&key)) {
+                Some(m) => self.learner.add_tag(image, m),
+                None => {
+                    let (refit, m) = fit(image, d, lens, &one_pass, Some(&profile));
+                    *d = refit;
+                    self.learner.add_tag(image, &m);
+                }
+            }
+        }
+        self.frames += 1;
+        if self.frames >= self.next_build {
+            if let Some(p) = self.learner.build() {
+                self.profile = Some(Arc::new(p));
+            }
+            self.next_build = (2 * self.frames).min(self.frames + MAX_REBUILD_INTERVAL);
+        }
+    }
+
+    /// Learns the profile in the frame where enough samples came (see the module docs) and
+    /// fits the frame's tags with it.
+    #[allow(clippy::too_many_arguments)]
+    fn start(
+        &mut self,
+        image: &GrayImage,
+        found: &mut [Detection],
+        confirmed: &HashSet<TagKey>,
+        memories: &mut HashMap<TagKey, EdgeMemory>,
+        lens: Lens<'_>,
+        one_pass: &RefineOptions,
+        first: EdgeProfile,
+    ) {
+        let mut profile = Arc::new(first);
+        for round in 0..2 {
+            self.learner.clear();
+            for d in found.iter() {
+                self.learner.add_tag(image, &fit(image, d, lens, one_pass, Some(&profile)).1);
+            }
+            match self.learner.build() {
+                Some(p) => profile = Arc::new(p),
+                None => break,
+            }
+            tracing::debug!(round, edges = self.learner.edges(), "edge profile learned");
+        }
+        for d in found.iter_mut() {
+            let (refit, m) = fit(image, d, lens, one_pass, Some(&profile));
+            *d = refit;
+            let key = (d.family, d.id);
+            if confirmed.contains(&key) {
+                memories.insert(key, m);
+            }
+        }
+        self.profile = Some(profile);
+        (self.frames, self.next_build) = (0, 1);
+    }
+}
+
+/// `d` fitted again from its corners (one pass) with `profile` (or the parametric model):
+/// the refitted tag (corners that fail keep their value) and what the fit left.
+fn fit(
+    image: &GrayImage,
+    d: &Detection,
+    lens: Lens<'_>,
+    one_pass: &RefineOptions,
+    profile: Option<&Arc<EdgeProfile>>,
+) -> (Detection, EdgeMemory) {
+    let mut memory = EdgeMemory::default().with_profile(profile.cloned());
+    let mut refit = d.clone();
+    refine_corners_warm(image, &mut refit, lens, one_pass, &mut memory);
+    (refit, memory)
+}
