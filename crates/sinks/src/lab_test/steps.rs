@@ -37,9 +37,8 @@ impl LabTests {
         // A line exposed before the running test's start, or after the line that carried its
         // stop, or below the preload its method waits for, is no line of the test: the test's
         // events wait for its first line (its lines and its zero start at the preload).
-        let of_test = g.running.as_ref().map(|r| {
-            line.t_ns >= r.record.started_t_ns && r.ends.stop_line_t_ns.is_none() && !r.wait_for_preload(line)
-        });
+        let of_test =
+            g.running.as_ref().map(|r| line.t_ns >= r.record.started_t_ns && r.ends.stop_line_t_ns.is_none() && !r.wait_for_preload(line));
         if of_test != Some(false) {
             line.events.append(&mut g.pending);
         }

@@ -9,7 +9,8 @@ use super::{LabTests, TestRecord};
 
 /// A line every second, an hour before the clock (a recording played later).
 fn t(k: i64) -> i64 {
-    tagdeflect_core::clock::now_epoch_ns() / 1_000_000_000 * 1_000_000_000 - 3_600_000_000_000 + k * 1_000_000_000
+    static BASE: std::sync::OnceLock<i64> = std::sync::OnceLock::new();
+    *BASE.get_or_init(|| tagdeflect_core::clock::now_epoch_ns() / 1_000_000_000 * 1_000_000_000 - 3_600_000_000_000) + k * 1_000_000_000
 }
 
 fn read_lines(p: &std::path::Path) -> Vec<serde_json::Value> {

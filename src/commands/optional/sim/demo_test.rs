@@ -74,9 +74,7 @@ impl DemoTest {
         };
         let l900 = p.span_mm / 900.0;
         p.max_deflection_mm = p.span_mm / 150.0 + END_MARGIN_MM + 0.1;
-        p.rates = format!(
-            "{SEATING_MM_PER_MIN}:{SEATING_END_MM},{RATE_TO_L900_MM_PER_MIN}:{l900},{RATE_AFTER_L900_MM_PER_MIN}"
-        );
+        p.rates = format!("{SEATING_MM_PER_MIN}:{SEATING_END_MM},{RATE_TO_L900_MM_PER_MIN}:{l900},{RATE_AFTER_L900_MM_PER_MIN}");
         // The loading, then 20 s held (the stop and its report are made meanwhile).
         let rig = SimRig::new(&p).expect("the demo's test is valid");
         let loading_s = rig.rates_end_s().unwrap_or(0.0);
