@@ -61,7 +61,7 @@ pub enum SimCommand {
         c1609: Option<PathBuf>,
         /// With --c1609: play the simulated test this many times faster than recorded (the
         /// feed keeps the simulated times).
-        #[arg(long, default_value_t = 5.0, requires = "c1609")]
+        #[arg(long, default_value_t = 2.0, requires = "c1609")]
         speed: f64,
         /// With --c1609: two cameras with 2x2 sub-samples per pixel instead of three with 4x4
         /// (quicker to simulate).
