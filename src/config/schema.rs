@@ -200,7 +200,22 @@ impl Config {
         }
         let report_standard =
             self.report.as_ref().and_then(|r| serde_json::to_value(r.standard).ok()).and_then(|v| v.as_str().map(str::to_string));
-        let standard = c.standard.clone().or(report_standard);
+        let method = match (&c.method, &self.output.tests) {
+            (None, _) => None,
+            (Some(name), tests) => {
+                let tests = tests.as_deref().unwrap_or(std::path::Path::new("."));
+                match tagdeflect_core::method::library::find(tests, name) {
+                    Ok(m) => Some(m),
+                    Err(e) => return here(".method", e.to_string()),
+                }
+            }
+        };
+        if let (Some(m), Some(s)) = (&method, &c.standard) {
+            if *s != m.method.standard {
+                return here(".standard", format!("\"{s}\" but method {} is {}", m.method.name, m.method.standard));
+            }
+        }
+        let standard = method.as_ref().map(|m| m.method.standard.clone()).or(c.standard.clone()).or(report_standard);
         let span_mm = self.specimen.beam.as_ref().map(|b| b.span_mm);
         let cmod_gauge = self.cmod_gauge();
         if c.stop_at_end {
@@ -217,7 +232,13 @@ impl Config {
                 _ => {}
             }
         }
-        Ok(Some(tagdeflect_sinks::lab_test::auto::AutoRules { config: c.clone(), standard, span_mm, cmod_gauge }))
+        Ok(Some(tagdeflect_sinks::lab_test::auto::AutoRules {
+            config: c.clone(),
+            standard,
+            span_mm,
+            cmod_gauge,
+            method: method.map(|m| (m.method.clone(), m.reference())),
+        }))
     }
 }
 

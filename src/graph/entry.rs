@@ -38,6 +38,12 @@ pub struct LiveOptions {
     /// Smooth the lines with this many frame sets after them (`replay --smooth`: a fixed-lag
     /// RTS smoother over the temporal estimate, `estimate::smooth`); as-fast replays only.
     pub smooth_lag_sets: Option<usize>,
+    /// A replay that keeps its config's `[output] tests` (and `[output.auto_test]`): a
+    /// simulated test played as a live one (`demo --c1609`); other replays make no tests.
+    pub tests_in_replay: bool,
+    /// A replay ends with its recording even when the page is served (`demo --c1609 --no-http`,
+    /// whose page only carries the tests' control API).
+    pub no_linger: bool,
 }
 
 /// `run`, `record` and `demo`: live sources from the config.
@@ -86,6 +92,17 @@ pub fn replay_realtime_http(dir: &Path, config: Option<Config>, full_frame: bool
     let rec = open(dir, config)?;
     let playback = Playback { rec, pacing: Pacing::Recorded, progress: false };
     play(playback, LiveOptions { full_frame, http, ..LiveOptions::default() }, vec![FeedWriter::stdout()])
+}
+
+/// `demo --c1609`: a simulated test's recording at its pace (see
+/// [`tagdeflect_io::sources::playback::set_playback_speed`]) through the live pipeline with
+/// the config's tests' folder and automatic start and stop; the feed to stdout.
+/// `linger`: the page stays up after the recording until a signal.
+pub fn replay_as_test(dir: &Path, config: Config, http: Option<HttpOptions>, linger: bool) -> Result<()> {
+    let rec = open(dir, Some(config))?;
+    let playback = Playback { rec, pacing: Pacing::Recorded, progress: false };
+    let opts = LiveOptions { http, tests_in_replay: true, no_linger: !linger, ..LiveOptions::default() };
+    play(playback, opts, vec![FeedWriter::stdout()])
 }
 
 /// A recording's frames at their recorded pace through the live pipeline, the feed to

@@ -183,7 +183,7 @@ struct TestsOutput<'a>(Option<&'a Path>);
 
 impl BuildOutput for TestsOutput<'_> {
     fn build(&self, ctx: &OutputContext, out: &mut Outputs) -> Result<()> {
-        if !ctx.live_measuring() {
+        if !ctx.live_measuring() && !(ctx.opts.tests_in_replay && !ctx.opts.record_only) {
             return Ok(());
         }
         let Some(dir) = self.0 else {

@@ -73,12 +73,14 @@ struct RunKind {
     /// Every hand-off waits instead of dropping (an as-fast replay: see the module doc).
     lossless: bool,
     record_only: bool,
+    /// A replay's page stays up after it until a signal.
+    linger: bool,
 }
 
 impl RunKind {
     fn of(opts: &LiveOptions, playback: Option<&Playback>) -> Self {
         let lossless = playback.is_some_and(|p| p.pacing == Pacing::AsFast);
-        Self { replaying: playback.is_some(), lossless, record_only: opts.record_only }
+        Self { replaying: playback.is_some(), lossless, record_only: opts.record_only, linger: !opts.no_linger }
     }
 
     /// The run's mode as the page shows it.
@@ -487,7 +489,7 @@ impl RunEnd {
                 return Err(BadInput::new(format!("{dir}: no frame could be read, nothing was solved")).into());
             }
         }
-        if kind.replaying && page.is_served() {
+        if kind.replaying && kind.linger && page.is_served() {
             page.on_finished();
             signals.linger().await;
         }

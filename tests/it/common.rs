@@ -188,3 +188,20 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// `config/one-camera.toml` without its `[specimen.beam]` table (for tests that give their own).
+pub fn one_camera_without_beam() -> String {
+    let text = std::fs::read_to_string(root().join("config/one-camera.toml")).unwrap();
+    let mut out = String::new();
+    let mut skipping = false;
+    for line in text.lines() {
+        if line.starts_with('[') {
+            skipping = line.trim() == "[specimen.beam]";
+        }
+        if !skipping {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    out
+}

@@ -62,11 +62,6 @@ fn full_config() -> toml_edit::DocumentMut {
     let mut text = read("config/one-camera.toml");
     text.push_str(
         r#"
-[specimen.beam]
-width_mm = 150.0
-depth_mm = 150.0
-span_mm = 450.0
-
 [output.mqtt]
 url = "mqtt://127.0.0.1:1883"
 rig = "frame1"

@@ -215,7 +215,7 @@ fn report(feed: &Path, cfg: &Path, standard: &str, out: &Path) -> Output {
 
 /// The one-camera config with the given `[specimen.beam]` appended.
 fn config_with_beam(dir: &Path, beam: &str) -> PathBuf {
-    let base = fs::read_to_string(common::root().join("config/one-camera.toml")).unwrap();
+    let base = common::one_camera_without_beam();
     let p = dir.join("rig.toml");
     fs::write(&p, format!("{base}\n[specimen.beam]\n{beam}\n")).unwrap();
     p

@@ -29,7 +29,7 @@ fn read_json(p: &Path) -> serde_json::Value {
 
 /// The one-camera config (support tags 0, 2, midspan 1) with `[specimen.beam]` appended.
 fn config_with_beam(dir: &Path, beam: &str) -> PathBuf {
-    let base = fs::read_to_string(common::root().join("config/one-camera.toml")).unwrap();
+    let base = common::one_camera_without_beam();
     let p = dir.join("rig.toml");
     fs::write(&p, format!("{base}\n[specimen.beam]\n{beam}\n")).unwrap();
     p

@@ -196,6 +196,7 @@ pub fn build(
         max_gap_s: opts.max_gap_s,
         utm_gaps,
         utm_outages_s,
+        method: opts.method.as_ref(),
     });
     let mut lab = opts.lab.clone();
     if lab.test_date.is_none() {

@@ -54,6 +54,11 @@ pub struct ReportConfig {
     /// What the lab files with the values (specimen id, operator, dates, machine, ...).
     #[serde(default, skip_serializing_if = "LabInfo::is_empty")]
     pub lab: LabInfo,
+    /// The test's method as its file says (`test.json` `method`, the file of that hash): its
+    /// phases' rate windows and its end criterion replace the standard's built-in ones in the
+    /// validity. Not a config key: set from a test's record.
+    #[serde(skip)]
+    pub method: Option<tagdeflect_core::method::Method>,
 }
 
 /// `[report] response`: the flexural response the lab states for the specimen.
@@ -189,6 +194,7 @@ impl ReportConfig {
             max_gap_s: default_max_gap(),
             pdf: true,
             lab: LabInfo::default(),
+            method: None,
         }
     }
 

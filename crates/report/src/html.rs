@@ -314,7 +314,7 @@ fn method(h: &mut String, report: &Report) {
     method_curve(h, report);
     let _ = write!(h, "<li><b>Loads:</b> {}.</li>", esc(&report.load_source));
     for (phase, r, (lo, hi)) in &report.validity.rates {
-        let _ = write!(h, "<li><b>Rate {}:</b> {:.3} mm/min (the standard: {lo} to {hi} mm/min).</li>", esc(phase), r);
+        let _ = write!(h, "<li><b>Rate {}:</b> {:.3} mm/min (the window: {lo} to {hi} mm/min).</li>", esc(phase), r);
     }
     for u in &report.validity.unchecked {
         let _ = write!(h, "<li><b>Not checked:</b> {}</li>", esc(u));
@@ -324,8 +324,8 @@ fn method(h: &mut String, report: &Report) {
         let _ = write!(h, "<tr><td class=\"key\">{}</td><td>{}</td></tr>", e.key, esc(&e.method));
     }
     h.push_str("</table><h3>Rules and their sources</h3><table class=\"rules\"><tr><th>Rule</th><th>Source</th></tr>");
-    for r in crate::method_statement::rules(report.standard) {
-        let _ = write!(h, "<tr><td>{}</td><td>{}</td></tr>", esc(r.rule), esc(r.source));
+    for (rule, source) in crate::method_statement::rules_in_force(report.options.method.as_ref(), report.standard) {
+        let _ = write!(h, "<tr><td>{}</td><td>{}</td></tr>", esc(&rule), esc(&source));
     }
     h.push_str("</table>");
 }

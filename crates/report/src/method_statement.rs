@@ -70,6 +70,37 @@ pub fn rules(standard: Standard) -> Vec<RuleSource> {
     }
 }
 
+/// What a method file's rule key means, as the report's rule column says it.
+fn rule_meaning(rule: &str) -> &'static str {
+    match rule {
+        "requires" => "the dimensions the report needs (measured per specimen)",
+        "preload_kn" => "the preload at which the zero is taken",
+        "max_start_load_kn" => "no start (and no zero) above this load",
+        "phase" => "the rate of each phase of loading, checked over the phase",
+        "end" => "the end criterion the test is carried to",
+        "results" => "the results reported and how they are computed",
+        "validity" => "what makes a test invalid",
+        _ => "a rule of the method",
+    }
+}
+
+/// The rules in force with their sources, `(rule, source)`: the method file's own
+/// `[[source]]` rows when the test ran under a method (the file of its hash), else the
+/// built-in rules of `standard` ([`rules`]).
+pub fn rules_in_force(method: Option<&tagdeflect_core::method::Method>, standard: Standard) -> Vec<(String, String)> {
+    match method {
+        Some(m) => m
+            .sources
+            .iter()
+            .map(|s| {
+                let url = s.url.as_deref().map_or(String::new(), |u| format!(" ({u})"));
+                (format!("{}: {}", s.rule, rule_meaning(&s.rule)), format!("{}, {}{url}", s.document, s.clause))
+            })
+            .collect(),
+        None => rules(standard).into_iter().map(|r| (r.rule.to_string(), r.source.to_string())).collect(),
+    }
+}
+
 /// The sentence the report carries about the method in force: the test's method and the
 /// lab's review of it, its lack of review, or the built-in rules.
 pub fn statement(method: Option<&MethodInfo>, standard: Standard) -> String {

@@ -323,7 +323,11 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     root.insert("notes".into(), json!(report.notes));
     let method = report.test.as_ref().and_then(|t| t.method.as_ref());
     root.insert("method_statement".into(), json!(crate::method_statement::statement(method, report.standard)));
-    root.insert("rules".into(), json!(crate::method_statement::rules(report.standard)));
+    let rules: Vec<_> = crate::method_statement::rules_in_force(report.options.method.as_ref(), report.standard)
+        .into_iter()
+        .map(|(rule, source)| json!({"rule": rule, "source": source}))
+        .collect();
+    root.insert("rules".into(), json!(rules));
     root.insert("feed".into(), json!(report.feed_path.display().to_string()));
     if let Some((k, n)) = report_run(report) {
         root.insert("run".into(), json!({"index": k, "of": n}));

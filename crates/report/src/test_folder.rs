@@ -178,6 +178,9 @@ pub struct Prepared {
     pub opts: ReportConfig,
     /// Where each dimension came from.
     pub sources: DimensionSources,
+    /// Why the test's method could not be applied (its file not found, or changed since the
+    /// test): the report then applies the standard's built-in rules and warns.
+    pub method_warning: Option<String>,
 }
 
 /// The one function that builds the report's inputs of a test: `rig` and `opts` are the
@@ -208,7 +211,32 @@ pub fn prepare(
     if let Some(cast) = view.specimen_info.as_ref().and_then(|i| i.get("cast_date")).and_then(|v| v.as_str()) {
         lab.cast_date = Some(cast.to_string());
     }
-    Ok(Prepared { rig, opts, sources })
+    let (method, method_warning) = match &view.method {
+        Some(m) => method_of(m, record_path),
+        None => (None, None),
+    };
+    opts.method = method;
+    Ok(Prepared { rig, opts, sources, method_warning })
+}
+
+/// The method file a test ran under, found as at its start (the tests folder's `methods/`,
+/// else the shipped ones) and only when it is the very file the record names (its SHA-256);
+/// otherwise why not.
+fn method_of(m: &MethodInfo, record_path: &Path) -> (Option<tagdeflect_core::method::Method>, Option<String>) {
+    use tagdeflect_core::method::library;
+    let tests = record_path.parent().and_then(Path::parent).unwrap_or(Path::new("."));
+    match library::find(tests, &m.name) {
+        Ok(l) if m.sha256.as_deref().is_none_or(|h| h == l.sha256) => (Some(l.method), None),
+        Ok(l) => (
+            None,
+            Some(format!(
+                "the method {} file ({}) is not the one the test ran under (its SHA-256 differs): the standard's built-in rates and end were applied",
+                m.label(),
+                l.origin()
+            )),
+        ),
+        Err(e) => (None, Some(format!("the test's method {} was not found ({e}): the standard's built-in rates and end were applied", m.label()))),
+    }
 }
 
 /// The record's measured dimensions into `[specimen.beam]` (a beam made of them when the
@@ -277,6 +305,7 @@ pub fn build_test(
         r.beam_source = text;
     }
     apply_crack(&mut r, view.crack.as_ref());
+    r.qc.warnings.extend(prepared.method_warning.clone());
     if let Some(v) = view.verification.as_ref().filter(|v| !v.stale.is_empty()) {
         r.qc.warnings.push(format!("the verification in force is stale: {}", v.stale.join("; ")));
     }

@@ -79,6 +79,47 @@ pub(crate) struct Input<'a> {
     /// Gaps of the UTM stream longer than `max_gap_s`, s from the feed's start.
     pub utm_gaps: Vec<(f64, f64)>,
     pub utm_outages_s: f64,
+    /// The test's method: its phases' windows and its end replace the built-in ones.
+    pub method: Option<&'a tagdeflect_core::method::Method>,
+}
+
+/// A phase whose rate is checked: its name, where it starts and ends (mm of the gauge), its
+/// window (mm/min).
+struct RatePhase {
+    name: String,
+    from_mm: f64,
+    to_mm: f64,
+    window: (f64, f64),
+}
+
+/// The phases and the end (mm, its name) the test is checked against: the method's when the
+/// test names one, else the standard's built-in windows ([`rate_windows`]).
+fn phases_and_end(i: &Input, std_end: f64, end_name: &str, split_name: &str) -> (Vec<RatePhase>, f64, String) {
+    let Some(m) = i.method else {
+        let rw = rate_windows(i.standard, i.beam);
+        let split = rw.split_mm;
+        let phases = vec![
+            RatePhase { name: format!("up to {split_name}"), from_mm: 0.1 * split, to_mm: split, window: rw.below_mm_per_min },
+            RatePhase { name: format!("from {split_name} to {end_name}"), from_mm: split, to_mm: std_end, window: rw.above_mm_per_min },
+        ];
+        return (phases, std_end, end_name.to_string());
+    };
+    let span = i.beam.span_mm;
+    let (end, end_name) = match (m.end.at_mm, m.end.at_span_over) {
+        (_, Some(n)) => (span / n, format!("L/{n} = {:.2} mm", span / n)),
+        (Some(v), None) => (v, format!("{} = {v} mm", if m.end.gauge == "cmod" { "CMOD" } else { "net deflection" })),
+        (None, None) => (std_end, end_name.to_string()),
+    };
+    let mut phases = Vec::new();
+    let mut from: Option<f64> = None;
+    for p in m.phases_for(Some(i.beam.depth_mm)) {
+        let to = p.until_mm.or(p.until_span_over.map(|n| span / n)).unwrap_or(end);
+        let start = from.unwrap_or(0.1 * to);
+        let window = (p.rate_mm_per_min[0], p.rate_mm_per_min[1]);
+        phases.push(RatePhase { name: format!("in phase \"{}\" of method {}", p.name, m.name), from_mm: start, to_mm: to, window });
+        from = Some(to);
+    }
+    (phases, end, end_name)
 }
 
 fn t_of(feed: &Feed, t_ns: i64) -> f64 {
@@ -92,16 +133,16 @@ pub(crate) fn check(i: &Input) -> Validity {
     let fc = i.feed_curve;
     let lc = i.load_curve;
     let xmax = fc.xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let rw = rate_windows(i.standard, i.beam);
-    let (rate_split, windows) = (rw.split_mm, [rw.below_mm_per_min, rw.above_mm_per_min]);
-    let (end, end_name, split_name): (f64, String, String) = match i.standard {
+    let (std_end, std_end_name, split_name): (f64, String, String) = match i.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => {
             let l = i.beam.span_mm;
             (l / 150.0, format!("L/150 = {:.2} mm", l / 150.0), format!("L/900 = {:.3} mm", l / 900.0))
         }
         Standard::En14651 => (3.5, "CMOD = 3.5 mm".into(), "CMOD = 0.1 mm".into()),
     };
-    if i.standard == Standard::AstmC1856 {
+    let (phases, end_at, end_at_name) = phases_and_end(i, std_end, &std_end_name, &split_name);
+    let (end, end_name) = (std_end, std_end_name);
+    if i.standard == Standard::AstmC1856 && i.method.is_none() {
         unchecked.push("ASTM C1856 refers its flexural test to ASTM C1609: C1609's rates were applied.".into());
     }
 
@@ -110,7 +151,10 @@ pub(crate) fn check(i: &Input) -> Validity {
         reasons
             .push(format!("The {} was already {:.3} mm at the first line: the test was not recorded from its start.", i.x_name, fc.xs[0]));
     }
-    if fc.crossing(end).is_none() {
+    if let Some(m) = i.method.filter(|_| fc.crossing(end_at).is_none()) {
+        reasons
+            .push(format!("The {} reached only {:.3} mm: the test ended early; method {} ends at {end_at_name}.", i.x_name, xmax, m.name));
+    } else if fc.crossing(end).is_none() {
         reasons.push(format!(
             "The {} reached only {:.3} mm: {} needs the test carried to {end_name}.",
             i.x_name,
@@ -171,11 +215,8 @@ pub(crate) fn check(i: &Input) -> Validity {
 
     // Rates.
     let mut rates = Vec::new();
-    let phases = [
-        (format!("up to {split_name}"), 0.1 * rate_split, rate_split, windows[0]),
-        (format!("from {split_name} to {end_name}"), rate_split, end, windows[1]),
-    ];
-    for (name, lo, hi, (wlo, whi)) in phases {
+    let asks = if i.method.is_some() { "the method asks" } else { "the standard asks" };
+    for RatePhase { name, from_mm: lo, to_mm: hi, window: (wlo, whi) } in phases {
         // The first pass through the phase (a later unloading is another fault).
         let idx: Vec<usize> = match (0..fc.len()).find(|&k| fc.xs[k] >= lo) {
             Some(s) => (s..fc.len()).take_while(|&k| fc.xs[k] <= hi).collect(),
@@ -193,11 +234,7 @@ pub(crate) fn check(i: &Input) -> Validity {
         let rate = slope(&ts, &xs) * 60.0;
         rates.push((name.clone(), rate, (wlo, whi)));
         if !(wlo..=whi).contains(&rate) {
-            reasons.push(format!(
-                "The {} increased at {} mm/min {name}; the standard asks for {wlo} to {whi} mm/min.",
-                i.x_name,
-                fmt_rate(rate)
-            ));
+            reasons.push(format!("The {} increased at {} mm/min {name}; {asks} for {wlo} to {whi} mm/min.", i.x_name, fmt_rate(rate)));
         }
     }
 
@@ -271,304 +308,4 @@ fn slope(t: &[f64], y: &[f64]) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
-    //! Each rule on a hand-made test: one fault at a time, the sentence asserted exactly, and
-    //! the fault just inside the rule's tolerance passing.
-
-    use super::*;
-    use crate::config::Response;
-    use tagdeflect_core::feed::FeedLine;
-
-    const T0: i64 = 1_767_225_600_000_000_000;
-    /// σ of every deflection (CMOD) reading, mm.
-    const SIGMA: f64 = 0.002;
-    /// Time between feed lines, s.
-    const DT: f64 = 0.5;
-
-    fn c1609_beam() -> BeamConfig {
-        BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, ..Default::default() }
-    }
-
-    fn en_beam() -> BeamConfig {
-        BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 500.0, notch_mm: Some(25.0), ..Default::default() }
-    }
-
-    /// Elastic to 40 kN at 0.05 mm, a drop to 30 kN, softening to 20 kN at 0.5 mm, 10 kN at 5 mm.
-    fn softening(x: f64) -> f64 {
-        if x <= 0.05 {
-            800.0 * x
-        } else if x <= 0.5 {
-            30.0 - 10.0 * (x - 0.05) / 0.45
-        } else {
-            20.0 - 10.0 * (x - 0.5) / 4.5
-        }
-    }
-
-    /// Against CMOD: elastic to 16 kN at 0.03 mm, a drop to 12 kN, then down to 8 kN at 4 mm.
-    fn notched(x: f64) -> f64 {
-        if x <= 0.03 {
-            16.0 / 0.03 * x
-        } else {
-            12.0 - 4.0 * (x - 0.03) / 3.97
-        }
-    }
-
-    /// `x` every `DT` s: 5 s at rest, then `rate` mm/min (`rate2` beyond CMOD 0.1 mm) to `x_end`.
-    fn ramp(rate: f64, rate2: Option<f64>, x_end: f64) -> Vec<f64> {
-        let mut xs = vec![0.0; 10];
-        let mut x: f64 = 0.0;
-        while x < x_end - 1e-9 {
-            let r = match rate2 {
-                Some(r2) if x >= 0.1 - 1e-12 => r2,
-                _ => rate,
-            };
-            x = (x + r / 60.0 * DT).min(x_end);
-            xs.push(x);
-        }
-        xs
-    }
-
-    /// The C1609 test at 0.08 mm/min to 3.2 mm (L/150 = 3 mm).
-    fn c1609_x() -> Vec<f64> {
-        ramp(0.08, None, 3.2)
-    }
-
-    /// The EN 14651 test at 0.05 then 0.2 mm/min to CMOD 3.6 mm.
-    fn en_x() -> Vec<f64> {
-        ramp(0.05, Some(0.2), 3.6)
-    }
-
-    /// A test as the check sees it: times (s from the first line), x, load.
-    struct Case {
-        standard: Standard,
-        beam: BeamConfig,
-        t_s: Vec<f64>,
-        x: Vec<f64>,
-        load: Vec<f64>,
-        utm_gaps: Vec<(f64, f64)>,
-        utm_outages_s: f64,
-        max_gap_s: f64,
-    }
-
-    impl Case {
-        fn new(standard: Standard, x: Vec<f64>) -> Case {
-            let law = if standard == Standard::En14651 { notched } else { softening };
-            let load = x.iter().map(|&v| law(v)).collect();
-            let beam = if standard == Standard::En14651 { en_beam() } else { c1609_beam() };
-            let t_s = (0..x.len()).map(|k| k as f64 * DT).collect();
-            Case { standard, beam, t_s, x, load, utm_gaps: Vec::new(), utm_outages_s: 0.0, max_gap_s: 2.0 }
-        }
-
-        /// Drops the lines with `from < t < to`.
-        fn without(mut self, from: f64, to: f64) -> Case {
-            let keep: Vec<bool> = self.t_s.iter().map(|&t| !(t > from && t < to)).collect();
-            let pick = |v: &[f64]| v.iter().zip(&keep).filter(|(_, k)| **k).map(|(v, _)| *v).collect::<Vec<f64>>();
-            (self.t_s, self.x, self.load) = (pick(&self.t_s), pick(&self.x), pick(&self.load));
-            self
-        }
-
-        fn check(&self) -> Validity {
-            let n = self.t_s.len();
-            let t_ns: Vec<i64> = self.t_s.iter().map(|t| T0 + (t * 1e9).round() as i64).collect();
-            // No smoothing: the sentences' numbers are the readings'.
-            let curve = Curve::new(t_ns.clone(), self.load.clone(), self.x.clone(), vec![Some(SIGMA); n], 0.0, 1, 0.0, "x").unwrap();
-            let feed = Feed {
-                path: "feed.jsonl".into(),
-                lines: t_ns.iter().enumerate().map(|(k, &t_ns)| FeedLine { seq: k as u64, t_ns, ..Default::default() }).collect(),
-                line_numbers: (1..=n).collect(),
-                warnings: Vec::new(),
-                run: None,
-                summary: Default::default(),
-            };
-            let x_name = if self.standard == Standard::En14651 { "CMOD" } else { "net deflection" };
-            check(&Input {
-                standard: self.standard,
-                response: Response::Softening,
-                beam: &self.beam,
-                feed_curve: &curve,
-                load_curve: &curve,
-                feed: &feed,
-                x_name,
-                max_gap_s: self.max_gap_s,
-                utm_gaps: self.utm_gaps.clone(),
-                utm_outages_s: self.utm_outages_s,
-            })
-        }
-    }
-
-    /// The reasons of a verdict that must be invalid.
-    fn reasons(v: &Validity) -> Vec<String> {
-        assert!(!v.valid, "must be invalid");
-        v.reasons.clone()
-    }
-
-    fn assert_valid(what: &str, v: &Validity) {
-        assert!(v.valid && v.reasons.is_empty(), "{what}: {:?}", v.reasons);
-    }
-
-    #[test]
-    fn the_clean_tests_the_faults_are_made_from_are_valid() {
-        for (standard, x) in [(Standard::AstmC1609, c1609_x()), (Standard::AstmC1856, c1609_x()), (Standard::En14651, en_x())] {
-            let v = Case::new(standard, x).check();
-            assert_valid(standard.id(), &v);
-            assert_eq!(v.rates.len(), 2, "{}: both phases' rates measured", standard.id());
-        }
-    }
-
-    /// An unloading (load cycles): the deflection goes back by 0.3 mm after L/150.
-    #[test]
-    fn a_deflection_that_goes_back_is_not_monotonic_loading() {
-        let with_dip = |depths: &[f64]| {
-            let x = c1609_x();
-            let i0 = x.iter().position(|&v| v >= 3.1 - 1e-9).unwrap();
-            let top = x[i0];
-            let mut y = x[..=i0].to_vec();
-            y.extend(depths.iter().map(|d| top - d));
-            y.extend_from_slice(&x[i0 + 1..]);
-            (Case::new(Standard::AstmC1609, y), i0)
-        };
-        // Down 0.3 mm in six steps, up again in five.
-        let depths: Vec<f64> = (1..=6).map(|j| 0.05 * j as f64).chain((1..=5).rev().map(|j| 0.05 * j as f64)).collect();
-        let (case, i0) = with_dip(&depths);
-        let t = (i0 + 6) as f64 * DT;
-        assert_eq!(
-            reasons(&case.check()),
-            [format!(
-                "The net deflection went back by 0.300 mm (from 3.100 mm to 2.800 mm, {t:.1} s into the feed): the loading was not \
-                 monotonic (load cycles or an unloading); the standard loads continuously."
-            )]
-        );
-        // One reading back by 6 σ is a fault, by 4 σ (the readings' scatter) is not.
-        let (case, i0) = with_dip(&[6.0 * SIGMA]);
-        let t = (i0 + 1) as f64 * DT;
-        assert_eq!(
-            reasons(&case.check()),
-            [format!(
-                "The net deflection went back by 0.012 mm (from 3.100 mm to 3.088 mm, {t:.1} s into the feed): the loading was not \
-                 monotonic (load cycles or an unloading); the standard loads continuously."
-            )]
-        );
-        assert_valid("back by 4 σ", &with_dip(&[4.0 * SIGMA]).0.check());
-    }
-
-    /// A load cell not zeroed: the load starts at 3 kN (7 % of the 43 kN peak); 2 kN (4.7 %,
-    /// within 5 % of the peak) passes.
-    #[test]
-    fn a_load_not_starting_near_zero_is_named() {
-        let offset = |dp: f64| {
-            let mut c = Case::new(Standard::AstmC1609, c1609_x());
-            c.load.iter_mut().for_each(|p| *p += dp);
-            c.check()
-        };
-        assert_eq!(
-            reasons(&offset(3.0)),
-            ["The load was already 3.00 kN at the first point (7 % of the peak load): the test was not recorded from its start, \
-              or the load cell was not zeroed."]
-        );
-        assert_valid("2 kN at the start", &offset(2.0));
-        // EN 14651 the same way (peak 16 kN: 1.5 kN is 9 %).
-        let mut c = Case::new(Standard::En14651, en_x());
-        c.load.iter_mut().for_each(|p| *p += 1.5);
-        assert_eq!(
-            reasons(&c.check()),
-            ["The load was already 1.50 kN at the first point (9 % of the peak load): the test was not recorded from its start, \
-              or the load cell was not zeroed."]
-        );
-    }
-
-    /// A deflection not zeroed (0.2 mm at the first line), and a feed that starts mid-test
-    /// (at 0.5 mm, 20 kN): the deflection and the load are named.
-    #[test]
-    fn a_test_not_recorded_from_its_start_is_named() {
-        let mut c = Case::new(Standard::AstmC1609, c1609_x());
-        c.x.iter_mut().for_each(|x| *x += 0.2);
-        assert_eq!(
-            reasons(&c.check()),
-            ["The net deflection was already 0.200 mm at the first line: the test was not recorded from its start."]
-        );
-        // Within 5 σ + 1 % of L/150 (0.04 mm) of zero: valid.
-        let mut c = Case::new(Standard::AstmC1609, c1609_x());
-        c.x.iter_mut().for_each(|x| *x += 0.03);
-        assert_valid("0.03 mm at the start", &c.check());
-        // Started at 0.5 mm.
-        let x: Vec<f64> = c1609_x().into_iter().skip_while(|&x| x < 0.5 - 1e-9).collect();
-        let r = reasons(&Case::new(Standard::AstmC1609, x).check());
-        assert!(
-            r.contains(&"The net deflection was already 0.500 mm at the first line: the test was not recorded from its start.".to_string()),
-            "{r:?}"
-        );
-        assert!(
-            r.contains(
-                &"The load was already 20.00 kN at the first point (100 % of the peak load): the test was not recorded from its start, \
-                  or the load cell was not zeroed."
-                    .to_string()
-            ),
-            "{r:?}"
-        );
-    }
-
-    /// Stopped before L/150 (C1609, C1856) or CMOD 3.5 mm (EN 14651).
-    #[test]
-    fn a_test_stopped_before_its_end_reached_only() {
-        let x: Vec<f64> = c1609_x().into_iter().take_while(|&x| x <= 2.5 + 1e-9).collect();
-        assert_eq!(
-            reasons(&Case::new(Standard::AstmC1609, x.clone()).check()),
-            ["The net deflection reached only 2.500 mm: ASTM C1609 needs the test carried to L/150 = 3.00 mm."]
-        );
-        assert_eq!(
-            reasons(&Case::new(Standard::AstmC1856, x).check()),
-            ["The net deflection reached only 2.500 mm: ASTM C1856 (its flexural test, ASTM C1609) needs the test carried to L/150 = 3.00 mm."]
-        );
-        let x: Vec<f64> = en_x().into_iter().take_while(|&x| x <= 3.0 + 1e-9).collect();
-        assert_eq!(
-            reasons(&Case::new(Standard::En14651, x).check()),
-            ["The CMOD reached only 3.000 mm: EN 14651 needs the test carried to CMOD = 3.5 mm."]
-        );
-        // Just past the end: valid.
-        let x: Vec<f64> = en_x().into_iter().take_while(|&x| x <= 3.51).collect();
-        assert_valid("CMOD to 3.51 mm", &Case::new(Standard::En14651, x).check());
-    }
-
-    /// Lines missing for 3.5 s, UTM samples missing, the UTM unreachable.
-    #[test]
-    fn gaps_and_outages_in_the_feed_and_the_utm_stream_are_named() {
-        let base = || Case::new(Standard::AstmC1609, c1609_x());
-        assert_eq!(
-            reasons(&base().without(1000.0, 1003.5).check()),
-            ["The feed has 1 gap(s) longer than 2 s without a line (the longest 3.5 s, from 1000.0 s to 1003.5 s into the feed): \
-              the curve is not measured there."]
-        );
-        assert_eq!(
-            reasons(&base().without(1000.0, 1003.5).without(1500.0, 1505.0).check()),
-            ["The feed has 2 gap(s) longer than 2 s without a line (the longest 5.0 s, from 1500.0 s to 1505.0 s into the feed): \
-              the curve is not measured there."]
-        );
-        // 1.5 s without a line is within max_gap_s (2 s); 3.5 s is within a max_gap_s of 5 s.
-        assert_valid("a 1.5 s gap", &base().without(1000.0, 1001.5).check());
-        let mut c = base().without(1000.0, 1003.5);
-        c.max_gap_s = 5.0;
-        assert_valid("a 3.5 s gap, max_gap_s 5", &c.check());
-
-        let mut c = base();
-        c.utm_gaps = vec![(100.0, 104.5), (2000.0, 2002.5)];
-        assert_eq!(
-            reasons(&c.check()),
-            ["The UTM stream has 2 gap(s) longer than 2 s (the longest 4.5 s, from 100.0 s to 104.5 s into the feed): the load is not \
-              known there."]
-        );
-        let mut c = base();
-        c.utm_outages_s = 3.0;
-        assert_eq!(reasons(&c.check()), ["The UTM was unreachable for 3.0 s during the test: the load is not known then."]);
-        // All at once: each named once, in the order of the rules.
-        let mut c = base().without(1000.0, 1003.5);
-        c.utm_gaps = vec![(100.0, 104.5)];
-        c.utm_outages_s = 3.0;
-        let r = reasons(&c.check());
-        assert_eq!(r.len(), 3, "{r:?}");
-        assert!(
-            r[0].starts_with("The feed has 1 gap(s)")
-                && r[1].starts_with("The UTM stream has 1 gap(s)")
-                && r[2].starts_with("The UTM was unreachable")
-        );
-    }
-}
+mod tests;

@@ -23,6 +23,9 @@ impl SimRig {
         let s = (t_ns - p.start_ns) as f64 * 1e-9;
         let period = 1.0 / p.fps;
         let rest = p.rest_frames as f64 * period;
+        if !self.rate_phases.is_empty() {
+            return at_rates(&self.rate_phases, s - rest);
+        }
         let ramp = (p.frame_sets as f64 - 1.0 - p.rest_frames as f64 - p.hold_frames as f64).max(0.0) * period;
         let max = p.max_deflection_mm;
         if ramp <= 0.0 {
@@ -41,6 +44,18 @@ impl SimRig {
         } else {
             (1.0 - (u - rest - ramp) / ramp) * max
         }
+    }
+
+    /// The time (s after the rest) at which a test loaded at rates (`rates`) reaches its last
+    /// phase's end (then held); `None` for the ramp.
+    pub fn rates_end_s(&self) -> Option<f64> {
+        let mut t = 0.0;
+        let mut from = 0.0;
+        for &(rate, until) in &self.rate_phases {
+            t += (until - from).max(0.0) / rate * 60.0;
+            from = until;
+        }
+        (!self.rate_phases.is_empty()).then_some(t)
     }
 
     /// The beam's deformation at midspan deflection `d` (mm); in a verification run, the
@@ -128,6 +143,24 @@ impl SimRig {
     }
 }
 
+/// The deflection `s` seconds after the rest of a test loaded at `phases` (mm/min, until mm):
+/// each phase's rate up to its end, held at the last end.
+fn at_rates(phases: &[(f64, f64)], mut s: f64) -> f64 {
+    let mut d = 0.0;
+    for &(rate, until) in phases {
+        if s <= 0.0 {
+            break;
+        }
+        let need = (until - d).max(0.0) / rate * 60.0;
+        if s < need {
+            return d + rate / 60.0 * s;
+        }
+        s -= need;
+        d = until.max(d);
+    }
+    d
+}
+
 #[cfg(test)]
 mod tests {
     use crate::params::SimParams;
@@ -154,6 +187,33 @@ mod tests {
         let d = deflections(SimParams { rest_frames: 4, hold_frames: 6, ..base.clone() });
         assert!(d[..4].iter().all(|&v| v == 0.0) && d[4..].iter().all(|&v| v == 1.0), "{d:?}");
         assert!(SimParams { hold_frames: 1, cyclic: true, ..base }.validate().unwrap_err().to_string().contains("hold_frames"));
+    }
+
+    #[test]
+    fn a_test_at_rates_follows_each_phase_s_rate_and_holds_at_the_end() {
+        let p = SimParams {
+            cameras: 1,
+            width: 320,
+            height: 240,
+            frame_sets: 600,
+            fps: 1.0,
+            rest_frames: 5,
+            max_deflection_mm: 1.0,
+            rates: "0.06:0.3,0.3".into(),
+            ..SimParams::default()
+        };
+        let rig = SimRig::new(&p).unwrap();
+        let at = |s: f64| rig.midspan_deflection(p.start_ns + (s * 1e9) as i64);
+        assert_eq!(at(4.0), 0.0);
+        assert!((at(5.0 + 60.0) - 0.06).abs() < 1e-9, "0.06 mm/min");
+        assert!((at(5.0 + 300.0) - 0.3).abs() < 1e-9, "0.3 mm at 5 min");
+        assert!((at(5.0 + 360.0) - 0.6).abs() < 1e-9, "then 0.3 mm/min");
+        assert!((at(5.0 + 440.0) - 1.0).abs() < 1e-9 && (at(5.0 + 590.0) - 1.0).abs() < 1e-9, "held at the maximum");
+        assert_eq!(rig.rates_end_s(), Some(300.0 + 140.0));
+        for bad in ["0.06:x", "0.06:0.3,x", "0.06:0.3,0.1:0.2", "-1"] {
+            let e = SimParams { rates: bad.into(), ..p.clone() }.validate().unwrap_err();
+            assert!(e.to_string().contains("rates"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -232,6 +232,14 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value = ""))]
     #[serde(skip_serializing_if = "String::is_empty")]
     pub verify_steps: String,
+    /// A test loaded at given rates instead of the ramp over `frame_sets`: the midspan
+    /// deflection's rate by phase, `RATE[:UNTIL_MM],…` in mm/min (e.g. "0.075:0.5,0.25": 0.075
+    /// mm/min up to 0.5 mm, then 0.25 mm/min), after the rest and up to `max_deflection_mm`
+    /// (held there); a standard's loading in simulated time. Takes the place of `cyclic`.
+    /// Empty: the ramp.
+    #[cfg_attr(feature = "clap", arg(long, default_value = ""))]
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub rates: String,
     /// With `verify_steps`: the half width (mm, along the beam from midspan) of the block a
     /// stage moves, the rest of the bar held still — a two-part verification target whose
     /// midspan tags drop by the steps while the support tags stay, so the net deflection (and
@@ -384,6 +392,34 @@ fn is_default_notch_width(v: &f64) -> bool {
 }
 
 impl SimParams {
+    /// The phases of a test loaded at rates (`rates`): `(mm/min, until mm)`, the last until
+    /// `max_deflection_mm`; empty for the ramp.
+    pub fn rate_phases(&self) -> Result<Vec<(f64, f64)>, Problem> {
+        let text = self.rates.trim();
+        if text.is_empty() {
+            return Ok(Vec::new());
+        }
+        let bad = |v: &str| Problem::new("rates", format!("{v:?}: expected RATE[:UNTIL_MM],… in mm/min and mm, positive, rising"));
+        let mut phases = Vec::new();
+        let mut last_until = 0.0;
+        let parts: Vec<&str> = text.split(',').collect();
+        for (k, part) in parts.iter().enumerate() {
+            let mut it = part.split(':').map(|v| v.trim().parse::<f64>().ok().filter(|x| x.is_finite() && *x > 0.0));
+            let rate = it.next().flatten().ok_or_else(|| bad(part))?;
+            let until = match it.next() {
+                Some(u) => u.ok_or_else(|| bad(part))?,
+                None if k + 1 == parts.len() => self.max_deflection_mm,
+                None => return Err(bad(part)),
+            };
+            if it.next().is_some() || until <= last_until {
+                return Err(bad(part));
+            }
+            last_until = until;
+            phases.push((rate, until.min(self.max_deflection_mm)));
+        }
+        Ok(phases)
+    }
+
     /// The positions of a verification run (`verify_steps`), mm downward; empty for a test.
     pub fn verify_positions_mm(&self) -> Result<Vec<f64>, Problem> {
         let text = self.verify_steps.trim();
@@ -446,6 +482,7 @@ impl Default for SimParams {
             rest_frames: 3,
             hold_frames: 0,
             verify_steps: String::new(),
+            rates: String::new(),
             verify_stage_half_width_mm: 0.0,
             cyclic: false,
             beam_length_mm: 550.0,

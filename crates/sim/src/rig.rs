@@ -45,6 +45,8 @@ pub struct SimRig {
     pub(crate) optics: Optics,
     /// A verification run's positions (`verify_steps`), mm; empty for a test.
     pub(crate) verify_steps_mm: Vec<f64>,
+    /// A test loaded at rates (`rates`): `(mm/min, until mm)`; empty for the ramp.
+    pub(crate) rate_phases: Vec<(f64, f64)>,
 }
 
 impl std::fmt::Debug for SimRig {
@@ -93,6 +95,7 @@ impl SimRig {
             cams,
             optics: Optics::of(&optics_spec(params)),
             verify_steps_mm: params.verify_positions_mm()?,
+            rate_phases: params.rate_phases()?,
         })
     }
 

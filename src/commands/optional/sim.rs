@@ -3,6 +3,9 @@
 
 use std::path::PathBuf;
 
+mod demo_test;
+pub use demo_test::{DemoTest, RATE_AFTER_L900_MM_PER_MIN, RATE_TO_L900_MM_PER_MIN};
+
 use anyhow::Result;
 use clap::Subcommand;
 use tagdeflect_io::recording::FrameFormat;
@@ -50,6 +53,20 @@ pub enum SimCommand {
         /// read-only Modbus TCP server at ADDR (IP:PORT; see docs/control.md).
         #[arg(long, value_name = "ADDR", value_parser = parse_control_addr)]
         control: Option<std::net::SocketAddr>,
+        /// A test a lab would accept instead of the endless cycles: a cracking, softening
+        /// beam loaded at ASTM C1609's rates in simulated time, started and stopped
+        /// automatically, its report made at stop (docs/simulation.md). The recording and
+        /// the tests' folder (`DIR/recording`, `DIR/tests`) go to DIR.
+        #[arg(long, value_name = "DIR", conflicts_with_all = ["config", "control", "duration_s", "tests"])]
+        c1609: Option<PathBuf>,
+        /// With --c1609: play the simulated test this many times faster than recorded (the
+        /// feed keeps the simulated times).
+        #[arg(long, default_value_t = 2.0, requires = "c1609")]
+        speed: f64,
+        /// With --c1609: two cameras with 2x2 sub-samples per pixel instead of three with 4x4
+        /// (quicker to simulate).
+        #[arg(long, requires = "c1609")]
+        small: bool,
     },
 }
 
@@ -58,7 +75,17 @@ impl SimCommand {
     pub fn run(self) -> Result<()> {
         match self {
             SimCommand::Simulate { out, frame_format, params } => simulate(&out, frame_format, &params),
-            SimCommand::Demo { duration_s, config, http, no_http, tests, control } => {
+            SimCommand::Demo { c1609: Some(root), speed, small, http, no_http, .. } => {
+                if !(speed.is_finite() && speed > 0.0 && speed <= 1000.0) {
+                    return Err(tagdeflect_core::BadInput::new(format!("--speed {speed}: a factor above 0, at most 1000")).into());
+                }
+                // The tests' control API lives on the page: without one asked for, a free
+                // loopback port serves it.
+                let any_port = std::net::SocketAddr::from(([127, 0, 0, 1], 0));
+                let http = demo_http(http, no_http, false)?.or_else(|| http_options(Some(any_port), true));
+                DemoTest { speed, small, root }.run(http, !no_http).map(|_| ())
+            }
+            SimCommand::Demo { duration_s, config, http, no_http, tests, control, .. } => {
                 let mut cfg = match config {
                     Some(p) => Config::load(&p)?,
                     None => Config::demo(),

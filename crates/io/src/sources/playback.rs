@@ -23,6 +23,31 @@ pub const MAX_PLAYED_GAP: Duration = Duration::from_secs(5);
 /// exposure → feed line and register from it (a frame's exposure is its due time after it).
 static LAST_START: std::sync::Mutex<Option<Instant>> = std::sync::Mutex::new(None);
 
+/// How many times faster than recorded the playbacks of this process play (1 unless set;
+/// `demo` plays its simulated test faster, the feed keeping the recorded times), as f64 bits.
+static SPEED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0x3FF0_0000_0000_0000);
+
+/// Plays every recording of this process `speed` times faster than recorded (a finite number
+/// above 0; others are ignored). The frames and UTM samples keep their recorded times.
+pub fn set_playback_speed(speed: f64) {
+    if speed.is_finite() && speed > 0.0 {
+        SPEED.store(speed.to_bits(), std::sync::atomic::Ordering::SeqCst);
+    }
+}
+
+fn playback_speed() -> f64 {
+    f64::from_bits(SPEED.load(std::sync::atomic::Ordering::SeqCst))
+}
+
+/// A recorded interval as played at the process's speed.
+fn played(recorded: Duration, speed: f64) -> Duration {
+    if speed == 1.0 {
+        recorded
+    } else {
+        recorded.div_f64(speed)
+    }
+}
+
 /// The start of the newest playback of this process (see [`LAST_START`]).
 pub fn last_playhead_start() -> Option<Instant> {
     *LAST_START.lock().unwrap_or_else(|e| e.into_inner())
@@ -35,6 +60,8 @@ pub struct Playhead {
     /// The recording's distinct frame times, ascending, with when each is due after the start
     /// (recorded time since the first frame, each pause capped at [`MAX_PLAYED_GAP`]).
     schedule: Vec<(i64, Duration)>,
+    /// How many times faster than recorded ([`set_playback_speed`]).
+    speed: f64,
 }
 
 impl Playhead {
@@ -55,6 +82,7 @@ impl Playhead {
         let mut times: Vec<i64> = times.collect();
         times.sort_unstable();
         times.dedup();
+        let speed = playback_speed();
         let mut schedule = Vec::with_capacity(times.len());
         let mut due = Duration::ZERO;
         for (k, &t) in times.iter().enumerate() {
@@ -67,11 +95,11 @@ impl Playhead {
                         MAX_PLAYED_GAP.as_secs()
                     );
                 }
-                due += gap.min(MAX_PLAYED_GAP);
+                due += played(gap, speed).min(MAX_PLAYED_GAP);
             }
             schedule.push((t, due));
         }
-        Playhead { started: Instant::now(), schedule }
+        Playhead { started: Instant::now(), schedule, speed }
     }
 
     /// When something recorded at `t_ns` (a frame, a UTM sample) is due after the start: the
@@ -83,7 +111,7 @@ impl Playhead {
         }
         let (t, at) = self.schedule[k - 1];
         let rest = Duration::from_nanos(u64::try_from(t_ns as i128 - t as i128).unwrap_or(u64::MAX));
-        at + rest.min(MAX_PLAYED_GAP)
+        at + played(rest, self.speed).min(MAX_PLAYED_GAP)
     }
 
     /// How long until a frame recorded at `t_ns` is due (zero when due or late).

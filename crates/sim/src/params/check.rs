@@ -112,6 +112,9 @@ impl SimParams {
         if !steps.is_empty() && (self.frame_sets as usize) < steps.len() || (!steps.is_empty() && self.cyclic) {
             return bad("verify_steps", format!("{} steps: expected at least one frame set each and no cyclic load", steps.len()));
         }
+        if !self.rate_phases()?.is_empty() && !steps.is_empty() {
+            return bad("rates", "a verification run (verify_steps) has no loading rates");
+        }
         let stage = self.verify_stage_half_width_mm;
         if !finite_nonneg(stage) || stage >= 0.5 * self.span_mm || (stage > 0.0 && steps.is_empty()) {
             return bad(

@@ -62,6 +62,11 @@ pub struct AutoTestConfig {
     /// The standard of an automatically started test (default: `[report] standard`, if any).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub standard: Option<String>,
+    /// The method of an automatically started test (a shipped one or the lab's own in
+    /// `<tests>/methods/`): recorded in its `test.json`, its preload waited for, and its
+    /// `[end]` (net deflection or CMOD) where the test stops; its standard is the test's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
     /// Stop at the standard's end (default true).
     #[serde(default = "yes")]
     pub stop_at_end: bool,
@@ -127,6 +132,9 @@ pub struct AutoRules {
     pub span_mm: Option<f64>,
     /// The CMOD gauge (EN 14651's end).
     pub cmod_gauge: Option<String>,
+    /// The method of `[output.auto_test] method`, found when the config was read, and what a
+    /// test records of it.
+    pub method: Option<(tagdeflect_core::method::Method, tagdeflect_core::method::MethodRef)>,
 }
 
 /// What a test ends at, by its standard (the gauge's name borrowed from the rules: nothing
@@ -145,11 +153,36 @@ impl AutoRules {
         if !self.config.stop_at_end {
             return None;
         }
+        if let Some(m) = self.method.as_ref().map(|l| &l.0).filter(|m| Some(m.standard.as_str()) == standard) {
+            let at = m.end.at_mm.or(m.end.at_span_over.zip(self.span_mm).map(|(n, l)| l / n))?;
+            return match m.end.gauge.as_str() {
+                "cmod" => self.cmod_gauge.as_deref().map(|g| End::Gauge(g, at)),
+                _ => Some(End::Net(at + self.config.end_margin_mm)),
+            };
+        }
         match standard? {
             "astm-c1609" | "astm-c1856" => self.span_mm.map(|l| End::Net(l / 150.0 + self.config.end_margin_mm)),
             "en-14651" => self.cmod_gauge.as_deref().map(|g| End::Gauge(g, EN14651_END_CMOD_MM)),
             _ => None,
         }
+    }
+}
+
+impl AutoRules {
+    /// The net deflection's end as the stop's note names it: `L/150`, or the method's.
+    fn end_name(&self) -> String {
+        match self.method.as_ref().map(|l| &l.0) {
+            Some(m) => match m.end.at_span_over {
+                Some(n) => format!("L/{n} of method {}", m.name),
+                None => format!("the end of method {}", m.name),
+            },
+            None => "L/150".into(),
+        }
+    }
+
+    /// What an automatically started test records of its method, and the preload it waits for.
+    pub(super) fn method_of_start(&self) -> Option<(tagdeflect_core::method::MethodRef, Option<f64>)> {
+        self.method.as_ref().map(|(m, r)| (r.clone(), m.preload_kn))
     }
 }
 
@@ -280,7 +313,7 @@ impl AutoTest {
             Some(End::Net(at)) => self
                 .net_mm
                 .filter(|v| v >= at)
-                .map(|v| format!("net deflection {v:.3} mm reached the end {at:.3} mm (L/150 + {margin_mm:.2} mm)")),
+                .map(|v| format!("net deflection {v:.3} mm reached the end {at:.3} mm ({} + {margin_mm:.2} mm)", self.rules.end_name())),
             Some(End::Gauge(g, at)) => self.cmod_mm.filter(|v| v >= at).map(|v| format!("{g} {v:.3} mm reached EN 14651's end {at:.1} mm")),
             None => None,
         };
@@ -379,6 +412,7 @@ mod tests {
                 rearm_load_kn: None,
                 specimen: "auto".into(),
                 standard: None,
+                method: None,
                 stop_at_end: true,
                 end_margin_mm: 0.5,
                 stop_below_peak_fraction: 0.1,
@@ -386,6 +420,7 @@ mod tests {
             standard: standard.map(str::to_string),
             span_mm: Some(450.0),
             cmod_gauge: Some("cmod".into()),
+            method: None,
         }
     }
 
@@ -443,6 +478,35 @@ mod tests {
         assert_eq!(acts[1].0, 8 + 38 + 2, "{acts:?}");
         assert!(why.starts_with("auto: net deflection") && why.contains("L/150"), "{why}");
         assert_eq!(acts.len(), 2, "disarmed after the stop: the load is still high: {acts:?}");
+    }
+
+    #[test]
+    fn a_method_s_end_stops_the_test_there() {
+        use tagdeflect_core::method::{library, Method, SHIPPED};
+        let with = |text: &str| {
+            let m = Method::parse(text).unwrap();
+            let r = tagdeflect_core::method::MethodRef {
+                name: m.name.clone(),
+                version: m.version,
+                standard: m.standard.clone(),
+                sha256: library::sha256_hex(text.as_bytes()),
+                review: None,
+            };
+            AutoRules { method: Some((m, r)), ..rules(Some("astm-c1609")) }
+        };
+        let mut lines = vec![(Some(0.0), None, None); 2];
+        for k in 0..60 {
+            lines.push((Some(3.0), Some(0.1 * k as f64), None));
+        }
+        // C1609-19: L/150 = 3 mm (+ 0.5): net 3.5 on the 36th line of the test, confirmed two later.
+        let acts = drive(&mut AutoTest::new(with(SHIPPED[0].1)), &lines, 0);
+        let Action::Stop(why) = &acts[1].1 else { panic!("{acts:?}") };
+        assert!(why.contains("reached the end 3.500 mm (L/150 of method C1609-19 + 0.50 mm)"), "{why}");
+        // A lab's method ending at L/300: the test stops at 1.5 + 0.5 mm.
+        let l300 = SHIPPED[0].1.replace("at_span_over = 150.0", "at_span_over = 300.0");
+        let acts = drive(&mut AutoTest::new(with(&l300)), &lines, 0);
+        let Action::Stop(why) = &acts[1].1 else { panic!("{acts:?}") };
+        assert!(why.contains("reached the end 2.000 mm (L/300 of method C1609-19 + 0.50 mm)"), "{why}");
     }
 
     #[test]

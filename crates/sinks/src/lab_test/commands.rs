@@ -105,6 +105,7 @@ impl LabTests {
             written_t_ns: i64::MIN,
             curve: Vec::new(),
             ends: Default::default(),
+            preload_kn: None,
         };
         self.persist(&r);
         self.publish(&r.record);
@@ -238,6 +239,7 @@ impl LabTests {
                 "events": r.record.events,
                 "lines": r.record.lines,
                 "zeroing": r.zero.n < ZERO_SETS,
+                "preloading": r.preloading_status(),
                 "folder": r.folder,
             }),
             None => serde_json::json!({

@@ -132,6 +132,7 @@ impl LabTests {
             written_t_ns: p.last_line_t_ns,
             curve,
             ends: Default::default(),
+            preload_kn: None,
         };
         if p.phase == Phase::Stopping {
             return Ok(Some(r));

@@ -51,6 +51,7 @@ mod commands;
 mod crack;
 mod folder;
 pub mod meta;
+mod preload;
 pub mod record;
 pub mod specimens;
 mod start;
@@ -62,6 +63,8 @@ mod zero;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_auto_start;
 #[cfg(test)]
 mod tests_method;
 #[cfg(test)]

@@ -66,6 +66,7 @@ impl LabTests {
         let id = self.open(&mut g, meta, None, user)?;
         if let Some(r) = g.running.as_mut() {
             r.record.method = method.as_ref().map(library::Loaded::reference);
+            r.preload_kn = method.as_ref().and_then(|m| m.method.preload_kn);
             r.record.specimen_info = row.map(|s| with_age(s, r.record.started_t_ns));
             self.persist(r);
             self.publish(&r.record);

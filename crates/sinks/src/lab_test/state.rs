@@ -8,6 +8,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use sha2::Digest;
 use tagdeflect_core::feed::FeedEvent;
 use tagdeflect_core::feed_file::FeedWriter;
+use tagdeflect_core::utm_sample::UtmSample;
 
 use super::folder::hex;
 use super::zero::Zero;
@@ -42,6 +43,9 @@ pub(super) struct Running {
     pub(super) curve: Vec<(f64, f64)>,
     /// The test's first and last lines: a resume's gap, the stop's own line.
     pub(super) ends: Ends,
+    /// The preload its method asks for, kN, until the load reaches it: no zero is taken
+    /// below it ([`super::preload`]).
+    pub(super) preload_kn: Option<f64>,
 }
 
 /// What the running test's first line after a resume and its last line carry.
@@ -81,6 +85,9 @@ pub(super) struct Inner {
     pub(super) unfinished: Option<super::stopping::Unfinished>,
     /// Cameras bumped while this daemon ran (camera, when): a verification made before is stale.
     pub(super) bumps: Vec<(String, i64)>,
+    /// The UTM samples of the last [`RECENT_UTM_NS`](super::preload::RECENT_UTM_NS) while no
+    /// test runs: an automatic start keeps those from its line on ([`super::preload`]).
+    pub(super) recent_utm: std::collections::VecDeque<UtmSample>,
 }
 
 /// The tests of a daemon; see the module doc.

@@ -26,6 +26,7 @@ impl LabTests {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
                 match self.open(&mut g, meta, Some(why.clone()), None) {
                     Ok(id) => {
+                        self.auto_started(&mut g, line);
                         tracing::info!(test = %id, "test started automatically ({why})");
                         self.audit_auto_start(id, why);
                     }
@@ -34,8 +35,10 @@ impl LabTests {
             }
         }
         // A line exposed before the running test's start, or after the line that carried its
-        // stop, is no line of the test: the test's events wait for its first line.
-        let of_test = g.running.as_ref().map(|r| line.t_ns >= r.record.started_t_ns && r.ends.stop_line_t_ns.is_none());
+        // stop, or below the preload its method waits for, is no line of the test: the test's
+        // events wait for its first line (its lines and its zero start at the preload).
+        let of_test =
+            g.running.as_ref().map(|r| line.t_ns >= r.record.started_t_ns && r.ends.stop_line_t_ns.is_none() && !r.wait_for_preload(line));
         if of_test != Some(false) {
             line.events.append(&mut g.pending);
         }
@@ -120,10 +123,18 @@ impl LabTests {
     pub fn on_utm(&self, s: &UtmSample) {
         let mut g = self.lock();
         g.last_load = Some((s.load_kn, s.t_ns));
-        let Some(r) = g.running.as_mut() else { return };
+        let Some(r) = g.running.as_mut() else {
+            Self::keep_recent_utm(&mut g, s);
+            return;
+        };
         if s.t_ns < r.record.started_t_ns {
             return;
         }
+        Self::write_utm(r, s);
+    }
+
+    /// A UTM sample into the running test's folder.
+    pub(super) fn write_utm(r: &mut Running, s: &UtmSample) {
         match serde_json::to_string(s) {
             Ok(text) => {
                 if let Err(e) = r.utm.write_text(text) {

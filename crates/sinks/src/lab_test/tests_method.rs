@@ -53,7 +53,7 @@ fn a_start_takes_its_method_and_the_next_specimen_and_is_refused_when_its_report
         let mut l = FeedLine {
             seq: k as u64,
             t_ns: super::tests::t(k),
-            load_kn: Some(0.4 + 0.01 * k as f64),
+            load_kn: Some(0.5 + 0.01 * k as f64),
             net_deflection_mm: Some(0.0),
             ..FeedLine::default()
         };
@@ -77,7 +77,7 @@ fn a_start_takes_its_method_and_the_next_specimen_and_is_refused_when_its_report
     let info = record.specimen_info.as_ref().unwrap();
     assert_eq!((info.id.as_str(), info.mix.as_deref()), ("S1", Some("C40")));
     assert!(info.age_days.is_some_and(|d| d >= 35), "{info:?}");
-    assert_eq!(record.preload.as_ref().map(|p| p.load_kn), Some(0.4 + 0.01 * (ZERO_SETS - 1) as f64));
+    assert_eq!(record.preload.as_ref().map(|p| p.load_kn), Some(0.5 + 0.01 * (ZERO_SETS - 1) as f64));
     let crack = record.crack.as_ref().unwrap();
     assert!(!crack.inside_middle_third && crack.position_mm == -90.5);
     let kinds: Vec<&str> = record.events.iter().map(|e| e.kind.as_str()).collect();
