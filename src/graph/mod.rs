@@ -23,10 +23,10 @@ mod broker;
 #[cfg(not(feature = "mqtt"))]
 #[path = "broker_off.rs"]
 mod broker;
+pub mod control_file;
 pub mod entry;
 pub mod in_process;
 pub mod journal;
-pub mod control_file;
 pub mod lab_test;
 mod outputs;
 #[cfg(feature = "http")]

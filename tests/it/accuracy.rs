@@ -231,9 +231,9 @@ fn twelve_bit_frames_measure_at_full_depth_on_the_sharp_scene() {
             acc.disp_rms_mm, acc.vertical_rms_mm, acc.net_rms_mm, acc.within_2sigma
         );
         assert!(acc.disp_rms_mm <= 0.0033, "{label}: displacement RMS {}", acc.disp_rms_mm); // measured 0.00236 (8-bit), 0.00238 (12-bit)
-        // σ covers the errors (99.1 % within 2σ at both depths) but is on the safe side at this
-        // low noise (RMS error/σ 0.54 at 8 bits, below `sigma_honest`'s 0.6: item 4's concern,
-        // the same at both depths), so only the coverage is asserted here.
+                                                                                             // σ covers the errors (99.1 % within 2σ at both depths) but is on the safe side at this
+                                                                                             // low noise (RMS error/σ 0.54 at 8 bits, below `sigma_honest`'s 0.6: item 4's concern,
+                                                                                             // the same at both depths), so only the coverage is asserted here.
         let (w, z) = (acc.within_2sigma.expect("σ on the tags"), acc.z_rms.expect("σ on the tags"));
         println!("SIGMA {label}: {:.1} % within 2σ, RMS error/σ {z:.3}", 100.0 * w);
         assert!((0.90..=0.997).contains(&w), "{label}: {:.1} % of the errors within 2σ", 100.0 * w);

@@ -220,7 +220,13 @@ fn in_process_fake_camera_in_mono16_keeps_the_full_depth() {
         assert!((1..120).all(|y| (0..w - 1).all(|x| d[y * w + x] == d[(y - 1) * w + x + 1])), "not the fake camera's ramp");
         let distinct: std::collections::BTreeSet<u16> = d.iter().copied().collect();
         let low_bits_used = d.iter().any(|v| v & 0xff != 0);
-        println!("Mono16 frame {}: {} distinct values, {}..={}, low byte used: {low_bits_used}", f.seq, distinct.len(), d.iter().min().unwrap(), d.iter().max().unwrap());
+        println!(
+            "Mono16 frame {}: {} distinct values, {}..={}, low byte used: {low_bits_used}",
+            f.seq,
+            distinct.len(),
+            d.iter().min().unwrap(),
+            d.iter().max().unwrap()
+        );
         assert!(distinct.len() > 100, "a 16-bit ramp has many levels: {}", distinct.len());
     }
     // Without `full_depth` the same camera gives Mono8: no full-depth copy.

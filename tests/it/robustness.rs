@@ -637,8 +637,13 @@ fn mutation_fuzz() {
     let cfg_text = fs::read(root.join("config/one-camera.toml")).unwrap();
     let mut pgm = b"P5\n16 12\n255\n".to_vec();
     pgm.extend((0..192).map(|i| (i * 7) as u8));
-    let png = tagdeflect_io::recording::encode_png(&tagdeflect_core::frame::GrayImage { width: 16, height: 12, data: pgm[13..].to_vec(), deep: None })
-        .unwrap();
+    let png = tagdeflect_io::recording::encode_png(&tagdeflect_core::frame::GrayImage {
+        width: 16,
+        height: 12,
+        data: pgm[13..].to_vec(),
+        deep: None,
+    })
+    .unwrap();
     let frames = fs::read(root.join("replay/three-cam/frames.jsonl")).unwrap()[..600].to_vec();
     let utm = fs::read(root.join("replay/three-cam/utm.jsonl")).unwrap()[..600].to_vec();
     let yaml = b"%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1000., 0., 320., 0., 1000., 240., 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ 0.1, -0.2, 0., 0., 0. ]\nimage_width: 640\nimage_height: 480\n".to_vec();
