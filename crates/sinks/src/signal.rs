@@ -4,8 +4,9 @@
 //!
 //! The value is valid while its σ is at most `max_sigma_mm` and it is fresh: it turns
 //! invalid once its tags were not solved in `stale_sets` consecutive frame sets, when no
-//! frame set arrived for `stale_sets + ½` frame periods (a stalled pipeline; the period is a
-//! running mean of the lines' spacing), and when the value's age *since its frames were
+//! frame set arrived for `stale_sets + ½` frame periods (a stalled pipeline; the period is the
+//! median of the last [`PERIOD_WINDOW`] spacings of the lines, so that a stall does not
+//! lengthen the periods it is judged by), and when the value's age *since its frames were
 //! exposed* exceeds `stale_sets + ½` frame periods plus [`LATENCY_ALLOWANCE_MS`] — lines
 //! that arrive on time but late (the sinks' thread held up, e.g. by a report made
 //! in-process) carry old values and are not fresh. Lines whose times are not this
@@ -22,6 +23,11 @@ use tagdeflect_core::Problem;
 pub const LATENCY_ALLOWANCE_MS: f64 = 250.0;
 /// A line time this far from the computer's clock is a recording's, s.
 pub const FOREIGN_CLOCK_S: f64 = 3600.0;
+
+/// Line spacings the frame period is the median of: a few seconds at the usual rates, and a
+/// stall of a few lines moves it not at all (a running mean took a tenth of each stall's length
+/// into the period, so a value well past its age limit was still served valid after one).
+pub const PERIOD_WINDOW: usize = 31;
 
 /// The gauge served by default: the feed's `net_deflection_mm`.
 pub const NET_DEFLECTION: &str = "net_deflection";
@@ -84,8 +90,8 @@ pub struct SignalState {
     missing: u32,
     /// When the last line arrived, and its time.
     last_line: Option<(Instant, i64)>,
-    /// Frame period, s (running mean of the lines' spacing).
-    period_s: Option<f64>,
+    /// The last [`PERIOD_WINDOW`] spacings of the lines, s (the frame period is their median).
+    spacings_s: std::collections::VecDeque<f64>,
 }
 
 impl SignalState {
@@ -102,7 +108,10 @@ impl SignalState {
         if let Some((_, t_prev)) = self.last_line {
             let dt = (line.t_ns - t_prev) as f64 * 1e-9;
             if dt > 0.0 && dt < 10.0 {
-                self.period_s = Some(self.period_s.map_or(dt, |p| 0.9 * p + 0.1 * dt));
+                if self.spacings_s.len() == PERIOD_WINDOW {
+                    self.spacings_s.pop_front();
+                }
+                self.spacings_s.push_back(dt);
             }
         }
         self.last_line = Some((arrived, line.t_ns));
@@ -129,7 +138,7 @@ impl SignalState {
     /// last lines say so, a frame set came within `stale_sets + ½` frame periods, and the
     /// value was exposed no longer ago than that plus [`LATENCY_ALLOWANCE_MS`].
     pub fn valid_at(&self, rule: &SignalRule, now: Instant, now_ns: i64) -> bool {
-        let slack_s = self.period_s.map(|p| (rule.stale_sets as f64 + 0.5) * p);
+        let slack_s = self.period_s().map(|p| (rule.stale_sets as f64 + 0.5) * p);
         let arrived_in_time = match (self.last_line, slack_s) {
             (Some((at, _)), Some(slack)) => now.saturating_duration_since(at).as_secs_f64() <= slack,
             (Some(_), None) => true,
@@ -143,9 +152,14 @@ impl SignalState {
         self.sample.map(|s| (now_ns - s.t_ns) as f64 * 1e-9)
     }
 
-    /// The frame period seen so far, s.
+    /// The frame period seen so far: the median of the last spacings, s.
     pub fn period_s(&self) -> Option<f64> {
-        self.period_s
+        let mut v: Vec<f64> = self.spacings_s.iter().copied().collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        Some(v[v.len() / 2])
     }
 }
 
@@ -188,5 +202,25 @@ mod tests {
         assert!(st.valid_at(&rule, now, t_ns + 50_000_000), "a value 50 ms old is fresh");
         // A replayed recording's clock (days from now): its arrival alone counts.
         assert!(st.valid_at(&rule, now, t_ns + 86_400_000_000_000));
+    }
+
+    /// A stall of 3 s among lines 100 ms apart does not lengthen the period a value is judged
+    /// by: four lines after it, a value exposed 0.6 s ago (over 1.5 periods + 250 ms) is stale
+    /// (a running mean of the spacings took the period to 0.31 s and called it fresh).
+    #[test]
+    fn a_stall_does_not_lengthen_the_period_values_are_aged_by() {
+        let rule = SignalRule { gauge: NET_DEFLECTION.into(), max_sigma_mm: 0.01, stale_sets: 1 };
+        let mut st = SignalState::default();
+        let (t0, ns0) = (Instant::now(), 1_800_000_000_000_000_000i64);
+        let mut t_ms = 0u64;
+        for k in 0..40u64 {
+            t_ms += if k == 36 { 3000 } else { 100 };
+            st.take_line(&rule, &line(k, ns0 + t_ms as i64 * 1_000_000), t0 + Duration::from_millis(t_ms));
+        }
+        assert!((st.period_s().unwrap() - 0.1).abs() < 1e-9, "{:?}", st.period_s());
+        let t_ns = ns0 + t_ms as i64 * 1_000_000;
+        let now = t0 + Duration::from_millis(t_ms + 20);
+        assert!(st.valid_at(&rule, now, t_ns + 300_000_000), "0.3 s old: within 0.15 s + 0.25 s");
+        assert!(!st.valid_at(&rule, now, t_ns + 600_000_000), "0.6 s old: stale");
     }
 }

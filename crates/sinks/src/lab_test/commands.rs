@@ -41,7 +41,7 @@ impl LabTests {
     pub fn start_by(&self, meta: TestMeta, user: Option<String>) -> Result<serde_json::Value, TestError> {
         meta.validate()?;
         let mut g = self.after_stop(self.lock(), START_WAIT)?;
-        self.open(&mut g, meta, None, user)?;
+        self.open(&mut g, meta, None, user, None)?;
         drop(g);
         Ok(self.status())
     }
@@ -61,10 +61,20 @@ impl LabTests {
         }
     }
 
-    /// Opens the test's folder and makes it the running test; `note` goes with its start event.
-    pub(super) fn open(&self, g: &mut Inner, meta: TestMeta, note: Option<String>, user: Option<String>) -> Result<String, TestError> {
+    /// Opens the test's folder and makes it the running test; `note` goes with its start event,
+    /// stamped `at_ns` (the line that decided an automatic start: its own time) or now — before
+    /// the record is first handed on, so that every version of it has the same start.
+    pub(super) fn open(
+        &self,
+        g: &mut Inner,
+        meta: TestMeta,
+        note: Option<String>,
+        user: Option<String>,
+        at_ns: Option<i64>,
+    ) -> Result<String, TestError> {
         let meta = meta.trimmed();
         let now = tagdeflect_core::clock::now_epoch_ns();
+        let started_t_ns = at_ns.unwrap_or(now);
         let stamp = chrono::DateTime::from_timestamp_nanos(now).format("%Y%m%dT%H%M%SZ");
         let id = format!("{stamp}-{}", meta.specimen);
         if let Some(r) = &g.running {
@@ -78,12 +88,12 @@ impl LabTests {
         let io = |e: std::io::Error| TestError::Io(format!("cannot open the test's folder {}: {e}", folder.display()));
         std::fs::create_dir_all(&folder).map_err(io)?;
         let (feed, utm) = Self::open_files(&folder).map_err(io)?;
-        let start = FeedEvent { kind: "start".into(), t_ns: now, note, user };
+        let start = FeedEvent { kind: "start".into(), t_ns: started_t_ns, note, user };
         g.pending.push(start.clone());
         let record = TestRecord {
             id: id.clone(),
             meta,
-            started_t_ns: now,
+            started_t_ns,
             stopped_t_ns: None,
             events: vec![start],
             lines: 0,
@@ -166,17 +176,18 @@ impl LabTests {
     /// Ends the running test: waits until the sinks have written its lines (at most
     /// [`STOP_WAIT`]), then completes its folder (report included) and answers.
     pub fn stop(&self) -> Result<Stopped, TestError> {
-        self.stop_with(None, None)
+        self.stop_with(None, None, None)
     }
 
     /// [`LabTests::stop`] by `user`.
     pub fn stop_by(&self, user: Option<String>) -> Result<Stopped, TestError> {
-        self.stop_with(None, user)
+        self.stop_with(None, user, None)
     }
 
-    /// [`LabTests::stop`] with a note on the stop event (why it stopped).
-    pub(super) fn stop_with(&self, note: Option<String>, user: Option<String>) -> Result<Stopped, TestError> {
-        let now = tagdeflect_core::clock::now_epoch_ns();
+    /// [`LabTests::stop`] with a note on the stop event (why it stopped), stamped `at_ns` (the
+    /// line that decided an automatic stop: its own time, as an automatic start's) or now.
+    pub(super) fn stop_with(&self, note: Option<String>, user: Option<String>, at_ns: Option<i64>) -> Result<Stopped, TestError> {
+        let now = at_ns.unwrap_or_else(tagdeflect_core::clock::now_epoch_ns);
         let mut g = self.lock();
         if g.running.is_none() {
             drop(g);

@@ -16,26 +16,22 @@ use super::state::{Inner, LabTests, Running};
 pub(super) const RECENT_UTM_NS: i64 = 120_000_000_000;
 
 impl LabTests {
-    /// An automatically started test: it starts at the line that started it (its time, not the
-    /// clock's when the line was solved, so its UTM samples and lines are its own from there,
-    /// in a played recording too); the UTM samples already seen from that time on go into its
-    /// folder; its method (`[output.auto_test] method`) is recorded in its `test.json`, and
-    /// its preload waited for.
+    /// An automatically started test (opened at the time of the line that started it — not the
+    /// clock's when the line was solved — so its UTM samples and lines are its own from there,
+    /// in a played recording too): the UTM samples already seen from that time on go into its
+    /// folder; its method (`[output.auto_test] method`) is recorded in its `test.json` (the
+    /// record handed on again), and its preload waited for.
     pub(super) fn auto_started(&self, g: &mut Inner, line: &FeedLine) {
         let method = g.auto.as_ref().and_then(|a| a.rules().method_of_start());
         let recent = std::mem::take(&mut g.recent_utm);
         let Some(r) = g.running.as_mut() else { return };
-        let opened_t_ns = r.record.started_t_ns;
-        r.record.started_t_ns = line.t_ns;
-        for ev in r.record.events.iter_mut().chain(g.pending.iter_mut()).filter(|e| e.kind == "start" && e.t_ns == opened_t_ns) {
-            ev.t_ns = line.t_ns;
-        }
         for s in recent.iter().filter(|s| s.t_ns >= line.t_ns) {
             Self::write_utm(r, s);
         }
         if let Some((method, preload_kn)) = method {
             r.record.method = Some(method);
             r.preload_kn = preload_kn;
+            self.publish(&r.record);
         }
         self.persist(r);
     }

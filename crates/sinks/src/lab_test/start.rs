@@ -63,7 +63,7 @@ impl LabTests {
         self.check_start(&meta, method.as_ref())?;
         let in_table = row.as_ref().map(|r| r.id.clone());
         let mut g = self.after_stop(self.lock(), super::START_WAIT)?;
-        let id = self.open(&mut g, meta, None, user)?;
+        let id = self.open(&mut g, meta, None, user, None)?;
         if let Some(r) = g.running.as_mut() {
             r.record.method = method.as_ref().map(library::Loaded::reference);
             r.preload_kn = method.as_ref().and_then(|m| m.method.preload_kn);

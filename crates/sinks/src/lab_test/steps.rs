@@ -24,7 +24,7 @@ impl LabTests {
         Self::note_bumps(&mut g, line);
         if g.running.is_none() {
             if let Some(auto::Action::Start(meta, why)) = g.auto.as_mut().and_then(|a| a.step(line, None)) {
-                match self.open(&mut g, meta, Some(why.clone()), None) {
+                match self.open(&mut g, meta, Some(why.clone()), None, Some(line.t_ns)) {
                     Ok(id) => {
                         self.auto_started(&mut g, line);
                         tracing::info!(test = %id, "test started automatically ({why})");
@@ -68,17 +68,18 @@ impl LabTests {
         if let (Some(r), Some(a)) = (running.as_ref(), auto.as_mut()) {
             let test = auto::RunningTest { standard: r.record.meta.standard.as_deref(), zero_formed: r.zero.n >= ZERO_SETS };
             if let Some(auto::Action::Stop(why)) = a.step(line, Some(test)) {
-                let id = r.record.id.clone();
+                let (id, at_ns) = (r.record.id.clone(), line.t_ns);
                 drop(g);
                 tracing::info!(test = %id, "stopping the test automatically ({why})");
                 let me = self.clone();
-                let spawned = std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why), None) {
-                    Ok(s) => {
-                        tracing::info!(test = %s.id, "the test stopped automatically");
-                        let _ = me.audit_stop(&super::audit::auto_actor(), &s);
-                    }
-                    Err(e) => tracing::warn!(test = %id, "the automatic stop did not go through: {e}"),
-                });
+                let spawned =
+                    std::thread::Builder::new().name("auto-stop".into()).spawn(move || match me.stop_with(Some(why), None, Some(at_ns)) {
+                        Ok(s) => {
+                            tracing::info!(test = %s.id, "the test stopped automatically");
+                            let _ = me.audit_stop(&super::audit::auto_actor(), &s);
+                        }
+                        Err(e) => tracing::warn!(test = %id, "the automatic stop did not go through: {e}"),
+                    });
                 if let Err(e) = spawned {
                     tracing::error!("cannot stop the test automatically: {e}");
                 }

@@ -1,5 +1,6 @@
 //! An automatic start on a played recording: the test starts at the line that started it (the
-//! recording's time, not the clock's) and keeps the UTM samples seen before that line was solved.
+//! recording's time, not the clock's) and keeps the UTM samples seen before that line was solved;
+//! its automatic stop is stamped by the line that decided it, too.
 
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::utm_sample::UtmSample;
@@ -60,4 +61,50 @@ fn an_automatic_start_begins_at_its_line_with_the_utm_samples_seen_before_it() {
     assert_eq!(utm.len() as i64, (next_sample - t(7)) / 100_000_000, "every sample from then on, once");
     let times: Vec<i64> = utm.iter().map(|s| s["t_ns"].as_i64().unwrap()).collect();
     assert!(times.windows(2).all(|w| w[1] > w[0]), "in time order");
+}
+
+/// The automatic stop of a played recording's test (the load fallen below half its peak) is
+/// stamped by the line that decided it, not by the clock an hour later.
+#[test]
+fn an_automatic_stop_is_stamped_by_its_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    let config = AutoTestConfig {
+        start_load_kn: 1.0,
+        rearm_load_kn: None,
+        specimen: "auto".into(),
+        standard: None,
+        method: None,
+        stop_at_end: false,
+        end_margin_mm: 0.5,
+        stop_below_peak_fraction: 0.5,
+    };
+    tests.set_auto(AutoRules { config, standard: None, span_mm: Some(450.0), cmod_gauge: None, method: None });
+    // Up 0.2 kN/s to 4.1 kN at line 20, then down 0.5 kN/s.
+    let load = |k: i64| if k <= 20 { 0.1 + 0.2 * k as f64 } else { 4.1 - 0.5 * (k - 20) as f64 };
+    let stopped_folder = || {
+        std::fs::read_dir(dir.path()).unwrap().flatten().find_map(|e| {
+            let text = std::fs::read_to_string(e.path().join("test.json")).ok()?;
+            serde_json::from_str::<TestRecord>(&text).ok().filter(|r| r.stopped_t_ns.is_some())
+        })
+    };
+    let mut k = 0i64;
+    let found = loop {
+        let mut l =
+            FeedLine { seq: k as u64, t_ns: t(k), load_kn: Some(load(k).max(0.0)), net_deflection_mm: Some(0.0), ..FeedLine::default() };
+        tests.apply(&mut l);
+        tests.on_line(&l);
+        if let Some(p) = stopped_folder().filter(|_| tests.status()["stopping"].is_null()) {
+            break p;
+        }
+        assert!(k < 2000, "no automatic stop");
+        std::thread::sleep(std::time::Duration::from_millis(if k > 20 { 20 } else { 0 }));
+        k += 1;
+    };
+    let record = found;
+    let stop = record.events.iter().find(|e| e.kind == "stop").unwrap();
+    assert_eq!(record.stopped_t_ns, Some(stop.t_ns));
+    // Decided at the first line below 2.05 kN (line 25) or a few after: that line's time.
+    assert!(stop.t_ns >= t(25) && stop.t_ns <= t(k), "stop at {} s", (stop.t_ns - t(0)) as f64 * 1e-9);
+    assert_eq!((stop.t_ns - t(0)) % 1_000_000_000, 0, "a line's own time: {stop:?}");
 }
