@@ -27,6 +27,19 @@ fn test_cli(addr: std::net::SocketAddr, token_file: &Path, args: &[&str]) -> (i3
     tagdeflect(&all)
 }
 
+/// The demo's rig with its specimen seated: loaded at 0.5 mm/min to 0.1 mm (1 kN) in its first
+/// seconds and held there — the method's 0.5 kN preload reached (its zero is taken there, a
+/// start waits for it), under its 2 kN start limit (a start is not refused for the load).
+fn seated() -> tagdeflect_sim::SimParams {
+    tagdeflect_sim::SimParams {
+        frame_sets: 3000,
+        rest_frames: 5,
+        rates: "0.5".into(),
+        max_deflection_mm: 0.1,
+        ..tagdeflect_sim::live_rig::demo_params()
+    }
+}
+
 #[test]
 fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
     let dir = tempfile::tempdir().unwrap();
@@ -37,7 +50,7 @@ fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
     // located file:line:key.
     let (code, out, err) = tagdeflect(&["method", "list", "--tests", t]);
     assert_eq!(code, 0, "{err}");
-    for name in ["C1609-19 v1 astm-c1609", "C1856-17 v1 astm-c1856", "EN14651-05 v1 en-14651"] {
+    for name in ["C1609-19 v1 astm-c1609", "C1856-17 v2 astm-c1856", "EN14651-05 v1 en-14651"] {
         assert!(out.lines().any(|l| l.starts_with(name) && l.contains("(built-in) not reviewed")), "{name}: {out}");
     }
     let (code, out, err) =
@@ -61,9 +74,9 @@ fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains(&format!("EN-LAB.toml:{line}: `phase[0].rate_mm_per_min`")), "{err}");
 
-    // The daemon: the demo's rig at rest (no load: a start is not refused for the load), and no
+    // The daemon: the demo's rig, its specimen seated under the start limit ([`seated`]), and no
     // [specimen.beam], as the documented day's config.
-    let params = tagdeflect_sim::SimParams { frame_sets: 3000, rest_frames: 2500, ..tagdeflect_sim::live_rig::demo_params() };
+    let params = seated();
     let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.specimen.beam = None;
@@ -155,7 +168,7 @@ fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
 fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
-    let params = tagdeflect_sim::SimParams { frame_sets: 3000, rest_frames: 2500, ..tagdeflect_sim::live_rig::demo_params() };
+    let params = seated();
     let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.specimen.beam = None;
@@ -212,7 +225,7 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     assert_eq!(record["crack"], serde_json::json!({"position_mm": -30.0, "inside_middle_third": true, "t_ns": record["crack"]["t_ns"]}));
     let kinds: Vec<&str> = record["events"].as_array().unwrap().iter().map(|e| e["kind"].as_str().unwrap()).collect();
     assert_eq!(kinds, ["start", "preload", "mark", "crack", "stop"], "{record}");
-    // The page says when the report could not be made (the beam at rest has no first peak).
+    // The page says when the report could not be made (the seated beam has no first peak).
     let report_made = folder.join("report/report.json").is_file();
     assert_eq!(seen["report"].as_str().unwrap().starts_with("no report: "), !report_made, "{seen}");
     assert_eq!(d.stop(), Some(0));
