@@ -8,6 +8,12 @@
 //! again; retries back off from [`RETRY_MIN`] to [`RETRY_MAX`]. Only a closed stdout pipe
 //! (nobody reads any more) turns an output off for good. Durability: `fdatasync` at most
 //! once per second while lines flow, and at shutdown (see [`crate::linefile`]).
+//!
+//! The run's feed file rotates ([`FeedWriter::append_rotating`], [`crate::feed_rotation`]):
+//! before a line that would take the file past its size limit (or the first line of a new UTC
+//! day) the file — whole lines only, synced — is renamed and a new one started under the
+//! configured name. A rotation is part of writing a line: when the new file cannot be made or
+//! written (disk full), the line and those after it are held back as any other failing write.
 
 use std::collections::VecDeque;
 use std::io::{self, Write};
@@ -16,6 +22,7 @@ use std::time::{Duration, Instant};
 
 use crate::backoff::Backoff;
 use crate::feed::FeedLine;
+use crate::feed_rotation::{self, FeedRotation};
 use crate::linefile::{LineFile, LineTarget};
 
 /// Lines held back while an output fails; beyond that the oldest are dropped (counted).
@@ -49,9 +56,29 @@ impl SinkState {
 
 enum Out {
     File(LineFile),
+    /// Between a rotation and the new current file (not made yet: retried as a failed write).
+    Rotated,
     Stream(Box<dyn Write + Send>),
     Off,
 }
+
+/// A clock of UTC times (tests set their own).
+pub type UtcClock = Box<dyn Fn() -> chrono::DateTime<chrono::Utc> + Send>;
+
+/// The rotation state of a file output.
+struct Rotator {
+    path: PathBuf,
+    cfg: FeedRotation,
+    /// The UTC day of the current file's first line.
+    day: chrono::NaiveDate,
+    /// A failed rename is retried after this.
+    retry_after: Option<Instant>,
+    now: UtcClock,
+}
+
+/// A failed rename (the folder read-only, ...) is retried after this; lines go on into the
+/// current file meanwhile.
+const RENAME_RETRY: Duration = Duration::from_secs(60);
 
 /// Writes feed lines to one destination; see the module docs.
 pub struct FeedWriter {
@@ -63,6 +90,7 @@ pub struct FeedWriter {
     failing_since: Option<Instant>,
     next_retry: Instant,
     backoff: Backoff,
+    rotator: Option<Rotator>,
 }
 
 impl FeedWriter {
@@ -76,6 +104,7 @@ impl FeedWriter {
             failing_since: None,
             next_retry: Instant::now(),
             backoff: Backoff::new(RETRY_MIN, RETRY_MAX),
+            rotator: None,
         }
     }
 
@@ -94,6 +123,25 @@ impl FeedWriter {
         }
         let (f, _cut) = LineFile::open_append(path)?;
         Ok(Self::with_out(path.display().to_string(), Out::File(f)))
+    }
+
+    /// [`FeedWriter::append`] with rotation (`[output.feed_rotation]`; see the module docs).
+    /// A path that is not a regular file (`-`, `/dev/full`) is never rotated.
+    pub fn append_rotating(path: &Path, cfg: &FeedRotation) -> io::Result<Self> {
+        Self::append_rotating_at(path, cfg, Box::new(chrono::Utc::now))
+    }
+
+    /// [`FeedWriter::append_rotating`] with the UTC clock given (tests of the daily cut).
+    pub fn append_rotating_at(path: &Path, cfg: &FeedRotation, now: UtcClock) -> io::Result<Self> {
+        let mut w = Self::append(path)?;
+        let meta = std::fs::metadata(path).ok().filter(|m| m.is_file());
+        if let (Some(meta), true) = (meta, cfg.rotates()) {
+            // A file left by an earlier run is of the day it was last written.
+            let modified = meta.modified().ok().filter(|_| meta.len() > 0).map(chrono::DateTime::<chrono::Utc>::from);
+            let day = feed_rotation::day_of(modified.unwrap_or_else(&now));
+            w.rotator = Some(Rotator { path: path.to_path_buf(), cfg: cfg.clone(), day, retry_after: None, now });
+        }
+        Ok(w)
     }
 
     /// Any writer (tests, in-memory sinks); written with `write_all` + `flush` per line.
@@ -191,9 +239,12 @@ impl FeedWriter {
 
     /// Writes the held-back lines in order until one fails (its error).
     fn write_backlog(&mut self) -> io::Result<()> {
-        while let Some(text) = self.backlog.front() {
+        while let Some(len) = self.backlog.front().map(String::len) {
+            self.rotate_if_due(len as u64)?;
+            let text = self.backlog.front().expect("a line");
             match &mut self.out {
                 Out::File(f) => f.write_line(text.as_bytes())?,
+                Out::Rotated => unreachable!("rotate_if_due opens the new file"),
                 Out::Stream(w) => w.write_all(text.as_bytes()).and_then(|_| w.flush())?,
                 Out::Off => return Ok(()),
             }
@@ -243,7 +294,7 @@ impl FeedWriter {
         match &mut self.out {
             Out::File(f) => f.sync(),
             Out::Stream(w) => w.flush(),
-            Out::Off => Ok(()),
+            Out::Off | Out::Rotated => Ok(()),
         }
     }
 
@@ -261,8 +312,56 @@ impl FeedWriter {
         match &mut self.out {
             Out::File(f) => f.sync(),
             Out::Stream(w) => w.flush(),
-            Out::Off => Ok(()),
+            Out::Off | Out::Rotated => Ok(()),
         }
+    }
+
+    /// Before a line of `add` bytes: rotates the current file when it is due, and makes the new
+    /// current file when a rotation left none (an error: the line is held back and retried).
+    fn rotate_if_due(&mut self, add: u64) -> io::Result<()> {
+        let Some(r) = &mut self.rotator else { return Ok(()) };
+        if matches!(self.out, Out::Rotated) {
+            let (f, _) = LineFile::open_append(&r.path)?;
+            self.out = Out::File(f);
+            r.day = feed_rotation::day_of((r.now)());
+            return Ok(());
+        }
+        let Out::File(f) = &mut self.out else { return Ok(()) };
+        let now = (r.now)();
+        let full = r.cfg.max_bytes().is_some_and(|m| f.len() + add > m);
+        let new_day = r.cfg.daily && feed_rotation::day_of(now) != r.day;
+        let waiting = r.retry_after.is_some_and(|t| Instant::now() < t);
+        if f.is_empty() || !(full || new_day) || waiting {
+            if f.is_empty() {
+                r.day = feed_rotation::day_of(now);
+            }
+            return Ok(());
+        }
+        f.settle()?;
+        let index = feed_rotation::feed_segments(&r.path)?.last().map_or(1, |s| s.index);
+        let to = feed_rotation::rotated_path(&r.path, index, now);
+        if let Err(e) = std::fs::rename(&r.path, &to) {
+            tracing::warn!(output = %self.target, to = %to.display(), "feed file not rotated ({e}); lines go on into it, the rotation is tried again in {} s", RENAME_RETRY.as_secs());
+            r.retry_after = Some(Instant::now() + RENAME_RETRY);
+            return Ok(());
+        }
+        r.retry_after = None;
+        tracing::info!(output = %self.target, to = %to.display(), bytes = f.len(), "feed file rotated");
+        self.out = Out::Rotated;
+        sync_folder(&r.path);
+        match feed_rotation::prune(&r.path, &r.cfg) {
+            Ok(gone) => gone.iter().for_each(|p| tracing::info!(file = %p.display(), "rotated feed file deleted (keep_files/keep_gb)")),
+            Err(e) => tracing::warn!(output = %self.target, "rotated feed files not pruned: {e}"),
+        }
+        self.rotate_if_due(add)
+    }
+}
+
+/// Makes a rename in the folder of `path` durable (best effort).
+fn sync_folder(path: &Path) {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
     }
 }
 

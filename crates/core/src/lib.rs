@@ -19,6 +19,7 @@ pub mod control_summary;
 pub mod error;
 pub mod feed;
 pub mod feed_file;
+pub mod feed_rotation;
 pub mod frame;
 pub mod gauge;
 pub mod lab_test;

@@ -151,6 +151,17 @@ impl LineFile {
         }
     }
 
+    /// Cuts off what a failed write left after the last complete line and syncs: the file then
+    /// holds whole lines only, on disk (before it is renamed by a rotation).
+    pub fn settle(&mut self) -> io::Result<()> {
+        if self.dirty_tail {
+            self.target.truncate(self.good_len)?;
+            self.dirty_tail = false;
+        }
+        self.unsynced = true;
+        self.sync()
+    }
+
     /// `fdatasync` now (shutdown).
     pub fn sync(&mut self) -> io::Result<()> {
         self.last_sync = Instant::now();
