@@ -261,6 +261,10 @@ fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result
         return Err(bad(format!("{}: not a test folder's feed (no test.json beside it): give --standard", feed_path.display())));
     }
     check_geometry(&opts, &config.test_rig(), &config_path)?;
+    // A rotated run's feed: its rotated files are inputs too (hashed; `report verify` checks them).
+    let rotated = tagdeflect_core::feed_rotation::feed_files(feed_path).unwrap_or_default();
+    let rotated = rotated.into_iter().filter(|p| p != feed_path).map(|p| ("feed".to_string(), p));
+    inputs.splice(0..0, rotated);
     let runs = Feed::read_runs(feed_path, &ReadOptions { limits: opts.limits(), allow_restarts: args.allow_restarts })?;
     let utm_path = match &args.utm {
         Some(p) if args.series.is_empty() => Some(p.clone()),

@@ -64,7 +64,7 @@ impl Outputs {
     /// Every output of a run (see the module doc); `feeds` are the caller's own (a replay's stdout).
     pub(crate) fn build(ctx: &OutputContext, feeds: Vec<FeedWriter>) -> Result<Outputs> {
         let out_cfg = &ctx.config.output;
-        let feed = FeedOutput { spec: out_cfg.feed.as_deref() };
+        let feed = FeedOutput { spec: out_cfg.feed.as_deref(), rotation: &out_cfg.feed_rotation };
         let tests = TestsOutput(out_cfg.tests.as_deref());
         let record = RecordOutput(ctx.record_dir);
         let sections: [Option<&dyn BuildOutput>; 8] = [
@@ -89,6 +89,8 @@ impl Outputs {
 /// `[output] feed` (a file, or `-` for stdout) and `--feed`-to-stdout.
 struct FeedOutput<'a> {
     spec: Option<&'a str>,
+    /// `[output.feed_rotation]`.
+    rotation: &'a tagdeflect_core::feed_rotation::FeedRotation,
 }
 
 /// A feed writer as a line sink.
@@ -107,7 +109,7 @@ impl BuildOutput for FeedOutput<'_> {
             Some("-") if !to_stdout => feeds.push(FeedWriter::stdout()),
             Some("-") | None => {}
             Some(spec) => feeds
-                .push(FeedWriter::append(Path::new(spec)).map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?),
+                .push(FeedWriter::append_rotating(Path::new(spec), &self.rotation).map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?),
         }
         out.sinks.extend(feeds.into_iter().map(feed_sink));
         Ok(())

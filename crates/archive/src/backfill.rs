@@ -54,16 +54,30 @@ pub struct BackfillSummary {
     pub duplicates: u64,
 }
 
-/// Reads and checks every line of a feed file (bad input names the file and line).
+/// Reads and checks every line of a feed (bad input names the file and line): a feed file, a
+/// test folder's `feed.jsonl`, or a rotated run's current file — then its rotated files are
+/// read first, in order ([`tagdeflect_core::feed_rotation::feed_files`]).
 pub fn read_feed(path: &Path, rig: &str, test: &str) -> Result<Vec<LineRow>, ArchiveError> {
     let file = if path.is_dir() { path.join("feed.jsonl") } else { path.to_path_buf() };
-    let text = std::fs::read(&file).map_err(|e| ArchiveError::BadOption(format!("{}: {e}", file.display())))?;
+    let files = tagdeflect_core::feed_rotation::feed_files(&file).map_err(|e| ArchiveError::BadOption(format!("{}: {e}", file.display())))?;
+    if files.is_empty() {
+        return Err(ArchiveError::BadOption(format!("{}: no such file", file.display())));
+    }
+    let mut out = Vec::new();
+    for f in &files {
+        read_one(f, rig, test, &mut out)?;
+    }
+    Ok(out)
+}
+
+/// [`read_feed`] of one file.
+fn read_one(file: &Path, rig: &str, test: &str, out: &mut Vec<LineRow>) -> Result<(), ArchiveError> {
+    let text = std::fs::read(file).map_err(|e| ArchiveError::BadOption(format!("{}: {e}", file.display())))?;
     let layout = TopicLayout::new("b/{rig}/{test}").expect("a valid template");
     let topic = format!("b/{rig}/{test}/feed");
     let complete = text.last() == Some(&b'\n');
     let lines: Vec<&[u8]> = text.split(|b| *b == b'\n').collect();
     let n = lines.len();
-    let mut out = Vec::new();
     for (i, raw) in lines.into_iter().enumerate() {
         if raw.iter().all(u8::is_ascii_whitespace) {
             continue;
@@ -77,7 +91,7 @@ pub fn read_feed(path: &Path, rig: &str, test: &str) -> Result<Vec<LineRow>, Arc
             Err(why) => return Err(ArchiveError::BadOption(format!("{}:{}: {why}", file.display(), i + 1))),
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 /// Runs a backfill and prints what it did.

@@ -98,13 +98,15 @@ impl Feed {
         Ok(runs.remove(0))
     }
 
-    /// Reads a feed into its runs (one unless `allow_restarts`). The file is read line by
+    /// Reads a feed into its runs (one unless `allow_restarts`); a rotated feed's current file
+    /// is read after its rotated files (line numbers in messages count across them). The file is read line by
     /// line, never whole: only the parsed lines are held (a long test's feed is gigabytes of
     /// text).
     pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
         use std::io::BufRead;
         let io = |e: std::io::Error| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") };
-        let mut reader = std::io::BufReader::with_capacity(1 << 16, std::fs::File::open(path).map_err(io)?);
+        // A rotated run's current file: its rotated files first, in order (`[output.feed_rotation]`).
+        let mut reader = tagdeflect_core::feed_rotation::open_feed_set(path).map_err(io)?;
         let mut runs = Runs::new(path, opts);
         let mut buf = Vec::new();
         let mut no = 0;

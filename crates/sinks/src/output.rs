@@ -3,6 +3,7 @@
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+use tagdeflect_core::feed_rotation::FeedRotation;
 use tagdeflect_core::frame::FrameFormat;
 #[cfg(feature = "http")]
 use tagdeflect_core::listen::parse_listen_addr;
@@ -15,6 +16,11 @@ pub struct OutputConfig {
     /// Append the feed to this file; `-` = stdout.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub feed: Option<String>,
+    /// (extension) `[output.feed_rotation]`: when the feed file is rotated and what is kept
+    /// (by default a new file past 2000 MB and at each new UTC day, nothing deleted; see
+    /// `tagdeflect_core::feed_rotation`).
+    #[serde(default, skip_serializing_if = "FeedRotation::is_default")]
+    pub feed_rotation: FeedRotation,
     /// Save a recording of the run in a new timestamped sub-folder of this folder.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub record: Option<PathBuf>,
@@ -81,6 +87,7 @@ impl OutputConfig {
             return Err(Problem::new("http", format!("\"{h}\": this build has no live page: build with the `http` feature")));
         }
         self.check_http_hosts()?;
+        self.feed_rotation.validate().map_err(|p| p.within("feed_rotation"))?;
         for p in [&mut self.tests, &mut self.http_token_file, &mut self.users_file].into_iter().flatten() {
             if p.is_relative() {
                 *p = base.join(&*p);

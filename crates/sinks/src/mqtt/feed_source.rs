@@ -1,7 +1,9 @@
 //! This run's part of the feed file (`[output] feed`), read back for lines that left the
 //! memory buffer before the archive confirmed them, by a task of its own, off the lock.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use tagdeflect_core::feed_rotation::feed_segments;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -11,61 +13,101 @@ use super::state::Shared;
 type ReadBack = (Vec<(u64, Vec<u8>)>, Option<u64>);
 
 /// This run's lines in the feed file (`[output] feed`): read back for lines that left the
-/// memory buffer before the archive confirmed them.
+/// memory buffer before the archive confirmed them. The file may be rotated meanwhile
+/// (`[output.feed_rotation]`): the run's lines are read across its files in order
+/// ([`tagdeflect_core::feed_rotation::feed_segments`]).
 pub(super) struct FeedSource {
+    /// The current feed file.
     pub(super) path: PathBuf,
-    /// Where this run's lines start (the file's length when the run started: the feed file
-    /// is appended to, earlier runs' lines come before).
+    /// The number the current file had when the run started (it keeps it once rotated).
+    pub(super) start_index: u64,
+    /// Where this run's lines start in that file (its length when the run started: the feed
+    /// file is appended to, earlier runs' lines come before).
     pub(super) start: u64,
-    /// Where the last read stopped, and the seq of the last line read before it.
-    pub(super) pos: u64,
+    /// Where the last read stopped (file number, byte), and the seq of the last line read before it.
+    pub(super) pos: (u64, u64),
     pub(super) last_seq: Option<u64>,
 }
 
 impl FeedSource {
-    /// Reads the lines of `wanted` (ascending) from the file; also says the largest seq the
-    /// file holds so far (a wanted seq below it that was not found is not in the file).
+    /// This run's part of the feed whose current file is `path`, from its present end.
+    pub(super) fn new(path: &Path) -> FeedSource {
+        let start = std::fs::metadata(path).map_or(0, |m| m.len());
+        let start_index = current_index(path).unwrap_or(1);
+        FeedSource { path: path.to_path_buf(), start_index, start, pos: (start_index, start), last_seq: None }
+    }
+
+    /// Reads the lines of `wanted` (ascending) from the files; also says the largest seq the
+    /// files hold so far (a wanted seq below it that was not found is not in the feed).
     pub(super) fn read(&mut self, wanted: &[u64]) -> std::io::Result<ReadBack> {
-        use std::io::{BufRead, Seek, SeekFrom};
-        #[derive(serde::Deserialize)]
-        struct SeqOnly {
-            seq: u64,
-        }
         let Some(&first) = wanted.first() else { return Ok((Vec::new(), self.last_seq)) };
-        let last_wanted = *wanted.last().expect("non-empty");
         if self.last_seq.is_none_or(|l| first <= l) {
-            self.pos = self.start;
+            self.pos = (self.start_index, self.start);
             self.last_seq = None;
         }
-        let mut f = std::io::BufReader::new(std::fs::File::open(&self.path)?);
-        f.seek(SeekFrom::Start(self.pos))?;
         let want: std::collections::HashSet<u64> = wanted.iter().copied().collect();
         let mut out = Vec::new();
-        let mut buf = Vec::new();
         let mut max_seen = self.last_seq;
-        loop {
-            buf.clear();
-            let n = f.read_until(b'\n', &mut buf)?;
-            if n == 0 || buf.last() != Some(&b'\n') {
-                break; // the end, or a line still being written
+        let from = self.pos.0;
+        for seg in feed_segments(&self.path)?.into_iter().filter(|s| s.index >= from) {
+            if seg.index > self.pos.0 {
+                self.pos = (seg.index, 0);
             }
-            let line = &buf[..buf.len() - 1];
-            let Ok(SeqOnly { seq }) = serde_json::from_slice::<SeqOnly>(line) else {
-                self.pos += n as u64;
-                continue;
-            };
-            max_seen = Some(max_seen.map_or(seq, |m| m.max(seq)));
-            if want.contains(&seq) {
-                out.push((seq, line.to_vec()));
+            let file = std::fs::File::open(&seg.path)?;
+            if seg.path == self.path && current_index(&self.path)? != seg.index {
+                break; // rotated between the listing and the open: read on next time
             }
-            self.pos += n as u64;
-            self.last_seq = Some(seq);
-            if seq >= last_wanted {
+            let done = self.read_file(file, &want, *wanted.last().expect("non-empty"), &mut out, &mut max_seen)?;
+            if done {
                 break;
             }
         }
         Ok((out, max_seen))
     }
+
+    /// Reads one file from `self.pos`; true when the last wanted seq was reached.
+    fn read_file(
+        &mut self,
+        file: std::fs::File,
+        want: &std::collections::HashSet<u64>,
+        last_wanted: u64,
+        out: &mut Vec<(u64, Vec<u8>)>,
+        max_seen: &mut Option<u64>,
+    ) -> std::io::Result<bool> {
+        use std::io::{BufRead, Seek, SeekFrom};
+        #[derive(serde::Deserialize)]
+        struct SeqOnly {
+            seq: u64,
+        }
+        let mut f = std::io::BufReader::new(file);
+        f.seek(SeekFrom::Start(self.pos.1))?;
+        let mut buf = Vec::new();
+        loop {
+            buf.clear();
+            let n = f.read_until(b'\n', &mut buf)?;
+            if n == 0 || buf.last() != Some(&b'\n') {
+                return Ok(false); // the end, or a line still being written
+            }
+            let line = &buf[..buf.len() - 1];
+            self.pos.1 += n as u64;
+            let Ok(SeqOnly { seq }) = serde_json::from_slice::<SeqOnly>(line) else { continue };
+            *max_seen = Some(max_seen.map_or(seq, |m| m.max(seq)));
+            if want.contains(&seq) {
+                out.push((seq, line.to_vec()));
+            }
+            self.last_seq = Some(seq);
+            if seq >= last_wanted {
+                return Ok(true);
+            }
+        }
+    }
+}
+
+/// The number of the current feed file (one above the last rotated one).
+fn current_index(path: &Path) -> std::io::Result<u64> {
+    let segs = feed_segments(path)?;
+    let rotated_last = segs.iter().filter(|s| s.path != path).map(|s| s.index).max();
+    Ok(rotated_last.map_or(1, |i| i + 1))
 }
 
 /// Reads lines the memory no longer holds back from the feed file when [`Shared::pump`]

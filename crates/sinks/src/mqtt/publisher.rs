@@ -69,10 +69,7 @@ impl MqttPublisher {
         offline.state = "offline";
         opts.set_last_will(LastWill::new(&status_topic, serde_json::to_vec(&offline).expect("status serialises"), QoS::AtLeastOnce, true));
         let (client, eventloop) = AsyncClient::new(opts, window + 16);
-        let feed = feed.map(|p| {
-            let start = std::fs::metadata(p).map_or(0, |m| m.len());
-            Mutex::new(FeedSource { path: p.to_path_buf(), start, pos: start, last_seq: None })
-        });
+        let feed = feed.map(|p| Mutex::new(FeedSource::new(p)));
         let shared = Arc::new(Shared {
             state: Mutex::new(State::new(status)),
             stats: Arc::new(MqttStats::default()),
