@@ -26,6 +26,9 @@ pub fn start(config: &Config, dir: &Path, page: &Page, placed: PlacementWatch) -
         Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record).map_err(Into::into));
     let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
         .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
+    if config.output.record_tests {
+        record_frames(&tests, config);
+    }
     if let Some(b) = &config.specimen.beam {
         let dims = [("width_mm", Some(b.width_mm)), ("depth_mm", Some(b.depth_mm)), ("span_mm", Some(b.span_mm)), ("notch_mm", b.notch_mm)];
         tests.set_beam(dims.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))).collect());
@@ -69,6 +72,19 @@ pub fn start(config: &Config, dir: &Path, page: &Page, placed: PlacementWatch) -
         dir.display()
     );
     Ok(tests)
+}
+
+/// `[output] record_tests`: each test's frames into its folder (`frames/`, a recording).
+fn record_frames(tests: &LabTests, config: &Config) {
+    use tagdeflect_io::recording::RecordingWriter;
+    let cfg = config.clone();
+    let format = config.output.record_format;
+    tests.set_frames(tagdeflect_sinks::lab_test::frames::FramesSetup {
+        open: Box::new(move |dir: &Path| RecordingWriter::create(dir, &cfg).map(|w| w.with_format(format))),
+        names: config.cameras.iter().map(|c| c.name.clone()).collect(),
+        queue: 8 * config.cameras.len().max(1),
+    });
+    tracing::info!("each test's frames are recorded into its folder ([output] record_tests)");
 }
 
 /// Warns when the users file is readable or writable by others than its owner (its hashes

@@ -335,6 +335,9 @@ impl Running {
                 if let Some(tx) = &self.rec_tx {
                     tx.frame(f.clone());
                 }
+                if let Some(t) = &self.outputs.tests {
+                    t.on_frame(&f);
+                }
                 if !kind.record_only {
                     for set in self.assembler.push(f) {
                         self.queue.push_by(set, kind.lossless);
@@ -443,6 +446,9 @@ impl Running {
         let rec_status = self.outputs.recorder.as_ref().map(|r| r.status());
         if let Some(r) = self.outputs.recorder.take() {
             tokio::task::spawn_blocking(move || r.finish()).await.ok();
+        }
+        if let Some(t) = self.outputs.tests.clone() {
+            tokio::task::spawn_blocking(move || t.finish_test_frames()).await.ok();
         }
         // Every queued line reaches every sink before the broker's buffer is drained.
         match self.fanout.take().map(Arc::try_unwrap) {

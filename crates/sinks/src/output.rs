@@ -28,6 +28,10 @@ pub struct OutputConfig {
     /// `"pgm"` (raw; no CPU spent encoding — for high frame rates on a small box).
     #[serde(default, skip_serializing_if = "is_default_format")]
     pub record_format: FrameFormat,
+    /// (extension) Record each test's frames and UTM samples into its folder (`frames/`, a
+    /// recording `replay` reads; see `lab_test::frames`), in `record_format`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub record_tests: bool,
     /// Serve the live page and endpoints on this address (a listen address,
     /// `tagdeflect_core::listen`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -25,7 +25,7 @@ use tagdeflect_io::recording::{RecordedConfig, RecordingError, RecordingWriter};
 use tagdeflect_io::utm::UtmSample;
 
 /// First retry this long after a write error; doubled after each failed retry.
-const RETRY_MIN: Duration = Duration::from_millis(500);
+pub(crate) const RETRY_MIN: Duration = Duration::from_millis(500);
 /// Longest wait between retries.
 const RETRY_MAX: Duration = Duration::from_secs(10);
 /// UTM samples held back while failing (about 30 min at 50 Hz); beyond that the oldest drop.

@@ -50,6 +50,7 @@ pub mod auto;
 mod commands;
 mod crack;
 mod folder;
+pub mod frames;
 pub mod meta;
 mod preload;
 pub mod record;

@@ -111,6 +111,8 @@ pub struct LabTests {
     pub(super) folder_files: std::sync::OnceLock<FolderHook>,
     /// The verification `GET /api/test` names while no test runs.
     pub(super) idle_verification: super::verification::IdleVerification,
+    /// Each test's own frames (`[output] record_tests`, [`super::frames`]).
+    pub(super) frames: super::frames::TestFrames,
 }
 
 impl LabTests {
@@ -144,6 +146,7 @@ impl LabTests {
             verification: std::sync::OnceLock::new(),
             folder_files: std::sync::OnceLock::new(),
             idle_verification: Default::default(),
+            frames: Default::default(),
         };
         tests.read_earlier();
         let stopping = tests.resume()?;

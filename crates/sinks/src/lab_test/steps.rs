@@ -122,16 +122,19 @@ impl LabTests {
 
     /// The UTM forwarder's step: a sample of the running test into its folder.
     pub fn on_utm(&self, s: &UtmSample) {
-        let mut g = self.lock();
-        g.last_load = Some((s.load_kn, s.t_ns));
-        let Some(r) = g.running.as_mut() else {
-            Self::keep_recent_utm(&mut g, s);
-            return;
-        };
-        if s.t_ns < r.record.started_t_ns {
-            return;
+        {
+            let mut g = self.lock();
+            g.last_load = Some((s.load_kn, s.t_ns));
+            let Some(r) = g.running.as_mut() else {
+                Self::keep_recent_utm(&mut g, s);
+                return;
+            };
+            if s.t_ns < r.record.started_t_ns {
+                return;
+            }
+            Self::write_utm(r, s);
         }
-        Self::write_utm(r, s);
+        self.frames_utm(s);
     }
 
     /// A UTM sample into the running test's folder.

@@ -1,0 +1,157 @@
+//! A test's own frames (`[output] record_tests`): the frames of the cameras from the test's
+//! start to its stop, and its UTM samples, recorded into its folder as a SPEC recording
+//! (`<test folder>/frames/`: `tagdeflect.toml`, `frames.jsonl`, `utm.jsonl`, one folder per
+//! camera) that `replay` reads. The recorder (the run's recorder, [`crate::recorder`]: its own
+//! thread behind a bounded queue, never holding the measurement back, drops counted) is
+//! started by the first frame at or after the test's start and finished when the test's
+//! folder is completed, before its hashes are taken: `test.json` lists every frame file and
+//! `report verify` checks them. A test resumed after a restart records into `frames-2/`, ...
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use tagdeflect_core::frame::Frame;
+use tagdeflect_core::utm_sample::UtmSample;
+use tagdeflect_io::recording::{RecordingError, RecordingWriter};
+
+use super::LabTests;
+use crate::recorder::{Recorder, RecorderTx};
+
+/// Opens a recording writer in a folder (the config in force and the frame format are the
+/// binary's: `RecordingWriter::create(dir, &config).with_format(format)`).
+pub type OpenRecording = Box<dyn Fn(&Path) -> Result<RecordingWriter, RecordingError> + Send + Sync>;
+
+/// How a test's frames are recorded ([`LabTests::set_frames`]).
+pub struct FramesSetup {
+    /// The recording writer for a folder.
+    pub open: OpenRecording,
+    /// The cameras' names, in config order.
+    pub names: Vec<String>,
+    /// The recorder's queue, frames.
+    pub queue: usize,
+}
+
+/// The recorder of the running test's frames.
+pub(super) struct ActiveFrames {
+    id: String,
+    /// None when the recording could not be started (said once).
+    rec: Option<(Recorder, RecorderTx, PathBuf)>,
+}
+
+/// The frames' state of a daemon's tests.
+#[derive(Default)]
+pub(super) struct TestFrames {
+    pub(super) setup: std::sync::OnceLock<FramesSetup>,
+    pub(super) active: Mutex<Option<ActiveFrames>>,
+    /// The last test whose frames were closed (a late frame does not start them again).
+    pub(super) closed: Mutex<Option<String>>,
+}
+
+/// The sub-folder a test's frames go to: `frames`, or `frames-2`, ... when a resumed test
+/// has one already.
+fn frames_dir(folder: &Path) -> PathBuf {
+    let mut dir = folder.join("frames");
+    let mut k = 2;
+    while dir.exists() {
+        dir = folder.join(format!("frames-{k}"));
+        k += 1;
+    }
+    dir
+}
+
+impl LabTests {
+    /// Records each test's frames into its folder from now on (see the module doc).
+    pub fn set_frames(&self, setup: FramesSetup) {
+        let _ = self.frames.setup.set(setup);
+    }
+
+    /// A camera frame: into the running test's recording when the test records frames and the
+    /// frame is not older than its start.
+    pub fn on_frame(&self, f: &Frame) {
+        let Some(setup) = self.frames.setup.get() else { return };
+        let running = self.lock().running.as_ref().map(|r| (r.record.id.clone(), r.folder.clone(), r.record.started_t_ns));
+        let Some((id, folder, started_t_ns)) = running else { return };
+        if f.t_ns < started_t_ns {
+            return;
+        }
+        let mut active = self.frames.active.lock().expect("test frames");
+        if active.as_ref().is_some_and(|a| a.id != id) {
+            if let Some(old) = active.take() {
+                Self::finish_frames(old);
+            }
+        }
+        if active.is_none() {
+            if self.frames.closed.lock().expect("test frames").as_deref() == Some(id.as_str()) {
+                return;
+            }
+            *active = Some(Self::start_frames(setup, id, &folder));
+        }
+        if let Some((_, tx, _)) = active.as_ref().and_then(|a| a.rec.as_ref()) {
+            tx.frame(f.clone());
+        }
+    }
+
+    /// A UTM sample of the running test into its recording (when frames are recorded).
+    pub(super) fn frames_utm(&self, s: &UtmSample) {
+        if self.frames.setup.get().is_none() {
+            return;
+        }
+        if let Some((_, tx, _)) = self.frames.active.lock().expect("test frames").as_ref().and_then(|a| a.rec.as_ref()) {
+            tx.utm(s.clone());
+        }
+    }
+
+    fn start_frames(setup: &FramesSetup, id: String, folder: &Path) -> ActiveFrames {
+        let dir = frames_dir(folder);
+        match (setup.open)(&dir) {
+            Ok(writer) => {
+                let rec = Recorder::start_with(writer, setup.names.clone(), setup.queue, crate::recorder::RETRY_MIN);
+                let tx = rec.sender();
+                tracing::info!(test = %id, folder = %dir.display(), "the test's frames are recorded");
+                ActiveFrames { id, rec: Some((rec, tx, dir)) }
+            }
+            Err(e) => {
+                tracing::error!(test = %id, "the test's frames cannot be recorded: {e}");
+                ActiveFrames { id, rec: None }
+            }
+        }
+    }
+
+    /// Ends the recording of test `id`'s frames: what is queued is written and synced before
+    /// this returns (the folder's hashes are taken after it).
+    pub(super) fn close_frames(&self, id: &str) {
+        *self.frames.closed.lock().expect("test frames") = Some(id.to_string());
+        let taken = {
+            let mut active = self.frames.active.lock().expect("test frames");
+            if active.as_ref().is_some_and(|a| a.id == id) {
+                active.take()
+            } else {
+                None
+            }
+        };
+        if let Some(a) = taken {
+            Self::finish_frames(a);
+        }
+    }
+
+    /// Ends the running test's recording (the daemon stops; a resumed test records anew).
+    pub fn finish_test_frames(&self) {
+        let taken = self.frames.active.lock().expect("test frames").take();
+        if let Some(a) = taken {
+            Self::finish_frames(a);
+        }
+    }
+
+    fn finish_frames(a: ActiveFrames) {
+        let Some((rec, tx, dir)) = a.rec else { return };
+        drop(tx);
+        let status = rec.status();
+        rec.finish();
+        let (written, dropped) = (status.written_frames(), status.dropped_frames());
+        if dropped > 0 {
+            tracing::warn!(test = %a.id, written, dropped, folder = %dir.display(), "the test's frames: some were not recorded");
+        } else {
+            tracing::info!(test = %a.id, written, folder = %dir.display(), "the test's frames recorded");
+        }
+    }
+}

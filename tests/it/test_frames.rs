@@ -1,0 +1,107 @@
+//! A test's own frames in its folder (`[output] record_tests`, issue 45 item 18): recorded
+//! from its start to its stop, hashed in `test.json` and checked by `report verify`, and
+//! replayable as a recording.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fs;
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use tagdeflect_sim::SimParams;
+
+use crate::faults::{tagdeflect_test, whole_feed_lines, LoggedDaemon};
+
+/// The demo rig of `test_folder` (two small simulated cameras at 5 fps, the simulated UTM, a
+/// beam) with each test's frames recorded; the daemon's arguments with `--tests dir/tests`.
+fn rig(dir: &Path) -> Vec<String> {
+    use tagdeflect::config::Config;
+    let params =
+        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    cfg.output.record_tests = true;
+    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
+        width_mm: params.beam_width_mm,
+        depth_mm: params.beam_height_mm,
+        span_mm: params.span_mm,
+        ..Default::default()
+    });
+    let rig = dir.join("rig.toml");
+    fs::write(&rig, cfg.to_toml_string()).unwrap();
+    let tests = dir.join("tests");
+    ["demo", "--config", rig.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests.to_str().unwrap()]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+}
+
+/// `tagdeflect report verify DIR`: (success, what it printed).
+fn report_verify(dir: &Path) -> (bool, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["report", "verify"]).arg(dir).output().unwrap();
+    (o.status.success(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
+}
+
+/// A lab test with its frames recorded: the folder's `frames/` is a recording of the frames
+/// from the test's start (none older) with the test's UTM samples, every frame file listed in
+/// `test.json` and checked by `report verify` (a frame changed afterwards is named); `replay`
+/// of it gives lines at the times of the test's lines with the same tags. Without the option
+/// a test folder holds no frames.
+#[test]
+fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = rig(dir.path());
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let tests_dir = dir.path().join("tests");
+    let token = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut d = LoggedDaemon::start(&args);
+    let addr = d.addr(deadline);
+    d.wait_for("the control token", deadline, |d| d.log().contains("control token: "));
+    let st = tagdeflect_test(&addr, &token, &["start", "--specimen", "FR1", "--standard", "astm-c1609"]);
+    let id = st["id"].as_str().unwrap().to_string();
+    let folder = tests_dir.join(&id);
+    d.wait_for("15 lines of the test", deadline, |_| whole_feed_lines(&folder.join("feed.jsonl")).len() >= 15);
+    tagdeflect_test(&addr, &token, &["stop"]);
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+
+    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    let started_t_ns = record["started_t_ns"].as_i64().unwrap();
+    let hashed: Vec<&String> = record["sha256"].as_object().unwrap().keys().filter(|k| k.starts_with("frames/")).collect();
+    let index = fs::read_to_string(folder.join("frames/frames.jsonl")).unwrap();
+    let frames: Vec<serde_json::Value> = index.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(frames.len() >= 30, "{} frames", frames.len());
+    assert!(frames.iter().all(|f| f["t_ns"].as_i64().unwrap() >= started_t_ns), "no frame before the test's start");
+    for f in &frames {
+        let file = format!("frames/{}", f["file"].as_str().unwrap());
+        assert!(hashed.contains(&&file), "{file} is hashed in test.json");
+    }
+    for name in ["frames/frames.jsonl", "frames/tagdeflect.toml"] {
+        assert!(hashed.contains(&&name.to_string()), "{name} in test.json: {hashed:?}");
+    }
+    let (ok, said) = report_verify(&folder);
+    assert!(ok, "report verify: {said}");
+
+    // Replayed, the frames give the test's lines: same times, same tags.
+    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).arg("replay").arg(folder.join("frames")).output().unwrap();
+    assert!(o.status.success(), "replay: {}", String::from_utf8_lossy(&o.stderr));
+    let tags = |l: &serde_json::Value| -> BTreeSet<u64> { l["tags"].as_array().unwrap().iter().map(|t| t["id"].as_u64().unwrap()).collect() };
+    let replayed: BTreeMap<i64, BTreeSet<u64>> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|v| (v["t_ns"].as_i64().unwrap(), tags(&v)))
+        .collect();
+    let text = fs::read_to_string(folder.join("feed.jsonl")).unwrap();
+    let live: Vec<serde_json::Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let same = live.iter().filter(|l| replayed.get(&l["t_ns"].as_i64().unwrap()) == Some(&tags(l))).count();
+    assert!(same * 10 >= live.len() * 9, "{same} of the test's {} lines replayed at their time with their tags", live.len());
+
+    // A frame changed after the stop is named.
+    let first = folder.join("frames").join(frames[0]["file"].as_str().unwrap());
+    let mut bytes = fs::read(&first).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0xff;
+    fs::write(&first, bytes).unwrap();
+    let (ok, said) = report_verify(&folder);
+    assert!(!ok && said.contains(frames[0]["file"].as_str().unwrap()), "{said}");
+}
