@@ -81,6 +81,9 @@ range_v = [0.0, 5.0]
 [output.auto_test]
 start_load_kn = 2.0
 
+[output.feed_rotation]
+max_mb = 2000.0
+
 [measure]
 quad_decimate = 1.0
 
@@ -164,6 +167,7 @@ const TABLES: &[&str] = &[
     "output.control",
     "output.analog",
     "output.auto_test",
+    "output.feed_rotation",
     "measure",
     "report",
     "report.lab",

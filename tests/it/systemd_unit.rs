@@ -129,6 +129,13 @@ fn unit_has_the_directives_the_daemon_relies_on() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("systemd");
     let sysusers = std::fs::read_to_string(root.join("tagdeflect.sysusers")).unwrap();
     assert!(sysusers.lines().any(|l| l.split_whitespace().collect::<Vec<_>>() == ["g", "tagdeflect", "-"]), "{sysusers}");
+    // A dynamic user's own group takes its name (User=, else the unit's): a static group of that
+    // name makes the unit fail at start on a booted systemd (217/USER) — so it must be another.
+    let user = lines.iter().find_map(|l| l.strip_prefix("User=")).unwrap_or("tagdeflect");
+    for l in sysusers.lines().filter(|l| !l.trim_start().starts_with('#')) {
+        let f: Vec<&str> = l.split_whitespace().collect();
+        assert!(f.get(1) != Some(&user), "the dynamic user `{user}` collides with sysusers' `{l}`");
+    }
     let tmpfiles = std::fs::read_to_string(root.join("tagdeflect.tmpfiles")).unwrap();
     let folder = ["d", "/var/lib/tagdeflect-lab", "2770", "root", "tagdeflect", "-"];
     assert!(tmpfiles.lines().any(|l| l.split_whitespace().collect::<Vec<_>>() == folder), "{tmpfiles}");
