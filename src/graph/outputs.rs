@@ -108,8 +108,10 @@ impl BuildOutput for FeedOutput<'_> {
         match self.spec {
             Some("-") if !to_stdout => feeds.push(FeedWriter::stdout()),
             Some("-") | None => {}
-            Some(spec) => feeds
-                .push(FeedWriter::append_rotating(Path::new(spec), &self.rotation).map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?),
+            Some(spec) => feeds.push(
+                FeedWriter::append_rotating(Path::new(spec), &self.rotation)
+                    .map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?,
+            ),
         }
         out.sinks.extend(feeds.into_iter().map(feed_sink));
         Ok(())

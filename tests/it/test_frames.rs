@@ -85,7 +85,8 @@ fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
     // Replayed, the frames give the test's lines: same times, same tags.
     let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).arg("replay").arg(folder.join("frames")).output().unwrap();
     assert!(o.status.success(), "replay: {}", String::from_utf8_lossy(&o.stderr));
-    let tags = |l: &serde_json::Value| -> BTreeSet<u64> { l["tags"].as_array().unwrap().iter().map(|t| t["id"].as_u64().unwrap()).collect() };
+    let tags =
+        |l: &serde_json::Value| -> BTreeSet<u64> { l["tags"].as_array().unwrap().iter().map(|t| t["id"].as_u64().unwrap()).collect() };
     let replayed: BTreeMap<i64, BTreeSet<u64>> = String::from_utf8_lossy(&o.stdout)
         .lines()
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())

@@ -59,7 +59,8 @@ pub struct BackfillSummary {
 /// read first, in order ([`tagdeflect_core::feed_rotation::feed_files`]).
 pub fn read_feed(path: &Path, rig: &str, test: &str) -> Result<Vec<LineRow>, ArchiveError> {
     let file = if path.is_dir() { path.join("feed.jsonl") } else { path.to_path_buf() };
-    let files = tagdeflect_core::feed_rotation::feed_files(&file).map_err(|e| ArchiveError::BadOption(format!("{}: {e}", file.display())))?;
+    let files =
+        tagdeflect_core::feed_rotation::feed_files(&file).map_err(|e| ArchiveError::BadOption(format!("{}: {e}", file.display())))?;
     if files.is_empty() {
         return Err(ArchiveError::BadOption(format!("{}: no such file", file.display())));
     }

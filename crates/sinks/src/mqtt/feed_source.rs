@@ -3,9 +3,9 @@
 
 use std::path::{Path, PathBuf};
 
-use tagdeflect_core::feed_rotation::feed_segments;
 use std::sync::Arc;
 use std::time::Duration;
+use tagdeflect_core::feed_rotation::feed_segments;
 
 use super::state::Shared;
 
