@@ -97,10 +97,7 @@ fn a_resumed_test_is_one_test_across_its_seq_restart_and_its_hole_is_a_gap() {
         assert_eq!(feed.columns.resumes, vec![5]);
         assert_eq!(feed.warnings.len(), 1, "{:?}", feed.warnings);
         let w = &feed.warnings[0];
-        assert!(
-            w.starts_with("f.jsonl:6: the daemon restarted during the test") && w.contains("no lines for 12.0 s after line 5"),
-            "{w}"
-        );
+        assert!(w.starts_with("f.jsonl:6: the daemon restarted during the test") && w.contains("no lines for 12.0 s after line 5"), "{w}");
         assert!(w.contains("seq 0 after seq 79"), "{w}");
     }
 
