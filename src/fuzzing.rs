@@ -363,8 +363,8 @@ pub fn report_feed(data: &[u8]) {
         let Ok(runs) = Feed::parse(text, path, &ReadOptions { allow_restarts, ..Default::default() }) else { continue };
         for feed in &runs {
             // seq increases but where a resumed lab test's line restarts it (a `resume` event).
-            let resumes = |l: &tagdeflect_core::feed::FeedLine| l.events.iter().any(|e| e.kind == "resume");
-            assert!(feed.lines.windows(2).all(|w| (w[0].seq < w[1].seq || resumes(&w[1])) && w[0].t_ns < w[1].t_ns));
+            let c = &feed.columns;
+            assert!((1..c.len()).all(|k| (c.seq[k - 1] < c.seq[k] || c.resumes.contains(&k)) && c.t_ns[k - 1] < c.t_ns[k]));
             let mut csv = Vec::new();
             let _ = tagdeflect_report::csv_out::write_curve_csv(feed, &mut csv);
             for standard in [Standard::AstmC1609, Standard::En14651] {

@@ -4,7 +4,6 @@
 
 use std::path::Path;
 
-use tagdeflect_core::feed::FeedLine;
 use tagdeflect_core::gauge::GaugeKind;
 use tagdeflect_core::rig::TagRole;
 
@@ -14,6 +13,7 @@ use crate::error::ReportError;
 use crate::feed_reader::Feed;
 use crate::report::{Report, TestRig};
 use crate::standard::Standard;
+use crate::tag_stats::TagStats;
 use crate::utm_stream::UtmStream;
 use crate::{c1609, en14651, qc, validity};
 
@@ -81,8 +81,10 @@ pub fn build(
                 .into(),
     })?;
     let data_err = |e: CurveChoiceError| ReportError::Data { path: feed.path.clone(), message: e.to_string() };
+    // The tags are not held: read again, now that the config says which way is up.
+    let tags = TagStats::of(feed, config)?;
     let (feed_curve, x_name, x_axis, x_source) = match opts.standard {
-        Standard::AstmC1609 | Standard::AstmC1856 => deflection_curve(feed, config, opts).map_err(data_err)?,
+        Standard::AstmC1609 | Standard::AstmC1856 => deflection_curve(feed, config, &tags, opts).map_err(data_err)?,
         Standard::En14651 => {
             if beam.notch_mm.is_none() {
                 return Err(ReportError::Config {
@@ -95,7 +97,7 @@ pub fn build(
     };
     let mut notes = Vec::new();
     // The clock offset the feed reports (UTM time − camera time), its σ the alignment's.
-    let clock = feed.lines.iter().rev().find_map(|l| l.clock_offset_ms);
+    let clock = feed.summary.clock_offset_ms;
     let resolution = opts.load_resolution_kn.unwrap_or(0.0);
     let (curve, load_source) = match utm {
         Some(u) => {
@@ -160,9 +162,10 @@ pub fn build(
         notes.push("No tolerances of the dimensions in the config (width_tol_mm, depth_tol_mm, span_tol_mm): the stresses' σ take the dimensions as exact.".into());
     }
     let utm_gaps: Vec<(f64, f64)> = utm.map_or(Vec::new(), |u| {
-        let t0 = feed.lines[0].t_ns;
+        let t = &feed.columns.t_ns;
+        let t0 = t[0];
         let off = clock.map_or(0, |c| (c.value * 1e6).round() as i64);
-        let (first, last) = (feed.lines[0].t_ns, feed.lines[feed.lines.len() - 1].t_ns);
+        let (first, last) = (t[0], t[t.len() - 1]);
         u.gaps(opts.max_gap_s)
             .into_iter()
             .map(|(a, b)| (a - off, b - off))
@@ -170,12 +173,11 @@ pub fn build(
             .map(|(a, b)| ((a - t0) as f64 * 1e-9, (b - t0) as f64 * 1e-9))
             .collect()
     });
-    let mut qc = qc::Qc::of(feed, config, &feed_curve, &x_name, opts);
+    let mut qc = qc::Qc::of(feed, config, tags, &feed_curve, &x_name, opts);
     if let Some(u) = utm {
         qc.warnings.extend(u.warnings.iter().cloned());
-        if u.samples.first().is_some_and(|s| s.t_ns > feed.lines[0].t_ns)
-            || u.samples.last().is_some_and(|s| s.t_ns < feed.lines[feed.lines.len() - 1].t_ns)
-        {
+        let t = &feed.columns.t_ns;
+        if u.samples.first().is_some_and(|s| s.t_ns > t[0]) || u.samples.last().is_some_and(|s| s.t_ns < t[t.len() - 1]) {
             qc.warnings
                 .push(format!("the UTM stream {} does not cover the whole feed: the ends of the curve have no load", u.path.display()));
         }
@@ -200,7 +202,7 @@ pub fn build(
     });
     let mut lab = opts.lab.clone();
     if lab.test_date.is_none() {
-        lab.test_date = Some(chrono::DateTime::from_timestamp_nanos(feed.lines[0].t_ns).format("%Y-%m-%d").to_string());
+        lab.test_date = Some(chrono::DateTime::from_timestamp_nanos(feed.columns.t_ns[0]).format("%Y-%m-%d").to_string());
     }
     if let Some((k, n)) = feed.run {
         notes.insert(0, format!("Run {k} of {n} in {} (the feed restarts: --allow-restarts reports each run on its own).", feed.label()));
@@ -262,12 +264,13 @@ struct Columns {
 
 fn gauge_columns(feed: &Feed, name: &str) -> Columns {
     let mut c = Columns { t: vec![], p: vec![], x: vec![], sx: vec![] };
-    for l in &feed.lines {
-        if let (Some(p), Some(g)) = (l.load_kn, l.gauges.get(name)) {
-            c.t.push(l.t_ns);
+    let (cols, Some(g)) = (&feed.columns, feed.columns.gauge(name)) else { return c };
+    for k in 0..cols.len() {
+        if let (Some(p), false) = (cols.load(k), g.value[k].is_nan()) {
+            c.t.push(cols.t_ns[k]);
             c.p.push(p);
-            c.x.push(g.value);
-            c.sx.push(g.known_sigma());
+            c.x.push(g.value[k]);
+            c.sx.push(Some(g.sigma[k]).filter(|s| !s.is_nan()));
         }
     }
     c
@@ -279,7 +282,12 @@ fn curve_of(c: Columns, ref_sigma: f64, opts: &ReportConfig, what: &'static str)
 
 /// Load against net deflection: a gauge when asked for, else the feed's `net_deflection_mm`
 /// with σ propagated from the role tags' `sigma_mm` along `world.up`.
-fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Curve, String, String, String), CurveChoiceError> {
+fn deflection_curve(
+    feed: &Feed,
+    config: &TestRig,
+    tags: &TagStats,
+    opts: &ReportConfig,
+) -> Result<(Curve, String, String, String), CurveChoiceError> {
     // Asked for, else the config's `net_deflection` gauge when the feed carries it (its σ
     // comes from the tags' covariance), else the feed's net_deflection_mm.
     let configured =
@@ -297,25 +305,22 @@ fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Resul
             format!("gauge `{g}` of the feed, with its σ{ref_text}"),
         ));
     }
-    let up = config.world.up;
-    let down_sigma = |s: [f64; 3]| ((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt();
     // σ of each role tag's zero reference: its σ in the first line that solved it.
-    let mut first_sigma: std::collections::BTreeMap<u32, f64> = Default::default();
+    let first_sigma = &tags.first_sigma_up_mm;
+    let cols = &feed.columns;
     let mut c = Columns { t: vec![], p: vec![], x: vec![], sx: vec![] };
     let mut any_net = false;
-    for l in &feed.lines {
-        for t in &l.tags {
-            if let Some(s) = t.sigma_mm {
-                first_sigma.entry(t.id).or_insert(down_sigma(s));
-            }
+    for k in 0..cols.len() {
+        let net = cols.net_deflection_mm[k];
+        if net.is_nan() {
+            continue;
         }
-        let Some(net) = l.net_deflection_mm else { continue };
         any_net = true;
-        let Some(p) = l.load_kn else { continue };
-        c.t.push(l.t_ns);
+        let Some(p) = cols.load(k) else { continue };
+        c.t.push(cols.t_ns[k]);
         c.p.push(p);
         c.x.push(net);
-        c.sx.push(role_sigma(l, config, &down_sigma));
+        c.sx.push(tags.role_sigma(k));
     }
     if !any_net {
         return Err(CurveChoiceError::NoNetDeflection);
@@ -334,24 +339,6 @@ fn deflection_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Resul
          midspan and support tags taken as independent, plus the σ of each tag's zero reference (its first solved frame set)"
             .into(),
     ))
-}
-
-/// σ of a line's net deflection from its role tags, `None` when a role tag has no σ.
-fn role_sigma(l: &FeedLine, config: &TestRig, down_sigma: &dyn Fn([f64; 3]) -> f64) -> Option<f64> {
-    let mut mid = Vec::new();
-    let mut sup = Vec::new();
-    for t in &l.tags {
-        match config.role_of(t.id) {
-            Some(TagRole::Midspan) => mid.push(down_sigma(t.sigma_mm?)),
-            Some(TagRole::Support) => sup.push(down_sigma(t.sigma_mm?)),
-            None => {}
-        }
-    }
-    if mid.is_empty() || sup.is_empty() {
-        return None;
-    }
-    let var = |v: &[f64]| v.iter().map(|s| s * s).sum::<f64>() / (v.len() * v.len()) as f64;
-    Some((var(&mid) + var(&sup)).sqrt())
 }
 
 /// The CMOD gauge of `feed`: [`choose_cmod_gauge`] among the gauges the feed carries.
@@ -414,11 +401,13 @@ fn cmod_curve(feed: &Feed, config: &TestRig, opts: &ReportConfig) -> Result<(Cur
 /// (200 frame sets, no test): CMOD errors −0.018 mm on average with 0.012 mm scatter about
 /// that against a line σ of 0.014 mm — the first frame set's error, carried by every line.
 fn gauge_reference_sigma(feed: &Feed, name: &str) -> (f64, String) {
-    if feed.lines.iter().any(|l| l.test.is_some()) {
+    if feed.summary.any_test {
         return (0.0, " (the test's zero σ included by the daemon)".into());
     }
     // The reference frame set's own line reads (nearly) σ 0: the median of the next 20 lines'.
-    let mut first: Vec<f64> = feed.lines.iter().filter_map(|l| l.gauges.get(name)).filter_map(|g| g.known_sigma()).take(21).collect();
+    let Some(g) = feed.columns.gauge(name) else { return (0.0, String::new()) };
+    let mut first: Vec<f64> =
+        g.value.iter().zip(&g.sigma).filter(|(v, _)| !v.is_nan()).map(|(_, s)| *s).filter(|s| !s.is_nan()).take(21).collect();
     if first.len() < 2 {
         return (0.0, String::new());
     }

@@ -24,37 +24,53 @@ fn header(feed: &Feed) -> Vec<String> {
     h
 }
 
-/// Writes the CSV of a feed.
+/// Writes the CSV of a feed. The held columns give the load, the deflection and the gauges;
+/// the stroke and the tags' displacements are read from the feed again, line by line
+/// ([`Feed::for_each_line`]): a feed that changed since it was read is an error.
 pub fn write_curve_csv<W: Write>(feed: &Feed, out: W) -> Result<(), ::csv::Error> {
     let mut w = ::csv::Writer::from_writer(out);
     w.write_record(header(feed))?;
-    let gauges = feed.gauge_names();
+    let cols = &feed.columns;
     let ids = feed.tag_ids();
-    let t0 = feed.lines.first().map_or(0, |l| l.t_ns);
-    let num = |v: Option<f64>| v.map(number).unwrap_or_default();
-    for l in &feed.lines {
-        // One map per line: the lookups stay linear in the line's tags.
-        let by_id: std::collections::HashMap<u32, &tagdeflect_core::feed::FeedTag> = l.tags.iter().map(|t| (t.id, t)).collect();
-        let mut row = vec![
-            l.t_ns.to_string(),
-            format!("{:.6}", (l.t_ns - t0) as f64 * 1e-9),
-            num(l.load_kn),
-            num(l.stroke_mm),
-            num(l.net_deflection_mm),
-        ];
-        for g in &gauges {
-            let r = l.gauges.get(g);
-            row.push(num(r.map(|r| r.value)));
-            row.push(num(r.and_then(|r| r.known_sigma())));
+    let t0 = cols.t_ns.first().copied().unwrap_or(0);
+    let num = |v: f64| if v.is_nan() { String::new() } else { number(v) };
+    let mut failed = None;
+    let mut row = Vec::new();
+    let read = feed.for_each_line(|k, l| {
+        if failed.is_some() {
+            return;
         }
+        let t_ns = cols.t_ns[k];
+        row.clear();
+        row.extend([
+            t_ns.to_string(),
+            format!("{:.6}", (t_ns - t0) as f64 * 1e-9),
+            num(cols.load_kn[k]),
+            num(l.stroke_mm.unwrap_or(f64::NAN)),
+            num(cols.net_deflection_mm[k]),
+        ]);
+        for g in &cols.gauges {
+            row.push(num(g.value[k]));
+            row.push(num(if g.value[k].is_nan() { f64::NAN } else { g.sigma[k] }));
+        }
+        // The line's tags in id order (a repeated id: its last, as a map would keep).
+        let mut by_id: Vec<&tagdeflect_core::feed::FeedTag> = l.tags.iter().collect();
+        by_id.sort_by_key(|t| t.id);
         for id in &ids {
-            let t = by_id.get(id);
-            for k in 0..3 {
-                row.push(num(t.map(|t| t.disp_mm[k])));
+            let i = by_id.partition_point(|t| t.id <= *id);
+            let t = (i > 0 && by_id[i - 1].id == *id).then(|| by_id[i - 1]);
+            for c in 0..3 {
+                row.push(t.map(|t| number(t.disp_mm[c])).unwrap_or_default());
             }
         }
-        w.write_record(&row)?;
+        if let Err(e) = w.write_record(&row) {
+            failed = Some(e);
+        }
+    });
+    if let Some(e) = failed {
+        return Err(e);
     }
+    read.map_err(|e| ::csv::Error::from(std::io::Error::other(e.to_string())))?;
     w.flush()?;
     Ok(())
 }

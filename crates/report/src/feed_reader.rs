@@ -1,6 +1,7 @@
-//! Reading a feed for the report: the lines as [`FeedLine`]s, the type the measurement
+//! Reading a feed for the report: each line parsed as a [`FeedLine`], the type the measurement
 //! writes, which reads tolerantly (unknown fields ignored, extensions and what other writers
-//! leave out optional; see [`tagdeflect_core::feed`]).
+//! leave out optional; see [`tagdeflect_core::feed`]), checked, and held as columns
+//! ([`crate::feed_columns`]) and sums ([`crate::feed_summary`]), never as lines.
 //!
 //! Tolerant of what is missing, strict about what is wrong: a feed is one run in time order
 //! (SPEC), so `seq` must increase and `t_ns` with it; a `seq` that goes back or repeats (two
@@ -21,10 +22,13 @@
 
 use std::path::{Path, PathBuf};
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
 
 use crate::error::ReportError;
+use crate::feed_columns::Columns;
 use crate::feed_summary::LineSummary;
 
 /// Physical ranges of a feed's values (`[report] max_load_kn`, `max_length_mm`).
@@ -70,23 +74,35 @@ pub struct ReadOptions {
     pub allow_restarts: bool,
 }
 
-/// A whole feed file (or one run of it).
+/// A whole feed file (or one run of it): its lines as columns, never as lines (see
+/// [`crate::feed_columns`]).
 #[derive(Debug, Clone)]
 pub struct Feed {
     /// Where it was read from.
     pub path: PathBuf,
-    /// The lines in time order.
-    pub lines: Vec<FeedLine>,
+    /// The lines in time order, one entry per line in each column.
+    pub columns: Columns,
     /// 1-based file line of each line (for messages).
     pub line_numbers: Vec<usize>,
     /// Warnings from reading (a truncated last line).
     pub warnings: Vec<String>,
     /// `(index from 1, runs in the file)` when the file held several runs.
     pub run: Option<(usize, usize)>,
-    /// What the lines said that is kept only in sum: the cameras' health, the gauges' units
-    /// (the held lines carry no `cameras` and no unit equal to their gauge's first; see
-    /// [`crate::feed_summary`]).
+    /// What the lines said that is kept only in sum: the cameras' health, the gauges' units,
+    /// the tags seen, ... (see [`crate::feed_summary`]).
     pub summary: LineSummary,
+    /// Where the lines are read again (the tags, which are not held).
+    pub(crate) source: Source,
+}
+
+/// Where a feed's lines are read again from: the file (from the byte where the run's first
+/// line starts) or the text it was parsed from.
+#[derive(Debug, Clone)]
+pub(crate) enum Source {
+    /// The file `Feed::path`, the run's first line at this byte.
+    File { offset: u64 },
+    /// Parsed text, the run's first line at this byte.
+    Text { text: Arc<str>, offset: usize },
 }
 
 impl Feed {
@@ -100,21 +116,24 @@ impl Feed {
 
     /// Reads a feed into its runs (one unless `allow_restarts`); a rotated feed's current file
     /// is read after its rotated files (line numbers in messages count across them). The file is read line by
-    /// line, never whole: only the parsed lines are held (a long test's feed is gigabytes of
-    /// text).
+    /// line, never whole, and each line is held as its entries in [`Feed::columns`] (a long
+    /// test's feed is gigabytes of text; ~100 B a line are held).
     pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
         use std::io::BufRead;
         let io = |e: std::io::Error| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") };
         // A rotated run's current file: its rotated files first, in order (`[output.feed_rotation]`).
         let mut reader = tagdeflect_core::feed_rotation::open_feed_set(path).map_err(io)?;
-        let mut runs = Runs::new(path, opts);
+        let mut runs = Runs::new(path, opts, None);
         let mut buf = Vec::new();
-        let mut no = 0;
+        let (mut no, mut offset) = (0, 0);
         loop {
             buf.clear();
-            if reader.read_until(b'\n', &mut buf).map_err(io)? == 0 {
+            let n = reader.read_until(b'\n', &mut buf).map_err(io)?;
+            if n == 0 {
                 break;
             }
+            runs.offset = offset;
+            offset += n;
             no += 1;
             let unterminated = buf.last() != Some(&b'\n');
             let text = std::str::from_utf8(&buf).map_err(|_| ReportError::BadLine {
@@ -131,39 +150,49 @@ impl Feed {
     /// Parses feed text; `path` names the file in errors.
     pub fn parse(text: &str, path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
         let ends_with_newline = text.ends_with('\n');
-        let mut runs = Runs::new(path, opts);
-        let mut lines = text.lines().peekable();
+        let shared: Arc<str> = Arc::from(text);
+        let mut runs = Runs::new(path, opts, Some(shared.clone()));
+        let mut lines = shared.lines().peekable();
         let mut no = 0;
         while let Some(line) = lines.next() {
+            runs.offset = line.as_ptr() as usize - shared.as_ptr() as usize;
             no += 1;
             runs.line(no, line, lines.peek().is_none() && !ends_with_newline)?;
         }
         runs.finish(no)
     }
 
+    /// A feed of `lines` (in memory, as parsed from their JSON text): for tests.
+    pub fn from_lines(path: &Path, lines: &[FeedLine]) -> Result<Feed, ReportError> {
+        let text: String = lines.iter().map(|l| serde_json::to_string(l).expect("a feed line serialises") + "\n").collect();
+        Ok(Self::parse(&text, path, &ReadOptions::default())?.remove(0))
+    }
+
     fn empty(path: &Path) -> Feed {
         Feed {
             path: path.to_path_buf(),
-            lines: Vec::new(),
+            columns: Columns::default(),
             line_numbers: Vec::new(),
             warnings: Vec::new(),
             run: None,
             summary: LineSummary::default(),
+            source: Source::File { offset: 0 },
         }
+    }
+
+    /// Lines held.
+    pub fn len(&self) -> usize {
+        self.columns.len()
+    }
+
+    /// True when no line is held (a feed read has at least one).
+    pub fn is_empty(&self) -> bool {
+        self.columns.is_empty()
     }
 
     /// Gauge names in order of first appearance.
     pub(crate) fn gauge_names(&self) -> Vec<String> {
-        let mut names: Vec<String> = Vec::new();
-        let mut seen = std::collections::HashSet::new();
-        for l in &self.lines {
-            for k in l.gauges.keys() {
-                if seen.insert(k.as_str()) {
-                    names.push(k.clone());
-                }
-            }
-        }
-        names
+        self.columns.gauges.iter().map(|g| g.name.clone()).collect()
     }
 
     /// The unit of a gauge (from its first reading that names one).
@@ -173,10 +202,7 @@ impl Feed {
 
     /// Tag ids seen, sorted.
     pub(crate) fn tag_ids(&self) -> Vec<u32> {
-        let mut ids: Vec<u32> = self.lines.iter().flat_map(|l| l.tags.iter().map(|t| t.id)).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        ids
+        self.summary.tag_lines.keys().copied().collect()
     }
 
     /// A name for messages: the file, and the run when the file holds several.
@@ -201,11 +227,17 @@ struct Runs<'a> {
     cur: Feed,
     /// The file's warnings (a truncated last line).
     warnings: Vec<String>,
+    /// The text parsed (`None`: the file is read).
+    text: Option<Arc<str>>,
+    /// The byte where the line being read starts.
+    offset: usize,
+    /// The test of the last line held.
+    prev_test: Option<String>,
 }
 
 impl<'a> Runs<'a> {
-    fn new(path: &'a Path, opts: &'a ReadOptions) -> Self {
-        Runs { path, opts, runs: Vec::new(), cur: Feed::empty(path), warnings: Vec::new() }
+    fn new(path: &'a Path, opts: &'a ReadOptions, text: Option<Arc<str>>) -> Self {
+        Runs { path, opts, runs: Vec::new(), cur: Feed::empty(path), warnings: Vec::new(), text, offset: 0, prev_test: None }
     }
 
     fn bad(&self, line: usize, message: String) -> ReportError {
@@ -231,9 +263,16 @@ impl<'a> Runs<'a> {
         };
         check_values(&l, &self.opts.limits).map_err(|e| self.bad(no, e.to_string()))?;
         self.follow(no, &l)?;
-        compact(&mut l, &mut self.cur.summary);
-        self.cur.lines.push(l);
+        if self.cur.is_empty() {
+            self.cur.source = match &self.text {
+                Some(text) => Source::Text { text: text.clone(), offset: self.offset },
+                None => Source::File { offset: self.offset as u64 },
+            };
+        }
+        self.cur.summary.fold(&mut l);
+        self.cur.columns.push(&l);
         self.cur.line_numbers.push(no);
+        self.prev_test = l.test.map(|t| t.id);
         Ok(())
     }
 
@@ -241,10 +280,12 @@ impl<'a> Runs<'a> {
     /// new run (`allow_restarts`) or an error naming the line.
     fn follow(&mut self, no: usize, l: &FeedLine) -> Result<(), ReportError> {
         let (mut warning, mut new_run) = (None, false);
-        if let (Some(prev), Some(&prev_no)) = (self.cur.lines.last(), self.cur.line_numbers.last()) {
+        let c = &self.cur.columns;
+        if let (Some(&prev_seq), Some(&prev_t_ns), Some(&prev_no)) = (c.seq.last(), c.t_ns.last(), self.cur.line_numbers.last()) {
+            let prev = Prev { seq: prev_seq, t_ns: prev_t_ns };
             // A resumed test: a new segment of this run, not a new run (module doc).
-            let same_test = match (&l.test, &prev.test) {
-                (Some(a), Some(b)) => a.id == b.id,
+            let same_test = match (&l.test, &self.prev_test) {
+                (Some(a), Some(b)) => &a.id == b,
                 _ => true,
             };
             let resumed = resumes(l) && same_test;
@@ -300,7 +341,7 @@ impl<'a> Runs<'a> {
     }
 
     fn finish(mut self, lines: usize) -> Result<Vec<Feed>, ReportError> {
-        if !self.cur.lines.is_empty() {
+        if !self.cur.is_empty() {
             let cur = std::mem::replace(&mut self.cur, Feed::empty(self.path));
             self.runs.push(cur);
         }
@@ -310,7 +351,7 @@ impl<'a> Runs<'a> {
         let n = self.runs.len();
         for (k, r) in self.runs.iter_mut().enumerate() {
             r.warnings.extend(self.warnings.iter().cloned());
-            r.lines.shrink_to_fit();
+            r.columns.shrink_to_fit();
             r.line_numbers.shrink_to_fit();
             if n > 1 {
                 r.run = Some((k + 1, n));
@@ -320,12 +361,10 @@ impl<'a> Runs<'a> {
     }
 }
 
-/// A parsed line held for the whole report: what is kept only in sum folded into `summary`
-/// and dropped, its lists without spare capacity.
-fn compact(l: &mut FeedLine, summary: &mut LineSummary) {
-    summary.fold(l);
-    l.tags.shrink_to_fit();
-    l.events.shrink_to_fit();
+/// The line before the one being read.
+struct Prev {
+    seq: u64,
+    t_ns: i64,
 }
 
 /// A number for a message: scientific beyond ordinary magnitudes.
@@ -436,175 +475,4 @@ fn check_values(l: &FeedLine, lim: &Limits) -> Result<(), ValueError> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn parse(text: &str) -> Result<Vec<Feed>, ReportError> {
-        Feed::parse(text, Path::new("f.jsonl"), &ReadOptions::default())
-    }
-
-    #[test]
-    fn reads_lines_other_writers_leave_short_and_skips_a_truncated_last_one() {
-        let text = concat!(
-            r#"{"seq":0,"t_ns":10,"tags":[{"id":4,"pos_mm":[0,0,0],"disp_mm":[0,0,-1]}],"gauges":{"cmod":{"value":0.0,"sigma":0.002,"unit":"mm"}}}"#,
-            "\n",
-            r#"{"seq":1,"t_ns":20,"load_kN":1.5,"gauges":{"cmod":{"value":0.1}},"cameras":[{"name":"left"}],"drift_px":3}"#,
-            "\n",
-            r#"{"seq":2,"t_ns":30,"tags":[{"id""#,
-        );
-        let feed = parse(text).unwrap().remove(0);
-        assert_eq!(feed.lines.iter().map(|l| l.seq).collect::<Vec<_>>(), vec![0, 1], "the cut line skipped");
-        assert_eq!(feed.warnings, vec!["f.jsonl:3: truncated last line skipped".to_string()]);
-        assert_eq!(feed.gauge_names(), vec!["cmod".to_string()]);
-        assert_eq!(feed.gauge_unit("cmod").as_deref(), Some("mm"), "from the first line that names one");
-        assert_eq!(feed.lines[1].gauges["cmod"].known_sigma(), None);
-        assert_eq!(feed.summary.cameras["left"], crate::feed_summary::CameraTally::default(), "framed and posed by default");
-        assert!(feed.lines.iter().all(|l| l.cameras.is_empty() && l.gauges.values().all(|g| g.unit.is_empty())), "kept in sum only");
-        assert_eq!(feed.tag_ids(), vec![4]);
-        let e = parse("{\"seq\":0,\"t_ns\":\"soon\"}\n").unwrap_err();
-        assert!(e.to_string().starts_with("f.jsonl:1: not a feed line"), "{e}");
-    }
-
-    #[test]
-    fn a_seq_going_back_or_repeating_is_an_error_or_a_new_run() {
-        let l = |seq: u64, t: i64| format!("{{\"seq\":{seq},\"t_ns\":{t},\"load_kN\":1.0}}\n");
-        let restart = [l(0, 10), l(1, 20), l(0, 30), l(1, 40), l(2, 50)].concat();
-        let e = parse(&restart).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:3: not a feed line: seq 0 goes back from seq 1 of line 2"), "{e}");
-        let e = parse(&[l(0, 10), l(1, 20), l(1, 30)].concat()).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:3:") && e.contains("seq 1 repeats seq 1"), "{e}");
-        let e = parse(&[l(0, 10), l(1, 5)].concat()).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:2:") && e.contains("t_ns 5 is not after"), "{e}");
-        let runs = Feed::parse(&restart, Path::new("f.jsonl"), &ReadOptions { allow_restarts: true, ..Default::default() }).unwrap();
-        assert_eq!(runs.len(), 2);
-        assert_eq!((runs[0].lines.len(), runs[1].lines.len()), (2, 3));
-        assert_eq!(runs[1].run, Some((2, 2)));
-        assert_eq!(runs[1].line_numbers, vec![3, 4, 5]);
-    }
-
-    /// A lab test's feed across a restart of its daemon (issue 24 item 3): seq 75–79, then
-    /// the resumed daemon's seq 0–9 after a 12 s hole, its first line with the `resume` event.
-    fn resumed_test_feed(with_event: bool) -> String {
-        const T0: i64 = 1_764_000_000_000_000_000;
-        let test = r#""test":{"id":"20261202T013000Z-B12","specimen":"B12"}"#;
-        let mut text = String::new();
-        let mut line = |seq: u64, t_ns: i64, events: &str| {
-            let x = (t_ns - T0) as f64 * 1e-9 * 0.01;
-            text.push_str(&format!(
-                "{{\"seq\":{seq},\"t_ns\":{t_ns},\"load_kN\":{:.3},\"net_deflection_mm\":{x:.6},{test}{events}}}\n",
-                10.0 + 300.0 * x
-            ));
-        };
-        for k in 0..5 {
-            line(75 + k, T0 + k as i64 * 200_000_000, "");
-        }
-        let t1 = T0 + 800_000_000 + 12_000_000_000;
-        for k in 0..10 {
-            let ev = if k == 0 && with_event {
-                format!(r#","events":[{{"kind":"{RESUME_EVENT}","t_ns":{}}}]"#, t1 - 50_000_000)
-            } else {
-                String::new()
-            };
-            line(k, t1 + k as i64 * 200_000_000, &ev);
-        }
-        text
-    }
-
-    /// With the `resume` event the seq restart is one test read across it, the hole named in
-    /// the feed's warnings and counted as a gap by QC and validity; without it the same feed
-    /// is refused, naming the line; a resume whose time goes back is refused too.
-    #[test]
-    fn a_resumed_test_is_one_test_across_its_seq_restart_and_its_hole_is_a_gap() {
-        let text = resumed_test_feed(true);
-        for allow_restarts in [false, true] {
-            let runs = Feed::parse(&text, Path::new("f.jsonl"), &ReadOptions { allow_restarts, ..Default::default() }).unwrap();
-            assert_eq!(runs.len(), 1, "one test, not two runs (allow_restarts {allow_restarts})");
-            let feed = &runs[0];
-            assert_eq!(feed.run, None);
-            assert_eq!(feed.lines.iter().map(|l| l.seq).collect::<Vec<_>>(), [75, 76, 77, 78, 79, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9]);
-            assert_eq!(feed.line_numbers, (1..=15).collect::<Vec<_>>());
-            assert!(resumes(&feed.lines[5]) && !resumes(&feed.lines[4]));
-            assert_eq!(feed.warnings.len(), 1, "{:?}", feed.warnings);
-            let w = &feed.warnings[0];
-            assert!(
-                w.starts_with("f.jsonl:6: the daemon restarted during the test") && w.contains("no lines for 12.0 s after line 5"),
-                "{w}"
-            );
-            assert!(w.contains("seq 0 after seq 79"), "{w}");
-        }
-
-        // The report reads it as one test: the hole is one gap in time for QC (with the
-        // reader's warning) and for validity.
-        let feed = Feed::parse(&text, Path::new("f.jsonl"), &ReadOptions::default()).unwrap().remove(0);
-        let specimen: tagdeflect_core::rig::SpecimenConfig = serde_json::from_value(serde_json::json!({
-            "family": "tag36h11", "size_mm": 30.0, "tag": [],
-            "beam": {"width_mm": 150.0, "depth_mm": 150.0, "span_mm": 450.0},
-        }))
-        .unwrap();
-        let rig = crate::TestRig { world: Default::default(), specimen, gauges: Vec::new() };
-        let opts = crate::ReportConfig::new(crate::Standard::AstmC1609, "out".into());
-        let rep = crate::build(&feed, None, &rig, Path::new("rig.toml"), &opts).unwrap();
-        assert_eq!(rep.qc.time_gaps.len(), 1, "{:?}", rep.qc.time_gaps);
-        assert!((rep.qc.time_gaps[0].duration_s - 12.0).abs() < 1e-6, "{:?}", rep.qc.time_gaps);
-        assert!(rep.qc.warnings.iter().any(|w| w.contains("the daemon restarted during the test")), "{:?}", rep.qc.warnings);
-        assert!(rep.qc.warnings.iter().any(|w| w.starts_with("1 gap(s) in time")), "{:?}", rep.qc.warnings);
-        assert!(!rep.validity.valid && rep.validity.reasons.iter().any(|r| r.contains("gap(s)")), "{:?}", rep.validity.reasons);
-
-        // The same feed without the event: two runs appended, refused naming the line.
-        let e = parse(&resumed_test_feed(false)).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:6: not a feed line: seq 0 goes back from seq 79 of line 5"), "{e}");
-        assert!(e.contains("`resume` event"), "{e}");
-        // A resume whose time goes back, or a resume after a line of another test, is refused.
-        let back = text.replacen(
-            &format!("\"t_ns\":{}", 1_764_000_000_000_000_000i64 + 800_000_000 + 12_000_000_000),
-            "\"t_ns\":1764000000000000000",
-            1,
-        );
-        let e = parse(&back).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:6: not a feed line: t_ns 1764000000000000000 is not after"), "{e}");
-        let mut other: Vec<String> = text.lines().map(String::from).collect();
-        for l in &mut other[5..] {
-            *l = l.replace("-B12\"", "-B13\"");
-        }
-        let e = parse(&(other.join("\n") + "\n")).unwrap_err().to_string();
-        assert!(e.starts_with("f.jsonl:6: not a feed line: seq 0 goes back from seq 79 of line 5"), "{e}");
-    }
-
-    #[test]
-    fn absurd_values_are_errors_naming_the_field() {
-        let cases = [
-            (r#"{"seq":0,"t_ns":10,"load_kN":1e308}"#, "load_kN = 1e308"),
-            (r#"{"seq":0,"t_ns":10,"load_kN":-3e38}"#, "load_kN = -3"),
-            (r#"{"seq":0,"t_ns":-9223372036854775808}"#, "t_ns -9223372036854775808"),
-            (r#"{"seq":0,"t_ns":9223372036854775807}"#, "t_ns 9223372036854775807"),
-            (r#"{"seq":18446744073709551615,"t_ns":10}"#, "seq 18446744073709551615"),
-            (r#"{"seq":0,"t_ns":10,"net_deflection_mm":1e20}"#, "net_deflection_mm"),
-            (r#"{"seq":0,"t_ns":10,"gauges":{"cmod":{"value":1e300,"unit":"mm"}}}"#, "gauge cmod"),
-            (r#"{"seq":0,"t_ns":10,"tags":[{"id":3,"pos_mm":[0,0,1e99],"disp_mm":[0,0,0]}]}"#, "tag 3 pos_mm"),
-        ];
-        for (line, want) in cases {
-            let e = parse(&format!("{line}\n")).unwrap_err().to_string();
-            assert!(e.starts_with("f.jsonl:1: not a feed line") && e.contains(want), "{line}: {e}");
-        }
-    }
-
-    /// Read line by line as parsed whole (a `\r\n`, a cut last line); a non-UTF-8 line named.
-    #[test]
-    fn a_feed_read_line_by_line_is_the_feed_parsed_whole() {
-        let dir = tempfile::tempdir().unwrap();
-        let text = [resumed_test_feed(true).replacen('\n', "\r\n", 2), "\n{\"seq\":99,\"t_ns\":9".into()].concat();
-        let path = dir.path().join("f.jsonl");
-        std::fs::write(&path, &text).unwrap();
-        let (streamed, whole) =
-            (Feed::read_runs(&path, &ReadOptions::default()).unwrap(), Feed::parse(&text, &path, &ReadOptions::default()).unwrap());
-        assert_eq!((streamed.len(), streamed[0].lines.len()), (1, 15));
-        assert_eq!(
-            (&streamed[0].lines, &streamed[0].line_numbers, &streamed[0].warnings),
-            (&whole[0].lines, &whole[0].line_numbers, &whole[0].warnings)
-        );
-        assert!(streamed[0].warnings.iter().any(|w| w.contains(":17: truncated last line skipped")), "{:?}", streamed[0].warnings);
-        std::fs::write(&path, [&b"{\"seq\":0,\"t_ns\":1}\n\xff\n"[..], text.as_bytes()].concat()).unwrap();
-        let e = Feed::read_runs(&path, &ReadOptions::default()).unwrap_err().to_string();
-        assert!(e.contains("f.jsonl:2: not a feed line: not UTF-8"), "{e}");
-    }
-}
+mod tests;

@@ -1,9 +1,9 @@
-//! What a feed's lines say that the report needs only in sum, folded in as each line is read
-//! and then dropped from the held line: the cameras' health per line (counted per camera) and
-//! each gauge's unit (kept once per gauge). A held line keeps its numbers (time, load, stroke,
-//! deflection, each gauge's value and σ, each tag's displacement, σ and views, the UTM's
-//! state, the events and the test it belongs to); a line of a three-camera, 9-tag, 4-gauge rig
-//! held for the report shrinks from 3.8 kB to 2.2 kB (the `report_memory` test of this crate;
+//! What a feed's lines say that the report needs only in sum, folded in as each line is read:
+//! the cameras' health per line (counted per camera), each gauge's unit (kept once per
+//! gauge), the tags seen, the largest `dropped_sets`, the last clock check and whether the
+//! lines belong to a test. The numbers the report computes with per line are held as columns
+//! ([`crate::feed_columns`]); a line of a three-camera, 9-tag, 4-gauge rig held for the report
+//! takes ~100 B against 3.8 kB as parsed (the `report_memory` test of this crate;
 //! docs/performance.md).
 
 use std::collections::BTreeMap;
@@ -32,12 +32,29 @@ pub struct LineSummary {
     pub camera_fields: BTreeMap<String, (usize, Option<f64>)>,
     /// Per gauge, the unit of its first reading that names one.
     pub gauge_units: BTreeMap<String, String>,
+    /// Per specimen tag seen, the lines that solved it.
+    pub tag_lines: BTreeMap<u32, usize>,
+    /// The largest `dropped_sets` of the lines.
+    pub dropped_sets: Option<u64>,
+    /// The clock check of the last line that carries one.
+    pub clock_offset_ms: Option<tagdeflect_core::feed::ValueSigma>,
+    /// True when a line belongs to a test (`test`).
+    pub any_test: bool,
 }
 
 impl LineSummary {
-    /// Counts `l`'s cameras and notes its gauges' units, then drops from `l` what is kept
-    /// here: its cameras, and every unit equal to its gauge's first.
+    /// Counts `l`'s cameras and notes its gauges' units, tags, dropped sets, clock check and
+    /// test, then drops from `l` what is kept here: its cameras, and every unit equal to its
+    /// gauge's first.
     pub(crate) fn fold(&mut self, l: &mut FeedLine) {
+        for t in &l.tags {
+            *self.tag_lines.entry(t.id).or_default() += 1;
+        }
+        self.dropped_sets = self.dropped_sets.max(l.dropped_sets);
+        if l.clock_offset_ms.is_some() {
+            self.clock_offset_ms = l.clock_offset_ms;
+        }
+        self.any_test |= l.test.is_some();
         for c in &l.cameras {
             let e = self.cameras.entry(c.name.clone()).or_default();
             e.bumps += c.bumped as usize;

@@ -22,20 +22,36 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
     std::fs::rename(&tmp, path).map_err(io)
 }
 
+/// Writes a file as [`write_atomic`] does, its bytes written by `fill` straight into the
+/// temporary sibling (a long feed's `curve.csv` is never held whole in memory).
+fn write_atomic_streamed(path: &Path, fill: impl FnOnce(&mut dyn std::io::Write) -> Result<(), String>) -> Result<(), ReportError> {
+    use std::io::Write;
+    let io = |message: String| ReportError::Io { path: path.to_path_buf(), message };
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.tmp"));
+    let mut w = std::io::BufWriter::with_capacity(1 << 16, std::fs::File::create(&tmp).map_err(|e| io(e.to_string()))?);
+    let written = fill(&mut w).and_then(|()| w.flush().map_err(|e| e.to_string()));
+    drop(w);
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(io(e));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| io(e.to_string()))
+}
+
 /// Writes every output of a report into `dir`; returns the files written.
 pub fn write(report: &Report, feed: &Feed, dir: &Path) -> Result<Vec<PathBuf>, ReportError> {
     std::fs::create_dir_all(dir)
         .map_err(|e| ReportError::Io { path: dir.to_path_buf(), message: format!("cannot create the folder: {e}") })?;
-    let mut files = Vec::new();
+    let csv = dir.join("curve.csv");
+    write_atomic_streamed(&csv, |w| csv_out::write_curve_csv(feed, w).map_err(|e| e.to_string()))?;
+    let mut files = vec![csv];
     let mut put = |name: &str, bytes: &[u8]| -> Result<(), ReportError> {
         let p = dir.join(name);
         write_atomic(&p, bytes)?;
         files.push(p);
         Ok(())
     };
-    let mut csv_bytes = Vec::new();
-    csv_out::write_curve_csv(feed, &mut csv_bytes).map_err(|e| ReportError::Io { path: dir.join("curve.csv"), message: e.to_string() })?;
-    put("curve.csv", &csv_bytes)?;
     let plots = plots::draw_all(report, feed)?;
     for p in &plots {
         put(&format!("{}.svg", p.name), p.svg.as_bytes())?;

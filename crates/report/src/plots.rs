@@ -251,16 +251,17 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
 
 fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report, feed: &Feed, title: &str) -> Result<(), PlotError> {
     let c = &report.feed_curve;
-    let t0 = feed.lines[0].t_ns;
+    let cols = &feed.columns;
+    let t0 = cols.t_ns[0];
     let ts = |t: i64| (t - t0) as f64 * 1e-9;
     let load: Vec<(f64, f64)> = if report.curve.load_from_utm {
         report.curve.t_ns.iter().zip(&report.curve.load).map(|(&t, &p)| (ts(t), p)).collect()
     } else {
-        feed.lines.iter().filter_map(|l| l.load_kn.map(|p| (ts(l.t_ns), p))).collect()
+        cols.t_ns.iter().zip(&cols.load_kn).filter(|(_, p)| !p.is_nan()).map(|(&t, &p)| (ts(t), p)).collect()
     };
     let xs: Vec<(f64, f64)> = c.t_ns.iter().zip(&c.xs).map(|(&t, &x)| (ts(t), x)).collect();
     root.fill(&WHITE).map_err(err)?;
-    let (tmin, tmax) = range(feed.lines.iter().map(|l| ts(l.t_ns)));
+    let (tmin, tmax) = range(cols.t_ns.iter().map(|&t| ts(t)));
     let (p0, p1) = range(load.iter().map(|p| p.1).chain([0.0]));
     let (x0, x1) = range(xs.iter().map(|p| p.1).chain([0.0]));
     let mut chart = ChartBuilder::on(root)

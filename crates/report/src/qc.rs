@@ -5,8 +5,10 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 
 use crate::curve::Curve;
+use crate::feed_columns::UtmState;
 use crate::feed_reader::Feed;
 use crate::report::TestRig;
+use crate::tag_stats::TagStats;
 use tagdeflect_core::rig::TagRole;
 
 /// A time interval with the UTM link down.
@@ -114,40 +116,42 @@ pub struct Qc {
 
 impl Qc {
     /// The QC of a feed and the curve made from it.
-    pub(crate) fn of(feed: &Feed, config: &TestRig, curve: &Curve, x_name: &str, opts: &crate::ReportConfig) -> Qc {
-        let lines = &feed.lines;
-        let n = lines.len();
-        let first_t_ns = lines[0].t_ns;
-        let last_t_ns = lines[n - 1].t_ns;
+    pub(crate) fn of(feed: &Feed, config: &TestRig, tag_stats: TagStats, curve: &Curve, x_name: &str, opts: &crate::ReportConfig) -> Qc {
+        let cols = &feed.columns;
+        let n = cols.len();
+        let t = &cols.t_ns;
+        let first_t_ns = t[0];
+        let last_t_ns = t[n - 1];
         // The reader guarantees t_ns increasing (and seq too, but at a lab test's `resume` line).
-        let frame_sets_without_line: u64 = lines.windows(2).map(|w| w[1].seq.saturating_sub(w[0].seq).saturating_sub(1)).sum();
-        let mut steps: Vec<f64> = lines.windows(2).map(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9).collect();
+        let frame_sets_without_line: u64 = cols.seq.windows(2).map(|w| w[1].saturating_sub(w[0]).saturating_sub(1)).sum();
+        let mut steps: Vec<f64> = t.windows(2).map(|w| (w[1] - w[0]) as f64 * 1e-9).collect();
         let period = if steps.is_empty() { 0.0 } else { super::curve::median(&mut steps) };
+        drop(steps);
         let gap_s = (3.0 * period).max(0.5).min(opts.max_gap_s);
-        let time_gaps: Vec<Outage> = lines
+        let time_gaps: Vec<Outage> = t
             .windows(2)
-            .filter(|w| (w[1].t_ns - w[0].t_ns) as f64 * 1e-9 > gap_s)
-            .map(|w| Outage { from_t_ns: w[0].t_ns, to_t_ns: w[1].t_ns, duration_s: (w[1].t_ns - w[0].t_ns) as f64 * 1e-9 })
+            .filter(|w| (w[1] - w[0]) as f64 * 1e-9 > gap_s)
+            .map(|w| Outage { from_t_ns: w[0], to_t_ns: w[1], duration_s: (w[1] - w[0]) as f64 * 1e-9 })
             .collect();
-        let lines_without_load = lines.iter().filter(|l| l.load_kn.is_none()).count();
+        let lines_without_load = cols.load_kn.iter().filter(|p| p.is_nan()).count();
         let lines_with_load_without_x = (n - lines_without_load).saturating_sub(curve.len());
-        let dropped_sets = lines.iter().filter_map(|l| l.dropped_sets).max();
+        let dropped_sets = feed.summary.dropped_sets;
 
         let mut utm_outages = Vec::new();
         let mut down_from: Option<i64> = None;
         let mut utm_down_lines = 0;
-        for l in lines {
-            match l.utm.as_deref() {
-                Some("down") => {
+        for (state, &t_ns) in cols.utm.iter().zip(t) {
+            match state {
+                UtmState::Down => {
                     utm_down_lines += 1;
-                    down_from.get_or_insert(l.t_ns);
+                    down_from.get_or_insert(t_ns);
                 }
-                Some(_) => {
+                UtmState::Up => {
                     if let Some(f) = down_from.take() {
-                        utm_outages.push(Outage { from_t_ns: f, to_t_ns: l.t_ns, duration_s: (l.t_ns - f) as f64 * 1e-9 });
+                        utm_outages.push(Outage { from_t_ns: f, to_t_ns: t_ns, duration_s: (t_ns - f) as f64 * 1e-9 });
                     }
                 }
-                None => {}
+                UtmState::Absent => {}
             }
         }
         if let Some(f) = down_from {
@@ -170,29 +174,13 @@ impl Qc {
             })
             .collect();
         let fields = feed.summary.camera_fields.clone();
-        let clock_offset = lines
-            .iter()
-            .rev()
-            .find_map(|l| l.clock_offset_ms.as_ref())
-            .map(|c| serde_json::json!({ "field": "clock_offset_ms", "value": c }));
+        let clock_offset = feed.summary.clock_offset_ms.map(|c| serde_json::json!({ "field": "clock_offset_ms", "value": c }));
         let drift_and_stale: Vec<FieldSummary> =
             fields.into_iter().map(|(field, (lines, max_abs))| FieldSummary { field, lines, max_abs }).collect();
 
-        let up = config.world.up;
-        // One pass over the lines (a line may hold very many tags).
-        let mut per_tag: BTreeMap<u32, (usize, usize, Vec<f64>)> = BTreeMap::new();
-        for l in lines {
-            for t in &l.tags {
-                let e = per_tag.entry(t.id).or_default();
-                e.0 += 1;
-                e.1 += t.views;
-                if let Some(s) = t.sigma_mm {
-                    e.2.push(((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt());
-                }
-            }
-        }
+        // Each tag's lines, views and σ along world.up, read again from the feed (crate::tag_stats).
         let mut tags = Vec::new();
-        for (id, (count, views, mut sig)) in per_tag {
+        for (id, crate::tag_stats::TagLines { lines: count, views, sigma_up_mm: mut sig }) in tag_stats.tags {
             let role = config.role_of(id).map(|r| match r {
                 TagRole::Support => "support",
                 TagRole::Midspan => "midspan",

@@ -123,7 +123,7 @@ fn phases_and_end(i: &Input, std_end: f64, end_name: &str, split_name: &str) -> 
 }
 
 fn t_of(feed: &Feed, t_ns: i64) -> f64 {
-    (t_ns - feed.lines[0].t_ns) as f64 * 1e-9
+    (t_ns - feed.columns.t_ns[0]) as f64 * 1e-9
 }
 
 /// Checks the rules.
@@ -242,12 +242,12 @@ pub(crate) fn check(i: &Input) -> Validity {
     let feed = i.feed;
     let mut gaps = 0;
     let mut longest = (0.0, 0.0, 0.0);
-    for w in feed.lines.windows(2) {
-        let d = (w[1].t_ns - w[0].t_ns) as f64 * 1e-9;
+    for w in feed.columns.t_ns.windows(2) {
+        let d = (w[1] - w[0]) as f64 * 1e-9;
         if d > i.max_gap_s {
             gaps += 1;
             if d > longest.0 {
-                longest = (d, t_of(feed, w[0].t_ns), t_of(feed, w[1].t_ns));
+                longest = (d, t_of(feed, w[0]), t_of(feed, w[1]));
             }
         }
     }

@@ -1,8 +1,9 @@
-//! The memory a feed takes once read for the report, measured by this process itself: a
-//! counting allocator (this test binary's only test, so nothing else allocates meanwhile)
-//! tells the bytes the read feed holds and the peak while reading. A long test's report must
-//! fit the unit's `MemoryMax=2G`: what a line costs here times a 9-hour test at 30 frame
-//! sets/s (972 000 lines) is the figure in docs/operations.md.
+//! The memory a feed takes once read for the report, and the report's own, measured by this
+//! process itself: a counting allocator (this test binary's only test, so nothing else
+//! allocates meanwhile) tells the bytes the read feed holds, the peak while reading and the
+//! peak while the report is built and written. A long test's report must fit the unit's
+//! `MemoryMax=2G`: what a line costs here times a 9-hour test at 30 frame sets/s (972 000
+//! lines) is the figure in docs/operations.md.
 
 // The counting allocator is the one unsafe part: it forwards every call to the system's.
 #![allow(unsafe_code)]
@@ -12,7 +13,7 @@ use std::io::Write;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use tagdeflect_core::feed::{CameraHealth, FeedLine, FeedTag, GaugeReading, TestRef};
-use tagdeflect_report::Feed;
+use tagdeflect_report::{Feed, ReportConfig, Standard, TestRig};
 
 struct Counting;
 
@@ -41,16 +42,19 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
-/// A line as a three-camera rig writes it: 9 tags with σ, 3 cameras, 4 gauges, a test.
-fn rig_line(seq: u64) -> FeedLine {
-    let t = seq as f64;
+/// A line as a three-camera rig writes it: 9 tags with σ, 3 cameras, 4 gauges, a test; a
+/// beam loaded to its peak and softening over `lines` lines (as `scripts/long_feed.py`).
+fn rig_line(seq: u64, lines: u64) -> FeedLine {
+    let d = 3.2 * seq as f64 / (lines - 1) as f64;
+    let p = if d < 0.06 { 45.0 * d / 0.06 } else { 15.0 + 30.0 * (-(d - 0.06) / 0.4).exp() };
+    let wobble = |k: u32| 1.0 + 0.2 * (0.37 * seq as f64 + 1.3 * k as f64).sin();
     let tags = (0..9)
         .map(|id| FeedTag {
             id,
             pos_mm: [100.0 * id as f64, 0.5, 1500.0],
-            disp_mm: [0.001 * t, -0.01 * t, 0.0],
+            disp_mm: [1e-4 * (seq as f64).sin(), 2e-4, if id == 1 { -d } else { 0.0 }],
             views: 2,
-            sigma_mm: Some([0.004, 0.005, 0.02]),
+            sigma_mm: Some([0.004 * wobble(3 * id), 0.005 * wobble(3 * id + 1), 0.002 * wobble(3 * id + 2)]),
             reproj_px: Some(0.12),
         })
         .collect();
@@ -72,15 +76,15 @@ fn rig_line(seq: u64) -> FeedLine {
         .collect();
     let gauges = ["net_deflection", "cmod", "rotation_left", "rotation_right"]
         .iter()
-        .map(|g| (g.to_string(), GaugeReading { value: -0.01 * t, sigma: 0.003, unit: "mm".into() }))
+        .map(|g| (g.to_string(), GaugeReading { value: d, sigma: 0.003 * wobble(40), unit: "mm".into() }))
         .collect();
     FeedLine {
         seq,
         t_ns: 1_780_000_000_000_000_000 + seq as i64 * 33_333_333,
-        load_kn: Some(0.01 * t),
-        stroke_mm: Some(0.001 * t),
+        load_kn: Some(p),
+        stroke_mm: Some(1.3 * d),
         tags,
-        net_deflection_mm: Some(-0.01 * t),
+        net_deflection_mm: Some(d),
         net_deflection_sigma_mm: Some(0.004),
         reproj_px: Some(0.15),
         cameras,
@@ -94,6 +98,26 @@ fn rig_line(seq: u64) -> FeedLine {
     }
 }
 
+/// The three-camera rig of `config/three-camera.toml`: tags 0 and 2 on the supports, 1 at
+/// mid-span, a 150 × 150 × 450 mm beam.
+fn rig() -> TestRig {
+    let specimen = serde_json::from_value(serde_json::json!({
+        "family": "tag36h11", "size_mm": 30.0,
+        "tag": [{"id": 0, "role": "support"}, {"id": 1, "role": "midspan"}, {"id": 2, "role": "support"}],
+        "beam": {"width_mm": 150.0, "depth_mm": 150.0, "span_mm": 450.0},
+    }))
+    .unwrap();
+    TestRig { world: Default::default(), specimen, gauges: Vec::new() }
+}
+
+/// Bytes a line the read feed may hold: ~1.3 × the 105 B measured (2026-12-06; 2 220 B
+/// before the columns, 3 803 B as parsed; docs/performance.md).
+const HELD_BOUND: f64 = 140.0;
+/// Bytes a line at the peak of building the report, the feed included: ~1.3 × the 398 B
+/// measured (the tags read again: each tag's σ along `world.up` and each line's role σ; the
+/// curve's own columns).
+const BUILD_BOUND: f64 = 520.0;
+
 #[test]
 fn a_long_feed_read_for_the_report_holds_its_numbers_not_its_lines() {
     const LINES: u64 = 20_000;
@@ -102,7 +126,7 @@ fn a_long_feed_read_for_the_report_holds_its_numbers_not_its_lines() {
     let mut f = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
     let mut text_bytes = 0;
     for seq in 0..LINES {
-        let s = serde_json::to_string(&rig_line(seq)).unwrap();
+        let s = serde_json::to_string(&rig_line(seq, LINES)).unwrap();
         text_bytes += s.len() + 1;
         writeln!(f, "{s}").unwrap();
     }
@@ -120,28 +144,52 @@ fn a_long_feed_read_for_the_report_holds_its_numbers_not_its_lines() {
     let feed = Feed::read(&path).unwrap();
     let held = HELD.load(Ordering::Relaxed) - base;
     let peak = PEAK.load(Ordering::Relaxed) - base;
-    assert_eq!(feed.lines.len() as u64, LINES);
+    assert_eq!(feed.len() as u64, LINES);
+
+    // The report of it, built and written (no PDF: Chromium is another process), the feed held.
+    let out = dir.path().join("report");
+    let mut opts = ReportConfig::new(Standard::AstmC1609, out.clone());
+    opts.pdf = false;
+    let base = HELD.load(Ordering::Relaxed);
+    PEAK.store(base, Ordering::Relaxed);
+    let report = tagdeflect_report::build(&feed, None, &rig(), std::path::Path::new("rig.toml"), &opts).unwrap();
+    let built_peak = PEAK.load(Ordering::Relaxed) - base;
+    let report_held = HELD.load(Ordering::Relaxed) - base;
+    PEAK.store(HELD.load(Ordering::Relaxed), Ordering::Relaxed);
+    let before_write = HELD.load(Ordering::Relaxed);
+    tagdeflect_report::write(&report, &feed, &out).unwrap();
+    let write_peak = PEAK.load(Ordering::Relaxed) - before_write;
+
     let per_line = |b: usize| b as f64 / LINES as f64;
     eprintln!(
         "{LINES} lines of a 3-camera, 9-tag, 4-gauge rig ({:.0} B of text a line): held as parsed {:.0} B a line, \
-         held for the report {:.0} B a line, peak while reading {:.0} B a line; a 9-hour test at 30 sets/s (972 000 lines): \
-         {:.2} GB held for the report (as parsed: {:.2} GB)",
+         held for the report {:.0} B a line, peak while reading {:.0} B a line; building the report: peak {:.0} B a line \
+         above the feed, the report holds {:.0} B a line; writing it: peak {:.0} B a line above that; \
+         a 9-hour test at 30 sets/s (972 000 lines): {:.3} GB held for the report (as parsed: {:.2} GB), \
+         {:.3} GB at the peak of building it",
         per_line(text_bytes),
         per_line(as_parsed),
         per_line(held),
         per_line(peak),
+        per_line(built_peak),
+        per_line(report_held),
+        per_line(write_peak),
         per_line(held) * 972_000.0 / 1e9,
         per_line(as_parsed) * 972_000.0 / 1e9,
+        per_line(held + built_peak) * 972_000.0 / 1e9,
     );
-    // The cameras are counted, not held; the gauges' units kept once.
+    // The cameras are counted, not held; the report's numbers come out of the columns.
     assert_eq!(feed.summary.cameras.len(), 3);
-    assert!(feed.lines.iter().all(|l| l.cameras.is_empty()));
-    // Bounds ~1.1 × the figures measured (2026-12-06: 2220 of 3803 B a line as parsed;
-    // docs/performance.md): the cameras and the units no longer held. A line still holds its
-    // tags (112 B each) and its gauges' map (~0.7 kB): a 9-hour test at 30 sets/s needs
-    // ~2.2 GB, ~8 hours fit the unit's 2 GB.
-    assert!(held as f64 <= 0.65 * as_parsed as f64, "held {held} B vs {as_parsed} B as parsed");
-    assert!(per_line(held) <= 2450.0, "{:.0} B a line", per_line(held));
-    // Reading streams: the peak is the held lines plus the growing list's spare room.
+    assert_eq!(feed.columns.gauges.len(), 4);
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(json["qc"]["lines"], LINES, "{}", json["qc"]);
+    assert_eq!(json["qc"]["tags"].as_array().map(Vec::len), Some(9), "every tag read again: {}", json["qc"]["tags"]);
+    let csv = std::fs::read_to_string(out.join("curve.csv")).unwrap();
+    assert_eq!(csv.lines().count() as u64, LINES + 1, "a row per line and the header");
+    // Bounds ~1.3 × the figures measured (the constants above).
+    assert!(held as f64 <= 0.05 * as_parsed as f64, "held {held} B vs {as_parsed} B as parsed");
+    assert!(per_line(held) <= HELD_BOUND, "{:.0} B a line", per_line(held));
+    assert!(per_line(held + built_peak) <= BUILD_BOUND, "{:.0} B a line at the peak of building", per_line(held + built_peak));
+    // Reading streams: the peak is the held lines plus the growing columns' spare room.
     assert!(peak as f64 <= 2.2 * held as f64, "peak {peak} B vs held {held} B");
 }

@@ -99,14 +99,9 @@ impl Case {
         let t_ns: Vec<i64> = self.t_s.iter().map(|t| T0 + (t * 1e9).round() as i64).collect();
         // No smoothing: the sentences' numbers are the readings'.
         let curve = Curve::new(t_ns.clone(), self.load.clone(), self.x.clone(), vec![Some(SIGMA); n], 0.0, 1, 0.0, "x").unwrap();
-        let feed = Feed {
-            path: "feed.jsonl".into(),
-            lines: t_ns.iter().enumerate().map(|(k, &t_ns)| FeedLine { seq: k as u64, t_ns, ..Default::default() }).collect(),
-            line_numbers: (1..=n).collect(),
-            warnings: Vec::new(),
-            run: None,
-            summary: Default::default(),
-        };
+        let lines: Vec<FeedLine> =
+            t_ns.iter().enumerate().map(|(k, &t_ns)| FeedLine { seq: k as u64, t_ns, ..Default::default() }).collect();
+        let feed = Feed::from_lines(std::path::Path::new("feed.jsonl"), &lines).unwrap();
         let x_name = if self.standard == Standard::En14651 { "CMOD" } else { "net deflection" };
         check(&Input {
             standard: self.standard,
