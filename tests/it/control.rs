@@ -271,8 +271,11 @@ fn partial_sets_of_a_sharp_scene() {
     assert!((0.85..0.99).contains(&t.within) && covers(&s) && covers(&ft), "within 2σ: temporal {t}, smoothed {s}, full {ft}");
 }
 
-/// Tenths of the reads that must be valid while `demo` measures (measured: see the test).
-const VALID_READS_TENTHS: usize = 1;
+/// Tenths of the reads that must be valid while `demo` measures. Measured 2026-12-06 at load
+/// 15–17 on 2 cores, three runs: 112 of 221, 86 of 201, 127 of 176 reads valid (43–72 %; the
+/// rest: the demo's own σ above `max_sigma_mm` 0.05 at times, up to 0.21 mm, and stale sets on
+/// the loaded machine). Floor: 30 %.
+const VALID_READS_TENTHS: usize = 3;
 
 #[test]
 fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
@@ -377,11 +380,15 @@ fn pymodbus_reads_the_control_registers_and_they_follow_the_feed() {
         .collect();
     assert!(too_old.is_empty(), "valid reads of values older than {max_age_s} s: {too_old:?} ms");
     // The reads after the demo stopped measuring (its last frame set older than the rule
-    // allows), if any, say invalid.
+    // allows; the server answers `STOP_HOLD` = 1 s after the end) say invalid, and the
+    // heartbeat stands still.
     let last_s = feed.last().unwrap().t_ns as f64 * 1e-9;
     let after: Vec<&serde_json::Value> = reads.iter().filter(|r| r["t"].as_f64().unwrap() > last_s + max_age_s + 0.05).collect();
     println!("CONTROL after the last frame set: {} reads, {} valid", after.len(), after.iter().filter(|r| r["valid"] == 1).count());
+    assert!(after.len() >= 3, "{} reads after the measurement stopped (the server answers 1 s more)", after.len());
     assert!(after.iter().all(|r| r["valid"] == 0), "valid after the measurement stopped");
+    let still: std::collections::BTreeSet<u64> = after.iter().rev().take(3).map(|r| r["heartbeat"].as_u64().unwrap()).collect();
+    assert_eq!(still.len(), 1, "the heartbeat stops with the measurement: {still:?}");
     assert!(log.contains("control output serving Modbus TCP"), "{log}");
 }
 
@@ -712,12 +719,14 @@ fn pymodbus_never_reads_valid_a_value_exposed_long_before_it_arrived() {
     assert!(with_seq(false).all(|r| r["age_ms"].as_u64().unwrap() >= 1180), "register 8 counts from exposure");
 }
 
-/// A malformed frame that panics tokio-modbus's decoder (function 0x0F, quantity 65 535, byte
-/// count 0), sent by 300 clients one after another: each ends only its own connection, the
-/// control output serves on, and the log gets a line per 10 s of them, with the count — not
-/// 300 panic lines and 300 "client connected" lines (issue 45, item 15).
+/// A malformed frame that panicked tokio-modbus 0.15's decoder (function 0x0F, quantity 65 535,
+/// byte count 0), sent by 300 clients one after another over real TCP connections: each
+/// gets the exception "illegal data value" and its connection is closed — the frame never
+/// reaches the library's decoder, so there is no panic — the control output serves on, and
+/// the log gets a line per 10 s of them with the count, not 300 (issue 45, item 15). A good
+/// read sent before the bad frame on the same connection is answered first.
 #[test]
-fn a_flood_of_frames_that_panic_the_modbus_decoder_is_a_few_log_lines() {
+fn a_flood_of_frames_that_panic_the_modbus_decoder_is_refused_before_the_decoder() {
     use std::io::{Read, Write};
     use std::time::Duration;
     let tmp = tempfile::tempdir().unwrap();
@@ -737,28 +746,50 @@ fn a_flood_of_frames_that_panic_the_modbus_decoder_is_a_few_log_lines() {
     let mut demo = ChildGuard(demo);
     let port = control_port_from_log(&log_path, &mut demo);
     let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let connect = || {
+        let s = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("the control output still accepts");
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        s
+    };
+    let read_regs: [u8; 12] = [0x00, 0x02, 0x00, 0x00, 0x00, 0x06, 0x01, 0x04, 0x00, 0x00, 0x00, 0x0C];
     let frame = [0x00, 0x01, 0x00, 0x00, 0x00, 0x07, 0x01, 0x0F, 0x00, 0x00, 0xFF, 0xFF, 0x00];
+    let exception = [0x00, 0x01, 0x00, 0x00, 0x00, 0x03, 0x01, 0x8F, 0x03];
+    // A good read and the bad frame in one write: the read answered, then the exception, then
+    // the end of the stream.
+    let mut s = connect();
+    s.write_all(&[&read_regs[..], &frame].concat()).unwrap();
+    let mut got = Vec::new();
+    s.read_to_end(&mut got).expect("the server closes the connection");
+    assert_eq!(got.len(), 9 + 24 + exception.len(), "{got:?}");
+    assert_eq!((got[7], got[8]), (0x04, 24), "the read before it answered: {got:?}");
+    assert_eq!(got[33..], exception, "the exception \"illegal data value\" for the bad frame");
+    let mut answered = 0;
     for _ in 0..300 {
-        let mut s = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(5)).expect("the control output still accepts");
-        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let mut s = connect();
         s.write_all(&frame).unwrap();
-        let _ = s.read(&mut [0u8; 64]);
+        let mut got = Vec::new();
+        let _ = s.read_to_end(&mut got);
+        answered += (got == exception) as usize;
     }
     // A well-formed read still answered: the server is up.
-    let mut s = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(5)).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    s.write_all(&[0x00, 0x02, 0x00, 0x00, 0x00, 0x06, 0x01, 0x04, 0x00, 0x00, 0x00, 0x0C]).unwrap();
+    let mut s = connect();
+    s.write_all(&read_regs).unwrap();
     let mut answer = [0u8; 9 + 24];
     s.read_exact(&mut answer).expect("an answer to a read of registers 0-11");
     assert_eq!((answer[7], answer[8]), (0x04, 24), "{answer:?}");
     drop(s);
     assert!(demo.0.wait().unwrap().success());
     let log = fs::read_to_string(&log_path).unwrap();
-    let panics = log.lines().filter(|l| l.contains("panic:")).count();
+    let panics = log.lines().filter(|l| l.contains("panic")).count(); // the hook's `panic: …` line, or the default text
+    let refused = log.lines().filter(|l| l.contains("control output: refused a malformed request (function 0x0F: quantity 65535")).count();
     let connected = log.lines().filter(|l| l.contains("control output: client connected")).count();
-    println!("MALFORMED FRAMES: 300 clients → {panics} panic line(s), {connected} \"client connected\" line(s)");
-    assert!((1..=4).contains(&panics), "{panics} panic lines for 300 malformed frames:\n{log}");
-    assert!((1..=4).contains(&connected), "{connected} connection lines for 301 clients");
+    println!(
+        "MALFORMED FRAMES: 301 clients → {answered} of 300 answered with the exception, {panics} panic line(s), {refused} refusal line(s), {connected} \"client connected\" line(s)"
+    );
+    assert_eq!(answered, 300, "every malformed frame answered with the exception");
+    assert_eq!(panics, 0, "no panic:\n{log}");
+    assert!((1..=4).contains(&refused), "{refused} refusal lines for 301 malformed frames:\n{log}");
+    assert!((1..=4).contains(&connected), "{connected} connection lines for 302 clients");
     assert!(log.contains("since the last such line"), "the count is logged");
 }
 

@@ -350,3 +350,25 @@ fn yaml_value(y: &yaml_rust2::Yaml) -> serde_json::Value {
         _ => serde_json::Value::Null,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every coefficient is read with its own sign and place (k1, k2, p1, p2, k3), from
+    /// OpenCV's YAML (`!!opencv-matrix`) and from JSON with plain lists: a sign lost where a
+    /// file is read would bend every measurement (the injected regression
+    /// `scripts/regressions/calibration-k1-sign.patch`).
+    #[test]
+    fn distortion_coefficients_are_read_with_their_signs() {
+        let dist = [-0.21, 0.05, 0.001, -0.002, 0.01];
+        let yaml = "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 501., 240., 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ -0.21, 0.05, 0.001, -0.002, 0.01 ]\n";
+        let json = r#"{"image_width": 640, "image_height": 480, "camera_matrix": [500, 0, 320, 0, 501, 240, 0, 0, 1],
+                       "distortion_coefficients": [-0.21, 0.05, 0.001, -0.002, 0.01]}"#;
+        for (text, is_json) in [(yaml, false), (json, true)] {
+            let k = parse_calibration(text, is_json, Path::new("cam.yaml")).unwrap();
+            assert_eq!(k.dist, dist, "json {is_json}");
+            assert_eq!((k.fx, k.fy, k.cx, k.cy, k.width, k.height), (500.0, 501.0, 320.0, 240.0, 640, 480));
+        }
+    }
+}

@@ -7,10 +7,11 @@
 //! stopping the server ([`ModbusServer`] dropped, or its task aborted) closes every open
 //! connection too (tokio-modbus runs each connection in a task of its own, which would
 //! otherwise outlive the listener); Nagle is off on every connection (a register read is a
-//! few bytes); malformed frames are tokio-modbus's to refuse (the connection ends, logged at
-//! DEBUG; a frame that panics tokio-modbus's codec — function 0x0F with quantity 65 535
-//! and no bytes — ends only its connection, its panic logged by the binary's hook at most
-//! once per 10 s per place); clients' connections are logged once per 10 s with their count;
+//! few bytes); every request is checked on the byte stream before tokio-modbus's decoder
+//! sees it (`frame_check`: the MBAP header, and a PDU's counts against its length): a
+//! malformed one — function 0x0F with quantity 65 535 and no bytes panicked tokio-modbus
+//! 0.15's codec — gets the exception "illegal data value" and its connection is closed,
+//! logged once per 10 s with the count; clients' connections are logged once per 10 s with their count;
 //! at most [`MAX_CONNECTIONS`] are open at once (more are closed at once, logged once
 //! per 10 s); an accept error (out of file descriptors) is logged and retried with backoff
 //! instead of ending the server. A read's range is checked by [`read_range`] (count 1 to [`MAX_READ`], inside the
@@ -32,6 +33,8 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::task::JoinHandle;
 use tokio_modbus::server::tcp::Server;
 use tokio_modbus::{ExceptionCode, Request, Response};
+
+mod frame_check;
 
 /// Most registers one read may ask for (the Modbus limit).
 pub const MAX_READ: u16 = 125;
@@ -143,7 +146,7 @@ impl ModbusServer {
                     tracing::debug!(%peer, "{}: client connected", name.name);
                 }
                 let _ = stream.set_nodelay(true);
-                ready(conns.track(stream).map(|s| Some((service.clone(), s))))
+                ready(conns.track(stream, peer, name).map(|s| Some((service.clone(), s))))
             };
             let label = name.name;
             let on_error = move |e: io::Error| tracing::debug!("{label}: connection ended: {e}");
@@ -217,10 +220,12 @@ impl tokio_modbus::server::Service for Service {
 struct Connections {
     next: Arc<AtomicU64>,
     open: Arc<Mutex<HashMap<u64, std::net::TcpStream>>>,
+    /// Malformed requests refused (logged once per [`LOG_EVERY`]).
+    refused: Arc<Throttle>,
 }
 
 impl Connections {
-    fn track(&self, stream: TcpStream) -> io::Result<Tracked> {
+    fn track(&self, stream: TcpStream, peer: SocketAddr, name: ServerName) -> io::Result<Tracked> {
         let std = stream.into_std()?;
         let dup = std.try_clone()?;
         let inner = TcpStream::from_std(std)?;
@@ -228,7 +233,7 @@ impl Connections {
         if let Ok(mut open) = self.open.lock() {
             open.insert(id, dup);
         }
-        Ok(Tracked { inner, id, conns: self.clone() })
+        Ok(Tracked { inner, id, conns: self.clone(), gate: Gate::default(), peer, name })
     }
 
     fn count(&self) -> usize {
@@ -253,11 +258,43 @@ impl Drop for CloseOnDrop {
     }
 }
 
-/// A served connection; forgets its duplicate handle when the connection task ends.
+/// A served connection; forgets its duplicate handle when the connection task ends. What it
+/// reads passes its [`Gate`] first.
 struct Tracked {
     inner: TcpStream,
     id: u64,
     conns: Connections,
+    gate: Gate,
+    peer: SocketAddr,
+    name: ServerName,
+}
+
+/// The bytes of a connection between the socket and tokio-modbus's decoder: only whole,
+/// checked frames pass ([`frame_check::scan`]); after a malformed one the reader sees the
+/// end of the stream.
+#[derive(Default)]
+struct Gate {
+    /// Bytes received: the first `passed` checked, the rest a frame not yet whole.
+    inbox: Vec<u8>,
+    passed: usize,
+    /// The frame after the passed ones, refused: answered and the stream ended once those
+    /// are read.
+    refused: Option<frame_check::Refusal>,
+    ended: bool,
+}
+
+impl Tracked {
+    /// Refuses a malformed request: its exception reply (best effort: a few bytes into an
+    /// idle socket), one log line per [`LOG_EVERY`] with the count.
+    fn refuse(&mut self, r: frame_check::Refusal) {
+        if !r.reply.is_empty() {
+            let _ = self.inner.try_write(&r.reply);
+        }
+        if let Some(n) = self.conns.refused.hit() {
+            let (name, peer) = (self.name.name, self.peer);
+            tracing::warn!(%peer, "{name}: refused a malformed request ({}); its connection closed ({n} since the last such line)", r.why);
+        }
+    }
 }
 
 impl Drop for Tracked {
@@ -270,7 +307,41 @@ impl Drop for Tracked {
 
 impl AsyncRead for Tracked {
     fn poll_read(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_read(cx, buf)
+        loop {
+            let g = &mut self.gate;
+            if g.passed > 0 {
+                let n = g.passed.min(buf.remaining());
+                buf.put_slice(&g.inbox[..n]);
+                g.inbox.drain(..n);
+                g.passed -= n;
+                return Poll::Ready(Ok(()));
+            }
+            if let Some(r) = g.refused.take() {
+                // The frames before it were read and answered (tokio-modbus reads again only
+                // after it sent the last answer): its exception now, then the end.
+                g.ended = true;
+                self.refuse(r);
+            }
+            if self.gate.ended {
+                return Poll::Ready(Ok(()));
+            }
+            let mut chunk = [0u8; 1024];
+            let mut read = ReadBuf::new(&mut chunk);
+            std::task::ready!(Pin::new(&mut self.inner).poll_read(cx, &mut read))?;
+            let g = &mut self.gate;
+            if read.filled().is_empty() {
+                // The client closed: a partial frame left is dropped with it.
+                g.ended = true;
+                continue;
+            }
+            g.inbox.extend_from_slice(read.filled());
+            let s = frame_check::scan(&g.inbox);
+            g.passed = s.passed;
+            if s.refused.is_some() {
+                g.inbox.truncate(s.passed);
+                g.refused = s.refused;
+            }
+        }
     }
 }
 

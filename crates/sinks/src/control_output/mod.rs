@@ -26,7 +26,7 @@
 //! frame sets, when no frame set arrived for `stale_sets + ½` frame periods (a stalled
 //! pipeline), when the value was exposed longer ago than that plus
 //! `signal::LATENCY_ALLOWANCE_MS` (lines that come late), when σ exceeds `max_sigma_mm`, and for good when the daemon stops (the
-//! heartbeat stops with it).
+//! heartbeat stops with it; the server answers [`STOP_HOLD`] more before it closes).
 
 pub mod config;
 mod summary;
@@ -52,6 +52,9 @@ use crate::{Finished, LineSink};
 pub const REGISTERS: usize = 12;
 /// Heartbeat period.
 pub const HEARTBEAT: Duration = Duration::from_millis(50);
+/// How long the server answers after the measurement ended (valid 0, the heartbeat still),
+/// before it closes: a controller polling it reads the stop, not only a dropped connection.
+pub const STOP_HOLD: Duration = Duration::from_secs(1);
 
 /// Why the control output did not start.
 #[derive(Debug, thiserror::Error)]
@@ -316,6 +319,8 @@ impl LineSink for ControlSink {
                     "control output: exposure → register latency"
                 );
             }
+            c.stop_values();
+            std::thread::sleep(STOP_HOLD);
             c.shutdown();
         }
     }
