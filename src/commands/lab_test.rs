@@ -44,6 +44,10 @@ pub enum TestAction {
         /// `notch_mm` replace the config's beam for the report; others are recorded.
         #[arg(long, value_name = "NAME=NUMBER", value_parser = parse_measured)]
         measured: Vec<(String, f64)>,
+        /// How many times a start refused because the previous test is still being stopped
+        /// (409 with `Retry-After`) is sent again, after the wait the daemon asks for.
+        #[arg(long, default_value_t = START_RETRIES, value_name = "N")]
+        retries: u32,
     },
     /// Stop the running test; answers once its folder (report included) is complete; exits 3
     /// when the report could not be made.
@@ -118,7 +122,7 @@ pub fn run(args: &TestArgs) -> Result<()> {
             return Ok(());
         }
         TestAction::Specimens { action: SpecimensAction::Import { file } } => return import(args, &agent, file),
-        TestAction::Start { specimen, method, operator, standard, notes, measured } => {
+        TestAction::Start { specimen, method, operator, standard, notes, measured, .. } => {
             let measured: serde_json::Map<String, serde_json::Value> = measured.iter().map(|(k, v)| (k.clone(), (*v).into())).collect();
             let body = serde_json::json!({"specimen": specimen, "method": method, "operator": operator, "standard": standard, "notes": notes, "measured": measured});
             ("start", body)
@@ -136,18 +140,44 @@ pub fn run(args: &TestArgs) -> Result<()> {
         serde_json::Value::Object(m) => serde_json::Value::Object(m.into_iter().filter(|(_, v)| !v.is_null()).collect()),
         v => v,
     };
-    let answer = agent
-        .post(&format!("{base}/api/test/{path}"))
-        .set("Authorization", &format!("Bearer {token}"))
-        .send_json(body)
-        .map_err(http_error)?
-        .into_string()?;
+    let retries = match &args.action {
+        TestAction::Start { retries, .. } => *retries,
+        _ => 0,
+    };
+    let answer = post_retrying(&agent, &format!("{base}/api/test/{path}"), &token, &body, retries)?;
     println!("{answer}");
     let report_error = serde_json::from_str::<serde_json::Value>(&answer).ok().and_then(|v| v["report_error"].as_str().map(str::to_string));
     if let Some(why) = report_error {
         return Err(tagdeflect_core::NotFit::new(format!("the test stopped and its folder is complete, but {why}")).into());
     }
     Ok(())
+}
+
+/// How many times `test start` is sent again by default when the daemon answers that the
+/// previous test is still being stopped.
+pub const START_RETRIES: u32 = 3;
+
+/// The longest `Retry-After` followed, s (a longer one is waited this long).
+const RETRY_AFTER_MAX_S: u64 = 30;
+
+/// Posts `body` to `url`; a 409 with `Retry-After` (a start while the previous test is still
+/// being stopped) is sent again after the wait it asks for (at most [`RETRY_AFTER_MAX_S`]),
+/// at most `retries` times, each wait said on stderr; then the daemon's refusal as the error.
+fn post_retrying(agent: &ureq::Agent, url: &str, token: &str, body: &serde_json::Value, retries: u32) -> Result<String> {
+    let mut tries = 0;
+    loop {
+        match agent.post(url).set("Authorization", &format!("Bearer {token}")).send_json(body.clone()) {
+            Ok(r) => return Ok(r.into_string()?),
+            Err(ureq::Error::Status(409, r)) if tries < retries && r.header("Retry-After").is_some() => {
+                let wait_s = r.header("Retry-After").and_then(|v| v.trim().parse::<u64>().ok()).unwrap_or(5).min(RETRY_AFTER_MAX_S);
+                tries += 1;
+                let why = refusal(r);
+                eprintln!("the daemon refused (409): {why}; sending it again in {wait_s} s (retry {tries} of {retries})");
+                std::thread::sleep(std::time::Duration::from_secs(wait_s));
+            }
+            Err(e) => return Err(http_error(e)),
+        }
+    }
 }
 
 /// The control token from `--token-file`.
@@ -181,13 +211,17 @@ fn import(args: &TestArgs, agent: &ureq::Agent, file: &std::path::Path) -> Resul
 fn http_error(e: ureq::Error) -> anyhow::Error {
     match e {
         ureq::Error::Status(code, resp) => {
-            let text = resp.into_string().unwrap_or_default();
-            let why = serde_json::from_str::<serde_json::Value>(&text)
-                .ok()
-                .and_then(|v| v.get("error").and_then(|e| e.as_str()).map(str::to_string))
-                .unwrap_or(text);
-            anyhow::Error::new(tagdeflect_core::BadInput::new(format!("the daemon refused ({code}): {why}")))
+            anyhow::Error::new(tagdeflect_core::BadInput::new(format!("the daemon refused ({code}): {}", refusal(resp))))
         }
         other => anyhow::Error::new(tagdeflect_core::RuntimeFailure::new(format!("cannot reach the daemon: {other}"))),
     }
+}
+
+/// The daemon's reason in a refusal (its JSON `error`, else the body as is).
+fn refusal(resp: ureq::Response) -> String {
+    let text = resp.into_string().unwrap_or_default();
+    serde_json::from_str::<serde_json::Value>(&text)
+        .ok()
+        .and_then(|v| v.get("error").and_then(|e| e.as_str()).map(str::to_string))
+        .unwrap_or(text)
 }

@@ -227,7 +227,7 @@ fn config_path_of(args: &ReportArgs, feed_path: &Path) -> anyhow::Result<PathBuf
 /// test folder's: its inputs are built as the report made at the test's stop builds them
 /// ([`tagdeflect_report::test_folder::prepare`]).
 fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result<Vec<(Report, Feed)>> {
-    use tagdeflect_report::test_folder::{build_test, prepare, read_streams, record_of, TestView};
+    use tagdeflect_report::test_folder::{build_test, prepare, read_record, read_streams, record_of};
     let config_path = config_path_of(args, feed_path)?;
     let config = Config::load(&config_path)?;
     let opts = options(args, &config, out)?;
@@ -239,10 +239,10 @@ fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result
     }
     let mut out = Vec::new();
     if let Some(record_path) = record {
-        let view = TestView::read(&record_path)?;
+        let view = read_record(&record_path)?;
         let mut prepared = prepare(&view, &config.test_rig(), &opts, args.standard, &record_path, &config_path)?;
         lab_flags(args, &mut prepared.opts.lab);
-        if args.standard.is_none() && view.standard.is_none() && config.report.is_none() {
+        if args.standard.is_none() && view.meta.standard.is_none() && config.report.is_none() {
             return Err(bad(format!("{}: names no standard: give --standard", record_path.display())));
         }
         check_geometry(&prepared.opts, &prepared.rig, &config_path)?;

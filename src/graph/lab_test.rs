@@ -183,22 +183,22 @@ fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
 /// from the folder and the record by [`tagdeflect_report::test_folder::prepare`], the one
 /// function `report DIR` and `report --series` use, so every route gives the same values.
 fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), TestReportError> {
-    use tagdeflect_report::test_folder::{build_test, prepare, read_streams, TestView};
+    use tagdeflect_report::test_folder::{build_test, checked, prepare, read_streams};
     let Some(standard) = record.meta.standard.as_deref() else { return Ok(()) };
     let out = folder.join("report");
     let std: tagdeflect_report::Standard = serde_json::from_value(serde_json::json!(standard))
         .map_err(|source| TestReportError::Standard { standard: standard.to_string(), source })?;
     let base = config.report.clone().unwrap_or_else(|| tagdeflect_report::ReportConfig::new(std, out.clone()));
     let (cfg_path, record_path) = (folder.join("tagdeflect.toml"), folder.join("test.json"));
-    let view = TestView::of_record(record, &record_path)?;
-    let prepared = prepare(&view, &config.test_rig(), &base, None, &record_path, &cfg_path)?;
+    checked(record, &record_path)?;
+    let prepared = prepare(record, &config.test_rig(), &base, None, &record_path, &cfg_path)?;
     prepared
         .opts
         .validate_with(prepared.rig.specimen.beam.as_ref())
         .map_err(|p| TestReportError::Section(format!("{}: {}", p.key, p.message)))?;
     let (mut feeds, utm) = read_streams(folder, &prepared.opts, false)?;
     let feed = feeds.remove(0);
-    let mut rep = build_test(&feed, utm.as_ref(), &prepared, &view, &cfg_path)?;
+    let mut rep = build_test(&feed, utm.as_ref(), &prepared, record, &cfg_path)?;
     rep.inputs = vec![("config".into(), cfg_path)];
     std::fs::create_dir_all(&out)?;
     tagdeflect_report::write(&rep, &feed, &out)?;

@@ -191,3 +191,163 @@ fn a_lab_day_through_the_page_in_chromium() {
     let broken = verify_chain(&log).unwrap_err();
     assert!(matches!(broken, ChainBroken::HashMismatch { line, .. } if line == n as u64 + 1), "{broken} ({} entries whole)", whole.entries);
 }
+
+/// The lab's own EN 14651 method for the simulated rig: the shipped EN14651-05 (notch
+/// required, 0.5 kN preload, 2 kN start limit, end at CMOD 4 mm, F_L and f_R1…f_R4) with the
+/// simulated machine's CMOD rates as its phases' windows — the demo's beam is loaded some
+/// hundred times faster than the standard's 0.05 and 0.2 mm/min, at which one specimen takes
+/// 20 minutes. Its start limit is its preload (0.5 kN): a start is taken only on the unloaded
+/// beam and waits for the preload on its way up (the simulated beam is unloaded as fast as it
+/// is loaded). Every other rule is the shipped file's.
+fn en_sim_method() -> String {
+    tagdeflect_core::method::SHIPPED[2]
+        .1
+        .replace("name = \"EN14651-05\"", "name = \"EN14651-SIM\"")
+        .replace("[0.04, 0.06]", EN_SIM_RATES[0])
+        .replace("[0.16, 0.24]", EN_SIM_RATES[1])
+        .replace("max_start_load_kn = 2.0", "max_start_load_kn = 0.5")
+        .replace("Clause 8 (test procedure): CMOD rate", "The simulated rig's CMOD rates, not the standard's; the standard's (Clause 8):")
+}
+
+/// The phases' windows of [`en_sim_method`], mm/min: around the simulated machine's CMOD rates
+/// (measured 1.6–5.7 mm/min to CMOD 0.1 mm — its first crack within it —, 24.3–24.9 after).
+const EN_SIM_RATES: [&str; 2] = ["[0.5, 20.0]", "[12.0, 40.0]"];
+
+/// A notched simulated beam with its CMOD gauge (peak ~30 kN: the 0.5 kN preload is far below
+/// it), cycled by the simulated machine — 8 s at rest, loaded to 6 mm in 14 s, unloaded in 14 s; `[output.auto_test]` only to stop each test at its method's end (its
+/// start load above any load: the tests are started by the operator).
+fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
+    let params = SimParams {
+        test: tagdeflect_sim::SimTest::ThreePointNotched,
+        load_law: tagdeflect_sim::LoadLaw::Softening,
+        frame_sets: 110,
+        rest_frames: 40,
+        stiffness_kn_per_mm: 50.0,
+        crack_deflection_mm: 0.6,
+        ..small_rig()
+    };
+    let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    let path = dir.join("notched.toml");
+    let text = cfg.to_toml_string() + "\n[output.auto_test]\nstart_load_kn = 1000.0\n";
+    std::fs::write(&path, text).unwrap();
+    (path, params)
+}
+
+/// `tagdeflect test --url … --token-file … ARGS`.
+fn test_cli(addr: std::net::SocketAddr, token_file: &Path, args: &[&str]) -> (Option<i32>, String) {
+    let url = format!("http://{addr}");
+    let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
+    all.extend_from_slice(args);
+    tagdeflect(&all)
+}
+
+/// The EN 14651 part of the lab's day: four notched beams from an imported table tested under
+/// the lab's method (each stopped at CMOD 4 mm by the method's end, but E2, which the operator
+/// stopped early), then `report --series`: E2 excluded with its reason, f_R1…f_R4 means over
+/// the three used, their characteristic values f_Rk = f_Rm − k_n·s with n = 3 and EN 1990
+/// Table D1's k_n = 3.37 (5 % fractile, variance unknown), and the fib Model Code 2010 class
+/// from f_R1k and f_R3k.
+#[test]
+fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    std::fs::create_dir_all(tests_dir.join("methods")).unwrap();
+    std::fs::write(tests_dir.join("methods/EN14651-SIM.toml"), en_sim_method()).unwrap();
+    let (cfg, p) = en_day_config(dir.path());
+    let csv = dir.path().join("batch-en.csv");
+    let mut table = "id,width_mm,width_mm,depth_mm,span_mm,notch_mm,notch_mm,cast_date,fibre,dosage_kg_m3\n".to_string();
+    for id in ["E1", "E2", "E3", "E4"] {
+        let (w, d, l) = (p.beam_width_mm, p.beam_height_mm, p.span_mm);
+        table += &format!("{id},{},{},{d},{l},{},{},2026-11-01,hooked steel 60/35,40\n", w + 0.1, w - 0.1, p.notch_mm + 0.2, p.notch_mm - 0.2);
+    }
+    std::fs::write(&csv, table).unwrap();
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let token = tests_dir.join(".token");
+    let (code, text) = test_cli(addr, &token, &["specimens", "import", csv.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{text}");
+    let status = || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap();
+    let mut folders = Vec::new();
+    for k in 0..4 {
+        // Started by hand on the next specimen; refused while the cycling beam is loaded above
+        // the method's start limit, pressed again as an operator does.
+        let deadline = Instant::now() + Duration::from_secs(180);
+        let started = loop {
+            let (code, text) = test_cli(addr, &token, &["start", "--specimen", "next", "--method", "EN14651-SIM", "--operator", "ana"]);
+            if code == Some(0) {
+                break serde_json::from_str::<serde_json::Value>(text.lines().next().unwrap()).unwrap();
+            }
+            assert!(text.contains("(409)") && text.contains("the load is"), "only the start limit refuses: {text}");
+            assert!(Instant::now() < deadline, "no start within 180 s: {text}");
+            std::thread::sleep(Duration::from_millis(500));
+        };
+        let id = started["id"].as_str().unwrap().to_string();
+        assert!(id.ends_with(&format!("-E{}", k + 1)), "{started}");
+        let deadline = Instant::now() + Duration::from_secs(240);
+        if k == 1 {
+            // E2: stopped by the operator at a CMOD near 0.6 mm, long before the method's end.
+            while !d.lines().iter().any(|(_, l)| {
+                l.test.as_ref().is_some_and(|t| t.id == id && !t.zeroing) && l.gauges.get("cmod").is_some_and(|g| g.value >= 0.6)
+            }) {
+                assert!(Instant::now() < deadline, "E2 never reached CMOD 0.6 mm\n{}", d.stderr.lock().unwrap());
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            let (code, text) = test_cli(addr, &token, &["stop"]);
+            assert_eq!(code, Some(0), "E2 stopped by hand before its end: {text}");
+        }
+        // Stopped (at CMOD 4 mm by the method's end, or by hand) and its folder complete.
+        loop {
+            let st = status();
+            if st["state"] == "idle" && st["last"]["id"] == id.as_str() && st.get("stopping").is_none() {
+                folders.push(PathBuf::from(st["last"]["folder"].as_str().unwrap_or_else(|| panic!("{st}"))));
+                break;
+            }
+            assert!(Instant::now() < deadline, "test {id} not stopped within 240 s: {st}\n{}", d.stderr.lock().unwrap());
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+    assert_eq!(d.stop(), Some(0));
+
+    let reports: Vec<serde_json::Value> = folders.iter().map(|f| read_json(&f.join("report/report.json"))).collect();
+    for (k, r) in reports.iter().enumerate() {
+        println!("EN {k}: valid {} {} fR1 {} fR3 {} rates {}", r["valid"], r["invalid_reasons"], r["fR1"], r["fR3"], r["rates"]);
+    }
+    let out_dir = dir.path().join("series-en");
+    let mut args = vec!["report", "--series"];
+    args.extend(folders.iter().map(|f| f.to_str().unwrap()));
+    args.extend(["--out", out_dir.to_str().unwrap(), "--no-pdf"]);
+    let (code, text) = tagdeflect(&args);
+    assert_eq!(code, Some(0), "{text}");
+    let series = read_json(&out_dir.join("series.json"));
+    println!("SERIES EN {series}");
+    assert_eq!(series["standard"], "en-14651", "{series}");
+    let excluded = series["excluded"].as_array().unwrap();
+    assert_eq!(excluded.len(), 1, "only E2 left out: {series}");
+    assert_eq!(excluded[0]["specimen"], "E2");
+    assert!(excluded[0]["reason"].as_str().unwrap().contains("the test ended early; method EN14651-SIM ends at"), "{}", excluded[0]);
+    assert_eq!(series["n_used"], 3, "{series}");
+    let used: Vec<&serde_json::Value> = [0, 2, 3].iter().map(|&k| &reports[k]).collect();
+    for key in ["fR1", "fR2", "fR3", "fR4"] {
+        // The reports give each value rounded to two significant digits of its σ: the series'
+        // mean and SD (of the values unrounded) agree with theirs within that rounding.
+        let v: Vec<f64> = used.iter().map(|r| r[key]["value"].as_f64().unwrap_or_else(|| panic!("{key}: {r}"))).collect();
+        let sigma = used.iter().map(|r| r[key]["sigma"].as_f64().unwrap()).fold(0.0, f64::max);
+        let step = 10f64.powf(sigma.log10().floor() - 1.0);
+        let mean = v.iter().sum::<f64>() / 3.0;
+        let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / 2.0).sqrt();
+        let st = &series["statistics"][key];
+        assert_eq!(st["n"], 3, "{st}");
+        let (m, s) = (st["mean"].as_f64().unwrap(), st["sd"].as_f64().unwrap());
+        assert!((m - mean).abs() <= 0.5 * step + 1e-9, "{key}: the mean of the three used, {mean}: {st}");
+        assert!((s - sd).abs() <= 1.5 * step + 1e-9, "{key}: their SD, {sd}: {st}");
+        let ch = &series["characteristic"][format!("{key}k")];
+        assert_eq!((ch["n"].as_u64(), ch["k_n"].as_f64()), (Some(3), Some(3.37)), "EN 1990 Table D1 at n = 3: {ch}");
+        assert!((ch["value"].as_f64().unwrap() - (m - 3.37 * s)).abs() <= 1e-9 * m.abs().max(1.0), "{key}k = mean − 3.37·s: {ch}");
+    }
+    let (r1k, r3k) = (series["characteristic"]["fR1k"]["value"].as_f64().unwrap(), series["characteristic"]["fR3k"]["value"].as_f64().unwrap());
+    let class = tagdeflect_report::series_stats::fib_class(r1k, r3k).expect("a fib class for f_R1k ≥ 1 MPa and f_R3k/f_R1k ≥ 0.5");
+    assert_eq!(series["fib_class"]["class"].as_str(), Some(class.as_str()), "{series}");
+}

@@ -230,3 +230,132 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     assert_eq!(seen["report"].as_str().unwrap().starts_with("no report: "), !report_made, "{seen}");
     assert_eq!(d.stop(), Some(0));
 }
+
+/// `tagdeflect test start` sent while the previous test's stop is still being completed (its
+/// report held back by the daemon's fault-injection hold): the daemon waits 20 s for the
+/// stop, then answers 409 with `Retry-After: 5`; the command says it waits and sends the
+/// start again, a bounded number of times. With `--retries 1` and the report still held it
+/// gives up with the daemon's reason (exit 2); by default it starts once the stop is through
+/// (the hold released only after it said it waits: no timing decides the outcome).
+#[test]
+fn test_start_follows_retry_after_while_a_stop_is_completed() {
+    use std::io::BufRead;
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let hold = dir.path().join("the-report-may-go");
+    let args = ["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
+    let mut d = Daemon::start_with_env(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
+    let addr = d.addr();
+    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let token_file = tests_dir.join(".token");
+    let start = |specimen: &str, extra: &[&str]| -> Vec<String> {
+        let mut a = vec!["start", "--specimen", specimen, "--standard", "astm-c1609"];
+        a.extend(["--measured", "width_mm=150", "--measured", "depth_mm=150", "--measured", "span_mm=450"]);
+        a.extend(extra);
+        a.into_iter().map(str::to_string).collect()
+    };
+    let cli = |a: &[String]| test_cli(addr, &token_file, &a.iter().map(String::as_str).collect::<Vec<_>>());
+    let (code, _, err) = cli(&start("R1", &[]));
+    assert_eq!(code, 0, "{err}");
+    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
+    // The stop, from another client: its report waits for the hold.
+    let stop = std::thread::spawn(move || {
+        let bearer = format!("Bearer {token}");
+        post(addr, "/api/test/stop", &[("Content-Type", "application/json"), ("Authorization", bearer.as_str())], b"{}")
+    });
+    d.wait_stderr("the report waits until", Duration::from_secs(60), "the stop reached its report");
+
+    // Bounded: one retry, the stop still being completed after it: the daemon's reason, exit 2.
+    let (code, out, err) = cli(&start("R2", &["--retries", "1"]));
+    assert_eq!(code, 2, "{out}{err}");
+    assert!(err.contains("sending it again in 5 s (retry 1 of 1)"), "says it waits: {err}");
+    assert_eq!(err.matches("sending it again").count(), 1, "one retry only: {err}");
+    assert!(err.contains("the daemon refused (409)") && err.contains("still being stopped"), "{err}");
+
+    // By default: it waits as told and starts once the stop is through.
+    let url = format!("http://{addr}");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .args(["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()])
+        .args(start("R3", &[]))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut all = String::new();
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            if line.contains("sending it again") {
+                let _ = tx.send(());
+            }
+            all += &line;
+            all.push('\n');
+        }
+        all
+    });
+    rx.recv_timeout(Duration::from_secs(120)).expect("the start says it waits to send again");
+    std::fs::write(&hold, "").unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = reader.join().unwrap();
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(err.contains("sending it again in 5 s (retry 1 of 3)"), "{err}");
+    let st: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}: {err}"));
+    assert_eq!(st["state"], "running", "{st}");
+    assert!(st["id"].as_str().unwrap().ends_with("-R3"), "{st}");
+    let _ = stop.join();
+    // Stopped at once (its report, of a curve of a point or two, is not the point here).
+    let bearer = format!("Bearer {}", std::fs::read_to_string(&token_file).unwrap().trim());
+    let (code, text) = post(addr, "/api/test/stop", &[("Content-Type", "application/json"), ("Authorization", bearer.as_str())], b"{}");
+    assert_eq!(code, 200, "{text}");
+    assert_eq!(d.stop(), Some(0));
+}
+
+/// The page's start while the previous test's stop is still being completed (its report held
+/// back): the daemon answers 409 with `Retry-After` after its 20-s wait; the page says it waits
+/// and presses start again by itself, and the test runs once the stop is through (the hold
+/// released by the browser's driver only after the page said it waits: no timing decides).
+#[test]
+fn the_page_presses_start_again_after_the_retry_after_of_a_stop_being_completed() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let hold = dir.path().join("the-report-may-go");
+    let args = ["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
+    let mut d = Daemon::start_with_env(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
+    let addr = d.addr();
+    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let token_file = tests_dir.join(".token");
+    let start = ["start", "--specimen", "P1", "--standard", "astm-c1609", "--measured", "width_mm=150", "--measured", "depth_mm=150"];
+    let (code, _, err) = test_cli(addr, &token_file, &[&start[..], &["--measured", "span_mm=450"]].concat());
+    assert_eq!(code, 0, "{err}");
+    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
+    let bearer = format!("Bearer {token}");
+    let stop = std::thread::spawn(move || {
+        post(addr, "/api/test/stop", &[("Content-Type", "application/json"), ("Authorization", bearer.as_str())], b"{}")
+    });
+    d.wait_stderr("the report waits until", Duration::from_secs(60), "the stop reached its report");
+    let out = Command::new(crate::http::python())
+        .arg(crate::common::root().join("tests/fixtures/start_retry_page.py"))
+        .arg(format!("http://{addr}/"))
+        .args([token.as_str(), hold.to_str().unwrap(), "P2"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run the browser driver");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    println!("BROWSER {seen}");
+    assert!(seen.get("error").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
+    assert_eq!(seen["start_disabled"], true, "the page greys start while it knows of the stop: {seen}");
+    let waits = seen["waits"].as_str().unwrap();
+    assert!(waits.contains("still being stopped") && waits.ends_with("(again in 5 s)"), "{waits}");
+    let running = seen["state_after"].as_str().unwrap();
+    assert!(running.starts_with("running: ") && running.contains("-P2"), "{seen}");
+    assert_eq!(seen["message_after"], "start done", "{seen}");
+    // Chromium logs each 409 answer as a failed resource; nothing else is an error.
+    let errors = seen["console_errors"].as_array().unwrap().iter().filter(|e| !e.as_str().unwrap().contains("409")).count();
+    assert_eq!(errors, 0, "{seen}");
+    let _ = stop.join();
+    let (code, _, err) = test_cli(addr, &token_file, &["stop"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(d.stop(), Some(0));
+}

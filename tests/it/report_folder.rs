@@ -147,6 +147,21 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("test.json") && err.contains("measured.width_mm"), "{err}");
     assert!(!dir.path().join("bad").join("report.json").exists(), "nothing written");
+
+    // test.json is read as the daemon writes it: a key of the wrong type (the width as text,
+    // a count as text) is one error naming the file and the key, exit 2.
+    for (key, bad) in [("measured", serde_json::json!({"width_mm": "150.2"})), ("lines", serde_json::json!("many"))] {
+        let mut rec = read_json(&rec_path);
+        rec["measured"]["width_mm"] = at_stop["specimen"]["width_mm"].clone();
+        rec[key] = bad;
+        std::fs::write(&rec_path, rec.to_string()).unwrap();
+        let o = tagdeflect(&["report", copy.to_str().unwrap(), "--out", dir.path().join("bad").to_str().unwrap(), "--no-pdf"]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        let named = if key == "lines" { "lines: invalid type" } else { "measured.width_mm: invalid type" };
+        assert!(err.contains(&format!("{}: {named}", rec_path.display())), "{err}");
+        assert!(!dir.path().join("bad").join("report.json").exists(), "nothing written");
+    }
 }
 
 pub(crate) fn verify(dir: &Path) -> (Option<i32>, String) {

@@ -123,7 +123,9 @@ impl TestMeta {
     }
 }
 
-/// `test.json` (SPEC "Tests").
+/// `test.json` (SPEC "Tests"), as the daemon writes it and every reader (the report, the
+/// archive) reads it. Keys added since the first version are optional, so older records
+/// read: besides `id` and `specimen`, a key may be absent (its default), never of another type.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TestRecord {
     /// The test's id.
@@ -132,17 +134,22 @@ pub struct TestRecord {
     #[serde(flatten)]
     pub meta: TestMeta,
     /// When it started and stopped, ns since the Unix epoch.
+    #[serde(default)]
     pub started_t_ns: i64,
     /// When it stopped (absent while it runs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stopped_t_ns: Option<i64>,
     /// Start, marks, zeros, stop.
+    #[serde(default)]
     pub events: Vec<FeedEvent>,
     /// Feed lines and UTM samples in the folder.
+    #[serde(default)]
     pub lines: u64,
     /// UTM samples kept.
+    #[serde(default)]
     pub utm_samples: u64,
     /// SHA-256 (hex) of every file of the folder (but `test.json`) and of the calibration files.
+    #[serde(default)]
     pub sha256: BTreeMap<String, String>,
     /// The method the test was run with (absent: none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -172,6 +179,13 @@ pub struct CrackEntry {
     pub inside_middle_third: bool,
     /// When it was entered, ns since the Unix epoch.
     pub t_ns: i64,
+}
+
+impl CrackEntry {
+    /// The entry's words on the page and the report: `at +12 mm from mid-span`.
+    pub fn at(&self) -> String {
+        format!(" at {:+.0} mm from mid-span", self.position_mm)
+    }
 }
 
 /// The load at which a test's zero was taken (tare and preload).

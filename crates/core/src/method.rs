@@ -123,6 +123,13 @@ pub struct MethodRef {
     pub review: Option<MethodReview>,
 }
 
+impl MethodRef {
+    /// `C1609-19 v2`.
+    pub fn label(&self) -> String {
+        format!("{} v{}", self.name, self.version)
+    }
+}
+
 /// A lab's review of a method file (`<tests>/methods/NAME.review.json`, with the file's hash).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MethodReview {

@@ -201,7 +201,7 @@ fn test_record(h: &mut String, report: &Report) {
         let class = if v.stale.is_empty() { "" } else { " class=\"warn\"" };
         let _ = write!(h, "<p{class}><b>Verification:</b> {}</p>", esc(&v.describe()));
     }
-    if let Some(n) = t.notes.as_deref().filter(|n| !n.trim().is_empty()) {
+    if let Some(n) = t.meta.notes.as_deref().filter(|n| !n.trim().is_empty()) {
         let _ = write!(h, "<p><b>Notes:</b> {}</p>", esc(n));
     }
     if t.events.is_empty() {

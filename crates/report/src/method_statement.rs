@@ -4,7 +4,7 @@
 //! documents' published tables of contents and summaries number them).
 
 use crate::standard::Standard;
-use crate::test_folder::MethodInfo;
+use tagdeflect_core::method::MethodRef;
 
 /// One rule the report applies and where it comes from.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -103,7 +103,7 @@ pub fn rules_in_force(method: Option<&tagdeflect_core::method::Method>, standard
 
 /// The sentence the report carries about the method in force: the test's method and the
 /// lab's review of it, its lack of review, or the built-in rules.
-pub fn statement(method: Option<&MethodInfo>, standard: Standard) -> String {
+pub fn statement(method: Option<&MethodRef>, standard: Standard) -> String {
     match method {
         Some(m) => match &m.review {
             Some(rv) => {

@@ -368,13 +368,13 @@ fn test_keys(report: &Report, root: &mut serde_json::Map<String, serde_json::Val
     }
     let Some(t) = &report.test else { return };
     if let Some(info) = &t.specimen_info {
-        spec["info"] = serde_json::Value::Object(info.clone());
+        spec["info"] = serde_json::to_value(info).expect("specimen info");
     }
     if let Some(m) = &t.method {
         root.insert("method".into(), serde_json::to_value(m).expect("method"));
     }
     root.insert("events".into(), serde_json::to_value(&t.events).expect("events"));
-    if let Some(n) = &t.notes {
+    if let Some(n) = &t.meta.notes {
         root.insert("test_notes".into(), json!(n));
     }
     if let Some(c) = &t.crack {

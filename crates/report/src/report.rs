@@ -91,7 +91,7 @@ pub struct Report {
     pub options: ReportConfig,
     /// The test's record when the feed is a test folder's (`test.json`: events, notes,
     /// method, specimen row, crack entry).
-    pub test: Option<crate::test_folder::TestView>,
+    pub test: Option<tagdeflect_core::lab_test::TestRecord>,
     /// The test's control outputs (`control.json` of a test run under control; `Err`: the
     /// file could not be read), printed as the "Control output" section.
     pub control: Option<Result<tagdeflect_core::control_summary::ControlSummary, String>>,

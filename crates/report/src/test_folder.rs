@@ -11,159 +11,62 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use serde::{Deserialize, Serialize};
-use tagdeflect_core::feed::FeedEvent;
-use tagdeflect_core::lab_test::TestMeta;
+pub use tagdeflect_core::lab_test::TestRecord;
+use tagdeflect_core::lab_test::{CrackEntry, TestMeta};
+use tagdeflect_core::method::MethodRef;
 
 use crate::config::{BeamConfig, ReportConfig};
 use crate::error::ReportError;
 use crate::report::TestRig;
 use crate::standard::Standard;
 
-/// A review of a method by the lab (`test.json` `method.review`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MethodReview {
-    /// Who reviewed it.
-    pub by: String,
-    /// When (RFC 3339).
-    pub at: String,
-    /// What the review means (e.g. "reviewed against C1609-19 §§ 8–9").
-    #[serde(default)]
-    pub meaning: String,
+/// Reads `test.json` as the daemon writes it (core's [`TestRecord`]: keys added since the
+/// first version may be absent) and range-checks it; a key of the wrong type or a value out of
+/// range is one error naming the file and the key (`measured.width_mm`, `events[1].t_ns`).
+pub fn read_record(path: &Path) -> Result<TestRecord, ReportError> {
+    let data = |message: String| ReportError::Data { path: path.to_path_buf(), message };
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
+    let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| data(format!("not JSON: {e}")))?;
+    // What the test was started with is flattened into the record, where a wrong type would
+    // lose its key: it is read on its own first, so its key is named.
+    let started_with = value.as_object().map(|o| o.iter().filter(|(k, _)| META_KEYS.contains(&k.as_str())));
+    let started_with = serde_json::Value::Object(started_with.into_iter().flatten().map(|(k, v)| (k.clone(), v.clone())).collect());
+    serde_path_to_error::deserialize::<_, TestMeta>(started_with).map_err(|e| data(key_error(e)))?;
+    let record: TestRecord = serde_path_to_error::deserialize(value).map_err(|e| data(key_error(e)))?;
+    checked(&record, path)?;
+    Ok(record)
 }
 
-/// The method a test ran under, as `test.json` names it (`method`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MethodInfo {
-    /// Its name (e.g. `C1609-19`).
-    pub name: String,
-    /// Its version.
-    pub version: serde_json::Value,
-    /// The standard it follows (`astm-c1609`, ...).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub standard: Option<String>,
-    /// SHA-256 of the method file as used.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sha256: Option<String>,
-    /// The lab's review, absent when the method was not reviewed (or changed since).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub review: Option<MethodReview>,
+/// The keys of [`TestMeta`], flattened into `test.json`.
+const META_KEYS: [&str; 5] = ["specimen", "operator", "standard", "notes", "measured"];
+
+/// `measured.width_mm: invalid type: string "150.2", expected f64`.
+fn key_error(e: serde_path_to_error::Error<serde_json::Error>) -> String {
+    let key = e.path().to_string();
+    let at = if key == "." { String::new() } else { format!("{key}: ") };
+    format!("{at}{}", e.into_inner())
 }
 
-impl MethodInfo {
-    /// `C1609-19 v2`.
-    pub fn label(&self) -> String {
-        let v = match &self.version {
-            serde_json::Value::String(s) => s.clone(),
-            other => other.to_string(),
-        };
-        format!("{} v{v}", self.name)
-    }
+/// The checks of a test's start ([`TestMeta::validate`]) on a record's values (read, or held
+/// in memory at the stop); `path` names it in errors. The specimen id is not checked as a
+/// folder name here: the report only shows it (escaped) and a series makes its folder name safe.
+pub fn checked(record: &TestRecord, path: &Path) -> Result<(), ReportError> {
+    let meta = TestMeta { specimen: "specimen".into(), ..record.meta.clone() };
+    meta.validate().map_err(|p| ReportError::Data { path: path.to_path_buf(), message: format!("{}: {}", p.key, p.message) })
 }
 
-/// The operator's crack entry (`test.json` `crack`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CrackInfo {
-    /// Where the crack is, from mid-span (signed), mm.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub position_mm: Option<f64>,
-    /// Inside the middle third of the span, as the operator entered it.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub inside_middle_third: Option<bool>,
-    /// When it was entered.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub t_ns: Option<i64>,
-}
-
-impl CrackInfo {
-    /// Inside the middle third: the operator's word, else |position| ≤ span/6.
-    pub fn inside(&self, span_mm: f64) -> Option<bool> {
-        self.inside_middle_third.or_else(|| self.position_mm.map(|p| p.abs() <= span_mm / 6.0))
-    }
-}
-
-/// What the report takes from a test's record (read tolerantly: every key optional, unknown
-/// keys ignored, so records of every version read).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct TestView {
-    /// The test's id.
-    #[serde(default)]
-    pub id: String,
-    /// The specimen's id.
-    #[serde(default)]
-    pub specimen: String,
-    /// Who ran the test.
-    #[serde(default)]
-    pub operator: Option<String>,
-    /// The standard of the report made at the stop.
-    #[serde(default)]
-    pub standard: Option<String>,
-    /// The operator's notes.
-    #[serde(default)]
-    pub notes: Option<String>,
-    /// Measured dimensions, mm.
-    #[serde(default)]
-    pub measured: BTreeMap<String, f64>,
-    /// Start, marks, zeros, cracks, stop.
-    #[serde(default)]
-    pub events: Vec<FeedEvent>,
-    /// The method the test ran under.
-    #[serde(default)]
-    pub method: Option<MethodInfo>,
-    /// The specimen's row from the table entered beforehand.
-    #[serde(default)]
-    pub specimen_info: Option<serde_json::Map<String, serde_json::Value>>,
-    /// The operator's crack entry.
-    #[serde(default)]
-    pub crack: Option<CrackInfo>,
-    /// The verification in force when the test ran (`[verification]`).
-    #[serde(default)]
-    pub verification: Option<tagdeflect_core::verification::InForce>,
-}
-
-impl TestView {
-    /// Reads `test.json` and range-checks it; an error names the file and the key.
-    pub fn read(path: &Path) -> Result<TestView, ReportError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
-        let view: TestView = serde_json::from_str(&text)
-            .map_err(|e| ReportError::Data { path: path.to_path_buf(), message: format!("not a test record: {e}") })?;
-        view.checked(path)
-    }
-
-    /// The view of a record held in memory (any type serialising as `test.json`), checked
-    /// like [`TestView::read`]; `path` names it in errors.
-    pub fn of_record<T: Serialize>(record: &T, path: &Path) -> Result<TestView, ReportError> {
-        let err = |e: serde_json::Error| ReportError::Data { path: path.to_path_buf(), message: format!("not a test record: {e}") };
-        let view: TestView = serde_json::from_value(serde_json::to_value(record).map_err(err)?).map_err(err)?;
-        view.checked(path)
-    }
-
-    /// The checks of a test's start ([`TestMeta::validate`]) on the record's values. The
-    /// specimen id is not checked as a folder name here: the report only shows it (escaped)
-    /// and a series makes its folder name safe.
-    fn checked(self, path: &Path) -> Result<TestView, ReportError> {
-        let meta = TestMeta {
-            specimen: "specimen".into(),
-            operator: self.operator.clone(),
-            standard: self.standard.clone(),
-            notes: self.notes.clone(),
-            measured: self.measured.clone(),
-        };
-        meta.validate().map_err(|p| ReportError::Data { path: path.to_path_buf(), message: format!("{}: {}", p.key, p.message) })?;
-        Ok(self)
-    }
-
-    /// The standard the record names, if any.
-    pub fn standard(&self, path: &Path) -> Result<Option<Standard>, ReportError> {
-        self.standard
-            .as_deref()
-            .map(|s| {
-                serde_json::from_value(serde_json::json!(s))
-                    .map_err(|e| ReportError::Data { path: path.to_path_buf(), message: format!("standard: {e}") })
-            })
-            .transpose()
-    }
+/// The standard the record names, if any.
+pub fn standard_of(record: &TestRecord, path: &Path) -> Result<Option<Standard>, ReportError> {
+    record
+        .meta
+        .standard
+        .as_deref()
+        .map(|s| {
+            serde_json::from_value(serde_json::json!(s))
+                .map_err(|e| ReportError::Data { path: path.to_path_buf(), message: format!("standard: {e}") })
+        })
+        .transpose()
 }
 
 /// Where each dimension the report computes with came from: `test.json` or `config`.
@@ -188,7 +91,7 @@ pub struct Prepared {
 /// explicit choice (the command line), else the record's, else `opts`'s. `config_path`
 /// names the config in errors.
 pub fn prepare(
-    view: &TestView,
+    view: &TestRecord,
     rig: &TestRig,
     opts: &ReportConfig,
     standard: Option<Standard>,
@@ -197,19 +100,19 @@ pub fn prepare(
 ) -> Result<Prepared, ReportError> {
     let mut rig = rig.clone();
     let mut opts = opts.clone();
-    if let Some(s) = standard.or(view.standard(record_path)?) {
+    if let Some(s) = standard.or(standard_of(view, record_path)?) {
         opts.standard = s;
     }
-    let sources = apply_dimensions(&mut rig, &view.measured, config_path)?;
+    let sources = apply_dimensions(&mut rig, &view.meta.measured, config_path)?;
     let lab = &mut opts.lab;
-    if !view.specimen.trim().is_empty() {
-        lab.specimen = Some(view.specimen.clone());
+    if !view.meta.specimen.trim().is_empty() {
+        lab.specimen = Some(view.meta.specimen.clone());
     }
-    if view.operator.as_deref().is_some_and(|o| !o.trim().is_empty()) {
-        lab.operator = view.operator.clone();
+    if view.meta.operator.as_deref().is_some_and(|o| !o.trim().is_empty()) {
+        lab.operator = view.meta.operator.clone();
     }
-    if let Some(cast) = view.specimen_info.as_ref().and_then(|i| i.get("cast_date")).and_then(|v| v.as_str()) {
-        lab.cast_date = Some(cast.to_string());
+    if let Some(cast) = view.specimen_info.as_ref().and_then(|i| i.cast_date.as_ref()) {
+        lab.cast_date = Some(cast.clone());
     }
     let (method, method_warning) = match &view.method {
         Some(m) => method_of(m, record_path),
@@ -222,11 +125,11 @@ pub fn prepare(
 /// The method file a test ran under, found as at its start (the tests folder's `methods/`,
 /// else the shipped ones) and only when it is the very file the record names (its SHA-256);
 /// otherwise why not.
-fn method_of(m: &MethodInfo, record_path: &Path) -> (Option<tagdeflect_core::method::Method>, Option<String>) {
+fn method_of(m: &MethodRef, record_path: &Path) -> (Option<tagdeflect_core::method::Method>, Option<String>) {
     use tagdeflect_core::method::library;
     let tests = record_path.parent().and_then(Path::parent).unwrap_or(Path::new("."));
     match library::find(tests, &m.name) {
-        Ok(l) if m.sha256.as_deref().is_none_or(|h| h == l.sha256) => (Some(l.method), None),
+        Ok(l) if m.sha256 == l.sha256 => (Some(l.method), None),
         Ok(l) => (
             None,
             Some(format!(
@@ -291,7 +194,7 @@ pub fn build_test(
     feed: &crate::Feed,
     utm: Option<&crate::UtmStream>,
     prepared: &Prepared,
-    view: &TestView,
+    view: &TestRecord,
     config_path: &Path,
 ) -> Result<crate::Report, ReportError> {
     let mut r = crate::build(feed, utm, &prepared.rig, config_path, &prepared.opts)?;
@@ -320,13 +223,13 @@ pub const CRACK_OUTSIDE: &str = "fracture outside the middle third";
 /// The crack entry's part in the validity (ASTM C1609 §9 / C78: a fracture outside the
 /// middle third of the span makes the test invalid; EN 14651 notches its beams and ignores
 /// the entry): outside → invalid with [`CRACK_OUTSIDE`]; no entry → a QC warning, not invalid.
-fn apply_crack(r: &mut crate::Report, crack: Option<&CrackInfo>) {
+fn apply_crack(r: &mut crate::Report, crack: Option<&CrackEntry>) {
     if r.standard == Standard::En14651 {
         return;
     }
     let span = r.beam.span_mm;
-    let inside = crack.and_then(|c| c.inside(span));
-    let at = crack.and_then(|c| c.position_mm).map_or(String::new(), |p| format!(" at {p:+.0} mm from mid-span"));
+    let inside = crack.map(|c| c.inside_middle_third);
+    let at = crack.map_or(String::new(), CrackEntry::at);
     match inside {
         None => r.qc.warnings.push(
             "crack position not entered: whether the beam broke inside the middle third of the span (ASTM C1609 §9, C78) was not checked"
@@ -361,4 +264,50 @@ pub fn read_streams(
         _ => None,
     };
     Ok((feeds, utm))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn read(text: &str) -> Result<TestRecord, ReportError> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("test.json");
+        std::fs::write(&path, text).unwrap();
+        read_record(&path)
+    }
+
+    /// A record of the first versions (no hashes, counts, method, crack…) reads, its keys'
+    /// defaults in place; one written now reads as the daemon wrote it.
+    #[test]
+    fn an_older_test_json_reads_with_its_absent_keys_defaulted() {
+        let old = read(r#"{"id": "t1", "specimen": "B1", "operator": "A. Tester", "measured": {"width_mm": 150.2}}"#).unwrap();
+        assert_eq!((old.meta.specimen.as_str(), old.meta.operator.as_deref()), ("B1", Some("A. Tester")));
+        assert_eq!(old.meta.measured["width_mm"], 150.2);
+        assert!(old.events.is_empty() && old.sha256.is_empty() && old.method.is_none() && old.crack.is_none());
+        let text = serde_json::to_string(&old).unwrap();
+        assert_eq!(read(&text).unwrap(), old);
+    }
+
+    /// A key of the wrong type is one error naming the file and the key, whether the key is
+    /// the record's own or one of what the test was started with (flattened into it).
+    #[test]
+    fn a_wrong_type_is_named_by_file_and_key() {
+        let cases = [
+            (r#"{"id": "t1", "specimen": "B1", "measured": {"width_mm": "150.2"}}"#, "measured.width_mm: invalid type: string"),
+            (r#"{"id": "t1", "specimen": "B1", "operator": 7}"#, "operator: invalid type: integer"),
+            (r#"{"id": "t1", "specimen": "B1", "lines": "many"}"#, "lines: invalid type: string"),
+            (r#"{"id": "t1", "specimen": "B1", "events": [{"kind": "start", "t_ns": "now"}]}"#, "events[0].t_ns: invalid type"),
+            (
+                r#"{"id": "t1", "specimen": "B1", "method": {"name": "C1609-19", "version": "two", "standard": "astm-c1609", "sha256": "00"}}"#,
+                "method.version: invalid type: string",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = read(text).unwrap_err().to_string();
+            assert!(e.contains("test.json: ") && e.contains(want), "{text}: {e}");
+        }
+        let e = read(r#"{"id": "t1", "specimen": "B1", "measured": {"width_mm": 0.001}}"#).unwrap_err().to_string();
+        assert!(e.contains("test.json: measured.width_mm"), "out of range: {e}");
+    }
 }
