@@ -154,12 +154,14 @@ fn photo_recording(dir: &Path, frames: &[&GrayImage], background: &[u32], axes: 
 }
 
 /// Real photos of a camera that moves (frontal, oblique, frontal again), posed from one
-/// background tag of the sheet, then from two: both modes pose and refuse the same sets
-/// (an ambiguous one-tag pose is never published) and no line carries positions from an
-/// unposed camera. The tags solved may differ in a set whose camera was never posed before
-/// (see docs/performance.md), and the positions are checked only loosely against the
-/// sheet's layout: the data has no calibration and no tag size (measured: within 34–36 % of
-/// each tag's distance from the background tag in both modes alike).
+/// background tag of the sheet, then from two: both modes pose and refuse the same sets (an
+/// ambiguous one-tag pose is never published, the first pose included), publish the same
+/// tags in the set a camera is first posed (after it, tracking's are a subset of at least
+/// 85 % of full-frame's), and no line carries positions from an unposed camera. The positions
+/// are checked against the sheet's layout (no calibration and no tag size are published:
+/// the focal length is the lens's from the EXIF, the tag size taken): along the sheet, as a
+/// share of each tag's distance from the background tag, and across it in mm — one camera
+/// sees a tag's depth only through its apparent size.
 #[test]
 fn real_photos_of_a_moving_camera_give_the_same_answer_in_both_modes() {
     let (frontal, oblique) = (half_photo("test_36h11_greyscale.jpg"), half_photo("test_36h11_oblique_greyscale.jpg"));
@@ -185,41 +187,71 @@ fn real_photos_of_a_moving_camera_give_the_same_answer_in_both_modes() {
         let (_, tracked, summary) = replay_lines(&rec, false);
         let (_, full, _) = replay_lines(&rec, true);
         let origin = sheet_centre(background[0], axes);
-        // Worst error of a published position relative to the tag's distance from the
-        // background tag (the focal length is known to ±4 %, the tag size is taken).
+        // Worst error of a published position along the sheet (relative to the tag's
+        // distance from the background tag) and across it (mm).
         let worst_of = |lines: &[FeedLine]| {
-            let mut worst: f64 = 0.0;
+            let (mut along, mut across): (f64, f64) = (0.0, 0.0);
             for l in lines {
                 assert!(l.cameras[0].posed || l.tags.is_empty(), "set {}: positions from an unposed camera", l.seq);
                 for t in &l.tags {
-                    let expected = sheet_centre(t.id, axes);
-                    worst = worst.max((Vector3::from(t.pos_mm) - expected).norm() / (expected - origin).norm().max(SHEET_TAG_MM));
+                    let (expected, got) = (sheet_centre(t.id, axes), Vector3::from(t.pos_mm));
+                    let e = got - expected;
+                    along = along.max(e.xy().norm() / (expected - origin).norm().max(SHEET_TAG_MM));
+                    across = across.max(e.z.abs());
                 }
             }
-            worst
+            (along, across)
         };
-        let (worst, worst_full) = (worst_of(&tracked), worst_of(&full));
+        let ((along, across), (along_full, across_full)) = (worst_of(&tracked), worst_of(&full));
+        let ids = |lines: &[FeedLine]| lines.iter().map(|l| l.tags.iter().map(|t| t.id).collect::<Vec<_>>()).collect::<Vec<_>>();
         println!(
-            "MODES real photos, background {background:?}: specimen tags detected tracking {:?} full-frame {:?}; worst full-frame {:.1} %",
+            "MODES real photos, background {background:?}: specimen tags detected tracking {:?} full-frame {:?}; posed {:?} / {:?}; tags solved {:?} / {:?}",
             tracked.iter().map(|l| l.cameras[0].specimen_tags).collect::<Vec<_>>(),
             full.iter().map(|l| l.cameras[0].specimen_tags).collect::<Vec<_>>(),
-            100.0 * worst_full
-        );
-        println!(
-            "MODES real photos, background {background:?}: posed tracking {:?} full-frame {:?}; tags solved {:?} / {:?}; worst position error {:.1} % of the distance to the background tag; {:?}",
             tracked.iter().map(|l| l.cameras[0].posed).collect::<Vec<_>>(),
             full.iter().map(|l| l.cameras[0].posed).collect::<Vec<_>>(),
             tracked.iter().map(|l| l.tags.len()).collect::<Vec<_>>(),
             full.iter().map(|l| l.tags.len()).collect::<Vec<_>>(),
-            100.0 * worst,
+        );
+        println!(
+            "MODES real photos, background {background:?}: worst position error along the sheet {:.1} % / {:.1} % of the distance to the background tag, across it {across:.1} / {across_full:.1} mm; {:?}",
+            100.0 * along,
+            100.0 * along_full,
             summary.stats
         );
         assert_eq!(tracked.len(), frames.len());
         for (a, b) in tracked.iter().zip(&full) {
-            assert_eq!(camera0_state(a).0, camera0_state(b).0, "{background:?}, set {}: posed or refused in tracking as full-frame", a.seq);
+            assert_eq!(a.cameras[0].posed, b.cameras[0].posed, "{background:?}, set {}: posed or refused in tracking as full-frame", a.seq);
         }
-        assert!(worst.max(worst_full) <= 0.5, "{background:?}: a published position off by {:.0} % of its distance", 100.0 * worst);
+        // The same tags published in the set a camera is first posed, set for set; after it,
+        // tracking follows what that set found and publishes a subset of full-frame's
+        // (measured: 33 of 37 in the second oblique set, background [91] — four steep tags
+        // beside the background tag not confirmed in their windows; docs/accuracy.md).
+        let (t_ids, f_ids) = (ids(&tracked), ids(&full));
+        let first_posed = tracked.iter().position(|l| l.cameras[0].posed);
+        for (k, (t, f)) in t_ids.iter().zip(&f_ids).enumerate() {
+            if Some(k) == first_posed || f.is_empty() {
+                assert_eq!(t, f, "{background:?}, set {k}: the same tags published");
+            } else {
+                assert!(t.iter().all(|id| f.contains(id)), "{background:?}, set {k}: tracking published {t:?}, full-frame {f:?}");
+                assert!(t.len() * 100 >= f.len() * 85, "{background:?}, set {k}: tracking published {} of {} tags", t.len(), f.len());
+            }
+        }
+        assert!(along.max(along_full) <= PHOTO_ALONG_SHEET, "{background:?}: a published position off by {:.0} % of its distance", 100.0 * along);
+        assert!(across.max(across_full) <= PHOTO_ACROSS_SHEET_MM, "{background:?}: a published position {across:.1} mm off the sheet");
         assert!(tracked.iter().any(|l| l.cameras[0].posed && !l.tags.is_empty()), "some photo is posed and measured");
         assert!(tracked.iter().any(|l| !l.cameras[0].posed), "some photo's pose is refused");
     }
 }
+
+/// Bound of a published position's error along the sheet, as a share of the tag's distance
+/// from the background tag. Measured 34.1 % in both modes (background [91], posed on the
+/// oblique photo: tag-to-tag distances — which no camera pose changes — 5 and 15 % long
+/// along the sheet's two axes with 3.7 mm RMS scatter, so the tags next to the background
+/// tag, 24 mm away, are the worst; the frontal photo posed from two tags: 4.3 % long, 0.96 mm
+/// RMS scatter). docs/accuracy.md, "Real photos".
+const PHOTO_ALONG_SHEET: f64 = 0.45;
+/// Bound of a published position's distance from the sheet's plane, mm: measured 6.8 mm
+/// (one tag, oblique) and 16.8 mm (two tags, frontal: the two-tag pose tilts the sheet by
+/// about 1°, −10.4 mm mean; along it 7.4 %).
+const PHOTO_ACROSS_SHEET_MM: f64 = 20.0;

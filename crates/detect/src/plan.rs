@@ -14,7 +14,10 @@
 //!   statistic is a median over the corners seen, so a few tags suffice to catch a bump in
 //!   the same frame set. When the background tags seen have shifted in the image (a bump),
 //!   all of them are looked for again for `SETTLE_FRAMES` frames so the re-posing
-//!   averages every tag.
+//!   averages every tag. A background tag missing from its window (occluded, blurred) is
+//!   searched again at once, then after 1, 3, 7 … frames (up to 2^`MAX_WAIT_DOUBLINGS`):
+//!   the camera keeps its held pose on the tags left, and a tag hidden for long costs a
+//!   few window searches, not one a frame.
 //! - **Sweep**: new or re-appearing tags are found by a search of the whole frame once per
 //!   `full_search_interval_s`, spread over the frames in overlapping *tiles* (the overlap
 //!   is larger than the biggest tag, so each tag lies wholly inside some tile), with the
@@ -68,6 +71,9 @@ const MIN_EXTENT_TO_DECIMATE: f64 = 36.0;
 /// and the same accuracy); below 24 px (12 px at half resolution, 1.5-px border bits) the
 /// sweep keeps full resolution.
 const MIN_EXTENT_TO_DECIMATE_SWEEP: f64 = 24.0;
+/// A missing background tag's wait between window searches doubles up to 2^this frames
+/// (32: about a second at 30 fps).
+const MAX_WAIT_DOUBLINGS: u32 = 5;
 /// Median shift (px) of the background tags seen, against their last positions, taken as
 /// a possible bump (the pose tracker's default bump floor).
 const BACKGROUND_SHIFT_PX: f64 = 1.0;
@@ -98,6 +104,8 @@ struct Sighting {
     background: bool,
     /// Its window was searched in the current frame.
     searched: bool,
+    /// Frames to skip before a missing background tag's window is searched again.
+    wait: u32,
 }
 
 /// A tracked tag expected in the next frame.
@@ -148,6 +156,9 @@ pub struct BackgroundCheck {
     pub missing: usize,
     /// Median shift (px) of the background tags seen against their predicted places.
     pub shift_px: Option<f64>,
+    /// Followed tags of either role searched for and not seen for the first time (a camera
+    /// not posed yet that lost tags may have moved: see `estimate::measure::pose`).
+    pub followed_lost: usize,
 }
 
 /// Plans the searches of one camera.
@@ -241,8 +252,15 @@ impl RoiPlanner {
                 chosen.push(bg_keys[(self.bg_cursor + i) % bg_keys.len()]);
             }
             self.bg_cursor = (self.bg_cursor + BACKGROUND_TAGS_PER_FRAME) % bg_keys.len();
-            // A background tag missing from its last search is searched again at once.
+            // A background tag missing from its last search is searched again (when its wait is over).
             chosen.extend(bg_keys.iter().filter(|k| self.sightings[*k].missed > 0));
+        }
+        // A background tag missing from its searches waits 0, 1, 3, 7 … frames before the
+        // next (see `observe`): the camera keeps its held pose on the tags left, and a tag
+        // occluded for long costs a few window searches, not one a frame.
+        chosen.retain(|k| self.sightings[k].wait == 0);
+        for tr in self.sightings.values_mut().filter(|t| t.background && t.wait > 0) {
+            tr.wait -= 1;
         }
         let mut tags: Vec<PlannedTag> = Vec::new();
         let mut max_extent: f64 = 0.0;
@@ -303,6 +321,7 @@ impl RoiPlanner {
                 missed: 0,
                 background: is_bg,
                 searched: false,
+                wait: 0,
             });
         }
     }
@@ -315,7 +334,7 @@ impl RoiPlanner {
         for (d, is_bg) in background.iter().map(|d| (d, true)).chain(specimen.iter().map(|d| (d, false))) {
             self.sightings.insert(
                 (d.family, d.id),
-                Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+                Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false, wait: 0 },
             );
         }
         self.settle = SETTLE_FRAMES;
@@ -355,12 +374,21 @@ impl RoiPlanner {
                     tr.corners = d.corners;
                     tr.t_ns = t_ns;
                     tr.missed = 0;
+                    tr.wait = 0;
                     tr.background = is_bg;
                 }
                 None => {
                     self.sightings.insert(
                         key,
-                        Sighting { corners: d.corners, velocity: Vector2::zeros(), t_ns, missed: 0, background: is_bg, searched: false },
+                        Sighting {
+                            corners: d.corners,
+                            velocity: Vector2::zeros(),
+                            t_ns,
+                            missed: 0,
+                            background: is_bg,
+                            searched: false,
+                            wait: 0,
+                        },
                     );
                 }
             }
@@ -381,10 +409,14 @@ impl RoiPlanner {
                 return true;
             }
             tr.missed += 1;
+            if tr.background {
+                tr.wait = (1u32 << (tr.missed - 1).min(MAX_WAIT_DOUBLINGS)) - 1;
+            }
             check.missing += tr.background as usize;
             if tr.missed == 1 {
                 lost_now = true;
                 check.lost |= tr.background;
+                check.followed_lost += 1;
             }
             tr.missed <= max_missed
         });
@@ -677,6 +709,30 @@ mod tests {
             p.observe(t, &seen, &[]);
         }
         assert_eq!(p.sightings.len(), 8);
+    }
+
+    #[test]
+    fn an_occluded_background_tag_is_searched_at_growing_intervals() {
+        let img = GrayImage::new(1000, 800);
+        let mut p = RoiPlanner::new(intr(), true, 1.0);
+        p.plan(0, &img);
+        let bgs: Vec<Detection> = (0..3).map(|i| bg(i, 50.0 + 300.0 * i as f64, 700.0, 40.0)).collect();
+        p.observe(0, &bgs, &[]);
+        // Tag 2 hidden from frame 1 on: the frames in which its window is searched.
+        let mut searched = Vec::new();
+        for k in 1..=40i64 {
+            let t = k * 33_000_000;
+            let (w, _) = track(p.plan(t, &img));
+            if inside(&w, 670.0, 720.0, 21.0) {
+                searched.push(k);
+            }
+            p.observe(t, &bgs[..2], &[]);
+        }
+        assert_eq!(searched, vec![1, 2, 4, 8, 16, 32], "searched at once, then after 1, 3, 7, 15 frames");
+        // Seen again: searched every frame as before.
+        p.observe(41 * 33_000_000, &bgs, &[]);
+        let (w, _) = track(p.plan(42 * 33_000_000, &img));
+        assert!(inside(&w, 670.0, 720.0, 21.0));
     }
 
     #[test]

@@ -23,6 +23,7 @@ mod record;
 mod render_rig;
 mod rig;
 mod scene;
+mod sensor;
 mod timing;
 mod trace;
 mod truth;

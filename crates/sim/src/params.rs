@@ -138,6 +138,19 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 8))]
     #[serde(skip_serializing_if = "is_default_bits")]
     pub bit_depth: u32,
+    /// Exposure, as a fraction of the light of the default scene (whose tags' black and white
+    /// are 28 and 228 grey levels of 8 bits): a shorter exposure or a dimmer lab scales every
+    /// level before digitisation (e.g. 0.0625: black 1.75, white 14.25). `noise_sigma` stays the
+    /// read noise, in grey levels of 8 bits.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
+    #[serde(skip_serializing_if = "is_default_fill")]
+    pub exposure: f64,
+    /// Full-well capacity of the sensor, electrons at the top of its range (255 grey levels
+    /// of 8 bits): each pixel's photon shot noise is drawn from its electron count (σ = √e)
+    /// before the camera's processing after the pixel; 0 = no shot noise (`noise_sigma` alone).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub full_well_e: f64,
     /// Motion blur (camera shake) on every n-th frame set, one camera at a time in turn (0 = never).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub motion_blur_every: u32,
@@ -459,6 +472,8 @@ impl Default for SimParams {
             fill_factor: 1.0,
             jpeg_quality: None,
             bit_depth: 8,
+            exposure: 1.0,
+            full_well_e: 0.0,
             jitter_ms: 1.0,
             drop_prob: 0.0,
             bump_camera: None,
@@ -575,6 +590,10 @@ mod tests {
             (SimParams { fill_factor: 0.0, ..SimParams::default() }, "fill_factor"),
             (SimParams { jpeg_quality: Some(0), ..SimParams::default() }, "jpeg_quality"),
             (SimParams { bit_depth: 17, ..SimParams::default() }, "bit_depth"),
+            (SimParams { exposure: 0.0, ..SimParams::default() }, "exposure"),
+            (SimParams { exposure: 1.5, ..SimParams::default() }, "exposure"),
+            (SimParams { full_well_e: 50.0, ..SimParams::default() }, "full_well_e"),
+            (SimParams { full_well_e: f64::NAN, ..SimParams::default() }, "full_well_e"),
         ] {
             assert!(matches!(bad.validate(), Err(Problem { key: k, .. }) if k == key), "{key}");
         }
@@ -594,14 +613,19 @@ mod tests {
             "90",
             "--bit-depth",
             "12",
+            "--exposure",
+            "0.06",
+            "--full-well-e",
+            "32000",
         ])
         .unwrap();
         let p = &cli.params;
         assert_eq!((p.defocus_radius_px, p.astig_major_px, p.astig_minor_px, p.astig_angle_deg), (1.5, 1.0, 0.4, -30.0));
         assert_eq!((p.fill_factor, p.jpeg_quality, p.bit_depth), (0.5, Some(90), 12));
+        assert_eq!((p.exposure, p.full_well_e), (0.06, 32000.0));
         p.validate().unwrap();
         let text = toml::to_string(&SimParams::default()).unwrap();
-        assert!(!text.contains("fill_factor") && !text.contains("bit_depth") && !text.contains("jpeg"), "{text}");
+        assert!(!["fill_factor", "bit_depth", "jpeg", "exposure", "full_well"].iter().any(|k| text.contains(k)), "{text}");
         let bad = SimParams { hide_background_tag: Some(11), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_background_tag"));
         assert!(SimParams { hide_background_tag: Some(10), ..SimParams::default() }.validate().is_ok());

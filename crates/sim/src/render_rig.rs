@@ -1,7 +1,8 @@
 //! Rendering of the simulated rig's camera images ([`SimRig::render`]): the fixed scene
 //! rendered once per camera pose and cached, the beam's image region re-rendered per
-//! frame, the optics' blur, motion blur, the camera's processing, noise, the sensor's bit
-//! depth, 8-bit storage and JPEG (on [`crate::render`]).
+//! frame, the optics' blur, motion blur, the exposure and shot noise ([`crate::sensor`]), the
+//! camera's processing, read noise, the sensor's bit depth, 8-bit storage and JPEG (on
+//! [`crate::render`]).
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -173,8 +174,9 @@ impl SimRig {
             let angle = (mix(self.params.seed, k as u64) % 360) as f64 * std::f64::consts::PI / 180.0;
             img = motion_blur(&img, w, h, self.params.motion_blur_px, angle);
         }
-        img = self.after_pixels(img, w, h);
         let seed = mix(mix(self.params.seed, 0x4015e), mix(cam as u64, t_ns as u64));
+        crate::sensor::expose(&mut img, w, self.params.exposure, self.params.full_well_e, mix(seed, 0x5407));
+        img = self.after_pixels(img, w, h);
         let stored = quantize_bits(&img, w, h, self.params.noise_sigma, seed, self.params.bit_depth);
         match self.params.jpeg_quality {
             // Validated sizes (at most 8192 px a side) are within JPEG's 65535.

@@ -13,8 +13,12 @@
 //! [`FIRST_POSE_SEARCH_WINDOW_NS`] of frame time of the run (a live run's start-up, where a
 //! lost set is allowed). After that an undecided camera costs no frame set: the detector's
 //! periodic sweep (the whole frame once per `full_search_interval_s`) looks for the tag that
-//! decides, beside the measurement. A posed camera that loses background tags keeps its held
-//! pose and costs no search either (see [`search_whole`]).
+//! decides, beside the measurement. A camera not posed yet whose frame lost tags it followed
+//! (it moved before its first pose) is searched whole when its followed tags do decide the
+//! first pose, so that pose and the tags measured in that set are what full-frame mode sees
+//! (once per camera: it is posed then; within the one-camera-per-set budget, at any time).
+//! A posed camera that loses background tags keeps its held pose and costs no search either
+//! (see [`search_whole`]).
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -43,7 +47,7 @@ impl Measurement {
         let n = self.cameras.len();
         let t0 = *self.first_set_t_ns.get_or_insert(set.t_ns);
         // One first-pose search per set, the cameras taking turns (see the module docs).
-        let mut budget = u32::from(set.t_ns.saturating_sub(t0) < FIRST_POSE_SEARCH_WINDOW_NS);
+        let mut budget = FirstPoseBudget { searches: 1, undecided: set.t_ns.saturating_sub(t0) < FIRST_POSE_SEARCH_WINDOW_NS };
         let mut health: Vec<Option<CameraHealth>> = vec![None; n];
         for k in 0..n {
             let ci = (set.seq as usize + k) % n;
@@ -54,7 +58,7 @@ impl Measurement {
 
     /// Camera `ci`'s pose from this set, and its health (`first_pose_budget`: first-pose
     /// searches left in this set).
-    fn pose_camera(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected, first_pose_budget: &mut u32) -> CameraHealth {
+    fn pose_camera(&mut self, set: &FrameSet, ci: usize, detected: &mut Detected, first_pose_budget: &mut FirstPoseBudget) -> CameraHealth {
         // The frame's observations are made once and posed from, unless a search replaced them.
         let frame_obs = self.search_if_moved(set, ci, detected, first_pose_budget);
         let det = detected.of(ci);
@@ -85,7 +89,7 @@ impl Measurement {
         set: &FrameSet,
         ci: usize,
         detected: &mut Detected,
-        first_pose_budget: &mut u32,
+        first_pose_budget: &mut FirstPoseBudget,
     ) -> Option<Vec<BackgroundTagObservation>> {
         let report = detected.reports[ci]?;
         let slot = detected.cameras.iter_mut().find(|(i, _)| *i == ci)?;
@@ -93,7 +97,7 @@ impl Measurement {
         let threshold = cam.pose.bump_threshold_px();
         let above = |s: f64| s.is_nan() || s > threshold;
         let obs = background_observations(&self.background_world, &slot.1);
-        let first = *first_pose_budget > 0 && first_pose_search(&cam.pose, &report, &obs);
+        let first = first_pose_budget.searches > 0 && first_pose_search(&cam.pose, &report, &obs, first_pose_budget.undecided);
         let jumped = cam.pose.preview_shift_px(set.t_ns, &obs).is_some_and(above);
         let moved_again = report.background.shift_px.is_some_and(above);
         let search = first || search_whole(&cam.pose, &report, jumped, moved_again);
@@ -101,7 +105,7 @@ impl Measurement {
         let c0 = Instant::now();
         let (again, r) = cam.detector.search_again(frame.t_ns, &frame.image, &self.rig);
         if first {
-            *first_pose_budget -= 1;
+            first_pose_budget.searches -= 1;
             self.stats.first_pose_searches += 1;
             tracing::info!(
                 camera = %cam.name,
@@ -179,11 +183,30 @@ impl Measurement {
 /// start-up.
 pub const FIRST_POSE_SEARCH_WINDOW_NS: i64 = 1_000_000_000;
 
-/// Whether a camera never posed has its frame searched whole for a background tag that
-/// decides its first pose: an estimated pose, no search of the whole frame at the configured
-/// resolution in the frame yet, and the tags followed give no first pose that passes.
-fn first_pose_search(pose: &HeldCameraPose, report: &DetectReport, obs: &[BackgroundTagObservation]) -> bool {
-    pose.estimated() && !pose.ever_posed() && !report.searched_whole && pose.first_pose_check(obs).is_err()
+/// The first-pose searches a frame set allows: how many are left, and whether a camera whose
+/// followed tags give no first pose may still be searched (the run's first second).
+struct FirstPoseBudget {
+    /// Searches left in this set.
+    searches: u32,
+    /// Undecided first poses are searched for (the run's first second).
+    undecided: bool,
+}
+
+/// Whether a camera never posed has its frame searched whole before its first pose: an
+/// estimated pose, no search of the whole frame at the configured resolution in the frame
+/// yet, and either the tags followed give no first pose that passes (while `undecided`
+/// searches are allowed) or they give one but tags the camera followed were lost in the frame
+/// — it moved before it was posed, and its first pose and the tags measured in that set are
+/// taken from what a whole-frame search sees, as in full-frame mode (once per camera: it is
+/// posed then).
+fn first_pose_search(pose: &HeldCameraPose, report: &DetectReport, obs: &[BackgroundTagObservation], undecided: bool) -> bool {
+    if !pose.estimated() || pose.ever_posed() || report.searched_whole {
+        return false;
+    }
+    match pose.first_pose_check(obs) {
+        Err(_) => undecided,
+        Ok(_) => report.background.followed_lost > 0,
+    }
 }
 
 /// Background tags a camera keeps its held pose on when others are lost: fewer left (or
@@ -227,7 +250,7 @@ mod tests {
     use super::*;
 
     fn check(lost: bool, seen: usize, missing: usize) -> BackgroundCheck {
-        BackgroundCheck { lost, seen, missing, shift_px: None }
+        BackgroundCheck { lost, seen, missing, shift_px: None, followed_lost: usize::from(lost) }
     }
 
     #[test]

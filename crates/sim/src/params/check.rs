@@ -200,6 +200,12 @@ impl SimParams {
         if !(8..=16).contains(&self.bit_depth) {
             return bad("bit_depth", format!("{} bits: expected 8 to 16", self.bit_depth));
         }
+        if !(self.exposure.is_finite() && (0.001..=1.0).contains(&self.exposure)) {
+            return bad("exposure", format!("{}: expected 0.001 to 1 of the default scene's light", self.exposure));
+        }
+        if !(self.full_well_e == 0.0 || (self.full_well_e.is_finite() && (100.0..=1e7).contains(&self.full_well_e))) {
+            return bad("full_well_e", format!("{} electrons: expected 0 (no shot noise) or 100 to 10^7", self.full_well_e));
+        }
         Ok(())
     }
 
