@@ -212,22 +212,23 @@ fn node_d(k: usize) -> f64 {
 /// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
 pub const CLASSES: usize = 8;
 
-/// How pixels are classed: 0 one pooled profile, 1 by edge orientation, 2 by orientation and
-/// mosaic parity (both: every class with samples enough uses its own profile), 3 (the
-/// default) by orientation and parity, each class using its own profile only where it
+/// How pixels are classed: 0 (the default) one pooled profile, 1 by edge orientation, 2 by
+/// orientation and mosaic parity (both: every class with samples enough uses its own
+/// profile), 3 by orientation and parity, each class using its own profile only where it
 /// differs from its parent's beyond its sampling noise ([`CLASS_CHI2_SIGMAS`]). Measured on
-/// the formations' scenes (docs/accuracy.md, "A profile per pixel class"): every class used
-/// (modes 1, 2) costs the scenes one profile describes (its sampling noise: the sharp scene
-/// 0.0033 → 0.0051 mm) while it gains on a Bayer mosaic (0.0242 → 0.0099 mm); the decision
-/// (mode 3) keeps both. `TAGDEFLECT_PROFILE_CLASSES` (`pooled`, `orientation`, `parity`)
-/// chooses another mode for a measurement.
+/// the formations' scenes (docs/accuracy.md, "A class only where it pays"): every class used
+/// (modes 1, 2) costs the scenes one profile describes (the sharp scene 0.0033 → 0.0051 mm);
+/// the decision (mode 3) keeps the sharp scene's 0.0033 mm and takes the Bayer mosaic's gain
+/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0102 mm),
+/// so it is not the default yet. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
+/// `parity`) chooses a mode for a measurement.
 fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
-        Ok("pooled") => 0,
+        Ok("auto") => 3,
         Ok("orientation") => 1,
         Ok("parity") => 2,
-        _ => 3,
+        _ => 0,
     })
 }
 
