@@ -296,7 +296,8 @@ fn bump_keeps_displacements_continuous() {
             let tag = specimen_pose(c, [0.0, 0.01, 0.0]);
             let centre = |seen_by: &Pose, used: &Pose| {
                 let corners = observe_tag(&intr, seen_by, &tag, 0.0, &mut ChaCha8Rng::seed_from_u64(0)).unwrap();
-                let view = TagView { intrinsics: intr, camera_pose: *used, camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 };
+                let view =
+                    TagView { intrinsics: intr, camera_pose: *used, camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 };
                 solve_tag(&[view], TAG_MM, None, None).unwrap().centre_mm
             };
             let before = centre(&truth, &held);
