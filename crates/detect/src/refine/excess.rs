@@ -133,8 +133,13 @@ impl ModelExcess {
         (expected > 0.0).then(|| self.edge_sq / expected)
     }
 
-    /// The corners' σ widening factor ([`widening`] of [`ModelExcess::rho2`]; 1 until known).
-    /// Only with `TAGDEFLECT_SIGMA_WIDENING=on` (a measurement); 1 otherwise: measured on the
+    /// The widening these residuals call for: [`widening`] of [`ModelExcess::rho2`], 1 until
+    /// known.
+    pub fn factor(&self) -> f64 {
+        self.rho2().map_or(1.0, widening)
+    }
+
+    /// The corners' σ widening factor applied ([`ModelExcess::factor`]). Only with `TAGDEFLECT_SIGMA_WIDENING=on` (a measurement); 1 otherwise: measured on the
     /// formations' scenes (docs/accuracy.md) it over-covers (100 % within 2σ on the sharpened
     /// and elliptical scenes) and, through the temporal estimate's weights, moves the
     /// positions (the Bayer scene 0.0242 → 0.0515 mm), so it is not the default.
@@ -143,7 +148,7 @@ impl ModelExcess {
         if !*ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "on")) {
             return 1.0;
         }
-        self.rho2().map_or(1.0, widening)
+        self.factor()
     }
 }
 
@@ -185,9 +190,10 @@ mod tests {
             let e = excess_of(black, white, 0.0);
             let rho2 = e.rho2().expect("flat parts seen");
             assert!((rho2 - 1.0).abs() < 0.05, "noise {black} → {white}: ρ² {rho2}");
-            assert_eq!(e.sigma_factor(), 1.0);
+            assert_eq!(e.factor(), 1.0);
         }
-        assert_eq!(ModelExcess::default().sigma_factor(), 1.0, "1 until known");
+        assert_eq!(ModelExcess::default().factor(), 1.0, "1 until known");
+        assert_eq!(ModelExcess::default().sigma_factor(), 1.0);
     }
 
     #[test]
@@ -199,7 +205,7 @@ mod tests {
             let e = excess_of(black, white, 2.0);
             let rho2 = e.rho2().unwrap();
             assert!((rho2 - 5.0).abs() < 0.3, "noise {black} → {white}: ρ² {rho2}");
-            let f = e.sigma_factor();
+            let f = e.factor();
             assert!((f - 4.9f64.sqrt()).abs() < 0.07, "factor {f} against √4.9");
         }
     }
