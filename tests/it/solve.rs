@@ -296,7 +296,8 @@ fn bump_keeps_displacements_continuous() {
             let tag = specimen_pose(c, [0.0, 0.01, 0.0]);
             let centre = |seen_by: &Pose, used: &Pose| {
                 let corners = observe_tag(&intr, seen_by, &tag, 0.0, &mut ChaCha8Rng::seed_from_u64(0)).unwrap();
-                let view = TagView { intrinsics: intr, camera_pose: *used, camera_pose_covariance: None, corners };
+                let view =
+                    TagView { intrinsics: intr, camera_pose: *used, camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 };
                 solve_tag(&[view], TAG_MM, None, None).unwrap().centre_mm
             };
             let before = centre(&truth, &held);
@@ -369,7 +370,7 @@ fn tag_errors(cams: &[usize], trials: usize, sigma: f64, seed: u64) -> (Vec<Vect
                 .filter_map(|&i| {
                     let (intr, pose) = rig.cameras[i];
                     let corners = observe_tag(&intr, &pose, &tag, sigma, &mut rng)?;
-                    Some(TagView { intrinsics: intr, camera_pose: pose, camera_pose_covariance: None, corners })
+                    Some(TagView { intrinsics: intr, camera_pose: pose, camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 })
                 })
                 .collect();
             assert_eq!(views.len(), cams.len(), "every camera sees every tag");
@@ -431,7 +432,7 @@ fn warm_start_needs_fewer_iterations() {
                 .filter_map(|i| {
                     let (intr, pose) = rig.cameras[i];
                     let corners = observe_tag(&intr, &pose, &tag, 0.1, &mut rng)?;
-                    Some(TagView { intrinsics: intr, camera_pose: pose, camera_pose_covariance: None, corners })
+                    Some(TagView { intrinsics: intr, camera_pose: pose, camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 })
                 })
                 .collect();
             let t0 = std::time::Instant::now();
@@ -484,6 +485,7 @@ fn outlier_views_rejected() {
                     camera_pose: pose,
                     camera_pose_covariance: None,
                     corners: observe_tag(&intr, &pose, t, sigma, rng).unwrap(),
+                    corner_sigma_factor: 1.0,
                 }
             })
             .collect()
@@ -568,6 +570,7 @@ fn sigma_is_calibrated() {
                         camera_pose: poses[i].0,
                         camera_pose_covariance: Some(poses[i].1),
                         corners: observe_tag(&intr, &truth, &tag, sigma, &mut rng).unwrap(),
+                        corner_sigma_factor: 1.0,
                     }
                 })
                 .collect();

@@ -233,6 +233,14 @@ impl CameraDetector {
         }
     }
 
+    /// How much this camera's corners' σ is to be widened for its edge fits' model error:
+    /// their residuals on the edges against the camera's noise there
+    /// ([`ModelExcess::sigma_factor`](crate::refine::ModelExcess::sigma_factor); 1 while the
+    /// fits are at the noise level and before the edge profile is learned).
+    pub fn corner_sigma_factor(&self) -> f64 {
+        self.profile.sigma_factor()
+    }
+
     /// Runs whole-frame searches after the first frame in the background (the default in
     /// tracking mode; see the module docs) or, with `false`, each in its own frame.
     pub fn set_background_searches(&mut self, on: bool) {

@@ -19,11 +19,16 @@
 //! parametric model) are fitted again with the profile; tags confirmed at their predicted
 //! place are fitted with it directly. An edge the profile does not fit falls back to the
 //! parametric model.
+//!
+//! **Pixel classes.** Which class is fitted with its own profile (or its orientation's) is
+//! decided when the profile is first learned, in that frame (`refine::profile`,
+//! [`ClassChoice`]), and kept by every rebuild: a class changes its model never during a
+//! test, so it makes no step either (a class not ready then stays on its parent's profile).
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
-use super::refine::{refine_corners_warm, EdgeMemory, EdgeProfile, ProfileLearner, RefineOptions};
+use super::refine::{refine_corners_warm, ClassChoice, EdgeMemory, EdgeProfile, ModelExcess, ProfileLearner, RefineOptions};
 use super::Detection;
 use tagdeflect_core::camera::Lens;
 use tagdeflect_core::frame::GrayImage;
@@ -40,6 +45,10 @@ pub(crate) type TagKey = (TagFamily, u32);
 pub(crate) struct CameraProfile {
     learner: ProfileLearner,
     profile: Option<Arc<EdgeProfile>>,
+    /// Which profile each pixel class uses, decided when the profile was first learned.
+    choice: Option<ClassChoice>,
+    /// The profile fits' residuals against the camera's noise (the corners' σ widening).
+    excess: ModelExcess,
     /// Frames since the profile was first learned.
     frames: u64,
     /// The frame count at which it is next rebuilt.
@@ -50,6 +59,12 @@ impl CameraProfile {
     /// The profile, once learned.
     pub(crate) fn profile(&self) -> Option<Arc<EdgeProfile>> {
         self.profile.clone()
+    }
+
+    /// How much the corners' σ is to be widened for the profile fits' model error
+    /// ([`ModelExcess::sigma_factor`]; 1 before the profile is learned).
+    pub(crate) fn sigma_factor(&self) -> f64 {
+        self.excess.sigma_factor()
     }
 
     /// After a frame's detection: learns from its tags (`confirmed`: those fitted at their
@@ -72,7 +87,7 @@ impl CameraProfile {
                     None => self.learner.add_tag(image, &fit(image, d, lens, &one_pass, None).1),
                 }
             }
-            if let Some(first) = self.learner.build() {
+            if let Some(first) = self.learner.build(None) {
                 self.start(image, found, confirmed, memories, lens, &one_pass, first);
             }
             return;
@@ -80,17 +95,21 @@ impl CameraProfile {
         for d in found.iter_mut() {
             let key = (d.family, d.id);
             match memories.get(&key).filter(|_| confirmed.contains(&key)) {
-                Some(m) => self.learner.add_tag(image, m),
+                Some(m) => {
+                    self.learner.add_tag(image, m);
+                    self.excess.add_tag(image, m);
+                }
                 None => {
                     let (refit, m) = fit(image, d, lens, &one_pass, Some(&profile));
                     *d = refit;
                     self.learner.add_tag(image, &m);
+                    self.excess.add_tag(image, &m);
                 }
             }
         }
         self.frames += 1;
         if self.frames >= self.next_build {
-            if let Some(p) = self.learner.build() {
+            if let Some(p) = self.learner.build(self.choice.as_ref()) {
                 self.profile = Some(Arc::new(p));
             }
             self.next_build = (2 * self.frames).min(self.frames + MAX_REBUILD_INTERVAL);
@@ -116,7 +135,7 @@ impl CameraProfile {
             for d in found.iter() {
                 self.learner.add_tag(image, &fit(image, d, lens, one_pass, Some(&profile)).1);
             }
-            match self.learner.build() {
+            match self.learner.build(None) {
                 Some(p) => profile = Arc::new(p),
                 None => break,
             }
@@ -125,11 +144,14 @@ impl CameraProfile {
         for d in found.iter_mut() {
             let (refit, m) = fit(image, d, lens, one_pass, Some(&profile));
             *d = refit;
+            self.excess.add_tag(image, &m);
             let key = (d.family, d.id);
             if confirmed.contains(&key) {
                 memories.insert(key, m);
             }
         }
+        tracing::debug!(choice = ?profile.choice(), "edge profile's pixel classes decided");
+        self.choice = Some(profile.choice());
         self.profile = Some(profile);
         (self.frames, self.next_build) = (0, 1);
     }

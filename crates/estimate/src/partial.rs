@@ -214,7 +214,7 @@ mod tests {
             .map(|(i, (_, p))| if i == 0 { Pose { rotation: err * p.rotation, translation: err * p.translation } } else { *p })
             .collect();
         let view = |c: usize, corners: [Point2<f64>; 4]| {
-            Some(TagView { intrinsics: cams[c].0, camera_pose: held[c], camera_pose_covariance: None, corners })
+            Some(TagView { intrinsics: cams[c].0, camera_pose: held[c], camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 })
         };
         let tag_at = |y: f64| Pose { rotation: Rotation3::identity(), translation: Vector3::new(0.0, y, 0.0) };
         let epochs = [0u64, 0, 0];

@@ -31,6 +31,11 @@ pub struct TagView {
     pub camera_pose_covariance: Option<Matrix6<f64>>,
     /// Detected corners, pixels, SPEC order (BL, BR, TR, TL as printed).
     pub corners: [Point2<f64>; 4],
+    /// The corners' σ in this view relative to the pooled corner noise (≥ 1; 1: as pooled):
+    /// the camera's edge fits' model error widens it (`tagdeflect_detect`'s
+    /// `CameraDetector::corner_sigma_factor`). It widens the solution's covariance, never
+    /// moves the solution.
+    pub corner_sigma_factor: f64,
 }
 
 /// A solved specimen tag.
@@ -337,7 +342,7 @@ fn tag_solution(
         .jtj
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: singular normal equations".into() })?;
-    let noise_cov = h_inv * s2;
+    let noise_cov = widened(h_inv * s2, problem, &best.pose, &h_inv, s2);
     let cov = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
     let centre_cov: Matrix3<f64> = cov.fixed_view::<3, 3>(3, 3).into_owned();
     let sigma = Vector3::new(centre_cov[(0, 0)].max(0.0).sqrt(), centre_cov[(1, 1)].max(0.0).sqrt(), centre_cov[(2, 2)].max(0.0).sqrt());
@@ -356,6 +361,27 @@ fn tag_solution(
         iterations,
         warm_started,
     })
+}
+
+/// The pixel noise's covariance `s² H⁻¹` (`plain`) with each view's corners' σ widened by its
+/// [`TagView::corner_sigma_factor`] `f_v`: the covariance of the same (unweighted) fit when
+/// view `v`'s corners have variance `f_v² s²`, `s² H⁻¹ (Σ_v f_v² H_v) H⁻¹`, `H_v` the view's
+/// share of the normal matrix. `plain` itself while every factor is 1.
+fn widened(plain: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>, s2: f64) -> Matrix6<f64> {
+    let factor = |v: &TagView| if v.corner_sigma_factor.is_finite() { v.corner_sigma_factor.max(1.0) } else { 1.0 };
+    if problem.views.iter().all(|(_, v)| factor(v) == 1.0) {
+        return plain;
+    }
+    let mut middle = Matrix6::zeros();
+    for (_, view) in &problem.views {
+        let f2 = factor(view).powi(2);
+        for k in 0..4 {
+            if let Some((_, jt, _)) = tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]) {
+                middle += f2 * jt.transpose() * jt;
+            }
+        }
+    }
+    h_inv * middle * h_inv * s2
 }
 
 /// The tag's covariance: the pixel noise's `noise_cov` plus each view's camera pose
@@ -471,6 +497,7 @@ mod tests {
             camera_pose: Pose::from_rvec_tvec([1.5, 0.1, 0.05], [20.0, -30.0, 1500.0]),
             camera_pose_covariance: None,
             corners: [Point2::new(600.0, 500.0); 4],
+            corner_sigma_factor: 1.0,
         }
     }
 
@@ -511,6 +538,38 @@ mod tests {
         assert!(s.tag_to_world.angle_to(&tag) < 1e-6);
         assert_eq!((s.views, s.dof), (1, 2));
         assert!(s.sigma_mm.iter().all(|x| x.is_finite() && *x > 0.0));
+    }
+
+    #[test]
+    fn a_views_corner_sigma_factor_widens_the_covariance_and_never_moves_the_solution() {
+        // Two views of a tag (the second camera 300 mm to the side), noise-free corners.
+        let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0, 0.0, 10.0]);
+        let corners = tag_corners(30.0);
+        let mut views = [view(), view()];
+        views[1].camera_pose = Pose::from_rvec_tvec([1.5, 0.3, 0.05], [-280.0, -30.0, 1500.0]);
+        for v in views.iter_mut() {
+            v.corners = [0, 1, 2, 3].map(|k| v.intrinsics.project(&v.camera_pose.transform(&tag.transform(&corners[k]))).unwrap());
+        }
+        let solve = |f: [f64; 2]| {
+            let mut vs = views;
+            vs[0].corner_sigma_factor = f[0];
+            vs[1].corner_sigma_factor = f[1];
+            solve_tag(&vs, 30.0, None, Some(0.1)).expect("solves")
+        };
+        let plain = solve([1.0, 1.0]);
+        let doubled = solve([2.0, 2.0]);
+        let one = solve([1.0, 2.0]);
+        // Both views twice as noisy: σ twice; the solution itself unchanged.
+        assert_eq!(doubled.centre_mm, plain.centre_mm);
+        for a in 0..3 {
+            assert!((doubled.sigma_mm[a] / plain.sigma_mm[a] - 2.0).abs() < 1e-6, "axis {a}");
+            assert!(
+                one.sigma_mm[a] > plain.sigma_mm[a] * 1.0001 && one.sigma_mm[a] < doubled.sigma_mm[a],
+                "axis {a}: one view widened lies between"
+            );
+        }
+        // A factor below 1 (or not finite) never narrows σ.
+        assert_eq!(solve([0.5, f64::NAN]).sigma_mm, plain.sigma_mm);
     }
 
     #[test]

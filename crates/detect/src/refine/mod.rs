@@ -69,14 +69,16 @@ use tagdeflect_core::frame::GrayImage;
 use tagdeflect_core::tags::cell_homography;
 
 mod band;
+mod excess;
 mod fit;
 mod lm;
 mod profile;
 mod profile_fit;
 
 use band::{select_band, EdgeBand, TagBands};
+pub use excess::{widening, ModelExcess, FLAT_SLOPE, RHO2_TOLERANCE};
 use fit::{fit_band, Line};
-pub use profile::{EdgeProfile, ProfileLearner};
+pub use profile::{ClassChoice, ClassUse, EdgeProfile, ProfileLearner, CLASS_CHI2_SIGMAS};
 use profile_fit::fit_band_profile;
 
 /// The blur σ (pixels) an edge's fit starts from when no earlier fit of it is known.

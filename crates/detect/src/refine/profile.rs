@@ -22,12 +22,15 @@
 //! **Pixel classes.** Samples are also accumulated per [class](CLASSES) (the edge's
 //! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
 //! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it), and a
-//! class with samples enough is fitted with its own profile, the others with the pooled one.
-//! Which classes are used is [`class_mode`]'s (by default none: one pooled profile).
+//! class with samples enough *and a profile that differs from its parent's beyond its own
+//! sampling noise* is fitted with its own profile, the others with their parent's: the
+//! orientation's profile (itself used only where it differs from the pooled one so), else
+//! the pooled one ([`ClassChoice`], decided when the profile is first learned and kept).
+//! How pixels are classed is [`class_mode`]'s.
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
-use nalgebra::Vector2;
+use nalgebra::{Matrix3, Vector2, Vector3};
 use tagdeflect_core::frame::GrayImage;
 
 /// Spacing of the profile's nodes, pixels.
@@ -42,6 +45,13 @@ const MIN_NODE_WEIGHT: f64 = 20.0;
 /// A pixel class's node is known once its samples' tent weights reach this (a class has an
 /// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
 const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
+/// A class (or an orientation's) profile is used in place of its parent's only when its node
+/// means differ in shape from the parent's profile by a χ² (over their standard errors, see
+/// `Nodes::differs`) above its degrees of freedom `ν` by this many of its standard
+/// deviations `√(2ν)` (4: a class of the parent's profile passes by chance about once in ten
+/// thousand decisions; adjacent nodes share samples, which widens χ²'s spread, still
+/// leaving it below one in a hundred).
+pub const CLASS_CHI2_SIGMAS: f64 = 4.0;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
@@ -63,17 +73,40 @@ const WHITE_EDGE_CLEARANCE_PX: f64 = 2.0;
 pub struct EdgeProfile {
     /// `P` at `d = −RANGE_PX + k · NODE_PX`, pooled over every class.
     values: Vec<f64>,
-    /// Per pixel class ([`CLASSES`]), its own `P` at the same nodes, or `None`: the pooled one.
+    /// Per pixel class ([`CLASSES`]), the `P` it is fitted with at the same nodes (its own or
+    /// its orientation's), or `None`: the pooled one.
     classes: Vec<Option<Vec<f64>>>,
+    /// Which profile each class uses.
+    choice: ClassChoice,
     /// Edges whose samples built it.
     edges: u64,
 }
+
+/// Which profile a pixel class is fitted with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ClassUse {
+    /// The camera's pooled profile.
+    #[default]
+    Pooled,
+    /// The profile of the class's edge orientation (both parities of both axes).
+    Orientation,
+    /// The class's own profile.
+    Own,
+}
+
+/// Each pixel class's [`ClassUse`] (index: the class, see [`CLASSES`]).
+pub type ClassChoice = [ClassUse; CLASSES];
 
 impl EdgeProfile {
     /// A profile tabulated from `f` (e.g. a model ESF; tests and comparisons), the same for
     /// every class.
     pub fn from_fn(f: impl Fn(f64) -> f64) -> Self {
-        Self { values: (0..NODES).map(|k| f(node_d(k))).collect(), classes: vec![None; CLASSES], edges: 0 }
+        Self { values: (0..NODES).map(|k| f(node_d(k))).collect(), classes: vec![None; CLASSES], choice: ClassChoice::default(), edges: 0 }
+    }
+
+    /// Which profile each pixel class is fitted with.
+    pub fn choice(&self) -> ClassChoice {
+        self.choice
     }
 
     /// Edges whose samples built this profile.
@@ -179,16 +212,20 @@ fn node_d(k: usize) -> f64 {
 /// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
 pub const CLASSES: usize = 8;
 
-/// How pixels are classed: 0 one pooled profile (the default), 1 by edge orientation, 2 by
-/// orientation and mosaic parity. Measured on the formations' scenes (docs/accuracy.md, "A
-/// profile per pixel class"): the classes, learned from a few frames' samples, cost the
-/// scenes one profile describes more than they gain (parity: Bayer 0.0242 → 0.0099 mm, the
-/// sharp scene 0.0033 → 0.0051 mm), so they are chosen by `TAGDEFLECT_PROFILE_CLASSES`
-/// (`orientation` or `parity`) for measurements only, until a class is used only where its
-/// profile differs from the pooled one by more than its sampling noise.
+/// How pixels are classed: 0 (the default) one pooled profile, 1 by edge orientation, 2 by
+/// orientation and mosaic parity (both: every class with samples enough uses its own
+/// profile), 3 by orientation and parity, each class using its own profile only where it
+/// differs from its parent's beyond its sampling noise ([`CLASS_CHI2_SIGMAS`]). Measured on
+/// the formations' scenes (docs/accuracy.md, "A class only where it pays"): every class used
+/// (modes 1, 2) costs the scenes one profile describes (the sharp scene 0.0033 → 0.0051 mm);
+/// the decision (mode 3) keeps the sharp scene's 0.0033 mm and takes the Bayer mosaic's gain
+/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0102 mm)
+/// and the fill factor's (0.0058 → 0.0074 mm), so it is not the default yet. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
+/// `parity`) chooses a mode for a measurement.
 fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
+        Ok("auto") => 3,
         Ok("orientation") => 1,
         Ok("parity") => 2,
         _ => 0,
@@ -216,16 +253,19 @@ fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> u
     }
 }
 
-/// Tent-weighted sums of profile samples on the nodes.
+/// Tent-weighted sums of profile samples on the nodes: weights, values, squared values and
+/// squared weights (the last two give a node mean's standard error).
 #[derive(Debug, Clone)]
 struct Nodes {
     weight: Vec<f64>,
     sum: Vec<f64>,
+    sum_sq: Vec<f64>,
+    weight_sq: Vec<f64>,
 }
 
 impl Default for Nodes {
     fn default() -> Self {
-        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES] }
+        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES], sum_sq: vec![0.0; NODES], weight_sq: vec![0.0; NODES] }
     }
 }
 
@@ -242,11 +282,70 @@ impl Nodes {
         for (node, w) in [(k, 1.0 - f), (k + 1, f)] {
             self.weight[node] += w;
             self.sum[node] += w * v;
+            self.sum_sq[node] += w * v * v;
+            self.weight_sq[node] += w * w;
         }
         if self.weight[k].max(self.weight[k + 1]) > MAX_NODE_WEIGHT {
-            self.weight.iter_mut().for_each(|w| *w *= 0.5);
-            self.sum.iter_mut().for_each(|s| *s *= 0.5);
+            // Halving keeps every mean and the effective sample counts' ratios.
+            for x in [&mut self.weight, &mut self.sum, &mut self.sum_sq] {
+                x.iter_mut().for_each(|w| *w *= 0.5);
+            }
+            self.weight_sq.iter_mut().for_each(|w| *w *= 0.25);
         }
+    }
+
+    /// The sums of several node sets (e.g. the classes of one orientation).
+    fn merged<'a>(parts: impl IntoIterator<Item = &'a Nodes>) -> Nodes {
+        let mut out = Nodes::default();
+        for p in parts {
+            for k in 0..NODES {
+                out.weight[k] += p.weight[k];
+                out.sum[k] += p.sum[k];
+                out.sum_sq[k] += p.sum_sq[k];
+                out.weight_sq[k] += p.weight_sq[k];
+            }
+        }
+        out
+    }
+
+    /// The squared standard error of node `k`'s mean: the samples' weighted variance over
+    /// their effective count `(Σw)² / Σw²`.
+    fn mean_var(&self, k: usize) -> f64 {
+        let w = self.weight[k];
+        let mean = self.sum[k] / w;
+        let var = (self.sum_sq[k] / w - mean * mean).max(0.0);
+        var * self.weight_sq[k] / (w * w)
+    }
+
+    /// Whether these samples' profile differs in shape from `parent` beyond its sampling
+    /// noise: their node means `m_k` (nodes from 2.5 px inside the edge to
+    /// [`CENTRE_HALF_WIDTH_PX`] outside it with `min_weight`) fitted as
+    /// `a + b · P(d_k) + c · P′(d_k)` (`P` the parent) by weighted least squares (weights the
+    /// inverse squared standard errors, at least 10⁻⁴ of the contrast), and
+    /// `χ² > ν + CLASS_CHI2_SIGMAS · √(2ν)` with `ν = n − 3`. The level, scale and shift are
+    /// left out because each class's profile is pinned to 0 and 1 and centred on its own
+    /// line-spread centroid: they are never a class's difference, and their estimates' noise
+    /// (one white node sets the scale) would otherwise count as one.
+    fn differs(&self, parent: &[f64], min_weight: f64) -> bool {
+        let rows: Vec<(Vector3<f64>, f64, f64)> = tested_nodes()
+            .filter(|&k| self.weight[k] >= min_weight)
+            .map(|k| {
+                let (p, slope) = interpolate(parent, node_d(k));
+                (Vector3::new(1.0, p, slope), self.sum[k] / self.weight[k], 1.0 / self.mean_var(k).max(1e-8))
+            })
+            .collect();
+        let nu = rows.len() as f64 - 3.0;
+        if nu < 3.0 {
+            return false;
+        }
+        let (mut ata, mut atb) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
+        for (x, y, w) in &rows {
+            ata += (*w * x) * x.transpose();
+            atb += (*w * *y) * x;
+        }
+        let Some(beta) = ata.try_inverse().map(|inv| inv * atb) else { return false };
+        let chi2: f64 = rows.iter().map(|(x, y, w)| w * (y - x.dot(&beta)).powi(2)).sum();
+        chi2 > nu + CLASS_CHI2_SIGMAS * (2.0 * nu).sqrt()
     }
 
     /// The profile of these samples (see the module docs) — its black side pinned to 0, its
@@ -256,9 +355,8 @@ impl Nodes {
     fn curve(&self, min_weight: f64) -> Option<Vec<f64>> {
         let known = |k: usize| self.weight[k] >= min_weight;
         let centre = (RANGE_PX / NODE_PX) as usize;
-        let first = centre - (2.5 / NODE_PX) as usize;
-        let need_last = centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize;
-        if !(first..=need_last).all(known) {
+        let (first, need_last) = (*tested_nodes().start(), *tested_nodes().end());
+        if !tested_nodes().all(known) {
             return None;
         }
         let lo = (0..=first).rev().take_while(|&k| known(k)).last().unwrap_or(first);
@@ -277,6 +375,13 @@ impl Nodes {
         // Re-centred: the table's node k takes the raw profile at node k's distance + c.
         Some((0..NODES).map(|k| interpolate(&raw, node_d(k) + c).0).collect())
     }
+}
+
+/// The nodes a profile needs (from 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`]
+/// outside it), on which a class is tested against its parent.
+fn tested_nodes() -> std::ops::RangeInclusive<usize> {
+    let centre = (RANGE_PX / NODE_PX) as usize;
+    centre - (2.5 / NODE_PX) as usize..=centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize
 }
 
 /// A camera's accumulation of edge samples (see the module docs): pooled, and per pixel
@@ -358,13 +463,72 @@ impl ProfileLearner {
     /// edges or nodes are known: the nodes from 2.5 px inside the edge to
     /// [`CENTRE_HALF_WIDTH_PX`] outside it must all be. A class whose nodes have fewer
     /// samples ([`MIN_CLASS_NODE_WEIGHT`]) uses the pooled profile.
-    pub fn build(&self) -> Option<EdgeProfile> {
+    ///
+    /// Which class uses which profile is decided here ([`class_mode`]); `keep` is a decision
+    /// made earlier to keep instead (a class then keeps its model for the whole test: see
+    /// `crate::learned`); a kept class whose profile cannot be built now uses its parent's.
+    pub fn build(&self, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
+        self.build_in(class_mode(), keep)
+    }
+
+    /// [`ProfileLearner::build`] in classing mode `mode`.
+    fn build_in(&self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
         if self.edges < MIN_EDGES {
             return None;
         }
         let values = self.pooled.curve(MIN_NODE_WEIGHT)?;
-        let classes = self.classes.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect();
-        Some(EdgeProfile { values, classes, edges: self.edges })
+        let own: Vec<Option<Vec<f64>>> = match mode {
+            0 => vec![None; CLASSES],
+            _ => self.classes.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect(),
+        };
+        let (classes, choice) = match mode {
+            0 => (own, ClassChoice::default()),
+            1 | 2 => {
+                let choice = std::array::from_fn(|c| if own[c].is_some() { ClassUse::Own } else { ClassUse::Pooled });
+                (own, choice)
+            }
+            _ => self.decided_classes(&values, own, keep),
+        };
+        Some(EdgeProfile { values, classes, choice, edges: self.edges })
+    }
+
+    /// Each class's profile where it differs from its parent's beyond its sampling noise
+    /// ([`Nodes::differs`]): an orientation's profile against the pooled one, a class's own
+    /// against its orientation's where that is used, else against the pooled one; or as
+    /// `keep` says.
+    fn decided_classes(
+        &self,
+        pooled: &[f64],
+        own: Vec<Option<Vec<f64>>>,
+        keep: Option<&ClassChoice>,
+    ) -> (Vec<Option<Vec<f64>>>, ClassChoice) {
+        let mut classes = vec![None; CLASSES];
+        let mut choice = ClassChoice::default();
+        for o in 0..2 {
+            let group = Nodes::merged(&self.classes[4 * o..4 * o + 4]);
+            let oriented = group.curve(MIN_CLASS_NODE_WEIGHT);
+            let use_oriented = match (keep, &oriented) {
+                (Some(k), Some(_)) => k[4 * o..4 * o + 4].contains(&ClassUse::Orientation),
+                (None, Some(_)) => group.differs(pooled, MIN_CLASS_NODE_WEIGHT),
+                (_, None) => false,
+            };
+            let parent = if use_oriented { oriented.as_deref().unwrap_or(pooled) } else { pooled };
+            for c in 4 * o..4 * o + 4 {
+                let own_used = match (keep, &own[c]) {
+                    (Some(k), Some(_)) => k[c] == ClassUse::Own,
+                    (None, Some(_)) => self.classes[c].differs(parent, MIN_CLASS_NODE_WEIGHT),
+                    (_, None) => false,
+                };
+                (classes[c], choice[c]) = if own_used {
+                    (own[c].clone(), ClassUse::Own)
+                } else if use_oriented {
+                    (oriented.clone(), ClassUse::Orientation)
+                } else {
+                    (None, ClassUse::Pooled)
+                };
+            }
+        }
+        (classes, choice)
     }
 }
 
@@ -433,7 +597,7 @@ mod tests {
             learner.add_sample(1, d, wide(d));
         }
         learner.edges = MIN_EDGES;
-        let p = learner.build().expect("enough samples");
+        let p = learner.build_in(2, None).expect("enough samples");
         assert_eq!(p.own_classes(), 2);
         for d in [-1.0, -0.3, 0.2, 0.8] {
             assert!((p.class_value_slope(0, d).0 - sharp(d)).abs() < 5e-3, "class 0 at {d}");
@@ -442,5 +606,62 @@ mod tests {
             let pooled = 0.5 * (sharp(d) + wide(d));
             assert!((p.value(d) - pooled).abs() < 1e-2, "pooled at {d}: {} against {pooled}", p.value(d));
         }
+    }
+
+    /// `n` samples a class of `esf` with Gaussian noise of σ `noise` (a fixed pseudo-random
+    /// sequence), at phases spread over the profile.
+    fn noisy_samples(learner: &mut ProfileLearner, class: usize, esf: &dyn Fn(f64) -> f64, n: usize, noise: f64, seed: &mut u64) {
+        let mut uniform = || {
+            *seed ^= *seed << 13;
+            *seed ^= *seed >> 7;
+            *seed ^= *seed << 17;
+            (*seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..n {
+            let d = -2.99 + 5.98 * uniform();
+            let g = (-2.0 * uniform().max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
+            learner.add_sample(class, d, esf(d) + noise * g);
+        }
+    }
+
+    #[test]
+    fn a_class_is_used_only_where_it_differs_from_its_parent_beyond_its_sampling_noise() {
+        // ~12 samples a node per class (the first frame of a camera seeing ten tags), noise
+        // 0.015 of the contrast (σ 2 grey levels on a contrast of 130).
+        let (n, noise) = (600, 0.015);
+        let (sharp, wide) = (gaussian_esf(0.5, 0.0), gaussian_esf(0.8, 0.0));
+        let learn = |esf_of: &dyn Fn(usize) -> f64| {
+            let mut learner = ProfileLearner::default();
+            let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+            for c in 0..CLASSES {
+                let sigma = esf_of(c);
+                noisy_samples(&mut learner, c, &gaussian_esf(sigma, 0.0), n, noise, &mut seed);
+            }
+            learner.edges = MIN_EDGES;
+            learner
+        };
+        // One profile everywhere: every class keeps the pooled one (its own would only add
+        // its sampling noise).
+        let same = learn(&|_| 0.6).build_in(3, None).expect("enough samples");
+        assert_eq!(same.choice(), [ClassUse::Pooled; CLASSES]);
+        assert_eq!(same.own_classes(), 0);
+        // An astigmatic blur: the two orientations differ, the parities do not.
+        let astig = learn(&|c| if c < 4 { 0.5 } else { 0.8 });
+        let p = astig.build_in(3, None).expect("enough samples");
+        assert_eq!(p.choice(), [ClassUse::Orientation; CLASSES]);
+        for d in [-0.6, -0.2, 0.3] {
+            assert!((p.class_value_slope(1, d).0 - sharp(d)).abs() < 0.01, "orientation 0 at {d}");
+            assert!((p.class_value_slope(6, d).0 - wide(d)).abs() < 0.01, "orientation 1 at {d}");
+        }
+        // A mosaic: one parity of each orientation differs.
+        let mosaic = learn(&|c| if c % 2 == 1 { 0.8 } else { 0.5 }).build_in(3, None).expect("enough samples");
+        assert_eq!(mosaic.choice(), [ClassUse::Own; CLASSES], "each parity differs from the pooled mix");
+        // A decision made earlier is kept by a rebuild, whatever the samples say now.
+        let kept = astig.build_in(3, Some(&[ClassUse::Pooled; CLASSES])).expect("enough samples");
+        assert_eq!(kept.choice(), [ClassUse::Pooled; CLASSES]);
+        assert_eq!(kept.class_value_slope(6, 0.3), kept.value_slope(0.3));
+        // Pooled mode never classes; the forced modes use every class with samples enough.
+        assert_eq!(astig.build_in(0, None).unwrap().own_classes(), 0);
+        assert_eq!(astig.build_in(2, None).unwrap().choice(), [ClassUse::Own; CLASSES]);
     }
 }

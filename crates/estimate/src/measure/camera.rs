@@ -35,9 +35,16 @@ impl RigCamera {
         }
     }
 
-    /// A specimen tag's view from this camera at its current pose; `None` while unposed.
+    /// A specimen tag's view from this camera at its current pose, its corners' σ widened by
+    /// the camera's edge fits' model error; `None` while unposed.
     pub(super) fn view(&self, corners: [Point2<f64>; 4]) -> Option<TagView> {
         let camera_pose = self.pose.pose()?;
-        Some(TagView { intrinsics: self.intrinsics, camera_pose, camera_pose_covariance: self.pose.covariance(), corners })
+        Some(TagView {
+            intrinsics: self.intrinsics,
+            camera_pose,
+            camera_pose_covariance: self.pose.covariance(),
+            corners,
+            corner_sigma_factor: self.detector.corner_sigma_factor(),
+        })
     }
 }
