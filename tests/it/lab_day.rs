@@ -259,7 +259,8 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
     let mut table = "id,width_mm,width_mm,depth_mm,span_mm,notch_mm,notch_mm,cast_date,fibre,dosage_kg_m3\n".to_string();
     for id in ["E1", "E2", "E3", "E4"] {
         let (w, d, l) = (p.beam_width_mm, p.beam_height_mm, p.span_mm);
-        table += &format!("{id},{},{},{d},{l},{},{},2026-11-01,hooked steel 60/35,40\n", w + 0.1, w - 0.1, p.notch_mm + 0.2, p.notch_mm - 0.2);
+        table +=
+            &format!("{id},{},{},{d},{l},{},{},2026-11-01,hooked steel 60/35,40\n", w + 0.1, w - 0.1, p.notch_mm + 0.2, p.notch_mm - 0.2);
     }
     std::fs::write(&csv, table).unwrap();
     let mut d =
@@ -347,7 +348,8 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
         assert_eq!((ch["n"].as_u64(), ch["k_n"].as_f64()), (Some(3), Some(3.37)), "EN 1990 Table D1 at n = 3: {ch}");
         assert!((ch["value"].as_f64().unwrap() - (m - 3.37 * s)).abs() <= 1e-9 * m.abs().max(1.0), "{key}k = mean − 3.37·s: {ch}");
     }
-    let (r1k, r3k) = (series["characteristic"]["fR1k"]["value"].as_f64().unwrap(), series["characteristic"]["fR3k"]["value"].as_f64().unwrap());
+    let (r1k, r3k) =
+        (series["characteristic"]["fR1k"]["value"].as_f64().unwrap(), series["characteristic"]["fR3k"]["value"].as_f64().unwrap());
     let class = tagdeflect_report::series_stats::fib_class(r1k, r3k).expect("a fib class for f_R1k ≥ 1 MPa and f_R3k/f_R1k ≥ 0.5");
     assert_eq!(series["fib_class"]["class"].as_str(), Some(class.as_str()), "{series}");
 }

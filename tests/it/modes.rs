@@ -237,7 +237,11 @@ fn real_photos_of_a_moving_camera_give_the_same_answer_in_both_modes() {
                 assert!(t.len() * 100 >= f.len() * 85, "{background:?}, set {k}: tracking published {} of {} tags", t.len(), f.len());
             }
         }
-        assert!(along.max(along_full) <= PHOTO_ALONG_SHEET, "{background:?}: a published position off by {:.0} % of its distance", 100.0 * along);
+        assert!(
+            along.max(along_full) <= PHOTO_ALONG_SHEET,
+            "{background:?}: a published position off by {:.0} % of its distance",
+            100.0 * along
+        );
         assert!(across.max(across_full) <= PHOTO_ACROSS_SHEET_MM, "{background:?}: a published position {across:.1} mm off the sheet");
         assert!(tracked.iter().any(|l| l.cameras[0].posed && !l.tags.is_empty()), "some photo is posed and measured");
         assert!(tracked.iter().any(|l| !l.cameras[0].posed), "some photo's pose is refused");

@@ -25,8 +25,8 @@ use crate::standard::Standard;
 /// range is one error naming the file and the key (`measured.width_mm`, `events[1].t_ns`).
 pub fn read_record(path: &Path) -> Result<TestRecord, ReportError> {
     let data = |message: String| ReportError::Data { path: path.to_path_buf(), message };
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
+    let text =
+        std::fs::read_to_string(path).map_err(|e| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read: {e}") })?;
     let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| data(format!("not JSON: {e}")))?;
     // What the test was started with is flattened into the record, where a wrong type would
     // lose its key: it is read on its own first, so its key is named.
