@@ -1254,16 +1254,23 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
         }
         m
     };
+    // The crack entries as the daemon writes them (it decides inside/outside from the span when
+    // the entry is made, and stamps it).
     let cases = [
         (
             "inside",
             false,
             "astm-c1609",
-            serde_json::json!({"crack": {"position_mm": 20.0, "inside_middle_third": true}, "method": method(true)}),
+            serde_json::json!({"crack": {"position_mm": 20.0, "inside_middle_third": true, "t_ns": 1}, "method": method(true)}),
         ),
-        ("outside", false, "astm-c1609", serde_json::json!({"crack": {"position_mm": -110.0}, "method": method(false)})),
+        (
+            "outside",
+            false,
+            "astm-c1609",
+            serde_json::json!({"crack": {"position_mm": -110.0, "inside_middle_third": false, "t_ns": 1}, "method": method(false)}),
+        ),
         ("none", false, "astm-c1609", serde_json::json!({})),
-        ("en", true, "en-14651", serde_json::json!({"crack": {"position_mm": 120.0, "inside_middle_third": false}})),
+        ("en", true, "en-14651", serde_json::json!({"crack": {"position_mm": 120.0, "inside_middle_third": false, "t_ns": 1}})),
     ];
     for (name, cmod, standard, extra) in cases {
         let folder = test_folder(&dir.path().join(name), cmod, standard, extra);
