@@ -58,6 +58,36 @@ fn table(p: &SimParams) -> String {
     t
 }
 
+/// The page's driver `tests/fixtures/SCRIPT` run with `args` beside the daemon `d`, which is
+/// stopped after it: what the driver saw (one JSON object), asserted free of errors.
+fn drive_page(script: &str, args: &[std::ffi::OsString], d: &mut Daemon) -> serde_json::Value {
+    let out = Command::new(crate::http::python())
+        .arg(crate::common::root().join("tests/fixtures").join(script))
+        .args(args)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("run the browser driver");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or(""))
+        .unwrap_or_else(|e| panic!("{e}: {stdout}{}", String::from_utf8_lossy(&out.stderr)));
+    println!("BROWSER {seen}");
+    assert!(seen.get("error").is_none() && seen.get("timeout").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
+    assert_eq!(d.stop(), Some(0));
+    seen
+}
+
+/// `report --series FOLDERS --out OUT --no-pdf`: its series.json.
+fn series(folders: &[PathBuf], out: &Path) -> serde_json::Value {
+    let mut args = vec!["report", "--series"];
+    args.extend(folders.iter().map(|f| f.to_str().unwrap()));
+    args.extend(["--out", out.to_str().unwrap(), "--no-pdf"]);
+    let (code, text) = tagdeflect(&args);
+    assert_eq!(code, Some(0), "{text}");
+    let series = read_json(&out.join("series.json"));
+    println!("SERIES {series}");
+    series
+}
+
 fn tagdeflect(args: &[&str]) -> (Option<i32>, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).output().unwrap();
     (o.status.code(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
@@ -82,17 +112,9 @@ fn a_lab_day_through_the_page_in_chromium() {
         assert!(Instant::now() < deadline, "no control API within 60 s");
         std::thread::sleep(Duration::from_millis(100));
     }
-    let mut driver = Command::new(crate::http::python());
-    driver.arg(crate::common::root().join("tests/fixtures/lab_day_page.py")).arg(format!("http://{addr}/")).args([&ana, &rui]).arg(&csv);
-    if let Some(shot) = std::env::var_os("TAGDEFLECT_LAB_DAY_SCREENSHOT") {
-        driver.arg(shot);
-    }
-    let out = driver.stdin(std::process::Stdio::null()).output().expect("run the browser driver");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
-    println!("BROWSER {seen}");
-    assert!(seen.get("error").is_none() && seen.get("timeout").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
-    assert_eq!(d.stop(), Some(0));
+    let mut args = vec![format!("http://{addr}/").into(), ana.into(), rui.into(), csv.into_os_string()];
+    args.extend(std::env::var_os("TAGDEFLECT_LAB_DAY_SCREENSHOT"));
+    let seen = drive_page("lab_day_page.py", &args, &mut d);
 
     // The page: the bad table refused by row and column, the good one imported from the file,
     // the start without a span refused with the reason.
@@ -160,14 +182,7 @@ fn a_lab_day_through_the_page_in_chromium() {
     }
 
     // The series: the test cracked outside the middle third left out, with its reason.
-    let out_dir = dir.path().join("series");
-    let mut args = vec!["report", "--series"];
-    args.extend(folders.iter().map(|f| f.to_str().unwrap()));
-    args.extend(["--out", out_dir.to_str().unwrap(), "--no-pdf"]);
-    let (code, text) = tagdeflect(&args);
-    assert_eq!(code, Some(0), "{text}");
-    let series = read_json(&out_dir.join("series.json"));
-    println!("SERIES {series}");
+    let series = series(&folders, &dir.path().join("series"));
     let excluded = series["excluded"].as_array().unwrap_or_else(|| panic!("{series}"));
     let d2 = excluded.iter().find(|e| e["specimen"] == "D2").unwrap_or_else(|| panic!("D2 not excluded: {series}"));
     assert!(d2["reason"].as_str().unwrap().contains("fracture outside the middle third"), "{d2}");
@@ -214,8 +229,10 @@ fn en_sim_method() -> String {
 const EN_SIM_RATES: [&str; 2] = ["[0.5, 20.0]", "[12.0, 40.0]"];
 
 /// A notched simulated beam with its CMOD gauge (peak ~30 kN: the 0.5 kN preload is far below
-/// it), cycled by the simulated machine — 8 s at rest, loaded to 6 mm in 14 s, unloaded in 14 s; `[output.auto_test]` only to stop each test at its method's end (its
-/// start load above any load: the tests are started by the operator).
+/// it), cycled by the simulated machine — 8 s at rest, loaded to 6 mm in 14 s, unloaded in
+/// 14 s —, without `[specimen.beam]` (the geometry comes from the specimen table);
+/// `[output.auto_test]` only to stop each test at its method's end (its start load above any
+/// load: the tests are started by the operator).
 fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
     let params = SimParams {
         test: tagdeflect_sim::SimTest::ThreePointNotched,
@@ -228,26 +245,32 @@ fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
     };
     let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
+    cfg.specimen.beam = None;
     let path = dir.join("notched.toml");
     let text = cfg.to_toml_string() + "\n[output.auto_test]\nstart_load_kn = 1000.0\n";
     std::fs::write(&path, text).unwrap();
     (path, params)
 }
 
-/// `tagdeflect test --url … --token-file … ARGS`.
-fn test_cli(addr: std::net::SocketAddr, token_file: &Path, args: &[&str]) -> (Option<i32>, String) {
-    let url = format!("http://{addr}");
-    let mut all = vec!["test", "--url", url.as_str(), "--token-file", token_file.to_str().unwrap()];
-    all.extend_from_slice(args);
-    tagdeflect(&all)
+/// The EN 14651 specimen table: four notched beams of the simulated one's size (two readings
+/// of width and notch each), and one without a notch.
+fn en_table(p: &SimParams) -> String {
+    let (w, d, l, n) = (p.beam_width_mm, p.beam_height_mm, p.span_mm, p.notch_mm);
+    let mut t = "id,width_mm,width_mm,depth_mm,span_mm,notch_mm,notch_mm,cast_date,fibre,dosage_kg_m3\n".to_string();
+    for id in ["E1", "E2", "E3", "E4"] {
+        t += &format!("{id},{},{},{d},{l},{},{},2026-11-01,hooked steel 60/35,40\n", w + 0.1, w - 0.1, n + 0.2, n - 0.2);
+    }
+    t + &format!("NN,{w},,{d},{l},,,2026-11-01,hooked steel 60/35,40\n")
 }
 
-/// The EN 14651 part of the lab's day: four notched beams from an imported table tested under
-/// the lab's method (each stopped at CMOD 4 mm by the method's end, but E2, which the operator
-/// stopped early), then `report --series`: E2 excluded with its reason, f_R1…f_R4 means over
-/// the three used, their characteristic values f_Rk = f_Rm − k_n·s with n = 3 and EN 1990
-/// Table D1's k_n = 3.37 (5 % fractile, variance unknown), and the fib Model Code 2010 class
-/// from f_R1k and f_R3k.
+/// The EN 14651 part of the lab's day, through the page in Chromium (tests/fixtures/en_day_page.py):
+/// the table imported on the page, the lab's method chosen, a start on the specimen without a
+/// notch refused, four notched beams started and marked on the page (each stopped at CMOD 4 mm
+/// by the method's end, but E2, which the operator stopped early on the page), each report at
+/// stop equal to `report DIR`; then `report --series`: E2 excluded with its reason, f_R1…f_R4
+/// means over the three used, their characteristic values f_Rk = f_Rm − k_n·s with n = 3 and
+/// EN 1990 Table D1's k_n = 3.37 (5 % fractile, variance unknown), and the fib Model Code 2010
+/// class from f_R1k and f_R3k.
 #[test]
 fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_values() {
     let dir = tempfile::tempdir().unwrap();
@@ -256,74 +279,65 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
     std::fs::write(tests_dir.join("methods/EN14651-SIM.toml"), en_sim_method()).unwrap();
     let (cfg, p) = en_day_config(dir.path());
     let csv = dir.path().join("batch-en.csv");
-    let mut table = "id,width_mm,width_mm,depth_mm,span_mm,notch_mm,notch_mm,cast_date,fibre,dosage_kg_m3\n".to_string();
-    for id in ["E1", "E2", "E3", "E4"] {
-        let (w, d, l) = (p.beam_width_mm, p.beam_height_mm, p.span_mm);
-        table +=
-            &format!("{id},{},{},{d},{l},{},{},2026-11-01,hooked steel 60/35,40\n", w + 0.1, w - 0.1, p.notch_mm + 0.2, p.notch_mm - 0.2);
-    }
-    std::fs::write(&csv, table).unwrap();
+    std::fs::write(&csv, en_table(&p)).unwrap();
     let mut d =
         Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
-    let token = tests_dir.join(".token");
-    let (code, text) = test_cli(addr, &token, &["specimens", "import", csv.to_str().unwrap()]);
-    assert_eq!(code, Some(0), "{text}");
-    let status = || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap();
-    let mut folders = Vec::new();
-    for k in 0..4 {
-        // Started by hand on the next specimen; refused while the cycling beam is loaded above
-        // the method's start limit, pressed again as an operator does.
-        let deadline = Instant::now() + Duration::from_secs(180);
-        let started = loop {
-            let (code, text) = test_cli(addr, &token, &["start", "--specimen", "next", "--method", "EN14651-SIM", "--operator", "ana"]);
-            if code == Some(0) {
-                break serde_json::from_str::<serde_json::Value>(text.lines().next().unwrap()).unwrap();
-            }
-            assert!(text.contains("(409)") && text.contains("the load is"), "only the start limit refuses: {text}");
-            assert!(Instant::now() < deadline, "no start within 180 s: {text}");
-            std::thread::sleep(Duration::from_millis(500));
-        };
-        let id = started["id"].as_str().unwrap().to_string();
-        assert!(id.ends_with(&format!("-E{}", k + 1)), "{started}");
-        let deadline = Instant::now() + Duration::from_secs(240);
-        if k == 1 {
-            // E2: stopped by the operator at a CMOD near 0.6 mm, long before the method's end.
-            while !d.lines().iter().any(|(_, l)| {
-                l.test.as_ref().is_some_and(|t| t.id == id && !t.zeroing) && l.gauges.get("cmod").is_some_and(|g| g.value >= 0.6)
-            }) {
-                assert!(Instant::now() < deadline, "E2 never reached CMOD 0.6 mm\n{}", d.stderr.lock().unwrap());
-                std::thread::sleep(Duration::from_millis(100));
-            }
-            let (code, text) = test_cli(addr, &token, &["stop"]);
-            assert_eq!(code, Some(0), "E2 stopped by hand before its end: {text}");
-        }
-        // Stopped (at CMOD 4 mm by the method's end, or by hand) and its folder complete.
-        loop {
-            let st = status();
-            if st["state"] == "idle" && st["last"]["id"] == id.as_str() && st.get("stopping").is_none() {
-                folders.push(PathBuf::from(st["last"]["folder"].as_str().unwrap_or_else(|| panic!("{st}"))));
-                break;
-            }
-            assert!(Instant::now() < deadline, "test {id} not stopped within 240 s: {st}\n{}", d.stderr.lock().unwrap());
-            std::thread::sleep(Duration::from_millis(200));
-        }
-    }
-    assert_eq!(d.stop(), Some(0));
+    let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
+    let args = [format!("http://{addr}/").into(), token.into(), csv.into_os_string(), "EN14651-SIM".into()];
+    let seen = drive_page("en_day_page.py", &args, &mut d);
 
-    let reports: Vec<serde_json::Value> = folders.iter().map(|f| read_json(&f.join("report/report.json"))).collect();
-    for (k, r) in reports.iter().enumerate() {
-        println!("EN {k}: valid {} {} fR1 {} fR3 {} rates {}", r["valid"], r["invalid_reasons"], r["fR1"], r["fR3"], r["rates"]);
+    assert!(seen["imported"].as_str().unwrap().starts_with("imported 5 specimens; next: E1"), "{seen}");
+    let start_refused = seen["start_refused"].as_str().unwrap();
+    assert!(start_refused.contains("(400)") && start_refused.contains("method EN14651-SIM needs notch_mm"), "{start_refused}");
+    for r in seen["start_refusals"].as_array().into_iter().flatten() {
+        assert!(r.as_str().unwrap().contains("unload the specimen first"), "only the start limit refuses: {r}");
     }
-    let out_dir = dir.path().join("series-en");
-    let mut args = vec!["report", "--series"];
-    args.extend(folders.iter().map(|f| f.to_str().unwrap()));
-    args.extend(["--out", out_dir.to_str().unwrap(), "--no-pdf"]);
-    let (code, text) = tagdeflect(&args);
-    assert_eq!(code, Some(0), "{text}");
-    let series = read_json(&out_dir.join("series.json"));
-    println!("SERIES EN {series}");
+    assert_eq!(seen["specimens_tested"], "(4 of 5 tested)");
+    let tests = seen["tests"].as_array().unwrap();
+    assert_eq!(tests.len(), 4, "{seen}");
+    for (k, t) in tests.iter().enumerate() {
+        assert_eq!(t["specimen"], format!("E{}", k + 1));
+        assert!(t["rate_window"].as_str().unwrap().starts_with("window "), "the CMOD rate's window shown: {t}");
+        assert!(t["cmod_points"].as_u64().unwrap() > 0, "the load–CMOD curve drawn: {t}");
+        assert!(t["events"].as_array().unwrap().iter().any(|e| e.as_str().unwrap().contains("mark: first crack seen")), "{t}");
+        let id = t["id"].as_str().unwrap();
+        let links: Vec<&str> = t["links"].as_array().unwrap().iter().map(|l| l.as_str().unwrap()).collect();
+        assert!(links.contains(&format!("http://{addr}/reports/{id}/report.html").as_str()), "{links:?}");
+        let (verdict, text) = (t["verdict"].as_str().unwrap(), t["verdict_text"].as_str().unwrap());
+        if k == 1 {
+            assert_eq!(verdict, "invalid", "{t}");
+            assert!(text.contains("the test ended early"), "E2's verdict says why: {t}");
+        } else {
+            assert_eq!(verdict, "valid", "{t}");
+            assert!(text.contains("fR1 ") && text.contains("fR3 "), "the verdict gives f_R1 and f_R3: {t}");
+        }
+    }
+    assert!(tests[1]["cmod_at_stop"].as_f64().unwrap() < 4.0, "E2 stopped before the method's end: {}", tests[1]);
+
+    // Each report at stop equals `report DIR` and carries the record.
+    let folders: Vec<PathBuf> = tests.iter().map(|t| PathBuf::from(t["folder"].as_str().unwrap())).collect();
+    let mut reports = Vec::new();
+    for (k, folder) in folders.iter().enumerate() {
+        let record = read_json(&folder.join("test.json"));
+        let at_stop = read_json(&folder.join("report/report.json"));
+        let again = report_dir(folder, &dir.path().join(format!("again-en-{k}")));
+        assert_eq!(comparable(at_stop.clone()), comparable(again), "E{}: the report at stop and `report DIR` differ", k + 1);
+        assert_eq!(at_stop["specimen"]["id"], format!("E{}", k + 1));
+        assert_eq!(at_stop["operator"], "ana");
+        for key in ["width_mm", "depth_mm", "notch_mm"] {
+            assert_eq!(at_stop["specimen"][key], record["measured"][key], "{key}");
+        }
+        assert_eq!(record["method"]["name"], "EN14651-SIM");
+        println!(
+            "EN {k}: valid {} {} fR1 {} fR3 {} rates {}",
+            at_stop["valid"], at_stop["invalid_reasons"], at_stop["fR1"], at_stop["fR3"], at_stop["rates"]
+        );
+        reports.push(at_stop);
+    }
+
+    let series = series(&folders, &dir.path().join("series-en"));
     assert_eq!(series["standard"], "en-14651", "{series}");
     let excluded = series["excluded"].as_array().unwrap();
     assert_eq!(excluded.len(), 1, "only E2 left out: {series}");
