@@ -226,19 +226,29 @@ fn en_sim_method() -> String {
 
 /// The phases' windows of [`en_sim_method`], mm/min: around the simulated machine's CMOD rates
 /// (measured 1.6–5.7 mm/min to CMOD 0.1 mm — its first crack within it —, 24.3–24.9 after).
-const EN_SIM_RATES: [&str; 2] = ["[0.5, 20.0]", "[12.0, 40.0]"];
+const EN_SIM_RATES: [&str; 2] = ["[0.2, 20.0]", "[12.0, 40.0]"];
+
+/// The seating of the EN day's simulated machine, frame sets (4 s at 5 sets a second): 0 to
+/// 0.02 mm (1.0 kN) at 0.05 kN a set, so the 0.5 kN preload is crossed at its tenth set and
+/// the zero's five sets lie within 0.5 kN above it, however late the PC runs.
+const EN_SEAT_FRAMES: u32 = 20;
+
+/// The margin above the preload within which each EN test's zero is taken, kN.
+const EN_ZERO_MARGIN_KN: f64 = 0.5;
 
 /// A notched simulated beam with its CMOD gauge (peak ~30 kN: the 0.5 kN preload is far below
-/// it), cycled by the simulated machine — 8 s at rest, loaded to 6 mm in 14 s, unloaded in
-/// 14 s —, without `[specimen.beam]` (the geometry comes from the specimen table);
+/// it), cycled by the simulated machine — 8 s at rest, seated to 1.0 kN in 4 s
+/// ([`EN_SEAT_FRAMES`]), loaded on to 6 mm in 14 s, unloaded the same way —, without `[specimen.beam]` (the geometry comes from the specimen table);
 /// `[output.auto_test]` only to stop each test at its method's end (its start load above any
 /// load: the tests are started by the operator).
 fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
     let params = SimParams {
         test: tagdeflect_sim::SimTest::ThreePointNotched,
         load_law: tagdeflect_sim::LoadLaw::Softening,
-        frame_sets: 110,
+        frame_sets: 130,
         rest_frames: 40,
+        seat_frames: EN_SEAT_FRAMES,
+        seat_mm: 0.02,
         stiffness_kn_per_mm: 50.0,
         crack_deflection_mm: 0.6,
         ..small_rig()
@@ -330,8 +340,16 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
             assert_eq!(at_stop["specimen"][key], record["measured"][key], "{key}");
         }
         assert_eq!(record["method"]["name"], "EN14651-SIM");
+        // The zero is taken on the seating, within the margin above the method's 0.5 kN preload.
+        let zero_kn = record["preload"]["load_kn"].as_f64().unwrap_or_else(|| panic!("E{}: no zero's load in test.json: {record}", k + 1));
+        assert!((0.5..=0.5 + EN_ZERO_MARGIN_KN).contains(&zero_kn), "E{}: zero taken at {zero_kn} kN, not within {EN_ZERO_MARGIN_KN} kN above the 0.5 kN preload", k + 1);
+        let zero_event = format!("zero taken at {zero_kn:.3} kN");
+        assert!(record["events"].as_array().unwrap().iter().any(|e| e["kind"] == "preload" && e["note"] == zero_event.as_str()), "E{}: {zero_event}: {record}", k + 1);
+        if k != 1 {
+            assert_eq!(at_stop["valid"], true, "E{}: {}", k + 1, at_stop["invalid_reasons"]);
+        }
         println!(
-            "EN {k}: valid {} {} fR1 {} fR3 {} rates {}",
+            "EN {k}: valid {} {} zero at {zero_kn} kN fR1 {} fR3 {} rates {}",
             at_stop["valid"], at_stop["invalid_reasons"], at_stop["fR1"], at_stop["fR3"], at_stop["rates"]
         );
         reports.push(at_stop);

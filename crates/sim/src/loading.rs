@@ -9,7 +9,8 @@ use super::SimRig;
 impl SimRig {
     /// Midspan deflection (mm, positive downward) at `t_ns`: zero for `rest_frames` frame
     /// sets, then a linear ramp reaching `max_deflection_mm` `hold_frames` sets before the
-    /// last (held after it, or repeated down and up again with `cyclic`); a step at set
+    /// last (held after it, or repeated down and up again with `cyclic`), its first
+    /// `seat_frames` sets a slow seating to `seat_mm` when set; a step at set
     /// `rest_frames` (half a frame period before it) when no set is left for the ramp.
     ///
     /// In a verification run (`verify_steps`) it is the rigid bar's drop instead: each step's
@@ -33,17 +34,36 @@ impl SimRig {
             return if s >= rest - 0.5 * period { max } else { 0.0 };
         }
         if !p.cyclic {
-            return ((s - rest) / ramp).clamp(0.0, 1.0) * max;
+            return self.loaded_for((s - rest).clamp(0.0, ramp), ramp);
         }
         let cycle = rest + 2.0 * ramp;
         let u = s.rem_euclid(cycle);
         if u < rest {
             0.0
         } else if u < rest + ramp {
-            (u - rest) / ramp * max
+            self.loaded_for(u - rest, ramp)
         } else {
-            (1.0 - (u - rest - ramp) / ramp) * max
+            // Unloaded as it was loaded, the seating last.
+            self.loaded_for(rest + 2.0 * ramp - u, ramp)
         }
+    }
+
+    /// The midspan deflection `u` s into a loading of `ramp` s to `max_deflection_mm`: the
+    /// seating first (`seat_mm` over `seat_frames` sets, when set), then a linear ramp.
+    fn loaded_for(&self, u: f64, ramp: f64) -> f64 {
+        let p = &self.params;
+        let seat = (p.seat_frames as f64 / p.fps).min(ramp);
+        if seat <= 0.0 {
+            return u / ramp * p.max_deflection_mm;
+        }
+        if u < seat {
+            return u / seat * p.seat_mm;
+        }
+        let rest_of = ramp - seat;
+        if rest_of <= 0.0 {
+            return p.seat_mm;
+        }
+        p.seat_mm + (u - seat) / rest_of * (p.max_deflection_mm - p.seat_mm)
     }
 
     /// The time (s after the rest) at which a test loaded at rates (`rates`) reaches its last
@@ -187,6 +207,33 @@ mod tests {
         let d = deflections(SimParams { rest_frames: 4, hold_frames: 6, ..base.clone() });
         assert!(d[..4].iter().all(|&v| v == 0.0) && d[4..].iter().all(|&v| v == 1.0), "{d:?}");
         assert!(SimParams { hold_frames: 1, cyclic: true, ..base }.validate().unwrap_err().to_string().contains("hold_frames"));
+    }
+
+    #[test]
+    fn a_seated_cycle_approaches_slowly_by_frame_sets_then_ramps_and_unloads_the_same_way() {
+        let base = SimParams {
+            cameras: 1,
+            width: 320,
+            height: 240,
+            frame_sets: 21,
+            fps: 10.0,
+            rest_frames: 2,
+            max_deflection_mm: 1.0,
+            seat_frames: 8,
+            seat_mm: 0.04,
+            cyclic: true,
+            ..SimParams::default()
+        };
+        let rig = SimRig::new(&base).unwrap();
+        // 18 sets of loading: 8 seating (0.005 mm a set), then 10 up to 1.0 mm (0.096 a set).
+        let d: Vec<f64> = (0..40u64).map(|k| rig.midspan_deflection(rig.set_time_ns(k))).collect();
+        assert!(d[2].abs() < 1e-9 && (d[6] - 0.02).abs() < 1e-9 && (d[10] - 0.04).abs() < 1e-9, "{d:?}");
+        assert!((d[15] - 0.52).abs() < 1e-9 && (d[20] - 1.0).abs() < 1e-9, "{d:?}");
+        // Unloaded the same way: the seating's slow part last, then the next rest.
+        assert!((d[30] - 0.04).abs() < 1e-9 && (d[34] - 0.02).abs() < 1e-9 && d[38].abs() < 1e-9, "{d:?}");
+        let bad = SimParams { seat_mm: 2.0, ..base.clone() }.validate().unwrap_err().to_string();
+        assert!(bad.contains("seat_mm"), "{bad}");
+        assert!(SimParams { seat_frames: 0, ..base }.validate().unwrap_err().to_string().contains("seat_mm"));
     }
 
     #[test]

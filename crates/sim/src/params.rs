@@ -237,6 +237,17 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     #[serde(skip_serializing_if = "is_default")]
     pub hold_frames: u32,
+    /// The seating, frame sets (0, the default: none): after the rest the machine brings the
+    /// beam slowly to `seat_mm` over this many sets — as a real machine seats a specimen up to
+    /// its preload before loading it at the method's rate — and the ramp goes on from there
+    /// over the sets left. Counted in frame sets, so no load on the PC changes the load a set sees.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub seat_frames: u32,
+    /// The midspan deflection at the end of the seating, mm (just above the preload's).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub seat_mm: f64,
     /// A verification run instead of a test (docs/verification.md): the beam is a rigid bar,
     /// moved as one (no bending, no load) by these vertical displacements, mm downward,
     /// comma-separated (e.g. "0,0.5,1,2,1,0.5,0"), each held for an equal share of
@@ -496,6 +507,8 @@ impl Default for SimParams {
             max_deflection_mm: 6.0,
             rest_frames: 3,
             hold_frames: 0,
+            seat_frames: 0,
+            seat_mm: 0.0,
             verify_steps: String::new(),
             rates: String::new(),
             verify_stage_half_width_mm: 0.0,
