@@ -225,7 +225,9 @@ fn en_sim_method() -> String {
 }
 
 /// The phases' windows of [`en_sim_method`], mm/min: around the simulated machine's CMOD rates
-/// (measured 1.6–5.7 mm/min to CMOD 0.1 mm — its first crack within it —, 24.3–24.9 after).
+/// (measured 1.5–5.2 mm/min to CMOD 0.1 mm — its first crack within it —, 23.9–24.6 after);
+/// the first window's floor leaves room for the seating's slow sets ([`EN_SEAT_FRAMES`]), which
+/// that phase's fitted rate takes in.
 const EN_SIM_RATES: [&str; 2] = ["[0.2, 20.0]", "[12.0, 40.0]"];
 
 /// The seating of the EN day's simulated machine, frame sets (4 s at 5 sets a second): 0 to
@@ -342,9 +344,17 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
         assert_eq!(record["method"]["name"], "EN14651-SIM");
         // The zero is taken on the seating, within the margin above the method's 0.5 kN preload.
         let zero_kn = record["preload"]["load_kn"].as_f64().unwrap_or_else(|| panic!("E{}: no zero's load in test.json: {record}", k + 1));
-        assert!((0.5..=0.5 + EN_ZERO_MARGIN_KN).contains(&zero_kn), "E{}: zero taken at {zero_kn} kN, not within {EN_ZERO_MARGIN_KN} kN above the 0.5 kN preload", k + 1);
+        assert!(
+            (0.5..=0.5 + EN_ZERO_MARGIN_KN).contains(&zero_kn),
+            "E{}: zero taken at {zero_kn} kN, not within {EN_ZERO_MARGIN_KN} kN above the 0.5 kN preload",
+            k + 1
+        );
         let zero_event = format!("zero taken at {zero_kn:.3} kN");
-        assert!(record["events"].as_array().unwrap().iter().any(|e| e["kind"] == "preload" && e["note"] == zero_event.as_str()), "E{}: {zero_event}: {record}", k + 1);
+        assert!(
+            record["events"].as_array().unwrap().iter().any(|e| e["kind"] == "preload" && e["note"] == zero_event.as_str()),
+            "E{}: {zero_event}: {record}",
+            k + 1
+        );
         if k != 1 {
             assert_eq!(at_stop["valid"], true, "E{}: {}", k + 1, at_stop["invalid_reasons"]);
         }

@@ -124,7 +124,13 @@ impl SimParams {
         }
         let seating = self.seat_frames > 0 || self.seat_mm != 0.0;
         if seating && (!finite_pos(self.seat_mm) || self.seat_mm >= self.max_deflection_mm || self.seat_frames == 0 || !steps.is_empty()) {
-            return bad("seat_mm", format!("{} mm over {} frame sets: expected both above 0 and below max_deflection_mm, in a test", self.seat_mm, self.seat_frames));
+            return bad(
+                "seat_mm",
+                format!(
+                    "{} mm over {} frame sets: expected both above 0 and below max_deflection_mm, in a test",
+                    self.seat_mm, self.seat_frames
+                ),
+            );
         }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
