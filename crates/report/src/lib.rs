@@ -31,6 +31,7 @@ mod html;
 mod load_spikes;
 pub mod method_statement;
 mod output;
+mod plot_points;
 mod plots;
 pub mod qc;
 mod quantity;
