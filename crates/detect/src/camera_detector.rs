@@ -235,7 +235,7 @@ impl CameraDetector {
 
     /// How much this camera's corners' σ is to be widened for its edge fits' model error:
     /// their residuals on the edges against the camera's noise there
-    /// ([`ModelExcess::sigma_factor`](crate::refine::ModelExcess::sigma_factor); 1 while the
+    /// ([`ModelExcess::factor`](crate::refine::ModelExcess::factor) with `TAGDEFLECT_SIGMA_WIDENING=on`; 1 while the
     /// fits are at the noise level and before the edge profile is learned).
     pub fn corner_sigma_factor(&self) -> f64 {
         self.profile.sigma_factor()
