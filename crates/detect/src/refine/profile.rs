@@ -223,8 +223,10 @@ pub const CLASSES: usize = 8;
 /// the formations' scenes (docs/accuracy.md, "A class only where it pays"): every class used
 /// (modes 1, 2) costs the scenes one profile describes (the sharp scene 0.0033 → 0.0051 mm);
 /// the decision (mode 3) keeps the sharp scene's 0.0033 mm and takes the Bayer mosaic's gain
-/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0102 mm)
-/// and the fill factor's (0.0058 → 0.0074 mm), so it is not the default yet. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
+/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0098 mm
+/// with its standard errors counting edges; 0.0102 counting pixels) and a little on the fill
+/// factor's (0.0058 → 0.0062 mm; 0.0074): a class there differs from its parent beyond its
+/// sampling noise yet does not pay, so it is not the default. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
 /// `parity`) chooses a mode for a measurement.
 fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
