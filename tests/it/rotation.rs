@@ -15,13 +15,18 @@ use crate::faults::LoggedDaemon;
 /// A demo rig of two small simulated cameras at 5 fps with the simulated UTM and a beam, its
 /// feed into `feed` rotated past `max_mb`; the daemon's arguments.
 fn rig(dir: &Path, feed: &Path, max_mb: f64) -> Vec<String> {
+    rig_rotated(dir, feed, FeedRotation { max_mb, ..FeedRotation::default() })
+}
+
+/// [`rig`] with the rotation given.
+fn rig_rotated(dir: &Path, feed: &Path, rotation: FeedRotation) -> Vec<String> {
     use tagdeflect::config::Config;
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
     let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.output.feed = Some(feed.display().to_string());
-    cfg.output.feed_rotation = FeedRotation { max_mb, ..FeedRotation::default() };
+    cfg.output.feed_rotation = rotation;
     cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
         width_mm: params.beam_width_mm,
         depth_mm: params.beam_height_mm,
@@ -156,4 +161,71 @@ fn a_full_disk_during_rotations_keeps_every_line() {
     assert_eq!(in_files[..], on_stdout[..in_files.len()], "every line once, in order, across the outage and the rotations");
     let log = d.log();
     assert_eq!(log.matches("lines are held back").count(), 1, "one error per outage:\n{log}");
+}
+
+/// Bytes of a file (0 when it is not there).
+fn len_of(p: &Path) -> u64 {
+    fs::metadata(p).map_or(0, |m| m.len())
+}
+
+/// `tagdeflect report FEED --config RIG --standard astm-c1609 --out OUT` (must succeed).
+fn report(feed: &Path, rig_toml: &Path, out: &Path) {
+    let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
+        .arg("report")
+        .arg(feed)
+        .arg("--config")
+        .arg(rig_toml)
+        .args(["--standard", "astm-c1609", "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "report: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// `tagdeflect report verify DIR`: (success, stdout + stderr).
+fn verify(dir: &Path) -> (bool, String) {
+    let v = Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(["report", "verify"]).arg(dir).output().unwrap();
+    (v.status.success(), format!("{}{}", String::from_utf8_lossy(&v.stdout), String::from_utf8_lossy(&v.stderr)))
+}
+
+/// A report made from a running daemon's feed (docs/report.md, "A report made while its feed
+/// is still written"): report.json records the feed's length when hashed; once the daemon
+/// wrote more, `report verify` passes saying the feed grew (both lengths), also after the
+/// daemon stopped; a byte changed inside the part the report hashed is named (exit 1).
+/// Without the recorded length the grown feed was "CHANGED".
+#[test]
+fn a_report_of_a_feed_still_written_verifies_its_part_and_names_an_edit_inside_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let feed = dir.path().join("feeds").join("feed.jsonl");
+    let stdout = dir.path().join("stdout.jsonl");
+    let args = rig_rotated(dir.path(), &feed, FeedRotation { max_mb: 0.0, daily: false, ..FeedRotation::default() });
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut d = spawn(&["sh", "-c", r#"out="$0"; exec "$@" >"$out""#], &stdout, &args);
+    d.wait_for("30 lines in the feed", deadline, |_| fs::read_to_string(&feed).map_or(0, |t| t.lines().count()) >= 30);
+    let out = dir.path().join("report");
+    report(&feed, &dir.path().join("rig.toml"), &out);
+    let report: serde_json::Value = serde_json::from_str(&fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let input = report["inputs"]["files"].as_array().unwrap().iter().find(|f| f["role"] == "feed").unwrap().clone();
+    let hashed = input["bytes"].as_u64().expect("the feed's length when hashed");
+    assert!(hashed > 0, "{input}");
+    d.wait_for("the feed to grow past what was hashed", deadline, |_| len_of(&feed) > hashed + 1000);
+    let (ok, text) = verify(&out);
+    assert!(ok, "a feed grown since its report verifies: {text}");
+    assert!(text.contains("grown") && text.contains(&format!("{hashed} B hashed")), "says it grew: {text}");
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+    let (ok, text) = verify(&out);
+    assert!(ok && text.contains("written to since"), "after the stop too: {text}");
+
+    // A digit of the first line's t_ns changed: inside the hashed part, named.
+    let mut bytes = fs::read(&feed).unwrap();
+    let at = bytes.windows(7).position(|w| w == b"\"t_ns\":").unwrap() + 8;
+    assert!(bytes[at].is_ascii_digit() && (at as u64) < hashed);
+    bytes[at] = if bytes[at] == b'9' { b'0' } else { bytes[at] + 1 };
+    fs::write(&feed, &bytes).unwrap();
+    let (ok, text) = verify(&out);
+    assert!(!ok, "an edit inside the hashed part is caught: {text}");
+    assert!(
+        text.contains("CHANGED") && text.contains(&format!("feed {} changed", dir.path().join("feeds/feed.jsonl").display())),
+        "{text}"
+    );
 }
