@@ -229,3 +229,75 @@ fn a_report_of_a_feed_still_written_verifies_its_part_and_names_an_edit_inside_i
         "{text}"
     );
 }
+
+/// The daily cut under a running daemon (`TAGDEFLECT_FEED_CLOCK_START`: the rotation's clock
+/// starts at 23:59:00 UTC and runs at the real rate, so the day changes a minute after the
+/// feed is opened): one cut, the rotated file named `feed.000001.2030-01-02T00-00-…Z.jsonl`
+/// (the cut's time, after midnight), the lines across the two files those of stdout once each
+/// in order, and `report` over the set verifies.
+#[test]
+fn the_daily_cut_under_a_running_daemon_cuts_once_losing_no_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let feed = dir.path().join("feeds").join("feed.jsonl");
+    let stdout = dir.path().join("stdout.jsonl");
+    let args = rig_rotated(dir.path(), &feed, FeedRotation { max_mb: 0.0, daily: true, ..FeedRotation::default() });
+    let deadline = Instant::now() + Duration::from_secs(400);
+    let mut cmd = Command::new("sh");
+    cmd.args(["-c", r#"out="$0"; exec "$@" >"$out""#]).arg(&stdout).arg(env!("CARGO_BIN_EXE_tagdeflect")).args(&args);
+    cmd.env("TAGDEFLECT_FEED_CLOCK_START", "2030-01-01T23:59:00Z");
+    let mut d = LoggedDaemon::spawn(cmd);
+    d.wait_for("the daily cut", deadline, |d| d.log().contains("feed file rotated"));
+    let rotated = feed_files(&feed).unwrap()[0].clone();
+    d.wait_for("ten lines after the cut", deadline, |_| fs::read_to_string(&feed).map_or(0, |t| t.lines().count()) >= 10);
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+    let files = feed_files(&feed).unwrap();
+    assert_eq!(files, [rotated.clone(), feed.clone()], "one cut: {files:?}\n{}", d.log());
+    let name = rotated.file_name().unwrap().to_str().unwrap();
+    assert!(name.starts_with("feed.000001.2030-01-02T00-0") && name.ends_with("Z.jsonl"), "{name}");
+    assert_eq!(d.log().matches("feed file rotated").count(), 1, "{}", d.log());
+    let (before, after) = (lines_of(&files[..1]), lines_of(&files[1..]));
+    assert!(!before.is_empty() && after.len() >= 10, "{} lines before the cut, {} after", before.len(), after.len());
+    let in_files = lines_of(&files);
+    assert_eq!(in_files, lines_of(&[stdout]), "every line once, in order, across the cut");
+    let out = dir.path().join("report");
+    report(&feed, &dir.path().join("rig.toml"), &out);
+    let (ok, text) = verify(&out);
+    assert!(ok, "report verify over the set: {text}");
+    assert_eq!(text.matches("same     feed").count(), 2, "both files are inputs: {text}");
+}
+
+/// A cut whose rename fails (the feed's folder read-only to a daemon without
+/// CAP_DAC_OVERRIDE, `setpriv`): the daemon says so once, the lines go on into the current file
+/// (past its limit), the rename is tried again at each next cut by size (quietly), and once the
+/// folder is writable the file is rotated ("after N failed tries") and the cuts go on; the lines
+/// across the files are those of stdout once each, in order.
+#[test]
+fn a_cut_whose_rename_fails_keeps_writing_says_so_once_and_rotates_later() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let feeds = dir.path().join("feeds");
+    fs::create_dir_all(&feeds).unwrap();
+    let feed = feeds.join("feed.jsonl");
+    let stdout = dir.path().join("stdout.jsonl");
+    let args = rig(dir.path(), &feed, 0.01);
+    let deadline = Instant::now() + Duration::from_secs(400);
+    let script = r#"out="$0"; exec "$@" >"$out""#;
+    let prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search,-fowner", "sh", "-c", script];
+    let mut d = spawn(&prefix, &stdout, &args);
+    d.wait_for("a first rotation", deadline, |d| d.log().contains("feed file rotated"));
+    fs::set_permissions(&feeds, fs::Permissions::from_mode(0o555)).unwrap();
+    d.wait_for("a rename to fail", deadline, |d| d.log().contains("feed file not rotated"));
+    d.wait_for("the current file past three limits", deadline, |_| len_of(&feed) > 30_000);
+    let rotated_while_read_only = d.log().matches("feed file rotated").count();
+    fs::set_permissions(&feeds, fs::Permissions::from_mode(0o755)).unwrap();
+    d.wait_for("the rotation after", deadline, |d| d.log().contains("feed file rotated after"));
+    d.wait_for("a rotation more", deadline, |d| d.log().matches("feed file rotated").count() >= rotated_while_read_only + 2);
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+    let log = d.log();
+    assert_eq!(log.matches("feed file not rotated").count(), 1, "said once:\n{log}");
+    let tries: u32 = log.split("feed file rotated after ").nth(1).unwrap().split(' ').next().unwrap().parse().unwrap();
+    assert!(tries >= 2, "tried again at the next cuts ({tries} failed tries):\n{log}");
+    let files = feed_files(&feed).unwrap();
+    assert!(files.iter().any(|f| len_of(f) > 30_000), "the lines went on into the current file: {files:?}");
+    assert_eq!(lines_of(&files), lines_of(&[stdout]), "every line once, in order");
+}
