@@ -50,7 +50,7 @@ pub use config::{BeamConfig, LabInfo, ReportConfig, Response};
 pub use curve::{Curve, CurveError};
 pub use error::ReportError;
 pub use feed_reader::{Feed, Limits, ReadOptions};
-pub use output::{print_pdf, sha256_file, write, write_atomic, PdfError};
+pub use output::{print_pdf, sha256_file, sha256_prefix, write, write_atomic, PdfError};
 pub use quantity::Quantity;
 pub use report::{Entry, Report, TestRig};
 pub use standard::Standard;
