@@ -68,16 +68,8 @@ pub(crate) fn spawn_reader(
             if let Some(b) = &bar {
                 b.inc(1);
             }
-            match read.frame {
-                Ok(frame) => {
-                    if tx.blocking_send(SourceEvent::Frame(frame)).is_err() {
-                        break;
-                    }
-                }
-                Err(e) => {
-                    bad += 1;
-                    tracing::warn!("frame skipped: {e}");
-                }
+            if !hand_over_frame(read.frame, &tx, &mut bad) {
+                break;
             }
         }
         if let Some(b) = bar {
@@ -86,6 +78,23 @@ pub(crate) fn spawn_reader(
         bad
     });
     reader.context("cannot start the recording's reader")
+}
+
+/// Hands one read frame to the assembler, waiting for room; an unreadable one is logged,
+/// counted in `bad` and skipped. False when the assembler has gone (the replay ends).
+fn hand_over_frame(
+    frame: Result<tagdeflect_core::frame::Frame, tagdeflect_io::recording::RecordingError>,
+    tx: &mpsc::Sender<SourceEvent>,
+    bad: &mut u64,
+) -> bool {
+    match frame {
+        Ok(frame) => tx.blocking_send(SourceEvent::Frame(frame)).is_ok(),
+        Err(e) => {
+            *bad += 1;
+            tracing::warn!("frame skipped: {e}");
+            true
+        }
+    }
 }
 
 /// The UTM samples of a [`Pacing::Paced`] replay, handed over by its reader in step with the
@@ -125,16 +134,8 @@ pub(crate) fn spawn_paced_reader(
             if !clock.wait_until_due(t_ns, &stop) {
                 break;
             }
-            match read.frame {
-                Ok(frame) => {
-                    if tx.blocking_send(SourceEvent::Frame(frame)).is_err() {
-                        break;
-                    }
-                }
-                Err(e) => {
-                    bad += 1;
-                    tracing::warn!("frame skipped: {e}");
-                }
+            if !hand_over_frame(read.frame, &tx, &mut bad) {
+                break;
             }
         }
         let (slip, slips) = clock.slipped();
