@@ -3,7 +3,8 @@
 # its header names, reverts it, and says which tests failed (docs/accuracy.md's table
 # "Injected regressions" is made from this). A patch's header:
 #   Regression: what it breaks, in words
-#   Unit: arguments of `cargo test` for crate unit tests (may be empty)
+#   Unit: arguments of `cargo test` for crate unit tests (may be empty; more than one filter
+#         goes after `--`: `-p CRATE --lib -- FILTER FILTER`)
 #   It: filters of the integration test binary (`cargo test --test it -- FILTERS`)
 #
 # Usage: scripts/inject_regressions.sh [NAME...]        each alone (default: every patch)

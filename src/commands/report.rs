@@ -387,6 +387,9 @@ fn verify_cli(dir: &Path) -> anyhow::Result<()> {
             InputState::Changed => ("CHANGED ", String::new()),
             InputState::Missing(e) => ("MISSING ", format!(" ({e})")),
             InputState::Extra => ("EXTRA   ", " (not in test.json)".to_string()),
+            InputState::Grown { then, now } => {
+                ("grown   ", format!(" (written to since: {then} B hashed, unchanged; {now} B now, the rest not in the report)"))
+            }
         };
         println!("{word} {} {}{why}", c.role, c.path);
     }
@@ -407,7 +410,10 @@ fn verify_cli(dir: &Path) -> anyhow::Result<()> {
         })
         .collect();
     if changes.is_empty() {
-        println!("{}: every file as recorded ({} checked)", dir.display(), v.checked.len());
+        let grown = v.checked.iter().filter(|c| matches!(c.state, InputState::Grown { .. })).count();
+        let note =
+            if grown > 0 { format!("; {grown} input(s) written to since, the part the report read unchanged") } else { String::new() };
+        println!("{}: every file as recorded ({} checked{note})", dir.display(), v.checked.len());
         Ok(())
     } else {
         Err(anyhow::anyhow!("{}: {} change(s): {}", dir.display(), changes.len(), changes.join("; ")))

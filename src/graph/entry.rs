@@ -96,11 +96,13 @@ pub fn replay_realtime_http(dir: &Path, config: Option<Config>, full_frame: bool
 
 /// `demo --c1609`: a simulated test's recording at its pace (see
 /// [`tagdeflect_io::sources::playback::set_playback_speed`]) through the live pipeline with
-/// the config's tests' folder and automatic start and stop; the feed to stdout.
+/// the config's tests' folder and automatic start and stop; the feed to stdout. Paced without
+/// dropping ([`Pacing::Paced`]): on a machine too busy for the pace the test plays slower, its
+/// frame sets and their loads are the recording's.
 /// `linger`: the page stays up after the recording until a signal.
 pub fn replay_as_test(dir: &Path, config: Config, http: Option<HttpOptions>, linger: bool) -> Result<()> {
     let rec = open(dir, Some(config))?;
-    let playback = Playback { rec, pacing: Pacing::Recorded, progress: false };
+    let playback = Playback { rec, pacing: Pacing::Paced, progress: false };
     let opts = LiveOptions { http, tests_in_replay: true, no_linger: !linger, ..LiveOptions::default() };
     play(playback, opts, vec![FeedWriter::stdout()])
 }

@@ -83,6 +83,7 @@ fn record_frames(tests: &LabTests, config: &Config) {
         open: Box::new(move |dir: &Path| RecordingWriter::create(dir, &cfg).map(|w| w.with_format(format))),
         names: config.cameras.iter().map(|c| c.name.clone()).collect(),
         queue: 8 * config.cameras.len().max(1),
+        reserve_bytes: config.output.record_tests_reserve_bytes(),
     });
     tracing::info!("each test's frames are recorded into its folder ([output] record_tests)");
 }

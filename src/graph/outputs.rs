@@ -108,14 +108,34 @@ impl BuildOutput for FeedOutput<'_> {
         match self.spec {
             Some("-") if !to_stdout => feeds.push(FeedWriter::stdout()),
             Some("-") | None => {}
-            Some(spec) => feeds.push(
-                FeedWriter::append_rotating(Path::new(spec), &self.rotation)
-                    .map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?,
-            ),
+            Some(spec) => {
+                let clock = rotation_clock()?;
+                feeds.push(
+                    FeedWriter::append_rotating_at(Path::new(spec), self.rotation, clock)
+                        .map_err(|e| BadInput::new(format!("cannot open the feed output {spec}: {e}")))?,
+                )
+            }
         }
         out.sinks.extend(feeds.into_iter().map(feed_sink));
         Ok(())
     }
+}
+
+/// For checking the daily cut without waiting for midnight: when set (RFC 3339, e.g.
+/// `2030-01-01T23:59:30Z`), the feed rotation's UTC clock starts at that time when the feed
+/// file is opened and runs on at the real rate (docs/feed.md). Never set in service.
+const FEED_CLOCK_ENV: &str = "TAGDEFLECT_FEED_CLOCK_START";
+
+/// The feed rotation's UTC clock: the system's, or [`FEED_CLOCK_ENV`]'s.
+fn rotation_clock() -> Result<tagdeflect_core::feed_file::UtcClock> {
+    let Some(v) = std::env::var_os(FEED_CLOCK_ENV) else { return Ok(Box::new(chrono::Utc::now)) };
+    let text = v.to_string_lossy();
+    let start = chrono::DateTime::parse_from_rfc3339(&text)
+        .map_err(|e| BadInput::new(format!("{FEED_CLOCK_ENV}={text:?}: not an RFC 3339 time ({e})")))?
+        .with_timezone(&chrono::Utc);
+    tracing::warn!("{FEED_CLOCK_ENV}: the feed rotation's clock starts at {start} (a check of the daily cut; never in service)");
+    let opened = std::time::Instant::now();
+    Ok(Box::new(move || start + chrono::Duration::from_std(opened.elapsed()).unwrap_or_default()))
 }
 
 /// `[report]`: this run's feed copied into the report folder, the report written at the end.

@@ -1,13 +1,15 @@
 //! A recording as the graph's source, and how it is played ([`Pacing`]; see [`crate::graph::run`]).
 
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
 use tokio::sync::mpsc;
 
+use tagdeflect_core::utm_sample::UtmSample;
+use tagdeflect_io::sources::playback::ElasticClock;
 use tagdeflect_io::sources::SourceEvent;
 use tagdeflect_io::utm::modbus::UtmEvent;
 
@@ -20,6 +22,12 @@ pub enum Pacing {
     Recorded,
     /// As fast as the measurement goes, in time order, nothing dropped.
     AsFast,
+    /// At its recorded pace on one clock for its frames and its UTM samples, in time order,
+    /// nothing dropped: when the pipeline falls behind, the replay plays slower
+    /// ([`tagdeflect_io::sources::playback::ElasticClock`]); each set's load is joined from the
+    /// samples recorded around its time whatever the machine's load (`demo --c1609`: a
+    /// simulated test played as a live one).
+    Paced,
 }
 
 /// A recording as the graph's source.
@@ -60,16 +68,8 @@ pub(crate) fn spawn_reader(
             if let Some(b) = &bar {
                 b.inc(1);
             }
-            match read.frame {
-                Ok(frame) => {
-                    if tx.blocking_send(SourceEvent::Frame(frame)).is_err() {
-                        break;
-                    }
-                }
-                Err(e) => {
-                    bad += 1;
-                    tracing::warn!("frame skipped: {e}");
-                }
+            if !hand_over_frame(read.frame, &tx, &mut bad) {
+                break;
             }
         }
         if let Some(b) = bar {
@@ -78,6 +78,100 @@ pub(crate) fn spawn_reader(
         bad
     });
     reader.context("cannot start the recording's reader")
+}
+
+/// Hands one read frame to the assembler, waiting for room; an unreadable one is logged,
+/// counted in `bad` and skipped. False when the assembler has gone (the replay ends).
+fn hand_over_frame(
+    frame: Result<tagdeflect_core::frame::Frame, tagdeflect_io::recording::RecordingError>,
+    tx: &mpsc::Sender<SourceEvent>,
+    bad: &mut u64,
+) -> bool {
+    match frame {
+        Ok(frame) => tx.blocking_send(SourceEvent::Frame(frame)).is_ok(),
+        Err(e) => {
+            *bad += 1;
+            tracing::warn!("frame skipped: {e}");
+            true
+        }
+    }
+}
+
+/// The UTM samples of a [`Pacing::Paced`] replay, handed over by its reader in step with the
+/// frames: the forwarder's channel, and the recorded time of the newest sample handed over
+/// (`i64::MIN` before the first), which the solver waits to have received
+/// ([`crate::graph::solver::UtmFeed::in_step`]).
+pub(crate) struct PacedUtm {
+    pub(crate) tx: mpsc::Sender<UtmEvent>,
+    pub(crate) sent: Arc<AtomicI64>,
+}
+
+/// Hands a recording's frames and UTM samples over in time order at its recorded pace
+/// ([`Pacing::Paced`]), waiting for room instead of dropping: before each frame, the samples
+/// recorded before it at their own times, then the first one at or after it (the frame's line
+/// interpolates between the two) — so every sample a set's load needs was handed over before
+/// the set's frames. Returns the frames skipped (unreadable: logged, as [`spawn_reader`]).
+pub(crate) fn spawn_paced_reader(
+    rec: &Recording,
+    tx: mpsc::Sender<SourceEvent>,
+    utm: Option<PacedUtm>,
+    stop: Arc<AtomicBool>,
+) -> Result<std::thread::JoinHandle<u64>> {
+    let frames = rec.frames();
+    let times: Vec<i64> = rec.frames.iter().map(|f| f.t_ns).collect();
+    let samples = rec.utm.clone();
+    let mut clock = ElasticClock::start(rec);
+    let reader = std::thread::Builder::new().name("recording".into()).spawn(move || {
+        let mut utm = utm.map(|u| (u, samples.into_iter()));
+        let mut bad = 0u64;
+        for read in frames {
+            let t_ns = times[read.index];
+            if let Some((u, next)) = utm.as_mut() {
+                if !hand_over_utm_to(t_ns, u, next, &mut clock, &stop) {
+                    utm = None;
+                }
+            }
+            if !clock.wait_until_due(t_ns, &stop) {
+                break;
+            }
+            if !hand_over_frame(read.frame, &tx, &mut bad) {
+                break;
+            }
+        }
+        let (slip, slips) = clock.slipped();
+        if slips > 0 {
+            tracing::info!(slips, "the replay fell behind its recorded pace {slips} time(s) and played {:.1} s slower", slip.as_secs_f64());
+        }
+        bad
+    });
+    reader.context("cannot start the recording's reader")
+}
+
+/// The UTM samples a frame at `t_ns` needs, handed over (see [`spawn_paced_reader`]); false
+/// when nobody takes them any more (or a stop was asked for).
+fn hand_over_utm_to(
+    t_ns: i64,
+    u: &PacedUtm,
+    next: &mut std::vec::IntoIter<UtmSample>,
+    clock: &mut ElasticClock,
+    stop: &AtomicBool,
+) -> bool {
+    // Samples already handed over up to one at or after `t_ns`: nothing more is needed.
+    if u.sent.load(Ordering::SeqCst) >= t_ns {
+        return true;
+    }
+    for s in next.by_ref() {
+        let after = s.t_ns >= t_ns;
+        // The one after the frame goes with the frame, ahead of its own time.
+        if !clock.wait_until_due(s.t_ns.min(t_ns), stop) || u.tx.blocking_send(UtmEvent::Sample(s)).is_err() {
+            return false;
+        }
+        u.sent.store(s.t_ns, Ordering::SeqCst);
+        if after {
+            break;
+        }
+    }
+    true
 }
 
 /// The progress bar of a replay on stderr: `total` frames.

@@ -49,7 +49,7 @@ use crate::graph::entry::LiveOptions;
 use crate::graph::journal::FrameDrops;
 use crate::graph::outputs::{OutputContext, Outputs};
 use crate::graph::page::Page;
-use crate::graph::playback::{spawn_reader, Pacing, Playback};
+use crate::graph::playback::{spawn_paced_reader, spawn_reader, Pacing, Playback};
 use crate::graph::queue::SetQueue;
 use crate::graph::signals::StopSignals;
 use crate::graph::smoothing::Smoothing;
@@ -70,8 +70,12 @@ const WATCHDOG_STALE_MS: u64 = 10_000;
 #[derive(Debug, Clone, Copy)]
 struct RunKind {
     replaying: bool,
-    /// Every hand-off waits instead of dropping (an as-fast replay: see the module doc).
+    /// Every hand-off waits instead of dropping (an as-fast or a paced replay: see the module
+    /// doc).
     lossless: bool,
+    /// As fast as it goes: the recording's whole UTM stream is known before the first set, and
+    /// the lines carry no run status.
+    as_fast: bool,
     record_only: bool,
     /// A replay's page stays up after it until a signal.
     linger: bool,
@@ -79,15 +83,17 @@ struct RunKind {
 
 impl RunKind {
     fn of(opts: &LiveOptions, playback: Option<&Playback>) -> Self {
-        let lossless = playback.is_some_and(|p| p.pacing == Pacing::AsFast);
-        Self { replaying: playback.is_some(), lossless, record_only: opts.record_only, linger: !opts.no_linger }
+        let pacing = playback.map(|p| p.pacing);
+        let as_fast = pacing == Some(Pacing::AsFast);
+        let lossless = as_fast || pacing == Some(Pacing::Paced);
+        Self { replaying: playback.is_some(), lossless, as_fast, record_only: opts.record_only, linger: !opts.no_linger }
     }
 
     /// The run's mode as the page shows it.
     fn mode(playback: Option<&Playback>) -> &'static str {
         match playback.map(|p| p.pacing) {
             None => "live",
-            Some(Pacing::Recorded) => "realtime",
+            Some(Pacing::Recorded | Pacing::Paced) => "realtime",
             Some(Pacing::AsFast) => "replay",
         }
     }
@@ -111,9 +117,9 @@ pub(crate) async fn run_async(config: Config, opts: LiveOptions, playback: Optio
     let measure = measurement(&config, &opts, kind, playback.as_ref(), &page)?;
     let stop = Arc::new(AtomicBool::new(false));
     let (src_tx, mut src_rx) = mpsc::channel::<SourceEvent>(4 * config.cameras.len().max(1));
-    let inputs = Inputs::start(&config, kind, playback.as_ref(), src_tx, stop.clone())?;
+    let (inputs, paced_utm) = Inputs::start(&config, kind, playback.as_ref(), src_tx, stop.clone())?;
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
-    let run_utm = utm::start(&config, playback.as_ref(), inputs.sources.as_ref(), shutdown_rx).await?;
+    let run_utm = utm::start(&config, playback.as_ref(), inputs.sources.as_ref(), paced_utm, shutdown_rx).await?;
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     tracing::info!(cameras = config.cameras.len(), "sources started; measuring");
     let mut run = Running::start(&config, kind, outputs, measure, run_utm, &page, opts.smooth_lag_sets)?;
@@ -151,7 +157,7 @@ fn measurement(
     }
     let mut m = Measurement::new(&config.measurement(), !opts.full_frame)
         .map_err(|e| BadInput::new(format!("cannot build the measurement: {e}")))?;
-    if let Some(pb) = playback.filter(|_| kind.lossless) {
+    if let Some(pb) = playback.filter(|_| kind.as_fast) {
         let hooks = page.handle();
         for s in &pb.rec.utm {
             m.utm_mut().push(*s);
@@ -162,9 +168,10 @@ fn measurement(
 }
 
 /// The frames' sources: the cameras (a recording's frames too: `replay --realtime` sets every
-/// camera's source to it), or — as fast as it goes — one reader handing the recording's
-/// frames over in time order. `run` keeps retrying a camera that is not there yet; a replay's
-/// recording must open.
+/// camera's source to it), or — as fast as it goes, or paced without dropping — one reader
+/// handing the recording's frames over in time order (paced: with its UTM samples, whose
+/// receiving side is returned for the run's UTM). `run` keeps retrying a camera that is not
+/// there yet; a replay's recording must open.
 struct Inputs {
     sources: Option<Sources>,
     reader: Option<std::thread::JoinHandle<u64>>,
@@ -177,11 +184,15 @@ impl Inputs {
         playback: Option<&Playback>,
         tx: mpsc::Sender<SourceEvent>,
         stop: Arc<AtomicBool>,
-    ) -> Result<Inputs> {
+    ) -> Result<(Inputs, Option<utm::PacedLink>)> {
         let policy = if kind.replaying { OpenPolicy::Require } else { OpenPolicy::Retry };
         Ok(match playback.filter(|_| kind.lossless) {
-            Some(pb) => Inputs { sources: None, reader: Some(spawn_reader(&pb.rec, pb.progress, tx, stop)?) },
-            None => Inputs { sources: Some(crate::graph::sources::start(config, policy, tx, stop)?), reader: None },
+            Some(pb) if pb.pacing == Pacing::Paced => {
+                let (reader_utm, link) = utm::paced_link(pb).unzip();
+                (Inputs { sources: None, reader: Some(spawn_paced_reader(&pb.rec, tx, reader_utm, stop)?) }, link)
+            }
+            Some(pb) => (Inputs { sources: None, reader: Some(spawn_reader(&pb.rec, pb.progress, tx, stop)?) }, None),
+            None => (Inputs { sources: Some(crate::graph::sources::start(config, policy, tx, stop)?), reader: None }, None),
         })
     }
 
@@ -253,7 +264,7 @@ impl Running {
             None => None,
             Some(mut measure) => {
                 // Smoothing looks ahead: only where nothing waits for the line (an as-fast replay).
-                let smoothing = smooth_lag_sets.filter(|_| kind.lossless).map(|lag| Smoothing::attach(&mut measure, lag));
+                let smoothing = smooth_lag_sets.filter(|_| kind.as_fast).map(|lag| Smoothing::attach(&mut measure, lag));
                 let status = LineStatus {
                     tests: outputs.tests.clone(),
                     recorder: outputs.recorder.as_ref().map(|r| r.status()),
@@ -265,7 +276,7 @@ impl Running {
                     utm: solver_utm_rx,
                     utm_feed,
                     fanout: fanout.clone(),
-                    status: (!kind.lossless).then_some(status),
+                    status: (!kind.as_fast).then_some(status),
                     heartbeat: heartbeat.clone(),
                     smoothing,
                 };
@@ -479,7 +490,7 @@ impl RunEnd {
         page: &Page,
         signals: &mut StopSignals,
     ) -> Result<()> {
-        if let (true, Some(done)) = (kind.lossless, &self.solved) {
+        if let (true, Some(done)) = (kind.as_fast, &self.solved) {
             tracing::info!(
                 sets = done.sets,
                 bad_frames = self.bad_frames.unwrap_or(0),

@@ -3,7 +3,7 @@
 //! the sinks' thread. It beats a heartbeat at least once a second (idle or solving) for the
 //! systemd watchdog.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -27,11 +27,31 @@ const LIVE_UTM_WINDOW_NS: i64 = 60_000_000_000;
 
 /// A UTM feeds the run: each set waits at most `wait` for the sample after it while the UTM
 /// is up (`up_at_start`: before its first event — a recorded stream).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub(crate) struct UtmFeed {
     pub(crate) wait: Duration,
     pub(crate) up_at_start: bool,
+    /// A paced replay's samples, handed over in step with the frames
+    /// ([`crate::graph::playback::PacedUtm`]): the recorded time of the newest one handed
+    /// over. Each set waits, however long it takes, for every sample handed over before its
+    /// frames up to the first at or after its time — by the recording's clock, not the wall's.
+    pub(crate) in_step: Option<Arc<AtomicI64>>,
 }
+
+/// A machine this much slower, for tests and benchmarks (never set in service): the solver
+/// sleeps this many ms before measuring each frame set, and the UTM forwarder before handing
+/// on each event ([`throttle`]). A replay then falls behind its recorded pace however fast the
+/// machine is.
+pub(crate) const THROTTLE_ENV: &str = "TAGDEFLECT_THROTTLE_MS";
+
+/// The throttle of [`THROTTLE_ENV`], if set to a whole number of ms above 0.
+pub(crate) fn throttle() -> Option<Duration> {
+    std::env::var(THROTTLE_ENV).ok().and_then(|v| v.trim().parse::<u64>().ok()).filter(|ms| *ms > 0).map(Duration::from_millis)
+}
+
+/// How long a set of a paced replay waits for a sample handed over before it at most (the
+/// forwarder takes it in microseconds on a quiet machine; this only bounds a broken run).
+const IN_STEP_WAIT: Duration = Duration::from_secs(30);
 
 /// What the solver did, when it ended.
 pub(crate) struct Solved {
@@ -83,6 +103,7 @@ struct UtmState {
     up: bool,
     configured: bool,
     wait: Duration,
+    in_step: Option<Arc<AtomicI64>>,
 }
 
 impl UtmState {
@@ -113,6 +134,9 @@ impl UtmState {
         if !(self.configured && self.up) {
             return;
         }
+        if let Some(sent) = self.in_step.clone() {
+            return self.catch_up_in_step(rx, m, set_t_ns, &sent);
+        }
         let until = Instant::now() + self.wait;
         while m.utm_mut().newest_t_ns().is_none_or(|t| t < set_t_ns) {
             let left = until.saturating_duration_since(Instant::now());
@@ -122,6 +146,28 @@ impl UtmState {
             match rx.recv_timeout(left) {
                 Some(ev) => self.handle(ev, m),
                 None => break,
+            }
+        }
+    }
+}
+
+impl UtmState {
+    /// A paced replay's set: every sample handed over before its frames, up to the first at
+    /// or after `set_t_ns`, is received before it is measured (see [`UtmFeed::in_step`]).
+    fn catch_up_in_step(&mut self, rx: &RelayReceiver, m: &mut Measurement, set_t_ns: i64, sent: &AtomicI64) {
+        let until = Instant::now() + IN_STEP_WAIT;
+        loop {
+            let needed = set_t_ns.min(sent.load(Ordering::SeqCst));
+            if needed == i64::MIN || m.utm_mut().newest_t_ns().is_some_and(|t| t >= needed) {
+                return;
+            }
+            let left = until.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                tracing::warn!(set_t_ns, "the replay's UTM samples up to this set did not arrive within {} s", IN_STEP_WAIT.as_secs());
+                return;
+            }
+            if let Some(ev) = rx.recv_timeout(left.min(Duration::from_secs(1))) {
+                self.handle(ev, m);
             }
         }
     }
@@ -167,12 +213,14 @@ pub(crate) fn solver_loop(config: Config, mut measure: Measurement, io: SolverIo
     let mut gaps = GapWatch::new(&config);
     let mut journal = JournalSummary::new(config.cameras.iter().map(|c| c.name.clone()).collect(), SUMMARY_INTERVAL);
     let mut utm_state = UtmState {
-        up: utm_feed.is_some_and(|u| u.up_at_start),
+        up: utm_feed.as_ref().is_some_and(|u| u.up_at_start),
         configured: utm_feed.is_some(),
-        wait: utm_feed.map(|u| u.wait).unwrap_or_default(),
+        wait: utm_feed.as_ref().map(|u| u.wait).unwrap_or_default(),
+        in_step: utm_feed.and_then(|u| u.in_step),
     };
     let send =
         |line: FeedLine, set: Option<FrameSet>, m: &Measurement| fanout.send(Finished { line, set, observed: Arc::new(m.observed()) });
+    let throttle = throttle();
     loop {
         beat();
         let Some(popped) = queue.pop_timeout(Duration::from_secs(1)) else {
@@ -182,6 +230,9 @@ pub(crate) fn solver_loop(config: Config, mut measure: Measurement, io: SolverIo
             return Solved { sets, stats: measure.stats().clone() };
         };
         let Some((set, arrived)) = popped else { continue };
+        if let Some(t) = throttle {
+            std::thread::sleep(t);
+        }
         utm_state.catch_up(&utm, &mut measure, set.t_ns);
         gaps.see(&set);
         let (mut line, _) = measure.process(&set);

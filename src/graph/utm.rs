@@ -2,6 +2,7 @@
 //! recording played at its pace, or none), and the forwarder that shows each event to the page,
 //! the tests, the UTM files and the recorder before relaying it to the solver.
 
+use std::sync::atomic::AtomicI64;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -15,7 +16,7 @@ use tagdeflect_sinks::recorder::RecorderTx;
 
 use crate::config::Config;
 use crate::graph::page::PageHandle;
-use crate::graph::playback::{play_utm, recorded_utm_wait, Pacing, Playback};
+use crate::graph::playback::{play_utm, recorded_utm_wait, PacedUtm, Pacing, Playback};
 use crate::graph::sim::{self, SimUtmServer};
 use crate::graph::solver::UtmFeed;
 use crate::graph::sources::Sources;
@@ -41,19 +42,25 @@ pub(crate) struct UtmGuard(#[allow(dead_code)] Option<SimUtmServer>);
 /// recorded pace plays the recording's UTM samples whether or not its config has a `[utm]`
 /// (a folder may carry `utm.jsonl` from a UTM configured elsewhere): each set then waits for
 /// the sample after it, as in a run.
+/// A paced replay's samples come from its reader ([`paced_link`]) in step with the frames.
 pub(crate) async fn start(
     config: &Config,
     playback: Option<&Playback>,
     sources: Option<&Sources>,
+    paced: Option<PacedLink>,
     shutdown: watch::Receiver<bool>,
 ) -> Result<Utm> {
+    if let Some(PacedLink { events, sent, wait }) = paced {
+        let feed = UtmFeed { wait, up_at_start: true, in_step: Some(sent) };
+        return Ok(Utm { events, feed: Some(feed), guard: UtmGuard(None) });
+    }
     let (tx, events) = mpsc::channel::<UtmEvent>(UTM_EVENTS);
     if let Some(pb) = playback {
         return Ok(Utm { events, feed: play_recorded(pb, tx), guard: UtmGuard(None) });
     }
     let Some(ucfg) = &config.utm else { return Ok(Utm { events, feed: None, guard: UtmGuard(None) }) };
     let (ucfg, sim) = sim::polled_utm(ucfg, sources.map(|s| &s.rig)).await?;
-    let feed = UtmFeed { wait: Duration::from_secs_f64(2.5 / ucfg.poll_hz), up_at_start: false };
+    let feed = UtmFeed { wait: Duration::from_secs_f64(2.5 / ucfg.poll_hz), up_at_start: false, in_step: None };
     tokio::spawn(async move {
         if let Err(e) = run_poller(ucfg, tx, shutdown).await {
             tracing::error!("UTM: {e}");
@@ -68,9 +75,27 @@ fn play_recorded(pb: &Playback, tx: mpsc::Sender<UtmEvent>) -> Option<UtmFeed> {
         return None;
     }
     // A recorded stream is up from its first sample: the first set waits for it too.
-    let feed = (!pb.rec.utm.is_empty()).then(|| UtmFeed { wait: recorded_utm_wait(&pb.rec), up_at_start: true });
+    let feed = (!pb.rec.utm.is_empty()).then(|| UtmFeed { wait: recorded_utm_wait(&pb.rec), up_at_start: true, in_step: None });
     drop(tokio::spawn(play_utm(pb.rec.clone(), tx)));
     feed
+}
+
+/// The solver's side of a paced replay's UTM stream (see [`paced_link`]).
+pub(crate) struct PacedLink {
+    events: mpsc::Receiver<UtmEvent>,
+    sent: Arc<AtomicI64>,
+    wait: Duration,
+}
+
+/// The UTM stream of a [`Pacing::Paced`] replay of `pb`: its reader's side and the run's
+/// (none when the recording has no UTM sample).
+pub(crate) fn paced_link(pb: &Playback) -> Option<(PacedUtm, PacedLink)> {
+    if pb.pacing != Pacing::Paced || pb.rec.utm.is_empty() {
+        return None;
+    }
+    let (tx, events) = mpsc::channel::<UtmEvent>(UTM_EVENTS);
+    let sent = Arc::new(AtomicI64::new(i64::MIN));
+    Some((PacedUtm { tx, sent: sent.clone() }, PacedLink { events, sent, wait: recorded_utm_wait(&pb.rec) }))
 }
 
 /// Who sees each UTM event before the solver.
@@ -83,8 +108,12 @@ pub(crate) struct UtmWatchers {
 
 /// Forwards every UTM event to its watchers, then to the solver's relay.
 pub(crate) fn forward(mut events: mpsc::Receiver<UtmEvent>, w: UtmWatchers, solver: RelaySender) -> tokio::task::JoinHandle<()> {
+    let throttle = crate::graph::solver::throttle();
     tokio::spawn(async move {
         while let Some(ev) = events.recv().await {
+            if let Some(t) = throttle {
+                tokio::time::sleep(t).await;
+            }
             w.page.on_utm(&ev);
             if let UtmEvent::Sample(s) = &ev {
                 if let Some(t) = &w.tests {

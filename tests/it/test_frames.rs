@@ -15,12 +15,18 @@ use crate::faults::{tagdeflect_test, whole_feed_lines, LoggedDaemon};
 /// The demo rig of `test_folder` (two small simulated cameras at 5 fps, the simulated UTM, a
 /// beam) with each test's frames recorded; the daemon's arguments with `--tests dir/tests`.
 fn rig(dir: &Path) -> Vec<String> {
+    rig_reserve(dir, None)
+}
+
+/// [`rig`] with `[output] record_tests_reserve_mb` given.
+fn rig_reserve(dir: &Path, reserve_mb: Option<f64>) -> Vec<String> {
     use tagdeflect::config::Config;
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
     let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.output.record_tests = true;
+    cfg.output.record_tests_reserve_mb = reserve_mb;
     cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
         width_mm: params.beam_width_mm,
         depth_mm: params.beam_height_mm,
@@ -105,4 +111,100 @@ fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
     fs::write(&first, bytes).unwrap();
     let (ok, said) = report_verify(&folder);
     assert!(!ok && said.contains(frames[0]["file"].as_str().unwrap()), "{said}");
+}
+
+/// The frames index of a test's recording `sub` (`frames`, `frames-2`): each frame's `t_ns`
+/// (a daemon killed mid-test may leave a partial last line: left out).
+fn frame_times(folder: &Path, sub: &str) -> Vec<i64> {
+    let text = fs::read_to_string(folder.join(sub).join("frames.jsonl")).unwrap_or_default();
+    text.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).map(|f| f["t_ns"].as_i64().unwrap()).collect()
+}
+
+/// The disk's reserve for the lines: the tests folder on a 40 MiB tmpfs of the daemon's own
+/// (`unshare -rm`) with `record_tests_reserve_mb = 30`: the test's frames stop once less than
+/// 30 MB is free — one WARN, `test.json` `frames_stopped` (the reserve, the free space, the
+/// time) — while its lines go on to the stop; no frame after that time; the folder verifies.
+/// Read while the daemon lives (its tmpfs goes with it). Without the guard the frames went on
+/// until the disk was full and the test's lines were held back.
+#[test]
+fn a_tests_frames_stop_at_the_disks_reserve_and_its_lines_go_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = rig_reserve(dir.path(), Some(30.0));
+    let tests_dir = dir.path().join("tests");
+    fs::create_dir_all(&tests_dir).unwrap();
+    let mut cmd = Command::new("unshare");
+    cmd.args(["-rm", "sh", "-c", r#"mount -t tmpfs -o size=40m tmpfs "$0" && exec "$@""#, tests_dir.to_str().unwrap()]);
+    cmd.arg(env!("CARGO_BIN_EXE_tagdeflect")).args(&args);
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut d = LoggedDaemon::spawn(cmd);
+    let addr = d.addr(deadline);
+    d.wait_for("the control token", deadline, |d| d.log().contains("control token: "));
+    let view = std::path::PathBuf::from(format!("/proc/{}/root{}", d.child.0.id(), tests_dir.display()));
+    let token = view.join(".token");
+    let st = tagdeflect_test(&addr, &token, &["start", "--specimen", "FR2", "--standard", "astm-c1609"]);
+    let folder = view.join(st["id"].as_str().unwrap());
+    d.wait_for("the frames to stop at the reserve", deadline, |d| d.log().contains("the test's frames stop"));
+    let lines_then = whole_feed_lines(&folder.join("feed.jsonl")).len();
+    d.wait_for("ten lines of the test after", deadline, |_| whole_feed_lines(&folder.join("feed.jsonl")).len() >= lines_then + 10);
+    tagdeflect_test(&addr, &token, &["stop"]);
+    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    let (ok, said) = report_verify(&folder);
+    let frames = frame_times(&folder, "frames");
+    let lines = whole_feed_lines(&folder.join("feed.jsonl"));
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+    let log = d.log();
+    assert_eq!(log.matches("the test's frames stop").count(), 1, "said once:\n{log}");
+    let stopped = &record["frames_stopped"];
+    assert_eq!(stopped["folder"], "frames", "{record}");
+    assert_eq!(stopped["reserve_mb"].as_f64(), Some(30.0), "{record}");
+    assert!(stopped["free_mb"].as_f64().unwrap() < 30.0, "{record}");
+    let at = stopped["t_ns"].as_i64().unwrap();
+    assert!(!frames.is_empty() && frames.iter().all(|&t| t < at), "no frame from the stop on: {} frames", frames.len());
+    assert!(lines.iter().filter(|l| l.t_ns > at).count() >= 10, "the test's lines go on after its frames stopped");
+    assert_eq!(record["lines"].as_u64(), Some(lines.len() as u64));
+    assert!(ok, "report verify: {said}");
+}
+
+/// A test resumed after its daemon was killed (SIGKILL) records its frames anew into
+/// `frames-2/` (a recording is never appended to by another process): the frames before the
+/// kill stay in `frames/`, those after the resume are in `frames-2/` and later; `test.json`
+/// hashes the files of both and `report verify` passes.
+#[test]
+fn a_resumed_tests_frames_go_on_in_frames_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = rig(dir.path());
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let tests_dir = dir.path().join("tests");
+    let token = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(400);
+    let mut first = LoggedDaemon::start(&args);
+    let addr = first.addr(deadline);
+    let st = tagdeflect_test(&addr, &token, &["start", "--specimen", "FR3", "--standard", "astm-c1609"]);
+    let folder = tests_dir.join(st["id"].as_str().unwrap());
+    first.wait_for("10 frames of the test", deadline, |_| frame_times(&folder, "frames").len() >= 10);
+    first.child.0.kill().unwrap();
+    first.child.0.wait().unwrap();
+    let before = frame_times(&folder, "frames");
+
+    let mut second = LoggedDaemon::start(&args);
+    let addr = second.addr(deadline);
+    second.wait_for("10 frames after the resume", deadline, |_| frame_times(&folder, "frames-2").len() >= 10);
+    tagdeflect_test(&addr, &token, &["stop"]);
+    assert_eq!(second.terminate(), Some(0), "{}", second.log());
+    assert!(second.log().contains("resumed") || second.log().contains("resume"), "{}", second.log());
+
+    let after = frame_times(&folder, "frames-2");
+    assert!(frame_times(&folder, "frames").starts_with(&before), "the first recording is left as it was");
+    assert!(after.len() >= 10 && after[0] > *before.last().unwrap(), "frames-2 goes on after the kill");
+    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    let hashed: Vec<&String> = record["sha256"].as_object().unwrap().keys().collect();
+    for sub in ["frames", "frames-2"] {
+        let index = format!("{sub}/frames.jsonl");
+        assert!(hashed.contains(&&index), "{index} in test.json: {hashed:?}");
+        let n = hashed.iter().filter(|k| k.starts_with(&format!("{sub}/")) && !k.ends_with(".jsonl") && !k.ends_with(".toml")).count();
+        assert!(n >= frame_times(&folder, sub).len(), "{sub}: every frame file hashed ({n})");
+    }
+    assert!(!folder.join("frames-3").exists());
+    let (ok, said) = report_verify(&folder);
+    assert!(ok, "report verify: {said}");
 }

@@ -71,13 +71,18 @@ struct Rotator {
     cfg: FeedRotation,
     /// The UTC day of the current file's first line.
     day: chrono::NaiveDate,
-    /// A failed rename is retried after this.
+    /// A failed rename is retried after this, or earlier at the next cut by size.
     retry_after: Option<Instant>,
+    /// The length at which a file whose rename failed is next due by size.
+    retry_at_len: Option<u64>,
+    /// Renames failed since the last one that worked (the first is logged, the others not).
+    failed_tries: u32,
     now: UtcClock,
 }
 
-/// A failed rename (the folder read-only, ...) is retried after this; lines go on into the
-/// current file meanwhile.
+/// A failed rename (the folder read-only, ...) is retried after this, or at the next cut by
+/// size (another `max_mb` written) if that comes first; lines go on into the current file
+/// meanwhile.
 const RENAME_RETRY: Duration = Duration::from_secs(60);
 
 /// Writes feed lines to one destination; see the module docs.
@@ -139,7 +144,15 @@ impl FeedWriter {
             // A file left by an earlier run is of the day it was last written.
             let modified = meta.modified().ok().filter(|_| meta.len() > 0).map(chrono::DateTime::<chrono::Utc>::from);
             let day = feed_rotation::day_of(modified.unwrap_or_else(&now));
-            w.rotator = Some(Rotator { path: path.to_path_buf(), cfg: cfg.clone(), day, retry_after: None, now });
+            w.rotator = Some(Rotator {
+                path: path.to_path_buf(),
+                cfg: cfg.clone(),
+                day,
+                retry_after: None,
+                retry_at_len: None,
+                failed_tries: 0,
+                now,
+            });
         }
         Ok(w)
     }
@@ -330,7 +343,8 @@ impl FeedWriter {
         let now = (r.now)();
         let full = r.cfg.max_bytes().is_some_and(|m| f.len() + add > m);
         let new_day = r.cfg.daily && feed_rotation::day_of(now) != r.day;
-        let waiting = r.retry_after.is_some_and(|t| Instant::now() < t);
+        let next_cut = r.retry_at_len.is_some_and(|l| f.len() + add > l);
+        let waiting = r.retry_after.is_some_and(|t| Instant::now() < t) && !next_cut;
         if f.is_empty() || !(full || new_day) || waiting {
             if f.is_empty() {
                 r.day = feed_rotation::day_of(now);
@@ -340,13 +354,16 @@ impl FeedWriter {
         f.settle()?;
         let index = feed_rotation::feed_segments(&r.path)?.last().map_or(1, |s| s.index);
         let to = feed_rotation::rotated_path(&r.path, index, now);
-        if let Err(e) = std::fs::rename(&r.path, &to) {
-            tracing::warn!(output = %self.target, to = %to.display(), "feed file not rotated ({e}); lines go on into it, the rotation is tried again in {} s", RENAME_RETRY.as_secs());
-            r.retry_after = Some(Instant::now() + RENAME_RETRY);
+        if let Err(e) = rename_new(&r.path, &to) {
+            r.failed(&self.target, &to, f.len(), e);
             return Ok(());
         }
-        r.retry_after = None;
-        tracing::info!(output = %self.target, to = %to.display(), bytes = f.len(), "feed file rotated");
+        if r.failed_tries > 0 {
+            tracing::info!(output = %self.target, to = %to.display(), bytes = f.len(), "feed file rotated after {} failed tries", r.failed_tries);
+        } else {
+            tracing::info!(output = %self.target, to = %to.display(), bytes = f.len(), "feed file rotated");
+        }
+        (r.retry_after, r.retry_at_len, r.failed_tries) = (None, None, 0);
         self.out = Out::Rotated;
         sync_folder(&r.path);
         match feed_rotation::prune(&r.path, &r.cfg) {
@@ -355,6 +372,40 @@ impl FeedWriter {
         }
         self.rotate_if_due(add)
     }
+}
+
+impl Rotator {
+    /// A rename that failed: said once (the first of an outage), retried at the next cut by
+    /// size or after [`RENAME_RETRY`]; the lines go on into the current file meanwhile.
+    fn failed(&mut self, target: &str, to: &Path, len: u64, e: io::Error) {
+        if self.failed_tries == 0 {
+            tracing::warn!(output = %target, to = %to.display(), "feed file not rotated ({e}); lines go on into it, the rotation is tried again at the next cut (another max_mb, or in {} s); said once", RENAME_RETRY.as_secs());
+        } else {
+            tracing::debug!(output = %target, to = %to.display(), tries = self.failed_tries + 1, "feed file still not rotated: {e}");
+        }
+        self.failed_tries += 1;
+        self.retry_after = Some(Instant::now() + RENAME_RETRY);
+        self.retry_at_len = self.cfg.max_bytes().map(|m| len + m);
+    }
+}
+
+/// Renames `from` to `to` unless `to` exists (then `AlreadyExists`, both left as they were):
+/// a rotated file is never replaced, even by a second writer of the same feed that picked the
+/// same number. `renameat2(RENAME_NOREPLACE)`; where the filesystem lacks it, a check then a
+/// rename.
+pub(crate) fn rename_new(from: &Path, to: &Path) -> io::Result<()> {
+    use rustix::fs::{renameat_with, RenameFlags, CWD};
+    let e = match renameat_with(CWD, from, CWD, to, RenameFlags::NOREPLACE) {
+        Ok(()) => return Ok(()),
+        Err(e) => io::Error::from(e),
+    };
+    if !matches!(e.raw_os_error(), Some(libc::EINVAL) | Some(libc::ENOSYS)) {
+        return Err(e);
+    }
+    if std::fs::symlink_metadata(to).is_ok() {
+        return Err(io::Error::new(io::ErrorKind::AlreadyExists, format!("{} exists", to.display())));
+    }
+    std::fs::rename(from, to)
 }
 
 /// Makes a rename in the folder of `path` durable (best effort).

@@ -226,6 +226,22 @@ mod tests {
         assert!(prune(&cur, &FeedRotation::default()).unwrap().is_empty(), "nothing deleted by default");
     }
 
+    /// A rotated file is never replaced: the rename to a name taken fails and leaves both.
+    #[test]
+    fn a_rotation_never_replaces_a_file_of_the_name_it_takes() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cur, taken) = (dir.path().join("feed.jsonl"), dir.path().join("feed.000001.2026-12-06T19-40-00Z.jsonl"));
+        std::fs::write(&cur, "new\n").unwrap();
+        std::fs::write(&taken, "old\n").unwrap();
+        let e = crate::feed_file::rename_new(&cur, &taken).unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists, "{e}");
+        assert_eq!(std::fs::read_to_string(&taken).unwrap(), "old\n");
+        assert_eq!(std::fs::read_to_string(&cur).unwrap(), "new\n");
+        let free = dir.path().join("feed.000002.2026-12-06T19-41-00Z.jsonl");
+        crate::feed_file::rename_new(&cur, &free).unwrap();
+        assert!(!cur.exists() && std::fs::read_to_string(&free).unwrap() == "new\n");
+    }
+
     #[test]
     fn limits_are_checked() {
         assert!(FeedRotation::default().validate().is_ok());

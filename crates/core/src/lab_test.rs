@@ -166,6 +166,24 @@ pub struct TestRecord {
     /// The verification in force (`[verification]`): assessed at the start, again at the stop.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub verification: Option<crate::verification::InForce>,
+    /// (`[output] record_tests`) When the test's frames stopped being recorded before its stop
+    /// to keep the disk's reserve for the lines (absent: recorded to the stop, or not at all).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames_stopped: Option<FramesStopped>,
+}
+
+/// The test's frames stopped before its stop: the free space under its folder fell below the
+/// reserve (`[output] record_tests_reserve_mb`); its lines go on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FramesStopped {
+    /// The time of the first frame not recorded, ns since the Unix epoch.
+    pub t_ns: i64,
+    /// The recording it ended (`frames`, `frames-2`, ...), relative to the test folder.
+    pub folder: String,
+    /// Free space under the folder then, MB (10⁶ bytes).
+    pub free_mb: f64,
+    /// The reserve, MB.
+    pub reserve_mb: f64,
 }
 
 /// The operator's crack entry: where the beam cracked.

@@ -16,6 +16,7 @@ pub mod camera;
 pub mod camera_config;
 pub mod clock;
 pub mod control_summary;
+pub mod disk;
 pub mod error;
 pub mod feed;
 pub mod feed_file;

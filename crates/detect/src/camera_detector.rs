@@ -11,6 +11,13 @@
 //! known tags' bitmaps and the rig's [`TagRoles`]. Cameras are independent, so the
 //! measurement detects all of a frame set's cameras in parallel.
 //!
+//! **A missed window searched again**: windows are searched decimated and with a contrast
+//! filter (see [`super::plan`]); a tag seen the last time it was looked for, not confirmed
+//! and not found there is searched for once more in its window at the configured resolution
+//! and contrast filter, in the same frame ([`DetectReport::window_retries`]) — a steep,
+//! foreshortened tag that full-frame mode finds is found in tracking mode too. A tag already
+//! missing (occluded, out of view) is not retried: it waits for the sweep.
+//!
 //! **Background searches** (on by default in tracking mode, live and replay alike): a
 //! whole-frame search after the first frame — the sweep after a tag was lost, or the
 //! search of a camera that follows no tag — runs on a thread of its own on a copy of the
@@ -80,6 +87,9 @@ pub struct DetectParts {
     /// Wall time of the window searches of tags not confirmed and of the sweep's tiles,
     /// summed over the cameras (which run in parallel).
     pub search: f64,
+    /// Of `search`, the wall time of the retries at the configured resolution of windows
+    /// whose expected tag the decimated search missed (likewise).
+    pub retry: f64,
     /// Wall time of full-frame searches (likewise).
     pub full_frame: f64,
     /// Wall time spent waiting for a background search that had not finished when its
@@ -92,6 +102,7 @@ impl DetectParts {
     pub fn add(&mut self, other: &DetectParts) {
         self.tracking += other.tracking;
         self.search += other.search;
+        self.retry += other.retry;
         self.full_frame += other.full_frame;
         self.background_wait += other.background_wait;
     }
@@ -113,6 +124,9 @@ pub struct DetectReport {
     pub background_searches: u64,
     /// Window and sweep-tile searches run.
     pub window_searches: u64,
+    /// Of those, windows searched again at the configured resolution because the decimated
+    /// search missed a tag seen the last time it was looked for.
+    pub window_retries: u64,
     /// Tags confirmed at their predicted place (no search needed).
     pub confirmed_tags: u64,
     /// Of those, fitted on the pixels selected in an earlier frame (the tag had barely moved).
@@ -235,7 +249,7 @@ impl CameraDetector {
 
     /// How much this camera's corners' σ is to be widened for its edge fits' model error:
     /// their residuals on the edges against the camera's noise there
-    /// ([`ModelExcess::sigma_factor`](crate::refine::ModelExcess::sigma_factor); 1 while the
+    /// ([`ModelExcess::factor`](crate::refine::ModelExcess::factor) with `TAGDEFLECT_SIGMA_WIDENING=on`; 1 while the
     /// fits are at the noise level and before the edge profile is learned).
     pub fn corner_sigma_factor(&self) -> f64 {
         self.profile.sigma_factor()
@@ -347,7 +361,8 @@ impl CameraDetector {
                     }
                     sweep.clear();
                 }
-                let (confirmed, windows, cpu) = self.confirm(image, tags, rig);
+                let (confirmed, missed, cpu) = self.confirm(image, tags, rig);
+                let windows = merge_rects(missed.iter().map(|t| t.window).collect());
                 report.parts.tracking = cpu;
                 report.confirmed_tags = confirmed.tags.len() as u64;
                 report.reused_bands = confirmed.reused_bands;
@@ -356,8 +371,13 @@ impl CameraDetector {
                 let c0 = Instant::now();
                 let more = self.search(rig, image, &windows, &sweep, &found, decimate, sweep_decimate);
                 found.extend(more);
+                let c1 = Instant::now();
+                let (again, retries) = self.retry_missed(rig, image, &missed, &found, decimate);
+                found.extend(again);
                 dedup_detections(&mut found);
-                report.window_searches = (windows.len() + sweep.len()) as u64;
+                report.window_searches = (windows.len() + sweep.len()) as u64 + retries;
+                report.window_retries = retries;
+                report.parts.retry = c1.elapsed().as_secs_f64();
                 report.parts.search = c0.elapsed().as_secs_f64();
                 found
             }
@@ -409,8 +429,8 @@ impl CameraDetector {
     }
 
     /// Confirms the planned tags at their predicted places; returns the confirmed tags, the
-    /// (merged) windows of the others and the CPU time spent.
-    fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Confirmed, Vec<Rect>, f64) {
+    /// others (to be searched in their windows) and the CPU time spent.
+    fn confirm(&mut self, image: &GrayImage, tags: Vec<PlannedTag>, rig: &RigDetectors) -> (Confirmed, Vec<PlannedTag>, f64) {
         let refine = rig.library.options().subpixel.as_ref();
         self.prepare_pixel_map(image);
         let memories = &self.edge_memory;
@@ -441,14 +461,45 @@ impl CameraDetector {
                 }
                 Err(_) => {
                     self.edge_memory.remove(&(t.family, t.id));
-                    windows.push(t.window);
+                    windows.push(t);
                 }
             }
         }
         if weakest.is_some() {
             self.tag_contrast = weakest;
         }
-        (Confirmed { tags: confirmed, reused_bands: reused }, merge_rects(windows), cpu)
+        (Confirmed { tags: confirmed, reused_bands: reused }, windows, cpu)
+    }
+
+    /// The windows of `missed` tags (not confirmed) that were seen the last time they were
+    /// looked for and that the search at quad decimation `search_decimate` (with the
+    /// contrast filter of [`Self::search_options`]) did not find either (not in `found`),
+    /// searched again at the configured resolution and contrast filter — the decimated
+    /// quads miss a steep, foreshortened tag that a full-resolution search finds. Bounded:
+    /// only a tag's first miss (a tag already missing waits for the sweep), and none when
+    /// the windows already ran at the configured options. Returns the tags found and the
+    /// number of windows searched.
+    fn retry_missed(
+        &mut self,
+        rig: &RigDetectors,
+        image: &GrayImage,
+        missed: &[PlannedTag],
+        found: &[Detection],
+        search_decimate: f32,
+    ) -> (Vec<Detection>, u64) {
+        let configured = SearchOptions::of(rig.library.options());
+        if self.search_options(rig, search_decimate) == configured {
+            return (Vec::new(), 0);
+        }
+        let is_found = |t: &PlannedTag| found.iter().any(|d| d.family == t.family && d.id == t.id);
+        let windows = merge_rects(missed.iter().filter(|t| t.expected && !is_found(t)).map(|t| t.window).collect());
+        if windows.is_empty() {
+            return (Vec::new(), 0);
+        }
+        self.prepare_pixel_map(image);
+        let lens = self.pixel_map.as_ref().map_or(Lens::new(Some(&self.intrinsics)), Lens::with_map);
+        let again = windows.iter().flat_map(|r| rig.library.search(image, Some(*r), &configured, lens)).collect();
+        (again, windows.len() as u64)
     }
 
     /// The options of window and sweep searches: decimation `search_decimate` (at least the

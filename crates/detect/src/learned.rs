@@ -28,7 +28,9 @@
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
-use super::refine::{refine_corners_warm, ClassChoice, EdgeMemory, EdgeProfile, ModelExcess, ProfileLearner, RefineOptions};
+use super::refine::{
+    refine_corners_warm, widening_switch, ClassChoice, EdgeMemory, EdgeProfile, ModelExcess, ProfileLearner, RefineOptions,
+};
 use super::Detection;
 use tagdeflect_core::camera::Lens;
 use tagdeflect_core::frame::GrayImage;
@@ -41,18 +43,33 @@ const MAX_REBUILD_INTERVAL: u64 = 64;
 pub(crate) type TagKey = (TagFamily, u32);
 
 /// One camera's learned edge profile and its accumulation (see the module docs).
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct CameraProfile {
     learner: ProfileLearner,
     profile: Option<Arc<EdgeProfile>>,
     /// Which profile each pixel class uses, decided when the profile was first learned.
     choice: Option<ClassChoice>,
-    /// The profile fits' residuals against the camera's noise (the corners' σ widening).
-    excess: ModelExcess,
+    /// The profile fits' residuals against the camera's noise (the corners' σ widening);
+    /// `None` (nothing gathered) when the widening is off ([`widening_switch`], read once
+    /// when the camera is made).
+    excess: Option<ModelExcess>,
     /// Frames since the profile was first learned.
     frames: u64,
     /// The frame count at which it is next rebuilt.
     next_build: u64,
+}
+
+impl Default for CameraProfile {
+    fn default() -> Self {
+        Self {
+            learner: ProfileLearner::default(),
+            profile: None,
+            choice: None,
+            excess: widening_switch().then(ModelExcess::default),
+            frames: 0,
+            next_build: 0,
+        }
+    }
 }
 
 impl CameraProfile {
@@ -62,9 +79,17 @@ impl CameraProfile {
     }
 
     /// How much the corners' σ is to be widened for the profile fits' model error
-    /// ([`ModelExcess::sigma_factor`]; 1 before the profile is learned).
+    /// ([`ModelExcess::factor`]; 1 before the profile is learned and when the widening is
+    /// off).
     pub(crate) fn sigma_factor(&self) -> f64 {
-        self.excess.sigma_factor()
+        self.excess.as_ref().map_or(1.0, ModelExcess::factor)
+    }
+
+    /// Adds a tag's fit to the residual sums, when they are gathered.
+    fn add_excess(&mut self, image: &GrayImage, memory: &EdgeMemory) {
+        if let Some(e) = self.excess.as_mut() {
+            e.add_tag(image, memory);
+        }
     }
 
     /// After a frame's detection: learns from its tags (`confirmed`: those fitted at their
@@ -97,13 +122,13 @@ impl CameraProfile {
             match memories.get(&key).filter(|_| confirmed.contains(&key)) {
                 Some(m) => {
                     self.learner.add_tag(image, m);
-                    self.excess.add_tag(image, m);
+                    self.add_excess(image, m);
                 }
                 None => {
                     let (refit, m) = fit(image, d, lens, &one_pass, Some(&profile));
                     *d = refit;
                     self.learner.add_tag(image, &m);
-                    self.excess.add_tag(image, &m);
+                    self.add_excess(image, &m);
                 }
             }
         }
@@ -144,7 +169,7 @@ impl CameraProfile {
         for d in found.iter_mut() {
             let (refit, m) = fit(image, d, lens, one_pass, Some(&profile));
             *d = refit;
-            self.excess.add_tag(image, &m);
+            self.add_excess(image, &m);
             let key = (d.family, d.id);
             if confirmed.contains(&key) {
                 memories.insert(key, m);

@@ -5,7 +5,9 @@
 //! *confirm* it there without any search (sub-pixel refinement from the prediction, then
 //! the tag's code read back: see `detect::confirm`); only a tag that cannot be confirmed is
 //! searched for with the AprilTag library in its *window*, the predicted box grown by a
-//! margin that scales with the tag's size in the image and its motion.
+//! margin that scales with the tag's size in the image and its motion (decimated for big
+//! tags; a tag seen last time and missed there is searched again in its window at the
+//! configured resolution: `PlannedTag::expected`, see `detect::camera_detector`).
 //!
 //! - **Specimen tags** are looked for every frame.
 //! - **Background tags** only serve to catch a bump of the camera once it is posed (the pose
@@ -119,6 +121,10 @@ pub(crate) struct PlannedTag {
     pub predicted: [Point2<f64>; 4],
     /// The window to search with the detector if the prediction cannot be confirmed.
     pub window: Rect,
+    /// The tag was seen the last time it was looked for: if the (decimated, contrast
+    /// filtered) search of its window misses it, the window is searched again at the
+    /// configured resolution in the same frame (a tag that was already missing is not).
+    pub expected: bool,
 }
 
 /// What to search in one frame of one camera.
@@ -283,7 +289,7 @@ impl RoiPlanner {
             let margin = 0.3 * extent + 10.0 + 2.0 * shift.norm() + 0.25 * extent * tr.missed as f64;
             if let Some(window) = clip(w, h, lo.x - margin, lo.y - margin, hi.x + margin, hi.y + margin) {
                 let predicted = tr.corners.map(|c| c + shift);
-                tags.push(PlannedTag { family: key.0, id: key.1, predicted, window });
+                tags.push(PlannedTag { family: key.0, id: key.1, predicted, window, expected: tr.missed == 0 });
             }
         }
 

@@ -197,3 +197,54 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
     });
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deflection-hardening: elastic to the first crack at 30 kN (0.05 mm), a fall to 27 kN
+    /// (0.1 mm), a rise to the peak of 40 kN at 1.5 mm, then down to 32 kN at 3.2 mm.
+    fn hardening(x: f64) -> f64 {
+        if x <= 0.05 {
+            600.0 * x
+        } else if x <= 0.1 {
+            30.0 - 3.0 * (x - 0.05) / 0.05
+        } else if x <= 1.5 {
+            27.0 + 13.0 * (x - 0.1) / 1.4
+        } else {
+            40.0 - 8.0 * (x - 1.5) / 1.7
+        }
+    }
+
+    fn value(entries: &[Entry], key: &str) -> f64 {
+        let e = entries.iter().find(|e| e.key == key).unwrap_or_else(|| panic!("no {key}"));
+        e.result.as_ref().unwrap_or_else(|why| panic!("{key}: {why}")).value
+    }
+
+    /// The first-peak quantities come from the first peak, not from the test's maximum: on a
+    /// curve whose maximum (40 kN at 1.5 mm) comes long after its first peak (30 kN at
+    /// 0.05 mm), P1, δ1, f1 and R_T,150 are the first peak's and only P_P and f_P the maximum's.
+    #[test]
+    fn f1_is_the_first_peak_s_strength_when_the_maximum_comes_later() {
+        let n = 1601; // 0 to 3.2 mm in 2 µm steps, 10 points a second
+        let x: Vec<f64> = (0..n).map(|i| 0.002 * i as f64).collect();
+        let load: Vec<f64> = x.iter().map(|&x| hardening(x)).collect();
+        let t_ns: Vec<i64> = (0..n as i64).map(|i| i * 100_000_000).collect();
+        let curve = Curve::new(t_ns, load, x, vec![Some(0.001); n], 0.001, 5, 0.01, "deflection").unwrap();
+        let beam = BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, ..Default::default() };
+        let e = compute(&curve, &beam);
+        let stress = |p: f64| 1000.0 * p * 450.0 / (150.0 * 150.0 * 150.0);
+        let (p1, pp) = (value(&e, "P1"), value(&e, "Pp"));
+        assert!((p1 - 30.0).abs() < 0.05, "P1 {p1} kN, the first peak is 30 kN");
+        assert!((value(&e, "delta1") - 0.05).abs() < 0.005, "δ1 {} mm, the first peak is at 0.05 mm", value(&e, "delta1"));
+        assert!((pp - 40.0).abs() < 0.05, "P_P {pp} kN, the maximum is 40 kN");
+        let f1 = value(&e, "f1");
+        assert!((f1 - stress(p1)).abs() < 1e-9 * f1, "f1 {f1} MPa is not P1·L/(b·d²) = {} MPa (P_P's: {})", stress(p1), stress(pp));
+        assert!((f1 - 4.0).abs() < 0.01, "f1 {f1} MPa, the first peak's strength is 4.0 MPa");
+        assert!((value(&e, "fp") - stress(pp)).abs() < 1e-9 * stress(pp), "f_P {} MPa", value(&e, "fp"));
+        // R_T,150 = 100·T150/(P1·L/150), with the first peak's load.
+        let rt = value(&e, "RT150");
+        let expected = 100.0 * value(&e, "T150") / (p1 * 450.0 / 150.0);
+        assert!((rt - expected).abs() < 1e-9 * expected, "R_T,150 {rt} %, from P1 {expected} %");
+    }
+}

@@ -195,25 +195,41 @@ pub struct InputHash {
     pub name: PathBuf,
     /// Its path, absolute when it could be made so.
     pub path: PathBuf,
-    /// SHA-256, lower-case hex.
+    /// SHA-256 of its first `bytes` bytes, lower-case hex.
     pub sha256: String,
+    /// Its length when it was hashed: a feed still being written grows after, and `report
+    /// verify` checks this prefix (docs/report.md).
+    pub bytes: u64,
 }
 
 /// SHA-256 of a file, lower-case hex.
 pub fn sha256_file(path: &Path) -> Result<String, std::io::Error> {
+    sha256_prefix(path, None).map(|(sha, _)| sha)
+}
+
+/// SHA-256 (lower-case hex) of the first `limit` bytes of a file (all of it for `None`: its
+/// length when opened), and the number of bytes hashed (fewer than `limit` when it is shorter).
+pub fn sha256_prefix(path: &Path, limit: Option<u64>) -> Result<(String, u64), std::io::Error> {
     use sha2::Digest;
     use std::io::Read;
-    let mut f = std::fs::File::open(path)?;
+    let f = std::fs::File::open(path)?;
+    let limit = match limit {
+        Some(l) => l,
+        None => f.metadata()?.len(),
+    };
+    let mut f = f.take(limit);
     let mut h = sha2::Sha256::new();
     let mut buf = vec![0u8; 1 << 16];
+    let mut bytes = 0u64;
     loop {
         let n = f.read(&mut buf)?;
         if n == 0 {
             break;
         }
         h.update(&buf[..n]);
+        bytes += n as u64;
     }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    Ok((h.finalize().iter().map(|b| format!("{b:02x}")).collect(), bytes))
 }
 
 /// Every input of the report hashed (feed, UTM stream, then the caller's: config, calibration files).
@@ -226,11 +242,11 @@ fn input_hashes(report: &Report, dir: &Path) -> Result<Vec<InputHash>, ReportErr
     list.extend(report.inputs.iter().cloned());
     list.into_iter()
         .map(|(role, path)| {
-            let sha256 =
-                sha256_file(&path).map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
+            let (sha256, bytes) = sha256_prefix(&path, None)
+                .map_err(|e| ReportError::Io { path: path.clone(), message: format!("cannot hash the input: {e}") })?;
             let name = relative_to(&path, base);
             let path = std::path::absolute(&path).unwrap_or(path);
-            Ok(InputHash { role, name, path, sha256 })
+            Ok(InputHash { role, name, path, sha256, bytes })
         })
         .collect()
 }
@@ -302,7 +318,7 @@ fn to_json(report: &Report, inputs: &[InputHash]) -> serde_json::Value {
     root.insert(
         "inputs".into(),
         json!({
-            "files": inputs.iter().map(|i| json!({"role": i.role, "name": i.name.display().to_string(), "path": i.path.display().to_string(), "sha256": i.sha256})).collect::<Vec<_>>(),
+            "files": inputs.iter().map(|i| json!({"role": i.role, "name": i.name.display().to_string(), "path": i.path.display().to_string(), "sha256": i.sha256, "bytes": i.bytes})).collect::<Vec<_>>(),
             "software": {"name": "tagdeflect", "version": env!("CARGO_PKG_VERSION")},
         }),
     );

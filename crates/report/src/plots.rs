@@ -1,6 +1,10 @@
 //! The report's plots, drawn with `plotters` into SVG (inline in the HTML, and a file) and
 //! PNG. Text in the PNG needs a TrueType font: the first found of `$TAGDEFLECT_FONT` and the
 //! usual Debian font paths (`fonts-dejavu-core`, installed by `scripts/setup.sh`).
+//!
+//! The curves are drawn through the points their pixels show (`plot_points`: per pixel
+//! column the first, lowest, highest and last point; a marker once per pixel), so a long
+//! feed costs the plots no more than a short one; the numbers come from the full curve.
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -9,6 +13,7 @@ use std::sync::OnceLock;
 use crate::curve::Curve;
 use crate::error::ReportError;
 use crate::feed_reader::Feed;
+use crate::plot_points::{line_points, scatter_points};
 use crate::report::Report;
 use crate::standard::Standard;
 use crate::{c1609, en14651};
@@ -197,10 +202,8 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
         .draw()
         .map_err(err)?;
     if let Some(end) = d.area_to {
-        let mut pts: Vec<(f64, f64)> = c.xs.iter().cloned().zip(c.load.iter().cloned()).take_while(|(x, _)| *x < end).collect();
-        if let Some((p, _, _)) = c.load_at(end) {
-            pts.push((end, p));
-        }
+        let upto = c.xs.iter().cloned().zip(c.load.iter().cloned()).take_while(|(x, _)| *x < end);
+        let pts = line_points(upto.chain(c.load_at(end).map(|(p, _, _)| (end, p))), |p| chart.backend_coord(p));
         chart
             .draw_series(AreaSeries::new(pts, 0.0, RGBColor(70, 130, 180).mix(0.18)))
             .map_err(err)?
@@ -208,14 +211,16 @@ fn draw_curve<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report
             .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], RGBColor(70, 130, 180).mix(0.3).filled()));
     }
     let grey = RGBColor(150, 150, 150);
+    let measured = scatter_points(c.x.iter().cloned().zip(c.load.iter().cloned()), |p| chart.backend_coord(p));
     chart
-        .draw_series(c.x.iter().zip(&c.load).map(|(&x, &p)| Circle::new((x, p), 2, grey.filled())))
+        .draw_series(measured.into_iter().map(|p| Circle::new(p, 2, grey.filled())))
         .map_err(err)?
         .label(format!("measured ({} points)", c.len()))
         .legend(move |(x, y)| Circle::new((x + 9, y), 3, grey.filled()));
     let blue = RGBColor(20, 70, 160);
+    let smoothed = line_points(c.xs.iter().cloned().zip(c.load.iter().cloned()), |p| chart.backend_coord(p));
     chart
-        .draw_series(LineSeries::new(c.xs.iter().cloned().zip(c.load.iter().cloned()), blue.stroke_width(2)))
+        .draw_series(LineSeries::new(smoothed, blue.stroke_width(2)))
         .map_err(err)?
         .label(format!("smoothed (up to {} points)", c.smooth_points))
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], blue.stroke_width(2)));
@@ -254,16 +259,19 @@ fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report,
     let cols = &feed.columns;
     let t0 = cols.t_ns[0];
     let ts = |t: i64| (t - t0) as f64 * 1e-9;
-    let load: Vec<(f64, f64)> = if report.curve.load_from_utm {
-        report.curve.t_ns.iter().zip(&report.curve.load).map(|(&t, &p)| (ts(t), p)).collect()
-    } else {
-        cols.t_ns.iter().zip(&cols.load_kn).filter(|(_, p)| !p.is_nan()).map(|(&t, &p)| (ts(t), p)).collect()
+    // The load from the UTM's samples or the feed's lines; each read twice (its range, then
+    // its pixels) rather than held.
+    let utm = report.curve.load_from_utm;
+    let load = || {
+        let from_utm = report.curve.t_ns.iter().zip(&report.curve.load).filter(move |_| utm);
+        let from_feed = cols.t_ns.iter().zip(&cols.load_kn).filter(move |(_, p)| !utm && !p.is_nan());
+        from_utm.chain(from_feed).map(|(&t, &p)| (ts(t), p))
     };
-    let xs: Vec<(f64, f64)> = c.t_ns.iter().zip(&c.xs).map(|(&t, &x)| (ts(t), x)).collect();
+    let xs = || c.t_ns.iter().zip(&c.xs).map(|(&t, &x)| (ts(t), x));
     root.fill(&WHITE).map_err(err)?;
     let (tmin, tmax) = range(cols.t_ns.iter().map(|&t| ts(t)));
-    let (p0, p1) = range(load.iter().map(|p| p.1).chain([0.0]));
-    let (x0, x1) = range(xs.iter().map(|p| p.1).chain([0.0]));
+    let (p0, p1) = range(load().map(|p| p.1).chain([0.0]));
+    let (x0, x1) = range(xs().map(|p| p.1).chain([0.0]));
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FONT, 22))
         .margin(14)
@@ -289,6 +297,8 @@ fn draw_time<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, report: &Report,
     }
     let blue = RGBColor(20, 70, 160);
     let red = RGBColor(190, 30, 30);
+    let load = line_points(load(), |p| chart.backend_coord(p));
+    let xs = line_points(xs(), |p| chart.borrow_secondary().backend_coord(p));
     chart
         .draw_series(LineSeries::new(load, blue.stroke_width(2)))
         .map_err(err)?

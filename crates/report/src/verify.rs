@@ -2,7 +2,9 @@
 //! recorded — a copied folder verifies where it lies, a tampered one names what changed:
 //!
 //! * every input `report.json` lists (`inputs.files`), found by its `name` relative to the
-//!   report folder's parent (a test folder's `report/` → the test folder);
+//!   report folder's parent (a test folder's `report/` → the test folder): the first `bytes`
+//!   bytes it had when the report hashed it; a feed or UTM stream longer now (still being
+//!   written when the report was made) is [`InputState::Grown`], which verifies;
 //! * every output of the report (`outputs`: name → SHA-256; `report.json` itself aside);
 //! * the test folder's `test.json` `sha256` map against the folder's files (changed,
 //!   missing, extra);
@@ -14,7 +16,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::error::ReportError;
-use crate::output::sha256_file;
+use crate::output::{sha256_file, sha256_prefix};
 
 /// The state of one file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -27,6 +29,14 @@ pub enum InputState {
     Missing(String),
     /// A file of the folder that the record does not list.
     Extra,
+    /// A feed or UTM stream longer than when the report hashed it (written to since), its
+    /// first `then` bytes (all the report read) unchanged: it verifies.
+    Grown {
+        /// Its length when hashed.
+        then: u64,
+        /// Its length now.
+        now: u64,
+    },
 }
 
 /// One file checked.
@@ -42,9 +52,9 @@ pub struct Checked {
 }
 
 impl Checked {
-    /// True when nothing changed.
+    /// True when nothing the record covers changed (a stream grown after it counts as same).
     pub fn same(&self) -> bool {
-        self.state == InputState::Same
+        matches!(self.state, InputState::Same | InputState::Grown { .. })
     }
 }
 
@@ -78,6 +88,24 @@ pub fn folders(dir: &Path) -> Result<Folders, ReportError> {
 fn state_of(path: &Path, sha: &str) -> InputState {
     match sha256_file(path) {
         Ok(h) if h == sha => InputState::Same,
+        Ok(_) => InputState::Changed,
+        Err(e) => InputState::Missing(e.to_string()),
+    }
+}
+
+/// The inputs written while a report may be made from them (appended to, never rewritten).
+const GROWS: [&str; 2] = ["feed", "utm"];
+
+/// An input recorded with its length: its first `bytes` bytes against `sha`; longer now is
+/// [`InputState::Grown`] when `grows`, else changed; shorter is changed.
+fn prefix_state(path: &Path, sha: &str, bytes: u64, grows: bool) -> InputState {
+    let now = match std::fs::metadata(path) {
+        Ok(m) => m.len(),
+        Err(e) => return InputState::Missing(e.to_string()),
+    };
+    match sha256_prefix(path, Some(bytes)) {
+        Ok((h, n)) if h == sha && n == bytes && now == bytes => InputState::Same,
+        Ok((h, n)) if h == sha && n == bytes && grows => InputState::Grown { then: bytes, now },
         Ok(_) => InputState::Changed,
         Err(e) => InputState::Missing(e.to_string()),
     }
@@ -135,7 +163,11 @@ fn inputs(v: &serde_json::Value, f: &Folders, p: &Path) -> Result<Vec<Checked>, 
         let name =
             file["name"].as_str().map(PathBuf::from).unwrap_or_else(|| Path::new(path).file_name().map(PathBuf::from).unwrap_or_default());
         let here = f.base.join(&name);
-        out.push(Checked { role: role.to_string(), path: here.display().to_string(), state: state_of(&here, sha) });
+        let state = match file["bytes"].as_u64() {
+            Some(bytes) => prefix_state(&here, sha, bytes, GROWS.contains(&role)),
+            None => state_of(&here, sha),
+        };
+        out.push(Checked { role: role.to_string(), path: here.display().to_string(), state });
     }
     Ok(out)
 }

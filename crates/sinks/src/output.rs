@@ -32,6 +32,11 @@ pub struct OutputConfig {
     /// recording `replay` reads; see `lab_test::frames`), in `record_format`.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub record_tests: bool,
+    /// (extension) The free space kept under the tests folder for the lines, MB (10⁶ bytes):
+    /// below it a test's frames stop (said once, `test.json` `frames_stopped`); default
+    /// [`RECORD_TESTS_RESERVE_MB`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub record_tests_reserve_mb: Option<f64>,
     /// Serve the live page and endpoints on this address (a listen address,
     /// `tagdeflect_core::listen`; see `sinks::http`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -79,7 +84,17 @@ pub type MqttSection = crate::mqtt::MqttConfig;
 #[cfg(not(feature = "mqtt"))]
 pub type MqttSection = serde_json::Value;
 
+/// Default free space kept for the lines under the tests folder when a test's frames are
+/// recorded: ~7 h of the main feed at 3 × 30 fps with 9 tags (~6.8 GB a day) and the test's own
+/// lines, yet ~22 s of frames at 3 × 1080p, 30 fps (the frames stop well before the lines suffer).
+pub const RECORD_TESTS_RESERVE_MB: f64 = 2000.0;
+
 impl OutputConfig {
+    /// `record_tests_reserve_mb` (or its default) in bytes.
+    pub fn record_tests_reserve_bytes(&self) -> u64 {
+        (self.record_tests_reserve_mb.unwrap_or(RECORD_TESTS_RESERVE_MB) * 1e6) as u64
+    }
+
     /// Checks `[output]` but `[output.mqtt]` (`http`: an address the live page can serve) and
     /// returns it with relative `feed`, `record`, `tests` and `http_token_file` paths made
     /// relative to `base`; keys relative to `[output]`.
@@ -92,6 +107,9 @@ impl OutputConfig {
         }
         self.check_http_hosts()?;
         self.feed_rotation.validate().map_err(|p| p.within("feed_rotation"))?;
+        if let Some(r) = self.record_tests_reserve_mb.filter(|r| !(r.is_finite() && (0.0..=1e9).contains(r))) {
+            return Err(Problem::new("record_tests_reserve_mb", format!("{r} MB: 0 (no reserve) to 1000000000")));
+        }
         for p in [&mut self.tests, &mut self.http_token_file, &mut self.users_file].into_iter().flatten() {
             if p.is_relative() {
                 *p = base.join(&*p);

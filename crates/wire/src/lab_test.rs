@@ -165,6 +165,7 @@ mod tests {
             crack: None,
             preload: None,
             verification: None,
+            frames_stopped: None,
         }
     }
 

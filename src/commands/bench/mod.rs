@@ -89,6 +89,9 @@ pub struct BenchFigures {
     /// Wall time per frame set of window searches and sweep tiles (on the library's
     /// worker threads), ms.
     pub search_ms: f64,
+    /// Of that, the retries at the configured resolution of windows whose expected tag the
+    /// decimated search missed, ms.
+    pub retry_ms: f64,
     /// Wall time per frame set of full-frame searches (likewise), ms.
     pub full_frame_ms: f64,
     /// Mean camera-pose time per frame set, ms.
@@ -116,6 +119,9 @@ pub struct BenchFigures {
     pub full_frame_searches: u64,
     /// Window searches run.
     pub window_searches: u64,
+    /// Of those, windows searched again at the configured resolution (a tag expected there
+    /// missed by the decimated search).
+    pub window_retries: u64,
     /// Whole-frame searches run in the background.
     pub background_searches: u64,
     /// Time the solver waited for background searches, ms per frame set.
@@ -274,6 +280,7 @@ fn run_once(rec: &crate::config::Recording, full_frame: bool, repeat: u32, smoot
         detect_ms: detect / n * 1e3,
         tracking_cpu_ms: parts.tracking / n * 1e3,
         search_ms: parts.search / n * 1e3,
+        retry_ms: parts.retry / n * 1e3,
         full_frame_ms: parts.full_frame / n * 1e3,
         pose_ms: pose / n * 1e3,
         solve_ms: solve / n * 1e3,
@@ -287,6 +294,7 @@ fn run_once(rec: &crate::config::Recording, full_frame: bool, repeat: u32, smoot
         dropped_sets: 0,
         full_frame_searches: stats.full_frame_searches,
         window_searches: stats.window_searches,
+        window_retries: stats.window_retries,
         background_searches: stats.background_searches,
         background_wait_ms: parts.background_wait / n * 1e3,
         tracked_tags: stats.tracked_tags,
@@ -335,7 +343,7 @@ type Row = (&'static str, fn(&BenchFigures) -> String);
 
 fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
     println!("bench {} ({} cores)", dir.display(), std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    let rows: [Row; 30] = [
+    let rows: [Row; 32] = [
         ("frame sets", |f| f.sets.to_string()),
         ("frame sets/s", |f| format!("{:.1}", f.sets_per_s)),
         ("steady frame sets/s", |f| format!("{:.1}", f.steady_sets_per_s)),
@@ -344,6 +352,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("detect ms/set", |f| format!("{:.2}", f.detect_ms)),
         ("  tracked tags CPU ms/set", |f| format!("{:.2}", f.tracking_cpu_ms)),
         ("  windows+sweep ms/set", |f| format!("{:.2}", f.search_ms)),
+        ("    of which retries ms/set", |f| format!("{:.2}", f.retry_ms)),
         ("  full-frame ms/set", |f| format!("{:.2}", f.full_frame_ms)),
         ("pose ms/set", |f| format!("{:.3}", f.pose_ms)),
         ("solve ms/set", |f| format!("{:.3}", f.solve_ms)),
@@ -357,6 +366,7 @@ fn print_table(dir: &std::path::Path, runs: &[BenchFigures]) {
         ("dropped sets", |f| f.dropped_sets.to_string()),
         ("full-frame searches", |f| f.full_frame_searches.to_string()),
         ("window searches", |f| f.window_searches.to_string()),
+        ("  of which retries", |f| f.window_retries.to_string()),
         ("background searches", |f| f.background_searches.to_string()),
         ("  waited for, ms/set", |f| format!("{:.2}", f.background_wait_ms)),
         ("tags tracked without search", |f| f.tracked_tags.to_string()),

@@ -96,6 +96,7 @@ mod tests {
             crack: None,
             preload: None,
             verification: None,
+            frames_stopped: None,
         }
     }
 

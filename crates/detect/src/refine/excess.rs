@@ -138,18 +138,17 @@ impl ModelExcess {
     pub fn factor(&self) -> f64 {
         self.rho2().map_or(1.0, widening)
     }
+}
 
-    /// The corners' σ widening factor applied ([`ModelExcess::factor`]). Only with `TAGDEFLECT_SIGMA_WIDENING=on` (a measurement); 1 otherwise: measured on the
-    /// formations' scenes (docs/accuracy.md) it over-covers (100 % within 2σ on the sharpened
-    /// and elliptical scenes) and, through the temporal estimate's weights, moves the
-    /// positions (the Bayer scene 0.0242 → 0.0515 mm), so it is not the default.
-    pub fn sigma_factor(&self) -> f64 {
-        static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        if !*ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "on")) {
-            return 1.0;
-        }
-        self.factor()
-    }
+/// Whether the corners' σ is widened by the edge fits' model error: `TAGDEFLECT_SIGMA_WIDENING=on`
+/// (a measurement), read once per process. Off by default: measured on the formations' scenes
+/// (docs/accuracy.md) it over-covers (100 % within 2σ on the sharpened and elliptical scenes)
+/// and, through the temporal estimate's weights, moves the positions (the Bayer scene
+/// 0.0242 → 0.0515 mm). When it is off a camera gathers no residuals at all
+/// (`crate::learned`): the sums cost a pass over every fitted edge's pixels a frame.
+pub fn widening_switch() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "on"))
 }
 
 #[cfg(test)]
@@ -193,7 +192,6 @@ mod tests {
             assert_eq!(e.factor(), 1.0);
         }
         assert_eq!(ModelExcess::default().factor(), 1.0, "1 until known");
-        assert_eq!(ModelExcess::default().sigma_factor(), 1.0);
     }
 
     #[test]

@@ -76,7 +76,7 @@ mod profile;
 mod profile_fit;
 
 use band::{select_band, EdgeBand, TagBands};
-pub use excess::{widening, ModelExcess, FLAT_SLOPE, RHO2_TOLERANCE};
+pub use excess::{widening, widening_switch, ModelExcess, FLAT_SLOPE, RHO2_TOLERANCE};
 use fit::{fit_band, Line};
 pub use profile::{ClassChoice, ClassUse, EdgeProfile, ProfileLearner, CLASS_CHI2_SIGMAS};
 use profile_fit::fit_band_profile;

@@ -46,12 +46,16 @@ const MIN_NODE_WEIGHT: f64 = 20.0;
 /// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
 const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
 /// A class (or an orientation's) profile is used in place of its parent's only when its node
-/// means differ in shape from the parent's profile by a χ² (over their standard errors, see
-/// `Nodes::differs`) above its degrees of freedom `ν` by this many of its standard
-/// deviations `√(2ν)` (4: a class of the parent's profile passes by chance about once in ten
-/// thousand decisions; adjacent nodes share samples, which widens χ²'s spread, still
-/// leaving it below one in a hundred).
+/// means differ in shape from the parent's profile by a χ² (over their standard errors
+/// counting edges, see `Nodes::differs`) above its degrees of freedom `ν` by this many of its
+/// standard deviations `√(2ν)` (4: a class of the parent's profile passes by chance about once
+/// in ten thousand decisions for Gaussian node errors; adjacent nodes share samples and the
+/// standard errors are themselves estimated from a few edges, which widens χ²'s spread,
+/// still leaving it below one in a hundred).
 pub const CLASS_CHI2_SIGMAS: f64 = 4.0;
+/// A node enters the class decision once this many edges reached it (its standard error
+/// counts edges, [`Nodes::mean_var`]).
+const MIN_NODE_EDGES: f64 = 5.0;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
@@ -219,8 +223,10 @@ pub const CLASSES: usize = 8;
 /// the formations' scenes (docs/accuracy.md, "A class only where it pays"): every class used
 /// (modes 1, 2) costs the scenes one profile describes (the sharp scene 0.0033 → 0.0051 mm);
 /// the decision (mode 3) keeps the sharp scene's 0.0033 mm and takes the Bayer mosaic's gain
-/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0102 mm)
-/// and the fill factor's (0.0058 → 0.0074 mm), so it is not the default yet. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
+/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0098 mm
+/// with its standard errors counting edges; 0.0102 counting pixels) and a little on the fill
+/// factor's (0.0058 → 0.0062 mm; 0.0074): a class there differs from its parent beyond its
+/// sampling noise yet does not pay, so it is not the default. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
 /// `parity`) chooses a mode for a measurement.
 fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
@@ -254,18 +260,41 @@ fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> u
 }
 
 /// Tent-weighted sums of profile samples on the nodes: weights, values, squared values and
-/// squared weights (the last two give a node mean's standard error).
+/// squared weights (a node mean's standard error counting pixels); and, per node, the sums
+/// over edges of each edge's own sums there (a node mean's standard error counting edges,
+/// [`Nodes::mean_var`]).
 #[derive(Debug, Clone)]
 struct Nodes {
     weight: Vec<f64>,
     sum: Vec<f64>,
     sum_sq: Vec<f64>,
     weight_sq: Vec<f64>,
+    /// Over the closed edges `e`, with `S_e`, `W_e` edge `e`'s sums of `w·v` and `w` at the
+    /// node: `Σ S_e²`, `Σ S_e W_e`, `Σ W_e²` and the number of edges.
+    edge_ss: Vec<f64>,
+    edge_sw: Vec<f64>,
+    edge_ww: Vec<f64>,
+    edges: Vec<f64>,
+    /// The open edge's `S_e` and `W_e` at each node.
+    open_s: Vec<f64>,
+    open_w: Vec<f64>,
 }
 
 impl Default for Nodes {
     fn default() -> Self {
-        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES], sum_sq: vec![0.0; NODES], weight_sq: vec![0.0; NODES] }
+        let zeros = || vec![0.0; NODES];
+        Self {
+            weight: zeros(),
+            sum: zeros(),
+            sum_sq: zeros(),
+            weight_sq: zeros(),
+            edge_ss: zeros(),
+            edge_sw: zeros(),
+            edge_ww: zeros(),
+            edges: zeros(),
+            open_s: zeros(),
+            open_w: zeros(),
+        }
     }
 }
 
@@ -275,8 +304,9 @@ impl Nodes {
         (self.weight[k] >= min_weight).then(|| self.sum[k] / self.weight[k])
     }
 
-    /// Adds value `v` at node coordinate `x` (0 ≤ x < NODES − 1) with tent weights.
-    fn add(&mut self, x: f64, v: f64) {
+    /// Adds value `v` at node coordinate `x` (0 ≤ x < NODES − 1) with tent weights; to the
+    /// open edge's sums too when `EDGES` (the class decision's, [`Nodes::mean_var`]).
+    fn add<const EDGES: bool>(&mut self, x: f64, v: f64) {
         let k = x as usize;
         let f = x - k as f64;
         for (node, w) in [(k, 1.0 - f), (k + 1, f)] {
@@ -284,68 +314,94 @@ impl Nodes {
             self.sum[node] += w * v;
             self.sum_sq[node] += w * v * v;
             self.weight_sq[node] += w * w;
+            if EDGES {
+                self.open_s[node] += w * v;
+                self.open_w[node] += w;
+            }
         }
         if self.weight[k].max(self.weight[k + 1]) > MAX_NODE_WEIGHT {
             // Halving keeps every mean and the effective sample counts' ratios.
-            for x in [&mut self.weight, &mut self.sum, &mut self.sum_sq] {
+            for x in [&mut self.weight, &mut self.sum, &mut self.sum_sq, &mut self.open_s, &mut self.open_w] {
                 x.iter_mut().for_each(|w| *w *= 0.5);
             }
-            self.weight_sq.iter_mut().for_each(|w| *w *= 0.25);
-        }
-    }
-
-    /// The sums of several node sets (e.g. the classes of one orientation).
-    fn merged<'a>(parts: impl IntoIterator<Item = &'a Nodes>) -> Nodes {
-        let mut out = Nodes::default();
-        for p in parts {
-            for k in 0..NODES {
-                out.weight[k] += p.weight[k];
-                out.sum[k] += p.sum[k];
-                out.sum_sq[k] += p.sum_sq[k];
-                out.weight_sq[k] += p.weight_sq[k];
+            for x in [&mut self.weight_sq, &mut self.edge_ss, &mut self.edge_sw, &mut self.edge_ww] {
+                x.iter_mut().for_each(|w| *w *= 0.25);
             }
         }
-        out
     }
 
-    /// The squared standard error of node `k`'s mean: the samples' weighted variance over
-    /// their effective count `(Σw)² / Σw²`.
-    fn mean_var(&self, k: usize) -> f64 {
-        let w = self.weight[k];
+    /// Closes the open edge: its sums at each node it reached join the per-edge sums.
+    fn close_edge(&mut self) {
+        for k in 0..NODES {
+            let (s, w) = (self.open_s[k], self.open_w[k]);
+            if w > 0.0 {
+                self.edge_ss[k] += s * s;
+                self.edge_sw[k] += s * w;
+                self.edge_ww[k] += w * w;
+                self.edges[k] += 1.0;
+                (self.open_s[k], self.open_w[k]) = (0.0, 0.0);
+            }
+        }
+    }
+
+    /// The squared standard error of node `k`'s mean with **each edge one sample** (the
+    /// pixels of one edge share its fitted distance, levels and phase, so their errors at a
+    /// node are not independent): the spread of the edges' own sums about the mean, the
+    /// cluster (sandwich) estimate `G/(G − 1) · Σ_e (S_e − m W_e)² / W²` over the `G` edges
+    /// that reached the node. Never below the pixel-count estimate (the samples' weighted
+    /// variance over their effective count `(Σw)²/Σw²`), which bounds it where few edges make
+    /// the spread itself uncertain. `None` when fewer than [`MIN_NODE_EDGES`] edges reached
+    /// the node: its mean's error is not known.
+    fn mean_var(&self, k: usize) -> Option<f64> {
+        let (w, g) = (self.weight[k], self.edges[k]);
+        if g < MIN_NODE_EDGES || !(w > 0.0) {
+            return None;
+        }
         let mean = self.sum[k] / w;
-        let var = (self.sum_sq[k] / w - mean * mean).max(0.0);
-        var * self.weight_sq[k] / (w * w)
+        let pixels = (self.sum_sq[k] / w - mean * mean).max(0.0) * self.weight_sq[k] / (w * w);
+        let spread = (self.edge_ss[k] - 2.0 * mean * self.edge_sw[k] + mean * mean * self.edge_ww[k]).max(0.0);
+        let edges = g / (g - 1.0) * spread / (w * w);
+        Some(edges.max(pixels))
     }
 
     /// Whether these samples' profile differs in shape from `parent` beyond its sampling
     /// noise: their node means `m_k` (nodes from 2.5 px inside the edge to
     /// [`CENTRE_HALF_WIDTH_PX`] outside it with `min_weight`) fitted as
     /// `a + b · P(d_k) + c · P′(d_k)` (`P` the parent) by weighted least squares (weights the
-    /// inverse squared standard errors, at least 10⁻⁴ of the contrast), and
+    /// inverse squared standard errors counting edges, [`Nodes::mean_var`], at least 10⁻⁴ of
+    /// the contrast; nodes reached by fewer than [`MIN_NODE_EDGES`] edges left out), and
     /// `χ² > ν + CLASS_CHI2_SIGMAS · √(2ν)` with `ν = n − 3`. The level, scale and shift are
     /// left out because each class's profile is pinned to 0 and 1 and centred on its own
     /// line-spread centroid: they are never a class's difference, and their estimates' noise
     /// (one white node sets the scale) would otherwise count as one.
     fn differs(&self, parent: &[f64], min_weight: f64) -> bool {
+        self.shape_chi2(parent, min_weight).is_some_and(|(chi2, nu)| chi2 > nu + CLASS_CHI2_SIGMAS * (2.0 * nu).sqrt())
+    }
+
+    /// The χ² of [`Nodes::differs`] and its degrees of freedom `ν`, when `ν ≥ 3`.
+    fn shape_chi2(&self, parent: &[f64], min_weight: f64) -> Option<(f64, f64)> {
         let rows: Vec<(Vector3<f64>, f64, f64)> = tested_nodes()
             .filter(|&k| self.weight[k] >= min_weight)
-            .map(|k| {
+            .filter_map(|k| {
                 let (p, slope) = interpolate(parent, node_d(k));
-                (Vector3::new(1.0, p, slope), self.sum[k] / self.weight[k], 1.0 / self.mean_var(k).max(1e-8))
+                let (var, edges) = (self.mean_var(k)?.max(1e-8), self.edges[k]);
+                // 1/var from G edges' spread is biased high by (G − 1)/(G − 3) (the inverse of
+                // a χ²_{G−1} variate's mean): corrected, so that χ² has its expected mean ν.
+                Some((Vector3::new(1.0, p, slope), self.sum[k] / self.weight[k], (edges - 3.0) / (edges - 1.0) / var))
             })
             .collect();
         let nu = rows.len() as f64 - 3.0;
         if nu < 3.0 {
-            return false;
+            return None;
         }
         let (mut ata, mut atb) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
         for (x, y, w) in &rows {
             ata += (*w * x) * x.transpose();
             atb += (*w * *y) * x;
         }
-        let Some(beta) = ata.try_inverse().map(|inv| inv * atb) else { return false };
+        let beta = ata.try_inverse()? * atb;
         let chi2: f64 = rows.iter().map(|(x, y, w)| w * (y - x.dot(&beta)).powi(2)).sum();
-        chi2 > nu + CLASS_CHI2_SIGMAS * (2.0 * nu).sqrt()
+        Some((chi2, nu))
     }
 
     /// The profile of these samples (see the module docs) — its black side pinned to 0, its
@@ -390,12 +446,15 @@ fn tested_nodes() -> std::ops::RangeInclusive<usize> {
 pub struct ProfileLearner {
     pooled: Nodes,
     classes: Vec<Nodes>,
+    /// Per edge orientation, its four classes' samples together (the per-edge sums of a
+    /// group cannot be merged from its classes').
+    orientations: Vec<Nodes>,
     edges: u64,
 }
 
 impl Default for ProfileLearner {
     fn default() -> Self {
-        Self { pooled: Nodes::default(), classes: vec![Nodes::default(); CLASSES], edges: 0 }
+        Self { pooled: Nodes::default(), classes: vec![Nodes::default(); CLASSES], orientations: vec![Nodes::default(); 2], edges: 0 }
     }
 }
 
@@ -440,6 +499,14 @@ impl ProfileLearner {
             let v = (pixel_value(image, p.index) - black) / contrast;
             self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }
+        self.close_edge();
+    }
+
+    /// Ends an edge's samples: what follows is another edge's (see [`Nodes::mean_var`]).
+    fn close_edge(&mut self) {
+        for n in self.classes.iter_mut().chain(self.orientations.iter_mut()) {
+            n.close_edge();
+        }
     }
 
     /// Adds one sample `(d, v)` of a pixel of class `class` (unweighted: the band's tapers
@@ -453,9 +520,10 @@ impl ProfileLearner {
         if self.pooled.mean(near, MIN_NODE_WEIGHT).is_some_and(|m| (v - m).abs() > MAX_DEVIATION) {
             return;
         }
-        self.pooled.add(x, v);
+        self.pooled.add::<false>(x, v);
         if let Some(nodes) = self.classes.get_mut(class) {
-            nodes.add(x, v);
+            nodes.add::<true>(x, v);
+            self.orientations[class / 4].add::<true>(x, v);
         }
     }
 
@@ -505,7 +573,7 @@ impl ProfileLearner {
         let mut classes = vec![None; CLASSES];
         let mut choice = ClassChoice::default();
         for o in 0..2 {
-            let group = Nodes::merged(&self.classes[4 * o..4 * o + 4]);
+            let group = &self.orientations[o];
             let oriented = group.curve(MIN_CLASS_NODE_WEIGHT);
             let use_oriented = match (keep, &oriented) {
                 (Some(k), Some(_)) => k[4 * o..4 * o + 4].contains(&ClassUse::Orientation),
@@ -608,20 +676,79 @@ mod tests {
         }
     }
 
+    /// A uniform number in [0, 1) from a xorshift state.
+    fn uniform(seed: &mut u64) -> f64 {
+        *seed ^= *seed << 13;
+        *seed ^= *seed >> 7;
+        *seed ^= *seed << 17;
+        (*seed >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// A standard normal number (Box–Muller).
+    fn gauss(seed: &mut u64) -> f64 {
+        (-2.0 * uniform(seed).max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * uniform(seed)).cos()
+    }
+
     /// `n` samples a class of `esf` with Gaussian noise of σ `noise` (a fixed pseudo-random
-    /// sequence), at phases spread over the profile.
+    /// sequence), at phases spread over the profile, 25 samples an edge.
     fn noisy_samples(learner: &mut ProfileLearner, class: usize, esf: &dyn Fn(f64) -> f64, n: usize, noise: f64, seed: &mut u64) {
-        let mut uniform = || {
-            *seed ^= *seed << 13;
-            *seed ^= *seed >> 7;
-            *seed ^= *seed << 17;
-            (*seed >> 11) as f64 / (1u64 << 53) as f64
-        };
-        for _ in 0..n {
-            let d = -2.99 + 5.98 * uniform();
-            let g = (-2.0 * uniform().max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
-            learner.add_sample(class, d, esf(d) + noise * g);
+        for i in 0..n {
+            let d = -2.99 + 5.98 * uniform(seed);
+            learner.add_sample(class, d, esf(d) + noise * gauss(seed));
+            if i % 25 == 24 {
+                learner.close_edge();
+            }
         }
+        learner.close_edge();
+    }
+
+    /// `edges` edges' samples of `esf` as a pixel class sees a near-axis-aligned edge: every
+    /// other column (distances `φ + 2j`, `φ` the edge's phase), 12 pixels at each (the rows),
+    /// and what one edge's fit shares among its pixels — its distance off by `offset_px`
+    /// (RMS) and its contrast by 1 % — besides each pixel's noise `noise`.
+    fn edge_samples(
+        learner: &mut ProfileLearner,
+        class: usize,
+        esf: &dyn Fn(f64) -> f64,
+        edges: usize,
+        offset_px: f64,
+        noise: f64,
+        seed: &mut u64,
+    ) {
+        for _ in 0..edges {
+            let (phase, delta, scale) = (2.0 * uniform(seed), offset_px * gauss(seed), 1.0 + 0.01 * gauss(seed));
+            for k in 0..3 {
+                let d = -2.99 + phase + 2.0 * k as f64;
+                for _ in 0..12 {
+                    learner.add_sample(class, d, scale * esf(d + delta) + noise * gauss(seed));
+                }
+            }
+            learner.close_edge();
+        }
+    }
+
+    #[test]
+    fn a_class_is_taken_for_a_shape_difference_not_for_its_edges_shared_errors() {
+        // 100 edges a class (a camera seeing 25 tags, or a few frames of one seeing ten), each edge's pixels
+        // sharing its distance error (0.03 px RMS) and contrast error (1 %), pixel noise 1.5 %
+        // of the contrast. Counted as independent pixels these errors looked like a shape.
+        let learn = |sigma_of: &dyn Fn(usize) -> f64| {
+            let mut learner = ProfileLearner::default();
+            let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
+            for c in 0..CLASSES {
+                edge_samples(&mut learner, c, &gaussian_esf(sigma_of(c), 0.0), 100, 0.03, 0.015, &mut seed);
+            }
+            learner.edges = MIN_EDGES;
+            learner
+        };
+        let same = learn(&|_| 0.6).build_in(3, None).expect("enough samples");
+        assert_eq!(same.choice(), [ClassUse::Pooled; CLASSES], "one profile with shared per-edge errors");
+        // A real shape difference under the same errors: one parity of each orientation blurred
+        // more (a mosaic), and the orientations differing (an astigmatic blur).
+        let mosaic = learn(&|c| if c % 2 == 1 { 0.8 } else { 0.5 }).build_in(3, None).expect("enough samples");
+        assert_eq!(mosaic.choice(), [ClassUse::Own; CLASSES], "each parity differs from the pooled mix");
+        let astig = learn(&|c| if c < 4 { 0.5 } else { 0.8 }).build_in(3, None).expect("enough samples");
+        assert_eq!(astig.choice(), [ClassUse::Orientation; CLASSES]);
     }
 
     #[test]

@@ -24,6 +24,9 @@ pub struct MeasureStats {
     pub full_frame_searches: u64,
     /// Window (region-of-interest) and sweep-tile detections run.
     pub window_searches: u64,
+    /// Of those, windows searched again at the configured resolution after the decimated
+    /// search missed a tag expected there (see `detect::camera_detector`).
+    pub window_retries: u64,
     /// Whole-frame searches run in the background (see `detect::camera_detector`).
     pub background_searches: u64,
     /// Tag views confirmed at their predicted place (no search needed).
@@ -53,6 +56,7 @@ impl MeasureStats {
     pub(super) fn add_detection(&mut self, report: &DetectReport) {
         self.full_frame_searches += report.full_frame_searches;
         self.window_searches += report.window_searches;
+        self.window_retries += report.window_retries;
         self.background_searches += report.background_searches;
         self.tracked_tags += report.confirmed_tags;
         self.reused_band_tags += report.reused_bands;

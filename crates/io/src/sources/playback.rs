@@ -120,6 +120,60 @@ impl Playhead {
     }
 }
 
+/// How far a paced replay that never drops may fall behind its schedule before the schedule
+/// slips ([`ElasticClock`]).
+pub const SLIP_AFTER: Duration = Duration::from_millis(100);
+
+/// The clock of a paced replay that never drops (`demo --c1609`): one schedule for the
+/// recording's frames and UTM samples ([`Playhead`]'s), which *slips* when the replay falls
+/// behind it — a pipeline that cannot keep the recorded pace (a busy machine) makes the replay
+/// play slower, keeping the recorded spacing from where it is, instead of dropping frame sets
+/// or handing over a burst to catch up. Recorded times are never changed: only when each
+/// frame and sample is handed over.
+#[derive(Debug)]
+pub struct ElasticClock {
+    head: Playhead,
+    /// How much later than scheduled the replay now runs.
+    slip: Duration,
+    /// How many times it slipped.
+    slips: u64,
+}
+
+impl ElasticClock {
+    /// Starts now (as [`Playhead::start`]): the recording's earliest frame is due at once.
+    pub fn start<C>(rec: &Recording<C>) -> ElasticClock {
+        let head = Playhead::with_times(rec.frames.iter().map(|f| f.t_ns), true);
+        *LAST_START.lock().unwrap_or_else(|e| e.into_inner()) = Some(head.started);
+        ElasticClock { head, slip: Duration::ZERO, slips: 0 }
+    }
+
+    /// Waits until something recorded at `t_ns` is due (in naps of at most 100 ms); false
+    /// when `stop` was set meanwhile. Due more than [`SLIP_AFTER`] ago: the schedule slips
+    /// by the lateness (it is due now; what follows keeps its recorded spacing from here).
+    pub fn wait_until_due(&mut self, t_ns: i64, stop: &std::sync::atomic::AtomicBool) -> bool {
+        let due = self.head.due(t_ns) + self.slip;
+        loop {
+            if stop.load(std::sync::atomic::Ordering::SeqCst) {
+                return false;
+            }
+            let now = self.head.started.elapsed();
+            if now >= due {
+                if now - due > SLIP_AFTER {
+                    self.slip += now - due;
+                    self.slips += 1;
+                }
+                return true;
+            }
+            std::thread::sleep((due - now).min(Duration::from_millis(100)));
+        }
+    }
+
+    /// How much later than the recorded pace the replay runs now, and how many times it slipped.
+    pub fn slipped(&self) -> (Duration, u64) {
+        (self.slip, self.slips)
+    }
+}
+
 /// One camera of a recording, played as captured.
 #[derive(Debug)]
 pub struct RecordingSession {
@@ -175,6 +229,29 @@ impl CaptureSession for RecordingSession {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_elastic_clock_slips_when_late_and_keeps_the_recorded_spacing_after() {
+        let ms = 1_000_000i64;
+        let head = Playhead::with_times([0, 20 * ms, 40 * ms, 60 * ms].into_iter(), false);
+        let mut clock = ElasticClock { head, slip: Duration::ZERO, slips: 0 };
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        assert!(clock.wait_until_due(0, &stop));
+        // The replay is held up 300 ms (a hand-over waited): the frame due at 20 ms is
+        // handed over at once, and the schedule slips by its lateness.
+        std::thread::sleep(Duration::from_millis(300));
+        assert!(clock.wait_until_due(20 * ms, &stop));
+        let (slip, slips) = clock.slipped();
+        assert_eq!(slips, 1);
+        assert!(slip >= Duration::from_millis(280), "{slip:?}");
+        // The next frame keeps its recorded 20 ms after the late one (handed over at 300 ms
+        // or later): waited for, not rushed to catch up with the schedule.
+        assert!(clock.wait_until_due(40 * ms, &stop));
+        let at = clock.head.started.elapsed();
+        assert!(at >= Duration::from_millis(320), "{at:?}");
+        stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        assert!(!clock.wait_until_due(60 * ms + 3_600_000 * ms, &stop), "a stop ends the wait");
+    }
 
     #[test]
     fn the_schedule_keeps_recorded_spacing_and_caps_long_pauses() {

@@ -104,6 +104,7 @@ impl LabTests {
             crack: None,
             preload: None,
             verification: self.verification_now(g),
+            frames_stopped: None,
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running {

@@ -172,7 +172,9 @@ impl LabTests {
         let Running { record, folder, feed, utm, .. } = r;
         let io = |what: &str, e: std::io::Error| TestError::Io(format!("{}: {what}: {e}", folder.display()));
         // The test's frames (`[output] record_tests`) written and closed before the hashes.
-        self.close_frames(&record.id);
+        if let Some(stopped) = self.close_frames(&record.id) {
+            record.frames_stopped.get_or_insert(stopped);
+        }
         // Every line held back (a full disk) written first; else the stop says so and keeps them.
         feed.flush_held().map_err(|e| io("feed.jsonl", e))?;
         utm.flush_held().map_err(|e| io("utm.jsonl", e))?;

@@ -6,11 +6,18 @@
 //! started by the first frame at or after the test's start and finished when the test's
 //! folder is completed, before its hashes are taken: `test.json` lists every frame file and
 //! `report verify` checks them. A test resumed after a restart records into `frames-2/`, ...
+//!
+//! The disk's reserve: before a frame goes to the recorder (at most every
+//! [`FREE_CHECK_EVERY`]) the free space under the test's folder is read; below the reserve
+//! (`[output] record_tests_reserve_mb`) the test's frames stop — said once in the log and in
+//! `test.json` (`frames_stopped`) — so the feeds and the test's lines keep their room.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use tagdeflect_core::frame::Frame;
+use tagdeflect_core::lab_test::FramesStopped;
 use tagdeflect_core::utm_sample::UtmSample;
 use tagdeflect_io::recording::{RecordingError, RecordingWriter};
 
@@ -29,13 +36,22 @@ pub struct FramesSetup {
     pub names: Vec<String>,
     /// The recorder's queue, frames.
     pub queue: usize,
+    /// The free space kept under the tests folder: below it the test's frames stop, bytes.
+    pub reserve_bytes: u64,
 }
+
+/// The free space is read at most this often (3 × 1080p at 30 fps: ~90 MB between reads).
+pub const FREE_CHECK_EVERY: Duration = Duration::from_secs(1);
 
 /// The recorder of the running test's frames.
 pub(super) struct ActiveFrames {
     id: String,
     /// None when the recording could not be started (said once).
     rec: Option<(Recorder, RecorderTx, PathBuf)>,
+    /// When the free space was read last.
+    checked: Option<Instant>,
+    /// Set when the reserve was reached: no frame is sent any more.
+    stopped: Option<FramesStopped>,
 }
 
 /// The frames' state of a daemon's tests.
@@ -86,8 +102,11 @@ impl LabTests {
             }
             *active = Some(Self::start_frames(setup, id, &folder));
         }
-        if let Some((_, tx, _)) = active.as_ref().and_then(|a| a.rec.as_ref()) {
-            tx.frame(f.clone());
+        let Some(a) = active.as_mut() else { return };
+        if a.within_reserve(f.t_ns, setup.reserve_bytes, &folder) {
+            if let Some((_, tx, _)) = &a.rec {
+                tx.frame(f.clone());
+            }
         }
     }
 
@@ -96,7 +115,9 @@ impl LabTests {
         if self.frames.setup.get().is_none() {
             return;
         }
-        if let Some((_, tx, _)) = self.frames.active.lock().expect("test frames").as_ref().and_then(|a| a.rec.as_ref()) {
+        if let Some((_, tx, _)) =
+            self.frames.active.lock().expect("test frames").as_ref().filter(|a| a.stopped.is_none()).and_then(|a| a.rec.as_ref())
+        {
             tx.utm(s.clone());
         }
     }
@@ -108,18 +129,19 @@ impl LabTests {
                 let rec = Recorder::start_with(writer, setup.names.clone(), setup.queue, crate::recorder::RETRY_MIN);
                 let tx = rec.sender();
                 tracing::info!(test = %id, folder = %dir.display(), "the test's frames are recorded");
-                ActiveFrames { id, rec: Some((rec, tx, dir)) }
+                ActiveFrames { id, rec: Some((rec, tx, dir)), checked: None, stopped: None }
             }
             Err(e) => {
                 tracing::error!(test = %id, "the test's frames cannot be recorded: {e}");
-                ActiveFrames { id, rec: None }
+                ActiveFrames { id, rec: None, checked: None, stopped: None }
             }
         }
     }
 
     /// Ends the recording of test `id`'s frames: what is queued is written and synced before
-    /// this returns (the folder's hashes are taken after it).
-    pub(super) fn close_frames(&self, id: &str) {
+    /// this returns (the folder's hashes are taken after it). Answers when the frames stopped
+    /// early (the disk's reserve).
+    pub(super) fn close_frames(&self, id: &str) -> Option<FramesStopped> {
         *self.frames.closed.lock().expect("test frames") = Some(id.to_string());
         let taken = {
             let mut active = self.frames.active.lock().expect("test frames");
@@ -129,9 +151,11 @@ impl LabTests {
                 None
             }
         };
+        let stopped = taken.as_ref().and_then(|a| a.stopped.clone());
         if let Some(a) = taken {
             Self::finish_frames(a);
         }
+        stopped
     }
 
     /// Ends the running test's recording (the daemon stops; a resumed test records anew).
@@ -143,6 +167,9 @@ impl LabTests {
     }
 
     fn finish_frames(a: ActiveFrames) {
+        if let Some(s) = &a.stopped {
+            tracing::info!(test = %a.id, folder = %s.folder, "the test's frames ended early at the disk's reserve (test.json: frames_stopped)");
+        }
         let Some((rec, tx, dir)) = a.rec else { return };
         drop(tx);
         let status = rec.status();
@@ -153,5 +180,35 @@ impl LabTests {
         } else {
             tracing::info!(test = %a.id, written, folder = %dir.display(), "the test's frames recorded");
         }
+    }
+}
+
+impl ActiveFrames {
+    /// True while the free space under `folder` is above `reserve` (read at most every
+    /// [`FREE_CHECK_EVERY`]); the first time it is not, the frames stop for good and it is said.
+    fn within_reserve(&mut self, t_ns: i64, reserve: u64, folder: &Path) -> bool {
+        if self.stopped.is_some() {
+            return false;
+        }
+        if self.checked.is_some_and(|t| t.elapsed() < FREE_CHECK_EVERY) {
+            return true;
+        }
+        self.checked = Some(Instant::now());
+        let free = match tagdeflect_core::disk::free_bytes(folder) {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::debug!(test = %self.id, "free space under {} not read: {e}", folder.display());
+                return true;
+            }
+        };
+        if free >= reserve {
+            return true;
+        }
+        let sub =
+            self.rec.as_ref().and_then(|(_, _, d)| d.file_name()).map_or_else(|| "frames".into(), |n| n.to_string_lossy().into_owned());
+        let (free_mb, reserve_mb) = (free as f64 / 1e6, reserve as f64 / 1e6);
+        tracing::warn!(test = %self.id, folder = %sub, free_mb, reserve_mb, "the test's frames stop: the disk under the tests folder is down to its reserve (its lines go on; free space for frames of the next tests)");
+        self.stopped = Some(FramesStopped { t_ns, folder: sub, free_mb, reserve_mb });
+        false
     }
 }
