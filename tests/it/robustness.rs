@@ -629,7 +629,7 @@ fn fuzz_regressions_replay_without_a_crash() {
 /// `TAGDEFLECT_FUZZ_SECS` seconds per target (default 10). Run with
 /// `cargo test --test it robustness::mutation_fuzz -- --ignored --nocapture`.
 #[test]
-#[ignore]
+#[ignore = "a timed fuzzer (TAGDEFLECT_FUZZ_SECS per target): run with --ignored --nocapture; its saved regressions run every time"]
 fn mutation_fuzz() {
     use rand::{Rng, SeedableRng};
     let secs: f64 = std::env::var("TAGDEFLECT_FUZZ_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10.0);
