@@ -5,9 +5,15 @@
 //! and imports them from here; the config never imports the simulator.
 
 use serde::{Deserialize, Serialize};
-use tagdeflect_core::Problem;
 
 mod check;
+mod defaults;
+mod phases;
+
+use defaults::{
+    is_default, is_default_bits, is_default_crack, is_default_drift_rot, is_default_drift_trans, is_default_drop, is_default_fill,
+    is_default_notch, is_default_notch_width, is_default_outage, is_default_softening,
+};
 
 /// Unix time of the first frame set of a simulated recording (2026-01-01T00:00:00Z), ns.
 pub const DEFAULT_START_NS: i64 = 1_767_225_600_000_000_000;
@@ -377,178 +383,6 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0, allow_hyphen_values = true))]
     #[serde(skip_serializing_if = "is_default")]
     pub utm_clock_offset_ms: f64,
-}
-
-fn is_default<T: Default + PartialEq>(v: &T) -> bool {
-    *v == T::default()
-}
-// Options added later are not written when at their defaults: a recording of the default rig
-// reads as it always did.
-fn is_default_drift_rot(v: &f64) -> bool {
-    *v == 0.05
-}
-fn is_default_drift_trans(v: &f64) -> bool {
-    *v == 0.3
-}
-fn is_default_fill(v: &f64) -> bool {
-    *v == 1.0
-}
-fn is_default_bits(v: &u32) -> bool {
-    *v == 8
-}
-fn is_default_outage(v: &f64) -> bool {
-    *v == 5.0
-}
-fn is_default_crack(v: &f64) -> bool {
-    *v == 0.3
-}
-fn is_default_drop(v: &f64) -> bool {
-    *v == 0.1
-}
-fn is_default_softening(v: &f64) -> bool {
-    *v == 0.5
-}
-fn is_default_notch(v: &f64) -> bool {
-    *v == 25.0
-}
-fn is_default_notch_width(v: &f64) -> bool {
-    *v == 3.0
-}
-
-impl SimParams {
-    /// The phases of a test loaded at rates (`rates`): `(mm/min, until mm)`, the last until
-    /// `max_deflection_mm`; empty for the ramp.
-    pub fn rate_phases(&self) -> Result<Vec<(f64, f64)>, Problem> {
-        let text = self.rates.trim();
-        if text.is_empty() {
-            return Ok(Vec::new());
-        }
-        let bad = |v: &str| Problem::new("rates", format!("{v:?}: expected RATE[:UNTIL_MM],… in mm/min and mm, positive, rising"));
-        let mut phases = Vec::new();
-        let mut last_until = 0.0;
-        let parts: Vec<&str> = text.split(',').collect();
-        for (k, part) in parts.iter().enumerate() {
-            let mut it = part.split(':').map(|v| v.trim().parse::<f64>().ok().filter(|x| x.is_finite() && *x > 0.0));
-            let rate = it.next().flatten().ok_or_else(|| bad(part))?;
-            let until = match it.next() {
-                Some(u) => u.ok_or_else(|| bad(part))?,
-                None if k + 1 == parts.len() => self.max_deflection_mm,
-                None => return Err(bad(part)),
-            };
-            if it.next().is_some() || until <= last_until {
-                return Err(bad(part));
-            }
-            last_until = until;
-            phases.push((rate, until.min(self.max_deflection_mm)));
-        }
-        Ok(phases)
-    }
-
-    /// The positions of a verification run (`verify_steps`), mm downward; empty for a test.
-    pub fn verify_positions_mm(&self) -> Result<Vec<f64>, Problem> {
-        let text = self.verify_steps.trim();
-        if text.is_empty() {
-            return Ok(Vec::new());
-        }
-        text.split(',')
-            .map(|v| {
-                v.trim().parse::<f64>().ok().filter(|p| p.is_finite()).ok_or_else(|| {
-                    Problem::new("verify_steps", format!("{v:?} is not a number: expected positions in mm, comma-separated"))
-                })
-            })
-            .collect()
-    }
-}
-
-impl Default for SimParams {
-    fn default() -> Self {
-        Self {
-            seed: 1,
-            cameras: 3,
-            width: 1280,
-            height: 960,
-            frame_sets: 40,
-            fps: 10.0,
-            noise_sigma: 2.0,
-            blur_sigma: 0.6,
-            motion_blur_every: 0,
-            motion_blur_px: 3.0,
-            post_blur_px: 0.0,
-            sharpen: 0.0,
-            bayer: false,
-            defocus_radius_px: 0.0,
-            astig_major_px: 0.0,
-            astig_minor_px: 0.0,
-            astig_angle_deg: 0.0,
-            fill_factor: 1.0,
-            jpeg_quality: None,
-            bit_depth: 8,
-            exposure: 1.0,
-            full_well_e: 0.0,
-            jitter_ms: 1.0,
-            drop_prob: 0.0,
-            bump_camera: None,
-            bump_at: 20,
-            bump_rot_deg: 0.3,
-            bump_trans_mm: 2.0,
-            drift_camera: None,
-            drift_rot_deg: 0.05,
-            drift_trans_mm: 0.3,
-            drift_start_set: 0,
-            drift_sets: 0,
-            hide_tag: None,
-            hide_background_tag: None,
-            hide_camera: 0,
-            hide_from: 10,
-            hide_count: 10,
-            k1: -0.05,
-            strong_distortion_camera: None,
-            strong_k1: -0.25,
-            max_deflection_mm: 6.0,
-            rest_frames: 3,
-            hold_frames: 0,
-            seat_frames: 0,
-            seat_mm: 0.0,
-            verify_steps: String::new(),
-            rates: String::new(),
-            verify_stage_half_width_mm: 0.0,
-            cyclic: false,
-            beam_length_mm: 550.0,
-            beam_height_mm: 150.0,
-            beam_width_mm: 150.0,
-            span_mm: 450.0,
-            load_span_mm: 150.0,
-            specimen_tags: 9,
-            specimen_tag_mm: 30.0,
-            background_tag_mm: 70.0,
-            utm_hz: 50.0,
-            utm_phase_ms: 7.0,
-            stiffness_kn_per_mm: 10.0,
-            compliance_mm_per_kn: 0.01,
-            shuffle: false,
-            start_ns: DEFAULT_START_NS,
-            subsamples: 8,
-            utm_outage_at_s: None,
-            utm_outage_s: 5.0,
-            test: SimTest::FourPoint,
-            load_law: LoadLaw::Elastic,
-            crack_deflection_mm: 0.3,
-            crack_drop: 0.1,
-            residual_ratio: None,
-            softening_mm: 0.5,
-            notch_mm: 25.0,
-            notch_width_mm: 3.0,
-            crack_tip_mm: None,
-            utm_clock_offset_ms: 0.0,
-        }
-    }
-}
-
-impl SimParams {
-    /// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
-    pub(crate) fn crack_tip_height(&self) -> f64 {
-        self.crack_tip_mm.unwrap_or(self.notch_mm + 0.6 * (self.beam_height_mm - self.notch_mm))
-    }
 }
 
 // The flags of `tagdeflect simulate` are these fields (derived with the `clap` feature,
