@@ -21,9 +21,11 @@
 //! parametric model.
 //!
 //! **Pixel classes.** Which class is fitted with its own profile (or its orientation's) is
-//! decided when the profile is first learned, in that frame (`refine::profile`,
-//! [`ClassChoice`]), and kept by every rebuild: a class changes its model never during a
-//! test, so it makes no step either (a class not ready then stays on its parent's profile).
+//! decided when the profile is first learned, in that frame, by which profile predicts the
+//! frame's held-out edges best (`refine::profile_classes`, [`ClassChoice`]), and kept by
+//! every rebuild: a class changes its model never during a test, so it makes no step either
+//! (a class not ready then stays on its parent's profile). The samples kept for the decision
+//! are dropped once it is made.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -177,6 +179,7 @@ impl CameraProfile {
         }
         tracing::debug!(choice = ?profile.choice(), "edge profile's pixel classes decided");
         self.choice = Some(profile.choice());
+        self.learner.decided();
         self.profile = Some(profile);
         (self.frames, self.next_build) = (0, 1);
     }

@@ -73,12 +73,13 @@ mod excess;
 mod fit;
 mod lm;
 mod profile;
+mod profile_classes;
 mod profile_fit;
 
 use band::{select_band, EdgeBand, TagBands};
 pub use excess::{widening, widening_switch, ModelExcess, FLAT_SLOPE, RHO2_TOLERANCE};
 use fit::{fit_band, Line};
-pub use profile::{ClassChoice, ClassUse, EdgeProfile, ProfileLearner, CLASS_CHI2_SIGMAS};
+pub use profile::{ClassChoice, ClassUse, EdgeProfile, ProfileLearner};
 use profile_fit::fit_band_profile;
 
 /// The blur σ (pixels) an edge's fit starts from when no earlier fit of it is known.

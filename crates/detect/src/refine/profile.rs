@@ -21,16 +21,16 @@
 //!
 //! **Pixel classes.** Samples are also accumulated per [class](CLASSES) (the edge's
 //! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
-//! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it), and a
-//! class with samples enough *and a profile that differs from its parent's beyond its own
-//! sampling noise* is fitted with its own profile, the others with their parent's: the
-//! orientation's profile (itself used only where it differs from the pooled one so), else
-//! the pooled one ([`ClassChoice`], decided when the profile is first learned and kept).
-//! How pixels are classed is [`class_mode`]'s.
+//! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it). Which
+//! class is fitted with its own profile, its orientation's or the pooled one is decided
+//! where it pays — by which predicts held-out edges best ([`super::profile_classes`]) —
+//! when the profile is first learned, and kept ([`ClassChoice`]).
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
-use nalgebra::{Matrix3, Vector2, Vector3};
+pub(super) use super::profile_classes::pixel_class;
+use super::profile_classes::{class_mode, Samples};
+pub use super::profile_classes::{ClassChoice, ClassUse, CLASSES};
 use tagdeflect_core::frame::GrayImage;
 
 /// Spacing of the profile's nodes, pixels.
@@ -39,23 +39,12 @@ pub const NODE_PX: f64 = 0.125;
 pub const RANGE_PX: f64 = 3.0;
 /// Half width of the window (pixels) whose line-spread centroid defines the edge.
 pub const CENTRE_HALF_WIDTH_PX: f64 = 1.25;
-const NODES: usize = (2.0 * RANGE_PX / NODE_PX) as usize + 1;
+pub(super) const NODES: usize = (2.0 * RANGE_PX / NODE_PX) as usize + 1;
 /// A node is known once its samples' tent weights reach this.
-const MIN_NODE_WEIGHT: f64 = 20.0;
+pub(super) const MIN_NODE_WEIGHT: f64 = 20.0;
 /// A pixel class's node is known once its samples' tent weights reach this (a class has an
 /// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
-const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
-/// A class (or an orientation's) profile is used in place of its parent's only when its node
-/// means differ in shape from the parent's profile by a χ² (over their standard errors
-/// counting edges, see `Nodes::differs`) above its degrees of freedom `ν` by this many of its
-/// standard deviations `√(2ν)` (4: a class of the parent's profile passes by chance about once
-/// in ten thousand decisions for Gaussian node errors; adjacent nodes share samples and the
-/// standard errors are themselves estimated from a few edges, which widens χ²'s spread,
-/// still leaving it below one in a hundred).
-pub const CLASS_CHI2_SIGMAS: f64 = 4.0;
-/// A node enters the class decision once this many edges reached it (its standard error
-/// counts edges, [`Nodes::mean_var`]).
-const MIN_NODE_EDGES: f64 = 5.0;
+pub(super) const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
@@ -85,21 +74,6 @@ pub struct EdgeProfile {
     /// Edges whose samples built it.
     edges: u64,
 }
-
-/// Which profile a pixel class is fitted with.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum ClassUse {
-    /// The camera's pooled profile.
-    #[default]
-    Pooled,
-    /// The profile of the class's edge orientation (both parities of both axes).
-    Orientation,
-    /// The class's own profile.
-    Own,
-}
-
-/// Each pixel class's [`ClassUse`] (index: the class, see [`CLASSES`]).
-pub type ClassChoice = [ClassUse; CLASSES];
 
 impl EdgeProfile {
     /// A profile tabulated from `f` (e.g. a model ESF; tests and comparisons), the same for
@@ -153,7 +127,7 @@ impl EdgeProfile {
 
 /// `P(d)` and `dP/dd` of the tabulated `values` (Catmull–Rom between nodes, constant beyond).
 #[inline(always)]
-fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
+pub(super) fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
     let u = (d + RANGE_PX) / NODE_PX;
     if !(u > 0.0) {
         return (v[0], 0.0);
@@ -206,95 +180,20 @@ fn centroid_px(values: &[f64]) -> f64 {
 }
 
 /// The distance of node `k` from the edge, pixels.
-fn node_d(k: usize) -> f64 {
+pub(super) fn node_d(k: usize) -> f64 {
     -RANGE_PX + k as f64 * NODE_PX
 }
 
-/// Pixel classes with a profile each: the edge's orientation (its normal nearer the image's
-/// x or y axis) × the pixel's place in a 2 × 2 mosaic (column and row parity). An astigmatic
-/// blur spreads a near-vertical edge differently from a near-horizontal one, and a colour
-/// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
-pub const CLASSES: usize = 8;
-
-/// How pixels are classed: 0 (the default) one pooled profile, 1 by edge orientation, 2 by
-/// orientation and mosaic parity (both: every class with samples enough uses its own
-/// profile), 3 by orientation and parity, each class using its own profile only where it
-/// differs from its parent's beyond its sampling noise ([`CLASS_CHI2_SIGMAS`]). Measured on
-/// the formations' scenes (docs/accuracy.md, "A class only where it pays"): every class used
-/// (modes 1, 2) costs the scenes one profile describes (the sharp scene 0.0033 → 0.0051 mm);
-/// the decision (mode 3) keeps the sharp scene's 0.0033 mm and takes the Bayer mosaic's gain
-/// (0.0242 → 0.0099 mm) but still takes classes on the sharpened scene (0.0064 → 0.0098 mm
-/// with its standard errors counting edges; 0.0102 counting pixels) and a little on the fill
-/// factor's (0.0058 → 0.0062 mm; 0.0074): a class there differs from its parent beyond its
-/// sampling noise yet does not pay, so it is not the default. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`,
-/// `parity`) chooses a mode for a measurement.
-fn class_mode() -> u8 {
-    static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
-    *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
-        Ok("auto") => 3,
-        Ok("orientation") => 1,
-        Ok("parity") => 2,
-        _ => 0,
-    })
-}
-
-/// The [class](CLASSES) of the pixel at `index` of an image `width` pixels wide on an edge of
-/// outward `normal` (ideal pixels; their axes are the image's); [`CLASSES`] when pixels are
-/// not classed (see [`class_mode`]).
-#[inline]
-pub(super) fn pixel_class(normal: &Vector2<f64>, index: usize, width: u32) -> usize {
-    class_in_mode(class_mode(), normal, index, width)
-}
-
-/// [`pixel_class`] in classing mode `mode`.
-fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> usize {
-    let orient = usize::from(normal.y.abs() > normal.x.abs());
-    match mode {
-        0 => CLASSES,
-        1 => 4 * orient,
-        _ => {
-            let w = width.max(1) as usize;
-            4 * orient + (index % w) % 2 + 2 * ((index / w) % 2)
-        }
-    }
-}
-
-/// Tent-weighted sums of profile samples on the nodes: weights, values, squared values and
-/// squared weights (a node mean's standard error counting pixels); and, per node, the sums
-/// over edges of each edge's own sums there (a node mean's standard error counting edges,
-/// [`Nodes::mean_var`]).
+/// Tent-weighted sums of profile samples on the nodes: weights and values.
 #[derive(Debug, Clone)]
-struct Nodes {
+pub(super) struct Nodes {
     weight: Vec<f64>,
     sum: Vec<f64>,
-    sum_sq: Vec<f64>,
-    weight_sq: Vec<f64>,
-    /// Over the closed edges `e`, with `S_e`, `W_e` edge `e`'s sums of `w·v` and `w` at the
-    /// node: `Σ S_e²`, `Σ S_e W_e`, `Σ W_e²` and the number of edges.
-    edge_ss: Vec<f64>,
-    edge_sw: Vec<f64>,
-    edge_ww: Vec<f64>,
-    edges: Vec<f64>,
-    /// The open edge's `S_e` and `W_e` at each node.
-    open_s: Vec<f64>,
-    open_w: Vec<f64>,
 }
 
 impl Default for Nodes {
     fn default() -> Self {
-        let zeros = || vec![0.0; NODES];
-        Self {
-            weight: zeros(),
-            sum: zeros(),
-            sum_sq: zeros(),
-            weight_sq: zeros(),
-            edge_ss: zeros(),
-            edge_sw: zeros(),
-            edge_ww: zeros(),
-            edges: zeros(),
-            open_s: zeros(),
-            open_w: zeros(),
-        }
+        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES] }
     }
 }
 
@@ -304,111 +203,27 @@ impl Nodes {
         (self.weight[k] >= min_weight).then(|| self.sum[k] / self.weight[k])
     }
 
-    /// Adds value `v` at node coordinate `x` (0 ≤ x < NODES − 1) with tent weights; to the
-    /// open edge's sums too when `EDGES` (the class decision's, [`Nodes::mean_var`]).
-    fn add<const EDGES: bool>(&mut self, x: f64, v: f64) {
+    /// Adds value `v` at node coordinate `x` (0 ≤ x < NODES − 1) with tent weights.
+    pub(super) fn add(&mut self, x: f64, v: f64) {
         let k = x as usize;
         let f = x - k as f64;
         for (node, w) in [(k, 1.0 - f), (k + 1, f)] {
             self.weight[node] += w;
             self.sum[node] += w * v;
-            self.sum_sq[node] += w * v * v;
-            self.weight_sq[node] += w * w;
-            if EDGES {
-                self.open_s[node] += w * v;
-                self.open_w[node] += w;
-            }
         }
         if self.weight[k].max(self.weight[k + 1]) > MAX_NODE_WEIGHT {
-            // Halving keeps every mean and the effective sample counts' ratios.
-            for x in [&mut self.weight, &mut self.sum, &mut self.sum_sq, &mut self.open_s, &mut self.open_w] {
+            // Halving keeps every mean.
+            for x in [&mut self.weight, &mut self.sum] {
                 x.iter_mut().for_each(|w| *w *= 0.5);
             }
-            for x in [&mut self.weight_sq, &mut self.edge_ss, &mut self.edge_sw, &mut self.edge_ww] {
-                x.iter_mut().for_each(|w| *w *= 0.25);
-            }
         }
-    }
-
-    /// Closes the open edge: its sums at each node it reached join the per-edge sums.
-    fn close_edge(&mut self) {
-        for k in 0..NODES {
-            let (s, w) = (self.open_s[k], self.open_w[k]);
-            if w > 0.0 {
-                self.edge_ss[k] += s * s;
-                self.edge_sw[k] += s * w;
-                self.edge_ww[k] += w * w;
-                self.edges[k] += 1.0;
-                (self.open_s[k], self.open_w[k]) = (0.0, 0.0);
-            }
-        }
-    }
-
-    /// The squared standard error of node `k`'s mean with **each edge one sample** (the
-    /// pixels of one edge share its fitted distance, levels and phase, so their errors at a
-    /// node are not independent): the spread of the edges' own sums about the mean, the
-    /// cluster (sandwich) estimate `G/(G − 1) · Σ_e (S_e − m W_e)² / W²` over the `G` edges
-    /// that reached the node. Never below the pixel-count estimate (the samples' weighted
-    /// variance over their effective count `(Σw)²/Σw²`), which bounds it where few edges make
-    /// the spread itself uncertain. `None` when fewer than [`MIN_NODE_EDGES`] edges reached
-    /// the node: its mean's error is not known.
-    fn mean_var(&self, k: usize) -> Option<f64> {
-        let (w, g) = (self.weight[k], self.edges[k]);
-        if g < MIN_NODE_EDGES || !(w > 0.0) {
-            return None;
-        }
-        let mean = self.sum[k] / w;
-        let pixels = (self.sum_sq[k] / w - mean * mean).max(0.0) * self.weight_sq[k] / (w * w);
-        let spread = (self.edge_ss[k] - 2.0 * mean * self.edge_sw[k] + mean * mean * self.edge_ww[k]).max(0.0);
-        let edges = g / (g - 1.0) * spread / (w * w);
-        Some(edges.max(pixels))
-    }
-
-    /// Whether these samples' profile differs in shape from `parent` beyond its sampling
-    /// noise: their node means `m_k` (nodes from 2.5 px inside the edge to
-    /// [`CENTRE_HALF_WIDTH_PX`] outside it with `min_weight`) fitted as
-    /// `a + b · P(d_k) + c · P′(d_k)` (`P` the parent) by weighted least squares (weights the
-    /// inverse squared standard errors counting edges, [`Nodes::mean_var`], at least 10⁻⁴ of
-    /// the contrast; nodes reached by fewer than [`MIN_NODE_EDGES`] edges left out), and
-    /// `χ² > ν + CLASS_CHI2_SIGMAS · √(2ν)` with `ν = n − 3`. The level, scale and shift are
-    /// left out because each class's profile is pinned to 0 and 1 and centred on its own
-    /// line-spread centroid: they are never a class's difference, and their estimates' noise
-    /// (one white node sets the scale) would otherwise count as one.
-    fn differs(&self, parent: &[f64], min_weight: f64) -> bool {
-        self.shape_chi2(parent, min_weight).is_some_and(|(chi2, nu)| chi2 > nu + CLASS_CHI2_SIGMAS * (2.0 * nu).sqrt())
-    }
-
-    /// The χ² of [`Nodes::differs`] and its degrees of freedom `ν`, when `ν ≥ 3`.
-    fn shape_chi2(&self, parent: &[f64], min_weight: f64) -> Option<(f64, f64)> {
-        let rows: Vec<(Vector3<f64>, f64, f64)> = tested_nodes()
-            .filter(|&k| self.weight[k] >= min_weight)
-            .filter_map(|k| {
-                let (p, slope) = interpolate(parent, node_d(k));
-                let (var, edges) = (self.mean_var(k)?.max(1e-8), self.edges[k]);
-                // 1/var from G edges' spread is biased high by (G − 1)/(G − 3) (the inverse of
-                // a χ²_{G−1} variate's mean): corrected, so that χ² has its expected mean ν.
-                Some((Vector3::new(1.0, p, slope), self.sum[k] / self.weight[k], (edges - 3.0) / (edges - 1.0) / var))
-            })
-            .collect();
-        let nu = rows.len() as f64 - 3.0;
-        if nu < 3.0 {
-            return None;
-        }
-        let (mut ata, mut atb) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
-        for (x, y, w) in &rows {
-            ata += (*w * x) * x.transpose();
-            atb += (*w * *y) * x;
-        }
-        let beta = ata.try_inverse()? * atb;
-        let chi2: f64 = rows.iter().map(|(x, y, w)| w * (y - x.dot(&beta)).powi(2)).sum();
-        Some((chi2, nu))
     }
 
     /// The profile of these samples (see the module docs) — its black side pinned to 0, its
     /// white end to 1, re-centred on its line-spread centroid — or `None` while a node from
     /// 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`] outside it has less than
     /// `min_weight`.
-    fn curve(&self, min_weight: f64) -> Option<Vec<f64>> {
+    pub(super) fn curve(&self, min_weight: f64) -> Option<Vec<f64>> {
         let known = |k: usize| self.weight[k] >= min_weight;
         let centre = (RANGE_PX / NODE_PX) as usize;
         let (first, need_last) = (*tested_nodes().start(), *tested_nodes().end());
@@ -435,7 +250,7 @@ impl Nodes {
 
 /// The nodes a profile needs (from 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`]
 /// outside it), on which a class is tested against its parent.
-fn tested_nodes() -> std::ops::RangeInclusive<usize> {
+pub(super) fn tested_nodes() -> std::ops::RangeInclusive<usize> {
     let centre = (RANGE_PX / NODE_PX) as usize;
     centre - (2.5 / NODE_PX) as usize..=centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize
 }
@@ -446,15 +261,22 @@ fn tested_nodes() -> std::ops::RangeInclusive<usize> {
 pub struct ProfileLearner {
     pooled: Nodes,
     classes: Vec<Nodes>,
-    /// Per edge orientation, its four classes' samples together (the per-edge sums of a
-    /// group cannot be merged from its classes').
+    /// Per edge orientation, its four classes' samples together.
     orientations: Vec<Nodes>,
+    /// The classed samples kept for the class decision (until [`ProfileLearner::decided`]).
+    samples: Samples,
     edges: u64,
 }
 
 impl Default for ProfileLearner {
     fn default() -> Self {
-        Self { pooled: Nodes::default(), classes: vec![Nodes::default(); CLASSES], orientations: vec![Nodes::default(); 2], edges: 0 }
+        Self {
+            pooled: Nodes::default(),
+            classes: vec![Nodes::default(); CLASSES],
+            orientations: vec![Nodes::default(); 2],
+            samples: Samples::default(),
+            edges: 0,
+        }
     }
 }
 
@@ -467,6 +289,12 @@ impl ProfileLearner {
     /// Forgets every sample.
     pub fn clear(&mut self) {
         *self = Self::default();
+    }
+
+    /// The class decision is made and kept: the samples kept for it are dropped, and no
+    /// more are kept.
+    pub fn decided(&mut self) {
+        self.samples.finish();
     }
 
     /// Adds the samples of a tag's last fit (`memory`: its bands and fitted lines) in `image`.
@@ -502,16 +330,15 @@ impl ProfileLearner {
         self.close_edge();
     }
 
-    /// Ends an edge's samples: what follows is another edge's (see [`Nodes::mean_var`]).
-    fn close_edge(&mut self) {
-        for n in self.classes.iter_mut().chain(self.orientations.iter_mut()) {
-            n.close_edge();
-        }
+    /// Ends an edge's samples: what follows is another edge's (the class decision scores
+    /// edges).
+    pub(super) fn close_edge(&mut self) {
+        self.samples.close_edge();
     }
 
     /// Adds one sample `(d, v)` of a pixel of class `class` (unweighted: the band's tapers
     /// keep the fit continuous; every pixel's value is as good a sample of the profile).
-    fn add_sample(&mut self, class: usize, d: f64, v: f64) {
+    pub(super) fn add_sample(&mut self, class: usize, d: f64, v: f64) {
         let x = (d + RANGE_PX) / NODE_PX;
         if !(x >= 0.0 && x < (NODES - 1) as f64) {
             return;
@@ -520,10 +347,11 @@ impl ProfileLearner {
         if self.pooled.mean(near, MIN_NODE_WEIGHT).is_some_and(|m| (v - m).abs() > MAX_DEVIATION) {
             return;
         }
-        self.pooled.add::<false>(x, v);
+        self.pooled.add(x, v);
         if let Some(nodes) = self.classes.get_mut(class) {
-            nodes.add::<true>(x, v);
-            self.orientations[class / 4].add::<true>(x, v);
+            nodes.add(x, v);
+            self.orientations[class / 4].add(x, v);
+            self.samples.push(class, d, v);
         }
     }
 
@@ -540,7 +368,7 @@ impl ProfileLearner {
     }
 
     /// [`ProfileLearner::build`] in classing mode `mode`.
-    fn build_in(&self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
+    pub(super) fn build_in(&self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
         if self.edges < MIN_EDGES {
             return None;
         }
@@ -555,56 +383,44 @@ impl ProfileLearner {
                 let choice = std::array::from_fn(|c| if own[c].is_some() { ClassUse::Own } else { ClassUse::Pooled });
                 (own, choice)
             }
-            _ => self.decided_classes(&values, own, keep),
+            _ => self.decided_classes(own, keep),
         };
         Some(EdgeProfile { values, classes, choice, edges: self.edges })
     }
 
-    /// Each class's profile where it differs from its parent's beyond its sampling noise
-    /// ([`Nodes::differs`]): an orientation's profile against the pooled one, a class's own
-    /// against its orientation's where that is used, else against the pooled one; or as
-    /// `keep` says.
-    fn decided_classes(
-        &self,
-        pooled: &[f64],
-        own: Vec<Option<Vec<f64>>>,
-        keep: Option<&ClassChoice>,
-    ) -> (Vec<Option<Vec<f64>>>, ClassChoice) {
+    /// Each class's profile as decided where it pays ([`Samples::decide`]), or as `keep`
+    /// says: its own, else (not built, or the decision's) its orientation's, else the pooled
+    /// one; with the choice as applied.
+    fn decided_classes(&self, own: Vec<Option<Vec<f64>>>, keep: Option<&ClassChoice>) -> (Vec<Option<Vec<f64>>>, ClassChoice) {
+        let wanted = keep.copied().unwrap_or_else(|| self.samples.decide());
+        let oriented: Vec<Option<Vec<f64>>> = self.orientations.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect();
         let mut classes = vec![None; CLASSES];
         let mut choice = ClassChoice::default();
-        for o in 0..2 {
-            let group = &self.orientations[o];
-            let oriented = group.curve(MIN_CLASS_NODE_WEIGHT);
-            let use_oriented = match (keep, &oriented) {
-                (Some(k), Some(_)) => k[4 * o..4 * o + 4].contains(&ClassUse::Orientation),
-                (None, Some(_)) => group.differs(pooled, MIN_CLASS_NODE_WEIGHT),
-                (_, None) => false,
+        for c in 0..CLASSES {
+            let oriented = &oriented[c / 4];
+            (classes[c], choice[c]) = match wanted[c] {
+                ClassUse::Own if own[c].is_some() => (own[c].clone(), ClassUse::Own),
+                ClassUse::Own | ClassUse::Orientation if oriented.is_some() => (oriented.clone(), ClassUse::Orientation),
+                _ => (None, ClassUse::Pooled),
             };
-            let parent = if use_oriented { oriented.as_deref().unwrap_or(pooled) } else { pooled };
-            for c in 4 * o..4 * o + 4 {
-                let own_used = match (keep, &own[c]) {
-                    (Some(k), Some(_)) => k[c] == ClassUse::Own,
-                    (None, Some(_)) => self.classes[c].differs(parent, MIN_CLASS_NODE_WEIGHT),
-                    (_, None) => false,
-                };
-                (classes[c], choice[c]) = if own_used {
-                    (own[c].clone(), ClassUse::Own)
-                } else if use_oriented {
-                    (oriented.clone(), ClassUse::Orientation)
-                } else {
-                    (None, ClassUse::Pooled)
-                };
-            }
         }
         (classes, choice)
+    }
+
+    /// Marks the samples as enough for a profile (tests that add samples, not edges).
+    #[cfg(test)]
+    pub(super) fn set_edges_for_tests(&mut self) {
+        self.edges = MIN_EDGES;
     }
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
+    use super::super::profile_classes::class_in_mode;
     use super::*;
+    use nalgebra::Vector2;
 
-    fn gaussian_esf(sigma: f64, shift: f64) -> impl Fn(f64) -> f64 {
+    pub(crate) fn gaussian_esf(sigma: f64, shift: f64) -> impl Fn(f64) -> f64 {
         move |d: f64| 0.5 * (1.0 + libm_erf((d - shift) / (sigma * std::f64::consts::SQRT_2)))
     }
 
@@ -677,7 +493,7 @@ mod tests {
     }
 
     /// A uniform number in [0, 1) from a xorshift state.
-    fn uniform(seed: &mut u64) -> f64 {
+    pub(crate) fn uniform(seed: &mut u64) -> f64 {
         *seed ^= *seed << 13;
         *seed ^= *seed >> 7;
         *seed ^= *seed << 17;
@@ -685,110 +501,7 @@ mod tests {
     }
 
     /// A standard normal number (Box–Muller).
-    fn gauss(seed: &mut u64) -> f64 {
+    pub(crate) fn gauss(seed: &mut u64) -> f64 {
         (-2.0 * uniform(seed).max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * uniform(seed)).cos()
-    }
-
-    /// `n` samples a class of `esf` with Gaussian noise of σ `noise` (a fixed pseudo-random
-    /// sequence), at phases spread over the profile, 25 samples an edge.
-    fn noisy_samples(learner: &mut ProfileLearner, class: usize, esf: &dyn Fn(f64) -> f64, n: usize, noise: f64, seed: &mut u64) {
-        for i in 0..n {
-            let d = -2.99 + 5.98 * uniform(seed);
-            learner.add_sample(class, d, esf(d) + noise * gauss(seed));
-            if i % 25 == 24 {
-                learner.close_edge();
-            }
-        }
-        learner.close_edge();
-    }
-
-    /// `edges` edges' samples of `esf` as a pixel class sees a near-axis-aligned edge: every
-    /// other column (distances `φ + 2j`, `φ` the edge's phase), 12 pixels at each (the rows),
-    /// and what one edge's fit shares among its pixels — its distance off by `offset_px`
-    /// (RMS) and its contrast by 1 % — besides each pixel's noise `noise`.
-    fn edge_samples(
-        learner: &mut ProfileLearner,
-        class: usize,
-        esf: &dyn Fn(f64) -> f64,
-        edges: usize,
-        offset_px: f64,
-        noise: f64,
-        seed: &mut u64,
-    ) {
-        for _ in 0..edges {
-            let (phase, delta, scale) = (2.0 * uniform(seed), offset_px * gauss(seed), 1.0 + 0.01 * gauss(seed));
-            for k in 0..3 {
-                let d = -2.99 + phase + 2.0 * k as f64;
-                for _ in 0..12 {
-                    learner.add_sample(class, d, scale * esf(d + delta) + noise * gauss(seed));
-                }
-            }
-            learner.close_edge();
-        }
-    }
-
-    #[test]
-    fn a_class_is_taken_for_a_shape_difference_not_for_its_edges_shared_errors() {
-        // 100 edges a class (a camera seeing 25 tags, or a few frames of one seeing ten), each edge's pixels
-        // sharing its distance error (0.03 px RMS) and contrast error (1 %), pixel noise 1.5 %
-        // of the contrast. Counted as independent pixels these errors looked like a shape.
-        let learn = |sigma_of: &dyn Fn(usize) -> f64| {
-            let mut learner = ProfileLearner::default();
-            let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
-            for c in 0..CLASSES {
-                edge_samples(&mut learner, c, &gaussian_esf(sigma_of(c), 0.0), 100, 0.03, 0.015, &mut seed);
-            }
-            learner.edges = MIN_EDGES;
-            learner
-        };
-        let same = learn(&|_| 0.6).build_in(3, None).expect("enough samples");
-        assert_eq!(same.choice(), [ClassUse::Pooled; CLASSES], "one profile with shared per-edge errors");
-        // A real shape difference under the same errors: one parity of each orientation blurred
-        // more (a mosaic), and the orientations differing (an astigmatic blur).
-        let mosaic = learn(&|c| if c % 2 == 1 { 0.8 } else { 0.5 }).build_in(3, None).expect("enough samples");
-        assert_eq!(mosaic.choice(), [ClassUse::Own; CLASSES], "each parity differs from the pooled mix");
-        let astig = learn(&|c| if c < 4 { 0.5 } else { 0.8 }).build_in(3, None).expect("enough samples");
-        assert_eq!(astig.choice(), [ClassUse::Orientation; CLASSES]);
-    }
-
-    #[test]
-    fn a_class_is_used_only_where_it_differs_from_its_parent_beyond_its_sampling_noise() {
-        // ~12 samples a node per class (the first frame of a camera seeing ten tags), noise
-        // 0.015 of the contrast (σ 2 grey levels on a contrast of 130).
-        let (n, noise) = (600, 0.015);
-        let (sharp, wide) = (gaussian_esf(0.5, 0.0), gaussian_esf(0.8, 0.0));
-        let learn = |esf_of: &dyn Fn(usize) -> f64| {
-            let mut learner = ProfileLearner::default();
-            let mut seed = 0x2545_f491_4f6c_dd1d_u64;
-            for c in 0..CLASSES {
-                let sigma = esf_of(c);
-                noisy_samples(&mut learner, c, &gaussian_esf(sigma, 0.0), n, noise, &mut seed);
-            }
-            learner.edges = MIN_EDGES;
-            learner
-        };
-        // One profile everywhere: every class keeps the pooled one (its own would only add
-        // its sampling noise).
-        let same = learn(&|_| 0.6).build_in(3, None).expect("enough samples");
-        assert_eq!(same.choice(), [ClassUse::Pooled; CLASSES]);
-        assert_eq!(same.own_classes(), 0);
-        // An astigmatic blur: the two orientations differ, the parities do not.
-        let astig = learn(&|c| if c < 4 { 0.5 } else { 0.8 });
-        let p = astig.build_in(3, None).expect("enough samples");
-        assert_eq!(p.choice(), [ClassUse::Orientation; CLASSES]);
-        for d in [-0.6, -0.2, 0.3] {
-            assert!((p.class_value_slope(1, d).0 - sharp(d)).abs() < 0.01, "orientation 0 at {d}");
-            assert!((p.class_value_slope(6, d).0 - wide(d)).abs() < 0.01, "orientation 1 at {d}");
-        }
-        // A mosaic: one parity of each orientation differs.
-        let mosaic = learn(&|c| if c % 2 == 1 { 0.8 } else { 0.5 }).build_in(3, None).expect("enough samples");
-        assert_eq!(mosaic.choice(), [ClassUse::Own; CLASSES], "each parity differs from the pooled mix");
-        // A decision made earlier is kept by a rebuild, whatever the samples say now.
-        let kept = astig.build_in(3, Some(&[ClassUse::Pooled; CLASSES])).expect("enough samples");
-        assert_eq!(kept.choice(), [ClassUse::Pooled; CLASSES]);
-        assert_eq!(kept.class_value_slope(6, 0.3), kept.value_slope(0.3));
-        // Pooled mode never classes; the forced modes use every class with samples enough.
-        assert_eq!(astig.build_in(0, None).unwrap().own_classes(), 0);
-        assert_eq!(astig.build_in(2, None).unwrap().choice(), [ClassUse::Own; CLASSES]);
     }
 }

@@ -1,0 +1,331 @@
+//! Pixel classes of the learned edge profile ([`super::profile`]) and the decision which
+//! class is fitted with which profile: **where it pays**, judged by cross-validation over
+//! the edges.
+//!
+//! A class's own profile removes the bias its real difference from the pooled profile gives
+//! (a colour mosaic's sites, an astigmatic blur's orientations) but adds its own sampling
+//! noise to every edge it fits, and the noise of a profile learned from a few frames' edges
+//! is a bias that moves with each edge's phase. Whether a class *differs* from its parent
+//! beyond its sampling noise (a significance test) does not say which of the two is larger:
+//! a sharpened edge's classes differed so, yet fitting with them cost 1.5× on that scene.
+//! So the decision asks which profile *predicts the edges it was not learned from* best:
+//! - the samples of the first frame's edges are kept ([`Sample`]) and split by edge into two
+//!   halves (alternate edges);
+//! - on each half every candidate is learned (per edge orientation: the pooled profile, the
+//!   orientation's profile, the classes' own profiles) and scored on the other half's edges:
+//!   each edge's samples fitted as `a + b · P(d) + c · P′(d)` with the candidate's `P` for
+//!   each pixel's class — its levels and a shift refitted, as the edge fit does — and the
+//!   residual sum of squares kept per edge;
+//! - the candidate taken is the simplest (pooled, then orientation, then own) whose held-out
+//!   sum exceeds the best's by at most one standard error of that difference (the spread of
+//!   the per-edge differences: the "one standard error rule" of cross-validation, Breiman
+//!   et al. 1984, *Classification and Regression Trees*, §3.4.3): a profile must predict
+//!   better than its simpler parent's by more than chance to be used.
+//!
+//! A half's profiles are learned from half the samples, so they are noisier than the ones
+//! used for the test: the decision leans to the simpler profile, which is the safe side.
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+
+use super::profile::{interpolate, node_d, tested_nodes, Nodes, MIN_CLASS_NODE_WEIGHT, MIN_NODE_WEIGHT, NODES, NODE_PX, RANGE_PX};
+
+/// Pixel classes with a profile each: the edge's orientation (its normal nearer the image's
+/// x or y axis) × the pixel's place in a 2 × 2 mosaic (column and row parity). An astigmatic
+/// blur spreads a near-vertical edge differently from a near-horizontal one, and a colour
+/// sensor's demosaic interpolates each of the mosaic's four pixels from different neighbours.
+pub const CLASSES: usize = 8;
+
+/// Samples kept for the decision, at most (a camera's first frames; ~2 MB).
+const MAX_SAMPLES: usize = 120_000;
+/// Edges each orientation's held-out scores need before a class can be chosen.
+const MIN_SCORED_EDGES: usize = 8;
+/// Samples of an edge (within the profile's tested nodes) needed to score it.
+const MIN_EDGE_SAMPLES: usize = 8;
+
+/// Which profile a pixel class is fitted with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ClassUse {
+    /// The camera's pooled profile.
+    #[default]
+    Pooled,
+    /// The profile of the class's edge orientation (both parities of both axes).
+    Orientation,
+    /// The class's own profile.
+    Own,
+}
+
+/// Each pixel class's [`ClassUse`] (index: the class, see [`CLASSES`]).
+pub type ClassChoice = [ClassUse; CLASSES];
+
+/// How pixels are classed: 0 one pooled profile, 1 by edge orientation, 2 by orientation and
+/// mosaic parity (both: every class with samples enough uses its own profile), 3 (the
+/// default) by orientation and parity, each orientation's classes using the profile that
+/// predicts held-out edges best (the module docs). Measured on the formations' scenes
+/// (docs/accuracy.md, "A class where it pays"). `TAGDEFLECT_PROFILE_CLASSES` (`off`,
+/// `orientation`, `parity`, `auto`) chooses a mode for a measurement.
+pub(super) fn class_mode() -> u8 {
+    static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
+    *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
+        Ok("off") => 0,
+        Ok("orientation") => 1,
+        Ok("parity") => 2,
+        _ => 3,
+    })
+}
+
+/// The [class](CLASSES) of the pixel at `index` of an image `width` pixels wide on an edge of
+/// outward `normal` (ideal pixels; their axes are the image's); [`CLASSES`] when pixels are
+/// not classed (see [`class_mode`]).
+#[inline]
+pub(super) fn pixel_class(normal: &Vector2<f64>, index: usize, width: u32) -> usize {
+    class_in_mode(class_mode(), normal, index, width)
+}
+
+/// [`pixel_class`] in classing mode `mode`.
+pub(super) fn class_in_mode(mode: u8, normal: &Vector2<f64>, index: usize, width: u32) -> usize {
+    let orient = usize::from(normal.y.abs() > normal.x.abs());
+    match mode {
+        0 => CLASSES,
+        1 => 4 * orient,
+        _ => {
+            let w = width.max(1) as usize;
+            4 * orient + (index % w) % 2 + 2 * ((index / w) % 2)
+        }
+    }
+}
+
+/// One classed profile sample kept for the decision: its edge (a running count), its pixel's
+/// class, its distance from the fitted edge (pixels) and its normalised value.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Sample {
+    edge: u32,
+    class: u8,
+    d: f32,
+    v: f32,
+}
+
+/// The samples kept for the decision (see the module docs), edge by edge.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Samples {
+    kept: Vec<Sample>,
+    /// The edge the next samples belong to.
+    edge: u32,
+    /// No more samples are kept (the decision is made).
+    done: bool,
+}
+
+impl Samples {
+    /// Keeps a sample of class `class` (< [`CLASSES`]) while there is room.
+    pub(super) fn push(&mut self, class: usize, d: f64, v: f64) {
+        if !self.done && self.kept.len() < MAX_SAMPLES {
+            self.kept.push(Sample { edge: self.edge, class: class as u8, d: d as f32, v: v as f32 });
+        }
+    }
+
+    /// What follows is another edge's.
+    pub(super) fn close_edge(&mut self) {
+        self.edge = self.edge.wrapping_add(1);
+    }
+
+    /// Drops the samples and keeps no more.
+    pub(super) fn finish(&mut self) {
+        *self = Self { done: true, ..Self::default() };
+    }
+
+    /// Each class's [`ClassUse`] where it pays (see the module docs), per edge orientation.
+    pub(super) fn decide(&self) -> ClassChoice {
+        let mut choice = ClassChoice::default();
+        for o in 0..2 {
+            let pick = one_standard_error_choice(&self.held_out_scores(o));
+            choice[4 * o..4 * o + 4].fill(pick);
+        }
+        choice
+    }
+
+    /// Per edge of orientation `o`, its residual sums of squares under the three candidates
+    /// (pooled, orientation, own) learned on the other half of the edges.
+    fn held_out_scores(&self, o: usize) -> Vec<[f64; 3]> {
+        let mut scores = Vec::new();
+        for fold in 0..2 {
+            let Some(profiles) = FoldProfiles::learn(self.kept.iter().filter(|s| s.edge % 2 != fold), o) else {
+                return Vec::new();
+            };
+            let test = self.kept.iter().filter(|s| s.edge % 2 == fold && usize::from(s.class) / 4 == o);
+            let edges: Vec<&Sample> = test.collect();
+            for edge in edges.chunk_by(|a, b| a.edge == b.edge) {
+                let per: Option<Vec<f64>> = (0..3).map(|cand| refit_ssr(edge, |c, d| profiles.value_slope(cand, c, d))).collect();
+                if let Some(per) = per {
+                    scores.push([per[0], per[1], per[2]]);
+                }
+            }
+        }
+        scores
+    }
+}
+
+/// The candidates' profiles learned on one half of the edges, for one orientation.
+struct FoldProfiles {
+    pooled: Vec<f64>,
+    oriented: Option<Vec<f64>>,
+    own: [Option<Vec<f64>>; 4],
+}
+
+impl FoldProfiles {
+    /// Learns them from `train` (half the samples; half the node weights a full profile
+    /// needs); `None` when the pooled one cannot be built.
+    fn learn<'a>(train: impl Iterator<Item = &'a Sample>, o: usize) -> Option<Self> {
+        let (mut pooled, mut oriented) = (Nodes::default(), Nodes::default());
+        let mut own: [Nodes; 4] = Default::default();
+        for s in train {
+            let x = (f64::from(s.d) + RANGE_PX) / NODE_PX;
+            if !(x >= 0.0 && x < (NODES - 1) as f64) {
+                continue;
+            }
+            pooled.add(x, f64::from(s.v));
+            if usize::from(s.class) / 4 == o {
+                oriented.add(x, f64::from(s.v));
+                own[usize::from(s.class) % 4].add(x, f64::from(s.v));
+            }
+        }
+        let class_weight = 0.5 * MIN_CLASS_NODE_WEIGHT;
+        Some(Self {
+            pooled: pooled.curve(0.5 * MIN_NODE_WEIGHT)?,
+            oriented: oriented.curve(class_weight),
+            own: own.map(|n| n.curve(class_weight)),
+        })
+    }
+
+    /// `P(d)` and `P′(d)` of candidate `cand` (0 pooled, 1 orientation, 2 own; a profile that
+    /// could not be built falls back to its parent's) for a pixel of class `class`.
+    fn value_slope(&self, cand: usize, class: usize, d: f64) -> (f64, f64) {
+        let oriented = self.oriented.as_deref().unwrap_or(&self.pooled);
+        let table = match cand {
+            0 => &self.pooled[..],
+            1 => oriented,
+            _ => self.own[class % 4].as_deref().unwrap_or(oriented),
+        };
+        interpolate(table, d)
+    }
+}
+
+/// The residual sum of squares of an edge's samples (those on the profile's tested nodes)
+/// fitted as `a + b · P(d) + c · P′(d)` (its levels and a shift) with `profile(class, d)`;
+/// `None` when too few samples or a singular fit.
+fn refit_ssr(edge: &[&Sample], profile: impl Fn(usize, f64) -> (f64, f64)) -> Option<f64> {
+    let (lo, hi) = (node_d(*tested_nodes().start()), node_d(*tested_nodes().end()));
+    let (mut ata, mut aty, mut yy, mut n) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros(), 0.0, 0);
+    for s in edge {
+        let d = f64::from(s.d);
+        if !(lo..=hi).contains(&d) {
+            continue;
+        }
+        let (p, slope) = profile(usize::from(s.class), d);
+        let (x, y) = (Vector3::new(1.0, p, slope), f64::from(s.v));
+        ata += x * x.transpose();
+        aty += y * x;
+        yy += y * y;
+        n += 1;
+    }
+    if n < MIN_EDGE_SAMPLES {
+        return None;
+    }
+    let beta = ata.try_inverse()? * aty;
+    Some((yy - beta.dot(&aty)).max(0.0))
+}
+
+/// The simplest candidate (in the order pooled, orientation, own) whose held-out residual sum
+/// over the `scores`' edges exceeds the best candidate's by at most one standard error of the
+/// difference (counted over edges); pooled when too few edges were scored.
+fn one_standard_error_choice(scores: &[[f64; 3]]) -> ClassUse {
+    let g = scores.len();
+    if g < MIN_SCORED_EDGES {
+        return ClassUse::Pooled;
+    }
+    let total = |k: usize| scores.iter().map(|s| s[k]).sum::<f64>();
+    let best = (0..3).min_by(|&a, &b| total(a).total_cmp(&total(b))).unwrap_or(0);
+    let within = |k: usize| {
+        let diffs: Vec<f64> = scores.iter().map(|s| s[k] - s[best]).collect();
+        let sum: f64 = diffs.iter().sum();
+        let mean = sum / g as f64;
+        let spread: f64 = diffs.iter().map(|x| (x - mean).powi(2)).sum();
+        sum <= (g as f64 / (g as f64 - 1.0) * spread).sqrt()
+    };
+    match (0..3).find(|&k| within(k)).unwrap_or(best) {
+        0 => ClassUse::Pooled,
+        1 => ClassUse::Orientation,
+        _ => ClassUse::Own,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::profile::tests::{gauss, gaussian_esf, uniform};
+    use super::super::profile::ProfileLearner;
+    use super::*;
+
+    /// `edges` edges of each orientation as a camera sees a tag's near-axis-aligned edge: 6
+    /// columns across it (distances `φ + j − 2.99`, `φ` the edge's phase), 12 rows along it,
+    /// each pixel classed by its orientation and mosaic parity and valued by `esf_of(class)`;
+    /// what an edge's fit shares among its pixels — its distance off by 0.03 px RMS and its
+    /// contrast by 1 % — besides each pixel's noise (1.5 % of the contrast).
+    fn learner_of(esf_of: &dyn Fn(usize) -> Box<dyn Fn(f64) -> f64>, edges: usize, seed: u64) -> ProfileLearner {
+        let mut learner = ProfileLearner::default();
+        let mut seed = seed;
+        for e in 0..2 * edges {
+            let o = e % 2;
+            let (phase, delta, scale) = (uniform(&mut seed), 0.03 * gauss(&mut seed), 1.0 + 0.01 * gauss(&mut seed));
+            let (col0, row0) = ((uniform(&mut seed) * 2.0) as usize, (uniform(&mut seed) * 2.0) as usize);
+            for j in 0..6 {
+                let d = -2.99 + phase + j as f64;
+                for r in 0..12 {
+                    let class = 4 * o + (col0 + j) % 2 + 2 * ((row0 + r) % 2);
+                    learner.add_sample(class, d, scale * esf_of(class)(d + delta) + 0.015 * gauss(&mut seed));
+                }
+            }
+            learner.close_edge();
+        }
+        learner.set_edges_for_tests();
+        learner
+    }
+
+    /// A sharpened edge's profile: the step minus a wider blurred copy (symmetric overshoots).
+    fn sharpened(d: f64) -> f64 {
+        2.0 * gaussian_esf(0.35, 0.0)(d) - gaussian_esf(0.8, 0.0)(d)
+    }
+
+    #[test]
+    fn a_class_is_taken_where_its_profile_predicts_held_out_edges_better_and_not_where_it_does_not_pay() {
+        let decide = |esf_of: &dyn Fn(usize) -> Box<dyn Fn(f64) -> f64>, edges| {
+            learner_of(esf_of, edges, 0x9e37_79b9_7f4a_7c15).build_in(3, None).expect("enough samples").choice()
+        };
+        // One profile (a sharpened edge's, steep with overshoots) in every class: the classes'
+        // own profiles only add their sampling noise.
+        assert_eq!(decide(&|_| Box::new(sharpened), 60), [ClassUse::Pooled; CLASSES], "one sharpened profile");
+        assert_eq!(decide(&|_| Box::new(gaussian_esf(0.6, 0.0)), 60), [ClassUse::Pooled; CLASSES], "one Gaussian profile");
+        // A real but small difference between the parities (σ 0.60 against 0.63 px), seen on
+        // a first frame's edges: each class's profile would cost more than it removes.
+        let slight = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c % 2 == 1 { 0.63 } else { 0.6 }, 0.0)) };
+        assert_eq!(decide(&slight, 30), [ClassUse::Pooled; CLASSES], "a slight difference on few edges");
+        // A mosaic whose parities differ (σ 0.5 against 0.8 px): each class its own.
+        let mosaic = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c % 2 == 1 { 0.8 } else { 0.5 }, 0.0)) };
+        assert_eq!(decide(&mosaic, 30), [ClassUse::Own; CLASSES], "a mosaic");
+        // An astigmatic blur: the orientations differ, the parities do not.
+        let astig = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c < 4 { 0.5 } else { 0.8 }, 0.0)) };
+        assert_eq!(decide(&astig, 30), [ClassUse::Orientation; CLASSES], "an astigmatic blur");
+        // A decision made earlier is kept by a rebuild, whatever the samples say now.
+        let kept = learner_of(&mosaic, 30, 7).build_in(3, Some(&[ClassUse::Pooled; CLASSES])).expect("enough samples");
+        assert_eq!((kept.choice(), kept.own_classes()), ([ClassUse::Pooled; CLASSES], 0));
+    }
+
+    #[test]
+    fn the_one_standard_error_rule_prefers_the_simpler_profile_unless_the_gain_is_beyond_chance() {
+        // Own better on average by 1 with a spread of ±5 over 10 edges: within chance.
+        let noisy: Vec<[f64; 3]> = (0..10).map(|e| [10.0, 10.0, if e % 2 == 0 { 4.0 } else { 14.0 }]).collect();
+        assert_eq!(one_standard_error_choice(&noisy), ClassUse::Pooled);
+        // Own better by 1 on every edge: beyond chance.
+        let steady: Vec<[f64; 3]> = (0..10).map(|e| [10.0 + 0.01 * e as f64, 10.0, 9.0]).collect();
+        assert_eq!(one_standard_error_choice(&steady), ClassUse::Own);
+        // Too few edges scored: pooled.
+        assert_eq!(one_standard_error_choice(&steady[..4]), ClassUse::Pooled);
+    }
+}
