@@ -264,7 +264,8 @@ mod tests {
     use super::*;
 
     /// `edges` edges of each orientation as a camera sees a tag's near-axis-aligned edge: 6
-    /// columns across it (distances `φ + j − 2.99`, `φ` the edge's phase), 12 rows along it,
+    /// columns across it (distances `φ + j − 2.99`, `φ` the edge's phase), 12 rows along it
+    /// (the edge tilted by up to ±3°: each row's distance moves by up to 0.05 px),
     /// each pixel classed by its orientation and mosaic parity and valued by `esf_of(class)`;
     /// what an edge's fit shares among its pixels — its distance off by 0.03 px RMS and its
     /// contrast by 1 % — besides each pixel's noise (1.5 % of the contrast).
@@ -275,9 +276,10 @@ mod tests {
             let o = e % 2;
             let (phase, delta, scale) = (uniform(&mut seed), 0.03 * gauss(&mut seed), 1.0 + 0.01 * gauss(&mut seed));
             let (col0, row0) = ((uniform(&mut seed) * 2.0) as usize, (uniform(&mut seed) * 2.0) as usize);
+            let tilt = 0.1 * uniform(&mut seed) - 0.05;
             for j in 0..6 {
-                let d = -2.99 + phase + j as f64;
                 for r in 0..12 {
+                    let d = -2.99 + phase + j as f64 + tilt * r as f64;
                     let class = 4 * o + (col0 + j) % 2 + 2 * ((row0 + r) % 2);
                     learner.add_sample(class, d, scale * esf_of(class)(d + delta) + 0.015 * gauss(&mut seed));
                 }
