@@ -246,7 +246,7 @@ fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result
             return Err(bad(format!("{}: names no standard: give --standard", record_path.display())));
         }
         check_geometry(&prepared.opts, &prepared.rig, &config_path)?;
-        let (runs, mut utm) = read_streams(dir, &prepared.opts, args.allow_restarts)?;
+        let (runs, mut utm) = read_streams(dir, &prepared, args.allow_restarts)?;
         if let Some(u) = args.utm.as_ref().filter(|_| args.series.is_empty()) {
             utm = Some(UtmStream::read(u, &prepared.opts.limits())?);
         }
@@ -265,13 +265,14 @@ fn reports_of(feed_path: &Path, args: &ReportArgs, out: &Path) -> anyhow::Result
     let rotated = tagdeflect_core::feed_rotation::feed_files(feed_path).unwrap_or_default();
     let rotated = rotated.into_iter().filter(|p| p != feed_path).map(|p| ("feed".to_string(), p));
     inputs.splice(0..0, rotated);
-    let runs = Feed::read_runs(feed_path, &ReadOptions { limits: opts.limits(), allow_restarts: args.allow_restarts })?;
+    let rig = config.test_rig();
+    let read = ReadOptions { limits: opts.limits(), allow_restarts: args.allow_restarts };
+    let runs = Feed::read_runs_for(feed_path, &read, Some(&rig))?;
     let utm_path = match &args.utm {
         Some(p) if args.series.is_empty() => Some(p.clone()),
         _ => feed_path.parent().map(|d| d.join("utm.jsonl")).filter(|p| p.is_file()),
     };
     let utm = utm_path.map(|p| UtmStream::read(&p, &opts.limits())).transpose()?;
-    let rig = config.test_rig();
     for feed in runs {
         let mut r = build(&feed, utm.as_ref(), &rig, &config_path, &opts)?;
         r.inputs = inputs.clone();

@@ -197,7 +197,7 @@ fn report(config: &Config, folder: &Path, record: &TestRecord) -> Result<(), Tes
         .opts
         .validate_with(prepared.rig.specimen.beam.as_ref())
         .map_err(|p| TestReportError::Section(format!("{}: {}", p.key, p.message)))?;
-    let (mut feeds, utm) = read_streams(folder, &prepared.opts, false)?;
+    let (mut feeds, utm) = read_streams(folder, &prepared, false)?;
     let feed = feeds.remove(0);
     let mut rep = build_test(&feed, utm.as_ref(), &prepared, record, &cfg_path)?;
     rep.inputs = vec![("config".into(), cfg_path)];

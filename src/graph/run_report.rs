@@ -46,15 +46,16 @@ impl RunReport {
         let cfg_path = self.dir.join("tagdeflect.toml");
         let rig = self.config.test_rig();
         let utm_path = self.dir.join("utm.jsonl");
-        let result = Feed::read_runs(&self.feed, &tagdeflect_report::ReadOptions { limits: r.limits(), allow_restarts: false })
-            .map(|mut runs| runs.remove(0))
-            .and_then(|feed| {
-                let utm = utm_path.is_file().then(|| tagdeflect_report::UtmStream::read(&utm_path, &r.limits())).transpose()?;
-                tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, r).and_then(|mut rep| {
-                    rep.inputs = vec![("config".into(), cfg_path.clone())];
-                    tagdeflect_report::write(&rep, &feed, &self.dir)
-                })
-            });
+        let result =
+            Feed::read_runs_for(&self.feed, &tagdeflect_report::ReadOptions { limits: r.limits(), allow_restarts: false }, Some(&rig))
+                .map(|mut runs| runs.remove(0))
+                .and_then(|feed| {
+                    let utm = utm_path.is_file().then(|| tagdeflect_report::UtmStream::read(&utm_path, &r.limits())).transpose()?;
+                    tagdeflect_report::build(&feed, utm.as_ref(), &rig, &cfg_path, r).and_then(|mut rep| {
+                        rep.inputs = vec![("config".into(), cfg_path.clone())];
+                        tagdeflect_report::write(&rep, &feed, &self.dir)
+                    })
+                });
         match result {
             Ok(files) => tracing::info!("report written into {} ({} files)", self.dir.display(), files.len()),
             Err(e) => tracing::error!(

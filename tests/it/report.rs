@@ -332,6 +332,29 @@ print(len(body), float(body[75][i]), float(body[75][j]), float(body[-1][h.index(
     }
 }
 
+/// The first-peak strength end to end: on a strain-hardening curve (first crack 30 kN at
+/// 0.05 mm, a drop to 27 kN, hardening to the maximum 40 kN at 1.5 mm) the report's f1 is the
+/// FIRST peak's load in f = P·L/(b·d²), never the maximum's (5.33 MPa here, not 4.00).
+#[test]
+fn a_reported_f1_comes_from_the_first_peak_when_the_maximum_comes_later() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config_with_beam(dir.path(), "width_mm = 150.0\ndepth_mm = 150.0\nspan_mm = 450.0");
+    let feed = dir.path().join("feed.jsonl");
+    let hardening = [(0.0, 0.0), (0.05, 30.0), (0.1, 27.0), (1.5, 40.0), (5.0, 20.0)];
+    fs::write(&feed, synthetic_feed(&hardening, 0.0025, 5.0, false)).unwrap();
+    let out = dir.path().join("report");
+    let o = report(&feed, &cfg, "astm-c1609", &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j = read_json(&out.join("report.json"));
+    let value = |key: &str| j[key]["value"].as_f64().unwrap_or_else(|| panic!("{key}: {}", j[key]));
+    let strength = |p_kn: f64| p_kn * 1e3 * 450.0 / (150.0 * 150.0 * 150.0);
+    close("P1", value("P1"), 30.0, 0.3);
+    close("Pp", value("Pp"), 40.0, 0.3);
+    close("f1 from the first peak's load", value("f1"), strength(value("P1")), 1e-3);
+    close("f1", value("f1"), strength(30.0), strength(0.3));
+    close("fp from the maximum's load", value("fp"), strength(value("Pp")), 1e-3);
+}
+
 #[test]
 fn report_cli_en14651_from_a_cmod_gauge() {
     let dir = tempfile::tempdir().unwrap();

@@ -8,13 +8,13 @@
 //! cameras' health, the gauges' units, the largest `dropped_sets`, the last clock check, the
 //! tags seen, whether the lines belong to a test) is folded into [`crate::feed_summary`] as
 //! the line is read. The tags (~1 kB of a line's text) are not held: what depends on the rig's
-//! config (each tag's σ along `world.up`, the role tags' σ of the net deflection) and the
-//! per-line table (`curve.csv`, every tag's displacement) are read from the feed again,
-//! line by line, when they are made ([`crate::Feed::for_each_line`], `crate::tag_stats`).
-//! Why two reads and not the tags in columns: the tags' σ is three numbers a tag and a line
-//! (216 B for 9 tags) before the config says which direction counts, and `curve.csv` needs
-//! every tag's three displacements (another 216 B); read again they cost a second parse of the
-//! file (docs/performance.md), held they would not fit ~300 B a line.
+//! config (each tag's σ along `world.up`, the role tags' σ of the net deflection) is gathered
+//! as the line is read when the reader is given the rig (`crate::tag_stats`; every route of
+//! the report does), else read from the feed again. The per-line table (`curve.csv`, every
+//! tag's displacement) is written by a second read, line by line ([`crate::Feed::for_each_line`]):
+//! its header names every tag and gauge of the feed, known only once the last line is read,
+//! and its rows hold every tag's three displacements (216 B a line for 9 tags), which held
+//! would double what a line costs (docs/performance.md).
 
 use tagdeflect_core::feed::{FeedLine, FeedTag};
 

@@ -22,7 +22,7 @@
 
 use std::path::{Path, PathBuf};
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 use tagdeflect_core::feed::FeedLine;
@@ -30,6 +30,8 @@ use tagdeflect_core::feed::FeedLine;
 use crate::error::ReportError;
 use crate::feed_columns::Columns;
 use crate::feed_summary::LineSummary;
+use crate::report::TestRig;
+use crate::tag_stats::TagStats;
 
 /// Physical ranges of a feed's values (`[report] max_load_kn`, `max_length_mm`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -93,7 +95,13 @@ pub struct Feed {
     pub summary: LineSummary,
     /// Where the lines are read again (the tags, which are not held).
     pub(crate) source: Source,
+    /// The tags' figures gathered as the lines were read, for the rig they were gathered for
+    /// ([`Feed::read_runs_for`]); taken by the report that uses them.
+    tag_stats: TagSlot,
 }
+
+/// The tags' figures of a feed read for a rig, until a report takes them.
+type TagSlot = Arc<Mutex<Option<Box<(TestRig, TagStats)>>>>;
 
 /// Where a feed's lines are read again from: the file (from the byte where the run's first
 /// line starts) or the text it was parsed from.
@@ -119,11 +127,20 @@ impl Feed {
     /// line, never whole, and each line is held as its entries in [`Feed::columns`] (a long
     /// test's feed is gigabytes of text; ~100 B a line are held).
     pub fn read_runs(path: &Path, opts: &ReadOptions) -> Result<Vec<Feed>, ReportError> {
+        Self::read_runs_for(path, opts, None)
+    }
+
+    /// [`Feed::read_runs`], gathering as the lines are read what the report takes from their
+    /// tags for `rig` (its up direction, its tags' roles): the report of the feed with that rig
+    /// needs no second read of the file for its numbers (`curve.csv` still reads it again:
+    /// its header names every tag of the feed before the first row).
+    pub fn read_runs_for(path: &Path, opts: &ReadOptions, rig: Option<&TestRig>) -> Result<Vec<Feed>, ReportError> {
         use std::io::BufRead;
         let io = |e: std::io::Error| ReportError::Io { path: path.to_path_buf(), message: format!("cannot read the feed: {e}") };
         // A rotated run's current file: its rotated files first, in order (`[output.feed_rotation]`).
         let mut reader = tagdeflect_core::feed_rotation::open_feed_set(path).map_err(io)?;
         let mut runs = Runs::new(path, opts, None);
+        runs.rig = rig;
         let mut buf = Vec::new();
         let (mut no, mut offset) = (0, 0);
         loop {
@@ -177,6 +194,20 @@ impl Feed {
             run: None,
             summary: LineSummary::default(),
             source: Source::File { offset: 0 },
+            tag_stats: TagSlot::default(),
+        }
+    }
+
+    /// The tags' figures gathered for `rig` as the feed was read, taken (a second call, or
+    /// another rig, gets `None`: read them again).
+    pub(crate) fn take_tag_stats(&self, rig: &TestRig) -> Option<TagStats> {
+        let mut slot = self.tag_stats.lock().unwrap_or_else(|e| e.into_inner());
+        match slot.take() {
+            Some(b) if b.0 == *rig => Some(b.1),
+            other => {
+                *slot = other;
+                None
+            }
         }
     }
 
@@ -233,11 +264,25 @@ struct Runs<'a> {
     offset: usize,
     /// The test of the last line held.
     prev_test: Option<String>,
+    /// The rig to gather the tags' figures for, and the current run's so far.
+    rig: Option<&'a TestRig>,
+    tags: TagStats,
 }
 
 impl<'a> Runs<'a> {
     fn new(path: &'a Path, opts: &'a ReadOptions, text: Option<Arc<str>>) -> Self {
-        Runs { path, opts, runs: Vec::new(), cur: Feed::empty(path), warnings: Vec::new(), text, offset: 0, prev_test: None }
+        Runs {
+            path,
+            opts,
+            runs: Vec::new(),
+            cur: Feed::empty(path),
+            warnings: Vec::new(),
+            text,
+            offset: 0,
+            prev_test: None,
+            rig: None,
+            tags: TagStats::default(),
+        }
     }
 
     fn bad(&self, line: usize, message: String) -> ReportError {
@@ -268,6 +313,9 @@ impl<'a> Runs<'a> {
                 Some(text) => Source::Text { text: text.clone(), offset: self.offset },
                 None => Source::File { offset: self.offset as u64 },
             };
+        }
+        if let Some(rig) = self.rig {
+            self.tags.fold(&l.tags, rig);
         }
         self.cur.summary.fold(&mut l);
         self.cur.columns.push(&l);
@@ -335,15 +383,26 @@ impl<'a> Runs<'a> {
         }
         if new_run {
             let next = Feed::empty(self.path);
-            self.runs.push(std::mem::replace(&mut self.cur, next));
+            let run = std::mem::replace(&mut self.cur, next);
+            self.end_run(run);
         }
         Ok(())
+    }
+
+    /// Keeps a run read whole, with its tags' figures when gathered.
+    fn end_run(&mut self, run: Feed) {
+        let mut tags = std::mem::take(&mut self.tags);
+        if let Some(rig) = self.rig {
+            tags.finish();
+            *run.tag_stats.lock().unwrap_or_else(|e| e.into_inner()) = Some(Box::new((rig.clone(), tags)));
+        }
+        self.runs.push(run);
     }
 
     fn finish(mut self, lines: usize) -> Result<Vec<Feed>, ReportError> {
         if !self.cur.is_empty() {
             let cur = std::mem::replace(&mut self.cur, Feed::empty(self.path));
-            self.runs.push(cur);
+            self.end_run(cur);
         }
         if self.runs.is_empty() {
             return Err(self.bad(lines.max(1), "the feed has no lines".into()));

@@ -1,8 +1,11 @@
-//! What the report takes from the specimen tags of a feed's lines, gathered in one second read
-//! of the feed ([`crate::Feed::for_each_line`]) once the rig's config says which direction is
-//! down and which tags have roles: each tag's lines, views and σ along `world.up` (the QC
-//! section), each tag's σ in the first line that gives one (the zero reference of the net
-//! deflection) and each line's σ of the net deflection from its role tags.
+//! What the report takes from the specimen tags of a feed's lines once the rig's config says
+//! which direction is down and which tags have roles: each tag's lines, views and σ along
+//! `world.up` (the QC section), each tag's σ in the first line that gives one (the zero
+//! reference of the net deflection) and each line's σ of the net deflection from its role tags.
+//!
+//! Gathered as the feed is read when the reader is given the rig ([`crate::Feed::read_runs_for`],
+//! every route of the report: one pass over the file for the numbers), else by a second read
+//! of the feed ([`crate::Feed::for_each_line`]).
 
 use std::collections::BTreeMap;
 
@@ -37,8 +40,12 @@ pub(crate) struct TagStats {
 }
 
 impl TagStats {
-    /// Reads `feed`'s tags again (nothing to read when no line has tags).
+    /// `feed`'s tags for `config`: those gathered as it was read for this rig (taken from the
+    /// feed: a second call reads again), else read again (nothing to read when no line has tags).
     pub(crate) fn of(feed: &Feed, config: &TestRig) -> Result<TagStats, ReportError> {
+        if let Some(s) = feed.take_tag_stats(config) {
+            return Ok(s);
+        }
         let mut s = TagStats::default();
         if feed.summary.tag_lines.is_empty() {
             return Ok(s);
@@ -47,23 +54,38 @@ impl TagStats {
         for (&id, &lines) in &feed.summary.tag_lines {
             s.tags.insert(id, TagLines { sigma_up_mm: Vec::with_capacity(lines), ..Default::default() });
         }
+        s.role_sigma_mm.reserve_exact(feed.len());
+        feed.for_each_line(|_, l| s.fold(&l.tags, config))?;
+        Ok(s)
+    }
+
+    /// Adds one line's tags.
+    pub(crate) fn fold(&mut self, tags: &[FeedTag], config: &TestRig) {
         let up = config.world.up;
         let down_sigma = |s: [f64; 3]| ((up[0] * s[0]).powi(2) + (up[1] * s[1]).powi(2) + (up[2] * s[2]).powi(2)).sqrt();
-        s.role_sigma_mm.reserve_exact(feed.len());
-        feed.for_each_line(|_, l| {
-            for t in &l.tags {
-                let e = s.tags.entry(t.id).or_default();
-                e.lines += 1;
-                e.views += t.views;
-                if let Some(sig) = t.sigma_mm {
-                    let d = down_sigma(sig);
-                    e.sigma_up_mm.push(d);
-                    s.first_sigma_up_mm.entry(t.id).or_insert(d);
-                }
+        for t in tags {
+            let e = self.tags.entry(t.id).or_default();
+            e.lines += 1;
+            e.views += t.views;
+            if let Some(sig) = t.sigma_mm {
+                let d = down_sigma(sig);
+                e.sigma_up_mm.push(d);
+                self.first_sigma_up_mm.entry(t.id).or_insert(d);
             }
-            s.role_sigma_mm.push(role_sigma(&l.tags, config, &down_sigma).unwrap_or(f64::NAN));
-        })?;
-        Ok(s)
+        }
+        self.role_sigma_mm.push(role_sigma(tags, config, &down_sigma).unwrap_or(f64::NAN));
+    }
+
+    /// Once every line is folded: no per-line σ when no line had tags (as a read again
+    /// gives), the lists without spare room.
+    pub(crate) fn finish(&mut self) {
+        if self.tags.is_empty() {
+            self.role_sigma_mm = Vec::new();
+        }
+        self.role_sigma_mm.shrink_to_fit();
+        for t in self.tags.values_mut() {
+            t.sigma_up_mm.shrink_to_fit();
+        }
     }
 
     /// The σ of line `k`'s net deflection from its role tags, `None` when a role tag has no

@@ -250,14 +250,16 @@ fn apply_crack(r: &mut crate::Report, crack: Option<&CrackEntry>) {
 }
 
 /// The feed's runs (one unless `allow_restarts`) and the UTM's own samples of a test folder
-/// (`feed.jsonl`, and `utm.jsonl` when it holds samples), read alike by every route.
+/// (`feed.jsonl`, and `utm.jsonl` when it holds samples), read alike by every route; the
+/// feed read for the prepared rig (its tags' figures gathered in the same pass).
 pub fn read_streams(
     dir: &Path,
-    opts: &ReportConfig,
+    prepared: &Prepared,
     allow_restarts: bool,
 ) -> Result<(Vec<crate::Feed>, Option<crate::UtmStream>), ReportError> {
+    let opts = &prepared.opts;
     let read = crate::ReadOptions { limits: opts.limits(), allow_restarts };
-    let feeds = crate::Feed::read_runs(&dir.join("feed.jsonl"), &read)?;
+    let feeds = crate::Feed::read_runs_for(&dir.join("feed.jsonl"), &read, Some(&prepared.rig))?;
     let utm_path = dir.join("utm.jsonl");
     let utm = match std::fs::metadata(&utm_path) {
         Ok(m) if m.len() > 0 => Some(crate::UtmStream::read(&utm_path, &opts.limits())?),
