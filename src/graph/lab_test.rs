@@ -26,9 +26,7 @@ pub fn start(config: &Config, dir: &Path, page: &Page, placed: PlacementWatch) -
         Box::new(move |folder: &Path, record: &TestRecord| report(&report_config, folder, record).map_err(Into::into));
     let tests = LabTests::new(dir, config.to_toml_string(), config.calibration_files.clone(), Some(hook))
         .map_err(|e| bad(format!("[output] tests {}: {e}", dir.display())))?;
-    if config.output.record_tests {
-        record_frames(&tests, config);
-    }
+    record_frames(&tests, config);
     if let Some(b) = &config.specimen.beam {
         let dims = [("width_mm", Some(b.width_mm)), ("depth_mm", Some(b.depth_mm)), ("span_mm", Some(b.span_mm)), ("notch_mm", b.notch_mm)];
         tests.set_beam(dims.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))).collect());
@@ -74,7 +72,8 @@ pub fn start(config: &Config, dir: &Path, page: &Page, placed: PlacementWatch) -
     Ok(tests)
 }
 
-/// `[output] record_tests`: each test's frames into its folder (`frames/`, a recording).
+/// Each test's frames into its folder (`frames/`, a recording) when its method's
+/// `record_frames` says so, else when `[output] record_tests` does.
 fn record_frames(tests: &LabTests, config: &Config) {
     use tagdeflect_io::recording::RecordingWriter;
     let cfg = config.clone();
@@ -84,8 +83,11 @@ fn record_frames(tests: &LabTests, config: &Config) {
         names: config.cameras.iter().map(|c| c.name.clone()).collect(),
         queue: 8 * config.cameras.len().max(1),
         reserve_bytes: config.output.record_tests_reserve_bytes(),
+        default: config.output.record_tests,
     });
-    tracing::info!("each test's frames are recorded into its folder ([output] record_tests)");
+    if config.output.record_tests {
+        tracing::info!("each test's frames are recorded into its folder ([output] record_tests; a method's record_frames wins)");
+    }
 }
 
 /// Warns when the users file is readable or writable by others than its owner (its hashes

@@ -13,17 +13,17 @@ use tagdeflect_archive::local::{LocalMosquitto, LocalPostgres};
 use tagdeflect_sim::{SimParams, SimRig};
 
 /// A child process killed (and reaped) when dropped.
-struct Proc {
+pub(crate) struct Proc {
     child: Child,
     name: &'static str,
 }
 
 impl Proc {
-    fn alive(&mut self) -> bool {
+    pub(crate) fn alive(&mut self) -> bool {
         matches!(self.child.try_wait(), Ok(None))
     }
     /// Waits for the process to end by itself; panics after `timeout`.
-    fn wait(&mut self, timeout: Duration) -> std::process::ExitStatus {
+    pub(crate) fn wait(&mut self, timeout: Duration) -> std::process::ExitStatus {
         let until = Instant::now() + timeout;
         loop {
             if let Some(s) = self.child.try_wait().unwrap() {
@@ -61,7 +61,7 @@ fn bin() -> &'static str {
 }
 
 /// Starts `tagdeflect archive` logging into `log`.
-fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
+pub(crate) fn start_archive(broker: &str, pg: &str, client_id: &str, log: &Path) -> Proc {
     let skip = fs::metadata(log).map_or(0, |m| m.len() as usize);
     let log_file = fs::OpenOptions::new().create(true).append(true).open(log).unwrap();
     let child = Command::new(bin())
@@ -121,7 +121,7 @@ fn demo_config_with(
     (path, feed)
 }
 
-fn start_demo(config: &Path, seconds: f64, log: &Path) -> Proc {
+pub(crate) fn start_demo(config: &Path, seconds: f64, log: &Path) -> Proc {
     start_demo_to(config, seconds, log, None)
 }
 
@@ -181,7 +181,7 @@ fn count(pg: &str, sql: &'static str, test: &str) -> i64 {
 }
 
 /// Waits until the archive holds `n` lines of the test.
-fn wait_rows(pg: &str, rig: &str, test: &str, n: usize, timeout: Duration) -> BTreeMap<i64, (i64, serde_json::Value)> {
+pub(crate) fn wait_rows(pg: &str, rig: &str, test: &str, n: usize, timeout: Duration) -> BTreeMap<i64, (i64, serde_json::Value)> {
     let until = Instant::now() + timeout;
     loop {
         let rows = archived(pg, rig, test);
@@ -193,7 +193,7 @@ fn wait_rows(pg: &str, rig: &str, test: &str, n: usize, timeout: Duration) -> BT
 }
 
 /// Every archived line equals the feed line with its seq (as JSON values).
-fn assert_rows_equal_feed(rows: &BTreeMap<i64, (i64, serde_json::Value)>, feed: &[serde_json::Value]) {
+pub(crate) fn assert_rows_equal_feed(rows: &BTreeMap<i64, (i64, serde_json::Value)>, feed: &[serde_json::Value]) {
     let by_seq: BTreeMap<i64, &serde_json::Value> = feed.iter().map(|l| (l["seq"].as_i64().unwrap(), l)).collect();
     for (seq, (t_ns, line)) in rows {
         let f = by_seq.get(seq).unwrap_or_else(|| panic!("archived seq {seq} is not in the feed"));
@@ -267,7 +267,7 @@ fn demo_to_postgres_round_trip_and_a_malformed_message_is_skipped() {
     archive.kill();
 }
 
-fn logs_of(dir: &Path, files: &[&str]) -> String {
+pub(crate) fn logs_of(dir: &Path, files: &[&str]) -> String {
     files.iter().map(|f| format!("--- {f}\n{}", fs::read_to_string(dir.join(f)).unwrap_or_default())).collect()
 }
 

@@ -27,6 +27,7 @@ mod lab_day;
 mod lab_method;
 mod live;
 mod modes;
+mod mqtt_rotation;
 mod package;
 mod preload;
 mod realdata;

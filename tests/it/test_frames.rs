@@ -20,12 +20,18 @@ fn rig(dir: &Path) -> Vec<String> {
 
 /// [`rig`] with `[output] record_tests_reserve_mb` given.
 fn rig_reserve(dir: &Path, reserve_mb: Option<f64>) -> Vec<String> {
+    rig_with(dir, reserve_mb, true, 60)
+}
+
+/// The rig of [`rig`] with the reserve, `[output] record_tests` and the simulated frame sets
+/// (at 5 fps) given.
+fn rig_with(dir: &Path, reserve_mb: Option<f64>, record_tests: bool, frame_sets: u32) -> Vec<String> {
     use tagdeflect::config::Config;
     let params =
-        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
+        SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets, rest_frames: 5, subsamples: 4, ..SimParams::default() };
     let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
-    cfg.output.record_tests = true;
+    cfg.output.record_tests = record_tests;
     cfg.output.record_tests_reserve_mb = reserve_mb;
     cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
         width_mm: params.beam_width_mm,
@@ -205,6 +211,122 @@ fn a_resumed_tests_frames_go_on_in_frames_2() {
         assert!(n >= frame_times(&folder, sub).len(), "{sub}: every frame file hashed ({n})");
     }
     assert!(!folder.join("frames-3").exists());
+    let (ok, said) = report_verify(&folder);
+    assert!(ok, "report verify: {said}");
+}
+
+/// The test's `test.json` as JSON.
+fn test_json(folder: &Path) -> serde_json::Value {
+    serde_json::from_str(&fs::read_to_string(folder.join("test.json")).unwrap()).unwrap()
+}
+
+/// A lab's method in `tests/methods/NAME.toml`: the shipped C1609-19 renamed, any start load
+/// allowed (the simulated beam may be loaded already), with `extra` keys first.
+fn lab_method(tests_dir: &Path, name: &str, extra: &str) {
+    let shipped = tagdeflect_core::method::SHIPPED[0].1;
+    let text = shipped.replacen("name = \"C1609-19\"", &format!("name = \"{name}\""), 1).replacen(
+        "max_start_load_kn = 2.0",
+        "max_start_load_kn = 1000.0",
+        1,
+    );
+    assert_ne!(text, shipped);
+    fs::create_dir_all(tests_dir.join("methods")).unwrap();
+    fs::write(tests_dir.join("methods").join(format!("{name}.toml")), format!("{extra}{text}")).unwrap();
+}
+
+/// A method's `record_frames` wins over the rig's `[output] record_tests` (here `false`), test
+/// by test in one daemon run: a test of a method with `record_frames = true` records its
+/// frames (`frames/`, hashed, verified), the next test, of a method that does not say, records
+/// none (the rig's default); each `test.json` says which (`record_frames`).
+#[test]
+fn a_methods_record_frames_decides_for_its_tests_over_the_rigs_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = rig_with(dir.path(), None, false, 400);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let tests_dir = dir.path().join("tests");
+    lab_method(&tests_dir, "C1609-FRAMES", "record_frames = true\n");
+    lab_method(&tests_dir, "C1609-PLAIN", "");
+    let token = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut d = LoggedDaemon::start(&args);
+    let addr = d.addr(deadline);
+    d.wait_for("the control token", deadline, |d| d.log().contains("control token: "));
+    let mut folders = Vec::new();
+    for (specimen, method) in [("FR6", "C1609-FRAMES"), ("FR7", "C1609-PLAIN")] {
+        let st = tagdeflect_test(&addr, &token, &["start", "--specimen", specimen, "--method", method]);
+        let folder = tests_dir.join(st["id"].as_str().unwrap());
+        d.wait_for("10 lines of the test", deadline, |_| whole_feed_lines(&folder.join("feed.jsonl")).len() >= 10);
+        tagdeflect_test(&addr, &token, &["stop"]);
+        folders.push(folder);
+    }
+    assert_eq!(d.terminate(), Some(0), "{}", d.log());
+
+    let (with, without) = (test_json(&folders[0]), test_json(&folders[1]));
+    assert_eq!(with["method"]["name"], "C1609-FRAMES");
+    assert_eq!(with["record_frames"], true, "{with}");
+    let frames = frame_times(&folders[0], "frames");
+    assert!(frames.len() >= 10, "{} frames recorded for the method with record_frames", frames.len());
+    let hashed = with["sha256"].as_object().unwrap().keys().filter(|k| k.starts_with("frames/")).count();
+    assert!(hashed >= frames.len() + 2, "every frame file hashed: {hashed}");
+    assert_eq!(without["method"]["name"], "C1609-PLAIN");
+    assert_eq!(without["record_frames"], false, "{without}");
+    assert!(!folders[1].join("frames").exists(), "no frames for the method that leaves it to the rig");
+    assert!(without["sha256"].as_object().unwrap().keys().all(|k| !k.starts_with("frames")), "{without}");
+    for f in &folders {
+        let (ok, said) = report_verify(f);
+        assert!(ok, "report verify {}: {said}", f.display());
+    }
+}
+
+/// A test whose frames stopped at the disk's reserve records no frames again when it is
+/// resumed after its daemon was killed (SIGKILL): the stop is in the running test's state at
+/// once, the resumed test's `test.json` keeps it (`frames_stopped`: the first daemon's time,
+/// `frames`, its reserve) and no `frames-2/` is made — though the second daemon has no reserve
+/// at all; the lines go on after the resume and the folder verifies. The first daemon's
+/// reserve (10⁹ MB) is above any disk's free space: its frames stop at the first frame.
+#[test]
+fn a_frames_stop_before_a_restart_holds_for_the_resumed_test() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests_dir = dir.path().join("tests");
+    let token = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(400);
+    let args = rig_with(dir.path(), Some(1e9), true, 300);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut first = LoggedDaemon::start(&args);
+    let addr = first.addr(deadline);
+    let st = tagdeflect_test(&addr, &token, &["start", "--specimen", "FR8", "--standard", "astm-c1609"]);
+    let folder = tests_dir.join(st["id"].as_str().unwrap());
+    first.wait_for("the frames to stop at the reserve", deadline, |d| d.log().contains("the test's frames stop"));
+    let state = tests_dir.join(".running.json");
+    let kept = Instant::now() + Duration::from_secs(30);
+    first
+        .wait_for("the stop in the running test's state", kept, |_| fs::read_to_string(&state).is_ok_and(|s| s.contains("frames_stopped")));
+    first.child.0.kill().unwrap();
+    first.child.0.wait().unwrap();
+    let killed_t_ns = tagdeflect_core::clock::now_epoch_ns();
+    let lines_before = whole_feed_lines(&folder.join("feed.jsonl")).len();
+
+    let args = rig_with(dir.path(), Some(0.0), true, 300);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut second = LoggedDaemon::start(&args);
+    let addr = second.addr(deadline);
+    second.wait_for("10 lines after the resume", deadline, |_| whole_feed_lines(&folder.join("feed.jsonl")).len() >= lines_before + 10);
+    tagdeflect_test(&addr, &token, &["stop"]);
+    assert_eq!(second.terminate(), Some(0), "{}", second.log());
+    let log = second.log();
+    assert!(log.contains("resumed"), "{log}");
+    assert!(!log.contains("the test's frames are recorded"), "the resumed test records no frames:\n{log}");
+
+    assert!(!folder.join("frames-2").exists(), "no frames-2 after a stop at the reserve");
+    let record = test_json(&folder);
+    let stopped = &record["frames_stopped"];
+    assert_eq!(stopped["folder"], "frames", "{record}");
+    assert_eq!(stopped["reserve_mb"].as_f64(), Some(1e9), "{record}");
+    assert!(stopped["t_ns"].as_i64().unwrap() < killed_t_ns, "the first daemon's stop: {record}");
+    assert!(frame_times(&folder, "frames").is_empty(), "no frame past the reserve");
+    let lines = whole_feed_lines(&folder.join("feed.jsonl"));
+    assert!(lines.iter().filter(|l| l.t_ns > killed_t_ns).count() >= 10, "the lines go on after the resume");
+    assert_eq!(record["lines"].as_u64(), Some(lines.len() as u64));
     let (ok, said) = report_verify(&folder);
     assert!(ok, "report verify: {said}");
 }

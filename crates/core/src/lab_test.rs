@@ -170,6 +170,11 @@ pub struct TestRecord {
     /// to keep the disk's reserve for the lines (absent: recorded to the stop, or not at all).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frames_stopped: Option<FramesStopped>,
+    /// Whether the test records its frames into its folder, decided at its start: its
+    /// method's `record_frames` where set, else the rig's `[output] record_tests` (absent in
+    /// a `test.json` older than the option: the rig's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub record_frames: Option<bool>,
 }
 
 /// The test's frames stopped before its stop: the free space under its folder fell below the

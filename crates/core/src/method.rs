@@ -54,6 +54,10 @@ pub struct Method {
     /// The public source of every rule above.
     #[serde(rename = "source")]
     pub sources: Vec<Source>,
+    /// Whether a test of this method records its frames into its folder (`frames/`); absent:
+    /// the rig's `[output] record_tests` decides. Copied into `test.json` at the start.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub record_frames: Option<bool>,
 }
 
 /// A phase of loading: the controlled quantity's rate window until the phase's end.
@@ -317,5 +321,16 @@ mod tests {
         assert_eq!(Method::parse(&text).unwrap_err().key, "max_start_load_kn");
         let text = SHIPPED[0].1.replace("rule = \"end\"", "rule = \"results\"");
         assert!(Method::parse(&text).unwrap_err().message.contains("rule = \"end\""));
+        let text = format!("record_frames = \"yes\"\n{}", SHIPPED[0].1);
+        assert_eq!(Method::parse(&text).unwrap_err().key, "record_frames");
+    }
+
+    #[test]
+    fn a_method_says_whether_its_tests_record_frames_or_leaves_it_to_the_rig() {
+        for (name, text) in SHIPPED {
+            assert_eq!(Method::parse(text).unwrap().record_frames, None, "{name} leaves it to the rig");
+        }
+        let m = Method::parse(&format!("record_frames = true\n{}", SHIPPED[0].1)).unwrap();
+        assert_eq!(m.record_frames, Some(true));
     }
 }

@@ -166,6 +166,7 @@ mod tests {
             preload: None,
             verification: None,
             frames_stopped: None,
+            record_frames: None,
         }
     }
 

@@ -97,6 +97,7 @@ mod tests {
             preload: None,
             verification: None,
             frames_stopped: None,
+            record_frames: None,
         }
     }
 

@@ -180,9 +180,10 @@ impl AutoRules {
         }
     }
 
-    /// What an automatically started test records of its method, and the preload it waits for.
-    pub(super) fn method_of_start(&self) -> Option<(tagdeflect_core::method::MethodRef, Option<f64>)> {
-        self.method.as_ref().map(|(m, r)| (r.clone(), m.preload_kn))
+    /// What an automatically started test records of its method, the preload it waits for and
+    /// whether it records its frames.
+    pub(super) fn method_of_start(&self) -> Option<(tagdeflect_core::method::MethodRef, Option<f64>, Option<bool>)> {
+        self.method.as_ref().map(|(m, r)| (r.clone(), m.preload_kn, m.record_frames))
     }
 }
 

@@ -105,6 +105,7 @@ impl LabTests {
             preload: None,
             verification: self.verification_now(g),
             frames_stopped: None,
+            record_frames: self.frames.setup.get().map(|s| s.default),
         };
         tracing::info!(test = %id, specimen = %record.meta.specimen, "test started");
         let r = Running {

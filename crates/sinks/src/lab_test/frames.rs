@@ -11,6 +11,11 @@
 //! [`FREE_CHECK_EVERY`]) the free space under the test's folder is read; below the reserve
 //! (`[output] record_tests_reserve_mb`) the test's frames stop — said once in the log and in
 //! `test.json` (`frames_stopped`) — so the feeds and the test's lines keep their room.
+//! The stop is kept in the running test's state at once, so a test resumed after a restart
+//! records no frames again (its `test.json` says when and why they stopped).
+//!
+//! Whether a test records its frames is decided at its start (`test.json` `record_frames`):
+//! its method's `record_frames` where the method sets it, else `[output] record_tests`.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -38,6 +43,8 @@ pub struct FramesSetup {
     pub queue: usize,
     /// The free space kept under the tests folder: below it the test's frames stop, bytes.
     pub reserve_bytes: u64,
+    /// Whether a test records its frames when its method does not say (`[output] record_tests`).
+    pub default: bool,
 }
 
 /// The free space is read at most this often (3 × 1080p at 30 fps: ~90 MB between reads).
@@ -85,7 +92,12 @@ impl LabTests {
     /// frame is not older than its start.
     pub fn on_frame(&self, f: &Frame) {
         let Some(setup) = self.frames.setup.get() else { return };
-        let running = self.lock().running.as_ref().map(|r| (r.record.id.clone(), r.folder.clone(), r.record.started_t_ns));
+        let running = self
+            .lock()
+            .running
+            .as_ref()
+            .filter(|r| Self::records_frames(&r.record, setup))
+            .map(|r| (r.record.id.clone(), r.folder.clone(), r.record.started_t_ns));
         let Some((id, folder, started_t_ns)) = running else { return };
         if f.t_ns < started_t_ns {
             return;
@@ -100,13 +112,32 @@ impl LabTests {
             if self.frames.closed.lock().expect("test frames").as_deref() == Some(id.as_str()) {
                 return;
             }
-            *active = Some(Self::start_frames(setup, id, &folder));
+            *active = Some(Self::start_frames(setup, id.clone(), &folder));
         }
         let Some(a) = active.as_mut() else { return };
         if a.within_reserve(f.t_ns, setup.reserve_bytes, &folder) {
             if let Some((_, tx, _)) = &a.rec {
                 tx.frame(f.clone());
             }
+        } else if let Some(stopped) = a.stopped.clone() {
+            drop(active);
+            self.keep_frames_stopped(&id, stopped);
+        }
+    }
+
+    /// Whether the test records frames now: as decided at its start (the rig's default for an
+    /// older record), and not stopped at the disk's reserve (by this daemon or one before).
+    fn records_frames(record: &super::TestRecord, setup: &FramesSetup) -> bool {
+        record.record_frames.unwrap_or(setup.default) && record.frames_stopped.is_none()
+    }
+
+    /// The frames stopped at the disk's reserve: into the running test's record and its state
+    /// on disk at once (a resumed test records no frames again).
+    fn keep_frames_stopped(&self, id: &str, stopped: FramesStopped) {
+        let mut g = self.lock();
+        if let Some(r) = g.running.as_mut().filter(|r| r.record.id == id && r.record.frames_stopped.is_none()) {
+            r.record.frames_stopped = Some(stopped);
+            self.persist(r);
         }
     }
 

@@ -28,9 +28,10 @@ impl LabTests {
         for s in recent.iter().filter(|s| s.t_ns >= line.t_ns) {
             Self::write_utm(r, s);
         }
-        if let Some((method, preload_kn)) = method {
+        if let Some((method, preload_kn, record_frames)) = method {
             r.record.method = Some(method);
             r.preload_kn = preload_kn;
+            r.record.record_frames = record_frames.or(r.record.record_frames);
             self.publish(&r.record);
         }
         self.persist(r);

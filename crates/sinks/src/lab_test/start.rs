@@ -67,6 +67,9 @@ impl LabTests {
         if let Some(r) = g.running.as_mut() {
             r.record.method = method.as_ref().map(library::Loaded::reference);
             r.preload_kn = method.as_ref().and_then(|m| m.method.preload_kn);
+            if let Some(on) = method.as_ref().and_then(|m| m.method.record_frames) {
+                r.record.record_frames = Some(on);
+            }
             r.record.specimen_info = row.map(|s| with_age(s, r.record.started_t_ns));
             self.persist(r);
             self.publish(&r.record);
