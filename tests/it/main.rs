@@ -30,6 +30,7 @@ mod modes;
 mod package;
 mod preload;
 mod realdata;
+mod realtime_utm;
 mod recording;
 mod report;
 mod report_folder;
