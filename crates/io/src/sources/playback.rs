@@ -372,6 +372,7 @@ mod tests {
         // Nobody takes them any more: no error, the time still advances.
         let (tx, rx) = tokio::sync::mpsc::channel(1);
         drop(rx);
+        let sent = Arc::new(AtomicI64::new(i64::MIN));
         let mut utm = UtmInStep { samples: vec![sample(0), sample(5 * ms)], next: 0, tx: Some(tx), sent: sent.clone() };
         utm.hand_over_to(5 * ms);
         assert_eq!(sent.load(Ordering::SeqCst), 5 * ms);
