@@ -137,7 +137,7 @@ pub fn grab_frame_set(config: &Config, timeout: Duration) -> Result<FrameSet> {
     runtime()?.block_on(async {
         let stop = Arc::new(AtomicBool::new(false));
         let (tx, mut rx) = mpsc::channel::<SourceEvent>(4 * config.cameras.len().max(1));
-        let sources = crate::graph::sources::start(config, OpenPolicy::Require, tx.clone(), stop.clone())?;
+        let sources = crate::graph::sources::start(config, OpenPolicy::Require, tx.clone(), stop.clone(), None)?;
         drop(tx);
         let mut frames: Vec<Option<Frame>> = vec![None; config.cameras.len()];
         let deadline = tokio::time::Instant::now() + timeout;

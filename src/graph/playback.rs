@@ -18,7 +18,11 @@ use crate::config::{Config, Recording};
 /// How a recording is played through the graph (see [`crate::graph::run`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Pacing {
-    /// At its recorded pace, one player per camera, as a run would have met it.
+    /// At its recorded pace, one player per camera, as a run would have met it: a set the
+    /// pipeline is too late for is dropped and counted (SPEC's live drop policy). The players
+    /// hand the recording's UTM samples over with the frames
+    /// ([`tagdeflect_io::sources::playback::UtmInStep`]), so every line that goes out carries
+    /// the load recorded around its time (`replay --realtime`, `bench --realtime`).
     Recorded,
     /// As fast as the measurement goes, in time order, nothing dropped.
     AsFast,
@@ -97,13 +101,15 @@ fn hand_over_frame(
     }
 }
 
-/// The UTM samples of a [`Pacing::Paced`] replay, handed over by its reader in step with the
-/// frames: the forwarder's channel, and the recorded time of the newest sample handed over
-/// (`i64::MIN` before the first), which the solver waits to have received
+/// The UTM samples of a replay at its recorded pace, handed over with its frames: the
+/// forwarder's channel, and the recorded time of the newest sample handed over (`i64::MIN`
+/// before the first), which the solver waits to have received
 /// ([`crate::graph::solver::UtmFeed::in_step`]).
-pub(crate) struct PacedUtm {
-    pub(crate) tx: mpsc::Sender<UtmEvent>,
-    pub(crate) sent: Arc<AtomicI64>,
+pub struct PacedUtm {
+    /// To the run's UTM forwarder.
+    pub tx: mpsc::Sender<UtmEvent>,
+    /// The recorded time of the newest sample handed over.
+    pub sent: Arc<AtomicI64>,
 }
 
 /// Hands a recording's frames and UTM samples over in time order at its recorded pace
@@ -189,21 +195,4 @@ pub(crate) fn recorded_utm_wait(rec: &Recording) -> Duration {
     gaps.sort_by(f64::total_cmp);
     let median = gaps.get(gaps.len() / 2).copied().unwrap_or(0.02);
     Duration::from_secs_f64((2.5 * median).clamp(0.02, 1.0))
-}
-
-/// Sends a recording's UTM samples at their recorded pace (relative to its first frame),
-/// as a live UTM would (`replay --realtime`).
-pub(crate) async fn play_utm(rec: Recording, tx: mpsc::Sender<UtmEvent>) {
-    if rec.frames.is_empty() {
-        return;
-    }
-    // The cameras' schedule (long pauses capped alike), started within a few ms of theirs.
-    let playhead = tagdeflect_io::sources::playback::Playhead::start_silent(&rec);
-    let t0 = tokio::time::Instant::now();
-    for s in &rec.utm {
-        tokio::time::sleep_until(t0 + playhead.due(s.t_ns)).await;
-        if tx.send(UtmEvent::Sample(*s)).await.is_err() {
-            break;
-        }
-    }
 }

@@ -117,9 +117,9 @@ pub(crate) async fn run_async(config: Config, opts: LiveOptions, playback: Optio
     let measure = measurement(&config, &opts, kind, playback.as_ref(), &page)?;
     let stop = Arc::new(AtomicBool::new(false));
     let (src_tx, mut src_rx) = mpsc::channel::<SourceEvent>(4 * config.cameras.len().max(1));
-    let (inputs, paced_utm) = Inputs::start(&config, kind, playback.as_ref(), src_tx, stop.clone())?;
+    let (inputs, utm_link) = Inputs::start(&config, kind, playback.as_ref(), src_tx, stop.clone())?;
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
-    let run_utm = utm::start(&config, playback.as_ref(), inputs.sources.as_ref(), paced_utm, shutdown_rx).await?;
+    let run_utm = utm::start(&config, playback.as_ref(), inputs.sources.as_ref(), utm_link, shutdown_rx).await?;
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Ready]);
     tracing::info!(cameras = config.cameras.len(), "sources started; measuring");
     let mut run = Running::start(&config, kind, outputs, measure, run_utm, &page, opts.smooth_lag_sets)?;
@@ -169,8 +169,9 @@ fn measurement(
 
 /// The frames' sources: the cameras (a recording's frames too: `replay --realtime` sets every
 /// camera's source to it), or — as fast as it goes, or paced without dropping — one reader
-/// handing the recording's frames over in time order (paced: with its UTM samples, whose
-/// receiving side is returned for the run's UTM). `run` keeps retrying a camera that is not
+/// handing the recording's frames over in time order. At the recorded pace (paced or not)
+/// the recording's UTM samples are handed over with the frames; their receiving side is
+/// returned for the run's UTM. `run` keeps retrying a camera that is not
 /// there yet; a replay's recording must open.
 struct Inputs {
     sources: Option<Sources>,
@@ -184,16 +185,17 @@ impl Inputs {
         playback: Option<&Playback>,
         tx: mpsc::Sender<SourceEvent>,
         stop: Arc<AtomicBool>,
-    ) -> Result<(Inputs, Option<utm::PacedLink>)> {
+    ) -> Result<(Inputs, Option<utm::InStepLink>)> {
         let policy = if kind.replaying { OpenPolicy::Require } else { OpenPolicy::Retry };
-        Ok(match playback.filter(|_| kind.lossless) {
+        let (players_utm, link) = playback.and_then(utm::in_step_link).unzip();
+        let inputs = match playback.filter(|_| kind.lossless) {
             Some(pb) if pb.pacing == Pacing::Paced => {
-                let (reader_utm, link) = utm::paced_link(pb).unzip();
-                (Inputs { sources: None, reader: Some(spawn_paced_reader(&pb.rec, tx, reader_utm, stop)?) }, link)
+                Inputs { sources: None, reader: Some(spawn_paced_reader(&pb.rec, tx, players_utm, stop)?) }
             }
-            Some(pb) => (Inputs { sources: None, reader: Some(spawn_reader(&pb.rec, pb.progress, tx, stop)?) }, None),
-            None => (Inputs { sources: Some(crate::graph::sources::start(config, policy, tx, stop)?), reader: None }, None),
-        })
+            Some(pb) => Inputs { sources: None, reader: Some(spawn_reader(&pb.rec, pb.progress, tx, stop)?) },
+            None => Inputs { sources: Some(crate::graph::sources::start(config, policy, tx, stop, players_utm)?), reader: None },
+        };
+        Ok((inputs, link))
     }
 
     /// Waits (at most 5 s) for the capture threads and the reader; the frames the reader skipped.

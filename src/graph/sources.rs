@@ -16,7 +16,12 @@ use tagdeflect_io::sources::{spawn_capture, spawn_device, Backoff, LiveCamera, L
 use crate::config::Config;
 use crate::config::Recording;
 
+use crate::graph::playback::PacedUtm;
 use crate::graph::sim::Rig;
+
+/// A recording played by its cameras' players: the recording, their shared playhead and the
+/// UTM samples they hand over with their frames (a replay's).
+type Played = (Arc<Recording>, Arc<player::Playhead>, Option<Arc<std::sync::Mutex<player::UtmInStep>>>);
 
 /// Every camera of a config, started.
 #[derive(Debug)]
@@ -46,10 +51,17 @@ pub fn wants_rig(config: &Config) -> bool {
 
 /// Starts every camera of `config` (see the module doc). Returns once each device is open —
 /// or, with [`OpenPolicy::Retry`], once each device is open or being retried. The simulated
-/// rig's clock starts now.
-pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop: Arc<AtomicBool>) -> Result<Sources, SourceError> {
+/// rig's clock starts now. `recorded_utm`: a replay's UTM stream, handed over by the players
+/// of its recording with their frames ([`player::UtmInStep`]).
+pub fn start(
+    config: &Config,
+    policy: OpenPolicy,
+    tx: Sender<SourceEvent>,
+    stop: Arc<AtomicBool>,
+    mut recorded_utm: Option<PacedUtm>,
+) -> Result<Sources, SourceError> {
     let rig = Rig::build(config, wants_rig(config))?;
-    let mut recordings: HashMap<PathBuf, (Arc<Recording>, Arc<player::Playhead>)> = HashMap::new();
+    let mut recordings: HashMap<PathBuf, Played> = HashMap::new();
     let mut cameras = Vec::with_capacity(config.cameras.len());
     let fail = |cameras: Vec<LiveCamera>, stop: &AtomicBool, e: SourceError| {
         stop.store(true, std::sync::atomic::Ordering::SeqCst);
@@ -66,8 +78,9 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
                 let entry = match recordings.get(dir) {
                     Some(e) => Ok(e.clone()),
                     None => Recording::open_with(dir, config.clone()).map(|rec| {
+                        let utm = recorded_utm.take().map(|u| player::UtmInStep::new(&rec, u.tx, u.sent));
                         let rec = Arc::new(rec);
-                        let e = (rec.clone(), player::Playhead::start(&*rec));
+                        let e = (rec.clone(), player::Playhead::start(&*rec), utm);
                         recordings.insert(dir.clone(), e.clone());
                         e
                     }),
@@ -76,9 +89,13 @@ pub fn start(config: &Config, policy: OpenPolicy, tx: Sender<SourceEvent>, stop:
                     Err(e) => {
                         Err(SourceError::Open { camera: i, name: cam.name.clone(), spec: cam.source.to_string(), message: e.to_string() })
                     }
-                    Ok((rec, playhead)) => {
+                    Ok((rec, playhead, utm)) => {
                         let name = cam.name.clone();
-                        let mut session = Some(player::RecordingSession::new(&rec, playhead, &name));
+                        let session = player::RecordingSession::new(&rec, playhead, &name);
+                        let mut session = Some(match utm {
+                            Some(u) => session.with_utm(u),
+                            None => session,
+                        });
                         // A recording is played once: a "reopen" has nothing more to give.
                         let open = move || session.take().ok_or_else(|| "played out".to_string());
                         // Gaps in a recording are not a lost camera.

@@ -16,7 +16,7 @@ use tagdeflect_sinks::recorder::RecorderTx;
 
 use crate::config::Config;
 use crate::graph::page::PageHandle;
-use crate::graph::playback::{play_utm, recorded_utm_wait, PacedUtm, Pacing, Playback};
+use crate::graph::playback::{recorded_utm_wait, PacedUtm, Pacing, Playback};
 use crate::graph::sim::{self, SimUtmServer};
 use crate::graph::solver::UtmFeed;
 use crate::graph::sources::Sources;
@@ -39,24 +39,24 @@ pub(crate) struct UtmGuard(#[allow(dead_code)] Option<SimUtmServer>);
 
 /// Starts the run's UTM (see the module doc). An as-fast replay has its UTM samples already
 /// (given to the measurement before the first set) and marks no UTM state; a replay at the
-/// recorded pace plays the recording's UTM samples whether or not its config has a `[utm]`
-/// (a folder may carry `utm.jsonl` from a UTM configured elsewhere): each set then waits for
-/// the sample after it, as in a run.
-/// A paced replay's samples come from its reader ([`paced_link`]) in step with the frames.
+/// recorded pace, paced without dropping or not, has its recording's samples handed over by
+/// its player(s) in step with the frames ([`in_step_link`]) whether or not its config has a
+/// `[utm]` (a folder may carry `utm.jsonl` from a UTM configured elsewhere): each set then
+/// waits, by the recording's clock, for the samples around its time.
 pub(crate) async fn start(
     config: &Config,
     playback: Option<&Playback>,
     sources: Option<&Sources>,
-    paced: Option<PacedLink>,
+    in_step: Option<InStepLink>,
     shutdown: watch::Receiver<bool>,
 ) -> Result<Utm> {
-    if let Some(PacedLink { events, sent, wait }) = paced {
+    if let Some(InStepLink { events, sent, wait }) = in_step {
         let feed = UtmFeed { wait, up_at_start: true, in_step: Some(sent) };
         return Ok(Utm { events, feed: Some(feed), guard: UtmGuard(None) });
     }
     let (tx, events) = mpsc::channel::<UtmEvent>(UTM_EVENTS);
-    if let Some(pb) = playback {
-        return Ok(Utm { events, feed: play_recorded(pb, tx), guard: UtmGuard(None) });
+    if playback.is_some() {
+        return Ok(Utm { events, feed: None, guard: UtmGuard(None) });
     }
     let Some(ucfg) = &config.utm else { return Ok(Utm { events, feed: None, guard: UtmGuard(None) }) };
     let (ucfg, sim) = sim::polled_utm(ucfg, sources.map(|s| &s.rig)).await?;
@@ -69,33 +69,24 @@ pub(crate) async fn start(
     Ok(Utm { events, feed: Some(feed), guard: UtmGuard(Some(sim)) })
 }
 
-/// A recording's UTM samples at their pace (`replay --realtime`); none in an as-fast replay.
-fn play_recorded(pb: &Playback, tx: mpsc::Sender<UtmEvent>) -> Option<UtmFeed> {
-    if pb.pacing != Pacing::Recorded {
-        return None;
-    }
-    // A recorded stream is up from its first sample: the first set waits for it too.
-    let feed = (!pb.rec.utm.is_empty()).then(|| UtmFeed { wait: recorded_utm_wait(&pb.rec), up_at_start: true, in_step: None });
-    drop(tokio::spawn(play_utm(pb.rec.clone(), tx)));
-    feed
-}
-
-/// The solver's side of a paced replay's UTM stream (see [`paced_link`]).
-pub(crate) struct PacedLink {
+/// The solver's side of a replay's UTM stream handed over with its frames (see [`in_step_link`]).
+pub(crate) struct InStepLink {
     events: mpsc::Receiver<UtmEvent>,
     sent: Arc<AtomicI64>,
     wait: Duration,
 }
 
-/// The UTM stream of a [`Pacing::Paced`] replay of `pb`: its reader's side and the run's
-/// (none when the recording has no UTM sample).
-pub(crate) fn paced_link(pb: &Playback) -> Option<(PacedUtm, PacedLink)> {
-    if pb.pacing != Pacing::Paced || pb.rec.utm.is_empty() {
+/// The UTM stream of a replay at its recorded pace ([`Pacing::Paced`] or [`Pacing::Recorded`])
+/// of `pb`, handed over with its frames: the players' side (the channel and the recorded time
+/// of the newest sample handed over) and the run's. None as fast as it goes, or when the
+/// recording has no UTM sample.
+pub(crate) fn in_step_link(pb: &Playback) -> Option<(PacedUtm, InStepLink)> {
+    if pb.pacing == Pacing::AsFast || pb.rec.utm.is_empty() {
         return None;
     }
     let (tx, events) = mpsc::channel::<UtmEvent>(UTM_EVENTS);
     let sent = Arc::new(AtomicI64::new(i64::MIN));
-    Some((PacedUtm { tx, sent: sent.clone() }, PacedLink { events, sent, wait: recorded_utm_wait(&pb.rec) }))
+    Some((PacedUtm { tx, sent: sent.clone() }, InStepLink { events, sent, wait: recorded_utm_wait(&pb.rec) }))
 }
 
 /// Who sees each UTM event before the solver.

@@ -31,6 +31,7 @@ mod mqtt_rotation;
 mod package;
 mod preload;
 mod realdata;
+mod realtime_utm;
 mod recording;
 mod report;
 mod report_folder;

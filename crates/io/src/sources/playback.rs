@@ -8,13 +8,20 @@
 //! the playhead started, so the cameras keep their recorded relative timing — except that a
 //! pause in the recording longer than [`MAX_PLAYED_GAP`] is played as that long (and logged):
 //! a frame stamped hours or 10^18 ns later is played next, never waited for.
+//!
+//! A replay's UTM samples go with its frames ([`UtmInStep`], `replay --realtime`): each camera
+//! player hands over, before its frame, every sample recorded up to the first at or after the
+//! frame's time, so the solver can wait for what a set's load needs by the recording's clock.
 
-use std::sync::Arc;
+use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::recording::{CameraList, RecordedConfig, Recording};
 use crate::sources::capture::{CaptureSession, Captured};
+use crate::utm::modbus::UtmEvent;
 use tagdeflect_core::frame::GrayImage;
+use tagdeflect_core::utm_sample::UtmSample;
 
 /// The longest pause between two recorded frames that a paced replay waits out.
 pub const MAX_PLAYED_GAP: Duration = Duration::from_secs(5);
@@ -120,6 +127,65 @@ impl Playhead {
     }
 }
 
+/// A recording's UTM samples handed over by its camera players in step with the frames
+/// (`replay --realtime`, `bench --realtime`), shared by the players of one recording: each
+/// sample at its own due time on the players' [`Playhead`] while a player waits for its frame,
+/// and — before a frame is delivered — every sample up to the first recorded at or after the
+/// frame's time, that one ahead of its time (the frame's line interpolates between the two).
+/// `sent` is the recorded time of the newest sample handed over (`i64::MIN` before the first):
+/// a set's solver waits to have received the samples up to its time or up to `sent`, so a
+/// busy machine can delay a set's load or drop the set, never leave it without the load
+/// recorded around it. Samples after the recording's last frame are not played. A hand-over
+/// waits for room (the samples are the recording's, not a live link that can lose them).
+#[derive(Debug)]
+pub struct UtmInStep {
+    samples: Vec<UtmSample>,
+    next: usize,
+    /// None once nobody takes them (the run ends).
+    tx: Option<tokio::sync::mpsc::Sender<UtmEvent>>,
+    sent: Arc<AtomicI64>,
+}
+
+impl UtmInStep {
+    /// The samples of `rec`, to `tx`; `sent` as in the type's doc.
+    pub fn new<C>(rec: &Recording<C>, tx: tokio::sync::mpsc::Sender<UtmEvent>, sent: Arc<AtomicI64>) -> Arc<Mutex<UtmInStep>> {
+        Arc::new(Mutex::new(UtmInStep { samples: rec.utm.clone(), next: 0, tx: Some(tx), sent }))
+    }
+
+    /// Hands over the samples due by now on `head`; how long until the next one is due.
+    fn hand_over_due(&mut self, head: &Playhead) -> Option<Duration> {
+        while let Some(s) = self.samples.get(self.next).copied() {
+            let wait = head.wait_for(s.t_ns);
+            if !wait.is_zero() {
+                return Some(wait);
+            }
+            self.send(s);
+        }
+        None
+    }
+
+    /// Hands over every sample up to the first recorded at or after `t_ns` (see the type's doc).
+    fn hand_over_to(&mut self, t_ns: i64) {
+        if self.sent.load(Ordering::SeqCst) >= t_ns {
+            return;
+        }
+        while let Some(s) = self.samples.get(self.next).copied() {
+            self.send(s);
+            if s.t_ns >= t_ns {
+                break;
+            }
+        }
+    }
+
+    fn send(&mut self, s: UtmSample) {
+        self.next += 1;
+        if self.tx.as_ref().is_some_and(|tx| tx.blocking_send(UtmEvent::Sample(s)).is_err()) {
+            self.tx = None;
+        }
+        self.sent.store(s.t_ns, Ordering::SeqCst);
+    }
+}
+
 /// How far a paced replay that never drops may fall behind its schedule before the schedule
 /// slips ([`ElasticClock`]).
 pub const SLIP_AFTER: Duration = Duration::from_millis(100);
@@ -183,6 +249,8 @@ pub struct RecordingSession {
     entries: Vec<usize>,
     next: usize,
     scratch: Vec<u8>,
+    /// The recording's UTM samples, handed over with the frames (none: not played).
+    utm: Option<Arc<Mutex<UtmInStep>>>,
 }
 
 impl RecordingSession {
@@ -190,7 +258,19 @@ impl RecordingSession {
     pub fn new<C: RecordedConfig>(rec: &Recording<C>, playhead: Arc<Playhead>, name: &str) -> Self {
         let rec = Arc::new(rec.with_cameras_only());
         let entries = rec.frames.iter().enumerate().filter(|(_, f)| f.camera == name).map(|(i, _)| i).collect();
-        Self { rec, playhead, entries, next: 0, scratch: Vec::new() }
+        Self { rec, playhead, entries, next: 0, scratch: Vec::new(), utm: None }
+    }
+
+    /// This camera's player hands over the recording's UTM samples with its frames (every
+    /// player of the recording shares `utm`).
+    pub fn with_utm(mut self, utm: Arc<Mutex<UtmInStep>>) -> Self {
+        self.utm = Some(utm);
+        self
+    }
+
+    /// The UTM samples due by now handed over; how long until the next one is due.
+    fn utm_due(&self) -> Option<Duration> {
+        self.utm.as_ref().and_then(|u| u.lock().unwrap_or_else(|e| e.into_inner()).hand_over_due(&self.playhead))
     }
 
     /// Frames this camera will play in all.
@@ -209,16 +289,22 @@ impl CaptureSession for RecordingSession {
         let Some(&i) = self.entries.get(self.next) else {
             return Captured::End;
         };
-        let entry = &self.rec.frames[i];
-        let wait = self.playhead.wait_for(entry.t_ns);
+        let t_ns = self.rec.frames[i].t_ns;
+        let utm_wait = self.utm_due();
+        let wait = self.playhead.wait_for(t_ns);
         if !wait.is_zero() {
-            // Bounded wait, so the capture loop sees its stop flag.
-            std::thread::sleep(wait.min(Duration::from_millis(100)));
-            if !self.playhead.wait_for(entry.t_ns).is_zero() {
+            // Bounded wait, so the capture loop sees its stop flag (and the UTM samples due
+            // meanwhile go at their time).
+            std::thread::sleep(wait.min(utm_wait.unwrap_or(wait)).min(Duration::from_millis(100)));
+            if !self.playhead.wait_for(t_ns).is_zero() {
                 return Captured::Timeout;
             }
         }
+        if let Some(u) = &self.utm {
+            u.lock().unwrap_or_else(|e| e.into_inner()).hand_over_to(t_ns);
+        }
         self.next += 1;
+        let entry = &self.rec.frames[i];
         match self.rec.load_image_into(entry, into, &mut self.scratch) {
             Ok(()) => Captured::Image(entry.t_ns),
             Err(e) => Captured::Bad(e.to_string()),
@@ -251,6 +337,60 @@ mod tests {
         assert!(at >= Duration::from_millis(320), "{at:?}");
         stop.store(true, std::sync::atomic::Ordering::SeqCst);
         assert!(!clock.wait_until_due(60 * ms + 3_600_000 * ms, &stop), "a stop ends the wait");
+    }
+
+    #[test]
+    fn the_utm_samples_a_frame_needs_go_before_it_the_rest_at_their_time() {
+        let ms = 1_000_000i64;
+        let sample = |t_ns: i64| UtmSample { t_ns, load_kn: t_ns as f64 / ms as f64, stroke_mm: None };
+        let (tx, mut rx) = tokio::sync::mpsc::channel(16);
+        let sent = Arc::new(AtomicI64::new(i64::MIN));
+        // Samples every 5 ms from 0 to 60 ms; a gap from 60 to 500 ms.
+        let samples: Vec<UtmSample> = (0..=12).map(|k| sample(5 * k * ms)).chain([sample(500 * ms)]).collect();
+        let mut utm = UtmInStep { samples, next: 0, tx: Some(tx), sent: sent.clone() };
+        let got = |rx: &mut tokio::sync::mpsc::Receiver<UtmEvent>| {
+            std::iter::from_fn(|| rx.try_recv().ok())
+                .map(|e| match e {
+                    UtmEvent::Sample(s) => s.t_ns / ms,
+                    other => panic!("{other:?}"),
+                })
+                .collect::<Vec<_>>()
+        };
+        // A frame at 12 ms: the samples up to the first at or after it (15 ms, ahead of time).
+        utm.hand_over_to(12 * ms);
+        assert_eq!(got(&mut rx), vec![0, 5, 10, 15]);
+        assert_eq!(sent.load(Ordering::SeqCst), 15 * ms);
+        // A frame at 15 ms needs nothing more.
+        utm.hand_over_to(15 * ms);
+        assert!(got(&mut rx).is_empty());
+        // A frame inside the gap: the sample after it, ahead of its time.
+        utm.hand_over_to(100 * ms);
+        assert_eq!(got(&mut rx), vec![20, 25, 30, 35, 40, 45, 50, 55, 60, 500]);
+        // Every sample went: nothing is left to hand over by the clock.
+        let head = Playhead::with_times([0i64].into_iter(), false);
+        assert_eq!(utm.hand_over_due(&head), None);
+        // Nobody takes them any more: no error, the time still advances.
+        let (tx, rx) = tokio::sync::mpsc::channel(1);
+        drop(rx);
+        let sent = Arc::new(AtomicI64::new(i64::MIN));
+        let mut utm = UtmInStep { samples: vec![sample(0), sample(5 * ms)], next: 0, tx: Some(tx), sent: sent.clone() };
+        utm.hand_over_to(5 * ms);
+        assert_eq!(sent.load(Ordering::SeqCst), 5 * ms);
+    }
+
+    #[test]
+    fn utm_samples_are_handed_over_at_their_time_while_a_player_waits() {
+        let ms = 1_000_000i64;
+        let (tx, mut rx) = tokio::sync::mpsc::channel(16);
+        let samples: Vec<UtmSample> =
+            [0, 20 * ms, 400 * ms].iter().map(|&t_ns| UtmSample { t_ns, load_kn: 1.0, stroke_mm: None }).collect();
+        let mut utm = UtmInStep { samples, next: 0, tx: Some(tx), sent: Arc::new(AtomicI64::new(i64::MIN)) };
+        let head = Playhead::with_times([0i64, 1000 * ms].into_iter(), false);
+        std::thread::sleep(Duration::from_millis(50));
+        // 50 ms after the start: the samples at 0 and 20 ms are due, the one at 400 ms is not.
+        let next = utm.hand_over_due(&head).expect("one sample left");
+        assert!(next <= Duration::from_millis(350) && next >= Duration::from_millis(200), "{next:?}");
+        assert_eq!(std::iter::from_fn(|| rx.try_recv().ok()).count(), 2);
     }
 
     #[test]
