@@ -249,7 +249,7 @@ impl CameraDetector {
 
     /// How much this camera's corners' σ is to be widened for its edge fits' model error:
     /// their residuals on the edges against the camera's noise there
-    /// ([`ModelExcess::factor`](crate::refine::ModelExcess::factor) with `TAGDEFLECT_SIGMA_WIDENING=on`; 1 while the
+    /// ([`ModelExcess::factor`](crate::refine::ModelExcess::factor) with `TAGDEFLECT_SIGMA_WIDENING=residuals`; 1 while the
     /// fits are at the noise level and before the edge profile is learned).
     pub fn corner_sigma_factor(&self) -> f64 {
         self.profile.sigma_factor()
@@ -491,8 +491,7 @@ impl CameraDetector {
         if self.search_options(rig, search_decimate) == configured {
             return (Vec::new(), 0);
         }
-        let is_found = |t: &PlannedTag| found.iter().any(|d| d.family == t.family && d.id == t.id);
-        let windows = merge_rects(missed.iter().filter(|t| t.expected && !is_found(t)).map(|t| t.window).collect());
+        let windows = retry_windows(missed, found);
         if windows.is_empty() {
             return (Vec::new(), 0);
         }
@@ -581,3 +580,14 @@ fn dedup_detections(dets: &mut Vec<Detection>) {
     dets.sort_by(|a, b| (a.family.name(), a.id).cmp(&(b.family.name(), b.id)).then(b.decision_margin.total_cmp(&a.decision_margin)));
     dets.dedup_by(|b, a| a.family == b.family && a.id == b.id);
 }
+
+/// The windows searched again by [`CameraDetector::retry_missed`]: those of the `missed` tags
+/// seen the last time they were looked for and not in `found`, merged where they overlap.
+fn retry_windows(missed: &[PlannedTag], found: &[Detection]) -> Vec<Rect> {
+    let is_found = |t: &PlannedTag| found.iter().any(|d| d.family == t.family && d.id == t.id);
+    merge_rects(missed.iter().filter(|t| t.expected && !is_found(t)).map(|t| t.window).collect())
+}
+
+#[cfg(test)]
+#[path = "camera_detector_tests.rs"]
+mod tests;

@@ -54,4 +54,4 @@ pub use drift::{DriftConfig, DriftEstimate, DriftFilter};
 pub use error::SolveError;
 pub use held_pose::{FirstPoseRefused, HeldCameraPose, HeldPoseOptions, HeldPoseStatus};
 pub use motion::TagMotion;
-pub use tag_pose::{solve_tag, PixelNoisePool, TagSolution, TagView};
+pub use tag_pose::{corner_residuals_px, solve_tag, PixelNoisePool, TagSolution, TagView};

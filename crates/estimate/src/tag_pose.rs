@@ -96,6 +96,17 @@ pub(crate) fn tag_corner_terms(
     Some((proj - pixel, jt, jc))
 }
 
+/// The reprojection residuals (projected − detected, px) of a view's four corners for a tag
+/// of edge `size_mm` at `tag_to_world`; `None` when a corner is behind the camera.
+pub fn corner_residuals_px(view: &TagView, tag_to_world: &Pose, size_mm: f64) -> Option<[Vector2<f64>; 4]> {
+    let corners = tag_corners(size_mm);
+    let mut out = [Vector2::zeros(); 4];
+    for (k, r) in out.iter_mut().enumerate() {
+        *r = tag_corner_terms(view, tag_to_world, &corners[k], &view.corners[k])?.0;
+    }
+    Some(out)
+}
+
 struct TagProblem<'a> {
     views: Vec<(usize, &'a TagView)>,
     corners: [Vector3<f64>; 4],

@@ -140,15 +140,17 @@ impl ModelExcess {
     }
 }
 
-/// Whether the corners' σ is widened by the edge fits' model error: `TAGDEFLECT_SIGMA_WIDENING=on`
-/// (a measurement), read once per process. Off by default: measured on the formations' scenes
+/// Whether the corners' σ is widened by the edge fits' residual energy:
+/// `TAGDEFLECT_SIGMA_WIDENING=residuals` (a measurement), read once per process (`on` is the
+/// estimate from the corners' scatter across phases, `tagdeflect_estimate::measure`). Off by
+/// default: measured on the formations' scenes
 /// (docs/accuracy.md) it over-covers (100 % within 2σ on the sharpened and elliptical scenes)
 /// and, through the temporal estimate's weights, moves the positions (the Bayer scene
 /// 0.0242 → 0.0515 mm). When it is off a camera gathers no residuals at all
 /// (`crate::learned`): the sums cost a pass over every fitted edge's pixels a frame.
 pub fn widening_switch() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "on"))
+    *ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "residuals"))
 }
 
 #[cfg(test)]

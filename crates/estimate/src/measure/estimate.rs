@@ -6,6 +6,7 @@
 use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
+use super::model_drift::{set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
 use crate::partial::{RecentFull, Referred};
@@ -32,6 +33,9 @@ pub(super) struct TagHistory {
     full_pose_cov: Option<Matrix3<f64>>,
     /// The last full sets' views (a partial set is referred to them: `estimate::partial`).
     recent_full: RecentFull,
+    /// Its corners' residuals kept for the model error's estimate (`model_drift`; empty when
+    /// that is off).
+    residuals: TagResiduals,
 }
 
 impl TagHistory {
@@ -46,6 +50,7 @@ impl TagHistory {
             full_noise: None,
             full_pose_cov: None,
             recent_full: Default::default(),
+            residuals: TagResiduals::default(),
         }
     }
 }
@@ -181,9 +186,13 @@ impl Measurement {
         let floor = sigma_floor(history, referred.as_ref(), sol, partial, used.len());
         let var = |m: &Matrix3<f64>| (self.up.transpose() * m * self.up)[(0, 0)];
         let cov = if var(&u.covariance) < var(&floor) { floor } else { u.covariance };
+        // The edge model's error as the tag moves: in the σ given out, beside the camera
+        // poses' part, never in the filter's weights (`model_drift`).
+        let model = self.model_error(history, tag, partial, pooled_sigma_px);
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
-        let absolute = if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let absolute = model + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
         if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
             steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor });
@@ -191,6 +200,20 @@ impl Measurement {
         let mut pose = sol.tag_to_world;
         pose.translation = u.centre;
         Position { centre: u.centre, sigma, pose, fused_cov: Some(u.covariance), net: NetInput { cov, rate: Some(u.rate) } }
+    }
+
+    /// The covariance the edge model's error adds to the tag's centre (zero unless the
+    /// widening is on); a full set's residuals update the pooled estimate first.
+    fn model_error(&mut self, history: &mut TagHistory, tag: &SolvedTag, partial: bool, pooled_sigma_px: Option<f64>) -> Matrix3<f64> {
+        let Some(drift) = self.model_drift.as_mut() else { return Matrix3::zeros() };
+        let sol = &tag.solution;
+        if !partial {
+            let (views, cameras) = (&tag.views.views, &tag.views.cameras);
+            let size = self.config.specimen.size_mm;
+            let now = set_residuals(views, cameras, &sol.rejected_views, &self.pose_epochs, &sol.tag_to_world, size);
+            drift.observe(&mut history.residuals, now);
+        }
+        drift.centre_covariance(&noise_cov(sol), pooled_sigma_px)
     }
 
     /// A partial set referred to the last full sets (their cameras' pose errors, not this

@@ -35,6 +35,7 @@ mod detect;
 mod estimate;
 mod gauges;
 mod line;
+mod model_drift;
 mod pose;
 mod rig;
 mod solve;
@@ -59,6 +60,7 @@ use camera::RigCamera;
 use estimate::TagHistory;
 use gauges::LineGauges;
 
+pub use model_drift::model_drift_switch;
 pub use rig::MeasurementRig;
 pub use stats::{MeasureStats, StageTimes};
 pub use tagdeflect_detect::DetectParts;
@@ -103,6 +105,9 @@ pub struct Measurement {
     gauges: LineGauges,
     /// Time of the run's first frame set (the first-pose search's window, `pose`).
     first_set_t_ns: Option<i64>,
+    /// The position error the edge model's error causes, pooled over the tags (`None`
+    /// unless `TAGDEFLECT_SIGMA_WIDENING=on`; `model_drift`).
+    model_drift: Option<model_drift::ModelDrift>,
 }
 
 impl Measurement {
@@ -130,6 +135,7 @@ impl Measurement {
             last_steps: None,
             gauges: LineGauges::new(config),
             first_set_t_ns: None,
+            model_drift: model_drift::model_drift_switch().then(model_drift::ModelDrift::default),
         })
     }
 
