@@ -6,8 +6,12 @@
 //! reviewer re-analyses the last with a reason and signs it; the audit trail on the page. Then
 //! from the folders: each report made at stop carries specimen, operator, marks and measured
 //! dimensions and equals `report DIR` to the last digit; a series leaves out the test whose
-//! crack was outside the middle third, with the reason; `report verify` on a copied folder
-//! catches tampering; the audit chain edited by hand is caught.
+//! crack was outside the middle third, with the reason.
+//!
+//! The EN 14651 day (the second test) is the whole "Done when" in one test: its notched
+//! beams' series with the characteristic values, a report signed by the reviewer on the page,
+//! `report verify` on a copied folder catching tampering and the audit chain edited by hand
+//! caught — steps the C1609 day does not repeat.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -34,15 +38,42 @@ fn add_user(users: &Path, tests: &Path, name: &str, role: &str) -> String {
 /// specimen table), with a users file: the config's path and the sim's parameters.
 fn day_config(dir: &Path) -> (PathBuf, SimParams) {
     let params = SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, ..small_rig() };
-    let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
+    let path = write_config(dir, "rig.toml", &params, None);
+    (path, params)
+}
+
+/// The config of the simulated rig `params` without `[specimen.beam]` (the geometry comes from
+/// the specimen table), with the users file `users.toml` beside it and, when given,
+/// `[output.auto_test]`'s table, written as `dir/NAME`: its path.
+fn write_config(dir: &Path, name: &str, params: &SimParams, auto_test: Option<toml::Table>) -> PathBuf {
+    let mut cfg = Config::from_sim(&SimRig::new(params).unwrap());
     cfg.utm = Config::demo().utm;
     cfg.specimen.beam = None;
-    let path = dir.join("rig.toml");
     let mut table: toml::Table = cfg.to_toml_string().parse().unwrap();
     let output = table.entry("output").or_insert(toml::Value::Table(Default::default())).as_table_mut().unwrap();
     output.insert("users_file".into(), toml::Value::String("users.toml".into()));
+    if let Some(auto) = auto_test {
+        output.insert("auto_test".into(), toml::Value::Table(auto));
+    }
+    let path = dir.join(name);
     std::fs::write(&path, toml::to_string(&table).unwrap()).unwrap();
-    (path, params)
+    path
+}
+
+/// The day's two users of a users file `dir/users.toml`: an operator, ana, and a reviewer,
+/// rui; their tokens.
+fn day_users(dir: &Path, tests: &Path) -> (String, String) {
+    let users = dir.join("users.toml");
+    (add_user(&users, tests, "ana", "operator"), add_user(&users, tests, "rui", "reviewer"))
+}
+
+/// Waits for the daemon at `addr` to serve its control API, idle.
+fn wait_idle(addr: std::net::SocketAddr) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
+        assert!(Instant::now() < deadline, "no control API within 60 s");
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 /// The specimen table: three of the simulated beam's size (two readings of width and depth
@@ -98,20 +129,14 @@ fn a_lab_day_through_the_page_in_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     std::fs::create_dir_all(&tests_dir).unwrap();
-    let users = dir.path().join("users.toml");
-    let ana = add_user(&users, &tests_dir, "ana", "operator");
-    let rui = add_user(&users, &tests_dir, "rui", "reviewer");
+    let (ana, rui) = day_users(dir.path(), &tests_dir);
     let (cfg, params) = day_config(dir.path());
     let csv = dir.path().join("batch-12.csv");
     std::fs::write(&csv, table(&params)).unwrap();
     let mut d =
         Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
-        assert!(Instant::now() < deadline, "no control API within 60 s");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    wait_idle(addr);
     let mut args = vec![format!("http://{addr}/").into(), ana.into(), rui.into(), csv.into_os_string()];
     args.extend(std::env::var_os("TAGDEFLECT_LAB_DAY_SCREENSHOT"));
     let seen = drive_page("lab_day_page.py", &args, &mut d);
@@ -179,6 +204,7 @@ fn a_lab_day_through_the_page_in_chromium() {
         }
         assert_eq!(record["specimen_info"]["client"], "ACME");
         assert_eq!(record["method"]["name"], "C1609-19");
+        println!("D{}: zero {}", k + 1, record["preload"]);
     }
 
     // The series: the test cracked outside the middle third left out, with its reason.
@@ -186,22 +212,24 @@ fn a_lab_day_through_the_page_in_chromium() {
     let excluded = series["excluded"].as_array().unwrap_or_else(|| panic!("{series}"));
     let d2 = excluded.iter().find(|e| e["specimen"] == "D2").unwrap_or_else(|| panic!("D2 not excluded: {series}"));
     assert!(d2["reason"].as_str().unwrap().contains("fracture outside the middle third"), "{d2}");
+}
 
-    // A copied folder: tampering caught by `report verify`.
-    let copy = dir.path().join("copied");
+/// The record of the tests folder `tests_dir` after a day: `report verify` on a copy of the
+/// folder catches an edited report.json, a deleted PDF and a changed test.json of the test
+/// `folder`, each named, and passes the untouched copy; the day's audit chain verifies, and
+/// edited by hand (the first stop by `user` made by someone else) is caught at that line.
+fn tampering_and_a_broken_chain_caught(tests_dir: &Path, folder: &Path, copy: &Path, user: &str) {
+    assert!(folder.join("report/report.pdf").is_file(), "the report at stop printed its PDF: {}", folder.display());
     assert!(Command::new("cp").args(["-r", tests_dir.to_str().unwrap(), copy.to_str().unwrap()]).status().unwrap().success());
-    tampering_caught(&copy.join(folders[0].file_name().unwrap()));
+    tampering_caught(&copy.join(folder.file_name().unwrap()));
 
-    // The day's audit chain verifies; edited by hand (the stop made by someone else), caught.
     let log = tests_dir.join("audit.jsonl");
     let whole = verify_chain(&log).unwrap();
     let text = std::fs::read_to_string(&log).unwrap();
-    let n = text.lines().position(|l| l.contains("\"action\":\"stop\"")).unwrap();
-    let edited: Vec<String> = text
-        .lines()
-        .enumerate()
-        .map(|(i, l)| if i == n { l.replace("\"user\":\"ana\"", "\"user\":\"eve\"") } else { l.to_string() })
-        .collect();
+    let by = format!("\"user\":\"{user}\"");
+    let n = text.lines().position(|l| l.contains("\"action\":\"stop\"") && l.contains(&by)).expect("a stop by the user");
+    let edited: Vec<String> =
+        text.lines().enumerate().map(|(i, l)| if i == n { l.replace(&by, "\"user\":\"eve\"") } else { l.to_string() }).collect();
     std::fs::write(&log, edited.join("\n") + "\n").unwrap();
     let broken = verify_chain(&log).unwrap_err();
     assert!(matches!(broken, ChainBroken::HashMismatch { line, .. } if line == n as u64 + 1), "{broken} ({} entries whole)", whole.entries);
@@ -242,7 +270,7 @@ const EN_ZERO_MARGIN_KN: f64 = 0.5;
 /// it), cycled by the simulated machine — 8 s at rest, seated to 1.0 kN in 4 s
 /// ([`EN_SEAT_FRAMES`]), loaded on to 6 mm in 14 s, unloaded the same way —, without `[specimen.beam]` (the geometry comes from the specimen table);
 /// `[output.auto_test]` only to stop each test at its method's end (its start load above any
-/// load: the tests are started by the operator).
+/// load: the tests are started by the operator); the day's users file.
 fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
     let params = SimParams {
         test: tagdeflect_sim::SimTest::ThreePointNotched,
@@ -255,13 +283,8 @@ fn en_day_config(dir: &Path) -> (PathBuf, SimParams) {
         crack_deflection_mm: 0.6,
         ..small_rig()
     };
-    let mut cfg = Config::from_sim(&SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = None;
-    let path = dir.join("notched.toml");
-    let text = cfg.to_toml_string() + "\n[output.auto_test]\nstart_load_kn = 1000.0\n";
-    std::fs::write(&path, text).unwrap();
-    (path, params)
+    let auto: toml::Table = "start_load_kn = 1000.0".parse().unwrap();
+    (write_config(dir, "notched.toml", &params, Some(auto)), params)
 }
 
 /// The EN 14651 specimen table: four notched beams of the simulated one's size (two readings
@@ -279,25 +302,28 @@ fn en_table(p: &SimParams) -> String {
 /// the table imported on the page, the lab's method chosen, a start on the specimen without a
 /// notch refused, four notched beams started and marked on the page (each stopped at CMOD 4 mm
 /// by the method's end, but E2, which the operator stopped early on the page), each report at
-/// stop equal to `report DIR`; then `report --series`: E2 excluded with its reason, f_R1…f_R4
-/// means over the three used, their characteristic values f_Rk = f_Rm − k_n·s with n = 3 and
-/// EN 1990 Table D1's k_n = 3.37 (5 % fractile, variance unknown), and the fib Model Code 2010
-/// class from f_R1k and f_R3k.
+/// stop equal to `report DIR` and carrying specimen, operator, the mark and test.json's
+/// dimensions, each zero seated (not warned of); the reviewer signs E4's report on the page;
+/// then `report --series`: E2 excluded with its reason, f_R1…f_R4 means over the three used,
+/// their characteristic values f_Rk = f_Rm − k_n·s with n = 3 and EN 1990 Table D1's
+/// k_n = 3.37 (5 % fractile, variance unknown), and the fib Model Code 2010 class from f_R1k
+/// and f_R3k; last, `report verify` on a copy of E4's folder catches an edited report.json, a
+/// deleted PDF and a changed test.json, and the day's audit chain edited by hand is caught.
 #[test]
 fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_values() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     std::fs::create_dir_all(tests_dir.join("methods")).unwrap();
     std::fs::write(tests_dir.join("methods/EN14651-SIM.toml"), en_sim_method()).unwrap();
+    let (ana, rui) = day_users(dir.path(), &tests_dir);
     let (cfg, p) = en_day_config(dir.path());
     let csv = dir.path().join("batch-en.csv");
     std::fs::write(&csv, en_table(&p)).unwrap();
     let mut d =
         Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
-    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
-    let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
-    let args = [format!("http://{addr}/").into(), token.into(), csv.into_os_string(), "EN14651-SIM".into()];
+    wait_idle(addr);
+    let args = [format!("http://{addr}/").into(), ana.into(), rui.into(), csv.into_os_string(), "EN14651-SIM".into()];
     let seen = drive_page("en_day_page.py", &args, &mut d);
 
     assert!(seen["imported"].as_str().unwrap().starts_with("imported 5 specimens; next: E1"), "{seen}");
@@ -327,6 +353,12 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
         }
     }
     assert!(tests[1]["cmod_at_stop"].as_f64().unwrap() < 4.0, "E2 stopped before the method's end: {}", tests[1]);
+    // The reviewer, on the same page, signs the last test's report: its trail shown, whole.
+    assert!(seen["user"].as_str().unwrap().starts_with("rui (reviewer)"), "{seen}");
+    assert!(seen["signed"].as_str().unwrap().starts_with("signed by rui (reviewer): \"reviewed and approved\""), "{seen}");
+    assert!(seen["chain"].as_str().unwrap().starts_with("chain whole"), "{seen}");
+    let trail: Vec<&str> = seen["audit"].as_array().unwrap().iter().map(|a| a.as_str().unwrap()).collect();
+    assert_eq!(trail, ["start", "mark", "stop", "sign"], "the last test's trail");
 
     // Each report at stop equals `report DIR` and carries the record.
     let folders: Vec<PathBuf> = tests.iter().map(|t| PathBuf::from(t["folder"].as_str().unwrap())).collect();
@@ -341,6 +373,7 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
         for key in ["width_mm", "depth_mm", "notch_mm"] {
             assert_eq!(at_stop["specimen"][key], record["measured"][key], "{key}");
         }
+        marks_in_the_report(&at_stop, &record, &folder.join("report/load_cmod.svg"));
         assert_eq!(record["method"]["name"], "EN14651-SIM");
         // The zero is taken on the seating, within the margin above the method's 0.5 kN preload.
         let zero_kn = record["preload"]["load_kn"].as_f64().unwrap_or_else(|| panic!("E{}: no zero's load in test.json: {record}", k + 1));
@@ -355,15 +388,35 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
             "E{}: {zero_event}: {record}",
             k + 1
         );
+        // Seated: the zero's sets span far less than the preload, and nothing is warned of.
+        let [lo, hi] = [0, 1].map(|j| record["preload"]["zero_loads_kn"][j].as_f64().unwrap_or_else(|| panic!("{}", record["preload"])));
+        assert!(hi - lo < 0.5 && record["preload"].get("warning").is_none(), "E{}: a seated zero warned of: {}", k + 1, record["preload"]);
+        assert!(!at_stop["qc"]["warnings"].to_string().contains("the zero's"), "E{}: {}", k + 1, at_stop["qc"]["warnings"]);
         if k != 1 {
             assert_eq!(at_stop["valid"], true, "E{}: {}", k + 1, at_stop["invalid_reasons"]);
         }
         println!(
-            "EN {k}: valid {} {} zero at {zero_kn} kN fR1 {} fR3 {} rates {}",
-            at_stop["valid"], at_stop["invalid_reasons"], at_stop["fR1"], at_stop["fR3"], at_stop["rates"]
+            "EN {k}: valid {} {} zero at {zero_kn} kN (sets {}) FL {} fR1 {} fR3 {} rates {}",
+            at_stop["valid"],
+            at_stop["invalid_reasons"],
+            record["preload"]["zero_loads_kn"],
+            at_stop["FL"],
+            at_stop["fR1"],
+            at_stop["fR3"],
+            at_stop["rates"]
         );
+        // The start of the load–CMOD curve, where F_L is read (0 to 0.05 mm).
+        let csv = std::fs::read_to_string(folder.join("report/curve.csv")).unwrap_or_default();
+        println!("EN {k} curve.csv head:\n{}", csv.lines().take(14).collect::<Vec<_>>().join("\n"));
         reports.push(at_stop);
     }
+
+    // The signed report: its signature names the reviewer and the report.json it signed.
+    let signed = folders[3].join("signatures.jsonl");
+    let sig: serde_json::Value = serde_json::from_str(std::fs::read_to_string(&signed).unwrap().lines().next().unwrap()).unwrap();
+    assert_eq!((sig["by"].as_str(), sig["meaning"].as_str()), (Some("rui"), Some("reviewed and approved")), "{sig}");
+    let report_sha = read_json(&folders[3].join("test.json"))["sha256"]["report/report.json"].clone();
+    assert_eq!(sig["report_json_sha256"], report_sha, "the signature is of the report at stop");
 
     let series = series(&folders, &dir.path().join("series-en"));
     assert_eq!(series["standard"], "en-14651", "{series}");
@@ -394,4 +447,24 @@ fn a_lab_day_of_notched_beams_gives_the_en_14651_series_with_its_characteristic_
         (series["characteristic"]["fR1k"]["value"].as_f64().unwrap(), series["characteristic"]["fR3k"]["value"].as_f64().unwrap());
     let class = tagdeflect_report::series_stats::fib_class(r1k, r3k).expect("a fib class for f_R1k ≥ 1 MPa and f_R3k/f_R1k ≥ 0.5");
     assert_eq!(series["fib_class"]["class"].as_str(), Some(class.as_str()), "{series}");
+
+    // The record: the signed test's copied folder tampered with, the day's chain edited.
+    tampering_and_a_broken_chain_caught(&tests_dir, &folders[3], &dir.path().join("copied"), "ana");
+}
+
+/// The report `at_stop` of a test whose record is `record` carries its "first crack seen" mark
+/// with its time and user (as the record has it, within the test) and draws it on its curve
+/// (`svg`).
+fn marks_in_the_report(at_stop: &serde_json::Value, record: &serde_json::Value, svg: &Path) {
+    let mark_of = |j: &serde_json::Value| {
+        j["events"].as_array().unwrap().iter().find(|e| e["kind"] == "mark").cloned().unwrap_or_else(|| panic!("no mark: {}", j["events"]))
+    };
+    let (in_report, in_record) = (mark_of(at_stop), mark_of(record));
+    assert_eq!(in_report, in_record, "the report's mark is the record's");
+    assert_eq!((in_report["note"].as_str(), in_report["user"].as_str()), (Some("first crack seen"), Some("ana")), "{in_report}");
+    let t = in_report["t_ns"].as_i64().unwrap();
+    let (start, stop) = (record["started_t_ns"].as_i64().unwrap(), record["stopped_t_ns"].as_i64().unwrap());
+    assert!(start <= t && t <= stop, "the mark at {t} ns within the test ({start}…{stop})");
+    let drawn = std::fs::read_to_string(svg).unwrap_or_else(|e| panic!("{}: {e}", svg.display()));
+    assert!(drawn.contains("first crack seen"), "the mark drawn on {}", svg.display());
 }

@@ -69,4 +69,7 @@ fn a_start_below_the_preload_waits_for_it_and_one_above_the_limit_is_refused() {
     assert!(p.load_kn >= 0.5 && p.load_kn < 0.5 + 0.05 * ZERO_SETS as f64, "the zero at the preload: {} kN", p.load_kn);
     let ev = record.events.iter().find(|e| e.kind == "preload").expect("a preload event");
     assert_eq!(ev.note.as_deref(), Some(format!("zero taken at {:.3} kN", p.load_kn).as_str()), "{ev:?}");
+    // Seated (≈ 0.042 kN a line): the zero's sets span a fraction of the preload, not warned of.
+    let [lo, hi] = p.zero_loads_kn.expect("the zero's loads recorded");
+    assert!(lo >= 0.5 && hi - lo < 0.25 && p.warning.is_none(), "a seated zero warned of: {p:?}");
 }

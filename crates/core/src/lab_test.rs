@@ -218,6 +218,14 @@ pub struct Preload {
     pub load_kn: f64,
     /// When, ns since the Unix epoch.
     pub t_ns: i64,
+    /// The lowest and the highest load of the zero's frame sets, kN (absent in records of
+    /// earlier versions, or when no set of the zero carried a load).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub zero_loads_kn: Option<[f64; 2]>,
+    /// Why the zero may not stand for the preload: its sets spanned much load (a machine
+    /// loading fast while it was taken; docs/report.md "A zero taken while the load climbs").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
 }
 
 #[cfg(test)]
@@ -248,7 +256,7 @@ mod tests {
         assert_eq!(again, serde_json::from_str::<serde_json::Value>(OLD).unwrap(), "written back as it was");
         let mut new = old.clone();
         new.crack = Some(CrackEntry { position_mm: -12.0, inside_middle_third: true, t_ns: 5 });
-        new.preload = Some(Preload { load_kn: 0.52, t_ns: 4 });
+        new.preload = Some(Preload { load_kn: 0.52, t_ns: 4, zero_loads_kn: Some([0.5, 0.52]), warning: None });
         new.events[1].user = Some("ann".into());
         let text = serde_json::to_string(&new).unwrap();
         assert_eq!(serde_json::from_str::<TestRecord>(&text).unwrap(), new);

@@ -209,6 +209,7 @@ pub fn build_test(
     }
     apply_crack(&mut r, view.crack.as_ref());
     r.qc.warnings.extend(prepared.method_warning.clone());
+    r.qc.warnings.extend(view.preload.as_ref().and_then(|p| p.warning.clone()));
     if let Some(v) = view.verification.as_ref().filter(|v| !v.stale.is_empty()) {
         r.qc.warnings.push(format!("the verification in force is stale: {}", v.stale.join("; ")));
     }

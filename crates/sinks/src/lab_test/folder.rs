@@ -121,6 +121,7 @@ impl LabTests {
             tags: p.tags.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
             net: Mean::from_parts(&p.net),
             gauges: p.gauges.into_iter().map(|(k, v)| (k, Mean::from_parts(&v))).collect(),
+            loads_kn: None,
         };
         let curve = read_curve(&p.folder.join("feed.jsonl")).unwrap_or_default();
         let mut r = Running {

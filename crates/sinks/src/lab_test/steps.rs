@@ -12,7 +12,7 @@ use super::auto;
 use super::folder::RESUME_NOTE;
 use super::record::push_point;
 use super::state::{Inner, LabTests, Running};
-use super::zero::ZERO_SETS;
+use super::zero::{spread_warning, ZERO_SETS};
 
 impl LabTests {
     /// The solver's step: the line gets the pending events, the running test and values
@@ -52,7 +52,7 @@ impl LabTests {
             // The preload: the load of the line that completed the zero, else of the first
             // line after it that carries one (a UTM sample may not have reached that line).
             if r.zero.n >= ZERO_SETS && r.record.preload.is_none() && line.load_kn.is_some() {
-                let ev = preload(&mut r.record, line);
+                let ev = preload(&mut r.record, line, r.zero.loads_kn, r.preload_kn);
                 line.events.extend(ev);
                 self.persist(r);
             }
@@ -152,11 +152,19 @@ impl LabTests {
 }
 
 /// The load at which the test's zero formed (`preload`), from the line that completed it (or
-/// the first one after it with a load); a
-/// test with a method gets a `preload` event too (its tare and preload step).
-fn preload(record: &mut TestRecord, line: &FeedLine) -> Option<FeedEvent> {
+/// the first one after it with a load), with the range of the zero's sets' loads
+/// (`zero_loads_kn`) and, when they spanned much load, a warning ([`spread_warning`]: logged,
+/// kept in the record, and in the report's QC list); a test with a method gets a `preload`
+/// event too (its tare and preload step).
+fn preload(record: &mut TestRecord, line: &FeedLine, zero_loads_kn: Option<[f64; 2]>, preload_kn: Option<f64>) -> Option<FeedEvent> {
     let load_kn = line.load_kn?;
-    record.preload = Some(Preload { load_kn, t_ns: line.t_ns });
+    let [lo, hi] = zero_loads_kn.unwrap_or([load_kn, load_kn]);
+    let range = [lo.min(load_kn), hi.max(load_kn)];
+    let warning = spread_warning(range, preload_kn);
+    if let Some(w) = &warning {
+        tracing::warn!(test = %record.id, "{w}");
+    }
+    record.preload = Some(Preload { load_kn, t_ns: line.t_ns, zero_loads_kn: Some(range), warning });
     record.method.as_ref()?;
     let ev = FeedEvent { kind: "preload".into(), t_ns: line.t_ns, note: Some(format!("zero taken at {load_kn:.3} kN")), user: None };
     record.events.push(ev.clone());

@@ -15,6 +15,12 @@ use tagdeflect_core::feed::FeedLine;
 /// Frame sets whose mean is a test's zero.
 pub const ZERO_SETS: usize = 5;
 
+/// The least spread of the zero's sets' loads that is warned of, kN, whatever the preload:
+/// 1–4 % of the first peak of the standards' beams (ASTM C1609's 150 mm beams 30–45 kN, EN
+/// 14651's F_L 12–20 kN), below the 5 % at the first point from which the report calls a test
+/// not recorded from its start (docs/report.md "A zero taken while the load climbs").
+pub const ZERO_SPREAD_FLOOR_KN: f64 = 0.5;
+
 /// A test's zero: the mean of its first [`ZERO_SETS`] sets, per quantity.
 #[derive(Default)]
 pub(super) struct Zero {
@@ -22,6 +28,8 @@ pub(super) struct Zero {
     pub(super) tags: BTreeMap<u32, Mean<3>>,
     pub(super) net: Mean<1>,
     pub(super) gauges: BTreeMap<String, Mean<1>>,
+    /// The lowest and highest load of its sets that carried one, kN.
+    pub(super) loads_kn: Option<[f64; 2]>,
 }
 
 impl Zero {
@@ -40,7 +48,17 @@ impl Zero {
         for (k, g) in &line.gauges {
             self.gauges.entry(k.clone()).or_default().add([g.value]);
         }
+        if let Some(l) = line.load_kn {
+            self.widen_loads(l);
+        }
         true
+    }
+
+    /// Takes `load_kn` into the range of the zero's loads.
+    pub(super) fn widen_loads(&mut self, load_kn: f64) {
+        let [lo, hi] = self.loads_kn.get_or_insert([load_kn, load_kn]);
+        *lo = lo.min(load_kn);
+        *hi = hi.max(load_kn);
     }
 
     /// Counts the line's values from the zero; a tag first seen after the zero formed counts
@@ -155,6 +173,21 @@ impl<const N: usize> Mean<N> {
     }
 }
 
+/// The warning of a zero whose sets' loads spanned `[lo, hi]` kN, when the span exceeds the
+/// method's preload or [`ZERO_SPREAD_FLOOR_KN`], whichever is larger: the load more than
+/// doubled from the preload, or rose by more than a few % of a first peak, while the zero was
+/// taken — a machine loading fast with no seating, whose zero stands for no one load.
+pub(super) fn spread_warning([lo, hi]: [f64; 2], preload_kn: Option<f64>) -> Option<String> {
+    let limit_kn = preload_kn.unwrap_or(0.0).max(ZERO_SPREAD_FLOOR_KN);
+    (hi - lo > limit_kn).then(|| {
+        format!(
+            "the zero's {ZERO_SETS} frame sets spanned {:.3} kN of load ({lo:.3} to {hi:.3} kN, more than {limit_kn:.3} kN): \
+             the machine was loading fast while the zero was taken (no seating?); the zero stands for no one load",
+            hi - lo
+        )
+    })
+}
+
 fn round_um(v: f64) -> f64 {
     (v * 1e6).round() / 1e6
 }
@@ -189,5 +222,32 @@ mod tests {
             rest.add([e]);
         }
         assert!(rest.get().1[0] < 0.003);
+    }
+
+    /// The zero's spread warned of above the preload or 0.5 kN, whichever is larger: a seated
+    /// machine (0.05 kN a set from the 0.5 kN preload) is not warned of; one loading 4 kN a set
+    /// is, naming the loads; with no preload (no method) the floor alone decides.
+    #[test]
+    fn a_zero_whose_sets_span_more_than_the_preload_or_half_a_kilonewton_is_warned_of() {
+        let mut seated = Zero::default();
+        let mut unseated = Zero::default();
+        for k in 0..ZERO_SETS {
+            seated.take(&FeedLine { load_kn: Some(0.5 + 0.05 * k as f64), ..FeedLine::default() });
+            unseated.take(&FeedLine { load_kn: Some(0.5 + 4.0 * k as f64), ..FeedLine::default() });
+        }
+        seated.take(&FeedLine { load_kn: Some(9.0), ..FeedLine::default() });
+        assert_eq!(seated.loads_kn, Some([0.5, 0.7]), "a sixth line is no set of the zero");
+        assert_eq!(spread_warning(seated.loads_kn.unwrap(), Some(0.5)), None);
+        let w = spread_warning(unseated.loads_kn.unwrap(), Some(0.5)).expect("16 kN across the zero's sets");
+        assert!(w.contains("spanned 16.000 kN of load (0.500 to 16.500 kN, more than 0.500 kN)"), "{w}");
+        // The larger of the preload and the floor.
+        assert!(spread_warning([1.0, 2.9], Some(2.0)).is_none());
+        assert!(spread_warning([1.0, 3.1], Some(2.0)).is_some());
+        assert!(spread_warning([0.0, 0.45], None).is_none());
+        assert!(spread_warning([0.0, 0.55], None).is_some());
+        // A zero without loads has no range.
+        let mut none = Zero::default();
+        none.take(&FeedLine::default());
+        assert_eq!(none.loads_kn, None);
     }
 }
