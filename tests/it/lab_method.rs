@@ -209,6 +209,7 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     let refused = seen["refused"].as_str().unwrap();
     assert!(refused.starts_with("start refused (400)") && refused.contains("needs span_mm"), "{refused}");
     assert!(seen["requires_next"].as_str().unwrap().ends_with("all given"), "{seen}");
+    assert_eq!(seen["specimen_typed_across_a_refresh"], "next", "the table's refresh wrote into a field being typed in: {seen}");
     assert_eq!(seen["specimen"], "S1");
     // C1609 for a 150 mm deep beam: 0.035–0.10 mm/min up to L/900 = 0.5 mm of the row's span.
     assert_eq!(seen["rate_window"], "window 0.035–0.1 mm/min (up to 0.500 mm)", "{seen}");

@@ -4,7 +4,7 @@
 // chosen method's standard taken and its required dimensions shown (missing ones named); the
 // rate window from the method's phases and the test's own span (measured, the specimen's row,
 // else [specimen.beam]). Text only through textContent.
-const F = { methods: [], beam: {}, next: null, table: [] };
+const F = { methods: [], beam: {}, next: null, table: [], specimenTouched: false };
 const DIMS = ["width_mm", "depth_mm", "span_mm", "notch_mm"];
 function methodNamed(name) { return F.methods.find((m) => m.name === name); }
 // The window of the test's controlled quantity: the test's method, else the shipped method of
@@ -76,7 +76,9 @@ async function loadSpecimens() {
     const a = await r.json();
     F.table = a.specimens || [];
     F.next = a.next || null;
-    if (F.next && !$("f-specimen").value) $("f-specimen").value = "next";
+    // "next" is filled in only while the operator has not touched the field: a refresh that
+    // wrote into a field being cleared or typed in would glue "next" to what is typed.
+    if (F.next && !F.specimenTouched && !$("f-specimen").value) $("f-specimen").value = "next";
     showRequires();
     if (typeof renderSpecimenTable === "function") renderSpecimenTable();
   } catch (e) { /* as above */ }
@@ -86,6 +88,7 @@ function stopBody() {
   const v = parseFloat($("f-crack").value);
   return Number.isFinite(v) ? { crack: { position_mm: v } } : {};
 }
+for (const ev of ["focus", "input"]) $("f-specimen").addEventListener(ev, () => { F.specimenTouched = true; });
 for (const id of ["f-method", "f-standard", "f-specimen", "f-width", "f-depth", "f-span", "f-notch"]) {
   $(id).addEventListener("input", showRequires);
   $(id).addEventListener("change", showRequires);
