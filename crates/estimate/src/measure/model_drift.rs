@@ -147,17 +147,8 @@ pub fn model_drift_switch() -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A pseudo-random standard normal (xorshift, Box–Muller).
-    fn normal(seed: &mut u64) -> f64 {
-        let mut uniform = || {
-            *seed ^= *seed << 13;
-            *seed ^= *seed >> 7;
-            *seed ^= *seed << 17;
-            ((*seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos()
-    }
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
 
     /// `sets` frame sets of `tags` tags seen by 3 cameras: each corner coordinate's residual
     /// is pixel noise `noise_px` plus a bias that wanders (a random walk of `step_px` a set,
@@ -165,7 +156,8 @@ mod tests {
     fn drift_of(noise_px: f64, step_px: f64, sets: usize) -> ModelDrift {
         let (tags, cameras) = (8, 3);
         let c: f64 = (24.0 - 6.0) / 24.0;
-        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x2545_f491_4f6c_dd1d);
+        let mut normal = || -> f64 { StandardNormal.sample(&mut rng) };
         let mut drift = ModelDrift::default();
         let mut kept = vec![TagResiduals::default(); tags];
         let mut bias = vec![[[0.0; 2]; 4]; tags * cameras];
@@ -177,8 +169,8 @@ mod tests {
                         let residuals_px = std::array::from_fn(|k| {
                             let mut r = [0.0; 2];
                             for (a, r) in r.iter_mut().enumerate() {
-                                b[k][a] += step_px * normal(&mut seed);
-                                *r = c.sqrt() * (b[k][a] + noise_px * normal(&mut seed));
+                                b[k][a] += step_px * normal();
+                                *r = c.sqrt() * (b[k][a] + noise_px * normal());
                             }
                             Vector2::new(r[0], r[1])
                         });
