@@ -56,7 +56,7 @@ n=$(stat -c '%A %U %G' /dev/video0 2>&1)
 
 # --- The configuration, as the guide says: a fourth camera (V4L2), the lab's tests folder
 # and its token; the sync tolerance widened so the real camera's frames may join the simulated
-# cameras' sets. vivid at 1 fps beside the simulated 5 fps: a simulated frame is stamped when
+# cameras' sets. vivid at 1 fps beside the simulated 2 fps: a simulated frame is stamped when
 # due and handed over once rendered, so under emulation it comes after a set the real camera
 # opened at its time has closed (dropped as late); the simulated frames between vivid's still
 # make sets of their own, with the tags and the net deflection.
@@ -71,6 +71,8 @@ if [ "${SIM_CAMERAS:-3}" = 1 ]; then
     { print }
     END { flush() }' "$C" | sed '/^\[sim\]$/,/^\[/ s/^cameras = 3$/cameras = 1/' >"$C.new" && mv "$C.new" "$C"
 fi
+# The simulated rig at 2 fps (its cameras and [sim]): less to render and detect per second.
+sed -i "s/^fps = 5.0$/fps = ${SIM_FPS:-2}.0/" "$C"
 sed -i '/^\[output\]$/a tests = "/var/lib/tagdeflect-lab/tests"\nhttp_token_file = "/etc/tagdeflect/token"' "$C"
 cat >>"$C" <<'EOF'
 
