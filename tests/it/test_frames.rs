@@ -57,8 +57,9 @@ fn report_verify(dir: &Path) -> (bool, String) {
 /// A lab test with its frames recorded: the folder's `frames/` is a recording of the frames
 /// from the test's start (none older) with the test's UTM samples, every frame file listed in
 /// `test.json` and checked by `report verify` (a frame changed afterwards is named); `replay`
-/// of it gives lines at the times of the test's lines with the same tags. Without the option
-/// a test folder holds no frames.
+/// of it gives every line of a whole live set at its time with its tags, and a line of a
+/// partial set (a camera's frame late, SPEC's drop policy) has its frames in the recording.
+/// Without the option a test folder holds no frames.
 #[test]
 fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
     let dir = tempfile::tempdir().unwrap();
@@ -82,7 +83,10 @@ fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
     let hashed: Vec<&String> = record["sha256"].as_object().unwrap().keys().filter(|k| k.starts_with("frames/")).collect();
     let index = fs::read_to_string(folder.join("frames/frames.jsonl")).unwrap();
     let frames: Vec<serde_json::Value> = index.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    assert!(frames.len() >= 30, "{} frames", frames.len());
+    // Every frame the test's lines were made of is recorded (a loaded machine renders the
+    // simulated cameras late and skips frames, a line then made of fewer: counted by line).
+    let used: usize = whole_feed_lines(&folder.join("feed.jsonl")).iter().map(|l| l.cameras.iter().filter(|c| c.frame).count()).sum();
+    assert!(used >= 15 && frames.len() >= used, "{} frames recorded, {used} in the test's lines", frames.len());
     assert!(frames.iter().all(|f| f["t_ns"].as_i64().unwrap() >= started_t_ns), "no frame before the test's start");
     for f in &frames {
         let file = format!("frames/{}", f["file"].as_str().unwrap());
@@ -106,8 +110,23 @@ fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
         .collect();
     let text = fs::read_to_string(folder.join("feed.jsonl")).unwrap();
     let live: Vec<serde_json::Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
-    let same = live.iter().filter(|l| replayed.get(&l["t_ns"].as_i64().unwrap()) == Some(&tags(l))).count();
-    assert!(same * 10 >= live.len() * 9, "{same} of the test's {} lines replayed at their time with their tags", live.len());
+    // A live set waits a frame period for a missing camera and is then measured without it
+    // (`partial_set`, SPEC's drop policy; on a loaded machine the simulated cameras render
+    // late); the replay, as fast as it reads, waits for every camera, so the same frames make
+    // one whole set at another time. Such a line is checked by its frames, all recorded. The
+    // first line's set may hold a frame exposed just before the start, which is not recorded.
+    let (whole, partial): (Vec<&serde_json::Value>, Vec<&serde_json::Value>) =
+        live.iter().filter(|l| l["t_ns"].as_i64().unwrap() - started_t_ns > 10_000_000).partition(|l| l["partial_set"] != true);
+    let differ: Vec<i64> =
+        whole.iter().filter(|l| replayed.get(&l["t_ns"].as_i64().unwrap()) != Some(&tags(l))).map(|l| l["seq"].as_i64().unwrap()).collect();
+    assert!(
+        !whole.is_empty() && differ.is_empty(),
+        "of the test's {} lines of whole sets these seq differ replayed: {differ:?}",
+        whole.len()
+    );
+    for l in &partial {
+        assert!(partial_set_recorded(l, &frames), "the frames of a partial set, seq {}, are recorded: {l}", l["seq"]);
+    }
 
     // A frame changed after the stop is named.
     let first = folder.join("frames").join(frames[0]["file"].as_str().unwrap());
@@ -117,6 +136,20 @@ fn a_test_with_its_frames_recorded_replays_to_its_lines_and_verifies() {
     fs::write(&first, bytes).unwrap();
     let (ok, said) = report_verify(&folder);
     assert!(!ok && said.contains(frames[0]["file"].as_str().unwrap()), "{said}");
+}
+
+/// Whether the frames a live line of a partial set was made of are in the recording `frames`
+/// (its index lines): for each camera with a frame in the line, that camera's recorded frame
+/// nearest the line's time; their mean time (a set's time) is the line's.
+fn partial_set_recorded(line: &serde_json::Value, frames: &[serde_json::Value]) -> bool {
+    let t_ns = line["t_ns"].as_i64().unwrap();
+    let cameras = line["cameras"].as_array().unwrap().iter().filter(|c| c["frame"] == true).map(|c| c["name"].as_str().unwrap());
+    let nearest: Option<Vec<i64>> = cameras
+        .map(|name| frames.iter().filter(|f| f["camera"] == name).map(|f| f["t_ns"].as_i64().unwrap()).min_by_key(|t| (t - t_ns).abs()))
+        .collect();
+    let Some(times) = nearest.filter(|t| !t.is_empty()) else { return false };
+    let mean = times[0] + times.iter().map(|t| t - times[0]).sum::<i64>() / times.len() as i64;
+    (mean - t_ns).abs() <= 1
 }
 
 /// The frames index of a test's recording `sub` (`frames`, `frames-2`): each frame's `t_ns`

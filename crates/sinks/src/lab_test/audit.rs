@@ -6,12 +6,11 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use sha2::Digest;
 use tagdeflect_core::audit::{verify_chain, AuditAction, AuditEntry};
 use tagdeflect_core::feed::FeedEvent;
 use tagdeflect_core::users::Actor;
 
-use super::folder::{hash_folder, hex};
+use super::folder::{hash_folder, sha256_file};
 use super::{LabTests, Stopped, TestError, TestRecord};
 
 /// The audit log's file name in the tests folder.
@@ -36,10 +35,6 @@ pub struct Signature {
     pub report_json_sha256: String,
     /// The `seq` of the audit log's `sign` line.
     pub audit_seq: u64,
-}
-
-fn sha256_file(path: &Path) -> std::io::Result<String> {
-    Ok(hex(&sha2::Sha256::digest(std::fs::read(path)?)))
 }
 
 /// Text a user typed (a meaning, a reason): 1 to 4096 characters, no control characters.

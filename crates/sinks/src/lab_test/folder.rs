@@ -322,8 +322,24 @@ pub(super) fn hash_folder(folder: &Path) -> std::io::Result<BTreeMap<String, Str
             if rel == "test.json" || rel == super::audit::SIGNATURES_FILE || rel.ends_with(".tmp") {
                 continue;
             }
-            out.insert(rel, hex(&sha2::Sha256::digest(std::fs::read(&p)?)));
+            out.insert(rel, sha256_file(&p)?);
         }
     }
     Ok(out)
+}
+
+/// SHA-256 (lower-case hex) of a file, read through a buffer: a long test's `feed.jsonl`
+/// (gigabytes) is never held whole (read whole, a 9-hour test's feed ran the daemon out of its
+/// unit's `MemoryMax=2G` at the stop; docs/performance.md).
+pub(super) fn sha256_file(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path)?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        match f.read(&mut buf)? {
+            0 => return Ok(hex(&h.finalize())),
+            n => h.update(&buf[..n]),
+        }
+    }
 }
