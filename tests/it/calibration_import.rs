@@ -15,10 +15,10 @@ fn opencv_samples() -> PathBuf {
 }
 
 /// Each left view's board pose fitted alone (PnP) under the intrinsics read from OpenCV's
-/// file; the RMS over every corner is OpenCV's own on these views (its file: 0.393 px; its
-/// calibration re-run, realdata/MANIFEST.md: 0.408 px), each view within the worst OpenCV
-/// states for a view (left02, 1.18 px). With k1 read as +0.266 instead of −0.266 the board's
-/// corners near the image's edges move by tens of pixels.
+/// file. Measured 2026-12-07: RMS 0.409 px over the 701 corners (OpenCV's own: 0.393 px in
+/// its file, 0.408 px re-run, realdata/MANIFEST.md), worst view left02 1.222 px (OpenCV:
+/// 1.18 px); floors 1.4 ×: 0.57 and 1.7 px. With k1 read as +0.266 instead of −0.266: RMS
+/// 2.78 px, every view 1.4–4.3 px.
 #[test]
 fn an_opencv_calibration_read_by_the_product_reprojects_the_real_views_it_came_from() {
     let dir = opencv_samples();
@@ -47,6 +47,6 @@ fn an_opencv_calibration_read_by_the_product_reprojects_the_real_views_it_came_f
         "IMPORT OpenCV left_intrinsics.yml on its own views: RMS {rms:.3} px over {points} corners, worst {} {:.3} px",
         worst.0, worst.1
     );
-    assert!(rms <= 0.5, "RMS {rms} px over every corner with OpenCV's calibration (OpenCV: 0.39–0.41 px)");
-    assert!(worst.1 <= 1.4, "{} RMS {} px (OpenCV's worst view: 1.18 px)", worst.0, worst.1);
+    assert!(rms <= 0.57, "RMS {rms} px over every corner with OpenCV's calibration (measured 0.409 px)");
+    assert!(worst.1 <= 1.7, "{} RMS {} px (measured: left02 1.222 px)", worst.0, worst.1);
 }
