@@ -11,6 +11,8 @@
 #        TOGETHER=1 scripts/inject_regressions.sh A B   A and B at once, the union of their
 #            tests run once (one build: for patches whose tests cannot be failed by the other)
 #        RUN_IT=0 ...                                   crate unit tests only
+#        RUN_UNIT=0 ...                                 integration tests only (a crate's unit
+#            tests build the crate's dependencies again with its own features: ~30 min here)
 # Results: target/regressions/results.md (a table row per run) and one log per run.
 # Needs a clean work tree where the patches apply; a patch is reverted even when interrupted.
 set -u
@@ -58,7 +60,7 @@ run_group() {
     local failed=""
     for n in "$@"; do
         unit=$(field "$n" Unit)
-        [ -n "$unit" ] && failed+=$'\n'$(run_tests "$log" $unit)
+        [ -n "$unit" ] && [ "${RUN_UNIT:-1}" != 0 ] && failed+=$'\n'$(run_tests "$log" $unit)
     done
     if [ "${RUN_IT:-1}" != 0 ] && [ ${#its[@]} -gt 0 ]; then
         failed+=$'\n'$(run_tests "$log" --test it -- "${its[@]}")

@@ -11,6 +11,7 @@ mod archive;
 mod audit;
 mod calibrate;
 mod calibrate_guard;
+mod calibration_import;
 mod cli;
 mod config;
 mod control;

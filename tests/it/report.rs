@@ -730,6 +730,13 @@ fn simulated_softening_test_end_to_end_matches_the_truth() {
         println!("REPORT softening vs the closed-form law {key}: {v:.4} ± {s:.4} (law {t:.4}; error {:+.4})", v - t);
         assert!((v - t).abs() <= 2.0 * s + floor, "{key}: {v} ± {s} vs the law's {t}");
     }
+    // Not σ-scaled alone (a σ grown twofold lets twice the error through): T150's error and σ
+    // themselves. Measured: 2026-12-07 51.010 ± 0.110 J against the law's 50.973 (+0.037 J);
+    // 2026-12-02 51.04 ± 0.27 J (+0.07 J, before the smoothing shrank at kinks). Ceilings
+    // 1.4 × the largest error (0.10 J) and 1.4 × today's σ (0.16 J).
+    let (t150, s150) = (j["T150"]["value"].as_f64().unwrap(), j["T150"]["sigma"].as_f64().unwrap());
+    assert!((t150 - law.t150).abs() <= 0.10, "T150 {t150} J vs the law's {}: more than 0.10 J off", law.t150);
+    assert!(s150 <= 0.16, "T150's σ {s150} J (measured 0.110)");
     // No clock offset in this rig: the feed's clock check, when it has one, agrees with 0.
     let clock = &j["qc"]["clock_offset"];
     if !clock.is_null() {
@@ -851,6 +858,16 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
         println!("REPORT notched vs the closed-form law {key}: {v:.4} ± {s:.4} MPa (law {t:.4}; error {:+.4})", v - t);
         assert!((v - t).abs() <= 2.0 * s + mpa(0.01 * pc), "{key}: {v} ± {s} vs the law's {t}");
     }
+    // Not σ-scaled alone: F_L's and fR1's errors and σ themselves. Measured 2026-12-07: F_L
+    // 28.60 ± 0.94 kN against the law's 30 (−1.40; an earlier run 29.3, −0.7), fR1 6.2460 ±
+    // 0.0240 MPa against 6.2602 (−0.014; earlier runs −0.033 and −0.060, σ 0.024 and 0.052).
+    // Ceilings: 1.4 × the largest error (F_L 2.0 kN, fR1 0.085 MPa); σ 1.5 × today's (F_L
+    // 1.4 kN, fR1 0.036 MPa — a doubled σ, 1.88 kN or 0.048 MPa, does not pass).
+    let fr1 = (j["fR1"]["value"].as_f64().unwrap(), j["fR1"]["sigma"].as_f64().unwrap());
+    assert!((fl - fl_law).abs() <= 2.0, "F_L {fl} kN vs the law's {fl_law}: more than 2 kN off");
+    assert!(sl <= 1.4, "F_L's σ {sl} kN (measured 0.94)");
+    assert!((fr1.0 - law[0]).abs() <= 0.085, "fR1 {} MPa vs the law's {}: more than 0.085 MPa off", fr1.0, law[0]);
+    assert!(fr1.1 <= 0.036, "fR1's σ {} MPa (measured 0.024)", fr1.1);
 }
 
 /// EN 14651's residual flexural strengths f_R,1..4 from the simulator's law in closed form:

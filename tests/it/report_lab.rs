@@ -465,9 +465,12 @@ fn monte_carlo_about_95_percent_of_truths_within_2_sigma() {
             let c1 = 100.0 * within1[k] as f64 / trials as f64;
             println!("REPORT Monte Carlo {key}: {c2:.1} % of {trials} truths within 2σ, {c1:.1} % within 1σ");
             // ~95 % within 2σ (binomial 2σ band of 150 trials: ±3.6 %): an honest σ, not a
-            // σ so large that everything is within 1σ.
+            // σ so large that everything is within 1σ. Measured (seed 2026, 2026-12-07):
+            // within 1σ 60.0 % (f_L) to 84.0 % (RT150), within 2σ 93.3–100 %; the ceiling of
+            // 90 % within 1σ is the largest plus its binomial 2σ (±6 %). A doubled σ puts
+            // within 1σ what was within 2σ: F_L 93.3 %, f_L 95.3 % (97 % let those through).
             assert!((88.0..=100.0).contains(&c2), "{key}: {c2} % within 2σ");
-            assert!(c1 < 97.0, "{key}: {c1} % within 1σ — σ too large");
+            assert!(c1 <= 90.0, "{key}: {c1} % within 1σ — σ too large");
         }
     }
 }
