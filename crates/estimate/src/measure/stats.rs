@@ -49,6 +49,9 @@ pub struct MeasureStats {
     /// Tag solutions of partial sets referred to the tag's last full sets (temporal
     /// estimator, `estimate::partial`).
     pub referred_partial_views: u64,
+    /// The edge model's error moved since the tags' references, `D`, px² per corner
+    /// coordinate (`model_drift`; `None` until enough corners were compared).
+    pub model_drift_px2: Option<f64>,
 }
 
 impl MeasureStats {
