@@ -54,7 +54,8 @@ fn accuracy_per_formation_table() {
         let (rec_, lines, summary) = replay_lines(&rec, false);
         let acc = tagdeflect::accuracy::evaluate(&rec_.config, &rec_.truth, &lines);
         println!("ACCURACY {name}: {acc}");
-        println!("DRIFT {name}: D = {:?} px² per corner coordinate", summary.stats.model_drift_px2);
+        let stats = &summary.stats;
+        println!("DRIFT {name}: D = {:?}, white noise {:?} px² per corner coordinate", stats.model_drift_px2, stats.white_noise_px2);
         let rms = acc.disp_rms_mm;
         let base = *sharp_rms.get_or_insert(rms);
         rows.push(format!(

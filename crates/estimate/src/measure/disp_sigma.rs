@@ -8,6 +8,12 @@
 //!
 //! `Cov(e_t − v_0) = P_t + N_0 − C_t − C_tᵀ + M_t (+ the poses' parts after a re-pose)`
 //!
+//! * The pixel-noise covariances are scaled by the pooled corner noise `s²`, the scatter of
+//!   one set's corners about the rigid tag: the noise that changes from set to set and the
+//!   corners' bias that stays, which cancels from a displacement with the zero's. So the
+//!   pixel-noise terms (`P_t + N_0 − C_t − C_tᵀ`) are taken at the white share
+//!   `w = σ_w² / s²` (≤ 1), `σ_w²` from the corners' set-to-set change
+//!   (`model_drift::ModelDrift::white_variance_px2`); `w = 1` until that is known.
 //! * `P_t` the estimator's covariance of the position (pixel noise; a partial set's camera
 //!   poses where the filter took them), `N_0` the zero's pixel-noise covariance;
 //! * `C_t = Cov(e_t, v_0)`, because the estimate still holds some of the zero's measurement.
@@ -75,23 +81,34 @@ impl DispZero {
     }
 
     /// The displacement's covariance, mm², from the estimate's position covariance
-    /// `estimate` (the filter's when `temporal`), the model error moved since the zero
-    /// `model`, and today's camera-poses part `pose_part` (added, with the zero's, when a
-    /// camera that saw the zero was re-posed since: `epochs` by camera).
+    /// `estimate` (the filter's when `temporal`) with the white share `white` of the pixel
+    /// noise, the model error moved since the zero `model`, and today's camera-poses part
+    /// `pose_part` (added, with the zero's, when a camera that saw the zero was re-posed
+    /// since: `epochs` by camera).
     pub(super) fn covariance(
         &self,
         estimate: &Matrix3<f64>,
         temporal: bool,
+        white: f64,
         model: &Matrix3<f64>,
         pose_part: &Matrix3<f64>,
         epochs: &[u64],
     ) -> Matrix3<f64> {
         let c: Matrix3<f64> = if temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
-        let mut cov = estimate + self.noise - c - c.transpose() + model;
+        let mut cov = (estimate + self.noise - c - c.transpose()) * white + model;
         if self.epochs.iter().any(|&(cam, e)| epochs.get(cam).is_some_and(|&now| now != e)) {
             cov += pose_part + self.pose_part;
         }
         (cov + cov.transpose()) * 0.5
+    }
+}
+
+/// The white share of the pooled corner noise `pooled_px` (see the module docs): 1 until
+/// the set-to-set noise `white_px2` is known.
+pub(super) fn white_share(white_px2: Option<f64>, pooled_px: Option<f64>) -> f64 {
+    match (white_px2, pooled_px) {
+        (Some(w), Some(s)) if s > 0.0 => (w / (s * s)).clamp(0.0, 1.0),
+        _ => 1.0,
     }
 }
 
@@ -133,7 +150,7 @@ mod tests {
                 let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
                 let u = f.update(k as i64 * 33_333_333, z, &noise, &(noise * 9.0), false);
                 zero.follow(f.last_step());
-                let cov = zero.covariance(&u.covariance, true, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
+                let cov = zero.covariance(&u.covariance, true, 1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
                 *sq += (u.centre.z - z0.z).powi(2) / runs as f64;
                 *predicted += cov[(2, 2)] / runs as f64;
             }
@@ -151,9 +168,14 @@ mod tests {
         let zero = DispZero::new(noise, Matrix3::identity() * 4e-6, &[0, 2], &[3, 0, 5]);
         let now = Matrix3::identity() * 2e-6;
         let pose = Matrix3::identity() * 3e-6;
-        let same = zero.covariance(&now, false, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        let same = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 9, 5]);
         assert!((same[(0, 0)] - 3e-6).abs() < 1e-15, "a camera that did not see the zero changes nothing");
-        let moved = zero.covariance(&now, false, &Matrix3::zeros(), &pose, &[3, 0, 6]);
+        let moved = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 0, 6]);
         assert!((moved[(0, 0)] - 10e-6).abs() < 1e-15, "{moved}");
+        let half = zero.covariance(&now, false, 0.5, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        assert!((half[(0, 0)] - 1.5e-6).abs() < 1e-15, "the corners' bias that stays cancels: {half}");
+        assert!((white_share(Some(0.02), Some(0.2)) - 0.5).abs() < 1e-12);
+        assert_eq!(white_share(None, Some(0.2)), 1.0);
+        assert_eq!(white_share(Some(0.09), Some(0.2)), 1.0);
     }
 }

@@ -6,7 +6,7 @@
 use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
-use super::disp_sigma::{axis_sigma, drift_left_out, DispZero};
+use super::disp_sigma::{axis_sigma, drift_left_out, white_share, DispZero};
 use super::model_drift::{model_drift_switch, set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
@@ -157,7 +157,10 @@ impl Measurement {
         let partial = history.usual_views.observe(tag.solution.views);
         let model = self.model_error(&mut history, &tag, partial, pooled_sigma_px);
         let p = match self.config.measure.estimator {
-            Estimator::PerSet => per_set(&mut history, t_ns, &tag.solution, &model, &self.pose_epochs),
+            Estimator::PerSet => {
+                let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
+                per_set(&mut history, t_ns, &tag.solution, (white, &model), &self.pose_epochs)
+            }
             Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px, &model),
         };
         history.pose = p.pose;
@@ -216,7 +219,8 @@ impl Measurement {
             history.zero.follow(f.last_step());
         }
         let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
-        let disp = history.zero.covariance(&u.covariance, true, &disp_model, &pose_part, &self.pose_epochs);
+        let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
+        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs);
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
         // the camera poses' part, never in the filter's weights (`model_drift`).
         let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
@@ -279,8 +283,9 @@ impl Measurement {
 
 /// The per-set estimator's position of a tag: a multi-view solve as it is (kept for the
 /// motion), a monocular one fused with the recent motion (see [`crate::motion`]); its
-/// displacement's σ with `model` the edge model's error and `epochs` the cameras' pose epochs.
-fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, model: &Matrix3<f64>, epochs: &[u64]) -> Position {
+/// displacement's σ with `white` the pixel noise's white share, `model` the edge model's
+/// error and `epochs` the cameras' pose epochs.
+fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, (white, model): (f64, &Matrix3<f64>), epochs: &[u64]) -> Position {
     let mut p = Position::solved(sol);
     if sol.views >= 2 {
         history.motion.observe(t_ns, sol.centre_mm, sol.centre_covariance);
@@ -293,7 +298,7 @@ fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, model: &Matri
     }
     let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
     let pose_part = sol.centre_covariance - noise_cov(sol);
-    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, &disp_model, &pose_part, epochs));
+    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, white, &disp_model, &pose_part, epochs));
     p
 }
 

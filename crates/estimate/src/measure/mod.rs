@@ -213,6 +213,7 @@ impl Measurement {
         let solved = self.solve_tags(set.seq, &detected);
         let estimates = self.estimate_tags(set.t_ns, solved);
         self.stats.model_drift_px2 = self.model_drift.variance_px2();
+        self.stats.white_noise_px2 = self.model_drift.white_variance_px2();
         times.solve = t2.elapsed().as_secs_f64();
         let gauges = self.gauges.process(&estimates.tags);
         (self.line(set, cameras, estimates, gauges), times)

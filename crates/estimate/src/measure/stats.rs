@@ -52,6 +52,9 @@ pub struct MeasureStats {
     /// The edge model's error moved since the tags' references, `D`, px² per corner
     /// coordinate (`model_drift`; `None` until enough corners were compared).
     pub model_drift_px2: Option<f64>,
+    /// The corners' pixel noise that changes from set to set, px² per coordinate
+    /// (`model_drift`; the white part of the pooled corner noise).
+    pub white_noise_px2: Option<f64>,
 }
 
 impl MeasureStats {
