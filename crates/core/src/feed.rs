@@ -33,8 +33,8 @@ pub struct FeedTag {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sigma_mm: Option<[f64; 3]>,
     /// 1-σ uncertainty of `disp_mm` along world x, y, z: without what the tag's zero and
-    /// this set share (the held camera poses' errors), so below `sigma_mm` (docs/accuracy.md,
-    /// "The displacement's σ").
+    /// this set share (the held camera poses' errors, the corners' bias that stays;
+    /// docs/accuracy.md, "The displacement's σ").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub disp_sigma_mm: Option<[f64; 3]>,
     /// RMS reprojection error of the tag's corners, px.
