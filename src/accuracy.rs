@@ -39,6 +39,11 @@ pub struct Accuracy {
     /// RMS of the per-axis errors in units of their σ (1 when σ is right; below 1 when σ
     /// is inflated, above when it is too small): the two-sided check of σ.
     pub z_rms: Option<f64>,
+    /// Fraction of per-axis displacement errors within 2σ of the feed's displacement σ
+    /// (`disp_sigma_mm`, lines that carry it; not the tag's zero, whose displacement is 0).
+    pub disp_within_2sigma: Option<f64>,
+    /// RMS of the per-axis displacement errors in units of `disp_sigma_mm`.
+    pub disp_z_rms: Option<f64>,
 }
 
 impl Accuracy {
@@ -82,11 +87,13 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
     let (mut sq, mut sq_v, mut n) = (0.0, 0.0, 0usize);
     let (mut net_sq, mut net_n) = (0.0, 0usize);
     let (mut in2, mut n_sigma, mut z_sq) = (0usize, 0usize, 0.0f64);
+    let mut disp_z = ZScores::default();
     for line in feed {
         let tr = truth_at(truth, line.t_ns);
         let mut true_disp: HashMap<u32, Vector3<f64>> = HashMap::new();
         for tag in &line.tags {
             let Some(p) = tr.get(&tag.id) else { continue };
+            let at_zero = !first_truth.contains_key(&tag.id);
             let p0 = *first_truth.entry(tag.id).or_insert(*p);
             let td = p - p0;
             true_disp.insert(tag.id, td);
@@ -106,6 +113,10 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
                         in2 += 1;
                     }
                 }
+            }
+            // At its zero a displacement is 0 by definition: nothing for its σ to cover.
+            if let (Some(s), false) = (tag.disp_sigma_mm, at_zero) {
+                (0..3).for_each(|k| disp_z.add(err[k], s[k]));
             }
         }
         if line.seq < from_seq {
@@ -137,14 +148,37 @@ pub fn evaluate_from(config: &Config, truth: &[TruthLine], feed: &[FeedLine], fr
     acc.net_rms_mm = (net_n > 0).then(|| (net_sq / net_n as f64).sqrt());
     acc.within_2sigma = (n_sigma > 0).then(|| in2 as f64 / n_sigma as f64);
     acc.z_rms = (n_sigma > 0).then(|| (z_sq / n_sigma as f64).sqrt());
+    (acc.disp_within_2sigma, acc.disp_z_rms) = disp_z.figures();
     acc
+}
+
+/// Errors counted against their σ.
+#[derive(Default)]
+struct ZScores {
+    within_2sigma: usize,
+    count: usize,
+    z_sq: f64,
+}
+
+impl ZScores {
+    fn add(&mut self, err: f64, sigma: f64) {
+        self.count += 1;
+        self.z_sq += (err / sigma).powi(2);
+        self.within_2sigma += usize::from(err.abs() <= 2.0 * sigma);
+    }
+
+    /// The share within 2σ and the RMS of error/σ.
+    fn figures(&self) -> (Option<f64>, Option<f64>) {
+        let n = self.count as f64;
+        ((self.count > 0).then(|| self.within_2sigma as f64 / n), (self.count > 0).then(|| (self.z_sq / n).sqrt()))
+    }
 }
 
 impl std::fmt::Display for Accuracy {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} lines, coverage {:.1} %, displacement RMS {:.4} mm (vertical {:.4} mm, max {:.4} mm), net deflection RMS {}, within 2σ {} (RMS error/σ {})",
+            "{} lines, coverage {:.1} %, displacement RMS {:.4} mm (vertical {:.4} mm, max {:.4} mm), net deflection RMS {}, within 2σ {} (RMS error/σ {}), within 2σ of the displacement's σ {} (RMS error/σ {})",
             self.lines,
             100.0 * self.coverage(),
             self.disp_rms_mm,
@@ -153,6 +187,8 @@ impl std::fmt::Display for Accuracy {
             self.net_rms_mm.map_or("n/a".into(), |v| format!("{v:.4} mm")),
             self.within_2sigma.map_or("n/a".into(), |v| format!("{:.1} %", 100.0 * v)),
             self.z_rms.map_or("n/a".into(), |v| format!("{v:.2}")),
+            self.disp_within_2sigma.map_or("n/a".into(), |v| format!("{:.1} %", 100.0 * v)),
+            self.disp_z_rms.map_or("n/a".into(), |v| format!("{v:.2}")),
         )
     }
 }

@@ -51,22 +51,29 @@ fn accuracy_per_formation_table() {
     let chosen = |k: usize, name: &str| k == 0 || only.is_empty() || only.iter().any(|o| name.to_lowercase().contains(o.as_str()));
     for (k, (name, options, p)) in formation_scenes().into_iter().enumerate().filter(|(k, (name, _, _))| chosen(*k, name)) {
         let rec = simulate(dir.path(), &format!("f{k}"), &p);
-        let (acc, _, _) = accuracy_of(name, &rec, false);
+        let (rec_, lines, summary) = replay_lines(&rec, false);
+        let acc = tagdeflect::accuracy::evaluate(&rec_.config, &rec_.truth, &lines);
+        println!("ACCURACY {name}: {acc}");
+        let stats = &summary.stats;
+        println!("DRIFT {name}: D = {:?}, white noise {:?} px² per corner coordinate", stats.model_drift_px2, stats.white_noise_px2);
         let rms = acc.disp_rms_mm;
         let base = *sharp_rms.get_or_insert(rms);
         rows.push(format!(
-            "| {name} | `{options}` | {rms:.4} mm | {:.2} | {:.4} mm | {} | {:.1} % | {} | {} |",
+            "| {name} | `{options}` | {rms:.4} mm | {:.2} | {:.4} mm | {} | {:.1} % | {} | {} | {} | {} | {} |",
             rms / base,
             acc.vertical_rms_mm,
             acc.net_rms_mm.map_or("—".into(), |v| format!("{v:.4} mm")),
             100.0 * acc.coverage(),
             acc.within_2sigma.map_or("—".into(), |v| format!("{:.1} %", 100.0 * v)),
             acc.z_rms.map_or("—".into(), |v| format!("{v:.2}")),
+            acc.disp_within_2sigma.map_or("—".into(), |v| format!("{:.1} %", 100.0 * v)),
+            acc.disp_z_rms.map_or("—".into(), |v| format!("{v:.2}")),
+            summary.stats.model_drift_px2.map_or("—".into(), |v| format!("{v:.2e}")),
         ));
         std::fs::remove_dir_all(&rec).ok();
     }
-    println!("| formation | `simulate` options | displacement RMS | × sharp | vertical RMS | net deflection RMS | coverage | within 2σ | RMS error/σ |");
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| formation | `simulate` options | displacement RMS | × sharp | vertical RMS | net deflection RMS | coverage | within 2σ | RMS error/σ | within 2σ (displacement σ) | RMS error/σ (displacement σ) | D, px² |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for r in &rows {
         println!("{r}");
     }

@@ -52,6 +52,7 @@ fn synthetic_line(seq: u64, t_ns: i64, tags: usize) -> String {
             disp_mm: [0.00123, 1e-3 * seq as f64, -1e-3 * seq as f64],
             views: 3,
             sigma_mm: Some([0.0021, 0.0019, 0.0042]),
+            disp_sigma_mm: None,
             reproj_px: Some(0.081),
         })
         .collect();

@@ -1,7 +1,7 @@
 //! The deflection feed (SPEC "Deflection feed"): one JSON line per solved frame set.
 //!
-//! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm` and `reproj_px`;
-//! per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
+//! Extensions beyond SPEC (all optional for readers): per tag `sigma_mm`, `disp_sigma_mm`
+//! and `reproj_px`; per line `reproj_px` (RMS over all specimen corners), `cameras` (per-camera health),
 //! `utm` ("ok" / "down" when a UTM is configured), `dropped_sets` (frame sets dropped by
 //! the live pipeline so far), `latency_ms` (frame capture → line written, live only),
 //! `mqtt_dropped` (lines dropped by the MQTT publisher's buffer so far, with `[output.mqtt]`),
@@ -32,6 +32,11 @@ pub struct FeedTag {
     /// 1-σ uncertainty of `pos_mm` along world x, y, z.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sigma_mm: Option<[f64; 3]>,
+    /// 1-σ uncertainty of `disp_mm` along world x, y, z: without what the tag's zero and
+    /// this set share (the held camera poses' errors, the corners' bias that stays;
+    /// docs/accuracy.md, "The displacement's σ").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disp_sigma_mm: Option<[f64; 3]>,
     /// RMS reprojection error of the tag's corners, px.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reproj_px: Option<f64>,

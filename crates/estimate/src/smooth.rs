@@ -11,7 +11,8 @@
 //!
 //! What a smoothed line changes: each tag's `pos_mm`, `disp_mm` (by the same shift) and
 //! `sigma_mm` (the smoothed covariance, floored at [`SMOOTHED_FLOOR_SHARE`] of the filtered
-//! line's floor, plus the camera poses' part); `net_deflection_mm`, its σ (with the same
+//! line's floor, plus the camera poses' part; `disp_sigma_mm`, the filtered displacement's,
+//! is left out); `net_deflection_mm`, its σ (with the same
 //! floor) and its rate. The gauges (`[[gauge]]`, which use the tags' orientations too) are
 //! left as the filter gave them; the line says `"smoothed": true`.
 
@@ -100,6 +101,8 @@ impl FixedLag {
             let net_cov = if var(&cov) < var(&floor) { floor } else { cov };
             let absolute = net_cov + ts.pose_part;
             tag.sigma_mm = Some([0, 1, 2].map(|k| round_mm(absolute[(k, k)].max(0.0).sqrt().max(1e-5))));
+            // The filtered line's displacement σ is not the smoothed displacement's: left out.
+            tag.disp_sigma_mm = None;
             covs.insert(*id, (net_cov, x.fixed_rows::<3>(3).into_owned()));
         }
         if line.net_deflection_mm.is_some() {
@@ -210,7 +213,15 @@ mod tests {
                 }
                 let f = f.as_ref().unwrap();
                 let c = f.centre();
-                tags.push(FeedTag { id, pos_mm: c.into(), disp_mm: c.into(), views: 3, sigma_mm: Some([0.003; 3]), reproj_px: None });
+                tags.push(FeedTag {
+                    id,
+                    pos_mm: c.into(),
+                    disp_mm: c.into(),
+                    views: 3,
+                    sigma_mm: Some([0.003; 3]),
+                    disp_sigma_mm: None,
+                    reproj_px: None,
+                });
                 steps.push(TagStep { id, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros() });
             }
             let net = -tags[0].disp_mm[1] + tags[1].disp_mm[1];

@@ -57,6 +57,7 @@ fn rig_line(seq: u64, lines: u64) -> FeedLine {
             disp_mm: [1e-4 * (seq as f64).sin(), 2e-4, if id == 1 { -d } else { 0.0 }],
             views: 2,
             sigma_mm: Some([0.004 * wobble(3 * id), 0.005 * wobble(3 * id + 1), 0.002 * wobble(3 * id + 2)]),
+            disp_sigma_mm: None,
             reproj_px: Some(0.12),
         })
         .collect();

@@ -19,6 +19,7 @@ fn line(seq: u64, lines: u64) -> FeedLine {
         disp_mm: [0.0, 0.0, dz],
         views: 1,
         sigma_mm: Some([0.004, 0.004, 0.002]),
+        disp_sigma_mm: None,
         reproj_px: Some(0.12),
     };
     FeedLine {

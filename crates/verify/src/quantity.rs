@@ -67,6 +67,7 @@ mod tests {
             disp_mm: [0.0, 0.0, -0.5],
             views: 2,
             sigma_mm: None,
+            disp_sigma_mm: None,
             reproj_px: None,
         });
         assert_eq!(Quantity::Tag(4).readings(&lines, [0.0, 0.0, 1.0]), vec![None, None, Some(0.5)]);

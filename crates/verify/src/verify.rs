@@ -242,6 +242,7 @@ mod tests {
                     disp_mm: [0.0, 0.0, -(p + wobble + e)],
                     views: 2,
                     sigma_mm: None,
+                    disp_sigma_mm: None,
                     reproj_px: None,
                 };
                 lines.push(FeedLine {

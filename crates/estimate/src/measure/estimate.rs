@@ -6,7 +6,8 @@
 use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
-use super::model_drift::{set_residuals, TagResiduals};
+use super::disp_sigma::{axis_sigma, drift_left_out, white_share, DispZero};
+use super::model_drift::{model_drift_switch, set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
 use crate::partial::{RecentFull, Referred};
@@ -33,14 +34,15 @@ pub(super) struct TagHistory {
     full_pose_cov: Option<Matrix3<f64>>,
     /// The last full sets' views (a partial set is referred to them: `estimate::partial`).
     recent_full: RecentFull,
-    /// Its corners' residuals kept for the model error's estimate (`model_drift`; empty when
-    /// that is off).
+    /// Its corners' residuals kept for the model error's estimate (`model_drift`).
     residuals: TagResiduals,
+    /// What the displacement's σ keeps of the tag's zero (`disp_sigma`).
+    zero: DispZero,
 }
 
 impl TagHistory {
-    /// The history of a tag solved for the first time.
-    fn first(solution: &TagSolution) -> TagHistory {
+    /// The history of a tag solved for the first time (its zero).
+    fn first(solution: &TagSolution, zero: DispZero) -> TagHistory {
         TagHistory {
             pose: solution.tag_to_world,
             first_centre: solution.centre_mm,
@@ -51,6 +53,7 @@ impl TagHistory {
             full_pose_cov: None,
             recent_full: Default::default(),
             residuals: TagResiduals::default(),
+            zero,
         }
     }
 }
@@ -76,10 +79,12 @@ struct Position {
     fused_cov: Option<Matrix3<f64>>,
     /// What the net deflection takes of it.
     net: NetInput,
+    /// σ of the displacement from the tag's zero per axis, mm (`disp_sigma`).
+    disp_sigma: Vector3<f64>,
 }
 
 impl Position {
-    /// The solve's own position.
+    /// The solve's own position (its displacement's σ still to come).
     fn solved(solution: &TagSolution) -> Position {
         Position {
             centre: solution.centre_mm,
@@ -87,6 +92,7 @@ impl Position {
             pose: solution.tag_to_world,
             fused_cov: None,
             net: NetInput { cov: noise_cov(solution), rate: None },
+            disp_sigma: Vector3::zeros(),
         }
     }
 }
@@ -106,6 +112,8 @@ pub(super) struct TagEstimate {
     pub(super) disp_mm: Vector3<f64>,
     /// σ of the centre per axis, mm.
     pub(super) sigma_mm: Vector3<f64>,
+    /// σ of the displacement per axis, mm (without what the zero and this set share).
+    pub(super) disp_sigma_mm: Vector3<f64>,
     /// The estimate's position covariance (pixel noise only, mm²) when not the solve's.
     pub(super) fused_cov: Option<Matrix3<f64>>,
     /// What the net deflection takes of it.
@@ -145,11 +153,15 @@ impl Measurement {
 
     /// One tag's estimate, and whether its set was partial.
     fn estimate_tag(&mut self, t_ns: i64, tag: SolvedTag, pooled_sigma_px: Option<f64>) -> (TagEstimate, bool) {
-        let mut history = self.tags.remove(&tag.id).unwrap_or_else(|| TagHistory::first(&tag.solution));
+        let mut history = self.tags.remove(&tag.id).unwrap_or_else(|| self.first_history(&tag));
         let partial = history.usual_views.observe(tag.solution.views);
+        let model = self.model_error(&mut history, &tag, partial, pooled_sigma_px);
         let p = match self.config.measure.estimator {
-            Estimator::PerSet => per_set(&mut history, t_ns, &tag.solution),
-            Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px),
+            Estimator::PerSet => {
+                let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
+                per_set(&mut history, t_ns, &tag.solution, (white, &model), &self.pose_epochs)
+            }
+            Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px, &model),
         };
         history.pose = p.pose;
         let disp_mm = p.centre - history.first_centre;
@@ -161,14 +173,31 @@ impl Measurement {
             centre_mm: p.centre,
             disp_mm,
             sigma_mm: p.sigma,
+            disp_sigma_mm: p.disp_sigma,
             fused_cov: p.fused_cov,
             net: p.net,
         };
         (estimate, partial)
     }
 
-    /// The temporal estimator's position of a tag (see [`crate::temporal`]).
-    fn temporal(&mut self, history: &mut TagHistory, t_ns: i64, tag: &SolvedTag, partial: bool, pooled_sigma_px: Option<f64>) -> Position {
+    /// The history of a tag solved for the first time: this solve is its zero.
+    fn first_history(&self, tag: &SolvedTag) -> TagHistory {
+        let sol = &tag.solution;
+        let noise = noise_cov(sol);
+        TagHistory::first(sol, DispZero::new(noise, sol.centre_covariance - noise, &used_cameras(tag), &self.pose_epochs))
+    }
+
+    /// The temporal estimator's position of a tag (see [`crate::temporal`]); `model` the
+    /// edge model's error ([`Self::model_error`]).
+    fn temporal(
+        &mut self,
+        history: &mut TagHistory,
+        t_ns: i64,
+        tag: &SolvedTag,
+        partial: bool,
+        pooled_sigma_px: Option<f64>,
+        model: &Matrix3<f64>,
+    ) -> Position {
         let sol = &tag.solution;
         let noise = noise_cov(sol);
         let used = used_cameras(tag);
@@ -186,9 +215,15 @@ impl Measurement {
         let floor = sigma_floor(history, referred.as_ref(), sol, partial, used.len());
         let var = |m: &Matrix3<f64>| (self.up.transpose() * m * self.up)[(0, 0)];
         let cov = if var(&u.covariance) < var(&floor) { floor } else { u.covariance };
-        // The edge model's error as the tag moves: in the σ given out, beside the camera
-        // poses' part, never in the filter's weights (`model_drift`).
-        let model = self.model_error(history, tag, partial, pooled_sigma_px);
+        if let Some(f) = history.filter.as_ref() {
+            history.zero.follow(f.last_step());
+        }
+        let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
+        let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
+        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs);
+        // The edge model's error as the tag moves: in the σ given out (when asked), beside
+        // the camera poses' part, never in the filter's weights (`model_drift`).
+        let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
         let absolute = model + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
@@ -199,13 +234,14 @@ impl Measurement {
         }
         let mut pose = sol.tag_to_world;
         pose.translation = u.centre;
-        Position { centre: u.centre, sigma, pose, fused_cov: Some(u.covariance), net: NetInput { cov, rate: Some(u.rate) } }
+        let net = NetInput { cov, rate: Some(u.rate) };
+        Position { centre: u.centre, sigma, pose, fused_cov: Some(u.covariance), net, disp_sigma: axis_sigma(&disp) }
     }
 
-    /// The covariance the edge model's error adds to the tag's centre (zero unless the
-    /// widening is on); a full set's residuals update the pooled estimate first.
+    /// The covariance the edge model's error moved since the tag's reference adds to the
+    /// tag's centre; a full set's residuals update the pooled estimate first.
     fn model_error(&mut self, history: &mut TagHistory, tag: &SolvedTag, partial: bool, pooled_sigma_px: Option<f64>) -> Matrix3<f64> {
-        let Some(drift) = self.model_drift.as_mut() else { return Matrix3::zeros() };
+        let drift = &mut self.model_drift;
         let sol = &tag.solution;
         if !partial {
             let (views, cameras) = (&tag.views.views, &tag.views.cameras);
@@ -246,8 +282,10 @@ impl Measurement {
 }
 
 /// The per-set estimator's position of a tag: a multi-view solve as it is (kept for the
-/// motion), a monocular one fused with the recent motion (see [`crate::motion`]).
-fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution) -> Position {
+/// motion), a monocular one fused with the recent motion (see [`crate::motion`]); its
+/// displacement's σ with `white` the pixel noise's white share, `model` the edge model's
+/// error and `epochs` the cameras' pose epochs.
+fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, (white, model): (f64, &Matrix3<f64>), epochs: &[u64]) -> Position {
     let mut p = Position::solved(sol);
     if sol.views >= 2 {
         history.motion.observe(t_ns, sol.centre_mm, sol.centre_covariance);
@@ -258,6 +296,9 @@ fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution) -> Position {
         p.fused_cov = Some(fcov);
         p.net.cov = fcov;
     }
+    let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
+    let pose_part = sol.centre_covariance - noise_cov(sol);
+    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, white, &disp_model, &pose_part, epochs));
     p
 }
 

@@ -80,6 +80,7 @@ fn feed_tag(t: &TagEstimate) -> FeedTag {
         disp_mm: [round_mm(disp.x), round_mm(disp.y), round_mm(disp.z)],
         views: t.solution.views,
         sigma_mm: Some(t.sigma_mm.map(|s| round_mm(s.max(1e-5))).into()),
+        disp_sigma_mm: Some(t.disp_sigma_mm.map(|s| round_mm(s.max(1e-5))).into()),
         reproj_px: Some((t.solution.rms_px * 1e3).round() / 1e3),
     }
 }
@@ -120,7 +121,7 @@ mod tests {
     use nalgebra::Matrix3;
 
     fn tag(id: u32, disp_z_mm: f64) -> FeedTag {
-        FeedTag { id, pos_mm: [0.0; 3], disp_mm: [0.0, 0.0, disp_z_mm], views: 2, sigma_mm: None, reproj_px: None }
+        FeedTag { id, pos_mm: [0.0; 3], disp_mm: [0.0, 0.0, disp_z_mm], views: 2, sigma_mm: None, disp_sigma_mm: None, reproj_px: None }
     }
 
     #[test]

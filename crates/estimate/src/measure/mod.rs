@@ -32,6 +32,7 @@
 
 mod camera;
 mod detect;
+mod disp_sigma;
 mod estimate;
 mod gauges;
 mod line;
@@ -105,9 +106,10 @@ pub struct Measurement {
     gauges: LineGauges,
     /// Time of the run's first frame set (the first-pose search's window, `pose`).
     first_set_t_ns: Option<i64>,
-    /// The position error the edge model's error causes, pooled over the tags (`None`
-    /// unless `TAGDEFLECT_SIGMA_WIDENING=on`; `model_drift`).
-    model_drift: Option<model_drift::ModelDrift>,
+    /// The position error the edge model's error causes, pooled over the tags
+    /// (`model_drift`: in the displacement's σ; in the position's with
+    /// `TAGDEFLECT_SIGMA_WIDENING=on`).
+    model_drift: model_drift::ModelDrift,
 }
 
 impl Measurement {
@@ -135,7 +137,7 @@ impl Measurement {
             last_steps: None,
             gauges: LineGauges::new(config),
             first_set_t_ns: None,
-            model_drift: model_drift::model_drift_switch().then(model_drift::ModelDrift::default),
+            model_drift: model_drift::ModelDrift::default(),
         })
     }
 
@@ -210,6 +212,8 @@ impl Measurement {
         let t2 = Instant::now();
         let solved = self.solve_tags(set.seq, &detected);
         let estimates = self.estimate_tags(set.t_ns, solved);
+        self.stats.model_drift_px2 = self.model_drift.variance_px2();
+        self.stats.white_noise_px2 = self.model_drift.white_variance_px2();
         times.solve = t2.elapsed().as_secs_f64();
         let gauges = self.gauges.process(&estimates.tags);
         (self.line(set, cameras, estimates, gauges), times)

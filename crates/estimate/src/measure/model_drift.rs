@@ -122,6 +122,15 @@ impl ModelDrift {
         (self.coordinates >= 200.0).then(|| ((self.from_first - self.from_last) / self.coordinates).max(0.0))
     }
 
+    /// The pixel noise that changes from one set to the next, px² per corner coordinate:
+    /// `Σ(r_t − r_{t−1})² / (2 c · count)` (an upper bound: the bias's move in one set, `d`,
+    /// is in it), once 200 coordinates were compared. The pooled corner noise `s²` holds
+    /// this and the corners' bias that stays; only this part does not cancel from a
+    /// displacement (`disp_sigma`).
+    pub(super) fn white_variance_px2(&self) -> Option<f64> {
+        (self.coordinates >= 200.0).then(|| self.from_last / (2.0 * self.coordinates))
+    }
+
     /// The covariance the model error adds to a tag's centre: `D / s²` times the solve's
     /// pixel-noise covariance `noise` (scaled by the pooled corner noise `pooled_px`).
     pub(super) fn centre_covariance(&self, noise: &Matrix3<f64>, pooled_px: Option<f64>) -> Matrix3<f64> {

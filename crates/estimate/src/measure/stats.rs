@@ -49,6 +49,12 @@ pub struct MeasureStats {
     /// Tag solutions of partial sets referred to the tag's last full sets (temporal
     /// estimator, `estimate::partial`).
     pub referred_partial_views: u64,
+    /// The edge model's error moved since the tags' references, `D`, px² per corner
+    /// coordinate (`model_drift`; `None` until enough corners were compared).
+    pub model_drift_px2: Option<f64>,
+    /// The corners' pixel noise that changes from set to set, px² per coordinate
+    /// (`model_drift`; the white part of the pooled corner noise).
+    pub white_noise_px2: Option<f64>,
 }
 
 impl MeasureStats {

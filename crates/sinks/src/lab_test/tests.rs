@@ -16,7 +16,15 @@ pub(super) fn t(k: i64) -> i64 {
 }
 
 pub(super) fn line(k: i64, z: f64, net: f64) -> FeedLine {
-    let tag = FeedTag { id: 1, pos_mm: [10.0, 0.0, z], disp_mm: [0.0, 0.0, z], views: 2, sigma_mm: Some([0.01; 3]), reproj_px: None };
+    let tag = FeedTag {
+        id: 1,
+        pos_mm: [10.0, 0.0, z],
+        disp_mm: [0.0, 0.0, z],
+        views: 2,
+        sigma_mm: Some([0.01; 3]),
+        disp_sigma_mm: None,
+        reproj_px: None,
+    };
     FeedLine { seq: k as u64, t_ns: t(k), tags: vec![tag], net_deflection_mm: Some(net), ..FeedLine::default() }
 }
 

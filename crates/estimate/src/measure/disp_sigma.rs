@@ -1,0 +1,181 @@
+//! The σ of a tag's displacement from its zero (the feed's `disp_sigma_mm`; docs/accuracy.md,
+//! "The displacement's σ").
+//!
+//! A displacement is `x̂_t − z_0`: the estimate now minus the tag's first solve (its zero).
+//! Its error is `e_t − v_0`, the estimate's error minus the zero's. What the two share
+//! cancels: the held camera poses' errors (the same poses, until a camera is re-posed) and
+//! the part of the edge model's bias that has not moved since the zero. What is left:
+//!
+//! `Cov(e_t − v_0) = P_t + N_0 − C_t − C_tᵀ + M_t (+ the poses' parts after a re-pose)`
+//!
+//! * The pixel-noise covariances are scaled by the pooled corner noise `s²`, the scatter of
+//!   one set's corners about the rigid tag: the noise that changes from set to set and the
+//!   corners' bias that stays, which cancels from a displacement with the zero's. So the
+//!   pixel-noise terms (`P_t + N_0 − C_t − C_tᵀ`) are taken at the white share
+//!   `w = σ_w² / s²` (≤ 1), `σ_w²` from the corners' set-to-set change
+//!   (`model_drift::ModelDrift::white_variance_px2`); `w = 1` until that is known.
+//! * `P_t` the estimator's covariance of the position (pixel noise; a partial set's camera
+//!   poses where the filter took them), `N_0` the zero's pixel-noise covariance;
+//! * `C_t = Cov(e_t, v_0)`, because the estimate still holds some of the zero's measurement.
+//!   The temporal filter starts at the zero (`e_0 = v_0`, so `C_0 = N_0` on the position and
+//!   `0` on the rate); each update makes `e_t = (I − K_t H)(F_t e_{t−1} − w_t) + K_t v_t` with
+//!   `w_t`, `v_t` independent of `v_0`, so `C_t = (I − K_t H) F_t C_{t−1}`, and for the
+//!   optimal gain `I − K_t H = P_t P⁻_t⁻¹` (posterior times the inverse of the prediction,
+//!   the factor the smoother uses): the cross-covariance follows from the filter's own
+//!   covariances, on the mixture's moments as the smoother does. A restart of the filter
+//!   (a tag unseen for long) sets it to zero. The per-set estimator holds nothing of the
+//!   zero: `C_t = 0`.
+//! * `M_t` the edge model's error that moved since the zero: `D / s²` times the solve's
+//!   pixel-noise covariance (`model_drift`, `D` the pooled variance of the corner bias's
+//!   change since the tag's reference). This, not the σ floor of the absolute position,
+//!   is what averaging sets does not shrink in a displacement.
+//! * After a camera that saw the zero was re-posed, the poses' errors no longer cancel: the
+//!   zero's camera-pose part and today's are added.
+
+use nalgebra::{Matrix3, SMatrix};
+
+use crate::temporal::Step;
+
+type Cross = SMatrix<f64, 6, 3>;
+
+/// What a tag's displacement σ keeps of its zero.
+#[derive(Debug, Clone)]
+pub(super) struct DispZero {
+    /// The zero's pixel-noise covariance `N_0`, mm².
+    noise: Matrix3<f64>,
+    /// The zero's camera-poses part, mm².
+    pose_part: Matrix3<f64>,
+    /// The pose epoch of each camera that saw the zero.
+    epochs: Vec<(usize, u64)>,
+    /// `Cov(filter state error, v_0)` (position and rate rows), mm².
+    cross: Cross,
+    /// The time of the last filter step followed, ns.
+    followed_ns: Option<i64>,
+}
+
+impl DispZero {
+    /// The zero of a tag first solved with pixel-noise covariance `noise`, camera-poses part
+    /// `pose_part`, by `cameras` in pose epochs `epochs` (indexed by camera).
+    pub(super) fn new(noise: Matrix3<f64>, pose_part: Matrix3<f64>, cameras: &[usize], epochs: &[u64]) -> DispZero {
+        let mut cross = Cross::zeros();
+        cross.fixed_view_mut::<3, 3>(0, 0).copy_from(&noise);
+        let epochs = cameras.iter().map(|&c| (c, epochs.get(c).copied().unwrap_or(0))).collect();
+        DispZero { noise, pose_part, epochs, cross, followed_ns: None }
+    }
+
+    /// Carries the cross-covariance over the filter's latest step (once per step; the
+    /// filter's first step is the zero itself).
+    pub(super) fn follow(&mut self, step: &Step) {
+        if self.followed_ns.is_none() && step.restart {
+            self.followed_ns = Some(step.t_ns);
+            return;
+        }
+        if self.followed_ns == Some(step.t_ns) {
+            return;
+        }
+        self.followed_ns = Some(step.t_ns);
+        self.cross = match (step.restart, step.p_pred.try_inverse()) {
+            (false, Some(pred_inv)) => step.p * pred_inv * step.f * self.cross,
+            _ => Cross::zeros(),
+        };
+    }
+
+    /// The displacement's covariance, mm², from the estimate's position covariance
+    /// `estimate` (the filter's when `temporal`) with the white share `white` of the pixel
+    /// noise, the model error moved since the zero `model`, and today's camera-poses part
+    /// `pose_part` (added, with the zero's, when a camera that saw the zero was re-posed
+    /// since: `epochs` by camera).
+    pub(super) fn covariance(
+        &self,
+        estimate: &Matrix3<f64>,
+        temporal: bool,
+        white: f64,
+        model: &Matrix3<f64>,
+        pose_part: &Matrix3<f64>,
+        epochs: &[u64],
+    ) -> Matrix3<f64> {
+        let c: Matrix3<f64> = if temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
+        let mut cov = (estimate + self.noise - c - c.transpose()) * white + model;
+        if self.epochs.iter().any(|&(cam, e)| epochs.get(cam).is_some_and(|&now| now != e)) {
+            cov += pose_part + self.pose_part;
+        }
+        (cov + cov.transpose()) * 0.5
+    }
+}
+
+/// The white share of the pooled corner noise `pooled_px` (see the module docs): 1 until
+/// the set-to-set noise `white_px2` is known.
+pub(super) fn white_share(white_px2: Option<f64>, pooled_px: Option<f64>) -> f64 {
+    match (white_px2, pooled_px) {
+        (Some(w), Some(s)) if s > 0.0 => (w / (s * s)).clamp(0.0, 1.0),
+        _ => 1.0,
+    }
+}
+
+/// The σ per axis of a covariance, mm.
+pub(super) fn axis_sigma(cov: &Matrix3<f64>) -> nalgebra::Vector3<f64> {
+    nalgebra::Vector3::new(cov[(0, 0)], cov[(1, 1)], cov[(2, 2)]).map(|v| v.max(0.0).sqrt())
+}
+
+/// Whether the displacement σ leaves the edge model's moved error out:
+/// `TAGDEFLECT_DISP_SIGMA_DRIFT=off` (a measurement; read once per process).
+pub(super) fn drift_left_out() -> bool {
+    static OFF: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *OFF.get_or_init(|| std::env::var("TAGDEFLECT_DISP_SIGMA_DRIFT").is_ok_and(|v| v == "off"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::temporal::{TagFilter, TemporalConfig};
+    use nalgebra::Vector3;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    /// A tag at rest measured with white noise σ: the displacement's error `x̂_t − z_0` over
+    /// many runs has the variance the derivation gives.
+    #[test]
+    fn the_displacement_variance_matches_its_scatter_over_runs() {
+        let (sigma, sets, runs) = (0.003, 60usize, 400usize);
+        let noise = Matrix3::identity() * sigma * sigma;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(42);
+        let n = Normal::new(0.0, sigma).unwrap();
+        let (mut sq, mut predicted) = (vec![0.0; sets], vec![0.0; sets]);
+        for _ in 0..runs {
+            let z0 = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
+            let mut f = TagFilter::new(TemporalConfig::default(), 0, z0, &noise);
+            let mut zero = DispZero::new(noise, Matrix3::zeros(), &[0, 1], &[0, 0]);
+            zero.follow(f.last_step());
+            for (k, (sq, predicted)) in sq.iter_mut().zip(predicted.iter_mut()).enumerate().skip(1) {
+                let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
+                let u = f.update(k as i64 * 33_333_333, z, &noise, &(noise * 9.0), false);
+                zero.follow(f.last_step());
+                let cov = zero.covariance(&u.covariance, true, 1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
+                *sq += (u.centre.z - z0.z).powi(2) / runs as f64;
+                *predicted += cov[(2, 2)] / runs as f64;
+            }
+        }
+        for k in [2, 10, 59] {
+            let ratio = sq[k] / predicted[k];
+            println!("set {k}: scatter {:.3e} mm², predicted {:.3e} mm², ratio {ratio:.3}", sq[k], predicted[k]);
+            assert!((0.8..=1.25).contains(&ratio), "set {k}: scatter / predicted {ratio:.3}");
+        }
+    }
+
+    #[test]
+    fn a_re_posed_camera_adds_both_poses_parts_and_the_per_set_estimate_holds_nothing_of_the_zero() {
+        let noise = Matrix3::identity() * 1e-6;
+        let zero = DispZero::new(noise, Matrix3::identity() * 4e-6, &[0, 2], &[3, 0, 5]);
+        let now = Matrix3::identity() * 2e-6;
+        let pose = Matrix3::identity() * 3e-6;
+        let same = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        assert!((same[(0, 0)] - 3e-6).abs() < 1e-15, "a camera that did not see the zero changes nothing");
+        let moved = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 0, 6]);
+        assert!((moved[(0, 0)] - 10e-6).abs() < 1e-15, "{moved}");
+        let half = zero.covariance(&now, false, 0.5, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        assert!((half[(0, 0)] - 1.5e-6).abs() < 1e-15, "the corners' bias that stays cancels: {half}");
+        assert!((white_share(Some(0.02), Some(0.2)) - 0.5).abs() < 1e-12);
+        assert_eq!(white_share(None, Some(0.2)), 1.0);
+        assert_eq!(white_share(Some(0.09), Some(0.2)), 1.0);
+    }
+}
