@@ -29,7 +29,7 @@
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
 pub(super) use super::profile_classes::pixel_class;
-use super::profile_classes::{class_mode, Samples};
+use super::profile_classes::{class_mode, smooth_nodes, smoothed_towards, Samples};
 pub use super::profile_classes::{ClassChoice, ClassUse, CLASSES};
 use tagdeflect_core::frame::GrayImage;
 
@@ -45,6 +45,9 @@ pub(super) const MIN_NODE_WEIGHT: f64 = 20.0;
 /// A pixel class's node is known once its samples' tent weights reach this (a class has an
 /// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
 pub(super) const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
+/// A class's profile is built (its missing nodes filled from its parent's, see
+/// [`Nodes::filled_from`]) once this fraction of its tested nodes have samples enough.
+pub(super) const MIN_KNOWN_FRACTION: f64 = 0.6;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
@@ -219,6 +222,42 @@ impl Nodes {
         }
     }
 
+    /// These sums with each node under `min_weight` filled from `parent` (the class's parent's
+    /// sums: its orientation's, or the pooled ones): the parent's mean there plus the class's
+    /// difference from it, interpolated linearly between the class's nearest known nodes on
+    /// either side (held beyond the last). A class sees a quarter of its orientation's pixels,
+    /// so on a camera's first frame a few of its nodes miss samples while its shape is known
+    /// around them; `None` while fewer than [`MIN_KNOWN_FRACTION`] of the [tested
+    /// nodes](tested_nodes) are known, or a node its parent lacks is missing.
+    pub(super) fn filled_from(&self, parent: &Nodes, min_weight: f64) -> Option<Nodes> {
+        let known = |k: usize| self.weight[k] >= min_weight;
+        let tested = tested_nodes();
+        let count = tested.clone().filter(|&k| known(k)).count();
+        if (count as f64) < MIN_KNOWN_FRACTION * tested.clone().count() as f64 {
+            return None;
+        }
+        let diff = |k: usize| self.sum[k] / self.weight[k] - parent.sum[k] / parent.weight[k];
+        let mut filled = self.clone();
+        for k in (0..NODES).filter(|&k| !known(k) && parent.weight[k] > 0.0) {
+            let below = (0..k).rev().find(|&j| known(j) && parent.weight[j] > 0.0);
+            let above = (k + 1..NODES).find(|&j| known(j) && parent.weight[j] > 0.0);
+            let d = match (below, above) {
+                (Some(a), Some(b)) => diff(a) + (diff(b) - diff(a)) * (k - a) as f64 / (b - a) as f64,
+                (Some(a), None) => diff(a),
+                (None, Some(b)) => diff(b),
+                (None, None) => return None,
+            };
+            filled.weight[k] = min_weight;
+            filled.sum[k] = min_weight * (parent.sum[k] / parent.weight[k] + d);
+        }
+        Some(filled)
+    }
+
+    /// [`Nodes::curve`] of these sums [filled from](Nodes::filled_from) `parent`.
+    pub(super) fn filled_curve(&self, parent: &Nodes, min_weight: f64) -> Option<Vec<f64>> {
+        self.filled_from(parent, min_weight)?.curve(min_weight)
+    }
+
     /// The profile of these samples (see the module docs) — its black side pinned to 0, its
     /// white end to 1, re-centred on its line-spread centroid — or `None` while a node from
     /// 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`] outside it has less than
@@ -375,7 +414,14 @@ impl ProfileLearner {
         let values = self.pooled.curve(MIN_NODE_WEIGHT)?;
         let own: Vec<Option<Vec<f64>>> = match mode {
             0 => vec![None; CLASSES],
-            _ => self.classes.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect(),
+            _ => {
+                let oriented = self.oriented_curves(&values);
+                let own = |(c, n): (usize, &Nodes)| {
+                    let parent = oriented[c / 4].as_deref().unwrap_or(&values);
+                    n.filled_curve(&self.orientations[c / 4], MIN_CLASS_NODE_WEIGHT).map(|v| smoothed_towards(&v, parent, smooth_nodes()))
+                };
+                self.classes.iter().enumerate().map(own).collect()
+            }
         };
         let (classes, choice) = match mode {
             0 => (own, ClassChoice::default()),
@@ -393,7 +439,7 @@ impl ProfileLearner {
     /// one; with the choice as applied.
     fn decided_classes(&self, own: Vec<Option<Vec<f64>>>, keep: Option<&ClassChoice>) -> (Vec<Option<Vec<f64>>>, ClassChoice) {
         let wanted = keep.copied().unwrap_or_else(|| self.samples.decide());
-        let oriented: Vec<Option<Vec<f64>>> = self.orientations.iter().map(|n| n.curve(MIN_CLASS_NODE_WEIGHT)).collect();
+        let oriented = self.pooled.curve(MIN_NODE_WEIGHT).map_or_else(|| vec![None; 2], |pooled| self.oriented_curves(&pooled));
         let mut classes = vec![None; CLASSES];
         let mut choice = ClassChoice::default();
         for c in 0..CLASSES {
@@ -405,6 +451,13 @@ impl ProfileLearner {
             };
         }
         (classes, choice)
+    }
+
+    /// Each edge orientation's profile (its missing nodes filled from the pooled sums, its
+    /// difference from `pooled`, the pooled profile, smoothed: [`smoothed_towards`]).
+    fn oriented_curves(&self, pooled: &[f64]) -> Vec<Option<Vec<f64>>> {
+        let curve = |n: &Nodes| n.filled_curve(&self.pooled, MIN_CLASS_NODE_WEIGHT).map(|v| smoothed_towards(&v, pooled, smooth_nodes()));
+        self.orientations.iter().map(curve).collect()
     }
 
     /// Marks the samples as enough for a profile (tests that add samples, not edges).

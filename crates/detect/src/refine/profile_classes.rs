@@ -73,6 +73,39 @@ pub(super) fn class_mode() -> u8 {
     })
 }
 
+/// Half width (nodes) of the triangular kernel a class profile's difference from its
+/// parent's is smoothed with (see [`smoothed_towards`]); 0: not smoothed (the default).
+/// `TAGDEFLECT_PROFILE_SMOOTH_NODES` sets it for a measurement.
+pub(super) fn smooth_nodes() -> usize {
+    static NODES_: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *NODES_.get_or_init(|| std::env::var("TAGDEFLECT_PROFILE_SMOOTH_NODES").ok().and_then(|v| v.parse().ok()).unwrap_or(0))
+}
+
+/// `own` (a class's profile) as its `parent`'s plus their difference smoothed by a triangular
+/// kernel `half` nodes wide (the kernel shrunk near the table's ends). A class's difference
+/// from its parent is a change of the spread's shape over a pixel or so (a demosaic's
+/// neighbours, an astigmatic width), while its sampling noise, a quarter of its parent's
+/// samples, is node to node: smoothing the difference keeps the first and averages the
+/// second away.
+pub(super) fn smoothed_towards(own: &[f64], parent: &[f64], half: usize) -> Vec<f64> {
+    if half == 0 {
+        return own.to_vec();
+    }
+    let n = own.len();
+    (0..n)
+        .map(|k| {
+            let reach = half.min(k).min(n - 1 - k);
+            let (mut sum, mut weight) = (0.0, 0.0);
+            for j in k - reach..=k + reach {
+                let w = (reach + 1 - j.abs_diff(k)) as f64;
+                sum += w * (own[j] - parent[j]);
+                weight += w;
+            }
+            parent[k] + sum / weight
+        })
+        .collect()
+}
+
 /// The [class](CLASSES) of the pixel at `index` of an image `width` pixels wide on an edge of
 /// outward `normal` (ideal pixels; their axes are the image's); [`CLASSES`] when pixels are
 /// not classed (see [`class_mode`]).
@@ -194,10 +227,13 @@ impl FoldProfiles {
             }
         }
         let class_weight = 0.5 * MIN_CLASS_NODE_WEIGHT;
+        let pooled_curve = pooled.curve(0.5 * MIN_NODE_WEIGHT)?;
+        let oriented_curve = oriented.filled_curve(&pooled, class_weight).map(|c| smoothed_towards(&c, &pooled_curve, smooth_nodes()));
+        let parent = oriented_curve.clone().unwrap_or_else(|| pooled_curve.clone());
         Some(Self {
-            pooled: pooled.curve(0.5 * MIN_NODE_WEIGHT)?,
-            oriented: oriented.curve(class_weight),
-            own: own.map(|n| n.curve(class_weight)),
+            pooled: pooled_curve,
+            oriented: oriented_curve,
+            own: own.map(|n| n.filled_curve(&oriented, class_weight).map(|c| smoothed_towards(&c, &parent, smooth_nodes()))),
         })
     }
 
@@ -266,7 +302,7 @@ fn one_standard_error_choice(scores: &[[f64; 3]]) -> ClassUse {
 #[cfg(test)]
 mod tests {
     use super::super::profile::tests::{gauss, gaussian_esf, uniform};
-    use super::super::profile::ProfileLearner;
+    use super::super::profile::{EdgeProfile, ProfileLearner};
     use super::*;
 
     /// `edges` edges of each orientation as a camera sees a tag's near-axis-aligned edge: 6
@@ -314,16 +350,35 @@ mod tests {
         // a first frame's edges: each class's profile would cost more than it removes.
         let slight = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c % 2 == 1 { 0.63 } else { 0.6 }, 0.0)) };
         assert_eq!(decide(&slight, 30), [ClassUse::Pooled; CLASSES], "a slight difference on few edges");
-        // A mosaic whose parities differ (σ 0.5 against 0.8 px), on 100 edges an orientation
-        // (on 30, a first frame's, the halves' class profiles lack nodes: pooled), each class its own.
+        // A mosaic whose parities differ (σ 0.5 against 0.8 px): each class its own, on 100
+        // edges an orientation as on a first frame's 30 (whose halves' class profiles lack
+        // a few nodes, filled from their parent's).
         let mosaic = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c % 2 == 1 { 0.8 } else { 0.5 }, 0.0)) };
-        assert_eq!(decide(&mosaic, 100), [ClassUse::Own; CLASSES], "a mosaic");
         // An astigmatic blur: the orientations differ, the parities do not.
         let astig = |c: usize| -> Box<dyn Fn(f64) -> f64> { Box::new(gaussian_esf(if c < 4 { 0.5 } else { 0.8 }, 0.0)) };
-        assert_eq!(decide(&astig, 100), [ClassUse::Orientation; CLASSES], "an astigmatic blur");
+        for edges in [100, 30] {
+            assert_eq!(decide(&mosaic, edges), [ClassUse::Own; CLASSES], "a mosaic, {edges} edges");
+            assert_eq!(decide(&astig, edges), [ClassUse::Orientation; CLASSES], "an astigmatic blur, {edges} edges");
+        }
+        assert_eq!(decide(&|_| Box::new(sharpened), 30), [ClassUse::Pooled; CLASSES], "one sharpened profile, 30 edges");
         // A decision made earlier is kept by a rebuild, whatever the samples say now.
         let kept = learner_of(&mosaic, 30, 7).build_in(3, Some(&[ClassUse::Pooled; CLASSES])).expect("enough samples");
         assert_eq!((kept.choice(), kept.own_classes()), ([ClassUse::Pooled; CLASSES], 0));
+    }
+
+    #[test]
+    fn smoothing_a_class_difference_keeps_its_shape_and_averages_its_node_noise() {
+        let (parent, class) = (EdgeProfile::from_fn(gaussian_esf(0.5, 0.0)), gaussian_esf(0.8, 0.0));
+        let parent: Vec<f64> = (0..NODES).map(|k| parent.value(node_d(k))).collect();
+        let mut seed = 5;
+        let noise: Vec<f64> = (0..NODES).map(|_| 0.01 * gauss(&mut seed)).collect();
+        let own: Vec<f64> = (0..NODES).map(|k| class(node_d(k)) + noise[k]).collect();
+        let smoothed = smoothed_towards(&own, &parent, 3);
+        let rms = |f: &dyn Fn(usize) -> f64| ((0..NODES).map(|k| f(k).powi(2)).sum::<f64>() / NODES as f64).sqrt();
+        let before = rms(&|k| own[k] - class(node_d(k)));
+        let after = rms(&|k| smoothed[k] - class(node_d(k)));
+        assert!(after < 0.7 * before, "smoothed error {after} against the node noise {before}");
+        assert_eq!(smoothed_towards(&own, &parent, 0), own, "0 nodes: not smoothed");
     }
 
     #[test]
