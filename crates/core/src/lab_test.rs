@@ -181,7 +181,9 @@ pub struct TestRecord {
 /// reserve (`[output] record_tests_reserve_mb`); its lines go on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FramesStopped {
-    /// The time of the first frame not recorded, ns since the Unix epoch.
+    /// When the frames stopped, ns since the Unix epoch: every frame recorded is older, none
+    /// from this time on is recorded (the first frame not recorded, or just after the newest
+    /// frame of another camera already recorded).
     pub t_ns: i64,
     /// The recording it ended (`frames`, `frames-2`, ...), relative to the test folder.
     pub folder: String,

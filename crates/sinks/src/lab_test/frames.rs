@@ -59,6 +59,8 @@ pub(super) struct ActiveFrames {
     checked: Option<Instant>,
     /// Set when the reserve was reached: no frame is sent any more.
     stopped: Option<FramesStopped>,
+    /// The newest frame sent to the recorder (the cameras' frames arrive in any order).
+    newest_sent_t_ns: Option<i64>,
 }
 
 /// The frames' state of a daemon's tests.
@@ -118,6 +120,7 @@ impl LabTests {
         if a.within_reserve(f.t_ns, setup.reserve_bytes, &folder) {
             if let Some((_, tx, _)) = &a.rec {
                 tx.frame(f.clone());
+                a.newest_sent_t_ns = Some(a.newest_sent_t_ns.map_or(f.t_ns, |t| t.max(f.t_ns)));
             }
         } else if let Some(stopped) = a.stopped.clone() {
             drop(active);
@@ -160,11 +163,11 @@ impl LabTests {
                 let rec = Recorder::start_with(writer, setup.names.clone(), setup.queue, crate::recorder::RETRY_MIN);
                 let tx = rec.sender();
                 tracing::info!(test = %id, folder = %dir.display(), "the test's frames are recorded");
-                ActiveFrames { id, rec: Some((rec, tx, dir)), checked: None, stopped: None }
+                ActiveFrames { id, rec: Some((rec, tx, dir)), checked: None, stopped: None, newest_sent_t_ns: None }
             }
             Err(e) => {
                 tracing::error!(test = %id, "the test's frames cannot be recorded: {e}");
-                ActiveFrames { id, rec: None, checked: None, stopped: None }
+                ActiveFrames { id, rec: None, checked: None, stopped: None, newest_sent_t_ns: None }
             }
         }
     }
@@ -239,6 +242,9 @@ impl ActiveFrames {
             self.rec.as_ref().and_then(|(_, _, d)| d.file_name()).map_or_else(|| "frames".into(), |n| n.to_string_lossy().into_owned());
         let (free_mb, reserve_mb) = (free as f64 / 1e6, reserve as f64 / 1e6);
         tracing::warn!(test = %self.id, folder = %sub, free_mb, reserve_mb, "the test's frames stop: the disk under the tests folder is down to its reserve (its lines go on; free space for frames of the next tests)");
+        // Another camera's frame, newer than this one, may already be with the recorder: the
+        // stop's time is after every frame recorded.
+        let t_ns = self.newest_sent_t_ns.map_or(t_ns, |newest| t_ns.max(newest + 1));
         self.stopped = Some(FramesStopped { t_ns, folder: sub, free_mb, reserve_mb });
         false
     }
