@@ -144,6 +144,12 @@ pub fn run(args: &TestArgs) -> Result<()> {
         TestAction::Start { retries, .. } => *retries,
         _ => 0,
     };
+    // A stop answers once the test's folder is complete: a long test's report and PDF take
+    // minutes (a 9-hour test's stop 6 min at load 18, docs/performance.md).
+    let agent = match &args.action {
+        TestAction::Stop { .. } => ureq::AgentBuilder::new().timeout(STOP_TIMEOUT).build(),
+        _ => agent,
+    };
     let answer = post_retrying(&agent, &format!("{base}/api/test/{path}"), &token, &body, retries)?;
     println!("{answer}");
     let report_error = serde_json::from_str::<serde_json::Value>(&answer).ok().and_then(|v| v["report_error"].as_str().map(str::to_string));
@@ -152,6 +158,9 @@ pub fn run(args: &TestArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// How long `test stop` waits for the daemon's answer (other commands: 30 s).
+pub const STOP_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30 * 60);
 
 /// How many times `test start` is sent again by default when the daemon answers that the
 /// previous test is still being stopped.

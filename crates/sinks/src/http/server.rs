@@ -4,7 +4,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -131,7 +131,8 @@ impl Conn {
 /// A client has this long to send a request's headers (a connection that sends nothing, or
 /// half a header, is closed: `slowloris`).
 pub const HEADER_TIMEOUT: Duration = Duration::from_secs(10);
-/// A kept-alive connection with no request in flight is closed after this long.
+/// A kept-alive connection with no request in flight is closed after this long (a request
+/// being answered — a stop making a long test's report and PDF takes minutes — keeps it open).
 pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// The response headers every answer carries: the page runs only its own script and styles,
@@ -302,8 +303,20 @@ async fn serve_connection(stream: tokio::net::TcpStream, peer: SocketAddr, app: 
         req.extensions_mut().insert(ext.clone());
         req
     });
+    let busy = Arc::new(AtomicUsize::new(0));
+    let app = app.layer(axum::middleware::from_fn({
+        let busy = busy.clone();
+        move |req: axum::extract::Request, next: axum::middleware::Next| {
+            let in_flight = InFlight::enter(busy.clone());
+            async move {
+                let answer = next.run(req).await;
+                drop(in_flight);
+                answer
+            }
+        }
+    }));
     let service = hyper_util::service::TowerToHyperService::new(tower::Layer::layer(&with_peer, app));
-    let io = IdleTimeout::new(stream, IDLE_TIMEOUT);
+    let io = IdleTimeout::new(stream, IDLE_TIMEOUT, busy);
     let mut http = hyper::server::conn::http1::Builder::new();
     http.timer(hyper_util::rt::TokioTimer::new()).header_read_timeout(HEADER_TIMEOUT).keep_alive(true);
     tokio::select! {
@@ -317,18 +330,38 @@ async fn serve_connection(stream: tokio::net::TcpStream, peer: SocketAddr, app: 
     conn.ended();
 }
 
+/// A request of a connection being answered (its handler has not returned yet): counted in
+/// the connection's `busy` while it lives.
+struct InFlight(Arc<AtomicUsize>);
+
+impl InFlight {
+    fn enter(busy: Arc<AtomicUsize>) -> Self {
+        busy.fetch_add(1, Ordering::SeqCst);
+        Self(busy)
+    }
+}
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
 /// A connection that fails (and so is closed) when nothing has been read or written for
-/// `limit` while no response is being streamed — an idle kept-alive client. A stream of events
-/// (`/events`, kept alive every 15 s by the server) writes, and so stays open.
+/// `limit` while no request is being answered (`busy`, counted by [`InFlight`]) and no response
+/// is being streamed — an idle kept-alive client. A stream of events (`/events`, kept alive
+/// every 15 s by the server) writes, and so stays open; a request whose answer takes longer
+/// than `limit` (a stop making a long test's report) is not cut off.
 struct IdleTimeout {
     inner: tokio::net::TcpStream,
     limit: Duration,
     sleep: std::pin::Pin<Box<tokio::time::Sleep>>,
+    busy: Arc<AtomicUsize>,
 }
 
 impl IdleTimeout {
-    fn new(inner: tokio::net::TcpStream, limit: Duration) -> Self {
-        Self { inner, limit, sleep: Box::pin(tokio::time::sleep(limit)) }
+    fn new(inner: tokio::net::TcpStream, limit: Duration, busy: Arc<AtomicUsize>) -> Self {
+        Self { inner, limit, sleep: Box::pin(tokio::time::sleep(limit)), busy }
     }
     fn touch(&mut self) {
         let at = tokio::time::Instant::now() + self.limit;
@@ -351,9 +384,15 @@ impl tokio::io::AsyncRead for IdleTimeout {
                 }
                 Poll::Ready(r)
             }
-            Poll::Pending => match self.sleep.as_mut().poll(cx) {
-                Poll::Ready(()) => Poll::Ready(Err(std::io::Error::new(std::io::ErrorKind::TimedOut, "idle connection closed"))),
-                Poll::Pending => Poll::Pending,
+            Poll::Pending => loop {
+                match self.sleep.as_mut().poll(cx) {
+                    // A request is being answered: not idle; look again a limit later.
+                    Poll::Ready(()) if self.busy.load(Ordering::SeqCst) > 0 => self.touch(),
+                    Poll::Ready(()) => {
+                        return Poll::Ready(Err(std::io::Error::new(std::io::ErrorKind::TimedOut, "idle connection closed")))
+                    }
+                    Poll::Pending => return Poll::Pending,
+                }
             },
         }
     }
@@ -382,6 +421,32 @@ impl tokio::io::AsyncWrite for IdleTimeout {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A connected pair of loopback sockets: (the server's end, the client's).
+    async fn socket_pair() -> (tokio::net::TcpStream, tokio::net::TcpStream) {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+        let client = tokio::net::TcpStream::connect(listener.local_addr().expect("addr")).await.expect("connect");
+        (listener.accept().await.expect("accept").0, client)
+    }
+
+    #[tokio::test]
+    async fn a_connection_is_not_idle_while_a_request_is_answered() {
+        use tokio::io::AsyncReadExt;
+        let limit = Duration::from_millis(100);
+        let (server, _client) = socket_pair().await;
+        let busy = Arc::new(AtomicUsize::new(0));
+        let mut io = IdleTimeout::new(server, limit, busy.clone());
+        let in_flight = InFlight::enter(busy.clone());
+        let mut buf = [0u8; 8];
+        // Four limits with a request in flight and nothing read or written: still open.
+        let waited = tokio::time::timeout(limit * 4, io.read(&mut buf)).await;
+        assert!(waited.is_err(), "closed while a request was answered: {waited:?}");
+        drop(in_flight);
+        assert_eq!(busy.load(Ordering::SeqCst), 0);
+        // Answered: idle again, closed after a limit.
+        let closed = tokio::time::timeout(limit * 20, io.read(&mut buf)).await.expect("closed when idle");
+        assert_eq!(closed.expect_err("an idle connection fails").kind(), std::io::ErrorKind::TimedOut);
+    }
 
     #[test]
     fn addresses() {
