@@ -7,7 +7,7 @@ use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
 use super::disp_sigma::{axis_sigma, drift_left_out, white_share, DispZero};
-use super::model_drift::{model_drift_switch, set_residuals, TagResiduals};
+use super::model_drift::{model_drift_switch, residuals_kept, set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
 use crate::partial::{RecentFull, Referred};
@@ -243,7 +243,7 @@ impl Measurement {
     fn model_error(&mut self, history: &mut TagHistory, tag: &SolvedTag, partial: bool, pooled_sigma_px: Option<f64>) -> Matrix3<f64> {
         let drift = &mut self.model_drift;
         let sol = &tag.solution;
-        if !partial {
+        if !partial && residuals_kept() {
             let (views, cameras) = (&tag.views.views, &tag.views.cameras);
             let size = self.config.specimen.size_mm;
             let now = set_residuals(views, cameras, &sol.rejected_views, &self.pose_epochs, &sol.tag_to_world, size);

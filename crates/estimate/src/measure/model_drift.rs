@@ -153,6 +153,15 @@ pub fn model_drift_switch() -> bool {
     *ON.get_or_init(|| std::env::var("TAGDEFLECT_SIGMA_WIDENING").is_ok_and(|v| v == "on"))
 }
 
+/// Whether the tags' corner residuals are kept (both `D` and the white share come from
+/// them): `TAGDEFLECT_CORNER_RESIDUALS=off` keeps none, so the displacement's σ takes the
+/// whole pixel noise and no model error (a measurement of their cost, docs/performance.md;
+/// read once per process).
+pub(super) fn residuals_kept() -> bool {
+    static KEPT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *KEPT.get_or_init(|| std::env::var("TAGDEFLECT_CORNER_RESIDUALS").map_or(true, |v| v != "off"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
