@@ -487,8 +487,9 @@ impl CameraDetector {
         found: &[Detection],
         search_decimate: f32,
     ) -> (Vec<Detection>, u64) {
-        let configured = SearchOptions::of(rig.library.options());
-        if self.search_options(rig, search_decimate) == configured {
+        let searched = self.search_options(rig, search_decimate);
+        let configured = retry_options(searched, SearchOptions::of(rig.library.options()));
+        if searched == configured {
             return (Vec::new(), 0);
         }
         let windows = retry_windows(missed, found);
@@ -586,6 +587,18 @@ fn dedup_detections(dets: &mut Vec<Detection>) {
 fn retry_windows(missed: &[PlannedTag], found: &[Detection]) -> Vec<Rect> {
     let is_found = |t: &PlannedTag| found.iter().any(|d| d.family == t.family && d.id == t.id);
     merge_rects(missed.iter().filter(|t| t.expected && !is_found(t)).map(|t| t.window).collect())
+}
+
+/// The retry's options: the configured ones; `TAGDEFLECT_RETRY_OPTIONS=decimation` (or
+/// `contrast`) lifts only that one of the window search's `searched` options, the other kept
+/// (a measurement of which one misses a tag: docs/performance.md, "Why a window misses").
+fn retry_options(searched: SearchOptions, configured: SearchOptions) -> SearchOptions {
+    static ONLY: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    match ONLY.get_or_init(|| std::env::var("TAGDEFLECT_RETRY_OPTIONS").ok()).as_deref() {
+        Some("decimation") => SearchOptions { quad_decimate: configured.quad_decimate, ..searched },
+        Some("contrast") => SearchOptions { min_white_black_diff: configured.min_white_black_diff, ..searched },
+        _ => configured,
+    }
 }
 
 #[cfg(test)]
