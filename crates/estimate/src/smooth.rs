@@ -11,14 +11,15 @@
 //!
 //! What a smoothed line changes: each tag's `pos_mm`, `disp_mm` (by the same shift) and
 //! `sigma_mm` (the smoothed covariance, floored at [`SMOOTHED_FLOOR_SHARE`] of the filtered
-//! line's floor, plus the camera poses' part; `disp_sigma_mm`, the filtered displacement's,
-//! is left out); `net_deflection_mm`, its σ (with the same
+//! line's floor, plus the camera poses' part), `disp_sigma_mm` (the smoothed displacement's:
+//! the smoothed covariance and cross-covariance with the tag's zero, see
+//! [`FixedLag::smooth_tag`]); `net_deflection_mm`, its σ (with the same
 //! floor) and its rate. The gauges (`[[gauge]]`, which use the tags' orientations too) are
 //! left as the filter gave them; the line says `"smoothed": true`.
 
 use std::collections::{HashMap, VecDeque};
 
-use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3, Vector6};
 use tagdeflect_core::feed::{round_mm, FeedLine};
 use tagdeflect_core::rig::TagRole;
 
@@ -41,6 +42,30 @@ pub struct TagStep {
     pub pose_part: Matrix3<f64>,
     /// The floor of the covariance that enters the net deflection's σ, mm².
     pub floor: Matrix3<f64>,
+    /// What the displacement's σ needs of this step (`None`: the smoothed line gives none).
+    pub disp: Option<DispStep>,
+}
+
+/// The displacement's σ at one filter step (see `measure::disp_sigma`): the filtered line's
+/// is `white·(P + N_0 − C − Cᵀ) + M (+ poses)`; the smoothed line's takes the smoothed `P`
+/// and `C`.
+#[derive(Debug, Clone, Copy)]
+pub struct DispStep {
+    /// `C = Cov(filter state error, the zero's error)` after this step, mm² (position and
+    /// rate rows).
+    pub cross: SMatrix<f64, 6, 3>,
+    /// The white share of the pixel noise the pixel-noise terms are taken at.
+    pub white: f64,
+    /// The terms that do not depend on the estimate: `white·N_0 + M (+ the poses' parts after
+    /// a re-pose)`, mm².
+    pub rest: Matrix3<f64>,
+}
+
+/// One tag's smoothed state, covariance and displacement covariance (mm, mm²).
+struct Smoothed {
+    x: Vector6<f64>,
+    p: Matrix6<f64>,
+    disp_cov: Option<Matrix3<f64>>,
 }
 
 /// The fixed-lag smoother (see the module docs).
@@ -78,13 +103,14 @@ impl FixedLag {
     }
 
     fn pop_smoothed(&mut self) -> FeedLine {
-        let smoothed: Vec<(u32, Vector6<f64>, Matrix6<f64>)> = {
+        let smoothed: Vec<Smoothed> = {
             let (_, steps) = &self.held[0];
-            steps.iter().map(|ts| (ts.id, self.smooth_tag(ts))).map(|(id, (x, p))| (id, x, p)).collect()
+            steps.iter().map(|ts| self.smooth_tag(ts)).collect()
         };
         let (mut line, steps) = self.held.pop_front().expect("a held line");
         let mut covs: HashMap<u32, (Matrix3<f64>, Vector3<f64>)> = HashMap::new();
-        for ((id, x, p), ts) in smoothed.iter().zip(&steps) {
+        for (Smoothed { x, p, disp_cov }, ts) in smoothed.iter().zip(&steps) {
+            let id = &ts.id;
             let Some(tag) = line.tags.iter_mut().find(|t| t.id == *id) else { continue };
             let centre = x.fixed_rows::<3>(0).into_owned();
             let cov: Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into_owned();
@@ -101,8 +127,7 @@ impl FixedLag {
             let net_cov = if var(&cov) < var(&floor) { floor } else { cov };
             let absolute = net_cov + ts.pose_part;
             tag.sigma_mm = Some([0, 1, 2].map(|k| round_mm(absolute[(k, k)].max(0.0).sqrt().max(1e-5))));
-            // The filtered line's displacement σ is not the smoothed displacement's: left out.
-            tag.disp_sigma_mm = None;
+            tag.disp_sigma_mm = disp_cov.map(|c| [0, 1, 2].map(|k| round_mm(c[(k, k)].max(0.0).sqrt().max(1e-5))));
             covs.insert(*id, (net_cov, x.fixed_rows::<3>(3).into_owned()));
         }
         if line.net_deflection_mm.is_some() {
@@ -118,34 +143,53 @@ impl FixedLag {
 
     /// The smoothed state of one tag at the oldest held line: a backward RTS pass over the
     /// tag's steps in the held lines, from the newest down.
-    fn smooth_tag(&self, first: &TagStep) -> (Vector6<f64>, Matrix6<f64>) {
+    ///
+    /// The displacement's σ: with the gain `G_k`, the smoothed error is
+    /// `e^s_k = e_k + G_k (e^s_{k+1} − F_{k+1} e_k + w_{k+1})`, the process noise `w`
+    /// independent of the zero's error `v_0`, so its cross-covariance with the zero follows the
+    /// same pass: `C^s_k = C_k + G_k (C^s_{k+1} − F_{k+1} C_k)`, from `C^s_N = C_N` at the
+    /// newest step; the displacement's covariance is then the filtered line's with `P^s`, `C^s`.
+    fn smooth_tag(&self, first: &TagStep) -> Smoothed {
         // The chain of this tag's steps after the first, up to a restart.
-        let mut chain: Vec<&Step> = vec![&first.step];
+        let mut chain: Vec<&TagStep> = vec![first];
         for (_, steps) in self.held.iter().skip(1) {
             let Some(ts) = steps.iter().find(|s| s.id == first.id) else { continue };
-            let prev = chain.last().expect("not empty");
+            let prev = &chain.last().expect("not empty").step;
             if ts.step.t_ns == prev.t_ns {
                 continue;
             }
             if ts.step.restart || ts.step.t_ns < prev.t_ns {
                 break;
             }
-            chain.push(&ts.step);
+            chain.push(ts);
         }
         let last = chain.last().expect("not empty");
-        let (mut x, mut p) = (last.x, last.p);
+        let (mut x, mut p) = (last.step.x, last.step.p);
+        let mut cross = last.disp.map(|d| d.cross);
         for k in (0..chain.len() - 1).rev() {
-            let (cur, next) = (chain[k], chain[k + 1]);
+            let (cur, next) = (&chain[k].step, &chain[k + 1].step);
             let Some(pp_inv) = next.p_pred.try_inverse() else {
-                (x, p) = (cur.x, cur.p);
+                (x, p, cross) = (cur.x, cur.p, chain[k].disp.map(|d| d.cross));
                 continue;
             };
-            let c = cur.p * next.f.transpose() * pp_inv;
-            x = cur.x + c * (x - next.x_pred);
-            let ps = cur.p + c * (p - next.p_pred) * c.transpose();
+            let g = cur.p * next.f.transpose() * pp_inv;
+            x = cur.x + g * (x - next.x_pred);
+            let ps = cur.p + g * (p - next.p_pred) * g.transpose();
             p = (ps + ps.transpose()) * 0.5;
+            cross = match (cross, chain[k].disp) {
+                (Some(cs), Some(d)) => Some(d.cross + g * (cs - next.f * d.cross)),
+                _ => None,
+            };
         }
-        (x, p)
+        let disp_cov = match (first.disp, cross) {
+            (Some(d), Some(cs)) => {
+                let c: Matrix3<f64> = cs.fixed_view::<3, 3>(0, 0).into_owned();
+                let cov = (p.fixed_view::<3, 3>(0, 0) - c - c.transpose()) * d.white + d.rest;
+                Some((cov + cov.transpose()) * 0.5)
+            }
+            _ => None,
+        };
+        Smoothed { x, p, disp_cov }
     }
 
     /// The net deflection of a smoothed line (as `Measurement`'s): midspan tags' mean
@@ -222,7 +266,7 @@ mod tests {
                     disp_sigma_mm: None,
                     reproj_px: None,
                 });
-                steps.push(TagStep { id, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros() });
+                steps.push(TagStep { id, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros(), disp: None });
             }
             let net = -tags[0].disp_mm[1] + tags[1].disp_mm[1];
             let line = FeedLine { seq: k as u64, t_ns: t, tags, net_deflection_mm: Some(net), ..FeedLine::default() };

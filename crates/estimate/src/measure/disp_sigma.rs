@@ -34,6 +34,7 @@
 
 use nalgebra::{Matrix3, SMatrix};
 
+use crate::smooth::DispStep;
 use crate::temporal::Step;
 
 type Cross = SMatrix<f64, 6, 3>;
@@ -103,6 +104,19 @@ impl DispZero {
     }
 }
 
+impl DispZero {
+    /// What a smoother needs to give the smoothed displacement its σ at this step (the
+    /// arguments as [`DispZero::covariance`]'s): this step's cross-covariance and the terms
+    /// that do not depend on the estimate.
+    pub(super) fn smoothing_part(&self, white: f64, model: &Matrix3<f64>, pose_part: &Matrix3<f64>, epochs: &[u64]) -> DispStep {
+        let mut rest = self.noise * white + model;
+        if self.epochs.iter().any(|&(cam, e)| epochs.get(cam).is_some_and(|&now| now != e)) {
+            rest += pose_part + self.pose_part;
+        }
+        DispStep { cross: self.cross, white, rest }
+    }
+}
+
 /// The white share of the pooled corner noise `pooled_px` (see the module docs): 1 until
 /// the set-to-set noise `white_px2` is known.
 pub(super) fn white_share(white_px2: Option<f64>, pooled_px: Option<f64>) -> f64 {
@@ -158,6 +172,64 @@ mod tests {
         for k in [2, 10, 59] {
             let ratio = sq[k] / predicted[k];
             println!("set {k}: scatter {:.3e} mm², predicted {:.3e} mm², ratio {ratio:.3}", sq[k], predicted[k]);
+            assert!((0.8..=1.25).contains(&ratio), "set {k}: scatter / predicted {ratio:.3}");
+        }
+    }
+
+    /// The same tag at rest, its lines smoothed (`replay --smooth`): the smoothed
+    /// displacement's error over many runs has the variance the smoother's pass gives (the
+    /// filtered line's printed beside it).
+    #[test]
+    fn the_smoothed_displacement_variance_matches_its_scatter_over_runs() {
+        use crate::smooth::{FixedLag, TagStep};
+        use tagdeflect_core::feed::{FeedLine, FeedTag};
+        let (sigma, sets, runs) = (0.003, 40usize, 400usize);
+        let noise = Matrix3::identity() * sigma * sigma;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = Normal::new(0.0, sigma).unwrap();
+        let (mut sq, mut predicted, mut filtered) = (vec![0.0; sets], vec![0.0; sets], vec![0.0; sets]);
+        for _ in 0..runs {
+            let mut sample = || Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
+            let z0 = sample();
+            let mut f = TagFilter::new(TemporalConfig::default(), 0, z0, &noise);
+            let mut zero = DispZero::new(noise, Matrix3::zeros(), &[0, 1], &[0, 0]);
+            let mut lag = FixedLag::new(10, Vector3::new(0.0, 1.0, 0.0), Default::default());
+            let mut out = Vec::new();
+            for k in 0..sets {
+                if k > 0 {
+                    f.update(k as i64 * 33_333_333, sample(), &noise, &(noise * 9.0), false);
+                }
+                zero.follow(f.last_step());
+                let cov = zero.covariance(&f.covariance(), true, 1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
+                filtered[k] += cov[(2, 2)] / runs as f64;
+                let disp = (f.centre() - z0).into();
+                let tag = FeedTag {
+                    id: 0,
+                    pos_mm: f.centre().into(),
+                    disp_mm: disp,
+                    views: 2,
+                    sigma_mm: None,
+                    disp_sigma_mm: None,
+                    reproj_px: None,
+                };
+                let disp_step = Some(zero.smoothing_part(1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]));
+                let step = TagStep { id: 0, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros(), disp: disp_step };
+                let line = FeedLine { seq: k as u64, t_ns: k as i64 * 33_333_333, tags: vec![tag], ..FeedLine::default() };
+                out.extend(lag.push(line, vec![step]));
+            }
+            out.extend(lag.finish());
+            for (k, line) in out.iter().enumerate() {
+                let t = &line.tags[0];
+                sq[k] += t.disp_mm[2].powi(2) / runs as f64;
+                predicted[k] += t.disp_sigma_mm.expect("a smoothed displacement σ")[2].powi(2) / runs as f64;
+            }
+        }
+        for k in [1, 5, 20, 35] {
+            let ratio = sq[k] / predicted[k];
+            println!(
+                "set {k}: smoothed scatter {:.3e} mm², predicted {:.3e} (filtered {:.3e}), ratio {ratio:.3}",
+                sq[k], predicted[k], filtered[k]
+            );
             assert!((0.8..=1.25).contains(&ratio), "set {k}: scatter / predicted {ratio:.3}");
         }
     }

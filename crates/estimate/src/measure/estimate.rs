@@ -227,10 +227,11 @@ impl Measurement {
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
         let absolute = model + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &pose_part, &self.pose_epochs));
         let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
         if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
-            steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor });
+            steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor, disp: disp_step });
         }
         let mut pose = sol.tag_to_world;
         pose.translation = u.centre;
