@@ -115,7 +115,8 @@ sim_frames() {
   local log n late med
   log=$(journalctl -u tagdeflect --since "$1" --no-pager -o cat 2>/dev/null)
   n=$(grep 'frame in' <<<"$log" | grep -c ' camera=0 ')
-  late=$(( $(grep 'late frame:' <<<"$log" | grep -c ' camera=0 ') + $(grep 'late frames:' <<<"$log" | grep -c 'cameras=\[0[],]') ))
+  late=$(( $(grep 'late frame:' <<<"$log" | grep -c ' camera=0 ') +
+    $(grep 'late frames:' <<<"$log" | grep -o 'cameras=\[[0-9, ]*\]' | tr -c '0-9\n' ' ' | tr ' ' '\n' | grep -cx 0) ))
   med=$(grep 'frame in' <<<"$log" | grep ' camera=0 ' | grep -o 'age_ms=[-0-9.]*' | cut -d= -f2 | sort -g |
     awk '{ a[NR] = $1 } END { if (NR) printf "%.0f", a[int((NR + 1) / 2)]; else print "-" }')
   echo "$n $late $med"
@@ -202,7 +203,8 @@ for d in /dev/vda /dev/mem; do
   echo "$e" | grep -q 'not permitted' || ok=1
   dp="$dp $d: outside ${o:-opens}, in the unit $(echo "${e:-opens}" | sed 's/^sh: [0-9]*: //');"
 done
-check "DevicePolicy=closed refuses a device the unit does not allow, lets the camera through" $ok "${dp% ;}"
+dp=${dp# }
+check "DevicePolicy=closed refuses a device the unit does not allow, lets the camera through" $ok "${dp%;}"
 
 # --- A lab user starts a test without sudo; a user outside the group cannot.
 out=$(as alice tagdeflect test start --specimen B12 --operator alice --standard astm-c1609 --token-file "$TOKEN" 2>&1)

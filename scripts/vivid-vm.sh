@@ -211,7 +211,9 @@ echo "platform device: $PDEV" >>$O/v4l2-info
 # fds and mappings of the capture node in the daemon (the node may show as "(deleted)").
 sample() {
   fd=$(ls -l /proc/$PID/fd 2>/dev/null | grep -c '/dev/video')
-  fdall=$(ls /proc/$PID/fd 2>/dev/null | wc -l)
+  # The fewest of three looks 0.2 s apart: a recorded frame's file is open only while it is
+  # written (one look may catch it), a leaked descriptor is there every time.
+  fdall=$(for i in 1 2 3; do ls /proc/$PID/fd 2>/dev/null | wc -l; sleep 0.2; done | sort -n | head -1)
   maps=$(grep -c '/dev/video' /proc/$PID/maps 2>/dev/null)
   mapsall=$(wc -l </proc/$PID/maps 2>/dev/null)
   frames=$(nframes)
