@@ -53,6 +53,14 @@ udevadm settle -t 10
 i=0; while [ ! -e /dev/video0 ] && [ $i -lt 50 ]; do sleep 0.1; i=$((i + 1)); done
 n=$(stat -c '%A %U %G' /dev/video0 2>&1)
 [ -c /dev/video0 ]; check "vivid's /dev/video0" $? "$n, $(cat /sys/class/video4linux/video0/name 2>/dev/null)"
+# vivid's buffer timestamps against the clock when they are dequeued (CLOCK_MONOTONIC; the VM
+# never sleeps, so /proc/uptime is that clock): at 1 fps, how far ahead of its delivery vivid
+# stamps a frame ("end of frame").
+v4l2-ctl -d /dev/video0 --set-fmt-video=width=640,height=480 --set-parm=1 --stream-mmap --stream-count=3 --verbose \
+  >"$O/vivid-stamps.log" 2>&1
+up=$(cut -d' ' -f1 /proc/uptime)
+ts=$(grep -o 'ts: [0-9.]*' "$O/vivid-stamps.log" | tail -1 | cut -d' ' -f2)
+say "INFO vivid's last buffer stamped ${ts:-?} s (CLOCK_MONOTONIC), dequeued by ${up} s: $(awk -v a="${ts:-0}" -v b="$up" 'BEGIN { printf "%+.3f", a - b }') s; $(grep -o '(ts-[^)]*)' "$O/vivid-stamps.log" | tail -1)"
 
 # --- The configuration, as the guide says: a fourth camera (V4L2), the lab's tests folder
 # and its token; the sync tolerance widened so the real camera's frames may join the simulated
