@@ -12,8 +12,9 @@
 #   /usr/share/doc/tagdeflect/                  README, CHANGELOG, docs/, example configs, copyright
 #
 # Runtime dependencies are computed by dpkg-shlibdeps from the binary's shared libraries (not
-# listed by hand). The service is not enabled or started on install (postinst only reloads
-# systemd); removing the package stops it.
+# listed by hand), plus a font for the report's plots (fonts-dejavu-core, or Liberation or
+# Noto). The service is not enabled or started on install (postinst only reloads systemd);
+# removing the package stops it.
 #
 #   scripts/package.sh [--bin PATH] [--out DIR]
 #
@@ -104,6 +105,10 @@ mkdir -p "$work/shlibs/debian"
 printf 'Source: tagdeflect\n\nPackage: tagdeflect\nArchitecture: any\n' > "$work/shlibs/debian/control"
 depends=$(cd "$work/shlibs" && dpkg-shlibdeps -O "$root/usr/bin/tagdeflect" 2>/dev/null | sed -n 's/^shlibs:Depends=//p')
 [ -n "$depends" ] || { echo "package: dpkg-shlibdeps found no dependencies" >&2; exit 1; }
+# And a font for the report's plots, which the binary reads from a file, not a library
+# (crates/report's FONT_PATHS: DejaVu Sans, else Liberation Sans or Noto Sans): without
+# one, no report is made at a test's stop.
+depends="$depends, fonts-dejavu-core | fonts-liberation | fonts-noto-core"
 
 # Maintainer scripts: reload systemd, never start; stop on removal.
 cat > "$root/DEBIAN/postinst" <<'SH'

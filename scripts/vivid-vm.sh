@@ -26,7 +26,8 @@
 # Needs root (debootstrap, chroot) and network the first time. Installs qemu-system-x86, cpio and
 # debootstrap with apt if missing; the kernel (linux-image-amd64's current package) and
 # busybox-static are downloaded with `apt-get download` and unpacked into the work dir, never
-# installed on the host. Everything is cached under $VIVID_VM_DIR (default target/vivid-vm):
+# installed on the host. The boot loop is scripts/vm-common.sh's (shared with systemd-vm.sh).
+# Everything is cached under $VIVID_VM_DIR (default target/vivid-vm):
 # the first run takes a few minutes (debootstrap), later runs about 3 minutes (emulated).
 # Prints one PASS/FAIL line per check with its figures; exits 1 when a check fails. CI does
 # not run it.
@@ -46,30 +47,15 @@ while [ $# -gt 0 ]; do
     --fps) fps=$2; shift 2 ;;
     --tcg) accel=tcg; shift ;;
     --keep) shift ;;
-    -h|--help) sed -n '2,33p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,34p' "$0"; exit 0 ;;
     *) echo "vivid-vm: unknown argument $1" >&2; exit 2 ;;
   esac
 done
 case "$cycles" in ''|*[!0-9]*) echo "vivid-vm: --cycles wants a number" >&2; exit 2 ;; esac
 case "$fps" in ''|*[!0-9.]*) echo "vivid-vm: --fps wants a number" >&2; exit 2 ;; esac
-[ "$(id -u)" = 0 ] || { echo "vivid-vm: run as root (debootstrap and chroot need it)" >&2; exit 2; }
-
-say() { echo "vivid-vm: $*" >&2; }
-suite=$(. /etc/os-release && echo "${VERSION_CODENAME:-bookworm}")
-mkdir -p "$work"
-
-# Host tools (idempotent, quiet when present).
-install_host_packages() {
-  local missing=() p
-  for p in qemu-system-x86 debootstrap cpio; do
-    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
-  done
-  if [ ${#missing[@]} -gt 0 ]; then
-    say "installing ${missing[*]}"
-    apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
-  fi
-}
+vm_name=vivid-vm
+# shellcheck source=scripts/vm-common.sh
+. "$repo/scripts/vm-common.sh"
 
 # The tagdeflect binary to test.
 pick_binary() {
@@ -100,23 +86,6 @@ runtime_packages() {
   done | sort -u
 }
 
-# Debian's current kernel and busybox-static, unpacked (not installed).
-fetch_kernel() {
-  if [ -f "$work/kernel/.done" ]; then return; fi
-  local pkg
-  pkg=$(apt-cache depends linux-image-amd64 | awk '/Depends: linux-image-[0-9]/{print $2; exit}')
-  [ -n "$pkg" ] || { say "cannot resolve linux-image-amd64 (apt-get update?)"; exit 1; }
-  say "downloading $pkg and busybox-static"
-  rm -rf "$work/dl" "$work/kernel"
-  mkdir -p "$work/dl" "$work/kernel"
-  (cd "$work/dl" && apt-get download -qq -o APT::Sandbox::User=root "$pkg" busybox-static)
-  dpkg-deb -x "$work"/dl/linux-image-*.deb "$work/kernel"
-  dpkg-deb -x "$work"/dl/busybox-static_*.deb "$work/kernel/busybox"
-  echo "$pkg" >"$work/kernel/.done"
-}
-
-kver() { ls "$work/kernel/lib/modules" | head -1; }
-
 # A minbase root filesystem of the host's suite with the binary's libraries, kmod,
 # v4l-utils and the kernel's modules.
 make_rootfs() {
@@ -141,13 +110,10 @@ make_rootfs() {
     chroot "$work/rootfs" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
   fi
   local kv
-  kv=$(kver)
+  kv=$(vm_kver)
   if [ ! -f "$work/rootfs/usr/lib/modules/$kv/modules.dep" ]; then
     say "copying the kernel's modules ($kv) into the root filesystem"
-    rm -rf "$work/rootfs/usr/lib/modules/$kv"
-    mkdir -p "$work/rootfs/usr/lib/modules"
-    cp -a "$work/kernel/lib/modules/$kv" "$work/rootfs/usr/lib/modules/"
-    chroot "$work/rootfs" depmod "$kv"
+    vm_kernel_modules "$kv" "$work/rootfs"
   fi
 }
 
@@ -156,47 +122,7 @@ make_initrd() {
   local kv=$1 out="$work/initrd.img"
   [ -f "$out" ] && [ "$out" -nt "$work/rootfs/usr/lib/modules/$kv/modules.dep" ] && return
   say "building the initramfs"
-  local d="$work/initrd.tmp" m f
-  rm -rf "$d"
-  mkdir -p "$d/bin" "$d/mods" "$d/proc" "$d/sys" "$d/dev" "$d/newroot"
-  cp "$work/kernel/busybox/bin/busybox" "$d/bin/busybox"
-  local order=()
-  # modules.dep: "path: dep1 dep2 ..." — load the deps (last first), then the module.
-  for m in virtio_pci 9pnet_virtio 9p; do
-    local line deps i
-    line=$(grep -E "/$m\.ko(\.[a-z]+)?:" "$work/rootfs/usr/lib/modules/$kv/modules.dep")
-    read -r -a deps <<<"${line#*:}"
-    for ((i = ${#deps[@]} - 1; i >= 0; i--)); do order+=("${deps[$i]}"); done
-    order+=("${line%%:*}")
-  done
-  : >"$d/mods/order"
-  for f in "${order[@]}"; do
-    grep -qx "$(basename "$f")" "$d/mods/order" && continue
-    cp "$work/rootfs/usr/lib/modules/$kv/$f" "$d/mods/"
-    basename "$f" >>"$d/mods/order"
-  done
-  cat >"$d/init" <<'EOF'
-#!/bin/busybox sh
-/bin/busybox mount -t proc proc /proc
-/bin/busybox mount -t sysfs sys /sys
-/bin/busybox mount -t devtmpfs dev /dev
-# Modules in dependency order; a second pass for any that raced their dependency.
-for pass in 1 2; do
-  for m in $(/bin/busybox cat /mods/order); do /bin/busybox insmod /mods/$m 2>/dev/null; done
-done
-i=0
-until /bin/busybox mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288 rootfs /newroot; do
-  i=$((i + 1)); [ $i -lt 20 ] || { echo "initramfs: cannot mount the 9p root"; /bin/busybox poweroff -f; }
-  /bin/busybox sleep 0.2
-done
-/bin/busybox mount --move /dev /newroot/dev
-/bin/busybox umount /proc /sys
-exec /bin/busybox switch_root /newroot /vivid-test/init.sh
-EOF
-  chmod +x "$d/init"
-  (cd "$d" && find . | cpio -o -H newc --quiet | gzip -1) >"$out.tmp"
-  mv "$out.tmp" "$out"
-  rm -rf "$d"
+  vm_make_initrd "$out" "$work/rootfs/usr/lib/modules/$kv" "-t 9p -o trans=virtio,version=9p2000.L,msize=524288 rootfs" /vivid-test/init.sh virtio_pci 9pnet_virtio 9p
 }
 
 # The test inside the VM (PID 1 of the root filesystem) and its one-camera config.
@@ -285,7 +211,9 @@ echo "platform device: $PDEV" >>$O/v4l2-info
 # fds and mappings of the capture node in the daemon (the node may show as "(deleted)").
 sample() {
   fd=$(ls -l /proc/$PID/fd 2>/dev/null | grep -c '/dev/video')
-  fdall=$(ls /proc/$PID/fd 2>/dev/null | wc -l)
+  # The fewest of three looks 0.2 s apart: a recorded frame's file is open only while it is
+  # written (one look may catch it), a leaked descriptor is there every time.
+  fdall=$(for i in 1 2 3; do ls /proc/$PID/fd 2>/dev/null | wc -l; sleep 0.2; done | sort -n | head -1)
   maps=$(grep -c '/dev/video' /proc/$PID/maps 2>/dev/null)
   mapsall=$(wc -l </proc/$PID/maps 2>/dev/null)
   frames=$(nframes)
@@ -343,69 +271,24 @@ EOF
   chmod +x "$t/init.sh"
 }
 
-qpid=""
-stop_vm() {
-  if [ -n "$qpid" ] && kill -0 "$qpid" 2>/dev/null; then
-    kill "$qpid" 2>/dev/null || true
-    wait "$qpid" 2>/dev/null || true
-  fi
-  qpid=""
-}
-trap stop_vm EXIT INT TERM
-
-# boot_vm SECONDS ACCEL-ARGS...: runs the VM until it powers off (or SECONDS pass: killed).
-# With a probe time in $probe_s, gives up (status 3) when the test has not started by then.
-boot_vm() {
-  local limit=$1 log="$work/console.log" t=0
-  shift
+# Every boot starts with an empty out folder (shared with the guest over 9p).
+vm_prepare() {
   rm -rf "$work/rootfs/vivid-test/out"
   mkdir -p "$work/rootfs/vivid-test/out"
-  qemu-system-x86_64 "$@" -smp 2 -m 1024 -nographic -no-reboot -nic none \
-    -kernel "$work/kernel/boot/vmlinuz-$kv" -initrd "$work/initrd.img" \
-    -append "console=ttyS0 panic=-1 loglevel=4" \
-    -fsdev "local,id=root,path=$work/rootfs,security_model=passthrough" \
-    -device virtio-9p-pci,fsdev=root,mount_tag=rootfs </dev/null >"$log" 2>&1 &
-  qpid=$!
-  while kill -0 "$qpid" 2>/dev/null; do
-    if [ -n "${probe_s:-}" ] && [ "$t" -ge "$probe_s" ] && ! grep -q "=== vivid-test start" "$log"; then
-      stop_vm
-      return 3
-    fi
-    if [ "$t" -ge "$limit" ]; then
-      say "the VM ran longer than $limit s: killed"
-      stop_vm
-      return 1
-    fi
-    sleep 1
-    t=$((t + 1))
-  done
-  wait "$qpid" || true
-  qpid=""
 }
+vm_started="=== vivid-test start"
+vm_args=(-m 1024 -append "console=ttyS0 panic=-1 loglevel=4"
+  -fsdev "local,id=root,path=$work/rootfs,security_model=passthrough" -device virtio-9p-pci,fsdev=root,mount_tag=rootfs)
 
-# KVM when /dev/kvm works for this kernel (nested KVM may hang before the kernel prints
-# anything: then, and with --tcg, software emulation; the finding is cached per host kernel).
-run_vm() {
-  local broken="$work/kvm-unusable"
-  if [ "$accel" = auto ] && [ -c /dev/kvm ] && (exec 3<>/dev/kvm) 2>/dev/null && [ "$(cat "$broken" 2>/dev/null)" != "$(uname -r)" ]; then
-    say "booting the VM (KVM, 2 vCPUs, 1 GiB)"
-    if probe_s=60 boot_vm 600 -enable-kvm; then return; fi
-    say "KVM: the guest did not start within 60 s (nested KVM?); noted in $broken, using TCG"
-    uname -r >"$broken"
-  fi
-  say "booting the VM (TCG software emulation, 2 vCPUs, 1 GiB; slow)"
-  probe_s="" boot_vm 1200 -accel tcg
-}
-
-install_host_packages
+vm_install_host_packages qemu-system-x86 debootstrap cpio
 pick_binary
-fetch_kernel
-kv=$(kver)
+vm_fetch_kernel
+kv=$(vm_kver)
 make_rootfs
 make_initrd "$kv"
 write_test
 start=$(date +%s)
-run_vm
+vm_run 600 1200 || say "the VM did not power off by itself"
 say "console log: $work/console.log"
 say "VM ran $(($(date +%s) - start)) s"
 out="$work/rootfs/vivid-test/out"

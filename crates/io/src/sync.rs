@@ -21,6 +21,7 @@
 use serde::{Deserialize, Serialize};
 use std::time::{Duration, Instant};
 
+use tagdeflect_core::clock;
 use tagdeflect_core::frame::{Frame, FrameSet};
 
 /// A frame set still waiting for cameras.
@@ -94,7 +95,13 @@ impl FrameSetAssembler {
     /// Adds a frame; returns the sets it completes, in time order.
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
         let mut done = Vec::new();
-        if self.closed_until.is_some_and(|c| frame.t_ns <= c) {
+        // How old the frame is when it reaches the assembler (capture and transfer latency):
+        // with TAGDEFLECT_LOG=tagdeflect_io::sync=trace, per frame; late frames at debug.
+        let age_ms = (clock::now_epoch_ns() as i128 - frame.t_ns as i128) as f64 / 1e6;
+        tracing::trace!(camera = frame.camera, t_ns = frame.t_ns, age_ms, open = self.open.len(), "frame in");
+        if let Some(c) = self.closed_until.filter(|&c| frame.t_ns <= c) {
+            let behind_ms = (c as i128 - frame.t_ns as i128) as f64 / 1e6;
+            tracing::debug!(camera = frame.camera, t_ns = frame.t_ns, age_ms, behind_ms, "late frame: a newer set has closed");
             self.count_late(frame.camera);
             return done;
         }
@@ -110,6 +117,7 @@ impl FrameSetAssembler {
             None => {
                 if self.open.first().is_some_and(|s| frame.t_ns < s.anchor().saturating_sub(tol)) && self.open.len() >= self.max_open {
                     // Older than every open set and no room: it can only be late.
+                    tracing::debug!(camera = frame.camera, t_ns = frame.t_ns, age_ms, "late frame: older than every open set, no room");
                     self.count_late(frame.camera);
                     return done;
                 }
@@ -157,6 +165,9 @@ impl FrameSetAssembler {
             if let Some(until) = self.closed_until {
                 let before: Vec<usize> = set.frames.iter().filter(|f| f.t_ns <= until).map(|f| f.camera).collect();
                 set.frames.retain(|f| f.t_ns > until);
+                if !before.is_empty() {
+                    tracing::debug!(cameras = ?before, "late frames: not newer than a set closed with theirs");
+                }
                 for c in before {
                     self.count_late(c);
                 }
@@ -184,6 +195,9 @@ impl FrameSetAssembler {
         }
         self.open.retain(|s| !s.frames.is_empty());
         self.open.sort_by_key(|s| s.anchor());
+        if !late_cams.is_empty() {
+            tracing::debug!(cameras = ?late_cams, until_ns = until, "late frames: in an open set, not newer than the sets just closed");
+        }
         for c in late_cams {
             self.count_late(c);
         }
