@@ -23,7 +23,7 @@
 //!   used before, took a class with no real difference in ~16 % of the decisions, and a
 //!   class's profile, learned from a quarter of its orientation's pixels, moves each edge by
 //!   its sampling noise: on a sharpened scene that cost 1.9× → 3.0× the sharp scene's error
-//!   (docs/accuracy.md, "A class decision that is never worse").
+//!   (docs/accuracy.md, "A stricter class decision").
 //!
 //! A half's profiles are learned from half the samples, so they are noisier than the ones
 //! used for the test: the decision leans to the simpler profile, which is the safe side.
@@ -60,20 +60,21 @@ pub enum ClassUse {
 /// Each pixel class's [`ClassUse`] (index: the class, see [`CLASSES`]).
 pub type ClassChoice = [ClassUse; CLASSES];
 
-/// How pixels are classed: 0 one pooled profile, 1 by edge orientation, 2 by orientation and
-/// mosaic parity (both: every class with samples enough uses its own profile), 3 (the
-/// default) by orientation and parity, each orientation's classes using the profile that
+/// How pixels are classed: 0 (the default) one pooled profile, 1 by edge orientation, 2 by
+/// orientation and mosaic parity (both: every class with samples enough uses its own
+/// profile), 3 by orientation and parity, each orientation's classes using the profile that
 /// predicts held-out edges better beyond chance (the module docs). Measured on the
-/// formations' scenes (docs/accuracy.md, "A class decision that is never worse").
-/// `TAGDEFLECT_PROFILE_CLASSES` (`off`, `orientation`, `parity`; `auto` the default) chooses
-/// a mode for a measurement.
+/// formations' scenes (docs/accuracy.md, "A stricter class decision"): 3 is not the default
+/// because a class that predicts the edges' pixels better can still cost a one-camera
+/// scene's depth. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`, `parity`; unset or
+/// `off`: one pooled profile) chooses a mode for a measurement.
 pub(super) fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
-        Ok("off") => 0,
+        Ok("auto") => 3,
         Ok("orientation") => 1,
         Ok("parity") => 2,
-        _ => 3,
+        _ => 0,
     })
 }
 
