@@ -5,7 +5,8 @@
 //! `cargo test --test it formations:: -- --ignored --nocapture` (11 scenes, several minutes).
 //! The formations cheap enough to assert run in `accuracy::` with floors.
 //! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
-//! only those besides the sharp scene.
+//! only those besides the sharp scene; `TAGDEFLECT_FORMATIONS_SEED=12` renders them with another
+//! seed (the seed-to-seed spread).
 
 use crate::common::*;
 use tagdeflect_sim::SimParams;
