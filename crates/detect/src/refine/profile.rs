@@ -23,7 +23,8 @@
 //! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
 //! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it). Which
 //! class is fitted with its own profile, its orientation's or the pooled one is decided
-//! where it pays — by which predicts held-out edges best ([`super::profile_classes`]) —
+//! where it pays — by which predicts held-out edges better than its simpler parent, beyond
+//! three standard errors ([`super::profile_classes`]) —
 //! when the profile is first learned, and kept ([`ClassChoice`]).
 
 use super::band::{pixel_value, EdgeBand};
