@@ -5,14 +5,29 @@
 //! `cargo test --test it formations:: -- --ignored --nocapture` (11 scenes, several minutes).
 //! The formations cheap enough to assert run in `accuracy::` with floors.
 //! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
-//! only those besides the sharp scene.
+//! only those besides the sharp scene; `TAGDEFLECT_FORMATIONS_SEED=12` renders them with another
+//! seed (the seed-to-seed spread).
 
 use crate::common::*;
 use tagdeflect_sim::SimParams;
 
 /// The three-camera scene with sharp optics (no blur before or after the pixels).
 pub fn sharp_scene() -> SimParams {
-    SimParams { cameras: 3, width: 1280, height: 960, frame_sets: 16, noise_sigma: 2.0, blur_sigma: 0.0, seed: 11, ..SimParams::default() }
+    SimParams {
+        cameras: 3,
+        width: 1280,
+        height: 960,
+        frame_sets: 16,
+        noise_sigma: 2.0,
+        blur_sigma: 0.0,
+        seed: scene_seed(),
+        ..SimParams::default()
+    }
+}
+
+/// The scenes' seed: 11, or `TAGDEFLECT_FORMATIONS_SEED` (the seed-to-seed spread).
+fn scene_seed() -> u64 {
+    std::env::var("TAGDEFLECT_FORMATIONS_SEED").ok().and_then(|v| v.parse().ok()).unwrap_or(11)
 }
 
 /// The scenes of the table: (formation, its `simulate` options, parameters).

@@ -23,7 +23,8 @@
 //! orientation × the pixel's mosaic parity), each class re-centred on its own centroid (a
 //! bilinear demosaic's kernel at each of the mosaic's pixels is symmetric about it). Which
 //! class is fitted with its own profile, its orientation's or the pooled one is decided
-//! where it pays — by which predicts held-out edges best ([`super::profile_classes`]) —
+//! where it pays — by which predicts held-out edges better than its simpler parent, beyond
+//! three standard errors ([`super::profile_classes`]) —
 //! when the profile is first learned, and kept ([`ClassChoice`]).
 
 use super::band::{pixel_value, EdgeBand};
@@ -33,25 +34,52 @@ use super::profile_classes::{class_mode, smooth_nodes, smoothed_towards, Samples
 pub use super::profile_classes::{ClassChoice, ClassUse, CLASSES};
 use tagdeflect_core::frame::GrayImage;
 
-/// Spacing of the profile's nodes, pixels.
+/// Spacing of the profile's nodes, pixels, by default (see [`node_px`]).
 pub const NODE_PX: f64 = 0.125;
 /// The profile covers ±this distance from the edge, pixels.
 pub const RANGE_PX: f64 = 3.0;
 /// Half width of the window (pixels) whose line-spread centroid defines the edge.
 pub const CENTRE_HALF_WIDTH_PX: f64 = 1.25;
-pub(super) const NODES: usize = (2.0 * RANGE_PX / NODE_PX) as usize + 1;
-/// A node is known once its samples' tent weights reach this.
-pub(super) const MIN_NODE_WEIGHT: f64 = 20.0;
-/// A pixel class's node is known once its samples' tent weights reach this (a class has an
-/// eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a node).
-pub(super) const MIN_CLASS_NODE_WEIGHT: f64 = 6.0;
+/// A node 1/8 px wide is known once its samples' tent weights reach this (see
+/// [`min_node_weight`]).
+const MIN_NODE_WEIGHT_8TH: f64 = 20.0;
+/// A pixel class's node 1/8 px wide is known once its samples' tent weights reach this (a
+/// class has an eighth of the samples; in the first frame of a camera seeing ten tags, ~12 a
+/// node).
+const MIN_CLASS_NODE_WEIGHT_8TH: f64 = 6.0;
+
+/// Spacing of the profile's nodes, pixels: [`NODE_PX`], or `TAGDEFLECT_PROFILE_NODE_PX`
+/// (0.03–0.25; a measurement switch: docs/accuracy.md, "The node grid").
+pub fn node_px() -> f64 {
+    static PX: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
+    *PX.get_or_init(|| {
+        let v = std::env::var("TAGDEFLECT_PROFILE_NODE_PX").ok().and_then(|v| v.parse::<f64>().ok());
+        v.filter(|v| (0.03..=0.25).contains(v)).map_or(NODE_PX, |v| RANGE_PX / (RANGE_PX / v).round())
+    })
+}
+
+/// The number of the profile's nodes.
+pub(super) fn nodes() -> usize {
+    (2.0 * RANGE_PX / node_px()).round() as usize + 1
+}
+
+/// A node is known once its samples' tent weights reach this (the same samples per pixel of
+/// distance at any spacing).
+pub(super) fn min_node_weight() -> f64 {
+    MIN_NODE_WEIGHT_8TH * node_px() / NODE_PX
+}
+
+/// A pixel class's node is known once its samples' tent weights reach this.
+pub(super) fn min_class_node_weight() -> f64 {
+    MIN_CLASS_NODE_WEIGHT_8TH * node_px() / NODE_PX
+}
 /// A class's profile is built (its missing nodes filled from its parent's, see
 /// [`Nodes::filled_from`]) once this fraction of its tested nodes have samples enough.
 pub(super) const MIN_KNOWN_FRACTION: f64 = 0.6;
 /// Edges needed before a profile is built.
 const MIN_EDGES: u64 = 24;
 /// A sample further than this (in units of the contrast) from its node's mean is not taken
-/// (an occluded pixel, a mislabelled bit); applied once the node has [`MIN_NODE_WEIGHT`].
+/// (an occluded pixel, a mislabelled bit); applied once the node has [`min_node_weight`].
 const MAX_DEVIATION: f64 = 0.3;
 /// An edge whose fit's RMS residual exceeds this fraction of its contrast gives no samples.
 const MAX_EDGE_RMS: f64 = 0.15;
@@ -82,7 +110,12 @@ impl EdgeProfile {
     /// A profile tabulated from `f` (e.g. a model ESF; tests and comparisons), the same for
     /// every class.
     pub fn from_fn(f: impl Fn(f64) -> f64) -> Self {
-        Self { values: (0..NODES).map(|k| f(node_d(k))).collect(), classes: vec![None; CLASSES], choice: ClassChoice::default(), edges: 0 }
+        Self {
+            values: (0..nodes()).map(|k| f(node_d(k))).collect(),
+            classes: vec![None; CLASSES],
+            choice: ClassChoice::default(),
+            edges: 0,
+        }
     }
 
     /// Which profile each pixel class is fitted with.
@@ -128,15 +161,18 @@ impl EdgeProfile {
     }
 }
 
-/// `P(d)` and `dP/dd` of the tabulated `values` (Catmull–Rom between nodes, constant beyond).
+/// `P(d)` and `dP/dd` of the tabulated `values` (nodes evenly over ±[`RANGE_PX`];
+/// Catmull–Rom between nodes, constant beyond).
 #[inline(always)]
 pub(super) fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
-    let u = (d + RANGE_PX) / NODE_PX;
+    let n = v.len();
+    let step = 2.0 * RANGE_PX / (n - 1) as f64;
+    let u = (d + RANGE_PX) / step;
     if !(u > 0.0) {
         return (v[0], 0.0);
     }
-    if u >= (NODES - 1) as f64 {
-        return (v[NODES - 1], 0.0);
+    if u >= (n - 1) as f64 {
+        return (v[n - 1], 0.0);
     }
     // 0 < u < NODES − 1: truncation is the floor.
     let i = u as usize;
@@ -144,12 +180,12 @@ pub(super) fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
     let p1 = v[i];
     let p2 = v[i + 1];
     let p0 = if i > 0 { v[i - 1] } else { p1 };
-    let p3 = if i + 2 < NODES { v[i + 2] } else { p2 };
+    let p3 = if i + 2 < n { v[i + 2] } else { p2 };
     let (m1, m2) = (0.5 * (p2 - p0), 0.5 * (p3 - p1));
     let (t2, t3) = (t * t, t * t * t);
     let value = (2.0 * t3 - 3.0 * t2 + 1.0) * p1 + (t3 - 2.0 * t2 + t) * m1 + (-2.0 * t3 + 3.0 * t2) * p2 + (t3 - t2) * m2;
     let slope = (6.0 * t2 - 6.0 * t) * p1 + (3.0 * t2 - 4.0 * t + 1.0) * m1 + (-6.0 * t2 + 6.0 * t) * p2 + (3.0 * t2 - 2.0 * t) * m2;
-    (value, slope / NODE_PX)
+    (value, slope / step)
 }
 
 /// The centroid of the tabulated profile's line-spread function (see
@@ -184,7 +220,7 @@ fn centroid_px(values: &[f64]) -> f64 {
 
 /// The distance of node `k` from the edge, pixels.
 pub(super) fn node_d(k: usize) -> f64 {
-    -RANGE_PX + k as f64 * NODE_PX
+    -RANGE_PX + k as f64 * node_px()
 }
 
 /// Tent-weighted sums of profile samples on the nodes: weights and values.
@@ -196,7 +232,7 @@ pub(super) struct Nodes {
 
 impl Default for Nodes {
     fn default() -> Self {
-        Self { weight: vec![0.0; NODES], sum: vec![0.0; NODES] }
+        Self { weight: vec![0.0; nodes()], sum: vec![0.0; nodes()] }
     }
 }
 
@@ -238,9 +274,10 @@ impl Nodes {
         }
         let diff = |k: usize| self.sum[k] / self.weight[k] - parent.sum[k] / parent.weight[k];
         let mut filled = self.clone();
-        for k in (0..NODES).filter(|&k| !known(k) && parent.weight[k] > 0.0) {
+        let n = self.weight.len();
+        for k in (0..n).filter(|&k| !known(k) && parent.weight[k] > 0.0) {
             let below = (0..k).rev().find(|&j| known(j) && parent.weight[j] > 0.0);
-            let above = (k + 1..NODES).find(|&j| known(j) && parent.weight[j] > 0.0);
+            let above = (k + 1..n).find(|&j| known(j) && parent.weight[j] > 0.0);
             let d = match (below, above) {
                 (Some(a), Some(b)) => diff(a) + (diff(b) - diff(a)) * (k - a) as f64 / (b - a) as f64,
                 (Some(a), None) => diff(a),
@@ -264,17 +301,17 @@ impl Nodes {
     /// `min_weight`.
     pub(super) fn curve(&self, min_weight: f64) -> Option<Vec<f64>> {
         let known = |k: usize| self.weight[k] >= min_weight;
-        let centre = (RANGE_PX / NODE_PX) as usize;
+        let (n, centre) = (self.weight.len(), (RANGE_PX / node_px()).round() as usize);
         let (first, need_last) = (*tested_nodes().start(), *tested_nodes().end());
         if !tested_nodes().all(known) {
             return None;
         }
         let lo = (0..=first).rev().take_while(|&k| known(k)).last().unwrap_or(first);
-        let hi = (need_last..NODES).take_while(|&k| known(k)).last().unwrap_or(need_last);
+        let hi = (need_last..n).take_while(|&k| known(k)).last().unwrap_or(need_last);
         let mean = |k: usize| self.sum[k] / self.weight[k];
-        let values: Vec<f64> = (0..NODES).map(|k| mean(k.clamp(lo, hi))).collect();
+        let values: Vec<f64> = (0..n).map(|k| mean(k.clamp(lo, hi))).collect();
         // Black side: the nodes 2.25 px and more inside the edge.
-        let black_nodes = lo..=centre - (2.25 / NODE_PX) as usize;
+        let black_nodes = lo..=centre - (2.25 / node_px()).round() as usize;
         let black = black_nodes.clone().map(|k| values[k]).sum::<f64>() / black_nodes.count() as f64;
         let white = values[hi];
         if !(white - black > 0.5) {
@@ -283,15 +320,15 @@ impl Nodes {
         let raw: Vec<f64> = values.iter().map(|v| (v - black) / (white - black)).collect();
         let c = centroid_px(&raw);
         // Re-centred: the table's node k takes the raw profile at node k's distance + c.
-        Some((0..NODES).map(|k| interpolate(&raw, node_d(k) + c).0).collect())
+        Some((0..n).map(|k| interpolate(&raw, node_d(k) + c).0).collect())
     }
 }
 
 /// The nodes a profile needs (from 2.5 px inside the edge to [`CENTRE_HALF_WIDTH_PX`]
 /// outside it), on which a class is tested against its parent.
 pub(super) fn tested_nodes() -> std::ops::RangeInclusive<usize> {
-    let centre = (RANGE_PX / NODE_PX) as usize;
-    centre - (2.5 / NODE_PX) as usize..=centre + (CENTRE_HALF_WIDTH_PX / NODE_PX).ceil() as usize
+    let (h, centre) = (node_px(), (RANGE_PX / node_px()).round() as usize);
+    centre - (2.5 / h).round() as usize..=centre + (CENTRE_HALF_WIDTH_PX / h - 1e-9).ceil() as usize
 }
 
 /// A camera's accumulation of edge samples (see the module docs): pooled, and per pixel
@@ -378,12 +415,12 @@ impl ProfileLearner {
     /// Adds one sample `(d, v)` of a pixel of class `class` (unweighted: the band's tapers
     /// keep the fit continuous; every pixel's value is as good a sample of the profile).
     pub(super) fn add_sample(&mut self, class: usize, d: f64, v: f64) {
-        let x = (d + RANGE_PX) / NODE_PX;
-        if !(x >= 0.0 && x < (NODES - 1) as f64) {
+        let x = (d + RANGE_PX) / node_px();
+        if !(x >= 0.0 && x < (nodes() - 1) as f64) {
             return;
         }
         let near = if x.fract() < 0.5 { x as usize } else { x as usize + 1 };
-        if self.pooled.mean(near, MIN_NODE_WEIGHT).is_some_and(|m| (v - m).abs() > MAX_DEVIATION) {
+        if self.pooled.mean(near, min_node_weight()).is_some_and(|m| (v - m).abs() > MAX_DEVIATION) {
             return;
         }
         self.pooled.add(x, v);
@@ -397,7 +434,7 @@ impl ProfileLearner {
     /// The profile of the samples so far (see the module docs), or `None` while too few
     /// edges or nodes are known: the nodes from 2.5 px inside the edge to
     /// [`CENTRE_HALF_WIDTH_PX`] outside it must all be. A class whose nodes have fewer
-    /// samples ([`MIN_CLASS_NODE_WEIGHT`]) uses the pooled profile.
+    /// samples ([`min_class_node_weight`]) uses the pooled profile.
     ///
     /// Which class uses which profile is decided here ([`class_mode`]); `keep` is a decision
     /// made earlier to keep instead (a class then keeps its model for the whole test: see
@@ -411,14 +448,14 @@ impl ProfileLearner {
         if self.edges < MIN_EDGES {
             return None;
         }
-        let values = self.pooled.curve(MIN_NODE_WEIGHT)?;
+        let values = self.pooled.curve(min_node_weight())?;
         let own: Vec<Option<Vec<f64>>> = match mode {
             0 => vec![None; CLASSES],
             _ => {
                 let oriented = self.oriented_curves(&values);
                 let own = |(c, n): (usize, &Nodes)| {
                     let parent = oriented[c / 4].as_deref().unwrap_or(&values);
-                    n.filled_curve(&self.orientations[c / 4], MIN_CLASS_NODE_WEIGHT).map(|v| smoothed_towards(&v, parent, smooth_nodes()))
+                    n.filled_curve(&self.orientations[c / 4], min_class_node_weight()).map(|v| smoothed_towards(&v, parent, smooth_nodes()))
                 };
                 self.classes.iter().enumerate().map(own).collect()
             }
@@ -439,7 +476,7 @@ impl ProfileLearner {
     /// one; with the choice as applied.
     fn decided_classes(&self, own: Vec<Option<Vec<f64>>>, keep: Option<&ClassChoice>) -> (Vec<Option<Vec<f64>>>, ClassChoice) {
         let wanted = keep.copied().unwrap_or_else(|| self.samples.decide());
-        let oriented = self.pooled.curve(MIN_NODE_WEIGHT).map_or_else(|| vec![None; 2], |pooled| self.oriented_curves(&pooled));
+        let oriented = self.pooled.curve(min_node_weight()).map_or_else(|| vec![None; 2], |pooled| self.oriented_curves(&pooled));
         let mut classes = vec![None; CLASSES];
         let mut choice = ClassChoice::default();
         for c in 0..CLASSES {
@@ -456,7 +493,7 @@ impl ProfileLearner {
     /// Each edge orientation's profile (its missing nodes filled from the pooled sums, its
     /// difference from `pooled`, the pooled profile, smoothed: [`smoothed_towards`]).
     fn oriented_curves(&self, pooled: &[f64]) -> Vec<Option<Vec<f64>>> {
-        let curve = |n: &Nodes| n.filled_curve(&self.pooled, MIN_CLASS_NODE_WEIGHT).map(|v| smoothed_towards(&v, pooled, smooth_nodes()));
+        let curve = |n: &Nodes| n.filled_curve(&self.pooled, min_class_node_weight()).map(|v| smoothed_towards(&v, pooled, smooth_nodes()));
         self.orientations.iter().map(curve).collect()
     }
 
@@ -501,7 +538,7 @@ pub(super) mod tests {
             assert!((s - num).abs() < 1e-4, "slope at {d}: {s} against {num}");
         }
         assert_eq!(p.value_slope(-9.0), (p.values[0], 0.0));
-        assert_eq!(p.value_slope(9.0), (p.values[NODES - 1], 0.0));
+        assert_eq!(p.value_slope(9.0), (p.values[nodes() - 1], 0.0));
     }
 
     #[test]
