@@ -1,11 +1,15 @@
 //! The load at each of the test's marks and crack entries (`report.json` `events`, the page's
-//! *Test record*): the curve's load (the UTM's own samples when there is a UTM stream, else
-//! the feed's) interpolated linearly in time at the event's time. This extends SPEC "Report"
-//! (docs/report.md, "The marks' loads").
+//! *Test record*, the marks drawn on the curve): the curve's load (the UTM's own samples when
+//! there is a UTM stream, else the feed's) interpolated linearly in time at the event's point
+//! of the curve. An event is stamped by the daemon's clock, as the UTM's samples are; with a
+//! UTM stream the curve's times are those samples' put on the cameras' clock, so the event is
+//! put there by the same shift ([`OnCurve::time_ns`]). This extends SPEC "Report" (docs/report.md,
+//! "The marks' loads").
 
 use tagdeflect_core::feed::FeedEvent;
 
 use crate::curve::Curve;
+use crate::report::Report;
 
 /// True for the events the operator enters during the loading, whose load a reader wants.
 fn has_load(e: &FeedEvent) -> bool {
@@ -30,24 +34,44 @@ pub(crate) fn load_at_time(c: &Curve, t_ns: i64) -> Option<f64> {
     p.is_finite().then(|| (p * 1e3).round() / 1e3)
 }
 
-/// The load of event `e`: for a mark or a crack entry within the curve's time, else `None`.
-pub(crate) fn event_load(c: &Curve, e: &FeedEvent) -> Option<f64> {
-    has_load(e).then(|| load_at_time(c, e.t_ns)).flatten()
+/// An event's point on a curve: the curve, and the shift (ns) from the daemon's clock, which
+/// stamps the events, to the curve's ([`Report::utm_shift_ns`]).
+#[derive(Clone, Copy)]
+pub(crate) struct OnCurve<'a> {
+    pub curve: &'a Curve,
+    pub shift_ns: i64,
 }
 
-/// `report.json` `events`: test.json's events as they are, a mark's or crack entry's with
-/// `load_kN` added when its time lies within the curve.
-pub(crate) fn events_json(c: &Curve, events: &[FeedEvent]) -> serde_json::Value {
-    events
-        .iter()
-        .map(|e| {
-            let mut v = serde_json::to_value(e).expect("event");
-            if let Some(p) = event_load(c, e) {
-                v["load_kN"] = serde_json::json!(p);
-            }
-            v
-        })
-        .collect()
+impl<'a> OnCurve<'a> {
+    /// The report's curve and its shift.
+    pub(crate) fn of(report: &'a Report) -> Self {
+        OnCurve { curve: &report.curve, shift_ns: report.utm_shift_ns }
+    }
+
+    /// Where an event stamped `t_ns` by the daemon's clock lies on the curve's clock.
+    pub(crate) fn time_ns(self, t_ns: i64) -> i64 {
+        t_ns.saturating_sub(self.shift_ns)
+    }
+
+    /// The load of event `e`: for a mark or a crack entry within the curve's time, else `None`.
+    pub(crate) fn event_load(self, e: &FeedEvent) -> Option<f64> {
+        has_load(e).then(|| load_at_time(self.curve, self.time_ns(e.t_ns))).flatten()
+    }
+
+    /// `report.json` `events`: test.json's events as they are, a mark's or crack entry's with
+    /// `load_kN` added when its point lies within the curve.
+    pub(crate) fn events_json(self, events: &[FeedEvent]) -> serde_json::Value {
+        events
+            .iter()
+            .map(|e| {
+                let mut v = serde_json::to_value(e).expect("event");
+                if let Some(p) = self.event_load(e) {
+                    v["load_kN"] = serde_json::json!(p);
+                }
+                v
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -71,7 +95,7 @@ mod tests {
         let c = curve();
         // 0.35 s in: halfway between 6 and 8 kN.
         let events = [ev("start", 1_000_000_000), ev("mark", 1_350_000_000), ev("mark", 5_000_000_000), ev("stop", 2_000_000_000)];
-        let j = events_json(&c, &events);
+        let j = OnCurve { curve: &c, shift_ns: 0 }.events_json(&events);
         assert_eq!(j[1]["load_kN"], 7.0, "{j}");
         assert_eq!(
             (j[1]["note"].as_str(), j[1]["user"].as_str(), j[1]["t_ns"].as_i64()),
@@ -81,5 +105,19 @@ mod tests {
         assert!(j[2].get("load_kN").is_none(), "a mark after the curve has no load: {j}");
         assert_eq!(load_at_time(&c, 1_000_000_000), Some(0.0));
         assert_eq!(load_at_time(&c, 2_000_000_000), Some(20.0));
+    }
+
+    /// A mark stamped by the daemon's clock, as the UTM's samples are, on a curve whose times
+    /// are those samples' put on the cameras' clock (`t − offset`): the mark moves with them,
+    /// so it reads the load the UTM had at the mark's time, whatever the offset.
+    #[test]
+    fn a_mark_is_put_on_the_curves_clock_by_the_utms_shift() {
+        let c = curve();
+        // The UTM's clock 0.3 s ahead: the sample stamped 1.65 s is the curve's point at 1.35 s.
+        let on = OnCurve { curve: &c, shift_ns: 300_000_000 };
+        let j = on.events_json(&[ev("mark", 1_650_000_000), ev("crack", 1_200_000_000)]);
+        assert_eq!((j[0]["load_kN"].as_f64(), j[0]["t_ns"].as_i64()), (Some(7.0), Some(1_650_000_000)), "{j}");
+        assert!(j[1].get("load_kN").is_none(), "before the curve once shifted: {j}");
+        assert_eq!(on.time_ns(1_650_000_000), 1_350_000_000);
     }
 }

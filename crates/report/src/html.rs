@@ -213,7 +213,7 @@ fn test_record(h: &mut String, report: &Report) {
          <th class=\"num\">Load [kN]</th><th>By</th><th>Note</th></tr>",
     );
     for e in &t.events {
-        let load = crate::event_loads::event_load(&report.curve, e).map_or(String::new(), |p| format!("{p:.3}"));
+        let load = crate::event_loads::OnCurve::of(report).event_load(e).map_or(String::new(), |p| format!("{p:.3}"));
         let _ = write!(
             h,
             "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.1}</td><td class=\"num\">{load}</td><td>{}</td><td>{}</td></tr>",
