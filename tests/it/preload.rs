@@ -73,3 +73,69 @@ fn a_start_below_the_preload_waits_for_it_and_one_above_the_limit_is_refused() {
     let [lo, hi] = p.zero_loads_kn.expect("the zero's loads recorded");
     assert!(lo >= 0.5 && hi - lo < 0.25 && p.warning.is_none(), "a seated zero warned of: {p:?}");
 }
+
+/// A zero taken on a climbing load is said, through the daemon: `demo` on a softening beam the
+/// simulated machine loads from rest with no seating (0.6 kN a frame set up to its 6 kN crack:
+/// 6 mm over 99 sets at 10 kN/mm); a C1609-19
+/// test started at rest waits for the 0.5 kN preload and takes its zero's five sets on the
+/// climb, which span several kN — more than max(preload, 0.5 kN). test.json's
+/// `preload.warning` says so, the report at stop lists it in its QC (report.json and the
+/// page), and the daemon's log has it once, as a WARN.
+#[test]
+fn a_zero_taken_on_a_climbing_load_is_warned_of_in_test_json_the_report_and_the_log_once() {
+    use crate::http::{post, small_rig, tagdeflect_test, Daemon};
+    use std::time::{Duration, Instant};
+    use tagdeflect::config::Config;
+
+    let dir = tempfile::tempdir().unwrap();
+    let params = SimParams { load_law: LoadLaw::Softening, frame_sets: 140, rest_frames: 40, crack_deflection_mm: 0.6, ..small_rig() };
+    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
+    cfg.utm = Config::demo().utm;
+    let cfg_path = dir.path().join("rig.toml");
+    std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
+    let tests_dir = dir.path().join("tests");
+    let mut d =
+        Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
+    let addr = d.addr();
+    let token_file = tests_dir.join(".token");
+    let deadline = Instant::now() + Duration::from_secs(180);
+    // At rest (the 8 s between cycles): the start waits for the preload, then the climb.
+    while d.lines().last().and_then(|(_, l)| l.load_kn).is_none_or(|p| p > 0.1) {
+        assert!(Instant::now() < deadline, "the simulated machine never came to rest");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
+    let body = serde_json::json!({
+        "method": "C1609-19", "specimen": "U1",
+        "measured": {"width_mm": params.beam_width_mm, "depth_mm": params.beam_height_mm, "span_mm": params.span_mm},
+    });
+    let auth = format!("Bearer {token}");
+    let (code, answer) =
+        post(addr, "/api/test/start", &[("Content-Type", "application/json"), ("Authorization", &auth)], body.to_string().as_bytes());
+    assert_eq!(code, 200, "{answer}");
+    let id = serde_json::from_str::<serde_json::Value>(&answer).unwrap()["id"].as_str().unwrap().to_string();
+    let of_test = |d: &Daemon| d.lines().iter().filter(|(_, l)| l.test.as_ref().is_some_and(|t| t.id == id)).count();
+    while of_test(&d) < 15 {
+        assert!(Instant::now() < deadline, "the test's lines did not come");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let stopped = tagdeflect_test(addr, &token_file, &["stop"]);
+    assert_eq!(d.stop(), Some(0));
+    let folder = std::path::PathBuf::from(stopped["folder"].as_str().unwrap());
+    let record: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("test.json")).unwrap()).unwrap();
+    let preload = &record["preload"];
+    let [lo, hi] = [0, 1].map(|j| preload["zero_loads_kn"][j].as_f64().unwrap_or_else(|| panic!("{preload}")));
+    println!("the zero's sets from {lo} to {hi} kN; warning: {}", preload["warning"]);
+    assert!(lo >= 0.5 && hi - lo > 0.5, "the zero taken on the climb: {preload}");
+    let warning = preload["warning"].as_str().unwrap_or_else(|| panic!("no warning in test.json's preload: {preload}"));
+    assert!(warning.contains("spanned") && warning.contains("no seating?"), "{warning}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(folder.join("report/report.json")).unwrap()).unwrap();
+    let qc = report["qc"]["warnings"].as_array().unwrap();
+    assert_eq!(qc.iter().filter(|w| w.as_str() == Some(warning)).count(), 1, "the warning once in the report's QC: {qc:?}");
+    let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
+    let tail = &warning[warning.find("spanned").unwrap()..];
+    assert!(html.contains(tail.split('(').next().unwrap()), "the QC line on the report's page");
+    let log = d.stderr.lock().unwrap().clone();
+    let warned: Vec<&str> = log.lines().filter(|l| l.contains("spanned") && l.contains("kN of load")).collect();
+    assert!(warned.len() == 1 && warned[0].contains("WARN"), "one WARN in the log: {warned:?}");
+}

@@ -99,9 +99,13 @@ pub fn build(
     // The clock offset the feed reports (UTM time − camera time), its σ the alignment's.
     let clock = feed.summary.clock_offset_ms;
     let resolution = opts.load_resolution_kn.unwrap_or(0.0);
+    let utm_shift_ns = match utm {
+        Some(_) => clock.map_or(0, |c| (c.value * 1e6).round() as i64),
+        None => 0,
+    };
     let (curve, load_source) = match utm {
         Some(u) => {
-            let (offset_ns, sigma_t) = clock.map_or((0, 0.0), |c| ((c.value * 1e6).round() as i64, c.sigma * 1e-3));
+            let (offset_ns, sigma_t) = (utm_shift_ns, clock.map_or(0.0, |c| c.sigma * 1e-3));
             let c = feed_curve
                 .on_utm(&u.samples, offset_ns, sigma_t, resolution, opts.max_gap_s)
                 .map_err(|e| ReportError::Data { path: u.path.clone(), message: e.to_string() })?;
@@ -164,7 +168,7 @@ pub fn build(
     let utm_gaps: Vec<(f64, f64)> = utm.map_or(Vec::new(), |u| {
         let t = &feed.columns.t_ns;
         let t0 = t[0];
-        let off = clock.map_or(0, |c| (c.value * 1e6).round() as i64);
+        let off = utm_shift_ns;
         let (first, last) = (t[0], t[t.len() - 1]);
         u.gaps(opts.max_gap_s)
             .into_iter()
@@ -225,6 +229,7 @@ pub fn build(
         feed_path: feed.path.clone(),
         run: feed.run,
         utm_path: utm.map(|u| u.path.clone()),
+        utm_shift_ns,
         options: opts.clone(),
         inputs: Vec::new(),
         test: None,

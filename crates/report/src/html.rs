@@ -208,14 +208,19 @@ fn test_record(h: &mut String, report: &Report) {
         return;
     }
     let t0 = t.events.iter().find(|e| e.kind == "start").map_or(t.events[0].t_ns, |e| e.t_ns);
-    h.push_str("<table class=\"events\"><tr><th>Event</th><th>Time (UTC)</th><th class=\"num\">From the start [s]</th><th>Note</th></tr>");
+    h.push_str(
+        "<table class=\"events\"><tr><th>Event</th><th>Time (UTC)</th><th class=\"num\">From the start [s]</th>\
+         <th class=\"num\">Load [kN]</th><th>By</th><th>Note</th></tr>",
+    );
     for e in &t.events {
+        let load = crate::event_loads::OnCurve::of(report).event_load(e).map_or(String::new(), |p| format!("{p:.3}"));
         let _ = write!(
             h,
-            "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.1}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{:.1}</td><td class=\"num\">{load}</td><td>{}</td><td>{}</td></tr>",
             esc(&e.kind),
             time_utc(e.t_ns),
             (e.t_ns - t0) as f64 * 1e-9,
+            e.user.as_deref().map_or(String::new(), esc),
             e.note.as_deref().map_or(String::new(), esc)
         );
     }

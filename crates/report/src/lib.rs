@@ -24,6 +24,7 @@ pub mod csv_out;
 mod curve;
 pub mod en14651;
 mod error;
+mod event_loads;
 pub mod feed_columns;
 mod feed_reader;
 pub mod feed_summary;

@@ -389,7 +389,7 @@ fn test_keys(report: &Report, root: &mut serde_json::Map<String, serde_json::Val
     if let Some(m) = &t.method {
         root.insert("method".into(), serde_json::to_value(m).expect("method"));
     }
-    root.insert("events".into(), serde_json::to_value(&t.events).expect("events"));
+    root.insert("events".into(), crate::event_loads::OnCurve::of(report).events_json(&t.events));
     if let Some(n) = &t.meta.notes {
         root.insert("test_notes".into(), json!(n));
     }

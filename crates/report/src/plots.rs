@@ -147,17 +147,18 @@ fn decor(report: &Report) -> Decor {
     Decor { marks, verticals, area_to }
 }
 
-/// The test's marks and crack entries on the curve, at the point of their time (a mark's
-/// note as its label, cut to 24 characters).
+/// The test's marks and crack entries on the curve, at the point of their time on the
+/// curve's clock (`event_loads`; a mark's note as its label, cut to 24 characters).
 fn event_marks(report: &Report) -> Vec<Mark> {
     let c = &report.curve;
+    let on = crate::event_loads::OnCurve::of(report);
     let Some(t) = &report.test else { return Vec::new() };
     let (Some(&first), Some(&last)) = (c.t_ns.first(), c.t_ns.last()) else { return Vec::new() };
     t.events
         .iter()
-        .filter(|e| matches!(e.kind.as_str(), "mark" | "crack") && (first..=last).contains(&e.t_ns))
+        .filter(|e| matches!(e.kind.as_str(), "mark" | "crack") && (first..=last).contains(&on.time_ns(e.t_ns)))
         .filter_map(|e| {
-            let j = c.t_ns.partition_point(|&tn| tn < e.t_ns).min(c.len() - 1);
+            let j = c.t_ns.partition_point(|&tn| tn < on.time_ns(e.t_ns)).min(c.len() - 1);
             let text = e.note.as_deref().unwrap_or(e.kind.as_str());
             let label: String = text.chars().take(24).collect();
             (c.xs[j].is_finite() && c.load[j].is_finite()).then(|| Mark { x: c.xs[j], load: c.load[j], label })

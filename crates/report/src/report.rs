@@ -69,6 +69,13 @@ pub struct Report {
     pub lab: LabInfo,
     /// The UTM stream read, when one was.
     pub utm_path: Option<PathBuf>,
+    /// How far the UTM's samples were shifted onto the cameras' clock (the feed's
+    /// `clock_offset_ms`, UTM − camera, ns): `curve`'s times are the samples' minus this. 0
+    /// without a UTM stream (the feed's loads are the UTM's at each line's time, unshifted) or
+    /// without a clock check. The daemon stamps the UTM's samples and the test's events alike,
+    /// so an event at `t_ns` lies on `curve` at `t_ns − utm_shift_ns` (docs/report.md, "The
+    /// marks' loads").
+    pub utm_shift_ns: i64,
     /// Every input besides the feed and the UTM stream (config, calibration files): `(role, path)`.
     pub inputs: Vec<(String, PathBuf)>,
     /// What the curve's `x` is (e.g. `net deflection` or `CMOD (gauge cmod)`).

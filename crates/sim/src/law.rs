@@ -16,12 +16,26 @@
 //!
 //! Four-point tests keep the elastic curve for the shape of the beam (only the load
 //! follows the law). In the notched three-point test the midspan deflection splits into an
-//! elastic part `δe = P / k` (the elastic curve of a centre-loaded beam, which unloads when
-//! the load drops) and a hinge part `δh = δ − δe`: the two halves turn rigidly by `∓φ` about
+//! elastic part `δe`, the elastic curve's share of `P / k` (the elastic curve of a
+//! centre-loaded beam, which unloads when the load drops; see the notch's elastic opening
+//! below) and a hinge part `δh = δ − δe`: the two halves turn rigidly by `∓φ` about
 //! the crack tip at height `crack_tip_mm` above the bottom face (default: notch + 0.6 of the
 //! ligament, below the midspan tag at the top), which drops by `δh`; the supports stay on their line (they roll outward), so
 //! `δh = (L/2) sin φ + h_tip (1 − cos φ)`. The crack mouth (at the bottom face) opens by
 //! about `2 h_tip sin φ`.
+//!
+//! Before the crack the notch already opens elastically ([`NotchCompliance`]): the mouth
+//! opening of a single-edge notched beam in three-point bending by linear elastic fracture
+//! mechanics, `CMOD = 6 P S a V1(α) / (E B W²)` with
+//! `V1(α) = 0.76 − 2.28 α + 3.87 α² − 2.04 α³ + 0.66 / (1 − α)²`, `α = a / W` (H. Tada,
+//! P. C. Paris, G. R. Irwin, *The Stress Analysis of Cracks Handbook*, 3rd ed., ASME 2000,
+//! single-edge notched beam in three-point bending, S/W = 4, ±1 % for any α; the relation of
+//! Jenq and Shah's two-parameter model, RILEM TC 89-FMT 1990). The elastic deflection `P / k`
+//! is split between the elastic curve (Euler–Bernoulli, `P S³ / (4 E B W³)`) and the turn of
+//! the halves about the same hinge that opens the mouth after cracking (`δn = S·CMOD / (4 h_tip)`),
+//! and `E` is the one for which both add up to the rig's stiffness `k`: the notch's share of
+//! the deflection comes from that hinge, not from Tada's own load-point relation (a
+//! simplification: the elastic opening is carried by a rigid turn of the halves).
 
 use super::beam::{DeformedBeam, FourPointBeam};
 use super::SimParams;
@@ -50,6 +64,43 @@ pub fn load_at(p: &SimParams, d: f64) -> f64 {
 /// Height of the crack tip (the hinge of the notched beam) above the bottom face, mm.
 pub fn crack_tip_height(p: &SimParams) -> f64 {
     p.crack_tip_height()
+}
+
+/// Tada's `V1(α)` of the crack mouth opening of a single-edge notched beam in three-point
+/// bending (see the [module docs](self)), `α` = notch depth / beam height.
+pub fn tada_v1(alpha: f64) -> f64 {
+    0.76 - 2.28 * alpha + 3.87 * alpha.powi(2) - 2.04 * alpha.powi(3) + 0.66 / (1.0 - alpha).powi(2)
+}
+
+/// The elastic notched beam (see the [module docs](self)): how its elastic deflection `P / k`
+/// splits and how far its mouth opens per mm of it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NotchCompliance {
+    /// Share of the elastic deflection in the elastic curve (the rest is the halves' turn).
+    pub bend_share: f64,
+    /// Elastic crack mouth opening per mm of elastic midspan deflection.
+    pub cmod_per_mm: f64,
+}
+
+impl NotchCompliance {
+    /// The compliance of the rig's notched beam (span `S`, height `W`, notch `a`, hinge at
+    /// `h_tip`): with `C = E B δ / P` per part, `C_bend = S³ / (4 W³)`,
+    /// `C_cmod = 6 S a V1(a/W) / W²` and the turn's `C_turn = S C_cmod / (4 h_tip)`.
+    pub fn of(p: &SimParams) -> NotchCompliance {
+        let (s, w, a) = (p.span_mm, p.beam_height_mm, p.notch_mm);
+        let bend = s.powi(3) / (4.0 * w.powi(3));
+        let cmod = 6.0 * s * a * tada_v1(a / w) / (w * w);
+        let turn = s * cmod / (4.0 * crack_tip_height(p));
+        NotchCompliance { bend_share: bend / (bend + turn), cmod_per_mm: cmod / (bend + turn) }
+    }
+
+    /// Young's modulus of the beam (GPa) for which the notched beam has stiffness `k`.
+    pub fn youngs_modulus_gpa(p: &SimParams) -> f64 {
+        let (s, w, b) = (p.span_mm, p.beam_height_mm, p.beam_width_mm);
+        let bend = s.powi(3) / (4.0 * w.powi(3));
+        // k (kN/mm) = E B / (C_bend / share); kN/mm² = GPa.
+        p.stiffness_kn_per_mm * bend / (Self::of(p).bend_share * b)
+    }
 }
 
 /// The rigid turn of the two halves of a cracked notched beam.
@@ -123,7 +174,10 @@ impl BeamMotion {
             };
         }
         let k = p.stiffness_kn_per_mm;
-        let elastic = if p.load_law == LoadLaw::Elastic || k <= 0.0 { d } else { (load_at(p, d) / k).clamp(0.0, d.max(0.0)) };
+        let loaded = if p.load_law == LoadLaw::Elastic || k <= 0.0 { d } else { (load_at(p, d) / k).clamp(0.0, d.max(0.0)) };
+        // The elastic curve takes its share; the halves' turn the rest (the notch's elastic
+        // opening, and after the crack the crack's).
+        let elastic = loaded * NotchCompliance::of(p).bend_share;
         let drop = d - elastic;
         let notch = Some((0.5 * p.notch_width_mm, p.notch_mm));
         if drop <= 0.0 {
@@ -303,6 +357,53 @@ mod tests {
         assert!((load_at(&h, 50.0) - 1.5 * k * dc).abs() < 1e-9);
         let e = SimParams::default();
         assert_eq!(load_at(&e, 3.0), 3.0 * e.stiffness_kn_per_mm);
+    }
+
+    /// Tada's V1 at the EN 14651 beam's α = 25/150 = 1/6, by hand:
+    /// 0.76 − 0.38 + 0.107 500 − 0.009 444 + 0.950 400 = 1.428 456.
+    #[test]
+    fn tadas_v1_at_the_en_14651_notch_by_hand() {
+        assert!((tada_v1(1.0 / 6.0) - 1.428_456).abs() < 1e-6, "{}", tada_v1(1.0 / 6.0));
+        // At α = 0.5: 0.76 − 1.14 + 0.9675 − 0.255 + 2.64 = 2.9725.
+        assert!((tada_v1(0.5) - 2.9725).abs() < 1e-12);
+    }
+
+    /// The notched beam of 150 × 150 mm, span 450, notch 25, hinge at 100 mm, by hand:
+    /// C_bend = 450³/(4·150³) = 6.75, C_cmod = 6·450·25·1.428 456/150² = 4.285 367,
+    /// C_turn = 450·4.285 367/(4·100) = 4.821 038; share 6.75/11.571 038 = 0.583 353, CMOD per
+    /// mm 4.285 367/11.571 038 = 0.370 353. At 50 kN/mm: E = 50·6.75/(0.583 353·150) =
+    /// 3.857 012 GPa, and at the first crack (P = 30 kN, δe = 0.6 mm) Tada's CMOD
+    /// 6·30 000·450·25·1.428 456/(3 857.012·150·150²) = 0.222 212 mm = 0.370 353·0.6.
+    #[test]
+    fn the_elastic_notch_opens_the_mouth_by_tadas_relation_by_hand() {
+        let p = SimParams {
+            test: SimTest::ThreePointNotched,
+            load_law: LoadLaw::Softening,
+            stiffness_kn_per_mm: 50.0,
+            crack_deflection_mm: 0.6,
+            ..SimParams::default()
+        };
+        let c = NotchCompliance::of(&p);
+        assert!((c.bend_share - 0.583_353).abs() < 1e-6 && (c.cmod_per_mm - 0.370_353).abs() < 1e-6, "{c:?}");
+        let e_gpa = NotchCompliance::youngs_modulus_gpa(&p);
+        assert!((e_gpa - 3.857_012).abs() < 1e-5, "{e_gpa}");
+        let tada_mm = 6.0 * 30_000.0 * 450.0 * 25.0 * tada_v1(1.0 / 6.0) / (e_gpa * 1e3 * 150.0 * 150.0 * 150.0);
+        assert!((tada_mm - 0.222_212).abs() < 1e-5, "{tada_mm}");
+        // The simulated beam's mouth (the notch's edges at the bottom face) before the crack:
+        // Tada's opening, growing with the load from the first step, plus the elastic curve's
+        // own opening at the edges (±1.5 mm, the bottom fibre 75 mm below the axis):
+        // 2·75·12·δb·1.5/450² = 0.007 778 per mm of δ (δb = 0.583 353 δ).
+        let rig = crate::SimRig::new(&p).unwrap();
+        let per_mm = 0.370_353 + 0.007_778;
+        for d in [0.01, 0.1, 0.3, 0.6] {
+            let cmod = rig.cmod_at(d).unwrap();
+            assert!((cmod - per_mm * d).abs() < 1e-3 * per_mm * d, "CMOD {cmod} mm at {d} mm");
+        }
+        assert!((rig.cmod_at(0.6).unwrap() - 0.007_778 * 0.6 - tada_mm).abs() < 1e-4);
+        // The midspan still deflects by d: the turn and the elastic curve add up.
+        let beam = FourPointBeam { span: p.span_mm, load_span: 0.0 };
+        let (_, dz, _) = BeamMotion::new(&p, &beam, 0.3).displace(0.0, 0.0);
+        assert!((dz + 0.3).abs() < 1e-4, "midspan {dz}");
     }
 
     #[test]

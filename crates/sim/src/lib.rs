@@ -30,7 +30,7 @@ mod truth;
 
 pub use beam::FourPointBeam;
 pub use error::SimError;
-pub use law::load_at;
+pub use law::{load_at, tada_v1, NotchCompliance};
 pub use record::{render_frame_set, simulate, simulate_as, SimSummary, SIM_TRUTH_FILE};
 pub use rig::{SimCamera, SimRig, SimRigSections};
 /// The renderer and the lens model the scene is traced through (shared with the

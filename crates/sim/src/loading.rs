@@ -49,12 +49,12 @@ impl SimRig {
     }
 
     /// The midspan deflection `u` s into a loading of `ramp` s to `max_deflection_mm`: the
-    /// seating first (`seat_mm` over `seat_frames` sets, when set), then a linear ramp.
+    /// seating first (`seat_mm` over `seat_frames` sets, when set), then the ramp.
     fn loaded_for(&self, u: f64, ramp: f64) -> f64 {
         let p = &self.params;
         let seat = (p.seat_frames as f64 / p.fps).min(ramp);
         if seat <= 0.0 {
-            return u / ramp * p.max_deflection_mm;
+            return self.ramp_from(0.0, u, ramp);
         }
         if u < seat {
             return u / seat * p.seat_mm;
@@ -63,7 +63,23 @@ impl SimRig {
         if rest_of <= 0.0 {
             return p.seat_mm;
         }
-        p.seat_mm + (u - seat) / rest_of * (p.max_deflection_mm - p.seat_mm)
+        self.ramp_from(p.seat_mm, u - seat, rest_of)
+    }
+
+    /// The ramp from `start` mm to `max_deflection_mm` over `time` s, `u` s into it: linear,
+    /// or up to `slow_to_mm` at a quarter of the rate of the rest (see `SimParams::slow_to_mm`).
+    fn ramp_from(&self, start: f64, u: f64, time: f64) -> f64 {
+        let (max, slow) = (self.params.max_deflection_mm, self.params.slow_to_mm);
+        if slow <= start {
+            return start + u / time * (max - start);
+        }
+        let rate = (4.0 * (slow - start) + (max - slow)) / time;
+        let slow_s = 4.0 * (slow - start) / rate;
+        if u < slow_s {
+            start + 0.25 * rate * u
+        } else {
+            slow + rate * (u - slow_s)
+        }
     }
 
     /// The time (s after the rest) at which a test loaded at rates (`rates`) reaches its last
@@ -234,6 +250,33 @@ mod tests {
         let bad = SimParams { seat_mm: 2.0, ..base.clone() }.validate().unwrap_err().to_string();
         assert!(bad.contains("seat_mm"), "{bad}");
         assert!(SimParams { seat_frames: 0, ..base }.validate().unwrap_err().to_string().contains("seat_mm"));
+    }
+
+    #[test]
+    fn a_slow_first_part_of_the_ramp_goes_at_a_quarter_of_the_rate_in_the_same_time() {
+        let base = SimParams {
+            cameras: 1,
+            width: 320,
+            height: 240,
+            frame_sets: 21,
+            fps: 10.0,
+            rest_frames: 2,
+            max_deflection_mm: 1.0,
+            seat_frames: 8,
+            seat_mm: 0.04,
+            slow_to_mm: 0.16,
+            ..SimParams::default()
+        };
+        let rig = SimRig::new(&base).unwrap();
+        // 1.0 s after the seating: 0.12 mm at r/4, 0.84 mm at r: r = (4·0.12 + 0.84)/1.0 =
+        // 1.32 mm/s; the slow part 0.33 mm/s for 0.363 636 s.
+        let d: Vec<f64> = (0..21u64).map(|k| rig.midspan_deflection(rig.set_time_ns(k))).collect();
+        assert!((d[10] - 0.04).abs() < 1e-9 && (d[12] - 0.106).abs() < 1e-9 && (d[13] - 0.139).abs() < 1e-9, "{d:?}");
+        assert!((d[16] - (0.16 + 1.32 * (0.6 - 0.48 / 1.32))).abs() < 1e-9 && (d[20] - 1.0).abs() < 1e-9, "{d:?}");
+        for bad_mm in [0.02, 1.0, -0.1] {
+            let bad = SimParams { slow_to_mm: bad_mm, ..base.clone() }.validate().unwrap_err().to_string();
+            assert!(bad.contains("slow_to_mm"), "{bad}");
+        }
     }
 
     #[test]

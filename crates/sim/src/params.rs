@@ -254,6 +254,13 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
     #[serde(skip_serializing_if = "is_default")]
     pub seat_mm: f64,
+    /// The ramp's first part, from the seating's end (or from 0) up to this midspan deflection
+    /// (mm), at a quarter of the rate of the rest, the ramp's time unchanged — as an EN 14651
+    /// machine loads at 0.05 mm/min of CMOD up to 0.1 mm, then at 0.2 mm/min (§8). 0, the
+    /// default: one rate.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub slow_to_mm: f64,
     /// A verification run instead of a test (docs/verification.md): the beam is a rigid bar,
     /// moved as one (no bending, no load) by these vertical displacements, mm downward,
     /// comma-separated (e.g. "0,0.5,1,2,1,0.5,0"), each held for an equal share of

@@ -75,6 +75,8 @@ struct Case {
     utm_outages_s: f64,
     max_gap_s: f64,
     method: Option<tagdeflect_core::method::Method>,
+    /// Each point's σ of x, mm.
+    x_sigma: f64,
 }
 
 impl Case {
@@ -83,7 +85,7 @@ impl Case {
         let load = x.iter().map(|&v| law(v)).collect();
         let beam = if standard == Standard::En14651 { en_beam() } else { c1609_beam() };
         let t_s = (0..x.len()).map(|k| k as f64 * DT).collect();
-        Case { standard, beam, t_s, x, load, utm_gaps: Vec::new(), utm_outages_s: 0.0, max_gap_s: 2.0, method: None }
+        Case { standard, beam, t_s, x, load, utm_gaps: Vec::new(), utm_outages_s: 0.0, max_gap_s: 2.0, method: None, x_sigma: SIGMA }
     }
 
     /// Drops the lines with `from < t < to`.
@@ -98,7 +100,7 @@ impl Case {
         let n = self.t_s.len();
         let t_ns: Vec<i64> = self.t_s.iter().map(|t| T0 + (t * 1e9).round() as i64).collect();
         // No smoothing: the sentences' numbers are the readings'.
-        let curve = Curve::new(t_ns.clone(), self.load.clone(), self.x.clone(), vec![Some(SIGMA); n], 0.0, 1, 0.0, "x").unwrap();
+        let curve = Curve::new(t_ns.clone(), self.load.clone(), self.x.clone(), vec![Some(self.x_sigma); n], 0.0, 1, 0.0, "x").unwrap();
         let lines: Vec<FeedLine> =
             t_ns.iter().enumerate().map(|(k, &t_ns)| FeedLine { seq: k as u64, t_ns, ..Default::default() }).collect();
         let feed = Feed::from_lines(std::path::Path::new("feed.jsonl"), &lines).unwrap();
@@ -325,4 +327,18 @@ fn a_test_stopped_before_its_method_s_end_says_it_ended_early() {
     let v = with(ramp(0.05, Some(0.2), 4.1));
     assert_valid("EN14651-05 to CMOD 4.1 mm", &v);
     assert!(v.rates[1].0.contains("from CMOD 0.1 mm to the end"), "{:?}", v.rates);
+}
+
+/// A rate outside its window by less than 2 σ of the fitted rate (a gauge whose noise is as
+/// large as the phase itself) cannot make the test invalid, nor pass it: it is unchecked,
+/// saying so; with the gauge's σ small the same rate is a reason.
+#[test]
+fn a_rate_the_gauges_noise_cannot_tell_from_its_window_is_unchecked_not_a_reason() {
+    let slow = ramp(0.03, Some(0.2), 3.6);
+    let r = reasons(&Case::new(Standard::En14651, slow.clone()).check());
+    assert_eq!(r, vec!["The CMOD increased at 0.030 mm/min up to CMOD = 0.1 mm; the standard asks for 0.04 to 0.06 mm/min.".to_string()]);
+    let v = Case { x_sigma: 0.1, ..Case::new(Standard::En14651, slow) }.check();
+    assert_valid("the first phase's rate within 2 σ of its window", &v);
+    let said = v.unchecked.iter().find(|u| u.contains("could not be told from its window")).unwrap_or_else(|| panic!("{:?}", v.unchecked));
+    assert!(said.contains("0.030 ±") && said.contains("0.04 to 0.06 mm/min") && said.contains("σ 0.100 mm a point"), "{said}");
 }

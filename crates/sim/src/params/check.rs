@@ -132,6 +132,10 @@ impl SimParams {
                 ),
             );
         }
+        let slow = self.slow_to_mm;
+        if slow != 0.0 && (!finite_pos(slow) || slow <= self.seat_mm || slow >= self.max_deflection_mm || !steps.is_empty()) {
+            return bad("slow_to_mm", format!("{slow}: expected 0 (one rate), or above seat_mm and below max_deflection_mm, in a test"));
+        }
         if self.cyclic && self.hold_frames > 0 {
             return bad("hold_frames", format!("{}: a cyclic load history holds nowhere (expected 0 with cyclic)", self.hold_frames));
         }

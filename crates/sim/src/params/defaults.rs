@@ -88,6 +88,7 @@ impl Default for SimParams {
             hold_frames: 0,
             seat_frames: 0,
             seat_mm: 0.0,
+            slow_to_mm: 0.0,
             verify_steps: String::new(),
             rates: String::new(),
             verify_stage_half_width_mm: 0.0,
