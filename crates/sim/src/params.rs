@@ -109,6 +109,14 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
     #[serde(skip_serializing_if = "is_default")]
     pub bayer: bool,
+    /// A colour (RGGB Bayer) sensor whose raw mosaic the product converts (V4L2 `RGGB`,
+    /// GenICam `BayerRG8`): the grey scene through the sites' unequal responses to grey (red
+    /// 0.62, greens 1.0 and 0.98, blue 0.74), read noise at each photosite, 8 bits, then the
+    /// product's conversion (each site's gain equalised, no demosaic). 8-bit only; not with
+    /// `bayer`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub bayer_raw: bool,
     /// Radius of a defocus disk before the pixel (the optics: a lens focused off the target
     /// plane spreads a point's light uniformly over a disk), pixels (0 = none).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]

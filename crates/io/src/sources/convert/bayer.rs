@@ -1,0 +1,184 @@
+//! A colour sensor's raw mosaic (V4L2 `RGGB`, `GRBG`, `GBRG`, `BA81`; GenICam `BayerRG8`,
+//! `BayerGR8`, `BayerGB8`, `BayerBG8`) as a grey image at full resolution: every photosite
+//! kept where it is, its channel's gain equalised — no demosaic, no interpolation.
+//!
+//! Why not demosaic: the tags are grey, so under any light every photosite sees the same
+//! scene through its filter and differs from its neighbours only by its channel's gain. Once
+//! the four sites of the 2 × 2 mosaic are brought to one gain, each pixel is a sample of the
+//! scene where it lies, as a monochrome sensor's is. A demosaic (bilinear, as a camera's
+//! firmware or a driver's conversion does) instead interpolates each channel from its own
+//! sites, so each pixel's value becomes a different blur of its neighbours depending on its
+//! place in the mosaic: the edge's profile changes with a two-pixel period, which no single
+//! profile fits (up to ±0.08 px of bias with the edge's phase; docs/accuracy.md, "A colour
+//! sensor").
+//!
+//! The gains are measured on each frame ([`site_gains`]): for every 2 × 2 cell bright enough
+//! and unsaturated, each site's value over the mean of the cell's two green sites; the median
+//! of those ratios per site (a histogram: robust to the cells on edges and to a minority of
+//! coloured surfaces) is that site's response to grey, and its inverse its gain. Green stays
+//! as it is (the reference). A scene mostly of one colour other than grey moves the medians
+//! off grey's: this conversion is for grey targets in a mostly grey (concrete, steel, white
+//! wall) scene.
+
+/// The order of a 2 × 2 colour mosaic's filters, read along its first row then its second.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BayerPattern {
+    /// Red, green / green, blue (V4L2 `RGGB`, GenICam `BayerRG8`).
+    Rggb,
+    /// Green, red / blue, green (V4L2 `GRBG`, GenICam `BayerGR8`).
+    Grbg,
+    /// Green, blue / red, green (V4L2 `GBRG`, GenICam `BayerGB8`).
+    Gbrg,
+    /// Blue, green / green, red (V4L2 `BA81`, GenICam `BayerBG8`).
+    Bggr,
+}
+
+impl BayerPattern {
+    /// Whether the photosites at even `x + y` (the cell's first and last) are the green ones.
+    fn green_on_even(self) -> bool {
+        matches!(self, BayerPattern::Grbg | BayerPattern::Gbrg)
+    }
+
+    /// The cell's two green sites (indices `x % 2 + 2 (y % 2)`).
+    fn green_sites(self) -> [usize; 2] {
+        if self.green_on_even() {
+            [0, 3]
+        } else {
+            [1, 2]
+        }
+    }
+}
+
+/// The reference (the two green sites' mean) a cell needs to be used: dark cells' ratios are
+/// mostly noise.
+const MIN_REFERENCE: u8 = 32;
+/// A cell with a site at or above this level is left out: a clipped site's ratio is wrong.
+const SATURATED: u8 = 250;
+/// Bins of the ratio histograms over `0..MAX_RATIO`.
+const BINS: usize = 16_384;
+/// The largest response to grey measured, relative to green.
+const MAX_RATIO: f64 = 4.0;
+/// Fewer usable cells than this: the gains stay 1 (a dark or blank frame).
+const MIN_CELLS: u32 = 64;
+
+/// The gain of each of the four sites of the 2 × 2 cell (index `x % 2 + 2 (y % 2)`) that
+/// brings its response to a grey scene to the green sites' mean; all 1 when the frame has
+/// too few usable cells. `data` is the `w × h` mosaic, row-major.
+pub fn site_gains(data: &[u8], w: usize, h: usize, pattern: BayerPattern) -> [f64; 4] {
+    let [g0, g1] = pattern.green_sites();
+    let mut hist = vec![[0u32; 4]; BINS];
+    let mut cells = 0u32;
+    let scale = BINS as f64 / MAX_RATIO;
+    for y in (0..h.saturating_sub(1)).step_by(2) {
+        let (top, bottom) = (&data[y * w..y * w + w], &data[(y + 1) * w..(y + 1) * w + w]);
+        for x in (0..w.saturating_sub(1)).step_by(2) {
+            let v = [top[x], top[x + 1], bottom[x], bottom[x + 1]];
+            let reference = (f64::from(v[g0]) + f64::from(v[g1])) / 2.0;
+            if reference < f64::from(MIN_REFERENCE) || v.iter().any(|&s| s >= SATURATED) {
+                continue;
+            }
+            cells += 1;
+            for (site, &s) in v.iter().enumerate() {
+                let bin = (f64::from(s) / reference * scale) as usize;
+                hist[bin.min(BINS - 1)][site] += 1;
+            }
+        }
+    }
+    if cells < MIN_CELLS {
+        return [1.0; 4];
+    }
+    let mut gains = [1.0; 4];
+    for (site, gain) in gains.iter_mut().enumerate() {
+        let ratio = median_bin(&hist, site, cells) / scale;
+        *gain = if ratio > 1.0 / scale { 1.0 / ratio } else { 1.0 };
+    }
+    gains
+}
+
+/// The median of site `site`'s histogram (in bins, interpolated within the median's bin).
+fn median_bin(hist: &[[u32; 4]], site: usize, total: u32) -> f64 {
+    let half = f64::from(total) / 2.0;
+    let mut below = 0.0;
+    for (bin, counts) in hist.iter().enumerate() {
+        let n = f64::from(counts[site]);
+        if below + n >= half {
+            return bin as f64 + (half - below) / n.max(1.0);
+        }
+        below += n;
+    }
+    BINS as f64
+}
+
+/// Equalises the mosaic `data` (`w × h`, row-major) in place: each site times its gain
+/// ([`site_gains`]), rounded and clipped to 8 bits.
+pub fn equalise(data: &mut [u8], w: usize, h: usize, pattern: BayerPattern) {
+    let gains = site_gains(data, w, h, pattern);
+    if gains == [1.0; 4] {
+        return;
+    }
+    for (y, row) in data.chunks_exact_mut(w).take(h).enumerate() {
+        for (x, v) in row.iter_mut().enumerate() {
+            let g = gains[x % 2 + 2 * (y % 2)];
+            *v = (f64::from(*v) * g).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A grey scene (a vertical step from 40 to 200 at x = 13.3, plus a ramp) seen through
+    /// `responses` per site, rounded to 8 bits.
+    fn mosaic(w: usize, h: usize, responses: [f64; 4]) -> (Vec<f64>, Vec<u8>) {
+        let grey: Vec<f64> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f64, (i / w) as f64);
+                let step = (x + 0.5 - 13.3).clamp(0.0, 1.0);
+                40.0 + 160.0 * step + 0.3 * y
+            })
+            .collect();
+        let raw = grey.iter().enumerate().map(|(i, g)| (g * responses[i % w % 2 + 2 * (i / w % 2)]).round() as u8).collect();
+        (grey, raw)
+    }
+
+    #[test]
+    fn a_grey_scene_through_unequal_channels_comes_back_grey() {
+        let (w, h) = (40, 30);
+        // A warm light on an RGGB sensor: red 0.62, the greens 1.0 and 0.97, blue 0.74 of green.
+        let responses = [0.62, 1.0, 0.97, 0.74];
+        let (grey, mut raw) = mosaic(w, h, responses);
+        let gains = site_gains(&raw, w, h, BayerPattern::Rggb);
+        // Relative to the two greens' mean (0.985).
+        for (site, (g, r)) in gains.iter().zip(responses).enumerate() {
+            let want = 0.985 / r;
+            assert!((g - want).abs() < 0.01 * want, "site {site}: gain {g}, want {want}");
+        }
+        equalise(&mut raw, w, h, BayerPattern::Rggb);
+        for (i, (v, g)) in raw.iter().zip(&grey).enumerate() {
+            // Within rounding twice (the mosaic's and the equalised level's) of the scene at green's gain.
+            assert!((f64::from(*v) - 0.985 * g).abs() <= 1.6, "pixel {i}: {v} vs {}", 0.985 * g);
+        }
+    }
+
+    #[test]
+    fn the_green_sites_follow_the_pattern() {
+        let (w, h) = (40, 30);
+        // GRBG: green at the cell's first and last sites.
+        let responses = [1.0, 0.55, 0.8, 1.0];
+        let (_, raw) = mosaic(w, h, responses);
+        let gains = site_gains(&raw, w, h, BayerPattern::Grbg);
+        assert!((gains[0] - 1.0).abs() < 0.01 && (gains[3] - 1.0).abs() < 0.01, "{gains:?}");
+        assert!((gains[1] - 1.0 / 0.55).abs() < 0.02 && (gains[2] - 1.0 / 0.8).abs() < 0.02, "{gains:?}");
+    }
+
+    #[test]
+    fn a_dark_frame_keeps_its_levels() {
+        let mut raw = vec![10u8; 16 * 12];
+        raw[5] = 3;
+        let before = raw.clone();
+        assert_eq!(site_gains(&raw, 16, 12, BayerPattern::Rggb), [1.0; 4]);
+        equalise(&mut raw, 16, 12, BayerPattern::Rggb);
+        assert_eq!(raw, before);
+    }
+}
