@@ -14,8 +14,9 @@
 //!
 //! The gains are measured on each frame ([`site_gains`]): for every 2 × 2 cell bright enough
 //! and unsaturated, each site's value over the mean of the cell's two green sites; the median
-//! of those ratios per site (a histogram: robust to the cells on edges and to a minority of
-//! coloured surfaces) is that site's response to grey, and its inverse its gain. Green stays
+//! of those ratios per site, then the ratio of sums over the cells within 10 % of it (robust
+//! to the cells on edges and to a minority of coloured surfaces), is that site's response to
+//! grey, and its inverse its gain. Green stays
 //! as it is (the reference). A scene mostly of one colour other than grey moves the medians
 //! off grey's: this conversion is for grey targets in a mostly grey (concrete, steel, white
 //! wall) scene.
@@ -61,38 +62,62 @@ const MAX_RATIO: f64 = 4.0;
 /// Fewer usable cells than this: the gains stay 1 (a dark or blank frame).
 const MIN_CELLS: u32 = 64;
 
+/// A cell's ratio further than this from its site's median is left out of the gain (edges,
+/// coloured surfaces).
+const TRIM: f64 = 0.1;
+
 /// The gain of each of the four sites of the 2 × 2 cell (index `x % 2 + 2 (y % 2)`) that
 /// brings its response to a grey scene to the green sites' mean; all 1 when the frame has
 /// too few usable cells. `data` is the `w × h` mosaic, row-major.
+///
+/// Two passes over the usable cells (bright enough, unclipped): the median of each site's
+/// ratio to the cell's green mean (a histogram), then the ratio of the sums of the site's
+/// values and of the green means over the cells within [`TRIM`] of that median — the median
+/// alone sits on the lattice of 8-bit ratios, ~0.1 % off.
 pub fn site_gains(data: &[u8], w: usize, h: usize, pattern: BayerPattern) -> [f64; 4] {
     let [g0, g1] = pattern.green_sites();
     let mut hist = vec![[0u32; 4]; BINS];
-    let mut cells = 0u32;
     let scale = BINS as f64 / MAX_RATIO;
+    let cells = for_each_cell(data, w, h, [g0, g1], |v, reference| {
+        for (site, &s) in v.iter().enumerate() {
+            let bin = (f64::from(s) / reference * scale) as usize;
+            hist[bin.min(BINS - 1)][site] += 1;
+        }
+    });
+    if cells < MIN_CELLS {
+        return [1.0; 4];
+    }
+    let medians: [f64; 4] = std::array::from_fn(|site| median_bin(&hist, site, cells) / scale);
+    let (mut sums, mut refs) = ([0.0f64; 4], [0.0f64; 4]);
+    for_each_cell(data, w, h, [g0, g1], |v, reference| {
+        for (site, &s) in v.iter().enumerate() {
+            let ratio = f64::from(s) / reference;
+            if (ratio - medians[site]).abs() <= TRIM * medians[site] {
+                sums[site] += f64::from(s);
+                refs[site] += reference;
+            }
+        }
+    });
+    std::array::from_fn(|site| if sums[site] > 0.0 && refs[site] > 0.0 { refs[site] / sums[site] } else { 1.0 })
+}
+
+/// Calls `f` with the four sites' values and the green mean of every usable 2 × 2 cell
+/// (greens' mean ≥ [`MIN_REFERENCE`], no site ≥ [`SATURATED`]); returns how many.
+fn for_each_cell(data: &[u8], w: usize, h: usize, greens: [usize; 2], mut f: impl FnMut(&[u8; 4], f64)) -> u32 {
+    let mut cells = 0u32;
     for y in (0..h.saturating_sub(1)).step_by(2) {
         let (top, bottom) = (&data[y * w..y * w + w], &data[(y + 1) * w..(y + 1) * w + w]);
         for x in (0..w.saturating_sub(1)).step_by(2) {
             let v = [top[x], top[x + 1], bottom[x], bottom[x + 1]];
-            let reference = (f64::from(v[g0]) + f64::from(v[g1])) / 2.0;
+            let reference = (f64::from(v[greens[0]]) + f64::from(v[greens[1]])) / 2.0;
             if reference < f64::from(MIN_REFERENCE) || v.iter().any(|&s| s >= SATURATED) {
                 continue;
             }
             cells += 1;
-            for (site, &s) in v.iter().enumerate() {
-                let bin = (f64::from(s) / reference * scale) as usize;
-                hist[bin.min(BINS - 1)][site] += 1;
-            }
+            f(&v, reference);
         }
     }
-    if cells < MIN_CELLS {
-        return [1.0; 4];
-    }
-    let mut gains = [1.0; 4];
-    for (site, gain) in gains.iter_mut().enumerate() {
-        let ratio = median_bin(&hist, site, cells) / scale;
-        *gain = if ratio > 1.0 / scale { 1.0 / ratio } else { 1.0 };
-    }
-    gains
+    cells
 }
 
 /// The median of site `site`'s histogram (in bins, interpolated within the median's bin).
