@@ -433,6 +433,11 @@ mod tests {
         assert!(bad.validate().unwrap_err().to_string().contains("drift_camera"));
         let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
+        let bad = SimParams { bayer_raw: true, bayer: true, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("bayer_raw"));
+        let bad = SimParams { bayer_raw: true, bit_depth: 12, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("bayer_raw"));
+        SimParams { bayer_raw: true, ..SimParams::default() }.validate().unwrap();
         let bad = SimParams { post_blur_px: -1.0, ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("post_blur_px"));
         let bad = SimParams { sharpen: f64::NAN, ..SimParams::default() };
