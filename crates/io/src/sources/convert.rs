@@ -156,7 +156,7 @@ pub(crate) fn to_gray8_into(
         }
     }
     if let PixelLayout::Bayer8(pattern) = layout {
-        bayer::equalise(&mut out.data, w, height as usize, pattern);
+        bayer::equalise(out, pattern);
     }
     Ok(())
 }

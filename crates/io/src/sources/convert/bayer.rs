@@ -21,6 +21,8 @@
 //! off grey's: this conversion is for grey targets in a mostly grey (concrete, steel, white
 //! wall) scene.
 
+use tagdeflect_core::frame::{DeepPlane, GrayImage};
+
 /// The order of a 2 × 2 colour mosaic's filters, read along its first row then its second.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BayerPattern {
@@ -134,19 +136,31 @@ fn median_bin(hist: &[[u32; 4]], site: usize, total: u32) -> f64 {
     BINS as f64
 }
 
-/// Equalises the mosaic `data` (`w × h`, row-major) in place: each site times its gain
-/// ([`site_gains`]), rounded and clipped to 8 bits.
-pub fn equalise(data: &mut [u8], w: usize, h: usize, pattern: BayerPattern) {
-    let gains = site_gains(data, w, h, pattern);
+/// Bits of an equalised frame's full-depth plane: four below the 8-bit level, so a gain near 1
+/// is not lost to rounding (rounded to 8 bits, `round(g · v)` is `v` for every dark level
+/// when `g` is within `0.5 / v` of 1: a staircase that put the two green sites 0.5 grey levels
+/// apart on the tags' black).
+pub const EQUALISED_BITS: u8 = 12;
+
+/// Equalises the 8-bit mosaic `img` in place: each site times its gain ([`site_gains`]),
+/// kept at [`EQUALISED_BITS`] (the full-depth plane the edge fit reads) beside the 8-bit plane
+/// rounded from it. Unchanged when every gain is 1.
+pub fn equalise(img: &mut GrayImage, pattern: BayerPattern) {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let gains = site_gains(&img.data, w, h, pattern);
     if gains == [1.0; 4] {
         return;
     }
-    for (y, row) in data.chunks_exact_mut(w).take(h).enumerate() {
-        for (x, v) in row.iter_mut().enumerate() {
-            let g = gains[x % 2 + 2 * (y % 2)];
-            *v = (f64::from(*v) * g).round().clamp(0.0, 255.0) as u8;
-        }
-    }
+    let scale = f64::from(1u32 << (EQUALISED_BITS - 8));
+    let max = f64::from((1u32 << EQUALISED_BITS) - 1);
+    let data = img
+        .data
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| (f64::from(v) * gains[i % w % 2 + 2 * (i / w % 2)] * scale).round().clamp(0.0, max) as u16)
+        .collect();
+    img.deep = Some(DeepPlane { bits: EQUALISED_BITS, data });
+    img.fill_8bit_from_deep();
 }
 
 #[cfg(test)]
@@ -172,17 +186,20 @@ mod tests {
         let (w, h) = (40, 30);
         // A warm light on an RGGB sensor: red 0.62, the greens 1.0 and 0.97, blue 0.74 of green.
         let responses = [0.62, 1.0, 0.97, 0.74];
-        let (grey, mut raw) = mosaic(w, h, responses);
+        let (grey, raw) = mosaic(w, h, responses);
         let gains = site_gains(&raw, w, h, BayerPattern::Rggb);
         // Relative to the two greens' mean (0.985).
         for (site, (g, r)) in gains.iter().zip(responses).enumerate() {
             let want = 0.985 / r;
             assert!((g - want).abs() < 0.01 * want, "site {site}: gain {g}, want {want}");
         }
-        equalise(&mut raw, w, h, BayerPattern::Rggb);
-        for (i, (v, g)) in raw.iter().zip(&grey).enumerate() {
-            // Within rounding twice (the mosaic's and the equalised level's) of the scene at green's gain.
-            assert!((f64::from(*v) - 0.985 * g).abs() <= 1.6, "pixel {i}: {v} vs {}", 0.985 * g);
+        let mut img = GrayImage::from_8bit(w as u32, h as u32, raw);
+        equalise(&mut img, BayerPattern::Rggb);
+        assert_eq!(img.deep.as_ref().map(|d| d.bits), Some(EQUALISED_BITS));
+        for (i, g) in grey.iter().enumerate() {
+            // Within the mosaic's rounding (times the gain, up to 1.6) of the scene at green's gain.
+            let v = f64::from(img.level(i));
+            assert!((v - 0.985 * g).abs() <= 0.85 + 0.002 * g, "pixel {i}: {v} vs {}", 0.985 * g);
         }
     }
 
@@ -201,9 +218,10 @@ mod tests {
     fn a_dark_frame_keeps_its_levels() {
         let mut raw = vec![10u8; 16 * 12];
         raw[5] = 3;
-        let before = raw.clone();
         assert_eq!(site_gains(&raw, 16, 12, BayerPattern::Rggb), [1.0; 4]);
-        equalise(&mut raw, 16, 12, BayerPattern::Rggb);
-        assert_eq!(raw, before);
+        let mut img = GrayImage::from_8bit(16, 12, raw.clone());
+        equalise(&mut img, BayerPattern::Rggb);
+        assert_eq!(img.data, raw);
+        assert!(img.deep.is_none());
     }
 }
