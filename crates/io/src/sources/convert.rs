@@ -30,7 +30,8 @@ pub enum PixelLayout {
     /// Motion-JPEG: each buffer is one JPEG image, decoded and converted to luma.
     Mjpeg,
     /// A colour sensor's raw 8-bit mosaic (V4L2 `RGGB`…, GenICam `BayerRG8`…): kept at full
-    /// resolution, each site's gain equalised to a grey scene's ([`bayer`]: no demosaic).
+    /// resolution, each site's gain equalised to a grey scene's ([`bayer`]: no demosaic), kept
+    /// at 12 bits beside an 8-bit plane.
     Bayer8(BayerPattern),
 }
 
