@@ -107,18 +107,19 @@ pub fn calibration(data: &[u8]) {
     let _ = crate::config::parse_calibration(text, true, p);
 }
 
-/// V4L2 / Aravis buffer conversion (GREY, Y10..Y16, YUYV, MJPEG) with arbitrary sizes,
+/// V4L2 / Aravis buffer conversion (GREY, Y10..Y16, YUYV, MJPEG, raw Bayer) with arbitrary sizes,
 /// strides and buffers; a converted image always has `width × height` bytes.
 pub fn convert(data: &[u8]) {
     use tagdeflect_io::sources::convert::{to_gray8, PixelLayout};
     if data.len() < 9 {
         return;
     }
-    let layout = match data[0] % 4 {
+    let layout = match data[0] % 5 {
         0 => PixelLayout::Gray8,
         1 => PixelLayout::Gray16Le { bits: 9 + data[1] % 8 },
         2 => PixelLayout::Yuyv,
-        _ => PixelLayout::Mjpeg,
+        3 => PixelLayout::Mjpeg,
+        _ => PixelLayout::Bayer8(tagdeflect_io::sources::convert::BayerPattern::Grbg),
     };
     let width = u32::from(u16::from_le_bytes([data[2], data[3]]));
     let height = u32::from(u16::from_le_bytes([data[4], data[5]]));

@@ -2,7 +2,7 @@
 //! three-camera 1280x960 scene of `accuracy::three_cameras_1280x960_moderate_noise` (noise
 //! σ 2, tags ~28 px, 16 frame sets, seed 11) with no blur, then with one formation each.
 //! The table is a measurement, not a pass/fail: it is printed by
-//! `cargo test --test it formations:: -- --ignored --nocapture` (11 scenes, several minutes).
+//! `cargo test --test it formations:: -- --ignored --nocapture` (12 scenes, several minutes).
 //! The formations cheap enough to assert run in `accuracy::` with floors.
 //! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
 //! only those besides the sharp scene; `TAGDEFLECT_FORMATIONS_SEED=12` renders them with another
@@ -39,6 +39,7 @@ pub fn formation_scenes() -> Vec<(&'static str, &'static str, SimParams)> {
         ("Gaussian 0.7 px after the pixel", "--post-blur-px 0.7", SimParams { post_blur_px: 0.7, ..s() }),
         ("3×3 sharpening, amount 1", "--sharpen 1", SimParams { sharpen: 1.0, ..s() }),
         ("Bayer RGGB, bilinear demosaic", "--bayer", SimParams { bayer: true, ..s() }),
+        ("Bayer RGGB raw mosaic, converted by the product", "--bayer-raw", SimParams { bayer_raw: true, ..s() }),
         ("defocus disk r = 1.5 px", "--defocus-radius-px 1.5", SimParams { defocus_radius_px: 1.5, ..s() }),
         (
             "elliptical 1.0/0.4 px at 30°",
@@ -71,6 +72,7 @@ fn accuracy_per_formation_table() {
         println!("ACCURACY {name}: {acc}");
         let stats = &summary.stats;
         println!("DRIFT {name}: D = {:?}, white noise {:?} px² per corner coordinate", stats.model_drift_px2, stats.white_noise_px2);
+        println!("AXES {name}: {}", axes(&rec_.truth, &lines));
         let rms = acc.disp_rms_mm;
         let base = *sharp_rms.get_or_insert(rms);
         rows.push(format!(
@@ -94,4 +96,36 @@ fn accuracy_per_formation_table() {
     }
     let expected = formation_scenes().iter().enumerate().filter(|(k, (name, _, _))| chosen(*k, name)).count();
     assert_eq!(rows.len(), expected);
+}
+
+/// The displacement errors' RMS per world axis (x along the beam, y the cameras' depth, z
+/// up), then split into each set's mean over the tags (what is common to them) and each tag's
+/// rest: where an error lies, and whether it is common to the tags.
+fn axes(truth: &[tagdeflect_io::recording::TruthLine], lines: &[tagdeflect_core::feed::FeedLine]) -> String {
+    use std::collections::HashMap;
+    let mut first: HashMap<u32, [f64; 3]> = HashMap::new();
+    let (mut all, mut common, mut n) = ([0.0f64; 3], [0.0f64; 3], 0usize);
+    for line in lines {
+        let tr = tagdeflect::accuracy::truth_at(truth, line.t_ns);
+        let errs: Vec<[f64; 3]> = line
+            .tags
+            .iter()
+            .filter_map(|t| {
+                let p = tr.get(&t.id)?;
+                let p0 = *first.entry(t.id).or_insert([p.x, p.y, p.z]);
+                Some([0, 1, 2].map(|k| t.disp_mm[k] - (p[k] - p0[k])))
+            })
+            .collect();
+        let mean = [0, 1, 2].map(|k| errs.iter().map(|e| e[k]).sum::<f64>() / errs.len().max(1) as f64);
+        for e in &errs {
+            (0..3).for_each(|k| (all[k], common[k]) = (all[k] + e[k] * e[k], common[k] + mean[k] * mean[k]));
+        }
+        n += errs.len();
+    }
+    let rms = |v: [f64; 3]| v.map(|s| (s / n.max(1) as f64).sqrt());
+    let (a, c) = (rms(all), rms(common));
+    format!(
+        "RMS x {:.4}, y (depth) {:.4}, z (up) {:.4} mm; common to the set's tags x {:.4}, y {:.4}, z {:.4} mm",
+        a[0], a[1], a[2], c[0], c[1], c[2]
+    )
 }

@@ -46,6 +46,17 @@ pub fn convolve3x3(img: &[f32], w: usize, h: usize, kernel: &[f32; 9]) -> Vec<f3
     out
 }
 
+/// Responses to grey of an RGGB sensor's four sites (index `x % 2 + 2 (y % 2)`: red, green
+/// on the red rows, green on the blue rows, blue) under a warm light, before any white
+/// balance: red and blue well below green, the two greens 2 % apart (a common imbalance).
+pub const RAW_BAYER_RESPONSES: [f32; 4] = [0.62, 1.0, 0.98, 0.74];
+
+/// A grey scene as an RGGB sensor's raw mosaic: every photosite sees the grey level through
+/// its filter, scaled by its site's response ([`RAW_BAYER_RESPONSES`]); nothing interpolated.
+pub fn bayer_mosaic(img: &[f32], w: usize, responses: &[f32; 4]) -> Vec<f32> {
+    img.iter().enumerate().map(|(i, v)| v * responses[i % w % 2 + 2 * (i / w % 2)]).collect()
+}
+
 /// Colour channel (0 R, 1 G, 2 B) of an RGGB Bayer sensor's pixel `(x, y)`.
 fn bayer_channel(x: usize, y: usize) -> usize {
     match (x % 2, y % 2) {

@@ -109,6 +109,14 @@ pub struct SimParams {
     #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
     #[serde(skip_serializing_if = "is_default")]
     pub bayer: bool,
+    /// A colour (RGGB Bayer) sensor whose raw mosaic the product converts (V4L2 `RGGB`,
+    /// GenICam `BayerRG8`): the grey scene through the sites' unequal responses to grey (red
+    /// 0.62, greens 1.0 and 0.98, blue 0.74), read noise at each photosite, 8 bits, then the
+    /// product's conversion (each site's gain equalised, no demosaic). 8-bit only; not with
+    /// `bayer`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = false))]
+    #[serde(skip_serializing_if = "is_default")]
+    pub bayer_raw: bool,
     /// Radius of a defocus disk before the pixel (the optics: a lens focused off the target
     /// plane spreads a point's light uniformly over a disk), pixels (0 = none).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0.0))]
@@ -432,6 +440,11 @@ mod tests {
         assert!(bad.validate().unwrap_err().to_string().contains("drift_camera"));
         let bad = SimParams { hide_tag: Some(20), ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("hide_tag"));
+        let bad = SimParams { bayer_raw: true, bayer: true, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("bayer_raw"));
+        let bad = SimParams { bayer_raw: true, bit_depth: 12, ..SimParams::default() };
+        assert!(bad.validate().unwrap_err().to_string().contains("bayer_raw"));
+        SimParams { bayer_raw: true, ..SimParams::default() }.validate().unwrap();
         let bad = SimParams { post_blur_px: -1.0, ..SimParams::default() };
         assert!(bad.validate().unwrap_err().to_string().contains("post_blur_px"));
         let bad = SimParams { sharpen: f64::NAN, ..SimParams::default() };

@@ -177,11 +177,25 @@ impl SimRig {
         let seed = mix(mix(self.params.seed, 0x4015e), mix(cam as u64, t_ns as u64));
         crate::sensor::expose(&mut img, w, self.params.exposure, self.params.full_well_e, mix(seed, 0x5407));
         img = self.after_pixels(img, w, h);
-        let stored = quantize_bits(&img, w, h, self.params.noise_sigma, seed, self.params.bit_depth);
+        let stored = if self.params.bayer_raw {
+            raw_bayer_converted(&img, w, h, self.params.noise_sigma, seed)
+        } else {
+            quantize_bits(&img, w, h, self.params.noise_sigma, seed, self.params.bit_depth)
+        };
         match self.params.jpeg_quality {
             // Validated sizes (at most 8192 px a side) are within JPEG's 65535.
             Some(q) => formation::jpeg_round_trip(&stored, q).expect("an 8-bit grey image of a validated size encodes as JPEG"),
             None => stored,
         }
     }
+}
+
+/// The grey scene `img` seen by an RGGB sensor delivering its raw 8-bit mosaic
+/// ([`formation::bayer_mosaic`], read noise `noise_sigma` at each photosite), converted as the
+/// product converts a V4L2 `RGGB` or GenICam `BayerRG8` frame.
+fn raw_bayer_converted(img: &[f32], w: usize, h: usize, noise_sigma: f64, seed: u64) -> GrayImage {
+    use tagdeflect_io::sources::convert::{to_gray8, BayerPattern, PixelLayout};
+    let mosaic = formation::bayer_mosaic(img, w, &formation::RAW_BAYER_RESPONSES);
+    let raw = quantize_bits(&mosaic, w, h, noise_sigma, seed, 8);
+    to_gray8(PixelLayout::Bayer8(BayerPattern::Rggb), w as u32, h as u32, 0, &raw.data).expect("a rendered mosaic has width × height bytes")
 }

@@ -7,7 +7,8 @@
 //!
 //! Opening sets Mono8 when the camera offers it, else Mono16/Mono12/Mono10 (with the
 //! camera's `full_depth`, the deep formats first; kept at full depth beside an 8-bit plane,
-//! see [`crate::sources::convert`]), the configured size as the region of interest, continuous
+//! see [`crate::sources::convert`]), else a colour sensor's raw mosaic BayerRG8/GR8/GB8/BG8
+//! (its sites' gains equalised, no demosaic: [`crate::sources::convert::bayer`]), the configured size as the region of interest, continuous
 //! acquisition and the configured frame rate when the camera supports setting it. The
 //! stream gets [`AravisOptions::n_buffers`] buffers of the camera's payload size; on GigE
 //! packet resend is enabled. Every popped buffer's status is checked: only
@@ -42,7 +43,7 @@ use aravis::{AcquisitionMode, Buffer, BufferPayloadType, BufferStatus, Camera, G
 use tokio::sync::mpsc::Sender;
 
 use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
-use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
+use crate::sources::convert::{to_gray8_into, BayerPattern, ConvertError, PixelLayout};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::clock::{now_epoch_ns, DeviceClockMap};
 use tagdeflect_core::frame::GrayImage;
@@ -137,6 +138,14 @@ pub(crate) fn pixel_layout(format: PixelFormat) -> Option<PixelLayout> {
         Some(PixelLayout::Gray16Le { bits: 12 })
     } else if format == PixelFormat::MONO_10 {
         Some(PixelLayout::Gray16Le { bits: 10 })
+    } else if format == PixelFormat::BAYER_RG_8 {
+        Some(PixelLayout::Bayer8(BayerPattern::Rggb))
+    } else if format == PixelFormat::BAYER_GR_8 {
+        Some(PixelLayout::Bayer8(BayerPattern::Grbg))
+    } else if format == PixelFormat::BAYER_GB_8 {
+        Some(PixelLayout::Bayer8(BayerPattern::Gbrg))
+    } else if format == PixelFormat::BAYER_BG_8 {
+        Some(PixelLayout::Bayer8(BayerPattern::Bggr))
     } else {
         None
     }
@@ -189,8 +198,8 @@ pub enum AravisOpenError {
         /// Aravis' error.
         source: aravis::glib::Error,
     },
-    /// The camera has no monochrome pixel format.
-    #[error("aravis:{id}: no monochrome pixel format (Mono8/10/12/16) available")]
+    /// The camera has no monochrome or raw Bayer pixel format.
+    #[error("aravis:{id}: no monochrome or raw Bayer pixel format (Mono8/10/12/16, BayerRG8/GR8/GB8/BG8) available")]
     NoMono {
         /// The camera.
         id: String,
@@ -240,10 +249,20 @@ impl Session {
             Camera::new(Some(id)).map_err(|e| glib_err("cannot open the camera", id, e))?
         };
         let formats: Vec<i64> = camera.dup_available_pixel_formats().unwrap_or_default();
-        let mut candidates = [PixelFormat::MONO_8, PixelFormat::MONO_16, PixelFormat::MONO_12, PixelFormat::MONO_10];
+        // A colour sensor's raw mosaic after the monochrome formats (see `convert::bayer`).
+        let mut candidates = [
+            PixelFormat::MONO_8,
+            PixelFormat::MONO_16,
+            PixelFormat::MONO_12,
+            PixelFormat::MONO_10,
+            PixelFormat::BAYER_RG_8,
+            PixelFormat::BAYER_GR_8,
+            PixelFormat::BAYER_GB_8,
+            PixelFormat::BAYER_BG_8,
+        ];
         if cfg.full_depth {
             // The deepest first: the edge fit reads the full depth.
-            candidates.rotate_left(1);
+            candidates[..4].rotate_left(1);
         }
         let mut chosen = None;
         for f in candidates {
@@ -422,6 +441,8 @@ mod tests {
     fn mono_formats_have_converters() {
         assert_eq!(pixel_layout(PixelFormat::MONO_8), Some(PixelLayout::Gray8));
         assert_eq!(pixel_layout(PixelFormat::MONO_12), Some(PixelLayout::Gray16Le { bits: 12 }));
+        assert_eq!(pixel_layout(PixelFormat::BAYER_RG_8), Some(PixelLayout::Bayer8(BayerPattern::Rggb)));
+        assert_eq!(pixel_layout(PixelFormat::BAYER_BG_8), Some(PixelLayout::Bayer8(BayerPattern::Bggr)));
         assert_eq!(pixel_layout(PixelFormat::RGB_8_PACKED), None);
     }
 }

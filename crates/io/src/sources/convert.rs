@@ -8,6 +8,10 @@
 
 use tagdeflect_core::frame::GrayImage;
 
+pub mod bayer;
+
+pub use bayer::BayerPattern;
+
 /// A raw pixel layout a camera can deliver.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelLayout {
@@ -25,13 +29,17 @@ pub enum PixelLayout {
     Yuyv,
     /// Motion-JPEG: each buffer is one JPEG image, decoded and converted to luma.
     Mjpeg,
+    /// A colour sensor's raw 8-bit mosaic (V4L2 `RGGB`…, GenICam `BayerRG8`…): kept at full
+    /// resolution, each site's gain equalised to a grey scene's ([`bayer`]: no demosaic), kept
+    /// at 12 bits beside an 8-bit plane.
+    Bayer8(BayerPattern),
 }
 
 impl PixelLayout {
     /// Bytes per pixel of an uncompressed layout (`None` for MJPEG).
     pub fn bytes_per_pixel(self) -> Option<usize> {
         match self {
-            PixelLayout::Gray8 => Some(1),
+            PixelLayout::Gray8 | PixelLayout::Bayer8(_) => Some(1),
             PixelLayout::Gray16Le { .. } | PixelLayout::Yuyv => Some(2),
             PixelLayout::Mjpeg => None,
         }
@@ -143,10 +151,13 @@ pub(crate) fn to_gray8_into(
     for (dst, row) in out.data.chunks_exact_mut(w).zip(data.chunks(stride)) {
         let row = &row[..row_bytes];
         match layout {
-            PixelLayout::Gray8 => dst.copy_from_slice(row),
+            PixelLayout::Gray8 | PixelLayout::Bayer8(_) => dst.copy_from_slice(row),
             PixelLayout::Yuyv => dst.iter_mut().zip(row.chunks_exact(2)).for_each(|(d, p)| *d = p[0]),
             PixelLayout::Gray16Le { .. } | PixelLayout::Mjpeg => {}
         }
+    }
+    if let PixelLayout::Bayer8(pattern) = layout {
+        bayer::equalise(out, pattern);
     }
     Ok(())
 }

@@ -1,8 +1,10 @@
 //! V4L2 cameras (`source = "v4l2:/dev/videoN"`) through the `v4l` crate.
 //!
 //! The device is opened, set to the configured size and the first pixel format it offers
-//! among GREY, Y16, Y12, Y10, YUYV and MJPEG (in that order of preference: no decoding
-//! beats decoding; with the camera's `full_depth`, Y16, Y12, Y10 before GREY, kept at full
+//! among GREY, Y16, Y12, Y10, the raw colour mosaics RGGB, GRBG, GBRG, BA81, then YUYV and
+//! MJPEG (in that order of preference: no decoding beats decoding, and a colour sensor's raw
+//! mosaic, its sites' gains equalised, beats the luma of its demosaiced YUYV — see
+//! `convert::bayer`; with the camera's `full_depth`, Y16, Y12, Y10 before GREY, kept at full
 //! depth beside an 8-bit plane), and the configured frame rate when given; frames are streamed from
 //! memory-mapped buffers. Of each buffer only `bytesused` bytes are read, buffers flagged
 //! `V4L2_BUF_FLAG_ERROR` are counted as incomplete and never delivered, and the driver's
@@ -51,13 +53,14 @@ mod ring;
 use ring::{ring_next, RingNext, RingState};
 
 use crate::sources::capture::{CaptureSession, Captured, LiveCamera, LoopTiming, SourceError, SourceEvent};
-use crate::sources::convert::{to_gray8_into, ConvertError, PixelLayout};
+use crate::sources::convert::{to_gray8_into, BayerPattern, ConvertError, PixelLayout};
 use tagdeflect_core::camera_config::CameraConfig;
 use tagdeflect_core::clock::{now_epoch_ns, MonotonicToEpoch};
 use tagdeflect_core::frame::GrayImage;
 
 /// Pixel formats requested from the device, most preferred first.
-pub(crate) const PREFERRED_FOURCCS: [[u8; 4]; 6] = [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"YUYV", *b"MJPG"];
+pub(crate) const PREFERRED_FOURCCS: [[u8; 4]; 10] =
+    [*b"GREY", *b"Y16 ", *b"Y12 ", *b"Y10 ", *b"RGGB", *b"GRBG", *b"GBRG", *b"BA81", *b"YUYV", *b"MJPG"];
 
 /// `V4L2_BUF_FLAG_TIMESTAMP_MASK`.
 pub(crate) const TIMESTAMP_MASK: u32 = 0x0000_e000;
@@ -73,7 +76,7 @@ const DEQUEUE_TIMEOUT: Duration = Duration::from_millis(500);
 
 /// The formats in the order a camera is asked for them: [`PREFERRED_FOURCCS`], or with
 /// `full_depth` the 16-bit grey ones first (`Y16`, `Y12`, `Y10`, then `GREY`, ...).
-pub(crate) fn preference(full_depth: bool) -> [[u8; 4]; 6] {
+pub(crate) fn preference(full_depth: bool) -> [[u8; 4]; 10] {
     let mut order = PREFERRED_FOURCCS;
     if full_depth {
         order[..4].rotate_left(1);
@@ -88,6 +91,10 @@ pub fn fourcc_layout(fourcc: [u8; 4]) -> Option<PixelLayout> {
         b"Y16 " => Some(PixelLayout::Gray16Le { bits: 16 }),
         b"Y12 " => Some(PixelLayout::Gray16Le { bits: 12 }),
         b"Y10 " => Some(PixelLayout::Gray16Le { bits: 10 }),
+        b"RGGB" => Some(PixelLayout::Bayer8(BayerPattern::Rggb)),
+        b"GRBG" => Some(PixelLayout::Bayer8(BayerPattern::Grbg)),
+        b"GBRG" => Some(PixelLayout::Bayer8(BayerPattern::Gbrg)),
+        b"BA81" => Some(PixelLayout::Bayer8(BayerPattern::Bggr)),
         b"YUYV" => Some(PixelLayout::Yuyv),
         b"MJPG" | b"JPEG" => Some(PixelLayout::Mjpeg),
         _ => None,
@@ -231,7 +238,7 @@ pub enum V4l2OpenError {
         source: io::Error,
     },
     /// The device offers none of the formats read.
-    #[error("{path} offers none of GREY, Y16, Y12, Y10, YUYV, MJPG (it offers {offered})")]
+    #[error("{path} offers none of GREY, Y16, Y12, Y10, RGGB, GRBG, GBRG, BA81, YUYV, MJPG (it offers {offered})")]
     NoFormat {
         /// The device.
         path: String,
@@ -447,7 +454,7 @@ mod tests {
     #[test]
     fn full_depth_asks_for_the_deep_formats_first() {
         assert_eq!(preference(false), PREFERRED_FOURCCS);
-        assert_eq!(preference(true), [*b"Y16 ", *b"Y12 ", *b"Y10 ", *b"GREY", *b"YUYV", *b"MJPG"]);
+        assert_eq!(preference(true), [*b"Y16 ", *b"Y12 ", *b"Y10 ", *b"GREY", *b"RGGB", *b"GRBG", *b"GBRG", *b"BA81", *b"YUYV", *b"MJPG"]);
     }
 
     fn test_cfg() -> CameraConfig {

@@ -211,6 +211,9 @@ impl SimParams {
         if self.jpeg_quality.is_some_and(|q| !(1..=100).contains(&q)) {
             return bad("jpeg_quality", format!("{}: expected 1 to 100", self.jpeg_quality.unwrap_or_default()));
         }
+        if self.bayer_raw && (self.bayer || self.bit_depth != 8) {
+            return bad("bayer_raw", "a raw 8-bit mosaic: not with bayer (a demosaiced one) nor a bit_depth above 8".to_string());
+        }
         if !(8..=16).contains(&self.bit_depth) {
             return bad("bit_depth", format!("{} bits: expected 8 to 16", self.bit_depth));
         }

@@ -55,6 +55,7 @@ impl Default for SimParams {
             post_blur_px: 0.0,
             sharpen: 0.0,
             bayer: false,
+            bayer_raw: false,
             defocus_radius_px: 0.0,
             astig_major_px: 0.0,
             astig_minor_px: 0.0,
