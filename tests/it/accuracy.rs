@@ -237,7 +237,7 @@ fn disp_sigma_honest(label: &str, acc: &tagdeflect::accuracy::Accuracy, low: f64
     assert!((0.6..=1.3).contains(&z), "{label}: displacement RMS error/σ {z:.3}");
 }
 
-/// High bit depth end to end (issue 42, item 3): the sharp three-camera scene with little
+/// High bit depth end to end: the sharp three-camera scene with little
 /// noise (σ 0.3 grey levels, where 8-bit rounding, σ 0.29, is as large as the noise) rendered at
 /// 8 and at 12 bits; the 12-bit recording (16-bit PNG frames, sBIT 12) is measured at full
 /// depth. Measured: 0.00236 mm at 8 bits, 0.00238 mm at 12 bits (and 0.00375/0.00376 mm with

@@ -1,4 +1,4 @@
-//! The analog output (`[output.analog]`, issue 46) against real Modbus peers: pymodbus
+//! The analog output (`[output.analog]`) against real Modbus peers: pymodbus
 //! devices with the LabJack T-series map and a generic holding-register module's
 //! (tests/fixtures/analog_device.py), which record every write. Each write's value and
 //! scaling, the clamp, the valid line, hold vs safe, a stall, the stop, a device that
@@ -516,7 +516,7 @@ fn analog_config_errors_name_their_key_and_line() {
     }
 }
 
-/// Item 3 of issue 46: the loop closed in simulation on the *voltage*. The same loop as the
+/// The loop closed in simulation on the *voltage*. The same loop as the
 /// register loop (`control::a_pi_controller_…`: the simulated machine, a C1609-like crack,
 /// the camera lost for 1 s), the PI controller reading the LabJack's DAC0 volts (converted
 /// back with volts_per_mm/offset_v) and its valid line FIO0 instead of the control output's
@@ -590,7 +590,7 @@ fn check_reports_the_analog_device_and_writes_only_when_asked() {
 
 /// Lines that arrive every 20 ms but carry values exposed 1.18 s before (the sinks' thread held
 /// up) never raise the valid line: the analog output ages its value from exposure, as the
-/// control output does (issue 45, item 8); the same values exposed just now raise it.
+/// control output does; the same values exposed just now raise it.
 #[test]
 fn values_exposed_long_before_they_arrive_never_raise_the_valid_line() {
     let dac = Dac::start("labjack", None);

@@ -282,7 +282,7 @@ fn assert_converged(pg: &str, rig: &str, test: &str, feed_path: &Path, logs: imp
     feed.len()
 }
 
-/// The outage of issue 27: a broker *without* persistence stopped for 8 s mid-run and
+/// The outage of a broker *without* persistence stopped for 8 s mid-run and
 /// started again. It forgets the archive's session; after its restart it acknowledges the
 /// rig's backlog and delivers it to nobody if the rig reconnects before the archive has
 /// subscribed again. The archive's acknowledgement makes the rig send those lines again.

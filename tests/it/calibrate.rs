@@ -92,7 +92,7 @@ fn opencv_left_samples_reproduce_opencv() {
 }
 
 /// Why fx with the outlier policy (533.70 ± 0.44) differs from OpenCV's 535.92 by ~5σ on the
-/// 13 left views (issue 45, item 16): each view left out in turn, every point kept (a
+/// 13 left views: each view left out in turn, every point kept (a
 /// jackknife) — the views do not agree on fx to the σ a single fit states, and the one view
 /// that moves it most is named. Figures in docs/calibration.md.
 #[test]
@@ -654,7 +654,7 @@ fn command_line_on_the_left_samples() {
     assert_eq!(o.status.code(), Some(3));
     assert!(stdout.contains("verdict: POOR"));
     assert!(stdout.contains("fx  =") && stdout.contains("(1σ)") && stdout.contains("calibration = \"") && stdout.contains("deflection ±"));
-    // The spread across views beside σ, and the warning that σ understates fx (issue 45, 16).
+    // The spread across views beside σ, and the warning that σ understates fx (16).
     assert!(stdout.contains("across views (each of 13 views") && stdout.contains("WARNING the views disagree on cx"), "{stdout}");
     let k = load_calibration(&out).unwrap();
     assert!((k.fx / 535.9157 - 1.0).abs() < 0.005);

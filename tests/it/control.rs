@@ -1,4 +1,4 @@
-//! A signal the machine can follow (issue 21): the temporal estimate on frame sets that lack
+//! A signal the machine can follow: the temporal estimate on frame sets that lack
 //! cameras, σ of the net deflection on every line, and the control output read by a real
 //! Modbus client (pymodbus) while `demo` runs.
 
@@ -193,7 +193,7 @@ fn partial_sets_are_kept_from_the_state_and_every_net_deflection_has_an_honest_s
     // (measured 88 % live, 96 % smoothed; on the full recording 86 % and 83 %; per set 90 %).
     // Since the learned edge profile (2026-12-06) the errors are smaller and the smoothed σ
     // covers them all (100 % on the full recording): σ widened/narrowed from the fits'
-    // residuals is issue 42's open item 4; the smoothed figure keeps only its lower bound.
+    // residuals is not yet in the printed σ; the smoothed figure keeps only its lower bound.
     assert!((0.85..0.99).contains(&t.within) && (0.85..=1.0).contains(&s.within), "within 2σ: temporal {t}, smoothed {s}");
     assert!(
         (0.80..0.99).contains(&ft.within) && (0.80..=1.0).contains(&fs.within),
@@ -265,7 +265,7 @@ fn partial_sets_of_a_sharp_scene() {
     assert!(t.partial_rms * 5.0 <= p.partial_rms, "partial sets: temporal {t}, per set {p}");
     assert!(t.max <= 0.0032 && s.max <= 0.0032, "no line beyond 8 µm (floor 3.2 µm): temporal {t}, smoothed {s}");
     // Since the learned edge profile (2026-12-06) this scene's errors are smaller and σ covers
-    // 98–100 %: σ from the fits' residuals is issue 42's open item 4; the upper bound is kept
+    // 98–100 %: σ from the fits' residuals is not yet in the printed σ; the upper bound is kept
     // for the live partial sets only.
     let covers = |f: &NetFigures| (0.85..=1.0).contains(&f.within);
     assert!((0.85..0.99).contains(&t.within) && covers(&s) && covers(&ft), "within 2σ: temporal {t}, smoothed {s}, full {ft}");
@@ -662,7 +662,7 @@ fn control_port_from_log(log: &std::path::Path, demo: &mut ChildGuard) -> u16 {
 
 /// Lines that reach the control output on time but carry values exposed long before (the
 /// sinks' thread held up, e.g. by a report made in-process: 1.18 s in the issue) are never
-/// served as valid — the age counts from exposure (issue 45, item 8). Read by pymodbus: the
+/// served as valid — the age counts from exposure. Read by pymodbus: the
 /// values exposed 10 ms before they arrived are valid in most reads, those exposed 1.18 s
 /// before in none.
 #[test]
@@ -723,7 +723,7 @@ fn pymodbus_never_reads_valid_a_value_exposed_long_before_it_arrived() {
 /// byte count 0), sent by 300 clients one after another over real TCP connections: each
 /// gets the exception "illegal data value" and its connection is closed — the frame never
 /// reaches the library's decoder, so there is no panic — the control output serves on, and
-/// the log gets a line per 10 s of them with the count, not 300 (issue 45, item 15). A good
+/// the log gets a line per 10 s of them with the count, not 300. A good
 /// read sent before the bad frame on the same connection is answered first.
 #[test]
 fn a_flood_of_frames_that_panic_the_modbus_decoder_is_refused_before_the_decoder() {
@@ -795,7 +795,7 @@ fn a_flood_of_frames_that_panic_the_modbus_decoder_is_refused_before_the_decoder
 
 /// A test started while the demo's beam moves: its zero is taken over moving sets, and its σ
 /// (added to every later value's) is the noise's, not the motion's — the control registers
-/// stay valid through the test, read by pymodbus (issue 45, item 8: with the zero's σ from
+/// stay valid through the test, read by pymodbus (with the zero's σ from
 /// the plain scatter, `valid` was 0 on 92 of 94 lines).
 #[test]
 fn a_test_zeroed_while_the_beam_moves_keeps_the_control_output_valid() {

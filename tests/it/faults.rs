@@ -336,7 +336,7 @@ fn run_against_a_utm(dir: &std::path::Path, utm: &str, log: &str, seconds: &str)
 /// in 8 s at `TAGDEFLECT_LOG=debug`): the daemon lets it speak at DEBUG only when the filter
 /// names `tokio_modbus`. A reply that panics inside the library is reported as a malformed
 /// reply, once, as a log line — never the default hook's `thread … panicked at …` text on
-/// stderr — and the poller goes on to read the load (issue 24, item 14).
+/// stderr — and the poller goes on to read the load.
 #[test]
 fn modbus_debug_lines_are_demoted_and_a_library_panic_is_a_log_line() {
     let dir = tempfile::tempdir().unwrap();
@@ -478,7 +478,7 @@ pub(crate) fn whole_feed_lines(path: &std::path::Path) -> Vec<FeedLine> {
 }
 
 /// A daemon killed (SIGKILL) in the middle of a lab test with a standard and started again
-/// with the same `--tests` folder resumes the test (issue 24 item 3): the new daemon numbers
+/// with the same `--tests` folder resumes the test: the new daemon numbers
 /// its frame sets from 0 again, its first line carries the `resume` event, and at the stop the
 /// report is made from the whole feed — one test across the restart, the hole a gap in time —
 /// instead of being refused for the seq going back.

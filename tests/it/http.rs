@@ -1000,7 +1000,7 @@ fn the_page_draws_the_load_cmod_curve_of_a_notched_beam() {
     assert_eq!(d.stop(), Some(0));
 }
 
-/// The lab day's third start (issue 44): a start pressed right after a stop — here while that
+/// The lab day's third start: a start pressed right after a stop — here while that
 /// stop's report is held (`TAGDEFLECT_HOLD_REPORT`) and from another client, as after a stop
 /// from the command line, an automatic stop or a client that gave up waiting — waits for that
 /// stop and starts (200) instead of answering 409 ("its folder is being completed"); then
@@ -1098,7 +1098,7 @@ fn stream_closed(s: &mut TcpStream, open_for: Duration) -> bool {
 }
 
 /// A crowd of `/events` streams — as many as the server has connection slots, from eight
-/// addresses — never shuts out the control API (issue 45, item 14): a new connection closes
+/// addresses — never shuts out the control API: a new connection closes
 /// the oldest stream of the address holding the most, so a `mark` and a `stop` are answered
 /// (409: no test runs), `/api/status` too, and the oldest stream's connection is the one closed.
 #[test]
@@ -1126,7 +1126,7 @@ fn a_crowd_of_event_streams_leaves_room_for_the_control_api() {
     assert_eq!(d.stop(), Some(0));
 }
 
-/// One address cannot close everyone else's `/events` streams (issue 45, item 14): it holds at
+/// One address cannot close everyone else's `/events` streams: it holds at
 /// most [`MAX_STREAMS_PER_ADDRESS`](tagdeflect_sinks::http::MAX_STREAMS_PER_ADDRESS) of them,
 /// and each new one beyond that closes its own oldest. Four viewers on other addresses keep
 /// their streams while 127.0.0.1 opens as many streams as the server has connection slots;

@@ -1,4 +1,4 @@
-//! Tracking (the default) and full-frame detection give the same answer (issue 42, item 5):
+//! Tracking (the default) and full-frame detection give the same answer:
 //! the same cameras posed and refused and the same tags solved, set for set, on renders of a
 //! camera turned far and on real photos of a camera that moved; no published position is
 //! off against the truth or the expected answers.

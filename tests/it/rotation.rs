@@ -1,5 +1,5 @@
-//! The run's feed file rotated under a running daemon (issue 45 item 18,
-//! `[output.feed_rotation]`): no line split, lost or repeated across the files, the report and
+//! The run's feed file rotated under a running daemon
+//! (`[output.feed_rotation]`): no line split, lost or repeated across the files, the report and
 //! `report verify` over the rotated set, and a full disk during rotations keeps what was written.
 
 use std::fs;

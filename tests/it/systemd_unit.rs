@@ -117,7 +117,7 @@ fn unit_has_the_directives_the_daemon_relies_on() {
         "KillSignal=SIGTERM",
         "RestartPreventExitStatus=2",
         // The live page's connections (capped) must not starve the recorder of descriptors:
-        // the default 1 024 ran out with 1 100 idle page clients (issue 24, item 5).
+        // the default 1 024 ran out with 1 100 idle page clients.
         "LimitNOFILE=16384",
         "After=network-online.target time-sync.target",
         "ExecStart=/usr/local/bin/tagdeflect run --config /etc/tagdeflect/tagdeflect.toml",

@@ -1,4 +1,4 @@
-//! A lab test's folder against crashes and bad state files (issue 45): nothing lost, nothing
+//! A lab test's folder against crashes and bad state files: nothing lost, nothing
 //! silently wrong.
 
 use std::fs;

@@ -1,4 +1,4 @@
-//! A test's own frames in its folder (`[output] record_tests`, issue 45 item 18): recorded
+//! A test's own frames in its folder (`[output] record_tests`): recorded
 //! from its start to its stop, hashed in `test.json` and checked by `report verify`, and
 //! replayable as a recording.
 

@@ -1,4 +1,4 @@
-//! Region-of-interest tracking (issue 6): tags that are not in view when tracking starts,
+//! Region-of-interest tracking: tags that are not in view when tracking starts,
 //! or that re-appear after an occlusion, are picked up again by the periodic sweep; the
 //! figures are compared with full-frame detection of the same recording.
 
@@ -114,7 +114,7 @@ fn a_lost_tag_is_searched_for_in_the_background_and_replays_the_same() {
 }
 
 // ---------------------------------------------------------------------------------------
-// A camera that moves far (issue 24, item 0): its background tags jump by hundreds of
+// A camera that moves far: its background tags jump by hundreds of
 // pixels, the windows are placed where they were.
 
 use tagdeflect_core::camera::Pose;

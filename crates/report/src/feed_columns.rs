@@ -1,5 +1,5 @@
 //! What a feed read for the report holds of its lines: one column per quantity the report
-//! computes with, never the lines themselves (issue 45 item 3: a 9-hour test at 30 frame sets/s
+//! computes with, never the lines themselves (a 9-hour test at 30 frame sets/s
 //! is 972 000 lines, and its report must fit the unit's `MemoryMax=2G`).
 //!
 //! Held per line: the time, `seq`, the load, the net deflection, the UTM link's state and

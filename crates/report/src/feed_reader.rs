@@ -10,7 +10,7 @@
 //! its own. Every value must be finite and within physical ranges ([`Limits`]): a load of
 //! 3e38 kN is a broken line, not a test.
 //!
-//! One exception, the restart of a daemon in the middle of a lab test (issue 24 item 3): a line
+//! One exception, the restart of a daemon in the middle of a lab test: a line
 //! that carries a [`RESUME_EVENT`] starts a new *segment* of the same run. The resumed daemon
 //! numbers its frame sets from 0 again, so `seq` may go back (or repeat) there; the lines on
 //! both sides are read as one test, since the test's zero was restored and its displacements
@@ -18,7 +18,7 @@
 //! hole is a gap in time as any other (QC's time gaps and validity's `max_gap_s` count it) and
 //! a warning of the feed names the line and the hole. A `seq` going back without a `resume`
 //! event on its line (or with one, after a line of another test) stays an error naming the
-//! line (two runs appended to one feed, issue 24 item 8).
+//! line (two runs appended to one feed).
 
 use std::path::{Path, PathBuf};
 

@@ -53,7 +53,7 @@ fn a_seq_going_back_or_repeating_is_an_error_or_a_new_run() {
     assert_eq!(runs[1].line_numbers, vec![3, 4, 5]);
 }
 
-/// A lab test's feed across a restart of its daemon (issue 24 item 3): seq 75–79, then
+/// A lab test's feed across a restart of its daemon: seq 75–79, then
 /// the resumed daemon's seq 0–9 after a 12 s hole, its first line with the `resume` event.
 fn resumed_test_feed(with_event: bool) -> String {
     const T0: i64 = 1_764_000_000_000_000_000;

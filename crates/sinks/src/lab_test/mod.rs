@@ -28,7 +28,7 @@
 //! its frame sets from 0 again (a feed line's `seq` is the daemon's frame-set count, not the
 //! test's), so the test's `feed.jsonl` has `seq` going back at the line with the `resume`
 //! event: that line starts a new segment of the same test, which the report's feed reader
-//! (`tagdeflect_report`, issue 24 item 3) reads as one test across it, the hole a gap in time;
+//! (`tagdeflect_report`) reads as one test across it, the hole a gap in time;
 //! a `seq` going back on a line without the event stays an error there.
 //!
 //! Tests may also start and stop by themselves, from the load and the standard's end

@@ -5,7 +5,7 @@
 //! line fitted through them*, over √n: a zero taken while the beam moves (a mid-test `zero`,
 //! or a start during loading) counts the motion in its mean, which is the fitted line's value
 //! at the zero's middle set, and not in its σ — the plain scatter about the mean took the
-//! motion for noise and raised σ ~14× (issue 45). From fewer than three sets no trend can
+//! motion for noise and raised σ ~14×. From fewer than three sets no trend can
 //! be told from noise: the plain scatter is kept.
 
 use std::collections::BTreeMap;
