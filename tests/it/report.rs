@@ -864,14 +864,17 @@ fn simulated_notched_test_cmod_and_residual_strengths_match_the_truth() {
         println!("REPORT notched vs the closed-form law {key}: {v:.4} ± {s:.4} MPa (law {t:.4}; error {:+.4})", v - t);
         assert!((v - t).abs() <= 2.0 * s + mpa(0.01 * pc), "{key}: {v} ± {s} vs the law's {t}");
     }
-    // Not σ-scaled alone: F_L's and fR1's errors and σ themselves. Measured 2026-12-07: F_L
-    // 28.60 ± 0.94 kN against the law's 30 (−1.40; an earlier run 29.3, −0.7), fR1 6.2460 ±
-    // 0.0240 MPa against 6.2602 (−0.014; earlier runs −0.033 and −0.060, σ 0.024 and 0.052).
+    // Not σ-scaled alone: F_L's and fR1's errors and σ themselves. Measured 2026-12-07 with
+    // the notch opening elastically before the crack (F_L now on the elastic climb, where the
+    // CMOD crosses 0.05 mm): F_L 12.2 ± 1.6 kN against the law's 12.29 (−0.09; the σ is the
+    // CMOD gauge's, ~0.0065 mm, times the climb's |dF/dCMOD| ≈ 246 kN/mm — before, with the
+    // mouth opening only at the crack, 28.60 ± 0.94 against 30, −1.40), fR1 6.4100 ± 0.0260
+    // MPa against 6.4433 (−0.033; earlier runs −0.014 to −0.060, σ 0.024–0.052).
     // Ceilings: 1.4 × the largest error (F_L 2.0 kN, fR1 0.085 MPa); σ 1.5 × today's (F_L
-    // 1.4 kN, fR1 0.036 MPa — a doubled σ, 1.88 kN or 0.048 MPa, does not pass).
+    // 2.4 kN, fR1 0.036 MPa — a doubled σ, 3.2 kN or 0.048 MPa, does not pass).
     let fr1 = (j["fR1"]["value"].as_f64().unwrap(), j["fR1"]["sigma"].as_f64().unwrap());
     assert!((fl - fl_law).abs() <= 2.0, "F_L {fl} kN vs the law's {fl_law}: more than 2 kN off");
-    assert!(sl <= 1.4, "F_L's σ {sl} kN (measured 0.94)");
+    assert!(sl <= 2.4, "F_L's σ {sl} kN (measured 1.6)");
     assert!((fr1.0 - law[0]).abs() <= 0.085, "fR1 {} MPa vs the law's {}: more than 0.085 MPa off", fr1.0, law[0]);
     assert!(fr1.1 <= 0.036, "fR1's σ {} MPa (measured 0.024)", fr1.1);
 }
