@@ -6,6 +6,7 @@
 pub mod apriltag;
 mod camera_detector;
 mod confirm;
+mod detect_report;
 mod detection;
 mod error;
 mod family;
@@ -15,8 +16,9 @@ mod rect;
 pub mod refine;
 
 pub use self::apriltag::{Detector, DetectorOptions, RawDetection, SearchOptions};
-pub use self::camera_detector::{CameraDetections, CameraDetector, DetectParts, DetectReport, RigDetectors, TagRoles};
+pub use self::camera_detector::{CameraDetections, CameraDetector, RigDetectors, TagRoles};
 pub use self::confirm::{ConfirmMiss, ConfirmOptions, ConfirmedTag, Prediction, TagConfirmer};
+pub use self::detect_report::{DetectParts, DetectReport};
 pub use self::detection::Detection;
 pub use self::error::DetectError;
 pub use self::family::tag_bitmap;
