@@ -54,7 +54,7 @@ use rayon::prelude::*;
 
 use super::apriltag::{Detector, SearchOptions};
 use super::confirm::{ConfirmMiss, ConfirmedTag, Prediction, TagConfirmer};
-use super::detect_report::{DetectParts, DetectReport};
+use super::detect_report::DetectReport;
 use super::learned::{CameraProfile, TagKey};
 use super::plan::{masked_tile, merge_rects, Plan, PlannedTag, RoiPlanner};
 use super::refine::{refine_corners_warm, EdgeMemory};
