@@ -220,13 +220,14 @@ impl Measurement {
         }
         let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
         let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
-        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs);
+        let departure = monocular_departure(&u.centre, sol, partial, used.len());
+        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs) + departure;
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
         // the camera poses' part, never in the filter's weights (`model_drift`).
         let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
-        let absolute = model + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let absolute = model + departure + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
         let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &pose_part, &self.pose_epochs));
         let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
@@ -344,6 +345,31 @@ fn update_filter(
             u
         }
     }
+}
+
+/// What the σ given out adds when one camera saw the tag in a full set: `d dᵀ`, `d` the
+/// filter's position minus this set's own solve (docs/accuracy.md, "One camera: the
+/// filter's departure from the set"). There the σ is the set's own solve's (the floor,
+/// [`sigma_floor`], takes all of it), while the position given out is the filter's. A
+/// monocular depth's errors are correlated from set to set (its corners' phase bias as the
+/// tag moves), which the filter takes for motion and extrapolates: its departure from the
+/// set is then an error of its own that the set's covariance does not hold. Zero for two
+/// cameras or more (the filter's own covariance, which averages, is taken there) and for a
+/// partial set (its floor is what it measured with). `TAGDEFLECT_MONOCULAR_DEPARTURE=off`
+/// leaves it out (a measurement).
+fn monocular_departure(centre: &Vector3<f64>, sol: &TagSolution, partial: bool, cameras_used: usize) -> Matrix3<f64> {
+    if partial || cameras_used != 1 || departure_left_out() {
+        return Matrix3::zeros();
+    }
+    let d = centre - sol.centre_mm;
+    d * d.transpose()
+}
+
+/// Whether [`monocular_departure`] is left out: `TAGDEFLECT_MONOCULAR_DEPARTURE=off` (read
+/// once per process).
+fn departure_left_out() -> bool {
+    static OFF: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *OFF.get_or_init(|| std::env::var("TAGDEFLECT_MONOCULAR_DEPARTURE").is_ok_and(|v| v == "off"))
 }
 
 /// The floor of the σ given out: a share of one full set's pixel-noise variance
