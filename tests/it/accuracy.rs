@@ -106,9 +106,9 @@ fn one_camera_1920x1080() {
 
     // σ: 94.8 % within 2σ, RMS error/σ 0.996; the displacement's σ 95.1 %, 0.946 (class
     // profiles, the default; one pooled profile: 95.2 %, 0.94 and 95.1 %, 0.88). Seen by one
-    // camera, the filter's departure from the set's own solve is in σ (docs/accuracy.md, "One
-    // camera: the filter's departure from the set"); without it (`TAGDEFLECT_MONOCULAR_DEPARTURE=off`)
-    // 92.2 %, RMS error/σ 1.318: fails the band's 1.3.
+    // camera, the filter's departure from the set's own solve is in σ (docs/accuracy.md,
+    // "Class profiles the default, and one camera's σ"); without it
+    // (`TAGDEFLECT_MONOCULAR_DEPARTURE=off`) 92.2 %, RMS error/σ 1.318: fails the band's 1.3.
     sigma_honest("1 camera", &acc);
     assert!(lines.iter().all(|l| l.tags.iter().all(|t| t.views == 1)));
 }

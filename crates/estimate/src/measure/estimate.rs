@@ -348,8 +348,8 @@ fn update_filter(
 }
 
 /// What the σ given out adds when one camera saw the tag in a full set: `d dᵀ`, `d` the
-/// filter's position minus this set's own solve (docs/accuracy.md, "One camera: the
-/// filter's departure from the set"). There the σ is the set's own solve's (the floor,
+/// filter's position minus this set's own solve (docs/accuracy.md, "Class profiles the
+/// default, and one camera's σ"). There the σ is the set's own solve's (the floor,
 /// [`sigma_floor`], takes all of it), while the position given out is the filter's. A
 /// monocular depth's errors are correlated from set to set (its corners' phase bias as the
 /// tag moves), which the filter takes for motion and extrapolates: its departure from the
