@@ -220,7 +220,7 @@ impl Measurement {
         }
         let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
         let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
-        let departure = monocular_departure(&u.centre, sol, partial, used.len());
+        let departure = monocular_departure(&u.centre, &sol.centre_mm, partial, used.len());
         let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs) + departure;
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
         // the camera poses' part, never in the filter's weights (`model_drift`).
@@ -357,11 +357,11 @@ fn update_filter(
 /// cameras or more (the filter's own covariance, which averages, is taken there) and for a
 /// partial set (its floor is what it measured with). `TAGDEFLECT_MONOCULAR_DEPARTURE=off`
 /// leaves it out (a measurement).
-fn monocular_departure(centre: &Vector3<f64>, sol: &TagSolution, partial: bool, cameras_used: usize) -> Matrix3<f64> {
+fn monocular_departure(centre: &Vector3<f64>, set_centre: &Vector3<f64>, partial: bool, cameras_used: usize) -> Matrix3<f64> {
     if partial || cameras_used != 1 || departure_left_out() {
         return Matrix3::zeros();
     }
-    let d = centre - sol.centre_mm;
+    let d = centre - set_centre;
     d * d.transpose()
 }
 
@@ -385,4 +385,22 @@ fn sigma_floor(history: &TagHistory, referred: Option<&Referred>, sol: &TagSolut
     }
     let share = if cameras_used > 1 { FULL_SET_FLOOR_SHARE } else { 1.0 };
     history.full_noise.unwrap_or(noise_cov(sol)) * share
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_cameras_sigma_holds_the_filters_departure_from_the_set_and_nothing_else_does() {
+        let (filtered, set) = (Vector3::new(1.0, -0.3, 0.2), Vector3::new(1.0, 0.1, 0.2));
+        // One camera, a full set: d dᵀ, d = filtered − set (here 0.4 mm along −y).
+        let dep = monocular_departure(&filtered, &set, false, 1);
+        assert!((dep[(1, 1)] - 0.16).abs() < 1e-12 && dep[(0, 0)] == 0.0 && dep[(2, 2)] == 0.0, "{dep}");
+        // Two cameras or more (the filter's own covariance), or a partial set: nothing.
+        assert_eq!(monocular_departure(&filtered, &set, false, 2), Matrix3::zeros());
+        assert_eq!(monocular_departure(&filtered, &set, true, 1), Matrix3::zeros());
+        // The filter on the set's own solve: nothing either.
+        assert_eq!(monocular_departure(&set, &set, false, 1), Matrix3::zeros());
+    }
 }
