@@ -104,12 +104,12 @@ fn one_camera_1920x1080() {
     assert!(acc.disp_rms_mm <= 0.29, "displacement RMS {}", acc.disp_rms_mm); // measured 0.2043 (0.2467 with the optics blurring after the pixels)
     assert!(acc.vertical_rms_mm <= 0.088, "vertical RMS {}", acc.vertical_rms_mm); // 0.0627 (0.0712)
 
-    // σ: 87.8 % within 2σ, RMS error/σ 1.19 (97.8 % and 0.67 while the simulated optics
-    // blurred after the pixels integrated, whose phase error inflated the pooled pixel noise).
-    // One camera's tag positions carry its held pose's turn at their lever arm, and a turn's
-    // variance is what an independent-corner covariance makes too small (see the gauges'
-    // `ROTATION_VARIANCE_FACTOR`): the lower bound here is 85 %, not 90 %.
-    sigma_honest_within("1 camera", &acc, 0.85, DISP_HIGH); // displacement's σ: 92.6 %, 1.20
+    // σ: 94.8 % within 2σ, RMS error/σ 0.996; the displacement's σ 95.1 %, 0.946 (class
+    // profiles, the default; one pooled profile: 95.2 %, 0.94 and 95.1 %, 0.88). Seen by one
+    // camera, the filter's departure from the set's own solve is in σ (docs/accuracy.md,
+    // "Class profiles the default, and one camera's σ"); without it
+    // (`TAGDEFLECT_MONOCULAR_DEPARTURE=off`) 92.2 %, RMS error/σ 1.318: fails the band's 1.3.
+    sigma_honest("1 camera", &acc);
     assert!(lines.iter().all(|l| l.tags.iter().all(|t| t.views == 1)));
 }
 

@@ -60,21 +60,22 @@ pub enum ClassUse {
 /// Each pixel class's [`ClassUse`] (index: the class, see [`CLASSES`]).
 pub type ClassChoice = [ClassUse; CLASSES];
 
-/// How pixels are classed: 0 (the default) one pooled profile, 1 by edge orientation, 2 by
-/// orientation and mosaic parity (both: every class with samples enough uses its own
-/// profile), 3 by orientation and parity, each orientation's classes using the profile that
+/// How pixels are classed: 0 one pooled profile, 1 by edge orientation, 2 by orientation
+/// and mosaic parity (both: every class with samples enough uses its own profile), 3 (the
+/// default) by orientation and parity, each orientation's classes using the profile that
 /// predicts held-out edges better beyond chance (the module docs). Measured on the
-/// formations' scenes (docs/accuracy.md, "A stricter class decision"): 3 is not the default
-/// because a class that predicts the edges' pixels better can still cost a one-camera
-/// scene's depth. `TAGDEFLECT_PROFILE_CLASSES` (`auto`, `orientation`, `parity`; unset or
-/// `off`: one pooled profile) chooses a mode for a measurement.
+/// formations' scenes (docs/accuracy.md, "A stricter class decision" and "Class profiles
+/// the default"): 3 is no worse than one pooled profile on any of them and much better where
+/// the spread depends on the edge's orientation or mosaic site. `TAGDEFLECT_PROFILE_CLASSES`
+/// (`off`: one pooled profile; `orientation`, `parity`; unset or `auto`: the default)
+/// chooses a mode for a measurement.
 pub(super) fn class_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_PROFILE_CLASSES").as_deref() {
-        Ok("auto") => 3,
+        Ok("off") => 0,
         Ok("orientation") => 1,
         Ok("parity") => 2,
-        _ => 0,
+        _ => 3,
     })
 }
 

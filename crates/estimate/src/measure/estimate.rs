@@ -220,13 +220,14 @@ impl Measurement {
         }
         let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
         let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
-        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs);
+        let departure = monocular_departure(&u.centre, &sol.centre_mm, partial, used.len());
+        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs) + departure;
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
         // the camera poses' part, never in the filter's weights (`model_drift`).
         let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
-        let absolute = model + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let absolute = model + departure + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
         let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &pose_part, &self.pose_epochs));
         let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
@@ -346,6 +347,31 @@ fn update_filter(
     }
 }
 
+/// What the σ given out adds when one camera saw the tag in a full set: `d dᵀ`, `d` the
+/// filter's position minus this set's own solve (docs/accuracy.md, "Class profiles the
+/// default, and one camera's σ"). There the σ is the set's own solve's (the floor,
+/// [`sigma_floor`], takes all of it), while the position given out is the filter's. A
+/// monocular depth's errors are correlated from set to set (its corners' phase bias as the
+/// tag moves), which the filter takes for motion and extrapolates: its departure from the
+/// set is then an error of its own that the set's covariance does not hold. Zero for two
+/// cameras or more (the filter's own covariance, which averages, is taken there) and for a
+/// partial set (its floor is what it measured with). `TAGDEFLECT_MONOCULAR_DEPARTURE=off`
+/// leaves it out (a measurement).
+fn monocular_departure(centre: &Vector3<f64>, set_centre: &Vector3<f64>, partial: bool, cameras_used: usize) -> Matrix3<f64> {
+    if partial || cameras_used != 1 || departure_left_out() {
+        return Matrix3::zeros();
+    }
+    let d = centre - set_centre;
+    d * d.transpose()
+}
+
+/// Whether [`monocular_departure`] is left out: `TAGDEFLECT_MONOCULAR_DEPARTURE=off` (read
+/// once per process).
+fn departure_left_out() -> bool {
+    static OFF: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *OFF.get_or_init(|| std::env::var("TAGDEFLECT_MONOCULAR_DEPARTURE").is_ok_and(|v| v == "off"))
+}
+
 /// The floor of the σ given out: a share of one full set's pixel-noise variance
 /// ([`FULL_SET_FLOOR_SHARE`]; all of it when one camera saw the tag). The errors of
 /// consecutive sets are partly correlated (the same held poses, a corner bias that changes
@@ -359,4 +385,22 @@ fn sigma_floor(history: &TagHistory, referred: Option<&Referred>, sol: &TagSolut
     }
     let share = if cameras_used > 1 { FULL_SET_FLOOR_SHARE } else { 1.0 };
     history.full_noise.unwrap_or(noise_cov(sol)) * share
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_cameras_sigma_holds_the_filters_departure_from_the_set_and_nothing_else_does() {
+        let (filtered, set) = (Vector3::new(1.0, -0.3, 0.2), Vector3::new(1.0, 0.1, 0.2));
+        // One camera, a full set: d dᵀ, d = filtered − set (here 0.4 mm along −y).
+        let dep = monocular_departure(&filtered, &set, false, 1);
+        assert!((dep[(1, 1)] - 0.16).abs() < 1e-12 && dep[(0, 0)] == 0.0 && dep[(2, 2)] == 0.0, "{dep}");
+        // Two cameras or more (the filter's own covariance), or a partial set: nothing.
+        assert_eq!(monocular_departure(&filtered, &set, false, 2), Matrix3::zeros());
+        assert_eq!(monocular_departure(&filtered, &set, true, 1), Matrix3::zeros());
+        // The filter on the set's own solve: nothing either.
+        assert_eq!(monocular_departure(&set, &set, false, 1), Matrix3::zeros());
+    }
 }
