@@ -35,6 +35,7 @@ mod realdata;
 mod realtime_utm;
 mod recording;
 mod report;
+mod report_fl;
 mod report_folder;
 mod report_lab;
 mod robustness;

@@ -7,6 +7,7 @@
 
 use crate::config::BeamConfig;
 use crate::curve::Curve;
+pub(crate) use crate::lop::{limit_of_proportionality, LopError};
 use crate::quantity::Quantity;
 use crate::report::Entry;
 
@@ -14,32 +15,6 @@ use crate::report::Entry;
 pub(crate) const LOP_CMOD_MM: f64 = 0.05;
 /// CMOD of the residual strengths fR1..fR4, mm.
 pub(crate) const CMOD_J_MM: [f64; 4] = [0.5, 1.5, 2.5, 3.5];
-
-/// The largest load while the smoothed CMOD is within `0..=limit` (up to where it first
-/// passes `limit`, including the interpolated point there), with its σ and its index
-/// (`None` for the interpolated end point).
-pub(crate) fn max_load_within(curve: &Curve, limit: f64) -> Option<(f64, f64, Option<usize>)> {
-    let end = curve.crossing(limit);
-    let upto = match end {
-        Some((i, _)) => i,
-        None => curve.len(),
-    };
-    let mut best: Option<(f64, f64, Option<usize>)> = None;
-    for j in 0..upto {
-        if curve.xs[j] <= limit && best.is_none_or(|b| curve.load[j] > b.0) {
-            let s = (curve.load_sigma.powi(2) + curve.peak_sampling_sigma(j).powi(2)).sqrt();
-            best = Some((curve.load[j], s, Some(j)));
-        }
-    }
-    if end.is_some() {
-        if let Some((p, s, _)) = curve.load_at(limit) {
-            if best.is_none_or(|b| p > b.0) {
-                best = Some((p, s, None));
-            }
-        }
-    }
-    best
-}
 
 /// The EN 14651 quantities: F_L, f_L, fR1..fR4.
 pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
@@ -53,17 +28,19 @@ pub fn compute(curve: &Curve, beam: &BeamConfig) -> Vec<Entry> {
         Quantity::new(f, (stress(s).powi(2) + f * f * geo_rel2).sqrt(), "MPa")
     };
     let mut out = Vec::new();
-    let fl = max_load_within(curve, LOP_CMOD_MM)
-        .map(|(p, s, _)| Quantity::new(p, s, "kN"))
-        .ok_or_else(|| "no point with CMOD in 0 to 0.05 mm".to_string());
+    let fl = limit_of_proportionality(curve, LOP_CMOD_MM)
+        .map(|l| Quantity::new(l.load_kn, l.sigma_kn, "kN"))
+        .map_err(|e| e.message().to_string());
     out.push(Entry {
         key: "FL",
         symbol: "F_L",
         name: "load at the limit of proportionality",
         result: fl.clone(),
-        method: "largest load while the smoothed CMOD is within 0 to 0.05 mm (the interpolated load at 0.05 mm included); σ = σ of one \
-                 load reading and of the sampling of a peak (r/√3, r the rise into it over one sampling period), or, when the largest \
-                 is the one interpolated at 0.05 mm, the σ of that interpolation"
+        method: "largest load up to the time the CMOD passes 0.05 mm (the load interpolated there included); that time from the \
+                 CMOD's readings where they are within 2σ of 0.05 mm (between two neighbours, or a line fitted over time across \
+                 more), with its σ; σ of F_L = half the change of that largest load over ±1σ of the time, with the σ of one load \
+                 reading and of the sampling of a peak (r/√3); undetermined when the gauge cannot tell where the CMOD passes \
+                 0.05 mm (docs/report.md, \"F_L where the gauge can tell it\")"
             .into(),
         clause: "EN 14651 §9.1 (limit of proportionality, F_L)",
     });

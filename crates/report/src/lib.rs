@@ -30,6 +30,7 @@ mod feed_reader;
 pub mod feed_summary;
 mod html;
 mod load_spikes;
+mod lop;
 pub mod method_statement;
 mod output;
 mod plot_points;

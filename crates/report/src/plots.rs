@@ -131,9 +131,8 @@ fn decor(report: &Report) -> Decor {
         }
         Standard::En14651 => {
             verticals.push((en14651::LOP_CMOD_MM, "0.05".into()));
-            if let Some((p, _, j)) = en14651::max_load_within(c, en14651::LOP_CMOD_MM) {
-                let x = j.map_or(en14651::LOP_CMOD_MM, |j| c.xs[j]);
-                marks.push(Mark { x, load: p, label: "FL".into() });
+            if let Ok(l) = en14651::limit_of_proportionality(c, en14651::LOP_CMOD_MM) {
+                marks.push(Mark { x: l.cmod_mm, load: l.load_kn, label: "FL".into() });
             }
             for (j, &cmod) in en14651::CMOD_J_MM.iter().enumerate() {
                 verticals.push((cmod, format!("CMOD{}", j + 1)));

@@ -6,7 +6,9 @@
 //! * ASTM C1609 / C1856: a first peak (a maximum the load falls from) before L/150 — or, when
 //!   the lab states a hardening response (`[report] response = "hardening"`), anywhere (the
 //!   first zero slope of a deflection-hardening curve can lie beyond L/150; said in
-//!   `validity_unchecked`); the net deflection carried to L/150. EN 14651: F_L determined; the CMOD carried to 3.5 mm.
+//!   `validity_unchecked`); the net deflection carried to L/150. EN 14651: a load measured
+//!   with the CMOD in 0–0.05 mm (F_L undetermined by a gauge too noisy to tell where the CMOD
+//!   passes 0.05 mm is unchecked, not a reason); the CMOD carried to 3.5 mm.
 //! * Loading monotonic: the smoothed deflection (CMOD) never goes back by more than 5 σ.
 //! * The rate of deflection (CMOD) within the standard's window, per phase (least-squares
 //!   slope over the phase). C1609: up to L/900 0.025–0.075 mm/min (depth ≤ 125 mm) or
@@ -190,11 +192,14 @@ pub(crate) fn check(i: &Input) -> Validity {
             )),
             Some(_) => {}
         },
-        Standard::En14651 => {
-            if en14651::max_load_within(lc, en14651::LOP_CMOD_MM).is_none() {
-                reasons.push("No load was measured with the CMOD between 0 and 0.05 mm: F_L cannot be determined.".into());
+        Standard::En14651 => match en14651::limit_of_proportionality(lc, en14651::LOP_CMOD_MM) {
+            Err(en14651::LopError::NotMeasured(why)) => {
+                reasons.push(format!("No load was measured with the CMOD between 0 and 0.05 mm ({why}): F_L cannot be determined."))
             }
-        }
+            Err(en14651::LopError::Unresolved(why)) => unchecked
+                .push(format!("F_L could not be determined: {why}. A CMOD gauge of finer resolution (a clip gauge) is needed for it.")),
+            Ok(_) => {}
+        },
     }
 
     // Monotonic loading.
