@@ -33,8 +33,10 @@
 //!   longer counts (the wait falls back to the base) and learns again when it sends. A camera
 //!   steadily later than the bound is logged (warn) and its frames are dropped as late.
 //!
-//! The learned wait is logged (info) when it moves by more than the margin. Recordings (read
-//! in time order, never polled) learn nothing and read the clock once per set, not per frame.
+//! The learned wait is logged (info) when it moves by more than the margin (at most once a
+//! minute; every live feed line carries each camera's delay as `cameras[].arrival_delay_ms`).
+//! Recordings (read in time order, never polled) learn nothing and read the clock once per
+//! set, not per frame.
 
 use serde::{Deserialize, Serialize};
 use std::time::Duration;

@@ -103,15 +103,20 @@ pub struct ArrivalDelays {
     rule: WaitRule,
     names: Vec<String>,
     cameras: Vec<CameraDelays>,
-    /// The learned wait last logged, ns past a set's time.
+    /// The learned wait last logged, ns past a set's time (the base wait at first).
     logged_wait_ns: i64,
+    /// When it was logged (process clock ns).
+    logged_at_ns: Option<i64>,
 }
+
+/// The learned wait is logged at most this often (its latest value is in every feed line).
+const LOG_EVERY_NS: i64 = 60_000_000_000;
 
 impl ArrivalDelays {
     /// Nothing learned yet, for cameras named `names` (in `[[cameras]]` order).
     pub fn new(names: Vec<String>, rule: WaitRule) -> Self {
         let cameras = names.iter().map(|_| CameraDelays::default()).collect();
-        Self { rule, names, cameras, logged_wait_ns: 0 }
+        Self { rule, names, cameras, logged_wait_ns: rule.base_ns, logged_at_ns: None }
     }
 
     /// The rule in use.
@@ -160,14 +165,16 @@ impl ArrivalDelays {
             .max_by_key(|&(_, w)| w)
     }
 
-    /// Logs the learned wait when it moved by more than the margin, and a camera whose
-    /// frames arrive later than the bound (once, until it comes back under it).
+    /// Logs the learned wait when it moved by more than the margin (at most once a minute),
+    /// and a camera whose frames arrive later than the bound (once, until it comes back under
+    /// three quarters of it).
     fn log_changes(&mut self, camera: usize, now_ns: i64) {
         let ms = |ns: i64| ns as f64 / 1e6;
         let (max_ns, margin_ns) = (self.rule.max_ns, self.rule.margin_ns);
-        let wait_ns = self.slowest(now_ns).map_or(0, |(_, w)| w.clamp(0, max_ns));
-        if (wait_ns - self.logged_wait_ns).abs() > margin_ns {
-            self.logged_wait_ns = wait_ns;
+        let wait_ns = self.slowest(now_ns).map_or(self.rule.base_ns, |(_, w)| w.clamp(self.rule.base_ns, max_ns.max(self.rule.base_ns)));
+        let quiet = self.logged_at_ns.is_some_and(|t| now_ns.saturating_sub(t) < LOG_EVERY_NS);
+        if (wait_ns - self.logged_wait_ns).abs() > margin_ns && !quiet {
+            (self.logged_wait_ns, self.logged_at_ns) = (wait_ns, Some(now_ns));
             match self.slowest(now_ns) {
                 Some((c, _)) if wait_ns > self.rule.base_ns => tracing::info!(
                     camera = %self.names[c],
@@ -184,6 +191,7 @@ impl ArrivalDelays {
         let steady = self.steady_delay_ns(camera, now_ns);
         let c = &mut self.cameras[camera];
         let beyond = steady.is_some_and(|d| d.saturating_add(margin_ns) > max_ns);
+        let back_under = steady.is_none_or(|d| d.saturating_add(margin_ns) < max_ns / 4 * 3);
         if beyond && !c.beyond_bound {
             tracing::warn!(
                 camera = %self.names[camera],
@@ -195,6 +203,6 @@ impl ArrivalDelays {
                 ms(max_ns)
             );
         }
-        c.beyond_bound = beyond;
+        c.beyond_bound = beyond || (c.beyond_bound && !back_under);
     }
 }
