@@ -31,7 +31,8 @@
 //! - **bound**: never more than the larger of 1 s and three base waits after the set opened,
 //!   so a dead camera never stalls the feed; a camera that sent nothing for twice the bound no
 //!   longer counts (the wait falls back to the base) and learns again when it sends. A camera
-//!   steadily later than the bound is logged (warn) and its frames are dropped as late.
+//!   steadily later than the bound is logged (warn) and not waited for: its frames are
+//!   dropped as late.
 //!
 //! The learned wait is logged (info) when it moves by more than the margin (at most once a
 //! minute; every live feed line carries each camera's delay as `cameras[].arrival_delay_ms`).

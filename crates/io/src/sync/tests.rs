@@ -275,10 +275,12 @@ fn a_dead_camera_stalls_no_set_beyond_the_bound() {
 }
 
 #[test]
-fn a_camera_later_than_the_bound_is_not_waited_for_beyond_it() {
+fn a_camera_later_than_the_bound_is_not_waited_for() {
+    // Camera 1 steadily 3 s late (the bound is 1 s): its frames miss their sets whatever the
+    // wait, so sets wait only the base, not the bound.
     let arrivals = timeline(2, 200, |c, k| Some(if c == 1 { 3_000 * MS_NS + jitter_ns(c, k, 5) } else { 2 * MS_NS }));
     let mut a = live(2);
     let sets = play(&mut a, &arrivals, |_, _| {});
-    assert!(sets.iter().all(|s| s.at_ns - s.opened_ns <= 1_000 * MS_NS + TICK_NS));
+    assert!(sets.iter().all(|s| s.at_ns - s.opened_ns <= 50 * MS_NS + TICK_NS));
     assert!(a.late_by_camera()[1] > 150, "camera 1's frames are late: {:?}", a.late_by_camera());
 }

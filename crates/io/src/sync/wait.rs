@@ -141,7 +141,8 @@ impl ArrivalDelays {
     /// When a set anchored at `anchor_ns` and opened at `opened_ns` is closed without its
     /// `missing` cameras: after `base_ns` from its opening, and after each counted missing
     /// camera's steady delay plus the margin past its anchor (and tolerance), at most the
-    /// bound (or `base_ns`, if longer) after its opening.
+    /// bound (or `base_ns`, if longer) after its opening. A camera steadily later than the
+    /// bound is not waited for (its frames would miss the set all the same).
     pub fn deadline_ns(
         &self,
         anchor_ns: i64,
@@ -154,14 +155,16 @@ impl ArrivalDelays {
         let base = opened_ns.saturating_add(base_ns);
         let cap = opened_ns.saturating_add(base_ns.max(self.rule.max_ns));
         let past_anchor = anchor_ns.saturating_add(tolerance_ns).saturating_add(self.rule.margin_ns);
-        let learned = missing.filter_map(|c| self.steady_delay_ns(c, now_ns)).map(|d| past_anchor.saturating_add(d)).max();
+        let within = |d: &i64| d.saturating_add(self.rule.margin_ns) <= self.rule.max_ns;
+        let learned = missing.filter_map(|c| self.steady_delay_ns(c, now_ns)).filter(within).map(|d| past_anchor.saturating_add(d)).max();
         learned.map_or(base, |l| l.max(base).min(cap))
     }
 
-    /// The slowest counted camera and its steady delay plus the margin, ns.
+    /// The slowest counted camera within the bound and its steady delay plus the margin, ns.
     fn slowest(&self, now_ns: i64) -> Option<(usize, i64)> {
         (0..self.cameras.len())
             .filter_map(|c| self.steady_delay_ns(c, now_ns).map(|d| (c, d.saturating_add(self.rule.margin_ns))))
+            .filter(|&(_, w)| w <= self.rule.max_ns)
             .max_by_key(|&(_, w)| w)
     }
 
@@ -197,7 +200,7 @@ impl ArrivalDelays {
                 camera = %self.names[camera],
                 delay_ms = ms(steady.unwrap_or(0)),
                 bound_ms = ms(max_ns),
-                "camera {}'s frames arrive {:.0} ms after their time, beyond the {:.0} ms a frame set waits: most of them are dropped as late",
+                "camera {}'s frames arrive {:.0} ms after their time, beyond the {:.0} ms a frame set may wait: sets do not wait for it and most of its frames are dropped as late",
                 self.names[camera],
                 ms(steady.unwrap_or(0)),
                 ms(max_ns)
