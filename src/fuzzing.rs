@@ -232,7 +232,7 @@ pub fn modbus_peer(data: &[u8]) {
 /// Frame-set assembly and the UTM history with arbitrary times (overflow checks on):
 /// sets come out strictly in time order, each holding at most one frame per camera.
 pub fn assembly(data: &[u8]) {
-    use tagdeflect_io::sync::FrameSetAssembler;
+    use tagdeflect_io::sync::{FrameSetAssembler, WaitRule};
     if data.len() < 2 {
         return;
     }
@@ -240,17 +240,34 @@ pub fn assembly(data: &[u8]) {
     let tolerance_ms = [0.001, 1.0, 10.0, 10_000.0][data[1] as usize % 4];
     let mut a = FrameSetAssembler::with_open_sets(cameras, tolerance_ms, 1 + data[1] as usize % 3);
     let img = std::sync::Arc::new(GrayImage::new(1, 1));
+    // A live assembler given the same frames at arbitrary arrival times and polls.
+    let rule = WaitRule::for_fps([None, Some(1.0), Some(30.0), Some(f64::MAX)][data[0] as usize / 3 % 4]);
+    let mut live = FrameSetAssembler::live((0..cameras).map(|c| c.to_string()).collect(), tolerance_ms, rule);
+    let mut live_sets = Vec::new();
     let mut sets = Vec::new();
     let mut hist = UtmHistory::with_window(i64_at(data, 2).unsigned_abs() as i64).with_max_gap(i64_at(data, 10).max(0));
     for (k, chunk) in data[2..].chunks(9).enumerate() {
         let t = i64_at(chunk, 0);
         let camera = *chunk.get(8).unwrap_or(&0) as usize % cameras;
         sets.extend(a.push(Frame { camera, seq: k as u64, t_ns: t, image: img.clone() }));
+        let arrival_ns = i64_at(chunk, 3);
+        live_sets.extend(live.push_at(Frame { camera, seq: k as u64, t_ns: t, image: img.clone() }, arrival_ns));
+        live_sets.extend(live.poll_at(arrival_ns.wrapping_add(i64_at(chunk, 5)), rule.base()));
         hist.push(UtmSample { t_ns: t, load_kn: (k as f64).sin(), stroke_mm: (k % 2 == 0).then_some(1.0) });
         let _ = hist.interpolate(t.wrapping_add(k as i64));
         let _ = hist.interpolate(i64_at(chunk, 1));
     }
     sets.extend(a.flush());
+    live_sets.extend(live.flush());
+    for w in live_sets.windows(2) {
+        assert!(w[0].t_ns < w[1].t_ns, "live frame sets out of time order");
+    }
+    for s in &live_sets {
+        let mut cams: Vec<usize> = s.frames.iter().map(|f| f.camera).collect();
+        cams.sort_unstable();
+        cams.dedup();
+        assert_eq!(cams.len(), s.frames.len(), "two frames of one camera in a live set");
+    }
     for w in sets.windows(2) {
         assert!(w[0].t_ns < w[1].t_ns, "frame sets out of time order");
     }

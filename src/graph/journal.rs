@@ -115,17 +115,26 @@ impl JournalSummary {
 
 /// Frames dropped per camera in a live run, shared by the assembler (which sees the
 /// sources' drop reports and its own late frames) and the solver (which puts the totals in
-/// every feed line as `cameras[].dropped_frames`).
+/// every feed line as `cameras[].dropped_frames`, with the learned `arrival_delay_ms`).
 #[derive(Debug)]
 pub struct FrameDrops {
     source: Vec<std::sync::atomic::AtomicU64>,
     late: Vec<std::sync::atomic::AtomicU64>,
+    /// Each camera's learned arrival delay, µs ([`NO_DELAY`]: none).
+    delay_us: Vec<std::sync::atomic::AtomicI64>,
 }
+
+/// No learned arrival delay.
+const NO_DELAY: i64 = i64::MIN;
 
 impl FrameDrops {
     /// Counters for `cameras` cameras.
     pub fn new(cameras: usize) -> Self {
-        Self { source: (0..cameras).map(|_| Default::default()).collect(), late: (0..cameras).map(|_| Default::default()).collect() }
+        Self {
+            source: (0..cameras).map(|_| Default::default()).collect(),
+            late: (0..cameras).map(|_| Default::default()).collect(),
+            delay_us: (0..cameras).map(|_| std::sync::atomic::AtomicI64::new(NO_DELAY)).collect(),
+        }
     }
 
     /// A source reported `count` frames of `camera` dropped (queue full, incomplete buffer).
@@ -142,6 +151,14 @@ impl FrameDrops {
         }
     }
 
+    /// The assembler's learned arrival delays at `now_ns` (a live run).
+    pub fn set_delays(&self, delays: &tagdeflect_io::sync::ArrivalDelays, now_ns: i64) {
+        for (c, slot) in self.delay_us.iter().enumerate() {
+            let us = delays.steady_delay_ns(c, now_ns).map_or(NO_DELAY, |d| d / 1_000);
+            slot.store(us, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+
     /// Frames of `camera` dropped so far.
     pub fn total(&self, camera: usize) -> u64 {
         let get = |v: &[std::sync::atomic::AtomicU64]| v.get(camera).map_or(0, |c| c.load(std::sync::atomic::Ordering::Relaxed));
@@ -152,6 +169,8 @@ impl FrameDrops {
     pub fn apply(&self, line: &mut FeedLine) {
         for (i, c) in line.cameras.iter_mut().enumerate() {
             c.dropped_frames = Some(self.total(i));
+            let us = self.delay_us.get(i).map_or(NO_DELAY, |d| d.load(std::sync::atomic::Ordering::Relaxed));
+            c.arrival_delay_ms = (us != NO_DELAY).then_some(us as f64 / 1e3);
         }
     }
 }

@@ -39,7 +39,7 @@ use tagdeflect_core::feed_file::FeedWriter;
 use tagdeflect_core::BadInput;
 use tagdeflect_estimate::measure::Measurement;
 use tagdeflect_io::sources::{OpenPolicy, SourceEvent};
-use tagdeflect_io::sync::FrameSetAssembler;
+use tagdeflect_io::sync::{FrameSetAssembler, WaitRule};
 use tagdeflect_io::utm::modbus::UtmEvent;
 use tagdeflect_io::utm::relay::relay;
 use tagdeflect_sinks::{Fanout, Overflow};
@@ -286,10 +286,16 @@ impl Running {
                 Some(std::thread::Builder::new().name("solver".into()).spawn(move || solver_loop(config, measure, io))?)
             }
         };
-        // A live run's frames of different cameras may arrive out of order by a frame or two;
-        // a recording read in time order closes each set as the next one starts.
-        let open_sets = if kind.lossless { 1 } else { 3 };
-        let assembler = FrameSetAssembler::with_open_sets(config.cameras.len(), config.sync.tolerance_ms, open_sets);
+        // A recording read in time order closes each set as the next one starts; a live run's
+        // frames of different cameras may arrive out of order, so its assembler keeps several
+        // sets open, learns each camera's arrival delay and waits for a steadily late camera.
+        let assembler = if kind.replaying {
+            let open_sets = if kind.lossless { 1 } else { 3 };
+            FrameSetAssembler::with_open_sets(config.cameras.len(), config.sync.tolerance_ms, open_sets)
+        } else {
+            let names = config.cameras.iter().map(|c| c.name.clone()).collect();
+            FrameSetAssembler::live(names, config.sync.tolerance_ms, wait_rule(config))
+        };
         let rec_tx = outputs.recorder.as_ref().map(|r| r.sender());
         Ok(Running { queue, heartbeat, frame_drops, solver, forwarder, fanout: Some(fanout), outputs, assembler, rec_tx, _utm: guard })
     }
@@ -306,9 +312,9 @@ impl Running {
         stop_signals: &mut StopSignals,
     ) -> u64 {
         let mut watchdog = Watchdog::new(self.heartbeat.clone(), opts.record_only);
-        // A set waits for its missing cameras at most a frame period (and at least 50 ms).
-        let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
-        let set_wait = Duration::from_secs_f64(if max_fps > 0.0 { (1.0 / max_fps).max(0.05) } else { 0.1 });
+        // A set waits for its missing cameras a frame period (at least 50 ms), or longer for a
+        // camera whose frames steadily arrive later (learned by the assembler, bounded).
+        let set_wait = wait_rule(config).base();
         let mut tick = tokio::time::interval(Duration::from_millis(((config.sync.tolerance_ms as u64) / 2).max(5)));
         // An absurd duration (from the library API) means no deadline rather than a panic.
         let deadline =
@@ -330,6 +336,9 @@ impl Running {
                     if !kind.replaying {
                         for set in self.assembler.poll(set_wait) {
                             self.queue.push(set);
+                        }
+                        if let Some(d) = self.assembler.arrival_delays() {
+                            self.frame_drops.set_delays(d, tagdeflect_core::clock::now_epoch_ns());
                         }
                     }
                     watchdog.tick();
@@ -370,6 +379,12 @@ impl Running {
         }
         0
     }
+}
+
+/// The set wait's rule, from the fastest camera's rate (see `tagdeflect_io::sync`).
+fn wait_rule(config: &Config) -> WaitRule {
+    let max_fps = config.cameras.iter().filter_map(|c| c.fps).fold(0.0f64, f64::max);
+    WaitRule::for_fps((max_fps > 0.0).then_some(max_fps))
 }
 
 /// The systemd watchdog, pinged at a third of its interval (at most once a second) while the

@@ -26,6 +26,7 @@ mod gauges;
 mod http;
 mod lab_day;
 mod lab_method;
+mod late_camera;
 mod live;
 mod modes;
 mod mqtt_rotation;

@@ -83,6 +83,11 @@ pub struct CameraHealth {
     /// buffers, arrived too late for their frame set).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dropped_frames: Option<u64>,
+    /// How late this camera's frames steadily arrive in a live run (arrival on the process
+    /// clock minus `t_ns`, the 90th percentile of its last 32 frames), ms: what a frame set
+    /// learns to wait for it. Absent while learned and once the camera has gone silent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arrival_delay_ms: Option<f64>,
 }
 
 /// One line of the feed.

@@ -15,20 +15,48 @@
 //! `t_ns` order, SPEC).
 //!
 //! Live capture closes a set that waited too long for its missing cameras with
-//! [`FrameSetAssembler::poll`], measured from when the set was opened on the wall clock —
-//! not from the frames' timestamps, because transfer latency varies between cameras.
+//! [`FrameSetAssembler::poll`] (or [`FrameSetAssembler::poll_at`], the time given), counted on
+//! the process clock from when the set opened (its first frame arrived). The wait
+//! ([`WaitRule`], from the fastest camera's rate):
+//!
+//! - **base**: a frame period of the fastest camera, at least 50 ms;
+//! - **learned**: a live assembler ([`FrameSetAssembler::live`]) learns each camera's arrival
+//!   delay — arrival on the process clock minus the frame's `t_ns` — as the 90th percentile of
+//!   its last [`DELAY_WINDOW`] frames (counted once it has [`MIN_DELAYS`]). A set missing a
+//!   camera waits until its anchor + the tolerance + that camera's delay + a margin of a quarter
+//!   base wait, if that is later than the base wait. A camera whose frames steadily arrive late
+//!   (a slow pipeline, a busy PC) is so waited for, whatever the phase between the cameras; a
+//!   few slow frames (up to 4 of the last 32) do not move the estimate, and more raise it only
+//!   while they are in the window;
+//! - **bound**: never more than the larger of 1 s and three base waits after the set opened,
+//!   so a dead camera never stalls the feed; a camera that sent nothing for twice the bound no
+//!   longer counts (the wait falls back to the base) and learns again when it sends. A camera
+//!   steadily later than the bound is logged (warn) and not waited for: its frames are
+//!   dropped as late.
+//!
+//! The learned wait is logged (info) when it moves by more than the margin (at most once a
+//! minute; every live feed line carries each camera's delay as `cameras[].arrival_delay_ms`).
+//! Recordings (read in time order, never polled) learn nothing and read the clock once per
+//! set, not per frame.
 
 use serde::{Deserialize, Serialize};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use tagdeflect_core::clock;
 use tagdeflect_core::frame::{Frame, FrameSet};
+
+#[cfg(test)]
+mod tests;
+mod wait;
+
+pub use wait::{ArrivalDelays, WaitRule, DELAY_WINDOW, MIN_DELAYS, MIN_MAX_WAIT};
 
 /// A frame set still waiting for cameras.
 #[derive(Debug)]
 struct OpenSet {
     frames: Vec<Frame>,
-    opened_at: Instant,
+    /// When its first frame arrived, process clock ns.
+    opened_ns: i64,
 }
 
 impl OpenSet {
@@ -51,6 +79,8 @@ pub struct FrameSetAssembler {
     late_frames: u64,
     /// Late frames per camera.
     late_by_camera: Vec<u64>,
+    /// Live capture: the cameras' learned arrival delays (`None`: a recording).
+    delays: Option<ArrivalDelays>,
 }
 
 impl FrameSetAssembler {
@@ -72,7 +102,22 @@ impl FrameSetAssembler {
             next_seq: 0,
             late_frames: 0,
             late_by_camera: vec![0; cameras],
+            delays: None,
         }
+    }
+
+    /// A live assembler for the cameras named `names` (in `[[cameras]]` order): it learns
+    /// each camera's arrival delay and waits for a steadily late camera (module doc), with
+    /// as many open sets as the rule's bound needs.
+    pub fn live(names: Vec<String>, tolerance_ms: f64, rule: WaitRule) -> Self {
+        let mut a = Self::with_open_sets(names.len(), tolerance_ms, rule.open_sets().max(3));
+        a.delays = Some(ArrivalDelays::new(names, rule));
+        a
+    }
+
+    /// The cameras' learned arrival delays (a live assembler).
+    pub fn arrival_delays(&self) -> Option<&ArrivalDelays> {
+        self.delays.as_ref()
     }
 
     /// Frames dropped because their set had already been closed.
@@ -92,12 +137,26 @@ impl FrameSetAssembler {
         }
     }
 
-    /// Adds a frame; returns the sets it completes, in time order.
+    /// Adds a frame that arrived now; returns the sets it completes, in time order. The clock
+    /// is read for every frame only by a live assembler (or when debug logging is on).
     pub fn push(&mut self, frame: Frame) -> Vec<FrameSet> {
+        let arrival = (self.delays.is_some() || tracing::enabled!(tracing::Level::DEBUG)).then(clock::now_epoch_ns);
+        self.push_arrived(frame, arrival)
+    }
+
+    /// Adds a frame that arrived at `arrival_ns` (process clock); returns the sets it completes.
+    pub fn push_at(&mut self, frame: Frame, arrival_ns: i64) -> Vec<FrameSet> {
+        self.push_arrived(frame, Some(arrival_ns))
+    }
+
+    fn push_arrived(&mut self, frame: Frame, arrival: Option<i64>) -> Vec<FrameSet> {
         let mut done = Vec::new();
+        if let (Some(d), Some(at)) = (&mut self.delays, arrival) {
+            d.record(frame.camera, frame.t_ns, at);
+        }
         // How old the frame is when it reaches the assembler (capture and transfer latency):
         // with TAGDEFLECT_LOG=tagdeflect_io::sync=trace, per frame; late frames at debug.
-        let age_ms = (clock::now_epoch_ns() as i128 - frame.t_ns as i128) as f64 / 1e6;
+        let age_ms = arrival.map_or(f64::NAN, |a| (a as i128 - frame.t_ns as i128) as f64 / 1e6);
         tracing::trace!(camera = frame.camera, t_ns = frame.t_ns, age_ms, open = self.open.len(), "frame in");
         if let Some(c) = self.closed_until.filter(|&c| frame.t_ns <= c) {
             let behind_ms = (c as i128 - frame.t_ns as i128) as f64 / 1e6;
@@ -122,7 +181,8 @@ impl FrameSetAssembler {
                     return done;
                 }
                 let i = self.open.partition_point(|s| s.anchor() <= frame.t_ns);
-                self.open.insert(i, OpenSet { frames: vec![frame], opened_at: Instant::now() });
+                let opened_ns = arrival.unwrap_or_else(clock::now_epoch_ns);
+                self.open.insert(i, OpenSet { frames: vec![frame], opened_ns });
                 i
             }
         };
@@ -136,14 +196,27 @@ impl FrameSetAssembler {
         done
     }
 
-    /// Closes the sets that have waited longer than `wait` (wall clock) for their missing
-    /// cameras, with every older set (live capture: a camera whose frame never comes must
-    /// not hold the others back).
+    /// Closes the sets that have waited long enough for their missing cameras — `wait` (the
+    /// base wait) from their opening, or a live assembler's learned wait (module doc) — with
+    /// every older set (a camera whose frame never comes must not hold the others back).
     pub fn poll(&mut self, wait: Duration) -> Vec<FrameSet> {
-        match self.open.iter().rposition(|s| s.opened_at.elapsed() > wait) {
+        self.poll_at(clock::now_epoch_ns(), wait)
+    }
+
+    /// [`Self::poll`] at `now_ns` (process clock).
+    pub fn poll_at(&mut self, now_ns: i64, wait: Duration) -> Vec<FrameSet> {
+        let base_ns = i64::try_from(wait.as_nanos()).unwrap_or(i64::MAX);
+        match self.open.iter().rposition(|s| now_ns > self.deadline_ns(s, base_ns, now_ns)) {
             Some(i) => self.close_through(i),
             None => Vec::new(),
         }
+    }
+
+    /// When `set` is closed without its missing cameras, process clock ns.
+    fn deadline_ns(&self, set: &OpenSet, base_ns: i64, now_ns: i64) -> i64 {
+        let Some(d) = &self.delays else { return set.opened_ns.saturating_add(base_ns) };
+        let missing = (0..self.cameras).filter(|&c| !set.frames.iter().any(|f| f.camera == c));
+        d.deadline_ns(set.anchor(), set.opened_ns, base_ns, self.tolerance_ns, missing, now_ns)
     }
 
     /// Closes every open set (end of a recording or shutdown).
@@ -202,125 +275,6 @@ impl FrameSetAssembler {
             self.count_late(c);
         }
         out
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use std::sync::Arc;
-    use tagdeflect_core::frame::GrayImage;
-
-    fn f(camera: usize, t_ms: i64) -> Frame {
-        Frame { camera, seq: 0, t_ns: 1_700_000_000_000_000_000 + t_ms * 1_000_000, image: Arc::new(GrayImage::new(1, 1)) }
-    }
-
-    fn run(frames: Vec<Frame>) -> Vec<Vec<usize>> {
-        let mut a = FrameSetAssembler::new(3, 10.0);
-        let mut out: Vec<FrameSet> = frames.into_iter().flat_map(|fr| a.push(fr)).collect();
-        out.extend(a.flush());
-        out.iter().map(|s| s.frames.iter().map(|f| f.camera).collect()).collect()
-    }
-
-    #[test]
-    fn groups_within_tolerance_and_closes_when_complete() {
-        let sets = run(vec![f(0, 0), f(1, 3), f(2, 5), f(0, 100), f(1, 104), f(2, 98)]);
-        assert_eq!(sets, vec![vec![0, 1, 2], vec![0, 1, 2]]);
-    }
-
-    #[test]
-    fn dropped_frame_makes_a_smaller_set_never_two_of_one_camera() {
-        // camera 2 dropped its first frame; camera 0 comes twice close together.
-        let sets = run(vec![f(0, 0), f(1, 2), f(0, 100), f(1, 101), f(2, 102), f(0, 200), f(0, 205)]);
-        assert_eq!(sets, vec![vec![0, 1], vec![0, 1, 2], vec![0], vec![0]]);
-    }
-
-    #[test]
-    fn far_apart_frames_form_separate_sets_and_late_frames_are_counted() {
-        let mut a = FrameSetAssembler::new(2, 10.0);
-        assert!(a.push(f(0, 0)).is_empty());
-        let s = a.push(f(1, 50));
-        assert_eq!(s.len(), 1);
-        assert_eq!(s[0].frames.len(), 1);
-        assert!(a.push(f(0, 20)).is_empty()); // older than the open set's anchor - tolerance
-        assert!(a.push(f(1, 0)).is_empty()); // not newer than the closed first set
-        assert_eq!(a.late_frames(), 2);
-        let set = a.flush().pop().unwrap();
-        assert_eq!(set.seq, 1);
-        assert_eq!(set.t_ns, f(1, 50).t_ns);
-    }
-
-    #[test]
-    fn poll_closes_a_stale_set_and_mean_time_is_used() {
-        let mut a = FrameSetAssembler::new(3, 10.0);
-        a.push(f(0, 0));
-        a.push(f(1, 4));
-        assert!(a.poll(std::time::Duration::from_secs(60)).is_empty());
-        std::thread::sleep(std::time::Duration::from_millis(5));
-        let set = a.poll(std::time::Duration::from_millis(1)).pop().unwrap();
-        assert_eq!(set.t_ns, f(0, 2).t_ns);
-        // A late frame of camera 2 does not start an earlier set.
-        assert!(a.push(f(2, 3)).is_empty());
-        assert_eq!(a.late_frames(), 1);
-        // A frame just after the closed set's newest frame starts the next set.
-        assert!(a.push(f(2, 5)).is_empty());
-        assert_eq!(a.flush().pop().unwrap().frames.len(), 1);
-    }
-
-    #[test]
-    fn live_assembler_lets_a_lagging_camera_join_its_set() {
-        let mut a = FrameSetAssembler::with_open_sets(3, 10.0, 3);
-        let mut sets = Vec::new();
-        // Camera 2 lags by more than a frame period behind cameras 0 and 1.
-        for (c, t) in [(0, 0), (1, 1), (0, 100), (1, 101), (2, 2), (0, 200), (2, 99), (1, 199), (2, 201)] {
-            sets.extend(a.push(f(c, t)));
-        }
-        let cams: Vec<Vec<usize>> = sets.iter().map(|s| s.frames.iter().map(|f| f.camera).collect()).collect();
-        assert_eq!(cams, vec![vec![0, 1, 2], vec![0, 1, 2], vec![0, 1, 2]]);
-        assert_eq!(a.late_frames(), 0);
-    }
-
-    #[test]
-    fn frame_set_times_never_go_back() {
-        let mut a = FrameSetAssembler::new(3, 10.0);
-        let mut times = Vec::new();
-        // Cameras arrive out of order and late, some sets closed early.
-        for (i, (c, t)) in [(0, 0), (2, 8), (1, 30), (0, 35), (2, 9), (1, 2), (2, 40), (0, 70), (1, 69), (2, 75)].into_iter().enumerate() {
-            for s in a.push(f(c, t)) {
-                times.push(s.t_ns);
-            }
-            if i == 3 {
-                times.extend(a.flush().iter().map(|s| s.t_ns));
-            }
-        }
-        times.extend(a.flush().iter().map(|s| s.t_ns));
-        assert!(times.windows(2).all(|w| w[1] > w[0]), "{times:?}");
-    }
-
-    #[test]
-    fn frames_far_older_than_the_last_set_never_make_a_set_out_of_order() {
-        // Times that jump back by 5 s (a device clock's glitch): late frames, never a set
-        // older than one already closed (the process clock itself never goes back).
-        let mut a = FrameSetAssembler::with_open_sets(2, 10.0, 3);
-        let mut sets = Vec::new();
-        for t in [0, 33, 66, 100, 133 - 5000, 166 - 5000, 200, 233] {
-            sets.extend(a.push(f(0, t)));
-            sets.extend(a.push(f(1, t + 1)));
-        }
-        sets.extend(a.flush());
-        assert!(sets.windows(2).all(|w| w[1].t_ns > w[0].t_ns));
-        assert_eq!(sets.len(), 6);
-        assert_eq!(a.late_frames(), 4);
-    }
-
-    #[test]
-    fn extreme_times_do_not_overflow() {
-        let mut a = FrameSetAssembler::with_open_sets(2, 10.0, 3);
-        for t in [i64::MAX, i64::MIN, 0, i64::MAX - 1, i64::MIN + 1] {
-            let fr = Frame { camera: 0, seq: 0, t_ns: t, image: Arc::new(GrayImage::new(1, 1)) };
-            let _ = a.push(fr);
-        }
-        let _ = a.flush();
     }
 }
 
