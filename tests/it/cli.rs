@@ -249,8 +249,7 @@ fn check_refuses_a_calibration_of_another_size_and_exits_3_on_a_poor_pose_fit() 
     // Intrinsics a little less wrong: the camera poses, every tag within the 3 px a pose must
     // fit each tag to, but 2.1 px RMS over them (the band between the 2 px RMS warning and the
     // 3 px fit is narrow on this rig: fx +8 % and k1 -0.3 give 1.6 px, fx +11 % and k1 -0.5 no
-    // pose). Without the warning
-    // `check` printed the RMS and exited 0.
+    // pose). Without the warning `check` printed the RMS and exited 0.
     let mut cfg = tagdeflect::config::Config::from_toml_str(&good, &cfg_path).unwrap();
     cfg.cameras[0].fx *= 1.105;
     cfg.cameras[0].dist = [-0.4, 0.0, 0.0, 0.0, 0.0];
