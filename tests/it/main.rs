@@ -46,6 +46,7 @@ mod solve;
 mod systemd_unit;
 mod test_folder;
 mod test_frames;
+mod token_file;
 mod tracking;
 mod utm_modbus;
 mod v4l2_convert;

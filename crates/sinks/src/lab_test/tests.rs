@@ -289,9 +289,11 @@ fn a_tests_feed_holds_its_own_lines_and_events_and_a_resume_says_the_real_gap() 
     };
     let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
     tests.start(TestMeta { specimen: "A1".into(), ..TestMeta::default() }).unwrap();
-    // A line exposed before the start (solved late) is no line of the test.
+    // A line exposed 120 ms before the start (solved late) is no line of the test. (Counted
+    // from the start's own time: from the clock after `start` returned, a start slowed by a
+    // busy disk made it a line after the start.)
     let mut early = line(0, 5.0, 0.5);
-    early.t_ns = tagdeflect_core::clock::now_epoch_ns() - 120_000_000;
+    early.t_ns = tests.status()["started_t_ns"].as_i64().unwrap() - 120_000_000;
     tests.apply(&mut early);
     tests.on_line(&early);
     assert!(early.test.is_none() && early.events.is_empty());
@@ -302,19 +304,22 @@ fn a_tests_feed_holds_its_own_lines_and_events_and_a_resume_says_the_real_gap() 
     }
     let (first, _) = stop_fed(&tests, 7);
     tests.start(TestMeta { specimen: "A2".into(), ..TestMeta::default() }).unwrap();
+    // The second test's lines a second apart (k in ns: 1000 s to 1005 s after the base), so
+    // a gap counted from another line than the last written differs in its printed tenth.
+    const S: i64 = 1_000_000_000;
     for k in 1000..1006 {
-        let mut l = line(k, 5.0, 0.5);
+        let mut l = line(k * S, 5.0, 0.5);
         tests.apply(&mut l);
         tests.on_line(&l);
     }
     drop(tests);
-    // The daemon died; the state was kept at the start, five lines before the last.
+    // The daemon died; the state was kept when the zero formed, a line before the last.
     let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
     assert_eq!(tests.status()["lines"], 6, "counted from the file");
-    let mut l = line(3000, 5.0, 0.5);
+    let mut l = line(3000 * S, 5.0, 0.5);
     tests.apply(&mut l);
     tests.on_line(&l);
-    let (second, _) = stop_fed(&tests, 3001);
+    let (second, _) = stop_fed(&tests, 3000 * S + 1);
     let a = read(&first.folder);
     assert_eq!(a.len(), 7, "six lines and the stop's");
     assert!(a.iter().all(|l| l["t_ns"].as_i64().unwrap() >= t(1)));
@@ -325,9 +330,58 @@ fn a_tests_feed_holds_its_own_lines_and_events_and_a_resume_says_the_real_gap() 
     assert_eq!(b.iter().filter(|l| kinds(l).contains(&"stop".to_string())).count(), 1);
     assert_eq!(kinds(b.last().unwrap()), ["stop"]);
     let resume = b.iter().find(|l| kinds(l) == ["resume"]).unwrap();
-    let gap_s = (t(3000) - t(1005)) as f64 * 1e-9;
+    let gap_s = (t(3000 * S) - t(1005 * S)) as f64 * 1e-9;
+    assert!((gap_s - 1995.0).abs() < 1e-6);
     assert!(resume["events"][0]["note"].as_str().unwrap().ends_with(&format!("(no lines for {gap_s:.1} s)")), "{resume}");
     let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(second.folder.join("test.json")).unwrap()).unwrap();
     assert_eq!(record.lines as usize, b.len());
     assert_eq!(record.events.iter().find(|e| e.kind == "resume").unwrap().note, resume["events"][0]["note"].as_str().map(String::from));
+}
+
+/// A mid-test `zero` re-zeroes the lines after it: the beam deflected by 1 mm (net 1 mm) from
+/// the start's zero, then `zero`; the next five sets form the new zero (flagged `zeroing`) and
+/// the set after them, 0.1 mm further, reads 0.1 mm from the new zero — not 1.1 mm from the
+/// start's, as a `zero` that only logged its event would leave it.
+#[test]
+fn a_mid_test_zero_counts_the_lines_after_it_from_the_new_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests = LabTests::new(dir.path(), String::new(), Vec::new(), None).unwrap();
+    tests.start(TestMeta { specimen: "Z1".into(), ..TestMeta::default() }).unwrap();
+    let mut fed = Vec::new();
+    let mut feed = |k: i64, z: f64, net: f64| {
+        let mut l = line(k, z, net);
+        tests.apply(&mut l);
+        tests.on_line(&l);
+        fed.push(l);
+    };
+    for k in 0..ZERO_SETS as i64 {
+        feed(k, 5.0, 0.5);
+    }
+    // Deflected: 1 mm down, the net deflection 1 mm.
+    for k in 5..8 {
+        feed(k, 4.0, -0.5);
+    }
+    tests.zero().unwrap();
+    for k in 8..8 + ZERO_SETS as i64 {
+        feed(k, 4.0, -0.5);
+    }
+    feed(20, 3.9, -0.6);
+    let disp = |l: &FeedLine| (l.tags[0].disp_mm[2], l.net_deflection_mm.unwrap());
+    let before = disp(&fed[7]);
+    assert!((before.0 + 1.0).abs() < 1e-9 && (before.1 + 1.0).abs() < 1e-9, "before the zero, from the start's: {before:?}");
+    let after = disp(fed.last().unwrap());
+    assert!(
+        (after.0 + 0.1).abs() < 1e-9 && (after.1 + 0.1).abs() < 1e-9,
+        "after the zero, from the new zero: {after:?} (a zero that only logged: -1.1 mm)"
+    );
+    // The zero's own sets read ~0 and are flagged; the zero's event is on the first of them.
+    assert_eq!(fed[8].events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["zero"]);
+    for l in &fed[8..8 + ZERO_SETS] {
+        assert!(l.test.as_ref().unwrap().zeroing, "the new zero's sets flagged");
+        assert!(disp(l).0.abs() < 1e-9 && disp(l).1.abs() < 1e-9, "{:?}", disp(l));
+    }
+    assert!(!fed[7].test.as_ref().unwrap().zeroing && !fed.last().unwrap().test.as_ref().unwrap().zeroing);
+    let (stopped, _) = stop_fed(&tests, 21);
+    let record: TestRecord = serde_json::from_str(&std::fs::read_to_string(stopped.folder.join("test.json")).unwrap()).unwrap();
+    assert_eq!(record.events.iter().map(|e| e.kind.as_str()).collect::<Vec<_>>(), vec!["start", "zero", "stop"]);
 }
