@@ -2,11 +2,12 @@
 //! three-camera 1280x960 scene of `accuracy::three_cameras_1280x960_moderate_noise` (noise
 //! σ 2, tags ~28 px, 16 frame sets, seed 11) with no blur, then with one formation each.
 //! The table is a measurement, not a pass/fail: it is printed by
-//! `cargo test --test it formations:: -- --ignored --nocapture` (12 scenes, several minutes).
+//! `cargo test --test it formations:: -- --ignored --nocapture` (13 scenes, several minutes).
 //! The formations cheap enough to assert run in `accuracy::` with floors.
 //! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
 //! only those besides the sharp scene; `TAGDEFLECT_FORMATIONS_SEED=12` renders them with another
-//! seed (the seed-to-seed spread).
+//! seed (the seed-to-seed spread); `TAGDEFLECT_FORMATIONS_NOISE=0` with no read noise (the
+//! bias alone).
 
 use crate::common::*;
 use tagdeflect_sim::SimParams;
@@ -18,11 +19,24 @@ pub fn sharp_scene() -> SimParams {
         width: 1280,
         height: 960,
         frame_sets: 16,
-        noise_sigma: 2.0,
+        noise_sigma: scene_noise(),
         blur_sigma: 0.0,
         seed: scene_seed(),
+        subsamples: scene_subsamples(),
         ..SimParams::default()
     }
+}
+
+/// The scenes' read noise: σ 2 grey levels, or `TAGDEFLECT_FORMATIONS_NOISE` (0: what is
+/// left is bias, and the 8-bit rounding).
+fn scene_noise() -> f64 {
+    std::env::var("TAGDEFLECT_FORMATIONS_NOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(2.0)
+}
+
+/// Sub-samples per pixel axis where a pixel straddles an edge: the renderer's 8, or
+/// `TAGDEFLECT_FORMATIONS_SUBSAMPLES` (its integration error against the fit's).
+fn scene_subsamples() -> u32 {
+    std::env::var("TAGDEFLECT_FORMATIONS_SUBSAMPLES").ok().and_then(|v| v.parse().ok()).unwrap_or(8)
 }
 
 /// The scenes' seed: 11, or `TAGDEFLECT_FORMATIONS_SEED` (the seed-to-seed spread).
@@ -38,6 +52,7 @@ pub fn formation_scenes() -> Vec<(&'static str, &'static str, SimParams)> {
         ("Gaussian 0.7 px before the pixel (optics)", "--blur-sigma 0.7", SimParams { blur_sigma: 0.7, ..s() }),
         ("Gaussian 0.7 px after the pixel", "--post-blur-px 0.7", SimParams { post_blur_px: 0.7, ..s() }),
         ("3×3 sharpening, amount 1", "--sharpen 1", SimParams { sharpen: 1.0, ..s() }),
+        ("3×3 sharpening, amount 0.5", "--sharpen 0.5", SimParams { sharpen: 0.5, ..s() }),
         ("Bayer RGGB, bilinear demosaic", "--bayer", SimParams { bayer: true, ..s() }),
         ("Bayer RGGB raw mosaic, converted by the product", "--bayer-raw", SimParams { bayer_raw: true, ..s() }),
         ("defocus disk r = 1.5 px", "--defocus-radius-px 1.5", SimParams { defocus_radius_px: 1.5, ..s() }),
