@@ -15,6 +15,17 @@ use tagdeflect::graph::in_process::{self as replay, ReplayOptions, ReplaySummary
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_sim::SimParams;
 
+/// The demo's own config written into `dir` (`demo.toml`) with its feed into a file there
+/// (`feed.jsonl`): the paths of both.
+pub fn demo_config_with_feed(dir: &Path) -> (PathBuf, PathBuf) {
+    let mut config = tagdeflect::config::Config::demo();
+    let feed = dir.join("feed.jsonl");
+    config.output.feed = Some(feed.display().to_string());
+    let cfg = dir.join("demo.toml");
+    fs::write(&cfg, config.to_toml_string()).unwrap();
+    (cfg, feed)
+}
+
 /// The project's root folder.
 pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -55,11 +55,7 @@ fn a_live_feed_carries_each_cameras_learned_arrival_delay() {
     // rendered: every frame arrives after its time, so each camera's learned delay is
     // positive, and shorter than the run.
     let dir = tempfile::tempdir().unwrap();
-    let mut config = tagdeflect::config::Config::demo();
-    let feed = dir.path().join("feed.jsonl");
-    config.output.feed = Some(feed.display().to_string());
-    let cfg = dir.path().join("demo.toml");
-    fs::write(&cfg, config.to_toml_string()).unwrap();
+    let (cfg, feed) = common::demo_config_with_feed(dir.path());
     let started = Instant::now();
     let d = Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--no-http"], dir.path());
     let deadline = started + Duration::from_secs(180);

@@ -217,11 +217,7 @@ fn demo_gives_a_clean_feed_with_load_from_the_simulated_modbus_utm() {
     // The demo's own config, its feed into a file; stopped by SIGTERM once 10 lines are there
     // (however slow the machine), then the whole feed is checked.
     let dir = tempfile::tempdir().unwrap();
-    let mut config = tagdeflect::config::Config::demo();
-    let feed = dir.path().join("feed.jsonl");
-    config.output.feed = Some(feed.display().to_string());
-    let cfg = dir.path().join("demo.toml");
-    fs::write(&cfg, config.to_toml_string()).unwrap();
+    let (cfg, feed) = common::demo_config_with_feed(dir.path());
     let d = Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--no-http"]);
     let deadline = Instant::now() + Duration::from_secs(120);
     while fs::read_to_string(&feed).map_or(0, |t| t.lines().count()) < 10 {
