@@ -44,6 +44,7 @@ mod rotation;
 mod simulate;
 mod solve;
 mod systemd_unit;
+mod temporal_lag;
 mod test_folder;
 mod test_frames;
 mod token_file;

@@ -636,6 +636,51 @@ mod tests {
         assert!(ramp > 0.7, "on the ramp {ramp}");
     }
 
+    /// Lag of the estimate behind a tag that rests for 12 s and then moves at 0.5 mm/s
+    /// (a sudden ramp from rest), `fps` sets/s, white noise of `noise_mm` per set while the
+    /// solve states `stated_mm` (1 σ, each axis): the largest error from the second set of the
+    /// ramp through 3 s of it over `seeds` noise draws, mm.
+    fn lag_after_two_sets(fps: f64, noise_mm: f64, stated_mm: f64, seeds: u64) -> f64 {
+        let dt_ns = (1e9 / fps).round() as i64;
+        let start = (12.0 * fps).round() as i64;
+        let rate_mm_s = 0.5;
+        let mut worst = 0.0f64;
+        for seed in 0..seeds {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(100 + seed);
+            let n = Normal::new(0.0, noise_mm).unwrap();
+            let truth = |k: i64| if k <= start { 0.0 } else { (k - start) as f64 * dt_ns as f64 * 1e-9 * rate_mm_s };
+            let mut f = TagFilter::new(TemporalConfig::default(), 0, Vector3::zeros(), &iso(stated_mm));
+            for k in 1..start + (3.0 * fps) as i64 {
+                let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), truth(k) + n.sample(&mut rng));
+                let u = f.update(k * dt_ns, z, &iso(stated_mm), &iso(stated_mm * 3.0), false);
+                if k >= start + 2 {
+                    worst = worst.max((u.centre.z - truth(k)).abs());
+                }
+            }
+        }
+        worst
+    }
+
+    /// A ramp from rest at 0.5 mm/s is followed from its second set on, at 5 and at 30 sets/s,
+    /// whatever the solve states of its noise. On a rendered scene the solve's pixel-noise σ
+    /// (from the corner residuals, most of which are the same from set to set) states ~95 µm
+    /// for a tag whose set-to-set noise is ~5 µm (the EN day's recording, docs/report.md): the
+    /// innovations of a ramp then look like noise, and the estimate fell behind by hundreds of
+    /// µm. Bound: 5 σ of the set-to-set noise (25 µm) after the ramp's second set.
+    #[test]
+    #[ignore = "fails on today's estimator (docs/report.md, the EN day's clock offset): with the stated noise 19x the set-to-set noise the lag grows to hundreds of µm"]
+    fn a_ramp_from_rest_is_followed_from_its_second_set() {
+        let lags: Vec<(f64, f64, f64)> =
+            [5.0, 30.0].map(|fps| (fps, lag_after_two_sets(fps, 0.005, 0.005, 10), lag_after_two_sets(fps, 0.005, 0.095, 10))).into();
+        for (fps, honest, overstated) in &lags {
+            println!("ramp from rest at 0.5 mm/s, {fps} sets/s: worst lag from the second set {:.1} µm (noise stated as it is), {:.1} µm (stated 19x)", honest * 1e3, overstated * 1e3);
+        }
+        for (fps, honest, overstated) in lags {
+            assert!(honest <= 0.025, "{fps} sets/s, noise stated as it is: lag {honest} mm");
+            assert!(overstated <= 0.025, "{fps} sets/s, noise stated 19x: lag {overstated} mm");
+        }
+    }
+
     #[test]
     fn a_partial_set_moves_the_state_only_where_it_observes() {
         let mut f = TagFilter::new(TemporalConfig::default(), 0, Vector3::zeros(), &iso(0.002));
