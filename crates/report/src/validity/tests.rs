@@ -342,3 +342,20 @@ fn a_rate_the_gauges_noise_cannot_tell_from_its_window_is_unchecked_not_a_reason
     let said = v.unchecked.iter().find(|u| u.contains("could not be told from its window")).unwrap_or_else(|| panic!("{:?}", v.unchecked));
     assert!(said.contains("0.030 ±") && said.contains("0.04 to 0.06 mm/min") && said.contains("σ 0.100 mm a point"), "{said}");
 }
+
+/// EN 14651: a CMOD gauge too noisy to tell where the CMOD passes 0.05 mm (its σ over a
+/// quarter of the interval) leaves F_L undetermined; the test is then *unchecked* on that
+/// criterion, saying why, and not invalid — the same curve read by a fine gauge is valid with
+/// no such sentence.
+#[test]
+fn an_undetermined_f_l_leaves_the_test_unchecked_on_it_not_invalid() {
+    let fine = Case::new(Standard::En14651, en_x()).check();
+    assert_valid("the notched test on a fine gauge", &fine);
+    assert!(!fine.unchecked.iter().any(|u| u.contains("F_L")), "a fine gauge determines F_L: {:?}", fine.unchecked);
+
+    let v = Case { x_sigma: 0.02, ..Case::new(Standard::En14651, en_x()) }.check();
+    assert_valid("the notched test on a gauge of σ 0.02 mm", &v);
+    let said = v.unchecked.iter().find(|u| u.starts_with("F_L could not be determined:")).unwrap_or_else(|| panic!("{:?}", v.unchecked));
+    assert!(said.contains("the CMOD's σ (0.020 mm) is too large for the interval 0 to 0.05 mm") && said.contains("clip gauge"), "{said}");
+    assert!(!v.reasons.iter().any(|r| r.contains("F_L")), "{:?}", v.reasons);
+}
