@@ -216,3 +216,44 @@ pub fn one_camera_without_beam() -> String {
     }
     out
 }
+
+/// A simulated test's curve as `report` builds it, for the report's Monte Carlo tests: the
+/// deflection (CMOD) `x_at(t)` read at 10 Hz by a gauge of σ `sx_mm` with a zero reference
+/// off by its σ (0.001 mm), the load `law(x)` read by a UTM at 100 Hz (noise 0.03 kN,
+/// resolution 0.01 kN) whose clock is 20 ms ahead and known to 4 ms, the feed's curve put on
+/// the UTM's samples over `dur_s` seconds.
+pub fn simulated_utm_curve(
+    rng: &mut rand_chacha::ChaCha8Rng,
+    law: &dyn Fn(f64) -> f64,
+    x_at: &dyn Fn(f64) -> f64,
+    dur_s: f64,
+    sx_mm: f64,
+    x_name: &'static str,
+) -> tagdeflect_report::Curve {
+    use rand::Rng;
+    use rand_distr::{Distribution, Normal};
+    const T0: i64 = 1_767_225_600_000_000_000;
+    let (ref_sigma, load_noise, res) = (0.001, 0.03, 0.01);
+    let (offset_s, offset_sigma_s) = (0.020, 0.004);
+    let nx = Normal::new(0.0, sx_mm).unwrap();
+    let np = Normal::new(0.0, load_noise).unwrap();
+    let ref_err = Normal::new(0.0, ref_sigma).unwrap().sample(rng);
+    // The alignment's error: the UTM stamps are off by what the clock check did not catch.
+    let t_err = Normal::new(0.0, offset_sigma_s).unwrap().sample(rng);
+    let phase: f64 = rng.gen_range(0.0..0.01);
+    let n = (dur_s / 0.1) as usize;
+    let t_ns: Vec<i64> = (0..n).map(|k| T0 + k as i64 * 100_000_000).collect();
+    let x: Vec<f64> = (0..n).map(|k| x_at(k as f64 * 0.1) + ref_err + nx.sample(rng)).collect();
+    let p_frames: Vec<f64> = (0..n).map(|k| law(x_at(k as f64 * 0.1))).collect();
+    let feed = tagdeflect_report::Curve::new(t_ns, p_frames, x, vec![Some(sx_mm); n], ref_sigma, 5, res, x_name).unwrap();
+    let utm: Vec<tagdeflect_io::utm::UtmSample> = (0..(dur_s * 100.0) as usize)
+        .map(|j| {
+            let t_true = j as f64 * 0.01 + phase;
+            let p = ((law(x_at(t_true)) + np.sample(rng)) / res).round() * res;
+            // Stamped on the UTM clock (offset ahead), taken at t_true.
+            let stamp = t_true + offset_s + t_err;
+            tagdeflect_io::utm::UtmSample { t_ns: T0 + (stamp * 1e9).round() as i64, load_kn: p, stroke_mm: None }
+        })
+        .collect();
+    feed.on_utm(&utm, (offset_s * 1e9).round() as i64, offset_sigma_s, res, 2.0).unwrap()
+}

@@ -2,11 +2,8 @@
 //! the library (the feed's curve put on the UTM's samples, as `report` does), over many
 //! simulated climbs per gauge σ.
 
-use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, Normal};
-use tagdeflect_report::{en14651, BeamConfig, Curve};
-
-const T0: i64 = 1_767_225_600_000_000_000;
+use rand::SeedableRng;
+use tagdeflect_report::{en14651, BeamConfig};
 
 /// A notched beam's elastic climb: 200 kN per mm of CMOD up to the crack at CMOD 0.08 mm
 /// (16 kN), then 12 kN softening. F_L (the largest load in CMOD 0–0.05 mm) is 10 kN.
@@ -20,32 +17,11 @@ fn elastic_notch(x: f64) -> f64 {
 const F_L_TRUTH_KN: f64 = 10.0;
 
 /// One climb: 2 s at rest, then the CMOD at 1.2 mm/min read by a gauge of σ `sx` at 10 Hz,
-/// the load by a UTM at 100 Hz (noise 0.03 kN, resolution 0.01 kN) whose clock is known to
-/// 4 ms. `Err` is F_L's reason when it was not determined.
+/// the load by a UTM at 100 Hz (`common::simulated_utm_curve`). `Err` is F_L's reason when it
+/// was not determined.
 fn fl_of_one_climb(rng: &mut rand_chacha::ChaCha8Rng, sx: f64) -> Result<(f64, f64), String> {
     let x_at = |t: f64| (t - 2.0).max(0.0) / 60.0 * 1.2;
-    let dur = 32.0;
-    let (load_noise, res, ref_sigma) = (0.03, 0.01, 0.001);
-    let (offset_s, offset_sigma_s) = (0.020, 0.004);
-    let nx = Normal::new(0.0, sx).unwrap();
-    let np = Normal::new(0.0, load_noise).unwrap();
-    let ref_err = Normal::new(0.0, ref_sigma).unwrap().sample(rng);
-    let t_err = Normal::new(0.0, offset_sigma_s).unwrap().sample(rng);
-    let phase: f64 = rng.gen_range(0.0..0.01);
-    let n = (dur / 0.1) as usize;
-    let t_ns: Vec<i64> = (0..n).map(|k| T0 + k as i64 * 100_000_000).collect();
-    let x: Vec<f64> = (0..n).map(|k| x_at(k as f64 * 0.1) + ref_err + nx.sample(rng)).collect();
-    let p_frames: Vec<f64> = (0..n).map(|k| elastic_notch(x_at(k as f64 * 0.1))).collect();
-    let feed = Curve::new(t_ns, p_frames, x, vec![Some(sx); n], ref_sigma, 5, res, "CMOD").unwrap();
-    let utm: Vec<tagdeflect_io::utm::UtmSample> = (0..(dur * 100.0) as usize)
-        .map(|j| {
-            let t_true = j as f64 * 0.01 + phase;
-            let p = ((elastic_notch(x_at(t_true)) + np.sample(rng)) / res).round() * res;
-            let stamp = t_true + offset_s + t_err;
-            tagdeflect_io::utm::UtmSample { t_ns: T0 + (stamp * 1e9).round() as i64, load_kn: p, stroke_mm: None }
-        })
-        .collect();
-    let curve = feed.on_utm(&utm, (offset_s * 1e9).round() as i64, offset_sigma_s, res, 2.0).unwrap();
+    let curve = crate::common::simulated_utm_curve(rng, &elastic_notch, &x_at, 32.0, sx, "CMOD");
     let beam = BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 500.0, notch_mm: Some(25.0), ..Default::default() };
     let e = en14651::compute(&curve, &beam);
     let fl = e.iter().find(|e| e.key == "FL").unwrap();
