@@ -103,6 +103,15 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
     assert!(!html.contains("Control output"), "a test without control outputs has no such section");
     assert_eq!(comparable(at_stop.clone()), comparable(again), "the report made at the stop and `report DIR` differ");
+    // The third route, `report --series`, gives the same numbers for the folder.
+    let series_out = dir.path().join("series");
+    let o = tagdeflect(&["report", "--series", folder.to_str().unwrap(), "--out", series_out.to_str().unwrap(), "--no-pdf"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let in_series = read_json(&series_out.join("series.json"))["specimens"][0].clone();
+    for (key, v) in values(&at_stop) {
+        let same = in_series[&key]["value"] == v["value"] && in_series[&key]["sigma"] == v["sigma"];
+        assert!(same, "{key}: the series gives {}, the report at stop {v}", in_series[&key]);
+    }
 
     // What the record gives the report.
     let s = &at_stop["specimen"];
@@ -213,6 +222,24 @@ fn report_verify_checks_the_copied_folder_it_is_given() {
     assert_eq!(code, Some(1), "{out}");
     assert!(out.contains(&format!("CHANGED  test.json {}", copy.join("utm.jsonl").display())), "{out}");
     assert!(out.contains(&format!("EXTRA    test.json {}", copy.join("added.txt").display())), "{out}");
+
+    // The tests folder's audit chain, edited by hand (the stop made by someone else): `report
+    // verify` names the log and its broken line; whole again, the chain is whole.
+    let log = tests_copy.join("audit.jsonl");
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(out.contains(&format!("same     audit {} (", log.display())) && out.contains("chain whole)"), "the chain checked: {out}");
+    let n = text.lines().position(|l| l.contains("\"action\":\"stop\"")).expect("the stop in the audit log");
+    let edited: Vec<String> = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| if i == n { l.replacen("\"user\":\"", "\"user\":\"eve", 1) } else { l.to_string() })
+        .collect();
+    std::fs::write(&log, edited.join("\n") + "\n").unwrap();
+    let (code, out) = verify(&copy);
+    assert_eq!(code, Some(1), "{out}");
+    let named = format!("CHANGED  audit {}", log.display());
+    let at = format!("{}:{}: sha256", log.display(), n + 1);
+    assert!(out.contains(&named) && out.contains(&at), "the edited chain named with its line: {out}");
 }
 
 /// `report verify` on a test folder `copy` catches, each named (exit 1) and undone after: an

@@ -291,8 +291,31 @@ fn specimen(h: &mut String, report: &Report) {
         row("height above the notch tip", "h_sp", b.ligament_mm(), None, "depth − notch".into());
     }
     h.push_str("</table>");
+    specimen_row(h, report);
     for n in &report.notes {
         let _ = write!(h, "<p class=\"note\">{}</p>", esc(n));
+    }
+}
+
+/// The specimen's row of the lab's table (`test.json`'s `specimen_info`): mix, fibre and
+/// dosage, client, project, and each dimension's readings whose mean the test measured.
+fn specimen_row(h: &mut String, report: &Report) {
+    let Some(i) = report.test.as_ref().and_then(|t| t.specimen_info.as_ref()) else { return };
+    let mut parts: Vec<String> = Vec::new();
+    for (name, v) in [("Mix", &i.mix), ("Fibre", &i.fibre), ("Client", &i.client), ("Project", &i.project)] {
+        if let Some(v) = v {
+            parts.push(format!("<b>{name}:</b> {}", esc(v)));
+        }
+    }
+    if let Some(d) = i.dosage_kg_m3 {
+        parts.push(format!("<b>Dosage:</b> {d} kg/m³"));
+    }
+    for (dim, r) in i.readings.iter().filter(|(_, r)| r.len() > 1) {
+        let list: Vec<String> = r.iter().map(|v| v.to_string()).collect();
+        parts.push(format!("<b>{}:</b> {} (their mean measured)", esc(dim), list.join(", ")));
+    }
+    if !parts.is_empty() {
+        let _ = write!(h, "<p class=\"specimen-row\">{}</p>", parts.join("; "));
     }
 }
 
