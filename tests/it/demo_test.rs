@@ -21,18 +21,19 @@ fn read_json(p: &Path) -> serde_json::Value {
 fn the_demo_c1609_test_on_a_machine_too_slow_for_its_pace_gives_a_valid_report_with_the_law_s_strengths() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("demo");
-    // A machine too slow for the pace (see the module doc): every UTM sample waits 3 ms in
-    // the forwarder, every set 3 ms before the solver — at 20× the recorded pace the UTM stream
-    // alone needs 1 ms a sample.
+    // A machine too slow for the pace (see the module doc): every UTM sample waits 1 ms in
+    // the forwarder, every set 1 ms before the solver — at 50× the recorded pace the UTM stream
+    // alone needs a sample every 0.4 ms, so the replay must play slower; the throttle's floor
+    // (1 ms for each of ~49 500 samples) is a third of what 3 ms at 20× gave.
     let started = std::time::Instant::now();
     let o = Command::new(env!("CARGO_BIN_EXE_tagdeflect"))
         .args(["demo", "--c1609"])
         .arg(&root)
-        .args(["--small", "--speed", "20", "--no-http"])
-        .env("TAGDEFLECT_THROTTLE_MS", "3")
+        .args(["--small", "--speed", "50", "--no-http"])
+        .env("TAGDEFLECT_THROTTLE_MS", "1")
         .output()
         .unwrap();
-    println!("demo --c1609 at 20x, throttled 3 ms: {:.0} s", started.elapsed().as_secs_f64());
+    println!("demo --c1609 at 50x, throttled 1 ms: {:.0} s", started.elapsed().as_secs_f64());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     let tests: Vec<_> = std::fs::read_dir(root.join("tests")).unwrap().flatten().filter(|e| e.path().join("test.json").is_file()).collect();
