@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use tagdeflect::config::Config;
 use tagdeflect_sim::{SimParams, SimRig};
 
-use crate::http::{post, small_rig, tagdeflect_test, Daemon};
+use crate::http::{get, post, small_rig, tagdeflect_test, Daemon};
 
 fn tagdeflect(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_tagdeflect")).args(args).output().expect("run tagdeflect")
@@ -40,6 +40,12 @@ fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::Bea
         Daemon::start(&["demo", "--config", cfg_path.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
     let addr = d.addr();
     let token_file = tests_dir.join(".token");
+    // The page may be served before the control API: wait for the API itself, idle.
+    let served = Instant::now() + Duration::from_secs(60);
+    while !token_file.is_file() || serde_json::from_slice::<serde_json::Value>(&get(addr, "/api/test").2).unwrap()["state"] != "idle" {
+        assert!(Instant::now() < served, "no control API within 60 s");
+        std::thread::sleep(Duration::from_millis(100));
+    }
     let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
     let body = serde_json::json!({
         "specimen": specimen, "operator": "A. Tester", "standard": "astm-c1609", "notes": "cast in mould 3",
@@ -103,16 +109,6 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
     assert!(!html.contains("Control output"), "a test without control outputs has no such section");
     assert_eq!(comparable(at_stop.clone()), comparable(again), "the report made at the stop and `report DIR` differ");
-    // The third route, `report --series`, gives the same numbers for the folder.
-    let series_out = dir.path().join("series");
-    let o = tagdeflect(&["report", "--series", folder.to_str().unwrap(), "--out", series_out.to_str().unwrap(), "--no-pdf"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let in_series = read_json(&series_out.join("series.json"))["specimens"][0].clone();
-    for (key, v) in values(&at_stop) {
-        let same = in_series[&key]["value"] == v["value"] && in_series[&key]["sigma"] == v["sigma"];
-        assert!(same, "{key}: the series gives {}, the report at stop {v}", in_series[&key]);
-    }
-
     // What the record gives the report.
     let s = &at_stop["specimen"];
     assert_eq!(s["id"], "B7");
@@ -145,6 +141,18 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
     let mistyped = report_dir(&copy, &dir.path().join("mistyped"));
     assert_eq!(values(&mistyped), values(&at_stop), "the config's width does not reach the values");
     assert_eq!(mistyped["specimen"]["width_mm"], at_stop["specimen"]["width_mm"]);
+    // The third route, `report --series`, of the folder and its copy: the same numbers for both.
+    let series_out = dir.path().join("series");
+    let (f, c, o) = (folder.to_str().unwrap(), copy.to_str().unwrap(), series_out.to_str().unwrap());
+    let o = tagdeflect(&["report", "--series", f, c, "--out", o, "--no-pdf"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let specimens = read_json(&series_out.join("series.json"))["specimens"].clone();
+    for k in 0..2 {
+        for (key, v) in values(&at_stop) {
+            let got = &specimens[k][&key];
+            assert!(got["value"] == v["value"] && got["sigma"] == v["sigma"], "{key}: the series gives {got}, the report at stop {v}");
+        }
+    }
 
     // A width out of any beam's range in test.json: one error naming the file and the key.
     let rec_path = copy.join("test.json");
