@@ -56,6 +56,9 @@ pub struct TagSolution {
     /// poses' uncertainty, which is common to every frame set while a camera is held still
     /// and so cancels from displacements).
     pub noise_covariance: Matrix6<f64>,
+    /// The camera poses' part of `centre_covariance` per view used: (index into the input
+    /// slice, mm²). A displacement across a re-pose keeps the re-posed camera's part alone.
+    pub camera_pose_parts: Vec<(usize, Matrix3<f64>)>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
     /// Views used.
@@ -354,7 +357,7 @@ fn tag_solution(
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: singular normal equations".into() })?;
     let noise_cov = widened(h_inv * s2, problem, &best.pose, &h_inv, s2);
-    let cov = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
+    let (cov, camera_pose_parts) = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
     let centre_cov: Matrix3<f64> = cov.fixed_view::<3, 3>(3, 3).into_owned();
     let sigma = Vector3::new(centre_cov[(0, 0)].max(0.0).sqrt(), centre_cov[(1, 1)].max(0.0).sqrt(), centre_cov[(2, 2)].max(0.0).sqrt());
     Ok(TagSolution {
@@ -364,6 +367,7 @@ fn tag_solution(
         centre_covariance: centre_cov,
         covariance: cov,
         noise_covariance: noise_cov,
+        camera_pose_parts,
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,
@@ -395,11 +399,16 @@ fn widened(plain: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &M
     h_inv * middle * h_inv * s2
 }
 
+/// Each view's camera poses' part of a centre's covariance, by input index, mm².
+type CameraParts = Vec<(usize, Matrix3<f64>)>;
+
 /// The tag's covariance: the pixel noise's `noise_cov` plus each view's camera pose
-/// covariance carried through the fit (`A Σ_cam Aᵀ`, `A = H⁻¹ Σ_k J_tagᵀ J_cam`).
-fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>) -> Matrix6<f64> {
+/// covariance carried through the fit (`A Σ_cam Aᵀ`, `A = H⁻¹ Σ_k J_tagᵀ J_cam`), and each
+/// view's part of the centre's covariance (by input index).
+fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>) -> (Matrix6<f64>, CameraParts) {
     let mut cov = noise_cov;
-    for (_, view) in &problem.views {
+    let mut parts = Vec::with_capacity(problem.views.len());
+    for (index, view) in &problem.views {
         let Some(cam_cov) = view.camera_pose_covariance else { continue };
         let mut b = Matrix6::zeros();
         for k in 0..4 {
@@ -408,9 +417,11 @@ fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &P
             }
         }
         let a = h_inv * b;
-        cov += a * cam_cov * a.transpose();
+        let part = a * cam_cov * a.transpose();
+        cov += part;
+        parts.push((*index, part.fixed_view::<3, 3>(3, 3).into_owned()));
     }
-    cov
+    (cov, parts)
 }
 
 /// With two inconsistent views, which one to drop: each view is solved alone; with a warm
