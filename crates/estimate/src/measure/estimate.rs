@@ -237,7 +237,7 @@ impl Measurement {
         let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
         if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
-            let departure_from = (departure != Matrix3::zeros()).then_some(sol.centre_mm);
+            let departure_from = departure_applies(partial, used.len()).then_some(sol.centre_mm);
             steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor, disp: disp_step, departure_from });
         }
         let mut pose = sol.tag_to_world;
@@ -375,11 +375,17 @@ fn update_filter(
 /// partial set (its floor is what it measured with). `TAGDEFLECT_MONOCULAR_DEPARTURE=off`
 /// leaves it out (a measurement).
 fn monocular_departure(centre: &Vector3<f64>, set_centre: &Vector3<f64>, partial: bool, cameras_used: usize) -> Matrix3<f64> {
-    if partial || cameras_used != 1 || departure_left_out() {
+    if !departure_applies(partial, cameras_used) {
         return Matrix3::zeros();
     }
     let d = centre - set_centre;
     d * d.transpose()
+}
+
+/// Whether the σ given out holds [`monocular_departure`]: one camera saw the tag in a full
+/// set, and it is not left out.
+fn departure_applies(partial: bool, cameras_used: usize) -> bool {
+    !partial && cameras_used == 1 && !departure_left_out()
 }
 
 /// Whether [`monocular_departure`] is left out: `TAGDEFLECT_MONOCULAR_DEPARTURE=off` (read
