@@ -13,7 +13,9 @@
 //! `sigma_mm` (the smoothed covariance, floored at [`SMOOTHED_FLOOR_SHARE`] of the filtered
 //! line's floor, plus the camera poses' part), `disp_sigma_mm` (the smoothed displacement's:
 //! the smoothed covariance and cross-covariance with the tag's zero, see
-//! [`FixedLag::smooth_tag`]); `net_deflection_mm`, its σ (with the same
+//! [`FixedLag::smooth_tag`]) — both with the smoothed position's departure from the set's own
+//! solve where one camera saw the tag in a full set ([`TagStep::departure_from`], as the
+//! filtered line's σ holds the filter's); `net_deflection_mm`, its σ (with the same
 //! floor) and its rate. The gauges (`[[gauge]]`, which use the tags' orientations too) are
 //! left as the filter gave them; the line says `"smoothed": true`.
 
@@ -44,6 +46,10 @@ pub struct TagStep {
     pub floor: Matrix3<f64>,
     /// What the displacement's σ needs of this step (`None`: the smoothed line gives none).
     pub disp: Option<DispStep>,
+    /// This set's own solve of the tag's centre, mm, when the σ given out holds the position's
+    /// departure from it (one camera saw the tag in a full set: `measure`'s
+    /// `monocular_departure`); the smoothed line's σ holds the smoothed position's.
+    pub departure_from: Option<Vector3<f64>>,
 }
 
 /// The displacement's σ at one filter step (see `measure::disp_sigma`): the filtered line's
@@ -125,8 +131,10 @@ impl FixedLag {
             let var = |m: &Matrix3<f64>| (self.up.transpose() * m * self.up)[(0, 0)];
             let floor = ts.floor * SMOOTHED_FLOOR_SHARE;
             let net_cov = if var(&cov) < var(&floor) { floor } else { cov };
-            let absolute = net_cov + ts.pose_part;
+            let departure = ts.departure_from.map_or(Matrix3::zeros(), |set| (centre - set) * (centre - set).transpose());
+            let absolute = net_cov + ts.pose_part + departure;
             tag.sigma_mm = Some([0, 1, 2].map(|k| round_mm(absolute[(k, k)].max(0.0).sqrt().max(1e-5))));
+            let disp_cov = disp_cov.map(|c| c + departure);
             tag.disp_sigma_mm = disp_cov.map(|c| [0, 1, 2].map(|k| round_mm(c[(k, k)].max(0.0).sqrt().max(1e-5))));
             covs.insert(*id, (net_cov, x.fixed_rows::<3>(3).into_owned()));
         }
@@ -266,7 +274,14 @@ mod tests {
                     disp_sigma_mm: None,
                     reproj_px: None,
                 });
-                steps.push(TagStep { id, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros(), disp: None });
+                steps.push(TagStep {
+                    id,
+                    step: *f.last_step(),
+                    pose_part: Matrix3::zeros(),
+                    floor: Matrix3::zeros(),
+                    disp: None,
+                    departure_from: None,
+                });
             }
             let net = -tags[0].disp_mm[1] + tags[1].disp_mm[1];
             let line = FeedLine { seq: k as u64, t_ns: t, tags, net_deflection_mm: Some(net), ..FeedLine::default() };
@@ -284,5 +299,59 @@ mod tests {
         let (f, s) = (rms(&filtered[30..]), rms(&smoothed[30..]));
         println!("net deflection RMS: filtered {:.2} µm, smoothed {:.2} µm", f * 1e3, s * 1e3);
         assert!(s < 0.8 * f, "smoothed {s} filtered {f}");
+    }
+
+    /// One camera saw the tag in a full set: the smoothed line's σ (position and
+    /// displacement) holds `d dᵀ`, `d` the smoothed position minus the set's own solve, as
+    /// the filtered line's holds the filter's; without it nothing is added, and the
+    /// position is the same either way.
+    #[test]
+    fn a_one_camera_tags_smoothed_sigma_holds_the_smoothed_positions_departure_from_the_set() {
+        let noise = Matrix3::identity() * 0.002f64.powi(2);
+        let run = |offset: Option<Vector3<f64>>| {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+            let n = Normal::new(0.0, 0.002).unwrap();
+            let mut f: Option<TagFilter> = None;
+            let mut lag = FixedLag::new(8, Vector3::new(0.0, 1.0, 0.0), HashMap::new());
+            let mut out = Vec::new();
+            let mut sets = Vec::new();
+            for k in 0..20i64 {
+                let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
+                let f = match f.as_mut() {
+                    Some(f) => {
+                        f.update(k * 50_000_000, z, &noise, &noise, false);
+                        f
+                    }
+                    None => f.insert(TagFilter::new(TemporalConfig::default(), 0, z, &noise)),
+                };
+                let c = f.centre();
+                // The set's own solve: here its measurement shifted by the offset.
+                let set = offset.map(|o| z + o);
+                sets.push(set);
+                let tag =
+                    FeedTag { id: 0, pos_mm: c.into(), disp_mm: c.into(), views: 1, sigma_mm: None, disp_sigma_mm: None, reproj_px: None };
+                let disp = DispStep { cross: SMatrix::zeros(), white: 1.0, rest: noise };
+                let step = TagStep { id: 0, step: *f.last_step(), pose_part: noise, floor: noise, disp: Some(disp), departure_from: set };
+                out.extend(lag.push(FeedLine { seq: k as u64, t_ns: k * 50_000_000, tags: vec![tag], ..FeedLine::default() }, vec![step]));
+            }
+            out.extend(lag.finish());
+            (out, sets)
+        };
+        let (plain, _) = run(None);
+        let (with, sets) = run(Some(Vector3::new(0.0, 0.05, -0.02)));
+        assert_eq!(plain.len(), 20);
+        for ((p, w), set) in plain.iter().zip(&with).zip(&sets) {
+            let (p, w) = (&p.tags[0], &w.tags[0]);
+            assert_eq!(p.pos_mm, w.pos_mm, "σ moves no position");
+            let d = Vector3::from(w.pos_mm) - set.expect("a set");
+            for k in 0..3 {
+                let added = w.sigma_mm.unwrap()[k].powi(2) - p.sigma_mm.unwrap()[k].powi(2);
+                let added_disp = w.disp_sigma_mm.unwrap()[k].powi(2) - p.disp_sigma_mm.unwrap()[k].powi(2);
+                // Rounded to 0.00001 mm on the feed: a tolerance of that order on σ².
+                let tol = 4e-5 * w.sigma_mm.unwrap()[k] + 1e-9;
+                assert!((added - d[k] * d[k]).abs() <= tol, "axis {k}: σ² grew by {added:.3e}, d² {:.3e}", d[k] * d[k]);
+                assert!((added_disp - d[k] * d[k]).abs() <= tol, "axis {k}: displacement σ² grew by {added_disp:.3e}");
+            }
+        }
     }
 }

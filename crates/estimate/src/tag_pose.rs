@@ -56,6 +56,9 @@ pub struct TagSolution {
     /// poses' uncertainty, which is common to every frame set while a camera is held still
     /// and so cancels from displacements).
     pub noise_covariance: Matrix6<f64>,
+    /// The camera poses' part of `centre_covariance` per view used: (index into the input
+    /// slice, mm²). A displacement across a re-pose keeps the re-posed camera's part alone.
+    pub camera_pose_parts: Vec<(usize, Matrix3<f64>)>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
     /// Views used.
@@ -353,8 +356,8 @@ fn tag_solution(
         .jtj
         .try_inverse()
         .ok_or_else(|| SolveError::Degenerate { what: "specimen tag: singular normal equations".into() })?;
-    let noise_cov = widened(h_inv * s2, problem, &best.pose, &h_inv, s2);
-    let cov = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
+    let noise_cov = widened(h_inv * s2, problem, &best.pose, &h_inv, (s2, corners_correlated()));
+    let (cov, camera_pose_parts) = with_camera_poses(noise_cov, problem, &best.pose, &h_inv);
     let centre_cov: Matrix3<f64> = cov.fixed_view::<3, 3>(3, 3).into_owned();
     let sigma = Vector3::new(centre_cov[(0, 0)].max(0.0).sqrt(), centre_cov[(1, 1)].max(0.0).sqrt(), centre_cov[(2, 2)].max(0.0).sqrt());
     Ok(TagSolution {
@@ -364,6 +367,7 @@ fn tag_solution(
         centre_covariance: centre_cov,
         covariance: cov,
         noise_covariance: noise_cov,
+        camera_pose_parts,
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,
@@ -377,29 +381,68 @@ fn tag_solution(
 /// The pixel noise's covariance `s² H⁻¹` (`plain`) with each view's corners' σ widened by its
 /// [`TagView::corner_sigma_factor`] `f_v`: the covariance of the same (unweighted) fit when
 /// view `v`'s corners have variance `f_v² s²`, `s² H⁻¹ (Σ_v f_v² H_v) H⁻¹`, `H_v` the view's
-/// share of the normal matrix. `plain` itself while every factor is 1.
-fn widened(plain: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>, s2: f64) -> Matrix6<f64> {
+/// share of the normal matrix. `plain` itself while every factor is 1 — unless `correlated`:
+/// then the corners that share an edge are correlated along its normal
+/// ([`EDGE_CORNER_CORRELATION`]).
+fn widened(
+    plain: Matrix6<f64>,
+    problem: &TagProblem<'_>,
+    pose: &Pose,
+    h_inv: &Matrix6<f64>,
+    (s2, correlated): (f64, bool),
+) -> Matrix6<f64> {
     let factor = |v: &TagView| if v.corner_sigma_factor.is_finite() { v.corner_sigma_factor.max(1.0) } else { 1.0 };
-    if problem.views.iter().all(|(_, v)| factor(v) == 1.0) {
+    if !correlated && problem.views.iter().all(|(_, v)| factor(v) == 1.0) {
         return plain;
     }
     let mut middle = Matrix6::zeros();
     for (_, view) in &problem.views {
         let f2 = factor(view).powi(2);
-        for k in 0..4 {
-            if let Some((_, jt, _)) = tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]) {
-                middle += f2 * jt.transpose() * jt;
-            }
+        let j: Vec<Option<Matrix2x6<f64>>> =
+            (0..4).map(|k| tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]).map(|t| t.1)).collect();
+        for jt in j.iter().flatten() {
+            middle += f2 * jt.transpose() * jt;
+        }
+        if !correlated {
+            continue;
+        }
+        // Corners a and b share the edge between them: along its normal n their errors are
+        // correlated at EDGE_CORNER_CORRELATION (the line's angle error moves them apart).
+        for a in 0..4 {
+            let b = (a + 1) % 4;
+            let (Some(ja), Some(jb)) = (j[a], j[b]) else { continue };
+            let u = view.corners[b] - view.corners[a];
+            let n = Vector2::new(-u.y, u.x).normalize();
+            let nn = n * n.transpose();
+            middle += f2 * EDGE_CORNER_CORRELATION * (ja.transpose() * nn * jb + jb.transpose() * nn * ja);
         }
     }
     h_inv * middle * h_inv * s2
 }
 
+/// The correlation, along their edge's normal, of the errors of the two corners an edge line
+/// joins: a line fitted to samples spread evenly along it has an angle error that moves its
+/// ends by `√3` times its offset error, in opposite directions: `(1 − 3) / (1 + 3)`.
+const EDGE_CORNER_CORRELATION: f64 = -0.5;
+
+/// Whether the pixel noise's covariance takes the corners' errors as correlated through their
+/// shared edge lines: `TAGDEFLECT_CORNER_CORRELATION=edges` (a measurement, not the default;
+/// docs/accuracy.md, "The displacement σ's terms against the real error"). Read once.
+fn corners_correlated() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("TAGDEFLECT_CORNER_CORRELATION").is_ok_and(|v| v == "edges"))
+}
+
+/// Each view's camera poses' part of a centre's covariance, by input index, mm².
+type CameraParts = Vec<(usize, Matrix3<f64>)>;
+
 /// The tag's covariance: the pixel noise's `noise_cov` plus each view's camera pose
-/// covariance carried through the fit (`A Σ_cam Aᵀ`, `A = H⁻¹ Σ_k J_tagᵀ J_cam`).
-fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>) -> Matrix6<f64> {
+/// covariance carried through the fit (`A Σ_cam Aᵀ`, `A = H⁻¹ Σ_k J_tagᵀ J_cam`), and each
+/// view's part of the centre's covariance (by input index).
+fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &Pose, h_inv: &Matrix6<f64>) -> (Matrix6<f64>, CameraParts) {
     let mut cov = noise_cov;
-    for (_, view) in &problem.views {
+    let mut parts = Vec::with_capacity(problem.views.len());
+    for (index, view) in &problem.views {
         let Some(cam_cov) = view.camera_pose_covariance else { continue };
         let mut b = Matrix6::zeros();
         for k in 0..4 {
@@ -408,9 +451,11 @@ fn with_camera_poses(noise_cov: Matrix6<f64>, problem: &TagProblem<'_>, pose: &P
             }
         }
         let a = h_inv * b;
-        cov += a * cam_cov * a.transpose();
+        let part = a * cam_cov * a.transpose();
+        cov += part;
+        parts.push((*index, part.fixed_view::<3, 3>(3, 3).into_owned()));
     }
-    cov
+    (cov, parts)
 }
 
 /// With two inconsistent views, which one to drop: each view is solved alone; with a warm
@@ -489,114 +534,4 @@ impl PixelNoisePool {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::lm::retract;
-    use nalgebra::Vector6;
-
-    fn view() -> TagView {
-        TagView {
-            intrinsics: CameraIntrinsics {
-                width: 1280,
-                height: 960,
-                fx: 1400.0,
-                fy: 1400.0,
-                cx: 639.5,
-                cy: 479.5,
-                dist: [-0.25, 0.08, 0.0, 0.0, 0.0],
-            },
-            camera_pose: Pose::from_rvec_tvec([1.5, 0.1, 0.05], [20.0, -30.0, 1500.0]),
-            camera_pose_covariance: None,
-            corners: [Point2::new(600.0, 500.0); 4],
-            corner_sigma_factor: 1.0,
-        }
-    }
-
-    #[test]
-    fn jacobians_match_finite_differences() {
-        let v = view();
-        let tag = Pose::from_rvec_tvec([1.4, -0.1, 0.2], [50.0, 10.0, -20.0]);
-        let corner = Vector3::new(15.0, -15.0, 0.0);
-        let px = v.corners[0];
-        let (_, jt, jc) = tag_corner_terms(&v, &tag, &corner, &px).expect("in front");
-        for k in 0..6 {
-            let h = if k < 3 { 1e-7 } else { 1e-4 };
-            let mut d = Vector6::zeros();
-            d[k] = h;
-            let (a, _, _) = tag_corner_terms(&v, &retract(&tag, &d), &corner, &px).unwrap();
-            let (b, _, _) = tag_corner_terms(&v, &retract(&tag, &-d), &corner, &px).unwrap();
-            let fd = (a - b) / (2.0 * h);
-            assert!((fd - jt.column(k)).norm() < 1e-5 * jt.column(k).norm().max(1.0), "tag column {k}: {fd} vs {}", jt.column(k));
-            let mut vp = v;
-            vp.camera_pose = retract(&v.camera_pose, &d);
-            let mut vm = v;
-            vm.camera_pose = retract(&v.camera_pose, &-d);
-            let (a, _, _) = tag_corner_terms(&vp, &tag, &corner, &px).unwrap();
-            let (b, _, _) = tag_corner_terms(&vm, &tag, &corner, &px).unwrap();
-            let fd = (a - b) / (2.0 * h);
-            assert!((fd - jc.column(k)).norm() < 1e-5 * jc.column(k).norm().max(1.0), "camera column {k}: {fd} vs {}", jc.column(k));
-        }
-    }
-
-    #[test]
-    fn monocular_noise_free_is_exact() {
-        let mut v = view();
-        let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0, 0.0, 10.0]);
-        let corners = tag_corners(30.0);
-        v.corners = [0, 1, 2, 3].map(|k| v.intrinsics.project(&v.camera_pose.transform(&tag.transform(&corners[k]))).unwrap());
-        let s = solve_tag(&[v], 30.0, None, Some(0.1)).expect("solves");
-        assert!((s.centre_mm - tag.translation).norm() < 1e-6, "centre {} vs {}", s.centre_mm, tag.translation);
-        assert!(s.tag_to_world.angle_to(&tag) < 1e-6);
-        assert_eq!((s.views, s.dof), (1, 2));
-        assert!(s.sigma_mm.iter().all(|x| x.is_finite() && *x > 0.0));
-    }
-
-    #[test]
-    fn a_views_corner_sigma_factor_widens_the_covariance_and_never_moves_the_solution() {
-        // Two views of a tag (the second camera 300 mm to the side), noise-free corners.
-        let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0, 0.0, 10.0]);
-        let corners = tag_corners(30.0);
-        let mut views = [view(), view()];
-        views[1].camera_pose = Pose::from_rvec_tvec([1.5, 0.3, 0.05], [-280.0, -30.0, 1500.0]);
-        for v in views.iter_mut() {
-            v.corners = [0, 1, 2, 3].map(|k| v.intrinsics.project(&v.camera_pose.transform(&tag.transform(&corners[k]))).unwrap());
-        }
-        let solve = |f: [f64; 2]| {
-            let mut vs = views;
-            vs[0].corner_sigma_factor = f[0];
-            vs[1].corner_sigma_factor = f[1];
-            solve_tag(&vs, 30.0, None, Some(0.1)).expect("solves")
-        };
-        let plain = solve([1.0, 1.0]);
-        let doubled = solve([2.0, 2.0]);
-        let one = solve([1.0, 2.0]);
-        // Both views twice as noisy: σ twice; the solution itself unchanged.
-        assert_eq!(doubled.centre_mm, plain.centre_mm);
-        for a in 0..3 {
-            assert!((doubled.sigma_mm[a] / plain.sigma_mm[a] - 2.0).abs() < 1e-6, "axis {a}");
-            assert!(
-                one.sigma_mm[a] > plain.sigma_mm[a] * 1.0001 && one.sigma_mm[a] < doubled.sigma_mm[a],
-                "axis {a}: one view widened lies between"
-            );
-        }
-        // A factor below 1 (or not finite) never narrows σ.
-        assert_eq!(solve([0.5, f64::NAN]).sigma_mm, plain.sigma_mm);
-    }
-
-    #[test]
-    fn bad_input_is_an_error() {
-        assert!(solve_tag(&[], 30.0, None, None).is_err());
-        assert!(solve_tag(&[view()], -1.0, None, None).is_err());
-        assert!(solve_tag(&[view()], 30.0, None, None).is_err(), "four identical corners are degenerate");
-    }
-
-    #[test]
-    fn noise_pool_pools() {
-        let mut p = PixelNoisePool::new(1.0, 20.0);
-        assert_eq!(p.sigma_px(), None);
-        for _ in 0..10 {
-            p.add(0.01 * 2.0, 2);
-        }
-        assert!((p.sigma_px().unwrap() - 0.1).abs() < 1e-12);
-    }
-}
+mod tests;

@@ -29,8 +29,9 @@
 //!   pixel-noise covariance (`model_drift`, `D` the pooled variance of the corner bias's
 //!   change since the tag's reference). This, not the σ floor of the absolute position,
 //!   is what averaging sets does not shrink in a displacement.
-//! * After a camera that saw the zero was re-posed, the poses' errors no longer cancel: the
-//!   zero's camera-pose part and today's are added.
+//! * After a camera that saw the zero was re-posed, its pose's errors no longer cancel: that
+//!   camera's part of the zero's camera-poses covariance and its part of today's are added
+//!   (the cameras held since still cancel).
 
 use nalgebra::{Matrix3, SMatrix};
 
@@ -44,24 +45,39 @@ type Cross = SMatrix<f64, 6, 3>;
 pub(super) struct DispZero {
     /// The zero's pixel-noise covariance `N_0`, mm².
     noise: Matrix3<f64>,
-    /// The zero's camera-poses part, mm².
-    pose_part: Matrix3<f64>,
-    /// The pose epoch of each camera that saw the zero.
-    epochs: Vec<(usize, u64)>,
+    /// Each camera that saw the zero: its index, its pose epoch then and its part of the
+    /// zero's camera-poses covariance, mm².
+    cameras: Vec<(usize, u64, Matrix3<f64>)>,
     /// `Cov(filter state error, v_0)` (position and rate rows), mm².
     cross: Cross,
     /// The time of the last filter step followed, ns.
     followed_ns: Option<i64>,
 }
 
+/// Each camera's part of a solve's camera-poses covariance: (camera index, mm²).
+pub(super) type PoseParts = [(usize, Matrix3<f64>)];
+
 impl DispZero {
-    /// The zero of a tag first solved with pixel-noise covariance `noise`, camera-poses part
-    /// `pose_part`, by `cameras` in pose epochs `epochs` (indexed by camera).
-    pub(super) fn new(noise: Matrix3<f64>, pose_part: Matrix3<f64>, cameras: &[usize], epochs: &[u64]) -> DispZero {
+    /// The zero of a tag first solved with pixel-noise covariance `noise` and the camera-poses
+    /// parts `pose_parts` of the cameras that saw it, in pose epochs `epochs` (by camera).
+    pub(super) fn new(noise: Matrix3<f64>, pose_parts: &PoseParts, epochs: &[u64]) -> DispZero {
         let mut cross = Cross::zeros();
         cross.fixed_view_mut::<3, 3>(0, 0).copy_from(&noise);
-        let epochs = cameras.iter().map(|&c| (c, epochs.get(c).copied().unwrap_or(0))).collect();
-        DispZero { noise, pose_part, epochs, cross, followed_ns: None }
+        let cameras = pose_parts.iter().map(|&(c, part)| (c, epochs.get(c).copied().unwrap_or(0), part)).collect();
+        DispZero { noise, cameras, cross, followed_ns: None }
+    }
+
+    /// The camera poses' errors that no longer cancel from the displacement: for each camera
+    /// that saw the zero and was re-posed since (`epochs` by camera), its part of the zero's
+    /// covariance and its part of today's (`now`). The cameras held since cancel.
+    fn re_posed_part(&self, now: &PoseParts, epochs: &[u64]) -> Matrix3<f64> {
+        let mut sum = Matrix3::zeros();
+        for &(cam, e, zero_part) in &self.cameras {
+            if epochs.get(cam).is_some_and(|&current| current != e) {
+                sum += zero_part + now.iter().filter(|(c, _)| *c == cam).map(|(_, p)| p).sum::<Matrix3<f64>>();
+            }
+        }
+        sum
     }
 
     /// Carries the cross-covariance over the filter's latest step (once per step; the
@@ -83,36 +99,62 @@ impl DispZero {
 
     /// The displacement's covariance, mm², from the estimate's position covariance
     /// `estimate` (the filter's when `temporal`) with the white share `white` of the pixel
-    /// noise, the model error moved since the zero `model`, and today's camera-poses part
-    /// `pose_part` (added, with the zero's, when a camera that saw the zero was re-posed
-    /// since: `epochs` by camera).
+    /// noise, the model error moved since the zero `model`, and today's camera-poses parts
+    /// `pose_parts` by camera (a camera's, with the zero's, added when that camera saw the
+    /// zero and was re-posed since: `epochs` by camera).
     pub(super) fn covariance(
         &self,
         estimate: &Matrix3<f64>,
         temporal: bool,
         white: f64,
         model: &Matrix3<f64>,
-        pose_part: &Matrix3<f64>,
+        pose_parts: &PoseParts,
         epochs: &[u64],
     ) -> Matrix3<f64> {
-        let c: Matrix3<f64> = if temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
-        let mut cov = (estimate + self.noise - c - c.transpose()) * white + model;
-        if self.epochs.iter().any(|&(cam, e)| epochs.get(cam).is_some_and(|&now| now != e)) {
-            cov += pose_part + self.pose_part;
-        }
+        let cov: Matrix3<f64> = self.terms(estimate, temporal, white, model, pose_parts, epochs).iter().sum();
         (cov + cov.transpose()) * 0.5
     }
+
+    /// The covariance's terms, as [`DispZero::covariance`] sums them: `w·P`, `w·N_0`,
+    /// `−w·(C + Cᵀ)`, `M` and the re-posed cameras' parts, mm².
+    pub(super) fn terms(
+        &self,
+        estimate: &Matrix3<f64>,
+        temporal: bool,
+        white: f64,
+        model: &Matrix3<f64>,
+        pose_parts: &PoseParts,
+        epochs: &[u64],
+    ) -> [Matrix3<f64>; 5] {
+        let c: Matrix3<f64> = if temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
+        [estimate * white, self.noise * white, -(c + c.transpose()) * white, *model, self.re_posed_part(pose_parts, epochs)]
+    }
+}
+
+/// Whether each tag's displacement σ terms are printed to stderr, one `DISP_TERMS` line a
+/// tag a set: `TAGDEFLECT_DISP_SIGMA_TERMS=print` (a measurement; read once per process).
+pub(super) fn terms_printed() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("TAGDEFLECT_DISP_SIGMA_TERMS").is_ok_and(|v| v == "print"))
+}
+
+/// Prints a tag's displacement σ terms (see [`terms_printed`]): its id, the set's time, the
+/// displacement, then each term's diagonal (x y z, mm²): `w·P`, `w·N_0`, `−w·(C + Cᵀ)`, `M`,
+/// re-posed cameras, the monocular departure.
+pub(super) fn print_terms(id: u32, t_ns: i64, disp: &nalgebra::Vector3<f64>, terms: &[Matrix3<f64>]) {
+    let mut line = format!("DISP_TERMS {id} {t_ns} {:.6} {:.6} {:.6}", disp.x, disp.y, disp.z);
+    for m in terms {
+        line.push_str(&format!(" {:.4e} {:.4e} {:.4e}", m[(0, 0)], m[(1, 1)], m[(2, 2)]));
+    }
+    eprintln!("{line}");
 }
 
 impl DispZero {
     /// What a smoother needs to give the smoothed displacement its σ at this step (the
     /// arguments as [`DispZero::covariance`]'s): this step's cross-covariance and the terms
     /// that do not depend on the estimate.
-    pub(super) fn smoothing_part(&self, white: f64, model: &Matrix3<f64>, pose_part: &Matrix3<f64>, epochs: &[u64]) -> DispStep {
-        let mut rest = self.noise * white + model;
-        if self.epochs.iter().any(|&(cam, e)| epochs.get(cam).is_some_and(|&now| now != e)) {
-            rest += pose_part + self.pose_part;
-        }
+    pub(super) fn smoothing_part(&self, white: f64, model: &Matrix3<f64>, pose_parts: &PoseParts, epochs: &[u64]) -> DispStep {
+        let rest = self.noise * white + model + self.re_posed_part(pose_parts, epochs);
         DispStep { cross: self.cross, white, rest }
     }
 }
@@ -158,13 +200,13 @@ mod tests {
         for _ in 0..runs {
             let z0 = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
             let mut f = TagFilter::new(TemporalConfig::default(), 0, z0, &noise);
-            let mut zero = DispZero::new(noise, Matrix3::zeros(), &[0, 1], &[0, 0]);
+            let mut zero = DispZero::new(noise, &[(0, Matrix3::zeros()), (1, Matrix3::zeros())], &[0, 0]);
             zero.follow(f.last_step());
             for (k, (sq, predicted)) in sq.iter_mut().zip(predicted.iter_mut()).enumerate().skip(1) {
                 let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
                 let u = f.update(k as i64 * 33_333_333, z, &noise, &(noise * 9.0), false);
                 zero.follow(f.last_step());
-                let cov = zero.covariance(&u.covariance, true, 1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
+                let cov = zero.covariance(&u.covariance, true, 1.0, &Matrix3::zeros(), &[], &[0, 0]);
                 *sq += (u.centre.z - z0.z).powi(2) / runs as f64;
                 *predicted += cov[(2, 2)] / runs as f64;
             }
@@ -192,7 +234,7 @@ mod tests {
             let mut sample = || Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
             let z0 = sample();
             let mut f = TagFilter::new(TemporalConfig::default(), 0, z0, &noise);
-            let mut zero = DispZero::new(noise, Matrix3::zeros(), &[0, 1], &[0, 0]);
+            let mut zero = DispZero::new(noise, &[(0, Matrix3::zeros()), (1, Matrix3::zeros())], &[0, 0]);
             let mut lag = FixedLag::new(10, Vector3::new(0.0, 1.0, 0.0), Default::default());
             let mut out = Vec::new();
             for k in 0..sets {
@@ -200,7 +242,7 @@ mod tests {
                     f.update(k as i64 * 33_333_333, sample(), &noise, &(noise * 9.0), false);
                 }
                 zero.follow(f.last_step());
-                let cov = zero.covariance(&f.covariance(), true, 1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]);
+                let cov = zero.covariance(&f.covariance(), true, 1.0, &Matrix3::zeros(), &[], &[0, 0]);
                 filtered[k] += cov[(2, 2)] / runs as f64;
                 let disp = (f.centre() - z0).into();
                 let tag = FeedTag {
@@ -212,8 +254,15 @@ mod tests {
                     disp_sigma_mm: None,
                     reproj_px: None,
                 };
-                let disp_step = Some(zero.smoothing_part(1.0, &Matrix3::zeros(), &Matrix3::zeros(), &[0, 0]));
-                let step = TagStep { id: 0, step: *f.last_step(), pose_part: Matrix3::zeros(), floor: Matrix3::zeros(), disp: disp_step };
+                let disp_step = Some(zero.smoothing_part(1.0, &Matrix3::zeros(), &[], &[0, 0]));
+                let step = TagStep {
+                    id: 0,
+                    step: *f.last_step(),
+                    pose_part: Matrix3::zeros(),
+                    floor: Matrix3::zeros(),
+                    disp: disp_step,
+                    departure_from: None,
+                };
                 let line = FeedLine { seq: k as u64, t_ns: k as i64 * 33_333_333, tags: vec![tag], ..FeedLine::default() };
                 out.extend(lag.push(line, vec![step]));
             }
@@ -235,15 +284,21 @@ mod tests {
     }
 
     #[test]
-    fn a_re_posed_camera_adds_both_poses_parts_and_the_per_set_estimate_holds_nothing_of_the_zero() {
+    fn a_re_posed_camera_adds_its_own_poses_parts_and_the_per_set_estimate_holds_nothing_of_the_zero() {
         let noise = Matrix3::identity() * 1e-6;
-        let zero = DispZero::new(noise, Matrix3::identity() * 4e-6, &[0, 2], &[3, 0, 5]);
+        // The zero seen by cameras 0 and 2 (epochs 3 and 5), each with its part of the
+        // camera-poses covariance.
+        let zero = DispZero::new(noise, &[(0, Matrix3::identity() * 4e-6), (2, Matrix3::identity() * 1e-6)], &[3, 0, 5]);
         let now = Matrix3::identity() * 2e-6;
-        let pose = Matrix3::identity() * 3e-6;
+        let pose = [(0, Matrix3::identity() * 3e-6), (1, Matrix3::identity() * 7e-6), (2, Matrix3::identity() * 0.5e-6)];
         let same = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 9, 5]);
         assert!((same[(0, 0)] - 3e-6).abs() < 1e-15, "a camera that did not see the zero changes nothing");
+        // Camera 2 re-posed: its part then (1e-6) and now (0.5e-6); camera 0, held, cancels.
         let moved = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 0, 6]);
-        assert!((moved[(0, 0)] - 10e-6).abs() < 1e-15, "{moved}");
+        assert!((moved[(0, 0)] - 4.5e-6).abs() < 1e-15, "{moved}");
+        // Both re-posed: both cameras' parts, then and now.
+        let both = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[4, 0, 6]);
+        assert!((both[(0, 0)] - 11.5e-6).abs() < 1e-15, "{both}");
         let half = zero.covariance(&now, false, 0.5, &Matrix3::zeros(), &pose, &[3, 9, 5]);
         assert!((half[(0, 0)] - 1.5e-6).abs() < 1e-15, "the corners' bias that stays cancels: {half}");
         assert!((white_share(Some(0.02), Some(0.2)) - 0.5).abs() < 1e-12);

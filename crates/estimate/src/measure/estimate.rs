@@ -6,7 +6,7 @@
 use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
-use super::disp_sigma::{axis_sigma, drift_left_out, white_share, DispZero};
+use super::disp_sigma::{axis_sigma, drift_left_out, print_terms, terms_printed, white_share, DispZero, PoseParts};
 use super::model_drift::{model_drift_switch, residuals_kept, set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
@@ -159,7 +159,7 @@ impl Measurement {
         let p = match self.config.measure.estimator {
             Estimator::PerSet => {
                 let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
-                per_set(&mut history, t_ns, &tag.solution, (white, &model), &self.pose_epochs)
+                per_set(&mut history, t_ns, &tag.solution, (white, &model), (&camera_pose_parts(&tag), &self.pose_epochs))
             }
             Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px, &model),
         };
@@ -184,7 +184,7 @@ impl Measurement {
     fn first_history(&self, tag: &SolvedTag) -> TagHistory {
         let sol = &tag.solution;
         let noise = noise_cov(sol);
-        TagHistory::first(sol, DispZero::new(noise, sol.centre_covariance - noise, &used_cameras(tag), &self.pose_epochs))
+        TagHistory::first(sol, DispZero::new(noise, &camera_pose_parts(tag), &self.pose_epochs))
     }
 
     /// The temporal estimator's position of a tag (see [`crate::temporal`]); `model` the
@@ -221,18 +221,24 @@ impl Measurement {
         let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
         let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
         let departure = monocular_departure(&u.centre, &sol.centre_mm, partial, used.len());
-        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &pose_part, &self.pose_epochs) + departure;
+        let parts = camera_pose_parts(tag);
+        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &parts, &self.pose_epochs) + departure;
+        if terms_printed() {
+            let terms = history.zero.terms(&u.covariance, true, white, &disp_model, &parts, &self.pose_epochs);
+            print_terms(tag.id, t_ns, &(u.centre - history.first_centre), &[terms.as_slice(), &[departure]].concat());
+        }
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
         // the camera poses' part, never in the filter's weights (`model_drift`).
         let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
         let absolute = model + departure + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
-        let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &pose_part, &self.pose_epochs));
+        let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &parts, &self.pose_epochs));
         let pose_part = pose_part + model;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
         if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
-            steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor, disp: disp_step });
+            let departure_from = departure_applies(partial, used.len()).then_some(sol.centre_mm);
+            steps.push(crate::smooth::TagStep { id: tag.id, step: *f.last_step(), pose_part, floor, disp: disp_step, departure_from });
         }
         let mut pose = sol.tag_to_world;
         pose.translation = u.centre;
@@ -286,8 +292,15 @@ impl Measurement {
 /// The per-set estimator's position of a tag: a multi-view solve as it is (kept for the
 /// motion), a monocular one fused with the recent motion (see [`crate::motion`]); its
 /// displacement's σ with `white` the pixel noise's white share, `model` the edge model's
-/// error and `epochs` the cameras' pose epochs.
-fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, (white, model): (f64, &Matrix3<f64>), epochs: &[u64]) -> Position {
+/// error, `parts` the solve's camera-poses parts by camera and `epochs` the cameras' pose
+/// epochs.
+fn per_set(
+    history: &mut TagHistory,
+    t_ns: i64,
+    sol: &TagSolution,
+    (white, model): (f64, &Matrix3<f64>),
+    (parts, epochs): (&PoseParts, &[u64]),
+) -> Position {
     let mut p = Position::solved(sol);
     if sol.views >= 2 {
         history.motion.observe(t_ns, sol.centre_mm, sol.centre_covariance);
@@ -299,9 +312,13 @@ fn per_set(history: &mut TagHistory, t_ns: i64, sol: &TagSolution, (white, model
         p.net.cov = fcov;
     }
     let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
-    let pose_part = sol.centre_covariance - noise_cov(sol);
-    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, white, &disp_model, &pose_part, epochs));
+    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, white, &disp_model, parts, epochs));
     p
+}
+
+/// Each camera's part of a solve's camera-poses covariance, by camera index.
+fn camera_pose_parts(tag: &SolvedTag) -> Vec<(usize, Matrix3<f64>)> {
+    tag.solution.camera_pose_parts.iter().filter_map(|&(i, part)| tag.views.cameras.get(i).map(|&c| (c, part))).collect()
 }
 
 /// The cameras of the views a solve used (not rejected as outliers).
@@ -358,11 +375,17 @@ fn update_filter(
 /// partial set (its floor is what it measured with). `TAGDEFLECT_MONOCULAR_DEPARTURE=off`
 /// leaves it out (a measurement).
 fn monocular_departure(centre: &Vector3<f64>, set_centre: &Vector3<f64>, partial: bool, cameras_used: usize) -> Matrix3<f64> {
-    if partial || cameras_used != 1 || departure_left_out() {
+    if !departure_applies(partial, cameras_used) {
         return Matrix3::zeros();
     }
     let d = centre - set_centre;
     d * d.transpose()
+}
+
+/// Whether the σ given out holds [`monocular_departure`]: one camera saw the tag in a full
+/// set, and it is not left out.
+fn departure_applies(partial: bool, cameras_used: usize) -> bool {
+    !partial && cameras_used == 1 && !departure_left_out()
 }
 
 /// Whether [`monocular_departure`] is left out: `TAGDEFLECT_MONOCULAR_DEPARTURE=off` (read
