@@ -71,6 +71,7 @@ use tagdeflect_core::tags::cell_homography;
 mod band;
 mod excess;
 mod fit;
+mod kernel2d;
 mod lm;
 mod profile;
 mod profile_classes;

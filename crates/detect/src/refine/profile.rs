@@ -29,6 +29,7 @@
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
+use super::kernel2d::{clipped, kernel_mode, site_of, Kernel2d, KernelLearner};
 pub(super) use super::profile_classes::pixel_class;
 use super::profile_classes::{class_mode, smooth_nodes, smoothed_towards, Samples};
 pub use super::profile_classes::{ClassChoice, ClassUse, CLASSES};
@@ -104,6 +105,8 @@ pub struct EdgeProfile {
     choice: ClassChoice,
     /// Edges whose samples built it.
     edges: u64,
+    /// The 2-D kernel model, when `TAGDEFLECT_EDGE_MODEL` asks for it and it is learned.
+    kernel: Option<Kernel2d>,
 }
 
 impl EdgeProfile {
@@ -115,7 +118,19 @@ impl EdgeProfile {
             classes: vec![None; CLASSES],
             choice: ClassChoice::default(),
             edges: 0,
+            kernel: None,
         }
+    }
+
+    /// This profile with `kernel` as its 2-D kernel model (tests).
+    #[cfg(test)]
+    pub(super) fn with_kernel(self, kernel: Kernel2d) -> Self {
+        Self { kernel: Some(kernel), ..self }
+    }
+
+    /// The 2-D kernel model the edges are fitted with instead, if any ([`super::kernel2d`]).
+    pub fn kernel(&self) -> Option<&Kernel2d> {
+        self.kernel.as_ref()
     }
 
     /// Which profile each pixel class is fitted with.
@@ -342,6 +357,7 @@ pub struct ProfileLearner {
     /// The classed samples kept for the class decision (until [`ProfileLearner::decided`]).
     samples: Samples,
     edges: u64,
+    kernel: KernelLearner,
 }
 
 impl Default for ProfileLearner {
@@ -352,6 +368,7 @@ impl Default for ProfileLearner {
             orientations: vec![Nodes::default(); 2],
             samples: Samples::default(),
             edges: 0,
+            kernel: KernelLearner::default(),
         }
     }
 }
@@ -401,6 +418,9 @@ impl ProfileLearner {
                 continue;
             }
             let v = (pixel_value(image, p.index) - black) / contrast;
+            if kernel_mode() > 0 && !clipped(image, p.index) {
+                self.kernel.add(site_of(p.index, image.width), &band.normal, d, v);
+            }
             self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }
         self.close_edge();
@@ -468,7 +488,8 @@ impl ProfileLearner {
             }
             _ => self.decided_classes(own, keep),
         };
-        Some(EdgeProfile { values, classes, choice, edges: self.edges })
+        let kernel = (kernel_mode() > 0).then(|| self.kernel.solve(kernel_mode() == 2)).flatten();
+        Some(EdgeProfile { values, classes, choice, edges: self.edges, kernel })
     }
 
     /// Each class's profile as decided where it pays ([`Samples::decide`]), or as `keep`
