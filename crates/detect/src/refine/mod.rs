@@ -77,6 +77,7 @@ mod kernel2d;
 mod lm;
 mod profile;
 mod profile_classes;
+mod profile_curve;
 mod profile_fit;
 
 use band::{select_band, EdgeBand, TagBands};
