@@ -20,6 +20,7 @@ mod detect_accuracy;
 mod detect_sim;
 mod docs;
 mod drift;
+mod edge_bias;
 mod faults;
 mod formations;
 mod gauges;

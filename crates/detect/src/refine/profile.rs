@@ -29,9 +29,12 @@
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
+use super::kernel2d::{clipped, kernel_mode, site_of, Kernel2d, KernelLearner};
 pub(super) use super::profile_classes::pixel_class;
 use super::profile_classes::{class_mode, smooth_nodes, smoothed_towards, Samples};
 pub use super::profile_classes::{ClassChoice, ClassUse, CLASSES};
+use super::profile_curve::centroid_px;
+pub(super) use super::profile_curve::interpolate;
 use tagdeflect_core::frame::GrayImage;
 
 /// Spacing of the profile's nodes, pixels, by default (see [`node_px`]).
@@ -104,6 +107,8 @@ pub struct EdgeProfile {
     choice: ClassChoice,
     /// Edges whose samples built it.
     edges: u64,
+    /// The 2-D kernel model, when `TAGDEFLECT_EDGE_MODEL` asks for it and it is learned.
+    kernel: Option<Kernel2d>,
 }
 
 impl EdgeProfile {
@@ -115,7 +120,19 @@ impl EdgeProfile {
             classes: vec![None; CLASSES],
             choice: ClassChoice::default(),
             edges: 0,
+            kernel: None,
         }
+    }
+
+    /// This profile with `kernel` as its 2-D kernel model (tests).
+    #[cfg(test)]
+    pub(super) fn with_kernel(self, kernel: Kernel2d) -> Self {
+        Self { kernel: Some(kernel), ..self }
+    }
+
+    /// The 2-D kernel model the edges are fitted with instead, if any ([`super::kernel2d`]).
+    pub fn kernel(&self) -> Option<&Kernel2d> {
+        self.kernel.as_ref()
     }
 
     /// Which profile each pixel class is fitted with.
@@ -159,63 +176,6 @@ impl EdgeProfile {
     pub fn centroid_px(&self) -> f64 {
         centroid_px(&self.values)
     }
-}
-
-/// `P(d)` and `dP/dd` of the tabulated `values` (nodes evenly over ±[`RANGE_PX`];
-/// Catmull–Rom between nodes, constant beyond).
-#[inline(always)]
-pub(super) fn interpolate(v: &[f64], d: f64) -> (f64, f64) {
-    let n = v.len();
-    let step = 2.0 * RANGE_PX / (n - 1) as f64;
-    let u = (d + RANGE_PX) / step;
-    if !(u > 0.0) {
-        return (v[0], 0.0);
-    }
-    if u >= (n - 1) as f64 {
-        return (v[n - 1], 0.0);
-    }
-    // 0 < u < NODES − 1: truncation is the floor.
-    let i = u as usize;
-    let t = u - i as f64;
-    let p1 = v[i];
-    let p2 = v[i + 1];
-    let p0 = if i > 0 { v[i - 1] } else { p1 };
-    let p3 = if i + 2 < n { v[i + 2] } else { p2 };
-    let (m1, m2) = (0.5 * (p2 - p0), 0.5 * (p3 - p1));
-    let (t2, t3) = (t * t, t * t * t);
-    let value = (2.0 * t3 - 3.0 * t2 + 1.0) * p1 + (t3 - 2.0 * t2 + t) * m1 + (-2.0 * t3 + 3.0 * t2) * p2 + (t3 - t2) * m2;
-    let slope = (6.0 * t2 - 6.0 * t) * p1 + (3.0 * t2 - 4.0 * t + 1.0) * m1 + (-6.0 * t2 + 6.0 * t) * p2 + (3.0 * t2 - 2.0 * t) * m2;
-    (value, slope / step)
-}
-
-/// The centroid of the tabulated profile's line-spread function (see
-/// [`EdgeProfile::centroid_px`]).
-fn centroid_px(values: &[f64]) -> f64 {
-    let w = CENTRE_HALF_WIDTH_PX;
-    let value = |d: f64| interpolate(values, d).0;
-    // −∫(d − c)P′ = ∫P − w (P(c + w) + P(c − w)) over the window: decreasing in c for a
-    // rising edge; bisection on ±0.75 px.
-    let g = |c: f64| {
-        let steps = 160;
-        let h = 2.0 * w / steps as f64;
-        let mut s = 0.5 * (value(c - w) + value(c + w));
-        for k in 1..steps {
-            s += value(c - w + k as f64 * h);
-        }
-        s * h - w * (value(c + w) + value(c - w))
-    };
-    let (mut lo, mut hi) = (-0.75, 0.75);
-    // g rises through its root for a dark-to-bright profile.
-    let falling = g(lo) > g(hi);
-    for _ in 0..40 {
-        let mid = 0.5 * (lo + hi);
-        if (g(mid) > 0.0) == falling {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
 }
 
 /// The distance of node `k` from the edge, pixels.
@@ -342,6 +302,7 @@ pub struct ProfileLearner {
     /// The classed samples kept for the class decision (until [`ProfileLearner::decided`]).
     samples: Samples,
     edges: u64,
+    kernel: KernelLearner,
 }
 
 impl Default for ProfileLearner {
@@ -352,6 +313,7 @@ impl Default for ProfileLearner {
             orientations: vec![Nodes::default(); 2],
             samples: Samples::default(),
             edges: 0,
+            kernel: KernelLearner::default(),
         }
     }
 }
@@ -401,6 +363,9 @@ impl ProfileLearner {
                 continue;
             }
             let v = (pixel_value(image, p.index) - black) / contrast;
+            if kernel_mode() > 0 && !clipped(image, p.index) {
+                self.kernel.add(site_of(p.index, image.width), &band.normal, d, v);
+            }
             self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }
         self.close_edge();
@@ -468,7 +433,8 @@ impl ProfileLearner {
             }
             _ => self.decided_classes(own, keep),
         };
-        Some(EdgeProfile { values, classes, choice, edges: self.edges })
+        let kernel = (kernel_mode() > 0).then(|| self.kernel.solve(kernel_mode() == 2)).flatten();
+        Some(EdgeProfile { values, classes, choice, edges: self.edges, kernel })
     }
 
     /// Each class's profile as decided where it pays ([`Samples::decide`]), or as `keep`

@@ -12,8 +12,9 @@
 
 use nalgebra::{Matrix4, Vector4, Vector5};
 
-use super::band::{band_values, reference_levels, BandPixel, EdgeBand};
+use super::band::{pixel_value, reference_levels, BandPixel, EdgeBand};
 use super::fit::{finish, Line};
+use super::kernel2d::{clipped, site_of, EdgeKernel};
 use super::lm::{minimize, EdgeModel};
 use super::profile::{pixel_class, EdgeProfile};
 use tagdeflect_core::frame::GrayImage;
@@ -40,24 +41,29 @@ pub(super) fn fit_band_profile(image: &GrayImage, band: &EdgeBand, warm: Option<
     if contrast0.abs() < 4.0 {
         return None;
     }
-    let values = band_values(image, band);
     let [bl, c, blur] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
-    let aw: Vec<f64> = band.pixels.iter().map(|p| if p.white { along_white(profile, band, p.t, p.cell as usize) } else { 0.0 }).collect();
-    let classes: Vec<usize> = band.pixels.iter().map(|p| pixel_class(&band.normal, p.index, image.width)).collect();
-    let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &classes, profile };
+    // The 2-D kernel is linear: a pixel the camera clipped is left out of its fit.
+    let kernel = profile.kernel().map(|k| k.along(&band.normal));
+    let pixels: Vec<BandPixel> = band.pixels.iter().copied().filter(|p| kernel.is_none() || !clipped(image, p.index)).collect();
+    let values: Vec<f64> = pixels.iter().map(|p| pixel_value(image, p.index)).collect();
+    let aw: Vec<f64> = pixels.iter().map(|p| if p.white { along_white(profile, band, p.t, p.cell as usize) } else { 0.0 }).collect();
+    let class_of = |i: usize| if kernel.is_some() { site_of(i, image.width) } else { pixel_class(&band.normal, i, image.width) };
+    let classes: Vec<usize> = pixels.iter().map(|p| class_of(p.index)).collect();
+    let data = ProfileData { pixels: &pixels, values: &values, aw: &aw, classes: &classes, profile, kernel: kernel.as_ref() };
     let (x, cost) = lm(band, &data, Vector4::new(0.0, 0.0, bl, c));
     let EdgeBand { a, dir, normal, bit_px, .. } = *band;
-    finish(&Vector5::new(x[0], x[1], x[2], x[3], blur), &band.pixels, cost, contrast0, bit_px, a, dir, normal)
+    finish(&Vector5::new(x[0], x[1], x[2], x[3], blur), &pixels, cost, contrast0, bit_px, a, dir, normal)
 }
 
 /// What a profile fit runs on: the band's pixels, their values, along-edge white factors and
-/// pixel classes, and the profile.
+/// pixel classes (mosaic sites with a kernel), and the profile (or the 2-D kernel along this edge).
 struct ProfileData<'a> {
     pixels: &'a [BandPixel],
     values: &'a [f64],
     aw: &'a [f64],
     classes: &'a [usize],
     profile: &'a EdgeProfile,
+    kernel: Option<&'a EdgeKernel<'a>>,
 }
 
 /// The weighted cost, JᵀWJ and JᵀWr of the model at `x` = (angle, offset, B, C).
@@ -68,9 +74,13 @@ fn normal_equations(data: &ProfileData<'_>, x: &Vector4<f64>) -> (f64, Matrix4<f
     let profile = data.profile;
     for (((s, &value), &wa), &class) in data.pixels.iter().zip(data.values).zip(data.aw).zip(data.classes) {
         let n = s.n * cs + s.t * sn - off;
-        let (mut val, mut slope) = profile.class_value_slope(class, n);
+        let model = |d: f64, mirrored: bool| match data.kernel {
+            Some(k) => k.value_slope(class, d, mirrored),
+            None => profile.class_value_slope(class, d),
+        };
+        let (mut val, mut slope) = model(n, false);
         if wa > 0.0 {
-            let (v2, s2) = profile.class_value_slope(class, -n - s.gap);
+            let (v2, s2) = model(-n - s.gap, true);
             val += wa * v2;
             slope -= wa * s2;
         }
@@ -114,6 +124,33 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_kernel_models_jacobian_matches_finite_differences() {
+        // A 3×3 sharpening of amount 1 after the pixel, as a 5 × 5 kernel.
+        let mut taps = [0.0; super::super::kernel2d::TAPS];
+        taps[12] = 2.0;
+        [7, 11, 13, 17].into_iter().for_each(|k| taps[k] = -0.25);
+        let kernel = super::super::kernel2d::Kernel2d::from_taps(vec![taps]);
+        let profile = EdgeProfile::from_fn(|d| d.clamp(-0.5, 0.5) + 0.5).with_kernel(kernel);
+        for (t, n, white) in [(9.3, -3.7, true), (6.0, -3.9, true), (14.0, -0.8, false), (2.5, 0.3, false)] {
+            let band = one_pixel_band(t, n, white);
+            let along = profile.kernel().expect("a kernel").along(&band.normal);
+            let aw = [if white { 0.83 } else { 0.0 }];
+            let values = [150.0];
+            let data =
+                ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[1], profile: &profile, kernel: Some(&along) };
+            let model = ProfileModel { data: &data, len: band.len };
+            for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
+                let p = band.pixels[0];
+                let nn = p.n * x[0].cos() + p.t * x[0].sin() - x[1];
+                let val = along.value_slope(1, nn, false).0 + aw[0] * along.value_slope(1, -nn - p.gap, true).0;
+                assert!(val.abs() > 1e-3, "the model is not flat at {nn}");
+                let r = x[2] + x[3] * val - values[0];
+                check_one_pixel_jacobian(&model, &x, p.weight, r, 1e-4);
+            }
+        }
+    }
+
+    #[test]
     fn the_profile_models_jacobian_matches_finite_differences() {
         // A sharpened edge's profile (it overshoots), tabulated.
         let esf = |d: f64, s: f64| 1.0 / (1.0 + (-d / s).exp());
@@ -122,7 +159,7 @@ mod tests {
             let band = one_pixel_band(t, n, white);
             let aw = [if white { 0.83 } else { 0.0 }];
             let values = [250.0];
-            let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[3], profile: &profile };
+            let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[3], profile: &profile, kernel: None };
             let model = ProfileModel { data: &data, len: band.len };
             for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
                 let p = band.pixels[0];
