@@ -16,7 +16,7 @@ use tagdeflect_core::frame::Frame;
 pub(crate) struct Emitter {
     camera: usize,
     tx: Sender<SourceEvent>,
-    stats: Arc<CaptureStats>,
+    pub(super) stats: Arc<CaptureStats>,
     /// Connection events not yet delivered (channel was full), oldest first.
     pending: VecDeque<SourceEvent>,
     /// Undelivered drop counts per reason.
