@@ -14,7 +14,7 @@ use std::time::Duration;
 use sha2::Digest;
 use tagdeflect_core::audit::{verify_chain, AuditEntry, ChainBroken};
 
-use crate::http::{get, post, rig_config, Daemon};
+use crate::http::{demo_with_tests, get, post, rig_config, Daemon};
 
 fn sha256_file(path: &Path) -> String {
     tagdeflect_core::audit::hex(&sha2::Sha256::digest(std::fs::read(path).unwrap()))
@@ -190,10 +190,7 @@ fn the_shared_token_works_without_a_users_file_and_is_logged_as_such() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     let cfg = rig_config(dir.path(), None);
-    let mut d =
-        Daemon::start(&["demo", "--config", cfg.to_str().unwrap(), "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()]);
-    let addr = d.addr();
-    let token = std::fs::read_to_string(tests_dir.join(".token")).unwrap().trim().to_string();
+    let (mut d, addr, token) = demo_with_tests(Some(&cfg), &tests_dir, &[]);
     assert_eq!(post_as(addr, "wrong-token-0123456789", "zero", serde_json::json!({})).0, 401);
     let (code, st) = post_as(addr, &token, "start", serde_json::json!({"specimen": "S1", "standard": "astm-c1609"}));
     assert_eq!(code, 200, "{st}");

@@ -92,16 +92,7 @@ fn table(p: &SimParams) -> String {
 /// The page's driver `tests/fixtures/SCRIPT` run with `args` beside the daemon `d`, which is
 /// stopped after it: what the driver saw (one JSON object), asserted free of errors.
 fn drive_page(script: &str, args: &[std::ffi::OsString], d: &mut Daemon) -> serde_json::Value {
-    let out = Command::new(crate::http::python())
-        .arg(crate::common::root().join("tests/fixtures").join(script))
-        .args(args)
-        .stdin(std::process::Stdio::null())
-        .output()
-        .expect("run the browser driver");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or(""))
-        .unwrap_or_else(|e| panic!("{e}: {stdout}{}", String::from_utf8_lossy(&out.stderr)));
-    println!("BROWSER {seen}");
+    let seen = crate::http::browser(script, args);
     assert!(seen.get("error").is_none() && seen.get("timeout").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
     assert_eq!(d.stop(), Some(0));
     seen

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use crate::http::{get, post, tagdeflect_test, Daemon};
+use crate::http::{browser, demo_with_tests, get, post, tagdeflect_test, Daemon};
 use tagdeflect::config::Config;
 use tagdeflect_sim::SimRig;
 
@@ -189,16 +189,7 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     let bearer = format!("Bearer {token}");
     let (code, answer) = post(addr, "/api/specimens", &[("Content-Type", "text/csv"), ("Authorization", &bearer)], table.as_bytes());
     assert_eq!(code, 200, "{answer}");
-    let out = Command::new(crate::http::python())
-        .arg(crate::common::root().join("tests/fixtures/start_form_page.py"))
-        .arg(format!("http://{addr}/"))
-        .arg(&token)
-        .stdin(std::process::Stdio::null())
-        .output()
-        .expect("run the browser driver");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
-    println!("BROWSER {seen}");
+    let seen = browser("start_form_page.py", [format!("http://{addr}/"), token]);
     assert!(seen.get("error").is_none() && seen.get("timeout").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
     assert_eq!(seen["specimen_default"], "next", "{seen}");
     assert_eq!(seen["standard_taken"], "astm-c1609", "{seen}");
@@ -244,10 +235,7 @@ fn test_start_follows_retry_after_while_a_stop_is_completed() {
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     let hold = dir.path().join("the-report-may-go");
-    let args = ["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
-    let mut d = Daemon::start_with_env(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
-    let addr = d.addr();
-    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let (mut d, addr, token) = demo_with_tests(None, &tests_dir, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
     let token_file = tests_dir.join(".token");
     let start = |specimen: &str, extra: &[&str]| -> Vec<String> {
         let mut a = vec!["start", "--specimen", specimen, "--standard", "astm-c1609"];
@@ -258,7 +246,6 @@ fn test_start_follows_retry_after_while_a_stop_is_completed() {
     let cli = |a: &[String]| test_cli(addr, &token_file, &a.iter().map(String::as_str).collect::<Vec<_>>());
     let (code, _, err) = cli(&start("R1", &[]));
     assert_eq!(code, 0, "{err}");
-    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
     // The stop, from another client: its report waits for the hold.
     let stop = std::thread::spawn(move || {
         let bearer = format!("Bearer {token}");
@@ -321,30 +308,17 @@ fn the_page_presses_start_again_after_the_retry_after_of_a_stop_being_completed(
     let dir = tempfile::tempdir().unwrap();
     let tests_dir = dir.path().join("tests");
     let hold = dir.path().join("the-report-may-go");
-    let args = ["demo", "--http", "127.0.0.1:0", "--tests", tests_dir.to_str().unwrap()];
-    let mut d = Daemon::start_with_env(&args, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
-    let addr = d.addr();
-    d.wait_stderr("control token: ", Duration::from_secs(60), "the control API");
+    let (mut d, addr, token) = demo_with_tests(None, &tests_dir, &[("TAGDEFLECT_HOLD_REPORT", hold.as_os_str())]);
     let token_file = tests_dir.join(".token");
     let start = ["start", "--specimen", "P1", "--standard", "astm-c1609", "--measured", "width_mm=150", "--measured", "depth_mm=150"];
     let (code, _, err) = test_cli(addr, &token_file, &[&start[..], &["--measured", "span_mm=450"]].concat());
     assert_eq!(code, 0, "{err}");
-    let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
     let bearer = format!("Bearer {token}");
     let stop = std::thread::spawn(move || {
         post(addr, "/api/test/stop", &[("Content-Type", "application/json"), ("Authorization", bearer.as_str())], b"{}")
     });
     d.wait_stderr("the report waits until", Duration::from_secs(60), "the stop reached its report");
-    let out = Command::new(crate::http::python())
-        .arg(crate::common::root().join("tests/fixtures/start_retry_page.py"))
-        .arg(format!("http://{addr}/"))
-        .args([token.as_str(), hold.to_str().unwrap(), "P2"])
-        .stdin(std::process::Stdio::null())
-        .output()
-        .expect("run the browser driver");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let seen: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("")).unwrap_or_else(|e| panic!("{e}: {stdout}"));
-    println!("BROWSER {seen}");
+    let seen = browser("start_retry_page.py", [format!("http://{addr}/"), token, hold.display().to_string(), "P2".to_string()]);
     assert!(seen.get("error").is_none(), "{seen}\n{}", d.stderr.lock().unwrap());
     assert_eq!(seen["start_disabled"], true, "the page greys start while it knows of the stop: {seen}");
     let waits = seen["waits"].as_str().unwrap();

@@ -199,7 +199,7 @@ pub const CORNER_BIAS_REFERENCE_BIT_PX: f64 = 4.0;
 /// refinement's bias changes as the bits shrink in pixels, and on a tilted board that is
 /// what moves fx: the far side's tags shrink more than the near side's, which looks like
 /// another perspective. The σ are what the refinement leaves on rendered views with known
-/// truth (`tests/it/calibrate.rs::rendered_tag_corner_bias`, docs/calibration.md), whose size
+/// truth (`tests/it/calibrate_rendered.rs::rendered_tag_corner_bias`, docs/calibration.md), whose size
 /// and sign on a real camera (blur, print, lens) are not known;
 /// [`crate::calibrate_target_views`] adds their effect on the intrinsics to the covariance.
 #[derive(Debug, Clone, Copy, PartialEq)]

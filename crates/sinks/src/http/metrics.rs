@@ -35,6 +35,10 @@ pub struct Metrics {
     pub pose_reproj_px: Family<CameraLabel, Gauge<f64, AtomicU64>>,
     /// 1 when the camera has a pose.
     pub posed: Family<CameraLabel, Gauge>,
+    /// How late the camera's frames steadily arrive, as the frame sets learned it (the feed's
+    /// `cameras[].arrival_delay_ms`), seconds; no series while it is learned or the camera is
+    /// silent.
+    pub arrival_delay_s: Family<CameraLabel, Gauge<f64, AtomicU64>>,
     /// Frame sets solved (feed lines made).
     pub sets_solved: Counter,
     /// Frame sets dropped by the drop-oldest queue in front of the solver.
@@ -96,6 +100,7 @@ impl Metrics {
             bumps: Family::default(),
             pose_reproj_px: Family::default(),
             posed: Family::default(),
+            arrival_delay_s: Family::default(),
             sets_solved: Counter::default(),
             sets_dropped: Counter::default(),
             // 1 ms … ~16 s.
@@ -130,6 +135,11 @@ impl Metrics {
             m.pose_reproj_px.clone(),
         );
         registry.register("camera_posed", "1 when the camera has a pose", m.posed.clone());
+        registry.register(
+            "camera_arrival_delay_seconds",
+            "How late the camera's frames steadily arrive (learned by the frame sets' wait), seconds",
+            m.arrival_delay_s.clone(),
+        );
         registry.register("frame_sets_solved", "Frame sets solved (feed lines)", m.sets_solved.clone());
         registry.register("frame_sets_dropped", "Frame sets dropped in front of the solver (it fell behind)", m.sets_dropped.clone());
         registry.register("feed_latency_seconds", "Frame set complete to feed line, seconds", m.latency.clone());
@@ -180,10 +190,12 @@ mod tests {
         m.frames.get_or_create(&cam("left")).inc();
         m.latency.observe(0.012);
         m.pose_reproj_px.get_or_create(&cam("left")).set(0.25);
+        m.arrival_delay_s.get_or_create(&cam("left")).set(0.125);
         let text = m.encode();
         assert!(text.contains("tagdeflect_camera_frames_total{camera=\"left\"} 1"), "{text}");
         assert!(text.contains("tagdeflect_feed_latency_seconds_bucket"), "{text}");
         assert!(text.contains("tagdeflect_camera_pose_reprojection_px{camera=\"left\"} 0.25"), "{text}");
+        assert!(text.contains("tagdeflect_camera_arrival_delay_seconds{camera=\"left\"} 0.125"), "{text}");
         assert!(text.trim_end().ends_with("# EOF"), "{text}");
     }
 }

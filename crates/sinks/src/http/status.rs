@@ -98,6 +98,9 @@ pub struct SourceStatus {
     pub bumped_recently: bool,
     /// RMS reprojection error of the background tags with the pose in use, px.
     pub pose_reproj_px: Option<f64>,
+    /// How late the camera's frames steadily arrive, as the last feed line said
+    /// (`cameras[].arrival_delay_ms`), ms.
+    pub arrival_delay_ms: Option<f64>,
     /// Background tags seen in the last frame set.
     pub background_tags: Option<usize>,
     /// Specimen tags seen in the last frame set.
@@ -349,6 +352,7 @@ impl Ctx<'_> {
             bumps: s.bumps,
             bumped_recently,
             pose_reproj_px: h.and_then(|h| h.pose_reproj_px),
+            arrival_delay_ms: h.and_then(|h| h.arrival_delay_ms),
             background_tags: h.map(|h| h.background_tags),
             specimen_tags: h.map(|h| h.specimen_tags),
             pose: s.pose.map(|p| {

@@ -190,6 +190,11 @@ impl LiveView {
                 m.pose_reproj_px.get_or_create(&l).set(r);
             }
             m.posed.get_or_create(&l).set(h.posed as i64);
+            if let Some(d) = h.arrival_delay_ms {
+                m.arrival_delay_s.get_or_create(&l).set(d / 1e3);
+            } else {
+                m.arrival_delay_s.remove(&l);
+            }
             if h.bumped {
                 m.bumps.get_or_create(&l).inc();
             }

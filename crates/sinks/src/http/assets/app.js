@@ -260,13 +260,13 @@ function cameraCard(src) {
   const img = node("img", "thumb");
   img.alt = `camera ${src.name}: no snapshot yet`;
   const dl = node("dl");
-  for (const [label, cls] of [["pose reprojection", "reproj"], ["frame rate", "rate"], ["frames / dropped", "frames"], ["tags seen", "seen"]]) {
+  for (const [label, cls] of [["pose reprojection", "reproj"], ["frame rate", "rate"], ["frames / dropped", "frames"], ["arrival delay", "delay"], ["tags seen", "seen"]]) {
     dl.append(node("dt", "", label), node("dd", cls, "–"));
   }
   el.append(head, img, dl);
   $("cameras").append(el);
   c = { el, img: el.querySelector("img"), state: el.querySelector(".state"), reproj: el.querySelector(".reproj"),
-    rate: el.querySelector(".rate"), frames: el.querySelector(".frames"), seen: el.querySelector(".seen"), seq: -1 };
+    rate: el.querySelector(".rate"), frames: el.querySelector(".frames"), delay: el.querySelector(".delay"), seen: el.querySelector(".seen"), seq: -1 };
   S.cams.set(src.name, c);
   return c;
 }
@@ -305,6 +305,7 @@ function onStatus(st) {
     c.reproj.textContent = src.pose_reproj_px === null ? "–" : `${fmt(src.pose_reproj_px, 3)} px`;
     c.rate.textContent = src.frame_rate_hz === null ? "–" : `${fmt(src.frame_rate_hz, 1)} Hz` + (src.fps ? ` (set ${src.fps} Hz)` : "");
     c.frames.textContent = `${src.frames} / ${src.frames_dropped}` + (src.bumps ? ` · ${src.bumps} bump${src.bumps > 1 ? "s" : ""}` : "");
+    c.delay.textContent = src.arrival_delay_ms == null ? "–" : `${fmt(src.arrival_delay_ms, 0)} ms`;
     c.seen.textContent = src.background_tags === null ? "–" : `${src.specimen_tags} specimen, ${src.background_tags} background`;
     if (src.snapshot) showSnapshot(src.name, src.snapshot.url, src.snapshot.seq);
   }
