@@ -135,10 +135,11 @@ pub fn build(
             (feed_curve.clone(), format!("the feed's load_kN, sampled at the frame rate (every {:.0} ms)", 1e3 * period))
         }
     };
-    let entries = match opts.standard {
+    let all = match opts.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => c1609::compute(&curve, &beam),
         Standard::En14651 => en14651::compute(&curve, &beam),
     };
+    let entries = method_results(all, opts.method.as_ref());
     let tol = |t: Option<f64>| t.map_or(String::new(), |t| format!(" ± {t}"));
     match opts.standard {
         Standard::AstmC1609 => notes.push(format!(
