@@ -50,7 +50,7 @@ fn methods_reviewed_specimens_imported_and_a_start_refused_without_geometry() {
     // located file:line:key.
     let (code, out, err) = tagdeflect(&["method", "list", "--tests", t]);
     assert_eq!(code, 0, "{err}");
-    for name in ["C1609-19 v1 astm-c1609", "C1856-17 v2 astm-c1856", "EN14651-05 v1 en-14651"] {
+    for name in ["C1609-19 v2 astm-c1609", "C1856-17 v3 astm-c1856", "EN14651-05 v1 en-14651"] {
         assert!(out.lines().any(|l| l.starts_with(name) && l.contains("(built-in) not reviewed")), "{name}: {out}");
     }
     let (code, out, err) =
@@ -194,7 +194,7 @@ fn the_start_form_takes_a_method_and_the_next_specimen_in_chromium() {
     assert_eq!(seen["specimen_default"], "next", "{seen}");
     assert_eq!(seen["standard_taken"], "astm-c1609", "{seen}");
     assert!(
-        seen["requires_s2"].as_str().unwrap().contains("C1609-19 v1, not reviewed needs width_mm, depth_mm, span_mm — missing: span_mm"),
+        seen["requires_s2"].as_str().unwrap().contains("C1609-19 v2, not reviewed needs width_mm, depth_mm, span_mm — missing: span_mm"),
         "{seen}"
     );
     let refused = seen["refused"].as_str().unwrap();

@@ -23,6 +23,12 @@ pub(crate) fn read_json(p: &Path) -> serde_json::Value {
 /// A test of a softening beam run through the control API of `demo` (start with measured
 /// dimensions, notes and a standard; a mark; stop): its folder, and the beam of the config.
 fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::BeamConfig) {
+    a_test_folder_of(dir, specimen, None)
+}
+
+/// [`a_test_folder`] started with the method `method` (a file of `<tests>/methods/`) instead
+/// of the standard, when given.
+fn a_test_folder_of(dir: &Path, specimen: &str, method: Option<&str>) -> (PathBuf, tagdeflect_report::BeamConfig) {
     let params = SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
     let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
     cfg.utm = Config::demo().utm;
@@ -47,10 +53,14 @@ fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::Bea
         std::thread::sleep(Duration::from_millis(100));
     }
     let token = std::fs::read_to_string(&token_file).unwrap().trim().to_string();
-    let body = serde_json::json!({
+    let mut body = serde_json::json!({
         "specimen": specimen, "operator": "A. Tester", "standard": "astm-c1609", "notes": "cast in mould 3",
         "measured": {"width_mm": beam.width_mm + 0.4, "depth_mm": beam.depth_mm - 0.3},
     });
+    if let Some(m) = method {
+        body.as_object_mut().unwrap().remove("standard");
+        body["method"] = m.into();
+    }
     let auth = format!("Bearer {token}");
     let (code, answer) =
         post(addr, "/api/test/start", &[("Content-Type", "application/json"), ("Authorization", &auth)], body.to_string().as_bytes());
@@ -179,6 +189,80 @@ fn the_report_at_stop_equals_report_dir_and_test_json_wins_over_the_config() {
         assert!(err.contains(&format!("{}: {named}", rec_path.display())), "{err}");
         assert!(!dir.path().join("bad").join("report.json").exists(), "nothing written");
     }
+}
+
+/// The keys of the results table of a report's page, in its order.
+fn page_results(html: &str) -> Vec<String> {
+    let table = html.split("<h2>Results</h2>").nth(1).and_then(|t| t.split("</table>").next()).expect("a results table");
+    table.split("<td class=\"key\">").skip(1).map(|c| c.split('<').next().unwrap().to_string()).collect()
+}
+
+/// A method's `results` are the report's: a lab's method naming four of C1609's results, in
+/// its own order, gives a report at stop with only those (report.json, the page) that equals
+/// `report DIR`'s, and a series of only those; a method naming a result its standard does not
+/// give is refused when it is read, naming the file, the line and the key, exit 2.
+#[test]
+fn a_method_s_results_are_the_report_s_and_an_unknown_one_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let methods = dir.path().join("tests").join("methods");
+    std::fs::create_dir_all(&methods).unwrap();
+    let shipped = tagdeflect_core::method::SHIPPED[0].1;
+    let all = r#"results = ["P1", "delta1", "f1", "Pp", "deltap", "fp", "P600", "P150", "f600", "f150", "T150", "RT150"]"#;
+    assert!(shipped.contains(all), "the shipped C1609 method names every result of today's reports");
+    // No preload and a high start limit: the test starts at once, whatever the load.
+    let lab = shipped
+        .replace("C1609-19", "C1609-LAB")
+        .replace("preload_kn = 0.5\n", "")
+        .replace("max_start_load_kn = 2.0", "max_start_load_kn = 500.0");
+    let bad = lab.replace("C1609-LAB", "C1609-BAD").replace(all, r#"results = ["P1", "f1", "f300", "T150"]"#);
+    let lab = lab.replace(all, r#"results = ["f150", "f1", "T150", "P1"]"#);
+    std::fs::write(methods.join("C1609-LAB.toml"), &lab).unwrap();
+    std::fs::write(methods.join("C1609-BAD.toml"), &bad).unwrap();
+    let t = dir.path().join("tests");
+    let o = tagdeflect(&["method", "show", "C1609-BAD", "--tests", t.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    let line = bad.lines().position(|l| l.starts_with("results =")).unwrap() + 1;
+    assert!(err.contains(&format!("C1609-BAD.toml:{line}: `results[2]`")) && err.contains("\"f300\""), "{err}");
+
+    let (folder, _) = a_test_folder_of(dir.path(), "M1", Some("C1609-LAB"));
+    let want = ["f150", "f1", "T150", "P1"];
+    let at_stop = read_json(&folder.join("report/report.json"));
+    assert_eq!(at_stop["method"]["name"], "C1609-LAB", "{}", at_stop["method"]);
+    let mut given: Vec<&str> =
+        at_stop.as_object().unwrap().keys().map(String::as_str).filter(|k| all.contains(&format!("\"{k}\""))).collect();
+    given.extend(at_stop["undetermined"].as_object().map_or(Vec::new(), |u| u.keys().map(String::as_str).collect()));
+    given.sort_unstable();
+    let mut sorted = want.to_vec();
+    sorted.sort_unstable();
+    assert_eq!(given, sorted, "report.json gives the method's results, no other: {at_stop}");
+    let mut defined: Vec<&str> = at_stop["definitions"].as_object().unwrap().keys().map(String::as_str).collect();
+    defined.sort_unstable();
+    assert_eq!(defined, sorted, "and defines only those");
+    let html = std::fs::read_to_string(folder.join("report/report.html")).unwrap();
+    assert_eq!(page_results(&html), want, "the page's results: the method's, in its order");
+    let again = report_dir(&folder, &dir.path().join("again"));
+    assert_eq!(comparable(at_stop.clone()), comparable(again), "the report made at the stop and `report DIR` differ");
+
+    // A series of the folder and its copy (beside it, so the method is found): only those.
+    let copy = folder.with_file_name("M1-copy");
+    assert!(Command::new("cp").args(["-r", folder.to_str().unwrap(), copy.to_str().unwrap()]).status().unwrap().success());
+    let out = dir.path().join("series");
+    let o =
+        tagdeflect(&["report", "--series", folder.to_str().unwrap(), copy.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let series = read_json(&out.join("series.json"));
+    let mut stats: Vec<&str> = series["statistics"].as_object().unwrap().keys().map(String::as_str).collect();
+    stats.sort_unstable();
+    assert_eq!(stats, sorted, "{series}");
+    let csv = std::fs::read_to_string(out.join("series.csv")).unwrap();
+    let header = csv.lines().next().unwrap();
+    let columns: Vec<&str> = want.iter().copied().filter(|k| header.contains(&format!(",{k} ["))).collect();
+    assert_eq!(columns, want, "{header}");
+    for k in ["delta1", "Pp", "f600", "RT150"] {
+        assert!(!header.contains(&format!(",{k} [")), "{k} not in the series' CSV: {header}");
+    }
+    assert_eq!(page_results(&std::fs::read_to_string(copy.join("report/report.html")).unwrap()), want);
 }
 
 pub(crate) fn verify(dir: &Path) -> (Option<i32>, String) {

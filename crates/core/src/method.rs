@@ -145,6 +145,18 @@ pub struct MethodReview {
     pub meaning: String,
 }
 
+/// The results each standard's report can give (`report.json` keys), in the order of today's
+/// reports; a method's `results` names some of them, in its own order.
+pub const STANDARD_RESULTS: [(&str, &[&str]); 3] =
+    [("astm-c1609", &C1609_RESULTS), ("astm-c1856", &C1609_RESULTS), ("en-14651", &["FL", "fL", "fR1", "fR2", "fR3", "fR4"])];
+
+const C1609_RESULTS: [&str; 12] = ["P1", "delta1", "f1", "Pp", "deltap", "fp", "P600", "P150", "f600", "f150", "T150", "RT150"];
+
+/// The results a report of `standard` can give (empty for an unknown standard).
+pub fn results_of(standard: &str) -> &'static [&'static str] {
+    STANDARD_RESULTS.iter().find(|(s, _)| *s == standard).map_or(&[], |(_, r)| r)
+}
+
 /// The rules a method holds, each of which needs a `[[source]]` row.
 pub const RULES: [&str; 5] = ["requires", "max_start_load_kn", "phase", "end", "results"];
 
@@ -186,10 +198,26 @@ impl Method {
             p.validate().map_err(|e| e.within(&format!("phase[{k}]")))?;
         }
         self.end.validate().map_err(|e| e.within("end"))?;
+        self.validate_results()?;
+        self.validate_sources()
+    }
+
+    /// At least one result, each one its standard's report gives, none twice.
+    fn validate_results(&self) -> Result<(), Problem> {
         if self.results.is_empty() {
             return Err(Problem::new("results", "at least one result"));
         }
-        self.validate_sources()
+        let known = results_of(&self.standard);
+        for (k, r) in self.results.iter().enumerate() {
+            if !known.contains(&r.as_str()) {
+                let says = format!("\"{}\": a {} report gives {}", r.escape_debug(), self.standard, known.join(", "));
+                return Err(Problem::new(format!("results[{k}]"), says));
+            }
+            if self.results[..k].contains(r) {
+                return Err(Problem::new(format!("results[{k}]"), format!("\"{r}\" is named twice")));
+            }
+        }
+        Ok(())
     }
 
     /// Every rule has a source; every source names a rule, a document and a clause.
@@ -321,6 +349,12 @@ mod tests {
         assert_eq!(Method::parse(&text).unwrap_err().key, "max_start_load_kn");
         let text = SHIPPED[0].1.replace("rule = \"end\"", "rule = \"results\"");
         assert!(Method::parse(&text).unwrap_err().message.contains("rule = \"end\""));
+        let text = SHIPPED[2].1.replace("\"fR3\", \"fR4\"]", "\"fR3\", \"fR5\"]");
+        let p = Method::parse(&text).unwrap_err();
+        assert_eq!(p.key, "results[5]", "{p}");
+        assert!(p.message.contains("\"fR5\": a en-14651 report gives FL, fL, fR1"), "{p}");
+        let text = SHIPPED[0].1.replace("\"P1\", \"delta1\"", "\"P1\", \"P1\"");
+        assert_eq!(Method::parse(&text).unwrap_err().key, "results[1]");
         let text = format!("record_frames = \"yes\"\n{}", SHIPPED[0].1);
         assert_eq!(Method::parse(&text).unwrap_err().key, "record_frames");
     }

@@ -11,7 +11,7 @@ use crate::config::ReportConfig;
 use crate::curve::{Curve, CurveError};
 use crate::error::ReportError;
 use crate::feed_reader::Feed;
-use crate::report::{Report, TestRig};
+use crate::report::{Entry, Report, TestRig};
 use crate::standard::Standard;
 use crate::tag_stats::TagStats;
 use crate::utm_stream::UtmStream;
@@ -135,10 +135,11 @@ pub fn build(
             (feed_curve.clone(), format!("the feed's load_kN, sampled at the frame rate (every {:.0} ms)", 1e3 * period))
         }
     };
-    let entries = match opts.standard {
+    let all = match opts.standard {
         Standard::AstmC1609 | Standard::AstmC1856 => c1609::compute(&curve, &beam),
         Standard::En14651 => en14651::compute(&curve, &beam),
     };
+    let entries = method_results(all, opts.method.as_ref());
     let tol = |t: Option<f64>| t.map_or(String::new(), |t| format!(" ± {t}"));
     match opts.standard {
         Standard::AstmC1609 => notes.push(format!(
@@ -239,6 +240,15 @@ pub fn build(
 }
 
 /// One QC warning per glitched load reading left out of `curve` (at most 10, then a count).
+/// The results the test's method names, in its order (every result of the standard without a
+/// method). A method naming a result its standard does not give is refused when it is read.
+fn method_results(all: Vec<Entry>, method: Option<&tagdeflect_core::method::Method>) -> Vec<Entry> {
+    match method {
+        Some(m) => m.results.iter().filter_map(|r| all.iter().find(|e| e.key == r.as_str()).cloned()).collect(),
+        None => all,
+    }
+}
+
 fn glitch_warnings(curve: &Curve, what: &str) -> Vec<String> {
     let t0 = curve.t_ns.first().copied().unwrap_or(0);
     let mut out: Vec<String> = curve
@@ -418,4 +428,45 @@ fn gauge_reference_sigma(feed: &Feed, name: &str) -> (f64, String) {
     }
     let s = crate::curve::median(&mut first[1..]);
     (s, format!(", plus the σ of its zero reference ({s:.4} mm: the median σ of its first lines), common to every point"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::BeamConfig;
+    use tagdeflect_core::method::{results_of, Method, SHIPPED};
+
+    /// A softening curve to 3.5 mm of the gauge: every result of either standard determined.
+    fn curve() -> Curve {
+        let n = 1801;
+        let x: Vec<f64> = (0..n).map(|i| 0.002 * i as f64).collect();
+        let load: Vec<f64> = x.iter().map(|&x| if x <= 0.05 { 600.0 * x } else { 30.0 - 2.0 * x }).collect();
+        let t_ns: Vec<i64> = (0..n as i64).map(|i| i * 100_000_000).collect();
+        Curve::new(t_ns, load, x, vec![Some(0.001); n], 0.001, 5, 0.01, "deflection").unwrap()
+    }
+
+    /// The results a method may name are those the report computes, in today's order; a method
+    /// naming fewer gives only those, in its order.
+    #[test]
+    fn a_report_gives_the_method_s_results_in_its_order() {
+        let beam = BeamConfig { width_mm: 150.0, depth_mm: 150.0, span_mm: 450.0, notch_mm: Some(25.0), ..Default::default() };
+        let keys = |e: &[Entry]| e.iter().map(|e| e.key).collect::<Vec<_>>();
+        let (c, en) = (c1609::compute(&curve(), &beam), en14651::compute(&curve(), &beam));
+        assert_eq!(keys(&c), results_of("astm-c1609"));
+        assert_eq!(keys(&c), results_of("astm-c1856"));
+        assert_eq!(keys(&en), results_of("en-14651"));
+        for (name, text) in SHIPPED {
+            let m = Method::parse(text).unwrap();
+            let all = if m.standard == "en-14651" { en.clone() } else { c.clone() };
+            assert_eq!(keys(&method_results(all.clone(), Some(&m))), keys(&all), "{name} gives what its standard gives");
+        }
+        let short = Method::parse(&SHIPPED[0].1.replace(
+            r#"results = ["P1", "delta1", "f1", "Pp", "deltap", "fp", "P600", "P150", "f600", "f150", "T150", "RT150"]"#,
+            r#"results = ["f150", "f1", "T150"]"#,
+        ))
+        .unwrap();
+        let picked = method_results(c.clone(), Some(&short));
+        assert_eq!(keys(&picked), ["f150", "f1", "T150"]);
+        assert_eq!(picked[1], c[2], "the entry itself, unchanged");
+    }
 }

@@ -76,7 +76,7 @@ struct Figures {
 
 fn figures(reports: &[Report], sel: &Selection) -> Figures {
     let used: Vec<&Report> = sel.used.iter().map(|&i| &reports[i]).collect();
-    let st = stats(&used);
+    let st = stats(reports.first(), &used);
     let en = reports.first().is_some_and(|r| r.standard == Standard::En14651);
     let characteristic = if en { characteristic(&st, &EN_KEYS) } else { Vec::new() };
     let ck = |k: &str| characteristic.iter().find(|c| c.key == k).and_then(|c| c.value);

@@ -21,9 +21,11 @@ pub struct Stat {
     pub cov_pct: f64,
 }
 
-/// The statistics per quantity of `reports` (the specimens used), in the standard's order.
-pub fn stats(reports: &[&Report]) -> Vec<Stat> {
-    let Some(first) = reports.first() else { return Vec::new() };
+/// The statistics per quantity of `reports` (the specimens used), the quantities and their
+/// order `order`'s (the series' first report: its method's results), each with its `n` — 0
+/// and no mean when no specimen is used.
+pub fn stats(order: Option<&Report>, reports: &[&Report]) -> Vec<Stat> {
+    let Some(first) = order else { return Vec::new() };
     first
         .entries
         .iter()
@@ -33,7 +35,13 @@ pub fn stats(reports: &[&Report]) -> Vec<Stat> {
                 .filter_map(|r| r.entries.iter().find(|x| x.key == e.key).and_then(|x| x.result.as_ref().ok()).map(|q| q.value))
                 .collect();
             let (mean, sd) = mean_sd(&vals);
-            let unit = e.result.as_ref().map(|q| q.unit.clone()).unwrap_or_default();
+            let unit = reports
+                .iter()
+                .filter_map(|r| r.entries.iter().find(|x| x.key == e.key).and_then(|x| x.result.as_ref().ok()))
+                .chain(e.result.as_ref().ok())
+                .map(|q| q.unit.clone())
+                .next()
+                .unwrap_or_default();
             Stat { key: e.key, unit, n: vals.len(), mean, sd, cov_pct: 100.0 * sd / mean.abs() }
         })
         .collect()
