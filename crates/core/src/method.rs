@@ -210,7 +210,7 @@ impl Method {
         let known = results_of(&self.standard);
         for (k, r) in self.results.iter().enumerate() {
             if !known.contains(&r.as_str()) {
-                let says = format!("\"{}\": a {} report gives {}", r.escape_debug(), self.standard, known.join(", "));
+                let says = format!("\"{}\": the {} report gives {}", r.escape_debug(), self.standard, known.join(", "));
                 return Err(Problem::new(format!("results[{k}]"), says));
             }
             if self.results[..k].contains(r) {
@@ -352,7 +352,7 @@ mod tests {
         let text = SHIPPED[2].1.replace("\"fR3\", \"fR4\"]", "\"fR3\", \"fR5\"]");
         let p = Method::parse(&text).unwrap_err();
         assert_eq!(p.key, "results[5]", "{p}");
-        assert!(p.message.contains("\"fR5\": a en-14651 report gives FL, fL, fR1"), "{p}");
+        assert!(p.message.contains("\"fR5\": the en-14651 report gives FL, fL, fR1"), "{p}");
         let text = SHIPPED[0].1.replace("\"P1\", \"delta1\"", "\"P1\", \"P1\"");
         assert_eq!(Method::parse(&text).unwrap_err().key, "results[1]");
         let text = format!("record_frames = \"yes\"\n{}", SHIPPED[0].1);
