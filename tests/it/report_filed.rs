@@ -404,7 +404,7 @@ fn the_specimen_s_row_reaches_report_json_and_the_page() {
     let text = format!("report_fields = [\"client\", \"project\"]\n{text}");
     fs::create_dir_all(dir.path().join("methods")).unwrap();
     fs::write(dir.path().join("methods/C1609-ROW.toml"), &text).unwrap();
-    let sha = format!("{:x}", <sha2::Sha256 as sha2::Digest>::digest(text.as_bytes()));
+    let sha = tagdeflect_core::method::library::sha256_hex(text.as_bytes());
     let version = tagdeflect_core::method::Method::parse(&text).unwrap().version;
     let method = serde_json::json!({"name": "C1609-ROW", "version": version, "standard": "astm-c1609", "sha256": sha});
     let extra = serde_json::json!({"specimen_info": info, "measured": {"width_mm": 150.4, "depth_mm": 149.9}, "method": method});
