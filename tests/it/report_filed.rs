@@ -366,7 +366,8 @@ fn the_crack_entry_and_the_method_in_force_reach_the_report() {
 /// The specimen's row of the lab's table, as test.json carries it (`specimen_info`: readings,
 /// cast date and age, mix, fibre and dosage, client, project), reaches report.json's
 /// `specimen.info` whole and the page's Specimen section; test.json's measured means are the
-/// dimensions used.
+/// dimensions used; a method naming `report_fields` has the page show only those details,
+/// report.json still the whole row.
 #[test]
 fn the_specimen_s_row_reaches_report_json_and_the_page() {
     let dir = tempfile::tempdir().unwrap();
@@ -396,4 +397,29 @@ fn the_specimen_s_row_reaches_report_json_and_the_page() {
         assert!(html.contains(shown), "{shown} on the page");
     }
     assert!(html.contains("<th>Cast</th><td>2026-11-01</td>"), "the cast date in the identification");
+
+    // A method naming the details its report shows (`report_fields`): the page shows those and
+    // the standard's identification, report.json keeps the whole row.
+    let text = tagdeflect_core::method::SHIPPED[0].1.replace("C1609-19", "C1609-ROW");
+    let text = format!("report_fields = [\"client\", \"project\"]\n{text}");
+    fs::create_dir_all(dir.path().join("methods")).unwrap();
+    fs::write(dir.path().join("methods/C1609-ROW.toml"), &text).unwrap();
+    let sha = tagdeflect_core::method::library::sha256_hex(text.as_bytes());
+    let version = tagdeflect_core::method::Method::parse(&text).unwrap().version;
+    let method = serde_json::json!({"name": "C1609-ROW", "version": version, "standard": "astm-c1609", "sha256": sha});
+    let extra = serde_json::json!({"specimen_info": info, "measured": {"width_mm": 150.4, "depth_mm": 149.9}, "method": method});
+    let folder = test_folder(&dir.path().join("m"), false, "astm-c1609", extra);
+    let out = dir.path().join("rm");
+    let o =
+        tagdeflect(&["report", folder.to_str().unwrap(), "--config", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--no-pdf"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j = read_json(&out.join("report.json"));
+    assert_eq!(j["method"]["name"], "C1609-ROW", "the method applied: {}", j["qc"]);
+    assert_eq!(j["specimen"]["info"], info, "the row whole in report.json whatever the method shows");
+    let html = fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("<b>Client:</b> ACME; <b>Project:</b> Bridge 7</p>"), "the method's details on the page");
+    for hidden in ["<b>Mix:</b>", "<b>Fibre:</b>", "<b>Dosage:</b>", "<b>width_mm:</b>"] {
+        assert!(!html.contains(hidden), "{hidden} not on the page of a method that does not name it");
+    }
+    assert!(html.contains("<th>Cast</th><td>2026-11-01</td>"), "the standard's identification whatever the method");
 }

@@ -51,6 +51,11 @@ pub struct Method {
     pub end: End,
     /// The results the report gives (report.json keys).
     pub results: Vec<String>,
+    /// The specimen's details the printed report shows beside the standard's identification
+    /// (which it always shows): any of [`REPORT_FIELDS`], in the report's order; absent: all
+    /// the test holds. `report.json` keeps every detail whatever this says (it is the record).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report_fields: Option<Vec<String>>,
     /// The public source of every rule above.
     #[serde(rename = "source")]
     pub sources: Vec<Source>,
@@ -157,6 +162,11 @@ pub fn results_of(standard: &str) -> &'static [&'static str] {
     STANDARD_RESULTS.iter().find(|(s, _)| *s == standard).map_or(&[], |(_, r)| r)
 }
 
+/// The specimen's details a method may have its printed report show (`report_fields`): the
+/// lab's table's row beyond the standard's identification (specimen, operator, dates, age,
+/// machine, laboratory, which every report shows).
+pub const REPORT_FIELDS: [&str; 6] = ["mix", "fibre", "dosage_kg_m3", "client", "project", "readings"];
+
 /// The rules a method holds, each of which needs a `[[source]]` row.
 pub const RULES: [&str; 5] = ["requires", "max_start_load_kn", "phase", "end", "results"];
 
@@ -199,6 +209,7 @@ impl Method {
         }
         self.end.validate().map_err(|e| e.within("end"))?;
         self.validate_results()?;
+        self.validate_report_fields()?;
         self.validate_sources()
     }
 
@@ -218,6 +229,27 @@ impl Method {
             }
         }
         Ok(())
+    }
+
+    /// Each of the report's fields one of [`REPORT_FIELDS`], none twice.
+    fn validate_report_fields(&self) -> Result<(), Problem> {
+        let Some(fields) = &self.report_fields else { return Ok(()) };
+        for (k, f) in fields.iter().enumerate() {
+            if !REPORT_FIELDS.contains(&f.as_str()) {
+                let says = format!("\"{}\": one of {}", f.escape_debug(), REPORT_FIELDS.join(", "));
+                return Err(Problem::new(format!("report_fields[{k}]"), says));
+            }
+            if fields[..k].contains(f) {
+                return Err(Problem::new(format!("report_fields[{k}]"), format!("\"{f}\" is named twice")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether the printed report shows the specimen's detail `field` (one of
+    /// [`REPORT_FIELDS`]): every one when the method names none.
+    pub fn shows_field(&self, field: &str) -> bool {
+        self.report_fields.as_ref().map_or(true, |f| f.iter().any(|x| x == field))
     }
 
     /// Every rule has a source; every source names a rule, a document and a clause.
@@ -355,8 +387,25 @@ mod tests {
         assert!(p.message.contains("\"fR5\": the en-14651 report gives FL, fL, fR1"), "{p}");
         let text = SHIPPED[0].1.replace("\"P1\", \"delta1\"", "\"P1\", \"P1\"");
         assert_eq!(Method::parse(&text).unwrap_err().key, "results[1]");
+        let text = format!("report_fields = [\"client\", \"colour\"]\n{}", SHIPPED[0].1);
+        let p = Method::parse(&text).unwrap_err();
+        assert_eq!(p.key, "report_fields[1]", "{p}");
+        assert!(p.message.contains("\"colour\": one of mix, fibre"), "{p}");
+        let text = format!("report_fields = [\"mix\", \"mix\"]\n{}", SHIPPED[0].1);
+        assert_eq!(Method::parse(&text).unwrap_err().key, "report_fields[1]");
         let text = format!("record_frames = \"yes\"\n{}", SHIPPED[0].1);
         assert_eq!(Method::parse(&text).unwrap_err().key, "record_frames");
+    }
+
+    #[test]
+    fn a_method_names_the_specimen_details_its_report_shows_or_leaves_them_all() {
+        for (name, text) in SHIPPED {
+            let m = Method::parse(text).unwrap();
+            assert!(REPORT_FIELDS.iter().all(|f| m.shows_field(f)), "{name} shows every detail");
+        }
+        let m = Method::parse(&format!("report_fields = [\"project\", \"client\"]\n{}", SHIPPED[0].1)).unwrap();
+        assert!(m.shows_field("client") && m.shows_field("project"));
+        assert!(!m.shows_field("mix") && !m.shows_field("readings"));
     }
 
     #[test]

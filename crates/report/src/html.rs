@@ -298,19 +298,22 @@ fn specimen(h: &mut String, report: &Report) {
 }
 
 /// The specimen's row of the lab's table (`test.json`'s `specimen_info`): mix, fibre and
-/// dosage, client, project, and each dimension's readings whose mean the test measured.
+/// dosage, client, project, and each dimension's readings whose mean the test measured —
+/// those the test's method names in `report_fields` (every one without a method or a list).
 fn specimen_row(h: &mut String, report: &Report) {
     let Some(i) = report.test.as_ref().and_then(|t| t.specimen_info.as_ref()) else { return };
+    let shows = |field: &str| report.options.method.as_ref().map_or(true, |m| m.shows_field(field));
     let mut parts: Vec<String> = Vec::new();
-    for (name, v) in [("Mix", &i.mix), ("Fibre", &i.fibre), ("Client", &i.client), ("Project", &i.project)] {
-        if let Some(v) = v {
+    let named = [("mix", "Mix", &i.mix), ("fibre", "Fibre", &i.fibre), ("client", "Client", &i.client), ("project", "Project", &i.project)];
+    for (field, name, v) in named {
+        if let Some(v) = v.as_ref().filter(|_| shows(field)) {
             parts.push(format!("<b>{name}:</b> {}", esc(v)));
         }
     }
-    if let Some(d) = i.dosage_kg_m3 {
+    if let Some(d) = i.dosage_kg_m3.filter(|_| shows("dosage_kg_m3")) {
         parts.push(format!("<b>Dosage:</b> {d} kg/m³"));
     }
-    for (dim, r) in i.readings.iter().filter(|(_, r)| r.len() > 1) {
+    for (dim, r) in i.readings.iter().filter(|(_, r)| r.len() > 1 && shows("readings")) {
         let list: Vec<String> = r.iter().map(|v| v.to_string()).collect();
         parts.push(format!("<b>{}:</b> {} (their mean measured)", esc(dim), list.join(", ")));
     }
