@@ -15,6 +15,7 @@ const S = {
   netHi: [], netLo: [], // net deflection ± 2σ (net_deflection_sigma_mm), aligned with t
   partial: [],         // the net deflection of a partial frame set (else null), aligned with t
   testIds: [],         // the test of each line (null between tests), aligned with t
+  zeroing: [],         // true for a test's line that is one of its zero's sets, aligned with t
   earlier: [],         // the day's stopped tests: {id, specimen, net_deflection_mm, load_kn}
   tagIds: [],          // specimen tag ids in column order
   tags: new Map(),     // id -> downward displacement [mm] aligned with t
@@ -160,7 +161,7 @@ function addTag(id, role) {
 function decimate() {
   const keep = (a) => a.filter((_, i) => i % 2 === 0);
   S.t = keep(S.t); S.load = keep(S.load); S.net = keep(S.net); S.stroke = keep(S.stroke);
-  S.cmodv = keep(S.cmodv); S.testIds = keep(S.testIds);
+  S.cmodv = keep(S.cmodv); S.testIds = keep(S.testIds); S.zeroing = keep(S.zeroing);
   S.netHi = keep(S.netHi); S.netLo = keep(S.netLo); S.partial = keep(S.partial);
   for (const [id, a] of S.tags) S.tags.set(id, keep(a));
 }
@@ -180,6 +181,7 @@ function onLine(line) {
   const cmod = S.status && S.status.cmod_gauge && line.gauges ? line.gauges[S.status.cmod_gauge] : undefined;
   S.cmodv.push(cmod ? cmod.value : null);
   S.testIds.push(line.test ? line.test.id : null);
+  S.zeroing.push(Boolean(line.test && line.test.zeroing));
   const seen = new Map();
   for (const t of line.tags || []) seen.set(t.id, -(t.disp_mm[0] * ux + t.disp_mm[1] * uy + t.disp_mm[2] * uz));
   for (const id of seen.keys()) if (!S.tags.has(id)) { addTag(id, null); S.tags.get(id).pop(); rebuildTagChart(); }

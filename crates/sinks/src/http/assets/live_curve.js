@@ -9,11 +9,13 @@
 const C = { id: null, span: null, events: [], verification: null, reportP1: null };
 const MARK_COLOURS = { mark: "#ffd600", zero: "#00c8ff", preload: "#9aa0a6", crack: "#ff5252", start: "#7cb342", stop: "#7cb342" };
 
-// The test's points in time order: [{x, y, t}] (net deflection, load, s since the first line).
+// The test's points in time order: [{x, y, t}] (net deflection, load, s since the first line),
+// from the line that completed its zero on — the report's curve starts there too, so a load
+// met only while the zero was being taken is never the page's P1.
 function testPoints(id) {
   const pts = [];
   for (let i = 0; i < S.t.length; i++) {
-    if (S.testIds[i] === id && S.net[i] !== null && S.load[i] !== null) pts.push({ x: S.net[i], y: S.load[i], t: S.t[i] });
+    if (S.testIds[i] === id && !S.zeroing[i] && S.net[i] !== null && S.load[i] !== null) pts.push({ x: S.net[i], y: S.load[i], t: S.t[i] });
   }
   return pts;
 }
