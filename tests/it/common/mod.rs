@@ -15,6 +15,9 @@ use tagdeflect::graph::in_process::{self as replay, ReplayOptions, ReplaySummary
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_sim::SimParams;
 
+mod rig;
+pub use rig::{beam_rig_config, sim_beam, sim_rig_config, KeptOnFailure};
+
 /// The demo's own config written into `dir` (`demo.toml`) with its feed into a file there
 /// (`feed.jsonl`): the paths of both.
 pub fn demo_config_with_feed(dir: &Path) -> (PathBuf, PathBuf) {
