@@ -620,15 +620,7 @@ fn a_test_under_the_analog_output_reports_its_control_figures_as_the_device_saw_
     let dac = Dac::start("labjack", None);
     let dir = tempfile::tempdir().unwrap();
     let params = tagdeflect_sim::SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    let beam = tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    };
-    cfg.specimen.beam = Some(beam);
+    let mut cfg = crate::common::beam_rig_config(&params);
     // The small rig's σ is tens of µm: valid up to 1 mm.
     let analog =
         AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };
