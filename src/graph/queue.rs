@@ -110,3 +110,22 @@ impl Drop for CloseOnDrop {
         self.0.close();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A live run's full queue drops its oldest set and counts it before the newer set is
+    /// queued: the solver takes the newest sets, and the line of any set taken after a drop
+    /// counts it (the seqs missing from a feed are as many as its last line's `dropped_sets`).
+    #[test]
+    fn a_full_queue_drops_its_oldest_counted_before_the_newer_is_taken() {
+        let q = SetQueue::new();
+        for seq in 0..5 {
+            q.push(FrameSet { seq, t_ns: 0, frames: Vec::new() });
+        }
+        assert_eq!(q.dropped(), 3);
+        let taken: Vec<u64> = std::iter::from_fn(|| q.pop_timeout(Duration::ZERO).flatten().map(|(s, _)| s.seq)).collect();
+        assert_eq!(taken, vec![3, 4]);
+    }
+}
