@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests: simulate a recording, replay it, compare with
-//! truth, check a feed with the SPEC checker.
+//! truth, check a feed with the SPEC checker; the simulated rig's config for a live run and a
+//! test's folder kept when it fails ([`rig`]).
 #![allow(dead_code)]
 
 use std::fs;
