@@ -30,15 +30,21 @@ impl SetQueue {
         self.dropped.load(Ordering::Relaxed)
     }
 
-    /// Queues `set`, dropping the oldest when full.
+    /// Queues `set`, dropping the oldest when full: counted, and said with its seq (a WARN at
+    /// the 1st, 2nd, 4th, 8th, ... drop of the run).
     pub(crate) fn push(&self, set: FrameSet) {
         let mut g = self.inner.lock().expect("queue lock");
-        if g.0.len() >= QUEUE_SETS {
-            g.0.pop_front();
-            self.dropped.fetch_add(1, Ordering::Relaxed);
-        }
+        // Counted before the newer set is queued: the line of any set solved after it has it.
+        let dropped = (g.0.len() >= QUEUE_SETS)
+            .then(|| g.0.pop_front())
+            .flatten()
+            .map(|(old, _)| (old.seq, self.dropped.fetch_add(1, Ordering::Relaxed) + 1));
         g.0.push_back((set, Instant::now()));
         self.ready.notify_one();
+        drop(g);
+        if let Some((seq, count)) = dropped.filter(|(_, count)| count.is_power_of_two()) {
+            tracing::warn!(seq, dropped_sets = count, "frame set dropped: the solver falls behind (its queue holds {QUEUE_SETS} sets); no feed line has this seq, counted in dropped_sets");
+        }
     }
 
     /// Queues `set`, waiting while the queue is full (an as-fast replay: nothing dropped).
@@ -102,5 +108,24 @@ pub(crate) struct CloseOnDrop(pub(crate) Arc<SetQueue>);
 impl Drop for CloseOnDrop {
     fn drop(&mut self) {
         self.0.close();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A live run's full queue drops its oldest set and counts it before the newer set is
+    /// queued: the solver takes the newest sets, and the line of any set taken after a drop
+    /// counts it (the seqs missing from a feed are as many as its last line's `dropped_sets`).
+    #[test]
+    fn a_full_queue_drops_its_oldest_counted_before_the_newer_is_taken() {
+        let q = SetQueue::new();
+        for seq in 0..5 {
+            q.push(FrameSet { seq, t_ns: 0, frames: Vec::new() });
+        }
+        assert_eq!(q.dropped(), 3);
+        let taken: Vec<u64> = std::iter::from_fn(|| q.pop_timeout(Duration::ZERO).flatten().map(|(s, _)| s.seq)).collect();
+        assert_eq!(taken, vec![3, 4]);
     }
 }

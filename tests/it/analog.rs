@@ -5,7 +5,7 @@
 //! disappears and comes back, a device that answers an exception; and the config errors
 //! located by key.
 
-use std::io::{BufRead, BufReader, Read};
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
@@ -16,7 +16,7 @@ use tagdeflect_core::feed::FeedLine;
 use tagdeflect_io::utm::config::{ValueType, WordOrder};
 use tagdeflect_sinks::analog_output::{AnalogConfig, AnalogOutput, DeviceMap, DigitalOutput, OnInvalid};
 
-use crate::common::{python, unused_port, ChildGuard};
+use crate::common::{listens_within_30_s, python, unused_port, ChildGuard};
 
 /// One write the device received.
 #[derive(Debug, Clone, PartialEq)]
@@ -79,24 +79,7 @@ impl Dac {
                 w.lock().unwrap().push(write);
             }
         });
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if tagdeflect_archive::local::process_listens_on(guard.0.id(), port) {
-                return Some(Dac { _server: guard, port, writes });
-            }
-            if let Ok(Some(status)) = guard.0.try_wait() {
-                let mut err = String::new();
-                if let Some(mut e) = guard.0.stderr.take() {
-                    let _ = e.read_to_string(&mut err);
-                }
-                eprintln!("the pymodbus device exited ({status}) before listening on {port}: {err}");
-                return None;
-            }
-            if Instant::now() > deadline {
-                return None;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        listens_within_30_s(&mut guard, port, "the pymodbus device").then(|| Dac { _server: guard, port, writes })
     }
 
     pub(crate) fn addr(&self) -> String {
@@ -620,15 +603,7 @@ fn a_test_under_the_analog_output_reports_its_control_figures_as_the_device_saw_
     let dac = Dac::start("labjack", None);
     let dir = tempfile::tempdir().unwrap();
     let params = tagdeflect_sim::SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    let beam = tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    };
-    cfg.specimen.beam = Some(beam);
+    let mut cfg = crate::common::beam_rig_config(&params);
     // The small rig's σ is tens of µm: valid up to 1 mm.
     let analog =
         AnalogConfig { offset_v: 1.0, on_invalid: OnInvalid::Volts(0.5), max_sigma_mm: 1.0, ..AnalogConfig::labjack(&dac.addr(), 2.0) };

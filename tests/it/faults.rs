@@ -484,19 +484,11 @@ pub(crate) fn whole_feed_lines(path: &std::path::Path) -> Vec<FeedLine> {
 /// instead of being refused for the seq going back.
 #[test]
 fn a_test_resumed_after_the_daemon_was_killed_gets_its_report() {
-    use tagdeflect::config::Config;
     let dir = tempfile::tempdir().unwrap();
     // Two small simulated cameras at 5 fps, the demo's simulated UTM, a beam for the report.
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
+    let cfg = crate::common::beam_rig_config(&params);
     let rig = dir.path().join("rig.toml");
     fs::write(&rig, cfg.to_toml_string()).unwrap();
     let tests_dir = dir.path().join("tests");
@@ -653,19 +645,11 @@ fn a_stop_signal_during_start_up_stops_the_daemon_cleanly() {
 /// here the completion may or may not finish before the publisher is set.)
 #[test]
 fn a_stop_completed_at_the_next_start_goes_to_the_broker() {
-    use tagdeflect::config::Config;
     let dir = tempfile::tempdir().unwrap();
     let broker = tagdeflect_archive::local::LocalMosquitto::start().unwrap();
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
+    let cfg = crate::common::beam_rig_config(&params);
     let mut text = cfg.to_toml_string();
     text.push_str(&format!("\n[output.mqtt]\nurl = \"{}\"\nrig = \"lab-s\"\ntest = \"day\"\nstatus_interval_s = 1.0\n", broker.url()));
     let rig = dir.path().join("rig.toml");

@@ -8,9 +8,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use crate::http::{browser, demo_with_tests, get, post, rig_config, small_rig, tagdeflect_test, Daemon};
-use tagdeflect::config::Config;
 use tagdeflect_core::feed::FeedLine;
-use tagdeflect_sim::{SimParams, SimRig};
+use tagdeflect_sim::SimParams;
 
 /// Two tests on a running daemon without restarting it, through `tagdeflect test` (the API's
 /// client): start (zero at its first sets), mark, zero, stop; each test's folder complete with
@@ -26,8 +25,7 @@ fn two_tests_through_the_control_api_with_its_refusals() {
     // so far, so its lines' mean displacement is about one set's motion: ~0.05-0.17 mm at the
     // demo's 5 fps once its ramp has started, which a slow start up on a busy machine reached.)
     let params = SimParams { frame_sets: 3000, rest_frames: 2500, ..tagdeflect_sim::live_rig::demo_params() };
-    let mut cfg: Config = tagdeflect::config::Config::from_sim(&SimRig::new(&params).unwrap());
-    cfg.utm = tagdeflect::config::Config::demo().utm;
+    let cfg = crate::common::sim_rig_config(&params);
     let cfg_path = dir.path().join("rest.toml");
     std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let mut d =
@@ -262,14 +260,7 @@ fn a_tests_record_carries_the_hash_of_the_calibration_in_force() {
 fn tests_start_at_the_preload_and_stop_at_the_standards_end_by_themselves() {
     let dir = tempfile::tempdir().unwrap();
     let params = SimParams { frame_sets: 30, ..small_rig() };
-    let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
+    let cfg = crate::common::beam_rig_config(&params);
     let span = params.span_mm;
     let mut text = cfg.to_toml_string();
     text.push_str("\n[output.auto_test]\nstart_load_kn = 5.0\nstandard = \"astm-c1609\"\n");

@@ -7,8 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use tagdeflect::config::Config;
-use tagdeflect_sim::{SimParams, SimRig};
+use tagdeflect_sim::SimParams;
 
 use crate::http::{get, post, small_rig, tagdeflect_test, Daemon};
 
@@ -30,15 +29,8 @@ fn a_test_folder(dir: &Path, specimen: &str) -> (PathBuf, tagdeflect_report::Bea
 /// of the standard, when given.
 fn a_test_folder_of(dir: &Path, specimen: &str, method: Option<&str>) -> (PathBuf, tagdeflect_report::BeamConfig) {
     let params = SimParams { load_law: tagdeflect_sim::LoadLaw::Softening, frame_sets: 600, ..small_rig() };
-    let mut cfg: Config = Config::from_sim(&SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
-    let beam = tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    };
-    cfg.specimen.beam = Some(beam.clone());
+    let cfg = crate::common::beam_rig_config(&params);
+    let beam = crate::common::sim_beam(&params);
     let cfg_path = dir.join("rig.toml");
     std::fs::write(&cfg_path, cfg.to_toml_string()).unwrap();
     let tests_dir = dir.join("tests");

@@ -20,19 +20,11 @@ fn rig(dir: &Path, feed: &Path, max_mb: f64) -> Vec<String> {
 
 /// [`rig`] with the rotation given.
 fn rig_rotated(dir: &Path, feed: &Path, rotation: FeedRotation) -> Vec<String> {
-    use tagdeflect::config::Config;
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
+    let mut cfg = crate::common::beam_rig_config(&params);
     cfg.output.feed = Some(feed.display().to_string());
     cfg.output.feed_rotation = rotation;
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
     let rig = dir.join("rig.toml");
     fs::write(&rig, cfg.to_toml_string()).unwrap();
     ["demo", "--config", rig.to_str().unwrap(), "--http", "127.0.0.1:0"].iter().map(|s| s.to_string()).collect()

@@ -14,18 +14,10 @@ use crate::faults::{tagdeflect_test, whole_feed_lines, LoggedDaemon};
 /// the report, under `dir`, its feed into `feed` if given; the daemon's arguments with
 /// `--tests dir/tests`.
 fn rig(dir: &Path, feed: Option<&Path>) -> Vec<String> {
-    use tagdeflect::config::Config;
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets: 60, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
+    let mut cfg = crate::common::beam_rig_config(&params);
     cfg.output.feed = feed.map(|f| f.display().to_string());
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
     let rig = dir.join("rig.toml");
     fs::write(&rig, cfg.to_toml_string()).unwrap();
     let tests = dir.join("tests");

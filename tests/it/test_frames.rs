@@ -26,19 +26,11 @@ fn rig_reserve(dir: &Path, reserve_mb: Option<f64>) -> Vec<String> {
 /// The rig of [`rig`] with the reserve, `[output] record_tests` and the simulated frame sets
 /// (at 5 fps) given.
 fn rig_with(dir: &Path, reserve_mb: Option<f64>, record_tests: bool, frame_sets: u32) -> Vec<String> {
-    use tagdeflect::config::Config;
     let params =
         SimParams { cameras: 2, width: 480, height: 360, fps: 5.0, frame_sets, rest_frames: 5, subsamples: 4, ..SimParams::default() };
-    let mut cfg = Config::from_sim(&tagdeflect_sim::SimRig::new(&params).unwrap());
-    cfg.utm = Config::demo().utm;
+    let mut cfg = crate::common::beam_rig_config(&params);
     cfg.output.record_tests = record_tests;
     cfg.output.record_tests_reserve_mb = reserve_mb;
-    cfg.specimen.beam = Some(tagdeflect_report::BeamConfig {
-        width_mm: params.beam_width_mm,
-        depth_mm: params.beam_height_mm,
-        span_mm: params.span_mm,
-        ..Default::default()
-    });
     let rig = dir.join("rig.toml");
     fs::write(&rig, cfg.to_toml_string()).unwrap();
     let tests = dir.join("tests");

@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests: simulate a recording, replay it, compare with
-//! truth, check a feed with the SPEC checker.
+//! truth, check a feed with the SPEC checker; the simulated rig's config for a live run and a
+//! test's folder kept when it fails ([`rig`]).
 #![allow(dead_code)]
 
 use std::fs;
@@ -14,6 +15,9 @@ use tagdeflect::config::Recording;
 use tagdeflect::graph::in_process::{self as replay, ReplayOptions, ReplaySummary};
 use tagdeflect_core::feed::FeedLine;
 use tagdeflect_sim::SimParams;
+
+mod rig;
+pub use rig::{beam_rig_config, sim_beam, sim_rig_config, KeptOnFailure};
 
 /// The demo's own config written into `dir` (`demo.toml`) with its feed into a file there
 /// (`feed.jsonl`): the paths of both.
@@ -165,22 +169,29 @@ fn try_start_pymodbus(port: u16) -> Option<ChildGuard> {
         .spawn()
         .expect("cannot start python");
     let mut guard = ChildGuard(child);
+    listens_within_30_s(&mut guard, port, "the pymodbus server").then_some(guard)
+}
+
+/// Waits up to 30 s until `server` (a fixture started with its stderr piped) listens on
+/// 127.0.0.1:`port` itself: true; false, with what happened printed (`what` names the
+/// server), when it exited first or did not listen in time.
+pub fn listens_within_30_s(server: &mut ChildGuard, port: u16, what: &str) -> bool {
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
-        if tagdeflect_archive::local::process_listens_on(guard.0.id(), port) {
-            return Some(guard);
+        if tagdeflect_archive::local::process_listens_on(server.0.id(), port) {
+            return true;
         }
-        if let Ok(Some(status)) = guard.0.try_wait() {
+        if let Ok(Some(status)) = server.0.try_wait() {
             let mut err = String::new();
-            if let Some(mut e) = guard.0.stderr.take() {
+            if let Some(mut e) = server.0.stderr.take() {
                 let _ = e.read_to_string(&mut err);
             }
-            eprintln!("the pymodbus server exited ({status}) before listening on 127.0.0.1:{port}: {err}");
-            return None;
+            eprintln!("{what} exited ({status}) before listening on 127.0.0.1:{port}: {err}");
+            return false;
         }
         if Instant::now() > deadline {
-            eprintln!("the pymodbus server did not listen on 127.0.0.1:{port} within 30 s");
-            return None;
+            eprintln!("{what} did not listen on 127.0.0.1:{port} within 30 s");
+            return false;
         }
         std::thread::sleep(Duration::from_millis(50));
     }
