@@ -18,6 +18,9 @@ use super::SolveError;
 use tagdeflect_core::camera::{skew, CameraIntrinsics, Pose};
 use tagdeflect_core::tags::tag_corners;
 
+mod shift;
+pub use shift::{common_shift_covariance, ViewShift};
+
 /// One camera's view of a specimen tag.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TagView {
@@ -59,6 +62,9 @@ pub struct TagSolution {
     /// The camera poses' part of `centre_covariance` per view used: (index into the input
     /// slice, mm²). A displacement across a re-pose keeps the re-posed camera's part alone.
     pub camera_pose_parts: Vec<(usize, Matrix3<f64>)>,
+    /// Per view used: what a common shift of its four corners does to the solve (the edge
+    /// model's error shared by a tag's corners, `measure`'s model error; see [`ViewShift`]).
+    pub view_shifts: Vec<ViewShift>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
     /// Views used.
@@ -368,6 +374,7 @@ fn tag_solution(
         covariance: cov,
         noise_covariance: noise_cov,
         camera_pose_parts,
+        view_shifts: shift::view_shifts(&summed_jacobians(problem, &best.pose), &h_inv),
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,
@@ -376,6 +383,14 @@ fn tag_solution(
         iterations,
         warm_started,
     })
+}
+
+/// Each view's four corners' Jacobians (tag pose step) summed, by input index.
+fn summed_jacobians(problem: &TagProblem<'_>, pose: &Pose) -> Vec<(usize, Matrix2x6<f64>)> {
+    let sum = |view: &TagView| -> Matrix2x6<f64> {
+        (0..4).filter_map(|k| tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]).map(|t| t.1)).sum()
+    };
+    problem.views.iter().map(|(index, view)| (*index, sum(view))).collect()
 }
 
 /// The pixel noise's covariance `s² H⁻¹` (`plain`) with each view's corners' σ widened by its
@@ -427,8 +442,9 @@ const EDGE_CORNER_CORRELATION: f64 = -0.5;
 
 /// Whether the pixel noise's covariance takes the corners' errors as correlated through their
 /// shared edge lines: `TAGDEFLECT_CORNER_CORRELATION=edges` (a measurement, not the default;
-/// docs/accuracy.md, "The displacement σ's terms against the real error"). Read once.
-fn corners_correlated() -> bool {
+/// docs/accuracy.md, "The displacement σ's terms against the real error"; with it the
+/// measurement adds each view's common shift, "A tag's common shift"). Read once.
+pub fn corners_correlated() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var("TAGDEFLECT_CORNER_CORRELATION").is_ok_and(|v| v == "edges"))
 }
