@@ -1,28 +1,29 @@
-//! A tag's common shift per camera, learned from the views' disagreement beyond the noise
-//! (with `TAGDEFLECT_CORNER_CORRELATION=edges`; docs/accuracy.md, "A tag's common shift").
+//! A tag's edge offsets per camera, learned from the views' disagreement beyond the noise
+//! (with `TAGDEFLECT_CORNER_CORRELATION=edges`; docs/accuracy.md, "A tag's edge offsets").
 //!
-//! **What it is.** An edge model that is off biases each fitted edge by an amount that
-//! depends on where the edge falls on the pixel grid; a tag's four edges in one camera share
-//! much of it, so the four corners move together: a 2-D shift of the whole tag in that view.
-//! The pixel noise's covariance (corners correlated through their edge lines) has no such
-//! term, and the corners' residuals show it only in part — the rigid tag's pose, fitted over
-//! every view, absorbs what the views agree on. What is left of it is the view's **mean
-//! corner residual** `ā_v`: with a shift of variance `q` per coordinate in every view
-//! (independent between views), `E|ā_v|²` holds `2 q ρ_v` beside the noise, `ρ_v` the
-//! view's residual share ([`ViewShift::residual_share`](crate::tag_pose::ViewShift)).
+//! **What it is.** An edge model that is off biases each fitted edge line along its normal
+//! by an amount that depends on where the edge falls on the pixel grid: both corners of the
+//! edge move alike (the tag shifts in the image, or looks larger or smaller). The pixel
+//! noise's covariance (corners correlated through their edge lines) has no such term, and
+//! the corners' residuals show it only in part — the rigid tag's pose, fitted over every
+//! view, absorbs what the views agree on. What is left of it is each edge's **offset
+//! residual** `o_i`, the mean of its two corners' residuals along its normal: with an offset
+//! of variance `q` on every edge of every view (independent from edge to edge), `E o_i²`
+//! holds `q ρ_v` beside the noise, `ρ_v` the view's residual share
+//! ([`ViewShift::residual_share`](crate::tag_pose::ViewShift)).
 //!
-//! **The two variances, per camera, the noise cancelled as `model_drift` does.** With `ā_0`
-//! the view's mean residual in the tag's reference set and `ā_{t−1}` in its last:
-//! * the shift's change since the reference, the displacement's model error:
-//!   `q_moved = Σ(|ā_t − ā_0|² − |ā_t − ā_{t−1}|²) / Σ 2ρ` (a tag moves a small part of a
+//! **The two variances, per camera, the noise cancelled as `model_drift` does.** With `o_0`
+//! the view's offset residuals in the tag's reference set and `o_{t−1}` in its last:
+//! * the offsets' change since the reference, the displacement's model error:
+//!   `q_moved = Σ(|o_t − o_0|² − |o_t − o_{t−1}|²) / Σ 4ρ` (a tag moves a small part of a
 //!   pixel a set: the last set shares the bias, the noise is new);
-//! * the shift itself, the position's: `q = Σ(|ā_t|² − |ā_t − ā_{t−1}|² / 2) / Σ 2ρ` (the
-//!   white part of the mean residual taken out with the set-to-set difference).
+//! * the offsets themselves, the position's: `q = Σ(|o_t|² − |o_t − o_{t−1}|² / 2) / Σ 4ρ`
+//!   (the white part taken out with the set-to-set difference).
 //!
-//! Each is carried to a tag's centre as a fully correlated block of the view's four corners
-//! (`common_shift_covariance`).
+//! Each is carried to a tag's centre with each edge's offset a fully correlated block of its
+//! two corners along its normal (`common_shift_covariance`).
 
-use nalgebra::Vector2;
+use nalgebra::{Vector2, Vector4};
 
 /// View comparisons a camera needs before its variances are told.
 const MIN_VIEWS: f64 = 50.0;
@@ -42,16 +43,16 @@ pub(super) struct CommonShift {
     cameras: Vec<CameraSums>,
 }
 
-/// A view's mean corner residual now, in the tag's reference set and in its last set, px.
+/// A view's edge-offset residuals now, in the tag's reference set and in its last set, px.
 pub(super) struct MeanResiduals {
-    pub(super) now: Vector2<f64>,
-    pub(super) first: Vector2<f64>,
-    pub(super) last: Vector2<f64>,
+    pub(super) now: Vector4<f64>,
+    pub(super) first: Vector4<f64>,
+    pub(super) last: Vector4<f64>,
 }
 
 impl CommonShift {
-    /// Adds one view of `camera` with residual share `share` (skipped below 0.05: a shift
-    /// the pose absorbs tells nothing).
+    /// Adds one view of `camera` with residual share `share` (skipped below 0.05: offsets
+    /// the pose absorbs tell nothing).
     pub(super) fn add(&mut self, camera: usize, share: f64, m: &MeanResiduals) {
         if !(share >= 0.05) {
             return;
@@ -63,7 +64,7 @@ impl CommonShift {
         let c = &mut self.cameras[camera];
         c.moved += (m.now - m.first).norm_squared() - step;
         c.level += m.now.norm_squared() - step / 2.0;
-        c.share += 2.0 * share;
+        c.share += 4.0 * share;
         c.views += 1.0;
     }
 
@@ -71,19 +72,26 @@ impl CommonShift {
         self.cameras.get(camera).filter(|c| c.views >= MIN_VIEWS && c.share > 0.0)
     }
 
-    /// The variance of the camera's common shift's change since a tag's reference, px² per
-    /// coordinate (0 when the noise explains the scatter; `None` before enough views).
+    /// The variance of the camera's edge offsets' change since a tag's reference, px² per
+    /// edge (0 when the noise explains the scatter; `None` before enough views).
     pub(super) fn moved_px2(&self, camera: usize) -> Option<f64> {
         self.told(camera).map(|c| (c.moved / c.share).max(0.0))
     }
 
-    /// The variance of the camera's common shift, px² per coordinate.
+    /// The variance of the camera's edge offsets, px² per edge.
     pub(super) fn level_px2(&self, camera: usize) -> Option<f64> {
         self.told(camera).map(|c| (c.level / c.share).max(0.0))
     }
 }
 
-/// The mean of four corner residuals.
-pub(super) fn mean(r: &[Vector2<f64>; 4]) -> Vector2<f64> {
-    r.iter().sum::<Vector2<f64>>() / 4.0
+/// A view's edge-offset residuals: per edge (`normals`, edge `i` from corner `i` to `i + 1`)
+/// the mean of its two corners' residuals `r` along its normal.
+pub(super) fn offsets(r: &[Vector2<f64>; 4], normals: &[Vector2<f64>; 4]) -> Vector4<f64> {
+    Vector4::from_fn(|i, _| normals[i].dot(&(r[i] + r[(i + 1) % 4])) / 2.0)
+}
+
+/// Corner residuals `r` less their edges' offsets `o` (each corner less the offsets of its
+/// two edges along their normals): what an edge's offset does not reach.
+pub(super) fn less_offsets(r: &[Vector2<f64>; 4], o: &Vector4<f64>, normals: &[Vector2<f64>; 4]) -> [Vector2<f64>; 4] {
+    std::array::from_fn(|k| r[k] - normals[k] * o[k] - normals[(k + 3) % 4] * o[(k + 3) % 4])
 }

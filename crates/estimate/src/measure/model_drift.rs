@@ -30,8 +30,8 @@
 
 use nalgebra::{Matrix3, Vector2};
 
-use super::common_shift::{mean, CommonShift, MeanResiduals};
-use crate::tag_pose::{corner_residuals_px, corners_correlated, ViewShift};
+use super::common_shift::{less_offsets, offsets, CommonShift, MeanResiduals};
+use crate::tag_pose::{corner_residuals_px, corners_correlated, edge_normals, ViewShift};
 use crate::TagView;
 
 /// One view's four corner residuals (px) with its camera and that camera's pose epoch.
@@ -42,9 +42,11 @@ pub(super) struct ViewResiduals {
     pub(super) set: u64,
     pub(super) epoch: u64,
     pub(super) residuals_px: [Vector2<f64>; 4],
-    /// The share of a common shift that stays in the view's mean residual
+    /// The share of an edge offset that stays in the view's offset residuals
     /// ([`ViewShift::residual_share`]).
     pub(super) residual_share: f64,
+    /// The view's edge normals in the image ([`edge_normals`]).
+    pub(super) normals: [Vector2<f64>; 4],
 }
 
 /// A tag's corner residuals in one frame set (its views used, rigid tag fitted over them).
@@ -63,7 +65,8 @@ pub(super) fn set_residuals(
     used.filter_map(|i| {
         let residuals_px = corner_residuals_px(&views[i], tag_to_world, size_mm)?;
         let residual_share = shifts.iter().find(|s| s.index == i).map_or(0.0, |s| s.residual_share);
-        Some(ViewResiduals { camera: cameras[i], set: 0, epoch: epochs[cameras[i]], residuals_px, residual_share })
+        let normals = edge_normals(&views[i].corners);
+        Some(ViewResiduals { camera: cameras[i], set: 0, epoch: epochs[cameras[i]], residuals_px, residual_share, normals })
     })
     .collect()
 }
@@ -85,12 +88,12 @@ pub(super) struct ModelDrift {
     from_first: f64,
     from_last: f64,
     coordinates: f64,
-    /// The same two sums of the residuals less their view's mean (the part a common shift
-    /// does not reach), each over its share `(6V − 3)/6V` (`V` views: the pose takes about 3
-    /// of the 6V de-meaned coordinates, the tag's translation the other 3 from the means).
+    /// The same two sums of the residuals less their edges' offsets (the part an edge's
+    /// offset does not reach), each over its share `(4V − 3)/4V` (`V` views: the pose takes
+    /// about 3 of those 4V coordinates, the rest from the offsets).
     demeaned_first: f64,
     demeaned_last: f64,
-    /// Each camera's common shift, from the views' mean residuals (`common_shift`).
+    /// Each camera's edge offsets, from the views' offset residuals (`common_shift`).
     common: CommonShift,
 }
 
@@ -129,37 +132,40 @@ impl ModelDrift {
         }
     }
 
-    /// The views' mean residuals to the common shift, their rest to the de-meaned sums.
+    /// The views' edge-offset residuals to the offsets' sums, their rest to the de-meaned ones.
     fn add_common(&mut self, first: &SetResiduals, last: &SetResiduals, now: &SetResiduals) {
-        let c = (6.0 * now.len() as f64 - 3.0) / (6.0 * now.len() as f64);
+        let c = (4.0 * now.len() as f64 - 3.0) / (4.0 * now.len() as f64);
         for v in now {
             let (Some(f), Some(l)) = (find(first, v), find(last, v)) else { continue };
             if f.set == l.set {
                 continue;
             }
-            let m = MeanResiduals { now: mean(&v.residuals_px), first: mean(&f.residuals_px), last: mean(&l.residuals_px) };
+            let n = &v.normals;
+            let m =
+                MeanResiduals { now: offsets(&v.residuals_px, n), first: offsets(&f.residuals_px, n), last: offsets(&l.residuals_px, n) };
+            let rest = |r: &[Vector2<f64>; 4], o: &nalgebra::Vector4<f64>| less_offsets(r, o, n);
+            let (now_rest, first_rest, last_rest) =
+                (rest(&v.residuals_px, &m.now), rest(&f.residuals_px, &m.first), rest(&l.residuals_px, &m.last));
             for k in 0..4 {
-                let d_first = v.residuals_px[k] - f.residuals_px[k] - (m.now - m.first);
-                let d_last = v.residuals_px[k] - l.residuals_px[k] - (m.now - m.last);
-                self.demeaned_first += d_first.norm_squared() / c;
-                self.demeaned_last += d_last.norm_squared() / c;
+                self.demeaned_first += (now_rest[k] - first_rest[k]).norm_squared() / c;
+                self.demeaned_last += (now_rest[k] - last_rest[k]).norm_squared() / c;
             }
             self.common.add(v.camera, v.residual_share, &m);
         }
     }
 
     /// `D`, px² per corner coordinate (0 when the noise explains the scatter), once 200
-    /// coordinates were compared. With the common shift modelled
-    /// ([`corners_correlated`]), from the residuals less their view's mean (the common
-    /// shift's part is in [`Self::common_centre_covariance`]).
+    /// coordinates were compared. With the edge offsets modelled ([`corners_correlated`]),
+    /// from the residuals less their edges' offsets (the offsets' part is in
+    /// [`Self::common_centre_covariance`]).
     pub(super) fn variance_px2(&self) -> Option<f64> {
         let (first, last) =
             if corners_correlated() { (self.demeaned_first, self.demeaned_last) } else { (self.from_first, self.from_last) };
         (self.coordinates >= 200.0).then(|| ((first - last) / self.coordinates).max(0.0))
     }
 
-    /// The covariance a tag's views' common shifts add to its centre, mm²: the shift's
-    /// change since the tag's reference (`moved`, the displacement's) or the shift itself
+    /// The covariance a tag's views' edge offsets add to its centre, mm²: the offsets'
+    /// change since the tag's reference (`moved`, the displacement's) or the offsets themselves
     /// (the position's), each view's camera's (`camera_of` a view's input index); zero until
     /// a camera's is known, and without [`corners_correlated`].
     pub(super) fn common_centre_covariance(
@@ -248,7 +254,7 @@ mod tests {
                             }
                             Vector2::new(r[0], r[1])
                         });
-                        ViewResiduals { camera: cam, set: 0, epoch: 0, residuals_px, residual_share: 0.0 }
+                        ViewResiduals { camera: cam, set: 0, epoch: 0, residuals_px, residual_share: 0.0, normals: [Vector2::x(); 4] }
                     })
                     .collect();
                 drift.observe(kept, now);
@@ -288,7 +294,14 @@ mod tests {
         assert_eq!(drift.variance_px2(), None, "two sets compare nothing yet");
         let mut drift = ModelDrift::default();
         let mut kept = TagResiduals::default();
-        let view = |epoch, r: f64| ViewResiduals { camera: 0, set: 0, epoch, residuals_px: [Vector2::new(r, r); 4], residual_share: 0.0 };
+        let view = |epoch, r: f64| ViewResiduals {
+            camera: 0,
+            set: 0,
+            epoch,
+            residuals_px: [Vector2::new(r, r); 4],
+            residual_share: 0.0,
+            normals: [Vector2::x(); 4],
+        };
         for (epoch, r) in [(0, 0.0), (0, 0.1), (1, 0.5), (1, 0.6)] {
             drift.observe(&mut kept, vec![view(epoch, r), ViewResiduals { camera: 1, ..view(epoch, r) }]);
         }
@@ -299,10 +312,10 @@ mod tests {
     }
 
     /// Forty tags seen by three cameras, solved set after set: each view's corners carry pixel
-    /// noise and, when `step_px > 0`, a common shift (all four corners alike) that starts
-    /// at a random offset of `start_px` and wanders by `step_px` a set. Returns the sums and
-    /// the true mean square of the shift's change since the reference and of the shift, over
-    /// the views compared.
+    /// noise and its four edges an offset along their normals (both corners of an edge
+    /// alike) that starts at a random `start_px` and wanders by `step_px` a set. Returns the
+    /// sums and the true mean square of the offsets' change since the reference and of the
+    /// offsets, per edge over the views compared.
     fn common_shift_of(start_px: f64, step_px: f64, sets: usize) -> (ModelDrift, f64, f64) {
         use crate::tag_pose::solve_tag;
         use tagdeflect_core::camera::{CameraIntrinsics, Pose};
@@ -316,16 +329,19 @@ mod tests {
         let (mut drift, mut moved, mut level, mut compared) = (ModelDrift::default(), 0.0, 0.0, 0.0);
         for t in 0..40 {
             let mut kept = TagResiduals::default();
-            let mut bias: Vec<Vector2<f64>> = (0..3).map(|_| Vector2::new(normal(), normal()) * start_px).collect();
+            let mut bias: Vec<[f64; 4]> = (0..3).map(|_| std::array::from_fn(|_| normal() * start_px)).collect();
             let first = bias.clone();
             for set in 0..sets {
                 let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0 + t as f64, 0.3 * set as f64, 10.0]);
                 let views: Vec<TagView> = (0..3)
                     .map(|c| {
-                        bias[c] += Vector2::new(normal(), normal()) * step_px;
-                        let corners = tag_corners(size).map(|p| {
-                            let px = intrinsics.project(&cams[c].transform(&tag.transform(&p))).expect("in front");
-                            px + bias[c] + Vector2::new(normal(), normal()) * noise_px
+                        bias[c].iter_mut().for_each(|b| *b += normal() * step_px);
+                        let exact =
+                            tag_corners(size).map(|p| intrinsics.project(&cams[c].transform(&tag.transform(&p))).expect("in front"));
+                        let n = edge_normals(&exact);
+                        let corners = std::array::from_fn(|k| {
+                            let edges = n[k] * bias[c][k] + n[(k + 3) % 4] * bias[c][(k + 3) % 4];
+                            exact[k] + edges + Vector2::new(normal(), normal()) * noise_px
                         });
                         TagView { intrinsics, camera_pose: cams[c], camera_pose_covariance: None, corners, corner_sigma_factor: 1.0 }
                     })
@@ -338,8 +354,8 @@ mod tests {
                 drift.observe(&mut kept, now);
                 if set >= 2 {
                     for c in 0..3 {
-                        moved += (bias[c] - first[c]).norm_squared() / 2.0;
-                        level += bias[c].norm_squared() / 2.0;
+                        moved += (0..4).map(|i| (bias[c][i] - first[c][i]).powi(2)).sum::<f64>() / 4.0;
+                        level += bias[c].iter().map(|b| b * b).sum::<f64>() / 4.0;
                         compared += 1.0;
                     }
                 }
@@ -349,7 +365,7 @@ mod tests {
     }
 
     #[test]
-    fn a_common_shift_of_a_tags_corners_is_recovered_through_the_noise() {
+    fn a_tags_edge_offsets_are_recovered_through_the_noise() {
         let (drift, moved, level) = common_shift_of(0.04, 0.01, 40);
         for cam in 0..3 {
             let (m, l) = (drift.common.moved_px2(cam).expect("enough views"), drift.common.level_px2(cam).expect("enough views"));
@@ -357,13 +373,13 @@ mod tests {
             assert!((m - moved).abs() < 0.35 * moved, "camera {cam}: moved {m:.2e} px² against {moved:.2e}");
             assert!((l - level).abs() < 0.35 * level, "camera {cam}: level {l:.2e} px² against {level:.2e}");
         }
-        // The de-meaned corners carry no model error: the shift is all in the means.
+        // The corners less their edges' offsets carry no model error: it is all in the offsets.
         let d = (drift.demeaned_first - drift.demeaned_last) / drift.coordinates;
         assert!(d.abs() < 0.1 * moved, "de-meaned D {d:.2e} px² against the shift's {moved:.2e}");
     }
 
     #[test]
-    fn pixel_noise_alone_gives_no_common_shift() {
+    fn pixel_noise_alone_gives_no_edge_offsets() {
         let (drift, _, _) = common_shift_of(0.0, 0.0, 40);
         for cam in 0..3 {
             let (m, l) = (drift.common.moved_px2(cam).unwrap(), drift.common.level_px2(cam).unwrap());

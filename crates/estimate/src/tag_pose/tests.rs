@@ -165,12 +165,12 @@ fn corners_correlated_through_their_edges_give_the_centres_scatter_under_such_no
     }
 }
 
-/// Each view's corners shifted alike (a common shift of variance `q` per coordinate,
-/// independent between views): the centre's scatter over runs is the covariance
-/// [`common_shift_covariance`] gives, and the views' mean residuals keep the share
-/// [`ViewShift::residual_share`] says.
+/// Each view's edges offset along their normals (both corners of an edge alike; variance `q`
+/// per edge, independent from edge to edge): the centre's scatter over runs is the
+/// covariance [`common_shift_covariance`] gives, and the views' edge-offset residuals keep
+/// the share [`ViewShift::residual_share`] says.
 #[test]
-fn a_common_shift_of_each_views_corners_gives_the_centres_scatter() {
+fn offsets_of_each_views_edges_give_the_centres_scatter() {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
     let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0, 0.0, 10.0]);
@@ -195,8 +195,9 @@ fn a_common_shift_of_each_views_corners_gives_the_centres_scatter() {
         let shifted: Vec<TagView> = views
             .iter()
             .map(|v| {
-                let b = Vector2::new(normal.sample(&mut rng), normal.sample(&mut rng));
-                TagView { corners: v.corners.map(|p| p + b), ..*v }
+                let n = edge_normals(&v.corners);
+                let d: [f64; 4] = std::array::from_fn(|_| normal.sample(&mut rng));
+                TagView { corners: std::array::from_fn(|k| v.corners[k] + n[k] * d[k] + n[(k + 3) % 4] * d[(k + 3) % 4]), ..*v }
             })
             .collect();
         // A pooled noise above the shifts: no view is taken for an outlier.
@@ -206,11 +207,12 @@ fn a_common_shift_of_each_views_corners_gives_the_centres_scatter() {
         scatter += c * c.transpose() / runs as f64;
         for (i, v) in shifted.iter().enumerate() {
             let r = corner_residuals_px(v, &s.tag_to_world, 30.0).unwrap();
-            mean_sq[i] += (r.iter().sum::<Vector2<f64>>() / 4.0).norm_squared() / runs as f64;
+            let n = edge_normals(&views[i].corners);
+            mean_sq[i] += (0..4).map(|e| (n[e].dot(&(r[e] + r[(e + 1) % 4])) / 2.0).powi(2)).sum::<f64>() / runs as f64;
         }
     }
     let ratios: Vec<f64> = (0..3).map(|axis| scatter[(axis, axis)] / predicted[(axis, axis)]).collect();
-    let shares: Vec<f64> = shifts.iter().enumerate().map(|(i, s)| mean_sq[i] / (2.0 * q * s.residual_share)).collect();
+    let shares: Vec<f64> = shifts.iter().enumerate().map(|(i, s)| mean_sq[i] / (4.0 * q * s.residual_share)).collect();
     println!(
         "centre scatter / predicted by axis {ratios:.3?}; views' mean residual / predicted {shares:.3?}, shares {:.3?}",
         shifts.iter().map(|s| s.residual_share).collect::<Vec<_>>()
