@@ -54,7 +54,7 @@ impl CommonShift {
     /// Adds one view of `camera` with residual share `share` (skipped below 0.05: offsets
     /// the pose absorbs tell nothing).
     pub(super) fn add(&mut self, camera: usize, share: f64, m: &MeanResiduals) {
-        if !(share >= 0.05) {
+        if share.is_nan() || share < 0.05 {
             return;
         }
         if self.cameras.len() <= camera {
