@@ -452,7 +452,7 @@ const EDGE_CORNER_CORRELATION: f64 = -0.5;
 /// Whether the pixel noise's covariance takes the corners' errors as correlated through their
 /// shared edge lines: `TAGDEFLECT_CORNER_CORRELATION=edges` (a measurement, not the default;
 /// docs/accuracy.md, "The displacement σ's terms against the real error"; with it the
-/// measurement adds each view's common shift, "A tag's common shift"). Read once.
+/// measurement adds each view's edge offsets, "A tag's edge offsets as a model-error term"). Read once.
 pub fn corners_correlated() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var("TAGDEFLECT_CORNER_CORRELATION").is_ok_and(|v| v == "edges"))

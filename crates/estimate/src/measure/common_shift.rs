@@ -1,5 +1,5 @@
 //! A tag's edge offsets per camera, learned from the views' disagreement beyond the noise
-//! (with `TAGDEFLECT_CORNER_CORRELATION=edges`; docs/accuracy.md, "A tag's edge offsets").
+//! (with `TAGDEFLECT_CORNER_CORRELATION=edges`; docs/accuracy.md, "A tag's edge offsets as a model-error term").
 //!
 //! **What it is.** An edge model that is off biases each fitted edge line along its normal
 //! by an amount that depends on where the edge falls on the pixel grid: both corners of the

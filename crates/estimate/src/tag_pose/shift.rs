@@ -6,7 +6,7 @@
 //! much of them stays in the view's edge-offset residuals (the rest the rigid tag's pose
 //! absorbs), so that their variance can be learned from the residuals
 //! (`measure::model_drift`) and carried to the centre, each edge's offset a fully correlated
-//! block of its two corners (docs/accuracy.md, "A tag's edge offsets").
+//! block of its two corners (docs/accuracy.md, "A tag's edge offsets as a model-error term").
 
 use nalgebra::{Matrix3, Matrix3x4, Matrix4, Matrix4x6, Matrix6, Point2, Vector2};
 
