@@ -10,13 +10,16 @@
 //! as `(12 s_pooled² + SSR) / (12 + dof)`, plus the camera poses' uncertainty propagated
 //! through the solve: `Σ += A_v Σ_v A_vᵀ`, `A_v = (JᵀJ)⁻¹ J_vᵀ J_cam,v`.
 
-use nalgebra::{Matrix2x6, Matrix3, Matrix6, Point2, Vector2, Vector3};
+use nalgebra::{Matrix2x6, Matrix3, Matrix4x6, Matrix6, Point2, Vector2, Vector3};
 
 use super::init::{homography, mirrored, pose_from_homography};
 use super::lm::{minimize, CornerGroups, Evaluation, LmOptions, LmOutcome, PoseProblem};
 use super::SolveError;
 use tagdeflect_core::camera::{skew, CameraIntrinsics, Pose};
 use tagdeflect_core::tags::tag_corners;
+
+mod shift;
+pub use shift::{common_shift_covariance, edge_normals, ViewShift};
 
 /// One camera's view of a specimen tag.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -59,6 +62,9 @@ pub struct TagSolution {
     /// The camera poses' part of `centre_covariance` per view used: (index into the input
     /// slice, mm²). A displacement across a re-pose keeps the re-posed camera's part alone.
     pub camera_pose_parts: Vec<(usize, Matrix3<f64>)>,
+    /// Per view used: what offsets of its four edge lines do to the solve (the edge model's
+    /// error shared by an edge's two corners, `measure`'s model error; see [`ViewShift`]).
+    pub view_shifts: Vec<ViewShift>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
     /// Views used.
@@ -368,6 +374,7 @@ fn tag_solution(
         covariance: cov,
         noise_covariance: noise_cov,
         camera_pose_parts,
+        view_shifts: shift::view_shifts(&edge_jacobians(problem, &best.pose), &h_inv),
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,
@@ -376,6 +383,23 @@ fn tag_solution(
         iterations,
         warm_started,
     })
+}
+
+/// Each view's edges' Jacobians (tag pose step), by input index: row `i` the edge's normal
+/// times its two corners' Jacobians summed ([`ViewShift`]).
+fn edge_jacobians(problem: &TagProblem<'_>, pose: &Pose) -> Vec<(usize, Matrix4x6<f64>)> {
+    let rows = |view: &TagView| -> Matrix4x6<f64> {
+        let j: Vec<Matrix2x6<f64>> = (0..4)
+            .map(|k| tag_corner_terms(view, pose, &problem.corners[k], &view.corners[k]).map_or(Matrix2x6::zeros(), |t| t.1))
+            .collect();
+        let normals = edge_normals(&view.corners);
+        let mut e = Matrix4x6::zeros();
+        for (i, n) in normals.iter().enumerate() {
+            e.set_row(i, &(n.transpose() * (j[i] + j[(i + 1) % 4])));
+        }
+        e
+    };
+    problem.views.iter().map(|(index, view)| (*index, rows(view))).collect()
 }
 
 /// The pixel noise's covariance `s² H⁻¹` (`plain`) with each view's corners' σ widened by its
@@ -427,8 +451,9 @@ const EDGE_CORNER_CORRELATION: f64 = -0.5;
 
 /// Whether the pixel noise's covariance takes the corners' errors as correlated through their
 /// shared edge lines: `TAGDEFLECT_CORNER_CORRELATION=edges` (a measurement, not the default;
-/// docs/accuracy.md, "The displacement σ's terms against the real error"). Read once.
-fn corners_correlated() -> bool {
+/// docs/accuracy.md, "The displacement σ's terms against the real error"; with it the
+/// measurement adds each view's edge offsets, "A tag's edge offsets as a model-error term"). Read once.
+pub fn corners_correlated() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var("TAGDEFLECT_CORNER_CORRELATION").is_ok_and(|v| v == "edges"))
 }

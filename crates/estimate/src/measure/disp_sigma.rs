@@ -40,6 +40,23 @@ use crate::temporal::Step;
 
 type Cross = SMatrix<f64, 6, 3>;
 
+/// What a displacement's covariance is made of now ([`DispZero::covariance`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct DispInputs<'a> {
+    /// The estimate's position covariance, mm² (the filter's when `temporal`).
+    pub(super) estimate: &'a Matrix3<f64>,
+    /// Whether the estimate is the temporal filter's (it holds some of the zero).
+    pub(super) temporal: bool,
+    /// The white share of the pixel noise ([`white_share`]).
+    pub(super) white: f64,
+    /// The edge model's error moved since the zero, mm².
+    pub(super) model: &'a Matrix3<f64>,
+    /// Today's camera-poses parts by camera.
+    pub(super) pose_parts: &'a PoseParts,
+    /// The cameras' pose epochs, by camera.
+    pub(super) epochs: &'a [u64],
+}
+
 /// What a tag's displacement σ keeps of its zero.
 #[derive(Debug, Clone)]
 pub(super) struct DispZero {
@@ -97,37 +114,21 @@ impl DispZero {
         };
     }
 
-    /// The displacement's covariance, mm², from the estimate's position covariance
-    /// `estimate` (the filter's when `temporal`) with the white share `white` of the pixel
-    /// noise, the model error moved since the zero `model`, and today's camera-poses parts
-    /// `pose_parts` by camera (a camera's, with the zero's, added when that camera saw the
-    /// zero and was re-posed since: `epochs` by camera).
-    pub(super) fn covariance(
-        &self,
-        estimate: &Matrix3<f64>,
-        temporal: bool,
-        white: f64,
-        model: &Matrix3<f64>,
-        pose_parts: &PoseParts,
-        epochs: &[u64],
-    ) -> Matrix3<f64> {
-        let cov: Matrix3<f64> = self.terms(estimate, temporal, white, model, pose_parts, epochs).iter().sum();
+    /// The displacement's covariance, mm², from the estimate's position covariance with the
+    /// white share of the pixel noise, the model error moved since the zero, and today's
+    /// camera-poses parts (a camera's, with the zero's, added when that camera saw the zero
+    /// and was re-posed since).
+    pub(super) fn covariance(&self, now: &DispInputs<'_>) -> Matrix3<f64> {
+        let cov: Matrix3<f64> = self.terms(now).iter().sum();
         (cov + cov.transpose()) * 0.5
     }
 
     /// The covariance's terms, as [`DispZero::covariance`] sums them: `w·P`, `w·N_0`,
     /// `−w·(C + Cᵀ)`, `M` and the re-posed cameras' parts, mm².
-    pub(super) fn terms(
-        &self,
-        estimate: &Matrix3<f64>,
-        temporal: bool,
-        white: f64,
-        model: &Matrix3<f64>,
-        pose_parts: &PoseParts,
-        epochs: &[u64],
-    ) -> [Matrix3<f64>; 5] {
-        let c: Matrix3<f64> = if temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
-        [estimate * white, self.noise * white, -(c + c.transpose()) * white, *model, self.re_posed_part(pose_parts, epochs)]
+    pub(super) fn terms(&self, now: &DispInputs<'_>) -> [Matrix3<f64>; 5] {
+        let c: Matrix3<f64> = if now.temporal { self.cross.fixed_view::<3, 3>(0, 0).into_owned() } else { Matrix3::zeros() };
+        let w = now.white;
+        [now.estimate * w, self.noise * w, -(c + c.transpose()) * w, *now.model, self.re_posed_part(now.pose_parts, now.epochs)]
     }
 }
 
@@ -206,7 +207,14 @@ mod tests {
                 let z = Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
                 let u = f.update(k as i64 * 33_333_333, z, &noise, &(noise * 9.0), false);
                 zero.follow(f.last_step());
-                let cov = zero.covariance(&u.covariance, true, 1.0, &Matrix3::zeros(), &[], &[0, 0]);
+                let cov = zero.covariance(&DispInputs {
+                    estimate: &u.covariance,
+                    temporal: true,
+                    white: 1.0,
+                    model: &Matrix3::zeros(),
+                    pose_parts: &[],
+                    epochs: &[0, 0],
+                });
                 *sq += (u.centre.z - z0.z).powi(2) / runs as f64;
                 *predicted += cov[(2, 2)] / runs as f64;
             }
@@ -242,7 +250,14 @@ mod tests {
                     f.update(k as i64 * 33_333_333, sample(), &noise, &(noise * 9.0), false);
                 }
                 zero.follow(f.last_step());
-                let cov = zero.covariance(&f.covariance(), true, 1.0, &Matrix3::zeros(), &[], &[0, 0]);
+                let cov = zero.covariance(&DispInputs {
+                    estimate: &f.covariance(),
+                    temporal: true,
+                    white: 1.0,
+                    model: &Matrix3::zeros(),
+                    pose_parts: &[],
+                    epochs: &[0, 0],
+                });
                 filtered[k] += cov[(2, 2)] / runs as f64;
                 let disp = (f.centre() - z0).into();
                 let tag = FeedTag {
@@ -291,15 +306,43 @@ mod tests {
         let zero = DispZero::new(noise, &[(0, Matrix3::identity() * 4e-6), (2, Matrix3::identity() * 1e-6)], &[3, 0, 5]);
         let now = Matrix3::identity() * 2e-6;
         let pose = [(0, Matrix3::identity() * 3e-6), (1, Matrix3::identity() * 7e-6), (2, Matrix3::identity() * 0.5e-6)];
-        let same = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        let same = zero.covariance(&DispInputs {
+            estimate: &now,
+            temporal: false,
+            white: 1.0,
+            model: &Matrix3::zeros(),
+            pose_parts: &pose,
+            epochs: &[3, 9, 5],
+        });
         assert!((same[(0, 0)] - 3e-6).abs() < 1e-15, "a camera that did not see the zero changes nothing");
         // Camera 2 re-posed: its part then (1e-6) and now (0.5e-6); camera 0, held, cancels.
-        let moved = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[3, 0, 6]);
+        let moved = zero.covariance(&DispInputs {
+            estimate: &now,
+            temporal: false,
+            white: 1.0,
+            model: &Matrix3::zeros(),
+            pose_parts: &pose,
+            epochs: &[3, 0, 6],
+        });
         assert!((moved[(0, 0)] - 4.5e-6).abs() < 1e-15, "{moved}");
         // Both re-posed: both cameras' parts, then and now.
-        let both = zero.covariance(&now, false, 1.0, &Matrix3::zeros(), &pose, &[4, 0, 6]);
+        let both = zero.covariance(&DispInputs {
+            estimate: &now,
+            temporal: false,
+            white: 1.0,
+            model: &Matrix3::zeros(),
+            pose_parts: &pose,
+            epochs: &[4, 0, 6],
+        });
         assert!((both[(0, 0)] - 11.5e-6).abs() < 1e-15, "{both}");
-        let half = zero.covariance(&now, false, 0.5, &Matrix3::zeros(), &pose, &[3, 9, 5]);
+        let half = zero.covariance(&DispInputs {
+            estimate: &now,
+            temporal: false,
+            white: 0.5,
+            model: &Matrix3::zeros(),
+            pose_parts: &pose,
+            epochs: &[3, 9, 5],
+        });
         assert!((half[(0, 0)] - 1.5e-6).abs() < 1e-15, "the corners' bias that stays cancels: {half}");
         assert!((white_share(Some(0.02), Some(0.2)) - 0.5).abs() < 1e-12);
         assert_eq!(white_share(None, Some(0.2)), 1.0);

@@ -6,7 +6,7 @@
 use nalgebra::{Matrix3, Vector3};
 use tagdeflect_core::camera::Pose;
 
-use super::disp_sigma::{axis_sigma, drift_left_out, print_terms, terms_printed, white_share, DispZero, PoseParts};
+use super::disp_sigma::{axis_sigma, drift_left_out, print_terms, terms_printed, white_share, DispInputs, DispZero, PoseParts};
 use super::model_drift::{model_drift_switch, residuals_kept, set_residuals, TagResiduals};
 use super::solve::{SolvedTag, SolvedTags};
 use super::{Measurement, FULL_SET_FLOOR_SHARE};
@@ -155,13 +155,15 @@ impl Measurement {
     fn estimate_tag(&mut self, t_ns: i64, tag: SolvedTag, pooled_sigma_px: Option<f64>) -> (TagEstimate, bool) {
         let mut history = self.tags.remove(&tag.id).unwrap_or_else(|| self.first_history(&tag));
         let partial = history.usual_views.observe(tag.solution.views);
-        let model = self.model_error(&mut history, &tag, partial, pooled_sigma_px);
+        let (model, level) = self.model_error(&mut history, &tag, partial, pooled_sigma_px);
         let p = match self.config.measure.estimator {
             Estimator::PerSet => {
                 let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
-                per_set(&mut history, t_ns, &tag.solution, (white, &model), (&camera_pose_parts(&tag), &self.pose_epochs))
+                let mut p = per_set(&mut history, t_ns, &tag.solution, (white, &model), (&camera_pose_parts(&tag), &self.pose_epochs));
+                p.sigma = p.sigma.zip_map(&level.diagonal(), |s, l| (s * s + l).sqrt());
+                p
             }
-            Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px, &model),
+            Estimator::Temporal => self.temporal(&mut history, t_ns, &tag, partial, pooled_sigma_px, (&model, &level)),
         };
         history.pose = p.pose;
         let disp_mm = p.centre - history.first_centre;
@@ -188,7 +190,8 @@ impl Measurement {
     }
 
     /// The temporal estimator's position of a tag (see [`crate::temporal`]); `model` the
-    /// edge model's error ([`Self::model_error`]).
+    /// edge model's error moved since the zero and `level` the position's common shift
+    /// ([`Self::model_error`]).
     fn temporal(
         &mut self,
         history: &mut TagHistory,
@@ -196,7 +199,7 @@ impl Measurement {
         tag: &SolvedTag,
         partial: bool,
         pooled_sigma_px: Option<f64>,
-        model: &Matrix3<f64>,
+        (model, level): (&Matrix3<f64>, &Matrix3<f64>),
     ) -> Position {
         let sol = &tag.solution;
         let noise = noise_cov(sol);
@@ -222,9 +225,17 @@ impl Measurement {
         let white = white_share(self.model_drift.white_variance_px2(), pooled_sigma_px);
         let departure = monocular_departure(&u.centre, &sol.centre_mm, partial, used.len());
         let parts = camera_pose_parts(tag);
-        let disp = history.zero.covariance(&u.covariance, true, white, &disp_model, &parts, &self.pose_epochs) + departure;
+        let now = DispInputs {
+            estimate: &u.covariance,
+            temporal: true,
+            white,
+            model: &disp_model,
+            pose_parts: &parts,
+            epochs: &self.pose_epochs,
+        };
+        let disp = history.zero.covariance(&now) + departure;
         if terms_printed() {
-            let terms = history.zero.terms(&u.covariance, true, white, &disp_model, &parts, &self.pose_epochs);
+            let terms = history.zero.terms(&now);
             print_terms(tag.id, t_ns, &(u.centre - history.first_centre), &[terms.as_slice(), &[departure]].concat());
         }
         // The edge model's error as the tag moves: in the σ given out (when asked), beside
@@ -232,9 +243,9 @@ impl Measurement {
         let model = if model_drift_switch() { *model } else { Matrix3::zeros() };
         // The feed's σ of the position adds the camera poses' part back (an unreferred
         // partial set's floor holds it already).
-        let absolute = model + departure + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
+        let absolute = model + level + departure + if partial && referred.is_none() && cov == floor { cov } else { cov + pose_part };
         let disp_step = self.last_steps.is_some().then(|| history.zero.smoothing_part(white, &disp_model, &parts, &self.pose_epochs));
-        let pose_part = pose_part + model;
+        let pose_part = pose_part + model + level;
         let sigma = Vector3::new(absolute[(0, 0)], absolute[(1, 1)], absolute[(2, 2)]).map(|v| v.max(0.0).sqrt());
         if let (Some(steps), Some(f)) = (self.last_steps.as_mut(), history.filter.as_ref()) {
             let departure_from = departure_applies(partial, used.len()).then_some(sol.centre_mm);
@@ -246,18 +257,29 @@ impl Measurement {
         Position { centre: u.centre, sigma, pose, fused_cov: Some(u.covariance), net, disp_sigma: axis_sigma(&disp) }
     }
 
-    /// The covariance the edge model's error moved since the tag's reference adds to the
-    /// tag's centre; a full set's residuals update the pooled estimate first.
-    fn model_error(&mut self, history: &mut TagHistory, tag: &SolvedTag, partial: bool, pooled_sigma_px: Option<f64>) -> Matrix3<f64> {
+    /// The covariances the edge model's error adds to the tag's centre: what moved since the
+    /// tag's reference (the corners' and their views' common shifts'), and the views' common
+    /// shift itself (the position's; zero unless modelled, `model_drift`); a full set's
+    /// residuals update the pooled estimates first.
+    fn model_error(
+        &mut self,
+        history: &mut TagHistory,
+        tag: &SolvedTag,
+        partial: bool,
+        pooled_sigma_px: Option<f64>,
+    ) -> (Matrix3<f64>, Matrix3<f64>) {
         let drift = &mut self.model_drift;
         let sol = &tag.solution;
+        let (views, cameras) = (&tag.views.views, &tag.views.cameras);
         if !partial && residuals_kept() {
-            let (views, cameras) = (&tag.views.views, &tag.views.cameras);
             let size = self.config.specimen.size_mm;
-            let now = set_residuals(views, cameras, &sol.rejected_views, &self.pose_epochs, &sol.tag_to_world, size);
+            let now = set_residuals((views, cameras), (&sol.rejected_views, &sol.view_shifts), &self.pose_epochs, &sol.tag_to_world, size);
             drift.observe(&mut history.residuals, now);
         }
-        drift.centre_covariance(&noise_cov(sol), pooled_sigma_px)
+        let camera_of = |i: usize| cameras.get(i).copied();
+        let moved = drift.common_centre_covariance(&sol.view_shifts, camera_of, true);
+        let level = drift.common_centre_covariance(&sol.view_shifts, camera_of, false);
+        (drift.centre_covariance(&noise_cov(sol), pooled_sigma_px) + moved, level)
     }
 
     /// A partial set referred to the last full sets (their cameras' pose errors, not this
@@ -312,7 +334,14 @@ fn per_set(
         p.net.cov = fcov;
     }
     let disp_model = if drift_left_out() { Matrix3::zeros() } else { *model };
-    p.disp_sigma = axis_sigma(&history.zero.covariance(&p.net.cov, false, white, &disp_model, parts, epochs));
+    p.disp_sigma = axis_sigma(&history.zero.covariance(&DispInputs {
+        estimate: &p.net.cov,
+        temporal: false,
+        white,
+        model: &disp_model,
+        pose_parts: parts,
+        epochs,
+    }));
     p
 }
 

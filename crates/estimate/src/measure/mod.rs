@@ -31,6 +31,7 @@
 //! detector's sweeps and background searches look for the missing tag.
 
 mod camera;
+mod common_shift;
 mod detect;
 mod disp_sigma;
 mod estimate;

@@ -164,3 +164,60 @@ fn corners_correlated_through_their_edges_give_the_centres_scatter_under_such_no
         assert!((0.93..=1.07).contains(&with), "tag axis {axis}: scatter / correlated covariance {with:.3}");
     }
 }
+
+/// Each view's edges offset along their normals (both corners of an edge alike; variance `q`
+/// per edge, independent from edge to edge): the centre's scatter over runs is the
+/// covariance [`common_shift_covariance`] gives, and the views' edge-offset residuals keep
+/// the share [`ViewShift::residual_share`] says.
+#[test]
+fn offsets_of_each_views_edges_give_the_centres_scatter() {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let tag = Pose::from_rvec_tvec([1.5, 0.2, -0.1], [40.0, 0.0, 10.0]);
+    let corners = tag_corners(30.0);
+    let views: Vec<TagView> = [[1.5, 0.1, 0.05], [1.45, 0.45, 0.1], [1.55, -0.35, 0.0]]
+        .iter()
+        .map(|r| {
+            let mut v = view();
+            v.camera_pose = Pose::from_rvec_tvec(*r, [20.0, -30.0, 1500.0]);
+            v.corners = [0, 1, 2, 3].map(|k| v.intrinsics.project(&v.camera_pose.transform(&tag.transform(&corners[k]))).unwrap());
+            v
+        })
+        .collect();
+    let shifts = solve_tag(&views, 30.0, Some(&tag), Some(0.1)).expect("solves").view_shifts;
+    let q = 0.01;
+    let predicted = common_shift_covariance(&shifts, |_| q);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+    let normal = Normal::new(0.0, q.sqrt()).unwrap();
+    let runs = 2000;
+    let (mut scatter, mut mean_sq) = (Matrix3::zeros(), [0.0; 3]);
+    for _ in 0..runs {
+        let shifted: Vec<TagView> = views
+            .iter()
+            .map(|v| {
+                let n = edge_normals(&v.corners);
+                let d: [f64; 4] = std::array::from_fn(|_| normal.sample(&mut rng));
+                TagView { corners: std::array::from_fn(|k| v.corners[k] + n[k] * d[k] + n[(k + 3) % 4] * d[(k + 3) % 4]), ..*v }
+            })
+            .collect();
+        // A pooled noise above the shifts: no view is taken for an outlier.
+        let s = solve_tag(&shifted, 30.0, Some(&tag), Some(1.0)).expect("solves");
+        assert!(s.rejected_views.is_empty());
+        let c = s.centre_mm - tag.translation;
+        scatter += c * c.transpose() / runs as f64;
+        for (i, v) in shifted.iter().enumerate() {
+            let r = corner_residuals_px(v, &s.tag_to_world, 30.0).unwrap();
+            let n = edge_normals(&views[i].corners);
+            mean_sq[i] += (0..4).map(|e| (n[e].dot(&(r[e] + r[(e + 1) % 4])) / 2.0).powi(2)).sum::<f64>() / runs as f64;
+        }
+    }
+    let ratios: Vec<f64> = (0..3).map(|axis| scatter[(axis, axis)] / predicted[(axis, axis)]).collect();
+    let shares: Vec<f64> = shifts.iter().enumerate().map(|(i, s)| mean_sq[i] / (4.0 * q * s.residual_share)).collect();
+    println!(
+        "centre scatter / predicted by axis {ratios:.3?}; views' mean residual / predicted {shares:.3?}, shares {:.3?}",
+        shifts.iter().map(|s| s.residual_share).collect::<Vec<_>>()
+    );
+    for r in ratios.iter().chain(&shares) {
+        assert!((0.9..=1.1).contains(r), "scatter / predicted {r:.3}");
+    }
+}
