@@ -214,16 +214,17 @@ impl FormationLearner {
         let kernel = self.kernel_of(&light, per_site, None)?;
         let wins = self.beats_the_profile(&light, per_site);
         tracing::debug!(?light, wins, "image formation learned");
-        wins.then(|| kernel.with_light(light))
+        wins.then_some(kernel)
     }
 
-    /// The kernels after `light`, from the samples (of half `half` only, when given).
+    /// The kernels after `light` (with it), from the samples (of half `half_only` only, when
+    /// given).
     fn kernel_of(&self, light: &Light, per_site: bool, half_only: Option<usize>) -> Option<Kernel2d> {
         let mut learner = KernelLearner::default();
         for s in self.kept.iter().filter(|s| half_only.is_none_or(|h| half(s.edge) == h)) {
             learner.add_row(usize::from(s.site), &row_of(light, &s.normal(), f64::from(s.d)), f64::from(s.v));
         }
-        learner.solve(per_site)
+        learner.solve(per_site).map(|k| k.with_light(*light))
     }
 
     /// The held-out residual sum of squares of `light`: the kernels solved on each half of

@@ -110,3 +110,17 @@ fn a_known_formations_light_is_recovered_from_its_edges() {
         assert!((k[TAPS / 2] - 1.0).abs() < 0.1, "the kernel after the pixel stays near the identity: {k:?}");
     }
 }
+
+#[test]
+fn the_formation_is_taken_over_the_profile_where_it_predicts_held_out_edges_better() {
+    // An astigmatic blur: the spread changes with the edge's angle, which the profile's
+    // classes (two orientations) do not hold for the tilted edges.
+    let light = Light { sigma_x_px: 0.9, sigma_y_px: 0.3, corr: 0.5, width_px: 1.0 };
+    let mut learner = learner_of(&light, 160, 0.01, 23);
+    let kernel = learner.solve(false).expect("the formation predicts held-out edges better");
+    let found = kernel.light().expect("with its light");
+    let n = Vector2::new(30f64.to_radians().sin(), 30f64.to_radians().cos());
+    assert!((found.sigma_across(&n) - light.sigma_across(&n)).abs() < 0.05, "{found:?}");
+    // Too few samples: no formation (the profile is kept).
+    assert!(learner_of(&light, 10, 0.01, 23).solve(false).is_none());
+}
