@@ -205,15 +205,18 @@ impl FormationLearner {
         *self = Self { warm: self.warm, ..Self::default() };
     }
 
-    /// The formation learned from the samples (kernels per site when `per_site`), when it
+    /// The formation learned from the samples (kernels per site when `per_site` and they
+    /// predict held-out samples better than one kernel), when it
     /// predicts held-out edges better than the profile (the module docs); `None` otherwise or
     /// while too few samples are kept. The light found is kept as the next search's start.
     pub(super) fn solve(&mut self, per_site: bool) -> Option<Kernel2d> {
-        let (light, _) = self.search(per_site, self.warm)?;
+        let (light, ssr) = self.search(per_site, self.warm)?;
         self.warm = Some(light);
+        // A kernel per mosaic site only where it predicts held-out samples better than one.
+        let per_site = per_site && self.held_out_ssr(&light, false).is_none_or(|one| ssr < one);
         let kernel = self.kernel_of(&light, per_site, None)?;
         let wins = self.beats_the_profile(&light, per_site);
-        tracing::debug!(?light, wins, "image formation learned");
+        tracing::debug!(?light, per_site, wins, "image formation learned");
         wins.then_some(kernel)
     }
 
