@@ -214,15 +214,35 @@ impl FormationLearner {
         self.warm = Some(light);
         // A kernel per mosaic site only where it predicts held-out samples better than one.
         let per_site = per_site && self.held_out_ssr(&light, false).is_none_or(|one| ssr < one);
-        let kernel = self.kernel_of(&light, per_site, None)?;
-        let wins = self.beats_the_profile(&light, per_site);
-        tracing::debug!(?light, per_site, wins, "image formation learned");
+        // A kernel after the pixel only where it predicts held-out edges better than none,
+        // beyond chance (a sharp camera's is the identity; learned, its taps add their noise).
+        let after = (gain_in_se(&self.identity_scores(&light, per_site)?, 0, 1) > DECISION_SE).then_some(per_site);
+        let kernel = self.kernel_of(&light, after, None)?;
+        let wins = self.beats_the_profile(&light, after);
+        tracing::debug!(?light, ?after, wins, "image formation learned");
         wins.then_some(kernel)
     }
 
+    /// Per held-out edge, the residual sums of squares of its samples after `light` with no
+    /// kernel after the pixel and with the kernels learned on the other half of the edges.
+    fn identity_scores(&self, light: &Light, per_site: bool) -> Option<Vec<[f64; 3]>> {
+        let kernels = [self.kernel_of(light, Some(per_site), Some(0))?, self.kernel_of(light, Some(per_site), Some(1))?];
+        let mut edges: std::collections::BTreeMap<u32, [f64; 3]> = std::collections::BTreeMap::new();
+        for s in &self.kept {
+            let row = row_of(light, &s.normal(), f64::from(s.d));
+            let k = kernels[1 - half(s.edge)].site(usize::from(s.site));
+            let p: f64 = k.iter().zip(&row).map(|(k, r)| k * r).sum();
+            let e = edges.entry(s.edge).or_default();
+            e[0] += (f64::from(s.v) - row[TAPS / 2]).powi(2);
+            e[1] += (f64::from(s.v) - p).powi(2);
+        }
+        Some(edges.into_values().collect())
+    }
+
     /// The kernels after `light` (with it), from the samples (of half `half_only` only, when
-    /// given).
-    fn kernel_of(&self, light: &Light, per_site: bool, half_only: Option<usize>) -> Option<Kernel2d> {
+    /// given): one, or one per site with `Some(true)`; `None`: none after the pixel.
+    fn kernel_of(&self, light: &Light, after: Option<bool>, half_only: Option<usize>) -> Option<Kernel2d> {
+        let Some(per_site) = after else { return Some(Kernel2d::identity().with_light(*light)) };
         let mut learner = KernelLearner::default();
         for s in self.kept.iter().filter(|s| half_only.is_none_or(|h| half(s.edge) == h)) {
             learner.add_row(usize::from(s.site), &row_of(light, &s.normal(), f64::from(s.d)), f64::from(s.v));
@@ -302,10 +322,10 @@ impl FormationLearner {
 
     /// Whether the formation of `light` predicts held-out edges better than the profile, beyond
     /// [`DECISION_SE`] standard errors (see the module docs).
-    fn beats_the_profile(&self, light: &Light, per_site: bool) -> bool {
+    fn beats_the_profile(&self, light: &Light, after: Option<bool>) -> bool {
         let mut scores: Vec<[f64; 3]> = Vec::new();
         for fold in 0..2 {
-            let Some(kernel) = self.kernel_of(light, per_site, Some(1 - fold)) else { return false };
+            let Some(kernel) = self.kernel_of(light, after, Some(1 - fold)) else { return false };
             let Some(profiles) = FoldProfiles::learn(self.kept.iter().filter(|s| half(s.edge) != fold)) else { return false };
             let mut test: Vec<&FormationSample> = self.kept.iter().filter(|s| half(s.edge) == fold).collect();
             test.sort_by_key(|s| s.edge);

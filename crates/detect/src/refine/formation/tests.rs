@@ -105,7 +105,7 @@ fn a_known_formations_light_is_recovered_from_its_edges() {
             assert!((want - got).abs() < 0.05, "σ across {deg}°: {got} against {want}");
         }
         assert!((found.width_px - light.width_px).abs() < 0.06, "width {} against {}", found.width_px, light.width_px);
-        let kernel = learner.kernel_of(&found, false, None).expect("a kernel");
+        let kernel = learner.kernel_of(&found, Some(false), None).expect("a kernel");
         let k = kernel.site(0);
         assert!((k[TAPS / 2] - 1.0).abs() < 0.1, "the kernel after the pixel stays near the identity: {k:?}");
     }
