@@ -44,12 +44,16 @@ const MIN_SAMPLES: f64 = 500.0;
 /// distance from the centre (a compact kernel is preferred).
 const RIDGE: f64 = 1e-4;
 
-/// Which edge model the switch asks for: 0 the profile (default), 1 one kernel, 2 a kernel
-/// per mosaic site, 3 the physical formation with one kernel (`formation`), 4 the formation
-/// with a kernel per mosaic site (`formation-sites`; [`super::formation`]).
+/// Which edge model the switch asks for: 0 (the default, or `profile`) the learned profile,
+/// 1 one kernel, 2 a kernel per mosaic site, 3 the physical formation with one kernel
+/// (`formation`), 4 (`formation-sites`) the formation with a kernel per mosaic site where
+/// that pays, each camera taking it only where it predicts held-out edges better than its
+/// profile ([`super::formation`]; docs/accuracy.md, "The physical formation": it wins or ties
+/// on every formation, but the demosaiced scene's σ then over-covers, so it is not the default).
 pub fn kernel_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_EDGE_MODEL").as_deref() {
+        Ok("profile") => 0,
         Ok("kernel2d") => 1,
         Ok("kernel2d-sites") => 2,
         Ok("formation") => 3,
