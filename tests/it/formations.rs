@@ -7,7 +7,9 @@
 //! `TAGDEFLECT_FORMATIONS=bayer,ellip` (substrings of the formations' names, any case) runs
 //! only those besides the sharp scene; `TAGDEFLECT_FORMATIONS_SEED=12` renders them with another
 //! seed (the seed-to-seed spread); `TAGDEFLECT_FORMATIONS_NOISE=0` with no read noise (the
-//! bias alone).
+//! bias alone). The product's own switches apply too: `TAGDEFLECT_EDGE_MODEL=formation-sites`
+//! fits the edges with the physical formation where it predicts held-out edges better than the
+//! profile (docs/accuracy.md, "The physical formation").
 
 use crate::common::*;
 use tagdeflect_sim::SimParams;

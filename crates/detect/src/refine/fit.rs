@@ -79,8 +79,8 @@ static PHI_TABLE: std::sync::LazyLock<Vec<[f64; 8]>> = std::sync::LazyLock::new(
 });
 
 /// Standard normal CDF and density at `x` (see [`phi_pdf_in`]).
-#[cfg(test)]
-fn phi_pdf(x: f64) -> (f64, f64) {
+#[inline(always)]
+pub(super) fn phi_pdf(x: f64) -> (f64, f64) {
     phi_pdf_in(&PHI_TABLE, x)
 }
 

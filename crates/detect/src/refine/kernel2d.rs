@@ -30,6 +30,8 @@
 use nalgebra::{DMatrix, DVector, Vector2};
 use tagdeflect_core::frame::GrayImage;
 
+use super::formation::{response, Light};
+
 /// The kernel's reach, pixels (5 × 5 taps).
 const RADIUS: i32 = 2;
 /// Taps of the kernel.
@@ -42,19 +44,26 @@ const MIN_SAMPLES: f64 = 500.0;
 /// distance from the centre (a compact kernel is preferred).
 const RIDGE: f64 = 1e-4;
 
-/// Which edge model the switch asks for: 0 the profile (default), 1 one kernel, 2 a kernel
-/// per mosaic site.
+/// Which edge model the switch asks for: 0 (the default, or `profile`) the learned profile,
+/// 1 one kernel, 2 a kernel per mosaic site, 3 the physical formation with one kernel
+/// (`formation`), 4 (`formation-sites`) the formation with a kernel per mosaic site where
+/// that pays, each camera taking it only where it predicts held-out edges better than its
+/// profile ([`super::formation`]; docs/accuracy.md, "The physical formation": it wins or ties
+/// on every formation, but the demosaiced scene's σ then over-covers, so it is not the default).
 pub fn kernel_mode() -> u8 {
     static MODE: std::sync::OnceLock<u8> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| match std::env::var("TAGDEFLECT_EDGE_MODEL").as_deref() {
+        Ok("profile") => 0,
         Ok("kernel2d") => 1,
         Ok("kernel2d-sites") => 2,
+        Ok("formation") => 3,
+        Ok("formation-sites") => 4,
         _ => 0,
     })
 }
 
 /// The tap offsets `(x, y)`, row-major.
-fn offsets() -> impl Iterator<Item = (f64, f64)> {
+pub(super) fn offsets() -> impl Iterator<Item = (f64, f64)> {
     (-RADIUS..=RADIUS).flat_map(|y| (-RADIUS..=RADIUS).map(move |x| (x as f64, y as f64)))
 }
 
@@ -89,7 +98,7 @@ pub(super) fn area(t: f64, a: f64, b: f64) -> (f64, f64) {
 }
 
 /// The normal's magnitudes, larger first.
-fn widths(normal: &Vector2<f64>) -> (f64, f64) {
+pub(super) fn widths(normal: &Vector2<f64>) -> (f64, f64) {
     let (x, y) = (normal.x.abs(), normal.y.abs());
     (x.max(y), x.min(y))
 }
@@ -110,6 +119,9 @@ pub fn clipped(image: &GrayImage, index: usize) -> bool {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Kernel2d {
     taps: Vec<[f64; TAPS]>,
+    /// The light's side before the pixel (blur and aperture), `None`: the whole pixel's
+    /// area of a sharp image.
+    light: Option<Light>,
 }
 
 impl Kernel2d {
@@ -117,13 +129,23 @@ impl Kernel2d {
     pub fn identity() -> Self {
         let mut k = [0.0; TAPS];
         k[TAPS / 2] = 1.0;
-        Self { taps: vec![k] }
+        Self { taps: vec![k], light: None }
     }
 
     /// Kernels given tap by tap (row-major, 5 × 5): one, or one per mosaic site.
     pub fn from_taps(taps: Vec<[f64; TAPS]>) -> Self {
         assert!(taps.len() == 1 || taps.len() == SITES, "one kernel or one per site");
-        Self { taps }
+        Self { taps, light: None }
+    }
+
+    /// These kernels after the light's side `light` (blur before the pixel, aperture).
+    pub fn with_light(self, light: Light) -> Self {
+        Self { light: Some(light), ..self }
+    }
+
+    /// The light's side before the pixel, when modelled ([`super::formation`]).
+    pub fn light(&self) -> Option<&Light> {
+        self.light.as_ref()
     }
 
     /// The kernel of mosaic site `site` (`site` 0 when there is one).
@@ -133,21 +155,26 @@ impl Kernel2d {
 
     /// The model along an edge of unit normal `normal` (towards white).
     pub fn along(&self, normal: &Vector2<f64>) -> EdgeKernel<'_> {
-        let (a, b) = widths(normal);
+        let ((a, b), sigma) = match &self.light {
+            Some(l) => (l.widths(normal), l.sigma_across(normal)),
+            None => (widths(normal), 0.0),
+        };
         let mut delta = [0.0; TAPS];
         for (d, (x, y)) in delta.iter_mut().zip(offsets()) {
             *d = normal.x * x + normal.y * y;
         }
-        EdgeKernel { kernel: self, delta, a, b }
+        EdgeKernel { kernel: self, delta, a, b, sigma }
     }
 }
 
-/// A kernel along one edge: the taps' offsets across it.
+/// A kernel along one edge: the taps' offsets across it, the aperture's projected widths
+/// and the blur's σ across it (0: none).
 pub struct EdgeKernel<'a> {
     kernel: &'a Kernel2d,
     delta: [f64; TAPS],
     a: f64,
     b: f64,
+    sigma: f64,
 }
 
 impl EdgeKernel<'_> {
@@ -161,7 +188,7 @@ impl EdgeKernel<'_> {
         let (mut v, mut g) = (0.0, 0.0);
         for (w, delta) in k.iter().zip(&self.delta) {
             if *w != 0.0 {
-                let (av, ag) = area(d + s * delta, self.a, self.b);
+                let (av, ag) = response(d + s * delta, self.a, self.b, self.sigma);
                 v += w * av;
                 g += w * ag;
             }
@@ -189,15 +216,25 @@ impl KernelLearner {
     /// fitted edge of unit normal `normal`.
     pub fn add(&mut self, site: usize, normal: &Vector2<f64>, d: f64, v: f64) {
         let (a, b) = widths(normal);
-        let row: Vec<f64> = offsets().map(|(x, y)| area(d + normal.x * x + normal.y * y, a, b).0).collect();
-        let (ata, aty) = (&mut self.ata[site], &mut self.aty[site]);
-        for i in 0..TAPS {
-            if row[i] == 0.0 {
+        let mut row = [0.0; TAPS];
+        for (r, (x, y)) in row.iter_mut().zip(offsets()) {
+            *r = area(d + normal.x * x + normal.y * y, a, b).0;
+        }
+        self.add_row(site, &row, v);
+    }
+
+    /// Adds the sample `v` of a pixel of mosaic site `site` whose taps' responses are `row`.
+    pub(super) fn add_row(&mut self, site: usize, row: &[f64; TAPS], v: f64) {
+        // The lower triangle, column by column (nalgebra's storage order).
+        let (ata, aty) = (self.ata[site].as_mut_slice(), self.aty[site].as_mut_slice());
+        for (i, col) in ata.chunks_exact_mut(TAPS).enumerate() {
+            let ri = row[i];
+            if ri == 0.0 {
                 continue;
             }
-            aty[i] += row[i] * v;
-            for j in i..TAPS {
-                ata[(i, j)] += row[i] * row[j];
+            aty[i] += ri * v;
+            for (c, r) in col[i..].iter_mut().zip(&row[i..]) {
+                *c += ri * r;
             }
         }
         self.count[site] += 1.0;
@@ -208,7 +245,7 @@ impl KernelLearner {
     pub fn solve(&self, per_site: bool) -> Option<Kernel2d> {
         let groups: Vec<Vec<usize>> = if per_site { (0..SITES).map(|s| vec![s]).collect() } else { vec![(0..SITES).collect()] };
         let taps = groups.iter().map(|g| self.solve_sites(g)).collect::<Option<Vec<_>>>()?;
-        Some(Kernel2d { taps })
+        Some(Kernel2d { taps, light: None })
     }
 
     /// One kernel from the samples of `sites`: least squares with the sum 1 and the
@@ -227,7 +264,7 @@ impl KernelLearner {
         }
         for i in 0..TAPS {
             for j in 0..i {
-                ata[(i, j)] = ata[(j, i)];
+                ata[(j, i)] = ata[(i, j)];
             }
         }
         let ridge = RIDGE * ata.trace() / TAPS as f64;

@@ -52,8 +52,9 @@
 //! **Files.** `band` selects the pixels each edge is fitted on (which pixel lies where
 //! relative to the edge and to which bit, and with what weight); `fit` fits the edge model
 //! to their values; `profile` learns a camera's edge profile and `profile_fit` fits with
-//! it; `kernel2d` is the image formation as a 2-D kernel after the pixel, a measurement
-//! switch (`TAGDEFLECT_EDGE_MODEL`); this file holds the options, the reports, the memory
+//! it; `kernel2d` is the image formation as a 2-D kernel after the pixel, and `formation`
+//! the whole physical order (blur before the pixel, aperture, kernel after it), measurement
+//! switches (`TAGDEFLECT_EDGE_MODEL`); this file holds the options, the reports, the memory
 //! kept between frames and the passes that tie them together.
 //!
 //! **Layering.** Refinement builds on the detector's output, not on the detector: it takes
@@ -73,6 +74,7 @@ use tagdeflect_core::tags::cell_homography;
 mod band;
 mod excess;
 mod fit;
+mod formation;
 mod kernel2d;
 mod lm;
 mod profile;

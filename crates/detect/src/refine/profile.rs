@@ -29,6 +29,7 @@
 
 use super::band::{pixel_value, EdgeBand};
 use super::fit::Line;
+use super::formation::FormationLearner;
 use super::kernel2d::{clipped, kernel_mode, site_of, Kernel2d, KernelLearner};
 pub(super) use super::profile_classes::pixel_class;
 use super::profile_classes::{class_mode, smooth_nodes, smoothed_towards, Samples};
@@ -303,6 +304,8 @@ pub struct ProfileLearner {
     samples: Samples,
     edges: u64,
     kernel: KernelLearner,
+    /// The samples of the physical formation's model, when the switch asks for it.
+    formation: FormationLearner,
 }
 
 impl Default for ProfileLearner {
@@ -314,6 +317,7 @@ impl Default for ProfileLearner {
             samples: Samples::default(),
             edges: 0,
             kernel: KernelLearner::default(),
+            formation: FormationLearner::default(),
         }
     }
 }
@@ -324,9 +328,11 @@ impl ProfileLearner {
         self.edges
     }
 
-    /// Forgets every sample.
+    /// Forgets every sample (the formation's light last found is kept as its next start).
     pub fn clear(&mut self) {
-        *self = Self::default();
+        let mut formation = std::mem::take(&mut self.formation);
+        formation.clear();
+        *self = Self { formation, ..Self::default() };
     }
 
     /// The class decision is made and kept: the samples kept for it are dropped, and no
@@ -364,7 +370,11 @@ impl ProfileLearner {
             }
             let v = (pixel_value(image, p.index) - black) / contrast;
             if kernel_mode() > 0 && !clipped(image, p.index) {
-                self.kernel.add(site_of(p.index, image.width), &band.normal, d, v);
+                let site = site_of(p.index, image.width);
+                match kernel_mode() {
+                    1 | 2 => self.kernel.add(site, &band.normal, d, v),
+                    _ => self.formation.push(site, &band.normal, d, v),
+                }
             }
             self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }
@@ -375,6 +385,7 @@ impl ProfileLearner {
     /// edges).
     pub(super) fn close_edge(&mut self) {
         self.samples.close_edge();
+        self.formation.close_edge();
     }
 
     /// Adds one sample `(d, v)` of a pixel of class `class` (unweighted: the band's tapers
@@ -404,12 +415,12 @@ impl ProfileLearner {
     /// Which class uses which profile is decided here ([`class_mode`]); `keep` is a decision
     /// made earlier to keep instead (a class then keeps its model for the whole test: see
     /// `crate::learned`); a kept class whose profile cannot be built now uses its parent's.
-    pub fn build(&self, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
+    pub fn build(&mut self, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
         self.build_in(class_mode(), keep)
     }
 
     /// [`ProfileLearner::build`] in classing mode `mode`.
-    pub(super) fn build_in(&self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
+    pub(super) fn build_in(&mut self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
         if self.edges < MIN_EDGES {
             return None;
         }
@@ -433,7 +444,11 @@ impl ProfileLearner {
             }
             _ => self.decided_classes(own, keep),
         };
-        let kernel = (kernel_mode() > 0).then(|| self.kernel.solve(kernel_mode() == 2)).flatten();
+        let kernel = match kernel_mode() {
+            1 | 2 => self.kernel.solve(kernel_mode() == 2),
+            3 | 4 => self.formation.solve(kernel_mode() == 4),
+            _ => None,
+        };
         Some(EdgeProfile { values, classes, choice, edges: self.edges, kernel })
     }
 

@@ -295,7 +295,7 @@ fn refit_ssr(edge: &[&Sample], profile: impl Fn(usize, f64) -> (f64, f64)) -> Op
 
 /// Standard errors by which a candidate's held-out residual sum must fall below its simpler
 /// parent's to be taken (see [`sequential_choice`]).
-const DECISION_SE: f64 = 3.0;
+pub(super) const DECISION_SE: f64 = 3.0;
 
 /// The candidate (pooled, orientation, own) taken by testing each against the simpler one
 /// taken so far: orientation over pooled, then own over what was taken, each only when its
@@ -323,7 +323,7 @@ fn sequential_choice(scores: &[[f64; 3]]) -> ClassUse {
 
 /// How many standard errors of the difference (counted over the edges) candidate `cand`'s
 /// held-out residual sum lies below candidate `parent`'s (∞ when every edge gains alike).
-fn gain_in_se(scores: &[[f64; 3]], parent: usize, cand: usize) -> f64 {
+pub(super) fn gain_in_se(scores: &[[f64; 3]], parent: usize, cand: usize) -> f64 {
     let g = scores.len() as f64;
     let gains: Vec<f64> = scores.iter().map(|s| s[parent] - s[cand]).collect();
     let sum: f64 = gains.iter().sum();

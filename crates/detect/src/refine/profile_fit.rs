@@ -130,22 +130,26 @@ mod tests {
         taps[12] = 2.0;
         [7, 11, 13, 17].into_iter().for_each(|k| taps[k] = -0.25);
         let kernel = super::super::kernel2d::Kernel2d::from_taps(vec![taps]);
-        let profile = EdgeProfile::from_fn(|d| d.clamp(-0.5, 0.5) + 0.5).with_kernel(kernel);
-        for (t, n, white) in [(9.3, -3.7, true), (6.0, -3.9, true), (14.0, -0.8, false), (2.5, 0.3, false)] {
-            let band = one_pixel_band(t, n, white);
-            let along = profile.kernel().expect("a kernel").along(&band.normal);
-            let aw = [if white { 0.83 } else { 0.0 }];
-            let values = [150.0];
-            let data =
-                ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[1], profile: &profile, kernel: Some(&along) };
-            let model = ProfileModel { data: &data, len: band.len };
-            for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
-                let p = band.pixels[0];
-                let nn = p.n * x[0].cos() + p.t * x[0].sin() - x[1];
-                let val = along.value_slope(1, nn, false).0 + aw[0] * along.value_slope(1, -nn - p.gap, true).0;
-                assert!(val.abs() > 1e-3, "the model is not flat at {nn}");
-                let r = x[2] + x[3] * val - values[0];
-                check_one_pixel_jacobian(&model, &x, p.weight, r, 1e-4);
+        // The same after a blur before the pixel and an aperture (the physical formation).
+        let light = super::super::formation::Light { sigma_x_px: 0.5, sigma_y_px: 0.3, corr: 0.4, width_px: 0.8 };
+        for kernel in [kernel.clone(), kernel.with_light(light)] {
+            let profile = EdgeProfile::from_fn(|d| d.clamp(-0.5, 0.5) + 0.5).with_kernel(kernel);
+            for (t, n, white) in [(9.3, -3.7, true), (6.0, -3.9, true), (14.0, -0.8, false), (2.5, 0.3, false)] {
+                let band = one_pixel_band(t, n, white);
+                let along = profile.kernel().expect("a kernel").along(&band.normal);
+                let aw = [if white { 0.83 } else { 0.0 }];
+                let values = [150.0];
+                let data =
+                    ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[1], profile: &profile, kernel: Some(&along) };
+                let model = ProfileModel { data: &data, len: band.len };
+                for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
+                    let p = band.pixels[0];
+                    let nn = p.n * x[0].cos() + p.t * x[0].sin() - x[1];
+                    let val = along.value_slope(1, nn, false).0 + aw[0] * along.value_slope(1, -nn - p.gap, true).0;
+                    assert!(val.abs() > 1e-3, "the model is not flat at {nn}");
+                    let r = x[2] + x[3] * val - values[0];
+                    check_one_pixel_jacobian(&model, &x, p.weight, r, 1e-4);
+                }
             }
         }
     }
