@@ -33,12 +33,12 @@
 //! [`super::profile_classes`]), against the better of the pooled profile and the classes'
 //! own profiles learned on the same halves: a camera never gets the worse of the two.
 
-use nalgebra::{Matrix3, Vector2, Vector3};
+use nalgebra::Vector2;
 
 use super::fit::phi_pdf;
 use super::kernel2d::{area, offsets, Kernel2d, KernelLearner, SITES, TAPS};
-use super::profile::{interpolate, min_class_node_weight, min_node_weight, node_d, node_px, nodes, tested_nodes, Nodes, RANGE_PX};
-use super::profile_classes::{gain_in_se, DECISION_SE};
+use super::profile::{interpolate, min_class_node_weight, min_node_weight, node_px, nodes, Nodes, RANGE_PX};
+use super::profile_classes::{edge_refit_ssr, gain_in_se, DECISION_SE};
 
 #[cfg(test)]
 mod tests;
@@ -51,8 +51,6 @@ const MAX_KEPT: usize = 12_000;
 const MIN_KEPT: usize = 3_000;
 /// Edges of a half needed to score the choice.
 const MIN_SCORED_EDGES: usize = 8;
-/// Samples of an edge (within the profile's tested nodes) needed to score it.
-const MIN_EDGE_SAMPLES: usize = 8;
 
 /// The light's side of the formation: a Gaussian blur before the pixel (σ along x and y,
 /// pixels, and their correlation) and a centred square aperture `width_px` wide.
@@ -386,27 +384,8 @@ fn class_of(s: &FormationSample) -> usize {
     4 * usize::from(s.normal[1].abs() > s.normal[0].abs()) + usize::from(s.site) % SITES
 }
 
-/// The residual sum of squares of an edge's samples (on the profile's tested nodes) fitted as
-/// `a + b · P(d) + c · P′(d)` (its levels and a shift refitted) with `model(sample, d)`;
-/// `None` when too few samples or a singular fit.
+/// The residual sum of squares of an edge's samples fitted with `model(sample, d)`
+/// ([`edge_refit_ssr`]: its levels and a shift refitted, on the profile's tested nodes).
 fn refit_ssr(edge: &[&FormationSample], model: impl Fn(&FormationSample, f64) -> (f64, f64)) -> Option<f64> {
-    let (lo, hi) = (node_d(*tested_nodes().start()), node_d(*tested_nodes().end()));
-    let (mut ata, mut aty, mut yy, mut n) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros(), 0.0, 0);
-    for s in edge {
-        let d = f64::from(s.d);
-        if !(lo..=hi).contains(&d) {
-            continue;
-        }
-        let (p, slope) = model(s, d);
-        let (x, y) = (Vector3::new(1.0, p, slope), f64::from(s.v));
-        ata += x * x.transpose();
-        aty += y * x;
-        yy += y * y;
-        n += 1;
-    }
-    if n < MIN_EDGE_SAMPLES {
-        return None;
-    }
-    let beta = ata.try_inverse()? * aty;
-    Some((yy - beta.dot(&aty)).max(0.0))
+    edge_refit_ssr(edge.iter().map(|&s| (f64::from(s.d), f64::from(s.v), s)), model)
 }

@@ -272,18 +272,25 @@ impl FoldProfiles {
 /// fitted as `a + b · P(d) + c · P′(d)` (its levels and a shift) with `profile(class, d)`;
 /// `None` when too few samples or a singular fit.
 fn refit_ssr(edge: &[&Sample], profile: impl Fn(usize, f64) -> (f64, f64)) -> Option<f64> {
+    edge_refit_ssr(edge.iter().map(|s| (f64::from(s.d), f64::from(s.v), usize::from(s.class))), |class, d| profile(class, d))
+}
+
+/// The residual sum of squares of an edge's samples `(d, v, key)` on the profile's tested
+/// nodes, fitted as `a + b · P(d) + c · P′(d)` (its levels and a shift refitted) with
+/// `(P, P′) = model(key, d)`: how well a model predicts a held-out edge, whatever the model (a
+/// class profile, the physical formation). `None` when too few samples or a singular fit.
+pub(super) fn edge_refit_ssr<K>(edge: impl Iterator<Item = (f64, f64, K)>, model: impl Fn(K, f64) -> (f64, f64)) -> Option<f64> {
     let (lo, hi) = (node_d(*tested_nodes().start()), node_d(*tested_nodes().end()));
     let (mut ata, mut aty, mut yy, mut n) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros(), 0.0, 0);
-    for s in edge {
-        let d = f64::from(s.d);
+    for (d, v, key) in edge {
         if !(lo..=hi).contains(&d) {
             continue;
         }
-        let (p, slope) = profile(usize::from(s.class), d);
-        let (x, y) = (Vector3::new(1.0, p, slope), f64::from(s.v));
+        let (p, slope) = model(key, d);
+        let x = Vector3::new(1.0, p, slope);
         ata += x * x.transpose();
-        aty += y * x;
-        yy += y * y;
+        aty += v * x;
+        yy += v * v;
         n += 1;
     }
     if n < MIN_EDGE_SAMPLES {
