@@ -50,7 +50,7 @@ impl FeedRotation {
 
     /// The size limit in bytes, if any.
     pub fn max_bytes(&self) -> Option<u64> {
-        (self.max_mb > 0.0).then(|| (self.max_mb * 1e6) as u64)
+        (self.max_mb > 0.0).then_some((self.max_mb * 1e6) as u64)
     }
 
     /// True when the feed file is ever rotated.

@@ -249,7 +249,7 @@ impl Method {
     /// Whether the printed report shows the specimen's detail `field` (one of
     /// [`REPORT_FIELDS`]): every one when the method names none.
     pub fn shows_field(&self, field: &str) -> bool {
-        self.report_fields.as_ref().map_or(true, |f| f.iter().any(|x| x == field))
+        self.report_fields.as_ref().is_none_or(|f| f.iter().any(|x| x == field))
     }
 
     /// Every rule has a source; every source names a rule, a document and a clause.
