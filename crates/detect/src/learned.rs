@@ -20,6 +20,17 @@
 //! place are fitted with it directly. An edge the profile does not fit falls back to the
 //! parametric model.
 //!
+//! **A rebuild beside the frame loop.** With the physical formation
+//! (`TAGDEFLECT_EDGE_MODEL=formation` / `formation-sites`) a build searches the formation's
+//! light, dozens of trials over 12 000 samples (0.3–1 s of a core), so a rebuild runs on a
+//! worker thread over a copy of the learner taken at the frame it is due, and its profile is
+//! taken into the fits [`BUILD_LAG_FRAMES`] frames of the camera later — waiting there if the
+//! build has not finished. What is taken, and from which frame, depends only on the frame
+//! count, never on how fast the worker ran: a replay gives the same positions run to run. A
+//! rebuild due while one is under way waits for it (it is started at the frame the earlier one
+//! is taken). The first profile (the start, below) is still learned in its frame. Without the
+//! formation a rebuild is cheap and stays in its frame, as before.
+//!
 //! **Pixel classes.** Which class is fitted with its own profile (or its orientation's) is
 //! decided when the profile is first learned, in that frame, by which profile predicts the
 //! frame's held-out edges best (`refine::profile_classes`, [`ClassChoice`]), and kept by
@@ -28,7 +39,7 @@
 //! are dropped once it is made.
 
 use std::collections::{HashMap, HashSet};
-use std::sync::Arc;
+use std::sync::{mpsc, Arc};
 
 use super::refine::{
     refine_corners_warm, widening_switch, ClassChoice, EdgeMemory, EdgeProfile, ModelExcess, ProfileLearner, RefineOptions,
@@ -40,6 +51,17 @@ use tagdeflect_core::tags::TagFamily;
 
 /// Frames between rebuilds once the schedule 1, 2, 4, … has reached it.
 const MAX_REBUILD_INTERVAL: u64 = 64;
+
+/// Frames of a camera from a rebuild started beside the frame loop to the frame its profile
+/// is taken from (see the module docs): short enough that a 16-set test sees the rebuilt
+/// profile. At 30 fps it is 0.27 s, less than a search takes beside the loop on a loaded
+/// 2-core machine (0.3–1 s of a core), so there the loop still waits at that frame
+/// (docs/performance.md, "The formation's search beside the frame loop").
+const BUILD_LAG_FRAMES: u64 = 8;
+
+/// A rebuild under way beside the frame loop: the frame count it is taken at, and where its
+/// profile and the learner's copy (the formation's light found) will come.
+type PendingBuild = (u64, mpsc::Receiver<(Option<EdgeProfile>, ProfileLearner)>);
 
 /// A tag's key in a camera's memories.
 pub(crate) type TagKey = (TagFamily, u32);
@@ -59,6 +81,8 @@ pub(crate) struct CameraProfile {
     frames: u64,
     /// The frame count at which it is next rebuilt.
     next_build: u64,
+    /// The rebuild under way beside the frame loop (see the module docs).
+    pending: Option<PendingBuild>,
 }
 
 impl Default for CameraProfile {
@@ -70,6 +94,7 @@ impl Default for CameraProfile {
             excess: widening_switch().then(ModelExcess::default),
             frames: 0,
             next_build: 0,
+            pending: None,
         }
     }
 }
@@ -135,11 +160,47 @@ impl CameraProfile {
             }
         }
         self.frames += 1;
-        if self.frames >= self.next_build {
-            if let Some(p) = self.learner.build(self.choice.as_ref()) {
-                self.profile = Some(Arc::new(p));
-            }
+        self.take_due_build();
+        if self.frames >= self.next_build && self.pending.is_none() {
+            self.rebuild();
             self.next_build = (2 * self.frames).min(self.frames + MAX_REBUILD_INTERVAL);
+        }
+    }
+
+    /// Rebuilds the profile: in this frame, or with the formation's search beside the frame
+    /// loop on a copy of the learner (see the module docs; in this frame if no thread starts).
+    fn rebuild(&mut self) {
+        if ProfileLearner::searches_formation() {
+            let (mut copy, keep, (tx, rx)) = (self.learner.clone(), self.choice, mpsc::channel());
+            let spawned = std::thread::Builder::new().name("edge-profile-build".into()).spawn(move || {
+                let built = copy.build(keep.as_ref());
+                let _ = tx.send((built, copy));
+            });
+            match spawned {
+                Ok(_) => {
+                    self.pending = Some((self.frames + BUILD_LAG_FRAMES, rx));
+                    return;
+                }
+                Err(e) => tracing::warn!("cannot start an edge profile build beside the frame loop: {e}"),
+            }
+        }
+        if let Some(p) = self.learner.build(self.choice.as_ref()) {
+            self.profile = Some(Arc::new(p));
+        }
+    }
+
+    /// Takes the rebuild under way into the fits when its frame has come, waiting for it if
+    /// it has not finished (see the module docs).
+    fn take_due_build(&mut self) {
+        let Some((_, rx)) = self.pending.take_if(|(due, _)| self.frames >= *due) else { return };
+        match rx.recv() {
+            Ok((built, copy)) => {
+                self.learner.take_search_start(&copy);
+                if let Some(p) = built {
+                    self.profile = Some(Arc::new(p));
+                }
+            }
+            Err(_) => tracing::warn!("an edge profile build ended without a result"),
         }
     }
 

@@ -64,6 +64,8 @@ pub struct TagSolution {
     pub camera_pose_parts: Vec<(usize, Matrix3<f64>)>,
     /// Per view used: what offsets of its four edge lines do to the solve (the edge model's
     /// error shared by an edge's two corners, `measure`'s model error; see [`ViewShift`]).
+    /// Empty unless [`corners_correlated`]: only that model error reads them, and their edge
+    /// Jacobians cost a solve's hot path for nothing otherwise.
     pub view_shifts: Vec<ViewShift>,
     /// Reprojection RMS over the views used, pixels (per axis).
     pub rms_px: f64,
@@ -374,7 +376,7 @@ fn tag_solution(
         covariance: cov,
         noise_covariance: noise_cov,
         camera_pose_parts,
-        view_shifts: shift::view_shifts(&edge_jacobians(problem, &best.pose), &h_inv),
+        view_shifts: if corners_correlated() { shift::view_shifts(&edge_jacobians(problem, &best.pose), &h_inv) } else { Vec::new() },
         rms_px: (ssr / n as f64).sqrt(),
         views: problem.views.len(),
         rejected_views: rejected,
@@ -383,6 +385,17 @@ fn tag_solution(
         iterations,
         warm_started,
     })
+}
+
+/// Each view's [`ViewShift`] for a tag of edge `size_mm` at `pose` seen in every one of
+/// `views` (none rejected), whatever [`corners_correlated`] says: what a solve at `pose`
+/// would hand over with the switch on. `None` when a corner is behind a camera or the normal
+/// equations are singular. For tests of the model error.
+#[cfg(test)]
+pub(crate) fn view_shifts_at(views: &[TagView], size_mm: f64, pose: &Pose) -> Option<Vec<ViewShift>> {
+    let problem = TagProblem { views: views.iter().enumerate().collect(), corners: tag_corners(size_mm) };
+    let h_inv = problem.evaluate(pose, true)?.jtj.try_inverse()?;
+    Some(shift::view_shifts(&edge_jacobians(&problem, pose), &h_inv))
 }
 
 /// Each view's edges' Jacobians (tag pose step), by input index: row `i` the edge's normal

@@ -389,3 +389,17 @@ fn class_of(s: &FormationSample) -> usize {
 fn refit_ssr(edge: &[&FormationSample], model: impl Fn(&FormationSample, f64) -> (f64, f64)) -> Option<f64> {
     edge_refit_ssr(edge.iter().map(|&s| (f64::from(s.d), f64::from(s.v), s)), model)
 }
+
+/// The search's start handed between copies of a camera's samples (a build beside the frame
+/// loop searches on a copy: `crate::learned`).
+impl FormationLearner {
+    /// The light last found (the next search's start).
+    pub(super) fn warm_light(&self) -> Option<Light> {
+        self.warm
+    }
+
+    /// Starts the next search from `light`.
+    pub(super) fn start_from(&mut self, light: Option<Light>) {
+        self.warm = light;
+    }
+}

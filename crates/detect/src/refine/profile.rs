@@ -419,6 +419,19 @@ impl ProfileLearner {
         self.build_in(class_mode(), keep)
     }
 
+    /// Whether a build searches the formation's light (`TAGDEFLECT_EDGE_MODEL=formation` /
+    /// `formation-sites`): dozens of trials over the kept samples, so a camera runs its
+    /// rebuilds beside the frame loop on a copy of the learner (`crate::learned`).
+    pub fn searches_formation() -> bool {
+        matches!(kernel_mode(), 3 | 4)
+    }
+
+    /// After a build on a copy of this learner (`done`, see [`Self::searches_formation`]):
+    /// the light it found is the next search's start here.
+    pub fn take_search_start(&mut self, done: &ProfileLearner) {
+        self.formation.start_from(done.formation.warm_light());
+    }
+
     /// [`ProfileLearner::build`] in classing mode `mode`.
     pub(super) fn build_in(&mut self, mode: u8, keep: Option<&ClassChoice>) -> Option<EdgeProfile> {
         if self.edges < MIN_EDGES {

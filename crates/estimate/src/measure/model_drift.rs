@@ -227,6 +227,7 @@ pub(super) fn residuals_kept() -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tag_pose::view_shifts_at;
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
 
@@ -350,7 +351,8 @@ mod tests {
                 // is taken for an outlier.
                 let sol = solve_tag(&views, size, Some(&tag), Some(noise_px + 2.0 * start_px + 10.0 * step_px)).expect("solves");
                 assert!(sol.rejected_views.is_empty());
-                let now = set_residuals((&views, &[0, 1, 2]), (&sol.rejected_views, &sol.view_shifts), &[0; 3], &sol.tag_to_world, size);
+                let shifts = view_shifts_at(&views, size, &sol.tag_to_world).expect("in front");
+                let now = set_residuals((&views, &[0, 1, 2]), (&sol.rejected_views, &shifts), &[0; 3], &sol.tag_to_world, size);
                 drift.observe(&mut kept, now);
                 if set >= 2 {
                     for c in 0..3 {
