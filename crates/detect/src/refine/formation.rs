@@ -52,7 +52,8 @@
 //! kernel's solve ([`FormationLearner::learn`], one active-set round), the held-out residuals,
 //! the choice's position scores and the edge fit with the formation (`profile_fit`). The
 //! profile, which learns clipped pixels as values and so holds their average clipped shape,
-//! is scored on them as values, as it fits them.
+//! is scored on them as values, as it fits them; its candidates in the choice are learned
+//! from the unclipped samples.
 
 use nalgebra::Vector2;
 
@@ -408,13 +409,17 @@ impl FormationLearner {
     /// learned on the other half of the edges: the shape residual ([`edge_refit_ssr`], on the
     /// unclipped samples) and, of the edges seen at two phases or more, the position score
     /// ([`edge_phase_ssr`]; the formation's clipped samples censored, the profile's taken as
-    /// values, as each is fitted). `None` when a half's models cannot be learned.
+    /// values, as each is fitted). `None` when a half's models cannot be learned — the
+    /// profile's too when the unclipped samples leave its nodes empty (a strongly sharpened
+    /// edge's clipped overshoot: that camera keeps the profile).
     fn held_out_edge_scores(&self, light: &Light, after: Option<bool>) -> Option<(Vec<[f64; 3]>, Vec<[f64; 3]>)> {
         let (mut shape, mut position) = (Vec::new(), Vec::new());
         for fold in 0..2 {
             let kernel = self.kernel_of(light, after, Some(1 - fold))?;
-            // The profile learns the clipped pixels as values, as it does from the frames.
-            let profiles = FoldProfiles::learn(self.kept.iter().filter(|s| half(s.edge) != fold))?;
+            // The profile's candidates from the unclipped samples (learned from the clipped ones
+            // as values as well, they took the formation on the sharpened scenes, worse:
+            // docs/accuracy.md, "The formation chosen by position").
+            let profiles = FoldProfiles::learn(self.kept.iter().filter(|s| half(s.edge) != fold && s.clip == 0))?;
             let mut test: Vec<&FormationSample> = self.kept.iter().filter(|s| half(s.edge) == fold).collect();
             test.sort_by_key(|s| s.edge);
             for edge in test.chunk_by(|a, b| a.edge == b.edge) {
