@@ -75,6 +75,7 @@ pub fn formation_scenes() -> Vec<(&'static str, &'static str, SimParams)> {
 #[test]
 #[ignore = "a measurement of several minutes: run with --ignored --nocapture"]
 fn accuracy_per_formation_table() {
+    log_to_stderr();
     let dir = tempfile::tempdir().unwrap();
     let mut rows = Vec::new();
     let mut sharp_rms = None;
@@ -113,6 +114,16 @@ fn accuracy_per_formation_table() {
     }
     let expected = formation_scenes().iter().enumerate().filter(|(k, (name, _, _))| chosen(*k, name)).count();
     assert_eq!(rows.len(), expected);
+}
+
+/// The product's log on stderr when `RUST_LOG` is set: e.g.
+/// `RUST_LOG=tagdeflect_detect::refine::formation=debug` prints each camera's formation
+/// choice with its held-out scores.
+fn log_to_stderr() {
+    if std::env::var_os("RUST_LOG").is_some() {
+        let filter = tracing_subscriber::EnvFilter::from_default_env();
+        let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    }
 }
 
 /// The displacement errors' RMS per world axis (x along the beam, y the cameras' depth, z

@@ -358,6 +358,32 @@ impl NormalSums {
     }
 }
 
+/// Which bound the camera clipped pixel `index` at: +1 at its top level (255), −1 at 0, 0
+/// not clipped (the same pixels as `kernel2d::clipped`).
+pub(super) fn clip_side(image: &GrayImage, index: usize) -> i8 {
+    match image.data.get(index) {
+        Some(255) => 1,
+        Some(0) => -1,
+        _ => 0,
+    }
+}
+
+/// The residual `model − value` of a pixel clipped at side `side` ([`clip_side`]), censored
+/// (Tobit-style): a clipped pixel says only that the light was at least its level (top) or
+/// at most it (bottom), so a model on that side of it is not wrong there (residual 0) and a
+/// model on the other side is wrong by the whole difference. Dropping such pixels (as the
+/// linear kernel's fit did) throws away that one-sided constraint, which on a sharpened
+/// edge's overshoot is where the shape is; fitting them as values pulls the model down to the
+/// clip. `side` 0: the residual as it is.
+#[inline(always)]
+pub(super) fn censored_residual(r_model_minus_value: f64, side: i8) -> f64 {
+    match side {
+        1 if r_model_minus_value >= 0.0 => 0.0,
+        -1 if r_model_minus_value <= 0.0 => 0.0,
+        _ => r_model_minus_value,
+    }
+}
+
 /// Checks a fitted edge and turns it into a line.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn finish(

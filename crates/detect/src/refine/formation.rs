@@ -27,18 +27,43 @@
 //! (each well-fitted edge's pixels as `(d, (I − B)/C)`), kept in a rolling store so the
 //! parameters follow the frames; each search starts from the last one found.
 //!
-//! **The choice.** The model replaces the learned profile for a camera only where it predicts
-//! held-out edges better, beyond [`DECISION_SE`] standard errors of the per-edge differences
-//! (each edge's levels and shift refitted, as the profile classes are chosen,
-//! [`super::profile_classes`]), against the better of the pooled profile and the classes'
-//! own profiles learned on the same halves: a camera never gets the worse of the two.
+//! **The choice.** The model replaces the learned profile for a camera only where it fits
+//! held-out edges better (the better of the pooled profile and the classes' own profiles
+//! learned on the same halves: a camera never gets the worse of the two), judged first by
+//! **position**, then by shape:
+//! - the *position score* of a held-out edge ([`edge_phase_ssr`]) is how much of its residual
+//!   a shift per quarter-pixel of sub-pixel phase (where the edge crosses the pixel grid)
+//!   removes beyond one shift for the whole edge. A wrong model's position bias depends on
+//!   the phase, so the phases' shifts disagree; a right one's agree up to the noise, whose
+//!   share is the same for both models on the same pixels, and cancels in the per-edge
+//!   differences. What the displacement needs is exactly this part: a bias common to every
+//!   phase moves an edge alike in every frame and cancels in a displacement, one that
+//!   changes with the phase moves with the tag. The shape residual (one shift; [`edge_refit_ssr`])
+//!   weighs every misfit alike, one that moves no edge as much as one that does: on the
+//!   fill-factor scene the search found the aperture yet the shape kept the profile;
+//! - the formation is refused when its position scores are higher by more than
+//!   [`DECISION_SE`] standard errors of the per-edge differences; otherwise taken when its
+//!   shape residual is lower by as much (as before), or when its position scores are lower by
+//!   as much and its shape residual no higher. Taken on position alone (shape worse), it cost
+//!   the fill-factor scene of a second seed 0.0047 → 0.0050 mm: a position gain of 3–4
+//!   standard errors on a few builds' edges is not enough against a worse shape
+//!   (docs/accuracy.md, "The formation chosen by position").
+//!
+//! **Clipped pixels** (at the sensor's 0 or top level: a sharpened edge's overshoot) are kept
+//! censored, not dropped: such a pixel says only that the light was at or beyond its level, so
+//! a model beyond it is not wrong there (`fit::censored_residual`, Tobit-style). So in the
+//! kernel's solve ([`FormationLearner::learn`], one active-set round), the held-out residuals,
+//! the choice's position scores and the edge fit with the formation (`profile_fit`). The
+//! profile, which learns clipped pixels as values and so holds their average clipped shape,
+//! is scored on them as values, as it fits them; its candidates in the choice are learned
+//! from the unclipped samples.
 
 use nalgebra::Vector2;
 
-use super::fit::phi_pdf;
+use super::fit::{censored_residual, phi_pdf};
 use super::kernel2d::{area, offsets, Kernel2d, KernelLearner, SITES, TAPS};
 use super::profile::{interpolate, min_class_node_weight, min_node_weight, node_px, nodes, Nodes, RANGE_PX};
-use super::profile_classes::{edge_refit_ssr, gain_in_se, DECISION_SE};
+use super::profile_classes::{edge_phase_ssr, edge_refit_ssr, gain_in_se, DECISION_SE};
 
 #[cfg(test)]
 mod tests;
@@ -150,7 +175,8 @@ fn row_of(light: &Light, normal: &Vector2<f64>, d: f64) -> [f64; TAPS] {
 }
 
 /// One kept sample: its edge (a running count), mosaic site, the edge's normal, its distance
-/// from the fitted edge (pixels) and its normalised value.
+/// from the fitted edge (pixels), its normalised value and whether the camera clipped it (+1:
+/// the light was at least `v`, −1: at most; 0 not clipped; see `fit::censored_residual`).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct FormationSample {
     edge: u32,
@@ -158,12 +184,23 @@ pub(super) struct FormationSample {
     normal: [f32; 2],
     d: f32,
     v: f32,
+    clip: i8,
 }
 
 impl FormationSample {
     fn normal(&self) -> Vector2<f64> {
         Vector2::new(f64::from(self.normal[0]), f64::from(self.normal[1]))
     }
+
+    /// The residual of the model's value `model` here, censored where the sample is clipped.
+    fn censored(&self, model: f64) -> f64 {
+        censored_residual(model - f64::from(self.v), self.clip)
+    }
+}
+
+/// A kernel's prediction from the taps' responses `row`.
+fn predict(kernel: &[f64; TAPS], row: &[f64; TAPS]) -> f64 {
+    kernel.iter().zip(row).map(|(k, r)| k * r).sum()
 }
 
 /// The half (0 or 1) edge `edge` falls in (a hash of its count: a tag's edges come in turn).
@@ -181,9 +218,17 @@ pub struct FormationLearner {
 }
 
 impl FormationLearner {
-    /// Keeps a sample (rolling: once full, a newer sample replaces a pseudo-random older one).
-    pub(super) fn push(&mut self, site: usize, normal: &Vector2<f64>, d: f64, v: f64) {
-        let s = FormationSample { edge: self.edge, site: site as u8, normal: [normal.x as f32, normal.y as f32], d: d as f32, v: v as f32 };
+    /// Keeps a sample, clipped on side `clip` of `v` (0: not clipped) (rolling: once full, a
+    /// newer sample replaces a pseudo-random older one).
+    pub(super) fn push(&mut self, site: usize, normal: &Vector2<f64>, d: f64, v: f64, clip: i8) {
+        let s = FormationSample {
+            edge: self.edge,
+            site: site as u8,
+            normal: [normal.x as f32, normal.y as f32],
+            d: d as f32,
+            v: v as f32,
+            clip,
+        };
         self.added += 1;
         if self.kept.len() < MAX_KEPT {
             self.kept.push(s);
@@ -224,15 +269,14 @@ impl FormationLearner {
     /// Per held-out edge, the residual sums of squares of its samples after `light` with no
     /// kernel after the pixel and with the kernels learned on the other half of the edges.
     fn identity_scores(&self, light: &Light, per_site: bool) -> Option<Vec<[f64; 3]>> {
-        let kernels = [self.kernel_of(light, Some(per_site), Some(0))?, self.kernel_of(light, Some(per_site), Some(1))?];
+        let rows = self.rows(light);
+        let kernels = [self.learn(&rows, per_site, Some(0))?, self.learn(&rows, per_site, Some(1))?];
         let mut edges: std::collections::BTreeMap<u32, [f64; 3]> = std::collections::BTreeMap::new();
-        for s in &self.kept {
-            let row = row_of(light, &s.normal(), f64::from(s.d));
-            let k = kernels[1 - half(s.edge)].site(usize::from(s.site));
-            let p: f64 = k.iter().zip(&row).map(|(k, r)| k * r).sum();
+        for (s, row) in self.kept.iter().zip(&rows) {
+            let p = predict(kernels[1 - half(s.edge)].site(usize::from(s.site)), row);
             let e = edges.entry(s.edge).or_default();
-            e[0] += (f64::from(s.v) - row[TAPS / 2]).powi(2);
-            e[1] += (f64::from(s.v) - p).powi(2);
+            e[0] += s.censored(row[TAPS / 2]).powi(2);
+            e[1] += s.censored(p).powi(2);
         }
         Some(edges.into_values().collect())
     }
@@ -241,27 +285,47 @@ impl FormationLearner {
     /// given): one, or one per site with `Some(true)`; `None`: none after the pixel.
     fn kernel_of(&self, light: &Light, after: Option<bool>, half_only: Option<usize>) -> Option<Kernel2d> {
         let Some(per_site) = after else { return Some(Kernel2d::identity().with_light(*light)) };
+        self.learn(&self.rows(light), per_site, half_only).map(|k| k.with_light(*light))
+    }
+
+    /// Each kept sample's taps' responses after `light`.
+    fn rows(&self, light: &Light) -> Vec<[f64; TAPS]> {
+        self.kept.iter().map(|s| row_of(light, &s.normal(), f64::from(s.d))).collect()
+    }
+
+    /// The kernels solved from the samples (their taps' responses `rows`) of half `half_only`
+    /// (all: `None`), the clipped ones censored by one active-set round: solved without them,
+    /// then again with those the first solution puts on the wrong side of their bound, at the
+    /// bound (`fit::censored_residual`).
+    fn learn(&self, rows: &[[f64; TAPS]], per_site: bool, half_only: Option<usize>) -> Option<Kernel2d> {
+        let chosen = |s: &FormationSample| half_only.is_none_or(|h| half(s.edge) == h);
         let mut learner = KernelLearner::default();
-        for s in self.kept.iter().filter(|s| half_only.is_none_or(|h| half(s.edge) == h)) {
-            learner.add_row(usize::from(s.site), &row_of(light, &s.normal(), f64::from(s.d)), f64::from(s.v));
+        for (s, row) in self.kept.iter().zip(rows).filter(|(s, _)| s.clip == 0 && chosen(s)) {
+            learner.add_row(usize::from(s.site), row, f64::from(s.v));
         }
-        learner.solve(per_site).map(|k| k.with_light(*light))
+        let first = learner.solve(per_site)?;
+        let mut wrong_side = 0;
+        for (s, row) in self.kept.iter().zip(rows).filter(|(s, _)| s.clip != 0 && chosen(s)) {
+            if s.censored(predict(first.site(usize::from(s.site)), row)) != 0.0 {
+                learner.add_row(usize::from(s.site), row, f64::from(s.v));
+                wrong_side += 1;
+            }
+        }
+        if wrong_side == 0 {
+            return Some(first);
+        }
+        learner.solve(per_site)
     }
 
     /// The held-out residual sum of squares of `light`: the kernels solved on each half of
-    /// the edges, the other half's samples predicted (`None`: too few samples).
+    /// the edges, the other half's samples predicted, clipped ones censored (`None`: too few
+    /// samples).
     pub(super) fn held_out_ssr(&self, light: &Light, per_site: bool) -> Option<f64> {
-        let rows: Vec<[f64; TAPS]> = self.kept.iter().map(|s| row_of(light, &s.normal(), f64::from(s.d))).collect();
-        let mut learners = [KernelLearner::default(), KernelLearner::default()];
-        for (s, row) in self.kept.iter().zip(&rows) {
-            learners[half(s.edge)].add_row(usize::from(s.site), row, f64::from(s.v));
-        }
-        let kernels = [learners[0].solve(per_site)?, learners[1].solve(per_site)?];
+        let rows = self.rows(light);
+        let kernels = [self.learn(&rows, per_site, Some(0))?, self.learn(&rows, per_site, Some(1))?];
         let mut ssr = 0.0;
         for (s, row) in self.kept.iter().zip(&rows) {
-            let k = kernels[1 - half(s.edge)].site(usize::from(s.site));
-            let p: f64 = k.iter().zip(row).map(|(k, r)| k * r).sum();
-            ssr += (f64::from(s.v) - p).powi(2);
+            ssr += s.censored(predict(kernels[1 - half(s.edge)].site(usize::from(s.site)), row)).powi(2);
         }
         Some(ssr)
     }
@@ -318,34 +382,68 @@ impl FormationLearner {
         Some((best, best_cost))
     }
 
-    /// Whether the formation of `light` predicts held-out edges better than the profile, beyond
-    /// [`DECISION_SE`] standard errors (see the module docs).
+    /// Whether the formation of `light` is to replace the profile, from held-out edges (the
+    /// module docs): refused where its position scores are worse beyond [`DECISION_SE`]
+    /// standard errors; taken where its shape residual is better by as much, or its position
+    /// scores are and its shape residual is no worse.
     fn beats_the_profile(&self, light: &Light, after: Option<bool>) -> bool {
-        let mut scores: Vec<[f64; 3]> = Vec::new();
+        let Some((shape, position)) = self.held_out_edge_scores(light, after) else { return false };
+        if shape.len() < 2 * MIN_SCORED_EDGES {
+            return false;
+        }
+        let gain = |scores: &[[f64; 3]]| {
+            let (pooled, own): (f64, f64) = scores.iter().fold((0.0, 0.0), |(p, o), s| (p + s[0], o + s[1]));
+            gain_in_se(scores, usize::from(own < pooled), 2)
+        };
+        let shape_se = gain(&shape);
+        let position_se = if position.len() >= 2 * MIN_SCORED_EDGES { gain(&position) } else { 0.0 };
+        let wins = position_se > -DECISION_SE && (shape_se > DECISION_SE || (position_se > DECISION_SE && shape_se >= 0.0));
+        tracing::debug!(
+            edges = shape.len(),
+            position_edges = position.len(),
+            shape_se,
+            position_se,
+            wins,
+            "image formation against the profile, held out"
+        );
+        wins
+    }
+
+    /// Per held-out edge, the profile's (pooled, the classes' own) and the formation's scores
+    /// learned on the other half of the edges: the shape residual ([`edge_refit_ssr`], on the
+    /// unclipped samples) and, of the edges seen at two phases or more, the position score
+    /// ([`edge_phase_ssr`]; the formation's clipped samples censored, the profile's taken as
+    /// values, as each is fitted). `None` when a half's models cannot be learned — the
+    /// profile's too when the unclipped samples leave its nodes empty (a strongly sharpened
+    /// edge's clipped overshoot: that camera keeps the profile).
+    fn held_out_edge_scores(&self, light: &Light, after: Option<bool>) -> Option<(Vec<[f64; 3]>, Vec<[f64; 3]>)> {
+        let (mut shape, mut position) = (Vec::new(), Vec::new());
         for fold in 0..2 {
-            let Some(kernel) = self.kernel_of(light, after, Some(1 - fold)) else { return false };
-            let Some(profiles) = FoldProfiles::learn(self.kept.iter().filter(|s| half(s.edge) != fold)) else { return false };
+            let kernel = self.kernel_of(light, after, Some(1 - fold))?;
+            // The profile's candidates from the unclipped samples (learned from the clipped ones
+            // as values as well, they took the formation on the sharpened scenes, worse:
+            // docs/accuracy.md, "The formation chosen by position").
+            let profiles = FoldProfiles::learn(self.kept.iter().filter(|s| half(s.edge) != fold && s.clip == 0))?;
             let mut test: Vec<&FormationSample> = self.kept.iter().filter(|s| half(s.edge) == fold).collect();
             test.sort_by_key(|s| s.edge);
             for edge in test.chunk_by(|a, b| a.edge == b.edge) {
-                let normal = edge[0].normal();
-                let along = kernel.along(&normal);
-                let formation = refit_ssr(edge, |s, d| along.value_slope(usize::from(s.site), d, false));
-                let pooled = refit_ssr(edge, |_, d| interpolate(&profiles.pooled, d));
-                let own = refit_ssr(edge, |s, d| interpolate(profiles.class(s), d));
-                if let (Some(f), Some(p), Some(o)) = (formation, pooled, own) {
-                    scores.push([p, o, f]);
+                let along = kernel.along(&edge[0].normal());
+                let formation = |s: &FormationSample, d| along.value_slope(usize::from(s.site), d, false);
+                let pooled = |_: &FormationSample, d| interpolate(&profiles.pooled, d);
+                let own = |s: &FormationSample, d| interpolate(profiles.class(s), d);
+                let unclipped: Vec<&FormationSample> = edge.iter().copied().filter(|s| s.clip == 0).collect();
+                if let (Some(f), Some(p), Some(o)) =
+                    (refit_ssr(&unclipped, formation), refit_ssr(&unclipped, pooled), refit_ssr(&unclipped, own))
+                {
+                    shape.push([p, o, f]);
+                }
+                let (f, p, o) = (phase_ssr(edge, true, formation), phase_ssr(edge, false, pooled), phase_ssr(edge, false, own));
+                if let (Some(f), Some(p), Some(o)) = (f, p, o) {
+                    position.push([p, o, f]);
                 }
             }
         }
-        if scores.len() < 2 * MIN_SCORED_EDGES {
-            return false;
-        }
-        let (pooled, own): (f64, f64) = scores.iter().fold((0.0, 0.0), |(p, o), s| (p + s[0], o + s[1]));
-        let profile = if own < pooled { 1 } else { 0 };
-        let gain = gain_in_se(&scores, profile, 2);
-        tracing::debug!(edges = scores.len(), gain_se = gain, "image formation against the profile, held out");
-        gain > DECISION_SE
+        Some((shape, position))
     }
 }
 
@@ -382,6 +480,13 @@ impl FoldProfiles {
 /// A sample's profile class: its edge's orientation × its mosaic site.
 fn class_of(s: &FormationSample) -> usize {
     4 * usize::from(s.normal[1].abs() > s.normal[0].abs()) + usize::from(s.site) % SITES
+}
+
+/// An edge's position score with `model(sample, d)` ([`edge_phase_ssr`]), its clipped samples
+/// censored when `censored` (else taken as values).
+fn phase_ssr(edge: &[&FormationSample], censored: bool, model: impl Fn(&FormationSample, f64) -> (f64, f64)) -> Option<f64> {
+    let clip = |s: &FormationSample| if censored { s.clip } else { 0 };
+    edge_phase_ssr(edge.iter().map(|&s| (f64::from(s.d), f64::from(s.v), clip(s), s)), model)
 }
 
 /// The residual sum of squares of an edge's samples fitted with `model(sample, d)`

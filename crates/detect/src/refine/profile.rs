@@ -28,7 +28,7 @@
 //! when the profile is first learned, and kept ([`ClassChoice`]).
 
 use super::band::{pixel_value, EdgeBand};
-use super::fit::Line;
+use super::fit::{clip_side, Line};
 use super::formation::FormationLearner;
 use super::kernel2d::{clipped, kernel_mode, site_of, Kernel2d, KernelLearner};
 pub(super) use super::profile_classes::pixel_class;
@@ -369,12 +369,13 @@ impl ProfileLearner {
                 continue;
             }
             let v = (pixel_value(image, p.index) - black) / contrast;
-            if kernel_mode() > 0 && !clipped(image, p.index) {
-                let site = site_of(p.index, image.width);
-                match kernel_mode() {
-                    1 | 2 => self.kernel.add(site, &band.normal, d, v),
-                    _ => self.formation.push(site, &band.normal, d, v),
-                }
+            let site = site_of(p.index, image.width);
+            match kernel_mode() {
+                0 => {}
+                1 | 2 if !clipped(image, p.index) => self.kernel.add(site, &band.normal, d, v),
+                1 | 2 => {}
+                // The formation keeps a clipped pixel censored, on the side of `v` it bounds.
+                _ => self.formation.push(site, &band.normal, d, v, clip_side(image, p.index) * contrast.signum() as i8),
             }
             self.add_sample(pixel_class(&band.normal, p.index, image.width), d, v);
         }

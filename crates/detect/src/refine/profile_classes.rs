@@ -28,7 +28,9 @@
 //! A half's profiles are learned from half the samples, so they are noisier than the ones
 //! used for the test: the decision leans to the simpler profile, which is the safe side.
 
-use nalgebra::{Matrix3, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector2, Vector3};
+
+use super::fit::censored_residual;
 
 use super::profile::{interpolate, min_class_node_weight, min_node_weight, node_d, node_px, nodes, tested_nodes, Nodes, RANGE_PX};
 
@@ -300,6 +302,87 @@ pub(super) fn edge_refit_ssr<K>(edge: impl Iterator<Item = (f64, f64, K)>, model
     Some((yy - beta.dot(&aty)).max(0.0))
 }
 
+/// Sub-pixel phase bins of an edge's position score ([`edge_phase_ssr`]): a quarter pixel
+/// each.
+const PHASE_BINS: usize = 4;
+/// Samples a phase bin needs to have its own shift.
+const MIN_BIN_SAMPLES: usize = 4;
+
+/// How far a model's fitted position of a held-out edge depends on where the edge crosses the
+/// pixel grid: the edge's samples `(d, v, clip, key)` (`clip` as `fit::clip_side`, in the
+/// sign of `v`; 0 where not censored) on the profile's tested nodes fitted twice with
+/// `(P, P′) = model(key, d)`, as `a + b · P(d) + c · P′(d)` (one shift) and with one shift
+/// `c_k` per quarter-pixel bin of the sample's phase `d − round(d)`; the residual sum the
+/// shifts per phase remove. A model whose response is right gives each bin the same shift,
+/// up to the noise (about `(k − 1) σ²` for `k` bins, whatever the model); a wrong one gives
+/// each phase its own bias, and removes more. Only bins with [`MIN_BIN_SAMPLES`] samples
+/// count; `None` when fewer than two have them (an edge at one phase says nothing of the
+/// bias across phases) or a fit is singular. Clipped samples are censored
+/// ([`censored_lsq`]).
+pub(super) fn edge_phase_ssr<K: Copy>(edge: impl Iterator<Item = (f64, f64, i8, K)>, model: impl Fn(K, f64) -> (f64, f64)) -> Option<f64> {
+    let (lo, hi) = (node_d(*tested_nodes().start()), node_d(*tested_nodes().end()));
+    let mut rows: Vec<(usize, f64, f64, f64, i8)> = Vec::new();
+    for (d, v, clip, key) in edge.filter(|s| (lo..=hi).contains(&s.0)) {
+        let bin = (((d - d.round() + 0.5) * PHASE_BINS as f64) as usize).min(PHASE_BINS - 1);
+        let (p, slope) = model(key, d);
+        rows.push((bin, p, slope, v, clip));
+    }
+    let mut counts = [0usize; PHASE_BINS];
+    rows.iter().for_each(|r| counts[r.0] += 1);
+    let used: Vec<usize> = (0..PHASE_BINS).filter(|&b| counts[b] >= MIN_BIN_SAMPLES).collect();
+    if used.len() < 2 {
+        return None;
+    }
+    rows.retain(|r| counts[r.0] >= MIN_BIN_SAMPLES);
+    let one: Vec<(Vec<f64>, f64, i8)> = rows.iter().map(|&(_, p, g, v, c)| (vec![1.0, p, g], v, c)).collect();
+    let per_bin: Vec<(Vec<f64>, f64, i8)> = rows
+        .iter()
+        .map(|&(bin, p, g, v, c)| {
+            let mut x = vec![1.0, p];
+            x.extend(used.iter().map(|&b| if b == bin { g } else { 0.0 }));
+            (x, v, c)
+        })
+        .collect();
+    Some((censored_lsq(&one)? - censored_lsq(&per_bin)?).max(0.0))
+}
+
+/// The residual sum of squares of the least-squares fit of `rows` (`(x, v, clip)`: the
+/// regressors, the value and the clipped side, as in [`edge_phase_ssr`]), the clipped rows
+/// censored (`fit::censored_residual`) by an active set: a clipped row enters the fit, at
+/// its bound, once a fit without it falls on the wrong side of that bound (at most four
+/// rounds, until no more enter); the residual sum counts a clipped row only where the last
+/// fit is on the wrong side of it. `None` when singular.
+pub(super) fn censored_lsq(rows: &[(Vec<f64>, f64, i8)]) -> Option<f64> {
+    let cols = rows.first()?.0.len();
+    let mut active = vec![false; rows.len()];
+    let mut ssr = 0.0;
+    for _ in 0..4 {
+        let (mut ata, mut aty) = (DMatrix::<f64>::zeros(cols, cols), DVector::<f64>::zeros(cols));
+        for ((x, v, clip), &on) in rows.iter().zip(&active) {
+            if *clip == 0 || on {
+                let x = DVector::from_column_slice(x);
+                ata += &x * x.transpose();
+                aty += *v * x;
+            }
+        }
+        let beta = ata.cholesky()?.solve(&aty);
+        ssr = 0.0;
+        let mut changed = false;
+        for ((x, v, clip), on) in rows.iter().zip(active.iter_mut()) {
+            let model: f64 = x.iter().zip(beta.iter()).map(|(a, b)| a * b).sum();
+            let r = censored_residual(model - v, *clip);
+            ssr += r * r;
+            if *clip != 0 && r != 0.0 && !*on {
+                (*on, changed) = (true, true);
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    Some(ssr)
+}
+
 /// Standard errors by which a candidate's held-out residual sum must fall below its simpler
 /// parent's to be taken (see [`sequential_choice`]).
 pub(super) const DECISION_SE: f64 = 3.0;
@@ -426,6 +509,93 @@ mod tests {
         let after = rms(&|k| smoothed[k] - class(node_d(k)));
         assert!(after < 0.7 * before, "smoothed error {after} against the node noise {before}");
         assert_eq!(smoothed_towards(&own, &parent, 0), own, "0 nodes: not smoothed");
+    }
+
+    /// `edges` edges' samples `(d, v)` of the profile `truth` as a camera sees near-aligned
+    /// edges at every phase: 6 columns across, 12 rows along, the edge tilted so that its rows'
+    /// phases cover a pixel; noise `noise` of the contrast.
+    fn edges_of(truth: &dyn Fn(f64) -> f64, edges: usize, noise: f64, seed: u64) -> Vec<Vec<(f64, f64)>> {
+        let mut seed = seed;
+        (0..edges)
+            .map(|_| {
+                let (phase, tilt) = (uniform(&mut seed), 0.09 + 0.02 * uniform(&mut seed));
+                let mut samples = Vec::new();
+                for r in 0..12 {
+                    for j in 0..6 {
+                        let d = -2.99 + phase + j as f64 + tilt * r as f64;
+                        samples.push((d, truth(d) + noise * gauss(&mut seed)));
+                    }
+                }
+                samples
+            })
+            .collect()
+    }
+
+    /// `f` and its slope by central differences.
+    fn with_slope(f: impl Fn(f64) -> f64) -> impl Fn(f64) -> (f64, f64) {
+        move |d| (f(d), (f(d + 1e-5) - f(d - 1e-5)) / 2e-5)
+    }
+
+    #[test]
+    fn the_position_score_tells_a_phase_bias_apart_where_the_shape_residual_ties() {
+        let truth = |d: f64| gaussian_esf(0.5, 0.0)(d);
+        let slope = move |d: f64| (truth(d + 1e-5) - truth(d - 1e-5)) / 2e-5;
+        // Model B: right at the pixel's centre and boundary, but shifted by 0.05 px × sin 2πφ at
+        // phase φ (the bias a wrong profile gives). Model A: a wide bump (0.18 of the contrast
+        // at most) on the edge, which moves every phase alike.
+        let b_model = with_slope(move |d| truth(d) + 0.05 * (std::f64::consts::TAU * d).sin() * slope(d));
+        let bump = |scale: f64| with_slope(move |d| truth(d) + scale * (-d * d / 4.5).exp());
+        let edges = edges_of(&truth, 160, 0.0, 3);
+        let shape = |m: &dyn Fn(f64) -> (f64, f64), e: &[(f64, f64)]| edge_refit_ssr(e.iter().map(|&(d, v)| (d, v, ())), |_, d| m(d));
+        let total = |m: &dyn Fn(f64) -> (f64, f64)| edges.iter().filter_map(|e| shape(m, e)).sum::<f64>();
+        // The bump scaled so that, noise-free, its shape residual equals model B's.
+        let scale = 0.1 * (total(&b_model) / total(&bump(0.1))).sqrt();
+        let a_model = bump(scale);
+        let noisy = edges_of(&truth, 160, 0.01, 4);
+        let (mut shapes, mut positions) = (Vec::new(), Vec::new());
+        for e in &noisy {
+            let phase = |m: &dyn Fn(f64) -> (f64, f64)| edge_phase_ssr(e.iter().map(|&(d, v)| (d, v, 0, ())), |_, d| m(d));
+            shapes.push([shape(&a_model, e).unwrap(), 0.0, shape(&b_model, e).unwrap()]);
+            positions.push([phase(&a_model).unwrap(), 0.0, phase(&b_model).unwrap()]);
+        }
+        let (shape_se, position_se) = (gain_in_se(&shapes, 2, 0), gain_in_se(&positions, 2, 0));
+        println!("bump {scale:.3}: A over B, shape {shape_se:.1} SE, position {position_se:.1} SE");
+        assert!(shape_se.abs() < DECISION_SE, "the shapes tie: {shape_se}");
+        assert!(position_se > 3.0 * DECISION_SE, "A's position bias is the smaller: {position_se}");
+        // An edge seen at one phase says nothing of the bias across phases.
+        let one_phase: Vec<(f64, f64, i8, ())> = (0..30).map(|k| (-1.9 + (k / 6) as f64 + 0.02 * (k % 6) as f64, 0.5, 0, ())).collect();
+        assert!(edge_phase_ssr(one_phase.into_iter(), |_, d| a_model(d)).is_none());
+    }
+
+    #[test]
+    fn a_clipped_edge_is_fitted_censored_where_it_is_clipped() {
+        // A sharpened edge (overshoots 8 % of the contrast) moved 0.13 px, its white overshoot
+        // clipped at 1.03; fitted as `a + b · P(d − s)` over trial shifts `s`.
+        let sharp = |d: f64| 2.0 * gaussian_esf(0.35, 0.0)(d) - gaussian_esf(0.8, 0.0)(d);
+        let truth = 0.13;
+        let mut seed = 9;
+        let samples: Vec<(f64, f64)> =
+            (0..120).map(|k| -3.0 + 0.05 * k as f64).map(|d| (d, sharp(d - truth) + 0.005 * gauss(&mut seed))).collect();
+        let clipped = |v: f64| if v >= 1.03 { (1.03, 1) } else { (v, 0) };
+        let fit = |s: f64, censored: bool| {
+            let rows: Vec<(Vec<f64>, f64, i8)> = samples
+                .iter()
+                .map(|&(d, v)| {
+                    let (v, clip) = clipped(v);
+                    (vec![1.0, sharp(d - s)], v, if censored { clip } else { 0 })
+                })
+                .collect();
+            censored_lsq(&rows).expect("a fit")
+        };
+        let best =
+            |censored: bool| (0..=300).map(|k| 0.001 * k as f64).min_by(|a, b| fit(*a, censored).total_cmp(&fit(*b, censored))).unwrap();
+        let (censored, as_values) = (best(true), best(false));
+        assert!(samples.iter().filter(|s| clipped(s.1).1 != 0).count() >= 5, "the overshoot is clipped");
+        println!("shift {truth}: censored {censored:.3}, clipped values as values {as_values:.3}");
+        assert!((censored - truth).abs() < 0.005, "censored: {censored}");
+        assert!((as_values - truth).abs() > 2.0 * (censored - truth).abs().max(0.002), "as values: {as_values}");
+        // The right model's residual at the truth is the noise's alone (120 samples of 0.005).
+        assert!(fit(truth, true) < 2.0 * 120.0 * 0.005f64.powi(2), "{}", fit(truth, true));
     }
 
     #[test]

@@ -13,7 +13,7 @@
 use nalgebra::{Matrix4, Vector4, Vector5};
 
 use super::band::{pixel_value, reference_levels, BandPixel, EdgeBand};
-use super::fit::{finish, Line};
+use super::fit::{censored_residual, clip_side, finish, Line};
 use super::kernel2d::{clipped, site_of, EdgeKernel};
 use super::lm::{minimize, EdgeModel};
 use super::profile::{pixel_class, EdgeProfile};
@@ -42,26 +42,33 @@ pub(super) fn fit_band_profile(image: &GrayImage, band: &EdgeBand, warm: Option<
         return None;
     }
     let [bl, c, blur] = warm.unwrap_or([black_ref, contrast0, super::DEFAULT_BLUR_PX]);
-    // The 2-D kernel is linear: a pixel the camera clipped is left out of its fit.
+    // The 2-D kernel is linear: a pixel the camera clipped is left out of its fit, except
+    // with the physical formation, which fits it censored (`fit::censored_residual`).
     let kernel = profile.kernel().map(|k| k.along(&band.normal));
-    let pixels: Vec<BandPixel> = band.pixels.iter().copied().filter(|p| kernel.is_none() || !clipped(image, p.index)).collect();
+    let censoring = profile.kernel().is_some_and(|k| k.light().is_some());
+    let pixels: Vec<BandPixel> =
+        band.pixels.iter().copied().filter(|p| kernel.is_none() || censoring || !clipped(image, p.index)).collect();
+    let clips: Vec<i8> = pixels.iter().map(|p| if censoring { clip_side(image, p.index) } else { 0 }).collect();
     let values: Vec<f64> = pixels.iter().map(|p| pixel_value(image, p.index)).collect();
     let aw: Vec<f64> = pixels.iter().map(|p| if p.white { along_white(profile, band, p.t, p.cell as usize) } else { 0.0 }).collect();
     let class_of = |i: usize| if kernel.is_some() { site_of(i, image.width) } else { pixel_class(&band.normal, i, image.width) };
     let classes: Vec<usize> = pixels.iter().map(|p| class_of(p.index)).collect();
-    let data = ProfileData { pixels: &pixels, values: &values, aw: &aw, classes: &classes, profile, kernel: kernel.as_ref() };
+    let data =
+        ProfileData { pixels: &pixels, values: &values, aw: &aw, classes: &classes, clips: &clips, profile, kernel: kernel.as_ref() };
     let (x, cost) = lm(band, &data, Vector4::new(0.0, 0.0, bl, c));
     let EdgeBand { a, dir, normal, bit_px, .. } = *band;
     finish(&Vector5::new(x[0], x[1], x[2], x[3], blur), &pixels, cost, contrast0, bit_px, a, dir, normal)
 }
 
-/// What a profile fit runs on: the band's pixels, their values, along-edge white factors and
-/// pixel classes (mosaic sites with a kernel), and the profile (or the 2-D kernel along this edge).
+/// What a profile fit runs on: the band's pixels, their values, along-edge white factors,
+/// pixel classes (mosaic sites with a kernel) and clipped sides (`fit::clip_side`, 0 where
+/// not censored), and the profile (or the 2-D kernel along this edge).
 struct ProfileData<'a> {
     pixels: &'a [BandPixel],
     values: &'a [f64],
     aw: &'a [f64],
     classes: &'a [usize],
+    clips: &'a [i8],
     profile: &'a EdgeProfile,
     kernel: Option<&'a EdgeKernel<'a>>,
 }
@@ -72,7 +79,7 @@ fn normal_equations(data: &ProfileData<'_>, x: &Vector4<f64>) -> (f64, Matrix4<f
     let (off, bl, c) = (x[1], x[2], x[3]);
     let (mut cost, mut jtj, mut jtr) = (0.0, Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
     let profile = data.profile;
-    for (((s, &value), &wa), &class) in data.pixels.iter().zip(data.values).zip(data.aw).zip(data.classes) {
+    for ((((s, &value), &wa), &class), &clip) in data.pixels.iter().zip(data.values).zip(data.aw).zip(data.classes).zip(data.clips) {
         let n = s.n * cs + s.t * sn - off;
         let model = |d: f64, mirrored: bool| match data.kernel {
             Some(k) => k.value_slope(class, d, mirrored),
@@ -84,7 +91,11 @@ fn normal_equations(data: &ProfileData<'_>, x: &Vector4<f64>) -> (f64, Matrix4<f
             val += wa * v2;
             slope -= wa * s2;
         }
-        let r = bl + c * val - value;
+        let r = censored_residual(bl + c * val - value, clip);
+        if r == 0.0 && clip != 0 {
+            // A clipped pixel the model agrees with: no residual, and no slope either.
+            continue;
+        }
         let dn_dang = -s.n * sn + s.t * cs;
         let j = Vector4::new(c * slope * dn_dang, -c * slope, 1.0, val);
         let w = s.weight;
@@ -139,8 +150,15 @@ mod tests {
                 let along = profile.kernel().expect("a kernel").along(&band.normal);
                 let aw = [if white { 0.83 } else { 0.0 }];
                 let values = [150.0];
-                let data =
-                    ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[1], profile: &profile, kernel: Some(&along) };
+                let data = ProfileData {
+                    pixels: &band.pixels,
+                    values: &values,
+                    aw: &aw,
+                    classes: &[1],
+                    clips: &[0],
+                    profile: &profile,
+                    kernel: Some(&along),
+                };
                 let model = ProfileModel { data: &data, len: band.len };
                 for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
                     let p = band.pixels[0];
@@ -163,7 +181,8 @@ mod tests {
             let band = one_pixel_band(t, n, white);
             let aw = [if white { 0.83 } else { 0.0 }];
             let values = [250.0];
-            let data = ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[3], profile: &profile, kernel: None };
+            let data =
+                ProfileData { pixels: &band.pixels, values: &values, aw: &aw, classes: &[3], clips: &[0], profile: &profile, kernel: None };
             let model = ProfileModel { data: &data, len: band.len };
             for x in [Vector4::<f64>::new(0.03, 0.2, 40.0, 150.0), Vector4::new(-0.05, -0.3, 35.0, 160.0)] {
                 let p = band.pixels[0];

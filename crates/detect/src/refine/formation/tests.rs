@@ -80,7 +80,7 @@ fn learner_of(light: &Light, edges: usize, noise: f64, seed: u64) -> FormationLe
                 let d = normal.x * x as f64 + normal.y * y as f64 - c;
                 if d.abs() < 2.9 {
                     let v = response(d, a, b, sigma).0 + noise * gauss(&mut seed);
-                    learner.push(((x & 1) + 2 * (y & 1)) as usize, &normal, d, v);
+                    learner.push(((x & 1) + 2 * (y & 1)) as usize, &normal, d, v, 0);
                 }
             }
         }
