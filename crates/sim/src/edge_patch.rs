@@ -29,6 +29,9 @@ pub struct StraightEdge {
     pub black: f32,
     /// Grey level (8 bits) on the normal's side.
     pub white: f32,
+    /// When set, the black side is a bar this wide (pixels), white again beyond it: a
+    /// tag's one-bit black border with white data bits inside it.
+    pub bar_px: Option<f64>,
 }
 
 /// The mean image of a patch and how its values are stored: each stored value is
@@ -83,7 +86,9 @@ fn sub_box_levels(edge: &StraightEdge, wf: usize, hf: usize, scale: usize) -> Ve
     (0..wf * hf)
         .map(|i| {
             let (x0, y0) = ((i % wf) as f64 * step - 0.5, (i / wf) as f64 * step - 0.5);
-            let white = box_share_beyond([x0, x0 + step], [y0, y0 + step], n, c);
+            let (xs, ys) = ([x0, x0 + step], [y0, y0 + step]);
+            let inner = edge.bar_px.map_or(0.0, |g| box_share_beyond(xs, ys, [-n[0], -n[1]], g - c));
+            let white = box_share_beyond(xs, ys, n, c) + inner;
             (edge.black as f64 + contrast * white) as f32
         })
         .collect()
@@ -134,13 +139,17 @@ mod tests {
     #[test]
     fn a_sharp_aligned_edge_is_the_pixels_area_and_a_blurred_one_its_gaussian() {
         // A horizontal edge at y = 10.3: row 10 (its pixel spans 9.5–10.5) is 20 % white.
-        let edge = StraightEdge { centre_px: [16.0, 10.3], angle_deg: 0.0, black: 28.0, white: 228.0 };
+        let edge = StraightEdge { centre_px: [16.0, 10.3], angle_deg: 0.0, black: 28.0, white: 228.0, bar_px: None };
         let p = SimParams { noise_sigma: 2.0, blur_sigma: 0.0, ..SimParams::default() };
         let patch = straight_edge_patch(&p, &edge, 32, 20);
         let at = |y: usize| patch.mean[y * 32 + 16] as f64;
         assert!((at(10) - (28.0 + 200.0 * 0.2)).abs() < 1e-3, "{}", at(10));
         assert_eq!((at(9), at(11)), (28.0, 228.0));
         assert_eq!((patch.step_grey, patch.top_grey, patch.read_noise_grey), (1.0, 255.0, 2.0));
+        // A bar 3.5 px wide: white again from y = 6.8, so row 7 (6.5–7.5) is 30 % white.
+        let bar = straight_edge_patch(&p, &StraightEdge { bar_px: Some(3.5), ..edge }, 32, 20);
+        assert!((bar.mean[7 * 32 + 16] as f64 - (28.0 + 200.0 * 0.3)).abs() < 1e-3, "{}", bar.mean[7 * 32 + 16]);
+        assert_eq!((bar.mean[6 * 32 + 16], bar.mean[8 * 32 + 16], bar.mean[10 * 32 + 16]), (228.0, 28.0, patch.mean[10 * 32 + 16]));
         // Blurred before the pixel: the pixel's mean of Φ((y − 10.3)/σ), by quadrature. The
         // optics' Gaussian sampled every half pixel (its sub-box grid at σ 0.7) over
         // half-pixel sub-boxes acts as a Gaussian of variance σ² + (1/2)²/12 (a sum over
