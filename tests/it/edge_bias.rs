@@ -31,17 +31,24 @@ use tagdeflect_detect::{
 use tagdeflect_sim::{render_frame_set, SimParams, SimRig};
 
 /// One edge seen in one frame: its key, angle to the grid (degrees, 0–45), sub-pixel phase
-/// (px, 0–1), and the normal offsets (px) at its ends `a`, `b`.
-struct EdgeSeen {
-    key: (usize, TagFamily, u32, usize),
-    set: u64,
-    angle_deg: f64,
-    phase_px: f64,
-    off_a: f64,
-    off_b: f64,
+/// (px, 0–1), and the normal offsets (px) at its ends `a`, `b`; for the edge's Cramér–Rao
+/// bound (`edge_bound::`) also its true geometry: the middle point (pixels), the length
+/// (px), and the direction (degrees, 0–360) of a line whose normal `(−sin, cos)` points out
+/// of the tag.
+pub(crate) struct EdgeSeen {
+    pub key: (usize, TagFamily, u32, usize),
+    pub set: u64,
+    pub angle_deg: f64,
+    pub phase_px: f64,
+    pub off_a: f64,
+    pub off_b: f64,
+    pub mid_px: [f64; 2],
+    pub length_px: f64,
+    pub outward_dir_deg: f64,
 }
 
 fn edges_of(set: u64, cam: usize, d: &Detection, truth: &[Point2<f64>; 4]) -> Vec<EdgeSeen> {
+    let centre = truth.iter().fold(Vector2::zeros(), |s, p| s + p.coords) / 4.0;
     (0..4)
         .map(|i| {
             let j = (i + 1) % 4;
@@ -54,7 +61,12 @@ fn edges_of(set: u64, cam: usize, d: &Detection, truth: &[Point2<f64>; 4]) -> Ve
             let mid = ta + 0.5 * (tb - ta);
             let across = if u.x.abs() > u.y.abs() { mid.y } else { mid.x };
             let phase_px = across - across.floor();
+            // The direction whose normal (−sin, cos) points away from the tag's centre.
+            let out = if n.dot(&(mid.coords - centre)) > 0.0 { u } else { -u };
             EdgeSeen {
+                mid_px: [mid.x, mid.y],
+                length_px: (tb - ta).norm(),
+                outward_dir_deg: out.y.atan2(out.x).to_degrees().rem_euclid(360.0),
                 key: (cam, d.family, d.id, i),
                 set,
                 angle_deg,
@@ -105,7 +117,7 @@ fn rig_detectors(rig: &SimRig) -> Arc<RigDetectors> {
 }
 
 /// Every edge of every matched tag over the scene's frame sets.
-fn measure(p: &SimParams) -> Vec<EdgeSeen> {
+pub(crate) fn measure(p: &SimParams) -> Vec<EdgeSeen> {
     let rig = SimRig::new(p).expect("sim rig");
     let shared = rig_detectors(&rig);
     let cams = rig.cameras();

@@ -25,6 +25,7 @@ mod detect_sim;
 mod docs;
 mod drift;
 mod edge_bias;
+mod edge_bound;
 mod faults;
 mod formations;
 mod gauges;

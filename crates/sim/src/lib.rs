@@ -13,6 +13,7 @@
 
 mod beam;
 mod drift;
+pub mod edge_patch;
 mod error;
 mod law;
 pub mod live_rig;

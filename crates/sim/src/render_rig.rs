@@ -85,18 +85,8 @@ impl SimRig {
 
     /// The camera's processing of the integrated pixels (`bayer`, `post_blur_px`,
     /// `sharpen`, in that order; see [`crate::render::formation`]).
-    fn after_pixels(&self, mut img: Vec<f32>, w: usize, h: usize) -> Vec<f32> {
-        let p = &self.params;
-        if p.bayer {
-            img = formation::bayer_demosaic_bilinear(&img, w, h);
-        }
-        if p.post_blur_px > 0.0 {
-            img = formation::blur_after_pixels(&img, w, h, p.post_blur_px);
-        }
-        if p.sharpen > 0.0 {
-            img = formation::convolve3x3(&img, w, h, &formation::sharpen_kernel(p.sharpen));
-        }
-        img
+    fn after_pixels(&self, img: Vec<f32>, w: usize, h: usize) -> Vec<f32> {
+        after_pixels_of(&self.params, img, w, h)
     }
 
     /// Renders camera `cam`'s image at `t_ns` (grey, the camera's size): digitised at the
@@ -188,6 +178,21 @@ impl SimRig {
             None => stored,
         }
     }
+}
+
+/// The camera's processing after the pixels of `p` (`bayer`, `post_blur_px`, `sharpen`, in
+/// that order): what [`SimRig::render`] applies, shared with [`crate::edge_patch`].
+pub(crate) fn after_pixels_of(p: &crate::SimParams, mut img: Vec<f32>, w: usize, h: usize) -> Vec<f32> {
+    if p.bayer {
+        img = formation::bayer_demosaic_bilinear(&img, w, h);
+    }
+    if p.post_blur_px > 0.0 {
+        img = formation::blur_after_pixels(&img, w, h, p.post_blur_px);
+    }
+    if p.sharpen > 0.0 {
+        img = formation::convolve3x3(&img, w, h, &formation::sharpen_kernel(p.sharpen));
+    }
+    img
 }
 
 /// The grey scene `img` seen by an RGGB sensor delivering its raw 8-bit mosaic

@@ -66,7 +66,7 @@ pub(crate) fn mix(a: u64, b: u64) -> u64 {
 
 /// The optics before the pixels of `params` (Gaussian, defocus disk, astigmatism, fill
 /// factor).
-fn optics_spec(params: &SimParams) -> OpticsSpec {
+pub(crate) fn optics_spec(params: &SimParams) -> OpticsSpec {
     OpticsSpec {
         gaussian_sigma_px: params.blur_sigma,
         defocus_radius_px: params.defocus_radius_px,
